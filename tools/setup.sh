@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Set up everything aimbench needs on a fresh Debian 12 machine with Python >= 3.11:
+# the Debian packages (as root, with apt-get), then .venv with the project and its test extras.
+# Idempotent: packages already installed are not fetched again.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+# Why each Debian package:
+#   libusb-1.0-0                       open3d's Python module links against it
+#   gcc-avr avr-libc arduino-core-avr  build the Arduino Mega firmware (bench_fw/)
+#   libsimavr-dev libelf-dev pkg-config  build the simavr hardware-in-the-loop harness
+#   make g++                           the firmware's host-side unit tests and the harness
+DEBS=(libusb-1.0-0 gcc-avr avr-libc arduino-core-avr libsimavr-dev libelf-dev pkg-config make g++)
+
+PYTHON=${PYTHON:-}
+if [ -z "$PYTHON" ]; then
+  for candidate in python3.11 python3.12 python3.13 python3; do
+    if command -v "$candidate" >/dev/null 2>&1 &&
+       "$candidate" -c 'import sys; sys.exit(sys.version_info < (3, 11))' 2>/dev/null; then
+      PYTHON=$candidate; break
+    fi
+  done
+fi
+[ -n "$PYTHON" ] || { echo "setup: error: need Python >= 3.11 on PATH (or set PYTHON=...)" >&2; exit 1; }
+# Debian's own Python needs python3-venv for `-m venv`.
+"$PYTHON" -c 'import ensurepip, venv' 2>/dev/null || DEBS+=(python3-venv)
+
+missing=()
+for pkg in "${DEBS[@]}"; do
+  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  if [ "$(id -u)" -eq 0 ]; then
+    echo "setup: installing Debian packages: ${missing[*]}"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq
+    apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
+  else
+    echo "setup: error: missing Debian packages: ${missing[*]}; run as root or: sudo apt-get install ${missing[*]}" >&2
+    exit 1
+  fi
+fi
+
+if [ ! -x .venv/bin/python ]; then
+  echo "setup: creating .venv with $PYTHON"
+  "$PYTHON" -m venv .venv
+fi
+.venv/bin/python -m pip install -q --upgrade pip
+echo "setup: installing aimbench and its test extras into .venv"
+.venv/bin/python -m pip install -q -e '.[test]'

@@ -1,0 +1,1 @@
+"""The bench, simulated or real: VLP-16 data path and emulation, MuJoCo twin, stage driver."""
