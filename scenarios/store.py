@@ -1,0 +1,515 @@
+"""The result store of one run: an SQLite file in the run folder, crash-safe and resumable.
+
+Why SQLite: it is in the standard library, a single file per run, and its write-ahead log (WAL)
+with ``synchronous=FULL`` means a committed transaction survives a SIGKILL or a power cut. Each
+scan's result is committed in its own transaction, so an interrupted run loses at most the scan
+that was being estimated, and ``UNIQUE(reference, scan)`` makes a duplicate impossible: `--resume`
+asks the store which scans are done and takes only the rest.
+
+Layout of ``run.sqlite`` (SI units throughout; the CSV/Parquet exports add edge-unit columns):
+
+- ``meta(key, value)``: JSON values: ``plan`` (the `Plan`), ``config`` (command-line settings:
+  bench, method, seed, ...), ``bench`` (what the bench says about itself), ``versions``
+  (software), ``status`` (created, running, interrupted, failed, completed), ``failure`` (where and
+  why a run failed), ``created_at``/``updated_at`` (Unix time, s).
+- ``reference``: one row per plan reference: the commanded yaw_rad/x_m, mount and via (JSON),
+  label, status (pending, running, done, failed), where the stages said they arrived, times, error.
+- ``scan``: one row per (reference, scan): the estimate's status and pose (m, rad), its standard
+  deviations and covariance (JSON 6x6, order x, y, z, roll, tilt, yaw), the twin's truth where
+  there is one, scan facts (points, completeness), timing (s) and diagnostics (JSON).
+- ``event``: a log of what happened (moves, failures, interruptions, resumes).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sqlite3
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from scenarios.plans import Plan, Reference
+from twin.errors import AimbenchError
+from twin.pose import POSE_FIELDS, Pose
+
+#: File name of the store inside a run folder.
+STORE_NAME = "run.sqlite"
+SCHEMA_VERSION = 1
+
+#: Run statuses, in the order a run normally goes through them.
+RUN_STATUSES = ("created", "running", "interrupted", "failed", "completed")
+
+_POSE_COLS = ("x_m", "y_m", "z_m", "roll_rad", "tilt_rad", "yaw_rad")
+_STD_COLS = tuple(f"std_{c}" for c in _POSE_COLS)
+_TRUTH_COLS = tuple(f"truth_{c}" for c in _POSE_COLS)
+
+_SCHEMA = f"""
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS reference (
+    reference INTEGER PRIMARY KEY,
+    yaw_rad REAL NOT NULL,
+    x_m REAL NOT NULL,
+    mount TEXT,
+    via TEXT,
+    label TEXT NOT NULL DEFAULT '',
+    status TEXT NOT NULL DEFAULT 'pending',
+    stage_yaw_rad REAL,
+    stage_x_m REAL,
+    started_at REAL,
+    finished_at REAL,
+    error TEXT
+);
+CREATE TABLE IF NOT EXISTS scan (
+    reference INTEGER NOT NULL REFERENCES reference(reference),
+    scan INTEGER NOT NULL,
+    status TEXT NOT NULL,
+    success INTEGER NOT NULL,
+    {", ".join(f"{c} REAL" for c in _POSE_COLS + _STD_COLS + _TRUTH_COLS)},
+    covariance TEXT,
+    stage_yaw_rad REAL,
+    stage_x_m REAL,
+    points INTEGER,
+    complete INTEGER,
+    missing_packets INTEGER,
+    acquired_at REAL,
+    scan_s REAL,
+    estimate_s REAL,
+    diagnostics TEXT,
+    timings TEXT,
+    UNIQUE (reference, scan)
+);
+CREATE TABLE IF NOT EXISTS event (
+    id INTEGER PRIMARY KEY,
+    at REAL NOT NULL,
+    level TEXT NOT NULL,
+    reference INTEGER,
+    message TEXT NOT NULL
+);
+"""
+
+
+class StoreError(AimbenchError):
+    """A run folder that cannot be created, opened or resumed."""
+
+
+def _json_default(obj: object) -> object:
+    """JSON for what estimators put in diagnostics: numpy scalars and arrays, Poses, the rest."""
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Pose):
+        return obj.to_edge()
+    if isinstance(obj, Path):
+        return str(obj)
+    if hasattr(obj, "to_dict"):
+        return obj.to_dict()
+    return repr(obj)
+
+
+def dumps(obj: object) -> str:
+    """JSON text, numpy-aware; NaN/inf become null so every JSON reader can load it."""
+    return json.dumps(_finite(obj), default=_json_default, allow_nan=False)
+
+
+def _finite(obj: object) -> object:
+    if isinstance(obj, float | np.floating):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _finite(obj.tolist())
+    return obj
+
+
+@dataclass
+class ScanResult:
+    """One scan's outcome, as the store keeps it (SI units).
+
+    pose, std, covariance: the estimate (None when the estimator found no pose); std and
+        covariance in the order of `twin.pose.POSE_FIELDS` (m, rad).
+    truth: the twin's true LiDAR pose in the board frame for this scan (None on hardware).
+    stage: (yaw_rad, x_m) the stages reported while the scan was taken, if they did.
+    scan_s: wall time to acquire the scan; estimate_s: wall time of the estimator (s).
+    """
+
+    reference: int
+    scan: int
+    status: str
+    success: bool
+    pose: Pose | None = None
+    std: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    truth: Pose | None = None
+    stage: tuple[float, float] | None = None
+    points: int | None = None
+    complete: bool | None = None
+    missing_packets: int | None = None
+    acquired_at: float | None = None
+    scan_s: float | None = None
+    estimate_s: float | None = None
+    diagnostics: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+
+    def row(self) -> dict[str, object]:
+        """The column values of this result's row in ``scan``."""
+        nan6 = [None] * 6
+        pose = list(self.pose.as_array()) if self.pose is not None else nan6
+        std = list(np.asarray(self.std, float)) if self.std is not None else nan6
+        truth = list(self.truth.as_array()) if self.truth is not None else nan6
+        row: dict[str, object] = {
+            "reference": int(self.reference), "scan": int(self.scan),
+            "status": str(self.status), "success": int(bool(self.success)),
+        }
+        for cols, values in ((_POSE_COLS, pose), (_STD_COLS, std), (_TRUTH_COLS, truth)):
+            row.update({c: _real(v) for c, v in zip(cols, values, strict=True)})
+        row.update({
+            "covariance": dumps(np.asarray(self.covariance, float))
+            if self.covariance is not None else None,
+            "stage_yaw_rad": _real(self.stage[0]) if self.stage else None,
+            "stage_x_m": _real(self.stage[1]) if self.stage else None,
+            "points": self.points, "complete": None if self.complete is None
+            else int(self.complete),
+            "missing_packets": self.missing_packets, "acquired_at": self.acquired_at,
+            "scan_s": self.scan_s, "estimate_s": self.estimate_s,
+            "diagnostics": dumps(self.diagnostics), "timings": dumps(self.timings),
+        })
+        return row
+
+
+def _real(v: object) -> float | None:
+    if v is None:
+        return None
+    f = float(v)
+    return f if math.isfinite(f) else None
+
+
+class Store:
+    """One run's store. Create with `Store.create`, reopen with `Store.open`; use as a context.
+
+    All writes go through short transactions; the connection runs in autocommit mode and each
+    method opens and commits its own (``BEGIN IMMEDIATE`` so a concurrent reader never blocks a
+    commit half-way).
+    """
+
+    def __init__(self, path: Path, conn: sqlite3.Connection) -> None:
+        self.path = path
+        self.conn = conn
+
+    # -- opening ---------------------------------------------------------------------------
+
+    @staticmethod
+    def _connect(path: Path) -> sqlite3.Connection:
+        conn = sqlite3.connect(path, isolation_level=None, timeout=30.0)
+        conn.row_factory = sqlite3.Row
+        # WAL: a crash mid-write leaves the last committed state; readers (a report while the
+        # sweep runs) do not block the writer. FULL: each commit is fsynced, so a committed scan
+        # also survives a power cut, not just a killed process (costs ~ms per scan; scans take
+        # 100 ms on the real sensor).
+        conn.execute("PRAGMA journal_mode=WAL")
+        conn.execute("PRAGMA synchronous=FULL")
+        conn.execute("PRAGMA foreign_keys=ON")
+        return conn
+
+    @classmethod
+    def create(cls, run_dir: str | Path, plan: Plan, config: dict | None = None,
+               bench: dict | None = None, versions: dict | None = None) -> Store:
+        """A new store in `run_dir` (created if needed) for `plan`.
+
+        Refuses a folder that already holds a run: a new run never overwrites results; use
+        `Store.open` (``--resume``) to continue one, or another ``--out``.
+        """
+        run_dir = Path(run_dir)
+        path = run_dir / STORE_NAME
+        if path.exists():
+            raise StoreError(f"{run_dir} already holds a run; continue it with --resume or "
+                             "choose another --out")
+        try:
+            run_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreError(f"cannot create the run folder {run_dir}: {exc.strerror}") from None
+        conn = cls._connect(path)
+        store = cls(path, conn)
+        now = time.time()
+        # executescript commits on its own, so the schema is created outside _tx.
+        conn.executescript(_SCHEMA)
+        with store._tx():
+            store._put_many(conn, {
+                "schema_version": SCHEMA_VERSION, "plan": plan.to_dict(),
+                "config": config or {}, "bench": bench or {}, "versions": versions or {},
+                "status": "created", "created_at": now, "updated_at": now,
+            })
+            conn.executemany(
+                "INSERT INTO reference (reference, yaw_rad, x_m, mount, via, label) "
+                "VALUES (?, ?, ?, ?, ?, ?)",
+                [(i, r.yaw_rad, r.x_m, dumps(r.mount) if r.mount else None,
+                  dumps(list(r.via)) if r.via else None, r.label)
+                 for i, r in enumerate(plan.references)])
+            conn.execute("INSERT INTO event (at, level, reference, message) VALUES (?,?,?,?)",
+                         (now, "info", None, f"created: {plan.name}, {len(plan)} references x "
+                                             f"{plan.scans} scans"))
+        return store
+
+    @classmethod
+    def open(cls, run_dir: str | Path) -> Store:
+        """The store of an existing run (to resume it, report on it or export it)."""
+        run_dir = Path(run_dir)
+        path = run_dir / STORE_NAME if run_dir.is_dir() or not run_dir.suffix else run_dir
+        if not path.is_file():
+            raise StoreError(f"no run in {run_dir} (no {STORE_NAME}); run a sweep with --out "
+                             f"{run_dir} first")
+        try:
+            conn = cls._connect(path)
+            version = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(f"{path} is not a readable aimbench run store: {exc}") from None
+        if version is None or json.loads(version[0]) != SCHEMA_VERSION:
+            raise StoreError(f"{path}: unknown store schema {version and version[0]}; "
+                             f"this aimbench reads version {SCHEMA_VERSION}")
+        return cls(path, conn)
+
+    def close(self) -> None:
+        self.conn.close()
+
+    def __enter__(self) -> Store:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def run_dir(self) -> Path:
+        return self.path.parent
+
+    # -- transactions ----------------------------------------------------------------------
+
+    class _Tx:
+        def __init__(self, conn: sqlite3.Connection) -> None:
+            self.conn = conn
+
+        def __enter__(self) -> sqlite3.Connection:
+            self.conn.execute("BEGIN IMMEDIATE")
+            return self.conn
+
+        def __exit__(self, exc_type: object, *rest: object) -> None:
+            self.conn.execute("ROLLBACK" if exc_type else "COMMIT")
+
+    def _tx(self) -> Store._Tx:
+        return Store._Tx(self.conn)
+
+    @staticmethod
+    def _put_many(conn: sqlite3.Connection, values: dict) -> None:
+        conn.executemany("INSERT OR REPLACE INTO meta (key, value) VALUES (?, ?)",
+                         [(k, dumps(v)) for k, v in values.items()])
+
+    # -- metadata --------------------------------------------------------------------------
+
+    def get(self, key: str, default: object = None) -> object:
+        row = self.conn.execute("SELECT value FROM meta WHERE key=?", (key,)).fetchone()
+        return json.loads(row[0]) if row else default
+
+    def put(self, **values: object) -> None:
+        """Set metadata keys (JSON values) in one transaction."""
+        with self._tx() as conn:
+            self._put_many(conn, {**values, "updated_at": time.time()})
+
+    @property
+    def plan(self) -> Plan:
+        return Plan.from_dict(self.get("plan"))
+
+    @property
+    def status(self) -> str:
+        return str(self.get("status"))
+
+    def set_status(self, status: str, message: str | None = None,
+                   reference: int | None = None, scan: int | None = None) -> None:
+        """Mark the run `status`; a failure also records where (reference, scan) and why."""
+        if status not in RUN_STATUSES:
+            raise ValueError(f"unknown run status {status!r}")
+        values: dict = {"status": status, "updated_at": time.time()}
+        if status == "failed":
+            values["failure"] = {"reference": reference, "scan": scan, "message": message}
+        with self._tx() as conn:
+            self._put_many(conn, values)
+            if message or status != "running":
+                conn.execute("INSERT INTO event (at, level, reference, message) VALUES "
+                             "(?,?,?,?)", (time.time(), "error" if status == "failed" else "info",
+                                           reference, f"{status}: {message or ''}".rstrip(": ")))
+
+    def log(self, message: str, level: str = "info", reference: int | None = None) -> None:
+        with self._tx() as conn:
+            conn.execute("INSERT INTO event (at, level, reference, message) VALUES (?,?,?,?)",
+                         (time.time(), level, reference, message))
+
+    def events(self) -> list[dict]:
+        return [dict(r) for r in self.conn.execute("SELECT * FROM event ORDER BY id")]
+
+    # -- references ------------------------------------------------------------------------
+
+    def references(self) -> list[dict]:
+        """Every reference row (dicts, SI units), in plan order."""
+        rows = []
+        for r in self.conn.execute("SELECT * FROM reference ORDER BY reference"):
+            d = dict(r)
+            d["mount"] = json.loads(d["mount"]) if d["mount"] else None
+            d["via"] = json.loads(d["via"]) if d["via"] else None
+            rows.append(d)
+        return rows
+
+    def reference(self, index: int) -> Reference:
+        return self.plan.references[index]
+
+    def start_reference(self, index: int, stage: tuple[float, float] | None = None) -> None:
+        """The stages are at reference `index` (at `stage` = (yaw_rad, x_m) if they said)."""
+        with self._tx() as conn:
+            conn.execute(
+                "UPDATE reference SET status='running', started_at=COALESCE(started_at, ?), "
+                "stage_yaw_rad=?, stage_x_m=?, error=NULL WHERE reference=?",
+                (time.time(), *(_real(v) for v in (stage or (None, None))), index))
+
+    def finish_reference(self, index: int, status: str = "done",
+                         error: str | None = None) -> None:
+        if status not in ("done", "failed", "pending"):
+            raise ValueError(f"unknown reference status {status!r}")
+        with self._tx() as conn:
+            conn.execute("UPDATE reference SET status=?, finished_at=?, error=? "
+                         "WHERE reference=?", (status, time.time(), error, index))
+
+    # -- scans -----------------------------------------------------------------------------
+
+    def add_scan(self, result: ScanResult) -> None:
+        """Commit one scan's result in its own transaction.
+
+        Raises `StoreError` if (reference, scan) is already stored: the runner never asks for a
+        scan it has, so a duplicate is a bug to see, not to paper over.
+        """
+        row = result.row()
+        cols = ", ".join(row)
+        marks = ", ".join("?" for _ in row)
+        try:
+            with self._tx() as conn:
+                conn.execute(f"INSERT INTO scan ({cols}) VALUES ({marks})", tuple(row.values()))
+        except sqlite3.IntegrityError as exc:
+            raise StoreError(f"scan {result.scan} of reference {result.reference} is already "
+                             f"stored ({exc})") from None
+
+    def done_scans(self, reference: int) -> list[int]:
+        """Indices of the scans stored for `reference`, ascending."""
+        return [r[0] for r in self.conn.execute(
+            "SELECT scan FROM scan WHERE reference=? ORDER BY scan", (reference,))]
+
+    def scan_count(self) -> int:
+        return int(self.conn.execute("SELECT COUNT(*) FROM scan").fetchone()[0])
+
+    def iter_scans(self) -> Iterator[dict]:
+        """Every scan row as a dict (SI units, JSON fields decoded), by reference then scan."""
+        for r in self.conn.execute("SELECT * FROM scan ORDER BY reference, scan"):
+            d = dict(r)
+            for key in ("diagnostics", "timings", "covariance"):
+                d[key] = json.loads(d[key]) if d[key] else None
+            yield d
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The scan table as numpy columns (float NaN where a value is missing), for reports.
+
+        Adds per-scan reference columns ``ref_yaw_rad`` and ``ref_x_m`` (the commanded stage
+        position) and ``ref_mount_*`` (edge units, NaN without a mount).
+        """
+        refs = {r["reference"]: r for r in self.references()}
+        rows = list(self.conn.execute(
+            f"SELECT reference, scan, status, success, {', '.join(_POSE_COLS + _STD_COLS)}, "
+            f"{', '.join(_TRUTH_COLS)}, stage_yaw_rad, stage_x_m, scan_s, estimate_s "
+            "FROM scan ORDER BY reference, scan"))
+        names = ["reference", "scan", "status", "success", *_POSE_COLS, *_STD_COLS,
+                 *_TRUTH_COLS, "stage_yaw_rad", "stage_x_m", "scan_s", "estimate_s"]
+        out: dict[str, np.ndarray] = {}
+        for j, name in enumerate(names):
+            values = [r[j] for r in rows]
+            if name == "status":
+                out[name] = np.array(values, dtype=object)
+            elif name in ("reference", "scan"):
+                out[name] = np.array(values, dtype=np.int64)
+            elif name == "success":
+                out[name] = np.array(values, dtype=bool)
+            else:
+                out[name] = np.array([np.nan if v is None else v for v in values], dtype=float)
+        ref_ids = out["reference"]
+        out["ref_yaw_rad"] = np.array([refs[i]["yaw_rad"] for i in ref_ids], dtype=float)
+        out["ref_x_m"] = np.array([refs[i]["x_m"] for i in ref_ids], dtype=float)
+        for key in ("roll_deg", "tilt_deg", "yaw_deg", "x_mm"):
+            out[f"ref_mount_{key}"] = np.array(
+                [(refs[i]["mount"] or {}).get(key, np.nan) for i in ref_ids], dtype=float)
+        return out
+
+    # -- export ----------------------------------------------------------------------------
+
+    def _export_rows(self) -> tuple[list[str], list[list[object]]]:
+        """One row per scan with the reference and the estimate in SI and in edge units."""
+        refs = {r["reference"]: r for r in self.references()}
+        header: list[str] | None = None
+        rows: list[list[object]] = []
+        for d in self.iter_scans():
+            ref = refs[d["reference"]]
+            row: dict[str, object] = {
+                "reference": d["reference"], "scan": d["scan"], "label": ref["label"],
+                "ref_yaw_deg": math.degrees(ref["yaw_rad"]), "ref_x_mm": ref["x_m"] * 1e3,
+                **{f"ref_mount_{k}": (ref["mount"] or {}).get(k) for k in
+                   ("roll_deg", "tilt_deg", "yaw_deg", "x_mm")},
+                "status": d["status"], "success": bool(d["success"]),
+            }
+            for prefix in ("", "std_", "truth_"):
+                for name, col in zip(POSE_FIELDS, _POSE_COLS, strict=True):
+                    v = d[prefix + col]
+                    edge = f"{prefix}{name}_mm" if col.endswith("_m") else f"{prefix}{name}_deg"
+                    scale = 1e3 if col.endswith("_m") else 180.0 / math.pi
+                    row[edge] = None if v is None else v * scale
+            for prefix in ("", "std_", "truth_"):
+                row.update({prefix + c: d[prefix + c] for c in _POSE_COLS})
+            row.update({
+                "stage_yaw_deg": None if d["stage_yaw_rad"] is None
+                else math.degrees(d["stage_yaw_rad"]),
+                "stage_x_mm": None if d["stage_x_m"] is None else d["stage_x_m"] * 1e3,
+                "points": d["points"], "complete": d["complete"],
+                "missing_packets": d["missing_packets"], "acquired_at": d["acquired_at"],
+                "scan_s": d["scan_s"], "estimate_s": d["estimate_s"],
+                "diagnostics": dumps(d["diagnostics"]) if d["diagnostics"] is not None else None,
+                "timings": dumps(d["timings"]) if d["timings"] is not None else None,
+            })
+            if header is None:
+                header = list(row)
+            rows.append(list(row.values()))
+        if header is None:
+            header = ["reference", "scan"]
+        return header, rows
+
+    def export_csv(self, path: str | Path) -> Path:
+        """Every scan as a CSV row (edge and SI columns); returns the path written."""
+        path = Path(path)
+        header, rows = self._export_rows()
+        with path.open("w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            w.writerows(rows)
+        return path
+
+    def export_parquet(self, path: str | Path) -> Path:
+        """Every scan as a Parquet row (same columns as the CSV) with the run's metadata."""
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        path = Path(path)
+        header, rows = self._export_rows()
+        columns = list(zip(*rows, strict=True)) if rows else [[] for _ in header]
+        table = pa.table({name: pa.array(list(col)) for name, col in
+                          zip(header, columns, strict=True)})
+        meta = {k: dumps(self.get(k)) for k in ("plan", "config", "bench", "versions", "status")}
+        table = table.replace_schema_metadata({f"aimbench.{k}": v for k, v in meta.items()})
+        pq.write_table(table, path)
+        return path
