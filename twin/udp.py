@@ -1,0 +1,282 @@
+"""Live VLP-16 input over UDP, and a paced sender that replays packets.
+
+The real sensor broadcasts data packets (1206-byte payloads) to UDP port 2368 and position
+packets (512 bytes) to port 8308, from its default address 192.168.1.201; the host needs an
+address on 192.168.1.x/24 (docs/vlp16.md). `UdpReceiver` binds both ports, asks for a receive
+buffer big enough to ride out scheduling hiccups (the sensor sends ~754 packets/s, ~0.9 MB/s),
+counts malformed datagrams, reads the kernel's own count of datagrams dropped on a full buffer
+(Linux SO_RXQ_OVFL), and gives up with a clear error when the sensor goes silent.
+
+`send_packets` replays payloads at the sensor's rate (or any rate, or as fast as the socket
+takes them): the twin's network face and the loopback tests use it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import selectors
+import socket
+import struct
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from types import TracebackType
+from typing import NamedTuple
+
+import numpy as np
+
+from twin import vlp16
+from twin.errors import AimbenchError
+
+#: Linux socket option that attaches the socket's drop counter to each received datagram.
+SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)
+#: Default receive buffer: ~8 s of VLP-16 data (the kernel may grant less: net.core.rmem_max).
+DEFAULT_RCVBUF_BYTES = 8 * 1024 * 1024
+
+
+class UdpError(AimbenchError):
+    """A socket could not be opened or bound (port in use, address not on this host)."""
+
+
+class SensorSilentError(AimbenchError):
+    """No datagram arrived within the silence timeout."""
+
+
+class Datagram(NamedTuple):
+    """One received datagram: host receive time (s since the epoch), local port, payload."""
+
+    timestamp: float
+    port: int
+    payload: bytes
+
+
+@dataclass
+class ReceiverStats:
+    """Counts of a `UdpReceiver` (datagrams)."""
+
+    data: int = 0
+    position: int = 0
+    malformed: int = 0  # wrong size for its port
+    kernel_drops: int = 0  # dropped by the kernel on a full receive buffer (Linux)
+    rcvbuf_bytes: int = 0  # receive buffer the kernel granted
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+class UdpReceiver:
+    """Receive VLP-16 data and position packets.
+
+    ``bind_addr``: local address to bind (default all interfaces; a broadcast sensor needs
+    0.0.0.0 or the broadcast address). ``data_port`` / ``position_port``: 2368 / 8308 (0 picks a
+    free port, see ``ports``; ``None`` skips that port). ``rcvbuf_bytes``: requested receive
+    buffer. ``timeout_s``: silence after which `SensorSilentError` is raised.
+    """
+
+    def __init__(
+        self,
+        bind_addr: str = "0.0.0.0",
+        data_port: int | None = vlp16.DATA_PORT,
+        position_port: int | None = vlp16.POSITION_PORT,
+        rcvbuf_bytes: int = DEFAULT_RCVBUF_BYTES,
+        timeout_s: float = 2.0,
+    ) -> None:
+        self.bind_addr = bind_addr
+        self.timeout_s = timeout_s
+        self.stats = ReceiverStats()
+        self._sel = selectors.DefaultSelector()
+        self._socks: dict[int, socket.socket] = {}
+        self._kind: dict[int, int] = {}  # local port -> expected payload size
+        self._ovfl: dict[int, int] = {}
+        try:
+            for port, size in ((data_port, vlp16.DATA_PAYLOAD_SIZE),
+                               (position_port, vlp16.POSITION_PAYLOAD_SIZE)):
+                if port is not None:
+                    self._open(port, size, rcvbuf_bytes)
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self, port: int, size: int, rcvbuf_bytes: int) -> None:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf_bytes)
+        # Not Linux: kernel drops stay uncounted (the packet timestamps still show the gaps).
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.SOL_SOCKET, SO_RXQ_OVFL, 1)
+        try:
+            sock.bind((self.bind_addr, port))
+        except OSError as exc:
+            sock.close()
+            raise UdpError(
+                f"cannot bind UDP {self.bind_addr}:{port} ({exc.strerror}): another program "
+                "(a second aimbench, VeloView, a ROS driver) may hold the port, or the address "
+                "is not on this host"
+            ) from None
+        sock.setblocking(False)
+        local = sock.getsockname()[1]
+        self._socks[local] = sock
+        self._kind[local] = size
+        self._ovfl[local] = 0
+        self.stats.rcvbuf_bytes = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        self._sel.register(sock, selectors.EVENT_READ, local)
+
+    @property
+    def ports(self) -> dict[str, int]:
+        """The bound local ports: ``{"data": ..., "position": ...}``."""
+        out = {}
+        for port, size in self._kind.items():
+            out["data" if size == vlp16.DATA_PAYLOAD_SIZE else "position"] = port
+        return out
+
+    def __enter__(self) -> UdpReceiver:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        for sock in self._socks.values():
+            with contextlib.suppress(KeyError, ValueError):
+                self._sel.unregister(sock)
+            sock.close()
+        self._socks.clear()
+        self._sel.close()
+
+    def receive(
+        self, max_packets: int | None = None, duration_s: float | None = None,
+        stop_on_silence: bool = False,
+    ) -> Iterator[Datagram]:
+        """Yield well-formed datagrams until ``max_packets`` or ``duration_s`` is reached.
+
+        Silence longer than ``timeout_s`` raises `SensorSilentError`, or ends the iteration if
+        ``stop_on_silence``. Malformed datagrams are counted (``stats.malformed``), not yielded.
+        """
+        count = 0
+        end = None if duration_s is None else time.monotonic() + duration_s
+        last = time.monotonic()
+        while max_packets is None or count < max_packets:
+            now = time.monotonic()
+            if end is not None and now >= end:
+                return
+            wait = self.timeout_s - (now - last)
+            if end is not None:
+                wait = min(wait, end - now)
+            events = self._sel.select(max(0.0, wait))
+            if not events:
+                if end is not None and time.monotonic() >= end:
+                    return
+                if time.monotonic() - last >= self.timeout_s:
+                    if stop_on_silence:
+                        return
+                    raise SensorSilentError(self._silence_message())
+                continue
+            for key, _ in events:
+                for dgram in self._drain(key.data):
+                    count += 1
+                    yield dgram
+                    if max_packets is not None and count >= max_packets:
+                        return
+            last = time.monotonic()
+
+    def _drain(self, port: int) -> Iterator[Datagram]:
+        """Read everything queued on one socket (non-blocking)."""
+        sock = self._socks[port]
+        size = self._kind[port]
+        anc = socket.CMSG_SPACE(4)
+        while True:
+            try:
+                payload, ancdata, _, _ = sock.recvmsg(2048, anc)
+            except (BlockingIOError, InterruptedError):
+                return
+            now = time.time()
+            for level, kind, data in ancdata:
+                if level == socket.SOL_SOCKET and kind == SO_RXQ_OVFL and len(data) >= 4:
+                    total = struct.unpack("I", data[:4])[0]
+                    self.stats.kernel_drops += (total - self._ovfl[port]) & 0xFFFFFFFF
+                    self._ovfl[port] = total
+            if len(payload) != size:
+                self.stats.malformed += 1
+                continue
+            if size == vlp16.DATA_PAYLOAD_SIZE:
+                self.stats.data += 1
+            else:
+                self.stats.position += 1
+            yield Datagram(now, port, payload)
+
+    def _silence_message(self) -> str:
+        ports = ", ".join(f"{self.bind_addr}:{p}" for p in self._socks)
+        return (
+            f"no packets for {self.timeout_s:g} s on UDP {ports}: check that the sensor is "
+            "powered and cabled, that this host has an address on the sensor's subnet "
+            "(default sensor 192.168.1.201, host e.g. 192.168.1.100/24), that the sensor's "
+            "data port is 2368, and that no firewall drops UDP"
+        )
+
+
+@dataclass
+class SendResult:
+    """What `send_packets` did: datagrams sent, wall time taken (s), worst lateness (s)."""
+
+    sent: int
+    elapsed_s: float
+    max_late_s: float
+
+    @property
+    def rate_hz(self) -> float:
+        return self.sent / self.elapsed_s if self.elapsed_s > 0 else float("inf")
+
+
+def send_packets(
+    payloads: Sequence[bytes] | np.ndarray,
+    dst: tuple[str, int] = ("127.0.0.1", vlp16.DATA_PORT),
+    rate_hz: float | None = vlp16.PACKET_RATE,
+    src_port: int | None = None,
+    sock: socket.socket | None = None,
+) -> SendResult:
+    """Send payloads to ``dst`` as UDP datagrams, paced at ``rate_hz`` (None: full speed).
+
+    Pacing follows an absolute schedule (packet i at start + i / rate_hz), so sleep overshoot
+    never accumulates; a late packet is sent at once and the worst lateness is reported. The
+    default rate is the VLP-16's single-return rate (~754 packets/s); dual-return streams run
+    at twice that. A broadcast ``dst`` (x.x.x.255) sets SO_BROADCAST.
+    """
+    own = sock is None
+    if own:
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        if src_port is not None:
+            sock.bind(("", src_port))
+    if dst[0].endswith(".255"):
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+    period = None if rate_hz is None else 1.0 / rate_hz
+    max_late = 0.0
+    start = time.perf_counter()
+    try:
+        for i, payload in enumerate(payloads):
+            if period is not None:
+                due = start + i * period
+                ahead = due - time.perf_counter()
+                if ahead > 0:
+                    time.sleep(ahead)
+                else:
+                    max_late = max(max_late, -ahead)
+            _send(sock, bytes(payload), dst)
+        elapsed = time.perf_counter() - start
+    finally:
+        if own:
+            sock.close()
+    return SendResult(len(payloads), elapsed, max_late)
+
+
+def _send(sock: socket.socket, payload: bytes, dst: tuple[str, int]) -> None:
+    while True:
+        try:
+            sock.sendto(payload, dst)
+            return
+        except BlockingIOError:  # send buffer full at full speed: wait for room, never skip
+            time.sleep(0)
+        except OSError as exc:
+            raise UdpError(f"cannot send to {dst[0]}:{dst[1]} ({exc.strerror})") from None
