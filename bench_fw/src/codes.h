@@ -1,0 +1,44 @@
+// Grbl 1.1 status (error:N) and alarm (ALARM:N) codes this firmware emits.
+// Numbers are Grbl's own so that senders and the host driver read them the same way; the meaning
+// of each is in PROTOCOL.md and in twin/grbl.py.
+#ifndef BENCH_CODES_H
+#define BENCH_CODES_H
+
+#include <stdint.h>
+
+enum Status : uint8_t {
+  STATUS_OK = 0,
+  STATUS_EXPECTED_COMMAND_LETTER = 1,
+  STATUS_BAD_NUMBER_FORMAT = 2,
+  STATUS_INVALID_STATEMENT = 3,
+  STATUS_NEGATIVE_VALUE = 4,
+  STATUS_SETTING_DISABLED = 5,
+  STATUS_SETTING_STEP_PULSE_MIN = 6,
+  STATUS_IDLE_ERROR = 8,
+  STATUS_SYSTEM_GC_LOCK = 9,
+  STATUS_SOFT_LIMIT_ERROR = 10,
+  STATUS_OVERFLOW = 11,
+  STATUS_MAX_STEP_RATE_EXCEEDED = 12,
+  STATUS_TRAVEL_EXCEEDED = 15,
+  STATUS_GCODE_UNSUPPORTED_COMMAND = 20,
+  STATUS_GCODE_MODAL_GROUP_VIOLATION = 21,
+  STATUS_GCODE_UNDEFINED_FEED_RATE = 22,
+  STATUS_GCODE_COMMAND_VALUE_NOT_INTEGER = 23,
+  STATUS_GCODE_WORD_REPEATED = 25,
+  STATUS_GCODE_INVALID_LINE_NUMBER = 27,
+  STATUS_GCODE_VALUE_WORD_MISSING = 28,
+  STATUS_GCODE_AXIS_WORDS_EXIST = 31,
+  STATUS_GCODE_UNUSED_WORDS = 36,
+};
+
+enum Alarm : uint8_t {
+  ALARM_NONE = 0,
+  ALARM_HARD_LIMIT = 1,
+  ALARM_SOFT_LIMIT = 2,        // not raised: soft limits refuse the line with error:15 instead
+  ALARM_ABORT_CYCLE = 3,       // reset while in motion
+  ALARM_HOMING_FAIL_RESET = 6,
+  ALARM_HOMING_FAIL_PULLOFF = 8,
+  ALARM_HOMING_FAIL_APPROACH = 9,
+};
+
+#endif

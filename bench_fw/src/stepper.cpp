@@ -1,0 +1,304 @@
+// Stepper ISR and acceleration tick for the ATmega2560. Pins: see pins.h.
+#include "stepper.h"
+
+#include <avr/interrupt.h>
+#include <avr/io.h>
+
+#include "codes.h"
+#include "pins.h"
+#include "settings.h"
+
+BlockQueue block_queue;
+
+#define STEP_MASK (_BV(STEP_BIT_X) | _BV(STEP_BIT_A))
+#define DIR_MASK (_BV(DIR_BIT_X) | _BV(DIR_BIT_A))
+static const uint8_t kStepBit[N_AXIS] = {_BV(STEP_BIT_X), _BV(STEP_BIT_A)};
+static const uint8_t kDirBit[N_AXIS] = {_BV(DIR_BIT_X), _BV(DIR_BIT_A)};
+
+static volatile int32_t position[N_AXIS];  // steps, machine coordinates
+static Block *current = nullptr;           // block being executed (owned by the queue)
+static uint32_t events_done;
+static uint32_t counter[N_AXIS];
+static float rate;                         // dominant-axis steps/s (accel tick only)
+static volatile uint16_t interval_ticks;   // next step interval, written by the accel tick
+static volatile bool running = false;
+static volatile uint8_t hold = 0;          // 0 none, 1 decelerating, 2 at rest
+static volatile uint8_t alarm = 0;
+static volatile bool stopped_by_switch = false;
+static volatile bool homing = false;
+static uint8_t limit_prev = 0;
+// Cached from settings for the ISR: port bit patterns.
+static uint8_t step_idle_bits = 0;   // $2 mapped onto the STEP port bits
+static uint8_t dir_invert_bits = 0;  // $3 mapped onto the DIR port bits
+static uint8_t pulse_ticks = 10;
+
+uint8_t limits_read() {
+  uint8_t pins = PINB;
+  uint8_t hit = 0;
+  // Switches close to ground: a low pin is a hit, unless $5 inverts it.
+  if (!(pins & _BV(LIMIT_BIT_X))) hit |= 1 << AXIS_X;
+  if (!(pins & _BV(LIMIT_BIT_A))) hit |= 1 << AXIS_A;
+  if (settings.limit_invert) hit ^= (1 << AXIS_X) | (1 << AXIS_A);
+  return hit;
+}
+
+void stepper_enable(bool on) {
+  bool level_high = on ? false : true;  // active-low enable
+  if (settings.enable_invert) level_high = !level_high;
+  if (level_high) PORTB |= _BV(ENABLE_BIT);
+  else PORTB &= static_cast<uint8_t>(~_BV(ENABLE_BIT));
+}
+
+void stepper_apply_settings() {
+  uint8_t sreg = SREG;
+  cli();
+  step_idle_bits = 0;
+  dir_invert_bits = 0;
+  for (uint8_t k = 0; k < N_AXIS; k++) {
+    if (settings.step_invert_mask & (1 << k)) step_idle_bits |= kStepBit[k];
+    if (settings.dir_invert_mask & (1 << k)) dir_invert_bits |= kDirBit[k];
+  }
+  pulse_ticks = static_cast<uint8_t>(settings.pulse_us * (STEP_TIMER_HZ / 1000000UL));
+  PORTA = static_cast<uint8_t>((PORTA & ~STEP_MASK) | step_idle_bits);
+  SREG = sreg;
+}
+
+void stepper_init() {
+  DDRA |= STEP_MASK;
+  DDRC |= DIR_MASK;
+  DDRB |= _BV(ENABLE_BIT);
+  DDRB &= static_cast<uint8_t>(~(_BV(LIMIT_BIT_X) | _BV(LIMIT_BIT_A)));
+  PORTB |= _BV(LIMIT_BIT_X) | _BV(LIMIT_BIT_A);  // pull-ups: an open switch reads high
+  stepper_apply_settings();
+  stepper_enable(false);
+  // Timer1: CTC on OCR1A, stopped until a block arrives.
+  TCCR1A = 0;
+  TCCR1B = _BV(WGM12);
+  TIMSK1 = 0;
+  // Timer3: CTC at ACCEL_TICK_HZ (2 MHz / 2000), always running; it returns at once when idle.
+  TCCR3A = 0;
+  TCCR3B = _BV(WGM32) | _BV(CS31);
+  OCR3A = static_cast<uint16_t>(STEP_TIMER_HZ / ACCEL_TICK_HZ - 1);
+  TIMSK3 = _BV(OCIE3A);
+}
+
+static uint16_t ticks_for(float r) {
+  float t = static_cast<float>(STEP_TIMER_HZ) / r;
+  if (t > 65535.0f) return 65535;
+  if (t < 60.0f) return 60;
+  return static_cast<uint16_t>(t);
+}
+
+static void timer_stop() {
+  TCCR1B = _BV(WGM12);  // clock off
+  TIMSK1 = 0;
+  running = false;
+}
+
+static void timer_start(uint16_t first) {
+  // Start from a count of 1 with the compare well above it: simavr 1.6 never fires a Timer1
+  // compare that is armed while the counter sits at 0.
+  TCNT1 = 1;
+  OCR1A = first;
+  TIFR1 = _BV(OCF1A);
+  TIMSK1 = _BV(OCIE1A);
+  running = true;
+  TCCR1B = _BV(WGM12) | _BV(CS11);  // clk/8 = 2 MHz
+}
+
+// Makes the oldest queued block current (ISR context or interrupts off).
+static void load_block() {
+  current = block_queue.peek();
+  if (!current) return;
+  events_done = 0;
+  for (uint8_t k = 0; k < N_AXIS; k++) counter[k] = 0;
+  uint8_t dir = 0;
+  for (uint8_t k = 0; k < N_AXIS; k++)
+    if (current->dir_negative_mask & (1 << k)) dir |= kDirBit[k];
+  PORTC = static_cast<uint8_t>((PORTC & ~DIR_MASK) | (dir ^ dir_invert_bits));
+  rate = current->start_rate;
+  interval_ticks = ticks_for(rate);
+  stopped_by_switch = false;
+  limit_prev = limits_read();
+}
+
+ISR(TIMER1_COMPA_vect) {
+  Block *b = current;
+  if (!b) {
+    timer_stop();
+    return;
+  }
+  uint32_t n = b->step_event_count;
+  uint8_t bits = 0;
+  for (uint8_t k = 0; k < N_AXIS; k++) {
+    // Bresenham from 0: an axis' last step falls on the block's last event, with the dominant
+    // axis, so the axes finish in the same interrupt.
+    counter[k] += b->steps[k];
+    if (counter[k] >= n) {
+      counter[k] -= n;
+      bits |= kStepBit[k];
+      if (b->dir_negative_mask & (1 << k)) position[k]--;
+      else position[k]++;
+    }
+  }
+  PORTA = static_cast<uint8_t>((PORTA & ~STEP_MASK) | (step_idle_bits ^ bits));
+  events_done++;
+  uint8_t lim = limits_read();
+  // Hold the pulse for $0 us: TCNT1 restarted at this compare match, so it times the pulse.
+  while (TCNT1 < pulse_ticks) {
+  }
+  PORTA = static_cast<uint8_t>((PORTA & ~STEP_MASK) | step_idle_bits);
+
+  bool done = events_done >= n;
+  if (b->mode == BLOCK_STOP_ON_TRIGGER) {
+    if (lim & (1 << b->homing_axis)) { stopped_by_switch = true; done = true; }
+  } else if (b->mode == BLOCK_STOP_ON_RELEASE) {
+    if (!(lim & (1 << b->homing_axis))) { stopped_by_switch = true; done = true; }
+  } else if (!homing && settings.hard_limits && (lim & ~limit_prev)) {
+    // A switch closed during a move: stop dead (decelerating would drive further into it).
+    alarm = ALARM_HARD_LIMIT;
+    current = nullptr;
+    block_queue.clear();
+    hold = 0;
+    timer_stop();
+    return;
+  }
+  limit_prev = lim;
+  if (done) {
+    block_queue.pop();
+    load_block();
+    if (!current) {
+      timer_stop();
+      return;
+    }
+  }
+  OCR1A = interval_ticks;
+}
+
+// Acceleration tick. Interruptible (ISR_NOBLOCK) so the float arithmetic never delays a step
+// pulse; it shares `events_done` and `interval_ticks` with the step ISR under cli().
+ISR(TIMER3_COMPA_vect, ISR_NOBLOCK) {
+  static volatile bool busy = false;
+  if (busy || !running) return;
+  busy = true;
+  cli();
+  Block *b = current;
+  uint32_t done = events_done;
+  sei();
+  if (b) {
+    float a_dt = b->accel / ACCEL_TICK_HZ;
+    float r = rate;
+    float start = b->start_rate;
+    if (hold == 1) {
+      r -= a_dt;
+      if (r <= start) {
+        cli();
+        timer_stop();
+        hold = 2;
+        sei();
+        busy = false;
+        return;
+      }
+    } else {
+      float remaining = static_cast<float>(b->step_event_count - done);
+      // Steps needed to slow from r to the start rate, plus the steps of the coming tick.
+      float stop_steps = (r * r - start * start) / (2.0f * b->accel) + r / ACCEL_TICK_HZ;
+      if (remaining <= stop_steps) {
+        r -= a_dt;
+        if (r < start) r = start;
+      } else if (r < b->nominal_rate) {
+        r += a_dt;
+        if (r > b->nominal_rate) r = b->nominal_rate;
+      }
+    }
+    uint16_t t = ticks_for(r);
+    cli();
+    if (current == b) {  // the step ISR may have moved on to the next block meanwhile
+      rate = r;
+      interval_ticks = t;
+    }
+    sei();
+  }
+  busy = false;
+}
+
+void stepper_wake() {
+  uint8_t sreg = SREG;
+  cli();
+  if (!running && hold == 0 && !block_queue.empty()) {
+    if (!current) load_block();
+    if (current) {
+      stepper_enable(true);
+      timer_start(interval_ticks);
+    }
+  }
+  SREG = sreg;
+}
+
+bool stepper_abort() {
+  uint8_t sreg = SREG;
+  cli();
+  bool was_running = running;
+  timer_stop();
+  current = nullptr;
+  block_queue.clear();
+  hold = 0;
+  PORTA = static_cast<uint8_t>((PORTA & ~STEP_MASK) | step_idle_bits);
+  SREG = sreg;
+  return was_running;
+}
+
+bool stepper_busy() { return running || current != nullptr || !block_queue.empty(); }
+bool stepper_running() { return running; }
+
+void stepper_hold() {
+  uint8_t sreg = SREG;
+  cli();
+  if (running && hold == 0) hold = 1;
+  SREG = sreg;
+}
+
+bool stepper_hold_complete() { return hold == 2; }
+
+void stepper_resume() {
+  uint8_t sreg = SREG;
+  cli();
+  if (hold == 2) {
+    hold = 0;
+    if (current) {
+      rate = current->start_rate;
+      interval_ticks = ticks_for(rate);
+      limit_prev = limits_read();
+      timer_start(interval_ticks);
+    }
+  } else if (hold == 1) {
+    hold = 0;  // not yet at rest: simply speed up again
+  }
+  SREG = sreg;
+}
+
+void stepper_get_position(int32_t out[N_AXIS]) {
+  uint8_t sreg = SREG;
+  cli();
+  for (uint8_t k = 0; k < N_AXIS; k++) out[k] = position[k];
+  SREG = sreg;
+}
+
+void stepper_set_position(uint8_t axis, int32_t steps) {
+  uint8_t sreg = SREG;
+  cli();
+  position[axis] = steps;
+  SREG = sreg;
+}
+
+uint8_t stepper_take_alarm() {
+  uint8_t sreg = SREG;
+  cli();
+  uint8_t a = alarm;
+  alarm = 0;
+  SREG = sreg;
+  return a;
+}
+
+bool stepper_stopped_by_switch() { return stopped_by_switch; }
+void stepper_set_homing(bool on) { homing = on; }
