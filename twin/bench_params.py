@@ -1,0 +1,130 @@
+"""Bench parameters a user sets without editing XML, applied to the compiled model.
+
+The MJCF in ``models/`` holds the nominal bench (paper, section IV-A). A `BenchParams` describes
+the physical bench you actually have: how the LiDAR sits on its mount (roll, tilt, yaw and the
+lever arm from the rotation axis to the optical centre), the board's size and pose, and the
+reflectivity of the board and of everything else. `build_model` loads ``models/scene.xml`` into a
+`mujoco.MjSpec`, edits the named elements and compiles. SI units (m, rad); reflectivity is the
+diffuse (Lambertian) reflectance 0..1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+#: The bench scene (one MJCF per part, composed with <include>).
+MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+SCENE_PATH = MODELS_DIR / "scene.xml"
+
+#: Names of the model elements this module edits (kept in one place so the MJCF and code agree).
+BOARD_BODY = "target_board"
+BOARD_GEOM = "board"
+SENSOR_BODY = "vlp16"
+SENSOR_MODULE_BODY = "sensor_module"
+BOARD_THICKNESS = 0.003  # m, aluminium plate (models/target_board.xml)
+
+
+def _quat_wxyz(roll: float, tilt: float, yaw: float) -> np.ndarray:
+    """MuJoCo quaternion (w, x, y, z) of R = Rz(yaw) Rx(tilt) Ry(roll) (DESIGN.md convention)."""
+    x, y, z, w = Rotation.from_euler("ZXY", [yaw, tilt, roll]).as_quat()
+    return np.array([w, x, y, z])
+
+
+@dataclass(frozen=True)
+class BenchParams:
+    """The physical bench. Defaults: the paper's bench with a perfectly mounted LiDAR.
+
+    Attributes (SI):
+        mount_roll, mount_tilt, mount_yaw: LiDAR mounting misalignment, rad, relative to the
+            turntable, in the convention of `twin.pose.Pose` (R = Rz(yaw) Rx(tilt) Ry(roll)).
+        lever_arm: optical centre relative to the rotation axis on the turntable's top face, in
+            the turntable frame (x right, y forward at stage yaw 0, z up), m. Default 60 mm up:
+            the optical centre 0.5 m above the floor, level with the board centre.
+        board_width, board_height: board size, m (paper: 0.90 x 0.54).
+        board_position: centre of the board's front face in the world frame {W} (origin on the
+            floor below the nominal board centre), m.
+        board_roll, board_tilt, board_yaw: board orientation in {W}, rad (same convention).
+        sensor_module_position: the sensor module stand's floor point in {W}, m (paper: 2.5 m in
+            front of the board, 0.7 m to its side; models/bench_frame.xml explains the sign).
+        board_reflectivity: diffuse reflectance of the board face (bare aluminium, assumed 0.55).
+        background_reflectivity: diffuse reflectance of floor, wall, beams and stands (0.3).
+    """
+
+    mount_roll: float = 0.0
+    mount_tilt: float = 0.0
+    mount_yaw: float = 0.0
+    lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.06)
+    board_width: float = 0.90
+    board_height: float = 0.54
+    board_position: tuple[float, float, float] = (0.0, 0.0, 0.5)
+    board_roll: float = 0.0
+    board_tilt: float = 0.0
+    board_yaw: float = 0.0
+    sensor_module_position: tuple[float, float, float] = (0.7, -2.5, 0.0)
+    board_reflectivity: float = 0.55
+    background_reflectivity: float = 0.30
+    #: Per-geom reflectivity overrides by geom name (e.g. {"wall": 0.8}).
+    reflectivity_overrides: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.board_width <= 0 or self.board_height <= 0:
+            raise ValueError("board_width and board_height must be positive (m)")
+        for name in ("board_reflectivity", "background_reflectivity"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} is a diffuse reflectance in [0, 1]")
+
+    @classmethod
+    def from_edge(cls, *, roll_deg: float = 0.0, tilt_deg: float = 0.0, yaw_deg: float = 0.0,
+                  lever_arm_mm: tuple[float, float, float] | None = None, **kwargs) -> BenchParams:
+        """Mount misalignment in degrees and the lever arm in mm (CLI edge); other fields SI."""
+        if lever_arm_mm is not None:
+            kwargs["lever_arm"] = tuple(1e-3 * float(v) for v in lever_arm_mm)
+        return cls(mount_roll=float(np.deg2rad(roll_deg)), mount_tilt=float(np.deg2rad(tilt_deg)),
+                   mount_yaw=float(np.deg2rad(yaw_deg)), **kwargs)
+
+    def mount_quat(self) -> np.ndarray:
+        """Orientation of the LiDAR frame in the turntable frame, MuJoCo (w, x, y, z)."""
+        return _quat_wxyz(self.mount_roll, self.mount_tilt, self.mount_yaw)
+
+    def board_quat(self) -> np.ndarray:
+        """Orientation of the board frame {O} in {W}, MuJoCo (w, x, y, z)."""
+        return _quat_wxyz(self.board_roll, self.board_tilt, self.board_yaw)
+
+    def apply(self, spec: mujoco.MjSpec) -> mujoco.MjSpec:
+        """Edit a spec of ``models/scene.xml`` in place to this bench; returns it."""
+        board = spec.body(BOARD_BODY)
+        board.pos = np.asarray(self.board_position, dtype=float)
+        board.quat = self.board_quat()
+        geom = spec.geom(BOARD_GEOM)
+        geom.size = [self.board_width / 2, BOARD_THICKNESS / 2, self.board_height / 2]
+        geom.pos = [0.0, BOARD_THICKNESS / 2, 0.0]
+        for corner, (sx, sz) in {"tl": (-1, 1), "tr": (1, 1), "bl": (-1, -1),
+                                 "br": (1, -1)}.items():
+            spec.site(f"board_corner_{corner}").pos = [
+                sx * self.board_width / 2, 0.0, sz * self.board_height / 2]
+        # The vlp16 body frame is {L} with its origin at the optical centre, a child of the
+        # turntable whose origin lies 10 mm below the rotation-axis site on its top face.
+        rot_axis = np.asarray(spec.site("rotation_axis").pos, dtype=float)
+        sensor = spec.body(SENSOR_BODY)
+        sensor.pos = rot_axis + np.asarray(self.lever_arm, dtype=float)
+        sensor.quat = self.mount_quat()
+        spec.body(SENSOR_MODULE_BODY).pos = np.asarray(self.sensor_module_position, dtype=float)
+        return spec
+
+    def build_model(self, scene: Path | str = SCENE_PATH) -> mujoco.MjModel:
+        """Compile ``scene`` with these parameters applied."""
+        spec = mujoco.MjSpec.from_file(str(scene))
+        return self.apply(spec).compile()
+
+    def geom_reflectivity(self, model: mujoco.MjModel) -> np.ndarray:
+        """Diffuse reflectance of every geom of ``model``, shape (ngeom,)."""
+        refl = np.full(model.ngeom, self.background_reflectivity)
+        refl[model.geom(BOARD_GEOM).id] = self.board_reflectivity
+        for name, value in self.reflectivity_overrides.items():
+            refl[model.geom(name).id] = value
+        return refl

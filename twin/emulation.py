@@ -1,0 +1,526 @@
+"""VLP-16 emulation: MuJoCo rays from each laser at its own firing instant, and a measurement model.
+
+Two layers:
+
+* `RayCaster` casts MuJoCo rays (`mujoco.mj_multiRay`) against the ray-visible geoms of the bench
+  (geom group 0, models/common.xml), never against the sensor's own body. One `mj_multiRay` call
+  per distinct ray origin (one per laser while the sensor stands still; the vertical offsets put
+  the 16 lasers at 16 origins). Rays that provably can only meet the scene's planes (floor, wall)
+  are finished by MuJoCo's own ray/plane rule (same formula, same finite-rectangle rule as
+  ``ray_plane`` in MuJoCo's engine_ray.c) instead of a C call per ray: a ray is cast through
+  `mj_multiRay` whenever its direction falls inside the bounding sphere (``geom_rbound``) of any
+  non-plane geom. tests/test_emulation.py proves that this culled cast equals brute-force
+  `mj_multiRay` on every ray, so it is a speed-up, never an approximation.
+* `VLP16Emulator` turns firings (laser, azimuth, pose) into returns: beam divergence sub-rays with
+  echo formation (mixed returns where a beam straddles the board's edge and the wall behind it),
+  strongest / last / dual return selection, range noise and per-laser offsets, 2 mm quantisation,
+  minimum and maximum range, intensity from reflectivity, range and incidence, and dropouts at low
+  return energy. Every effect is switchable in `EmulationConfig`; randomness only from the
+  `numpy.random.Generator` handed in.
+
+SI units throughout (m, rad, s); intensity is the VLP-16's calibrated reflectivity 0..255.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Literal
+
+import mujoco
+import numpy as np
+from scipy.special import ndtr
+
+from twin import vlp16
+from twin.scan import ReturnType
+
+ReturnMode = Literal["strongest", "last", "dual"]
+
+#: Geom group the emulator casts against (models/common.xml: 0 = reachable surfaces).
+RAY_GEOM_GROUP = 0
+#: Origins closer than this share one mj_multiRay call (the cast is then made exact again by the
+#: plane correction of `RayCaster.cast`), m.
+ORIGIN_TOLERANCE = 2e-4
+_MJMINVAL = 1e-15  # mjMINVAL, as MuJoCo's ray_plane uses it
+
+
+@dataclass(frozen=True)
+class EmulationConfig:
+    """Every measurement effect of the VLP-16 emulation, each switchable. SI units.
+
+    Defaults follow the reference paper (section III-A: 14 mm 1-sigma range noise, offsets up to
+    5 mm, rpm within 3 rpm) and the VLP-16 datasheet / manual (divergence, range, timing).
+    """
+
+    #: 1-sigma Gaussian range noise, m (paper: "up to 14 mm (1 sigma)").
+    range_noise_sigma: float = 0.014
+    #: Common range offset of every laser, m.
+    range_bias: float = 0.0
+    #: 1-sigma of the per-laser range offsets drawn once per sensor, m (clipped to +-5 mm, the
+    #: paper's "offset up to 5 millimeters"). Ignored when `laser_offsets` is given.
+    laser_offset_sigma: float = 0.0025
+    #: Explicit per-laser range offsets (16 values by laser id), m.
+    laser_offsets: tuple[float, ...] | None = None
+    #: Round ranges to the packet's 2 mm unit (the wire format; kept by `ideal()`).
+    quantise: bool = True
+    #: Closest and farthest reported return, m.
+    range_min: float = vlp16.RANGE_MIN
+    range_max: float = vlp16.RANGE_MAX
+    #: Intensity from reflectivity, incidence and range (else 100 x reflectivity exactly).
+    intensity_model: bool = True
+    #: Residual range dependence of the calibrated reflectivity: x (1 m / r) ** exponent.
+    intensity_range_exponent: float = 0.1
+    #: 1-sigma of the reported reflectivity, counts.
+    intensity_noise_sigma: float = 2.0
+    #: Beam divergence with sub-rays and mixed returns at edges.
+    divergence: bool = True
+    divergence_h: float = vlp16.BEAM_DIVERGENCE_H  # rad, full angle
+    divergence_v: float = vlp16.BEAM_DIVERGENCE_V  # rad, full angle
+    #: Sub-ray echoes closer than this merge into one return at their energy-weighted range
+    #: (the mixed-pixel effect); farther apart they are separate echoes, m (assumed: about the
+    #: VLP-16's pulse length).
+    echo_separation: float = 0.5
+    #: Which return(s) the sensor reports.
+    return_mode: ReturnMode = "strongest"
+    #: Random dropouts when the return energy nears the detection threshold.
+    dropouts: bool = True
+    #: Detection threshold on the return energy reflectivity x cos(incidence) x (1 m / r)^2; the
+    #: default puts a 10 % diffuse target at normal incidence at the datasheet's 100 m.
+    detection_threshold: float = 1e-5
+    #: Softness of the detection threshold, in natural-log units of energy (1 sigma).
+    detection_softness: float = 0.3
+    #: Spin rate, rpm (datasheet: 300 .. 1200).
+    rpm: float = 600.0
+    #: Scan-to-scan wander of the spin rate, 1-sigma rpm (paper: "within 3 rpm").
+    rpm_wander_sigma: float = 1.0
+    #: Laser origins offset along Z_L by the manual's vertical corrections.
+    vertical_offsets: bool = True
+    #: Cull rays that can only meet planes (exact; see the module docstring).
+    culling: bool = True
+
+    def __post_init__(self) -> None:
+        if not vlp16.RPM_MIN <= self.rpm <= vlp16.RPM_MAX:
+            raise ValueError(f"rpm must be within {vlp16.RPM_MIN:.0f}..{vlp16.RPM_MAX:.0f}")
+        if self.return_mode not in ("strongest", "last", "dual"):
+            raise ValueError("return_mode is 'strongest', 'last' or 'dual'")
+        if self.laser_offsets is not None and len(self.laser_offsets) != vlp16.N_LASERS:
+            raise ValueError("laser_offsets needs one value per laser (16)")
+
+    @classmethod
+    def ideal(cls, quantise: bool = True, **overrides) -> EmulationConfig:
+        """Every error source off: no noise, offsets, divergence, dropouts or rpm wander, and
+        intensity = 100 x reflectivity. Ranges stay rounded to the packet's 2 mm unit unless
+        ``quantise=False`` (the wire format has no finer unit)."""
+        base = dict(range_noise_sigma=0.0, range_bias=0.0, laser_offset_sigma=0.0,
+                    laser_offsets=None, quantise=quantise, intensity_model=False,
+                    divergence=False, dropouts=False, rpm_wander_sigma=0.0)
+        base.update(overrides)
+        return cls(**base)
+
+    @property
+    def return_mode_byte(self) -> int:
+        return {"strongest": vlp16.RETURN_MODE_STRONGEST, "last": vlp16.RETURN_MODE_LAST,
+                "dual": vlp16.RETURN_MODE_DUAL}[self.return_mode]
+
+    @property
+    def n_returns(self) -> int:
+        return 2 if self.return_mode == "dual" else 1
+
+    def with_(self, **changes) -> EmulationConfig:
+        return replace(self, **changes)
+
+
+# --------------------------------------------------------------------------------------------
+# Ray casting
+# --------------------------------------------------------------------------------------------
+class RayCaster:
+    """MuJoCo rays against the bench's ray-visible geoms, excluding the sensor body."""
+
+    def __init__(self, model: mujoco.MjModel, data: mujoco.MjData, sensor_body_id: int,
+                 cutoff: float = vlp16.RANGE_MAX + 1.0) -> None:
+        self.model = model
+        self.data = data
+        self.sensor_body_id = sensor_body_id
+        self.cutoff = float(cutoff)
+        self.geomgroup = np.zeros(6, dtype=np.uint8)
+        self.geomgroup[RAY_GEOM_GROUP] = 1
+        visible = (model.geom_group == RAY_GEOM_GROUP) & (model.geom_bodyid != sensor_body_id)
+        is_plane = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
+        self.plane_ids = np.flatnonzero(visible & is_plane)
+        self.solid_ids = np.flatnonzero(visible & ~is_plane)
+        # Scratch buffers for mj_multiRay, grown on demand.
+        self._gid = np.zeros(0, dtype=np.int32)
+        self._dist = np.zeros(0)
+        self._nrm = np.zeros(0)
+
+    def _buffers(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if len(self._gid) < n:
+            self._gid = np.zeros(n, dtype=np.int32)
+            self._dist = np.zeros(n)
+            self._nrm = np.zeros(3 * n)
+        return self._gid[:n], self._dist[:n], self._nrm[:3 * n]
+
+    def multiray(self, origin: np.ndarray, dirs: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One `mj_multiRay` call: rays from ``origin`` (3,) along unit ``dirs`` (n, 3).
+
+        Returns (distance (n,) with inf for no hit, geom id (n,) with -1, world normal (n, 3)).
+        """
+        n = len(dirs)
+        if n == 0:
+            return np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros((0, 3))
+        gid, dist, nrm = self._buffers(n)
+        vec = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1)
+        mujoco.mj_multiRay(self.model, self.data, np.ascontiguousarray(origin, dtype=np.float64),
+                           vec, self.geomgroup, 1, self.sensor_body_id, gid, dist, nrm, n,
+                           self.cutoff)
+        d = dist.copy()
+        g = gid.copy()
+        d[g < 0] = np.inf
+        return d, g, nrm.reshape(n, 3).copy()
+
+    def planes(self, origin: np.ndarray, dirs: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The scene's planes only, by MuJoCo's ray_plane rule (front face, sized rectangle)."""
+        n = len(dirs)
+        best = np.full(n, np.inf)
+        gid = np.full(n, -1, dtype=np.int32)
+        nrm = np.zeros((n, 3))
+        for g in self.plane_ids:
+            pos = self.data.geom_xpos[g]
+            mat = self.data.geom_xmat[g].reshape(3, 3)
+            size = self.model.geom_size[g]
+            lpnt = mat.T @ (origin - pos)
+            lvec = dirs @ mat  # rows: mat.T @ dir
+            with np.errstate(divide="ignore", invalid="ignore"):
+                x = -lpnt[2] / lvec[:, 2]
+            ok = (lvec[:, 2] < -_MJMINVAL) & (x >= 0)
+            p0 = lpnt[0] + x * lvec[:, 0]
+            p1 = lpnt[1] + x * lvec[:, 1]
+            if size[0] > 0:
+                ok &= np.abs(p0) <= size[0]
+            if size[1] > 0:
+                ok &= np.abs(p1) <= size[1]
+            ok &= x < best
+            ok &= x <= self.cutoff
+            best[ok] = x[ok]
+            gid[ok] = g
+            nrm[ok] = mat[:, 2]
+        return best, gid, nrm
+
+    def candidates(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Mask of rays whose direction enters the bounding sphere of a non-plane geom."""
+        if len(self.solid_ids) == 0:
+            return np.zeros(len(dirs), dtype=bool)
+        c = self.data.geom_xpos[self.solid_ids] - origin
+        dist = np.linalg.norm(c, axis=1)
+        rb = self.model.geom_rbound[self.solid_ids]
+        if np.any(dist <= rb * (1 + 1e-9)):
+            return np.ones(len(dirs), dtype=bool)
+        # Ray enters the sphere iff the angle to its centre is below asin(rb / dist); the
+        # margin (1e-9) keeps rounding on the safe (casting) side.
+        cos_alpha = np.sqrt(1.0 - (rb / dist) ** 2) - 1e-9
+        return ((dirs @ (c / dist[:, None]).T) >= cos_alpha).any(axis=1)
+
+    def cast_from(self, origin: np.ndarray, dirs: np.ndarray, culling: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """All rays from one origin: (distance inf if none, geom id -1 if none, normal)."""
+        if not culling:
+            return self.multiray(origin, dirs)
+        cand = self.candidates(origin, dirs)
+        dist, gid, nrm = self.planes(origin, dirs)
+        if cand.any():
+            idx = np.flatnonzero(cand)
+            d2, g2, n2 = self.multiray(origin, dirs[idx])
+            dist[idx], gid[idx], nrm[idx] = d2, g2, n2
+        return dist, gid, nrm
+
+    def cast_groups(self, group_origins: np.ndarray, group: np.ndarray, dirs: np.ndarray,
+                    culling: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rays from a few shared origins: ray i starts at ``group_origins[group[i]]``.
+
+        The sensor at rest: one origin per laser (its vertical offset), one call each.
+        """
+        n = len(dirs)
+        dist = np.full(n, np.inf)
+        gid = np.full(n, -1, dtype=np.int32)
+        nrm = np.zeros((n, 3))
+        order = np.argsort(group, kind="stable")
+        bounds = np.searchsorted(group[order], np.arange(len(group_origins) + 1))
+        for k in range(len(group_origins)):
+            idx = order[bounds[k]:bounds[k + 1]]
+            if len(idx):
+                dist[idx], gid[idx], nrm[idx] = self.cast_from(group_origins[k], dirs[idx],
+                                                               culling)
+        return dist, gid, nrm
+
+    def cast(self, origins: np.ndarray, dirs: np.ndarray, culling: bool = True
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rays with their own origins (n, 3) and unit directions (n, 3).
+
+        Origins within `ORIGIN_TOLERANCE` share one `mj_multiRay` call from the group's first
+        origin; each ray's distance is then recomputed from its own origin on the plane of the
+        face it hit (exact for every flat face, which is every face the board and the room
+        have; < 0.2 mm on the castors' spheres).
+        """
+        n = len(dirs)
+        dist = np.full(n, np.inf)
+        gid = np.full(n, -1, dtype=np.int32)
+        nrm = np.zeros((n, 3))
+        keys = np.round(origins / ORIGIN_TOLERANCE).astype(np.int64)
+        keys -= keys.min(axis=0)
+        span = keys.max(axis=0) + 1
+        key = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]  # one int per cell
+        order = np.argsort(key, kind="stable")
+        sorted_key = key[order]
+        cut = np.flatnonzero(np.diff(sorted_key)) + 1
+        bounds = np.concatenate(([0], cut, [n]))
+        first = order[bounds[:-1]]  # the first ray (in input order) of each group
+        for k in range(len(first)):
+            idx = order[bounds[k]:bounds[k + 1]]
+            o = origins[first[k]]
+            d, g, nv = self.cast_from(o, dirs[idx], culling)
+            if len(idx) > 1:
+                delta = origins[idx] - o
+                moved = np.any(delta != 0, axis=1) & (g >= 0)
+                if moved.any():
+                    # Hit point from the shared origin, then the same plane from the own origin.
+                    hit = o + d[moved, None] * dirs[idx[moved]]
+                    nd = np.einsum("ij,ij->i", nv[moved], dirs[idx[moved]])
+                    d[moved] = np.einsum("ij,ij->i", nv[moved], hit - origins[idx[moved]]) / nd
+            dist[idx], gid[idx], nrm[idx] = d, g, nv
+        return dist, gid, nrm
+
+
+# --------------------------------------------------------------------------------------------
+# Firings and returns
+# --------------------------------------------------------------------------------------------
+@dataclass
+class Returns:
+    """Returns of N firings, one row per return slot (1, or 2 in dual mode).
+
+    distance (R, N) m (0 = none), intensity (R, N) uint8, return_type (R, N) uint8 flags.
+    """
+
+    distance: np.ndarray
+    intensity: np.ndarray
+    return_type: np.ndarray
+
+
+def sensor_directions(azimuth: np.ndarray, laser_id: np.ndarray) -> np.ndarray:
+    """Unit ray directions in {L}, (N, 3), DESIGN.md: (cos w sin a, cos w cos a, sin w)."""
+    w = vlp16.ELEVATION[laser_id]
+    cw = np.cos(w)
+    return np.column_stack((cw * np.sin(azimuth), cw * np.cos(azimuth), np.sin(w)))
+
+
+def _divergence_pattern(cfg: EmulationConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-ray angular offsets (horizontal, vertical; rad) and energy weights of one beam.
+
+    Five samples of a Gaussian spot whose 1/e^2 full width is the datasheet divergence: the
+    centre and four points at two thirds of the half-width (weights 0.4 and 4 x 0.15).
+    """
+    hh, hv = cfg.divergence_h / 2, cfg.divergence_v / 2
+    k = 2.0 / 3.0
+    dh = np.array([0.0, k * hh, -k * hh, 0.0, 0.0])
+    dv = np.array([0.0, 0.0, 0.0, k * hv, -k * hv])
+    w = np.array([0.4, 0.15, 0.15, 0.15, 0.15])
+    return dh, dv, w
+
+
+class VLP16Emulator:
+    """The VLP-16 measurement model on top of `RayCaster`."""
+
+    def __init__(self, caster: RayCaster, geom_reflectivity: np.ndarray,
+                 config: EmulationConfig, rng: np.random.Generator) -> None:
+        self.caster = caster
+        self.reflectivity = np.asarray(geom_reflectivity, dtype=float)
+        self.config = config
+        self.rng = rng
+        if config.laser_offsets is not None:
+            self.laser_offsets = np.asarray(config.laser_offsets, dtype=float)
+        elif config.laser_offset_sigma > 0:
+            self.laser_offsets = np.clip(rng.normal(0.0, config.laser_offset_sigma,
+                                                    vlp16.N_LASERS), -0.005, 0.005)
+        else:
+            self.laser_offsets = np.zeros(vlp16.N_LASERS)
+
+    # -- geometry ----------------------------------------------------------------------------
+    def rays(self, azimuth: np.ndarray, laser_id: np.ndarray, position: np.ndarray,
+             rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World origins and directions (N, 3) of firings.
+
+        ``position`` (3,) or (N, 3) and ``rotation`` (3, 3) or (N, 3, 3): pose of {L} in the
+        world at each firing's instant.
+        """
+        u = sensor_directions(azimuth, laser_id)
+        vo = (vlp16.VERTICAL_OFFSET[laser_id] if self.config.vertical_offsets
+              else np.zeros(len(laser_id)))
+        if rotation.ndim == 2:
+            dirs = u @ rotation.T
+            origins = position + np.outer(vo, rotation[:, 2])
+        else:
+            dirs = np.einsum("nij,nj->ni", rotation, u)
+            origins = position + vo[:, None] * rotation[:, :, 2]
+        return origins, dirs
+
+    # -- measurement -------------------------------------------------------------------------
+    def fire(self, azimuth: np.ndarray, laser_id: np.ndarray, position: np.ndarray,
+             rotation: np.ndarray) -> Returns:
+        """Emulate N firings (azimuth rad, laser id) from the given pose(s)."""
+        cfg = self.config
+        n = len(azimuth)
+        if cfg.divergence:
+            dh, dv, weights = _divergence_pattern(cfg)
+            k = len(weights)
+            w = vlp16.ELEVATION[laser_id]
+            # Horizontal divergence is an angle in the beam's own horizontal plane.
+            az_s = (azimuth[:, None] + dh[None, :] / np.cos(w)[:, None]).reshape(-1)
+            el_offset = np.broadcast_to(dv, (n, k)).reshape(-1)
+            lid_s = np.repeat(laser_id, k)
+            pos_s = position if position.ndim == 1 else np.repeat(position, k, axis=0)
+            rot_s = rotation if rotation.ndim == 2 else np.repeat(rotation, k, axis=0)
+            origins, dirs = self._rays_with_elevation_offset(az_s, lid_s, el_offset, pos_s, rot_s)
+        else:
+            k = 1
+            weights = np.ones(1)
+            origins, dirs = self.rays(azimuth, laser_id, position, rotation)
+        if rotation.ndim == 2:
+            # At rest: each laser's rays share one origin (its vertical offset along Z_L).
+            vo = (vlp16.VERTICAL_OFFSET if cfg.vertical_offsets else np.zeros(vlp16.N_LASERS))
+            laser_origins = position + np.outer(vo, rotation[:, 2])
+            lid = laser_id if k == 1 else np.repeat(laser_id, k)
+            dist, gid, nrm = self.caster.cast_groups(laser_origins, lid, dirs, cfg.culling)
+        else:
+            dist, gid, nrm = self.caster.cast(origins, dirs, cfg.culling)
+        hit = np.isfinite(dist)
+        cos_inc = np.where(hit, np.abs(np.einsum("ij,ij->i", nrm, dirs)), 0.0)
+        refl = np.where(hit, self.reflectivity[np.maximum(gid, 0)], 0.0)
+        r_safe = np.where(hit, np.maximum(dist, 1e-6), 1.0)
+        # Received energy relative to a full beam on a white Lambertian target 1 m away.
+        energy = np.where(hit, np.repeat(weights[None, :], n, 0).reshape(-1) * refl * cos_inc
+                          / r_safe**2, 0.0)
+        if k == 1:
+            echoes_r = np.where(hit, dist, np.inf)[:, None]
+            echoes_e = energy[:, None]
+            echoes_refl = (refl * cos_inc)[:, None]
+        else:
+            echoes_r, echoes_e, echoes_refl = self._echoes(dist.reshape(n, k),
+                                                           energy.reshape(n, k), cfg)
+        return self._measure(echoes_r, echoes_e, echoes_refl, laser_id)
+
+    def _rays_with_elevation_offset(self, azimuth, laser_id, el_offset, position, rotation):
+        w = vlp16.ELEVATION[laser_id] + el_offset
+        cw = np.cos(w)
+        u = np.column_stack((cw * np.sin(azimuth), cw * np.cos(azimuth), np.sin(w)))
+        vo = (vlp16.VERTICAL_OFFSET[laser_id] if self.config.vertical_offsets
+              else np.zeros(len(laser_id)))
+        if rotation.ndim == 2:
+            return position + np.outer(vo, rotation[:, 2]), u @ rotation.T
+        return (position + vo[:, None] * rotation[:, :, 2],
+                np.einsum("nij,nj->ni", rotation, u))
+
+    @staticmethod
+    def _echoes(r: np.ndarray, e: np.ndarray, cfg: EmulationConfig
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Merge the K sub-ray hits of each firing into echoes.
+
+        Hits closer than `echo_separation` (sorted by range) form one echo at their
+        energy-weighted range (mixed pixel); the echo's apparent reflectivity is its energy
+        times r^2 (what the sensor's calibration computes). Returns (N, K) arrays padded with
+        inf range / zero energy.
+        """
+        n, k = r.shape
+        order = np.argsort(r, axis=1)
+        r = np.take_along_axis(r, order, 1)
+        e = np.take_along_axis(e, order, 1)
+        gap = np.diff(r, axis=1, prepend=-np.inf)
+        gap[~np.isfinite(r)] = np.inf
+        new = (gap > cfg.echo_separation) | ~np.isfinite(gap)
+        new[:, 0] = True
+        cluster = np.cumsum(new, axis=1) - 1  # 0..K-1 per firing
+        flat = (np.arange(n)[:, None] * k + cluster).reshape(-1)
+        finite = np.isfinite(r).reshape(-1)
+        e_sum = np.bincount(flat[finite], weights=e.reshape(-1)[finite], minlength=n * k)
+        re_sum = np.bincount(flat[finite], weights=(r * e).reshape(-1)[finite], minlength=n * k)
+        r_sum = np.bincount(flat[finite], weights=r.reshape(-1)[finite], minlength=n * k)
+        cnt = np.bincount(flat[finite], minlength=n * k)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r_echo = np.where(e_sum > 0, re_sum / np.where(e_sum > 0, e_sum, 1),
+                              r_sum / np.maximum(cnt, 1))
+        r_echo = np.where(cnt > 0, r_echo, np.inf).reshape(n, k)
+        e_echo = e_sum.reshape(n, k)
+        refl_echo = np.where(np.isfinite(r_echo), e_echo * np.where(np.isfinite(r_echo),
+                                                                     r_echo, 0) ** 2, 0.0)
+        return r_echo, e_echo, refl_echo
+
+    def _measure(self, echo_r: np.ndarray, echo_e: np.ndarray, echo_refl: np.ndarray,
+                 laser_id: np.ndarray) -> Returns:
+        """Detection, return selection, range noise and limits, intensity: (N, E) echoes in."""
+        cfg = self.config
+        rng = self.rng
+        n = echo_r.shape[0]
+        valid = np.isfinite(echo_r) & (echo_e > 0)
+        if cfg.dropouts:
+            with np.errstate(divide="ignore"):
+                z = (np.log(np.where(valid, echo_e, 1e-300)) - math.log(cfg.detection_threshold))
+            p = ndtr(z / cfg.detection_softness)
+            valid &= rng.random(echo_r.shape) < p
+        # Candidate slots: strongest = max energy, last = max range among detected echoes.
+        e_masked = np.where(valid, echo_e, -np.inf)
+        r_masked = np.where(valid, echo_r, -np.inf)
+        rows = np.arange(n)
+        strongest = np.argmax(e_masked, axis=1)
+        last = np.argmax(r_masked, axis=1)
+        any_echo = valid.any(axis=1)
+        slots: list[tuple[np.ndarray, np.ndarray]] = []
+        if cfg.return_mode == "strongest":
+            slots.append((strongest, np.full(n, ReturnType.STRONGEST, dtype=np.uint8)))
+        elif cfg.return_mode == "last":
+            slots.append((last, np.full(n, ReturnType.LAST, dtype=np.uint8)))
+        else:
+            # Manual 9.3.1.2: dual mode reports last and strongest; when the strongest is also
+            # the last, the second strongest instead; one echo only: both blocks identical.
+            second = np.argmax(np.where(np.arange(echo_r.shape[1])[None, :] == last[:, None],
+                                        -np.inf, e_masked), axis=1)
+            has_second = np.isfinite(e_masked[rows, second]) & (valid.sum(axis=1) > 1)
+            other = np.where(strongest == last, np.where(has_second, second, last), strongest)
+            t_last = np.where(strongest == last,
+                              np.where(has_second, ReturnType.LAST | ReturnType.STRONGEST,
+                                       ReturnType.LAST | ReturnType.STRONGEST),
+                              ReturnType.LAST).astype(np.uint8)
+            t_other = np.where(strongest == last,
+                               np.where(has_second, ReturnType.SECOND_STRONGEST,
+                                        ReturnType.LAST | ReturnType.STRONGEST),
+                               ReturnType.STRONGEST).astype(np.uint8)
+            slots.append((last, t_last))
+            slots.append((other, t_other))
+        n_slots = len(slots)
+        distance = np.zeros((n_slots, n))
+        intensity = np.zeros((n_slots, n), dtype=np.uint8)
+        rtype = np.zeros((n_slots, n), dtype=np.uint8)
+        # One noise draw per echo, shared by the slots that report the same echo.
+        noise = (rng.normal(0.0, cfg.range_noise_sigma, echo_r.shape)
+                 if cfg.range_noise_sigma > 0 else np.zeros(echo_r.shape))
+        inoise = (rng.normal(0.0, cfg.intensity_noise_sigma, echo_r.shape)
+                  if cfg.intensity_model and cfg.intensity_noise_sigma > 0
+                  else np.zeros(echo_r.shape))
+        offset = cfg.range_bias + self.laser_offsets[laser_id]
+        for s, (idx, flags) in enumerate(slots):
+            ok = any_echo & valid[rows, idx]
+            r_true = np.where(ok, echo_r[rows, idx], 0.0)
+            r = r_true + offset + noise[rows, idx]
+            if cfg.quantise:
+                r = np.round(r / vlp16.DISTANCE_UNIT) * vlp16.DISTANCE_UNIT
+            ok &= (r >= cfg.range_min) & (r <= cfg.range_max)
+            refl = echo_refl[rows, idx]
+            if cfg.intensity_model:
+                r_pos = np.where(ok, r_true, 1.0)
+                level = 100.0 * refl * r_pos ** -cfg.intensity_range_exponent
+                level = level + inoise[rows, idx]
+            else:
+                level = 100.0 * refl
+            distance[s] = np.where(ok, r, 0.0)
+            intensity[s] = np.where(ok, np.clip(np.rint(level), 0, 255), 0).astype(np.uint8)
+            rtype[s] = np.where(ok, flags, 0)
+        return Returns(distance, intensity, rtype)

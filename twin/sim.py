@@ -1,0 +1,427 @@
+"""`BenchSim`: the simulated bench. Bench parameters and a seed in; stage moves, scans with ground
+truth, and VLP-16 packets out.
+
+Time: one simulation clock (s, MuJoCo's ``data.time``) drives the physics, the stage moves and
+the sensor. The VLP-16 fires on a fixed grid (a firing sequence every 55.296 us from t = 0, lasers
+2.304 us apart), spins at the configured rpm with a fresh scan-to-scan wander each rotation, and
+reports its clock as seconds past the hour (``Scan.time``, packet timestamps). A rotation runs
+from one pass of the cut azimuth to the next (default pi, behind the sensor, like
+`twin.scans.ScanAssembler`), so the twin's scans and the scans decoded from its packets coincide.
+
+Ground truth: every `Scan` carries ``meta["truth"]`` (the true LiDAR pose in the board frame at
+the scan's first firing, edge units: mm and deg, `Pose.to_edge`), ``meta["truth_pose"]`` (the same
+as a `twin.pose.Pose`) and ``meta["truth_end_pose"]`` (at the last firing: differs only when the
+stages moved during the scan). Each firing is cast from the pose of its own instant.
+"""
+
+from __future__ import annotations
+
+import math
+import socket
+import time as _time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from twin import vlp16
+from twin.bench_params import BenchParams
+from twin.emulation import EmulationConfig, RayCaster, Returns, VLP16Emulator
+from twin.motion import X_AXIS, YAW_AXIS, StageMove
+from twin.physics import BenchPhysics
+from twin.pose import Pose
+from twin.scan import Scan, points_from_polar
+
+TWO_PI = 2.0 * math.pi
+SECONDS_PER_HOUR = 3600.0
+#: A move is over when the servo error is below these (then the stepper's position is exact).
+SETTLE_X = 1e-6  # m
+SETTLE_YAW = 1e-6  # rad
+SETTLE_TIMEOUT = 1.0  # s after the profile ends
+
+
+@dataclass
+class Firings:
+    """Firings of a time window, in firing order (sequence-major, laser-minor)."""
+
+    sequence: np.ndarray  # (N,) int64 index on the sensor's firing grid
+    laser_id: np.ndarray  # (N,) uint8
+    time: np.ndarray  # (N,) s, simulation clock
+    azimuth: np.ndarray  # (N,) rad in [0, 2 pi)
+    rotation: np.ndarray  # (N,) int64 rotation index
+    returns: Returns
+
+
+class BenchSim:
+    """The simulated bench (MuJoCo physics + VLP-16 emulation).
+
+    ``params``: the physical bench (`BenchParams`, default the paper's). ``seed``: an int, a
+    `numpy.random.Generator` or None; every random draw (noise, rpm wander, laser offsets,
+    dropouts) comes from it. ``noise``: the `EmulationConfig` (default: every effect on).
+    ``cut_azimuth``: where one rotation ends and the next begins, rad.
+    """
+
+    def __init__(self, params: BenchParams | None = None,
+                 seed: int | np.random.Generator | None = None,
+                 noise: EmulationConfig | None = None, cut_azimuth: float = math.pi) -> None:
+        self.params = params or BenchParams()
+        self.config = noise or EmulationConfig()
+        self.rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+        self.physics = BenchPhysics(self.params)
+        self.caster = RayCaster(self.physics.model, self.physics.data,
+                                self.physics.sensor_body_id)
+        self.emulator = VLP16Emulator(self.caster,
+                                      self.params.geom_reflectivity(self.physics.model),
+                                      self.config, self.rng)
+        self.cut_azimuth = float(cut_azimuth) % TWO_PI
+        self._move: StageMove | None = None
+        self._move_t0 = 0.0
+        # Spin schedule: rotation i passes the cut at _rot_start[i], spinning at _rot_omega[i].
+        self._rot_start: list[float] = []
+        self._rot_omega: list[float] = []
+        self._next_rotation = 0  # the next rotation scan() returns
+        # Pose history of the current window (for firings slightly before "now").
+        self._last_pose = self.physics.lidar_pose_world()
+        self._window_record: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.scan_count = 0
+
+    # ---------------------------------------------------------------------------------------
+    # Stages
+    # ---------------------------------------------------------------------------------------
+    def stage_x(self) -> float:
+        """Linear stage position relative to the reference, m."""
+        return self.physics.carriage_x()
+
+    def stage_yaw(self) -> float:
+        """Rotation stage angle relative to the reference, rad."""
+        return self.physics.stage_yaw()
+
+    def lidar_pose_in_board(self) -> Pose:
+        """The true LiDAR pose in the board frame now."""
+        return self.physics.lidar_pose_in_board()
+
+    @property
+    def time(self) -> float:
+        """Simulation time, s."""
+        return self.physics.time
+
+    @property
+    def moving(self) -> bool:
+        """True while a commanded move has not settled."""
+        return self._move is not None
+
+    def start_move(self, x_m: float, yaw_rad: float) -> StageMove:
+        """Begin a coordinated trapezoidal move to (x, yaw); scans taken meanwhile see it."""
+        self._finish_if_settled()
+        start = (self.stage_x(), self.stage_yaw())
+        move = StageMove.plan(start, (float(x_m), float(yaw_rad)), (X_AXIS, YAW_AXIS))
+        self._move = move
+        self._move_t0 = self.time
+        return move
+
+    def move_to(self, x_m: float, yaw_rad: float) -> float:
+        """Drive both stages to (x m, yaw rad) and return once they have arrived (both arrive
+        together, as the firmware's coordinated move does); returns the move's duration, s."""
+        self.start_move(x_m, yaw_rad)
+        t0 = self._move_t0
+        while self._move is not None:
+            self._advance(self.time + 0.05)
+        return self.time - t0
+
+    def set_stage_positions(self, x_m: float, yaw_rad: float) -> None:
+        """Put the stages at (x, yaw) now, at rest: for an external step source (the firmware's
+        step counts in the simavr harness) that drives the joints itself."""
+        self._move = None
+        self.physics.set_stage_positions(float(x_m), float(yaw_rad))
+        self._last_pose = self.physics.lidar_pose_world()
+
+    def wait(self, seconds: float) -> None:
+        """Let simulated time pass (stages keep moving if a move is under way)."""
+        self._advance(self.time + seconds)
+
+    def _static(self) -> bool:
+        return self._move is None
+
+    def _setpoint(self, t: float) -> np.ndarray:
+        assert self._move is not None
+        return self._move.at(t - self._move_t0)
+
+    def _finish_if_settled(self) -> None:
+        """End the move once the profile is done and the servo error is below the settle
+        tolerance; the stepper then sits exactly on its commanded position."""
+        if self._move is None:
+            return
+        if self.time - self._move_t0 < self._move.duration:
+            return
+        x_t, yaw_t = self._move.end
+        err_x = abs(self.stage_x() - x_t)
+        err_yaw = abs(self.stage_yaw() - yaw_t)
+        overdue = self.time - self._move_t0 > self._move.duration + SETTLE_TIMEOUT
+        if (err_x < SETTLE_X and err_yaw < SETTLE_YAW) or overdue:
+            self._move = None
+            self.physics.set_stage_positions(x_t, yaw_t)
+            self._last_pose = self.physics.lidar_pose_world()
+
+    def _advance(self, t_end: float, record: bool = False
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """Step the physics to ``t_end`` (s), following the move's setpoints.
+
+        With ``record``, returns the LiDAR pose in the world at every step (times (K,),
+        positions (K, 3), rotations (K, 3, 3)), or None when the stages were at rest throughout
+        (the pose is then `_last_pose`)."""
+        ph = self.physics
+        dt = ph.timestep
+        times, pos, rot = [], [], []
+        moved = False
+        while self.time < t_end - 1e-12:
+            if self._move is None:
+                # Stages at rest: nothing in the scene moves, so time just passes.
+                n = max(1, math.ceil((t_end - self.time) / dt - 1e-9))
+                ph.data.time += n * dt
+                break
+            moved = True
+            if record and not times:
+                p, r = ph.lidar_pose_world()
+                times.append(self.time)
+                pos.append(p)
+                rot.append(r)
+            ph.set_stage_targets(*self._setpoint(self.time + dt))
+            ph.step()
+            if record:
+                p, r = ph.lidar_pose_world()
+                times.append(self.time)
+                pos.append(p)
+                rot.append(r)
+            self._finish_if_settled()
+        self._last_pose = ph.lidar_pose_world()
+        if not record or not moved:
+            return None
+        return np.array(times), np.array(pos), np.array(rot)
+
+    # ---------------------------------------------------------------------------------------
+    # Spin schedule
+    # ---------------------------------------------------------------------------------------
+    def _draw_omega(self) -> float:
+        rpm = self.config.rpm
+        if self.config.rpm_wander_sigma > 0:
+            rpm = rpm + self.rng.normal(0.0, self.config.rpm_wander_sigma)
+        rpm = float(np.clip(rpm, vlp16.RPM_MIN, vlp16.RPM_MAX))
+        return rpm * TWO_PI / 60.0
+
+    def _ensure_rotations(self, upto: int) -> None:
+        """Extend the spin schedule to rotation index ``upto`` (inclusive)."""
+        if not self._rot_start:
+            omega = self._draw_omega()
+            # The sensor was already spinning: the first cut pass lies within one rotation.
+            self._rot_start.append(float(self.rng.uniform(0.0, TWO_PI / omega)))
+            self._rot_omega.append(omega)
+        while len(self._rot_start) <= upto + 1:
+            i = len(self._rot_start) - 1
+            self._rot_start.append(self._rot_start[i] + TWO_PI / self._rot_omega[i])
+            self._rot_omega.append(self._draw_omega())
+
+    def _spin(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(azimuth rad in [0, 2 pi), rotation index) at times t (s); before the first
+        rotation the first rotation's rate extends backwards (index -1)."""
+        starts = np.asarray(self._rot_start)
+        idx = np.searchsorted(starts, t, side="right") - 1
+        i = np.clip(idx, 0, len(starts) - 1)
+        az = self.cut_azimuth + np.asarray(self._rot_omega)[i] * (t - starts[i])
+        return np.mod(az, TWO_PI), idx
+
+    # ---------------------------------------------------------------------------------------
+    # Firings
+    # ---------------------------------------------------------------------------------------
+    def _sequences_of_rotation(self, i: int) -> tuple[int, int]:
+        """Sequence index range [lo, hi) covering rotation i's firings."""
+        self._ensure_rotations(i + 1)
+        t0, t1 = self._rot_start[i], self._rot_start[i + 1]
+        lo = max(0, math.floor(t0 / vlp16.SEQUENCE_PERIOD) - 1)
+        hi = math.ceil(t1 / vlp16.SEQUENCE_PERIOD) + 1
+        return lo, hi
+
+    def _to_scans(self, f: Firings, rotations: list[int]) -> list[Scan]:
+        """Cut firings into the given rotations' scans (firing-level cut at `cut_azimuth`)."""
+        cfg = self.config
+        scans = []
+        for i in rotations:
+            m = f.rotation == i
+            # Truth from the world poses at the first and last firing of the rotation.
+            t_first = float(f.time[m][0]) if m.any() else self._rot_start[i]
+            t_last = float(f.time[m][-1]) if m.any() else self._rot_start[i]
+            truth = self._truth_at(t_first)
+            truth_end = self._truth_at(t_last)
+            parts = []
+            for s in range(cfg.n_returns):
+                d = f.returns.distance[s, m]
+                x, y, z = points_from_polar(d, f.azimuth[m], f.laser_id[m],
+                                            cfg.vertical_offsets)
+                parts.append(dict(distance=d, azimuth=f.azimuth[m], laser_id=f.laser_id[m],
+                                  intensity=f.returns.intensity[s, m],
+                                  time=np.mod(f.time[m], SECONDS_PER_HOUR),
+                                  return_type=f.returns.return_type[s, m], x=x, y=y, z=z))
+            if cfg.n_returns == 1:
+                arrays = parts[0]
+            else:
+                # Dual: the two returns of each firing side by side (last, then the other).
+                arrays = {k: np.column_stack([p[k] for p in parts]).reshape(-1)
+                          for k in parts[0]}
+            rpm = self._rot_omega[i] * 60.0 / TWO_PI
+            scans.append(Scan(
+                **arrays, index=self.scan_count, complete=True, packets=0, missing_packets=0,
+                return_mode=cfg.return_mode_byte, product_id=vlp16.PRODUCT_ID_VLP16,
+                vertical_offsets_applied=cfg.vertical_offsets,
+                meta={"truth": truth.to_edge(), "truth_pose": truth,
+                      "truth_end": truth_end.to_edge(), "truth_end_pose": truth_end,
+                      "source": "twin", "rpm": rpm, "rotation": i,
+                      "stage_x_m": self.stage_x(), "stage_yaw_rad": self.stage_yaw()}))
+            self.scan_count += 1
+        return scans
+
+    def _truth_at(self, t: float) -> Pose:
+        """True pose of {L} in {O} at time t within the last window (interpolated)."""
+        rec = self._window_record
+        p_o, r_o = self.physics.board_pose_world()
+        if rec is None:
+            p, r = self._last_pose
+        else:
+            times, ps, rs = rec
+            tc = float(np.clip(t, times[0], times[-1]))
+            p = np.array([np.interp(tc, times, ps[:, j]) for j in range(3)])
+            r = Slerp(times, Rotation.from_matrix(rs))([tc]).as_matrix()[0]
+        return Pose.from_matrix(r_o.T @ r, r_o.T @ (p - p_o))
+
+    # ---------------------------------------------------------------------------------------
+    # Scans
+    # ---------------------------------------------------------------------------------------
+    def _next_rotation_index(self) -> int:
+        """The first rotation after the last one returned that has not begun before now (a
+        scan is whole: it starts at a pass of the cut azimuth)."""
+        i = self._next_rotation
+        self._ensure_rotations(i + 1)
+        while self._rot_start[i] < self.time - 2 * vlp16.SEQUENCE_PERIOD:
+            i += 1
+            self._ensure_rotations(i + 1)
+        return i
+
+    def scans(self, n: int) -> list[Scan]:
+        """The next ``n`` whole rotations, back to back."""
+        if n <= 0:
+            return []
+        first = self._next_rotation_index()
+        rotations = list(range(first, first + n))
+        lo, _ = self._sequences_of_rotation(rotations[0])
+        _, hi = self._sequences_of_rotation(rotations[-1])
+        f = self._fire_window(lo, hi)
+        self._next_rotation = rotations[-1] + 1
+        return self._to_scans(f, rotations)
+
+    def scan(self) -> Scan:
+        """One rotation (the next whole one from now)."""
+        return self.scans(1)[0]
+
+    def _fire_window(self, lo: int, hi: int) -> Firings:
+        """Emulate every firing of sequences [lo, hi) on the sensor's grid. The physics first
+        advances to the window's end, recording the pose at every step if the stages move (kept
+        in `_window_record` for the scans' truth); each firing gets its own instant's pose."""
+        seq = np.repeat(np.arange(lo, hi, dtype=np.int64), vlp16.N_LASERS)
+        laser = np.tile(np.arange(vlp16.N_LASERS, dtype=np.uint8), hi - lo)
+        t = seq * vlp16.SEQUENCE_PERIOD + laser * vlp16.LASER_PERIOD
+        t_end = float(t[-1])
+        i = len(self._rot_start) - 1
+        while self._rot_start[-1] <= t_end:
+            i += 1
+            self._ensure_rotations(i)
+        azimuth, rotation = self._spin(t)
+        record = self._advance(t_end, record=True) if t_end > self.time else None
+        if record is None:
+            self._window_record = None
+            pos, rot = self._last_pose
+        else:
+            times, ps, rs = record
+            self._window_record = record
+            tc = np.clip(t, times[0], times[-1])
+            pos = np.column_stack([np.interp(tc, times, ps[:, j]) for j in range(3)])
+            rot = Slerp(times, Rotation.from_matrix(rs))(tc).as_matrix()
+        returns = self.emulator.fire(azimuth, laser, pos, rot)
+        return Firings(seq, laser, t, azimuth, rotation, returns)
+
+    # ---------------------------------------------------------------------------------------
+    # Packets
+    # ---------------------------------------------------------------------------------------
+    def packets(self, n_scans: int) -> tuple[np.ndarray, np.ndarray, list[Scan]]:
+        """Byte-exact VLP-16 data packets covering the next ``n_scans`` rotations.
+
+        Returns (payloads (n_packets, 1206) uint8, arrival times (n_packets,) s on the
+        simulation clock, the scans). Packets sit on the sensor's own grid (24 firing sequences
+        each, 12 in dual mode), so the first and the last packet also carry firings of the
+        neighbouring rotations, emulated like the rest.
+        """
+        from twin.packets import encode_data_packets  # the data-path encoder
+
+        cfg = self.config
+        first = self._next_rotation_index()
+        rotations = list(range(first, first + n_scans))
+        lo, _ = self._sequences_of_rotation(rotations[0])
+        _, hi = self._sequences_of_rotation(rotations[-1])
+        seq_per_packet = vlp16.SEQUENCES_PER_PACKET // cfg.n_returns
+        # Whole packets: sequences [p_lo * spp, p_hi * spp).
+        p_lo = max(0, lo // seq_per_packet)
+        p_hi = -(-hi // seq_per_packet)
+        f = self._fire_window(p_lo * seq_per_packet, p_hi * seq_per_packet)
+        self._next_rotation = rotations[-1] + 1
+        scans = self._to_scans(f, rotations)
+        n_pk = p_hi - p_lo
+        n_seq = n_pk * seq_per_packet
+        raw = np.rint(f.returns.distance / vlp16.DISTANCE_UNIT).astype(np.uint16)
+        raw = raw.reshape(cfg.n_returns, n_seq // 2, 2 * vlp16.N_LASERS)
+        refl = f.returns.intensity.reshape(cfg.n_returns, n_seq // 2, 2 * vlp16.N_LASERS)
+        # Block azimuth = azimuth of the block's first firing, 0.01 deg counts.
+        az_first = f.azimuth[::2 * vlp16.N_LASERS]
+        az_cdeg = (np.rint(np.rad2deg(az_first) / vlp16.AZIMUTH_UNIT_DEG).astype(np.int64)
+                   % 36000).astype(np.uint16)
+        if cfg.n_returns == 1:
+            block_raw, block_refl, block_az = raw[0], refl[0], az_cdeg
+        else:
+            # Dual: block pairs (last return, then strongest / second strongest), same azimuth.
+            block_raw = np.stack((raw[0], raw[1]), axis=1).reshape(-1, 2 * vlp16.N_LASERS)
+            block_refl = np.stack((refl[0], refl[1]), axis=1).reshape(-1, 2 * vlp16.N_LASERS)
+            block_az = np.repeat(az_cdeg, 2)
+        t_packet = f.time[::seq_per_packet * vlp16.N_LASERS]
+        ts_us = (np.rint(np.mod(t_packet, SECONDS_PER_HOUR) * 1e6).astype(np.int64)
+                 % int(SECONDS_PER_HOUR * 1e6)).astype(np.uint32)
+        payloads = encode_data_packets(block_az, block_raw, block_refl, ts_us,
+                                       return_mode=cfg.return_mode_byte,
+                                       product_id=vlp16.PRODUCT_ID_VLP16)
+        # A packet leaves the sensor once its last firing is done.
+        arrival = t_packet + seq_per_packet * vlp16.SEQUENCE_PERIOD
+        return payloads, arrival, scans
+
+    def write_pcap(self, path: str | Path, n_scans: int) -> list[Scan]:
+        """Write ``n_scans`` rotations as a pcap capture any VLP-16 tool reads; returns the scans
+        (each with its ground truth)."""
+        from twin.pcap import PcapWriter
+
+        payloads, arrival, scans = self.packets(n_scans)
+        with PcapWriter(path) as w:
+            for payload, ts in zip(payloads, arrival, strict=True):
+                w.write_udp(bytes(payload), float(ts), dst_port=vlp16.DATA_PORT)
+        return scans
+
+    def send_udp(self, n_scans: int, host: str = "127.0.0.1", port: int = vlp16.DATA_PORT,
+                 realtime: bool = True) -> list[Scan]:
+        """Send ``n_scans`` rotations as UDP datagrams at the sensor's real packet rate."""
+        payloads, arrival, scans = self.packets(n_scans)
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            t0 = _time.perf_counter()
+            for payload, ts in zip(payloads, arrival - arrival[0], strict=True):
+                if realtime:
+                    delay = ts - (_time.perf_counter() - t0)
+                    if delay > 0:
+                        _time.sleep(delay)
+                sock.sendto(bytes(payload), (host, port))
+        finally:
+            sock.close()
+        return scans
