@@ -1,0 +1,479 @@
+"""The `Bench`: one interface over the simulated bench (MuJoCo, in process) and the real one.
+
+A scenario only ever does this with a bench: home it, move the stages to a reference (yaw, x),
+wait until they are really there, take N scans, and close it. `SimBench` runs the twin in process
+(`twin.sim.BenchSim`); `HardwareBench` drives the stage controller over serial
+(`twin.stage_controller.StageController`) and reads scans from the VLP-16 over UDP or from a pcap
+capture (a replay). `HardwareBench` runs unchanged against the real bench and against the
+wire-level twin of ``aimbench serve``.
+
+Units: SI (rad, m, s). Every bench reports its travel so that a plan is checked before any move.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+import time
+from collections.abc import Iterator
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twin.errors import AimbenchError
+from twin.pose import Pose
+from twin.scan import Scan
+
+#: The paper's bench travel, used when a bench cannot tell its own: yaw +-10 deg sweeps need at
+#: least that, x +-30 mm likewise. Real limits come from the controller's settings or the model.
+DEFAULT_YAW_LIMITS_RAD = (math.radians(-180.0), math.radians(180.0))
+DEFAULT_X_LIMITS_M = (-0.1, 0.1)
+
+
+class BenchError(AimbenchError):
+    """The bench could not do what a scenario asked (move, scan, connect)."""
+
+
+class TravelError(BenchError):
+    """A reference beyond the stages' travel."""
+
+
+class NoScanError(BenchError):
+    """No scan arrived: the LiDAR is silent, unplugged, or the capture has run out."""
+
+
+class Bench(abc.ABC):
+    """What a scenario needs from a bench. Use as a context manager; `close` is idempotent."""
+
+    #: ``sim`` or ``hw``: stored with every run.
+    kind: str = "bench"
+
+    @abc.abstractmethod
+    def info(self) -> dict[str, Any]:
+        """What the bench says about itself (stored with the run): kind, model, travel,
+        calibration, firmware, sensor. JSON-able. ``lever_arm_m`` if known: the optical centre's
+        offset from the rotation axis at stage yaw 0, in the board frame (m)."""
+
+    @abc.abstractmethod
+    def travel(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """((yaw_min_rad, yaw_max_rad), (x_min_m, x_max_m)) the stages can reach."""
+
+    @abc.abstractmethod
+    def home(self) -> None:
+        """Find the stages' home (limit switches on hardware); afterwards yaw = x = 0."""
+
+    @abc.abstractmethod
+    def move_to(self, yaw_rad: float, x_m: float) -> None:
+        """Command the stages to (yaw_rad, x_m); returns once the command is accepted."""
+
+    @abc.abstractmethod
+    def wait_until_there(self, timeout_s: float = 120.0) -> tuple[float, float]:
+        """Block until the stages have stopped at the commanded pose; return (yaw_rad, x_m) as
+        the stages report it. Raises `BenchError` on a timeout or an alarm."""
+
+    @abc.abstractmethod
+    def position(self) -> tuple[float, float]:
+        """(yaw_rad, x_m) now."""
+
+    @abc.abstractmethod
+    def scans(self, n: int) -> Iterator[Scan]:
+        """Take `n` scans at the current pose, yielding each as soon as it is whole.
+
+        The caller may stop iterating early (Ctrl-C between scans); the bench must then be left
+        usable. Raises `NoScanError` when the sensor is silent.
+        """
+
+    def set_mount(self, mount: dict[str, float] | None) -> None:
+        """Set the LiDAR's mounting misalignment (edge units, `scenarios.plans.MOUNT_KEYS`).
+
+        Only a simulated bench can: on hardware, the mount is what it is.
+        """
+        if mount:
+            raise BenchError(f"the {self.kind} bench cannot change the LiDAR's mount; plans with "
+                             "mount misalignments (Monte Carlo) run on --bench sim only")
+
+    def prepare(self, reference: int, first_scan: int) -> None:  # noqa: B027 - optional hook
+        """Called before the scans of `reference` numbered from `first_scan` (a simulated bench
+        seeds its noise from them, so resumed runs are reproducible)."""
+
+    def close(self) -> None:  # noqa: B027 - optional hook, nothing to release by default
+        """Release the stages, the sensor and any process the bench started."""
+
+    def check_reachable(self, yaw_rad: float, x_m: float, what: str = "reference") -> None:
+        """Raise `TravelError` if (yaw_rad, x_m) lies beyond `travel`."""
+        (y0, y1), (x0, x1) = self.travel()
+        if not (y0 - 1e-9 <= yaw_rad <= y1 + 1e-9 and x0 - 1e-12 <= x_m <= x1 + 1e-12):
+            raise TravelError(
+                f"{what} yaw {math.degrees(yaw_rad):+.2f} deg, x {x_m * 1e3:+.1f} mm is beyond "
+                f"the stages' travel (yaw {math.degrees(y0):+.1f}..{math.degrees(y1):+.1f} deg, "
+                f"x {x0 * 1e3:+.1f}..{x1 * 1e3:+.1f} mm); change the plan or the travel "
+                "settings")
+
+    def __enter__(self) -> Bench:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def scan_truth(scan: Scan) -> Pose | None:
+    """The twin's true LiDAR pose for `scan` (``scan.meta['truth']``), or None on hardware.
+
+    Accepts a `Pose`, a 6-array (SI), or a dict in SI or edge units, since the twin and a replay
+    of a capture's ``.truth.json`` may give either.
+    """
+    truth = scan.meta.get("truth") if scan.meta else None
+    if truth is None:
+        return None
+    if isinstance(truth, Pose):
+        return truth
+    if isinstance(truth, dict):
+        if "x_mm" in truth or "yaw_deg" in truth:
+            return Pose.from_edge(**{k: v for k, v in truth.items() if k in
+                                     ("x_mm", "y_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg")})
+        if "x_m" in truth:
+            # The simulate command's truth.json: metres and degrees.
+            return Pose.from_edge(**{f"{a}_mm": truth[f"{a}_m"] * 1e3 for a in "xyz"},
+                                  **{k: truth[k] for k in ("roll_deg", "tilt_deg", "yaw_deg")
+                                     if k in truth})
+        return Pose(**{k: float(truth.get(k, 0.0)) for k in
+                       ("x", "y", "z", "roll", "tilt", "yaw")})
+    return Pose.from_array(truth)
+
+
+
+# -- scan sources (the LiDAR side of HardwareBench) ---------------------------------------------
+
+class ScanSource(abc.ABC):
+    """Where a hardware bench's scans come from: live UDP or a pcap replay."""
+
+    @abc.abstractmethod
+    def scans(self, n: int) -> Iterator[Scan]:
+        """The next `n` whole scans that begin after this call."""
+
+    def info(self) -> dict[str, Any]:
+        return {}
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        pass
+
+
+class UdpScanSource(ScanSource):
+    """Scans from a VLP-16 (or the wire-level twin) over UDP.
+
+    The socket is bound only while scans are taken: packets sent while the stages were moving
+    are never read, and the first scan (joined mid-rotation, flagged partial by the assembler)
+    is dropped, so every scan returned began after the stages had arrived.
+    """
+
+    def __init__(self, host: str = "0.0.0.0", port: int = 2368, timeout_s: float = 2.0) -> None:
+        self.host = host
+        self.port = port
+        self.timeout_s = timeout_s
+        self.stats: dict[str, Any] = {}
+
+    def info(self) -> dict[str, Any]:
+        return {"lidar": f"udp://{self.host}:{self.port}", "timeout_s": self.timeout_s}
+
+    def scans(self, n: int) -> Iterator[Scan]:
+        from twin.scans import ScanAssembler
+        from twin.udp import SensorSilentError, UdpReceiver
+
+        if n <= 0:
+            return
+        got = 0
+        with UdpReceiver(self.host, data_port=self.port, position_port=None,
+                         timeout_s=self.timeout_s) as rx:
+            asm = ScanAssembler()
+            try:
+                for dgram in rx.receive():
+                    for scan in asm.push(dgram.payload):
+                        if scan.meta.get("partial"):
+                            continue
+                        yield scan
+                        got += 1
+                        if got >= n:
+                            return
+            except SensorSilentError as exc:
+                raise NoScanError(f"LiDAR silent after {got} of {n} scans: {exc}") from None
+            finally:
+                self.stats = {**asm.stats.as_dict(), **rx.stats.as_dict()}
+
+
+class PcapScanSource(ScanSource):
+    """Scans replayed from a capture, in order: each `scans(n)` call takes the next `n` whole
+    scans; running out of capture is a `NoScanError` naming how many there were."""
+
+    def __init__(self, path: str | Path) -> None:
+        from twin.pcap import PcapReader
+        from twin.scans import ScanAssembler
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise NoScanError(f"no such capture {self.path}; give a .pcap file or "
+                              "udp://HOST:PORT")
+        reader = PcapReader(self.path, ports=(2368,))
+        asm = ScanAssembler()
+        payloads = [rec.payload for rec in reader]
+        self._scans = [s for s in asm.push_many(payloads) + asm.finish()
+                       if not s.meta.get("partial")]
+        self._next = 0
+
+    def info(self) -> dict[str, Any]:
+        return {"lidar": str(self.path), "scans_in_capture": len(self._scans)}
+
+    def scans(self, n: int) -> Iterator[Scan]:
+        for _ in range(n):
+            if self._next >= len(self._scans):
+                raise NoScanError(f"the capture {self.path} has run out: it holds "
+                                  f"{len(self._scans)} whole scans and the plan needs more; "
+                                  "use fewer --scans or a longer capture")
+            scan = self._scans[self._next]
+            self._next += 1
+            yield scan
+
+
+def scan_source(spec: str, timeout_s: float = 2.0) -> ScanSource:
+    """A `ScanSource` from ``udp://HOST:PORT`` or a capture path."""
+    if spec.startswith("udp://"):
+        hostport = spec[len("udp://"):]
+        host, _, port = hostport.rpartition(":")
+        try:
+            return UdpScanSource(host or "0.0.0.0", int(port), timeout_s)
+        except ValueError:
+            raise BenchError(f"bad LiDAR address {spec!r}; use udp://HOST:PORT, e.g. "
+                             "udp://0.0.0.0:2368") from None
+    return PcapScanSource(spec)
+
+
+# -- the hardware bench -------------------------------------------------------------------------
+
+class HardwareBench(Bench):
+    """The real bench: the stage controller over serial and the VLP-16 over UDP (or a capture).
+
+    port: the controller's serial port or pyserial URL (``/dev/ttyACM0``, a pty of the simavr
+        harness, ``loop://``); None for a replay without stages (only with a capture: the
+        capture is taken to have been recorded at the plan's references).
+    lidar: ``udp://HOST:PORT`` or a capture path.
+    settle_s: wait after arrival before scanning, so the bench stops ringing (s).
+    """
+
+    kind = "hw"
+
+    def __init__(self, port: str | None, lidar: str = "udp://0.0.0.0:2368",
+                 settle_s: float = 0.2, silence_timeout_s: float = 2.0,
+                 controller: Any = None) -> None:
+        self.port = port
+        self.lidar = lidar
+        self.settle_s = settle_s
+        self._target: tuple[float, float] = (0.0, 0.0)
+        self._closed = False
+        self.source = scan_source(lidar, silence_timeout_s)
+        self.controller = controller
+        if self.controller is None and port is not None:
+            from twin.stage_controller import StageController
+
+            try:
+                self.controller = StageController(port)
+                self.controller.connect()
+            except AimbenchError as exc:
+                self.source.close()
+                raise BenchError(f"stage controller on {port}: {exc}") from None
+            except OSError as exc:
+                self.source.close()
+                raise BenchError(f"cannot open the stage controller port {port}: {exc}; check "
+                                 "the cable and the port name (ls /dev/ttyACM*)") from None
+        elif self.controller is None and not isinstance(self.source, PcapScanSource):
+            raise BenchError("--bench hw needs the stage controller's --port (a replay of a "
+                             "capture may go without one)")
+
+    def info(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"kind": "hw", "port": self.port, **self.source.info()}
+        for attr in ("banner", "firmware", "settings_dict"):
+            v = getattr(self.controller, attr, None) if self.controller is not None else None
+            if v is not None and not callable(v):
+                out[attr] = v
+        (y0, y1), (x0, x1) = self.travel()
+        out["travel"] = {"yaw_deg": [math.degrees(y0), math.degrees(y1)],
+                         "x_mm": [x0 * 1e3, x1 * 1e3]}
+        return out
+
+    def travel(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        travel = getattr(self.controller, "travel", None)
+        if callable(travel):
+            try:
+                return travel()
+            except AimbenchError:
+                pass
+        return DEFAULT_YAW_LIMITS_RAD, DEFAULT_X_LIMITS_M
+
+    def home(self) -> None:
+        if self.controller is not None:
+            self.controller.home()
+        self._target = (0.0, 0.0)
+
+    def move_to(self, yaw_rad: float, x_m: float) -> None:
+        self.check_reachable(yaw_rad, x_m, "move")
+        self._target = (yaw_rad, x_m)
+        if self.controller is not None:
+            self.controller.move_to(x_m, yaw_rad)
+
+    def wait_until_there(self, timeout_s: float = 120.0) -> tuple[float, float]:
+        if self.controller is None:
+            return self._target
+        wait = self.controller.wait_idle
+        try:
+            wait(timeout=timeout_s)
+        except TypeError:
+            wait(timeout_s)
+        time.sleep(self.settle_s)
+        return self.position()
+
+    def position(self) -> tuple[float, float]:
+        if self.controller is None:
+            return self._target
+        pos = self.controller.position()
+        # The controller's order is (x_m, yaw_rad) like its move_to; a bench's is (yaw, x).
+        if isinstance(pos, tuple | list):
+            return float(pos[1]), float(pos[0])
+        return float(pos.yaw_rad), float(pos.x_m)
+
+    def scans(self, n: int) -> Iterator[Scan]:
+        yield from self.source.scans(n)
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        self.source.close()
+        if self.controller is not None:
+            self.controller.close()
+
+
+# -- the simulated bench ------------------------------------------------------------------------
+
+class SimBench(Bench):
+    """The twin in process: `twin.sim.BenchSim` (MuJoCo stages, VLP-16 emulation, truth).
+
+    seed: the noise seed. Each reference's scans draw from their own generator seeded by (seed,
+        reference, first scan), so a resumed run is as reproducible as an uninterrupted one.
+    ideal: every error source of the emulation off.
+    params: the bench (`twin.bench_params.BenchParams`; default: the paper's, a perfect mount).
+    A reference's mount misalignment (Monte Carlo) rebuilds the twin with it; its ``x_mm``
+    shifts the LiDAR sideways on the turntable (the lever arm's x).
+    """
+
+    kind = "sim"
+
+    def __init__(self, seed: int = 0, ideal: bool = False, params: Any = None,
+                 noise: Any = None) -> None:
+        from twin.bench_params import BenchParams
+
+        self.seed = int(seed)
+        self.ideal = bool(ideal)
+        self.base_params = params if params is not None else BenchParams()
+        self.noise = noise
+        self._mount: dict[str, float] | None = None
+        self._key: tuple[int, ...] = (self.seed,)
+        self._sim: Any = None
+        self._build()
+
+    def _params(self) -> Any:
+        p = self.base_params
+        m = self._mount
+        if not m:
+            return p
+        lever = tuple(p.lever_arm)
+        return replace(p, mount_roll=math.radians(m.get("roll_deg", 0.0)),
+                       mount_tilt=math.radians(m.get("tilt_deg", 0.0)),
+                       mount_yaw=math.radians(m.get("yaw_deg", 0.0)),
+                       lever_arm=(lever[0] + m.get("x_mm", 0.0) * 1e-3, lever[1], lever[2]))
+
+    def _build(self) -> None:
+        from twin.sim import BenchSim
+
+        noise = self.noise
+        if noise is None and self.ideal:
+            from twin.emulation import EmulationConfig
+
+            noise = EmulationConfig.ideal()
+        self._sim = BenchSim(self._params(), seed=self.seed, noise=noise)
+
+    def info(self) -> dict[str, Any]:
+        p = self.base_params
+        (y0, y1), (x0, x1) = self.travel()
+        lever = tuple(p.lever_arm)
+        return {
+            "kind": "sim", "seed": self.seed, "ideal": self.ideal,
+            "params": {k: (list(v) if isinstance(v, tuple) else v)
+                       for k, v in vars(p).items() if not k.startswith("_")},
+            "travel": {"yaw_deg": [math.degrees(y0), math.degrees(y1)],
+                       "x_mm": [x0 * 1e3, x1 * 1e3]},
+            # The turntable frame equals the board-parallel bench frame at stage yaw 0 (the
+            # paper's bench: stages square to the board), so the lever arm is its own x, y.
+            "lever_arm_m": [lever[0], lever[1], lever[2]],
+        }
+
+    def travel(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        travel = getattr(self._sim, "travel", None)
+        if callable(travel):
+            return travel()
+        limits = getattr(self._sim, "limits", None)
+        if limits is not None:
+            return tuple(limits["yaw"]), tuple(limits["x"])
+        return DEFAULT_YAW_LIMITS_RAD, DEFAULT_X_LIMITS_M
+
+    def set_mount(self, mount: dict[str, float] | None) -> None:
+        if (mount or None) != self._mount:
+            self._mount = dict(mount) if mount else None
+            yaw, x = self.position()
+            self._build()
+            self._sim.move_to(x, yaw)
+
+    def prepare(self, reference: int, first_scan: int) -> None:
+        self._key = (self.seed, int(reference), int(first_scan))
+        reseed = getattr(self._sim, "reseed", None)
+        if callable(reseed):
+            reseed(np.random.SeedSequence(self._key))
+
+    def home(self) -> None:
+        self._sim.move_to(0.0, 0.0)
+
+    def move_to(self, yaw_rad: float, x_m: float) -> None:
+        self.check_reachable(yaw_rad, x_m, "move")
+        self._sim.move_to(x_m, yaw_rad)
+
+    def wait_until_there(self, timeout_s: float = 120.0) -> tuple[float, float]:
+        wait = getattr(self._sim, "wait_idle", None)
+        if callable(wait):
+            wait()
+        return self.position()
+
+    def position(self) -> tuple[float, float]:
+        return float(self._sim.stage_yaw()), float(self._sim.stage_x())
+
+    def scans(self, n: int) -> Iterator[Scan]:
+        for _ in range(n):
+            yield self._sim.scan()
+
+    def close(self) -> None:
+        close = getattr(self._sim, "close", None)
+        if callable(close):
+            close()
+
+
+def open_bench(config: dict[str, Any]) -> Bench:
+    """The bench a run's configuration names: ``bench`` = sim | hw | serve, with ``seed``,
+    ``ideal`` (sim), ``port`` and ``lidar`` (hw)."""
+    kind = config.get("bench", "sim")
+    if kind == "sim":
+        return SimBench(seed=int(config.get("seed") or 0), ideal=bool(config.get("ideal")))
+    if kind == "hw":
+        return HardwareBench(config.get("port"), config.get("lidar") or "udp://0.0.0.0:2368")
+    if kind == "serve":
+        raise BenchError("the wire-level twin (--bench serve) is not available in this build: "
+                         "it needs the simavr harness (twin/hil.py); use --bench sim, or start "
+                         "the real bench and use --bench hw")
+    raise BenchError(f"unknown bench {kind!r}; use sim, hw or serve")

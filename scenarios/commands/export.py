@@ -1,0 +1,39 @@
+"""`aimbench export RUN --csv FILE | --parquet FILE`: every scan of a run as a table.
+
+One row per (reference, scan): the reference (deg, mm), the estimate and its standard deviations
+and, on the simulated bench, the truth, each in edge units (mm, deg) and in SI, plus the status,
+timings and diagnostics (JSON). The Parquet file carries the run's plan, configuration, bench and
+software versions as schema metadata.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from scenarios.store import Store
+from twin.errors import AimbenchError
+
+
+def run(args: argparse.Namespace) -> int:
+    if not args.csv and not args.parquet:
+        raise AimbenchError("give --csv FILE and/or --parquet FILE")
+    with Store.open(Path(args.run)) as store:
+        n = store.scan_count()
+        if args.csv:
+            print(f"{store.export_csv(args.csv)}: {n} scans", file=sys.stderr)
+        if args.parquet:
+            print(f"{store.export_parquet(args.parquet)}: {n} scans", file=sys.stderr)
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser("export", help="export a run's scans to CSV or Parquet",
+                       description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("run", help="run folder (holding run.sqlite)")
+    p.add_argument("--csv", type=Path, help="CSV file to write")
+    p.add_argument("--parquet", type=Path, help="Parquet file to write")
+    p.set_defaults(func=run)
+    return p

@@ -1,0 +1,182 @@
+"""`aimbench sweep`: run a scenario on the simulated or the real bench into a run folder.
+
+    aimbench sweep yaw|x|grid|montecarlo|repeatability|FILE.toml --out runs/NAME
+                   [--bench sim|hw|serve] [--port URL] [--lidar udp://HOST:PORT | CAPTURE.pcap]
+                   [--scans N] [--poses N] [--method NAME] [--seed S] [--ideal]
+    aimbench sweep --resume --out runs/NAME
+
+The run folder gets ``run.sqlite`` (every scan's result, committed one by one), then the report
+(report.md, report.html, PNG plots) unless ``--no-report``. Ctrl-C stops cleanly between scans;
+``--resume`` continues with the stored settings and takes only the missing scans.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from scenarios import plans
+from scenarios.bench import open_bench
+from scenarios.commands.version import versions
+from scenarios.report import Tolerances, summary_lines, write
+from scenarios.runner import Progress, Runner, make_estimator
+from scenarios.store import Store, StoreError
+from twin.errors import AimbenchError
+
+#: Settings stored with a run and reused by --resume.
+CONFIG_KEYS = ("bench", "port", "lidar", "method", "seed", "ideal", "scenario", "scans", "poses",
+               "serve_udp")
+
+
+def add_bench_arguments(p: argparse.ArgumentParser) -> None:
+    """The options that choose and configure a bench (shared with other commands)."""
+    p.add_argument("--bench", choices=("sim", "hw", "serve"), default="sim",
+                   help="sim: the twin in process (default); hw: the stage controller on --port "
+                        "and the LiDAR on --lidar; serve: start the wire-level twin and drive it "
+                        "as hardware")
+    p.add_argument("--port", help="stage controller serial port or pyserial URL (--bench hw), "
+                                  "e.g. /dev/ttyACM0")
+    p.add_argument("--lidar", default="udp://0.0.0.0:2368",
+                   help="VLP-16 source for --bench hw: udp://HOST:PORT (default "
+                        "udp://0.0.0.0:2368) or a CAPTURE.pcap to replay")
+    p.add_argument("--seed", type=int, help="seed of the twin's noise and of the "
+                                                       "Monte Carlo poses (default 0)")
+    p.add_argument("--ideal", action="store_true", help="the twin with every error source off")
+
+
+def add_tolerance_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--tolerance-deg", type=float, default=0.2,
+                   help="pass/fail limit on angle accuracy and precision, deg (default 0.2)")
+    p.add_argument("--tolerance-mm", type=float, default=4.0,
+                   help="pass/fail limit on x accuracy and precision, mm (default 4)")
+    p.add_argument("--max-failed-percent", type=float, default=1.0,
+                   help="largest share of scans allowed without a pose, %% (default 1)")
+
+
+def tolerances(args: argparse.Namespace) -> Tolerances:
+    return Tolerances(angle_deg=args.tolerance_deg, x_mm=args.tolerance_mm,
+                      max_failed_fraction=args.max_failed_percent / 100.0)
+
+
+def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
+            progress: bool = True, report: bool = True, tol: Tolerances | None = None,
+            stream=None) -> int:
+    """Create (or resume) the run in `out`, run it, write the report; the exit code.
+
+    0: completed and passed (or completed when the report is off); 1: completed but the verdict
+    failed; 130: interrupted (resumable). A failure raises (the CLI prints one line).
+    """
+    stream = stream if stream is not None else sys.stderr
+    if resume:
+        store = Store.open(out)
+        if store.status == "completed":
+            stream.write(f"{out}: the run is already complete; rewriting its report\n")
+        stored = store.get("config", {}) or {}
+        config = {**stored, **{k: v for k, v in config.items() if k in ("port", "lidar")
+                               and v is not None and k not in stored}}
+        plan = store.plan
+        store.log("resume requested")
+    else:
+        if plan is None:
+            raise AimbenchError("give a scenario (yaw, x, grid, montecarlo, repeatability or a "
+                                ".toml file), or --resume")
+        store = None
+    try:
+        bench = open_bench(config)
+    except AimbenchError as exc:
+        if store is not None:
+            store.set_status("failed", f"opening the bench: {exc}")
+        raise
+    try:
+        if store is None:
+            try:
+                store = Store.create(out, plan, config=config, bench=bench.info(),
+                                     versions=versions())
+            except StoreError:
+                bench.close()
+                raise
+        elif store.status == "completed":
+            bench.close()
+            return _report(store, report, tol, stream)
+        resumed = f" (resumed: {store.scan_count()} scans stored)" if resume else ""
+        stream.write(f"aimbench sweep: {plan.name}, {len(plan)} references x {plan.scans} scans "
+                     f"on the {config.get('bench')} bench{resumed} -> {out}\n")
+        estimator = make_estimator(config.get("method"))
+        runner = Runner(plan, bench, store, estimator, progress=Progress(plan, stream=stream,
+                                                                         enabled=progress))
+        status = runner.run()
+        if status == "interrupted":
+            stream.write(f"interrupted: {store.scan_count()} of {plan.total_scans} scans saved in "
+                         f"{out}; continue with: aimbench sweep --resume --out {out}\n")
+            if report and store.scan_count():
+                write(store, tol)
+            return 130
+        return _report(store, report, tol, stream)
+    except AimbenchError:
+        # The runner has marked the store failed; a report of what there is still helps.
+        if store is not None and report and store.scan_count():
+            write(store, tol)
+        raise
+    finally:
+        bench.close()
+        if store is not None:
+            store.close()
+
+
+def _report(store: Store, report: bool, tol: Tolerances | None, stream) -> int:
+    if not report:
+        return 0
+    rep, md, page = write(store, tol)
+    for line in summary_lines(rep):
+        stream.write(line + "\n")
+    stream.write(f"report: {md} and {page}\n")
+    return 0 if rep.verdict()[0] else 1
+
+
+def config_from_args(args: argparse.Namespace) -> dict:
+    return {
+        "scenario": args.scenario, "bench": args.bench, "port": args.port, "lidar": args.lidar,
+        "method": args.method, "seed": 0 if args.seed is None else args.seed,
+        "ideal": bool(args.ideal),
+        "scans": args.scans, "poses": args.poses, "argv": sys.argv[1:],
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    config = config_from_args(args)
+    plan = None
+    if not args.resume:
+        if args.scenario is None:
+            raise AimbenchError("give a scenario (yaw, x, grid, montecarlo, repeatability or a "
+                                ".toml file), or --resume --out RUN")
+        plan = plans.build(args.scenario, scans=args.scans, seed=config["seed"],
+                           poses=args.poses)
+        for key in ("method", "seed"):
+            # A TOML file's defaults, unless the command line set them.
+            if key in plan.settings and getattr(args, key) is None:
+                config[key] = plan.settings[key]
+    return execute(plan, config, out, args.resume, progress=not args.no_progress,
+                   report=not args.no_report, tol=tolerances(args))
+
+
+def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser("sweep", help="run a scenario (yaw, x, grid, montecarlo, repeatability, "
+                                     "FILE.toml) on a bench into a run folder",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scenario", nargs="?", help="yaw | x | grid | montecarlo | repeatability | "
+                                               "FILE.toml (not needed with --resume)")
+    p.add_argument("--out", required=True, help="run folder, e.g. runs/NAME")
+    add_bench_arguments(p)
+    p.add_argument("--scans", type=int, help="scans per reference (default: the paper's, 100; "
+                                             "50 for montecarlo)")
+    p.add_argument("--poses", type=int, help="Monte Carlo poses (default 200)")
+    p.add_argument("--method", help="estimation method (default: align's)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the interrupted run in --out with its stored settings")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--no-report", action="store_true", help="do not write the report")
+    add_tolerance_arguments(p)
+    p.set_defaults(func=run)
+    return p

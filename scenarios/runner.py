@@ -1,0 +1,400 @@
+"""Run a plan on a bench into a store: move, scan, estimate, commit, one scan at a time.
+
+The loop commits every scan's result in its own transaction before taking the next, so:
+
+- a crash (SIGKILL, power cut) loses at most the scan in flight, and ``--resume`` continues from
+  the store: references already done are skipped, a reference half done takes only its missing
+  scans (numbered after the stored ones), and ``UNIQUE(reference, scan)`` in the store makes a
+  duplicate impossible;
+- Ctrl-C (SIGINT) or SIGTERM sets a flag checked between scans: the run stops cleanly with every
+  finished scan committed, is marked ``interrupted``, and the bench is closed. A second Ctrl-C
+  stops at once (still safe: a transaction is atomic).
+
+Failures a user can fix (a port that does not open, a silent LiDAR, a board not in view, a
+reference beyond travel) mark the run ``failed`` in the store with where it failed (reference,
+scan) and why, and raise `RunFailed` with one clear line.
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, TextIO
+
+import numpy as np
+
+from scenarios.bench import Bench, BenchError, TravelError, scan_truth
+from scenarios.plans import Plan, Reference, references_beyond
+from scenarios.store import ScanResult, Store
+from twin.errors import AimbenchError
+from twin.pose import Pose
+from twin.scan import Scan
+
+#: Stop a reference (and the run) when this many scans in a row gave no pose and none at this
+#: reference did: the board is not in view, and more scans will not bring it back.
+MAX_CONSECUTIVE_FAILURES = 10
+
+
+class RunFailed(AimbenchError):
+    """The run stopped on a failure; the store says where (reference, scan) and why."""
+
+
+@dataclass
+class Estimate:
+    """What the runner keeps of an estimator's answer for one scan (SI units)."""
+
+    status: str
+    success: bool
+    pose: Pose | None
+    std: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    diagnostics: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+
+
+Estimator = Callable[[Scan], Estimate]
+
+
+def make_estimator(method: str | None = None, board: Any = None) -> Estimator:
+    """A single-scan estimator over `align.estimate` with `method` (None: align's default).
+
+    Adapts align's `PoseEstimate` (status, pose, covariance, std, diagnostics, timings, success)
+    to `Estimate`; an exception inside the estimator becomes a failed scan with the message as its
+    diagnostic rather than a crashed run (one bad scan must not lose a sweep).
+    """
+    import align
+
+    methods = getattr(align, "METHODS", None)
+    if method is not None and methods is not None and method not in methods:
+        raise AimbenchError(f"unknown estimation method {method!r}; use one of "
+                            f"{', '.join(methods)}")
+    spec = board if board is not None else align.BoardSpec()
+
+    def estimate(scan: Scan) -> Estimate:
+        kwargs = {"board": spec}
+        if method is not None:
+            kwargs["method"] = method
+        try:
+            pe = align.estimate([scan], **kwargs)
+        except AimbenchError:
+            raise
+        except Exception as exc:  # an estimator bug on one scan: record it, keep the run
+            return Estimate(status="estimator_error", success=False, pose=None,
+                            diagnostics={"error": f"{type(exc).__name__}: {exc}"})
+        return adapt_estimate(pe)
+
+    return estimate
+
+
+def adapt_estimate(pe: Any) -> Estimate:
+    """`Estimate` from align's `PoseEstimate` (duck-typed, so a stub or a new method fits)."""
+    status = getattr(pe, "status", "ok")
+    status = getattr(status, "value", status)  # an Enum status
+    success = bool(getattr(pe, "success", pe.pose is not None))
+    pose = pe.pose if success else None
+    cov = getattr(pe, "covariance", None)
+    std = getattr(pe, "std", None)
+    if std is None and cov is not None:
+        std = np.sqrt(np.clip(np.diag(np.asarray(cov, float)), 0, None))
+    if isinstance(std, Pose):
+        std = std.as_array()
+    return Estimate(
+        status=str(status), success=success, pose=pose,
+        std=None if std is None else np.asarray(std, float),
+        covariance=None if cov is None else np.asarray(cov, float),
+        diagnostics=dict(getattr(pe, "diagnostics", {}) or {}),
+        timings=dict(getattr(pe, "timings", {}) or {}),
+    )
+
+
+class Progress:
+    """A one-line progress bar on stderr with the estimate so far at the current reference.
+
+    On a terminal it redraws in place (at most 10 times a second); otherwise it prints one line
+    per finished reference, so logs stay short.
+    """
+
+    def __init__(self, plan: Plan, stream: TextIO | None = None, enabled: bool = True) -> None:
+        self.plan = plan
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = enabled
+        self.tty = enabled and hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.total = plan.total_scans
+        self.done = 0
+        self.started = time.monotonic()
+        self.session_scans = 0
+        self._last = 0.0
+        self._yaw: list[float] = []
+        self._x: list[float] = []
+        self._fail = 0
+        self._ref = 0
+        self._ref_done = 0
+
+    def start_reference(self, index: int, already: int) -> None:
+        self._ref = index
+        self._ref_done = already
+        self._yaw.clear()
+        self._x.clear()
+        self._fail = 0
+
+    def skip(self, n: int) -> None:
+        self.done += n
+
+    def scan(self, est: Estimate) -> None:
+        self.done += 1
+        self.session_scans += 1
+        self._ref_done += 1
+        if est.success and est.pose is not None:
+            self._yaw.append(est.pose.yaw)
+            self._x.append(est.pose.x)
+        else:
+            self._fail += 1
+        now = time.monotonic()
+        if self.tty and (now - self._last > 0.1 or self._ref_done == self.plan.scans):
+            self._last = now
+            self.stream.write("\r" + self.line() + "\x1b[K")
+            self.stream.flush()
+
+    def line(self) -> str:
+        ref = self.plan.references[self._ref]
+        frac = self.done / self.total if self.total else 1.0
+        width = 20
+        bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
+        elapsed = time.monotonic() - self.started
+        rate = self.session_scans / elapsed if elapsed > 0 else 0.0
+        eta = (self.total - self.done) / rate if rate > 0 else math.nan
+        text = (f"[{bar}] {100 * frac:5.1f}% ref {self._ref + 1}/{len(self.plan)} "
+                f"({ref.describe()}) scan {self._ref_done}/{self.plan.scans}")
+        if self._yaw:
+            yaw = np.degrees(self._yaw)
+            x = np.array(self._x) * 1e3
+            text += (f" | yaw {yaw.mean():+.3f}±{yaw.std():.3f} deg"
+                     f" x {x.mean():+.1f}±{x.std():.1f} mm")
+        if self._fail:
+            text += f" | {self._fail} without pose"
+        text += f" | {rate:.1f} scans/s"
+        if math.isfinite(eta):
+            text += f" ETA {int(eta // 60)}m{int(eta % 60):02d}s"
+        return text
+
+    def end_reference(self) -> None:
+        if not self.enabled:
+            return
+        if self.tty:
+            self.stream.write("\r" + self.line() + "\x1b[K")
+            self.stream.flush()
+        else:
+            self.stream.write(self.line() + "\n")
+            self.stream.flush()
+
+    def finish(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+    def message(self, text: str) -> None:
+        if not self.enabled:
+            return
+        if self.tty:
+            self.stream.write("\r\x1b[K")
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
+
+class _StopFlag:
+    """SIGINT/SIGTERM set a flag the loop checks between scans; a second SIGINT interrupts."""
+
+    def __init__(self, on_first: Callable[[], None]) -> None:
+        self.stop = False
+        self.signal: str | None = None
+        self._on_first = on_first
+        self._saved: dict[int, Any] = {}
+
+    def _handler(self, signum: int, frame: object) -> None:
+        if self.stop and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.stop = True
+        self.signal = signal.Signals(signum).name
+        self._on_first()
+
+    def __enter__(self) -> _StopFlag:
+        # Signal handlers can only be set from the main thread; elsewhere (a test calling the
+        # runner from a worker) the loop still honours `stop` set directly.
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._saved[sig] = signal.signal(sig, self._handler)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for sig, handler in self._saved.items():
+            signal.signal(sig, handler)
+
+
+class Runner:
+    """Runs `plan` on `bench` into `store` with `estimator`.
+
+    max_consecutive_failures: scans in a row without a pose, with none at this reference, after
+        which the board is declared not in view and the run fails.
+    move_timeout_s: longest wait for the stages to arrive at a reference.
+    """
+
+    def __init__(self, plan: Plan, bench: Bench, store: Store, estimator: Estimator,
+                 progress: Progress | None = None,
+                 max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES,
+                 move_timeout_s: float = 120.0) -> None:
+        self.plan = plan
+        self.bench = bench
+        self.store = store
+        self.estimator = estimator
+        self.progress = progress or Progress(plan, enabled=False)
+        self.max_consecutive_failures = max_consecutive_failures
+        self.move_timeout_s = move_timeout_s
+        self.stop = False
+
+    def request_stop(self) -> None:
+        """Stop after the scan in flight (what Ctrl-C does); safe from another thread."""
+        self.stop = True
+
+    def run(self) -> str:
+        """Run (or resume) the plan; returns the final status (``completed``/``interrupted``).
+
+        Raises `RunFailed` after marking the run failed.
+        """
+        store, plan = self.store, self.plan
+        resumed = store.scan_count() > 0 or store.status not in ("created",)
+        with _StopFlag(lambda: self.progress.message(
+                "stopping after this scan (results so far are saved; --resume continues; "
+                "Ctrl-C again to stop at once)")) as flag:
+            store.set_status("running", "resumed" if resumed else "started")
+            where: dict[str, int | None] = {"reference": None, "scan": None}
+            try:
+                self._check_travel()
+                self.bench.home()
+                for i, ref in enumerate(plan.references):
+                    where.update(reference=i, scan=None)
+                    done = store.done_scans(i)
+                    if len(done) >= plan.scans:
+                        self.progress.skip(len(done))
+                        if store.references()[i]["status"] != "done":
+                            store.finish_reference(i, "done")
+                        continue
+                    self.progress.skip(len(done))
+                    if self._stopping(flag):
+                        return self._interrupted(flag)
+                    stage = self._go_to(ref)
+                    store.start_reference(i, stage)
+                    self.progress.start_reference(i, len(done))
+                    first = (max(done) + 1) if done else 0
+                    self.bench.prepare(i, first)
+                    stopped = self._take_scans(i, ref, first, plan.scans - len(done), flag, where)
+                    if stopped:
+                        return self._interrupted(flag)
+                    store.finish_reference(i, "done")
+                    self.progress.end_reference()
+                store.set_status("completed")
+                self.progress.finish()
+                return "completed"
+            except KeyboardInterrupt:
+                return self._interrupted(flag)
+            except AimbenchError as exc:
+                self.progress.finish()
+                i, k = where["reference"], where["scan"]
+                message = str(exc)
+                if i is not None:
+                    store.finish_reference(i, "failed", message)
+                    message = (f"at reference {i} ({plan.references[i].describe()})"
+                               + (f", scan {k}" if k is not None else "") + f": {message}")
+                store.set_status("failed", message, i, k)
+                raise RunFailed(message) from exc
+            finally:
+                self.bench.close()
+
+    # -- steps -----------------------------------------------------------------------------
+
+    def _stopping(self, flag: _StopFlag) -> bool:
+        return self.stop or flag.stop
+
+    def _interrupted(self, flag: _StopFlag) -> str:
+        self.progress.finish()
+        self.store.set_status("interrupted", f"stopped by {flag.signal or 'request'}; "
+                                             f"{self.store.scan_count()} scans saved")
+        return "interrupted"
+
+    def _check_travel(self) -> None:
+        """Refuse the plan before any move if a reference is beyond the stages' travel."""
+        yaw_lim, x_lim = self.bench.travel()
+        beyond = list(references_beyond(self.plan, yaw_lim, x_lim))
+        if beyond:
+            i, ref = beyond[0]
+            try:
+                self.bench.check_reachable(ref.yaw_rad, ref.x_m, f"reference {i}")
+                if ref.via:
+                    self.bench.check_reachable(*ref.via, f"reference {i}'s approach point")
+            except TravelError as exc:
+                more = f" ({len(beyond) - 1} more beyond travel)" if len(beyond) > 1 else ""
+                raise TravelError(f"{exc}{more}; nothing was moved") from None
+
+    def _go_to(self, ref: Reference) -> tuple[float, float]:
+        self.bench.set_mount(ref.mount)
+        if ref.via is not None:
+            self.bench.move_to(*ref.via)
+            self.bench.wait_until_there(self.move_timeout_s)
+        self.bench.move_to(ref.yaw_rad, ref.x_m)
+        return self.bench.wait_until_there(self.move_timeout_s)
+
+    def _take_scans(self, i: int, ref: Reference, first: int, n: int, flag: _StopFlag,
+                    where: dict) -> bool:
+        """Take and store `n` scans numbered from `first`; True if stopped by a signal."""
+        consecutive = 0
+        successes = 0
+        k = first
+        where["scan"] = k
+        scans = self.bench.scans(n)
+        try:
+            t0 = time.monotonic()
+            for scan in scans:
+                t_scan = time.monotonic() - t0
+                t1 = time.monotonic()
+                est = self.estimator(scan)
+                t_est = time.monotonic() - t1
+                try:
+                    stage = self.bench.position()
+                except BenchError:
+                    stage = None
+                self.store.add_scan(ScanResult(
+                    reference=i, scan=k, status=est.status, success=est.success, pose=est.pose,
+                    std=est.std, covariance=est.covariance, truth=scan_truth(scan), stage=stage,
+                    points=int(np.count_nonzero(scan.valid)), complete=bool(scan.complete),
+                    missing_packets=int(scan.missing_packets), acquired_at=time.time(),
+                    scan_s=t_scan, estimate_s=t_est, diagnostics=est.diagnostics,
+                    timings=est.timings))
+                self.progress.scan(est)
+                successes += bool(est.success)
+                consecutive = 0 if est.success else consecutive + 1
+                if successes == 0 and consecutive >= self.max_consecutive_failures:
+                    raise BenchError(
+                        f"no pose in {consecutive} scans in a row (last status "
+                        f"{est.status!r}{_diag_hint(est)}): the board is not in view or not "
+                        "found; check the board, the LiDAR's aim and the estimator's hints")
+                k += 1
+                where["scan"] = k
+                if self._stopping(flag):
+                    return True
+                t0 = time.monotonic()
+        finally:
+            close = getattr(scans, "close", None)
+            if close is not None:
+                close()
+        return False
+
+
+def _diag_hint(est: Estimate) -> str:
+    for key in ("reason", "message", "error"):
+        if key in est.diagnostics:
+            return f": {est.diagnostics[key]}"
+    return ""
