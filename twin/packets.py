@@ -616,3 +616,32 @@ def gprmc_sentence(timestamp_us: int, hour: int = 12, date: str = "010125") -> s
     for ch in body.encode("ascii"):
         checksum ^= ch
     return f"${body}*{checksum:02X}\r\n"
+
+
+# --------------------------------------------------------------------------------------------
+# Timing helpers for emitting packets (the twin, tests)
+
+
+def block_azimuths_cdeg(
+    n_packets: int, rpm: float, start_cdeg: float = 0.0,
+    return_mode: int = vlp16.RETURN_MODE_STRONGEST,
+) -> np.ndarray:
+    """Block azimuths of ``n_packets`` consecutive packets at a constant ``rpm``, (12 n,) uint16.
+
+    What the sensor's encoder reports: the azimuth at each block's first firing, rounded to
+    0.01 deg and wrapped to [0, 36000). In dual mode the two blocks of a pair share one azimuth.
+    """
+    slot = np.arange(vlp16.BLOCKS_PER_PACKET * n_packets)
+    if return_mode == vlp16.RETURN_MODE_DUAL:
+        slot = slot // 2  # one firing time per block pair
+    cdeg_per_s = rpm * 36000.0 / 60.0
+    az = start_cdeg + slot * BLOCK_PERIOD * cdeg_per_s
+    return (np.round(az).astype(np.int64) % AZIMUTH_COUNTS).astype(np.uint16)
+
+
+def packet_timestamps_us(
+    n_packets: int, start_us: int = 0, return_mode: int = vlp16.RETURN_MODE_STRONGEST,
+) -> np.ndarray:
+    """Timestamps (us past the hour, wrapping at the hour) of consecutive packets, (n,) uint32."""
+    t = start_us + np.round(np.arange(n_packets) * packet_period(return_mode) * 1e6)
+    return (t.astype(np.int64) % US_PER_HOUR).astype(np.uint32)
