@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import io
 import struct
+import warnings
 from collections import Counter
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -200,15 +201,15 @@ class PcapReader:
         import pcapng
         from pcapng import blocks
 
-        scanner = pcapng.FileScanner(io.BytesIO(self._data))
+        scanner = iter(pcapng.FileScanner(io.BytesIO(self._data)))
         try:
-            for block in scanner:
+            while (block := _next_block(scanner)) is not None:
                 if isinstance(block, blocks.EnhancedPacket):
                     link = block.interface.link_type
                     self.stats.link_type = link
                     yield block.timestamp, link, bytes(block.packet_data), block.packet_len
                 elif isinstance(block, blocks.SimplePacket):
-                    link = scanner.current_section.interfaces[0].link_type
+                    link = block.section.interfaces[0].link_type
                     yield 0.0, link, bytes(block.packet_data), block.packet_len
         except Exception as exc:  # the library raises a variety of types on damaged files
             if self.stats.records == 0 and not isinstance(exc, EOFError):
@@ -217,6 +218,13 @@ class PcapReader:
                     "record it again, or convert it with editcap -F pcap"
                 ) from exc
             self._truncated_at_end()
+
+
+def _next_block(scanner: Iterator) -> object | None:
+    """The next pcapng block, or None; python-pcapng's own deprecation noise silenced."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        return next(scanner, None)
 
 
 def read_pcap(path: str | Path, ports: Iterable[int] | None = VLP16_PORTS) -> PcapReader:
