@@ -1,0 +1,91 @@
+"""`estimate`: one entry point for every method, single scans or N scans fused."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from align.board import BoardSpec
+from align.result import Hints, PoseEstimate, Status
+from align.segment import find_board
+from twin.scan import Scan
+
+#: The methods `estimate` knows, best first.
+METHODS = ("rays", "paper", "icp")
+DEFAULT_METHOD = "rays"
+
+
+def estimate(
+    scans: Scan | Sequence[Scan],
+    board: BoardSpec = BoardSpec(),  # noqa: B008 (frozen dataclass: an immutable default)
+    method: str = DEFAULT_METHOD,
+    hints: Hints | None = None,
+) -> PoseEstimate:
+    """The LiDAR's pose in the board frame {O} from one scan, or from N scans of a static pose.
+
+    ``method``: "rays" (ML plane along the rays + the board rectangle fitted to the hit/miss
+    labels of every fired ray near its edges; N scans are fused jointly), "paper" (section III of
+    the reference paper; N scans: the mean of the N single-scan estimates, as the paper's
+    protocol averages them) or "icp" (Open3D point-to-plane ICP against a board model, the
+    baseline a user might try). Never raises for bad data: the result's ``status`` says what
+    went wrong and ``diagnostics["reason"]`` why.
+    """
+    t0 = time.perf_counter()
+    hints = hints or Hints()
+    scan_list = [scans] if isinstance(scans, Scan) else list(scans)
+    if method not in METHODS:
+        return PoseEstimate.failed(Status.UNKNOWN_METHOD, method,
+                                   reason=f"unknown method {method!r}; use one of {METHODS}")
+    if not scan_list:
+        return PoseEstimate.failed(Status.EMPTY_SCAN, method, reason="no scan given")
+    segs = [find_board(s, board, hints) for s in scan_list]
+    t_seg = time.perf_counter()
+    ok = [i for i, g in enumerate(segs) if g.status == Status.OK]
+    if not ok:
+        # the most informative failure: a board seen too far or too thin beats no board at all
+        rank = [Status.BOARD_TOO_FAR, Status.NO_BOARD, Status.EMPTY_SCAN]
+        g = min(segs, key=lambda s: rank.index(s.status) if s.status in rank else 0)
+        res = PoseEstimate.failed(g.status, method, reason=g.reason, distance_m=g.distance,
+                                  rings=g.rings)
+    elif method == "paper":
+        res = _paper(scan_list, segs, ok, board, hints)
+    elif method == "icp":
+        from align.icp import estimate_icp
+
+        res = _per_scan_mean(
+            [estimate_icp(scan_list[i], board, hints, segs[i]) for i in ok], "icp")
+    else:
+        from align.rays import estimate_rays
+
+        res = estimate_rays([scan_list[i] for i in ok], [segs[i] for i in ok], board, hints)
+    res.diagnostics.setdefault("scans", len(scan_list))
+    res.diagnostics.setdefault("scans_used", len(ok))
+    res.timings["segment"] = t_seg - t0
+    res.timings["total"] = time.perf_counter() - t0
+    return res
+
+
+def _paper(scans, segs, ok, board, hints) -> PoseEstimate:
+    from align.paper import estimate_paper
+
+    return _per_scan_mean([estimate_paper(scans[i], board, hints, segs[i]) for i in ok], "paper")
+
+
+def _per_scan_mean(results: list[PoseEstimate], method: str) -> PoseEstimate:
+    """One estimate per scan; for several, their mean with the covariance of the mean."""
+    good = [r for r in results if r.success]
+    if len(results) == 1 or not good:
+        return results[0]
+    a = np.array([r.pose.as_array() for r in good])
+    mean = a.mean(axis=0)
+    if len(good) > 1:
+        cov = np.cov(a.T) / len(good)  # scatter of the per-scan estimates
+    else:
+        cov = good[0].covariance
+    from twin.pose import Pose
+
+    diag = {"scans_ok": len(good), "fusion": "mean of per-scan estimates"}
+    return PoseEstimate(Status.OK, method, Pose.from_array(mean), cov, diag,
+                        used={"per_scan": [r.used for r in results]})

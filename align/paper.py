@@ -1,0 +1,146 @@
+"""The paper's estimator (Oh, You, Eskandarian, Kim, section III), faithfully, weaknesses included.
+
+1. Region of interest: Euclidean clustering, the board's cluster by mean distance, point count and
+   reflectivity (`align.segment`).
+2. RANSAC plane fit on the cluster (`align.plane.ransac`).
+3. The cluster's inlier returns projected orthogonally onto the plane.
+4. The feature beam points: for each board corner, the projected beam point closest to it.
+5. Levenberg-Marquardt on the six pose parameters minimising the paper's cost
+   F(beta) = 1/2 sum_i || P_O,i - (R p_L,i + T) ||^2 over the four corners P_O,i = (+-W/2, 0, +-H/2).
+
+Readings the paper leaves open (docs/align.md lists them with reasons):
+- "closest to each corner": the corners are unknown before the pose is, so we take the corners of
+  the projected cloud's bounding rectangle in the plane (horizontal axis = the plane's direction
+  orthogonal to its normal and to Z_L; vertical = normal x horizontal), and per corner the
+  projected point nearest it.
+- RANSAC inlier threshold 30 mm (about 2 sigma of the 14 mm range noise), 200 hypotheses.
+- LM: the paper's update beta - eta (J^T J + lambda diag(J^T J))^-1 J^T F with eta = 0.02 and
+  lambda = 0.3 only scales the steps; its fixed point is the least-squares minimum, which we reach
+  with plain LM (lambda adapted, eta = 1) from the nominal pose: board straight ahead at the
+  cluster's distance.
+- Rotation order: the paper writes R = Rz Ry Rx in its own axis names; we use the project's
+  R = Rz(yaw) Rx(tilt) Ry(roll) (same physical axes: yaw about the vertical, tilt about the
+  horizontal axis across the view, roll about the pointing axis).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from align import plane
+from align.board import BoardSpec
+from align.geometry import rotation
+from align.result import Hints, PoseEstimate, Status
+from twin.pose import Pose
+from twin.scan import Scan
+
+RANSAC_THRESHOLD = 0.030  # m
+RANSAC_ITERATIONS = 200
+
+
+def plane_axes(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """In-plane unit axes (horizontal, vertical) for a plane of normal n in {L}."""
+    h = np.cross([0.0, 0.0, 1.0], n)  # horizontal, orthogonal to the normal
+    h /= np.linalg.norm(h)
+    if h[0] < 0:  # to the right, like X_O
+        h = -h
+    v = np.cross(n, h)
+    if v[2] < 0:
+        v = -v
+    return h, v
+
+
+def feature_points(points: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndarray, np.ndarray]:
+    """The four feature beam points (paper III-B): projected points closest to the corners.
+
+    Returns the projected points (4, 3) in the paper's corner order (TL, TR, BL, BR) and their
+    indices into ``points``.
+    """
+    proj = points - np.outer(points @ n - d, n)
+    h, v = plane_axes(n)
+    u, w = proj @ h, proj @ v
+    corners_uv = [(u.min(), w.max()), (u.max(), w.max()), (u.min(), w.min()), (u.max(), w.min())]
+    idx = np.array([int(np.argmin((u - cu) ** 2 + (w - cw) ** 2)) for cu, cw in corners_uv])
+    return proj[idx], idx
+
+
+def _residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
+    r = rotation(beta[3], beta[4], beta[5])
+    return (p_o - (p_l @ r.T + beta[:3])).ravel()
+
+
+def _jacobian(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
+    j = np.empty((p_l.size, 6))
+    j[:, :3] = np.tile(-np.eye(3), (len(p_l), 1))
+    f0 = _residuals(beta, p_l, p_o)
+    for k in range(3, 6):
+        b = beta.copy()
+        b[k] += 1e-7
+        j[:, k] = (_residuals(b, p_l, p_o) - f0) / 1e-7
+    return j
+
+
+def levenberg_marquardt(
+    p_l: np.ndarray, p_o: np.ndarray, beta0: np.ndarray, max_iter: int = 50
+) -> tuple[np.ndarray, np.ndarray, bool, int]:
+    """Minimise 1/2 sum ||p_o - (R p_l + t)||^2 over beta = (x, y, z, roll, tilt, yaw).
+
+    Returns (beta, J at the solution, converged, iterations).
+    """
+    beta = beta0.astype(np.float64).copy()
+    lam = 0.3  # the paper's initial damping
+    f = _residuals(beta, p_l, p_o)
+    cost = f @ f
+    for it in range(1, max_iter + 1):
+        j = _jacobian(beta, p_l, p_o)
+        a = j.T @ j
+        g = j.T @ f
+        while True:
+            step = np.linalg.solve(a + lam * np.diag(np.diag(a)), -g)
+            f_new = _residuals(beta + step, p_l, p_o)
+            c_new = f_new @ f_new
+            if c_new <= cost:
+                beta, f, lam = beta + step, f_new, max(lam / 3, 1e-9)
+                done = cost - c_new < 1e-14 * max(cost, 1e-30) or np.max(np.abs(step)) < 1e-10
+                cost = c_new
+                break
+            lam *= 4
+            if lam > 1e10:
+                return beta, j, np.max(np.abs(g)) < 1e-8, it
+        if done:
+            return beta, _jacobian(beta, p_l, p_o), True, it
+    return beta, _jacobian(beta, p_l, p_o), False, max_iter
+
+
+def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> PoseEstimate:
+    """The paper's pose from one scan whose board cluster ``segmentation`` already found."""
+    pts_idx = segmentation.board
+    pts = np.column_stack((scan.x[pts_idx], scan.y[pts_idx], scan.z[pts_idx]))
+    if len(pts) < 10:
+        return PoseEstimate.failed(Status.NO_BOARD, "paper", reason="too few board returns")
+    rng = np.random.default_rng(hints.seed)
+    n, d, inl = plane.ransac(pts, RANSAC_THRESHOLD, rng, RANSAC_ITERATIONS)
+    rings = np.unique(scan.ring[pts_idx[inl]])
+    if len(rings) < 3:
+        return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=len(rings),
+                                   reason="the board spans fewer than 3 rings")
+    feat, fi = feature_points(pts[inl], n, d)
+    # nominal start: board straight ahead (along its normal) at the cluster's distance
+    yaw0 = float(np.arcsin(np.clip(n[0], -1, 1)))
+    tilt0 = float(np.arctan2(-n[2], n[1]))
+    beta0 = np.zeros(6)
+    beta0[3:] = (0.0, tilt0, yaw0)
+    c = feat.mean(axis=0)
+    beta0[:3] = -(rotation(0.0, tilt0, yaw0) @ c)
+    beta, j, conv, iters = levenberg_marquardt(feat, board.corners(), beta0)
+    f = _residuals(beta, feat, board.corners())
+    dof = f.size - 6
+    s2 = float(f @ f) / dof
+    cov = s2 * np.linalg.pinv(j.T @ j)
+    used_features = pts_idx[np.flatnonzero(inl)[fi]]
+    diag = {"rings": int(len(rings)), "board_points": int(inl.sum()), "iterations": iters,
+            "corner_rms_m": float(np.sqrt(np.mean(f**2))), "plane_d_m": d}
+    status = Status.OK if conv else Status.NOT_CONVERGED
+    return PoseEstimate(status=status, method="paper", pose=Pose.from_array(beta), covariance=cov,
+                        diagnostics=diag,
+                        used={"board": pts_idx[inl], "features": used_features})

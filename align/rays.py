@@ -1,0 +1,411 @@
+"""method="rays": the ML plane along the rays plus the board rectangle fitted to hit/miss labels.
+
+What a single flat board tells a 16-ring LiDAR (docs/align.md has the analysis):
+
+- The plane (tilt, yaw, distance) comes from the ranges. We fit it by maximum likelihood along
+  the rays (`align.plane.fit_rays`), which is unbiased on an obliquely seen board, unlike an
+  orthogonal fit.
+- Roll and the in-plane position (x, and z where the board's top or bottom edge falls between
+  rings or a ring crosses it) come only from where rays hit or miss the board. Every fired ray
+  near the board is intersected with the plane and labelled hit (a return on the plane), miss
+  (no return, or one far behind) or unknown (a return in front of the board: an occluder).
+  Along each laser's sequence of rays, sorted by azimuth (over all N scans when fusing: the
+  start azimuth differs scan to scan, so the edge is sampled at new places and the bracket
+  shrinks about as 1/N), each hit/miss transition brackets an edge crossing: the edge lies
+  somewhere between the two rays, uniformly. The bracket's midpoint is a measurement of the
+  edge with variance (bracket width)^2 / 12 plus a small blur for the random part of mixed
+  returns. Where several transitions crowd together (a beam straddling the edge gives mixed
+  returns that flicker), the zone is reduced to the one step that misclassifies the fewest rays
+  (ties widen the bracket): the blur is modelled, not ignored.
+- Both kinds of measurement enter one Gauss-Newton fit of the six pose parameters; its inverse
+  normal matrix is the covariance. Range residuals use only hits safely inside the rectangle
+  (mixed returns at the edges pull ranges towards the wall).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from align import plane
+from align.board import BoardSpec
+from align.geometry import board_coordinates, pose_from_plane
+from align.result import Hints, PoseEstimate, Status
+from align.segment import Segmentation
+from twin.pose import Pose
+from twin.scan import Scan
+
+#: A return within this distance of the plane (along the ray) is a hit on the board, m. The
+#: nearest thing behind the paper's board (its stand) is 0.15 m behind it; the noise is 14 mm.
+LABEL_TOLERANCE = 0.07
+#: Range residuals only from hits at least this far inside the rectangle, m (beam footprint
+#: 3 mrad x 2.6 m = 8 mm, half of it plus the azimuth step).
+EDGE_MARGIN = 0.015
+#: Consecutive transitions closer than this (in azimuth, rad) form one mixed zone.
+ZONE_AZIMUTH = np.deg2rad(0.5)
+#: Neighbours farther apart than this in azimuth bracket nothing (a dropped firing), rad.
+MAX_GAP = np.deg2rad(0.7)
+#: Rays considered: within this of the rectangle (board coordinates), m.
+WINDOW = 0.12
+
+
+@dataclass
+class _Rays:
+    """The candidate rays of all scans, in one set."""
+
+    origin: np.ndarray  # (M, 3) m, {L}
+    direction: np.ndarray  # (M, 3)
+    distance: np.ndarray  # (M,) m, 0 = no return
+    laser: np.ndarray  # (M,)
+    azimuth: np.ndarray  # (M,) rad, unwrapped around the board
+    ring: np.ndarray
+    gidx: np.ndarray  # index into the concatenation of the scans
+
+
+def _unwrap(az: np.ndarray, c: float) -> np.ndarray:
+    return (az - c + np.pi) % (2 * np.pi) - np.pi
+
+
+def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
+                board: BoardSpec) -> _Rays:
+    """Every fired ray (hit or not) near the board's rectangle, from all scans."""
+    parts = []
+    offset = 0
+    for s, g in zip(scans, segs, strict=True):
+        az_b = s.azimuth[g.board]
+        c = float(np.angle(np.mean(np.exp(1j * az_b))))
+        rel_b = _unwrap(az_b, c)
+        lo, hi = rel_b.min() - np.deg2rad(3), rel_b.max() + np.deg2rad(3)
+        rel = _unwrap(s.azimuth, c)
+        rings = s.ring[g.board]
+        m = (rel >= lo) & (rel <= hi) & (s.ring >= int(rings.min()) - 1) & \
+            (s.ring <= int(rings.max()) + 1)
+        idx = np.flatnonzero(m)
+        sub = s.select(idx)
+        parts.append((sub.origins(), sub.directions(), sub.distance, sub.laser_id,
+                      rel[idx] + c, sub.ring, idx + offset))
+        offset += len(s)
+    cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
+    rays = _Rays(*cat)
+    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    keep = (lam > 0) & (np.abs(x) < board.width / 2 + WINDOW) & \
+        (np.abs(z) < board.height / 2 + WINDOW + 0.1)
+    return _Rays(*(a[keep] for a in cat))
+
+
+def _labels(rays: _Rays, lam: np.ndarray) -> np.ndarray:
+    """1 hit on the board, 0 miss (no return or far behind), -1 unknown (something in front)."""
+    lab = np.zeros(len(lam), dtype=np.int8)
+    ret = rays.distance > 0
+    res = rays.distance - lam
+    lab[ret & (np.abs(res) <= LABEL_TOLERANCE)] = 1
+    lab[ret & (res < -LABEL_TOLERANCE)] = -1
+    return lab
+
+
+def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hit/miss brackets along each laser: pairs (hit-side ray, miss-side ray) of indices."""
+    order = np.lexsort((rays.azimuth, rays.laser))
+    ls, az, lb = rays.laser[order], rays.azimuth[order], lab[order]
+    link = (ls[1:] == ls[:-1]) & (np.diff(az) < MAX_GAP) & (lb[1:] >= 0) & (lb[:-1] >= 0)
+    trans = np.flatnonzero(link & (lb[1:] != lb[:-1]))
+    hits, misses = [], []
+    i = 0
+    while i < len(trans):
+        # grow a zone of transitions that follow each other closely on the same laser
+        j = i
+        while (j + 1 < len(trans) and np.all(link[trans[j]:trans[j + 1] + 1])
+               and az[trans[j + 1]] - az[trans[j]] < ZONE_AZIMUTH):
+            j += 1
+        a, b = trans[i], trans[j] + 1  # zone spans sorted rays a..b
+        left, right = lb[a], lb[b]
+        i = j + 1
+        if left == right:
+            continue  # in and out again: no net crossing (a grazing ring, a flicker)
+        z = lb[a:b + 1]
+        # split after position s: errors = wrong labels left of it + wrong labels right of it
+        wrong_left = np.cumsum(z != left)[:-1]
+        wrong_right = np.cumsum((z != right)[::-1])[::-1][1:]
+        err = wrong_left + wrong_right
+        best = np.flatnonzero(err == err.min())
+        p, q = a + best[0], a + best[-1] + 1  # the bracket: rays p and q
+        h, m = (p, q) if left == 1 else (q, p)
+        hits.append(order[h])
+        misses.append(order[m])
+    return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
+
+
+def _vertical_brackets(rays: _Rays, lab: np.ndarray, x: np.ndarray, x_c: float
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Ring-to-ring brackets of the top and bottom edges at the board's central column.
+
+    For each ring, the ray nearest the column X = x_c; going up from the lowest ring that hits,
+    the first ring that misses brackets the top edge with the ring below it (and likewise down).
+    One bracket per edge for all scans: the rings sit at the same heights in every scan.
+    """
+    rings = np.unique(rays.ring)
+    col = {}
+    for r in rings:
+        m = np.flatnonzero((rays.ring == r) & (lab >= 0))
+        if len(m):
+            col[int(r)] = int(m[np.argmin(np.abs(x[m] - x_c))])
+    hit_rings = [r for r in col if lab[col[r]] == 1]
+    hits, misses = [], []
+    if not hit_rings:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    top, bottom = max(hit_rings), min(hit_rings)
+    if top + 1 in col and lab[col[top + 1]] == 0:
+        hits.append(col[top])
+        misses.append(col[top + 1])
+    if bottom - 1 in col and lab[col[bottom - 1]] == 0:
+        hits.append(col[bottom])
+        misses.append(col[bottom - 1])
+    return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
+
+
+class _Model:
+    """Whitened residuals of the joint fit for a pose theta."""
+
+    def __init__(self, rays: _Rays, lab: np.ndarray, bh: np.ndarray, bm: np.ndarray,
+                 board: BoardSpec, sigma_r: float, blur: float) -> None:
+        self.rays, self.lab, self.board = rays, lab, board
+        self.bh, self.bm = bh, bm
+        self.sigma_r, self.blur = sigma_r, blur
+        self.use_range = np.zeros(len(lab), dtype=bool)
+        self.edge_kind = np.zeros(len(bh), dtype=np.int8)  # 0 skip, 1 vertical edge, 2 horizontal
+        self.edge_sign = np.zeros(len(bh))
+        self.edge_sd = np.ones(len(bh))
+
+    def assign(self, theta: np.ndarray) -> None:
+        """Which hits feed the range residuals: those safely inside the rectangle."""
+        w2, h2 = self.board.width / 2, self.board.height / 2
+        x, z, lam = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        inside = (np.abs(x) < w2 - EDGE_MARGIN) & (np.abs(z) < h2 - EDGE_MARGIN)
+        res = self.rays.distance - lam
+        self.use_range = (self.lab == 1) & inside & (np.abs(res) < 4 * self.sigma_r)
+
+    def classify(self, theta: np.ndarray, guard: float) -> None:
+        """Fix which edge each bracket measures, for pose ``theta``; drop the ambiguous ones.
+
+        The line through a bracket's hit and miss meets the side edge X = +-W/2 (on the side it
+        heads to) at some height z_at: well within the board's height (by ``guard``, m: the
+        pose's own uncertainty there) the bracket measures that side edge; well beyond it,
+        the top or bottom edge; in between (a bracket at a corner) it could be either and is
+        left out. Assignments stay fixed during a fit: switching them inside Gauss-Newton
+        makes the cost jump and traps the fit in wrong basins.
+        """
+        x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        kind, sign, sd = self._edges(x[self.bh], z[self.bh], x[self.bm], z[self.bm], guard)
+        self.edge_kind, self.edge_sign, self.edge_sd = kind, sign, sd
+
+    def _edges(self, xh, zh, xm, zm, guard: float = 0.0):
+        """Edge kind (1 side, 2 top or bottom, 0 left out), sign and sigma (m) of brackets.
+
+        sigma = sqrt(width^2 / 12 + blur^2), width = the bracket's extent across its edge.
+        """
+        w2, h2 = self.board.width / 2, self.board.height / 2
+        dx, dz = xm - xh, zm - zh
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z_at = np.abs(zh + (np.sign(dx) * w2 - xh) * dz / dx)
+        z_at = np.where(np.isfinite(z_at), z_at, np.inf)
+        vert = z_at <= h2
+        kind = np.where(vert, 1, 2).astype(np.int8)
+        kind[np.abs(z_at - h2) < guard] = 0
+        kind[(dx == 0) & (dz == 0)] = 0
+        sign = np.where(vert, np.sign(dx), np.sign(dz))
+        width = np.where(vert, dx, dz)
+        sd = np.sqrt(width**2 / 12 + self.blur**2)
+        return kind, sign, sd
+
+    def profile_z(self, theta: np.ndarray, dz: np.ndarray, tol: float = 3e-3) -> np.ndarray:
+        """A cost for the pose shifted by each of ``dz`` in z (m): label violations first.
+
+        A z shift moves every board coordinate Z by the same amount and leaves the ranges
+        alone, so the profile is cheap. The cost counts hits outside the rectangle and misses
+        inside it (more than ``tol`` from its edge), then adds the brackets' squared
+        residuals with their edges reassigned for each shift.
+        """
+        x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        w2, h2 = self.board.width / 2, self.board.height / 2
+        hit, miss = self.lab == 1, self.lab == 0
+        zz = z[:, None] + dz[None, :]
+        in_x = (np.abs(x) < w2 - tol)[:, None]
+        out_x = (np.abs(x) > w2 + tol)[:, None]
+        viol = np.sum(hit[:, None] & (out_x | (np.abs(zz) > h2 + tol)), axis=0)
+        viol += np.sum(miss[:, None] & in_x & (np.abs(zz) < h2 - tol), axis=0)
+        xh, xm = x[self.bh], x[self.bm]
+        cost = np.empty(len(dz))
+        for i, s in enumerate(dz):
+            zh, zm = z[self.bh] + s, z[self.bm] + s
+            kind, sign, sd = self._edges(xh, zh, xm, zm)
+            e = np.where(kind == 1, sign * w2 - 0.5 * (xh + xm), sign * h2 - 0.5 * (zh + zm))
+            cost[i] = np.sum(((e / sd)[kind > 0]) ** 2)
+        return 1e6 * viol + cost
+
+    def residuals(self, theta: np.ndarray) -> np.ndarray:
+        r = self.rays
+        x, z, lam = board_coordinates(theta, r.origin, r.direction)
+        rr = (r.distance[self.use_range] - lam[self.use_range]) / self.sigma_r
+        k = self.edge_kind
+        mid_x = 0.5 * (x[self.bh] + x[self.bm])
+        mid_z = 0.5 * (z[self.bh] + z[self.bm])
+        e = np.where(k == 1, self.edge_sign * self.board.width / 2 - mid_x,
+                     self.edge_sign * self.board.height / 2 - mid_z)
+        re = (e / self.edge_sd)[k > 0]
+        return np.concatenate((rr, re))
+
+    def jacobian(self, theta: np.ndarray, f0: np.ndarray) -> np.ndarray:
+        j = np.empty((len(f0), 6))
+        for i in range(6):
+            t = theta.copy()
+            t[i] += 1e-7
+            j[:, i] = (self.residuals(t) - f0) / 1e-7
+        return j
+
+
+def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 20
+                  ) -> tuple[np.ndarray, np.ndarray, bool, int]:
+    """Gauss-Newton on the whitened residuals; the bracket assignment stays fixed."""
+    converged = False
+    it = 0
+    tol = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-7])  # m, rad
+    for it in range(1, max_iter + 1):
+        model.assign(theta)
+        f = model.residuals(theta)
+        j = model.jacobian(theta, f)
+        a = j.T @ j
+        step = np.linalg.solve(a + 1e-9 * np.diag(np.diag(a)) + 1e-12 * np.eye(6), -j.T @ f)
+        theta = theta + step
+        if np.all(np.abs(step) < tol):
+            converged = True
+            break
+    model.assign(theta)
+    f = model.residuals(theta)
+    j = model.jacobian(theta, f)
+    return theta, j, converged, it
+
+
+def _initial_roll(x: np.ndarray, z: np.ndarray, ring: np.ndarray) -> float:
+    """Roll from the leftmost and rightmost return of each ring that spans the whole board.
+
+    ``x``, ``z``: board coordinates computed with roll 0. Rings that cross the top or bottom
+    edge end on that edge, not on a side: only rings at least 90 % as wide as the widest count.
+    A positive roll leans the side edges so that X grows downwards (dX/dZ = -tan roll).
+    """
+    zs, xl, xr = [], [], []
+    for r in np.unique(ring):
+        m = ring == r
+        if m.sum() >= 3:
+            zs.append(np.median(z[m]))
+            xl.append(x[m].min())
+            xr.append(x[m].max())
+    if len(zs) < 2:
+        return 0.0
+    zs, xl, xr = np.array(zs), np.array(xl), np.array(xr)
+    full = (xr - xl) >= 0.9 * np.max(xr - xl)
+    if full.sum() < 2:
+        return 0.0
+    slope = 0.5 * (np.polyfit(zs[full], xl[full], 1)[0] + np.polyfit(zs[full], xr[full], 1)[0])
+    return float(-np.arctan(slope))
+
+
+def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
+                  hints: Hints) -> PoseEstimate:
+    """Joint estimate from one or more scans of a static pose (their board clusters found)."""
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(hints.seed)
+    pts = [np.column_stack((s.x[g.board], s.y[g.board], s.z[g.board])) for s, g in
+           zip(scans, segs, strict=True)]
+    # robust start: RANSAC on the first scan's cluster
+    n, d, _ = plane.ransac(pts[0], 0.04, rng, 100)
+    # ML plane along the rays, all scans' returns within the RANSAC band
+    o_l, u_l, r_l = [], [], []
+    for s, g, p in zip(scans, segs, pts, strict=True):
+        near = np.abs(p @ n - d) < 0.05
+        sub = s.select(g.board[near])
+        o_l.append(sub.origins())
+        u_l.append(sub.directions())
+        r_l.append(sub.distance)
+    o_all, u_all, r_all = np.concatenate(o_l), np.concatenate(u_l), np.concatenate(r_l)
+    n, d, _, sigma = plane.fit_rays(r_all, o_all, u_all, n, d)
+    keep = np.abs(r_all - plane.predicted_range(n, d, o_all, u_all)) < 4 * sigma
+    n, d, _, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d)
+    sigma_r = hints.range_sigma or max(sigma, 1e-3)
+    t_plane = time.perf_counter()
+
+    # initial pose: the plane; roll from the cluster's side edges; centred on the cluster
+    ring_all = np.concatenate([s.ring[g.board[np.abs(p @ n - d) < 0.05]] for s, g, p in
+                               zip(scans, segs, pts, strict=True)])[keep]
+    o_k, u_k = o_all[keep], u_all[keep]
+    theta = pose_from_plane(n, d, 0.0)
+    x, z, _ = board_coordinates(theta, o_k, u_k)
+    theta = pose_from_plane(n, d, _initial_roll(x, z, ring_all))
+    x, z, _ = board_coordinates(theta, o_k, u_k)
+    # x, z shift the rays' board coordinates one for one (the plane does not depend on them)
+    theta[0] -= 0.5 * (x.max() + x.min())
+    theta[2] -= 0.5 * (z.max() + z.min())
+    rays = _candidates(scans, segs, theta, board)
+    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    lab = _labels(rays, lam)
+    hit = lab == 1
+    rings_hit = np.unique(rays.ring[hit])
+    if len(rings_hit) < 3:
+        return PoseEstimate.failed(Status.TOO_FEW_RINGS, "rays", rings=int(len(rings_hit)),
+                                   reason=f"the board spans {len(rings_hit)} rings; 3 needed")
+
+    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    bh, bm = _brackets(rays, lab)
+    vh, vm = _vertical_brackets(rays, lab, x, 0.0)
+    bh, bm = np.concatenate((bh, vh)), np.concatenate((bm, vm))
+    model = _Model(rays, lab, bh, bm, board, sigma_r, hints.edge_blur)
+    # z is the weakly known coordinate (rings are 2 deg apart) and a ring that crosses the top or
+    # bottom edge pins it down sharply, but only once its bracket is matched to the right edge.
+    # So: profile z over more than a ring spacing (label violations first), fix the bracket
+    # assignments leaving out those at corners, fit; then reassign with a tighter guard, refit.
+    dz = np.arange(-0.06, 0.0605, 0.001)
+    theta[2] += dz[np.argmin(model.profile_z(theta, dz))]
+    iters = 0
+    for guard in (0.005, 0.002):
+        model.classify(theta, guard)
+        theta, j, conv, it = _gauss_newton(model, theta)
+        iters += it
+        shift = dz[np.argmin(model.profile_z(theta, dz))]
+        theta[2] += shift
+    t_fit = time.perf_counter()
+
+    # what was seen: both side edges on at least two rings, nothing in front of the board
+    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    k, sgn = model.edge_kind, model.edge_sign
+    n_left = int(np.sum((k == 1) & (sgn < 0)))
+    n_right = int(np.sum((k == 1) & (sgn > 0)))
+    n_top = int(np.sum((k == 2) & (sgn > 0)))
+    n_bottom = int(np.sum((k == 2) & (sgn < 0)))
+    w2, h2 = board.width / 2, board.height / 2
+    inside = (np.abs(x) < w2) & (np.abs(z) < h2)
+    occluded = int(np.sum(inside & (lab == -1)))
+    inside_miss = int(np.sum(inside & (np.abs(x) < w2 - 0.02) & (np.abs(z) < h2 - 0.02) &
+                             (lab == 0)))
+    cov = np.linalg.pinv(j.T @ j)
+    diag = {
+        "rings": int(len(rings_hit)), "rays": len(lab), "hits": int(hit.sum()),
+        "range_residuals": int(model.use_range.sum()), "brackets": int(np.sum(k > 0)),
+        "edges_left": n_left, "edges_right": n_right, "edges_top": n_top,
+        "edges_bottom": n_bottom, "occluded_rays": occluded, "inside_misses": inside_miss,
+        "range_sigma_m": sigma_r, "iterations": iters,
+        "chi2_per_dof": float(np.sum(model.residuals(theta) ** 2) / max(len(j) - 6, 1)),
+    }
+    status = Status.OK
+    n_inside = max(int(np.sum(inside)), 1)
+    if n_left < 2 or n_right < 2 or occluded > 0.03 * n_inside or inside_miss > 0.03 * n_inside:
+        status = Status.PARTIAL_BOARD
+        diag["reason"] = ("the board's rectangle is not fully seen: side edges on "
+                          f"{n_left}/{n_right} rings, {occluded} rays blocked in front, "
+                          f"{inside_miss} misses inside")
+    elif not conv:
+        status = Status.NOT_CONVERGED
+    used = {"board": rays.gidx[model.use_range],
+            "features": np.stack((rays.gidx[bh[k > 0]], rays.gidx[bm[k > 0]]), axis=1)}
+    timings = {"plane": t_plane - t0, "fit": t_fit - t_plane}
+    return PoseEstimate(status, "rays", Pose.from_array(theta), cov, diag, used, timings)

@@ -1,0 +1,103 @@
+"""What an estimate returns: a status (never an exception), the pose, its covariance, and why."""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from twin.pose import POSE_FIELDS_EDGE, Pose
+
+
+class Status(enum.StrEnum):
+    """Outcome of an estimate. Only ``OK`` carries a pose a report may use."""
+
+    OK = "ok"
+    EMPTY_SCAN = "empty_scan"  # no return at all
+    NO_BOARD = "no_board"  # returns, but no cluster looks like the board
+    PARTIAL_BOARD = "partial_board"  # a board-like plane, but not the whole rectangle is seen
+    TOO_FEW_RINGS = "too_few_rings"  # fewer rings on the board than the method needs
+    BOARD_TOO_FAR = "board_too_far"  # a board-like cluster beyond the usable distance
+    NOT_CONVERGED = "not_converged"  # the solver did not settle
+    UNKNOWN_METHOD = "unknown_method"
+
+
+@dataclass(frozen=True)
+class Hints:
+    """Optional prior knowledge; every field has a default that suits the paper's bench.
+
+    Distances in m, angles in rad.
+    """
+
+    #: Expected distance from the LiDAR to the board's centre, m (None: search 0.5-6 m).
+    expected_distance: float | None = None
+    #: Azimuth window (centre, half width), rad, in the LiDAR's azimuth convention (None: all).
+    azimuth_window: tuple[float, float] | None = None
+    #: Farthest usable board distance, m: beyond it fewer than ~3 rings cross a 0.54 m board.
+    max_distance: float = 6.0
+    #: Nearest return considered, m.
+    min_distance: float = 0.5
+    #: Range noise 1-sigma, m, if known (None: estimated from the plane residuals).
+    range_sigma: float | None = None
+    #: 1-sigma of the random part of an edge's hit/miss transition, m (mixed returns, jitter).
+    edge_blur: float = 0.5e-3
+    #: Seed for the randomised parts (RANSAC).
+    seed: int = 0
+
+
+@dataclass
+class PoseEstimate:
+    """The LiDAR's pose in the board frame {O}, with its uncertainty and diagnostics.
+
+    ``covariance`` is 6 x 6 in the order x, y, z, roll, tilt, yaw (m, rad). ``used`` holds the
+    indices of the firings the estimate used (``used["board"]``: the board's returns;
+    ``used["features"]``: the feature firings, e.g. the paper's four corner points or the hit/miss
+    firings bracketing an edge); indices refer to the scan, or to the concatenation of the scans
+    for a fused estimate. ``timings`` are wall-clock seconds per stage.
+    """
+
+    status: Status
+    method: str
+    pose: Pose | None = None
+    covariance: np.ndarray | None = None
+    diagnostics: dict = field(default_factory=dict)
+    used: dict = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def success(self) -> bool:
+        return self.status == Status.OK and self.pose is not None
+
+    @property
+    def std(self) -> np.ndarray | None:
+        """1-sigma of x, y, z, roll, tilt, yaw (m, rad), or None."""
+        if self.covariance is None:
+            return None
+        return np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
+
+    def to_edge_dict(self) -> dict:
+        """JSON-ready: status, method, pose in mm/deg, the same ``*_std`` and a few diagnostics."""
+        out: dict = {"status": str(self.status), "method": self.method}
+        names = POSE_FIELDS_EDGE
+        if self.pose is not None:
+            out.update({k: float(v) for k, v in self.pose.to_edge().items()})
+            # the CLI's SI columns beside the edge units
+            out.update({"x_m": self.pose.x, "y_m": self.pose.y, "z_m": self.pose.z})
+        else:
+            out.update(dict.fromkeys(names))
+        std = self.std
+        scale = np.array([1e3, 1e3, 1e3, *([np.rad2deg(1.0)] * 3)])
+        for i, k in enumerate(names):
+            out[f"{k}_std"] = None if std is None else float(std[i] * scale[i])
+        if std is not None:
+            out.update({f"{k}_m_std": float(std[i]) for i, k in enumerate("xyz")})
+        for k, v in self.diagnostics.items():
+            if isinstance(v, bool | int | float | str) or v is None:
+                out[k] = v
+        out["time_ms"] = 1e3 * float(self.timings.get("total", np.nan))
+        return out
+
+    @classmethod
+    def failed(cls, status: Status, method: str, **diagnostics) -> PoseEstimate:
+        return cls(status=status, method=method, diagnostics=diagnostics)
