@@ -361,10 +361,25 @@ class ScanAssembler:
         bounds = np.searchsorted(chunk.sid, np.concatenate((ids, [close_below])), side="left")
         for k, lo, hi in zip(ids.tolist(), bounds[:-1], bounds[1:], strict=True):
             scans.append(self._make_scan(chunk, int(k), int(lo), int(hi), final and k == top))
+        # A rotation lost whole still gets its (empty, incomplete) scan: no silent hole.
+        lost = [k for k in self._missing_by_sid if k < close_below and k not in set(ids.tolist())]
+        scans.extend(self._lost_scan(k) for k in lost)
+        scans.sort(key=lambda scan: scan.index)
         keep = int(bounds[-1])
         if keep < len(chunk.sid):
             self._open = [_tail(chunk, keep)]
         return scans
+
+    def _lost_scan(self, k: int) -> Scan:
+        missing = int(self._missing_by_sid.pop(k))
+        self.stats.scans += 1
+        self.stats.incomplete_scans += 1
+        return Scan.empty(
+            index=k - (self._first_sid or 0), complete=False, packets=0, missing_packets=missing,
+            vertical_offsets_applied=self.vertical_offsets,
+            meta={"partial": False, "lost": True, "split": self.split,
+                  "cut_azimuth_deg": math.degrees(self._cut_ref % TWO_PI)},
+        )
 
     def _make_scan(self, chunk: _Chunk, k: int, lo: int, hi: int, last: bool) -> Scan:
         pk = (chunk.packet_sid_min <= k) & (chunk.packet_sid_max >= k)
