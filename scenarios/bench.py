@@ -124,7 +124,9 @@ def scan_truth(scan: Scan) -> Pose | None:
     Accepts a `Pose`, a 6-array (SI), or a dict in SI or edge units, since the twin and a replay
     of a capture's ``.truth.json`` may give either.
     """
-    truth = scan.meta.get("truth") if scan.meta else None
+    if not scan.meta:
+        return None
+    truth = scan.meta.get("truth_pose", scan.meta.get("truth"))
     if truth is None:
         return None
     if isinstance(truth, Pose):
@@ -254,8 +256,8 @@ class HardwareBench(Bench):
     """The real bench: the stage controller over serial and the VLP-16 over UDP (or a capture).
 
     port: the controller's serial port or pyserial URL (``/dev/ttyACM0``, a pty of the simavr
-        harness, ``loop://``); None for a replay without stages (only with a capture: the
-        capture is taken to have been recorded at the plan's references).
+        harness); None (``--port none``) for a bench without stages: a LiDAR on a fixed fixture,
+        or the replay of a capture, taken to be at the plan's references.
     lidar: ``udp://HOST:PORT`` or a capture path.
     settle_s: wait after arrival before scanning, so the bench stops ringing (s).
     """
@@ -272,6 +274,8 @@ class HardwareBench(Bench):
         self._closed = False
         self.source = scan_source(lidar, silence_timeout_s)
         self.controller = controller
+        if port is not None and port.lower() == "none":
+            self.port = port = None
         if self.controller is None and port is not None:
             from twin.stage_controller import StageController
 
@@ -285,9 +289,6 @@ class HardwareBench(Bench):
                 self.source.close()
                 raise BenchError(f"cannot open the stage controller port {port}: {exc}; check "
                                  "the cable and the port name (ls /dev/ttyACM*)") from None
-        elif self.controller is None and not isinstance(self.source, PcapScanSource):
-            raise BenchError("--bench hw needs the stage controller's --port (a replay of a "
-                             "capture may go without one)")
 
     def info(self) -> dict[str, Any]:
         out: dict[str, Any] = {"kind": "hw", "port": self.port, **self.source.info()}
@@ -357,12 +358,14 @@ class HardwareBench(Bench):
 class SimBench(Bench):
     """The twin in process: `twin.sim.BenchSim` (MuJoCo stages, VLP-16 emulation, truth).
 
-    seed: the noise seed. Each reference's scans draw from their own generator seeded by (seed,
-        reference, first scan), so a resumed run is as reproducible as an uninterrupted one.
+    seed: the twin's seed. It draws the sensor once (its per-laser range offsets: one physical
+        VLP-16 for the whole run); each reference's scans then draw their noise from a generator
+        seeded by (seed, reference, first scan), so a resumed run is reproducible too.
     ideal: every error source of the emulation off.
     params: the bench (`twin.bench_params.BenchParams`; default: the paper's, a perfect mount).
-    A reference's mount misalignment (Monte Carlo) rebuilds the twin with it; its ``x_mm``
-    shifts the LiDAR sideways on the turntable (the lever arm's x).
+    A reference's mount misalignment (Monte Carlo) rebuilds the twin with it, keeping the same
+    sensor; its ``x_mm`` shifts the LiDAR sideways on the turntable (the lever arm's x).
+    Moves run in simulated time (the stages' trapezoidal profiles), so they cost no wall time.
     """
 
     kind = "sim"
@@ -370,15 +373,20 @@ class SimBench(Bench):
     def __init__(self, seed: int = 0, ideal: bool = False, params: Any = None,
                  noise: Any = None) -> None:
         from twin.bench_params import BenchParams
+        from twin.emulation import EmulationConfig
+        from twin.sim import BenchSim
 
         self.seed = int(seed)
         self.ideal = bool(ideal)
         self.base_params = params if params is not None else BenchParams()
-        self.noise = noise
+        if noise is None:
+            noise = EmulationConfig.ideal() if ideal else EmulationConfig()
         self._mount: dict[str, float] | None = None
-        self._key: tuple[int, ...] = (self.seed,)
-        self._sim: Any = None
-        self._build()
+        self._sim = BenchSim(self.base_params, seed=self.seed, noise=noise)
+        # Freeze the sensor drawn from the seed so a rebuilt twin (new mount) has the same one.
+        offsets = getattr(self._sim.emulator, "laser_offsets", None)
+        self.noise = (noise.with_(laser_offsets=tuple(float(v) for v in offsets))
+                      if offsets is not None else noise)
 
     def _params(self) -> Any:
         p = self.base_params
@@ -391,77 +399,66 @@ class SimBench(Bench):
                        mount_yaw=math.radians(m.get("yaw_deg", 0.0)),
                        lever_arm=(lever[0] + m.get("x_mm", 0.0) * 1e-3, lever[1], lever[2]))
 
-    def _build(self) -> None:
-        from twin.sim import BenchSim
-
-        noise = self.noise
-        if noise is None and self.ideal:
-            from twin.emulation import EmulationConfig
-
-            noise = EmulationConfig.ideal()
-        self._sim = BenchSim(self._params(), seed=self.seed, noise=noise)
+    @property
+    def sim(self) -> Any:
+        """The `twin.sim.BenchSim` in use (for studies that need more than a `Bench`)."""
+        return self._sim
 
     def info(self) -> dict[str, Any]:
         p = self.base_params
         (y0, y1), (x0, x1) = self.travel()
-        lever = tuple(p.lever_arm)
         return {
             "kind": "sim", "seed": self.seed, "ideal": self.ideal,
             "params": {k: (list(v) if isinstance(v, tuple) else v)
                        for k, v in vars(p).items() if not k.startswith("_")},
+            "noise": {k: (list(v) if isinstance(v, tuple) else v)
+                      for k, v in vars(self.noise).items() if not k.startswith("_")},
             "travel": {"yaw_deg": [math.degrees(y0), math.degrees(y1)],
                        "x_mm": [x0 * 1e3, x1 * 1e3]},
-            # The turntable frame equals the board-parallel bench frame at stage yaw 0 (the
-            # paper's bench: stages square to the board), so the lever arm is its own x, y.
-            "lever_arm_m": [lever[0], lever[1], lever[2]],
+            # The turntable's frame is square to the board at stage yaw 0 (the paper's bench),
+            # so the lever arm in that frame is the offset the relative report swings.
+            "lever_arm_m": list(p.lever_arm),
         }
 
     def travel(self) -> tuple[tuple[float, float], tuple[float, float]]:
-        travel = getattr(self._sim, "travel", None)
-        if callable(travel):
-            return travel()
-        limits = getattr(self._sim, "limits", None)
-        if limits is not None:
-            return tuple(limits["yaw"]), tuple(limits["x"])
-        return DEFAULT_YAW_LIMITS_RAD, DEFAULT_X_LIMITS_M
+        from twin.motion import X_AXIS, YAW_AXIS
+
+        return ((YAW_AXIS.travel_min, YAW_AXIS.travel_max),
+                (X_AXIS.travel_min, X_AXIS.travel_max))
 
     def set_mount(self, mount: dict[str, float] | None) -> None:
+        from twin.sim import BenchSim
+
         if (mount or None) != self._mount:
             self._mount = dict(mount) if mount else None
-            yaw, x = self.position()
-            self._build()
-            self._sim.move_to(x, yaw)
+            self._sim = BenchSim(self._params(), seed=self.seed, noise=self.noise)
 
     def prepare(self, reference: int, first_scan: int) -> None:
-        self._key = (self.seed, int(reference), int(first_scan))
-        reseed = getattr(self._sim, "reseed", None)
-        if callable(reseed):
-            reseed(np.random.SeedSequence(self._key))
+        rng = np.random.default_rng((self.seed, int(reference), int(first_scan)))
+        # BenchSim and its emulator share one generator (noise, rpm wander, dropouts).
+        self._sim.rng = rng
+        self._sim.emulator.rng = rng
 
     def home(self) -> None:
         self._sim.move_to(0.0, 0.0)
 
     def move_to(self, yaw_rad: float, x_m: float) -> None:
         self.check_reachable(yaw_rad, x_m, "move")
-        self._sim.move_to(x_m, yaw_rad)
+        try:
+            self._sim.move_to(x_m, yaw_rad)  # blocks in simulated time until arrived
+        except AimbenchError as exc:
+            raise TravelError(str(exc)) from None
 
     def wait_until_there(self, timeout_s: float = 120.0) -> tuple[float, float]:
-        wait = getattr(self._sim, "wait_idle", None)
-        if callable(wait):
-            wait()
         return self.position()
 
     def position(self) -> tuple[float, float]:
         return float(self._sim.stage_yaw()), float(self._sim.stage_x())
 
     def scans(self, n: int) -> Iterator[Scan]:
+        # One at a time, so a Ctrl-C between scans wastes nothing.
         for _ in range(n):
             yield self._sim.scan()
-
-    def close(self) -> None:
-        close = getattr(self._sim, "close", None)
-        if callable(close):
-            close()
 
 
 def open_bench(config: dict[str, Any]) -> Bench:
@@ -471,7 +468,10 @@ def open_bench(config: dict[str, Any]) -> Bench:
     if kind == "sim":
         return SimBench(seed=int(config.get("seed") or 0), ideal=bool(config.get("ideal")))
     if kind == "hw":
-        return HardwareBench(config.get("port"), config.get("lidar") or "udp://0.0.0.0:2368")
+        if not config.get("port"):
+            raise BenchError("--bench hw needs the stage controller's --port (e.g. /dev/ttyACM0), "
+                             "or --port none for a LiDAR without stages or a capture replay")
+        return HardwareBench(config["port"], config.get("lidar") or "udp://0.0.0.0:2368")
     if kind == "serve":
         raise BenchError("the wire-level twin (--bench serve) is not available in this build: "
                          "it needs the simavr harness (twin/hil.py); use --bench sim, or start "

@@ -273,7 +273,7 @@ class Runner:
             store.set_status("running", "resumed" if resumed else "started")
             where: dict[str, int | None] = {"reference": None, "scan": None}
             try:
-                self._check_travel()
+                self._check_travel(where)
                 self.bench.home()
                 for i, ref in enumerate(plan.references):
                     where.update(reference=i, scan=None)
@@ -325,12 +325,14 @@ class Runner:
                                              f"{self.store.scan_count()} scans saved")
         return "interrupted"
 
-    def _check_travel(self) -> None:
-        """Refuse the plan before any move if a reference is beyond the stages' travel."""
+    def _check_travel(self, where: dict) -> None:
+        """Refuse the plan before any move if a reference is beyond the stages' travel (the
+        run fails at the first such reference)."""
         yaw_lim, x_lim = self.bench.travel()
         beyond = list(references_beyond(self.plan, yaw_lim, x_lim))
         if beyond:
             i, ref = beyond[0]
+            where["reference"] = i
             try:
                 self.bench.check_reachable(ref.yaw_rad, ref.x_m, f"reference {i}")
                 if ref.via:

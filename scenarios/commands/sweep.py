@@ -36,7 +36,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                         "and the LiDAR on --lidar; serve: start the wire-level twin and drive it "
                         "as hardware")
     p.add_argument("--port", help="stage controller serial port or pyserial URL (--bench hw), "
-                                  "e.g. /dev/ttyACM0")
+                                  "e.g. /dev/ttyACM0; 'none' for a LiDAR without stages or a "
+                                  "capture replay")
     p.add_argument("--lidar", default="udp://0.0.0.0:2368",
                    help="VLP-16 source for --bench hw: udp://HOST:PORT (default "
                         "udp://0.0.0.0:2368) or a CAPTURE.pcap to replay")
@@ -128,8 +129,9 @@ def _report(store: Store, report: bool, tol: Tolerances | None, stream) -> int:
     if not report:
         return 0
     rep, md, page = write(store, tol)
+    # The verdict and table are the result: stdout; progress and notes go to stderr.
     for line in summary_lines(rep):
-        stream.write(line + "\n")
+        print(line)
     stream.write(f"report: {md} and {page}\n")
     return 0 if rep.verdict()[0] else 1
 

@@ -1,0 +1,183 @@
+"""The runner on the real simulated bench (SimBench + align), in process: what it stores, how it
+resumes, how it stops between scans, and how it fails."""
+
+from __future__ import annotations
+
+import math
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from scenarios import plans
+from scenarios.bench import Bench, SimBench, TravelError
+from scenarios.plans import Plan, Reference
+from scenarios.runner import Estimate, Progress, RunFailed, Runner, make_estimator
+from scenarios.store import Store
+
+#: The paper's method is the estimator every checkout has; the scenarios do not depend on which.
+METHOD = "paper"
+
+
+def _plan(scans: int = 3, yaws=(-2.0, 0.0, 2.0), mount=None) -> Plan:
+    refs = tuple(Reference(math.radians(y), 0.0, mount, label=f"yaw {y:+g}") for y in yaws)
+    return Plan("test", "yaw", refs, scans)
+
+
+def _run(tmp_path: Path, plan: Plan, bench: Bench | None = None, **kw) -> tuple[str, Store]:
+    bench = bench or SimBench(seed=1)
+    store = Store.create(tmp_path / "run", plan, {"bench": "sim", "method": METHOD},
+                         bench.info())
+    runner = Runner(plan, bench, store, make_estimator(METHOD), **kw)
+    return runner.run(), store
+
+
+def test_a_sweep_stores_every_scan_with_truth_and_timing(tmp_path: Path):
+    status, store = _run(tmp_path, _plan(scans=3))
+    assert status == "completed" and store.status == "completed"
+    rows = list(store.iter_scans())
+    assert [(r["reference"], r["scan"]) for r in rows] == [(i, k) for i in range(3)
+                                                          for k in range(3)]
+    for r in rows:
+        ref = store.plan.references[r["reference"]]
+        # The twin's truth follows the commanded stage yaw exactly (a perfect mount).
+        assert r["truth_yaw_rad"] == pytest.approx(ref.yaw_rad, abs=1e-9)
+        assert r["stage_yaw_rad"] == pytest.approx(ref.yaw_rad, abs=1e-9)
+        assert r["points"] > 10_000 and r["complete"] == 1
+        assert r["scan_s"] > 0 and r["estimate_s"] > 0
+        assert r["status"] in ("ok", "no_board", "partial_board", "too_few_rings",
+                               "not_converged", "estimator_error")
+    ok = [r for r in rows if r["success"]]
+    assert ok, "the estimator found the board in none of 9 scans"
+    for r in ok:
+        assert r["yaw_rad"] == pytest.approx(r["truth_yaw_rad"], abs=math.radians(1.0))
+    assert all(r["status"] == "done" for r in store.references())
+    store.close()
+
+
+def test_monte_carlo_mounts_reach_the_truth(tmp_path: Path):
+    plan = plans.monte_carlo(poses=2, scans=1, seed=5)
+    status, store = _run(tmp_path, plan)
+    assert status == "completed"
+    for r, ref in zip(store.iter_scans(), plan.references, strict=True):
+        m = ref.mount
+        assert math.degrees(r["truth_roll_rad"]) == pytest.approx(m["roll_deg"], abs=1e-6)
+        assert math.degrees(r["truth_tilt_rad"]) == pytest.approx(m["tilt_deg"], abs=1e-6)
+        assert math.degrees(r["truth_yaw_rad"]) == pytest.approx(m["yaw_deg"], abs=1e-6)
+    store.close()
+
+
+def test_resume_takes_only_the_missing_scans(tmp_path: Path):
+    plan = _plan(scans=3)
+    bench = SimBench(seed=2)
+    store = Store.create(tmp_path / "run", plan, {"bench": "sim"}, bench.info())
+    calls = []
+
+    def estimator(scan):
+        calls.append(1)
+        if len(calls) == 4:
+            runner.request_stop()  # as Ctrl-C would, mid-reference 1
+        return make_estimator(METHOD)(scan)
+
+    runner = Runner(plan, bench, store, estimator)
+    assert runner.run() == "interrupted"
+    assert store.status == "interrupted" and store.scan_count() == 4
+    assert store.done_scans(1) == [0]
+    runner2 = Runner(plan, SimBench(seed=2), store, make_estimator(METHOD))
+    assert runner2.run() == "completed"
+    assert [store.done_scans(i) for i in range(3)] == [[0, 1, 2]] * 3
+    assert len(calls) == 4  # the second run used its own estimator, 5 more scans
+    assert store.scan_count() == 9
+    dup = store.conn.execute("SELECT reference, scan, COUNT(*) c FROM scan GROUP BY reference, "
+                             "scan HAVING c > 1").fetchall()
+    assert dup == []
+    assert any("resumed" in e["message"] for e in store.events())
+    store.close()
+
+
+def test_a_stop_from_another_thread_ends_between_scans(tmp_path: Path):
+    plan = _plan(scans=50, yaws=(0.0,))
+    bench = SimBench(seed=3)
+    store = Store.create(tmp_path / "run", plan, {"bench": "sim"}, bench.info())
+    runner = Runner(plan, bench, store, make_estimator(METHOD))
+    timer = threading.Timer(1.0, runner.request_stop)
+    timer.start()
+    try:
+        assert runner.run() == "interrupted"
+    finally:
+        timer.cancel()
+    n = store.scan_count()
+    assert 0 < n < 50
+    assert store.done_scans(0) == list(range(n))
+    store.close()
+
+
+def test_reference_beyond_travel_fails_before_any_move(tmp_path: Path):
+    plan = _plan(scans=1, yaws=(0.0, 45.0))
+    bench = SimBench(seed=0)
+    with pytest.raises(RunFailed, match=r"reference 1 .*beyond the stages' travel.*nothing was "
+                                         r"moved"):
+        _run(tmp_path, plan, bench=bench)
+    with Store.open(tmp_path / "run") as store:
+        assert store.status == "failed"
+        assert store.get("failure")["reference"] == 1
+        assert store.references()[1]["status"] == "failed"
+        assert store.scan_count() == 0
+    assert bench.position() == (0.0, 0.0)
+
+
+def test_board_not_in_view_fails_the_run_where_it_failed(tmp_path: Path):
+    # The LiDAR tilted 30 deg up on its mount: every beam passes above the board.
+    plan = _plan(scans=30, yaws=(0.0,), mount={"roll_deg": 0.0, "tilt_deg": 30.0,
+                                                "yaw_deg": 0.0, "x_mm": 0.0})
+    with pytest.raises(RunFailed, match=r"at reference 0 .*no pose in 4 scans in a row .*"
+                                         r"no_board.*board is not in view"):
+        _run(tmp_path, plan, max_consecutive_failures=4)
+    with Store.open(tmp_path / "run") as store:
+        assert store.status == "failed"
+        assert store.get("failure")["reference"] == 0
+        assert store.scan_count() == 4  # nothing lost: the failed scans are stored
+        assert {r["status"] for r in store.iter_scans()} == {"no_board"}
+
+
+def test_travel_error_from_the_bench_itself():
+    bench = SimBench()
+    with pytest.raises(TravelError, match="beyond the stages' travel"):
+        bench.move_to(0.0, 0.2)
+
+
+def test_progress_line_shows_the_estimate_so_far():
+    plan = _plan(scans=2)
+    p = Progress(plan, enabled=True)
+    p.start_reference(0, 0)
+    from twin.pose import Pose
+
+    p.scan(Estimate("ok", True, Pose(x=0.7, yaw=math.radians(-2.0))))
+    p.scan(Estimate("no_board", False, None))
+    line = p.line()
+    assert "ref 1/3" in line and "scan 2/2" in line
+    assert "yaw -2.000" in line and "x +700.0" in line and "1 without pose" in line
+
+
+def test_estimator_exceptions_become_failed_scans(monkeypatch):
+    import align
+
+    def boom(*a, **k):
+        raise ZeroDivisionError("bad scan")
+
+    monkeypatch.setattr(align, "estimate", boom)
+    est = make_estimator(METHOD)(SimBench().sim.scan())
+    assert not est.success and est.status == "estimator_error"
+    assert "ZeroDivisionError" in est.diagnostics["error"]
+
+
+def test_seeded_sim_runs_are_reproducible(tmp_path: Path):
+    a = SimBench(seed=9)
+    b = SimBench(seed=9)
+    for bench in (a, b):
+        bench.prepare(3, 0)
+    sa, sb = next(a.scans(1)), next(b.scans(1))
+    assert np.array_equal(sa.distance, sb.distance)
+    a.prepare(3, 1)
+    assert not np.array_equal(next(a.scans(1)).distance, sa.distance)
