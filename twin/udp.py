@@ -14,12 +14,14 @@ takes them): the twin's network face and the loopback tests use it.
 from __future__ import annotations
 
 import contextlib
+import os
 import selectors
 import socket
 import struct
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from types import TracebackType
 from typing import NamedTuple
 
@@ -139,6 +141,8 @@ class UdpReceiver:
         self.close()
 
     def close(self) -> None:
+        if self._socks:
+            self.update_kernel_drops()
         for sock in self._socks.values():
             with contextlib.suppress(KeyError, ValueError):
                 self._sel.unregister(sock)
@@ -155,6 +159,14 @@ class UdpReceiver:
         Silence longer than ``timeout_s`` raises `SensorSilentError`, or ends the iteration if
         ``stop_on_silence``. Malformed datagrams are counted (``stats.malformed``), not yielded.
         """
+        try:
+            yield from self._receive(max_packets, duration_s, stop_on_silence)
+        finally:
+            self.update_kernel_drops()
+
+    def _receive(
+        self, max_packets: int | None, duration_s: float | None, stop_on_silence: bool,
+    ) -> Iterator[Datagram]:
         count = 0
         end = None if duration_s is None else time.monotonic() + duration_s
         last = time.monotonic()
@@ -181,6 +193,19 @@ class UdpReceiver:
                     if max_packets is not None and count >= max_packets:
                         return
             last = time.monotonic()
+
+    def update_kernel_drops(self) -> int:
+        """Bring ``stats.kernel_drops`` up to date and return it.
+
+        Each received datagram carries the socket's drop counter as it stood when the datagram
+        was queued, so drops after the last received datagram only show in the kernel's table
+        (/proc/net/udp, "drops" column, found by the socket's inode) - read here on Linux.
+        """
+        inodes = {os.fstat(sock.fileno()).st_ino for sock in self._socks.values()}
+        total = _proc_udp_drops(inodes)
+        if total is not None:
+            self.stats.kernel_drops = max(self.stats.kernel_drops, total)
+        return self.stats.kernel_drops
 
     def _drain(self, port: int) -> Iterator[Datagram]:
         """Read everything queued on one socket (non-blocking)."""
@@ -215,6 +240,20 @@ class UdpReceiver:
             "(default sensor 192.168.1.201, host e.g. 192.168.1.100/24), that the sensor's "
             "data port is 2368, and that no firewall drops UDP"
         )
+
+
+def _proc_udp_drops(inodes: set[int]) -> int | None:
+    """Sum of the "drops" column of /proc/net/udp for the given socket inodes (None: no proc)."""
+    try:
+        lines = Path("/proc/net/udp").read_text().splitlines()[1:]
+    except OSError:
+        return None
+    total = 0
+    for line in lines:
+        fields = line.split()
+        if len(fields) >= 13 and int(fields[9]) in inodes:
+            total += int(fields[12])
+    return total
 
 
 @dataclass
