@@ -101,15 +101,15 @@ class Bench(abc.ABC):
     def close(self) -> None:  # noqa: B027 - optional hook, nothing to release by default
         """Release the stages, the sensor and any process the bench started."""
 
-    def check_reachable(self, yaw_rad: float, x_m: float, what: str = "reference") -> None:
-        """Raise `TravelError` if (yaw_rad, x_m) lies beyond `travel`."""
+    def check_reachable(self, yaw_rad: float, x_m: float, what: str | None = None) -> None:
+        """Raise `TravelError` if (yaw_rad, x_m) lies beyond `travel`; `what` names it."""
         (y0, y1), (x0, x1) = self.travel()
         if not (y0 - 1e-9 <= yaw_rad <= y1 + 1e-9 and x0 - 1e-12 <= x_m <= x1 + 1e-12):
+            what = what or f"yaw {math.degrees(yaw_rad):+.2f} deg, x {x_m * 1e3:+.1f} mm"
             raise TravelError(
-                f"{what} yaw {math.degrees(yaw_rad):+.2f} deg, x {x_m * 1e3:+.1f} mm is beyond "
-                f"the stages' travel (yaw {math.degrees(y0):+.1f}..{math.degrees(y1):+.1f} deg, "
-                f"x {x0 * 1e3:+.1f}..{x1 * 1e3:+.1f} mm); change the plan or the travel "
-                "settings")
+                f"{what} is beyond the stages' travel (yaw {math.degrees(y0):+.1f}.."
+                f"{math.degrees(y1):+.1f} deg, x {x0 * 1e3:+.1f}..{x1 * 1e3:+.1f} mm); change "
+                "the plan or the travel settings")
 
     def __enter__(self) -> Bench:
         return self
@@ -316,7 +316,7 @@ class HardwareBench(Bench):
         self._target = (0.0, 0.0)
 
     def move_to(self, yaw_rad: float, x_m: float) -> None:
-        self.check_reachable(yaw_rad, x_m, "move")
+        self.check_reachable(yaw_rad, x_m)
         self._target = (yaw_rad, x_m)
         if self.controller is not None:
             self.controller.move_to(x_m, yaw_rad)
@@ -443,7 +443,7 @@ class SimBench(Bench):
         self._sim.move_to(0.0, 0.0)
 
     def move_to(self, yaw_rad: float, x_m: float) -> None:
-        self.check_reachable(yaw_rad, x_m, "move")
+        self.check_reachable(yaw_rad, x_m)
         try:
             self._sim.move_to(x_m, yaw_rad)  # blocks in simulated time until arrived
         except AimbenchError as exc:

@@ -334,9 +334,12 @@ class Runner:
             i, ref = beyond[0]
             where["reference"] = i
             try:
-                self.bench.check_reachable(ref.yaw_rad, ref.x_m, f"reference {i}")
+                self.bench.check_reachable(ref.yaw_rad, ref.x_m, "the reference")
                 if ref.via:
-                    self.bench.check_reachable(*ref.via, f"reference {i}'s approach point")
+                    yaw, x = ref.via
+                    self.bench.check_reachable(
+                        yaw, x, f"its approach point (yaw {math.degrees(yaw):+.2f} deg, "
+                                f"x {x * 1e3:+.1f} mm)")
             except TravelError as exc:
                 more = f" ({len(beyond) - 1} more beyond travel)" if len(beyond) > 1 else ""
                 raise TravelError(f"{exc}{more}; nothing was moved") from None

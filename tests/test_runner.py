@@ -116,7 +116,7 @@ def test_a_stop_from_another_thread_ends_between_scans(tmp_path: Path):
 def test_reference_beyond_travel_fails_before_any_move(tmp_path: Path):
     plan = _plan(scans=1, yaws=(0.0, 45.0))
     bench = SimBench(seed=0)
-    with pytest.raises(RunFailed, match=r"reference 1 .*beyond the stages' travel.*nothing was "
+    with pytest.raises(RunFailed, match=r"at reference 1 .*beyond the stages' travel.*nothing was "
                                          r"moved"):
         _run(tmp_path, plan, bench=bench)
     with Store.open(tmp_path / "run") as store:
