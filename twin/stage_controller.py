@@ -1,0 +1,490 @@
+"""Host driver of the bench's stage controller (bench_fw/, or a stock grbl-Mega board).
+
+`StageController` talks Grbl 1.1 over ``serial.serial_for_url``, so a USB port
+(``/dev/ttyACM0``), the simavr harness's pty (`twin.hil`) or ``loop://`` all work. It copes with
+the boot banner of a board that resets when the port opens and with a board that does not
+(it asks for a soft reset), waits until the stages have really arrived (Grbl's ``ok`` only means
+"accepted"), and turns timeouts, lost replies, errors and alarms into exceptions that carry
+Grbl's code and meaning.
+
+Units: the public API is SI and relative to the bench reference (x in m from the bench centre,
+yaw in rad, positive counter-clockwise seen from above). On the wire the linear axis is in mm and
+the rotary axis in degrees of machine position; the bench reference sits at machine
+X = ``x_ref_mm`` (50 mm) and A = ``yaw_ref_deg`` (30 deg). Conversion happens here only.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from types import TracebackType
+
+import serial
+
+from twin import grbl
+from twin.errors import AimbenchError
+
+#: The bench's machine position of the reference pose (PROTOCOL.md, "Bench settings").
+X_REF_MM = 50.0
+YAW_REF_DEG = 30.0
+
+
+class StageError(AimbenchError):
+    """Base of every stage-controller error."""
+
+
+class StageConnectionError(StageError):
+    """The port cannot be opened, or no Grbl controller answers on it."""
+
+
+class StageTimeout(StageError):
+    """A reply or an arrival did not come in time."""
+
+
+class StageResetError(StageError):
+    """The controller reset (banner seen) while a reply was awaited."""
+
+
+class GrblError(StageError):
+    """The controller refused a line with ``error:N``."""
+
+    def __init__(self, code: int, command: str = "") -> None:
+        self.code = code
+        self.meaning = grbl.error_meaning(code)
+        self.command = command
+        where = f" to {command!r}" if command else ""
+        super().__init__(f"stage controller replied error:{code}{where}: {self.meaning}")
+
+
+class GrblAlarm(StageError):
+    """The controller is in (or raised) ``ALARM:N``; code 0 = alarm state of unknown cause
+    (for example power-up with homing enabled)."""
+
+    def __init__(self, code: int, context: str = "") -> None:
+        self.code = code
+        self.meaning = (
+            grbl.alarm_meaning(code)
+            if code
+            else "the controller is in alarm state: home it ($H) or unlock it ($X)"
+        )
+        prefix = f"ALARM:{code}" if code else "alarm state"
+        tail = f" ({context})" if context else ""
+        super().__init__(f"stage controller {prefix}: {self.meaning}{tail}")
+
+
+@dataclass(frozen=True)
+class StageStatus:
+    """A status report in both machine and bench units.
+
+    state: Grbl state ("Idle", "Run", "Hold", "Home", "Alarm", ...); substate: e.g. Hold:0.
+    x_mm, yaw_deg: machine position (mm, deg). x_m, yaw_rad: relative to the bench reference (m,
+    rad). limits: the axis letters whose limit input reads hit.
+    """
+
+    state: str
+    substate: int | None
+    x_mm: float
+    yaw_deg: float
+    x_m: float
+    yaw_rad: float
+    limits: str
+    raw: grbl.GrblStatus
+
+
+class StageController:
+    """Driver of the two-axis stage controller.
+
+    url: anything ``serial.serial_for_url`` opens (``/dev/ttyACM0``, a pty, ``loop://``).
+    axis_letters: the letters of the (linear, rotary) axes on the controller: ("X", "A") for
+    bench_fw, ("X", "Y") or ("X", "Z") for a stock grbl-Mega.
+    reply_timeout_s: how long a line's ``ok``/``error`` may take (s).
+    boot_timeout_s: how long to wait for the banner after opening the port (s); a board that has
+    not sent one by then is soft-reset.
+    mpos_axes: the controller's axis order in MPos; default "XA" for bench_fw (its banner says
+    aimbench) and "XYZ" for anything else.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        axis_letters: tuple[str, str] = ("X", "A"),
+        *,
+        baudrate: int = 115200,
+        x_ref_mm: float = X_REF_MM,
+        yaw_ref_deg: float = YAW_REF_DEG,
+        reply_timeout_s: float = 2.0,
+        boot_timeout_s: float = 2.5,
+        mpos_axes: str | None = None,
+    ) -> None:
+        letters = tuple(s.upper() for s in axis_letters)
+        if len(letters) != 2 or letters[0] == letters[1] or not all(
+            len(s) == 1 and s in "XYZABC" for s in letters
+        ):
+            raise ValueError(
+                f"axis_letters must be two different Grbl axis letters, got {axis_letters}"
+            )
+        self.url = url
+        self.axis_letters: tuple[str, str] = (letters[0], letters[1])
+        self.baudrate = baudrate
+        self.x_ref_mm = x_ref_mm
+        self.yaw_ref_deg = yaw_ref_deg
+        self.reply_timeout_s = reply_timeout_s
+        self.boot_timeout_s = boot_timeout_s
+        self._mpos_axes_override = mpos_axes
+        self.mpos_axes = mpos_axes or "XA"
+        self.banner: str | None = None
+        self.messages: list[str] = []  # [MSG:...] and other push messages, oldest first
+        self.last_alarm: int | None = None
+        self._ser: serial.SerialBase | None = None
+        self._buf = bytearray()
+        self._settings: dict[int, float] = {}
+
+    # ---- connection ---------------------------------------------------------------------------
+
+    def connect(self) -> str:
+        """Open the port and wait for the controller's banner; returns the banner line.
+
+        A board that resets on open (Arduino DTR) sends the banner by itself; one that does not
+        is sent a soft reset (Ctrl-X). Then the settings are read (for move timeouts).
+        """
+        try:
+            self._ser = serial.serial_for_url(
+                self.url, baudrate=self.baudrate, timeout=0.02, write_timeout=2.0
+            )
+        except (serial.SerialException, ValueError, OSError) as exc:
+            raise StageConnectionError(
+                f"cannot open the stage controller port {self.url!r}: {exc}; check the USB cable "
+                "and the port name (ls /dev/ttyACM* /dev/ttyUSB*), and that no other program "
+                "has the port open"
+            ) from exc
+        banner = self._wait_banner(self.boot_timeout_s)
+        if banner is None:
+            self._write(grbl.SOFT_RESET)
+            banner = self._wait_banner(self.reply_timeout_s)
+        if banner is None:
+            self.close()
+            raise StageConnectionError(
+                f"no Grbl banner from {self.url!r} (neither after opening nor after a soft reset): "
+                f"is the stage firmware flashed (make -C bench_fw flash) and the baud rate "
+                f"{self.baudrate}?"
+            )
+        if self._mpos_axes_override is None:
+            self.mpos_axes = "XA" if "aimbench" in banner else "XYZ"
+        for letter in self.axis_letters:
+            if letter not in self.mpos_axes:
+                self.close()
+                raise StageConnectionError(
+                    f"axis {letter} is not an axis of the controller on {self.url!r} "
+                    f"(it has {self.mpos_axes}); pass axis_letters that it has"
+                )
+        try:
+            self._settings = self.settings()
+        except StageError:
+            self._settings = {}
+        return banner
+
+    def close(self) -> None:
+        """Close the port (the controller keeps running)."""
+        if self._ser is not None:
+            try:
+                self._ser.close()
+            finally:
+                self._ser = None
+
+    def __enter__(self) -> StageController:
+        if self._ser is None:
+            self.connect()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # ---- low level ----------------------------------------------------------------------------
+
+    @property
+    def port(self) -> serial.SerialBase:
+        if self._ser is None:
+            raise StageConnectionError(
+                f"the stage controller on {self.url!r} is not connected: call connect() first"
+            )
+        return self._ser
+
+    def _write(self, data: bytes) -> None:
+        try:
+            self.port.write(data)
+            self.port.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise StageConnectionError(
+                f"writing to the stage controller on {self.url!r} failed: {exc}; "
+                "was it unplugged?"
+            ) from exc
+
+    def _readline(self, deadline: float) -> str | None:
+        """The next line (without its line end), or None at the deadline (time.monotonic)."""
+        while True:
+            for sep in (b"\n", b"\r"):
+                i = self._buf.find(sep)
+                if i >= 0:
+                    line = bytes(self._buf[:i])
+                    del self._buf[: i + 1]
+                    text = line.decode("ascii", "replace").strip()
+                    if text:
+                        return text
+                    break
+            else:
+                if time.monotonic() >= deadline:
+                    return None
+                try:
+                    chunk = self.port.read(max(1, self.port.in_waiting))
+                except (serial.SerialException, OSError) as exc:
+                    raise StageConnectionError(
+                        f"reading from the stage controller on {self.url!r} failed: {exc}; "
+                        "was it unplugged?"
+                    ) from exc
+                self._buf.extend(chunk)
+                continue
+
+    def _note(self, line: str) -> None:
+        """Record a push message (alarm, [MSG:...], banner)."""
+        code = grbl.alarm_code(line)
+        if code is not None:
+            self.last_alarm = code
+        self.messages.append(line)
+        del self.messages[:-50]
+
+    def _wait_banner(self, timeout_s: float) -> str | None:
+        """Wait for a start-up banner; then collect the messages that follow it briefly."""
+        deadline = time.monotonic() + timeout_s
+        banner = None
+        while banner is None:
+            line = self._readline(deadline)
+            if line is None:
+                return None
+            if grbl.banner_version(line):
+                banner = line
+            else:
+                self._note(line)
+        self.banner = banner
+        quiet = time.monotonic() + 0.15
+        while (line := self._readline(quiet)) is not None:
+            self._note(line)
+        return banner
+
+    def command(self, line: str, timeout_s: float | None = None) -> list[str]:
+        """Send one line and wait for its ``ok``; returns the lines printed before it.
+
+        Raises GrblError on ``error:N``, GrblAlarm if an alarm was raised meanwhile,
+        StageTimeout if no reply came, StageResetError if the controller reset meanwhile.
+        """
+        timeout = self.reply_timeout_s if timeout_s is None else timeout_s
+        self._write(line.encode("ascii") + b"\n")
+        deadline = time.monotonic() + timeout
+        info: list[str] = []
+        alarm: int | None = None
+        while True:
+            reply = self._readline(deadline)
+            if reply is None:
+                if alarm is not None:  # a stock Grbl sends no reply after a critical alarm
+                    raise GrblAlarm(alarm, f"while executing {line!r}")
+                raise StageTimeout(
+                    f"no reply to {line!r} from the stage controller on {self.url!r} within "
+                    f"{timeout:.1f} s: the reply was lost or the controller hangs; reset it "
+                    "(power or Ctrl-X) and check the cable"
+                )
+            if reply == "ok":
+                if alarm is not None:
+                    raise GrblAlarm(alarm, f"while executing {line!r}")
+                return info
+            code = grbl.error_code(reply)
+            if code is not None:
+                if alarm is not None:
+                    raise GrblAlarm(alarm, f"{line!r} ended with error:{code}")
+                raise GrblError(code, line)
+            code = grbl.alarm_code(reply)
+            if code is not None:
+                self._note(reply)
+                alarm = code
+                deadline = min(deadline, time.monotonic() + 1.0)
+                continue
+            if grbl.banner_version(reply):
+                self.banner = reply
+                raise StageResetError(
+                    f"the stage controller on {self.url!r} reset while executing {line!r}; "
+                    "re-home it before moving"
+                )
+            if reply.startswith("<"):
+                continue  # a stale status report
+            if reply.startswith("[MSG:"):
+                self._note(reply)
+            info.append(reply)
+
+    # ---- state --------------------------------------------------------------------------------
+
+    def status(self) -> StageStatus:
+        """Ask for a realtime status report (does not disturb a line in progress)."""
+        self._write(grbl.STATUS_QUERY)
+        deadline = time.monotonic() + self.reply_timeout_s
+        while True:
+            line = self._readline(deadline)
+            if line is None:
+                raise StageTimeout(
+                    f"no status report from the stage controller on {self.url!r} within "
+                    f"{self.reply_timeout_s:.1f} s; check the cable, or reset it"
+                )
+            if line.startswith("<"):
+                return self._to_status(grbl.parse_status(line))
+            self._note(line)
+
+    def _to_status(self, st: grbl.GrblStatus) -> StageStatus:
+        ix = self.mpos_axes.index(self.axis_letters[0])
+        ia = self.mpos_axes.index(self.axis_letters[1])
+        x_mm, yaw_deg = st.mpos[ix], st.mpos[ia]
+        return StageStatus(
+            state=st.state,
+            substate=st.substate,
+            x_mm=x_mm,
+            yaw_deg=yaw_deg,
+            x_m=(x_mm - self.x_ref_mm) / 1000.0,
+            yaw_rad=math.radians(yaw_deg - self.yaw_ref_deg),
+            limits=st.pins,
+            raw=st,
+        )
+
+    def position(self) -> tuple[float, float]:
+        """(x_m, yaw_rad) relative to the bench reference, from a status report."""
+        st = self.status()
+        return st.x_m, st.yaw_rad
+
+    def wait_idle(self, timeout: float = 60.0, poll_s: float = 0.02) -> StageStatus:
+        """Poll status until the controller is Idle (arrived); returns the final status.
+
+        Raises GrblAlarm if it is (or goes) into alarm, StageTimeout after `timeout` s.
+        """
+        deadline = time.monotonic() + timeout
+        while True:
+            st = self.status()
+            if st.state == "Idle":
+                return st
+            if st.state == "Alarm":
+                where = f"at x={st.x_mm:.3f} mm, a={st.yaw_deg:.3f} deg"
+                raise GrblAlarm(self.last_alarm or 0, where)
+            if time.monotonic() >= deadline:
+                raise StageTimeout(
+                    f"the stages did not come to rest within {timeout:.1f} s (state {st.state}, "
+                    f"x={st.x_mm:.3f} mm, a={st.yaw_deg:.3f} deg); is a feed hold (!) active?"
+                )
+            time.sleep(poll_s)
+
+    # ---- commands -----------------------------------------------------------------------------
+
+    def home(self, timeout: float = 120.0) -> StageStatus:
+        """Run the homing cycle ($H) and wait until it is done; machine zero is then known."""
+        self.last_alarm = None
+        self.command("$H", timeout_s=timeout)
+        return self.wait_idle(timeout)
+
+    def unlock(self) -> None:
+        """Leave the alarm state without homing ($X); the position is then trusted as is."""
+        self.command("$X")
+
+    def _move(self, words: str, wait: bool, timeout: float | None, estimate_s: float) -> None:
+        self.last_alarm = None
+        self.command(words)
+        if wait:
+            self.wait_idle(timeout if timeout is not None else 2.0 * estimate_s + 5.0)
+
+    def move_to(
+        self, x_m: float, yaw_rad: float, wait: bool = True, timeout: float | None = None
+    ) -> None:
+        """Rapid move (G0) to x (m) and yaw (rad) relative to the bench reference.
+
+        With wait, returns once the stages are at rest there (raises on alarm or timeout).
+        """
+        x_mm = self.x_ref_mm + x_m * 1000.0
+        yaw_deg = self.yaw_ref_deg + math.degrees(yaw_rad)
+        lx, la = self.axis_letters
+        estimate = self._estimate_s(x_mm, yaw_deg, relative=False)
+        self._move(
+            f"G90G0{lx}{grbl.format_number(x_mm)}{la}{grbl.format_number(yaw_deg)}",
+            wait, timeout, estimate,
+        )
+
+    def move_by(
+        self, dx_m: float, dyaw_rad: float, wait: bool = True, timeout: float | None = None
+    ) -> None:
+        """Relative rapid move (G91 G0) by dx (m) and dyaw (rad)."""
+        dx_mm = dx_m * 1000.0
+        dyaw_deg = math.degrees(dyaw_rad)
+        lx, la = self.axis_letters
+        estimate = self._estimate_s(dx_mm, dyaw_deg, relative=True)
+        self._move(
+            f"G91G0{lx}{grbl.format_number(dx_mm)}{la}{grbl.format_number(dyaw_deg)}",
+            wait, timeout, estimate,
+        )
+
+    def _estimate_s(self, x: float, a: float, relative: bool) -> float:
+        """A generous estimate of a move's duration from the settings (s), for the timeout."""
+        ix = self.mpos_axes.index(self.axis_letters[0])
+        ia = self.mpos_axes.index(self.axis_letters[1])
+        s = self._settings
+        try:
+            travel = (s[130 + ix], s[130 + ia])
+            rate = (s[110 + ix] / 60.0, s[110 + ia] / 60.0)
+            accel = (s[120 + ix], s[120 + ia])
+        except KeyError:
+            return 60.0
+        dist = (abs(x), abs(a)) if relative else travel
+        return max(trapezoid_time(d, v, acc) for d, v, acc in zip(dist, rate, accel, strict=True))
+
+    def stop(self) -> None:
+        """Feed hold (!): decelerate to a stop, keeping the rest of the move; `resume` goes on."""
+        self._write(grbl.FEED_HOLD)
+
+    def resume(self) -> None:
+        """Cycle start (~): continue after a feed hold."""
+        self._write(grbl.CYCLE_START)
+
+    def reset(self, timeout: float | None = None) -> str:
+        """Soft reset (Ctrl-X): stop at once, drop queued moves; returns the new banner.
+
+        A reset during a move leaves the controller in ALARM:3 (position not guaranteed).
+        """
+        self._buf.clear()
+        self._write(grbl.SOFT_RESET)
+        banner = self._wait_banner(self.reply_timeout_s if timeout is None else timeout)
+        if banner is None:
+            raise StageTimeout(
+                f"no banner after a soft reset of the stage controller on {self.url!r}"
+            )
+        return banner
+
+    def settings(self) -> dict[int, float]:
+        """All settings ($$) as {number: value}."""
+        out: dict[int, float] = {}
+        for line in self.command("$$"):
+            item = grbl.parse_setting(line)
+            if item is not None:
+                out[item[0]] = item[1]
+        self._settings = dict(out)
+        return out
+
+    def set_setting(self, number: int, value: float) -> None:
+        """Write setting $number=value (kept in the controller's EEPROM)."""
+        self.command(f"${int(number)}={grbl.format_number(value)}")
+        self._settings[int(number)] = float(value)
+
+
+def trapezoid_time(distance: float, rate: float, accel: float) -> float:
+    """Duration (s) of a move over `distance` with a trapezoidal speed profile from rest to rest,
+    cruise `rate` and acceleration `accel` (any consistent units, e.g. deg, deg/s, deg/s^2)."""
+    if distance <= 0.0:
+        return 0.0
+    if distance >= rate * rate / accel:
+        return distance / rate + rate / accel
+    return 2.0 * math.sqrt(distance / accel)
