@@ -224,3 +224,25 @@ def test_malformed_packets_are_counted_by_the_assembler(real_payloads):
     assert asm.stats.rejected["block_flag"] == 1 and asm.stats.rejected["size"] == 1
     assert asm.stats.missing == 1  # the malformed packet's slot is a hole in its scan
     assert sum(s.missing_packets for s in scans) == 1
+
+
+def test_a_corrupted_timestamp_is_a_flagged_break_not_hours_of_loss():
+    payloads = stream(300, seed=9)
+    bad = bytearray(payloads[120])
+    bad[1203] ^= 0x40  # one bit of the timestamp: ~1.07e9 us (18 minutes) off
+    payloads[120] = bytes(bad)
+    asm = ScanAssembler()
+    scans = asm.push_many(payloads) + asm.finish()
+    assert asm.stats.breaks == 2  # out of the timeline and back
+    assert asm.stats.missing == 0 and asm.stats.late == 0 and asm.stats.packets == 300
+    flagged = [s for s in scans if s.meta.get("time_breaks")]
+    assert len(flagged) == 1 and not flagged[0].complete
+
+
+def test_a_clock_jump_keeps_the_stream_going():
+    payloads = stream(300, seed=10)
+    later = stream(300, seed=10, start_us=2_000_000_000)[150:]  # the clock set by GPS
+    asm = ScanAssembler()
+    scans = asm.push_many(payloads[:150] + later) + asm.finish()
+    assert asm.stats.breaks == 1 and asm.stats.late == 0 and asm.stats.packets == 300
+    assert sum(len(s) for s in scans) == 300 * 384

@@ -45,6 +45,8 @@ from twin.packets import (
 from twin.scan import Scan
 
 TWO_PI = 2.0 * math.pi
+#: A timestamp step longer than this is a break in the timeline, not lost packets, s.
+BREAK_S = 1.0
 _FIELDS = ("distance", "azimuth", "laser_id", "intensity", "time", "return_type", "x", "y", "z")
 
 
@@ -58,6 +60,7 @@ class StreamStats:
     late: int = 0  # arrived too late to be reordered: dropped
     missing: int = 0  # never arrived, from the timestamp steps
     gaps: int = 0  # places where packets went missing
+    breaks: int = 0  # timestamp jumps of more than BREAK_S (clock set, long outage, corruption)
     rejected: Counter = field(default_factory=Counter)  # malformed, by reason
     scans: int = 0
     incomplete_scans: int = 0
@@ -126,11 +129,15 @@ class ScanAssembler:
         # Reorder window and release.
         self._pend_rec = np.zeros(0, dtype=DATA_PACKET_DTYPE)
         self._pend_ts = np.zeros(0, dtype=np.int64)
+        self._pend_aux = np.zeros((0, 2), dtype=np.int64)  # (hour rollovers, time break)
+        self._hours = 0
         self._released_max: int | None = None
         self._recent = deque(maxlen=4096)
         self._recent_set: set[int] = set()
         self._rel_rec: list[np.ndarray] = []
         self._rel_ts: list[np.ndarray] = []
+        self._rel_aux: list[np.ndarray] = []
+        self._breaks_by_sid: Counter = Counter()
         # Scan geometry state.
         self._cut_ref: float | None = None
         self._prev_u0: float | None = None
@@ -181,10 +188,22 @@ class ScanAssembler:
         raw = records["timestamp"].astype(np.int64)
         if self._last_raw is None:
             self._last_raw = self._last_unwrapped = int(raw[0])
-        prev = self._last_raw
-        step = np.diff(np.concatenate(([prev], raw))) % US_PER_HOUR
+        before_raw = np.concatenate(([self._last_raw], raw[:-1]))
+        step = (raw - before_raw) % US_PER_HOUR
         step = np.where(step > US_PER_HOUR // 2, step - US_PER_HOUR, step)
+        # A jump of more than BREAK_S (a clock set by GPS/PPS, a long outage, a corrupted
+        # timestamp) is a break in the timeline, not thousands of lost packets: the packet
+        # keeps its place in arrival order and the break is counted and flagged.
+        brk = np.abs(step) > BREAK_S * 1e6
+        self.stats.breaks += int(brk.sum())
+        nominal = np.where(records["return_mode"] == vlp16.RETURN_MODE_DUAL,
+                           packet_period(vlp16.RETURN_MODE_DUAL),
+                           packet_period(vlp16.RETURN_MODE_STRONGEST)) * 1e6
+        step = np.where(brk, np.round(nominal).astype(np.int64), step)
         ts = self._last_unwrapped + np.cumsum(step)
+        rollover = (raw < before_raw) & (step > 0) & ~brk  # the top of the hour passed
+        hours = self._hours + np.cumsum(rollover)
+        self._hours = int(hours[-1])
         self._last_raw, self._last_unwrapped = int(raw[-1]), int(ts[-1])
         # Out of order: earlier than something that arrived before it.
         before = np.maximum.accumulate(ts)
@@ -196,9 +215,10 @@ class ScanAssembler:
         self._max_arrived = int(before[-1])
         self._pend_rec = np.concatenate((self._pend_rec, records))
         self._pend_ts = np.concatenate((self._pend_ts, ts))
+        self._pend_aux = np.concatenate((self._pend_aux, np.column_stack((hours, brk))))
 
     def _release(self, final: bool) -> list[Scan]:
-        rec, ts = self._pend_rec, self._pend_ts
+        rec, ts, aux = self._pend_rec, self._pend_ts, self._pend_aux
         if len(rec) == 0:
             return self._decode_released(final)
         if self.product_id is None:
@@ -208,10 +228,10 @@ class ScanAssembler:
                 rec["product_id"], rec["timestamp"], rec["return_mode"], self.model)
         other = rec["product_id"] != self.product_id
         self.stats.rejected["product_id"] += int(other.sum())
-        rec, ts = rec[~other], ts[~other]
+        rec, ts, aux = rec[~other], ts[~other], aux[~other]
         # Order by timestamp; the first of equal timestamps wins, later copies are duplicates.
         order = np.argsort(ts, kind="stable")
-        rec, ts = rec[order], ts[order]
+        rec, ts, aux = rec[order], ts[order], aux[order]
         dup = np.zeros(len(ts), dtype=bool)
         dup[1:] = ts[1:] == ts[:-1]
         late = np.zeros(len(ts), dtype=bool)
@@ -224,18 +244,19 @@ class ScanAssembler:
         self.stats.duplicates += int(dup.sum())
         self.stats.late += int(late.sum())
         keep = ~(dup | late)
-        rec, ts = rec[keep], ts[keep]
+        rec, ts, aux = rec[keep], ts[keep], aux[keep]
         n_out = len(ts) if final else max(0, len(ts) - self.reorder_window)
         if n_out:
             self._rel_rec.append(rec[:n_out])
             self._rel_ts.append(ts[:n_out])
+            self._rel_aux.append(aux[:n_out])
             self._released_max = int(ts[n_out - 1])
             for t in ts[max(0, n_out - self._recent.maxlen):n_out].tolist():
                 if len(self._recent) == self._recent.maxlen:
                     self._recent_set.discard(self._recent[0])
                 self._recent.append(t)
                 self._recent_set.add(t)
-        self._pend_rec, self._pend_ts = rec[n_out:], ts[n_out:]
+        self._pend_rec, self._pend_ts, self._pend_aux = rec[n_out:], ts[n_out:], aux[n_out:]
         return self._decode_released(final)
 
     # ---------------------------------------------------------------------------------------
@@ -247,14 +268,15 @@ class ScanAssembler:
             return []
         rec = np.concatenate(self._rel_rec)
         ts = np.concatenate(self._rel_ts)
-        self._rel_rec, self._rel_ts = [], []
+        aux = np.concatenate(self._rel_aux)
+        self._rel_rec, self._rel_ts, self._rel_aux = [], [], []
         dec = _decode_records(rec, np.arange(len(rec)), self.vertical_offsets, {})
         self.stats.packets += len(rec)
-        chunk = self._assign(dec, ts)
+        chunk = self._assign(dec, ts, aux)
         self._open.append(chunk)
         return self._emit(final=False)
 
-    def _assign(self, dec, ts: np.ndarray) -> _Chunk:
+    def _assign(self, dec, ts: np.ndarray, aux: np.ndarray) -> _Chunk:
         """Unwrap azimuth across packets, give every firing its scan id, count gaps."""
         az0 = dec.block_azimuth_cdeg[:, 0] * (math.pi / 18000.0)
         rate = dec.azimuth_rate
@@ -286,11 +308,13 @@ class ScanAssembler:
             sid = np.broadcast_to(psid[:, None], u.shape)
         if self._first_sid is None:
             self._first_sid = int(sid[0, 0])
+        for k in sid[aux[:, 1] > 0, 0].tolist():
+            self._breaks_by_sid[int(k)] += 1
         self._count_gaps(ts, u0, span, packet_period(int(dec.return_mode[0])) * 1e6)
         self._prev_ts, self._prev_az0 = int(ts[-1]), float(az0[-1])
         self._prev_u0, self._prev_ulast, self._prev_span = float(u0[-1]), float(ulast[-1]), \
             float(span[-1])
-        hour = (ts - dec.timestamp_us.astype(np.int64)) * 1e-6  # whole hours past the first
+        hour = aux[:, 0] * 3600.0  # the sensor clock counts past the hour: keep counting
         arrays = {
             name: getattr(dec, name).reshape(-1) for name in _FIELDS if name != "time"
         }
@@ -393,7 +417,8 @@ class ScanAssembler:
         early_end = last and start_ref + TWO_PI - float(u[-1]) > tol
         partial = bool(late_start or early_end)
         missing = int(self._missing_by_sid.pop(k, 0))
-        complete = not partial and missing == 0
+        breaks = int(self._breaks_by_sid.pop(k, 0))
+        complete = not partial and missing == 0 and breaks == 0
         self.stats.scans += 1
         self.stats.partial_scans += partial
         self.stats.incomplete_scans += not complete
@@ -415,6 +440,7 @@ class ScanAssembler:
                 "start_time_s": float(arrays["time"][0]),
                 "end_time_s": float(arrays["time"][-1]),
                 "partial": partial,
+                "time_breaks": breaks,
                 "azimuth_span_deg": math.degrees(float(u[-1] - u[0])),
                 "cut_azimuth_deg": math.degrees(self._cut_ref % TWO_PI),
                 "split": self.split,
