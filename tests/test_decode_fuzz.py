@@ -13,10 +13,10 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from conftest import DATA_DIR
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import DATA_DIR
 from twin.packets import (
     MalformedPacketError,
     ProductIdWarning,
