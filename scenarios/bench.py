@@ -292,23 +292,39 @@ class HardwareBench(Bench):
 
     def info(self) -> dict[str, Any]:
         out: dict[str, Any] = {"kind": "hw", "port": self.port, **self.source.info()}
-        for attr in ("banner", "firmware", "settings_dict"):
-            v = getattr(self.controller, attr, None) if self.controller is not None else None
-            if v is not None and not callable(v):
-                out[attr] = v
+        c = self.controller
+        if c is not None:
+            out["banner"] = getattr(c, "banner", None)
+            out["axis_letters"] = list(getattr(c, "axis_letters", ()))
+            settings = getattr(c, "_settings", None) or {}
+            out["settings"] = {f"${k}": v for k, v in sorted(settings.items())}
         (y0, y1), (x0, x1) = self.travel()
         out["travel"] = {"yaw_deg": [math.degrees(y0), math.degrees(y1)],
                          "x_mm": [x0 * 1e3, x1 * 1e3]}
         return out
 
     def travel(self) -> tuple[tuple[float, float], tuple[float, float]]:
-        travel = getattr(self.controller, "travel", None)
-        if callable(travel):
-            try:
-                return travel()
-            except AimbenchError:
-                pass
-        return DEFAULT_YAW_LIMITS_RAD, DEFAULT_X_LIMITS_M
+        """From the controller's settings as its firmware applies them ($13x max travel, $23
+        homing direction: home at 0 with travel positive, or at 0 with travel negative),
+        relative to the bench reference; the paper's defaults without a controller."""
+        c = self.controller
+        settings = getattr(c, "_settings", None) or {}
+        if c is None or not settings:
+            return DEFAULT_YAW_LIMITS_RAD, DEFAULT_X_LIMITS_M
+        try:
+            ix = c.mpos_axes.index(c.axis_letters[0])
+            ia = c.mpos_axes.index(c.axis_letters[1])
+            mask = int(settings.get(23, 0))
+
+            def span(axis: int) -> tuple[float, float]:
+                t = float(settings[130 + axis])
+                return (0.0, t) if mask & (1 << axis) else (-t, 0.0)
+
+            (xl, xh), (al, ah) = span(ix), span(ia)
+        except (KeyError, ValueError, AttributeError):
+            return DEFAULT_YAW_LIMITS_RAD, DEFAULT_X_LIMITS_M
+        return ((math.radians(al - c.yaw_ref_deg), math.radians(ah - c.yaw_ref_deg)),
+                ((xl - c.x_ref_mm) * 1e-3, (xh - c.x_ref_mm) * 1e-3))
 
     def home(self) -> None:
         if self.controller is not None:
@@ -319,27 +335,21 @@ class HardwareBench(Bench):
         self.check_reachable(yaw_rad, x_m)
         self._target = (yaw_rad, x_m)
         if self.controller is not None:
-            self.controller.move_to(x_m, yaw_rad)
+            self.controller.move_to(x_m, yaw_rad, wait=False)
 
     def wait_until_there(self, timeout_s: float = 120.0) -> tuple[float, float]:
         if self.controller is None:
             return self._target
-        wait = self.controller.wait_idle
-        try:
-            wait(timeout=timeout_s)
-        except TypeError:
-            wait(timeout_s)
+        st = self.controller.wait_idle(timeout=timeout_s)
+        # Idle means the step generator has stopped; let the mechanics settle before scanning.
         time.sleep(self.settle_s)
-        return self.position()
+        return float(st.yaw_rad), float(st.x_m)
 
     def position(self) -> tuple[float, float]:
         if self.controller is None:
             return self._target
-        pos = self.controller.position()
-        # The controller's order is (x_m, yaw_rad) like its move_to; a bench's is (yaw, x).
-        if isinstance(pos, tuple | list):
-            return float(pos[1]), float(pos[0])
-        return float(pos.yaw_rad), float(pos.x_m)
+        x_m, yaw_rad = self.controller.position()
+        return float(yaw_rad), float(x_m)
 
     def scans(self, n: int) -> Iterator[Scan]:
         yield from self.source.scans(n)

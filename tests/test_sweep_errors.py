@@ -112,3 +112,28 @@ def test_resume_without_a_run_and_unknown_scenario(tmp_path: Path):
                                                   cwd=tmp_path))
     assert "unknown scenario 'spiral'" in one_error_line(aimbench("sweep", "spiral", "--out",
                                                                   "r", cwd=tmp_path))
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("port, why", [
+    ("/dev/ttyNOPE0", "cannot open the stage controller port '/dev/ttyNOPE0'"),
+    # loop:// echoes what it is sent: a port that opens but has no Grbl behind it.
+    ("loop://", "no Grbl banner from 'loop://'"),
+])
+def test_unreachable_stage_controller(tmp_path: Path, port: str, why: str):
+    res = aimbench("sweep", "yaw", "--scans", "1", "--bench", "hw", "--port", port,
+                   "--lidar", f"udp://127.0.0.1:{_free_udp_port()}", "--out", "run",
+                   cwd=tmp_path)
+    line = one_error_line(res)
+    assert "opening the hw bench" not in line  # the CLI line is the cause, said once
+    assert why in line
+    run = tmp_path / "run"
+    assert meta(run, "status") == "failed"
+    with sqlite3.connect(run / "run.sqlite") as c:
+        events = [m for (m,) in c.execute("SELECT message FROM event")]
+    assert any(why in m and "opening the hw bench" in m for m in events)

@@ -21,7 +21,7 @@ from scenarios.bench import open_bench
 from scenarios.commands.version import versions
 from scenarios.report import Tolerances, summary_lines, write
 from scenarios.runner import Progress, Runner, make_estimator
-from scenarios.store import Store, StoreError
+from scenarios.store import Store
 from twin.errors import AimbenchError
 
 #: Settings stored with a run and reused by --resume.
@@ -66,44 +66,42 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
     """Create (or resume) the run in `out`, run it, write the report; the exit code.
 
     0: completed and passed (or completed when the report is off); 1: completed but the verdict
-    failed; 130: interrupted (resumable). A failure raises (the CLI prints one line).
+    failed; 130: interrupted (resumable). A failure raises (the CLI prints one line) after the
+    run is marked failed in its store, including a bench that cannot be opened.
     """
     stream = stream if stream is not None else sys.stderr
     if resume:
         store = Store.open(out)
+        stored = store.get("config", {}) or {}
+        # A resumed run keeps its settings; only where the hardware is may change.
+        config = {**stored, **{k: v for k, v in config.items()
+                               if k in ("port", "lidar") and v is not None}}
+        plan = store.plan
         if store.status == "completed":
             stream.write(f"{out}: the run is already complete; rewriting its report\n")
-        stored = store.get("config", {}) or {}
-        config = {**stored, **{k: v for k, v in config.items() if k in ("port", "lidar")
-                               and v is not None and k not in stored}}
-        plan = store.plan
+            try:
+                return _report(store, report, tol, stream)
+            finally:
+                store.close()
         store.log("resume requested")
     else:
         if plan is None:
             raise AimbenchError("give a scenario (yaw, x, grid, montecarlo, repeatability or a "
                                 ".toml file), or --resume")
-        store = None
+        check_config(config)
+        store = Store.create(out, plan, config=config, versions=versions())
+    bench = None
     try:
-        bench = open_bench(config)
-    except AimbenchError as exc:
-        if store is not None:
-            store.set_status("failed", f"opening the bench: {exc}")
-        raise
-    try:
-        if store is None:
-            try:
-                store = Store.create(out, plan, config=config, bench=bench.info(),
-                                     versions=versions())
-            except StoreError:
-                bench.close()
-                raise
-        elif store.status == "completed":
-            bench.close()
-            return _report(store, report, tol, stream)
+        try:
+            estimator = make_estimator(config.get("method"))
+            bench = open_bench(config)
+        except AimbenchError as exc:
+            store.set_status("failed", f"opening the {config.get('bench')} bench: {exc}")
+            raise
+        store.put(**{"bench_resumed" if resume else "bench": bench.info()})
         resumed = f" (resumed: {store.scan_count()} scans stored)" if resume else ""
         stream.write(f"aimbench sweep: {plan.name}, {len(plan)} references x {plan.scans} scans "
                      f"on the {config.get('bench')} bench{resumed} -> {out}\n")
-        estimator = make_estimator(config.get("method"))
         runner = Runner(plan, bench, store, estimator, progress=Progress(plan, stream=stream,
                                                                          enabled=progress))
         status = runner.run()
@@ -115,14 +113,25 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
             return 130
         return _report(store, report, tol, stream)
     except AimbenchError:
-        # The runner has marked the store failed; a report of what there is still helps.
-        if store is not None and report and store.scan_count():
+        # The store says where and why; a report of what there is still helps.
+        if report and store.scan_count():
             write(store, tol)
         raise
     finally:
-        bench.close()
-        if store is not None:
-            store.close()
+        if bench is not None:
+            bench.close()
+        store.close()
+
+
+def check_config(config: dict) -> None:
+    """Refuse settings that cannot work before a run folder is made."""
+    kind = config.get("bench")
+    if kind not in ("sim", "hw", "serve"):
+        raise AimbenchError(f"unknown bench {kind!r}; use sim, hw or serve")
+    if kind == "hw" and not config.get("port"):
+        raise AimbenchError("--bench hw needs the stage controller's --port (e.g. /dev/ttyACM0),"
+                            " or --port none for a LiDAR without stages or a capture replay")
+    make_estimator(config.get("method"))  # an unknown method fails here, not after a move
 
 
 def _report(store: Store, report: bool, tol: Tolerances | None, stream) -> int:
