@@ -47,8 +47,11 @@ EDGE_MARGIN = 0.015
 ZONE_AZIMUTH = np.deg2rad(0.5)
 #: Neighbours farther apart than this in azimuth bracket nothing (a dropped firing), rad.
 MAX_GAP = np.deg2rad(0.7)
-#: Rays considered: within this of the rectangle (board coordinates), m.
+#: Rays considered: within this of the rectangle's side edges (board coordinates), m ...
 WINDOW = 0.12
+#: ... and of its top and bottom edges: one ring spacing (2 deg at 2.6 m = 91 mm) plus the lean
+#: of a rolled ring, not more (the board's stand, 5 cm in front of the plane, sits lower), m.
+WINDOW_Z = 0.13
 
 
 @dataclass
@@ -91,7 +94,7 @@ def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
     rays = _Rays(*cat)
     x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
     keep = (lam > 0) & (np.abs(x) < board.width / 2 + WINDOW) & \
-        (np.abs(z) < board.height / 2 + WINDOW + 0.1)
+        (np.abs(z) < board.height / 2 + WINDOW_Z)
     return _Rays(*(a[keep] for a in cat))
 
 
@@ -212,8 +215,7 @@ class _Model:
         z_at = np.where(np.isfinite(z_at), z_at, np.inf)
         vert = z_at <= h2
         kind = np.where(vert, 1, 2).astype(np.int8)
-        kind[np.abs(z_at - h2) < guard] = 0
-        kind[(dx == 0) & (dz == 0)] = 0
+        kind = np.where((np.abs(z_at - h2) < guard) | ((dx == 0) & (dz == 0)), 0, kind)
         sign = np.where(vert, np.sign(dx), np.sign(dz))
         width = np.where(vert, dx, dz)
         sd = np.sqrt(width**2 / 12 + self.blur**2)
@@ -235,13 +237,11 @@ class _Model:
         out_x = (np.abs(x) > w2 + tol)[:, None]
         viol = np.sum(hit[:, None] & (out_x | (np.abs(zz) > h2 + tol)), axis=0)
         viol += np.sum(miss[:, None] & in_x & (np.abs(zz) < h2 - tol), axis=0)
-        xh, xm = x[self.bh], x[self.bm]
-        cost = np.empty(len(dz))
-        for i, s in enumerate(dz):
-            zh, zm = z[self.bh] + s, z[self.bm] + s
-            kind, sign, sd = self._edges(xh, zh, xm, zm)
-            e = np.where(kind == 1, sign * w2 - 0.5 * (xh + xm), sign * h2 - 0.5 * (zh + zm))
-            cost[i] = np.sum(((e / sd)[kind > 0]) ** 2)
+        xh, xm = x[self.bh][:, None], x[self.bm][:, None]
+        zh, zm = z[self.bh][:, None] + dz[None, :], z[self.bm][:, None] + dz[None, :]
+        kind, sign, sd = self._edges(xh, zh, xm, zm)
+        e = np.where(kind == 1, sign * w2 - 0.5 * (xh + xm), sign * h2 - 0.5 * (zh + zm))
+        cost = np.sum(np.where(kind > 0, (e / sd) ** 2, 0.0), axis=0)
         return 1e6 * viol + cost
 
     def residuals(self, theta: np.ndarray) -> np.ndarray:
@@ -265,34 +265,50 @@ class _Model:
         return j
 
 
-def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 20
+def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
                   ) -> tuple[np.ndarray, np.ndarray, bool, int]:
-    """Gauss-Newton on the whitened residuals; the bracket assignment stays fixed."""
+    """Levenberg-Marquardt on the whitened residuals.
+
+    The bracket assignment and the set of range residuals stay fixed during one call (they are
+    chosen for the start pose), so the cost is one smooth function and the steps decrease it.
+    Converged when every step is below a thousandth of the parameter's standard deviation.
+    """
     converged = False
     it = 0
-    tol = np.array([1e-6, 1e-6, 1e-6, 1e-7, 1e-7, 1e-7])  # m, rad
-    for it in range(1, max_iter + 1):
-        model.assign(theta)
-        f = model.residuals(theta)
-        j = model.jacobian(theta, f)
-        a = j.T @ j
-        step = np.linalg.solve(a + 1e-9 * np.diag(np.diag(a)) + 1e-12 * np.eye(6), -j.T @ f)
-        theta = theta + step
-        if np.all(np.abs(step) < tol):
-            converged = True
-            break
+    lam = 1e-6
     model.assign(theta)
     f = model.residuals(theta)
+    cost = f @ f
     j = model.jacobian(theta, f)
+    for it in range(1, max_iter + 1):
+        a = j.T @ j
+        g = j.T @ f
+        sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(a)), 1e-18, None))
+        while True:
+            step = np.linalg.solve(a + lam * np.diag(np.diag(a)) + 1e-12 * np.eye(6), -g)
+            f_new = model.residuals(theta + step)
+            c_new = f_new @ f_new
+            if c_new <= cost * (1 + 1e-12):
+                break
+            lam *= 10
+            if lam > 1e8:
+                return theta, j, bool(np.all(np.abs(step) < 1e-2 * sd)), it
+        theta, f, cost = theta + step, f_new, c_new
+        lam = max(lam / 10, 1e-9)
+        j = model.jacobian(theta, f)
+        if np.all(np.abs(step) < 1e-3 * sd + 1e-10):
+            converged = True
+            break
     return theta, j, converged, it
 
 
 def _initial_roll(x: np.ndarray, z: np.ndarray, ring: np.ndarray) -> float:
-    """Roll from the leftmost and rightmost return of each ring that spans the whole board.
+    """Roll from the leftmost and rightmost return of each ring (Theil-Sen, both sides).
 
-    ``x``, ``z``: board coordinates computed with roll 0. Rings that cross the top or bottom
-    edge end on that edge, not on a side: only rings at least 90 % as wide as the widest count.
-    A positive roll leans the side edges so that X grows downwards (dX/dZ = -tan roll).
+    ``x``, ``z``: board coordinates computed with roll 0. A ring that crosses the top or bottom
+    edge ends on that edge rather than on a side, so its extremes sit inside the side edges:
+    the median of pairwise slopes over rings within 25 mm of the widest ring resists them. A
+    positive roll leans the side edges so that X grows downwards (dX/dZ = -tan roll).
     """
     zs, xl, xr = [], [], []
     for r in np.unique(ring):
@@ -304,11 +320,17 @@ def _initial_roll(x: np.ndarray, z: np.ndarray, ring: np.ndarray) -> float:
     if len(zs) < 2:
         return 0.0
     zs, xl, xr = np.array(zs), np.array(xl), np.array(xr)
-    full = (xr - xl) >= 0.9 * np.max(xr - xl)
-    if full.sum() < 2:
+    slopes = []
+    for xs in (xl, xr):
+        edge = np.abs(xs - np.median(xs))
+        full = np.flatnonzero(edge <= np.sort(edge)[min(1, len(edge) - 1)] + 0.025)
+        for i in full:
+            for k in full:
+                if zs[k] - zs[i] > 0.05:
+                    slopes.append((xs[k] - xs[i]) / (zs[k] - zs[i]))
+    if not slopes:
         return 0.0
-    slope = 0.5 * (np.polyfit(zs[full], xl[full], 1)[0] + np.polyfit(zs[full], xr[full], 1)[0])
-    return float(-np.arctan(slope))
+    return float(-np.arctan(np.median(slopes)))
 
 
 def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
@@ -321,14 +343,16 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # robust start: RANSAC on the first scan's cluster
     n, d, _ = plane.ransac(pts[0], 0.04, rng, 100)
     # ML plane along the rays, all scans' returns within the RANSAC band
-    o_l, u_l, r_l = [], [], []
+    o_l, u_l, r_l, k_l = [], [], [], []
     for s, g, p in zip(scans, segs, pts, strict=True):
         near = np.abs(p @ n - d) < 0.05
         sub = s.select(g.board[near])
         o_l.append(sub.origins())
         u_l.append(sub.directions())
         r_l.append(sub.distance)
+        k_l.append(sub.ring)
     o_all, u_all, r_all = np.concatenate(o_l), np.concatenate(u_l), np.concatenate(r_l)
+    ring_all = np.concatenate(k_l)
     n, d, _, sigma = plane.fit_rays(r_all, o_all, u_all, n, d)
     keep = np.abs(r_all - plane.predicted_range(n, d, o_all, u_all)) < 4 * sigma
     n, d, _, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d)
@@ -336,8 +360,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     t_plane = time.perf_counter()
 
     # initial pose: the plane; roll from the cluster's side edges; centred on the cluster
-    ring_all = np.concatenate([s.ring[g.board[np.abs(p @ n - d) < 0.05]] for s, g, p in
-                               zip(scans, segs, pts, strict=True)])[keep]
+    ring_all = ring_all[keep]
     o_k, u_k = o_all[keep], u_all[keep]
     theta = pose_from_plane(n, d, 0.0)
     x, z, _ = board_coordinates(theta, o_k, u_k)

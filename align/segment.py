@@ -54,15 +54,20 @@ def _grid(scan: Scan) -> np.ndarray | None:
     """Firing indices as a (sequences, 16 rings) grid when the scan is in firing order, else None.
 
     A scan from the decoder or the emulation lists the 16 lasers of each firing sequence in
-    order; then the organised cloud needs no sorting (the costliest step otherwise).
+    order (a scan cut at an azimuth may start and end mid-sequence: those few firings are left
+    out of the grid); then the organised cloud needs no sorting, the costliest step otherwise.
     """
     n = len(scan)
-    if n == 0 or n % 16:
+    if n < 32:
         return None
-    lid = scan.laser_id.reshape(-1, 16)
+    k0 = int(np.argmax(scan.laser_id[:16] == 0)) if scan.laser_id[0] != 0 else 0
+    if scan.laser_id[k0] != 0:
+        return None
+    m = (n - k0) // 16
+    lid = scan.laser_id[k0:k0 + 16 * m].reshape(m, 16)
     if not np.array_equal(lid, np.broadcast_to(np.arange(16, dtype=lid.dtype), lid.shape)):
         return None
-    return np.arange(n).reshape(-1, 16)[:, vlp16.LASER_OF_RING]
+    return (k0 + np.arange(16 * m)).reshape(m, 16)[:, vlp16.LASER_OF_RING]
 
 
 def _labels_grid(scan: Scan, grid: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -98,7 +103,8 @@ def _labels_grid(scan: Scan, grid: np.ndarray, ok: np.ndarray) -> np.ndarray:
     rb = np.concatenate((rb, run[:, 0][wrap]))
     graph = coo_matrix((np.ones(len(ra), dtype=np.int8), (ra, rb)), shape=(n_run, n_run))
     _, comp = connected_components(graph, directed=False)
-    labels = np.empty(len(scan), dtype=np.int64)
+    # firings outside the grid (a partial sequence at the cut) are singletons
+    labels = len(comp) + np.arange(len(scan), dtype=np.int64)
     labels[g] = comp[run]
     return labels
 
