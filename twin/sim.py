@@ -336,8 +336,11 @@ class BenchSim:
         azimuth, rotation = self._spin(t)
         record = self._advance(t_end, record=True) if t_end > self.time else None
         if record is None:
+            # Stages at rest throughout: one pose, the emulator's grid fast path.
             self._window_record = None
             pos, rot = self._last_pose
+            returns = self.emulator.fire_grid(azimuth.reshape(-1, vlp16.N_LASERS), pos, rot)
+            return Firings(seq, laser, t, azimuth, rotation, returns)
         else:
             times, ps, rs = record
             self._window_record = record

@@ -1,0 +1,276 @@
+"""VLP-16 emulation: geometry against an independent ray/plane calculation, the fast paths
+against brute-force MuJoCo rays, and the measurement model statistically."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from twin_analytic import board_intersections
+
+from twin import vlp16
+from twin.bench_params import BenchParams
+from twin.emulation import EmulationConfig, VLP16Emulator, _gaussian, _sincos_rows
+from twin.scan import ReturnType
+from twin.sim import BenchSim
+
+W, H = 0.90, 0.54
+
+
+def _grid(n_seq: int = 1800, rpm: float = 600.0, phase: float = 0.3) -> np.ndarray:
+    seq = np.repeat(np.arange(n_seq), 16)
+    lid = np.tile(np.arange(16), n_seq)
+    t = seq * vlp16.SEQUENCE_PERIOD + lid * vlp16.LASER_PERIOD
+    return np.mod(phase + t * rpm / 60 * 2 * np.pi, 2 * np.pi).reshape(-1, 16)
+
+
+def _edge_margin(pose, scan, margin: float = 0.005) -> np.ndarray:
+    """Firings whose ray meets the board plane within ``margin`` of an edge (ambiguous: the
+    3 mm plate's side faces, which the analytic plane does not have)."""
+    _, on_in = board_intersections(pose, scan.azimuth, scan.laser_id, W - 2 * margin,
+                                   H - 2 * margin)
+    _, on_out = board_intersections(pose, scan.azimuth, scan.laser_id, W + 2 * margin,
+                                    H + 2 * margin)
+    return on_out & ~on_in
+
+
+@pytest.mark.parametrize("case", range(4))
+def test_ideal_returns_lie_on_the_analytic_board_intersection(case: int) -> None:
+    rng = np.random.default_rng(case)
+    params = BenchParams.from_edge(roll_deg=rng.uniform(-3, 3), tilt_deg=rng.uniform(-3, 3),
+                                   yaw_deg=rng.uniform(-3, 3))
+    sim = BenchSim(params, seed=case, noise=EmulationConfig.ideal())
+    sim.move_to(rng.uniform(-0.05, 0.05), math.radians(rng.uniform(-10, 10)))
+    scan = sim.scan()
+    pose = scan.meta["truth_pose"]
+    rng_a, on = board_intersections(pose, scan.azimuth, scan.laser_id, W, H)
+    assert on.sum() > 400
+    # Every analytic board hit returned, within the 2 mm quantisation (rounding: 1 mm).
+    assert np.all(scan.distance[on] > 0)
+    assert np.max(np.abs(scan.distance[on] - rng_a[on])) <= vlp16.DISTANCE_UNIT / 2 + 1e-9
+    # Per-laser counts: firings whose scan point lies on the board plane, away from the edges.
+    amb = _edge_margin(pose, scan)
+    p_o = pose.transform(scan.xyz)
+    scan_on = (scan.valid & (np.abs(p_o[:, 1]) < 0.002) & (np.abs(p_o[:, 0]) <= W / 2 + 0.01)
+               & (np.abs(p_o[:, 2]) <= H / 2 + 0.01))
+    count_a = np.bincount(scan.laser_id[on & ~amb], minlength=16)
+    count_s = np.bincount(scan.laser_id[scan_on & ~amb], minlength=16)
+    np.testing.assert_array_equal(count_s, count_a)
+    assert amb.sum() < 0.1 * on.sum()
+    # About six rings on a 0.54 m board at 2.5 m (2 deg spacing).
+    assert 5 <= len(np.unique(scan.ring[on])) <= 7
+
+
+def test_the_nominal_bench_puts_six_rings_on_the_board() -> None:
+    sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
+    scan = sim.scan()
+    _, on = board_intersections(scan.meta["truth_pose"], scan.azimuth, scan.laser_id, W, H)
+    np.testing.assert_array_equal(np.unique(vlp16.ELEVATION_DEG[scan.laser_id[on]]),
+                                  [-5, -3, -1, 1, 3, 5])
+
+
+@pytest.mark.parametrize("divergence", [False, True])
+def test_fast_paths_equal_brute_force_mujoco_rays(divergence: bool) -> None:
+    """Culling + analytic planes (grid path) and the generic per-firing path both equal one
+    plain mj_multiRay per origin, ray for ray."""
+    params = BenchParams.from_edge(roll_deg=1.0, tilt_deg=-2.0, yaw_deg=1.5)
+    cfg = EmulationConfig.ideal(quantise=False, divergence=divergence)
+    sims = [BenchSim(params, seed=1, noise=cfg.with_(culling=c)) for c in (True, False)]
+    for sim in sims:
+        sim.set_stage_positions(0.03, math.radians(-7))
+    # Three rotations in one grid: the culling must follow the azimuth round more than once.
+    az = _grid(1000 if divergence else 5400)
+    lid = np.tile(np.arange(16, dtype=np.uint8), len(az))
+    p, r = sims[0].physics.lidar_pose_world()
+    grid = sims[0].emulator.fire_grid(az, p, r)
+    generic = sims[0].emulator.fire(az.reshape(-1), lid, p, r)
+    brute = sims[1].emulator.fire(az.reshape(-1), lid, p, r)
+    np.testing.assert_allclose(grid.distance, brute.distance, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(generic.distance, brute.distance, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(grid.intensity, brute.intensity)
+    assert (brute.distance > 0).sum() > 0.5 * len(lid)
+
+
+def test_moving_origins_are_cast_exactly() -> None:
+    """Per-firing origins (a moving sensor) share mj_multiRay calls within 0.2 mm and are then
+    corrected on the face they hit: equal to one ray per origin."""
+    sim = BenchSim(seed=0, noise=EmulationConfig.ideal(quantise=False))
+    p, r = sim.physics.lidar_pose_world()
+    rng = np.random.default_rng(3)
+    n = 4000
+    az = rng.uniform(0, 2 * np.pi, n)
+    lid = rng.integers(0, 16, n).astype(np.uint8)
+    pos = p + rng.uniform(-1e-3, 1e-3, (n, 3))
+    rot = np.repeat(r[None], n, axis=0)
+    got = sim.emulator.fire(az, lid, pos, rot)
+    origins, dirs = sim.emulator.rays(az, lid, pos, rot)
+    want = np.array([sim.caster.multiray(o, d[None])[0][0] for o, d in zip(origins, dirs,
+                                                                              strict=True)])
+    want = np.where(np.isfinite(want) & (want >= vlp16.RANGE_MIN), want, 0.0)
+    # Castor spheres are the only curved faces: allow 0.2 mm there, exact elsewhere.
+    np.testing.assert_allclose(got.distance[0], want, rtol=0, atol=2e-4)
+    assert np.mean(np.abs(got.distance[0] - want) < 1e-9) > 0.99
+
+
+def test_range_noise_has_the_configured_mean_and_sigma() -> None:
+    offsets = tuple(np.linspace(-0.004, 0.004, 16))
+    cfg = EmulationConfig(divergence=False, dropouts=False, rpm_wander_sigma=0.0,
+                          range_noise_sigma=0.014, laser_offsets=offsets, range_bias=0.001)
+    sim = BenchSim(seed=11, noise=cfg)
+    res, lids = [], []
+    for scan in sim.scans(12):
+        rng_a, on = board_intersections(scan.meta["truth_pose"], scan.azimuth, scan.laser_id,
+                                        W - 0.02, H - 0.02)
+        res.append(scan.distance[on] - rng_a[on])
+        lids.append(scan.laser_id[on])
+    res = np.concatenate(res)
+    lids = np.concatenate(lids)
+    expected_mean = 0.001 + np.asarray(offsets)[lids]
+    centred = res - expected_mean
+    n = len(res)
+    assert n > 5000
+    sigma = math.hypot(0.014, vlp16.DISTANCE_UNIT / math.sqrt(12))
+    assert abs(centred.mean()) < 4 * sigma / math.sqrt(n)
+    assert centred.std() == pytest.approx(sigma, rel=0.05)
+    # The per-laser offsets come out per laser.
+    for lid in np.unique(lids):
+        m = lids == lid
+        assert res[m].mean() == pytest.approx(0.001 + offsets[lid],
+                                              abs=5 * sigma / math.sqrt(m.sum()))
+
+
+def test_default_laser_offsets_are_a_few_mm_and_seeded() -> None:
+    a = BenchSim(seed=5).emulator.laser_offsets
+    b = BenchSim(seed=5).emulator.laser_offsets
+    np.testing.assert_array_equal(a, b)
+    assert np.all(np.abs(a) <= 0.005) and np.any(a != 0)
+
+
+def test_box_muller_noise_is_gaussian() -> None:
+    x = _gaussian(np.random.default_rng(0), 200_001, 2.0)
+    assert len(x) == 200_001
+    assert x.mean() == pytest.approx(0, abs=0.02)
+    assert x.std() == pytest.approx(2.0, rel=0.01)
+    # Fourth moment of a Gaussian: 3 sigma^4.
+    assert np.mean(x**4) / 16 == pytest.approx(3.0, rel=0.05)
+
+
+def test_sincos_rows_is_exact() -> None:
+    az = _grid(300)
+    a = np.stack([az.T] * 2) + np.array([0.0, 1e-3])[:, None, None]
+    s, c = _sincos_rows(a, az[:, 0])
+    np.testing.assert_allclose(s, np.sin(a), atol=2e-15)
+    np.testing.assert_allclose(c, np.cos(a), atol=2e-15)
+
+
+def test_intensity_follows_reflectivity_and_incidence() -> None:
+    cfg = EmulationConfig(divergence=False, dropouts=False, range_noise_sigma=0.0)
+    bright = BenchSim(BenchParams(board_reflectivity=0.8), seed=1, noise=cfg).scan()
+    dark = BenchSim(BenchParams(board_reflectivity=0.2), seed=1, noise=cfg).scan()
+    means = []
+    for scan in (bright, dark):
+        _, on = board_intersections(scan.meta["truth_pose"], scan.azimuth, scan.laser_id,
+                                    W - 0.02, H - 0.02)
+        means.append(scan.intensity[on].astype(float).mean())
+    assert means[0] / means[1] == pytest.approx(4.0, rel=0.1)
+    # Ideal intensity: 100 x reflectivity x cos(incidence).
+    ideal = BenchSim(BenchParams(board_reflectivity=0.8), seed=1,
+                     noise=EmulationConfig.ideal()).scan()
+    pose = ideal.meta["truth_pose"]
+    _, on = board_intersections(pose, ideal.azimuth, ideal.laser_id, W - 0.02, H - 0.02)
+    d_o = ideal.directions()[on] @ pose.rotation().T
+    np.testing.assert_allclose(ideal.intensity[on], np.rint(80 * d_o[:, 1]), atol=1)
+
+
+def test_dropouts_near_the_detection_threshold() -> None:
+    # Threshold at the board's own return energy: about half the board returns drop.
+    board_energy = 0.55 * 1.0 / 2.6**2
+    cfg = EmulationConfig(divergence=False, detection_threshold=board_energy,
+                          detection_softness=0.3)
+    scan = BenchSim(seed=2, noise=cfg).scan()
+    _, on = board_intersections(scan.meta["truth_pose"], scan.azimuth, scan.laser_id,
+                                W - 0.02, H - 0.02)
+    frac = scan.valid[on].mean()
+    assert 0.2 < frac < 0.8
+    assert BenchSim(seed=2, noise=cfg.with_(dropouts=False)).scan().valid[on].all()
+
+
+def test_range_limits() -> None:
+    scan = BenchSim(seed=0, noise=EmulationConfig.ideal(range_max=3.0, range_min=2.0)).scan()
+    d = scan.distance[scan.valid]
+    assert d.min() >= 2.0 and d.max() <= 3.0
+
+
+def test_divergence_gives_mixed_and_dual_returns_at_the_board_edges() -> None:
+    cfg = EmulationConfig.ideal(divergence=True, return_mode="dual")
+    sim = BenchSim(seed=0, noise=cfg)
+    scan = sim.scan()
+    assert scan.return_mode == vlp16.RETURN_MODE_DUAL
+    n = len(scan) // 2
+    d = scan.distance.reshape(n, 2)
+    rt = scan.return_type.reshape(n, 2)
+    two = (d[:, 0] > 0) & (d[:, 1] > 0) & (np.abs(d[:, 0] - d[:, 1]) > 0.5)
+    assert two.sum() > 10
+    # Where two echoes come back, the first block is the last (farther) return.
+    assert np.all(d[two, 0] > d[two, 1])
+    assert np.all(rt[two, 0] & ReturnType.LAST)
+    # Those whose near echo lies on the board sit at its edges (the far echo is the wall;
+    # elsewhere, e.g. grazing the floor, long footprints split into echoes too).
+    pose = scan.meta["truth_pose"]
+    near = scan.select(np.flatnonzero(np.repeat(two, 2)))
+    pts = pose.transform(near.xyz)[1::2]
+    on_board = (np.abs(pts[:, 1]) < 0.01) & (np.abs(pts[:, 0]) < W / 2 + 0.02) & (
+        np.abs(pts[:, 2]) < H / 2 + 0.02)
+    assert on_board.sum() >= 4  # two vertical edges x six rings, footprint 2 of 3.5 mrad
+    edge = np.minimum(np.abs(np.abs(pts[on_board, 0]) - W / 2),
+                      np.abs(np.abs(pts[on_board, 2]) - H / 2))
+    assert np.all(edge < 0.01)
+    # Single echoes fill both blocks identically.
+    one = (d[:, 0] > 0) & ~two
+    np.testing.assert_array_equal(d[one, 0], d[one, 1])
+
+
+def test_strongest_and_last_differ_only_at_edges() -> None:
+    base = EmulationConfig.ideal(divergence=True)
+    s = BenchSim(seed=0, noise=base.with_(return_mode="strongest")).scan()
+    la = BenchSim(seed=0, noise=base.with_(return_mode="last")).scan()
+    assert len(s) == len(la)
+    diff = np.abs(s.distance - la.distance) > 0.01
+    assert 0 < diff.sum() < 0.1 * len(s)
+    assert np.all(la.distance[diff] >= s.distance[diff])
+    # At the board's edges the last return is the wall behind it.
+    pose = s.meta["truth_pose"]
+    p_s = pose.transform(s.xyz)
+    at_board_edge = diff & (np.abs(p_s[:, 1]) < 0.01) & (np.abs(p_s[:, 2]) < H / 2 + 0.01)
+    assert at_board_edge.sum() >= 2
+    p_l = pose.transform(la.xyz)[at_board_edge]
+    assert np.all(p_l[:, 1] > 1.0)
+
+
+def test_no_ray_sees_the_sensor_housing() -> None:
+    sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
+    scan = sim.scan()
+    assert scan.distance[scan.valid].min() > 0.5
+
+
+def test_emulator_is_seeded() -> None:
+    a = BenchSim(seed=42).scans(2)
+    b = BenchSim(seed=42).scans(2)
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.distance, y.distance)
+        np.testing.assert_array_equal(x.intensity, y.intensity)
+    c = BenchSim(seed=43).scan()
+    assert not np.array_equal(a[0].distance[: len(c)], c.distance[: len(a[0])])
+
+
+def test_ideal_turns_every_error_source_off() -> None:
+    cfg = EmulationConfig.ideal()
+    assert cfg.range_noise_sigma == 0 and cfg.laser_offset_sigma == 0 and cfg.range_bias == 0
+    assert not cfg.divergence and not cfg.dropouts and not cfg.intensity_model
+    assert cfg.rpm_wander_sigma == 0
+    emu = BenchSim(seed=0, noise=cfg).emulator
+    assert isinstance(emu, VLP16Emulator)
+    np.testing.assert_array_equal(emu.laser_offsets, 0)
+    with pytest.raises(ValueError):
+        EmulationConfig(rpm=1500)
