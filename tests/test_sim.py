@@ -1,0 +1,283 @@
+"""BenchSim: stage motion as the firmware makes it, motion skew inside a scan, ground truth,
+packets that decode (ours and velodyne_decoder) to the twin's own scans, and the CLI."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import velodyne_decoder as vd
+from twin_analytic import board_intersections
+
+from scenarios.cli import main as cli_main
+from twin import vlp16
+from twin.bench_params import BenchParams
+from twin.emulation import EmulationConfig
+from twin.motion import X_AXIS, YAW_AXIS, StageLimitError, StageMove, Trapezoid
+from twin.packets import decode_data_packets
+from twin.pcap import read_pcap
+from twin.pose import Pose
+from twin.scans import ScanAssembler
+from twin.sim import BenchSim
+
+W, H = 0.90, 0.54
+
+
+# -- motion ----------------------------------------------------------------------------------
+def test_trapezoid_respects_speed_and_acceleration() -> None:
+    tr = Trapezoid.plan(0.1, 0.010, 0.050)  # 100 mm at 10 mm/s, 50 mm/s^2
+    assert tr.duration == pytest.approx(0.2 + 0.1 / 0.010)
+    t = np.linspace(0, tr.duration, 2001)
+    v = np.gradient(tr.position(t), t)
+    assert v.max() <= 0.010 + 1e-6
+    assert np.abs(np.diff(tr.velocity(t)) / np.diff(t)).max() <= 0.050 + 1e-6
+    assert tr.position(tr.duration) == pytest.approx(0.1)
+    tri = Trapezoid.plan(0.001, 0.010, 0.050)  # too short to cruise
+    assert tri.v < 0.010 and tri.duration == pytest.approx(2 * math.sqrt(0.001 / 0.050))
+
+
+def test_coordinated_move_both_axes_arrive_together() -> None:
+    move = StageMove.plan((0.0, 0.0), (0.04, math.radians(10)))
+    t = np.linspace(0, move.duration, 4001)
+    sp = move.at(t)
+    rate = move.rate_at(t)
+    assert np.abs(rate[:, 0]).max() <= X_AXIS.max_speed + 1e-9
+    assert np.abs(rate[:, 1]).max() <= YAW_AXIS.max_speed + 1e-9
+    # Both at the same fraction of their move all along (Grbl's straight line in joint space).
+    np.testing.assert_allclose(sp[:, 0] / 0.04, sp[:, 1] / math.radians(10), atol=1e-12)
+    # The x axis is the slower one here: 40 mm at 10 mm/s ~ 4.2 s; yaw alone would take 0.95 s.
+    assert move.duration == pytest.approx(0.2 + 0.04 / 0.010)
+    with pytest.raises(StageLimitError, match="outside the travel"):
+        StageMove.plan((0.0, 0.0), (0.06, 0.0))
+
+
+def test_move_to_steps_physics_and_arrives() -> None:
+    sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
+    t0 = sim.time
+    duration = sim.move_to(-0.03, math.radians(-12))
+    assert duration == pytest.approx(StageMove.plan((0, 0), (-0.03, math.radians(-12))).duration,
+                                     abs=0.2)
+    assert sim.time - t0 == pytest.approx(duration)
+    assert sim.stage_x() == pytest.approx(-0.03, abs=1e-9)
+    assert sim.stage_yaw() == pytest.approx(math.radians(-12), abs=1e-9)
+    assert not sim.moving
+    pose = sim.lidar_pose_in_board()
+    np.testing.assert_allclose(pose.as_array(), [0.67, -2.5, 0, 0, 0, math.radians(-12)],
+                               atol=1e-9)
+
+
+def test_servo_follows_the_profile_closely() -> None:
+    sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
+    move = sim.start_move(0.0, math.radians(20))
+    worst = 0.0
+    for _ in range(int(move.duration / 0.01)):
+        sim.wait(0.01)
+        worst = max(worst, abs(sim.stage_yaw() - move.at(sim.time - sim._move_t0)[1]))
+    assert worst < math.radians(0.1)
+
+
+def test_set_stage_positions_for_an_external_step_source() -> None:
+    sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
+    sim.set_stage_positions(0.01, math.radians(3))
+    assert sim.stage_x() == 0.01 and sim.stage_yaw() == pytest.approx(math.radians(3))
+    scan = sim.scan()
+    assert scan.meta["truth_pose"].yaw == pytest.approx(math.radians(3))
+    assert scan.meta["truth"]["x_mm"] == pytest.approx(710.0)
+
+
+# -- scans and truth -------------------------------------------------------------------------
+def test_scans_are_whole_rotations_back_to_back() -> None:
+    sim = BenchSim(seed=4, noise=EmulationConfig(divergence=False, rpm=900))
+    scans = sim.scans(3)
+    for s in scans:
+        assert s.complete and s.meta["source"] == "twin"
+        az = np.unwrap(s.azimuth)
+        assert az[-1] - az[0] < 2 * np.pi and az[-1] - az[0] > 2 * np.pi - 0.02
+        assert abs(s.meta["rpm"] - 900) < 10
+        # firing grid: 55.296 us per sequence, 2.304 us between lasers
+        dt = np.diff(s.time[s.laser_id == 0])
+        np.testing.assert_allclose(dt, vlp16.SEQUENCE_PERIOD, atol=1e-9)
+    assert scans[1].time[0] - scans[0].time[-1] < vlp16.SEQUENCE_PERIOD + 1e-9
+    assert scans[0].meta["truth"] == Pose(0.7, -2.5, 0.0).to_edge()
+
+
+def test_rpm_wander_gives_the_configured_scan_to_scan_spread() -> None:
+    cfg = EmulationConfig.ideal(rpm_wander_sigma=2.0)
+    sim = BenchSim(seed=8, noise=cfg)
+    rpms = []
+    for s in sim.scans(80):
+        t = s.time - s.time[0]
+        slope = np.polyfit(t, np.unwrap(s.azimuth), 1)[0]
+        rpms.append(slope * 60 / (2 * np.pi))
+        assert slope * 60 / (2 * np.pi) == pytest.approx(s.meta["rpm"], abs=1e-6)
+    rpms = np.array(rpms)
+    assert rpms.mean() == pytest.approx(600, abs=4 * 2 / math.sqrt(80))
+    assert rpms.std(ddof=1) == pytest.approx(2.0, rel=0.25)
+    # The azimuth of a given beam moves from scan to scan (the paper's "within 0.2 deg").
+    first = np.array([s.azimuth[0] for s in sim.scans(30)])
+    assert first.std() > 0
+
+
+def test_a_scan_while_the_rotation_stage_turns_shows_the_skew() -> None:
+    """Stage cruising at 20 deg/s: the first and last firing see poses 2 deg apart, and every
+    board return lies on the board for the pose of its own instant."""
+    sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
+    sim.move_to(0.0, math.radians(-25))
+    sim.start_move(0.0, math.radians(25))
+    sim.wait(0.8)  # past the 0.5 s ramp: cruising
+    scan = sim.scan()
+    y0, y1 = scan.meta["truth_pose"].yaw, scan.meta["truth_end_pose"].yaw
+    span = scan.time[-1] - scan.time[0]
+    assert math.degrees(y1 - y0) == pytest.approx(20.0 * span, rel=0.01)
+    assert math.degrees(y1 - y0) == pytest.approx(2.0, abs=0.05)
+    # Per-firing truth: yaw linear in time during cruise.
+    frac = (scan.time - scan.time[0]) / span
+    rng_a = np.full(len(scan), np.inf)
+    on = np.zeros(len(scan), dtype=bool)
+    p0 = scan.meta["truth_pose"].as_array()
+    p1 = scan.meta["truth_end_pose"].as_array()
+    for i in np.flatnonzero(scan.valid):
+        pose = Pose.from_array(p0 + frac[i] * (p1 - p0))
+        r, o = board_intersections(pose, scan.azimuth[i:i + 1], scan.laser_id[i:i + 1], W, H)
+        rng_a[i], on[i] = r[0], o[0]
+    assert on.sum() > 300
+    assert np.abs(scan.distance[on] - rng_a[on]).max() < 0.002
+    # A static-pose calculation misses them by centimetres: the skew is real.
+    r_static, on_static = board_intersections(scan.meta["truth_pose"], scan.azimuth,
+                                              scan.laser_id, W, H)
+    both = on & on_static
+    assert np.abs(scan.distance[both] - r_static[both]).max() > 0.01
+
+
+def test_mount_misalignment_is_in_the_truth() -> None:
+    params = BenchParams.from_edge(roll_deg=0.8, tilt_deg=-1.2, yaw_deg=0.5)
+    sim = BenchSim(params, seed=0, noise=EmulationConfig.ideal())
+    sim.move_to(0.0, math.radians(4))
+    t = sim.scan().meta["truth"]
+    assert t["roll_deg"] == pytest.approx(0.8, abs=1e-6)
+    assert t["tilt_deg"] == pytest.approx(-1.2, abs=1e-6)
+    assert t["yaw_deg"] == pytest.approx(4.5, abs=1e-6)
+
+
+# -- packets ---------------------------------------------------------------------------------
+def _seq_key(t: np.ndarray, lid: np.ndarray) -> np.ndarray:
+    """Firing-grid index of each firing: sequence * 16 + laser (robust to the packet
+    timestamp's rounding to 1 us)."""
+    lid = np.asarray(lid, dtype=np.int64)
+    seq = np.rint((np.asarray(t) - lid * vlp16.LASER_PERIOD) / vlp16.SEQUENCE_PERIOD)
+    return seq.astype(np.int64) * 16 + lid
+
+
+@pytest.mark.parametrize("mode", ["strongest", "dual"])
+def test_packets_decode_to_the_twins_scans(mode: str) -> None:
+    cfg = EmulationConfig(return_mode=mode, divergence=(mode == "dual"))
+    sim = BenchSim(seed=6, noise=cfg)
+    sim.move_to(0.01, math.radians(3))
+    payloads, arrival, scans = sim.packets(2)
+    assert payloads.shape[1] == vlp16.DATA_PAYLOAD_SIZE
+    period = vlp16.PACKET_PERIOD / cfg.n_returns
+    np.testing.assert_allclose(np.diff(arrival), period, rtol=1e-9)
+    dec = decode_data_packets(payloads)
+    flat = {k: getattr(dec, k).reshape(-1) for k in ("distance", "intensity", "azimuth", "x",
+                                                     "y", "z", "time", "laser_id")}
+    if mode == "dual":
+        # Block pairs: (last return, then strongest / second strongest). Compare the last.
+        first_of_pair = ((np.arange(dec.distance.shape[1]) // 32) % 2 == 0)
+        flat = {k: getattr(dec, k)[:, first_of_pair].reshape(-1) for k in flat}
+    twin = {k: np.concatenate([getattr(s, k) for s in scans])
+            for k in ("distance", "intensity", "azimuth", "x", "y", "z", "time", "laser_id")}
+    if mode == "dual":  # the twin's dual scans hold (last, other) per firing
+        twin = {k: v[0::2] for k, v in twin.items()}
+    k_twin = _seq_key(twin["time"], twin["laser_id"])
+    k_dec = _seq_key(flat["time"], flat["laser_id"])
+    common, i, j = np.intersect1d(k_twin, k_dec, return_indices=True)
+    assert len(common) == len(k_twin)  # every firing of the scans is in the packets
+    dec = type("D", (), flat)
+    pairs = np.column_stack((i, j))
+    i, j = pairs[:, 0], pairs[:, 1]
+    dist_dec = dec.distance[j]
+    np.testing.assert_allclose(dist_dec, twin["distance"][i], atol=1e-9)
+    np.testing.assert_array_equal(dec.intensity[j], twin["intensity"][i])
+    d_az = (dec.azimuth[j] - twin["azimuth"][i] + np.pi) % (2 * np.pi) - np.pi
+    assert np.abs(d_az).max() < math.radians(0.011)
+    hit = dist_dec > 0
+    err = np.linalg.norm(np.column_stack((dec.x[j] - twin["x"][i], dec.y[j] - twin["y"][i],
+                                          dec.z[j] - twin["z"][i]))[hit], axis=1)
+    assert np.all(err <= 1e-3 + dist_dec[hit] * math.radians(0.011))
+
+
+def test_pcap_decodes_the_same_with_velodyne_decoder_and_ours(tmp_path) -> None:
+    sim = BenchSim(seed=9, noise=EmulationConfig(divergence=False))
+    path = tmp_path / "twin.pcap"
+    scans = sim.write_pcap(path, 2)
+    payloads = [r.payload for r in read_pcap(path)]
+    assert len(payloads) >= 2 * 75
+    ours = decode_data_packets(payloads, vertical_offsets=True)
+    packets = [vd.VelodynePacket(i * 1e-3, np.frombuffer(bytes(p), np.uint8))
+               for i, p in enumerate(payloads)]
+    _, ref = vd.ScanDecoder(vd.Config(model=vd.Model.VLP16)).decode(vd.PacketVector(packets))
+    hit = ours.distance > 0
+    assert hit.sum() == len(ref)
+    assert np.array_equal(ours.intensity[hit], ref[:, vd.PointField.intensity])
+    assert np.array_equal(ours.ring[hit], ref[:, vd.PointField.ring])
+    ros = np.column_stack((ours.y[hit], -ours.x[hit], ours.z[hit]))
+    err = np.abs(ros - ref[:, :3]).max(axis=1)
+    assert np.all(err <= 1e-3 + ours.distance[hit] * math.radians(0.006))
+    # And the assembled scans are the twin's own (the same cut, the same firings).
+    asm = ScanAssembler()
+    got = asm.push_many(payloads) + asm.finish()
+    whole = [s for s in got if s.complete]
+    assert [len(s) for s in whole] == [len(s) for s in scans]
+    for a, b in zip(whole, scans, strict=True):
+        np.testing.assert_allclose(a.distance, b.distance, atol=1e-9)
+
+
+def test_udp_output_at_the_real_rate() -> None:
+    import socket
+
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(2.0)
+    port = rx.getsockname()[1]
+    sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
+    import time
+
+    t0 = time.perf_counter()
+    scans = sim.send_udp(1, port=port)
+    elapsed = time.perf_counter() - t0
+    got = 0
+    try:
+        while True:
+            data = rx.recv(2048)
+            assert len(data) == vlp16.DATA_PAYLOAD_SIZE
+            got += 1
+    except TimeoutError:
+        pass
+    rx.close()
+    n_expected = math.ceil(len(scans[0]) / 384) + 1
+    assert got >= n_expected - 1
+    assert elapsed == pytest.approx((got - 1) * vlp16.PACKET_PERIOD, abs=0.05)
+
+
+# -- CLI -------------------------------------------------------------------------------------
+def test_cli_simulate_writes_capture_and_truth(tmp_path, capsys) -> None:
+    out = tmp_path / "cap.pcap"
+    rc = cli_main(["simulate", "--yaw-deg", "4", "--x-mm", "-10", "--roll-deg", "0.5",
+                   "--tilt-deg", "-1", "--scans", "3", "--seed", "2", "--ideal",
+                   "--out", str(out)])
+    assert rc == 0
+    truth = json.loads((tmp_path / "cap.truth.json").read_text())
+    assert len(truth["scans"]) == 3
+    first = truth["scans"][0]
+    assert first["x_m"] == pytest.approx(0.69)
+    assert first["y_m"] == pytest.approx(-2.5)
+    assert first["yaw_deg"] == pytest.approx(4.0)
+    assert first["roll_deg"] == pytest.approx(0.5)
+    assert first["tilt_deg"] == pytest.approx(-1.0)
+    assert set(first) >= {"x_m", "y_m", "z_m", "roll_deg", "tilt_deg", "yaw_deg"}
+    assert len([r for r in read_pcap(out)]) > 200
+    rc = cli_main(["simulate", "--yaw-deg", "45", "--out", str(out)])
+    assert rc == 2
+    assert "outside the travel" in capsys.readouterr().err
