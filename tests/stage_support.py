@@ -1,0 +1,185 @@
+"""Shared pieces of the stage-controller tests (tests/test_stage_*.py).
+
+The stage tests run against the real firmware in simavr (`twin.hil.SimavrHarness`) by default,
+or against a real board with ``pytest --port /dev/ttyACM0``. `RawLink` is a line-level Grbl client
+with no interpretation, so protocol tests can state exact command/response tables.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+
+import pytest
+import serial
+
+from twin import grbl
+from twin.hil import SimavrHarness
+
+#: Where the simulated stages stand at power-up (mm, deg from home): close, so homing is quick.
+START_X_MM = 2.0
+START_A_DEG = 2.0
+STEPS_PER_MM = 400
+STEPS_PER_DEG = 800
+FINAL = re.compile(r"^(ok|error:\d+)$")
+
+
+class RawLink:
+    """A Grbl line client over pyserial: send a line, get every line up to its ok/error."""
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.ser = serial.serial_for_url(url, baudrate=115200, timeout=0.01)
+        self.buf = bytearray()
+        self.pushed: list[str] = []  # lines that were not the awaited reply
+
+    def close(self) -> None:
+        self.ser.close()
+
+    def reopen(self) -> list[str]:
+        """Close and open the port again, as a host does; returns the boot lines.
+
+        The pause lets the harness see the port closed (it polls every 0.2 ms of simulated
+        time), like the real DTR line needs to drop to reset a Mega.
+        """
+        self.ser.close()
+        time.sleep(0.1)
+        self.ser = serial.serial_for_url(self.url, baudrate=115200, timeout=0.01)
+        self.buf = bytearray()
+        return self.wait_banner(timeout=10.0)
+
+    def readline(self, timeout: float) -> str | None:
+        deadline = time.monotonic() + timeout
+        while True:
+            i = self.buf.find(b"\n")
+            if i >= 0:
+                line = self.buf[:i].decode("ascii", "replace").strip()
+                del self.buf[: i + 1]
+                if line:
+                    return line
+                continue
+            if time.monotonic() > deadline:
+                return None
+            self.buf.extend(self.ser.read(max(1, self.ser.in_waiting)))
+
+    def drain(self, quiet: float = 0.2, limit: float = 10.0) -> list[str]:
+        """All lines until none arrives for `quiet` s (at most `limit` s)."""
+        out: list[str] = []
+        end = time.monotonic() + limit
+        while time.monotonic() < end:
+            line = self.readline(quiet)
+            if line is None:
+                break
+            out.append(line)
+        return out
+
+    def write(self, data: bytes) -> None:
+        self.ser.write(data)
+        self.ser.flush()
+
+    def send(self, line: str | bytes, timeout: float = 3.0) -> list[str]:
+        """Send one line; return every line received up to and including its ok/error:N."""
+        data = line.encode("latin-1") if isinstance(line, str) else line
+        self.write(data + b"\n")
+        out: list[str] = []
+        while True:
+            reply = self.readline(timeout)
+            if reply is None:
+                raise AssertionError(f"no ok/error for {line!r} within {timeout} s; got {out}")
+            if reply.startswith("<"):
+                continue
+            out.append(reply)
+            if FINAL.match(reply):
+                return out
+
+    def status(self, timeout: float = 2.0) -> grbl.GrblStatus:
+        self.write(b"?")
+        while True:
+            line = self.readline(timeout)
+            if line is None:
+                raise AssertionError("no status report")
+            if line.startswith("<"):
+                return grbl.parse_status(line)
+            self.pushed.append(line)
+
+    def status_line(self, timeout: float = 2.0) -> str:
+        self.write(b"?")
+        while True:
+            line = self.readline(timeout)
+            if line is None:
+                raise AssertionError("no status report")
+            if line.startswith("<"):
+                return line
+            self.pushed.append(line)
+
+    def wait_state(self, state: str, timeout: float = 10.0) -> grbl.GrblStatus:
+        deadline = time.monotonic() + timeout
+        while True:
+            st = self.status()
+            if st.state == state:
+                return st
+            if time.monotonic() > deadline:
+                raise AssertionError(f"state {st.state}, not {state}, after {timeout} s")
+            time.sleep(0.02)
+
+    def wait_banner(self, timeout: float = 5.0) -> list[str]:
+        """Lines up to the banner and those that follow it at once."""
+        out: list[str] = []
+        deadline = time.monotonic() + timeout
+        while True:
+            line = self.readline(max(0.0, deadline - time.monotonic()))
+            if line is None:
+                raise AssertionError(f"no banner within {timeout} s; got {out}")
+            out.append(line)
+            if grbl.banner_version(line):
+                return out + self.drain(quiet=0.15)
+
+    def reset(self) -> list[str]:
+        """Ctrl-X; returns the lines up to and after the new banner."""
+        self.write(grbl.SOFT_RESET)
+        return self.wait_banner()
+
+    def prepare(self, homed: bool) -> None:
+        """A known state: soft reset, unlocked (or homed), Idle, parser at power-up defaults."""
+        self.drain(quiet=0.05, limit=1.0)
+        self.reset()
+        if homed:
+            assert self.send("$H", timeout=60)[-1] == "ok"
+        elif self.status().state == "Alarm":
+            assert self.send("$X")[-1] == "ok"
+        assert self.status().state == "Idle"
+
+
+def expect(lines: Sequence[str], patterns: Sequence[str]) -> None:
+    """Every line matches its pattern (full match), and there are as many lines as patterns."""
+    assert len(lines) == len(patterns), f"{lines} vs {patterns}"
+    for line, pat in zip(lines, patterns, strict=True):
+        assert re.fullmatch(pat, line), f"{line!r} does not match {pat!r} (all: {lines})"
+
+
+@dataclass
+class Bench:
+    """The device under test: the simavr harness (hil) or a real board (hil is None)."""
+
+    url: str
+    hil: SimavrHarness | None
+
+    def need_hil(self) -> SimavrHarness:
+        if self.hil is None:
+            pytest.skip("needs the simavr harness to observe the step pulses (not on a real board)")
+        return self.hil
+
+    def pulses(self) -> tuple[int, int] | None:
+        return None if self.hil is None else self.hil.positions().pulses
+
+
+@pytest.fixture(scope="module")
+def bench(request: pytest.FixtureRequest) -> Iterator[Bench]:
+    port = request.config.getoption("--port")
+    if port:
+        yield Bench(url=port, hil=None)
+        return
+    with SimavrHarness(start_x_mm=START_X_MM, start_a_deg=START_A_DEG) as hil:
+        yield Bench(url=hil.url, hil=hil)
