@@ -1,0 +1,108 @@
+"""`aimbench replay`: watch a run or a capture in rerun, after the fact.
+
+    aimbench replay runs/NAME        [--save FILE.rrd | --connect [URL] | --serve | --spawn]
+                                     [--no-clouds] [--clouds-per-reference N] [--points-every N]
+    aimbench replay CAPTURE.pcap     [--method NAME] [--truth FILE.json] [--limit N] [sinks]
+
+A run folder: its result store (every scan's estimate, truth, stage position and status, and the
+run's events) and its scans again (re-simulated for a run on the twin, re-read for a run that
+replayed a capture). A capture: every whole scan with align's estimate, and the truth of
+``CAPTURE.truth.json`` if it exists. With no sink chosen, the recording is saved beside the input
+(``runs/NAME/replay.rrd``, ``CAPTURE.rrd``); open it with ``rerun FILE.rrd``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from scenarios.rerun_observer import (
+    add_sink_arguments,
+    close_recording,
+    open_recording,
+    sink_options,
+)
+from twin.errors import AimbenchError
+
+
+def _progress(enabled: bool):
+    def show(done: int, total: int) -> None:
+        if enabled and (done == total or done % 25 == 0):
+            sys.stderr.write(f"\rreplay: {done}/{total} scans")
+            if done == total:
+                sys.stderr.write("\n")
+            sys.stderr.flush()
+    return show
+
+
+def run(args: argparse.Namespace) -> int:
+    from scenarios import replay
+    from twin import rerun_log as rl
+
+    src = Path(args.source)
+    tol = rl.tolerance_band(args.tolerance_deg, args.tolerance_mm)
+    progress = _progress(not args.no_progress)
+    if src.is_dir():
+        sinks = sink_options(args, default_save=src / "replay.rrd")
+        rec = open_recording(f"replay {src.name}", sinks, truth=_run_has_truth(src),
+                             tolerances=tol)
+        try:
+            summary = replay.replay_run(
+                src, rec, clouds=not args.no_clouds,
+                clouds_per_reference=args.clouds_per_reference, points_every=args.points_every,
+                color_by=args.color_by, tolerances=tol, progress=progress)
+        finally:
+            close_recording(rec, sinks)
+    elif src.is_file():
+        sinks = sink_options(args, default_save=src.with_suffix(".rrd"))
+        truth = Path(args.truth) if args.truth else replay.truth_path(src)
+        rec = open_recording(f"replay {src.name}", sinks, truth=truth.is_file(), tolerances=tol)
+        try:
+            summary = replay.replay_capture(
+                src, rec, method=args.method, truth=args.truth, limit=args.limit,
+                points_every=args.points_every, color_by=args.color_by, tolerances=tol,
+                progress=progress)
+        finally:
+            close_recording(rec, sinks)
+    else:
+        raise AimbenchError(f"no run folder or capture at {src}; give runs/NAME or a .pcap file")
+    print(f"replay: {summary.line()}", file=sys.stderr)
+    for note in summary.notes:
+        print(f"replay: {note}", file=sys.stderr)
+    return 0
+
+
+def _run_has_truth(run_dir: Path) -> bool:
+    """A run on the twin has the truth (error plots); a hardware run only its estimates."""
+    from scenarios.store import Store
+
+    with Store.open(run_dir) as store:
+        return (store.get("config", {}) or {}).get("bench") == "sim"
+
+
+def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser("replay", help="build a rerun recording of a run folder or a capture",
+                       description=__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("source", help="run folder (runs/NAME) or VLP-16 capture (.pcap/.pcapng)")
+    add_sink_arguments(p, "write the recording to this .rrd file (default: runs/NAME/replay.rrd "
+                          "or CAPTURE.rrd)")
+    p.add_argument("--no-clouds", action="store_true",
+                   help="run folder: only what the store holds, no point clouds (fast)")
+    p.add_argument("--clouds-per-reference", type=int, metavar="N",
+                   help="run folder: point clouds of the first N scans of each reference only")
+    p.add_argument("--points-every", type=int, default=1, metavar="N",
+                   help="log every N-th return of a scan (smaller recordings; default 1)")
+    p.add_argument("--color-by", choices=("intensity", "ring"), default="intensity",
+                   help="colour of the raw returns (default intensity)")
+    p.add_argument("--method", help="capture: estimation method (default: align's)")
+    p.add_argument("--truth", help="capture: truth file (default CAPTURE.truth.json if present)")
+    p.add_argument("--limit", type=int, metavar="N", help="capture: the first N scans only")
+    p.add_argument("--tolerance-deg", type=float, default=0.2,
+                   help="band of the angle error plots, deg (default 0.2, the report's)")
+    p.add_argument("--tolerance-mm", type=float, default=4.0,
+                   help="band of the x error plot, mm (default 4, the report's)")
+    p.add_argument("--no-progress", action="store_true", help="no progress line")
+    p.set_defaults(func=run)
+    return p

@@ -1,0 +1,373 @@
+"""Recordings after the fact: a run folder (its result store and its scans) or any capture.
+
+`replay_run` builds a recording from ``runs/NAME/run.sqlite``: every scan's estimate, truth,
+errors, stage positions and status, and the store's events, on the same timelines and entities as
+a live ``aimbench sweep --rerun``. The point clouds come back too, from where the scans came from:
+
+- a run on the simulated bench is re-simulated: `SimBench` is deterministic given the run's
+  seed and the runner's sequence (home, then for each reference: mount, move, seed the noise from
+  (seed, reference, first scan), scan), so the same scans come back bit for bit; the estimator is
+  run again on each, for what it used (board points, features), and its pose is checked against
+  the stored one (a mismatch, e.g. a run resumed part-way or made by another estimator version,
+  is annotated rather than hidden);
+- a run that read its scans from a capture (``--lidar CAPTURE.pcap``) reads the capture again,
+  in the order the runner took the scans.
+
+`replay_capture` replays any VLP-16 capture: each whole scan, estimated by `align`, with the truth
+of a ``CAPTURE.truth.json`` beside it if there is one (the twin writes it: see `write_truth`).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from scenarios.rerun_observer import RerunObserver, pose_from_row
+from scenarios.store import Store
+from twin.errors import AimbenchError
+from twin.pose import Pose
+from twin.scan import Scan
+
+if TYPE_CHECKING:
+    import rerun as rr
+
+#: Largest difference between a stored and a re-computed pose that still counts as the same
+#: estimate: m for positions, rad for angles (far below anything a report shows).
+SAME_POSE_TOL = 1e-6
+
+
+class ReplayError(AimbenchError):
+    """A run or a capture that cannot be replayed."""
+
+
+@dataclass
+class ReplaySummary:
+    """What a replay logged."""
+
+    scans: int = 0
+    clouds: int = 0
+    failed: int = 0
+    events: int = 0
+    mismatches: int = 0
+    source: str = ""
+    notes: list[str] = field(default_factory=list)
+
+    def line(self) -> str:
+        text = (f"{self.scans} scans ({self.clouds} with point clouds, from {self.source}), "
+                f"{self.failed} without pose, {self.events} events")
+        if self.mismatches:
+            text += f"; {self.mismatches} re-estimated poses differ from the store"
+        return text
+
+
+# ---------------------------------------------------------------------------------------------
+# Scans of a run, again
+# ---------------------------------------------------------------------------------------------
+def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int, int, Scan]]:
+    """The scans of a simulated run, taken again on a fresh twin with the runner's sequence.
+
+    Yields (reference, scan, Scan) for the stored (reference, scan) pairs in ``wanted``; the twin
+    still takes every scan of a reference up to the last wanted one, because the spin schedule
+    and the clock carry from scan to scan.
+    """
+    from scenarios.bench import SimBench
+
+    config = store.get("config", {}) or {}
+    plan = store.plan
+    bench = SimBench(seed=int(config.get("seed") or 0), ideal=bool(config.get("ideal")))
+    try:
+        bench.home()
+        for i, ref in enumerate(plan.references):
+            ks = sorted(k for (r, k) in wanted if r == i)
+            if not ks:
+                continue
+            bench.set_mount(ref.mount)
+            if ref.via is not None:
+                bench.move_to(*ref.via)
+            bench.move_to(ref.yaw_rad, ref.x_m)
+            bench.prepare(i, 0)
+            for k, scan in enumerate(bench.scans(ks[-1] + 1)):
+                if k in ks:
+                    yield i, k, scan
+    finally:
+        bench.close()
+
+
+def capture_scans(path: str | Path, whole_only: bool = True) -> list[Scan]:
+    """The scans of a VLP-16 capture in order (data packets on port 2368), as `PcapScanSource`
+    assembles them; ``whole_only`` drops the partial first and last rotations."""
+    from twin.pcap import PcapReader
+    from twin.scans import ScanAssembler
+    from twin.vlp16 import DATA_PORT
+
+    path = Path(path)
+    if not path.is_file():
+        raise ReplayError(f"no such capture {path}")
+    asm = ScanAssembler()
+    payloads = [rec.payload for rec in PcapReader(path, ports=(DATA_PORT,))]
+    scans = asm.push_many(payloads) + asm.finish()
+    return [s for s in scans if not (whole_only and s.meta.get("partial"))]
+
+
+def recapture(store: Store, capture: Path,
+              wanted: set[tuple[int, int]]) -> Iterator[tuple[int, int, Scan]]:
+    """The scans of a run that replayed a capture, matched to the store's rows in the order the
+    runner took them (reference by reference, scan by scan)."""
+    scans = capture_scans(capture)
+    rows = sorted(wanted)
+    for n, (i, k) in enumerate(rows):
+        if n >= len(scans):
+            return
+        yield i, k, scans[n]
+
+
+# ---------------------------------------------------------------------------------------------
+# Runs
+# ---------------------------------------------------------------------------------------------
+def run_estimator(method: str | None) -> Callable[[Scan], Any]:
+    """align's estimate of one scan with the run's method, the call the runner makes."""
+    import align
+
+    spec = align.BoardSpec()
+
+    def est(scan: Scan) -> Any:
+        kwargs: dict[str, Any] = {"board": spec}
+        if method:
+            kwargs["method"] = method
+        return align.estimate([scan], **kwargs)
+
+    return est
+
+
+@dataclass
+class _Stored:
+    """A store row in the shape `RerunObserver.on_scan` takes as an estimate."""
+
+    status: str
+    success: bool
+    pose: Pose | None
+    diagnostics: dict
+    used: dict = field(default_factory=dict)
+
+
+def _same_pose(a: Pose | None, b: Pose | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return bool(np.all(np.abs(a.as_array() - b.as_array()) <= SAME_POSE_TOL))
+
+
+def replay_run(run_dir: str | Path, rec: rr.RecordingStream, *, clouds: bool = True,
+               clouds_per_reference: int | None = None, points_every: int = 1,
+               color_by: str = "intensity", tolerances: Mapping[str, float] | None = None,
+               progress: Callable[[int, int], None] | None = None) -> ReplaySummary:
+    """Log the run in ``run_dir`` into ``rec`` (see the module's docstring).
+
+    clouds: bring the point clouds back (re-simulate or re-read the capture); False logs only
+        what the store holds (fast).
+    clouds_per_reference: point clouds for only the first n scans of each reference.
+    """
+    store = Store.open(run_dir)
+    try:
+        return _replay_store(store, Path(run_dir), rec, clouds, clouds_per_reference,
+                             points_every, color_by, tolerances, progress)
+    finally:
+        store.close()
+
+
+def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: bool,
+                  clouds_per_reference: int | None, points_every: int, color_by: str,
+                  tolerances: Mapping[str, float] | None,
+                  progress: Callable[[int, int], None] | None) -> ReplaySummary:
+    config = store.get("config", {}) or {}
+    plan = store.plan
+    info = store.get("bench", {}) or {}
+    rows = list(store.iter_scans())
+    summary = ReplaySummary()
+    obs = RerunObserver(rec, tolerances=tolerances, color_by=color_by, points_every=points_every,
+                        clouds_per_reference=clouds_per_reference,
+                        scans_per_reference=plan.scans)
+    obs.on_start(f"{run_dir.name}: {plan.name}", info)
+    wanted = {(r["reference"], r["scan"]) for r in rows
+              if clouds_per_reference is None or r["scan"] < clouds_per_reference}
+    source: Iterator[tuple[int, int, Scan]] = iter(())
+    if clouds and wanted:
+        lidar = config.get("lidar")
+        if config.get("bench") == "sim":
+            source = resimulate(store, wanted)
+            summary.source = "the twin, re-simulated"
+        elif lidar and not str(lidar).startswith("udp://") and Path(lidar).is_file():
+            source = recapture(store, Path(lidar), wanted)
+            summary.source = f"the capture {lidar}"
+        else:
+            summary.notes.append("no point clouds: the run read a live sensor and kept no "
+                                 "capture")
+    if not summary.source:
+        summary.source = "the result store only"
+    estimator = run_estimator(config.get("method"))
+    refs = store.references()
+    # The store's events, merged with the scans by time, become annotations.
+    events = sorted(store.events(), key=lambda e: e["at"])
+    ev = 0
+    pending: tuple[int, int, Scan] | None = next(source, None)
+    current_ref: int | None = None
+    for n, row in enumerate(rows):
+        i, k = row["reference"], row["scan"]
+        at = row.get("acquired_at")
+        while ev < len(events) and at is not None and events[ev]["at"] <= at:
+            obs.on_event(events[ev]["message"], _level(events[ev]["level"]))
+            summary.events += 1
+            ev += 1
+        if i != current_ref:
+            current_ref = i
+            ref = refs[i]
+            stage = (ref.get("stage_yaw_rad"), ref.get("stage_x_m"))
+            if stage[0] is None:
+                stage = (ref["yaw_rad"], ref["x_m"])
+            obs.on_reference(i, plan.references[i], stage)
+        scan = None
+        while pending is not None and (pending[0], pending[1]) < (i, k):
+            pending = next(source, None)
+        if pending is not None and (pending[0], pending[1]) == (i, k):
+            scan = pending[2]
+            pending = next(source, None)
+        stored = _Stored(status=row["status"], success=bool(row["success"]),
+                         pose=pose_from_row(row), diagnostics=row.get("diagnostics") or {})
+        if scan is not None:
+            fresh = estimator(scan)
+            stored.used = dict(getattr(fresh, "used", {}) or {})
+            fresh_pose = fresh.pose if fresh.success else None
+            if not _same_pose(fresh_pose, stored.pose if stored.success else None):
+                summary.mismatches += 1
+                obs.on_event(f"scan {k} of reference {i}: re-estimated pose differs from the "
+                             "stored one (the point cloud may not be the one the run saw)", "WARN")
+            summary.clouds += int(clouds_per_reference is None or k < clouds_per_reference)
+        truth = pose_from_row(row, "truth_")
+        stage = (row.get("stage_yaw_rad"), row.get("stage_x_m"))
+        obs.on_scan(scan, stored, truth, reference=i, k=k,
+                    stage=stage if stage[0] is not None else None, wall_time=at,
+                    missing_packets=row.get("missing_packets"),
+                    complete=None if row.get("complete") is None else bool(row["complete"]))
+        summary.scans += 1
+        summary.failed += int(not row["success"])
+        if progress is not None:
+            progress(n + 1, len(rows))
+    for e in events[ev:]:
+        obs.on_event(e["message"], _level(e["level"]))
+        summary.events += 1
+    failure = store.get("failure")
+    if store.status != "completed":
+        obs.on_finish(store.status, failure.get("message") if isinstance(failure, dict) else None)
+    close = getattr(source, "close", None)
+    if close is not None:
+        close()
+    return summary
+
+
+def _level(level: str) -> str:
+    return {"warning": "WARN", "warn": "WARN", "error": "ERROR"}.get(level.lower(), "INFO")
+
+
+# ---------------------------------------------------------------------------------------------
+# Captures
+# ---------------------------------------------------------------------------------------------
+def truth_path(capture: str | Path) -> Path:
+    """Where a capture's truth lives: ``CAPTURE.truth.json`` beside it."""
+    capture = Path(capture)
+    return capture.with_name(capture.stem + ".truth.json")
+
+
+def write_truth(capture: str | Path, scans: list[Scan]) -> Path:
+    """Write the truth of the twin's scans beside their capture (`twin.sim.BenchSim.write_pcap`
+    returns them): per scan, its sensor time (s past the hour, first firing) and its true pose
+    in edge units (mm, deg), so a replay can pair decoded scans with their truth by time."""
+    entries = []
+    for s in scans:
+        truth = s.meta.get("truth_pose")
+        if truth is None or not len(s):
+            continue
+        entries.append({"sensor_time_s": float(s.time[0]), **truth.to_edge()})
+    path = truth_path(capture)
+    path.write_text(json.dumps({"frame": "board", "units": "mm, deg", "scans": entries},
+                               indent=1), encoding="utf-8")
+    return path
+
+
+def load_truth(path: str | Path) -> list[tuple[float | None, Pose]]:
+    """(sensor time or None, pose) entries of a truth file: ``{"scans": [...]}``, a list, or
+    one pose for the whole capture (a static bench). Poses in edge units (``x_mm``...,
+    ``yaw_deg``) or the simulate command's metres and degrees (``x_m``...)."""
+    from scenarios.bench import scan_truth
+
+    data = json.loads(Path(path).read_text(encoding="utf-8"))
+    entries = data.get("scans", [data]) if isinstance(data, dict) else list(data)
+    out: list[tuple[float | None, Pose]] = []
+    for e in entries:
+        pose = scan_truth(Scan.empty(meta={"truth": e}))
+        if pose is None:
+            raise ReplayError(f"{path}: an entry without a pose: {e}")
+        t = e.get("sensor_time_s")
+        out.append((None if t is None else float(t), pose))
+    return out
+
+
+def _truth_for(scan: Scan, truths: list[tuple[float | None, Pose]]) -> Pose | None:
+    """The truth entry of a decoded scan: the one whose sensor time is its first firing's (within
+    a few firing sequences), or the single static pose."""
+    if not truths:
+        return None
+    if len(truths) == 1 and truths[0][0] is None:
+        return truths[0][1]
+    if not len(scan):
+        return None
+    t0 = float(scan.time[0])
+    times = np.array([np.inf if t is None else t for t, _ in truths])
+    j = int(np.argmin(np.abs(times - t0)))
+    return truths[j][1] if abs(times[j] - t0) < 1e-3 else None
+
+
+def replay_capture(capture: str | Path, rec: rr.RecordingStream, *, method: str | None = None,
+                   truth: str | Path | None = None, limit: int | None = None,
+                   points_every: int = 1, color_by: str = "intensity",
+                   tolerances: Mapping[str, float] | None = None,
+                   progress: Callable[[int, int], None] | None = None) -> ReplaySummary:
+    """Log every whole scan of a capture with align's estimate (and the truth, if known).
+
+    truth: a truth file (default: ``CAPTURE.truth.json`` if it exists).
+    limit: the first n scans only.
+    """
+    capture = Path(capture)
+    scans = capture_scans(capture, whole_only=False)
+    whole = [s for s in scans if not s.meta.get("partial")]
+    tpath = Path(truth) if truth is not None else truth_path(capture)
+    truths = load_truth(tpath) if tpath.is_file() else []
+    if truth is not None and not truths:
+        raise ReplayError(f"no truth in {tpath}")
+    if limit is not None:
+        whole = whole[:limit]
+    summary = ReplaySummary(source=f"the capture {capture.name}")
+    obs = RerunObserver(rec, tolerances=tolerances, color_by=color_by, points_every=points_every,
+                        stages=False)
+    obs.on_start(capture.name, {"kind": "capture"})
+    dropped = sum(s.missing_packets for s in scans)
+    partial = len(scans) - len([s for s in scans if not s.meta.get("partial")])
+    if partial:
+        obs.on_event(f"{partial} partial scan(s) at the capture's ends left out", "INFO")
+    if dropped:
+        obs.on_event(f"{dropped} packet(s) missing in the capture", "WARN")
+    if truths:
+        summary.notes.append(f"truth from {tpath}")
+    estimator = run_estimator(method)
+    for n, scan in enumerate(whole):
+        est = estimator(scan)
+        obs.on_scan(scan, est, _truth_for(scan, truths), reference=0, k=n)
+        summary.scans += 1
+        summary.clouds += 1
+        summary.failed += int(not est.success)
+        if progress is not None:
+            progress(n + 1, len(whole))
+    return summary

@@ -1,0 +1,334 @@
+"""`RerunObserver`: what a run looks like in rerun, live (the sweep runner calls it) or afterwards
+(`scenarios.replay` feeds it from a result store or a capture).
+
+The runner knows nothing of rerun: it calls an observer's ``on_reference``, ``on_scan`` and
+``on_error`` (every method optional, see `Observer`), and this module turns those calls into
+`twin.rerun_log` calls on an explicit `rerun.RecordingStream`. Without ``--rerun`` no observer
+exists and rerun is never imported.
+
+Sinks follow rerun's own script conventions (``rr.script_add_args``): ``--save PATH`` writes an
+``.rrd`` file, ``--connect [URL]`` streams to a running viewer, ``--serve`` hosts a gRPC server and
+the web viewer. `open_recording` sets them up; `close_recording` flushes and, when serving, keeps
+the process alive until Ctrl-C so that a viewer can still connect.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol, TextIO
+
+import numpy as np
+
+from twin import rerun_log as rl
+from twin.pose import Pose
+from twin.scan import Scan
+
+if TYPE_CHECKING:
+    import rerun as rr
+
+#: The nominal scan period of the VLP-16 at 600 rpm, s: the stage clock of a replay advances by
+#: it per scan (a store records no sensor clock).
+SCAN_PERIOD_S = 0.1
+
+
+class Observer(Protocol):
+    """What the runner may call (all optional: the runner checks with ``getattr``)."""
+
+    def on_reference(self, index: int, reference: Any, stage: tuple[float, float] | None) -> None:
+        ...
+
+    def on_scan(self, scan: Scan | None, estimate: Any, truth: Pose | None, **kw: Any) -> None:
+        ...
+
+    def on_error(self, message: str, reference: int | None = None,
+                 scan: int | None = None) -> None:
+        ...
+
+
+@dataclass
+class SinkOptions:
+    """Where a recording goes (rerun's ``--save``/``--connect``/``--serve`` conventions)."""
+
+    save: str | Path | None = None
+    connect: str | bool | None = None  # True: rerun's default URL; a str: that URL
+    serve: bool = False
+    spawn: bool = False
+    web_port: int | None = None
+    grpc_port: int | None = None
+
+    @property
+    def any(self) -> bool:
+        return bool(self.save or self.connect or self.serve or self.spawn)
+
+    def describe(self) -> str:
+        parts = []
+        if self.save:
+            parts.append(f"saving {self.save}")
+        if self.connect:
+            url = (self.connect if isinstance(self.connect, str)
+                   else "rerun+http://127.0.0.1:9876/proxy")
+            parts.append(f"streaming to the viewer at {url}")
+        if self.serve:
+            parts.append("serving the web viewer")
+        if self.spawn:
+            parts.append("spawning a viewer")
+        return ", ".join(parts) or "buffering in memory"
+
+
+def add_sink_arguments(p: Any, save_help: str) -> None:
+    """rerun's sink flags on an argparse parser: --save, --connect [URL], --serve, --spawn."""
+    p.add_argument("--save", metavar="PATH", help=save_help)
+    p.add_argument("--connect", nargs="?", const=True, default=None, metavar="URL",
+                   help="stream to a running rerun viewer (default URL "
+                        "rerun+http://127.0.0.1:9876/proxy)")
+    p.add_argument("--serve", action="store_true",
+                   help="host a gRPC server and rerun's web viewer (http://localhost:9090); "
+                        "stays up until Ctrl-C")
+    p.add_argument("--spawn", action="store_true", help="start the native rerun viewer")
+    p.add_argument("--web-port", type=int, help="web viewer port with --serve (default 9090)")
+
+
+def sink_options(args: Any, default_save: str | Path | None = None) -> SinkOptions:
+    """`SinkOptions` from parsed arguments; with no sink chosen, save to ``default_save``."""
+    opts = SinkOptions(save=getattr(args, "save", None), connect=getattr(args, "connect", None),
+                       serve=bool(getattr(args, "serve", False)),
+                       spawn=bool(getattr(args, "spawn", False)),
+                       web_port=getattr(args, "web_port", None))
+    if not opts.any and default_save is not None:
+        opts.save = default_save
+    return opts
+
+
+def open_recording(name: str, sinks: SinkOptions, truth: bool = True,
+                   tolerances: Mapping[str, float] | None = None,
+                   stream: TextIO | None = None) -> rr.RecordingStream:
+    """A new recording with aimbench's blueprint, attached to the chosen sinks."""
+    import rerun as rr
+
+    stream = stream if stream is not None else sys.stderr
+    bp = rl.blueprint(truth=truth, tolerances=tolerances)
+    rec = rl.new_recording(name)
+    targets: list[Any] = []
+    if sinks.save:
+        Path(sinks.save).parent.mkdir(parents=True, exist_ok=True)
+        targets.append(rr.FileSink(str(sinks.save)))
+    if sinks.connect:
+        targets.append(rr.GrpcSink(sinks.connect if isinstance(sinks.connect, str) else None))
+    if targets:
+        rec.set_sinks(*targets, default_blueprint=bp)
+    if sinks.serve:
+        # A second sink kind: the gRPC server keeps everything for viewers that connect late.
+        url = rec.serve_grpc(grpc_port=sinks.grpc_port, default_blueprint=bp)
+        rr.serve_web_viewer(web_port=sinks.web_port, open_browser=False, connect_to=url)
+        port = sinks.web_port or 9090
+        stream.write(f"rerun: web viewer at http://localhost:{port}/?url={url}\n")
+    if sinks.spawn:
+        rec.spawn(default_blueprint=bp)
+    # The blueprint also travels in the recording itself, so `rerun FILE.rrd` opens with it.
+    rec.send_blueprint(bp)
+    return rec
+
+
+def close_recording(rec: rr.RecordingStream, sinks: SinkOptions,
+                    stream: TextIO | None = None, wait: bool = True) -> None:
+    """Flush and close the sinks; when serving (and ``wait``), stay up until Ctrl-C."""
+    stream = stream if stream is not None else sys.stderr
+    rec.flush()
+    if sinks.serve and wait:
+        stream.write("rerun: serving the recording; Ctrl-C to stop\n")
+        try:
+            while True:
+                time.sleep(1.0)
+        except KeyboardInterrupt:
+            pass
+    rec.disconnect()
+    if sinks.save:
+        stream.write(f"rerun: recording saved to {sinks.save} (open it with: rerun "
+                     f"{sinks.save})\n")
+
+
+class RerunObserver:
+    """Logs a run into a recording: the static scene once, then each reference and scan.
+
+    rec: the recording (an explicit stream; see `open_recording`).
+    board: (width, height) of the target board, m.
+    tolerances: per-axis band of the error plots in edge units (`twin.rerun_log.tolerance_band`).
+    color_by: colour of the raw points, ``intensity`` or ``ring``.
+    points_every: log every n-th return of a scan (1: all; larger keeps recordings small).
+    clouds_per_reference: log the point clouds of only the first n scans of each reference
+        (None: all); poses, errors and annotations are logged for every scan regardless.
+    scans_per_reference: the plan's scans per reference, to number scans run-wide on the ``scan``
+        timeline (reference * scans + k); None counts them as they come.
+    params: the `twin.bench_params.BenchParams` whose MuJoCo geometry draws the stages (default:
+        the paper's bench). The observer keeps its own physics, posed from the stage positions it
+        is told, so it never disturbs a live twin and works the same for hardware and replays.
+    """
+
+    def __init__(self, rec: rr.RecordingStream, *, board: tuple[float, float] = (0.90, 0.54),
+                 tolerances: Mapping[str, float] | None = None, color_by: str = "intensity",
+                 points_every: int = 1, clouds_per_reference: int | None = None,
+                 scans_per_reference: int | None = None, params: Any = None,
+                 stages: bool = True) -> None:
+        self.rec = rec
+        self.board = board
+        self.tolerances = dict(tolerances) if tolerances is not None else rl.tolerance_band()
+        self.color_by = color_by
+        self.points_every = max(1, int(points_every))
+        self.clouds_per_reference = clouds_per_reference
+        self.scans_per_reference = scans_per_reference
+        self._params = params
+        self._stages = stages
+        self.geometry: rl.BenchGeometry | None = None
+        self.reference: int | None = None
+        self.stage: tuple[float, float] | None = None  # (yaw_rad, x_m) last seen
+        self.stage_time = 0.0
+        self.count = 0  # scans logged
+        self._k = 0  # scans of the current reference
+        self._started = False
+        self._styled: set[bool] = set()  # series styles logged: with truth, without
+        #: Logging wall time, s (the benchmark reports it beside the sweep's).
+        self.log_seconds = 0.0
+
+    # -- the static scene ------------------------------------------------------------------
+    def on_start(self, name: str | None = None, info: Mapping[str, Any] | None = None) -> None:
+        """Log the scene (board, bench geometry, series styles) and a first annotation."""
+        if self._started:
+            return
+        self._started = True
+        t0 = time.perf_counter()
+        rec = self.rec
+        rl.log_world(rec)
+        rl.log_board(rec, *self.board)
+        if self._stages:
+            from twin.physics import BenchPhysics
+
+            self.geometry = rl.BenchGeometry.from_physics(BenchPhysics(self._params))
+            self.geometry.log_static(rec)
+            rec.set_time("stage_time", duration=0.0)
+            self.geometry.log_joints(rec, 0.0, 0.0, force=True)
+        if name:
+            rl.log_text(rec, f"run {name}" + (f" on the {info.get('kind')} bench"
+                                              if info and info.get("kind") else ""))
+        self.log_seconds += time.perf_counter() - t0
+
+    # -- runner callbacks ------------------------------------------------------------------
+    def on_reference(self, index: int, reference: Any = None,
+                     stage: tuple[float, float] | None = None) -> None:
+        """A reference begins; `stage` is (yaw_rad, x_m) where the stages arrived. The move from
+        the previous stage position is drawn along the firmware's profile on ``stage_time``."""
+        self.on_start()
+        t0 = time.perf_counter()
+        rec = self.rec
+        self.reference = int(index)
+        self._k = 0
+        if stage is not None and all(v is not None and math.isfinite(v) for v in stage):
+            yaw, x = (float(v) for v in stage)
+            if self.geometry is not None:
+                start = (0.0, 0.0) if self.stage is None else (self.stage[1], self.stage[0])
+                rec.reset_time()
+                self.stage_time = rl.log_stage_move(rec, self.geometry, start, (x, yaw),
+                                                    self.stage_time)
+            self.stage = (yaw, x)
+        where = f" at yaw {math.degrees(self.stage[0]):+.3f} deg, x {self.stage[1] * 1e3:+.2f} mm" \
+            if self.stage else ""
+        label = reference.describe() if hasattr(reference, "describe") else ""
+        rec.reset_time()
+        rec.set_time("stage_time", duration=self.stage_time)
+        rl.log_text(rec, f"reference {index}{f' ({label})' if label else ''}{where}")
+        self.log_seconds += time.perf_counter() - t0
+
+    def scan_index(self, reference: int | None, k: int | None) -> int:
+        """The run-wide scan number on the ``scan`` timeline."""
+        if reference is not None and k is not None and self.scans_per_reference:
+            return int(reference) * int(self.scans_per_reference) + int(k)
+        return self.count
+
+    def on_scan(self, scan: Scan | None, estimate: Any, truth: Pose | None = None, *,
+                reference: int | None = None, k: int | None = None,
+                stage: tuple[float, float] | None = None, wall_time: float | None = None,
+                sensor_time: float | None = None, missing_packets: int | None = None,
+                complete: bool | None = None) -> None:
+        """One scan and its estimate (anything with ``status``, ``success``/``pose``,
+        ``diagnostics`` and optionally ``used``: align's `PoseEstimate` or the runner's
+        `Estimate`). ``scan`` may be None (a replay without captures): then only the poses,
+        errors and annotations are logged."""
+        self.on_start()
+        t0 = time.perf_counter()
+        rec = self.rec
+        if reference is None:
+            reference = self.reference
+        if k is None:
+            k = self._k
+        self._k = k + 1
+        if truth is None and scan is not None:
+            from scenarios.bench import scan_truth
+
+            truth = scan_truth(scan)
+        status = getattr(estimate, "status", "ok")
+        status = str(getattr(status, "value", status))
+        pose = getattr(estimate, "pose", None)
+        success = bool(getattr(estimate, "success", pose is not None)) and pose is not None
+        diagnostics = getattr(estimate, "diagnostics", None) or {}
+        if sensor_time is None and scan is not None and len(scan):
+            sensor_time = float(scan.time[0])
+        rec.reset_time()
+        rl.set_scan_time(rec, self.scan_index(reference, k), sensor_time=sensor_time,
+                         stage_time=self.stage_time, wall_time=wall_time)
+        self.stage_time += SCAN_PERIOD_S
+        if stage is not None and self.geometry is not None and \
+                all(v is not None and math.isfinite(v) for v in stage):
+            self.geometry.log_joints(rec, float(stage[1]), float(stage[0]))
+        rl.log_pose(rec, "world/truth", truth, axis_length=0.12)
+        rl.log_pose(rec, "world/estimate", pose if success else None, axis_length=0.25)
+        # The scan is drawn where the estimate puts the sensor (so a wrong estimate shows as
+        # points off the board); without one, where the truth does.
+        sensor = pose if success else truth
+        if sensor is not None:
+            rec.log("world/sensor", rl.pose_transform(sensor))
+        cloud = scan is not None and (self.clouds_per_reference is None
+                                      or k < self.clouds_per_reference)
+        if cloud and scan is not None:
+            rl.log_scan_points(rec, scan, color_by=self.color_by, every=self.points_every)
+            rl.log_used(rec, scan, getattr(estimate, "used", None) if success else None)
+        if (truth is not None) not in self._styled:
+            # Styled on first use: a recording shows either errors (twin) or estimates.
+            self._styled.add(truth is not None)
+            rl.log_series_style(rec, self.tolerances, truth=truth is not None)
+        rl.log_errors(rec, pose if success else None, truth, self.tolerances)
+        for level, text in rl.scan_annotations(scan, status, success, diagnostics,
+                                               missing_packets, complete):
+            rl.log_text(rec, f"scan {k} of reference {reference}: {text}", level)
+        self.count += 1
+        self.log_seconds += time.perf_counter() - t0
+
+    def on_error(self, message: str, reference: int | None = None,
+                 scan: int | None = None) -> None:
+        """A failure (an alarm, a silent sensor, a board out of view): an ERROR annotation."""
+        where = "" if reference is None else f"reference {reference}" + (
+            f", scan {scan}" if scan is not None else "") + ": "
+        rl.log_text(self.rec, f"{where}{message}", "ERROR")
+
+    def on_event(self, message: str, level: str = "INFO") -> None:
+        """Any other annotation (run status, resumes, the store's events)."""
+        rl.log_text(self.rec, message, level.upper() if level.upper() in
+                    ("TRACE", "DEBUG", "INFO", "WARN", "ERROR", "CRITICAL") else "INFO")
+
+    def on_finish(self, status: str, message: str | None = None) -> None:
+        level = "INFO" if status == "completed" else "WARN" if status == "interrupted" \
+            else "ERROR"
+        rl.log_text(self.rec, f"run {status}" + (f": {message}" if message else ""), level)
+
+
+def pose_from_row(row: Mapping[str, Any], prefix: str = "") -> Pose | None:
+    """A `Pose` from a store row's ``{prefix}x_m ... {prefix}yaw_rad`` columns, None if absent."""
+    cols = ("x_m", "y_m", "z_m", "roll_rad", "tilt_rad", "yaw_rad")
+    values = [row.get(prefix + c) for c in cols]
+    if any(v is None for v in values):
+        return None
+    a = np.asarray(values, dtype=float)
+    return Pose.from_array(a) if np.all(np.isfinite(a)) else None
