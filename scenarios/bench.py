@@ -14,6 +14,12 @@ from __future__ import annotations
 
 import abc
 import math
+import select
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from dataclasses import replace
@@ -363,6 +369,71 @@ class HardwareBench(Bench):
             self.controller.close()
 
 
+class ServedBench(HardwareBench):
+    """`HardwareBench` against an ``aimbench serve`` it starts itself (the wire-level twin).
+
+    The twin runs in its own process (the firmware in simavr plus the VLP-16 emulation streaming
+    UDP in real time), so the sweep's estimation does not steal its time; this bench talks to it
+    exactly as to the real bench: Grbl over the pty, packets over UDP on loopback.
+    """
+
+    kind = "serve"
+
+    def __init__(self, port: str, lidar: str, process: subprocess.Popen, log: Path,
+                 **kwargs: Any) -> None:
+        self.process = process
+        self.log = log
+        try:
+            super().__init__(port, lidar, **kwargs)
+        except BaseException:
+            self._stop_process()
+            raise
+
+    @classmethod
+    def launch(cls, seed: int = 0, ideal: bool = False, start_timeout_s: float = 300.0,
+               **kwargs: Any) -> ServedBench:
+        """Start ``aimbench serve`` on a free loopback UDP port and connect to it."""
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            udp_port = s.getsockname()[1]
+        log = Path(tempfile.mkstemp(prefix="aimbench-serve-", suffix=".log")[1])
+        cmd = [sys.executable, "-m", "scenarios.cli", "serve", "--udp",
+               f"127.0.0.1:{udp_port}", "--seed", str(seed)] + (["--ideal"] if ideal else [])
+        with log.open("w") as err:
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
+        # The first line is the pty (the firmware may be built first: allow for it).
+        ready, _, _ = select.select([proc.stdout], [], [], start_timeout_s)
+        pty = proc.stdout.readline().strip() if ready else ""
+        if not pty.startswith("/dev/"):
+            proc.terminate()
+            proc.wait(timeout=10)
+            tail = log.read_text(errors="replace").strip().splitlines()[-3:]
+            raise BenchError(f"aimbench serve did not start (no pty within "
+                             f"{start_timeout_s:.0f} s): {' / '.join(tail) or 'no output'}")
+        return cls(pty, f"udp://127.0.0.1:{udp_port}", proc, log, **kwargs)
+
+    def info(self) -> dict[str, Any]:
+        return {**super().info(), "kind": "serve", "serve_pid": self.process.pid}
+
+    def _stop_process(self) -> None:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        if self.process.stdout is not None:
+            self.process.stdout.close()
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            self._stop_process()
+            self.log.unlink(missing_ok=True)
+
+
 # -- the simulated bench ------------------------------------------------------------------------
 
 class SimBench(Bench):
@@ -483,7 +554,6 @@ def open_bench(config: dict[str, Any]) -> Bench:
                              "or --port none for a LiDAR without stages or a capture replay")
         return HardwareBench(config["port"], config.get("lidar") or "udp://0.0.0.0:2368")
     if kind == "serve":
-        raise BenchError("the wire-level twin (--bench serve) is not available in this build: "
-                         "it needs the simavr harness (twin/hil.py); use --bench sim, or start "
-                         "the real bench and use --bench hw")
+        return ServedBench.launch(seed=int(config.get("seed") or 0),
+                                  ideal=bool(config.get("ideal")))
     raise BenchError(f"unknown bench {kind!r}; use sim, hw or serve")

@@ -1,0 +1,83 @@
+"""`aimbench serve`: the simulated bench behind the real bench's interfaces (the wire-level twin).
+
+The real stage firmware runs in simavr on a pty whose step pulses move the MuJoCo stages, and the
+emulated VLP-16 sends its data packets over UDP at the real rate. The first two lines printed are
+the pty (open it like /dev/ttyACM0) and the UDP target:
+
+    aimbench serve                       # e.g. /dev/pts/3 and udp://127.0.0.1:2368
+    aimbench sweep yaw --bench hw --port /dev/pts/3 --lidar udp://0.0.0.0:2368 --out runs/wire
+
+`aimbench sweep --bench serve` starts one itself. Runs until Ctrl-C (or SIGTERM).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+
+from twin.errors import AimbenchError
+
+
+def parse_udp(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (or ``udp://HOST:PORT``) to (host, port)."""
+    text = text.removeprefix("udp://")
+    host, _, port = text.rpartition(":")
+    try:
+        return host or "127.0.0.1", int(port)
+    except ValueError:
+        raise AimbenchError(f"bad UDP target {text!r}; use HOST:PORT, e.g. 127.0.0.1:2368") \
+            from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from twin.emulation import EmulationConfig
+    from twin.wire import WireTwin
+
+    udp = parse_udp(args.udp)
+    noise = EmulationConfig.ideal() if args.ideal else None
+    stop = {"flag": False}
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop["flag"] = True
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, on_signal)
+    twin = WireTwin(udp, seed=args.seed, noise=noise, start_x_mm=args.x_start_mm,
+                    start_a_deg=args.a_start_deg)
+    twin.start()
+    try:
+        print(twin.pty_path, flush=True)
+        print(f"udp://{udp[0]}:{udp[1]}", flush=True)
+        print(f"aimbench serve: stage firmware in simavr on {twin.pty_path}, VLP-16 packets to "
+              f"udp://{udp[0]}:{udp[1]} at the real rate (seed {args.seed}); Ctrl-C stops",
+              file=sys.stderr, flush=True)
+        while not stop["flag"]:
+            if not twin.alive():
+                print(f"aimbench serve: stopped: {'; '.join(twin.stats.errors) or 'unknown'}",
+                      file=sys.stderr)
+                return 1
+            time.sleep(0.2)
+    finally:
+        twin.stop()
+        s = twin.stats
+        print(f"aimbench serve: {s.packets} packets in {s.rotations} rotations sent, {s.late} "
+              f"late (worst {1e3 * s.max_late_s:.1f} ms)", file=sys.stderr)
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser("serve", help="the wire-level twin: stage firmware in simavr on a pty, "
+                                     "VLP-16 packets over UDP; prints the pty and UDP target",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--udp", default="127.0.0.1:2368",
+                   help="where the VLP-16 packets go, HOST:PORT (default 127.0.0.1:2368)")
+    p.add_argument("--seed", type=int, default=0, help="the twin's noise seed (default 0)")
+    p.add_argument("--ideal", action="store_true", help="every emulation error source off")
+    p.add_argument("--x-start-mm", type=float, default=20.0,
+                   help="where the linear stage stands at power-up, mm from home (default 20)")
+    p.add_argument("--a-start-deg", type=float, default=10.0,
+                   help="where the rotary stage stands at power-up, deg from home (default 10)")
+    p.set_defaults(func=run)
+    return p
