@@ -138,7 +138,7 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
     s2 = float(f @ f) / dof
     cov = s2 * np.linalg.pinv(j.T @ j)
     used_features = pts_idx[np.flatnonzero(inl)[fi]]
-    diag = {"rings": int(len(rings)), "board_points": int(inl.sum()), "iterations": iters,
+    diag = {"rings": len(rings), "board_points": int(inl.sum()), "iterations": iters,
             "corner_rms_m": float(np.sqrt(np.mean(f**2))), "plane_d_m": d}
     status = Status.OK if conv else Status.NOT_CONVERGED
     return PoseEstimate(status=status, method="paper", pose=Pose.from_array(beta), covariance=cov,

@@ -354,8 +354,12 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     o_all, u_all, r_all = np.concatenate(o_l), np.concatenate(u_l), np.concatenate(r_l)
     ring_all = np.concatenate(k_l)
     n, d, _, sigma = plane.fit_rays(r_all, o_all, u_all, n, d)
-    keep = np.abs(r_all - plane.predicted_range(n, d, o_all, u_all)) < 4 * sigma
+    keep = np.abs(r_all - plane.predicted_range(n, d, o_all, u_all)) < 2.5 * sigma
     n, d, _, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d)
+    # the board's rings hold many returns; the few that leak in from the stand (its base is
+    # 5 cm in front of the board) sit on other rings: keep rings with a quarter of the most
+    per_ring = np.bincount(ring_all[keep], minlength=16)
+    keep &= per_ring[ring_all] >= 0.25 * per_ring.max()
     sigma_r = hints.range_sigma or max(sigma, 1e-3)
     t_plane = time.perf_counter()
 
@@ -375,7 +379,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     hit = lab == 1
     rings_hit = np.unique(rays.ring[hit])
     if len(rings_hit) < 3:
-        return PoseEstimate.failed(Status.TOO_FEW_RINGS, "rays", rings=int(len(rings_hit)),
+        return PoseEstimate.failed(Status.TOO_FEW_RINGS, "rays", rings=len(rings_hit),
                                    reason=f"the board spans {len(rings_hit)} rings; 3 needed")
 
     x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
@@ -412,7 +416,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                              (lab == 0)))
     cov = np.linalg.pinv(j.T @ j)
     diag = {
-        "rings": int(len(rings_hit)), "rays": len(lab), "hits": int(hit.sum()),
+        "rings": len(rings_hit), "rays": len(lab), "hits": int(hit.sum()),
         "range_residuals": int(model.use_range.sum()), "brackets": int(np.sum(k > 0)),
         "edges_left": n_left, "edges_right": n_right, "edges_top": n_top,
         "edges_bottom": n_bottom, "occluded_rays": occluded, "inside_misses": inside_miss,

@@ -31,6 +31,8 @@ CLUSTER_RADIUS_MIN = 0.05
 #: Largest azimuth step between ring neighbours, rad (0.2 deg at 600 rpm; 0.4 deg at 1200 rpm,
 #: plus a dropped firing).
 MAX_AZIMUTH_GAP = np.deg2rad(1.0)
+#: A run along a ring longer than this many board diagonals is floor or wall, never the board.
+LONG_RUN = 1.5
 
 
 @dataclass
@@ -50,12 +52,13 @@ def _unwrap(azimuth: np.ndarray, centre: float) -> np.ndarray:
     return (azimuth - centre + np.pi) % (2 * np.pi) - np.pi
 
 
-def _grid(scan: Scan) -> np.ndarray | None:
-    """Firing indices as a (sequences, 16 rings) grid when the scan is in firing order, else None.
+def _grid(scan: Scan) -> tuple[int, int] | None:
+    """(first, sequences) when the scan is in firing order, else None.
 
     A scan from the decoder or the emulation lists the 16 lasers of each firing sequence in
     order (a scan cut at an azimuth may start and end mid-sequence: those few firings are left
-    out of the grid); then the organised cloud needs no sorting, the costliest step otherwise.
+    out); firings first .. first + 16 * sequences then form a (sequences, 16 lasers) grid of
+    views, and the organised cloud needs neither sorting nor gathering.
     """
     n = len(scan)
     if n < 32:
@@ -67,46 +70,97 @@ def _grid(scan: Scan) -> np.ndarray | None:
     lid = scan.laser_id[k0:k0 + 16 * m].reshape(m, 16)
     if not np.array_equal(lid, np.broadcast_to(np.arange(16, dtype=lid.dtype), lid.shape)):
         return None
-    return (k0 + np.arange(16 * m)).reshape(m, 16)[:, vlp16.LASER_OF_RING]
+    return k0, m
 
 
-def _labels_grid(scan: Scan, grid: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Cluster labels on the firing grid: runs along each ring, then runs joined across rings.
+def _union_find(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of a small graph (n nodes, edges a-b): (count, label per node)."""
+    if len(a) > 20000:
+        g = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
+        return connected_components(g, directed=False)
+    parent = list(range(n))
 
-    Working on (16, sequences) arrays by slicing avoids gathering neighbour pairs firing by
-    firing; the graph that remains is one of runs (a few hundred nodes), not of returns.
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    # links come in order along the rings: dropping repeats of the previous pair leaves few
+    key = np.minimum(a, b) * n + np.maximum(a, b)
+    keep = np.ones(len(key), dtype=bool)
+    keep[1:] = key[1:] != key[:-1]
+    for i, k in zip((key[keep] // n).tolist(), (key[keep] % n).tolist(), strict=True):
+        ri, rk = find(i), find(k)
+        if ri != rk:
+            parent[max(ri, rk)] = min(ri, rk)
+    roots = np.array([find(i) for i in range(n)], dtype=np.int64)
+    _, lab = np.unique(roots, return_inverse=True)
+    return int(lab.max()) + 1 if n else 0, lab
+
+
+def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagonal: float
+                 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Cluster labels on the firing grid, and count, mean distance and rings per cluster.
+
+    Runs along each laser's ring first (consecutive firings closer than the threshold), then
+    runs joined across adjacent rings of the same firing sequence (and each ring's wrap-around)
+    by connected components over the (small) graph of runs. Everything works on (sequences, 16)
+    views of the scan's arrays: a full rotation takes about 2 ms.
     """
-    g = grid.T  # (16 rings, sequences)
-    x, y, z = scan.x[g], scan.y[g], scan.z[g]
-    dist, az, okg = scan.distance[g], scan.azimuth[g], ok[g]
+    k0, m = grid
+    sl = slice(k0, k0 + 16 * m)
+    x, y, z = (a[sl].reshape(m, 16) for a in (scan.x, scan.y, scan.z))
+    dist, az, okg = (a[sl].reshape(m, 16) for a in (scan.distance, scan.azimuth, ok))
     thr = np.maximum(CLUSTER_RADIUS_PER_M * dist, CLUSTER_RADIUS_MIN) ** 2
 
-    def close(sa: tuple, sb: tuple) -> np.ndarray:
+    def close(sa, sb) -> np.ndarray:
         d2 = (x[sa] - x[sb]) ** 2 + (y[sa] - y[sb]) ** 2 + (z[sa] - z[sb]) ** 2
         return okg[sa] & okg[sb] & (d2 < np.minimum(thr[sa], thr[sb]))
 
-    sl, sr = (slice(None), slice(None, -1)), (slice(None), slice(1, None))
-    daz = np.abs((az[sr] - az[sl] + np.pi) % (2 * np.pi) - np.pi)
-    link_h = close(sl, sr) & (daz < MAX_AZIMUTH_GAP)  # (16, S-1)
-    # run ids: a new run starts wherever the ring link breaks (and at each ring's start)
-    brk = np.ones(g.shape, dtype=bool)
-    brk[:, 1:] = ~link_h
-    run = np.cumsum(brk.ravel()).reshape(g.shape) - 1
-    n_run = int(run[-1, -1]) + 1
-    # joins: adjacent rings in the same firing sequence, and each ring's wrap-around
-    link_v = close((slice(None, -1), slice(None)), (slice(1, None), slice(None)))
-    ra, rb = run[:-1][link_v], run[1:][link_v]
-    last, first = (slice(None), slice(-1, None)), (slice(None), slice(0, 1))
-    daz_w = np.abs((az[first] - az[last] + np.pi) % (2 * np.pi) - np.pi)
-    wrap = (close(last, first) & (daz_w < MAX_AZIMUTH_GAP)).ravel()
-    ra = np.concatenate((ra, run[:, -1][wrap]))
-    rb = np.concatenate((rb, run[:, 0][wrap]))
-    graph = coo_matrix((np.ones(len(ra), dtype=np.int8), (ra, rb)), shape=(n_run, n_run))
-    _, comp = connected_components(graph, directed=False)
-    # firings outside the grid (a partial sequence at the cut) are singletons
-    labels = len(comp) + np.arange(len(scan), dtype=np.int64)
-    labels[g] = comp[run]
-    return labels
+    # along each ring: consecutive sequences (a lost firing leaves its neighbours farther apart
+    # than the distance threshold, so no azimuth test is needed)
+    link_h = close(np.s_[:-1], np.s_[1:])  # (m-1, 16)
+    brk = np.ones((16, m), dtype=bool)  # laser-major: a laser's firings are contiguous
+    brk[:, 1:] = ~link_h.T
+    okf = okg.T.ravel()
+    start_flag = brk.ravel() & okf
+    starts = np.flatnonzero(start_flag)
+    n_run = len(starts)
+    if n_run == 0:
+        return np.full(len(scan), -1, dtype=np.int64), {
+            k: np.zeros(0) for k in ("count", "distance", "rings")}
+    run = (np.cumsum(start_flag) - 1).reshape(16, m)  # run id of each firing (laser, sequence)
+    # adjacent rings = the lasers of consecutive elevations: column pairs (la, lb)
+    la, lb = vlp16.LASER_OF_RING[:-1], vlp16.LASER_OF_RING[1:]
+    lv = close(np.s_[:, la], np.s_[:, lb])  # (m, 15)
+    ra_l, rb_l = [run[la].T[lv]], [run[lb].T[lv]]
+    daz_w = np.abs((az[0] - az[-1] + np.pi) % (2 * np.pi) - np.pi)
+    wrap = close(np.s_[-1], np.s_[0]) & (daz_w < MAX_AZIMUTH_GAP)
+    ra_l.append(run[:, -1][wrap])
+    rb_l.append(run[:, 0][wrap])
+    ra, rb = np.concatenate(ra_l), np.concatenate(rb_l)
+    # count and mean distance per run (the sums over [start of a run, start of the next) add
+    # zeros for the firings without a return in between)
+    sums = np.add.reduceat(np.stack((okf.astype(np.float64), dist.T.ravel() * okf)), starts,
+                           axis=1)
+    # a run longer than the board (the floor's ring, a wall) joins nothing: otherwise the board,
+    # its stand and the floor ring at the stand's foot chain into one cluster
+    ends = starts + sums[0].astype(np.int64) - 1
+    az_f = az.T.ravel()
+    span = (az_f[ends] - az_f[starts]) % (2 * np.pi)
+    long_run = span * sums[1] / np.maximum(sums[0], 1) > LONG_RUN * board_diagonal
+    keep = ~(long_run[ra] | long_run[rb])
+    n_comp, comp = _union_find(n_run, ra[keep], rb[keep])
+    cnt = np.bincount(comp, sums[0], n_comp)
+    ring_hit = np.zeros((n_comp, 16), dtype=bool)
+    ring_hit[comp, vlp16.RING_OF_LASER[starts // m]] = True
+    stats = {"count": cnt, "distance": np.bincount(comp, sums[1], n_comp) / np.maximum(cnt, 1),
+             "rings": ring_hit.sum(axis=1)}
+    labels = np.full(len(scan), -1, dtype=np.int64)  # -1: no cluster (or outside the grid)
+    lab_lm = np.where(okf, comp[np.maximum(run.ravel(), 0)], -1).reshape(16, m)
+    labels[sl] = lab_lm.T.ravel()
+    return labels, stats
 
 
 def _edges_sorted(scan: Scan, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -143,19 +197,21 @@ def _edges_sorted(scan: Scan, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return idx[np.concatenate(a_list)], idx[np.concatenate(b_list)]
 
 
-def cluster(scan: Scan, ok: np.ndarray) -> np.ndarray:
-    """Euclidean clusters of the returns where ``ok``: a label per firing of the scan.
+def cluster(scan: Scan, ok: np.ndarray, board_diagonal: float = np.inf
+            ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Euclidean clusters of the returns where ``ok``: a label per firing, and their statistics.
 
-    Firings outside ``ok`` get their own singleton labels (callers ignore small clusters).
+    Statistics per label (count, mean distance and reflectivity, RMS extent, rings) count only
+    the returns in ``ok``; labels of firings outside it mean nothing.
     """
     n = len(scan)
     grid = _grid(scan)
     if grid is not None:
-        return _labels_grid(scan, grid, ok)
+        return _labels_grid(scan, grid, ok, board_diagonal)
     a, b = _edges_sorted(scan, ok)
     g = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
     _, labels = connected_components(g, directed=False)
-    return labels
+    return labels, _cluster_stats(scan, labels, ok)
 
 
 def _cluster_stats(scan: Scan, labels: np.ndarray, m: np.ndarray) -> dict[str, np.ndarray]:
@@ -200,17 +256,30 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
         m &= np.abs(scan.distance - hints.expected_distance) <= board.diagonal + 0.5
     if not np.any(m):
         return Segmentation(Status.NO_BOARD, empty, reason="no return in the search region")
-    labels = cluster(scan, m)
-    st = _cluster_stats(scan, labels, m)
+    labels, st = cluster(scan, m, board.diagonal)
     dist = st["distance"]
     az_step = np.deg2rad(0.2)
     with np.errstate(divide="ignore", invalid="ignore"):
         # returns the board would give at that range: its angular size over the beam grid
         expect = (board.width / (dist * az_step)) * (board.height / (dist * np.deg2rad(2.0)) + 1)
         frac = st["count"] / expect
-    shape_ok = (st["extent"] > 0.5 * board.diagonal) & (st["extent"] < 1.6 * board.diagonal)
-    cand = shape_ok & (st["count"] >= 3) & (frac > 0.25)
-    score = np.minimum(frac, 1.5) * (1.0 + st["intensity"] / 255.0)
+    cand = (st["count"] >= 3) & (frac > 0.25) & ((st["rings"] >= 2) | (dist > hints.max_distance))
+    score = np.zeros(len(dist))
+    # the rest of the paper's criteria for the few clusters left: size and reflectivity
+    ids = np.flatnonzero(cand)
+    is_cand = np.zeros(len(dist) + 1, dtype=bool)
+    is_cand[ids + 1] = True  # labels start at -1
+    idx = np.flatnonzero(is_cand[labels + 1])
+    idx = idx[np.argsort(labels[idx], kind="stable")]
+    bounds = np.searchsorted(labels[idx], np.append(ids, len(dist)))
+    for k, lab in enumerate(ids):
+        sel = idx[bounds[k]:bounds[k + 1]]
+        p = np.stack((scan.x[sel], scan.y[sel], scan.z[sel]))
+        extent = float(np.sqrt(12 * np.sum(np.var(p, axis=1))))  # a rectangle's diagonal
+        if not 0.5 * board.diagonal < extent < 1.6 * board.diagonal:
+            cand[lab] = False
+            continue
+        score[lab] = min(frac[lab], 1.5) * (1.0 + float(np.mean(scan.intensity[sel])) / 255.0)
     if hints.expected_distance is not None:
         score = score / (1.0 + np.abs(dist - hints.expected_distance))
     near = cand & (st["rings"] >= 2) & (dist <= hints.max_distance)
@@ -218,11 +287,11 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     n_lab = int(np.count_nonzero(st["count"]))
     if np.any(near):
         lab = int(np.flatnonzero(near)[np.argmax(score[near])])
-        sel = np.flatnonzero(m & (labels == lab))
+        sel = np.flatnonzero(labels == lab)
         return Segmentation(Status.OK, sel, n_lab, float(dist[lab]), int(st["rings"][lab]))
     if np.any(far):
         lab = int(np.flatnonzero(far)[np.argmax(score[far])])
-        sel = np.flatnonzero(m & (labels == lab))
+        sel = np.flatnonzero(labels == lab)
         return Segmentation(Status.BOARD_TOO_FAR, sel, n_lab, float(dist[lab]),
                             int(st["rings"][lab]), reason=f"board-like cluster at "
                             f"{dist[lab]:.2f} m, beyond {hints.max_distance:.2f} m")
