@@ -78,8 +78,12 @@ def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int
     from scenarios.bench import SimBench
 
     config = store.get("config", {}) or {}
+    info = store.get("bench", {}) or {}
     plan = store.plan
-    bench = SimBench(seed=int(config.get("seed") or 0), ideal=bool(config.get("ideal")))
+    # What the bench said it was beats what the command line asked for.
+    seed = info.get("seed", config.get("seed")) or 0
+    ideal = info.get("ideal", config.get("ideal"))
+    bench = SimBench(seed=int(seed), ideal=bool(ideal))
     try:
         bench.home()
         for i, ref in enumerate(plan.references):
@@ -197,7 +201,7 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
     source: Iterator[tuple[int, int, Scan]] = iter(())
     if clouds and wanted:
         lidar = config.get("lidar")
-        if config.get("bench") == "sim":
+        if config.get("bench", info.get("kind")) == "sim":
             source = resimulate(store, wanted)
             summary.source = "the twin, re-simulated"
         elif lidar and not str(lidar).startswith("udp://") and Path(lidar).is_file():

@@ -37,6 +37,7 @@ at the scan's first firing, s past the hour), ``stage_time`` (the twin's simulat
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -80,25 +81,17 @@ BOARD_THICKNESS = 0.003
 # ---------------------------------------------------------------------------------------------
 # Colour maps (numpy only: the points of a scan are coloured with one table look-up)
 # ---------------------------------------------------------------------------------------------
-def _turbo_lut(n: int = 256) -> np.ndarray:
-    """Google's Turbo colour map as an (n, 3) uint8 table.
+@functools.cache
+def turbo_lut(n: int = 256) -> np.ndarray:
+    """The Turbo colour map as an (n, 3) uint8 table (matplotlib's, loaded once on first use)."""
+    from matplotlib import colormaps
 
-    The published polynomial fit (Mikhailov 2019, Apache-2.0) rather than matplotlib, so that the
-    first logged scan does not pay for importing a plotting library.
-    """
-    t = np.linspace(0.0, 1.0, n)
-    powers = np.vander(t, 6, increasing=True)  # 1, t, ..., t^5
-    red = powers @ [0.13572138, 4.61539260, -42.66032258, 132.13108234, -152.94239396, 59.28637943]
-    green = powers @ [0.09140261, 2.19418839, 4.84296658, -14.18503333, 4.27729857, 2.82956604]
-    blue = powers @ [0.10667330, 12.64194608, -60.58204836, 110.36276771, -89.90310912,
-                     27.34824973]
-    rgb = np.clip(np.column_stack((red, green, blue)), 0.0, 1.0)
-    return np.rint(rgb * 255).astype(np.uint8)
+    return np.rint(colormaps["turbo"](np.linspace(0.0, 1.0, n))[:, :3] * 255).astype(np.uint8)
 
 
-_TURBO = _turbo_lut()
-#: One colour per ring (0 = lowest beam), spread over the Turbo map.
-RING_COLORS = _TURBO[np.linspace(0, 255, 16).astype(int)]
+def ring_colors() -> np.ndarray:
+    """One colour per ring (0 = lowest beam), spread over Turbo, (16, 3) uint8."""
+    return turbo_lut()[np.linspace(0, 255, 16).astype(int)]
 
 
 def scan_colors(scan: Scan, mask: np.ndarray | None = None, by: str = "intensity") -> np.ndarray:
@@ -107,12 +100,12 @@ def scan_colors(scan: Scan, mask: np.ndarray | None = None, by: str = "intensity
     so the table is stretched over 0..100 and saturates beyond) or by elevation ``ring``."""
     if by == "ring":
         ring = scan.ring if mask is None else scan.ring[mask]
-        return RING_COLORS[ring]
+        return ring_colors()[ring]
     if by != "intensity":
         raise ValueError(f"colour points by 'intensity' or 'ring', not {by!r}")
     inten = scan.intensity if mask is None else scan.intensity[mask]
     idx = np.minimum(inten.astype(np.uint16) * 255 // 100, 255)
-    return _TURBO[idx]
+    return turbo_lut()[idx]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,0 +1,256 @@
+"""Rerun recordings, read back with rerun's own reader: a real sweep on the twin with the real
+estimator, replayed from its run folder (the twin re-simulated), a capture written by the twin and
+replayed with its truth, and the command line. Nothing is rendered here (see docs/replay.md for
+the screenshot)."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rerun_reader import Recording, read_rrd
+
+from scenarios.plans import Plan, Reference
+from scenarios.runner import Runner, make_estimator
+from scenarios.store import Store
+from twin import rerun_log as rl
+from twin.pose import Pose
+
+REPO = Path(__file__).resolve().parent.parent
+PYTHON = sys.executable
+SCANS = 3
+YAWS_DEG = (-2.0, 0.0, 3.0)
+
+#: Per-scan entities: exactly one row at every step of the scan timeline.
+PER_SCAN = ("/world/truth", "/world/estimate", "/world/sensor", "/world/sensor/scan",
+            "/world/sensor/board_points", "/world/sensor/features", "/world/sensor/plane")
+
+
+def _rot(row_values: list) -> np.ndarray:
+    """rerun's Mat3x3 is stored column-major."""
+    return np.asarray(row_values, dtype=float).reshape(3, 3).T
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small yaw sweep on the twin with align's default method, run by the real runner."""
+    from scenarios.bench import SimBench
+
+    out = tmp_path_factory.mktemp("rerun") / "run"
+    refs = tuple(Reference(math.radians(y), 0.0, label=f"yaw {y:+g} deg") for y in YAWS_DEG)
+    plan = Plan("rerun test", "yaw", refs, SCANS)
+    bench = SimBench(seed=3)
+    store = Store.create(out, plan, {"bench": "sim", "seed": 3, "method": None}, bench.info())
+    try:
+        assert Runner(plan, bench, store, make_estimator(None)).run() == "completed"
+    finally:
+        store.close()
+    return out
+
+
+@pytest.fixture(scope="module")
+def replayed(run_dir: Path) -> tuple[Recording, object, list[dict]]:
+    from scenarios.replay import replay_run
+
+    path = run_dir / "replay.rrd"
+    rec = rl.new_recording("test replay")
+    rec.save(path, default_blueprint=rl.blueprint())
+    summary = replay_run(run_dir, rec)
+    rec.flush()
+    rec.disconnect()
+    with Store.open(run_dir) as store:
+        rows = list(store.iter_scans())
+    return read_rrd(path), summary, rows
+
+
+def test_replay_logs_every_entity_once_per_scan(replayed):
+    recording, summary, _ = replayed
+    n = len(YAWS_DEG) * SCANS
+    assert summary.scans == n and summary.clouds == n
+    assert recording.blueprints == 1
+    assert {"scan", "sensor_time", "stage_time", "wall_time"} <= recording.timelines
+    for entity in PER_SCAN:
+        steps = {}
+        for r in recording.rows(entity):
+            steps[r.times["scan"]] = steps.get(r.times["scan"], 0) + 1
+        assert steps == dict.fromkeys(range(n), 1), entity
+    # Static scene: the board, its corners, the bench's bodies (the board plate left to
+    # world/board).
+    corners = recording.rows("/world/board/corners")[0].components["Points3D:positions"]
+    np.testing.assert_allclose(corners, [[-0.45, 0, 0.27], [0.45, 0, 0.27], [-0.45, 0, -0.27],
+                                         [0.45, 0, -0.27]], atol=1e-6)
+    bodies = {e.split("/")[3] for e in recording.entities if e.startswith("/world/bench/")}
+    assert {"carriage", "turntable", "vlp16", "linear_stage"} <= bodies
+    assert "target_board" not in bodies
+
+
+def test_replayed_scans_are_the_runs_own(replayed):
+    """The twin, re-simulated, gives back the very scans the run estimated: the same number of
+    returns as the runner stored, and the same estimates (no mismatch)."""
+    recording, summary, rows = replayed
+    assert summary.mismatches == 0
+    for row in rows:
+        step = row["reference"] * SCANS + row["scan"]
+        (positions,) = recording.at("/world/sensor/scan", "scan", step, "Points3D:positions")
+        assert len(positions) == row["points"]
+
+
+def test_true_and_estimated_pose_of_a_known_scan(replayed):
+    recording, _, rows = replayed
+    row = next(r for r in rows if r["reference"] == 2 and r["scan"] == 1)
+    step = 2 * SCANS + 1
+    truth = Pose(*(row[f"truth_{c}"] for c in ("x_m", "y_m", "z_m", "roll_rad", "tilt_rad",
+                                                "yaw_rad")))
+    # The twin's LiDAR sits 0.7 m right of and 2.5 m before the board, turned by the stage.
+    assert math.degrees(truth.yaw) == pytest.approx(YAWS_DEG[2], abs=1e-6)
+    (t,) = recording.at("/world/truth", "scan", step, "Transform3D:translation")
+    (m,) = recording.at("/world/truth", "scan", step, "Transform3D:mat3x3")
+    np.testing.assert_allclose(t[0], truth.translation, atol=1e-6)
+    np.testing.assert_allclose(_rot(m[0]), truth.rotation(), atol=1e-6)
+    # The plotted error is estimate - truth in mm/deg, with the report's tolerance band.
+    errors = recording.at("/plots/error/yaw_deg", "scan", step, "Scalars:scalars")
+    if row["success"]:
+        (err,) = errors
+        assert err[0] == pytest.approx(math.degrees(row["yaw_rad"] - row["truth_yaw_rad"]),
+                                       abs=1e-9)
+        assert err[1:] == [0.2, -0.2]
+        (t_est,) = recording.at("/world/estimate", "scan", step, "Transform3D:translation")
+        np.testing.assert_allclose(t_est[0], [row["x_m"], row["y_m"], row["z_m"]], atol=1e-6)
+    else:
+        assert errors == []
+
+
+def test_failed_scans_are_annotated_and_clear_the_estimate(replayed):
+    recording, _, rows = replayed
+    texts = [(r.times.get("scan"), r.components["TextLog:level"][0], r.components[
+        "TextLog:text"][0]) for r in recording.rows("/log", "TextLog:text")]
+    for row in rows:
+        step = row["reference"] * SCANS + row["scan"]
+        warned = [t for s, lvl, t in texts if s == step and lvl == "WARN" and "no pose" in t]
+        cleared = recording.at("/world/estimate", "scan", step, "Clear:is_recursive")
+        errors = recording.at("/plots/error/x_mm", "scan", step, "Scalars:scalars")
+        if row["success"]:
+            assert not warned and not cleared and len(errors) == 1
+        else:
+            assert len(warned) == 1 and row["status"] in warned[0]
+            assert cleared == [[False]] and errors == []
+    # One annotation per reference, and the store's events (created, started, completed).
+    assert sum(1 for _, _, t in texts if t.startswith("reference ")) == len(YAWS_DEG)
+    assert any("completed" in t for _, _, t in texts)
+
+
+def test_board_points_and_features_are_what_the_estimator_used(replayed, run_dir: Path):
+    """The board points and the features at a scan are align's `used` for that very scan."""
+    import align
+    from scenarios.replay import resimulate
+
+    recording, _, rows = replayed
+    with Store.open(run_dir) as store:
+        wanted = {(r["reference"], r["scan"]) for r in rows if r["success"]}
+        if not wanted:
+            pytest.fail("no scan of the test sweep got a pose: the estimator or the twin broke")
+        i, k, scan = next(resimulate(store, {min(wanted)}))
+    est = align.estimate([scan])
+    step = i * SCANS + k
+    (board,) = recording.at("/world/sensor/board_points", "scan", step, "Points3D:positions")
+    (feats,) = recording.at("/world/sensor/features", "scan", step, "Points3D:positions")
+    assert len(board) == len(np.asarray(est.used["board"]).reshape(-1))
+    assert len(feats) == len(np.asarray(est.used["features"]).reshape(-1))
+    np.testing.assert_allclose(board, scan.xyz[np.asarray(est.used["board"])], atol=1e-5)
+
+
+def test_store_only_replay_has_no_clouds(run_dir: Path, tmp_path: Path):
+    from scenarios.replay import replay_run
+
+    path = tmp_path / "store.rrd"
+    rec = rl.new_recording()
+    rec.save(path)
+    summary = replay_run(run_dir, rec, clouds=False)
+    rec.flush()
+    rec.disconnect()
+    recording = read_rrd(path)
+    assert summary.clouds == 0 and summary.source == "the result store only"
+    assert "/world/sensor/scan" not in recording.entities
+    assert len(recording.rows("/world/truth", "Transform3D:translation")) == len(YAWS_DEG) * SCANS
+
+
+def test_capture_replay_pairs_scans_with_their_truth(tmp_path: Path):
+    """A capture the twin wrote while the stages moved (so every scan has its own truth), with
+    its truth file, replayed scan by scan: each decoded scan gets the truth of its own time."""
+    from scenarios.replay import replay_capture, write_truth
+    from twin.sim import BenchSim
+
+    sim = BenchSim(seed=5)
+    sim.move_to(0.0, math.radians(-3.0))
+    sim.start_move(0.02, math.radians(3.0))
+    pcap = tmp_path / "cap.pcap"
+    scans = sim.write_pcap(pcap, 4)
+    write_truth(pcap, scans)
+    path = tmp_path / "cap.rrd"
+    rec = rl.new_recording()
+    rec.save(path)
+    summary = replay_capture(pcap, rec)
+    rec.flush()
+    rec.disconnect()
+    recording = read_rrd(path)
+    assert 3 <= summary.scans <= 4  # the capture's first/last rotation may be partial
+    truths = recording.rows("/world/truth", "Transform3D:translation")
+    assert len(truths) == summary.scans
+    assert len(recording.rows("/world/sensor/scan")) == summary.scans
+    starts = np.array([s.time[0] for s in scans])
+    yaws = []
+    for r in truths:
+        # The twin's scan that began at this sensor time (decoding quantises time to 1 us).
+        j = int(np.argmin(np.abs(starts - r.times["sensor_time"] * 1e-9)))
+        assert abs(starts[j] - r.times["sensor_time"] * 1e-9) < 1e-4
+        truth = scans[j].meta["truth_pose"]
+        np.testing.assert_allclose(r.components["Transform3D:translation"][0],
+                                   truth.translation, atol=1e-6)
+        yaws.append(truth.yaw)
+    assert len(set(np.round(yaws, 9))) == len(yaws)  # the stages moved: no two truths alike
+    # No stages for a bare capture.
+    assert not any(e.startswith("/world/bench") for e in recording.entities)
+
+
+def test_cli_replay_saves_a_file_rerun_verifies(run_dir: Path, tmp_path: Path):
+    out = tmp_path / "cli.rrd"
+    cmd = [PYTHON, "-m", "scenarios.cli", "replay", str(run_dir), "--save", str(out),
+           "--no-clouds", "--no-progress"]
+    res = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                         env={"PYTHONPATH": str(REPO), "PATH": "/usr/bin:/bin"})
+    assert res.returncode == 0, res.stderr
+    assert f"recording saved to {out}" in res.stderr
+    rerun = Path(PYTHON).with_name("rerun")
+    res = subprocess.run([str(rerun), "rrd", "verify", str(out)], capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+
+
+def test_the_estimator_and_the_twin_never_import_rerun():
+    code = ("import sys, align, twin.sim, twin.scan, scenarios.runner, scenarios.cli, "
+            "scenarios.commands.sweep, scenarios.commands.replay, scenarios.rerun_observer, "
+            "twin.rerun_log; assert 'rerun' not in sys.modules, 'rerun imported'")
+    res = subprocess.run([PYTHON, "-c", code], cwd=REPO, capture_output=True, text=True,
+                         timeout=120)
+    assert res.returncode == 0, res.stderr
+    for path in (REPO / "align").rglob("*.py"):
+        assert "rerun" not in path.read_text(encoding="utf-8"), path
+
+
+def test_point_colours_by_intensity_and_ring():
+    from twin.sim import BenchSim
+
+    scan = BenchSim(seed=2).scan()
+    lut = rl.turbo_lut()
+    assert lut.shape == (256, 3) and lut.dtype == np.uint8
+    by_ring = rl.scan_colors(scan, scan.valid, "ring")
+    assert len({tuple(c) for c in rl.ring_colors()}) == 16
+    np.testing.assert_array_equal(by_ring, rl.ring_colors()[scan.ring[scan.valid]])
+    by_intensity = rl.scan_colors(scan, scan.valid)
+    assert by_intensity.shape == (int(scan.valid.sum()), 3)
+    with pytest.raises(ValueError, match="intensity"):
+        rl.scan_colors(scan, by="range")
