@@ -169,6 +169,7 @@ def parse_setting(line: str) -> tuple[int, float] | None:
 
 
 def format_number(value: float) -> str:
-    """A number as G-code text: fixed point, 4 decimals (0.1 um / 0.36 arcsec), no exponent."""
-    text = f"{value:.4f}".rstrip("0").rstrip(".")
+    """A number as G-code text: fixed point, 6 decimals, no exponent (a step of 1/800 deg or
+    1/400 mm is written exactly)."""
+    text = f"{value:.6f}".rstrip("0").rstrip(".")
     return "0" if text in ("-0", "") else text

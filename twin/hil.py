@@ -122,7 +122,9 @@ class SimavrHarness:
     start_x_mm, start_a_deg: where the stages physically stand at power-up (machine units from
     the homed zero; the firmware does not know it until it homes). pace: run in real time
     (False: as fast as simavr goes, about 4x; host timeouts then mislead). axes: the geometry
-    the limit switches are placed from. build_first: run make before starting.
+    the limit switches are placed from. build_first: run make before starting. reset_on_open:
+    reset the MCU when a host opens the pty, as a Mega's DTR auto-reset does (False: a board
+    without it, which keeps running and sends no banner on open).
     """
 
     def __init__(
@@ -134,6 +136,7 @@ class SimavrHarness:
         axes: BenchAxes | None = None,
         build_first: bool = True,
         start_timeout_s: float = 20.0,
+        reset_on_open: bool = True,
     ) -> None:
         self.axes = axes or BenchAxes()
         self.start_x_mm = start_x_mm
@@ -141,6 +144,7 @@ class SimavrHarness:
         self.pace = pace
         self.build_first = build_first
         self.start_timeout_s = start_timeout_s
+        self.reset_on_open = reset_on_open
         self.pty_path: str | None = None
         self.shm_path: Path | None = None
         self.log_path: Path | None = None
@@ -178,6 +182,8 @@ class SimavrHarness:
         ]
         if not self.pace:
             cmd.append("--no-pace")
+        if not self.reset_on_open:
+            cmd.append("--no-reset-on-open")
         cmd.append(str(ELF_PATH))
         self._log = open(self.log_path, "w")  # noqa: SIM115 - lives as long as the process
         self._proc = subprocess.Popen(

@@ -406,8 +406,8 @@ class StageController:
 
         With wait, returns once the stages are at rest there (raises on alarm or timeout).
         """
-        x_mm = self.x_ref_mm + x_m * 1000.0
-        yaw_deg = self.yaw_ref_deg + math.degrees(yaw_rad)
+        x_mm = self._quantize(self.x_ref_mm + x_m * 1000.0, 0)
+        yaw_deg = self._quantize(self.yaw_ref_deg + math.degrees(yaw_rad), 1)
         lx, la = self.axis_letters
         estimate = self._estimate_s(x_mm, yaw_deg, relative=False)
         self._move(
@@ -419,14 +419,23 @@ class StageController:
         self, dx_m: float, dyaw_rad: float, wait: bool = True, timeout: float | None = None
     ) -> None:
         """Relative rapid move (G91 G0) by dx (m) and dyaw (rad)."""
-        dx_mm = dx_m * 1000.0
-        dyaw_deg = math.degrees(dyaw_rad)
+        dx_mm = self._quantize(dx_m * 1000.0, 0)
+        dyaw_deg = self._quantize(math.degrees(dyaw_rad), 1)
         lx, la = self.axis_letters
         estimate = self._estimate_s(dx_mm, dyaw_deg, relative=True)
         self._move(
             f"G91G0{lx}{grbl.format_number(dx_mm)}{la}{grbl.format_number(dyaw_deg)}",
             wait, timeout, estimate,
         )
+
+    def _quantize(self, value: float, which: int) -> float:
+        """`value` (machine units) rounded to a whole step of axis `which` (0 linear, 1 rotary),
+        half a step up, when the steps per unit are known: the controller then receives a value
+        that is a step exactly, so no decimal rounding on the wire can flip a step."""
+        spu = self._settings.get(100 + self.mpos_axes.index(self.axis_letters[which]))
+        if not spu:
+            return value
+        return math.floor(value * spu + 0.5) / spu
 
     def _estimate_s(self, x: float, a: float, relative: bool) -> float:
         """A generous estimate of a move's duration from the settings (s), for the timeout."""

@@ -198,7 +198,8 @@ static void on_signal(int sig) {
 static void usage(const char *prog) {
   fprintf(stderr,
           "usage: %s [--shm PATH] [--x-start STEPS] [--a-start STEPS]\n"
-          "          [--x-trip MIN,MAX] [--a-trip MIN,MAX] [--no-pace] FIRMWARE.elf\n"
+          "          [--x-trip MIN,MAX] [--a-trip MIN,MAX] [--no-pace] [--no-reset-on-open]\n"
+          "          FIRMWARE.elf\n"
           "Runs FIRMWARE.elf (ATmega2560, 16 MHz) with UART0 on a new pty whose path is the\n"
           "first line on stdout. Positions in steps from the homed machine zero; a switch\n"
           "reads hit while the position is < MIN or > MAX (defaults: the bench, pull-off 1).\n",
@@ -212,6 +213,7 @@ static int parse_pair(const char *s, int64_t *a, int64_t *b) {
 int main(int argc, char **argv) {
   const char *shm_path = NULL;
   int pace = 1;
+  int reset_on_open = 1;
   /* Bench defaults (PROTOCOL.md): X 400 steps/mm over 100 mm, A 800 steps/deg over 60 deg,
    * 1 unit pull-off: switches trip 1 unit outside the travel. Start 20 mm / 10 deg from zero. */
   local.trip_min[0] = -400; local.trip_max[0] = 40400;
@@ -222,7 +224,8 @@ int main(int argc, char **argv) {
       {"shm", required_argument, 0, 's'},     {"x-start", required_argument, 0, 'x'},
       {"a-start", required_argument, 0, 'a'}, {"x-trip", required_argument, 0, 'X'},
       {"a-trip", required_argument, 0, 'A'},  {"no-pace", no_argument, 0, 'n'},
-      {"help", no_argument, 0, 'h'},          {0, 0, 0, 0}};
+      {"no-reset-on-open", no_argument, 0, 'r'}, {"help", no_argument, 0, 'h'},
+      {0, 0, 0, 0}};
   int c;
   while ((c = getopt_long(argc, argv, "h", opts, NULL)) != -1) {
     switch (c) {
@@ -232,6 +235,7 @@ int main(int argc, char **argv) {
       case 'X': if (parse_pair(optarg, &local.trip_min[0], &local.trip_max[0])) goto bad; break;
       case 'A': if (parse_pair(optarg, &local.trip_min[1], &local.trip_max[1])) goto bad; break;
       case 'n': pace = 0; break;
+      case 'r': reset_on_open = 0; break;
       case 'h': usage(argv[0]); return 0;
       default: goto bad;
     }
@@ -357,7 +361,10 @@ int main(int argc, char **argv) {
     struct pollfd pfd = {master_fd, POLLIN, 0};
     poll(&pfd, 1, 0);
     int open_now = !(pfd.revents & POLLHUP);
-    if (open_now && !host_open) {
+    if (open_now && !host_open && !reset_on_open) {
+      host_open = 1; /* a board without DTR auto-reset: it just keeps running */
+      fprintf(stderr, "bench_hil: host opened the port (no reset)\n");
+    } else if (open_now && !host_open) {
       /* A host opened the port: pause like the Mega's bootloader, then reset the MCU. */
       host_open = 1;
       sleep_ns(100000000ull);
