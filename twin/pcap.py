@@ -326,8 +326,17 @@ def _u16(frame: bytes, off: int) -> int | None:
     return int.from_bytes(frame[off:off + 2], "big") if len(frame) >= off + 2 else None
 
 
+_IP_STRINGS: dict[bytes, str] = {}
+
+
 def _ip_str(frame: bytes, off: int) -> str:
-    return ".".join(str(b) for b in frame[off:off + 4])
+    raw = frame[off:off + 4]
+    text = _IP_STRINGS.get(raw)
+    if text is None:  # a capture has few distinct addresses: format each once
+        text = _IP_STRINGS[raw] = ".".join(str(b) for b in raw)
+        if len(_IP_STRINGS) > 4096:
+            _IP_STRINGS.clear()
+    return text
 
 
 # --------------------------------------------------------------------------------------------

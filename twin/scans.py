@@ -36,8 +36,9 @@ from twin.packets import (
     DATA_PACKET_DTYPE,
     FIRINGS_PER_PACKET,
     US_PER_HOUR,
-    _decode_records,
+    WITHIN_BLOCK_OFFSETS,
     as_packet_records,
+    decode_records,
     identify_model,
     packet_period,
     validate_records,
@@ -230,8 +231,9 @@ class ScanAssembler:
         self.stats.rejected["product_id"] += int(other.sum())
         rec, ts, aux = rec[~other], ts[~other], aux[~other]
         # Order by timestamp; the first of equal timestamps wins, later copies are duplicates.
-        order = np.argsort(ts, kind="stable")
-        rec, ts, aux = rec[order], ts[order], aux[order]
+        if len(ts) > 1 and not (ts[1:] > ts[:-1]).all():  # the usual case needs no copy
+            order = np.argsort(ts, kind="stable")
+            rec, ts, aux = rec[order], ts[order], aux[order]
         dup = np.zeros(len(ts), dtype=bool)
         dup[1:] = ts[1:] == ts[:-1]
         late = np.zeros(len(ts), dtype=bool)
@@ -270,7 +272,7 @@ class ScanAssembler:
         ts = np.concatenate(self._rel_ts)
         aux = np.concatenate(self._rel_aux)
         self._rel_rec, self._rel_ts, self._rel_aux = [], [], []
-        dec = _decode_records(rec, np.arange(len(rec)), self.vertical_offsets, {})
+        dec = decode_records(rec, np.arange(len(rec)), self.vertical_offsets, {})
         self.stats.packets += len(rec)
         chunk = self._assign(dec, ts, aux)
         self._open.append(chunk)
@@ -289,7 +291,12 @@ class ScanAssembler:
         turns = np.round((rate * dt - dwrap) / TWO_PI)
         du = dwrap + TWO_PI * np.maximum(turns, 0)
         u0 = (self._prev_u0 if self._prev_u0 is not None else az0[0]) + np.cumsum(du)
-        u = u0[:, None] + (dec.azimuth - az0[:, None]) % TWO_PI  # (n, 384)
+        # Unwrapped azimuth of every firing: block azimuths unwrapped per packet, plus the
+        # rotation since the block's first firing (as the decoder computed it).
+        block_az = dec.block_azimuth_cdeg * (math.pi / 18000.0)
+        ublock = u0[:, None] + (block_az - az0[:, None]) % TWO_PI  # (n, 12)
+        delta = rate[:, None] * WITHIN_BLOCK_OFFSETS[None, :]  # (n, 32)
+        u = (ublock[:, :, None] + delta[:, None, :]).reshape(len(ts), -1)  # (n, 384)
         ulast = u0 + span
         if self._cut_ref is None:
             start = u[0, 0] if self.split == "firing" else ulast[0]
@@ -300,7 +307,7 @@ class ScanAssembler:
                     (start - self.cut_azimuth) / TWO_PI)
             self._first_u = float(u[0, 0])
         if self.split == "firing":
-            sid = np.floor((u - self._cut_ref) / TWO_PI).astype(np.int64)
+            sid = self._firing_scan_ids(u, ublock, delta)
         else:
             prev_ulast = ulast[0] if self._prev_ulast is None else self._prev_ulast
             before = np.concatenate(([prev_ulast], ulast[:-1]))
@@ -338,6 +345,25 @@ class ScanAssembler:
             return_mode=dec.return_mode,
             product_id=dec.product_id,
         )
+
+    def _firing_scan_ids(
+        self, u: np.ndarray, ublock: np.ndarray, delta: np.ndarray
+    ) -> np.ndarray:
+        """Scan id of each firing, (n, 384): which rotation past the cut its azimuth is in."""
+        flat = u.reshape(-1)
+        # Firings are in azimuth order when every block starts after the previous block's
+        # last firing (always, in single-return mode): then a few binary searches place the
+        # cuts. Otherwise (dual-return pairs, damaged azimuths) divide firing by firing.
+        starts = ublock.reshape(-1)
+        ends = (ublock + delta[:, -1:]).reshape(-1)
+        if (starts[1:] >= ends[:-1]).all():
+            k0 = math.floor((flat[0] - self._cut_ref) / TWO_PI)
+            k1 = math.floor((flat[-1] - self._cut_ref) / TWO_PI)
+            ks = np.arange(k0, k1 + 1)
+            bounds = np.searchsorted(flat, self._cut_ref + TWO_PI * ks[1:], side="left")
+            counts = np.diff(np.concatenate(([0], bounds, [len(flat)])))
+            return np.repeat(ks, counts).reshape(u.shape)
+        return np.floor((u - self._cut_ref) / TWO_PI).astype(np.int64)
 
     def _count_gaps(
         self, ts: np.ndarray, u0: np.ndarray, span: np.ndarray, period_us: float
@@ -381,8 +407,11 @@ class ScanAssembler:
         top = int(chunk.sid.max()) if len(chunk.sid) else 0
         close_below = top + 1 if final else top
         scans = []
-        ids = np.unique(chunk.sid[chunk.sid < close_below])
-        bounds = np.searchsorted(chunk.sid, np.concatenate((ids, [close_below])), side="left")
+        sid = chunk.sid
+        starts = np.concatenate(([0], np.flatnonzero(sid[1:] != sid[:-1]) + 1))  # sorted ids
+        ids = sid[starts]
+        ids = ids[ids < close_below]
+        bounds = np.searchsorted(sid, np.concatenate((ids, [close_below])), side="left")
         for k, lo, hi in zip(ids.tolist(), bounds[:-1], bounds[1:], strict=True):
             scans.append(self._make_scan(chunk, int(k), int(lo), int(hi), final and k == top))
         # A rotation lost whole still gets its (empty, incomplete) scan: no silent hole.
