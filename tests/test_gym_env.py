@@ -260,3 +260,15 @@ def test_over_hardware_bench_replaying_a_twin_capture(tmp_path: Path) -> None:
             env.reset(options={"mount": {"yaw_deg": 1.0}})
     finally:
         env.close()
+
+
+def test_readme_example_aligns(capsys: pytest.CaptureFixture[str]) -> None:
+    """The scripted policy of docs/gym.md, run as written."""
+    text = (Path(__file__).resolve().parent.parent / "docs" / "gym.md").read_text()
+    code = text.split("```python\n", 1)[1].split("```", 1)[0]
+    namespace: dict = {"__name__": "docs_gym_example"}
+    exec(compile(code, "docs/gym.md", "exec"), namespace)
+    info = namespace["info"]
+    assert info["aligned"] and namespace["terminated"], capsys.readouterr().out
+    assert abs(info["true_error_yaw_rad"]) <= TOL_YAW and abs(info["true_error_x_m"]) <= TOL_X
+    assert "yaw error" in capsys.readouterr().out
