@@ -1,0 +1,107 @@
+"""Stage controller benchmark: the real firmware in simavr, driven by the real host driver.
+
+    .venv/bin/python benchmarks/bench_stage.py
+
+Prints a table of
+- command round trip: a realtime status query (``?`` -> ``<...>``) and a G-code line
+  (``G90`` -> ``ok``) through the pty, pyserial and the simulated UART at 115200 baud;
+- a 21-position yaw sweep (-10 .. +10 deg in 1 deg steps at x = 0, as in the reference paper):
+  the time of each 1 deg move through the firmware, against the trapezoidal-profile time computed
+  from the controller's own settings ($111 max rate, $121 acceleration), with the ratio. The
+  firmware's time is measured on the simulated clock (command sent -> last step pulse seen on the
+  STEP pin) and on the host's wall clock (command sent -> Idle seen by status polling).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from twin.hil import SimavrHarness
+from twin.stage_controller import StageController, trapezoid_time
+
+
+def percentile(values: list[float], q: float) -> float:
+    s = sorted(values)
+    return s[min(len(s) - 1, round(q * (len(s) - 1)))]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--round-trips", type=int, default=200, help="samples per round-trip row")
+    args = ap.parse_args(argv)
+
+    with SimavrHarness(start_x_mm=2.0, start_a_deg=2.0) as hil, StageController(hil.url) as stage:
+        stage.home()
+        settings = stage.settings()
+        rate_dps = settings[111] / 60.0
+        accel = settings[121]
+
+        # Round trips.
+        rt_status: list[float] = []
+        rt_line: list[float] = []
+        for _ in range(args.round_trips):
+            t = time.perf_counter()
+            stage.status()
+            rt_status.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            stage.command("G90")
+            rt_line.append(time.perf_counter() - t)
+
+        # The sweep: first to -10 deg (not timed), then 20 moves of +1 deg.
+        yaws = [math.radians(d) for d in range(-10, 11)]
+        stage.move_to(0.0, yaws[0])
+        sim_times: list[float] = []
+        wall_times: list[float] = []
+        sim0, wall0 = hil.positions().sim_time_s, time.perf_counter()
+        for yaw in yaws[1:]:
+            before = hil.positions()
+            t = time.perf_counter()
+            stage.move_to(0.0, yaw)
+            wall_times.append(time.perf_counter() - t)
+            after = hil.positions()
+            assert after.a_steps - before.a_steps == 800, "a 1 deg move must be 800 steps"
+            sim_times.append(after.last_step_s[1] - before.sim_time_s)
+        pace = (hil.positions().sim_time_s - sim0) / (time.perf_counter() - wall0)
+        ideal = trapezoid_time(1.0, rate_dps, accel)
+        final = hil.positions()
+
+    n = len(sim_times)
+    rows = [
+        ("round trip `?` -> status report, median", f"{statistics.median(rt_status) * 1e3:.2f} ms",
+         f"p95 {percentile(rt_status, 0.95) * 1e3:.2f} ms, n={len(rt_status)}"),
+        ("round trip `G90` -> `ok`, median", f"{statistics.median(rt_line) * 1e3:.2f} ms",
+         f"p95 {percentile(rt_line, 0.95) * 1e3:.2f} ms, n={len(rt_line)}"),
+        ("sweep: trapezoid time per 1 deg move", f"{ideal * 1e3:.1f} ms",
+         f"from $111={settings[111]:g} deg/min, $121={accel:g} deg/s^2"),
+        ("sweep: firmware, command -> last step (sim clock)",
+         f"{statistics.mean(sim_times) * 1e3:.1f} ms",
+         f"ratio {statistics.mean(sim_times) / ideal:.3f}, min {min(sim_times) * 1e3:.1f}, "
+         f"max {max(sim_times) * 1e3:.1f} ms"),
+        ("sweep: host, command -> Idle seen (wall clock)",
+         f"{statistics.mean(wall_times) * 1e3:.1f} ms",
+         f"ratio {statistics.mean(wall_times) / ideal:.3f} (incl. 20 ms status polling)"),
+        (f"sweep: {n + 1} positions, {n} moves, total (sim / wall / trapezoid)",
+         f"{sum(sim_times):.3f} s",
+         f"wall {sum(wall_times):.3f} s, trapezoid {n * ideal:.3f} s"),
+        ("simulation pace (sim time / wall time)", f"{pace:.3f}", "1.000 = real time"),
+        ("final yaw from the STEP pulses", f"{math.degrees(final.yaw_rad):+.4f} deg",
+         f"{final.a_steps} steps (expected {40 * 800})"),
+    ]
+    w0 = max(len(r[0]) for r in rows)
+    w1 = max(len(r[1]) for r in rows)
+    print(f"| {'stage controller (bench_fw in simavr)':<{w0}} | {'value':>{w1}} | notes")
+    print(f"|{'-' * (w0 + 2)}|{'-' * (w1 + 2)}|------")
+    for name, value, note in rows:
+        print(f"| {name:<{w0}} | {value:>{w1}} | {note}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
