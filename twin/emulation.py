@@ -182,6 +182,28 @@ class RayCaster:
         d[g < 0] = np.inf
         return d, g, nrm.reshape(n, 3).copy()
 
+    def multiray_rows(self, origins: np.ndarray, row_origin: np.ndarray, ray_row: np.ndarray,
+                      dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rays grouped by row: ray i starts at ``origins[row_origin[ray_row[i]]]``;
+        ``ray_row`` must be sorted (rays of a row contiguous). One mj_multiRay per row, written
+        straight into the output buffers. Returns (distance, inf if none; geom id; normal)."""
+        n = len(dirs)
+        gid = np.empty(n, dtype=np.int32)
+        dist = np.empty(n)
+        nrm = np.empty(3 * n)
+        vec = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1)
+        starts = np.flatnonzero(np.diff(ray_row, prepend=-1))
+        ends = np.append(starts[1:], n)
+        m, d, grp, body, cutoff = (self.model, self.data, self.geomgroup, self.sensor_body_id,
+                                   self.cutoff)
+        for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
+            o = np.ascontiguousarray(origins[row_origin[ray_row[lo]]])
+            mujoco.mj_multiRay(m, d, o, vec[3 * lo:3 * hi], grp, 1, body, gid[lo:hi],
+                               dist[lo:hi], nrm[3 * lo:3 * hi], hi - lo, cutoff)
+        gid[dist > cutoff] = -1  # see `multiray`: beyond the cutoff is no return
+        dist[gid < 0] = np.inf
+        return dist, gid, nrm.reshape(n, 3)
+
     def planes(self, origin: np.ndarray, dirs: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The scene's planes only, by MuJoCo's ray_plane rule (front face, sized rectangle)."""
@@ -342,6 +364,11 @@ def _sincos_rows(az: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarr
     sb, cb = np.sin(base), np.cos(base)
     d = az - base
     d -= np.rint(d / (2 * np.pi)) * (2 * np.pi)  # the row may wrap past 2 pi
+    d_row = d[..., :1]
+    if np.abs(d - d_row).max(initial=0.0) < 1e-12:  # 1e-12 rad: 0.1 nm at 100 m
+        # One spin rate over the window: each row sits at a constant offset from the base.
+        sd, cd = np.sin(d_row), np.cos(d_row)
+        return sb * cd + cb * sd, cb * cd - sb * sd
     if np.abs(d).max(initial=0.0) > 0.02:  # not a firing grid: do it the plain way
         return np.sin(az), np.cos(az)
     d2 = d * d
@@ -443,6 +470,12 @@ class VLP16Emulator:
         """Measurement model on the sub-ray hits of N firings: (N, K) arrays, inf = no hit."""
         cfg = self.config
         k = dist.shape[1]
+        if k == 1:
+            idx = np.flatnonzero(gid[:, 0] >= 0)
+            r = dist[idx, 0]
+            rc = self.reflectivity[gid[idx, 0]] * cos_inc[idx, 0]
+            return self._measure_single(len(dist), idx, r, rc * weights[0] / (r * r), rc,
+                                        laser_id)
         hit = np.isfinite(dist)
         refl = np.where(hit, self.reflectivity[np.maximum(gid, 0)], 0.0)
         r_safe = np.where(hit, dist, 1.0)
@@ -460,128 +493,151 @@ class VLP16Emulator:
         ``azimuth``: (S, 16) rad, sequence-major, lasers 0..15. ``position`` (3,), ``rotation``
         (3, 3): the pose of {L} in the world. Works on (sub-ray, laser, sequence) grids whose
         rows share one origin and one elevation, so the plane hits, the culling and the ray
-        directions are a few vector operations per row. Returns firings in sequence-major order,
-        as `fire` does, and the same values `fire` would (tests/test_emulation.py).
+        directions are a few vector operations per row; rows are kept in elevation order so
+        that the rows that can meet the floor are one slice. Returns firings in sequence-major
+        order, as `fire` does, and the same values (tests/test_emulation.py).
         """
         cfg = self.config
         n_seq = azimuth.shape[0]
+        n_l = vlp16.N_LASERS
         if cfg.divergence:
             dh, dv, weights = _divergence_pattern(cfg)
         else:
             dh, dv, weights = np.zeros(1), np.zeros(1), np.ones(1)
         k = len(weights)
-        w_l = vlp16.ELEVATION
+        order = vlp16.LASER_OF_RING.astype(np.intp)  # row j of a sub-ray block = ring j
+        w_l = vlp16.ELEVATION[order]
         el = w_l[None, :] + dv[:, None]  # (K, 16)
-        az = azimuth.T[None, :, :] + (dh[:, None] / np.cos(w_l)[None, :])[:, :, None]
-        cw, sw = np.cos(el)[..., None], np.sin(el)[..., None]
-        sa, ca = _sincos_rows(az, azimuth[:, 0])  # (K, 16, S)
-        vo = vlp16.VERTICAL_OFFSET if cfg.vertical_offsets else np.zeros(vlp16.N_LASERS)
-        origins = position + np.outer(vo, rotation[:, 2])  # (16, 3)
+        az_l = azimuth.T[order]  # (16, S), ring order
+        dh_l = dh[:, None] / np.cos(w_l)[None, :]  # (K, 16) horizontal sub-ray offsets
+        cw, sw = np.cos(el).reshape(-1, 1), np.sin(el).reshape(-1, 1)  # (R, 1), R = 16 K
+        az_rows = (az_l[None] + dh_l[:, :, None]).reshape(k * n_l, n_seq)  # (R, S)
+        sa, ca = _sincos_rows(az_rows, azimuth[:, 0])
+        vo = vlp16.VERTICAL_OFFSET[order] if cfg.vertical_offsets else np.zeros(n_l)
+        origins = position + np.outer(vo, rotation[:, 2])  # (16, 3), ring order
+        row_laser = np.tile(np.arange(n_l), k)  # row -> ring index into origins
         caster = self.caster
         data, model = caster.data, caster.model
-        shape = (k, vlp16.N_LASERS, n_seq)
-        dist = np.full(shape, np.inf)
-        gid = np.full(shape, -1, dtype=np.int32)
-        cos_inc = np.zeros(shape)
-
-        def comp(m: np.ndarray) -> np.ndarray:
-            """(d . m) for every ray, m (3,) world vector: cw (sa R0.m + ca R1.m) + sw R2.m."""
-            rm = rotation.T @ m
-            return cw * (sa * rm[0] + ca * rm[1]) + sw * rm[2]
+        n_rows = k * n_l
+        dist = np.full((n_rows, n_seq), np.inf)
+        gid = np.full((n_rows, n_seq), -1, dtype=np.int32)
+        cos_inc = np.zeros((n_rows, n_seq))
 
         for g in caster.plane_ids:  # MuJoCo's ray_plane rule, row-vectorised
             mat = data.geom_xmat[g].reshape(3, 3)
             size = model.geom_size[g]
-            lpnt = (origins - data.geom_xpos[g]) @ mat  # (16, 3)
-            lz = comp(mat[:, 2])
+            lpnt = (origins - data.geom_xpos[g]) @ mat  # (16, 3) origins in the plane frame
+            m = rotation.T @ mat  # m[:, j]: plane axis j in {L}
+            # Rows that can meet the plane: the ray must head into its front face (lz < 0)
+            # from in front of it (lpnt_z >= 0); per row lz >= sw m2z - cw |m01z|.
+            lz_min = sw[:, 0] * m[2, 2] - cw[:, 0] * math.hypot(m[0, 2], m[1, 2])
+            live = np.flatnonzero((lz_min < -_MJMINVAL) & (lpnt[row_laser, 2] >= 0))
+            if len(live) == 0:
+                continue
+            # Contiguous rows (the floor's: the downward rings) are a view, no gather/scatter.
+            contiguous = live[-1] - live[0] + 1 == len(live)
+            rows = slice(live[0], live[-1] + 1) if contiguous else live
+            c_l, s_l, sa_l, ca_l = cw[rows], sw[rows], sa[rows], ca[rows]
+            lp = lpnt[row_laser[rows]]
+            lz = c_l * (sa_l * m[0, 2] + ca_l * m[1, 2]) + s_l * m[2, 2]
             with np.errstate(divide="ignore", invalid="ignore"):
-                x = -lpnt[None, :, 2, None] / lz
-            ok = (lz < -_MJMINVAL) & (x >= 0) & (x < dist) & (x <= caster.cutoff)
+                x = lp[:, 2, None] / -lz
+            ok = lz < -_MJMINVAL
+            ok &= x < np.minimum(dist[rows], caster.cutoff)
             for j in (0, 1):
                 if size[j] > 0:
-                    ok &= np.abs(lpnt[None, :, j, None] + x * comp(mat[:, j])) <= size[j]
-            dist = np.where(ok, x, dist)
-            gid[ok] = g
-            cos_inc = np.where(ok, -lz, cos_inc)
+                    lj = c_l * (sa_l * m[0, j] + ca_l * m[1, j]) + s_l * m[2, j]
+                    ok &= np.abs(lp[:, j, None] + x * lj) <= size[j]
+            if isinstance(rows, slice):
+                np.copyto(dist[rows], x, where=ok)
+                gid[rows][ok] = g
+                np.copyto(cos_inc[rows], -lz, where=ok)
+            else:
+                sub_d, sub_g, sub_c = dist[rows], gid[rows], cos_inc[rows]
+                sub_d[ok] = x[ok]
+                sub_g[ok] = g
+                sub_c[ok] = -lz[ok]
+                dist[rows], gid[rows], cos_inc[rows] = sub_d, sub_g, sub_c
 
-        cand = (self._grid_candidates(az, el, origins, rotation) if cfg.culling
-                else np.ones(shape, dtype=bool))
-        for kk in range(k):
-            for lz_ in range(vlp16.N_LASERS):
-                idx = np.flatnonzero(cand[kk, lz_])
-                if len(idx) == 0:
-                    continue
-                c, s_ = cw[kk, lz_, 0], sw[kk, lz_, 0]
-                u = np.column_stack((c * sa[kk, lz_, idx], c * ca[kk, lz_, idx],
-                                     np.full(len(idx), s_)))
-                dirs = u @ rotation.T
-                d, g, nv = caster.multiray(origins[lz_], dirs)
-                dist[kk, lz_, idx] = d
-                gid[kk, lz_, idx] = g
-                cos_inc[kk, lz_, idx] = np.where(g >= 0,
-                                                 np.abs(np.einsum("ij,ij->i", nv, dirs)), 0.0)
-        # Back to firing order: (S, 16, K) -> (N, K).
-        dist = dist.transpose(2, 1, 0).reshape(-1, k)
-        gid = gid.transpose(2, 1, 0).reshape(-1, k)
-        cos_inc = cos_inc.transpose(2, 1, 0).reshape(-1, k)
-        laser_id = np.tile(np.arange(vlp16.N_LASERS, dtype=np.uint8), n_seq)
+        cand = (self._grid_candidates(az_rows, azimuth[:, 0], cw, sw, origins, row_laser,
+                                      rotation)
+                if cfg.culling else np.ones((n_rows, n_seq), dtype=bool))
+        idx = np.flatnonzero(cand)  # row-major: each row's candidates are contiguous
+        if len(idx):
+            r_of = idx // n_seq
+            u = np.empty((len(idx), 3))
+            np.multiply(cw[r_of, 0], sa.reshape(-1)[idx], out=u[:, 0])
+            np.multiply(cw[r_of, 0], ca.reshape(-1)[idx], out=u[:, 1])
+            u[:, 2] = sw[r_of, 0]
+            dirs = u @ rotation.T
+            d_c, g_c, n_c = caster.multiray_rows(origins, row_laser, r_of, dirs)
+            dist.reshape(-1)[idx] = d_c
+            gid.reshape(-1)[idx] = g_c
+            cos_inc.reshape(-1)[idx] = np.where(g_c >= 0, np.abs(np.einsum("ij,ij->i", n_c,
+                                                                              dirs)), 0.0)
+        # Back to firing order: rows (K, ring) -> (S, laser, K) -> (N, K).
+        back = np.argsort(order)  # laser -> ring
+        dist = dist.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
+        gid = gid.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
+        cos_inc = cos_inc.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
+        laser_id = np.tile(np.arange(n_l, dtype=np.uint8), n_seq)
         return self._from_hits(dist, gid, cos_inc, weights, laser_id)
 
-    def _grid_candidates(self, az: np.ndarray, el: np.ndarray, origins: np.ndarray,
+    def _grid_candidates(self, az_rows: np.ndarray, base: np.ndarray, cw: np.ndarray,
+                         sw: np.ndarray, origins: np.ndarray, row_laser: np.ndarray,
                          rotation: np.ndarray) -> np.ndarray:
-        """Mask (K, 16, S) of rays that may meet a non-plane geom (its bounding sphere).
+        """Mask (R, S) of rays that may meet a non-plane geom (inside its bounding sphere).
 
-        Per row (one elevation, one origin) a sphere seen under half-angle alpha from the origin
-        covers an azimuth interval: cos(a - phi) >= q. Rows are monotonic in azimuth but for one
-        wrap, so each interval becomes index ranges by `np.searchsorted`.
+        Row r has one origin ``origins[row_laser[r]]``, one elevation (cos ``cw[r]``, sin
+        ``sw[r]``) and azimuths ``az_rows[r]`` = ``base`` (the sequences' first firings, one
+        per column) + a row offset (the laser's firing delay, the sub-ray's divergence offset).
+        A sphere seen under half-angle alpha holds the directions with
+        cw (sin a cx + cos a cy) + sw cz >= cos(alpha), i.e. |a - phi| <= arccos(q): an
+        azimuth interval per (row, sphere), found by one `np.searchsorted` on the unwrapped
+        ``base`` for all of them, widened by the row offsets' spread and 1e-9 rad so that the
+        culling can only cast too much, never too little.
         """
         caster = self.caster
-        k, n_l, n_s = az.shape
-        mask = np.zeros((k, n_l, n_s), dtype=bool)
+        n_rows, n_s = az_rows.shape
+        mask = np.zeros((n_rows, n_s), dtype=bool)
         ids = caster.solid_ids
         if len(ids) == 0:
             return mask
         rb = caster.model.geom_rbound[ids]
         c = caster.data.geom_xpos[ids][None, :, :] - origins[:, None, :]  # (16, G, 3)
         dist = np.linalg.norm(c, axis=2)
-        inside = (dist <= rb * (1 + 1e-9)).any(axis=1)  # (16,)
-        cs = (c / dist[..., None]) @ rotation  # sphere centre directions in {L}
-        cos_alpha = np.sqrt(np.clip(1.0 - (rb / dist) ** 2, 0.0, 1.0)) - 1e-9
-        hxy = np.hypot(cs[..., 0], cs[..., 1])  # (16, G)
-        phi = np.arctan2(cs[..., 0], cs[..., 1])
-        two_pi = 2 * np.pi
-        for kk in range(k):
-            for lz_ in range(n_l):
-                if inside[lz_]:
-                    mask[kk, lz_] = True
-                    continue
-                a_ = np.cos(el[kk, lz_]) * hxy[lz_]
-                b_ = np.sin(el[kk, lz_]) * cs[lz_, :, 2]
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    q = (cos_alpha[lz_] - b_) / a_
-                q = np.where(a_ > 1e-12, q, np.where(b_ >= cos_alpha[lz_], -2.0, 2.0))
-                live = q < 1.0
-                if not live.any():
-                    continue
-                if (q[live] <= -1.0).any():
-                    mask[kk, lz_] = True
-                    continue
-                half = np.arccos(q[live]) + 1e-9
-                centre = phi[lz_, live]
-                row = az[kk, lz_]
-                # Unwrap the row (one wrap at most within a rotation) to make it sorted.
-                wraps = np.concatenate(([0], np.cumsum(np.diff(row) < -np.pi)))
-                row_u = row + two_pi * wraps
-                # Every copy of each interval, one per turn the row spans.
-                base = np.floor((row_u[0] - centre - half) / two_pi)
-                turns = np.arange(int(wraps[-1]) + 3)[:, None]
-                shift = two_pi * (base[None, :] + turns)
-                lo = np.searchsorted(row_u, (centre - half + shift).ravel(), side="left")
-                hi = np.searchsorted(row_u, (centre + half + shift).ravel(), side="right")
-                marks = np.zeros(n_s + 1, dtype=np.int32)
-                np.add.at(marks, lo, 1)
-                np.add.at(marks, hi, -1)
-                mask[kk, lz_] = np.cumsum(marks[:-1]) > 0
+        inside = (dist <= rb * (1 + 1e-9)).any(axis=1)[row_laser]  # origin inside: cast all
+        cs = ((c / dist[..., None]) @ rotation)[row_laser]  # (R, G, 3) centres in {L}
+        cos_alpha = (np.sqrt(np.clip(1.0 - (rb / dist) ** 2, 0.0, 1.0)) - 1e-9)[row_laser]
+        hxy = np.hypot(cs[..., 0], cs[..., 1])
+        a_ = cw * hxy
+        b_ = sw * cs[..., 2]
+        reach = (a_ + b_ >= cos_alpha) & ~inside[:, None]  # the row's best azimuth enters
+        with np.errstate(divide="ignore", invalid="ignore"):
+            q = (cos_alpha - b_) / a_
+        full = inside | (reach & ((q <= -1.0) | (a_ <= 1e-12))).any(axis=1)
+        mask[full] = True
+        row, geom = np.nonzero(reach & ~full[:, None])
+        if len(row) == 0:
+            return mask
+        two_pi = 2.0 * np.pi
+        d = az_rows - base[None, :]
+        d -= np.rint(d / two_pi) * two_pi
+        d_r = d[:, 0]
+        spread = float(np.abs(d - d_r[:, None]).max(initial=0.0))
+        b_u = np.unwrap(base)  # monotonic: the sensor spins one way
+        half = np.arccos(np.clip(q[row, geom], -1.0, 1.0)) + spread + 1e-9
+        centre = np.arctan2(cs[row, geom, 0], cs[row, geom, 1]) - d_r[row]
+        first = np.floor((b_u[0] - centre - half) / two_pi)
+        turns = np.arange(int(np.ceil((b_u[-1] - b_u[0]) / two_pi)) + 2)[None, :]
+        shift = two_pi * (first[:, None] + turns)
+        lo = np.searchsorted(b_u, ((centre - half)[:, None] + shift).ravel(), "left")
+        hi = np.searchsorted(b_u, ((centre + half)[:, None] + shift).ravel(), "right")
+        off = np.repeat(row, turns.shape[1]) * n_s
+        marks = np.zeros(n_rows * n_s + 1, dtype=np.int32)
+        np.add.at(marks, lo + off, 1)
+        np.add.at(marks, hi + off, -1)
+        mask |= (np.cumsum(marks[:-1]) > 0).reshape(n_rows, n_s)
         return mask
 
     def _rays_with_elevation_offset(self, azimuth, laser_id, el_offset, position, rotation):
@@ -630,6 +686,46 @@ class VLP16Emulator:
         refl_echo = np.where(np.isfinite(r_echo), e_echo * np.where(np.isfinite(r_echo),
                                                                      r_echo, 0) ** 2, 0.0)
         return r_echo, e_echo, refl_echo
+
+    def _measure_single(self, n: int, idx: np.ndarray, r: np.ndarray, energy: np.ndarray,
+                        refl: np.ndarray, laser_id: np.ndarray) -> Returns:
+        """`_measure` for one echo per firing, on the hits only: firing ``idx`` (M,) returned
+        range ``r`` (M,) m with ``energy`` and apparent reflectivity ``refl`` (M,)."""
+        cfg = self.config
+        rng = self.rng
+        if cfg.dropouts and len(idx):
+            z = (np.log(energy) - math.log(cfg.detection_threshold)) / cfg.detection_softness
+            near = np.flatnonzero(z < 8.3)  # beyond: detection probability 1 - 1e-16
+            if len(near):
+                keep = np.ones(len(idx), dtype=bool)
+                keep[near] = rng.random(len(near)) < ndtr(z[near])
+                idx, r, refl = idx[keep], r[keep], refl[keep]
+        lid = laser_id[idx]
+        meas = r + (self.laser_offsets + cfg.range_bias)[lid]
+        if cfg.range_noise_sigma > 0:
+            meas += _gaussian(rng, len(idx), cfg.range_noise_sigma)
+        if cfg.quantise:
+            meas = np.rint(meas * (1.0 / vlp16.DISTANCE_UNIT)) * vlp16.DISTANCE_UNIT
+        keep = (meas >= cfg.range_min) & (meas <= cfg.range_max)
+        if not keep.all():
+            idx, r, refl, meas = idx[keep], r[keep], refl[keep], meas[keep]
+        level = 100.0 * refl
+        if cfg.intensity_model:
+            if cfg.intensity_range_exponent:
+                level *= r ** -cfg.intensity_range_exponent
+            if cfg.intensity_noise_sigma > 0:
+                level += _gaussian(rng, len(idx), cfg.intensity_noise_sigma)
+        inten = np.clip(np.rint(level), 0, 255).astype(np.uint8)
+        flags = {"strongest": [int(ReturnType.STRONGEST)], "last": [int(ReturnType.LAST)],
+                 "dual": [int(ReturnType.LAST | ReturnType.STRONGEST)] * 2}[cfg.return_mode]
+        distance = np.zeros((len(flags), n))
+        intensity = np.zeros((len(flags), n), dtype=np.uint8)
+        rtype = np.zeros((len(flags), n), dtype=np.uint8)
+        for s, f in enumerate(flags):  # dual with a single echo: both blocks identical
+            distance[s, idx] = meas
+            intensity[s, idx] = inten
+            rtype[s, idx] = f
+        return Returns(distance, intensity, rtype)
 
     def _measure(self, echo_r: np.ndarray, echo_e: np.ndarray, echo_refl: np.ndarray,
                  laser_id: np.ndarray) -> Returns:
