@@ -20,7 +20,7 @@ from scenarios import plans
 from scenarios.bench import open_bench
 from scenarios.commands.version import versions
 from scenarios.report import Tolerances, summary_lines, write
-from scenarios.runner import Progress, Runner, make_estimator
+from scenarios.runner import MAX_CONSECUTIVE_FAILURES, Progress, Runner, make_estimator
 from scenarios.store import Store
 from twin.errors import AimbenchError
 
@@ -102,8 +102,10 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
         resumed = f" (resumed: {store.scan_count()} scans stored)" if resume else ""
         stream.write(f"aimbench sweep: {plan.name}, {len(plan)} references x {plan.scans} scans "
                      f"on the {config.get('bench')} bench{resumed} -> {out}\n")
-        runner = Runner(plan, bench, store, estimator, progress=Progress(plan, stream=stream,
-                                                                         enabled=progress))
+        runner = Runner(plan, bench, store, estimator,
+                        progress=Progress(plan, stream=stream, enabled=progress),
+                        max_consecutive_failures=int(config.get("max_consecutive_failures")
+                                                     or MAX_CONSECUTIVE_FAILURES))
         status = runner.run()
         if status == "interrupted":
             stream.write(f"interrupted: {store.scan_count()} of {plan.total_scans} scans saved in "
@@ -151,6 +153,7 @@ def config_from_args(args: argparse.Namespace) -> dict:
         "method": args.method, "seed": 0 if args.seed is None else args.seed,
         "ideal": bool(args.ideal),
         "scans": args.scans, "poses": args.poses, "argv": sys.argv[1:],
+        "max_consecutive_failures": args.max_consecutive_failures,
     }
 
 
@@ -184,6 +187,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                                              "50 for montecarlo)")
     p.add_argument("--poses", type=int, help="Monte Carlo poses (default 200)")
     p.add_argument("--method", help="estimation method (default: align's)")
+    p.add_argument("--max-consecutive-failures", type=int, default=MAX_CONSECUTIVE_FAILURES,
+                   help="fail the run after this many scans in a row without a pose at a "
+                        f"reference with none (board not in view; default "
+                        f"{MAX_CONSECUTIVE_FAILURES})")
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted run in --out with its stored settings")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
