@@ -46,7 +46,8 @@ from twin.packets import (
 from twin.scan import Scan
 
 TWO_PI = 2.0 * math.pi
-#: A timestamp step longer than this is a break in the timeline, not lost packets, s.
+#: Default for `ScanAssembler.break_s`: a timestamp step longer than this is a break in the
+#: timeline (clock set by PPS, long outage, corrupted timestamp), not lost packets, s.
 BREAK_S = 1.0
 _FIELDS = ("distance", "azimuth", "laser_id", "intensity", "time", "return_type", "x", "y", "z")
 
@@ -61,7 +62,7 @@ class StreamStats:
     late: int = 0  # arrived too late to be reordered: dropped
     missing: int = 0  # never arrived, from the timestamp steps
     gaps: int = 0  # places where packets went missing
-    breaks: int = 0  # timestamp jumps of more than BREAK_S (clock set, long outage, corruption)
+    breaks: int = 0  # timestamp jumps longer than break_s (clock set, long outage, corruption)
     rejected: Counter = field(default_factory=Counter)  # malformed, by reason
     scans: int = 0
     incomplete_scans: int = 0
@@ -97,7 +98,10 @@ class ScanAssembler:
     ``vertical_offsets``: apply the lasers' vertical offsets (default, as the manual says).
     ``model``: ``"VLP-16"`` to decode whatever the product id says. ``reorder_window``: how many
     packets are held back to put out-of-order arrivals in place (latency: window x 1.3 ms).
-    ``decode_batch``: released packets are decoded this many at a time.
+    ``decode_batch``: released packets are decoded this many at a time. ``break_s``: a
+    timestamp step longer than this is a break (counted in ``stats.breaks``, flagged on its
+    scan), not that many lost packets: a single corrupted timestamp then costs nothing, but
+    an outage that long is reported as a break rather than as a packet count.
 
     ``push(payload)`` / ``push_many(payloads)`` return the scans completed so far;
     ``finish()`` flushes the rest. ``stats`` counts everything (`StreamStats`).
@@ -112,6 +116,7 @@ class ScanAssembler:
         model: str | None = None,
         reorder_window: int = 16,
         decode_batch: int = 32,
+        break_s: float = BREAK_S,
     ) -> None:
         if split not in ("firing", "packet"):
             raise ValueError(f"split is 'firing' or 'packet', not {split!r}")
@@ -121,6 +126,7 @@ class ScanAssembler:
         self.model = model
         self.reorder_window = max(0, int(reorder_window))
         self.decode_batch = max(1, int(decode_batch))
+        self.break_s = float(break_s)
         self.stats = StreamStats()
         self.product_id: int | None = None
         # Arrival-order timestamp unwrapping.
@@ -192,10 +198,10 @@ class ScanAssembler:
         before_raw = np.concatenate(([self._last_raw], raw[:-1]))
         step = (raw - before_raw) % US_PER_HOUR
         step = np.where(step > US_PER_HOUR // 2, step - US_PER_HOUR, step)
-        # A jump of more than BREAK_S (a clock set by GPS/PPS, a long outage, a corrupted
+        # A jump of more than break_s (a clock set by GPS/PPS, a long outage, a corrupted
         # timestamp) is a break in the timeline, not thousands of lost packets: the packet
         # keeps its place in arrival order and the break is counted and flagged.
-        brk = np.abs(step) > BREAK_S * 1e6
+        brk = np.abs(step) > self.break_s * 1e6
         self.stats.breaks += int(brk.sum())
         nominal = np.where(records["return_mode"] == vlp16.RETURN_MODE_DUAL,
                            packet_period(vlp16.RETURN_MODE_DUAL),
