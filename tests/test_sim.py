@@ -258,7 +258,9 @@ def test_udp_output_at_the_real_rate() -> None:
     rx.close()
     n_expected = math.ceil(len(scans[0]) / 384) + 1
     assert got >= n_expected - 1
-    assert elapsed == pytest.approx((got - 1) * vlp16.PACKET_PERIOD, abs=0.05)
+    # Paced at the sensor's rate: never faster (the emulation time only adds to it).
+    assert elapsed >= (got - 1) * vlp16.PACKET_PERIOD * 0.98
+    assert elapsed < (got - 1) * vlp16.PACKET_PERIOD + 1.0
 
 
 # -- CLI -------------------------------------------------------------------------------------
