@@ -202,6 +202,7 @@ def _summary(
         "duplicates": st.duplicates,
         "out_of_order": st.out_of_order,
         "late": st.late,
+        "time_breaks": st.breaks,
         "rejected": {k: v for k, v in st.rejected.items() if v},
         "duration_s": None if first_ts is None else float(last_ts - first_ts),
         "cut_azimuth_deg": None if asm.cut_azimuth is None else math.degrees(asm.cut_azimuth),

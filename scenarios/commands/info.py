@@ -78,6 +78,7 @@ def format_summary(s: dict) -> str:
                   f"at the ends, {s['scans_with_missing_packets']} with missing packets)"),
         ("points", f"{s['points']} fired, {s['returns']} returns"),
         ("gaps", f"{s['gaps']} ({s['missing_packets']} packets missing)"),
+        ("time breaks", s["time_breaks"]),
         ("duplicates", s["duplicates"]),
         ("out of order", f"{s['out_of_order']} ({s['late']} too late, dropped)"),
         ("rejected", rejected),
