@@ -47,6 +47,8 @@ EDGE_MARGIN = 0.015
 ZONE_AZIMUTH = np.deg2rad(0.5)
 #: Neighbours farther apart than this in azimuth bracket nothing (a dropped firing), rad.
 MAX_GAP = np.deg2rad(0.7)
+#: 1-sigma of a top/bottom edge crossing across the ring (the ring's height), m.
+EDGE_BLUR_Z = 2.0e-3
 #: Rays considered: within this of the rectangle's side edges (board coordinates), m ...
 WINDOW = 0.12
 #: ... and of its top and bottom edges: one ring spacing (2 deg at 2.6 m = 91 mm) plus the lean
@@ -176,6 +178,9 @@ class _Model:
         self.rays, self.lab, self.board = rays, lab, board
         self.bh, self.bm = bh, bm
         self.sigma_r, self.blur = sigma_r, blur
+        # a ring's height on the board is known less well than a position along it: the beam
+        # is 1.5 mrad tall (4 mm at 2.6 m) and the laser's elevation is only nominal
+        self.blur_z = max(blur, EDGE_BLUR_Z)
         self.use_range = np.zeros(len(lab), dtype=bool)
         self.edge_kind = np.zeros(len(bh), dtype=np.int8)  # 0 skip, 1 vertical edge, 2 horizontal
         self.edge_sign = np.zeros(len(bh))
@@ -216,9 +221,11 @@ class _Model:
         vert = z_at <= h2
         kind = np.where(vert, 1, 2).astype(np.int8)
         kind = np.where((np.abs(z_at - h2) < guard) | ((dx == 0) & (dz == 0)), 0, kind)
-        sign = np.where(vert, np.sign(dx), np.sign(dz))
+        # which side: that of the miss (a ring crossing the top edge runs almost level, so
+        # the sign of its tiny height change says nothing)
+        sign = np.where(vert, np.sign(xm), np.sign(zm))
         width = np.where(vert, dx, dz)
-        sd = np.sqrt(width**2 / 12 + self.blur**2)
+        sd = np.sqrt(width**2 / 12 + np.where(vert, self.blur, self.blur_z) ** 2)
         return kind, sign, sd
 
     def profile_z(self, theta: np.ndarray, dz: np.ndarray, tol: float = 3e-3) -> np.ndarray:
@@ -358,8 +365,22 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     n, d, _, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d)
     # the board's rings hold many returns; the few that leak in from the stand (its base is
     # 5 cm in front of the board) sit on other rings: keep rings with a quarter of the most
+    # and the board's rings are consecutive: keep the consecutive block with the most returns
+    # (the stand's base, a parallel face 5 cm in front, lights up a ring or two below a gap)
     per_ring = np.bincount(ring_all[keep], minlength=16)
-    keep &= per_ring[ring_all] >= 0.25 * per_ring.max()
+    present = per_ring >= 0.25 * per_ring.max()
+    blocks, cur = [], []
+    for r in range(16):
+        if present[r]:
+            cur.append(r)
+        elif cur:
+            blocks.append(cur)
+            cur = []
+    if cur:
+        blocks.append(cur)
+    best = max(blocks, key=lambda b: per_ring[b].sum())
+    keep &= np.isin(ring_all, best)
+    n, d, _, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d)
     sigma_r = hints.range_sigma or max(sigma, 1e-3)
     t_plane = time.perf_counter()
 
