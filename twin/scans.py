@@ -152,7 +152,6 @@ class ScanAssembler:
         self._prev_ulast: float | None = None
         self._prev_ts: int | None = None
         self._prev_span = 0.0
-        self._first_u: float | None = None
         self._first_sid: int | None = None
         self._missing_by_sid: Counter = Counter()
         self._open: list[_Chunk] = []
@@ -189,7 +188,7 @@ class ScanAssembler:
             mask = mask & ~bad
             self.stats.rejected[reason] += int(mask.sum())
             bad |= mask
-        return records[~bad]
+        return records[~bad] if bad.any() else records
 
     def _arrive(self, records: np.ndarray) -> None:
         raw = records["timestamp"].astype(np.int64)
@@ -220,7 +219,8 @@ class ScanAssembler:
                                    else ts[0]], before[:-1]))
         self.stats.out_of_order += int((ts < running).sum())
         self._max_arrived = int(before[-1])
-        self._pend_rec = np.concatenate((self._pend_rec, records))
+        self._pend_rec = np.concatenate((self._pend_rec, records)) if len(self._pend_rec) \
+            else records
         self._pend_ts = np.concatenate((self._pend_ts, ts))
         self._pend_aux = np.concatenate((self._pend_aux, np.column_stack((hours, brk))))
 
@@ -235,7 +235,8 @@ class ScanAssembler:
                 rec["product_id"], rec["timestamp"], rec["return_mode"], self.model)
         other = rec["product_id"] != self.product_id
         self.stats.rejected["product_id"] += int(other.sum())
-        rec, ts, aux = rec[~other], ts[~other], aux[~other]
+        if other.any():
+            rec, ts, aux = rec[~other], ts[~other], aux[~other]
         # Order by timestamp; the first of equal timestamps wins, later copies are duplicates.
         if len(ts) > 1 and not (ts[1:] > ts[:-1]).all():  # the usual case needs no copy
             order = np.argsort(ts, kind="stable")
@@ -252,7 +253,8 @@ class ScanAssembler:
         self.stats.duplicates += int(dup.sum())
         self.stats.late += int(late.sum())
         keep = ~(dup | late)
-        rec, ts, aux = rec[keep], ts[keep], aux[keep]
+        if not keep.all():
+            rec, ts, aux = rec[keep], ts[keep], aux[keep]
         n_out = len(ts) if final else max(0, len(ts) - self.reorder_window)
         if n_out:
             self._rel_rec.append(rec[:n_out])
@@ -311,7 +313,6 @@ class ScanAssembler:
             else:
                 self._cut_ref = self.cut_azimuth + TWO_PI * math.floor(
                     (start - self.cut_azimuth) / TWO_PI)
-            self._first_u = float(u[0, 0])
         if self.split == "firing":
             sid = self._firing_scan_ids(u, ublock, delta)
         else:
