@@ -47,6 +47,8 @@ EDGE_MARGIN = 0.015
 ZONE_AZIMUTH = np.deg2rad(0.5)
 #: Neighbours farther apart than this in azimuth bracket nothing (a dropped firing), rad.
 MAX_GAP = np.deg2rad(0.7)
+#: A hit farther than this outside the rectangle (after the z profile) is not the board, m.
+STRAY = 0.04
 #: 1-sigma of a top/bottom edge crossing across the ring (the ring's height), m.
 EDGE_BLUR_Z = 2.0e-3
 #: Rays considered: within this of the rectangle's side edges (board coordinates), m ...
@@ -194,7 +196,7 @@ class _Model:
         res = self.rays.distance - lam
         self.use_range = (self.lab == 1) & inside & (np.abs(res) < 4 * self.sigma_r)
 
-    def classify(self, theta: np.ndarray, guard: float) -> None:
+    def classify(self, theta: np.ndarray, guard: float, crossings: bool = True) -> None:
         """Fix which edge each bracket measures, for pose ``theta``; drop the ambiguous ones.
 
         The line through a bracket's hit and miss meets the side edge X = +-W/2 (on the side it
@@ -206,6 +208,8 @@ class _Model:
         """
         x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
         kind, sign, sd = self._edges(x[self.bh], z[self.bh], x[self.bm], z[self.bm], guard)
+        if not crossings:  # leave out rings crossing the top or bottom edge (sharp in z)
+            kind = np.where((kind == 2) & (sd < 0.01), 0, kind).astype(np.int8)
         self.edge_kind, self.edge_sign, self.edge_sd = kind, sign, sd
 
     def _edges(self, xh, zh, xm, zm, guard: float = 0.0):
@@ -340,6 +344,37 @@ def _initial_roll(x: np.ndarray, z: np.ndarray, ring: np.ndarray) -> float:
     return float(-np.arctan(np.median(slopes)))
 
 
+def _staged_fit(model: _Model, theta: np.ndarray, dz: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, bool, int, float]:
+    """Fit in stages; returns (theta, J, converged, iterations, chi2 per degree of freedom).
+
+    First without the top/bottom crossings: roll and x from the side edges alone, so that a
+    poor start cannot lock z and roll into a wrong pair of crossings; then with them, the
+    bracket assignment redone with a tighter corner guard; a z profile after each stage.
+    """
+    iters = 0
+    for guard, crossings in ((0.005, False), (0.005, True), (0.002, True)):
+        model.classify(theta, guard, crossings)
+        theta, j, conv, it = _gauss_newton(model, theta)
+        iters += it
+        theta = theta.copy()
+        theta[2] += dz[np.argmin(model.profile_z(theta, dz))]
+    model.classify(theta, 0.002, True)
+    theta, j, conv, it = _gauss_newton(model, theta)
+    f = model.residuals(theta)
+    return theta, j, conv, iters + it, float(f @ f / max(len(f) - 6, 1))
+
+
+def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
+                 sigma_r: float, blur: float) -> _Model:
+    """Brackets along the rings and between rings at the board's centre column, as a model."""
+    x, _, _ = board_coordinates(theta, rays.origin, rays.direction)
+    bh, bm = _brackets(rays, lab)
+    vh, vm = _vertical_brackets(rays, lab, x, 0.0)
+    return _Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
+                  sigma_r, blur)
+
+
 def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                   hints: Hints) -> PoseEstimate:
     """Joint estimate from one or more scans of a static pose (their board clusters found)."""
@@ -403,24 +438,37 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "rays", rings=len(rings_hit),
                                    reason=f"the board spans {len(rings_hit)} rings; 3 needed")
 
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
-    bh, bm = _brackets(rays, lab)
-    vh, vm = _vertical_brackets(rays, lab, x, 0.0)
-    bh, bm = np.concatenate((bh, vh)), np.concatenate((bm, vm))
-    model = _Model(rays, lab, bh, bm, board, sigma_r, hints.edge_blur)
+    dz = np.arange(-0.06, 0.0605, 0.001)
+    model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur)
     # z is the weakly known coordinate (rings are 2 deg apart) and a ring that crosses the top or
     # bottom edge pins it down sharply, but only once its bracket is matched to the right edge.
-    # So: profile z over more than a ring spacing (label violations first), fix the bracket
-    # assignments leaving out those at corners, fit; then reassign with a tighter guard, refit.
-    dz = np.arange(-0.06, 0.0605, 0.001)
+    # So: profile z over more than a ring spacing (label violations first); then returns far
+    # outside the rectangle are not the board (the stand's base is level with the plane a ring
+    # or two below it): mark them unknown and rebuild the brackets; profile again; fix the
+    # bracket assignments leaving out those at corners, fit; reassign tighter, refit.
     theta[2] += dz[np.argmin(model.profile_z(theta, dz))]
+    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+    stray = (lab == 1) & ((np.abs(x) > board.width / 2 + STRAY) |
+                          (np.abs(z) > board.height / 2 + STRAY))
+    if np.any(stray):
+        lab = lab.copy()
+        lab[stray] = -1
+        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur)
+        theta[2] += dz[np.argmin(model.profile_z(theta, dz))]
     iters = 0
-    for guard in (0.005, 0.002):
-        model.classify(theta, guard)
-        theta, j, conv, it = _gauss_newton(model, theta)
-        iters += it
-        shift = dz[np.argmin(model.profile_z(theta, dz))]
-        theta[2] += shift
+    theta, j, conv, iters, chi2 = _staged_fit(model, theta, dz)
+    if chi2 > 1.5:
+        # a misfit (roll started too far off and a pair of top/bottom crossings held it there):
+        # restart from other rolls and keep the best
+        for droll in np.deg2rad([-2.0, -1.0, 1.0, 2.0]):
+            start = theta.copy()
+            start[3] += droll
+            cand = _staged_fit(model, start, dz)
+            if cand[4] < chi2:
+                theta, j, conv, it, chi2 = cand
+                iters += it
+        model.classify(theta, 0.002, True)  # the state of the kept fit, for the diagnostics
+        model.assign(theta)
     t_fit = time.perf_counter()
 
     # what was seen: both side edges on at least two rings, nothing in front of the board
@@ -454,6 +502,6 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     elif not conv:
         status = Status.NOT_CONVERGED
     used = {"board": rays.gidx[model.use_range],
-            "features": np.stack((rays.gidx[bh[k > 0]], rays.gidx[bm[k > 0]]), axis=1)}
+            "features": np.stack((rays.gidx[model.bh[k > 0]], rays.gidx[model.bm[k > 0]]), axis=1)}
     timings = {"plane": t_plane - t0, "fit": t_fit - t_plane}
     return PoseEstimate(status, "rays", Pose.from_array(theta), cov, diag, used, timings)
