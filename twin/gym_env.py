@@ -168,7 +168,8 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     estimator). ``method``, ``board`` and ``hints`` go to `align.estimate`. ``mount_range`` a
     `MountRange`, or None to keep the bench's mount (default: a `MountRange` on a simulated
     bench, None otherwise). ``reset(options={"mount": {...}})`` sets one episode's mount (edge
-    units, `MOUNT_KEYS`).
+    units, `MOUNT_KEYS`). The first reset homes the stages (``rehome=True``: every reset);
+    every reset then moves them to the bench reference (0, 0).
     """
 
     metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012 (gymnasium's class attr)
@@ -189,6 +190,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         mount_range: MountRange | str | None = "auto",
         n_board_points: int = 0,
         reward_weights: RewardWeights | None = None,
+        rehome: bool = False,
         render_mode: str | None = None,
     ) -> None:
         super().__init__()
@@ -198,8 +200,9 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             raise ValueError(f"n_board_points must be >= 0, got {n_board_points}")
         if render_mode is not None:
             raise ValueError(f"render_mode {render_mode!r}: this environment does not render")
+        if isinstance(mount_range, str) and mount_range != "auto":
+            raise ValueError(f"mount_range {mount_range!r}: a MountRange, None or 'auto'")
         self.render_mode = render_mode
-        self.bench, self._owns_bench = self._open(bench, bench_kwargs)
         self.scans_per_step = int(scans_per_step)
         self.method = method
         self.board = board or align.BoardSpec()
@@ -208,16 +211,22 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self.x_tolerance_m = float(x_tolerance_m)
         self.weights = reward_weights or RewardWeights()
         self.n_board_points = int(n_board_points)
-        is_sim = isinstance(self.bench, SimBench)
-        if isinstance(mount_range, str):
-            if mount_range != "auto":
-                raise ValueError(f"mount_range {mount_range!r}: a MountRange, None or 'auto'")
-            mount_range = MountRange() if is_sim else None
-        self.mount_range: MountRange | None = mount_range
+        self.rehome = bool(rehome)
         self.target_yaw_rad = float(target_yaw_rad)
-        self.target_x_m = float(target_x_m) if target_x_m is not None else self._nominal_x()
-
-        (y0, y1), (x0, x1) = self.bench.travel()
+        self.bench, self._owns_bench = self._open(bench, bench_kwargs)
+        try:
+            # Bench-dependent set-up: a bench this env opened (a served twin is a process) must
+            # not outlive a failure here.
+            if isinstance(mount_range, str):
+                mount_range = MountRange() if isinstance(self.bench, SimBench) else None
+            self.mount_range: MountRange | None = mount_range
+            self.target_x_m = (float(target_x_m) if target_x_m is not None
+                               else self._nominal_x())
+            (y0, y1), (x0, x1) = self.bench.travel()
+        except BaseException:
+            if self._owns_bench:
+                self.bench.close()
+            raise
         self._travel = np.array([[y0, x0], [y1, x1]], dtype=np.float64)
         self.action_space = spaces.Box(self._travel[0], self._travel[1], dtype=np.float64)
         big = np.array([POSITION_LIMIT_M] * 3 + [math.pi] * 3)
@@ -233,6 +242,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             obs["board_points_count"] = spaces.Discrete(self.n_board_points + 1)
         self.observation_space = spaces.Dict(obs)
 
+        self._homed = False
         self._episode_key = 0
         self._step_index = 0
         self._episode_time_s = 0.0
@@ -290,7 +300,15 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         # Drawn after the mount, so a fixed mount option leaves the noise stream as it was.
         self._episode_key = int(rng.integers(0, 2**31 - 1))
         self._set_mount(mount)
-        self.bench.home()
+        # The twin is rebuilt at every reset (`_set_mount`), so it homes every time: the same
+        # sequence each reset keeps its clock, hence its scans, a function of the seed alone.
+        if self.rehome or not self._homed or isinstance(self.bench, SimBench):
+            self.bench.home()
+            self.bench.wait_until_there()
+            self._homed = True
+        # Homing leaves a real controller at its switches, not at the bench reference: every
+        # episode starts from the reference (0, 0), where the mount misalignment shows whole.
+        self.bench.move_to(0.0, 0.0)
         self.bench.wait_until_there()
         self._step_index = 0
         self._episode_time_s = 0.0
