@@ -242,7 +242,7 @@ def validate_records(records: np.ndarray) -> dict[str, np.ndarray]:
     return {
         "block_flag": (blocks["flag"] != BLOCK_FLAG_U16).any(axis=1),
         "azimuth": (blocks["azimuth"] >= AZIMUTH_COUNTS).any(axis=1),
-        "return_mode": ~np.isin(records["return_mode"], list(RETURN_MODES)),
+        "return_mode": (records["return_mode"] < 0x37) | (records["return_mode"] > 0x39),
     }
 
 

@@ -46,6 +46,8 @@ from twin.packets import (
 from twin.scan import Scan
 
 TWO_PI = 2.0 * math.pi
+#: `ScanAssembler.push` takes payloads in groups of this many.
+INBOX = 8
 #: Default for `ScanAssembler.break_s`: a timestamp step longer than this is a break in the
 #: timeline (clock set by PPS, long outage, corrupted timestamp), not lost packets, s.
 BREAK_S = 1.0
@@ -129,12 +131,14 @@ class ScanAssembler:
         self.break_s = float(break_s)
         self.stats = StreamStats()
         self.product_id: int | None = None
+        self._inbox: list[bytes] = []
         # Arrival-order timestamp unwrapping.
         self._last_raw: int | None = None
         self._last_unwrapped = 0
         self._max_arrived: int | None = None
         # Reorder window and release.
-        self._pend_rec = np.zeros(0, dtype=DATA_PACKET_DTYPE)
+        # Packets are held as raw (n, 1206) bytes: concatenating structured arrays is slow.
+        self._pend_raw = np.zeros((0, vlp16.DATA_PAYLOAD_SIZE), dtype=np.uint8)
         self._pend_ts = np.zeros(0, dtype=np.int64)
         self._pend_aux = np.zeros((0, 2), dtype=np.int64)  # (hour rollovers, time break)
         self._hours = 0
@@ -161,8 +165,16 @@ class ScanAssembler:
     # Input
 
     def push(self, payload: bytes) -> list[Scan]:
-        """Add one data-packet payload (1206 bytes); returns the scans it completed."""
-        return self.push_many([payload])
+        """Add one data-packet payload (1206 bytes); returns the scans it completed.
+
+        Payloads are taken in groups of `INBOX` (about 10 ms of data), so that the per-call
+        cost of the array work is shared: a live stream costs a few percent of a core.
+        """
+        self._inbox.append(payload)
+        if len(self._inbox) < INBOX:
+            return []
+        batch, self._inbox = self._inbox, []
+        return self.push_many(batch)
 
     def push_many(self, payloads: np.ndarray | Sequence[bytes]) -> list[Scan]:
         """Add many payloads in arrival order; returns the scans they completed."""
@@ -175,7 +187,9 @@ class ScanAssembler:
 
     def finish(self) -> list[Scan]:
         """End of stream: release everything held back and emit the remaining scans."""
-        scans = self._release(final=True)
+        scans = self.push_many(self._inbox) if self._inbox else []
+        self._inbox = []
+        scans += self._release(final=True)
         scans += self._emit(final=True)
         return scans
 
@@ -219,13 +233,14 @@ class ScanAssembler:
                                    else ts[0]], before[:-1]))
         self.stats.out_of_order += int((ts < running).sum())
         self._max_arrived = int(before[-1])
-        self._pend_rec = np.concatenate((self._pend_rec, records)) if len(self._pend_rec) \
-            else records
+        raw = _raw(records)
+        self._pend_raw = np.concatenate((self._pend_raw, raw)) if len(self._pend_raw) else raw
         self._pend_ts = np.concatenate((self._pend_ts, ts))
         self._pend_aux = np.concatenate((self._pend_aux, np.column_stack((hours, brk))))
 
     def _release(self, final: bool) -> list[Scan]:
-        rec, ts, aux = self._pend_rec, self._pend_ts, self._pend_aux
+        raw, ts, aux = self._pend_raw, self._pend_ts, self._pend_aux
+        rec = _records(raw)
         if len(rec) == 0:
             return self._decode_released(final)
         if self.product_id is None:
@@ -236,11 +251,11 @@ class ScanAssembler:
         other = rec["product_id"] != self.product_id
         self.stats.rejected["product_id"] += int(other.sum())
         if other.any():
-            rec, ts, aux = rec[~other], ts[~other], aux[~other]
+            raw, ts, aux = raw[~other], ts[~other], aux[~other]
         # Order by timestamp; the first of equal timestamps wins, later copies are duplicates.
         if len(ts) > 1 and not (ts[1:] > ts[:-1]).all():  # the usual case needs no copy
             order = np.argsort(ts, kind="stable")
-            rec, ts, aux = rec[order], ts[order], aux[order]
+            raw, ts, aux = raw[order], ts[order], aux[order]
         dup = np.zeros(len(ts), dtype=bool)
         dup[1:] = ts[1:] == ts[:-1]
         late = np.zeros(len(ts), dtype=bool)
@@ -254,10 +269,10 @@ class ScanAssembler:
         self.stats.late += int(late.sum())
         keep = ~(dup | late)
         if not keep.all():
-            rec, ts, aux = rec[keep], ts[keep], aux[keep]
+            raw, ts, aux = raw[keep], ts[keep], aux[keep]
         n_out = len(ts) if final else max(0, len(ts) - self.reorder_window)
         if n_out:
-            self._rel_rec.append(rec[:n_out])
+            self._rel_rec.append(raw[:n_out])
             self._rel_ts.append(ts[:n_out])
             self._rel_aux.append(aux[:n_out])
             self._released_max = int(ts[n_out - 1])
@@ -266,7 +281,7 @@ class ScanAssembler:
                     self._recent_set.discard(self._recent[0])
                 self._recent.append(t)
                 self._recent_set.add(t)
-        self._pend_rec, self._pend_ts, self._pend_aux = rec[n_out:], ts[n_out:], aux[n_out:]
+        self._pend_raw, self._pend_ts, self._pend_aux = raw[n_out:], ts[n_out:], aux[n_out:]
         return self._decode_released(final)
 
     # ---------------------------------------------------------------------------------------
@@ -276,7 +291,7 @@ class ScanAssembler:
         n = sum(len(r) for r in self._rel_rec)
         if n == 0 or (n < self.decode_batch and not final):
             return []
-        rec = np.concatenate(self._rel_rec)
+        rec = _records(np.concatenate(self._rel_rec))
         ts = np.concatenate(self._rel_ts)
         aux = np.concatenate(self._rel_aux)
         self._rel_rec, self._rel_ts, self._rel_aux = [], [], []
@@ -482,6 +497,16 @@ class ScanAssembler:
                 "split": self.split,
             },
         )
+
+
+def _raw(records: np.ndarray) -> np.ndarray:
+    """Records as their raw bytes, (n, 1206) uint8 (no copy when already contiguous)."""
+    return np.ascontiguousarray(records).view(np.uint8).reshape(len(records), -1)
+
+
+def _records(raw: np.ndarray) -> np.ndarray:
+    """Raw (n, 1206) bytes viewed as `DATA_PACKET_DTYPE` records."""
+    return np.ascontiguousarray(raw).view(DATA_PACKET_DTYPE)[:, 0]
 
 
 def _concat(chunks: list[_Chunk]) -> _Chunk:
