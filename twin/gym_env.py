@@ -92,6 +92,11 @@ class RewardWeights:
 BenchSpec = str | Bench | Callable[[], Bench]
 
 
+def _usable(est: align.PoseEstimate) -> bool:
+    """A successful estimate with a finite pose (the only kind the env reports)."""
+    return est.success and bool(np.all(np.isfinite(est.pose.as_array())))
+
+
 def _wrap(angle: float) -> float:
     """Angle wrapped to [-pi, pi), rad."""
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
@@ -344,7 +349,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                                  + abs(e_x) / self.x_tolerance_m),
             "time": -w.time * step_time_s,
             "travel": -w.travel * float(np.sum(np.abs(command - before) / span)),
-            "no_estimate": -w.no_estimate * (0.0 if est.success else 1.0),
+            "no_estimate": -w.no_estimate * (0.0 if _usable(est) else 1.0),
             "success": w.success if info["aligned"] else 0.0,
         }
         info["reward_terms"] = terms
@@ -380,10 +385,9 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         return np.array([yaw, x], dtype=np.float64)
 
     def _scans(self) -> list[Scan]:
-        if isinstance(self.bench, SimBench):
-            # Each step's scans draw their noise from (bench seed, episode key, step): seeded by
-            # reset(seed) alone, whatever happened before.
-            self.bench.prepare(self._episode_key, self._step_index * self.scans_per_step)
+        # On the twin each step's scans draw their noise from (bench seed, episode key, step):
+        # seeded by reset(seed) alone, whatever happened before. A no-op on hardware.
+        self.bench.prepare(self._episode_key, self._step_index * self.scans_per_step)
         return list(self.bench.scans(self.scans_per_step))
 
     def _observe(self) -> tuple[dict[str, np.ndarray], align.PoseEstimate]:
@@ -391,7 +395,8 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         est = align.estimate(scans, board=self.board, method=self.method, hints=self.hints)
         self.last_scans, self.last_estimate = scans, est
         big = self.observation_space["pose"].high
-        if est.success:
+        ok = _usable(est)
+        if ok:
             p = est.pose.as_array()
             p[3:] = [_wrap(v) for v in p[3:]]
             pose = np.clip(p, -big, big)
@@ -402,7 +407,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         obs: dict[str, Any] = {
             "pose": pose.astype(np.float64),
             "pose_std": std.astype(np.float64),
-            "estimate_ok": int(est.success),
+            "estimate_ok": int(ok),
             "stage": np.clip(self._stage, self._travel[0], self._travel[1]),
         }
         if self.n_board_points:
@@ -416,7 +421,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """Up to N board returns in {L}, evenly subsampled (deterministic), zero-padded."""
         n = self.n_board_points
         out = np.zeros((n, 3))
-        idx = np.asarray(est.used.get("board", []) if est.success else [], dtype=np.int64)
+        idx = np.asarray(est.used.get("board", []) if _usable(est) else [], dtype=np.int64)
         if idx.size == 0:
             return out, 0
         xyz = Scan.concatenate(scans).xyz[idx]
@@ -432,7 +437,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         if truth is not None:
             source = "truth"
             error = self._error(truth)
-        elif est.success:
+        elif _usable(est):
             source = "estimate"
             error = self._error(est.pose)
         else:
@@ -444,7 +449,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         known = error is not None
         aligned = bool(known and abs(e_yaw) <= self.yaw_tolerance_rad
                        and abs(e_x) <= self.x_tolerance_m)
-        est_err = self._error(est.pose) if est.success else None
+        est_err = self._error(est.pose) if _usable(est) else None
         return {
             "aligned": aligned,
             "is_success": aligned,
