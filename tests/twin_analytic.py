@@ -35,3 +35,21 @@ def board_intersections(pose: Pose, azimuth: np.ndarray, laser_id: np.ndarray,
 def board_frame_points(pose: Pose, xyz_l: np.ndarray) -> np.ndarray:
     """Scan points (N, 3) in {L} to {O}."""
     return pose.transform(xyz_l)
+
+
+def board_intersections_moving(poses: np.ndarray, azimuth: np.ndarray, laser_id: np.ndarray,
+                               width: float, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """`board_intersections` with one pose per firing: ``poses`` (N, 6) as `Pose.as_array`."""
+    from scipy.spatial.transform import Rotation
+
+    w = vlp16.ELEVATION[laser_id]
+    u = np.column_stack((np.cos(w) * np.sin(azimuth), np.cos(w) * np.cos(azimuth), np.sin(w)))
+    r = Rotation.from_euler("ZXY", poses[:, [5, 4, 3]]).as_matrix()
+    d = np.einsum("nij,nj->ni", r, u)
+    o = poses[:, :3] + vlp16.VERTICAL_OFFSET[laser_id][:, None] * r[:, :, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -o[:, 1] / d[:, 1]
+    ok = (d[:, 1] > 0) & (s > 0)
+    p = o + s[:, None] * d
+    on = ok & (np.abs(p[:, 0]) <= width / 2) & (np.abs(p[:, 2]) <= height / 2)
+    return np.where(ok, s, np.inf), on

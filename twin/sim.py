@@ -37,6 +37,10 @@ SECONDS_PER_HOUR = 3600.0
 SETTLE_X = 1e-6  # m
 SETTLE_YAW = 1e-6  # rad
 SETTLE_TIMEOUT = 1.0  # s after the profile ends
+#: Rotations emulated per window by `BenchSim.scans` (memory: about 30 MB per rotation).
+ROTATIONS_PER_WINDOW = 4
+#: Firing sequences per window of `BenchSim.packets` (about 4 rotations at 600 rpm).
+CHUNK_SEQUENCES = 7200
 
 
 @dataclass
@@ -82,6 +86,7 @@ class BenchSim:
         # Pose history of the current window (for firings slightly before "now").
         self._last_pose = self.physics.lidar_pose_world()
         self._window_record: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._pose_history: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self.scan_count = 0
 
     # ---------------------------------------------------------------------------------------
@@ -305,15 +310,16 @@ class BenchSim:
 
     def scans(self, n: int) -> list[Scan]:
         """The next ``n`` whole rotations, back to back."""
-        if n <= 0:
-            return []
-        first = self._next_rotation_index()
-        rotations = list(range(first, first + n))
-        lo, _ = self._sequences_of_rotation(rotations[0])
-        _, hi = self._sequences_of_rotation(rotations[-1])
-        f = self._fire_window(lo, hi)
-        self._next_rotation = rotations[-1] + 1
-        return self._to_scans(f, rotations)
+        out: list[Scan] = []
+        while len(out) < n:
+            first = self._next_rotation_index()
+            block = list(range(first, first + min(ROTATIONS_PER_WINDOW, n - len(out))))
+            lo, _ = self._sequences_of_rotation(block[0])
+            _, hi = self._sequences_of_rotation(block[-1])
+            f = self._fire_window(lo, hi)
+            self._next_rotation = block[-1] + 1
+            out += self._to_scans(f, block)
+        return out
 
     def scan(self) -> Scan:
         """One rotation (the next whole one from now)."""
@@ -321,8 +327,10 @@ class BenchSim:
 
     def _fire_window(self, lo: int, hi: int) -> Firings:
         """Emulate every firing of sequences [lo, hi) on the sensor's grid. The physics first
-        advances to the window's end, recording the pose at every step if the stages move (kept
-        in `_window_record` for the scans' truth); each firing gets its own instant's pose."""
+        advances to the window's end, recording the pose at every step if the stages move; each
+        firing gets its own instant's pose. Firings a little before "now" (windows overlap by a
+        sequence or two at rotation boundaries) take theirs from the previous window's record.
+        The record is kept in `_window_record` for the scans' truth."""
         seq = np.repeat(np.arange(lo, hi, dtype=np.int64), vlp16.N_LASERS)
         laser = np.tile(np.arange(vlp16.N_LASERS, dtype=np.uint8), hi - lo)
         t = seq * vlp16.SEQUENCE_PERIOD + laser * vlp16.LASER_PERIOD
@@ -336,17 +344,46 @@ class BenchSim:
         if record is None:
             # Stages at rest throughout: one pose, the emulator's grid fast path.
             self._window_record = None
+            self._pose_history = None
             pos, rot = self._last_pose
             returns = self.emulator.fire_grid(azimuth.reshape(-1, vlp16.N_LASERS), pos, rot)
             return Firings(seq, laser, t, azimuth, rotation, returns)
-        else:
-            times, ps, rs = record
-            self._window_record = record
-            tc = np.clip(t, times[0], times[-1])
-            pos = np.column_stack([np.interp(tc, times, ps[:, j]) for j in range(3)])
-            rot = Slerp(times, Rotation.from_matrix(rs))(tc).as_matrix()
+        times, ps, rs = record
+        hist = self._pose_history
+        if hist is not None and hist[0][-1] < times[0]:
+            times = np.concatenate((hist[0], times))
+            ps = np.concatenate((hist[1], ps))
+            rs = np.concatenate((hist[2], rs))
+        record = (times, ps, rs)
+        self._window_record = record
+        self._pose_history = (times[-20:], ps[-20:], rs[-20:])  # the last 20 ms
+        tc = np.clip(t, times[0], times[-1])
+        pos = np.column_stack([np.interp(tc, times, ps[:, j]) for j in range(3)])
+        rot = Slerp(times, Rotation.from_matrix(rs))(tc).as_matrix()
         returns = self.emulator.fire(azimuth, laser, pos, rot)
         return Firings(seq, laser, t, azimuth, rotation, returns)
+
+    def _fire_range(self, lo: int, hi: int) -> Firings:
+        """`_fire_window` over [lo, hi) in contiguous chunks of about `CHUNK_SEQUENCES` (memory
+        stays bounded for long captures), joined; the pose records are joined too."""
+        parts: list[Firings] = []
+        records: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        for a in range(lo, hi, CHUNK_SEQUENCES):
+            parts.append(self._fire_window(a, min(a + CHUNK_SEQUENCES, hi)))
+            if self._window_record is not None:
+                records.append(self._window_record)
+        if len(parts) == 1:
+            return parts[0]
+        if records:
+            times = np.concatenate([r[0] for r in records])
+            keep = np.concatenate(([True], np.diff(times) > 0))  # drop the history overlaps
+            self._window_record = tuple(np.concatenate([r[j] for r in records])[keep]
+                                        for j in range(3))
+        ret = Returns(*(np.concatenate([getattr(p.returns, k) for p in parts], axis=1)
+                        for k in ("distance", "intensity", "return_type")))
+        return Firings(*(np.concatenate([getattr(p, k) for p in parts])
+                         for k in ("sequence", "laser_id", "time", "azimuth", "rotation")),
+                       returns=ret)
 
     # ---------------------------------------------------------------------------------------
     # Packets
@@ -370,7 +407,7 @@ class BenchSim:
         # Whole packets: sequences [p_lo * spp, p_hi * spp).
         p_lo = max(0, lo // seq_per_packet)
         p_hi = -(-hi // seq_per_packet)
-        f = self._fire_window(p_lo * seq_per_packet, p_hi * seq_per_packet)
+        f = self._fire_range(p_lo * seq_per_packet, p_hi * seq_per_packet)
         self._next_rotation = rotations[-1] + 1
         scans = self._to_scans(f, rotations)
         n_pk = p_hi - p_lo
