@@ -246,3 +246,19 @@ def test_a_clock_jump_keeps_the_stream_going():
     scans = asm.push_many(payloads[:150] + later) + asm.finish()
     assert asm.stats.breaks == 1 and asm.stats.late == 0 and asm.stats.packets == 300
     assert sum(len(s) for s in scans) == 300 * 384
+
+
+def test_reordering_across_the_top_of_the_hour():
+    payloads = stream(200, start_us=US_PER_HOUR - 100_000)  # the hour turns at packet ~75
+    ref = scans_from_packets(payloads)
+    messy = list(payloads)
+    messy[74], messy[77] = messy[77], messy[74]  # both sides of the rollover swapped
+    asm = ScanAssembler()
+    got = []
+    for p in messy:
+        got += asm.push(p)
+    got += asm.finish()
+    assert asm.stats.out_of_order >= 1 and asm.stats.missing == 0 and asm.stats.breaks == 0
+    assert [len(s) for s in got] == [len(s) for s in ref]
+    for a, b in zip(got, ref, strict=True):
+        assert np.array_equal(a.time, b.time)

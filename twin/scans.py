@@ -141,7 +141,7 @@ class ScanAssembler:
         self._pend_raw = np.zeros((0, vlp16.DATA_PAYLOAD_SIZE), dtype=np.uint8)
         self._pend_ts = np.zeros(0, dtype=np.int64)
         self._pend_aux = np.zeros((0, 2), dtype=np.int64)  # (hour rollovers, time break)
-        self._hours = 0
+        self._break_shift = 0  # how far the breaks moved the timeline, us
         self._released_max: int | None = None
         self._recent = deque(maxlen=4096)
         self._recent_set: set[int] = set()
@@ -159,7 +159,6 @@ class ScanAssembler:
         self._first_sid: int | None = None
         self._missing_by_sid: Counter = Counter()
         self._open: list[_Chunk] = []
-        self._emitted_max = -(2**62)
 
     # ---------------------------------------------------------------------------------------
     # Input
@@ -219,11 +218,13 @@ class ScanAssembler:
         nominal = np.where(records["return_mode"] == vlp16.RETURN_MODE_DUAL,
                            packet_period(vlp16.RETURN_MODE_DUAL),
                            packet_period(vlp16.RETURN_MODE_STRONGEST)) * 1e6
-        step = np.where(brk, np.round(nominal).astype(np.int64), step)
-        ts = self._last_unwrapped + np.cumsum(step)
-        rollover = (raw < before_raw) & (step > 0) & ~brk  # the top of the hour passed
-        hours = self._hours + np.cumsum(rollover)
-        self._hours = int(hours[-1])
+        kept = np.where(brk, np.round(nominal).astype(np.int64), step)
+        ts = self._last_unwrapped + np.cumsum(kept)
+        # Whole hours since the first packet's hour: the timeline without the breaks' shifts
+        # differs from the raw timestamps by whole hours only.
+        shift = self._break_shift + np.cumsum(kept - step)
+        hours = (ts - shift - raw) // US_PER_HOUR
+        self._break_shift = int(shift[-1])
         self._last_raw, self._last_unwrapped = int(raw[-1]), int(ts[-1])
         # Out of order: earlier than something that arrived before it.
         before = np.maximum.accumulate(ts)
