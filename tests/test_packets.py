@@ -320,3 +320,10 @@ def test_position_packet_round_trip_and_velodyne_decoder_reads_it():
     assert nmea.fix_available and (nmea.utc_minutes, nmea.utc_seconds) == (20, 34.0)
     with pytest.raises(MalformedPacketError, match="512"):
         decode_position_packet(raw[:500])
+
+
+def test_one_corrupted_product_id_does_not_decide_the_batch(real_payloads):
+    arr = np.frombuffer(b"".join(real_payloads), np.uint8).reshape(-1, 1206).copy()
+    arr[0, 1205] = 0x28  # the first packet's id byte flipped to a VLP-32C's
+    dec = decode_data_packets(arr)
+    assert len(dec) == 83 and dec.rejected["product_id"] == 1

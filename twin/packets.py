@@ -179,11 +179,13 @@ def identify_model(
       a VLP-16. Either way a `ProductIdWarning` says so.
     - anything else (0x28 VLP-32C, 0x24 Puck Hi-Res, ...) raises `UnsupportedSensorError`.
 
-    Returns the product id the batch is decoded as (the first packet's).
+    Returns the product id the batch is decoded as (its most common one; packets with another
+    id are then dropped as malformed).
     """
     if len(product_ids) == 0:
         return vlp16.PRODUCT_ID_VLP16
-    pid = int(product_ids[0])
+    # The most common id, so that one corrupted byte cannot decide for the batch.
+    pid = int(np.argmax(np.bincount(np.asarray(product_ids, dtype=np.uint8), minlength=256)))
     if model is not None:
         if model.upper().replace("-", "").replace("_", "") != "VLP16":
             raise UnsupportedSensorError(
