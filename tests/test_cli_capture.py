@@ -1,4 +1,6 @@
-"""`aimbench info` and `aimbench decode`, run as a user runs them (a subprocess)."""
+"""`aimbench info` and `aimbench decode`: a few runs as a user runs them (a subprocess, which
+proves there is no traceback and no dependence on the working directory), the rest in-process
+through the same `scenarios.cli.main` (a subprocess pays ~1-3 s of imports per call)."""
 
 from __future__ import annotations
 
@@ -19,6 +21,16 @@ def aimbench(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     exe = Path(sys.executable).with_name("aimbench")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "scenarios.cli"]
     return subprocess.run([*cmd, *args], cwd=cwd, capture_output=True, text=True, timeout=120)
+
+
+def cli(*args: str, capsys: pytest.CaptureFixture) -> subprocess.CompletedProcess:
+    """Run `scenarios.cli.main` in this process; the result looks like a subprocess's."""
+    from scenarios.cli import main
+
+    capsys.readouterr()
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(list(args), code, out, err)
 
 
 def one_error_line(proc: subprocess.CompletedProcess, command: str) -> str:
@@ -43,14 +55,14 @@ def test_info_json(sample_pcap, tmp_path):
     assert info["file"]["records"] == 84 and info["file"]["skipped"] == {}
 
 
-def test_info_text_and_decode(sample_pcap, tmp_path):
-    proc = aimbench("info", str(sample_pcap), cwd=tmp_path)
+def test_info_text_and_decode(sample_pcap, tmp_path, capsys):
+    proc = cli("info", str(sample_pcap), capsys=capsys)
     assert proc.returncode == 0, proc.stderr
     for expected in ("VLP-16 (product id 0x22)", "strongest", "data packets      84",
                      "gaps              0"):
         assert expected in proc.stdout
     out = tmp_path / "scans.npz"
-    proc = aimbench("decode", str(sample_pcap), "--out", "scans.npz", cwd=tmp_path)
+    proc = cli("decode", str(sample_pcap), "--out", str(out), capsys=capsys)
     assert proc.returncode == 0, proc.stderr
     with np.load(out) as z:
         n = 84 * 384
@@ -65,7 +77,8 @@ def test_info_text_and_decode(sample_pcap, tmp_path):
         assert json.loads(str(z["summary"]))["data_packets"] == 84
 
 
-def test_old_firmware_id_warns_in_one_line_and_other_models_fail_in_one(sample_pcap, tmp_path):
+def test_old_firmware_id_warns_in_one_line_and_other_models_fail_in_one(sample_pcap, tmp_path,
+                                                                         capsys):
     records = list(read_pcap(sample_pcap))
 
     def relabelled(pid: int, name: str) -> Path:
@@ -76,19 +89,23 @@ def test_old_firmware_id_warns_in_one_line_and_other_models_fail_in_one(sample_p
         return path
 
     old = relabelled(0x21, "old-firmware.pcap")
-    proc = aimbench("info", str(old), "--json", cwd=tmp_path)
+    proc = cli("info", str(old), "--json", capsys=capsys)
     assert proc.returncode == 0
     assert proc.stderr.count("\n") == 1 and "warning: product id 0x21" in proc.stderr
     assert json.loads(proc.stdout)["model"] == "VLP-16"
-    proc = aimbench("info", str(old), "--model", "VLP-16", cwd=tmp_path)
+    proc = cli("info", str(old), "--model", "VLP-16", capsys=capsys)
     assert proc.returncode == 0 and proc.stderr == ""
-    line = one_error_line(aimbench("info", str(relabelled(0x28, "vlp32c.pcap")), cwd=tmp_path),
+    line = one_error_line(cli("info", str(relabelled(0x28, "vlp32c.pcap")), capsys=capsys),
                           "info")
     assert "VLP-32C" in line
 
 
-@pytest.mark.parametrize("case", ["missing", "empty", "header-cut", "not-pcap", "directory"])
-def test_bad_files_give_one_clear_line(sample_pcap, tmp_path, case):
+# Two of them in a real process, the others in-process (same code, faster).
+@pytest.mark.parametrize("case,subprocess_run", [
+    ("missing", True), ("not-pcap", True), ("empty", False), ("header-cut", False),
+    ("directory", False),
+])
+def test_bad_files_give_one_clear_line(sample_pcap, tmp_path, capsys, case, subprocess_run):
     path = tmp_path / f"{case}.pcap"
     if case == "empty":
         path.write_bytes(b"")
@@ -98,14 +115,16 @@ def test_bad_files_give_one_clear_line(sample_pcap, tmp_path, case):
         path.write_text("timestamp,x,y,z\n0,1,2,3\n")
     elif case == "directory":
         path.mkdir()
-    line = one_error_line(aimbench("info", str(path), cwd=tmp_path), "info")
+    proc = (aimbench("info", str(path), cwd=tmp_path) if subprocess_run
+            else cli("info", str(path), capsys=capsys))
+    line = one_error_line(proc, "info")
     assert str(path) in line
 
 
-def test_file_cut_mid_record_warns_and_reads_the_rest(sample_pcap, tmp_path):
+def test_file_cut_mid_record_warns_and_reads_the_rest(sample_pcap, tmp_path, capsys):
     cut = tmp_path / "cut.pcap"
     cut.write_bytes(sample_pcap.read_bytes()[:24 + 40 * 1264 + 300])
-    proc = aimbench("decode", str(cut), "--out", str(tmp_path / "cut.npz"), cwd=tmp_path)
+    proc = cli("decode", str(cut), "--out", str(tmp_path / "cut.npz"), capsys=capsys)
     assert proc.returncode == 0
     assert "warning: the capture ends mid-record" in proc.stderr
     assert proc.stderr.count("\n") == 1
@@ -113,10 +132,10 @@ def test_file_cut_mid_record_warns_and_reads_the_rest(sample_pcap, tmp_path):
         assert z["x"].shape == (40 * 384,)
 
 
-def test_decode_of_a_capture_without_vlp16_data(tmp_path):
+def test_decode_of_a_capture_without_vlp16_data(tmp_path, capsys):
     path = tmp_path / "dns.pcap"
     with PcapWriter(path) as w:
         w.write_udp(b"\x00" * 40, 1.0, dst_port=53)
     line = one_error_line(
-        aimbench("decode", str(path), "--out", str(tmp_path / "x.npz"), cwd=tmp_path), "decode")
+        cli("decode", str(path), "--out", str(tmp_path / "x.npz"), capsys=capsys), "decode")
     assert "no VLP-16 data packets" in line
