@@ -190,6 +190,14 @@ static void mcu_reset(void) {
   publish();
 }
 
+/* The firmware sleeps (idle mode) whenever it has nothing to do. simavr then jumps to the next
+ * timer or interrupt event and calls avr->sleep with the skipped cycles; its default usleep()s
+ * them, with the OS's oversleep each time. The pacing below keeps real time already, so skip. */
+static void sleep_skip(avr_t *a, avr_cycle_count_t how_long) {
+  (void)a;
+  (void)how_long;
+}
+
 static void on_signal(int sig) {
   (void)sig;
   stop_requested = 1;
@@ -264,6 +272,7 @@ int main(int argc, char **argv) {
   avr_init(avr);
   avr_load_firmware(avr, &fw);
   avr->frequency = FREQ;
+  avr->sleep = sleep_skip;
   uart_quiet();
   fflush(stdout);
   dup2(saved_stdout, STDOUT_FILENO);

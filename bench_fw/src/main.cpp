@@ -5,6 +5,7 @@
 // inputs), settings (EEPROM), homing, report. PROTOCOL.md documents the wire protocol.
 #include <Arduino.h>
 #include <avr/pgmspace.h>
+#include <avr/sleep.h>
 
 #include "codes.h"
 #include "config.h"
@@ -64,10 +65,29 @@ void protocol_execute_realtime() {
   }
 }
 
+// Idle sleep until the next interrupt (a received byte, a step, the 1 kHz tick, millis()), when
+// nothing is waiting in the receive buffer or the realtime flags. Timers and the UART keep
+// running in idle mode, so nothing is delayed by more than an interrupt's latency. On the board
+// it saves a little power; in simavr it lets the simulator skip the idle cycles instead of
+// interpreting a busy loop, which keeps the simulation in real time on a loaded host.
+static void idle_sleep() {
+  cli();
+  if (rt_exec == 0 && !serial_available()) {
+    set_sleep_mode(SLEEP_MODE_IDLE);
+    sleep_enable();
+    sei();  // the instruction after sei runs before any interrupt: no wake-up is lost
+    sleep_cpu();
+    sleep_disable();
+  } else {
+    sei();
+  }
+}
+
 bool wait_motion_done() {
   while (stepper_busy()) {
     protocol_execute_realtime();
     if (sys.abort || sys.state == STATE_ALARM) return false;
+    idle_sleep();
   }
   protocol_execute_realtime();
   return !sys.abort;
@@ -78,6 +98,7 @@ bool wait_ms(uint32_t ms) {
   while (millis() - start < ms) {
     protocol_execute_realtime();
     if (sys.abort || sys.state == STATE_ALARM) return false;
+    idle_sleep();
   }
   return true;
 }
@@ -102,6 +123,7 @@ static Status execute_move(const Command &cmd) {
   while (block_queue.full()) {
     protocol_execute_realtime();
     if (sys.abort || sys.state == STATE_ALARM) return STATUS_SYSTEM_GC_LOCK;
+    idle_sleep();
   }
   uint8_t sreg = SREG;
   cli();
@@ -224,7 +246,10 @@ void loop() {
     return;
   }
   uint16_t c = serial_read();
-  if (c == SERIAL_NO_DATA) return;
+  if (c == SERIAL_NO_DATA) {
+    idle_sleep();
+    return;
+  }
   if (c == SERIAL_DAMAGE_MARK) {
     collector.mark_overflow();
     return;

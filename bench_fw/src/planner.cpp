@@ -67,9 +67,10 @@ Status plan_move(const Settings &s, const int32_t from[N_AXIS], const float targ
   b.nominal_rate = fminf(rate / 60.0f * steps_per_length, MAX_STEP_RATE);
   if (b.nominal_rate < MIN_STEP_RATE) b.nominal_rate = MIN_STEP_RATE;
   b.accel = accel * steps_per_length;
-  // The speed reached one step after a standing start under constant acceleration: the first
-  // and last step intervals, so a move neither crawls at its ends nor jumps to speed.
-  b.start_rate = fmaxf(sqrtf(2.0f * b.accel), MIN_STEP_RATE);
+  // The speed half a step after a standing start under constant acceleration, sqrt(2 a 0.5):
+  // the first and last step intervals, so a move neither crawls at its ends nor jumps to speed,
+  // and its duration stays within a few % of the ideal trapezoid from rest even for short moves.
+  b.start_rate = fmaxf(sqrtf(b.accel), MIN_STEP_RATE);
   if (b.start_rate > b.nominal_rate) b.start_rate = b.nominal_rate;
   out = b;
   return STATUS_OK;

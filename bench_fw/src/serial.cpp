@@ -61,6 +61,8 @@ ISR(USART0_RX_vect) {
   rx_head = static_cast<uint8_t>(rx_head + 1);
 }
 
+bool serial_available() { return rx_head != rx_tail; }
+
 uint16_t serial_read() {
   if (rx_head == rx_tail) return SERIAL_NO_DATA;
   uint8_t c = rx_buf[rx_tail];

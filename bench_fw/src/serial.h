@@ -12,6 +12,8 @@
 #define SERIAL_NO_DATA 0xFFFF
 
 void serial_init();
+// True if a received byte is waiting.
+bool serial_available();
 // Next received (non-realtime) byte, or SERIAL_NO_DATA.
 uint16_t serial_read();
 // Stands in the receive stream for bytes lost to a full buffer: the line it ends is rejected.

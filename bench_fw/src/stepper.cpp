@@ -3,6 +3,7 @@
 
 #include <avr/interrupt.h>
 #include <avr/io.h>
+#include <math.h>
 
 #include "codes.h"
 #include "pins.h"
@@ -20,6 +21,7 @@ static Block *current = nullptr;           // block being executed (owned by the
 static uint32_t events_done;
 static uint32_t counter[N_AXIS];
 static float rate;                         // dominant-axis steps/s (accel tick only)
+static uint32_t ramp_origin;               // step event where the current speed ramp began
 static volatile uint16_t interval_ticks;   // next step interval, written by the accel tick
 static volatile bool running = false;
 static volatile uint8_t hold = 0;          // 0 none, 1 decelerating, 2 at rest
@@ -117,6 +119,7 @@ static void load_block() {
     if (current->dir_negative_mask & (1 << k)) dir |= kDirBit[k];
   PORTC = static_cast<uint8_t>((PORTC & ~DIR_MASK) | (dir ^ dir_invert_bits));
   rate = current->start_rate;
+  ramp_origin = 0;
   interval_ticks = ticks_for(rate);
   stopped_by_switch = false;
   limit_prev = limits_read();
@@ -175,8 +178,13 @@ ISR(TIMER1_COMPA_vect) {
   OCR1A = interval_ticks;
 }
 
-// Acceleration tick. Interruptible (ISR_NOBLOCK) so the float arithmetic never delays a step
-// pulse; it shares `events_done` and `interval_ticks` with the step ISR under cli().
+// Acceleration tick. The rate follows the trapezoid in position, not in time: the speed at step
+// s of a block is min(sqrt(v0^2 + 2a (s - s0)), nominal, sqrt(v0^2 + 2a (n - s))), which ends
+// every block at its last step exactly on the braking curve (a time-driven ramp drifts and
+// either crawls or arrives fast). s0 is where the current ramp started (0, or a resume).
+// A feed hold decelerates in time (there is no end point to brake for).
+// Interruptible (ISR_NOBLOCK) so the float arithmetic never delays a step pulse; it shares
+// `events_done` and `interval_ticks` with the step ISR under cli().
 ISR(TIMER3_COMPA_vect, ISR_NOBLOCK) {
   static volatile bool busy = false;
   if (busy || !running) return;
@@ -184,13 +192,16 @@ ISR(TIMER3_COMPA_vect, ISR_NOBLOCK) {
   cli();
   Block *b = current;
   uint32_t done = events_done;
+  uint32_t origin = ramp_origin;
   sei();
   if (b) {
-    float a_dt = b->accel / ACCEL_TICK_HZ;
-    float r = rate;
     float start = b->start_rate;
+    float v0sq = start * start;
+    float two_a = 2.0f * b->accel;
+    float braking = v0sq + two_a * static_cast<float>(b->step_event_count - done);
+    float r;
     if (hold == 1) {
-      r -= a_dt;
+      r = fminf(rate - b->accel / ACCEL_TICK_HZ, sqrtf(braking));
       if (r <= start) {
         cli();
         timer_stop();
@@ -200,16 +211,10 @@ ISR(TIMER3_COMPA_vect, ISR_NOBLOCK) {
         return;
       }
     } else {
-      float remaining = static_cast<float>(b->step_event_count - done);
-      // Steps needed to slow from r to the start rate, plus the steps of the coming tick.
-      float stop_steps = (r * r - start * start) / (2.0f * b->accel) + r / ACCEL_TICK_HZ;
-      if (remaining <= stop_steps) {
-        r -= a_dt;
-        if (r < start) r = start;
-      } else if (r < b->nominal_rate) {
-        r += a_dt;
-        if (r > b->nominal_rate) r = b->nominal_rate;
-      }
+      float ramp = v0sq + two_a * static_cast<float>(done - origin);
+      float nominal_sq = b->nominal_rate * b->nominal_rate;
+      r = sqrtf(fminf(fminf(ramp, braking), nominal_sq));
+      if (r < start) r = start;
     }
     uint16_t t = ticks_for(r);
     cli();
@@ -267,12 +272,19 @@ void stepper_resume() {
     hold = 0;
     if (current) {
       rate = current->start_rate;
+      ramp_origin = events_done;  // a new ramp from rest
       interval_ticks = ticks_for(rate);
       limit_prev = limits_read();
       timer_start(interval_ticks);
     }
   } else if (hold == 1) {
-    hold = 0;  // not yet at rest: simply speed up again
+    hold = 0;  // not yet at rest: ramp up again from the present speed
+    if (current) {
+      float v0 = current->start_rate;
+      float back = (rate * rate - v0 * v0) / (2.0f * current->accel);
+      ramp_origin = back < static_cast<float>(events_done)
+                        ? events_done - static_cast<uint32_t>(back) : 0;
+    }
   }
   SREG = sreg;
 }

@@ -1,7 +1,8 @@
 // Step generation. Timer1 (CTC, 2 MHz ticks) fires once per step event and emits the pulses of a
 // Bresenham line, so every axis of a block makes exactly its step count and all axes take their
 // last step in the same interrupt: they arrive together. Timer3 fires at 1 kHz and moves the step
-// rate along the trapezoid (accelerate, cruise, decelerate in time to stop at the last step).
+// rate along the trapezoid, computed from the position in the block (accelerate, cruise, and
+// decelerate onto the braking curve that ends at the last step).
 #ifndef BENCH_STEPPER_H
 #define BENCH_STEPPER_H
 
