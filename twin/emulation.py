@@ -575,12 +575,21 @@ class VLP16Emulator:
             gid.reshape(-1)[idx] = g_c
             cos_inc.reshape(-1)[idx] = np.where(g_c >= 0, np.abs(np.einsum("ij,ij->i", n_c,
                                                                               dirs)), 0.0)
+        laser_id = np.tile(np.arange(n_l, dtype=np.uint8), n_seq)
+        if k == 1:
+            # One ray per firing: only the hits go on, straight from row space to the
+            # firing index (sequence * 16 + laser), no full-size transposes.
+            hit = np.flatnonzero(gid.reshape(-1) >= 0)
+            row, col = np.divmod(hit, n_seq)
+            firing = col * n_l + order[row]
+            r = dist.reshape(-1)[hit]
+            rc = self.reflectivity[gid.reshape(-1)[hit]] * cos_inc.reshape(-1)[hit]
+            return self._measure_single(n_seq * n_l, firing, r, rc / (r * r), rc, laser_id)
         # Back to firing order: rows (K, ring) -> (S, laser, K) -> (N, K).
         back = np.argsort(order)  # laser -> ring
         dist = dist.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
         gid = gid.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
         cos_inc = cos_inc.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
-        laser_id = np.tile(np.arange(n_l, dtype=np.uint8), n_seq)
         return self._from_hits(dist, gid, cos_inc, weights, laser_id)
 
     def _grid_candidates(self, az_rows: np.ndarray, base: np.ndarray, cw: np.ndarray,
