@@ -80,10 +80,8 @@ def _per_scan_mean(results: list[PoseEstimate], method: str) -> PoseEstimate:
         return results[0]
     a = np.array([r.pose.as_array() for r in good])
     mean = a.mean(axis=0)
-    if len(good) > 1:
-        cov = np.cov(a.T) / len(good)  # scatter of the per-scan estimates
-    else:
-        cov = good[0].covariance
+    # the scatter of the per-scan estimates, or the one estimate's own covariance
+    cov = np.cov(a.T) / len(good) if len(good) > 1 else good[0].covariance
     from twin.pose import Pose
 
     diag = {"scans_ok": len(good), "fusion": "mean of per-scan estimates"}

@@ -6,7 +6,8 @@
 3. The cluster's inlier returns projected orthogonally onto the plane.
 4. The feature beam points: for each board corner, the projected beam point closest to it.
 5. Levenberg-Marquardt on the six pose parameters minimising the paper's cost
-   F(beta) = 1/2 sum_i || P_O,i - (R p_L,i + T) ||^2 over the four corners P_O,i = (+-W/2, 0, +-H/2).
+   F(beta) = 1/2 sum_i || P_O,i - (R p_L,i + T) ||^2 over the four corners
+   P_O,i = (+-W/2, 0, +-H/2).
 
 Readings the paper leaves open (docs/align.md lists them with reasons):
 - "closest to each corner": the corners are unknown before the pose is, so we take the corners of

@@ -84,7 +84,10 @@ def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
         az_b = s.azimuth[g.board]
         c = float(np.angle(np.mean(np.exp(1j * az_b))))
         rel_b = _unwrap(az_b, c)
-        lo, hi = rel_b.min() - np.deg2rad(3), rel_b.max() + np.deg2rad(3)
+        # wide enough for the whole board even if only part of it returned (a dark patch, an
+        # occluder): the rectangle must not extend where no ray was looked at
+        margin = board.width / max(float(np.median(s.distance[g.board])), 0.5)
+        lo, hi = rel_b.min() - margin, rel_b.max() + margin
         rel = _unwrap(s.azimuth, c)
         rings = s.ring[g.board]
         m = (rel >= lo) & (rel <= hi) & (s.ring >= int(rings.min()) - 1) & \
@@ -492,13 +495,21 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         "range_sigma_m": sigma_r, "iterations": iters,
         "chi2_per_dof": float(np.sum(model.residuals(theta) ** 2) / max(len(j) - 6, 1)),
     }
+    outside_hits = int(np.sum((lab == 1) & ((np.abs(x) > w2 + 0.02) | (np.abs(z) > h2 + 0.02))))
+    diag["outside_hits"] = outside_hits
     status = Status.OK
     n_inside = max(int(np.sum(inside)), 1)
-    if n_left < 2 or n_right < 2 or occluded > 0.03 * n_inside or inside_miss > 0.03 * n_inside:
+    n_hit = max(int(hit.sum()), 1)
+    if (n_left < 2 or n_right < 2 or occluded > 0.03 * n_inside or inside_miss > 0.03 * n_inside
+            or outside_hits > 0.03 * n_hit or diag["chi2_per_dof"] > 3.0
+            or model.use_range.sum() < 0.5 * n_hit):
+        # the known rectangle does not explain what was seen: part of the board is hidden,
+        # dark or outside the field of view (or something board-like is not the board)
         status = Status.PARTIAL_BOARD
         diag["reason"] = ("the board's rectangle is not fully seen: side edges on "
                           f"{n_left}/{n_right} rings, {occluded} rays blocked in front, "
-                          f"{inside_miss} misses inside")
+                          f"{inside_miss} misses inside, {outside_hits} hits outside, "
+                          f"chi2/dof {diag['chi2_per_dof']:.1f}")
     elif not conv:
         status = Status.NOT_CONVERGED
     used = {"board": rays.gidx[model.use_range],

@@ -26,7 +26,7 @@ from twin.scan import Scan
 #: Neighbours join when closer than this fraction of their range (0.06 rad = 3.4 deg: above the
 #: 2 deg ring spacing of a surface facing the sensor, far below a 1.5 m board-to-wall gap).
 CLUSTER_RADIUS_PER_M = 0.06
-#: ... and never closer than this, m (near returns are dense; the threshold still must bridge rings).
+#: ... and never closer than this, m (near returns are dense; it must still bridge rings).
 CLUSTER_RADIUS_MIN = 0.05
 #: Largest azimuth step between ring neighbours, rad (0.2 deg at 600 rpm; 0.4 deg at 1200 rpm,
 #: plus a dropped firing).

@@ -29,7 +29,7 @@ def synth_scan(
 ) -> Scan:
     """One full rotation seen from ``pose`` (LiDAR in the board frame), noise ``sigma`` (m)."""
     rate = rpm / 60.0 * 2 * np.pi  # rad/s
-    n_seq = int(round(2 * np.pi / (rate * vlp16.SEQUENCE_PERIOD)))
+    n_seq = round(2 * np.pi / (rate * vlp16.SEQUENCE_PERIOD))
     a0 = rng.uniform(0, 2 * np.pi)
     seq = np.arange(n_seq)[:, None]
     laser = np.arange(16)[None, :]
