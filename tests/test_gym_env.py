@@ -47,6 +47,9 @@ def test_check_env_passes_without_any_warning() -> None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             check_env(env.unwrapped)
+            # and gym.make's own passive checker, on the wrapped env's first reset and step
+            obs, _ = env.reset(seed=1)
+            env.step(obs["stage"])
         assert [str(w.message) for w in caught] == []
     finally:
         env.close()
