@@ -18,6 +18,7 @@ scan) and why, and raise `RunFailed` with one clear line.
 from __future__ import annotations
 
 import math
+import queue
 import signal
 import sys
 import threading
@@ -116,7 +117,8 @@ class Progress:
     """A one-line progress bar on stderr with the estimate so far at the current reference.
 
     On a terminal it redraws in place (at most 10 times a second); otherwise it prints one line
-    per finished reference, so logs stay short.
+    per finished reference, so logs stay short. Keeps the running estimate per reference, so
+    parallel workers interleaving references each show their own.
     """
 
     def __init__(self, plan: Plan, stream: TextIO | None = None, enabled: bool = True) -> None:
@@ -129,68 +131,67 @@ class Progress:
         self.started = time.monotonic()
         self.session_scans = 0
         self._last = 0.0
-        self._yaw: list[float] = []
-        self._x: list[float] = []
-        self._fail = 0
         self._ref = 0
-        self._ref_done = 0
+        self._acc: dict[int, dict] = {}
 
     def start_reference(self, index: int, already: int) -> None:
         self._ref = index
-        self._ref_done = already
-        self._yaw.clear()
-        self._x.clear()
-        self._fail = 0
+        self._acc[index] = {"done": already, "yaw": [], "x": [], "fail": 0}
 
     def skip(self, n: int) -> None:
         self.done += n
 
-    def scan(self, est: Estimate) -> None:
+    def scan(self, est: Estimate, reference: int | None = None) -> None:
+        if reference is not None:
+            self._ref = reference
+        acc = self._acc.setdefault(self._ref, {"done": 0, "yaw": [], "x": [], "fail": 0})
         self.done += 1
         self.session_scans += 1
-        self._ref_done += 1
+        acc["done"] += 1
         if est.success and est.pose is not None:
-            self._yaw.append(est.pose.yaw)
-            self._x.append(est.pose.x)
+            acc["yaw"].append(est.pose.yaw)
+            acc["x"].append(est.pose.x)
         else:
-            self._fail += 1
+            acc["fail"] += 1
         now = time.monotonic()
-        if self.tty and (now - self._last > 0.1 or self._ref_done == self.plan.scans):
+        if self.tty and (now - self._last > 0.1 or acc["done"] == self.plan.scans):
             self._last = now
             self.stream.write("\r" + self.line() + "\x1b[K")
             self.stream.flush()
 
-    def line(self) -> str:
-        ref = self.plan.references[self._ref]
+    def line(self, reference: int | None = None) -> str:
+        i = self._ref if reference is None else reference
+        ref = self.plan.references[i]
+        acc = self._acc.get(i, {"done": 0, "yaw": [], "x": [], "fail": 0})
         frac = self.done / self.total if self.total else 1.0
         width = 20
         bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
         elapsed = time.monotonic() - self.started
         rate = self.session_scans / elapsed if elapsed > 0 else 0.0
         eta = (self.total - self.done) / rate if rate > 0 else math.nan
-        text = (f"[{bar}] {100 * frac:5.1f}% ref {self._ref + 1}/{len(self.plan)} "
-                f"({ref.describe()}) scan {self._ref_done}/{self.plan.scans}")
-        if self._yaw:
-            yaw = np.degrees(self._yaw)
-            x = np.array(self._x) * 1e3
+        text = (f"[{bar}] {100 * frac:5.1f}% ref {i + 1}/{len(self.plan)} "
+                f"({ref.describe()}) scan {acc['done']}/{self.plan.scans}")
+        if acc["yaw"]:
+            yaw = np.degrees(acc["yaw"])
+            x = np.array(acc["x"]) * 1e3
             text += (f" | yaw {yaw.mean():+.3f}±{yaw.std():.3f} deg"
                      f" x {x.mean():+.1f}±{x.std():.1f} mm")
-        if self._fail:
-            text += f" | {self._fail} without pose"
+        if acc["fail"]:
+            text += f" | {acc['fail']} without pose"
         text += f" | {rate:.1f} scans/s"
         if math.isfinite(eta):
             text += f" ETA {int(eta // 60)}m{int(eta % 60):02d}s"
         return text
 
-    def end_reference(self) -> None:
+    def end_reference(self, reference: int | None = None) -> None:
         if not self.enabled:
             return
         if self.tty:
-            self.stream.write("\r" + self.line() + "\x1b[K")
-            self.stream.flush()
+            self.stream.write("\r" + self.line(reference) + "\x1b[K")
         else:
-            self.stream.write(self.line() + "\n")
-            self.stream.flush()
+            self.stream.write(self.line(reference) + "\n")
+        self.stream.flush()
+        self._acc.pop(self._ref if reference is None else reference, None)
 
     def finish(self) -> None:
         if self.tty:
@@ -371,21 +372,12 @@ class Runner:
                     stage = self.bench.position()
                 except BenchError:
                     stage = None
-                self.store.add_scan(ScanResult(
-                    reference=i, scan=k, status=est.status, success=est.success, pose=est.pose,
-                    std=est.std, covariance=est.covariance, truth=scan_truth(scan), stage=stage,
-                    points=int(np.count_nonzero(scan.valid)), complete=bool(scan.complete),
-                    missing_packets=int(scan.missing_packets), acquired_at=time.time(),
-                    scan_s=t_scan, estimate_s=t_est, diagnostics=est.diagnostics,
-                    timings=est.timings))
+                self.store.add_scan(scan_result(i, k, scan, est, stage, t_scan, t_est))
                 self.progress.scan(est)
                 successes += bool(est.success)
                 consecutive = 0 if est.success else consecutive + 1
                 if successes == 0 and consecutive >= self.max_consecutive_failures:
-                    raise BenchError(
-                        f"no pose in {consecutive} scans in a row (last status "
-                        f"{est.status!r}{_diag_hint(est)}): the board is not in view or not "
-                        "found; check the board, the LiDAR's aim and the estimator's hints")
+                    raise _no_board(consecutive, est.status, est.diagnostics)
                 k += 1
                 where["scan"] = k
                 if self._stopping(flag):
@@ -398,8 +390,181 @@ class Runner:
         return False
 
 
-def _diag_hint(est: Estimate) -> str:
-    for key in ("reason", "message", "error"):
-        if key in est.diagnostics:
-            return f": {est.diagnostics[key]}"
-    return ""
+def scan_result(reference: int, k: int, scan: Scan, est: Estimate,
+                stage: tuple[float, float] | None, scan_s: float, estimate_s: float) -> ScanResult:
+    """What the store keeps of scan `k` at `reference` and its estimate."""
+    return ScanResult(
+        reference=reference, scan=k, status=est.status, success=est.success, pose=est.pose,
+        std=est.std, covariance=est.covariance, truth=scan_truth(scan), stage=stage,
+        points=int(np.count_nonzero(scan.valid)), complete=bool(scan.complete),
+        missing_packets=int(scan.missing_packets), acquired_at=time.time(),
+        scan_s=scan_s, estimate_s=estimate_s, diagnostics=est.diagnostics, timings=est.timings)
+
+
+def _no_board(consecutive: int, status: str, diagnostics: dict) -> BenchError:
+    """The error of a reference where no scan gave a pose."""
+    hint = next((f": {diagnostics[k]}" for k in ("reason", "message", "error")
+                 if k in (diagnostics or {})), "")
+    return BenchError(f"no pose in {consecutive} scans in a row (last status {status!r}{hint}): "
+                      "the board is not in view or not found; check the board, the LiDAR's aim "
+                      "and the estimator's hints")
+
+
+# -- parallel runs on the simulated bench -------------------------------------------------------
+
+def _sim_worker(plan_dict: dict, todo: list[tuple[int, int, int]], seed: int, ideal: bool,
+                method: str | None, out: Any, stop: Any) -> None:
+    """Worker process: its own SimBench and estimator; takes the (reference, first scan, count)
+    items of `todo` in order and sends every result to `out`; stops between scans on `stop`."""
+    import warnings
+
+    from scenarios.bench import SimBench
+
+    warnings.simplefilter("ignore", RuntimeWarning)  # the twin's NaN masks
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
+    plan = Plan.from_dict(plan_dict)
+    i = k = None
+    try:
+        bench = SimBench(seed=seed, ideal=ideal)
+        estimator = make_estimator(method)
+        bench.home()
+        for i, first, n in todo:
+            k = None
+            ref = plan.references[i]
+            bench.set_mount(ref.mount)
+            if ref.via is not None:
+                bench.move_to(*ref.via)
+            bench.move_to(ref.yaw_rad, ref.x_m)
+            out.put(("start", i, bench.wait_until_there(), first))
+            bench.prepare(i, first)
+            k = first
+            t0 = time.monotonic()
+            for scan in bench.scans(n):
+                t_scan = time.monotonic() - t0
+                t1 = time.monotonic()
+                est = estimator(scan)
+                t_est = time.monotonic() - t1
+                out.put(("scan", scan_result(i, k, scan, est, bench.position(), t_scan, t_est)))
+                k += 1
+                if stop.is_set():
+                    return
+                t0 = time.monotonic()
+            out.put(("done", i))
+    except AimbenchError as exc:
+        out.put(("error", i, k, str(exc)))
+    except Exception as exc:  # a bug in a worker must reach the user, not hang the run
+        out.put(("error", i, k, f"{type(exc).__name__}: {exc}"))
+    finally:
+        out.put(("exit", None))
+
+
+class ParallelSimRunner(Runner):
+    """`Runner` on `jobs` SimBench worker processes (the simulated bench only).
+
+    References are dealt to the workers in turn (reference order, round robin) and each worker
+    takes its share in order, so a run is reproducible for a given seed and `jobs`; the results
+    differ from a one-process run only by the noise draws, not in distribution. The store is
+    written by this process only, one transaction per scan as always; Ctrl-C stops every worker
+    between scans and everything finished is kept.
+    """
+
+    def __init__(self, plan: Plan, bench: Bench, store: Store, *, seed: int = 0,
+                 ideal: bool = False, method: str | None = None, jobs: int = 2,
+                 progress: Progress | None = None,
+                 max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES) -> None:
+        super().__init__(plan, bench, store, estimator=lambda scan: None,  # type: ignore[arg-type]
+                         progress=progress, max_consecutive_failures=max_consecutive_failures)
+        self.seed, self.ideal, self.method, self.jobs = seed, ideal, method, max(1, int(jobs))
+
+    def run(self) -> str:
+        import multiprocessing as mp
+
+        store, plan = self.store, self.plan
+        resumed = store.scan_count() > 0 or store.status not in ("created",)
+        todo = []
+        for i in range(len(plan)):
+            done = store.done_scans(i)
+            self.progress.skip(len(done))
+            if len(done) >= plan.scans:
+                if store.references()[i]["status"] != "done":
+                    store.finish_reference(i, "done")
+            else:
+                todo.append((i, (max(done) + 1) if done else 0, plan.scans - len(done)))
+        ctx = mp.get_context("spawn")  # MuJoCo and threads: never fork a live twin
+        out, stop = ctx.Queue(), ctx.Event()
+        procs = []
+        with _StopFlag(lambda: self.progress.message(
+                "stopping after the scans in flight (results so far are saved; --resume "
+                "continues; Ctrl-C again to stop at once)")) as flag:
+            store.set_status("running", ("resumed" if resumed else "started")
+                             + f" on {self.jobs} worker processes")
+            where: dict[str, int | None] = {"reference": None, "scan": None}
+            try:
+                self._check_travel(where)
+                self.bench.close()  # travel and info only: the workers have their own twins
+                for w in range(min(self.jobs, len(todo))):
+                    p = ctx.Process(target=_sim_worker, args=(
+                        plan.to_dict(), todo[w::self.jobs], self.seed, self.ideal, self.method,
+                        out, stop), daemon=True)
+                    p.start()
+                    procs.append(p)
+                running = len(procs)
+                fails: dict[int, list[int]] = {}  # reference -> [consecutive, successes]
+                while running:
+                    if (self._stopping(flag)) and not stop.is_set():
+                        stop.set()
+                    try:
+                        msg = out.get(timeout=0.5)
+                    except queue.Empty:
+                        if not any(p.is_alive() for p in procs):
+                            raise BenchError("a simulation worker died without a word") from None
+                        continue
+                    kind = msg[0]
+                    if kind == "exit":
+                        running -= 1
+                    elif kind == "start":
+                        _, i, stage, first = msg
+                        store.start_reference(i, stage)
+                        self.progress.start_reference(i, first)
+                        fails[i] = [0, 0]
+                    elif kind == "scan":
+                        r: ScanResult = msg[1]
+                        where.update(reference=r.reference, scan=r.scan)
+                        store.add_scan(r)
+                        self.progress.scan(Estimate(r.status, r.success, r.pose), r.reference)
+                        f = fails.setdefault(r.reference, [0, 0])
+                        f[0] = 0 if r.success else f[0] + 1
+                        f[1] += bool(r.success)
+                        if f[1] == 0 and f[0] >= self.max_consecutive_failures:
+                            raise _no_board(f[0], r.status, r.diagnostics)
+                    elif kind == "done":
+                        store.finish_reference(msg[1], "done")
+                        self.progress.end_reference(msg[1])
+                    elif kind == "error":
+                        where.update(reference=msg[1], scan=msg[2])
+                        raise BenchError(msg[3])
+                if stop.is_set():
+                    return self._interrupted(flag)
+                store.set_status("completed")
+                self.progress.finish()
+                return "completed"
+            except KeyboardInterrupt:
+                return self._interrupted(flag)
+            except AimbenchError as exc:
+                self.progress.finish()
+                i, k = where["reference"], where["scan"]
+                message = str(exc)
+                if i is not None:
+                    store.finish_reference(i, "failed", message)
+                    message = (f"at reference {i} ({plan.references[i].describe()})"
+                               + (f", scan {k}" if k is not None else "") + f": {message}")
+                store.set_status("failed", message, i, k)
+                raise RunFailed(message) from exc
+            finally:
+                stop.set()
+                for p in procs:
+                    p.join(timeout=10)
+                    if p.is_alive():
+                        p.terminate()
+                        p.join()
+                self.bench.close()

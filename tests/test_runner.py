@@ -25,11 +25,12 @@ def _plan(scans: int = 3, yaws=(-2.0, 0.0, 2.0), mount=None) -> Plan:
     return Plan("test", "yaw", refs, scans)
 
 
-def _run(tmp_path: Path, plan: Plan, bench: Bench | None = None, **kw) -> tuple[str, Store]:
+def _run(tmp_path: Path, plan: Plan, bench: Bench | None = None, method: str | None = METHOD,
+         **kw) -> tuple[str, Store]:
     bench = bench or SimBench(seed=1)
-    store = Store.create(tmp_path / "run", plan, {"bench": "sim", "method": METHOD},
+    store = Store.create(tmp_path / "run", plan, {"bench": "sim", "method": method},
                          bench.info())
-    runner = Runner(plan, bench, store, make_estimator(METHOD), **kw)
+    runner = Runner(plan, bench, store, make_estimator(method), **kw)
     return runner.run(), store
 
 
@@ -131,14 +132,15 @@ def test_board_not_in_view_fails_the_run_where_it_failed(tmp_path: Path):
     # The LiDAR tilted 30 deg up on its mount: every beam passes above the board.
     plan = _plan(scans=30, yaws=(0.0,), mount={"roll_deg": 0.0, "tilt_deg": 30.0,
                                                 "yaw_deg": 0.0, "x_mm": 0.0})
+    # align's default method: the paper's finds "boards" in the wall now and then.
     with pytest.raises(RunFailed, match=r"at reference 0 .*no pose in 4 scans in a row .*"
-                                         r"no_board.*board is not in view"):
-        _run(tmp_path, plan, max_consecutive_failures=4)
+                                         r"(no|partial)_board.*board is not in view"):
+        _run(tmp_path, plan, method=None, max_consecutive_failures=4)
     with Store.open(tmp_path / "run") as store:
         assert store.status == "failed"
         assert store.get("failure")["reference"] == 0
         assert store.scan_count() == 4  # nothing lost: the failed scans are stored
-        assert {r["status"] for r in store.iter_scans()} == {"no_board"}
+        assert {r["status"] for r in store.iter_scans()} <= {"no_board", "partial_board"}
 
 
 def test_travel_error_from_the_bench_itself():
@@ -181,3 +183,50 @@ def test_seeded_sim_runs_are_reproducible(tmp_path: Path):
     assert np.array_equal(sa.distance, sb.distance)
     a.prepare(3, 1)
     assert not np.array_equal(next(a.scans(1)).distance, sa.distance)
+
+
+@pytest.mark.slow
+def test_parallel_sim_runner_stores_every_scan_once_and_resumes(tmp_path: Path):
+    from scenarios.runner import ParallelSimRunner
+
+    plan = _plan(scans=4, yaws=(-4.0, -2.0, 0.0, 2.0))
+    store = Store.create(tmp_path / "run", plan, {"bench": "sim", "jobs": 2})
+    runner = ParallelSimRunner(plan, SimBench(seed=4), store, seed=4, method=METHOD, jobs=2)
+    # Stop as soon as the first results are in: both workers stop between scans.
+    timer = threading.Timer(0.1, runner.request_stop)
+    timer.start()
+    try:
+        first = runner.run()
+    finally:
+        timer.cancel()
+    assert first in ("interrupted", "completed")
+    n = store.scan_count()
+    runner = ParallelSimRunner(plan, SimBench(seed=4), store, seed=4, method=METHOD, jobs=2)
+    assert runner.run() == "completed"
+    assert [store.done_scans(i) for i in range(4)] == [[0, 1, 2, 3]] * 4
+    assert store.scan_count() == 16 >= n
+    for r in store.iter_scans():
+        ref = plan.references[r["reference"]]
+        assert r["truth_yaw_rad"] == pytest.approx(ref.yaw_rad, abs=1e-9)
+    assert all(r["status"] == "done" for r in store.references())
+    store.close()
+
+
+@pytest.mark.slow
+def test_parallel_sim_runner_fails_where_the_board_is_not_in_view(tmp_path: Path):
+    from scenarios.runner import ParallelSimRunner
+
+    plan = _plan(scans=20, yaws=(0.0, 1.0), mount={"roll_deg": 0.0, "tilt_deg": 30.0,
+                                                   "yaw_deg": 0.0, "x_mm": 0.0})
+    store = Store.create(tmp_path / "run", plan, {"bench": "sim", "jobs": 2})
+    runner = ParallelSimRunner(plan, SimBench(seed=0), store, method=None, jobs=2,
+                               max_consecutive_failures=3)
+    with pytest.raises(RunFailed, match=r"at reference \d .*no pose in 3 scans in a row"):
+        runner.run()
+    assert store.status == "failed"
+    failed = store.get("failure")["reference"]
+    assert store.references()[failed]["status"] == "failed"
+    # The reference that failed gave no pose; every scan before the failure is kept.
+    rows = [r for r in store.iter_scans() if r["reference"] == failed]
+    assert len(rows) >= 3 and not any(r["success"] for r in rows)
+    store.close()

@@ -11,6 +11,7 @@ resumes an interrupted one); ``--fresh`` starts over.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -46,7 +47,7 @@ def run(args: argparse.Namespace) -> int:
               f"{args.seed}", file=sys.stderr)
     config = {"scenario": "yaw", "bench": "sim", "port": None, "lidar": None,
               "method": args.method, "seed": args.seed, "ideal": False, "scans": args.scans,
-              "poses": None, "argv": sys.argv[1:], "demo": True}
+              "poses": None, "argv": sys.argv[1:], "demo": True, "jobs": args.jobs}
     return execute(None if resume else plan, config, out, resume,
                    progress=not args.no_progress, report=True, tol=tolerances(args))
 
@@ -60,6 +61,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help=f"scans per reference (default {DEMO_SCANS}; the paper: 100)")
     p.add_argument("--seed", type=int, default=0, help="the twin's noise seed (default 0)")
     p.add_argument("--method", help="estimation method (default: align's)")
+    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
+                   help="worker processes (default: 2 or the CPU count if lower)")
     p.add_argument("--fresh", action="store_true", help="discard a previous run in --out")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_tolerance_arguments(p)

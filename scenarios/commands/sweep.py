@@ -20,7 +20,13 @@ from scenarios import plans
 from scenarios.bench import open_bench
 from scenarios.commands.version import versions
 from scenarios.report import Tolerances, summary_lines, write
-from scenarios.runner import MAX_CONSECUTIVE_FAILURES, Progress, Runner, make_estimator
+from scenarios.runner import (
+    MAX_CONSECUTIVE_FAILURES,
+    ParallelSimRunner,
+    Progress,
+    Runner,
+    make_estimator,
+)
 from scenarios.store import Store
 from twin.errors import AimbenchError
 
@@ -102,10 +108,17 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
         resumed = f" (resumed: {store.scan_count()} scans stored)" if resume else ""
         stream.write(f"aimbench sweep: {plan.name}, {len(plan)} references x {plan.scans} scans "
                      f"on the {config.get('bench')} bench{resumed} -> {out}\n")
-        runner = Runner(plan, bench, store, estimator,
-                        progress=Progress(plan, stream=stream, enabled=progress),
-                        max_consecutive_failures=int(config.get("max_consecutive_failures")
-                                                     or MAX_CONSECUTIVE_FAILURES))
+        prog = Progress(plan, stream=stream, enabled=progress)
+        max_fail = int(config.get("max_consecutive_failures") or MAX_CONSECUTIVE_FAILURES)
+        jobs = int(config.get("jobs") or 1)
+        if jobs > 1:
+            runner: Runner = ParallelSimRunner(
+                plan, bench, store, seed=int(config.get("seed") or 0),
+                ideal=bool(config.get("ideal")), method=config.get("method"), jobs=jobs,
+                progress=prog, max_consecutive_failures=max_fail)
+        else:
+            runner = Runner(plan, bench, store, estimator, progress=prog,
+                            max_consecutive_failures=max_fail)
         status = runner.run()
         if status == "interrupted":
             stream.write(f"interrupted: {store.scan_count()} of {plan.total_scans} scans saved in "
@@ -134,6 +147,9 @@ def check_config(config: dict) -> None:
         raise AimbenchError("--bench hw needs the stage controller's --port (e.g. /dev/ttyACM0),"
                             " or --port none for a LiDAR without stages or a capture replay")
     make_estimator(config.get("method"))  # an unknown method fails here, not after a move
+    if int(config.get("jobs") or 1) > 1 and kind != "sim":
+        raise AimbenchError("--jobs runs several simulated benches; there is one "
+                            f"{'real' if kind == 'hw' else 'served'} bench: drop --jobs")
 
 
 def _report(store: Store, report: bool, tol: Tolerances | None, stream) -> int:
@@ -153,7 +169,7 @@ def config_from_args(args: argparse.Namespace) -> dict:
         "method": args.method, "seed": 0 if args.seed is None else args.seed,
         "ideal": bool(args.ideal),
         "scans": args.scans, "poses": args.poses, "argv": sys.argv[1:],
-        "max_consecutive_failures": args.max_consecutive_failures,
+        "max_consecutive_failures": args.max_consecutive_failures, "jobs": args.jobs,
     }
 
 
@@ -191,6 +207,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="fail the run after this many scans in a row without a pose at a "
                         f"reference with none (board not in view; default "
                         f"{MAX_CONSECUTIVE_FAILURES})")
+    p.add_argument("--jobs", type=int, default=1,
+                   help="simulated bench only: run references on this many worker processes "
+                        "(default 1; reproducible for a given --seed and --jobs)")
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted run in --out with its stored settings")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
