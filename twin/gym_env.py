@@ -156,11 +156,14 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     |e_x| <= x_tolerance_m (default 4 mm); ``truncated`` by the registration's `TimeLimit`.
 
     **Info**: ``true_pose`` (6-array, SI; None on hardware), ``true_error_yaw_rad``,
-    ``true_error_x_m`` (and ``*_deg`` / ``*_mm``; None on hardware), ``error_source`` ("truth"
-    or "estimate"), ``aligned`` and ``is_success``, ``reward_terms``, ``estimate_status``,
-    ``mount`` (the episode's misalignment, edge units; None when the bench keeps its own),
-    ``stage_command`` (the clipped action), ``step_time_s`` and ``episode_time_s`` (modelled
-    bench time), ``scans``.
+    ``true_error_x_m`` (and ``*_deg`` / ``*_mm``; None on hardware); ``error_yaw_rad``,
+    ``error_x_m``, the error the reward and the termination used, and ``error_source``
+    ("truth", "estimate", or "last": the last known, when neither is available);
+    ``estimate_error_yaw_rad``, ``estimate_error_x_m`` (the estimate's view; None when it
+    failed), ``estimate_status``; ``aligned`` and ``is_success``; ``reward_terms``; ``mount``
+    (the episode's misalignment, edge units; None when the bench keeps its own);
+    ``stage_command`` (the clipped action); ``step_time_s`` and ``episode_time_s`` (modelled
+    bench time, s); ``scans`` (how many the estimate used).
 
     **Seeding.** All randomness of an episode comes from ``reset(seed=...)`` through
     ``self.np_random``: the mount, and a key that seeds every scan's noise on the twin
