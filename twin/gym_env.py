@@ -163,7 +163,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     failed), ``estimate_status``; ``aligned`` and ``is_success``; ``reward_terms``; ``mount``
     (the episode's misalignment, edge units; None when the bench keeps its own);
     ``stage_command`` (the clipped action); ``step_time_s`` and ``episode_time_s`` (modelled
-    bench time, s); ``scans`` (how many the estimate used).
+    bench time, s); ``scans`` (how many were taken for the estimate).
 
     **Seeding.** All randomness of an episode comes from ``reset(seed=...)`` through
     ``self.np_random``: the mount, and a key that seeds every scan's noise on the twin
