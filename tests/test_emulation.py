@@ -158,10 +158,12 @@ def test_box_muller_noise_is_gaussian() -> None:
 
 def test_sincos_rows_is_exact() -> None:
     az = _grid(300)
-    a = np.stack([az.T] * 2) + np.array([0.0, 1e-3])[:, None, None]
-    s, c = _sincos_rows(a, az[:, 0])
-    np.testing.assert_allclose(s, np.sin(a), atol=2e-15)
-    np.testing.assert_allclose(c, np.cos(a), atol=2e-15)
+    a = (np.stack([az.T] * 2) + np.array([0.0, 1e-3])[:, None, None]).reshape(32, -1)
+    jitter = np.random.default_rng(0).uniform(-1e-6, 1e-6, a.shape)  # rows not constant
+    for rows in (a, a + jitter):
+        s, c = _sincos_rows(rows, az[:, 0])
+        np.testing.assert_allclose(s, np.sin(rows), atol=2e-15)
+        np.testing.assert_allclose(c, np.cos(rows), atol=2e-15)
 
 
 def test_intensity_follows_reflectivity_and_incidence() -> None:

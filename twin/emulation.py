@@ -353,7 +353,18 @@ def _divergence_pattern(cfg: EmulationConfig) -> tuple[np.ndarray, np.ndarray, n
     return dh, dv, w
 
 
-def _sincos_rows(az: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _row_offsets(az: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Offsets of ``az`` (R, S) from ``base`` (S,) wrapped to (-pi, pi]: (d (R, S), the first
+    column's d (R,), the largest deviation of a row from its first column, rad)."""
+    d = az - base
+    d -= np.rint(d * (1.0 / (2 * np.pi))) * (2 * np.pi)  # the row may wrap past 2 pi
+    d_r = d[:, 0]
+    return d, d_r, float(np.abs(d - d_r[:, None]).max(initial=0.0))
+
+
+def _sincos_rows(az: np.ndarray, base: np.ndarray,
+                 offsets: tuple[np.ndarray, np.ndarray, float] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """sin and cos of ``az`` (..., S) whose entries lie within a few mrad of ``base`` (S,).
 
     The 16 lasers of a sequence fire within 35 us, so their azimuths differ from the
@@ -362,12 +373,10 @@ def _sincos_rows(az: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarr
     omitted terms are below 1e-17). Costs S transcendental pairs instead of 16 K S.
     """
     sb, cb = np.sin(base), np.cos(base)
-    d = az - base
-    d -= np.rint(d / (2 * np.pi)) * (2 * np.pi)  # the row may wrap past 2 pi
-    d_row = d[..., :1]
-    if np.abs(d - d_row).max(initial=0.0) < 1e-12:  # 1e-12 rad: 0.1 nm at 100 m
+    d, d_r, spread = offsets if offsets is not None else _row_offsets(az, base)
+    if spread < 1e-12:  # 1e-12 rad: 0.1 nm at 100 m
         # One spin rate over the window: each row sits at a constant offset from the base.
-        sd, cd = np.sin(d_row), np.cos(d_row)
+        sd, cd = np.sin(d_r)[:, None], np.cos(d_r)[:, None]
         return sb * cd + cb * sd, cb * cd - sb * sd
     if np.abs(d).max(initial=0.0) > 0.02:  # not a firing grid: do it the plain way
         return np.sin(az), np.cos(az)
@@ -512,7 +521,8 @@ class VLP16Emulator:
         dh_l = dh[:, None] / np.cos(w_l)[None, :]  # (K, 16) horizontal sub-ray offsets
         cw, sw = np.cos(el).reshape(-1, 1), np.sin(el).reshape(-1, 1)  # (R, 1), R = 16 K
         az_rows = (az_l[None] + dh_l[:, :, None]).reshape(k * n_l, n_seq)  # (R, S)
-        sa, ca = _sincos_rows(az_rows, azimuth[:, 0])
+        offsets = _row_offsets(az_rows, azimuth[:, 0])
+        sa, ca = _sincos_rows(az_rows, azimuth[:, 0], offsets)
         vo = vlp16.VERTICAL_OFFSET[order] if cfg.vertical_offsets else np.zeros(n_l)
         origins = position + np.outer(vo, rotation[:, 2])  # (16, 3), ring order
         row_laser = np.tile(np.arange(n_l), k)  # row -> ring index into origins
@@ -559,7 +569,7 @@ class VLP16Emulator:
                 sub_c[ok] = -lz[ok]
                 dist[rows], gid[rows], cos_inc[rows] = sub_d, sub_g, sub_c
 
-        cand = (self._grid_candidates(az_rows, azimuth[:, 0], cw, sw, origins, row_laser,
+        cand = (self._grid_candidates(offsets, azimuth[:, 0], cw, sw, origins, row_laser,
                                       rotation)
                 if cfg.culling else np.ones((n_rows, n_seq), dtype=bool))
         idx = np.flatnonzero(cand)  # row-major: each row's candidates are contiguous
@@ -592,14 +602,16 @@ class VLP16Emulator:
         cos_inc = cos_inc.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
         return self._from_hits(dist, gid, cos_inc, weights, laser_id)
 
-    def _grid_candidates(self, az_rows: np.ndarray, base: np.ndarray, cw: np.ndarray,
+    def _grid_candidates(self, offsets: tuple[np.ndarray, np.ndarray, float],
+                         base: np.ndarray, cw: np.ndarray,
                          sw: np.ndarray, origins: np.ndarray, row_laser: np.ndarray,
                          rotation: np.ndarray) -> np.ndarray:
         """Mask (R, S) of rays that may meet a non-plane geom (inside its bounding sphere).
 
         Row r has one origin ``origins[row_laser[r]]``, one elevation (cos ``cw[r]``, sin
-        ``sw[r]``) and azimuths ``az_rows[r]`` = ``base`` (the sequences' first firings, one
-        per column) + a row offset (the laser's firing delay, the sub-ray's divergence offset).
+        ``sw[r]``) and azimuths ``base`` (the sequences' first firings, one per column) + a
+        row offset (the laser's firing delay, the sub-ray's divergence offset): ``offsets`` of
+        `_row_offsets`.
         A sphere seen under half-angle alpha holds the directions with
         cw (sin a cx + cos a cy) + sw cz >= cos(alpha), i.e. |a - phi| <= arccos(q): an
         azimuth interval per (row, sphere), found by one `np.searchsorted` on the unwrapped
@@ -607,7 +619,8 @@ class VLP16Emulator:
         culling can only cast too much, never too little.
         """
         caster = self.caster
-        n_rows, n_s = az_rows.shape
+        _, d_r, spread = offsets
+        n_rows, n_s = len(d_r), len(base)
         mask = np.zeros((n_rows, n_s), dtype=bool)
         ids = caster.solid_ids
         if len(ids) == 0:
@@ -630,10 +643,6 @@ class VLP16Emulator:
         if len(row) == 0:
             return mask
         two_pi = 2.0 * np.pi
-        d = az_rows - base[None, :]
-        d -= np.rint(d / two_pi) * two_pi
-        d_r = d[:, 0]
-        spread = float(np.abs(d - d_r[:, None]).max(initial=0.0))
         b_u = np.unwrap(base)  # monotonic: the sensor spins one way
         half = np.arccos(np.clip(q[row, geom], -1.0, 1.0)) + spread + 1e-9
         centre = np.arctan2(cs[row, geom, 0], cs[row, geom, 1]) - d_r[row]
