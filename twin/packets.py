@@ -313,7 +313,8 @@ def decode_data_packets(
 
     ``payloads``: an (n, 1206) uint8 array, one payload, or a sequence of payloads.
     ``vertical_offsets``: add each laser's vertical offset (manual table 9-1) to z; the manual's
-    model and the default. velodyne_decoder's bundled VLP-16 calibration leaves it out.
+    model and the default (velodyne_decoder 3.x applies them too, with its built-in
+    calibration; the VLP-16.yml file it ships leaves them out).
     ``model``: ``"VLP-16"`` forces VLP-16 decoding whatever the product id (see `identify_model`).
     ``strict``: raise `MalformedPacketError` on the first bad payload instead of dropping and
     counting it in ``rejected``.
