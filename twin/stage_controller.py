@@ -361,25 +361,55 @@ class StageController:
         st = self.status()
         return st.x_m, st.yaw_rad
 
-    def wait_idle(self, timeout: float = 60.0, poll_s: float = 0.02) -> StageStatus:
+    def wait_idle(
+        self,
+        timeout: float = 60.0,
+        poll_s: float = 0.02,
+        target: tuple[float, float] | None = None,
+    ) -> StageStatus:
         """Poll status until the controller is Idle (arrived); returns the final status.
 
+        target: the commanded machine position (x mm, a deg); then Idle only counts once the
+        reported position is there too (a stock Grbl may report Idle for a moment before a
+        just-accepted move starts), and resting elsewhere for 0.5 s raises StageError.
         Raises GrblAlarm if it is (or goes) into alarm, StageTimeout after `timeout` s.
         """
         deadline = time.monotonic() + timeout
+        elsewhere_since: float | None = None
         while True:
             st = self.status()
+            now = time.monotonic()
             if st.state == "Idle":
-                return st
+                if target is None or self._at(st, target):
+                    return st
+                if elsewhere_since is None:
+                    elsewhere_since = now
+                elif now - elsewhere_since > 0.5:
+                    raise StageError(
+                        f"the stages came to rest at x={st.x_mm:.4f} mm, a={st.yaw_deg:.4f} deg "
+                        f"instead of the commanded x={target[0]:.4f} mm, a={target[1]:.4f} deg; "
+                        "the move was cut short: re-home before trusting the position"
+                    )
+            else:
+                elsewhere_since = None
             if st.state == "Alarm":
                 where = f"at x={st.x_mm:.3f} mm, a={st.yaw_deg:.3f} deg"
                 raise GrblAlarm(self.last_alarm or 0, where)
-            if time.monotonic() >= deadline:
+            if now >= deadline:
                 raise StageTimeout(
                     f"the stages did not come to rest within {timeout:.1f} s (state {st.state}, "
                     f"x={st.x_mm:.3f} mm, a={st.yaw_deg:.3f} deg); is a feed hold (!) active?"
                 )
             time.sleep(poll_s)
+
+    def _at(self, st: StageStatus, target: tuple[float, float]) -> bool:
+        """The status position equals `target` to a step (plus the report's 3-decimal rounding)."""
+        for value, goal, which in ((st.x_mm, target[0], 0), (st.yaw_deg, target[1], 1)):
+            spu = self._settings.get(100 + self.mpos_axes.index(self.axis_letters[which]))
+            tol = (1.0 / spu + 0.001) if spu else 0.005
+            if abs(value - goal) > tol:
+                return False
+        return True
 
     # ---- commands -----------------------------------------------------------------------------
 
@@ -393,11 +423,19 @@ class StageController:
         """Leave the alarm state without homing ($X); the position is then trusted as is."""
         self.command("$X")
 
-    def _move(self, words: str, wait: bool, timeout: float | None, estimate_s: float) -> None:
+    def _move(
+        self,
+        words: str,
+        wait: bool,
+        timeout: float | None,
+        estimate_s: float,
+        target: tuple[float, float] | None,
+    ) -> None:
         self.last_alarm = None
         self.command(words)
         if wait:
-            self.wait_idle(timeout if timeout is not None else 2.0 * estimate_s + 5.0)
+            limit = timeout if timeout is not None else 2.0 * estimate_s + 5.0
+            self.wait_idle(limit, target=target)
 
     def move_to(
         self, x_m: float, yaw_rad: float, wait: bool = True, timeout: float | None = None
@@ -412,7 +450,7 @@ class StageController:
         estimate = self._estimate_s(x_mm, yaw_deg, relative=False)
         self._move(
             f"G90G0{lx}{grbl.format_number(x_mm)}{la}{grbl.format_number(yaw_deg)}",
-            wait, timeout, estimate,
+            wait, timeout, estimate, (x_mm, yaw_deg),
         )
 
     def move_by(
@@ -423,9 +461,13 @@ class StageController:
         dyaw_deg = self._quantize(math.degrees(dyaw_rad), 1)
         lx, la = self.axis_letters
         estimate = self._estimate_s(dx_mm, dyaw_deg, relative=True)
+        target = None
+        if wait:
+            here = self.status()
+            target = (here.x_mm + dx_mm, here.yaw_deg + dyaw_deg)
         self._move(
             f"G91G0{lx}{grbl.format_number(dx_mm)}{la}{grbl.format_number(dyaw_deg)}",
-            wait, timeout, estimate,
+            wait, timeout, estimate, target,
         )
 
     def _quantize(self, value: float, which: int) -> float:

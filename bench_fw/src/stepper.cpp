@@ -87,7 +87,11 @@ void stepper_init() {
 static uint16_t ticks_for(float r) {
   float t = static_cast<float>(STEP_TIMER_HZ) / r;
   if (t > 65535.0f) return 65535;
-  if (t < 60.0f) return 60;
+  // The step ISR waits for TCNT1 to pass the pulse width; the period must leave room for that
+  // and for the ISR itself (20 us), or the counter would wrap before it and the ISR never end.
+  float shortest = static_cast<float>(pulse_ticks) + 40.0f;
+  if (shortest < 60.0f) shortest = 60.0f;
+  if (t < shortest) return static_cast<uint16_t>(shortest);
   return static_cast<uint16_t>(t);
 }
 
