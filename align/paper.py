@@ -113,6 +113,23 @@ def levenberg_marquardt(
     return beta, _jacobian(beta, p_l, p_o), False, max_iter
 
 
+def _best_block(rings: np.ndarray) -> list[int]:
+    """The consecutive block of rings holding the most returns (rings with a quarter of the most
+    count as present)."""
+    per_ring = np.bincount(rings, minlength=16)
+    present = per_ring >= 0.25 * per_ring.max() if len(rings) else per_ring > 0
+    blocks, cur = [], []
+    for r in range(16):
+        if present[r]:
+            cur.append(r)
+        elif cur:
+            blocks.append(cur)
+            cur = []
+    if cur:
+        blocks.append(cur)
+    return max(blocks, key=lambda b: per_ring[b].sum()) if blocks else []
+
+
 def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> PoseEstimate:
     """The paper's pose from one scan whose board cluster ``segmentation`` already found."""
     pts_idx = segmentation.board
@@ -121,6 +138,10 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
         return PoseEstimate.failed(Status.NO_BOARD, "paper", reason="too few board returns")
     rng = np.random.default_rng(hints.seed)
     n, d, inl = plane.ransac(pts, RANSAC_THRESHOLD, rng, RANSAC_ITERATIONS)
+    # the ROI is the board: its rings are consecutive, and the stand's base (a face 5 cm in
+    # front of the board, within the RANSAC band) lights up a ring below a gap; keep the
+    # consecutive block of rings with the most inliers
+    inl &= np.isin(scan.ring[pts_idx], _best_block(scan.ring[pts_idx][inl]))
     rings = np.unique(scan.ring[pts_idx[inl]])
     if len(rings) < 3:
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=len(rings),

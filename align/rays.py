@@ -31,7 +31,7 @@ import numpy as np
 
 from align import plane
 from align.board import BoardSpec
-from align.geometry import board_coordinates, pose_from_plane
+from align.geometry import board_coordinates, pose_from_plane, rotation
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation
 from twin.pose import Pose
@@ -246,11 +246,22 @@ class _Model:
         x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
         w2, h2 = self.board.width / 2, self.board.height / 2
         hit, miss = self.lab == 1, self.lab == 0
-        zz = z[:, None] + dz[None, :]
-        in_x = (np.abs(x) < w2 - tol)[:, None]
-        out_x = (np.abs(x) > w2 + tol)[:, None]
-        viol = np.sum(hit[:, None] & (out_x | (np.abs(zz) > h2 + tol)), axis=0)
-        viol += np.sum(miss[:, None] & in_x & (np.abs(zz) < h2 - tol), axis=0)
+        n = len(dz)
+
+        def count_in(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+            """For each shift, how many intervals (lo, hi) contain it (interval counting)."""
+            a = np.searchsorted(dz, lo, side="right")
+            b = np.searchsorted(dz, hi, side="left")
+            c = np.bincount(a, minlength=n + 1) - np.bincount(np.maximum(b, a), minlength=n + 1)
+            return np.cumsum(c)[:n]
+
+        # a hit violates when |z + s| > h2 + tol (or it is outside in x at any shift); a miss
+        # within the side edges violates when |z + s| < h2 - tol
+        zh = z[hit & (np.abs(x) <= w2 + tol)]
+        viol = np.count_nonzero(hit & (np.abs(x) > w2 + tol)) + len(zh) - count_in(
+            -h2 - tol - zh, h2 + tol - zh)
+        zm = z[miss & (np.abs(x) < w2 - tol)]
+        viol = viol + count_in(-h2 + tol - zm, h2 - tol - zm)
         xh, xm = x[self.bh][:, None], x[self.bm][:, None]
         zh, zm = z[self.bh][:, None] + dz[None, :], z[self.bm][:, None] + dz[None, :]
         kind, sign, sd = self._edges(xh, zh, xm, zm)
@@ -271,8 +282,31 @@ class _Model:
         return np.concatenate((rr, re))
 
     def jacobian(self, theta: np.ndarray, f0: np.ndarray) -> np.ndarray:
+        """d residuals / d theta: translations analytically, rotations by forward differences.
+
+        X = o.r0 + t_x + lam u.r0, Z = o.r2 + t_z + lam u.r2, lam = -(o.r1 + t_y) / u.r1 (r_k
+        the rows of R): t_x and t_z move X and Z one for one; t_y moves lam by -1 / u.r1.
+        """
+        r = self.rays
+        rot = rotation(theta[3], theta[4], theta[5])
+        uy = r.direction @ rot[1]
+        dlam = -1.0 / uy  # d lam / d t_y
+        dx_dty = dlam * (r.direction @ rot[0])
+        dz_dty = dlam * (r.direction @ rot[2])
+        k = self.edge_kind
+        use = k > 0
+        vert = (k == 1)[use]
         j = np.empty((len(f0), 6))
-        for i in range(6):
+        nr = int(self.use_range.sum())
+        j[:nr, 0] = 0.0
+        j[:nr, 1] = -dlam[self.use_range] / self.sigma_r
+        j[:nr, 2] = 0.0
+        sd = self.edge_sd[use]
+        bh, bm = self.bh[use], self.bm[use]
+        j[nr:, 0] = np.where(vert, -1.0, 0.0) / sd
+        j[nr:, 2] = np.where(vert, 0.0, -1.0) / sd
+        j[nr:, 1] = -0.5 * np.where(vert, dx_dty[bh] + dx_dty[bm], dz_dty[bh] + dz_dty[bm]) / sd
+        for i in range(3, 6):
             t = theta.copy()
             t[i] += 1e-7
             j[:, i] = (self.residuals(t) - f0) / 1e-7
@@ -353,19 +387,23 @@ def _staged_fit(model: _Model, theta: np.ndarray, dz: np.ndarray
 
     First without the top/bottom crossings: roll and x from the side edges alone, so that a
     poor start cannot lock z and roll into a wrong pair of crossings; then with them, the
-    bracket assignment redone with a tighter corner guard; a z profile after each stage.
+    bracket assignment redone with a tighter corner guard; a z profile after each stage, and a
+    last fit if that profile moved z.
     """
     iters = 0
-    for guard, crossings in ((0.005, False), (0.005, True), (0.002, True)):
+    for guard, crossings in ((0.005, False), (0.002, True)):
         model.classify(theta, guard, crossings)
         theta, j, conv, it = _gauss_newton(model, theta)
         iters += it
         theta = theta.copy()
-        theta[2] += dz[np.argmin(model.profile_z(theta, dz))]
-    model.classify(theta, 0.002, True)
-    theta, j, conv, it = _gauss_newton(model, theta)
+        shift = dz[np.argmin(model.profile_z(theta, dz))]
+        theta[2] += shift
+    if abs(shift) > 0:
+        model.classify(theta, 0.002, True)
+        theta, j, conv, it = _gauss_newton(model, theta)
+        iters += it
     f = model.residuals(theta)
-    return theta, j, conv, iters + it, float(f @ f / max(len(f) - 6, 1))
+    return theta, j, conv, iters, float(f @ f / max(len(f) - 6, 1))
 
 
 def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
