@@ -485,15 +485,33 @@ class VLP16Emulator:
             rc = self.reflectivity[gid[idx, 0]] * cos_inc[idx, 0]
             return self._measure_single(len(dist), idx, r, rc * weights[0] / (r * r), rc,
                                         laser_id)
-        hit = np.isfinite(dist)
-        refl = np.where(hit, self.reflectivity[np.maximum(gid, 0)], 0.0)
-        r_safe = np.where(hit, dist, 1.0)
+        n = len(dist)
+        # Most beams land whole on one surface: every sub-ray on the same geom within the echo
+        # separation is one echo, done in bulk. Only the rest (edges, grazing footprints) go
+        # through the general echo formation; both give the same echo for such a beam.
+        g0 = gid[:, 0]
+        one = (g0 >= 0) & (gid == g0[:, None]).all(axis=1)
+        one[one] = np.ptp(dist[one], axis=1) <= cfg.echo_separation
+        idx = np.flatnonzero(one)
+        r_i = dist[idx]
         # Received energy relative to a full beam on a white Lambertian target 1 m away.
-        energy = np.where(hit, weights[None, :] * refl * cos_inc / r_safe**2, 0.0)
-        if k == 1:
-            return self._measure(dist, energy, refl * cos_inc, laser_id)
-        echoes_r, echoes_e, echoes_refl = self._echoes(dist, energy, cfg)
-        return self._measure(echoes_r, echoes_e, echoes_refl, laser_id)
+        e_i = weights[None, :] * self.reflectivity[g0[idx], None] * cos_inc[idx] / r_i**2
+        e = e_i.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            r_e = np.where(e > 0, (e_i * r_i).sum(axis=1) / e, r_i.mean(axis=1))
+        out = self._measure_single(n, idx, r_e, e, e * r_e**2, laser_id)
+        rest = np.flatnonzero(~one & (gid >= 0).any(axis=1))
+        if len(rest):
+            d_m, g_m = dist[rest], gid[rest]
+            hit = g_m >= 0
+            refl = np.where(hit, self.reflectivity[np.maximum(g_m, 0)], 0.0)
+            r_safe = np.where(hit, d_m, 1.0)
+            energy = np.where(hit, weights[None, :] * refl * cos_inc[rest] / r_safe**2, 0.0)
+            sub = self._measure(*self._echoes(d_m, energy, cfg), laser_id[rest])
+            out.distance[:, rest] = sub.distance
+            out.intensity[:, rest] = sub.intensity
+            out.return_type[:, rest] = sub.return_type
+        return out
 
     def fire_grid(self, azimuth: np.ndarray, position: np.ndarray, rotation: np.ndarray
                   ) -> Returns:
@@ -711,6 +729,9 @@ class VLP16Emulator:
         range ``r`` (M,) m with ``energy`` and apparent reflectivity ``refl`` (M,)."""
         cfg = self.config
         rng = self.rng
+        lit = energy > 0  # a black surface (reflectivity 0) returns nothing
+        if not lit.all():
+            idx, r, energy, refl = idx[lit], r[lit], energy[lit], refl[lit]
         if cfg.dropouts and len(idx):
             z = (np.log(energy) - math.log(cfg.detection_threshold)) / cfg.detection_softness
             near = np.flatnonzero(z < 8.3)  # beyond: detection probability 1 - 1e-16
