@@ -1,6 +1,6 @@
 """Environment steps per second of `aimbench/LidarAlign-v0` on the twin, against the real bench.
 
-    .venv/bin/python benchmarks/bench_gym.py [--steps 20] [--episodes 5] [--scans 1,2,4]
+    .venv/bin/python benchmarks/bench_gym.py [--steps 20] [--episodes 5] [--scans 1,2]
                                              [--rounds 3]
 
 The env runs over the MuJoCo twin (`SimBench`, every emulation effect on) with the real
@@ -61,7 +61,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=20, help="random-workload steps (default 20)")
     ap.add_argument("--episodes", type=int, default=5,
                     help="scripted-workload episodes (default 5)")
-    ap.add_argument("--scans", default="1,2,4", help="scans per step to compare (default 1,2,4)")
+    ap.add_argument("--scans", default="1,2", help="scans per step to compare (default 1,2)")
     ap.add_argument("--rounds", type=int, default=3, help="rounds, best kept (default 3)")
     args = ap.parse_args()
     if hasattr(os, "sched_setaffinity"):
