@@ -15,7 +15,8 @@ always fits a 1500-byte Ethernet frame, so a fragment is never VLP-16 data from 
 
 from __future__ import annotations
 
-import io
+import mmap
+import os
 import struct
 import warnings
 from collections import Counter
@@ -23,6 +24,9 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
+
+import pcapng
+from pcapng import blocks as pcapng_blocks
 
 from twin import vlp16
 from twin.errors import AimbenchError
@@ -117,7 +121,7 @@ class PcapReader:
         self.path = Path(path)
         self.ports = None if ports is None else frozenset(ports)
         self.stats = CaptureStats()
-        self._data = _read_file(self.path)
+        self._data = _map_file(self.path)  # mapped, not read: captures can be gigabytes
         self._sniff()
 
     def __enter__(self) -> PcapReader:
@@ -127,6 +131,12 @@ class PcapReader:
         self, exc_type: type[BaseException] | None, exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Unmap the file (iteration afterwards yields nothing)."""
+        if isinstance(self._data, mmap.mmap):
+            self._data.close()
         self._data = b""
 
     def _sniff(self) -> None:
@@ -198,17 +208,18 @@ class PcapReader:
 
     def _pcapng_frames(self) -> Iterator[tuple[float, int, bytes, int]]:
         # python-pcapng does the block parsing; its exceptions become our documented error.
-        import pcapng
-        from pcapng import blocks
+        with self.path.open("rb") as stream:
+            scanner = iter(pcapng.FileScanner(stream))
+            yield from self._pcapng_blocks(scanner)
 
-        scanner = iter(pcapng.FileScanner(io.BytesIO(self._data)))
+    def _pcapng_blocks(self, scanner: Iterator) -> Iterator[tuple[float, int, bytes, int]]:
         try:
             while (block := _next_block(scanner)) is not None:
-                if isinstance(block, blocks.EnhancedPacket):
+                if isinstance(block, pcapng_blocks.EnhancedPacket):
                     link = block.interface.link_type
                     self.stats.link_type = link
                     yield block.timestamp, link, bytes(block.packet_data), block.packet_len
-                elif isinstance(block, blocks.SimplePacket):
+                elif isinstance(block, pcapng_blocks.SimplePacket):
                     link = block.section.interfaces[0].link_type
                     yield 0.0, link, bytes(block.packet_data), block.packet_len
         except Exception as exc:  # the library raises a variety of types on damaged files
@@ -232,9 +243,12 @@ def read_pcap(path: str | Path, ports: Iterable[int] | None = VLP16_PORTS) -> Pc
     return PcapReader(path, ports)
 
 
-def _read_file(path: Path) -> bytes:
+def _map_file(path: Path) -> bytes | mmap.mmap:
+    """The file's bytes, memory-mapped (an empty file gives b"")."""
     try:
-        return path.read_bytes()
+        with path.open("rb") as f:
+            size = os.fstat(f.fileno()).st_size
+            return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) if size else b""
     except FileNotFoundError:
         raise CaptureFormatError(f"{path}: no such file (check the path)") from None
     except IsADirectoryError:
