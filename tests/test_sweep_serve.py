@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-PLAN = "name = 'wire'\nscans = 10\nyaw_deg = [-5, 0, 5]\n"
+PLAN = "name = 'wire'\nscans = 6\nyaw_deg = [-3, 0, 3]\n"
 AXES = ("x_m", "y_m", "z_m", "roll_rad", "tilt_rad", "yaw_rad")
 
 
@@ -34,7 +34,7 @@ def per_reference(run: Path) -> dict[int, np.ndarray]:
         rows = np.array(c.execute(f"SELECT reference, {', '.join(AXES)} FROM scan "
                                   "WHERE success = 1").fetchall(), dtype=float)
         assert c.execute("SELECT SUM(complete), SUM(missing_packets) FROM scan").fetchone() \
-            == (30, 0)
+            == (18, 0)
     return {i: rows[rows[:, 0] == i][:, 1:] for i in range(3)}
 
 
@@ -48,11 +48,11 @@ def test_serve_with_hardware_bench_agrees_with_simbench(tmp_path: Path):
         stages = c.execute("SELECT stage_yaw_rad FROM reference ORDER BY reference").fetchall()
         bench = c.execute("SELECT value FROM meta WHERE key='bench'").fetchone()[0]
     # The firmware's steps put the stages on the references (800 steps per degree).
-    assert np.allclose([s for (s,) in stages], np.radians([-5, 0, 5]), atol=np.radians(1e-3))
+    assert np.allclose([s for (s,) in stages], np.radians([-3, 0, 3]), atol=np.radians(1e-3))
     assert '"kind": "serve"' in bench and "Grbl 1.1" in bench
     for i in range(3):
         a, b = wire[i], sim[i]
-        assert len(a) >= 5 and len(b) >= 5, "too few poses to compare"
+        assert len(a) >= 4 and len(b) >= 4, "too few poses to compare"
         se = np.sqrt(a.var(axis=0, ddof=1) / len(a) + b.var(axis=0, ddof=1) / len(b))
         diff = np.abs(a.mean(axis=0) - b.mean(axis=0))
         # 4 standard errors: 18 comparisons, a false alarm about once in a thousand runs.
