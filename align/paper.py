@@ -17,8 +17,8 @@ Readings the paper leaves open (docs/align.md lists them with reasons):
 - RANSAC inlier threshold 30 mm (about 2 sigma of the 14 mm range noise), 200 hypotheses.
 - LM: the paper's update beta - eta (J^T J + lambda diag(J^T J))^-1 J^T F with eta = 0.02 and
   lambda = 0.3 only scales the steps; its fixed point is the least-squares minimum, which we reach
-  with plain LM (lambda adapted, eta = 1) from the nominal pose: board straight ahead at the
-  cluster's distance.
+  with plain LM (lambda from 0.3, adapted; eta = 1) started at the closed-form (Kabsch)
+  minimiser of the same cost, so it converges in one or two steps.
 - Rotation order: the paper writes R = Rz Ry Rx in its own axis names; we use the project's
   R = Rz(yaw) Rx(tilt) Ry(roll) (same physical axes: yaw about the vertical, tilt about the
   horizontal axis across the view, roll about the pointing axis).
@@ -63,6 +63,16 @@ def feature_points(points: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndar
     corners_uv = [(u.min(), w.max()), (u.max(), w.max()), (u.min(), w.min()), (u.max(), w.min())]
     idx = np.array([int(np.argmin((u - cu) ** 2 + (w - cw) ** 2)) for cu, cw in corners_uv])
     return proj[idx], idx
+
+
+def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
+    """The rigid transform minimising sum ||p_o - (R p_l + t)||^2, as (x, y, z, roll, tilt, yaw)."""
+    cl, co = p_l.mean(axis=0), p_o.mean(axis=0)
+    u, _, vt = np.linalg.svd((p_l - cl).T @ (p_o - co))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    pose = Pose.from_matrix(r, co - r @ cl)
+    return pose.as_array()
 
 
 def _residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
@@ -147,13 +157,9 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=len(rings),
                                    reason="the board spans fewer than 3 rings")
     feat, fi = feature_points(pts[inl], n, d)
-    # nominal start: board straight ahead (along its normal) at the cluster's distance
-    yaw0 = float(np.arcsin(np.clip(n[0], -1, 1)))
-    tilt0 = float(np.arctan2(-n[2], n[1]))
-    beta0 = np.zeros(6)
-    beta0[3:] = (0.0, tilt0, yaw0)
-    c = feat.mean(axis=0)
-    beta0[:3] = -(rotation(0.0, tilt0, yaw0) @ c)
+    # start: the closed-form minimiser of the same cost (absolute orientation, Kabsch); LM
+    # then only confirms it, in a step or two, instead of walking there from a nominal pose
+    beta0 = _kabsch(feat, board.corners())
     beta, j, conv, iters = levenberg_marquardt(feat, board.corners(), beta0)
     f = _residuals(beta, feat, board.corners())
     dof = f.size - 6
