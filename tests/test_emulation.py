@@ -62,6 +62,34 @@ def test_ideal_returns_lie_on_the_analytic_board_intersection(case: int) -> None
     assert 5 <= len(np.unique(scan.ring[on])) <= 7
 
 
+def test_board_size_and_pose_are_bench_parameters() -> None:
+    """A bigger board, moved and turned on its stand: the geometry still matches the analytic
+    intersection in the (true) board frame, and the truth reflects the board's pose."""
+    params = BenchParams(board_width=1.2, board_height=0.6, board_position=(0.05, 0.1, 0.52),
+                         board_yaw=math.radians(4), board_tilt=math.radians(-2))
+    sim = BenchSim(params, seed=0, noise=EmulationConfig.ideal())
+    scan = sim.scan()
+    pose = scan.meta["truth_pose"]
+    assert math.degrees(pose.yaw) == pytest.approx(-4.0, abs=0.2)
+    rng_a, on = board_intersections(pose, scan.azimuth, scan.laser_id, 1.2, 0.6)
+    assert on.sum() > 600
+    assert np.max(np.abs(scan.distance[on] - rng_a[on])) <= vlp16.DISTANCE_UNIT / 2 + 1e-9
+
+
+def test_background_reflectivity_sets_the_walls_intensity() -> None:
+    for refl in (0.2, 0.6):
+        sim = BenchSim(BenchParams(background_reflectivity=refl), seed=0,
+                       noise=EmulationConfig.ideal())
+        scan = sim.scan()
+        pose = scan.meta["truth_pose"]
+        p_o = pose.transform(scan.xyz)
+        wall = scan.valid & (np.abs(p_o[:, 1] - 1.5) < 0.01) & (p_o[:, 2] > -0.45)  # not floor
+        d_o = scan.directions()[wall] @ pose.rotation().T
+        np.testing.assert_allclose(scan.intensity[wall], np.rint(100 * refl * d_o[:, 1]),
+                                   atol=1)
+        assert wall.sum() > 100
+
+
 def test_the_nominal_bench_puts_six_rings_on_the_board() -> None:
     sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
     scan = sim.scan()
