@@ -66,7 +66,8 @@ class EmulationConfig:
     #: Closest and farthest reported return, m.
     range_min: float = vlp16.RANGE_MIN
     range_max: float = vlp16.RANGE_MAX
-    #: Intensity from reflectivity, incidence and range (else 100 x reflectivity exactly).
+    #: Intensity from reflectivity, incidence and range, with noise (else exactly
+    #: 100 x reflectivity x cos(incidence)).
     intensity_model: bool = True
     #: Residual range dependence of the calibrated reflectivity: x (1 m / r) ** exponent.
     intensity_range_exponent: float = 0.1
@@ -109,8 +110,8 @@ class EmulationConfig:
     @classmethod
     def ideal(cls, quantise: bool = True, **overrides) -> EmulationConfig:
         """Every error source off: no noise, offsets, divergence, dropouts or rpm wander, and
-        intensity = 100 x reflectivity. Ranges stay rounded to the packet's 2 mm unit unless
-        ``quantise=False`` (the wire format has no finer unit)."""
+        intensity = 100 x reflectivity x cos(incidence). Ranges stay rounded to the packet's
+        2 mm unit unless ``quantise=False`` (the wire format has no finer unit)."""
         base = dict(range_noise_sigma=0.0, range_bias=0.0, laser_offset_sigma=0.0,
                     laser_offsets=None, quantise=quantise, intensity_model=False,
                     divergence=False, dropouts=False, rpm_wander_sigma=0.0)
