@@ -566,27 +566,9 @@ class VLP16Emulator:
             # Contiguous rows (the floor's: the downward rings) are a view, no gather/scatter.
             contiguous = live[-1] - live[0] + 1 == len(live)
             rows = slice(live[0], live[-1] + 1) if contiguous else live
-            c_l, s_l, sa_l, ca_l = cw[rows], sw[rows], sa[rows], ca[rows]
-            lp = lpnt[row_laser[rows]]
-            lz = c_l * (sa_l * m[0, 2] + ca_l * m[1, 2]) + s_l * m[2, 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                x = lp[:, 2, None] / -lz
-            ok = lz < -_MJMINVAL
-            ok &= x < np.minimum(dist[rows], caster.cutoff)
-            for j in (0, 1):
-                if size[j] > 0:
-                    lj = c_l * (sa_l * m[0, j] + ca_l * m[1, j]) + s_l * m[2, j]
-                    ok &= np.abs(lp[:, j, None] + x * lj) <= size[j]
-            if isinstance(rows, slice):
-                np.copyto(dist[rows], x, where=ok)
-                gid[rows][ok] = g
-                np.copyto(cos_inc[rows], -lz, where=ok)
-            else:
-                sub_d, sub_g, sub_c = dist[rows], gid[rows], cos_inc[rows]
-                sub_d[ok] = x[ok]
-                sub_g[ok] = g
-                sub_c[ok] = -lz[ok]
-                dist[rows], gid[rows], cos_inc[rows] = sub_d, sub_g, sub_c
+            for cols in self._plane_columns(g, origins, rotation, offsets, azimuth[:, 0]):
+                self._plane_block(g, m, lpnt, size, rows, cols, cw, sw, sa, ca, row_laser,
+                                  dist, gid, cos_inc)
 
         cand = (self._grid_candidates(offsets, azimuth[:, 0], cw, sw, origins, row_laser,
                                       rotation)
@@ -620,6 +602,71 @@ class VLP16Emulator:
         gid = gid.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
         cos_inc = cos_inc.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
         return self._from_hits(dist, gid, cos_inc, weights, laser_id)
+
+    def _plane_columns(self, g: int, origins: np.ndarray, rotation: np.ndarray,
+                       offsets: tuple[np.ndarray, np.ndarray, float], base: np.ndarray
+                       ) -> list[slice]:
+        """Column ranges (sequences) whose rays can meet plane geom ``g``'s rectangle.
+
+        An infinite plane (size 0): every column. A sized one: the rectangle's azimuth extent
+        seen from the sensor, from its corners (exact for a convex polygon whose projection on
+        the sensor's xy-plane leaves the origin outside; the lasers' origins differ only along
+        Z_L, so one extent serves all rows), widened by the rows' offsets and 1e-9 rad.
+        """
+        n_s = len(base)
+        size = self.caster.model.geom_size[g]
+        if size[0] <= 0 or size[1] <= 0:
+            return [slice(0, n_s)]
+        pos = self.caster.data.geom_xpos[g]
+        mat = self.caster.data.geom_xmat[g].reshape(3, 3)
+        corners = np.array([pos + sx * size[0] * mat[:, 0] + sy * size[1] * mat[:, 1]
+                            for sx in (-1, 1) for sy in (-1, 1)])
+        c_l = (corners - origins[0]) @ rotation  # in {L}
+        az = np.arctan2(c_l[:, 0], c_l[:, 1])
+        centre = float(np.arctan2(np.sin(az).sum(), np.cos(az).sum()))
+        dev = np.abs((az - centre + np.pi) % (2 * np.pi) - np.pi)
+        if dev.max() >= np.pi / 2 - 1e-6:  # the sensor sits over the rectangle: no bound
+            return [slice(0, n_s)]
+        _, d_r, spread = offsets
+        half = float(dev.max()) + float(np.abs(d_r).max()) + spread + 1e-9
+        b_u = np.unwrap(base)
+        two_pi = 2 * np.pi
+        first = math.floor((b_u[0] - centre - half) / two_pi)
+        out = []
+        for turn in range(first, first + math.ceil((b_u[-1] - b_u[0]) / two_pi) + 2):
+            lo = int(np.searchsorted(b_u, centre - half + two_pi * turn, "left"))
+            hi = int(np.searchsorted(b_u, centre + half + two_pi * turn, "right"))
+            if hi > lo:
+                out.append(slice(lo, hi))
+        return out
+
+    def _plane_block(self, g: int, m: np.ndarray, lpnt: np.ndarray, size: np.ndarray,
+                     rows: slice | np.ndarray, cols: slice, cw: np.ndarray, sw: np.ndarray,
+                     sa: np.ndarray, ca: np.ndarray, row_laser: np.ndarray, dist: np.ndarray,
+                     gid: np.ndarray, cos_inc: np.ndarray) -> None:
+        """MuJoCo's ray_plane on the rays [rows, cols], keeping the nearest hit in place."""
+        c_l, s_l = cw[rows], sw[rows]
+        sa_l, ca_l = sa[rows, cols], ca[rows, cols]
+        lp = lpnt[row_laser[rows]]
+        lz = c_l * (sa_l * m[0, 2] + ca_l * m[1, 2]) + s_l * m[2, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = lp[:, 2, None] / -lz
+        ok = lz < -_MJMINVAL
+        ok &= x < np.minimum(dist[rows, cols], self.caster.cutoff)
+        for j in (0, 1):
+            if size[j] > 0:
+                lj = c_l * (sa_l * m[0, j] + ca_l * m[1, j]) + s_l * m[2, j]
+                ok &= np.abs(lp[:, j, None] + x * lj) <= size[j]
+        if isinstance(rows, slice):
+            np.copyto(dist[rows, cols], x, where=ok)
+            gid[rows, cols][ok] = g
+            np.copyto(cos_inc[rows, cols], -lz, where=ok)
+        else:
+            sub_d, sub_g, sub_c = dist[rows, cols], gid[rows, cols], cos_inc[rows, cols]
+            sub_d[ok] = x[ok]
+            sub_g[ok] = g
+            sub_c[ok] = -lz[ok]
+            dist[rows, cols], gid[rows, cols], cos_inc[rows, cols] = sub_d, sub_g, sub_c
 
     def _grid_candidates(self, offsets: tuple[np.ndarray, np.ndarray, float],
                          base: np.ndarray, cw: np.ndarray,
