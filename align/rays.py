@@ -235,6 +235,11 @@ class _Model:
         sd = np.sqrt(width**2 / 12 + np.where(vert, self.blur, self.blur_z) ** 2)
         return kind, sign, sd
 
+    def _width(self, theta: np.ndarray) -> np.ndarray:
+        """Each bracket's extent across its edge (m) at pose theta."""
+        x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        return np.where(self.edge_kind == 1, x[self.bm] - x[self.bh], z[self.bm] - z[self.bh])
+
     def profile_z(self, theta: np.ndarray, dz: np.ndarray, tol: float = 3e-3) -> np.ndarray:
         """A cost for the pose shifted by each of ``dz`` in z (m): label violations first.
 
@@ -406,6 +411,56 @@ def _staged_fit(model: _Model, theta: np.ndarray, dz: np.ndarray
     return theta, j, conv, iters, float(f @ f / max(len(f) - 6, 1))
 
 
+def _posterior_mean(model: _Model, theta: np.ndarray, rng: np.random.Generator,
+                    samples: int = 4000) -> tuple[np.ndarray, np.ndarray] | None:
+    """Mean and covariance of the pose given the brackets as hard intervals, not Gaussians.
+
+    A bracket says the edge lies somewhere between its two rays, uniformly: a box constraint,
+    whose least-squares treatment (midpoint, variance width^2/12) wastes information when only a
+    dozen brackets hold roll and x. Linearised at the least-squares pose, the likelihood is the
+    Gaussian of the ranges (and of the brackets whose blur dominates their width) times the
+    indicator of every sharp bracket's interval; its mean and covariance are computed by
+    importance sampling from a widened Gaussian around the least-squares pose (seeded). Returns
+    None when too few samples are feasible to trust (the least-squares pose is kept then).
+    """
+    f = model.residuals(theta)
+    j = model.jacobian(theta, f)
+    nr = int(model.use_range.sum())
+    use = model.edge_kind > 0
+    sd = model.edge_sd[use]
+    xh = model._width(theta)[use]
+    c = 0.5 * np.abs(xh) / sd  # the interval's half width, in sigmas
+    hard = np.zeros(len(f), dtype=bool)
+    hard[nr:] = c > 1.2  # blur small beside the width: sqrt(3) = 1.73 for no blur at all
+    if hard.sum() < 3:
+        return None
+    ag, bg = j[~hard], f[~hard]
+    ah, bh, ch = j[hard], f[hard], c[hard[nr:]]
+    cov_ls = np.linalg.pinv(j.T @ j)
+    scale = 1.5
+    lchol = np.linalg.cholesky(cov_ls * scale**2 + 1e-18 * np.eye(6))
+    z = rng.standard_normal((samples, 6))
+    d = z @ lchol.T
+    # Gaussian part as a quadratic form (6 x 6), the proposal's log density, the intervals
+    h = ag.T @ ag
+    g = ag.T @ bg
+    chi2 = 2 * d @ g + np.einsum("ij,jk,ik->i", d, h, d)
+    logw = -0.5 * chi2 + 0.5 * np.sum(z**2, axis=1)
+    ok = np.all(np.abs(bh + d @ ah.T) <= ch, axis=1)
+    if ok.sum() < 50:
+        return None
+    logw = logw[ok]
+    w = np.exp(logw - logw.max())
+    ess = w.sum() ** 2 / np.sum(w**2)
+    if ess < 50:
+        return None
+    w /= w.sum()
+    mean = w @ d[ok]
+    dev = d[ok] - mean
+    cov = (dev * w[:, None]).T @ dev
+    return theta + mean, cov
+
+
 def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
                  sigma_r: float, blur: float) -> _Model:
     """Brackets along the rings and between rings at the board's centre column, as a model."""
@@ -510,6 +565,11 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                 iters += it
         model.classify(theta, 0.002, True)  # the state of the kept fit, for the diagnostics
         model.assign(theta)
+    cov = np.linalg.pinv(j.T @ j)
+    post = _posterior_mean(model, theta, rng)
+    if post is not None:
+        theta, cov = post
+        model.assign(theta)
     t_fit = time.perf_counter()
 
     # what was seen: both side edges on at least two rings, nothing in front of the board
@@ -524,7 +584,6 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     occluded = int(np.sum(inside & (lab == -1)))
     inside_miss = int(np.sum(inside & (np.abs(x) < w2 - 0.02) & (np.abs(z) < h2 - 0.02) &
                              (lab == 0)))
-    cov = np.linalg.pinv(j.T @ j)
     diag = {
         "rings": len(rings_hit), "rays": len(lab), "hits": int(hit.sum()),
         "range_residuals": int(model.use_range.sum()), "brackets": int(np.sum(k > 0)),
