@@ -120,6 +120,24 @@ def test_fast_paths_equal_brute_force_mujoco_rays(divergence: bool) -> None:
     assert (brute.distance > 0).sum() > 0.5 * len(lid)
 
 
+@pytest.mark.parametrize("x, yaw_deg, roll_deg, tilt_deg", [
+    (-0.05, -30, 4, 5), (0.05, 30, -4, -5), (0.0, 12, 0, 8), (0.02, -20, 10, -3)])
+def test_culling_is_exact_over_the_travel(x, yaw_deg, roll_deg, tilt_deg) -> None:
+    """The culling bounds (spheres, box corners' azimuths and elevations, the wall's extent)
+    never drop a ray MuJoCo would return, at the stages' extremes and with tilted mounts."""
+    params = BenchParams.from_edge(roll_deg=roll_deg, tilt_deg=tilt_deg, yaw_deg=-1.0)
+    cfg = EmulationConfig.ideal(quantise=False)
+    sims = [BenchSim(params, seed=2, noise=cfg.with_(culling=c)) for c in (True, False)]
+    for sim in sims:
+        sim.set_stage_positions(x, math.radians(yaw_deg))
+    az = _grid(1800, phase=1.0)
+    p, r = sims[0].physics.lidar_pose_world()
+    fast = sims[0].emulator.fire_grid(az, p, r)
+    brute = sims[1].emulator.fire_grid(az, p, r)
+    np.testing.assert_allclose(fast.distance, brute.distance, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(fast.intensity, brute.intensity)
+
+
 def test_moving_origins_are_cast_exactly() -> None:
     """Per-firing origins (a moving sensor) share mj_multiRay calls within 0.2 mm and are then
     corrected on the face they hit: equal to one ray per origin."""

@@ -710,8 +710,27 @@ class VLP16Emulator:
             return mask
         two_pi = 2.0 * np.pi
         b_u = np.unwrap(base)  # monotonic: the sensor spins one way
-        half = np.arccos(np.clip(q[row, geom], -1.0, 1.0)) + spread + 1e-9
-        centre = np.arctan2(cs[row, geom, 0], cs[row, geom, 1]) - d_r[row]
+        # The sphere's interval, cut down to the box's own azimuth extent where there is one.
+        hs = np.arccos(np.clip(q[row, geom], -1.0, 1.0)) + 1e-9
+        cs_ = np.arctan2(cs[row, geom, 0], cs[row, geom, 1])
+        box_c, box_h, el_lo, el_hi = self._box_bounds(ids, origins, rotation)
+        # Elevation bound of the box (its corners' heights over its projection's nearest and
+        # farthest distance): rows outside it cannot meet the box.
+        el_row = np.arctan2(sw[:, 0], cw[:, 0])
+        lz = row_laser[row]
+        inside_el = (el_row[row] >= el_lo[lz, geom] - 1e-9) & (
+            el_row[row] <= el_hi[lz, geom] + 1e-9)
+        row, geom, hs, cs_ = row[inside_el], geom[inside_el], hs[inside_el], cs_[inside_el]
+        bounded = box_h[geom] < np.pi
+        delta = (box_c[geom] - cs_ + np.pi) % two_pi - np.pi
+        lo_ = np.where(bounded, np.maximum(-hs, delta - box_h[geom]), -hs)
+        hi_ = np.where(bounded, np.minimum(hs, delta + box_h[geom]), hs)
+        keep = lo_ <= hi_
+        row, lo_, hi_, cs_ = row[keep], lo_[keep], hi_[keep], cs_[keep]
+        if len(row) == 0:
+            return mask
+        half = (hi_ - lo_) / 2 + spread + 1e-9
+        centre = cs_ + (lo_ + hi_) / 2 - d_r[row]
         first = np.floor((b_u[0] - centre - half) / two_pi)
         turns = np.arange(int(np.ceil((b_u[-1] - b_u[0]) / two_pi)) + 2)[None, :]
         shift = two_pi * (first[:, None] + turns)
@@ -723,6 +742,54 @@ class VLP16Emulator:
         np.add.at(marks, hi + off, -1)
         mask |= (np.cumsum(marks[:-1]) > 0).reshape(n_rows, n_s)
         return mask
+
+    def _box_bounds(self, ids: np.ndarray, origins: np.ndarray, rotation: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Angular extent of each box geom seen from the sensor, exact-or-wider, in {L}:
+        (azimuth centre (G,), azimuth half-width (G,), elevation min (16, G), max (16, G)).
+
+        A ray that meets a convex body points at a point of it; that point's projection on the
+        sensor's xy-plane lies in the projection of the body, a convex polygon whose azimuths
+        run between its corners' when the origin's projection is outside it; its height over
+        its horizontal distance is bounded by the corners' heights and the polygon's nearest
+        and farthest distance (nearest: over the projected edges). Non-boxes, or an origin
+        above or below the box, get no bound (half-width pi, elevations +-pi/2). The lasers'
+        origins differ only along Z_L: one projection, per-laser heights.
+        """
+        model, data = self.caster.model, self.caster.data
+        n_l = len(origins)
+        centre = np.zeros(len(ids))
+        half = np.full(len(ids), np.pi)
+        el_lo = np.full((n_l, len(ids)), -np.pi / 2)
+        el_hi = np.full((n_l, len(ids)), np.pi / 2)
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+        # The 12 edges of a box as corner index pairs (corners differing in one sign).
+        edges = [(i, j) for i in range(8) for j in range(i + 1, 8)
+                 if np.sum(signs[i] != signs[j]) == 1]
+        z_l = (origins - origins[0]) @ rotation[:, 2]  # each laser's origin height in {L}
+        for i, g in enumerate(ids):
+            if model.geom_type[g] != mujoco.mjtGeom.mjGEOM_BOX:
+                continue
+            mat = data.geom_xmat[g].reshape(3, 3)
+            corners = data.geom_xpos[g] + (signs * model.geom_size[g]) @ mat.T
+            c_l = (corners - origins[0]) @ rotation
+            az = np.arctan2(c_l[:, 0], c_l[:, 1])
+            mid = float(np.arctan2(np.sin(az).sum(), np.cos(az).sum()))
+            dev = float(np.abs((az - mid + np.pi) % (2 * np.pi) - np.pi).max())
+            if dev >= np.pi / 2 - 1e-6:
+                continue
+            centre[i], half[i] = mid, dev + 1e-9
+            xy = c_l[:, :2]
+            rho_max = float(np.hypot(xy[:, 0], xy[:, 1]).max())
+            a_, b_ = xy[[e[0] for e in edges]], xy[[e[1] for e in edges]]
+            ab = b_ - a_
+            tt = np.clip(-(a_ * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-300), 0.0, 1.0)
+            rho_min = float(np.hypot(*(a_ + tt[:, None] * ab).T).min())
+            z_max = c_l[:, 2].max() - z_l  # (16,)
+            z_min = c_l[:, 2].min() - z_l
+            el_hi[:, i] = np.arctan2(z_max, np.where(z_max > 0, rho_min, rho_max))
+            el_lo[:, i] = np.arctan2(z_min, np.where(z_min < 0, rho_min, rho_max))
+        return centre, half, el_lo, el_hi
 
     def _rays_with_elevation_offset(self, azimuth, laser_id, el_offset, position, rotation):
         w = vlp16.ELEVATION[laser_id] + el_offset
