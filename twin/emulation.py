@@ -354,6 +354,13 @@ def _divergence_pattern(cfg: EmulationConfig) -> tuple[np.ndarray, np.ndarray, n
     return dh, dv, w
 
 
+#: A box's 8 corners as signs of its half-sizes, and its 12 edges as corner index pairs.
+_BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
+                      dtype=float)
+_BOX_EDGES = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)
+                       if np.sum(_BOX_SIGNS[i] != _BOX_SIGNS[j]) == 1])
+
+
 def _row_offsets(az: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Offsets of ``az`` (R, S) from ``base`` (S,) wrapped to (-pi, pi]: (d (R, S), the first
     column's d (R,), the largest deviation of a row from its first column, rad)."""
@@ -757,38 +764,37 @@ class VLP16Emulator:
         origins differ only along Z_L: one projection, per-laser heights.
         """
         model, data = self.caster.model, self.caster.data
-        n_l = len(origins)
-        centre = np.zeros(len(ids))
-        half = np.full(len(ids), np.pi)
-        el_lo = np.full((n_l, len(ids)), -np.pi / 2)
-        el_hi = np.full((n_l, len(ids)), np.pi / 2)
-        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
-        # The 12 edges of a box as corner index pairs (corners differing in one sign).
-        edges = [(i, j) for i in range(8) for j in range(i + 1, 8)
-                 if np.sum(signs[i] != signs[j]) == 1]
+        n_l, n_g = len(origins), len(ids)
+        centre = np.zeros(n_g)
+        half = np.full(n_g, np.pi)
+        el_lo = np.full((n_l, n_g), -np.pi / 2)
+        el_hi = np.full((n_l, n_g), np.pi / 2)
+        box = np.flatnonzero(model.geom_type[ids] == mujoco.mjtGeom.mjGEOM_BOX)
+        if len(box) == 0:
+            return centre, half, el_lo, el_hi
+        gb = ids[box]
+        mats = data.geom_xmat[gb].reshape(-1, 3, 3)
+        local = _BOX_SIGNS[None] * model.geom_size[gb][:, None, :]  # (B, 8, 3)
+        corners = data.geom_xpos[gb][:, None, :] + np.einsum("bkj,bij->bki", local, mats)
+        c_l = (corners - origins[0]) @ rotation  # (B, 8, 3) in {L}
+        az = np.arctan2(c_l[..., 0], c_l[..., 1])
+        mid = np.arctan2(np.sin(az).sum(1), np.cos(az).sum(1))
+        dev = np.abs((az - mid[:, None] + np.pi) % (2 * np.pi) - np.pi).max(1)
+        ok = dev < np.pi / 2 - 1e-6
+        xy = c_l[..., :2]
+        rho_max = np.hypot(xy[..., 0], xy[..., 1]).max(1)
+        a_, ab = xy[:, _BOX_EDGES[:, 0]], xy[:, _BOX_EDGES[:, 1]] - xy[:, _BOX_EDGES[:, 0]]
+        tt = np.clip(-(a_ * ab).sum(2) / np.maximum((ab * ab).sum(2), 1e-300), 0.0, 1.0)
+        near = a_ + tt[..., None] * ab
+        rho_min = np.hypot(near[..., 0], near[..., 1]).min(1)
         z_l = (origins - origins[0]) @ rotation[:, 2]  # each laser's origin height in {L}
-        for i, g in enumerate(ids):
-            if model.geom_type[g] != mujoco.mjtGeom.mjGEOM_BOX:
-                continue
-            mat = data.geom_xmat[g].reshape(3, 3)
-            corners = data.geom_xpos[g] + (signs * model.geom_size[g]) @ mat.T
-            c_l = (corners - origins[0]) @ rotation
-            az = np.arctan2(c_l[:, 0], c_l[:, 1])
-            mid = float(np.arctan2(np.sin(az).sum(), np.cos(az).sum()))
-            dev = float(np.abs((az - mid + np.pi) % (2 * np.pi) - np.pi).max())
-            if dev >= np.pi / 2 - 1e-6:
-                continue
-            centre[i], half[i] = mid, dev + 1e-9
-            xy = c_l[:, :2]
-            rho_max = float(np.hypot(xy[:, 0], xy[:, 1]).max())
-            a_, b_ = xy[[e[0] for e in edges]], xy[[e[1] for e in edges]]
-            ab = b_ - a_
-            tt = np.clip(-(a_ * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-300), 0.0, 1.0)
-            rho_min = float(np.hypot(*(a_ + tt[:, None] * ab).T).min())
-            z_max = c_l[:, 2].max() - z_l  # (16,)
-            z_min = c_l[:, 2].min() - z_l
-            el_hi[:, i] = np.arctan2(z_max, np.where(z_max > 0, rho_min, rho_max))
-            el_lo[:, i] = np.arctan2(z_min, np.where(z_min < 0, rho_min, rho_max))
+        z_max = c_l[..., 2].max(1)[None, :] - z_l[:, None]  # (16, B)
+        z_min = c_l[..., 2].min(1)[None, :] - z_l[:, None]
+        hi = np.arctan2(z_max, np.where(z_max > 0, rho_min, rho_max))
+        lo = np.arctan2(z_min, np.where(z_min < 0, rho_min, rho_max))
+        sel = box[ok]
+        centre[sel], half[sel] = mid[ok], dev[ok] + 1e-9
+        el_hi[:, sel], el_lo[:, sel] = hi[:, ok], lo[:, ok]
         return centre, half, el_lo, el_hi
 
     def _rays_with_elevation_offset(self, azimuth, laser_id, el_offset, position, rotation):
