@@ -21,9 +21,12 @@ Two error sets:
 - ``absolute``: estimate minus the twin's true pose of that very scan (simulated bench only).
 
 The verdict uses the absolute set when there is one (it is the stricter) and the relative set
-otherwise: pass when, on each of the paper's axes (tilt, roll, yaw; x), the overall accuracy and
-precision are within the tolerances (default 0.2 deg and 4 mm, the paper's claim) and no more than
-`max_failed_fraction` of the scans failed to give a pose.
+otherwise: pass when, on each of the paper's axes (tilt, roll, yaw; x), the overall accuracy is
+within the tolerance (default 0.2 deg and 4 mm: the paper's claim, "accuracy within 0.2 degrees
+and 4 mm", is on accuracy), the overall precision within the precision tolerance if one is set
+(none by default: single-scan precision is the sensor's, and the paper's own simulation shows
+4.8 mm of x precision; issue 4 puts the single-scan bound at 5.5 mm RMS), no more than
+`max_failed_fraction` of the scans failed to give a pose, and the run completed.
 
 Units: SI inside; tables and plots in deg and mm.
 """
@@ -62,15 +65,27 @@ PAPER_TABLES = {
 
 @dataclass(frozen=True)
 class Tolerances:
-    """Pass/fail limits: on accuracy and precision of each angle (deg) and of x (mm)."""
+    """Pass/fail limits on the accuracy of each angle (deg) and of x (mm); optional limits on
+    their precision (None: reported, not judged); the largest share of scans without a pose."""
 
     angle_deg: float = 0.2
     x_mm: float = 4.0
+    precision_angle_deg: float | None = None
+    precision_x_mm: float | None = None
     max_failed_fraction: float = 0.01
 
-    def limit(self, axis: str) -> float:
-        """The limit for `axis` in its edge unit."""
+    def limit(self, axis: str, what: str = "accuracy") -> float | None:
+        """The limit on `what` (accuracy or precision) of `axis` in its edge unit, or None."""
+        if what == "precision":
+            return self.precision_x_mm if _UNIT[axis] == "mm" else self.precision_angle_deg
         return self.x_mm if _UNIT[axis] == "mm" else self.angle_deg
+
+    def describe(self) -> str:
+        text = f"accuracy ±{self.angle_deg:g} deg and ±{self.x_mm:g} mm"
+        if self.precision_angle_deg is not None or self.precision_x_mm is not None:
+            text += (f", precision {self.precision_angle_deg or '–'} deg and "
+                     f"{self.precision_x_mm or '–'} mm")
+        return text
 
 
 @dataclass
@@ -159,9 +174,9 @@ class RunReport:
         else:
             for a in PAPER_AXES:
                 o = es.overall(a)
-                lim = tol.limit(a)
                 for what in ("accuracy", "precision"):
-                    if not o[what] <= lim:  # NaN fails too
+                    lim = tol.limit(a, what)
+                    if lim is not None and not o[what] <= lim:  # NaN fails too
                         reasons.append(f"{a} {what} {o[what]:.3g} {_UNIT[a]} > {lim:g} {_UNIT[a]}")
         if self.meta.get("status") != "completed":
             reasons.append(f"run not completed (status {self.meta.get('status')})")
@@ -400,9 +415,8 @@ def build_document(rep: RunReport, plots: dict[str, str]) -> _Doc:
     doc.h(1, f"aimbench report: {plan.get('name', '?')} ({rep.run_dir.name})")
     basis = ("absolute errors against the twin's truth" if rep.absolute is not None
              else "errors relative to the reference")
-    doc.p(f"**Verdict: {'PASS' if passed else 'FAIL'}** against ±{tol.angle_deg:g} deg and "
-          f"±{tol.x_mm:g} mm (accuracy and precision of tilt, roll, yaw and x; {basis})"
-          + ("" if passed else ": " + "; ".join(reasons)) + ".")
+    doc.p(f"**Verdict: {'PASS' if passed else 'FAIL'}** against {tol.describe()} (tilt, roll, "
+          f"yaw and x; {basis})" + ("" if passed else ": " + "; ".join(reasons)) + ".")
     done = sum(1 for r in rep.references if r["status"] == "done")
     doc.p(f"Run status **{rep.meta.get('status')}**; {done} of {len(rep.references)} references "
           f"done, {rep.n_scans} scans stored ({rep.n_failed} without a pose"
