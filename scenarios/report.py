@@ -497,10 +497,13 @@ def summary_lines(rep: RunReport) -> list[str]:
     passed, reasons = rep.verdict()
     lines = [f"verdict: {'PASS' if passed else 'FAIL'}"
              + ("" if passed else " (" + "; ".join(reasons) + ")")]
-    es = rep.primary
-    if es is not None and es.per_ref:
+    for es in (rep.primary, rep.relative if rep.primary is rep.absolute else None):
+        if es is None or not es.per_ref:
+            continue
         header, rows = paper_table(es)
-        lines.append(f"{es.name} errors over {len(es.per_ref)} references:")
+        what = ("against the twin's truth" if es.name == "absolute" else
+                "relative to the reference, as the paper measures on the real bench")
+        lines.append(f"{es.name} errors over {len(es.per_ref)} references ({what}):")
         widths = [max(len(r[j]) for r in [header, *rows[:2]]) for j in range(len(header))]
         for r in [header, *rows[:2]]:
             lines.append("  " + "  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)))
