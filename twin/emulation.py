@@ -869,12 +869,15 @@ class VLP16Emulator:
         keep = (meas >= cfg.range_min) & (meas <= cfg.range_max)
         if not keep.all():
             idx, r, refl, meas = idx[keep], r[keep], refl[keep], meas[keep]
-        level = 100.0 * refl
         if cfg.intensity_model:
+            # float32: the result is an integer count 0..255.
+            level = (100.0 * refl).astype(np.float32)
             if cfg.intensity_range_exponent:
-                level *= r ** -cfg.intensity_range_exponent
+                level *= r.astype(np.float32) ** np.float32(-cfg.intensity_range_exponent)
             if cfg.intensity_noise_sigma > 0:
                 level += _gaussian(rng, len(idx), cfg.intensity_noise_sigma)
+        else:
+            level = 100.0 * refl
         inten = np.clip(np.rint(level), 0, 255).astype(np.uint8)
         flags = {"strongest": [int(ReturnType.STRONGEST)], "last": [int(ReturnType.LAST)],
                  "dual": [int(ReturnType.LAST | ReturnType.STRONGEST)] * 2}[cfg.return_mode]
