@@ -8,8 +8,10 @@ Prints a table of
 - a 21-position yaw sweep (-10 .. +10 deg in 1 deg steps at x = 0, as in the reference paper):
   the time of each 1 deg move through the firmware, against the trapezoidal-profile time computed
   from the controller's own settings ($111 max rate, $121 acceleration), with the ratio. The
-  firmware's time is measured on the simulated clock (command sent -> last step pulse seen on the
-  STEP pin) and on the host's wall clock (command sent -> Idle seen by status polling).
+  firmware's time is measured on the simulated clock (the command's last byte entering the UART
+  -> last step pulse on the STEP pin, on the way back down without status polls; and the host
+  about to send -> last pulse) and on the host's wall clock (command sent -> Idle seen by status
+  polling).
 """
 
 from __future__ import annotations
@@ -58,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         yaws = [math.radians(d) for d in range(-10, 11)]
         stage.move_to(0.0, yaws[0])
         sim_times: list[float] = []
+        pulse_times: list[float] = []
         wall_times: list[float] = []
         sim0, wall0 = hil.positions().sim_time_s, time.perf_counter()
         for yaw in yaws[1:]:
@@ -69,6 +72,14 @@ def main(argv: list[str] | None = None) -> int:
             assert after.a_steps - before.a_steps == 800, "a 1 deg move must be 800 steps"
             sim_times.append(after.last_step_s[1] - before.sim_time_s)
         pace = (hil.positions().sim_time_s - sim0) / (time.perf_counter() - wall0)
+        # The same sweep back down, without status polls during each move, so the command is
+        # the host's last input: command's last byte in the UART -> last step pulse.
+        for yaw in reversed(yaws[:-1]):
+            stage.command(f"G90G0X50A{30 + math.degrees(yaw):.6f}")
+            time.sleep(trapezoid_time(1.0, rate_dps, accel) + 0.15)
+            after = hil.positions()
+            pulse_times.append(after.last_step_s[1] - after.last_rx_s)
+            stage.wait_idle(5)
         ideal = trapezoid_time(1.0, rate_dps, accel)
         final = hil.positions()
 
@@ -80,7 +91,11 @@ def main(argv: list[str] | None = None) -> int:
          f"p95 {percentile(rt_line, 0.95) * 1e3:.2f} ms, n={len(rt_line)}"),
         ("sweep: trapezoid time per 1 deg move", f"{ideal * 1e3:.1f} ms",
          f"from $111={settings[111]:g} deg/min, $121={accel:g} deg/s^2"),
-        ("sweep: firmware, command -> last step (sim clock)",
+        ("sweep: firmware, command fed to UART -> last step (sim)",
+         f"{statistics.mean(pulse_times) * 1e3:.1f} ms",
+         f"ratio {statistics.mean(pulse_times) / ideal:.3f}, min {min(pulse_times) * 1e3:.1f}, "
+         f"max {max(pulse_times) * 1e3:.1f} ms"),
+        ("sweep: firmware, host sends -> last step (sim)",
          f"{statistics.mean(sim_times) * 1e3:.1f} ms",
          f"ratio {statistics.mean(sim_times) / ideal:.3f}, min {min(sim_times) * 1e3:.1f}, "
          f"max {max(sim_times) * 1e3:.1f} ms"),
@@ -92,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
          f"wall {sum(wall_times):.3f} s, trapezoid {n * ideal:.3f} s"),
         ("simulation pace (sim time / wall time)", f"{pace:.3f}", "1.000 = real time"),
         ("final yaw from the STEP pulses", f"{math.degrees(final.yaw_rad):+.4f} deg",
-         f"{final.a_steps} steps (expected {40 * 800})"),
+         f"{final.a_steps} steps (commanded -10 deg = {(30 - 10) * 800} steps)"),
     ]
     w0 = max(len(r[0]) for r in rows)
     w1 = max(len(r[1]) for r in rows)

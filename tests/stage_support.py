@@ -8,6 +8,7 @@ with no interpretation, so protocol tests can state exact command/response table
 from __future__ import annotations
 
 import re
+import termios
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -44,11 +45,21 @@ class RawLink:
         The pause lets the harness see the port closed (it polls every 0.2 ms of simulated
         time), like the real DTR line needs to drop to reset a Mega.
         """
+        attrs = termios.tcgetattr(self.ser.fileno())
+        attrs[2] |= termios.HUPCL  # drop DTR on close, so the open raises it: a reset
+        termios.tcsetattr(self.ser.fileno(), termios.TCSANOW, attrs)
         self.ser.close()
         time.sleep(0.1)
         self.ser = serial.serial_for_url(self.url, baudrate=115200, timeout=0.01)
         self.buf = bytearray()
         return self.wait_banner(timeout=10.0)
+
+    def boot_lines(self, timeout: float = 5.0) -> list[str]:
+        """The banner after opening; a board that did not reset on open is soft-reset."""
+        try:
+            return self.wait_banner(timeout=timeout)
+        except AssertionError:
+            return self.reset()
 
     def readline(self, timeout: float) -> str | None:
         deadline = time.monotonic() + timeout

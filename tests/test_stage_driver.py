@@ -113,13 +113,15 @@ def test_move_time_follows_the_trapezoid(bench: Bench, homed: StageController) -
     hil = bench.need_hil()
     # Short moves come out a little quicker than the ideal triangle: the firmware starts and ends
     # at the speed half a step of acceleration gives (sqrt(a) steps/s), not at zero.
-    for deg, lo, hi in ((1.0, 0.95, 1.03), (8.0, 0.97, 1.02)):
-        start = hil.positions()
-        homed.move_by(0.0, deg * DEG)
-        end = hil.positions()
-        # Simulated time from the command to the last step (includes ~ms of serial and parsing).
-        moved = end.last_step_s[1] - start.sim_time_s
+    for deg, lo, hi in ((1.0, 0.95, 1.02), (8.0, 0.97, 1.02)):
         ideal = trapezoid_time(deg, 20.0, 40.0)
+        homed.command(f"G91G0A{deg}")
+        time.sleep(ideal + 0.3)  # no status polls meanwhile: the command is the last input
+        end = hil.positions()
+        homed.wait_idle(5)
+        # From the command's last byte entering the UART to the last step pulse, on the
+        # simulated clock: the host's scheduling plays no part.
+        moved = end.last_step_s[1] - end.last_rx_s
         assert lo * ideal < moved < hi * ideal, (deg, moved, ideal)
 
 
@@ -209,13 +211,32 @@ def test_axis_letters_the_controller_lacks(bench: Bench, stage: StageController)
 
 
 def test_board_that_does_not_reset_on_open() -> None:
-    # A board without DTR auto-reset sends no banner when the port opens: the driver asks for
-    # one with a soft reset.
+    # A board without DTR auto-reset sends no banner when the port opens: the driver finds it
+    # with a status query (not a soft reset, which would abort a move in progress).
     with SimavrHarness(start_x_mm=1.0, start_a_deg=1.0, reset_on_open=False) as hil:
         time.sleep(0.2)
         t = time.monotonic()
         with StageController(hil.url, boot_timeout_s=0.5) as s:
-            assert s.banner is not None and "aimbench" in s.banner
+            assert s.banner in (None, "")
+            assert s.mpos_axes == "XA"  # from the two MPos values
             assert time.monotonic() - t < 3.0
             assert s.status().state == "Alarm"
+            assert s.settings()[100] == 400
         assert hil.positions().resets == 0  # never reset by opening the port
+
+
+def test_reconnect_keeps_position(bench: Bench, homed: StageController) -> None:
+    # close() leaves DTR up (HUPCL cleared): the next open does not reset the board, so a homed
+    # machine stays homed between two `aimbench stage` commands.
+    homed.move_to(-0.049, -29 * DEG)
+    resets = bench.hil.positions().resets if bench.hil else None
+    homed.close()
+    try:
+        with StageController(bench.url) as again:
+            st = again.status()
+            assert st.state == "Idle"
+            assert (st.x_mm, st.yaw_deg) == (1.0, 1.0)
+        if bench.hil is not None:
+            assert bench.hil.positions().resets == resets
+    finally:
+        homed.connect()

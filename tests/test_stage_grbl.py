@@ -84,7 +84,7 @@ def test_unreachable_port_is_a_clear_error() -> None:
 def test_silent_port_is_a_clear_error() -> None:
     # loop:// echoes our own bytes and never sends a banner.
     s = StageController("loop://", boot_timeout_s=0.2, reply_timeout_s=0.2)
-    with pytest.raises(StageConnectionError, match="no Grbl banner"):
+    with pytest.raises(StageConnectionError, match="no Grbl controller answers"):
         s.connect()
 
 

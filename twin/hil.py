@@ -9,7 +9,7 @@ harness``) if needed, starts ``bench_fw/build/harness/bench_hil`` and gives
   pins, and the same in SI relative to the bench reference, so the twin can move its MuJoCo joints
   from the firmware's real step pulses.
 
-Channel from the harness to Python: a 112-byte shared-memory file (``mmap``), written by the
+Channel from the harness to Python: a 128-byte shared-memory file (``mmap``), written by the
 harness at every step pulse under a seqlock; the layout is documented at the top of
 bench_fw/harness/bench_hil.c and in bench_fw/PROTOCOL.md. Reading it costs no syscalls and is
 never stale.
@@ -42,8 +42,8 @@ BUILD_DIR = FIRMWARE_DIR / "build"
 ELF_PATH = BUILD_DIR / "bench_fw.elf"
 HARNESS_PATH = BUILD_DIR / "harness" / "bench_hil"
 
-_SHM_SIZE = 112
-_SHM_FORMAT = "<8sII2qQ2Q2QII2q2q"
+_SHM_SIZE = 128
+_SHM_FORMAT = "<8sII2qQ2Q2QII2q2qQQ"
 _MAGIC = b"AIMBHIL1"
 
 
@@ -84,6 +84,9 @@ class HilPositions:
     x_m, yaw_rad: the same relative to the bench reference (m, rad; yaw counter-clockwise).
     sim_time_s: simulated time since the harness started (s).
     last_step_s: simulated time of each axis' latest step pulse (s).
+    last_rx_s: simulated time at which the host's latest byte entered the UART (s); with
+    last_step_s, how long the firmware took from a command to the end of its motion.
+    rx_bytes: bytes from the host fed to the UART so far.
     pulses: step pulses seen per axis, either direction.
     limits: (X switch hit, A switch hit). resets: MCU resets so far (port opens, crashes).
     """
@@ -94,6 +97,8 @@ class HilPositions:
     yaw_rad: float
     sim_time_s: float
     last_step_s: tuple[float, float]
+    last_rx_s: float
+    rx_bytes: int
     pulses: tuple[int, int]
     limits: tuple[bool, bool]
     resets: int
@@ -210,19 +215,27 @@ class SimavrHarness:
         """The shared-memory record as a tuple (consistent: seqlock retried)."""
         if self._map is None:
             raise HilError("the simavr harness is not running: call start() first")
-        for _ in range(10000):
+        # The harness may be descheduled in the middle of an update on a loaded host: retry for
+        # up to a second, yielding the CPU after the first spins.
+        deadline = time.monotonic() + 1.0
+        spins = 0
+        while True:
             s1 = struct.unpack_from("<I", self._map, 8)[0]
-            if s1 & 1:
-                continue
-            rec = struct.unpack_from(_SHM_FORMAT, self._map, 0)
-            if rec[1] == s1 and rec[0] == _MAGIC:
-                return rec
+            if not s1 & 1:
+                rec = struct.unpack_from(_SHM_FORMAT, self._map, 0)
+                if rec[1] == s1 and rec[0] == _MAGIC:
+                    return rec
+            spins += 1
+            if spins > 200:
+                if time.monotonic() > deadline:
+                    break
+                time.sleep(0.0002)
         raise HilError("could not read a consistent position record from the harness")
 
     def positions(self) -> HilPositions:
         """The live positions of both stages as observed on the STEP/DIR pins."""
         rec = self.raw()
-        _, _, resets, xs, as_, cycle, lx, la, px, pa, limits, freq, *_ = rec
+        _, _, resets, xs, as_, cycle, lx, la, px, pa, limits, freq, *_, rx_cycle, rx_bytes = rec
         ax = self.axes
         return HilPositions(
             x_steps=xs,
@@ -231,6 +244,8 @@ class SimavrHarness:
             yaw_rad=math.radians(as_ / ax.steps_per_deg - ax.yaw_ref_deg),
             sim_time_s=cycle / freq,
             last_step_s=(lx / freq, la / freq),
+            last_rx_s=rx_cycle / freq,
+            rx_bytes=rx_bytes,
             pulses=(px, pa),
             limits=(bool(limits & 1), bool(limits & 2)),
             resets=resets,

@@ -16,6 +16,7 @@ X = ``x_ref_mm`` (50 mm) and A = ``yaw_ref_deg`` (30 deg). Conversion happens he
 from __future__ import annotations
 
 import math
+import termios
 import time
 from dataclasses import dataclass
 from types import TracebackType
@@ -102,7 +103,10 @@ class StageController:
     boot_timeout_s: how long to wait for the banner after opening the port (s); a board that has
     not sent one by then is soft-reset.
     mpos_axes: the controller's axis order in MPos; default "XA" for bench_fw (its banner says
-    aimbench) and "XYZ" for anything else.
+    aimbench, or its MPos has two values) and "XYZ..." for anything else.
+    hold_dtr: on close, leave DTR up (clear HUPCL), so that the next open does not reset an
+    Arduino and its position survives between connections (the first open after plugging the
+    board in still resets it).
     """
 
     def __init__(
@@ -116,6 +120,7 @@ class StageController:
         reply_timeout_s: float = 2.0,
         boot_timeout_s: float = 2.5,
         mpos_axes: str | None = None,
+        hold_dtr: bool = True,
     ) -> None:
         letters = tuple(s.upper() for s in axis_letters)
         if len(letters) != 2 or letters[0] == letters[1] or not all(
@@ -132,6 +137,7 @@ class StageController:
         self.reply_timeout_s = reply_timeout_s
         self.boot_timeout_s = boot_timeout_s
         self._mpos_axes_override = mpos_axes
+        self.hold_dtr = hold_dtr
         self.mpos_axes = mpos_axes or "XA"
         self.banner: str | None = None
         self.messages: list[str] = []  # [MSG:...] and other push messages, oldest first
@@ -143,10 +149,13 @@ class StageController:
     # ---- connection ---------------------------------------------------------------------------
 
     def connect(self) -> str:
-        """Open the port and wait for the controller's banner; returns the banner line.
+        """Open the port and make sure a Grbl controller answers; returns its banner ("" if it
+        answered a status query without one).
 
-        A board that resets on open (Arduino DTR) sends the banner by itself; one that does not
-        is sent a soft reset (Ctrl-X). Then the settings are read (for move timeouts).
+        A board that resets on open (Arduino DTR) sends its banner by itself. A board that does
+        not (DTR held up, or no auto-reset) is asked for a status report first, so a move in
+        progress is not disturbed; only if that gets no answer is it soft-reset (Ctrl-X). Then
+        the settings are read (for move timeouts and step rounding).
         """
         try:
             self._ser = serial.serial_for_url(
@@ -158,19 +167,32 @@ class StageController:
                 "and the port name (ls /dev/ttyACM* /dev/ttyUSB*), and that no other program "
                 "has the port open"
             ) from exc
-        banner = self._wait_banner(self.boot_timeout_s)
+        # DTR only rises (resetting an Arduino) if the last close dropped it (HUPCL set).
+        expect_reset = self._hupcl() is not False
+        banner = self._wait_banner(self.boot_timeout_s if expect_reset else 0.3)
+        first: grbl.GrblStatus | None = None
         if banner is None:
+            try:
+                first = self._raw_status(timeout_s=min(self.reply_timeout_s, 1.0))
+            except (StageTimeout, ValueError):
+                first = None
+        if banner is None and first is None:
+            self._buf.clear()
             self._write(grbl.SOFT_RESET)
             banner = self._wait_banner(self.reply_timeout_s)
-        if banner is None:
-            self.close()
-            raise StageConnectionError(
-                f"no Grbl banner from {self.url!r} (neither after opening nor after a soft reset): "
-                f"is the stage firmware flashed (make -C bench_fw flash) and the baud rate "
-                f"{self.baudrate}?"
-            )
+            if banner is None:
+                self.close()
+                raise StageConnectionError(
+                    f"no Grbl controller answers on {self.url!r} (no banner, no status report, "
+                    f"nothing after a soft reset): is the stage firmware flashed "
+                    f"(make -C bench_fw flash) and the baud rate {self.baudrate}?"
+                )
         if self._mpos_axes_override is None:
-            self.mpos_axes = "XA" if "aimbench" in banner else "XYZ"
+            if banner and "aimbench" in banner:
+                self.mpos_axes = "XA"
+            else:
+                n = len((first or self._raw_status()).mpos)
+                self.mpos_axes = "XA" if n == 2 else "XYZABC"[:n]
         for letter in self.axis_letters:
             if letter not in self.mpos_axes:
                 self.close()
@@ -182,11 +204,28 @@ class StageController:
             self._settings = self.settings()
         except StageError:
             self._settings = {}
-        return banner
+        return banner or ""
+
+    def _hupcl(self) -> bool | None:
+        """Whether the port drops DTR on close (None: not a terminal, e.g. loop://)."""
+        try:
+            fd = self.port.fileno()
+            return bool(termios.tcgetattr(fd)[2] & termios.HUPCL)
+        except (AttributeError, OSError, termios.error):
+            return None
 
     def close(self) -> None:
-        """Close the port (the controller keeps running)."""
+        """Close the port (the controller keeps running). With hold_dtr, DTR stays up so the
+        next open does not reset the board."""
         if self._ser is not None:
+            try:
+                if self.hold_dtr and self._hupcl():
+                    fd = self._ser.fileno()
+                    attrs = termios.tcgetattr(fd)
+                    attrs[2] &= ~termios.HUPCL
+                    termios.tcsetattr(fd, termios.TCSANOW, attrs)
+            except (OSError, termios.error):
+                pass
             try:
                 self._ser.close()
             finally:
@@ -326,19 +365,23 @@ class StageController:
 
     # ---- state --------------------------------------------------------------------------------
 
-    def status(self) -> StageStatus:
+    def status(self, timeout_s: float | None = None) -> StageStatus:
         """Ask for a realtime status report (does not disturb a line in progress)."""
+        return self._to_status(self._raw_status(timeout_s))
+
+    def _raw_status(self, timeout_s: float | None = None) -> grbl.GrblStatus:
+        timeout = self.reply_timeout_s if timeout_s is None else timeout_s
         self._write(grbl.STATUS_QUERY)
-        deadline = time.monotonic() + self.reply_timeout_s
+        deadline = time.monotonic() + timeout
         while True:
             line = self._readline(deadline)
             if line is None:
                 raise StageTimeout(
                     f"no status report from the stage controller on {self.url!r} within "
-                    f"{self.reply_timeout_s:.1f} s; check the cable, or reset it"
+                    f"{timeout:.1f} s; check the cable, or reset it"
                 )
             if line.startswith("<"):
-                return self._to_status(grbl.parse_status(line))
+                return grbl.parse_status(line)
             self._note(line)
 
     def _to_status(self, st: grbl.GrblStatus) -> StageStatus:

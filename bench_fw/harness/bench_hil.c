@@ -4,7 +4,8 @@
  *   - bridges UART0 to a pseudo-terminal that pyserial opens like /dev/ttyACM0; the first line on
  *     stdout is the pty's path;
  *   - resets the MCU when a host opens the pty, as a real Mega's DTR auto-reset does (after a
- *     100 ms "bootloader" pause, discarding what the host sent meanwhile);
+ *     100 ms "bootloader" pause, discarding what the host sent meanwhile) - unless the host
+ *     cleared HUPCL before it last closed the port, which keeps DTR up on a real tty;
  *   - counts the step pulses on the STEP/DIR pins (pins.h) into each stage's physical position;
  *   - drives the limit-switch inputs from that position: a switch reads hit (pin low) while the
  *     stage is beyond its trip point;
@@ -16,7 +17,7 @@
  * end open (so a host opening the port cannot be seen) and uses a fixed path, and free-running
  * it is ~4x faster than real time, which breaks every host-side timeout.
  *
- * Shared memory file (little-endian, 112 bytes), a seqlock: read `seq`, the fields, `seq` again;
+ * Shared memory file (little-endian, 128 bytes), a seqlock: read `seq`, the fields, `seq` again;
  * retry if it changed or is odd.
  *   0  char[8]   magic "AIMBHIL1"
  *   8  uint32    seq
@@ -29,7 +30,9 @@
  *  76  uint32    frequency       Hz
  *  80  int64[2]  trip_min        a switch reads hit while steps < trip_min ...
  *  96  int64[2]  trip_max        ... or steps > trip_max
- * 112            (size)
+ * 112  uint64    last_rx_cycle  cycle at which the host's latest byte entered the UART
+ * 120  uint64    rx_bytes       bytes from the host fed to the UART so far
+ * 128            (size)
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -58,7 +61,7 @@
 
 #define N_AXIS 2
 #define FREQ 16000000UL
-#define SHM_SIZE 112
+#define SHM_SIZE 128
 
 struct shm_layout {
   char magic[8];
@@ -72,6 +75,8 @@ struct shm_layout {
   uint32_t frequency;
   int64_t trip_min[N_AXIS];
   int64_t trip_max[N_AXIS];
+  uint64_t last_rx_cycle;
+  uint64_t rx_bytes;
 };
 
 static avr_t *avr;
@@ -285,6 +290,7 @@ int main(int argc, char **argv) {
   cfmakeraw(&raw);
   cfsetispeed(&raw, B115200);
   cfsetospeed(&raw, B115200);
+  raw.c_cflag |= HUPCL; /* a tty's default: closing drops DTR, so the next open resets */
   int slave_fd;
   char pty_name[256];
   if (openpty(&master_fd, &slave_fd, pty_name, &raw, NULL) != 0) {
@@ -338,6 +344,10 @@ int main(int argc, char **argv) {
   fprintf(stderr, "bench_hil: %s on %s, %s\n", elf, pty_name, pace ? "real time" : "free-running");
 
   int host_open = 0;
+  /* Whether DTR dropped when the host last closed the port (HUPCL set), so that the next open
+   * raises it again and resets the board; true at start, like a board just plugged in. A host
+   * that clears HUPCL (stty -hupcl; StageController.close does) keeps DTR up: no reset. */
+  int dtr_dropped = 1;
   uint64_t wall0 = wall_ns(), sim0 = now_cycle();
   uint64_t service_every = FREQ / 5000; /* service the pty every 200 us of simulated time */
   uint64_t next_service = 0;
@@ -370,8 +380,8 @@ int main(int argc, char **argv) {
     struct pollfd pfd = {master_fd, POLLIN, 0};
     poll(&pfd, 1, 0);
     int open_now = !(pfd.revents & POLLHUP);
-    if (open_now && !host_open && !reset_on_open) {
-      host_open = 1; /* a board without DTR auto-reset: it just keeps running */
+    if (open_now && !host_open && (!reset_on_open || !dtr_dropped)) {
+      host_open = 1; /* no DTR edge (or no auto-reset circuit): the board just keeps running */
       fprintf(stderr, "bench_hil: host opened the port (no reset)\n");
     } else if (open_now && !host_open) {
       /* A host opened the port: pause like the Mega's bootloader, then reset the MCU. */
@@ -386,8 +396,10 @@ int main(int argc, char **argv) {
       continue;
     }
     if (!open_now && host_open) {
+      struct termios t;
       host_open = 0;
-      fprintf(stderr, "bench_hil: host closed the port\n");
+      dtr_dropped = tcgetattr(master_fd, &t) != 0 || (t.c_cflag & HUPCL) != 0;
+      fprintf(stderr, "bench_hil: host closed the port%s\n", dtr_dropped ? "" : " (DTR kept up)");
     }
     if (host_open && (pfd.revents & POLLIN) && in_len < sizeof(in_buf)) {
       ssize_t n = read(master_fd, in_buf + in_len, sizeof(in_buf) - in_len);
@@ -397,6 +409,8 @@ int main(int argc, char **argv) {
     size_t fed = 0;
     while (fed < in_len && uart_ready) avr_raise_irq(uart_in_irq, in_buf[fed++]);
     if (fed) {
+      local.last_rx_cycle = now_cycle();
+      local.rx_bytes += fed;
       memmove(in_buf, in_buf + fed, in_len - fed);
       in_len -= fed;
     }
