@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TextIO
@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any, Protocol, TextIO
 import numpy as np
 
 from twin import rerun_log as rl
+from twin.errors import AimbenchError
 from twin.pose import Pose
 from twin.scan import Scan
 
@@ -111,7 +112,8 @@ def open_recording(name: str, sinks: SinkOptions, truth: bool = True,
     import rerun as rr
 
     stream = stream if stream is not None else sys.stderr
-    bp = rl.blueprint(truth=truth, tolerances=tolerances)
+    bp = rl.blueprint(truth=truth, tolerances=tolerances,
+                      live=bool(sinks.connect or sinks.serve or sinks.spawn))
     rec = rl.new_recording(name)
     targets: list[Any] = []
     if sinks.save:
@@ -131,6 +133,7 @@ def open_recording(name: str, sinks: SinkOptions, truth: bool = True,
         rec.spawn(default_blueprint=bp)
     # The blueprint also travels in the recording itself, so `rerun FILE.rrd` opens with it.
     rec.send_blueprint(bp)
+    rec._aimbench_blueprint = bp  # type: ignore[attr-defined]  # re-sent by close_recording
     return rec
 
 
@@ -138,6 +141,11 @@ def close_recording(rec: rr.RecordingStream, sinks: SinkOptions,
                     stream: TextIO | None = None, wait: bool = True) -> None:
     """Flush and close the sinks; when serving (and ``wait``), stay up until Ctrl-C."""
     stream = stream if stream is not None else sys.stderr
+    # The blueprint again, last: a viewer activates its time panel's timeline only once that
+    # timeline exists, which the first copy (sent before any data) could not see.
+    bp = getattr(rec, "_aimbench_blueprint", None)
+    if bp is not None:
+        rec.send_blueprint(bp)
     rec.flush()
     if sinks.serve and wait:
         stream.write("rerun: serving the recording; Ctrl-C to stop\n")
@@ -209,9 +217,11 @@ class RerunObserver:
 
             self.geometry = rl.BenchGeometry.from_physics(BenchPhysics(self._params))
             self.geometry.log_static(rec)
+            rec.set_time("scan", sequence=0)
             rec.set_time("stage_time", duration=0.0)
             self.geometry.log_joints(rec, 0.0, 0.0, force=True)
         if name:
+            rec.set_time("scan", sequence=0)
             rl.log_text(rec, f"run {name}" + (f" on the {info.get('kind')} bench"
                                               if info and info.get("kind") else ""))
         self.log_seconds += time.perf_counter() - t0
@@ -226,11 +236,15 @@ class RerunObserver:
         rec = self.rec
         self.reference = int(index)
         self._k = 0
+        # The move belongs to the reference's first scan on the scan timeline (latest-at that
+        # scan: where the move ended), and runs along stage_time.
+        first = self.scan_index(self.reference, 0)
         if stage is not None and all(v is not None and math.isfinite(v) for v in stage):
             yaw, x = (float(v) for v in stage)
             if self.geometry is not None:
                 start = (0.0, 0.0) if self.stage is None else (self.stage[1], self.stage[0])
                 rec.reset_time()
+                rec.set_time("scan", sequence=first)
                 self.stage_time = rl.log_stage_move(rec, self.geometry, start, (x, yaw),
                                                     self.stage_time)
             self.stage = (yaw, x)
@@ -238,6 +252,7 @@ class RerunObserver:
             if self.stage else ""
         label = reference.describe() if hasattr(reference, "describe") else ""
         rec.reset_time()
+        rec.set_time("scan", sequence=first)
         rec.set_time("stage_time", duration=self.stage_time)
         rl.log_text(rec, f"reference {index}{f' ({label})' if label else ''}{where}")
         self.log_seconds += time.perf_counter() - t0
@@ -311,6 +326,8 @@ class RerunObserver:
         """A failure (an alarm, a silent sensor, a board out of view): an ERROR annotation."""
         where = "" if reference is None else f"reference {reference}" + (
             f", scan {scan}" if scan is not None else "") + ": "
+        if reference is not None:
+            self.rec.set_time("scan", sequence=self.scan_index(reference, scan or 0))
         rl.log_text(self.rec, f"{where}{message}", "ERROR")
 
     def on_event(self, message: str, level: str = "INFO") -> None:
@@ -332,3 +349,83 @@ def pose_from_row(row: Mapping[str, Any], prefix: str = "") -> Pose | None:
         return None
     a = np.asarray(values, dtype=float)
     return Pose.from_array(a) if np.all(np.isfinite(a)) else None
+
+
+# ---------------------------------------------------------------------------------------------
+# Instrumenting a run: the bench and the estimator report to the observer
+# ---------------------------------------------------------------------------------------------
+class ObservedBench:
+    """A `scenarios.bench.Bench` that tells an observer what the runner does with it.
+
+    The runner calls ``prepare(reference, first_scan)`` once the stages have arrived at a
+    reference and before its scans: that is where the observer learns the reference and where
+    the stages stopped. Each scan the bench yields is kept (``current``) for the estimator
+    wrapper of `observed_estimator`, which logs it with its estimate. Everything else is passed
+    through, so the runner cannot tell the difference.
+    """
+
+    def __init__(self, bench: Any, observer: RerunObserver, plan: Any = None) -> None:
+        self._bench = bench
+        self.observer = observer
+        self.plan = plan
+        self.reference: int | None = None
+        self.k = 0
+        self.current: Scan | None = None
+
+    def __getattr__(self, name: str) -> Any:  # everything not overridden: the real bench
+        return getattr(self._bench, name)
+
+    def __enter__(self) -> ObservedBench:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._bench.close()
+
+    def prepare(self, reference: int, first_scan: int) -> None:
+        self._bench.prepare(reference, first_scan)
+        self.reference, self.k = int(reference), int(first_scan)
+        ref = self.plan.references[reference] if self.plan is not None else None
+        try:
+            stage = self._bench.position()
+        except Exception:  # a stage controller that cannot say: draw no move
+            stage = None
+        self.observer.on_reference(self.reference, ref, stage)
+
+    def scans(self, n: int) -> Any:
+        for scan in self._bench.scans(n):
+            self.current = scan
+            yield scan
+            self.k += 1
+
+
+def observed_estimator(bench: ObservedBench, method: str | None = None,
+                       board: Any = None) -> Callable[[Scan], Any]:
+    """The runner's estimator (`scenarios.runner.make_estimator`'s call to `align.estimate`),
+    logging each scan with align's full answer (``used``: the board points and features, which
+    the runner's `Estimate` does not keep) before handing the runner its usual `Estimate`."""
+    import align
+    from scenarios.runner import Estimate, adapt_estimate
+
+    spec = board if board is not None else align.BoardSpec()
+
+    def estimate(scan: Scan) -> Any:
+        kwargs: dict[str, Any] = {"board": spec}
+        if method is not None:
+            kwargs["method"] = method
+        try:
+            pe = align.estimate([scan], **kwargs)
+            est = adapt_estimate(pe)
+        except AimbenchError:
+            raise
+        except Exception as exc:  # as make_estimator: one bad scan must not lose the sweep
+            est = pe = Estimate(status="estimator_error", success=False, pose=None,
+                                diagnostics={"error": f"{type(exc).__name__}: {exc}"})
+        try:
+            stage = bench.position()
+        except Exception:
+            stage = None
+        bench.observer.on_scan(scan, pe, None, reference=bench.reference, k=bench.k,
+                               stage=stage, wall_time=time.time())
+        return est
+
+    return estimate

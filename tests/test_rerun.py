@@ -247,10 +247,17 @@ def test_point_colours_by_intensity_and_ring():
     scan = BenchSim(seed=2).scan()
     lut = rl.turbo_lut()
     assert lut.shape == (256, 3) and lut.dtype == np.uint8
+    from matplotlib import colormaps
+
+    ref = np.rint(colormaps["turbo"](np.linspace(0, 1, 256))[:, :3] * 255)
+    assert np.abs(lut.astype(float) - ref).max() <= 4
     by_ring = rl.scan_colors(scan, scan.valid, "ring")
     assert len({tuple(c) for c in rl.ring_colors()}) == 16
-    np.testing.assert_array_equal(by_ring, rl.ring_colors()[scan.ring[scan.valid]])
+    rgb = rl.ring_colors()[scan.ring[scan.valid]]
+    np.testing.assert_array_equal(by_ring >> 24, rgb[:, 0])
+    np.testing.assert_array_equal((by_ring >> 8) & 0xFF, rgb[:, 2])
+    assert np.all(by_ring & 0xFF == 0xFF)
     by_intensity = rl.scan_colors(scan, scan.valid)
-    assert by_intensity.shape == (int(scan.valid.sum()), 3)
+    assert by_intensity.shape == (int(scan.valid.sum()),) and by_intensity.dtype == np.uint32
     with pytest.raises(ValueError, match="intensity"):
         rl.scan_colors(scan, by="range")

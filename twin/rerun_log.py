@@ -81,12 +81,25 @@ BOARD_THICKNESS = 0.003
 # ---------------------------------------------------------------------------------------------
 # Colour maps (numpy only: the points of a scan are coloured with one table look-up)
 # ---------------------------------------------------------------------------------------------
+#: Turbo (Mikhailov 2019, Apache-2.0) at 33 evenly spaced knots, RGB hex: matplotlib's table
+#: sampled once. Linear interpolation between them stays within 4 levels of the full table
+#: (tests/test_rerun.py checks), without importing a plotting library (about a second of CPU)
+#: into every recording.
+_TURBO_KNOTS = (
+    "30123b392a734040a24456c7466be34680f64294ff37a8fa28bceb1ccdd818ddc21fe9af32f2984ef97d6d"
+    "fe628bff4ba4fc3cb9f635cdec34dfdf37eecf3af8be39fdac34fe962bfb7e21f46617eb500edf3f08d02f"
+    "05be2102a91601920b017a0403"
+)
+
+
 @functools.cache
 def turbo_lut(n: int = 256) -> np.ndarray:
-    """The Turbo colour map as an (n, 3) uint8 table (matplotlib's, loaded once on first use)."""
-    from matplotlib import colormaps
-
-    return np.rint(colormaps["turbo"](np.linspace(0.0, 1.0, n))[:, :3] * 255).astype(np.uint8)
+    """The Turbo colour map as an (n, 3) uint8 table."""
+    knots = np.frombuffer(bytes.fromhex(_TURBO_KNOTS), dtype=np.uint8).reshape(-1, 3)
+    t = np.linspace(0.0, 1.0, len(knots))
+    x = np.linspace(0.0, 1.0, n)
+    rgb = np.column_stack([np.interp(x, t, knots[:, j].astype(float)) for j in range(3)])
+    return np.rint(rgb).astype(np.uint8)
 
 
 def ring_colors() -> np.ndarray:
@@ -94,18 +107,32 @@ def ring_colors() -> np.ndarray:
     return turbo_lut()[np.linspace(0, 255, 16).astype(int)]
 
 
+def pack_rgba(rgb: np.ndarray) -> np.ndarray:
+    """(N, 3) uint8 colours as rerun's packed 0xRRGGBBAA uint32 (opaque)."""
+    rgb = np.asarray(rgb, dtype=np.uint32)
+    return (rgb[..., 0] << 24) | (rgb[..., 1] << 16) | (rgb[..., 2] << 8) | np.uint32(0xFF)
+
+
+@functools.cache
+def _packed_tables() -> tuple[np.ndarray, np.ndarray]:
+    return pack_rgba(turbo_lut()), pack_rgba(ring_colors())
+
+
 def scan_colors(scan: Scan, mask: np.ndarray | None = None, by: str = "intensity") -> np.ndarray:
-    """Colours (N, 3) uint8 of the scan's firings (where ``mask``): by calibrated ``intensity``
-    (0..255 through Turbo; the VLP-16 maps diffuse reflectors to 0..100, retro-reflectors above,
-    so the table is stretched over 0..100 and saturates beyond) or by elevation ``ring``."""
+    """Colours of the scan's firings (where ``mask``) as packed 0xRRGGBBAA uint32 (rerun takes
+    them as they are; (N, 3) bytes would cost a conversion per scan): by calibrated
+    ``intensity`` (through Turbo; the VLP-16 maps diffuse reflectors to 0..100, retro-reflectors
+    above, so the table is stretched over 0..100 and saturates beyond) or by elevation ``ring``.
+    """
+    intensity_lut, ring_lut = _packed_tables()
     if by == "ring":
         ring = scan.ring if mask is None else scan.ring[mask]
-        return ring_colors()[ring]
+        return ring_lut[ring]
     if by != "intensity":
         raise ValueError(f"colour points by 'intensity' or 'ring', not {by!r}")
     inten = scan.intensity if mask is None else scan.intensity[mask]
     idx = np.minimum(inten.astype(np.uint16) * 255 // 100, 255)
-    return turbo_lut()[idx]
+    return intensity_lut[idx]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -514,9 +541,14 @@ def scan_annotations(scan: Scan | None, status: str, success: bool,
 # ---------------------------------------------------------------------------------------------
 # Blueprint
 # ---------------------------------------------------------------------------------------------
-def blueprint(truth: bool = True, tolerances: Iterable[str] | None = None) -> rrb.Blueprint:
+def blueprint(truth: bool = True, tolerances: Iterable[str] | None = None,
+              live: bool = False) -> rrb.Blueprint:
     """The layout a recording opens with: the bench in 3-D (left), per-axis plots (right, top) and
-    the log (right, bottom). ``truth``: plot errors (twin) or the estimates (hardware)."""
+    the log (right, bottom). ``truth``: plot errors (twin) or the estimates (hardware).
+
+    On the ``scan`` timeline; ``live`` (a stream to a viewer) follows the newest scan, otherwise
+    (a file) the viewer plays the scans once from the start at ``fps`` scans per second and stops
+    on the last one with every plot complete."""
     import rerun.blueprint as rrb
 
     kind = "error" if truth else "estimate"
@@ -536,7 +568,8 @@ def blueprint(truth: bool = True, tolerances: Iterable[str] | None = None) -> rr
             rrb.Vertical(rrb.Grid(*plots, grid_columns=2),
                          rrb.TextLogView(origin="/log", name="log"), row_shares=[3, 1]),
             column_shares=[3, 2]),
-        rrb.TimePanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", timeline="scan",
+                      play_state="following" if live else "playing", loop_mode="off", fps=30.0),
         rrb.SelectionPanel(state="collapsed"),
         rrb.BlueprintPanel(state="collapsed"),
         collapse_panels=False,

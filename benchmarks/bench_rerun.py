@@ -1,0 +1,143 @@
+"""What rerun logging costs a sweep: the same sweep with and without ``--rerun``, and the
+recording's size per scan.
+
+    .venv/bin/python benchmarks/bench_rerun.py                     # the issue's 21 x 100 sweep
+    .venv/bin/python benchmarks/bench_rerun.py --scans 10 --rounds 2   # smaller, says so
+
+The sweep: the paper's yaw sweep (21 references, -10..+10 deg) on the simulated bench with
+align's default method, run by the real runner into a real result store, exactly as ``aimbench
+sweep yaw --no-report`` runs it; with logging, the bench and the estimator are instrumented as
+``aimbench sweep --rerun`` does (`scenarios.rerun_observer.ObservedBench`,
+`observed_estimator`) and the recording is saved to an .rrd file (every scan's point cloud, the
+board points, features, plane, poses, stages, errors and annotations).
+
+The two runs of a round are interleaved (plain, logged, plain, logged, ...) and each
+configuration keeps its best round, the one least disturbed by other load on a shared machine.
+Both CPU time (all the process's threads, rerun's encoder and file writer included) and wall
+time are measured; the verdict is on CPU time, which other processes on the machine do not
+inflate, and the wall-time ratio is printed beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from scenarios import plans
+from scenarios.bench import SimBench
+from scenarios.runner import Runner, make_estimator
+from scenarios.store import Store
+
+#: The issue's ceiling: logging may add at most this fraction to a sweep's time.
+MAX_OVERHEAD = 0.20
+
+
+def run_sweep(plan: plans.Plan, out: Path, seed: int, rrd: Path | None) -> tuple[float, float]:
+    """One sweep into `out`; with `rrd`, logged to that file. Returns (CPU s, wall s)."""
+    c0, w0 = time.process_time(), time.perf_counter()
+    bench = SimBench(seed=seed)
+    store = Store.create(out, plan, {"bench": "sim", "seed": seed, "method": None}, bench.info())
+    rec = None
+    try:
+        if rrd is None:
+            runner = Runner(plan, bench, store, make_estimator(None))
+        else:
+            from scenarios.rerun_observer import (
+                ObservedBench,
+                RerunObserver,
+                SinkOptions,
+                close_recording,
+                observed_estimator,
+                open_recording,
+            )
+
+            sinks = SinkOptions(save=rrd)
+            rec = open_recording(f"bench {out.name}", sinks, stream=open(os.devnull, "w"))  # noqa: SIM115
+            observer = RerunObserver(rec, scans_per_reference=plan.scans)
+            observer.on_start(out.name, bench.info())
+            observed = ObservedBench(bench, observer, plan)
+            runner = Runner(plan, observed, store, observed_estimator(observed))
+        status = runner.run()
+        if rec is not None:
+            observer.on_finish(status)
+            close_recording(rec, sinks, stream=open(os.devnull, "w"))  # noqa: SIM115
+        if status != "completed":
+            raise SystemExit(f"the sweep ended {status}")
+    finally:
+        store.close()
+    return time.process_time() - c0, time.perf_counter() - w0
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scans", type=int, default=100, help="scans per reference (default 100, "
+                                                          "the issue's sweep)")
+    p.add_argument("--references", type=int, default=21,
+                   help="references of the yaw sweep, spread over -10..+10 deg (default 21)")
+    p.add_argument("--rounds", type=int, default=1, help="interleaved rounds (default 1)")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args()
+
+    full = plans.yaw_sweep(scans=args.scans)
+    refs = full.references
+    if args.references < len(refs):
+        pick = [round(i * (len(refs) - 1) / max(args.references - 1, 1))
+                for i in range(args.references)]
+        refs = tuple(refs[i] for i in pick)
+    plan = plans.Plan(full.name, full.kind, refs, args.scans, full.settings)
+    n = len(refs) * args.scans
+    issue = len(refs) == 21 and args.scans == 100
+    print(f"rerun logging benchmark: yaw sweep, {len(refs)} references x {args.scans} scans = "
+          f"{n} scans, {args.rounds} round(s), seed {args.seed}"
+          + ("" if issue else "  [smaller than the issue's 21 x 100 sweep]"))
+    print(f"machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at start")
+
+    best: dict[str, tuple[float, float]] = {}
+    size = 0
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(args.rounds):
+            for mode in ("plain", "rerun"):
+                out = Path(tmp) / f"{mode}{r}"
+                rrd = out / "run.rrd" if mode == "rerun" else None
+                cpu, wall = run_sweep(plan, out, args.seed, rrd)
+                print(f"  round {r + 1} {mode:<5}: CPU {cpu:8.1f} s  wall {wall:8.1f} s",
+                      flush=True)
+                if mode not in best or cpu < best[mode][0]:
+                    best[mode] = (cpu, wall)
+                if rrd is not None:
+                    size = rrd.stat().st_size
+    (c_plain, w_plain), (c_rr, w_rr) = best["plain"], best["rerun"]
+    ratio_cpu = c_rr / c_plain
+    ratio_wall = w_rr / w_plain
+    rows = [
+        ("sweep CPU time, plain", f"{c_plain:.1f} s", f"{c_plain / n * 1e3:.1f} ms/scan", ""),
+        ("sweep CPU time, --rerun", f"{c_rr:.1f} s", f"{c_rr / n * 1e3:.1f} ms/scan",
+         f"{ratio_cpu:.3f}"),
+        ("sweep wall time, plain", f"{w_plain:.1f} s", "", ""),
+        ("sweep wall time, --rerun", f"{w_rr:.1f} s", "", f"{ratio_wall:.3f}"),
+        ("logging overhead (CPU)", f"{(ratio_cpu - 1) * 100:+.1f} %",
+         f"ceiling {MAX_OVERHEAD * 100:.0f} %", f"{ratio_cpu:.3f}"),
+        (".rrd size", f"{size / 2**20:.1f} MiB", f"{n} scans", ""),
+        (".rrd size per scan", f"{size / n / 2**10:.0f} KiB", "", ""),
+    ]
+    print()
+    print(f"{'figure':<28} {'value':>12}  {'anchor':<22} {'ratio':>6}")
+    print("-" * 72)
+    for fig, val, anchor, ratio in rows:
+        print(f"{fig:<28} {val:>12}  {anchor:<22} {ratio:>6}")
+    print()
+    ok = ratio_cpu <= 1 + MAX_OVERHEAD
+    print(f"logging {'adds' if ratio_cpu >= 1 else 'saves'} {abs(ratio_cpu - 1) * 100:.1f} % "
+          f"CPU time ({(ratio_wall - 1) * 100:+.1f} % wall): "
+          f"{'within' if ok else 'BEYOND'} the {MAX_OVERHEAD * 100:.0f} % ceiling"
+          + ("" if issue else f" (measured on {len(refs)} x {args.scans}, not 21 x 100)"))
+    sys.exit(0 if ok else 1)
+
+
+if __name__ == "__main__":
+    main()
