@@ -41,7 +41,7 @@ class Hints:
     #: Range noise 1-sigma, m, if known (None: estimated from the plane residuals).
     range_sigma: float | None = None
     #: 1-sigma of the random part of an edge's hit/miss transition, m (mixed returns, jitter).
-    edge_blur: float = 0.5e-3
+    edge_blur: float = 0.2e-3
     #: Seed for the randomised parts (RANSAC).
     seed: int = 0
 

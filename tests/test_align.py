@@ -109,8 +109,9 @@ def test_fusion_of_ten_scans_shrinks_roll_faster_than_sqrt_n():
     single = align.estimate(scans[0])
     fused = align.estimate(scans)
     assert fused.success and fused.diagnostics["scans_used"] == 10
-    # roll's sigma shrinks about as 1/N: clearly faster than 1/sqrt(10) = 0.32
-    assert fused.std[3] < 0.25 * single.std[3]
+    # roll's sigma shrinks faster than 1/sqrt(N) (the merged brackets are N times narrower;
+    # the edge blur floor keeps it from the full 1/N)
+    assert fused.std[3] < single.std[3] / np.sqrt(10)
     e = fused.pose.as_array() - truth.as_array()
     assert np.all(np.abs(e) < 4 * fused.std + np.array([0, 0, 0, 1e-4, 0, 0])), (e, fused.std)
 
