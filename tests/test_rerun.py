@@ -261,3 +261,49 @@ def test_point_colours_by_intensity_and_ring():
     assert by_intensity.shape == (int(scan.valid.sum()),) and by_intensity.dtype == np.uint32
     with pytest.raises(ValueError, match="intensity"):
         rl.scan_colors(scan, by="range")
+
+
+def test_live_sweep_through_the_runner_logs_each_scan(tmp_path: Path):
+    """The path of ``aimbench sweep --rerun``: the real runner drives an observed bench and the
+    observed estimator; the recording has each scan once, with its truth and what align used."""
+    from scenarios.bench import SimBench
+    from scenarios.rerun_observer import (
+        ObservedBench,
+        RerunObserver,
+        SinkOptions,
+        close_recording,
+        observed_estimator,
+        open_recording,
+    )
+
+    refs = (Reference(math.radians(1.0), 0.0), Reference(math.radians(1.0), 0.01))
+    plan = Plan("live", "x", refs, 2)
+    bench = SimBench(seed=4)
+    store = Store.create(tmp_path / "run", plan, {"bench": "sim", "seed": 4}, bench.info())
+    sinks = SinkOptions(save=tmp_path / "run" / "run.rrd")
+    rec = open_recording("live", sinks)
+    observer = RerunObserver(rec, scans_per_reference=plan.scans)
+    observed = ObservedBench(bench, observer, plan)
+    try:
+        status = Runner(plan, observed, store, observed_estimator(observed)).run()
+        observer.on_finish(status)
+        rows = list(store.iter_scans())
+    finally:
+        close_recording(rec, sinks)
+        store.close()
+    assert status == "completed"
+    recording = read_rrd(sinks.save)
+    assert recording.per_step("/world/truth", "scan", "Transform3D:translation") == {
+        0: 1, 1: 1, 2: 1, 3: 1}
+    for row in rows:
+        step = row["reference"] * plan.scans + row["scan"]
+        (t,) = recording.at("/world/truth", "scan", step, "Transform3D:translation")
+        np.testing.assert_allclose(t[0], [row[f"truth_{a}_m"] for a in "xyz"], atol=1e-6)
+        (pts,) = recording.at("/world/sensor/scan", "scan", step, "Points3D:positions")
+        assert len(pts) == row["points"]
+        board = recording.at("/world/sensor/board_points", "scan", step, "Points3D:positions")
+        assert (len(board) == 1 and len(board[0]) > 50) == bool(row["success"])
+    # The carriage moved 10 mm between the references (the stages posed from the joints).
+    xs = [r.components["Transform3D:translation"][0][0]
+          for r in recording.rows("/world/bench/carriage", "Transform3D:translation")]
+    assert max(xs) - min(xs) == pytest.approx(0.01, abs=1e-6)
