@@ -228,10 +228,23 @@ class BenchSim:
         """(azimuth rad in [0, 2 pi), rotation index) at times t (s); before the first
         rotation the first rotation's rate extends backwards (index -1)."""
         starts = np.asarray(self._rot_start)
-        idx = np.searchsorted(starts, t, side="right") - 1
-        i = np.clip(idx, 0, len(starts) - 1)
-        az = self.cut_azimuth + np.asarray(self._rot_omega)[i] * (t - starts[i])
-        return np.mod(az, TWO_PI), idx
+        omega = np.asarray(self._rot_omega)
+        # t is sorted: cut it at the rotation starts and work on slices.
+        cuts = np.searchsorted(t, starts, side="left")
+        idx = np.empty(len(t), dtype=np.int64)
+        az = np.empty(len(t))
+        bounds = np.concatenate(([0], cuts, [len(t)]))
+        for k in range(len(bounds) - 1):
+            lo, hi = bounds[k], bounds[k + 1]
+            if hi <= lo:
+                continue
+            i = min(max(k - 1, 0), len(starts) - 1)
+            idx[lo:hi] = k - 1
+            np.subtract(t[lo:hi], starts[i], out=az[lo:hi])
+            az[lo:hi] *= omega[i]
+        az += self.cut_azimuth
+        np.mod(az, TWO_PI, out=az)
+        return az, idx
 
     # ---------------------------------------------------------------------------------------
     # Firings
@@ -249,23 +262,29 @@ class BenchSim:
         cfg = self.config
         scans = []
         for i in rotations:
-            m = f.rotation == i
+            # Firings are in time order, so a rotation's firings are one slice.
+            lo, hi = np.searchsorted(f.rotation, [i, i + 1])
+            m = slice(int(lo), int(hi))
             # Truth from the world poses at the first and last firing of the rotation.
-            t_first = float(f.time[m][0]) if m.any() else self._rot_start[i]
-            t_last = float(f.time[m][-1]) if m.any() else self._rot_start[i]
+            t_first = float(f.time[lo]) if hi > lo else self._rot_start[i]
+            t_last = float(f.time[hi - 1]) if hi > lo else self._rot_start[i]
             truth = self._truth_at(t_first)
             truth_end = self._truth_at(t_last)
             parts = []
             for s in range(cfg.n_returns):
                 d = f.returns.distance[s, m]
-                x, y, z = points_from_polar(d, f.azimuth[m], f.laser_id[m],
-                                            cfg.vertical_offsets)
+                x, y, z = (np.zeros(len(d)) for _ in range(3))
+                v = np.flatnonzero(d > 0)  # trigonometry for the returns only
+                x[v], y[v], z[v] = points_from_polar(d[v], f.azimuth[m][v], f.laser_id[m][v],
+                                                     cfg.vertical_offsets)
                 parts.append(dict(distance=d, azimuth=f.azimuth[m], laser_id=f.laser_id[m],
                                   intensity=f.returns.intensity[s, m],
                                   time=np.mod(f.time[m], SECONDS_PER_HOUR),
                                   return_type=f.returns.return_type[s, m], x=x, y=y, z=z))
             if cfg.n_returns == 1:
                 arrays = parts[0]
+                if hi - lo < len(f.time):  # a slice of a longer window: do not keep it alive
+                    arrays = {k: np.array(v) for k, v in arrays.items()}
             else:
                 # Dual: the two returns of each firing side by side (last, then the other).
                 arrays = {k: np.column_stack([p[k] for p in parts]).reshape(-1)
