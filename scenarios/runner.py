@@ -502,12 +502,21 @@ class ParallelSimRunner(Runner):
             try:
                 self._check_travel(where)
                 self.bench.close()  # travel and info only: the workers have their own twins
-                for w in range(min(self.jobs, len(todo))):
-                    p = ctx.Process(target=_sim_worker, args=(
-                        plan.to_dict(), todo[w::self.jobs], self.seed, self.ideal, self.method,
-                        out, stop), daemon=True)
-                    p.start()
-                    procs.append(p)
+                # Workers inherit an ignored SIGINT (it survives exec), so a Ctrl-C at the
+                # terminal, which reaches the whole process group, only reaches them through
+                # `stop`, even while they are still importing.
+                main = threading.current_thread() is threading.main_thread()
+                saved = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+                try:
+                    for w in range(min(self.jobs, len(todo))):
+                        p = ctx.Process(target=_sim_worker, args=(
+                            plan.to_dict(), todo[w::self.jobs], self.seed, self.ideal,
+                            self.method, out, stop), daemon=True)
+                        p.start()
+                        procs.append(p)
+                finally:
+                    if main:
+                        signal.signal(signal.SIGINT, saved)
                 running = len(procs)
                 fails: dict[int, list[int]] = {}  # reference -> [consecutive, successes]
                 while running:
