@@ -11,6 +11,7 @@ With --watch it then prints the stage positions observed on the STEP/DIR pins tw
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 
@@ -28,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
             if args.watch:
                 p = hil.positions()
                 print(f"t={p.sim_time_s:9.3f} s  x={p.x_steps:7d} steps ({p.x_m * 1000:+8.3f} mm)  "
-                      f"a={p.a_steps:7d} steps ({p.yaw_rad * 57.29577951308232:+8.3f} deg)  "
+                      f"a={p.a_steps:7d} steps ({math.degrees(p.yaw_rad):+8.3f} deg)  "
                       f"limits={'X' if p.limits[0] else '-'}{'A' if p.limits[1] else '-'}",
                       flush=True)
     print("aimbench hil: the harness stopped", file=sys.stderr)
