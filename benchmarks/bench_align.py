@@ -24,20 +24,20 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-import argparse  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-import warnings  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
 
-import numpy as np  # noqa: E402
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import align  # noqa: E402
-from twin.bench_params import BenchParams  # noqa: E402
-from twin.emulation import EmulationConfig  # noqa: E402
-from twin.sim import BenchSim  # noqa: E402
+import align
+from twin.bench_params import BenchParams
+from twin.emulation import EmulationConfig
+from twin.sim import BenchSim
 
 AXES = ("tilt", "roll", "yaw", "x")
 UNITS = ("deg", "deg", "deg", "mm")
@@ -60,11 +60,14 @@ def errors(est: align.PoseEstimate, truth) -> tuple[np.ndarray, np.ndarray]:
     return err, sig
 
 
-def random_pose(rng: np.random.Generator, ang_deg: float, x_mm: float, yaw_deg: float):
+def random_pose(rng: np.random.Generator, ang_deg: float, x_mm: float, yaw_deg: float,
+                raise_mm: float = 0.0):
     roll, tilt, mount_yaw = rng.uniform(-ang_deg, ang_deg, 3)
     stage_yaw = rng.uniform(-yaw_deg, yaw_deg)
     x = rng.uniform(-x_mm, x_mm) * 1e-3
-    return BenchParams.from_edge(roll_deg=roll, tilt_deg=tilt, yaw_deg=mount_yaw), x, stage_yaw
+    lever = (0.0, 0.0, 60.0 + raise_mm)  # mm: the default lever arm, raised
+    return (BenchParams.from_edge(roll_deg=roll, tilt_deg=tilt, yaw_deg=mount_yaw,
+                                  lever_arm_mm=lever), x, stage_yaw)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -76,6 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stage-yaw-deg", type=float, default=0.0,
                     help="stage yaw within +-this on top (10: the bench's sweep range)")
     ap.add_argument("--x-mm", type=float, default=30.0, help="x within +-this")
+    ap.add_argument("--raise-mm", type=float, default=0.0,
+                    help="raise the LiDAR (43 mm: the +5 deg ring grazes the board's top edge)")
     ap.add_argument("--divergence", action="store_true", help="beam divergence, mixed returns")
     ap.add_argument("--methods", default="rays,paper", help="comma-separated")
     ap.add_argument("--icp-scans", type=int, default=3, help="ICP baseline: scans per pose")
@@ -93,7 +98,8 @@ def main(argv: list[str] | None = None) -> int:
     icp_err, icp_cpu = [], []
     t_start = time.time()
     for k in range(args.poses):
-        params, x, yaw = random_pose(rng, args.angle_deg, args.x_mm, args.stage_yaw_deg)
+        params, x, yaw = random_pose(rng, args.angle_deg, args.x_mm, args.stage_yaw_deg,
+                                     args.raise_mm)
         sim = BenchSim(params, seed=int(rng.integers(2**31)), noise=cfg)
         sim.move_to(x, np.deg2rad(yaw))
         # one scan() per rotation (see the report: scans(n) of the twin lost the board at times)
@@ -128,7 +134,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\n# align on the twin: {args.poses} poses x {args.scans} scans, angles within "
           f"+-{args.angle_deg:g} deg" + (f" (+ stage yaw +-{args.stage_yaw_deg:g} deg)"
                                           if args.stage_yaw_deg else "")
-          + f", x within +-{args.x_mm:g} mm, 14 mm noise, divergence "
+          + f", x within +-{args.x_mm:g} mm"
+          + (f", LiDAR raised {args.raise_mm:g} mm" if args.raise_mm else "")
+          + ", 14 mm noise, divergence "
           f"{'on' if args.divergence else 'off'}, seed {args.seed}\n")
     hdr = " ".join(f"{a + ' ' + u:>11}" for a, u in zip(AXES, UNITS, strict=True))
     print(f"{'method':8} {'mode':8} {'row':16} {hdr}")
