@@ -429,3 +429,69 @@ def observed_estimator(bench: ObservedBench, method: str | None = None,
         return est
 
     return estimate
+
+
+class RerunSession:
+    """What ``aimbench sweep --rerun`` adds to a sweep, in one object, so that the sweep command
+    needs only a few lines: open the recording, instrument the bench and the estimator, note the
+    run's end or failure, close.
+
+    name: the recording's name; sinks: where it goes (`sink_options`); plan: the sweep's plan;
+    info: what the bench says about itself; tolerances: the error plots' band (edge units).
+    """
+
+    def __init__(self, name: str, sinks: SinkOptions, plan: Any, info: Mapping[str, Any] | None,
+                 tolerances: Mapping[str, float] | None = None, points_every: int = 1,
+                 stream: TextIO | None = None) -> None:
+        self.sinks = sinks
+        self.plan = plan
+        self.stream = stream if stream is not None else sys.stderr
+        truth = (info or {}).get("kind") == "sim"
+        self.rec = open_recording(name, sinks, truth=truth, tolerances=tolerances,
+                                  stream=self.stream)
+        self.observer = RerunObserver(self.rec, tolerances=tolerances,
+                                      scans_per_reference=plan.scans, points_every=points_every)
+        self.observer.on_start(name, info)
+        self._closed = False
+        self.stream.write(f"rerun: {sinks.describe()}\n")
+
+    def instrument(self, bench: Any, method: str | None) -> tuple[Any, Callable[[Scan], Any]]:
+        """The bench and estimator to hand the runner instead of the plain ones."""
+        observed = ObservedBench(bench, self.observer, self.plan)
+        return observed, observed_estimator(observed, method)
+
+    def finish(self, status: str, message: str | None = None) -> None:
+        self.observer.on_finish(status, message)
+
+    def error(self, message: str) -> None:
+        self.observer.on_error(message)
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            close_recording(self.rec, self.sinks, self.stream)
+
+
+def add_rerun_arguments(p: Any) -> None:
+    """``--rerun`` and rerun's sink flags for ``aimbench sweep``."""
+    p.add_argument("--rerun", action="store_true",
+                   help="log the sweep to rerun: saved to RUN/run.rrd unless --save, --connect, "
+                        "--serve or --spawn says otherwise (see docs/replay.md)")
+    add_sink_arguments(p, "with --rerun: write the recording to this .rrd file "
+                          "(default RUN/run.rrd)")
+    p.add_argument("--rerun-points-every", type=int, default=1, metavar="N",
+                   help="with --rerun: log every N-th return of a scan (default 1: all)")
+
+
+def session_from_args(args: Any, out: Path, plan: Any, info: Mapping[str, Any] | None,
+                      tolerances: Mapping[str, float] | None = None,
+                      stream: TextIO | None = None) -> RerunSession | None:
+    """The sweep's `RerunSession`, or None without ``--rerun`` (nothing is imported or logged).
+    A sink flag without ``--rerun`` implies it."""
+    sinks = sink_options(args, default_save=Path(out) / "run.rrd")
+    explicit = bool(getattr(args, "save", None) or getattr(args, "connect", None)
+                    or getattr(args, "serve", False) or getattr(args, "spawn", False))
+    if not (getattr(args, "rerun", False) or explicit):
+        return None
+    return RerunSession(f"sweep {Path(out).name}", sinks, plan, info, tolerances,
+                        points_every=getattr(args, "rerun_points_every", 1), stream=stream)

@@ -307,3 +307,27 @@ def test_live_sweep_through_the_runner_logs_each_scan(tmp_path: Path):
     xs = [r.components["Transform3D:translation"][0][0]
           for r in recording.rows("/world/bench/carriage", "Transform3D:translation")]
     assert max(xs) - min(xs) == pytest.approx(0.01, abs=1e-6)
+
+
+def test_sweep_session_only_with_the_flag(tmp_path: Path):
+    """``--rerun`` (or a sink flag) makes a session saving RUN/run.rrd; without, none."""
+    import argparse
+
+    from scenarios.rerun_observer import add_rerun_arguments, session_from_args
+
+    p = argparse.ArgumentParser()
+    add_rerun_arguments(p)
+    plan = Plan("s", "yaw", (Reference(),), 1)
+    assert session_from_args(p.parse_args([]), tmp_path, plan, {"kind": "sim"}) is None
+    session = session_from_args(p.parse_args(["--rerun"]), tmp_path, plan, {"kind": "sim"})
+    assert session is not None and session.sinks.save == tmp_path / "run.rrd"
+    session.finish("completed")
+    session.close()
+    texts = [r.components["TextLog:text"][0]
+             for r in read_rrd(tmp_path / "run.rrd").rows("/log", "TextLog:text")]
+    assert texts[-1] == "run completed"
+    other = tmp_path / "other.rrd"
+    session = session_from_args(p.parse_args(["--save", str(other)]), tmp_path, plan, None)
+    assert session is not None and session.sinks.save == str(other)
+    session.close()
+    assert other.is_file()
