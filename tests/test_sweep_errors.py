@@ -4,6 +4,7 @@ marked failed where it failed with nothing lost."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import socket
 import sqlite3
@@ -11,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -137,3 +139,29 @@ def test_unreachable_stage_controller(tmp_path: Path, port: str, why: str):
     with sqlite3.connect(run / "run.sqlite") as c:
         events = [m for (m,) in c.execute("SELECT message FROM event")]
     assert any(why in m and "opening the hw bench" in m for m in events)
+
+
+@pytest.mark.slow
+def test_capture_replay_fails_when_it_runs_out_and_resume_keeps_the_capture(tmp_path: Path):
+    """HardwareBench replaying a twin capture (no stages): the estimates find the capture's yaw;
+    a plan longer than the capture fails where it ran out; --resume without --lidar reopens the
+    stored capture (not the default UDP port) and completes."""
+    sim = aimbench("simulate", "--yaw-deg", "2", "--scans", "7", "--seed", "5", "--out",
+                   "cap.pcap", "--quiet", cwd=tmp_path)
+    assert sim.returncode == 0, sim.stderr
+    (tmp_path / "plan.toml").write_text("scans = 4\nyaw_deg = [2, 2]\n")
+    res = aimbench("sweep", "plan.toml", "--bench", "hw", "--port", "none", "--lidar",
+                   "cap.pcap", "--out", "run", "--no-report", cwd=tmp_path)
+    line = one_error_line(res)
+    assert "at reference 1" in line and "the capture cap.pcap has run out" in line
+    run = tmp_path / "run"
+    assert meta(run, "failure")["reference"] == 1
+    again = aimbench("sweep", "--resume", "--out", "run", "--no-report", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert meta(run, "status") == "completed"
+    assert meta(run, "config")["lidar"] == "cap.pcap"
+    with sqlite3.connect(run / "run.sqlite") as c:
+        rows = c.execute("SELECT reference, scan, success, yaw_rad FROM scan").fetchall()
+    assert sorted((r, k) for r, k, _, _ in rows) == [(i, k) for i in range(2) for k in range(4)]
+    yaws = [math.degrees(y) for _, _, ok, y in rows if ok]
+    assert len(yaws) >= 6 and abs(np.median(yaws) - 2.0) < 0.3

@@ -30,10 +30,6 @@ from scenarios.runner import (
 from scenarios.store import Store
 from twin.errors import AimbenchError
 
-#: Settings stored with a run and reused by --resume.
-CONFIG_KEYS = ("bench", "port", "lidar", "method", "seed", "ideal", "scenario", "scans", "poses",
-               "serve_udp")
-
 
 def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     """The options that choose and configure a bench (shared with other commands)."""
@@ -44,7 +40,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--port", help="stage controller serial port or pyserial URL (--bench hw), "
                                   "e.g. /dev/ttyACM0; 'none' for a LiDAR without stages or a "
                                   "capture replay")
-    p.add_argument("--lidar", default="udp://0.0.0.0:2368",
+    # No argparse default: --resume must keep the stored source unless one is given.
+    p.add_argument("--lidar", default=None,
                    help="VLP-16 source for --bench hw: udp://HOST:PORT (default "
                         "udp://0.0.0.0:2368) or a CAPTURE.pcap to replay")
     p.add_argument("--seed", type=int, help="seed of the twin's noise and of the "
