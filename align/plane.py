@@ -70,8 +70,8 @@ def fit_rays(
     dirs: np.ndarray,
     n0: np.ndarray,
     d0: float,
-    iterations: int = 10,
-    tol: float = 1e-10,
+    iterations: int = 8,
+    tol: float = 1e-9,
 ) -> tuple[np.ndarray, float, np.ndarray, float]:
     """Maximum-likelihood plane for Gaussian range noise along each ray (Gauss-Newton).
 

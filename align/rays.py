@@ -88,11 +88,12 @@ def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
         # occluder): the rectangle must not extend where no ray was looked at
         margin = board.width / max(float(np.median(s.distance[g.board])), 0.5)
         lo, hi = rel_b.min() - margin, rel_b.max() + margin
-        rel = _unwrap(s.azimuth, c)
         rings = s.ring[g.board]
-        m = (rel >= lo) & (rel <= hi) & (s.ring >= int(rings.min()) - 1) & \
-            (s.ring <= int(rings.max()) + 1)
-        idx = np.flatnonzero(m)
+        ring = s.ring
+        idx = np.flatnonzero((ring >= int(rings.min()) - 1) & (ring <= int(rings.max()) + 1))
+        rel = np.full(len(s), np.inf)
+        rel[idx] = _unwrap(s.azimuth[idx], c)
+        idx = idx[(rel[idx] >= lo) & (rel[idx] <= hi)]
         sub = s.select(idx)
         parts.append((sub.origins(), sub.directions(), sub.distance, sub.laser_id,
                       rel[idx] + c, sub.ring, idx + offset))
@@ -324,7 +325,7 @@ def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
 
     The bracket assignment and the set of range residuals stay fixed during one call (they are
     chosen for the start pose), so the cost is one smooth function and the steps decrease it.
-    Converged when every step is below a thousandth of the parameter's standard deviation.
+    Converged when every step is below a hundredth of the parameter's standard deviation.
     """
     converged = False
     it = 0
@@ -349,7 +350,7 @@ def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
         theta, f, cost = theta + step, f_new, c_new
         lam = max(lam / 10, 1e-9)
         j = model.jacobian(theta, f)
-        if np.all(np.abs(step) < 1e-3 * sd + 1e-10):
+        if np.all(np.abs(step) < 1e-2 * sd + 1e-10):
             converged = True
             break
     return theta, j, converged, it
@@ -444,7 +445,7 @@ def _posterior_mean(model: _Model, theta: np.ndarray, rng: np.random.Generator,
     # Gaussian part as a quadratic form (6 x 6), the proposal's log density, the intervals
     h = ag.T @ ag
     g = ag.T @ bg
-    chi2 = 2 * d @ g + np.einsum("ij,jk,ik->i", d, h, d)
+    chi2 = 2 * d @ g + np.sum((d @ h) * d, axis=1)
     logw = -0.5 * chi2 + 0.5 * np.sum(z**2, axis=1)
     ok = np.all(np.abs(bh + d @ ah.T) <= ch, axis=1)
     if ok.sum() < 50:
