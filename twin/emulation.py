@@ -428,6 +428,7 @@ class VLP16Emulator:
                                                     vlp16.N_LASERS), -0.005, 0.005)
         else:
             self.laser_offsets = np.zeros(vlp16.N_LASERS)
+        self._interval_cache: tuple | None = None
 
     # -- geometry ----------------------------------------------------------------------------
     def rays(self, azimuth: np.ndarray, laser_id: np.ndarray, position: np.ndarray,
@@ -698,6 +699,39 @@ class VLP16Emulator:
         ids = caster.solid_ids
         if len(ids) == 0:
             return mask
+        full, row, centre0, half0 = self._pose_intervals(ids, cw, sw, origins, row_laser,
+                                                         rotation)
+        mask[full] = True
+        if len(row) == 0:
+            return mask
+        two_pi = 2.0 * np.pi
+        b_u = np.unwrap(base)  # monotonic: the sensor spins one way
+        half = half0 + spread
+        centre = centre0 - d_r[row]
+        first = np.floor((b_u[0] - centre - half) / two_pi)
+        turns = np.arange(int(np.ceil((b_u[-1] - b_u[0]) / two_pi)) + 2)[None, :]
+        shift = two_pi * (first[:, None] + turns)
+        lo = np.searchsorted(b_u, ((centre - half)[:, None] + shift).ravel(), "left")
+        hi = np.searchsorted(b_u, ((centre + half)[:, None] + shift).ravel(), "right")
+        off = np.repeat(row, turns.shape[1]) * n_s
+        marks = np.zeros(n_rows * n_s + 1, dtype=np.int32)
+        np.add.at(marks, lo + off, 1)
+        np.add.at(marks, hi + off, -1)
+        mask |= (np.cumsum(marks[:-1]) > 0).reshape(n_rows, n_s)
+        return mask
+
+    def _pose_intervals(self, ids: np.ndarray, cw: np.ndarray, sw: np.ndarray,
+                        origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The pose-dependent half of `_grid_candidates`: rows to cast whole (R,), and for the
+        other (row, geom) pairs that can meet a geom, the row index and the azimuth interval
+        (centre, half-width; rad, before the row offsets). Cached for the last pose: scans at
+        one stage position reuse it."""
+        caster = self.caster
+        key = (origins.tobytes(), rotation.tobytes(), cw.tobytes(), sw.tobytes(),
+               caster.data.geom_xpos[ids].tobytes(), caster.data.geom_xmat[ids].tobytes())
+        if self._interval_cache is not None and self._interval_cache[0] == key:
+            return self._interval_cache[1]
         rb = caster.model.geom_rbound[ids]
         c = caster.data.geom_xpos[ids][None, :, :] - origins[:, None, :]  # (16, G, 3)
         dist = np.linalg.norm(c, axis=2)
@@ -711,12 +745,7 @@ class VLP16Emulator:
         with np.errstate(divide="ignore", invalid="ignore"):
             q = (cos_alpha - b_) / a_
         full = inside | (reach & ((q <= -1.0) | (a_ <= 1e-12))).any(axis=1)
-        mask[full] = True
         row, geom = np.nonzero(reach & ~full[:, None])
-        if len(row) == 0:
-            return mask
-        two_pi = 2.0 * np.pi
-        b_u = np.unwrap(base)  # monotonic: the sensor spins one way
         # The sphere's interval, cut down to the box's own azimuth extent where there is one.
         hs = np.arccos(np.clip(q[row, geom], -1.0, 1.0)) + 1e-9
         cs_ = np.arctan2(cs[row, geom, 0], cs[row, geom, 1])
@@ -729,26 +758,14 @@ class VLP16Emulator:
             el_row[row] <= el_hi[lz, geom] + 1e-9)
         row, geom, hs, cs_ = row[inside_el], geom[inside_el], hs[inside_el], cs_[inside_el]
         bounded = box_h[geom] < np.pi
-        delta = (box_c[geom] - cs_ + np.pi) % two_pi - np.pi
+        delta = (box_c[geom] - cs_ + np.pi) % (2 * np.pi) - np.pi
         lo_ = np.where(bounded, np.maximum(-hs, delta - box_h[geom]), -hs)
         hi_ = np.where(bounded, np.minimum(hs, delta + box_h[geom]), hs)
         keep = lo_ <= hi_
         row, lo_, hi_, cs_ = row[keep], lo_[keep], hi_[keep], cs_[keep]
-        if len(row) == 0:
-            return mask
-        half = (hi_ - lo_) / 2 + spread + 1e-9
-        centre = cs_ + (lo_ + hi_) / 2 - d_r[row]
-        first = np.floor((b_u[0] - centre - half) / two_pi)
-        turns = np.arange(int(np.ceil((b_u[-1] - b_u[0]) / two_pi)) + 2)[None, :]
-        shift = two_pi * (first[:, None] + turns)
-        lo = np.searchsorted(b_u, ((centre - half)[:, None] + shift).ravel(), "left")
-        hi = np.searchsorted(b_u, ((centre + half)[:, None] + shift).ravel(), "right")
-        off = np.repeat(row, turns.shape[1]) * n_s
-        marks = np.zeros(n_rows * n_s + 1, dtype=np.int32)
-        np.add.at(marks, lo + off, 1)
-        np.add.at(marks, hi + off, -1)
-        mask |= (np.cumsum(marks[:-1]) > 0).reshape(n_rows, n_s)
-        return mask
+        out = (full, row, cs_ + (lo_ + hi_) / 2, (hi_ - lo_) / 2 + 1e-9)
+        self._interval_cache = (key, out)
+        return out
 
     def _box_bounds(self, ids: np.ndarray, origins: np.ndarray, rotation: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
