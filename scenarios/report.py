@@ -451,6 +451,28 @@ def build_document(rep: RunReport, plots: dict[str, str]) -> _Doc:
         if es.name in plots:
             doc.img(plots[es.name], f"{es.name} error against reference")
 
+    if plan.get("kind") == "repeatability" and len(rep.estimates) > 1:
+        # The stages' repeatability: how much the visits' mean estimates scatter, beside the
+        # scatter a visit's mean has from scan noise alone (std / sqrt(n), averaged).
+        means = np.array([[rep.estimates[i][a] for a in AXES] for i in sorted(rep.estimates)])
+        spread = means.std(axis=0, ddof=1)
+        noise = np.full(len(AXES), np.nan)
+        if sets:
+            es = sets[0]
+            noise = np.array([np.nanmean([v[a][1] / math.sqrt(v[a][2]) for v in
+                                          es.per_ref.values() if v[a][2] > 1]) for a in AXES])
+        doc.h(2, f"Repeatability over {len(means)} visits")
+        doc.p("Standard deviation of the visits' mean estimates (each visit approached from "
+              "alternate sides), beside the standard error a visit's mean has from scan noise "
+              "alone: a spread well above it is the stages' (backlash, missed steps).")
+        axes = (*PAPER_AXES, "y", "z")
+        idx = [AXES.index(a) for a in axes]
+        doc.table(["", *[_TITLE[a] for a in axes]],
+                  [["Spread of visit means", *[_fmt(spread[j], a) for j, a in zip(idx, axes,
+                                                                                 strict=True)]],
+                   ["Scan-noise standard error",
+                    *[_fmt(noise[j], a) for j, a in zip(idx, axes, strict=True)]]])
+
     if sets:
         es = sets[0]
         doc.h(2, f"Per reference ({es.name} error: mean ± std, deg and mm)")

@@ -156,3 +156,18 @@ def test_report_of_an_empty_run(tmp_path: Path):
         rep, md, _ = report.write(s)
         assert rep.verdict() == (False, ["no scans stored"])
         assert "FAIL" in md.read_text()
+
+
+def test_repeatability_spread_of_visit_means(tmp_path: Path):
+    plan = plans.repeatability(yaw_deg=1.0, repeats=3, scans=4)
+    with Store.create(tmp_path, plan) as s:
+        _fill(s, plan)
+        s.set_status("completed")
+        _, md, _ = report.write(s)
+    text = md.read_text()
+    assert "## Repeatability over 3 visits" in text
+    row = next(ln for ln in text.splitlines() if ln.startswith("| Spread of visit means"))
+    yaw = float(row.split("|")[4])
+    assert yaw == pytest.approx(np.std(list(BIAS_DEG.values()), ddof=1), abs=1e-3)
+    row = next(ln for ln in text.splitlines() if ln.startswith("| Scan-noise standard error"))
+    assert float(row.split("|")[4]) == pytest.approx(2 * D / math.sqrt(3) / 2, abs=1e-3)
