@@ -400,7 +400,10 @@ class ServedBench(HardwareBench):
         cmd = [sys.executable, "-m", "scenarios.cli", "serve", "--udp",
                f"127.0.0.1:{udp_port}", "--seed", str(seed)] + (["--ideal"] if ideal else [])
         with log.open("w") as err:
-            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
+            # Its own session: a Ctrl-C at the terminal must stop the sweep between scans, not
+            # the twin under the scan in flight; close() ends it.
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True,
+                                    start_new_session=True)
         # The first line is the pty (the firmware may be built first: allow for it).
         ready, _, _ = select.select([proc.stdout], [], [], start_timeout_s)
         pty = proc.stdout.readline().strip() if ready else ""
