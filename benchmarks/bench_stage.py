@@ -75,8 +75,11 @@ def main(argv: list[str] | None = None) -> int:
         # The same sweep back down, without status polls during each move, so the command is
         # the host's last input: command's last byte in the UART -> last step pulse.
         for yaw in reversed(yaws[:-1]):
+            goal = round((30 + math.degrees(yaw)) * settings[101])
             stage.command(f"G90G0X50A{30 + math.degrees(yaw):.6f}")
-            time.sleep(trapezoid_time(1.0, rate_dps, accel) + 0.15)
+            deadline = time.monotonic() + 10.0
+            while hil.positions().a_steps != goal and time.monotonic() < deadline:
+                time.sleep(0.005)  # watch the pins only: no bytes to the controller
             after = hil.positions()
             pulse_times.append(after.last_step_s[1] - after.last_rx_s)
             stage.wait_idle(5)
@@ -91,15 +94,15 @@ def main(argv: list[str] | None = None) -> int:
          f"p95 {percentile(rt_line, 0.95) * 1e3:.2f} ms, n={len(rt_line)}"),
         ("sweep: trapezoid time per 1 deg move", f"{ideal * 1e3:.1f} ms",
          f"from $111={settings[111]:g} deg/min, $121={accel:g} deg/s^2"),
-        ("sweep: firmware, command fed to UART -> last step (sim)",
+        ("sweep down: firmware, command fed to UART -> last step",
          f"{statistics.mean(pulse_times) * 1e3:.1f} ms",
          f"ratio {statistics.mean(pulse_times) / ideal:.3f}, min {min(pulse_times) * 1e3:.1f}, "
          f"max {max(pulse_times) * 1e3:.1f} ms"),
-        ("sweep: firmware, host sends -> last step (sim)",
+        ("sweep up: firmware, host about to send -> last step",
          f"{statistics.mean(sim_times) * 1e3:.1f} ms",
          f"ratio {statistics.mean(sim_times) / ideal:.3f}, min {min(sim_times) * 1e3:.1f}, "
          f"max {max(sim_times) * 1e3:.1f} ms"),
-        ("sweep: host, command -> Idle seen (wall clock)",
+        ("sweep up: host, command -> Idle seen (wall clock)",
          f"{statistics.mean(wall_times) * 1e3:.1f} ms",
          f"ratio {statistics.mean(wall_times) / ideal:.3f} (incl. 20 ms status polling)"),
         (f"sweep: {n + 1} positions, {n} moves, total (sim / wall / trapezoid)",

@@ -115,8 +115,11 @@ def test_move_time_follows_the_trapezoid(bench: Bench, homed: StageController) -
     # at the speed half a step of acceleration gives (sqrt(a) steps/s), not at zero.
     for deg, lo, hi in ((1.0, 0.95, 1.02), (8.0, 0.97, 1.02)):
         ideal = trapezoid_time(deg, 20.0, 40.0)
+        goal = hil.positions().a_steps + round(deg * STEPS_PER_DEG)
         homed.command(f"G91G0A{deg}")
-        time.sleep(ideal + 0.3)  # no status polls meanwhile: the command is the last input
+        deadline = time.monotonic() + 10
+        while hil.positions().a_steps != goal and time.monotonic() < deadline:
+            time.sleep(0.005)  # watch the pins, send nothing: the command stays the last input
         end = hil.positions()
         homed.wait_idle(5)
         # From the command's last byte entering the UART to the last step pulse, on the
