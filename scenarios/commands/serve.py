@@ -13,6 +13,7 @@ the pty (open it like /dev/ttyACM0) and the UDP target:
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sys
 import time
@@ -53,7 +54,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"aimbench serve: stage firmware in simavr on {twin.pty_path}, VLP-16 packets to "
               f"udp://{udp[0]}:{udp[1]} at the real rate (seed {args.seed}); Ctrl-C stops",
               file=sys.stderr, flush=True)
+        parent = os.getppid()
         while not stop["flag"]:
+            if os.getppid() != parent:
+                # Whoever started us is gone (a sweep killed with SIGKILL): do not linger.
+                print("aimbench serve: parent process gone; stopping", file=sys.stderr)
+                return 1
             if not twin.alive():
                 print(f"aimbench serve: stopped: {'; '.join(twin.stats.errors) or 'unknown'}",
                       file=sys.stderr)
