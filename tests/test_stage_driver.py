@@ -57,6 +57,7 @@ def test_connect_reads_banner_and_settings(stage: StageController) -> None:
     s = stage.settings()
     assert (s[100], s[101], s[110], s[111], s[120], s[121], s[130], s[131]) == (
         400, 800, 600, 1200, 50, 40, 100, 60)
+    assert stage.cached_settings == s
 
 
 def test_home_then_position_is_machine_zero(bench: Bench, homed: StageController) -> None:

@@ -558,6 +558,12 @@ class StageController:
             )
         return banner
 
+    @property
+    def cached_settings(self) -> dict[int, float]:
+        """The settings as last read ($$ at connect, then kept up to date by set_setting),
+        without asking the controller; {} if they could not be read."""
+        return dict(self._settings)
+
     def settings(self) -> dict[int, float]:
         """All settings ($$) as {number: value}."""
         out: dict[int, float] = {}
