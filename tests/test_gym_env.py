@@ -281,22 +281,26 @@ def test_readme_example_aligns(capsys: pytest.CaptureFixture[str]) -> None:
 def test_episode_through_aimbench_serve() -> None:
     """An episode on the wire-level twin (`aimbench serve`: the stage firmware in simavr on a
     pty, VLP-16 packets over UDP at the real rate), in real time. Packets carry no truth, so the
-    error and the end of the episode come from the estimate, as on the real bench."""
-    env = LidarAlignEnv(bench="serve", scans_per_step=2)
+    error and the end of the episode come from the estimate, as on the real bench; its scatter
+    (x about 3 mm 1-sigma with 4 scans, correlated with yaw) sets the bounds below."""
+    env = LidarAlignEnv(bench="serve", scans_per_step=4)
     try:
         assert env.bench.kind == "serve" and env.mount_range is None
         obs, info = env.reset(seed=0)
         assert info["true_pose"] is None and info["error_source"] in ("estimate", "last")
         # homed, then at the bench reference (homing alone leaves a controller at its switches)
         assert np.allclose(obs["stage"], 0.0, atol=1e-4)
-        obs, _, terminated, _, info = env.step(np.array([math.radians(2.0), 0.010]))
-        assert np.allclose(obs["stage"], [math.radians(2.0), 0.010], atol=1e-4)
+        obs, _, terminated, _, info = env.step(np.array([math.radians(2.0), 0.030]))
+        assert np.allclose(obs["stage"], [math.radians(2.0), 0.030], atol=1e-4)
         assert obs["estimate_ok"] == 1 and not terminated
-        assert info["error_yaw_rad"] == pytest.approx(math.radians(2.0), abs=math.radians(0.3))
-        assert info["error_x_m"] == pytest.approx(0.010, abs=0.006)
-        obs, _, terminated, _, info = env.step(scripted_policy(env, obs))
+        assert info["error_yaw_rad"] == pytest.approx(math.radians(2.0), abs=math.radians(0.5))
+        assert info["error_x_m"] == pytest.approx(0.030, abs=0.012)
+        for _ in range(6):
+            obs, _, terminated, _, info = env.step(scripted_policy(env, obs))
+            if terminated:
+                break
         assert terminated and info["aligned"] and info["error_source"] == "estimate"
-        assert info["step_time_s"] > 0
+        assert np.all(np.abs(obs["stage"]) < [math.radians(1.0), 0.015])  # back near home
     finally:
         env.close()
     assert env.bench.process.poll() is not None  # the served twin's process is gone
