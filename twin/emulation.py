@@ -656,24 +656,38 @@ class VLP16Emulator:
         c_l, s_l = cw[rows], sw[rows]
         sa_l, ca_l = sa[rows, cols], ca[rows, cols]
         lp = lpnt[row_laser[rows]]
-        lz = c_l * (sa_l * m[0, 2] + ca_l * m[1, 2]) + s_l * m[2, 2]
+
+        def axis(j: int) -> np.ndarray:
+            """d . (plane axis j) for every ray: cw (sa m0j + ca m1j) + sw m2j, in place."""
+            out = sa_l * m[0, j]
+            out += ca_l * m[1, j]
+            out *= c_l
+            out += s_l * m[2, j]
+            return out
+
+        neg = axis(2)
+        np.negative(neg, out=neg)  # -lz: > 0 when the ray heads into the front face
         with np.errstate(divide="ignore", invalid="ignore"):
-            x = lp[:, 2, None] / -lz
-        ok = lz < -_MJMINVAL
-        ok &= x < np.minimum(dist[rows, cols], self.caster.cutoff)
+            x = lp[:, 2, None] / neg
+        ok = neg > _MJMINVAL
+        d_now = dist[rows, cols]
+        ok &= x < (d_now if np.isfinite(d_now).any() else self.caster.cutoff)
+        ok &= x <= self.caster.cutoff
         for j in (0, 1):
             if size[j] > 0:
-                lj = c_l * (sa_l * m[0, j] + ca_l * m[1, j]) + s_l * m[2, j]
-                ok &= np.abs(lp[:, j, None] + x * lj) <= size[j]
+                lj = axis(j)
+                lj *= x
+                lj += lp[:, j, None]
+                ok &= np.abs(lj) <= size[j]
         if isinstance(rows, slice):
             np.copyto(dist[rows, cols], x, where=ok)
             gid[rows, cols][ok] = g
-            np.copyto(cos_inc[rows, cols], -lz, where=ok)
+            np.copyto(cos_inc[rows, cols], neg, where=ok)
         else:
-            sub_d, sub_g, sub_c = dist[rows, cols], gid[rows, cols], cos_inc[rows, cols]
+            sub_d, sub_g, sub_c = d_now, gid[rows, cols], cos_inc[rows, cols]
             sub_d[ok] = x[ok]
             sub_g[ok] = g
-            sub_c[ok] = -lz[ok]
+            sub_c[ok] = neg[ok]
             dist[rows, cols], gid[rows, cols], cos_inc[rows, cols] = sub_d, sub_g, sub_c
 
     def _grid_candidates(self, offsets: tuple[np.ndarray, np.ndarray, float],
