@@ -382,10 +382,23 @@ def _sincos_rows(az: np.ndarray, base: np.ndarray,
     """
     sb, cb = np.sin(base), np.cos(base)
     d, d_r, spread = offsets if offsets is not None else _row_offsets(az, base)
-    if spread < 1e-12:  # 1e-12 rad: 0.1 nm at 100 m
-        # One spin rate over the window: each row sits at a constant offset from the base.
+    if spread < 1e-4:
+        # Each row sits at a (nearly) constant offset d_r from the base: rotate by it, then
+        # by the small rest e = d - d_r (a window spanning rotations of slightly different
+        # rates) to second order: the error e^3 / 6 < 2e-13 rad.
         sd, cd = np.sin(d_r)[:, None], np.cos(d_r)[:, None]
-        return sb * cd + cb * sd, cb * cd - sb * sd
+        s0, c0 = sb * cd + cb * sd, cb * cd - sb * sd
+        if spread < 1e-15:
+            return s0, c0
+        e = d - d_r[:, None]
+        h = e * e
+        h *= -0.5
+        h += 1.0  # cos e
+        s1 = s0 * h
+        s1 += e * c0
+        c1 = c0 * h
+        c1 -= e * s0
+        return s1, c1
     if np.abs(d).max(initial=0.0) > 0.02:  # not a firing grid: do it the plain way
         return np.sin(az), np.cos(az)
     d2 = d * d
