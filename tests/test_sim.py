@@ -104,6 +104,19 @@ def test_scans_are_whole_rotations_back_to_back() -> None:
     assert scans[0].meta["truth"] == Pose(0.7, -2.5, 0.0).to_edge()
 
 
+@pytest.mark.parametrize("mode", ["strongest", "dual"])
+def test_scan_points_are_the_decoders_formula(mode: str) -> None:
+    """x, y, z of the twin's scans are `points_from_polar` of their own ranges and azimuths
+    (the formula the decoder uses), whichever path computed them."""
+    from twin.scan import points_from_polar
+
+    sim = BenchSim(seed=3, noise=EmulationConfig(return_mode=mode))
+    for s in sim.scans(2):
+        x, y, z = points_from_polar(s.distance, s.azimuth, s.laser_id)
+        np.testing.assert_allclose(np.column_stack((s.x, s.y, s.z)), np.column_stack((x, y, z)),
+                                   rtol=0, atol=1e-12)
+
+
 def test_rpm_wander_gives_the_configured_scan_to_scan_spread() -> None:
     cfg = EmulationConfig.ideal(rpm_wander_sigma=2.0)
     sim = BenchSim(seed=8, noise=cfg)

@@ -331,6 +331,9 @@ class Returns:
     distance: np.ndarray
     intensity: np.ndarray
     return_type: np.ndarray
+    #: sin and cos of each firing's azimuth (N,), when the emulator had them anyway.
+    sin_azimuth: np.ndarray | None = None
+    cos_azimuth: np.ndarray | None = None
 
 
 def sensor_directions(azimuth: np.ndarray, laser_id: np.ndarray) -> np.ndarray:
@@ -616,7 +619,20 @@ class VLP16Emulator:
             firing = col * n_l + order[row]
             r = dist.reshape(-1)[hit]
             rc = self.reflectivity[gid.reshape(-1)[hit]] * cos_inc.reshape(-1)[hit]
-            return self._measure_single(n_seq * n_l, firing, r, rc / (r * r), rc, laser_id)
+            out = self._measure_single(n_seq * n_l, firing, r, rc / (r * r), rc, laser_id)
+        else:
+            out = self._grid_echoes(dist, gid, cos_inc, weights, laser_id, order, k, n_l,
+                                    n_seq)
+        # The centre rays' azimuth sines and cosines in firing order, for the scan's points.
+        back = np.argsort(order)  # laser -> ring
+        out.sin_azimuth = sa[:n_l][back].T.reshape(-1)
+        out.cos_azimuth = ca[:n_l][back].T.reshape(-1)
+        return out
+
+    def _grid_echoes(self, dist: np.ndarray, gid: np.ndarray, cos_inc: np.ndarray,
+                     weights: np.ndarray, laser_id: np.ndarray, order: np.ndarray, k: int,
+                     n_l: int, n_seq: int) -> Returns:
+        """Sub-ray grids (K x 16 rows, S columns) to firing order, then `_from_hits`."""
         # Back to firing order: rows (K, ring) -> (S, laser, K) -> (N, K).
         back = np.argsort(order)  # laser -> ring
         dist = dist.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)

@@ -274,9 +274,20 @@ class BenchSim:
             for s in range(cfg.n_returns):
                 d = f.returns.distance[s, m]
                 x, y, z = (np.zeros(len(d)) for _ in range(3))
-                v = np.flatnonzero(d > 0)  # trigonometry for the returns only
-                x[v], y[v], z[v] = points_from_polar(d[v], f.azimuth[m][v], f.laser_id[m][v],
-                                                     cfg.vertical_offsets)
+                v = np.flatnonzero(d > 0)
+                if f.returns.sin_azimuth is not None:
+                    # DESIGN.md's r (cos w sin a, cos w cos a, sin w) + vertical offset, with
+                    # the emulator's own sin a and cos a (as `points_from_polar` computes them).
+                    lid = f.laser_id[m][v]
+                    rc = d[v] * np.cos(vlp16.ELEVATION)[lid]
+                    x[v] = rc * f.returns.sin_azimuth[m][v]
+                    y[v] = rc * f.returns.cos_azimuth[m][v]
+                    z[v] = d[v] * np.sin(vlp16.ELEVATION)[lid]
+                    if cfg.vertical_offsets:
+                        z[v] += vlp16.VERTICAL_OFFSET[lid]
+                else:  # trigonometry for the returns only
+                    x[v], y[v], z[v] = points_from_polar(d[v], f.azimuth[m][v],
+                                                         f.laser_id[m][v], cfg.vertical_offsets)
                 parts.append(dict(distance=d, azimuth=f.azimuth[m], laser_id=f.laser_id[m],
                                   intensity=f.returns.intensity[s, m],
                                   time=np.mod(f.time[m], SECONDS_PER_HOUR),
@@ -400,6 +411,9 @@ class BenchSim:
                                         for j in range(3))
         ret = Returns(*(np.concatenate([getattr(p.returns, k) for p in parts], axis=1)
                         for k in ("distance", "intensity", "return_type")))
+        if all(p.returns.sin_azimuth is not None for p in parts):
+            ret.sin_azimuth = np.concatenate([p.returns.sin_azimuth for p in parts])
+            ret.cos_azimuth = np.concatenate([p.returns.cos_azimuth for p in parts])
         return Firings(*(np.concatenate([getattr(p, k) for p in parts])
                          for k in ("sequence", "laser_id", "time", "azimuth", "rotation")),
                        returns=ret)
