@@ -32,6 +32,8 @@ from twin.pose import Pose
 from twin.scan import Scan, points_from_polar
 
 TWO_PI = 2.0 * math.pi
+_COS_EL = np.cos(vlp16.ELEVATION)
+_SIN_EL = np.sin(vlp16.ELEVATION)
 SECONDS_PER_HOUR = 3600.0
 #: A move is over when the servo error is below these (then the stepper's position is exact).
 SETTLE_X = 1e-6  # m
@@ -273,19 +275,20 @@ class BenchSim:
             parts = []
             for s in range(cfg.n_returns):
                 d = f.returns.distance[s, m]
-                x, y, z = (np.zeros(len(d)) for _ in range(3))
-                v = np.flatnonzero(d > 0)
                 if f.returns.sin_azimuth is not None:
                     # DESIGN.md's r (cos w sin a, cos w cos a, sin w) + vertical offset, with
-                    # the emulator's own sin a and cos a (as `points_from_polar` computes them).
-                    lid = f.laser_id[m][v]
-                    rc = d[v] * np.cos(vlp16.ELEVATION)[lid]
-                    x[v] = rc * f.returns.sin_azimuth[m][v]
-                    y[v] = rc * f.returns.cos_azimuth[m][v]
-                    z[v] = d[v] * np.sin(vlp16.ELEVATION)[lid]
+                    # the emulator's own sin a and cos a (as `points_from_polar` computes them);
+                    # no return (d = 0) gives 0.
+                    lid = f.laser_id[m]
+                    rc = d * _COS_EL[lid]
+                    x = rc * f.returns.sin_azimuth[m]
+                    y = rc * f.returns.cos_azimuth[m]
+                    z = d * _SIN_EL[lid]
                     if cfg.vertical_offsets:
-                        z[v] += vlp16.VERTICAL_OFFSET[lid]
+                        z += np.where(d > 0, vlp16.VERTICAL_OFFSET[lid], 0.0)
                 else:  # trigonometry for the returns only
+                    x, y, z = (np.zeros(len(d)) for _ in range(3))
+                    v = np.flatnonzero(d > 0)
                     x[v], y[v], z[v] = points_from_polar(d[v], f.azimuth[m][v],
                                                          f.laser_id[m][v], cfg.vertical_offsets)
                 parts.append(dict(distance=d, azimuth=f.azimuth[m], laser_id=f.laser_id[m],
@@ -294,7 +297,7 @@ class BenchSim:
                                   return_type=f.returns.return_type[s, m], x=x, y=y, z=z))
             if cfg.n_returns == 1:
                 arrays = parts[0]
-                if hi - lo < len(f.time):  # a slice of a longer window: do not keep it alive
+                if len(rotations) > 1:  # a slice of a longer window: do not keep it alive
                     arrays = {k: np.array(v) for k, v in arrays.items()}
             else:
                 # Dual: the two returns of each firing side by side (last, then the other).
