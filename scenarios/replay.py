@@ -68,12 +68,23 @@ class ReplaySummary:
 # ---------------------------------------------------------------------------------------------
 # Scans of a run, again
 # ---------------------------------------------------------------------------------------------
-def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int, int, Scan]]:
-    """The scans of a simulated run, taken again on a fresh twin with the runner's sequence.
+def worker_order(store: Store) -> list[list[int]]:
+    """The references each twin of a simulated run took, in order: one twin for a plain run;
+    with ``--jobs N`` (`scenarios.runner.ParallelSimRunner`), worker w took references w, w + N,
+    ... on a twin of its own."""
+    config = store.get("config", {}) or {}
+    jobs = max(1, int(config.get("jobs") or 1))
+    n = len(store.plan.references)
+    return [list(range(w, n, jobs)) for w in range(min(jobs, n))]
 
-    Yields (reference, scan, Scan) for the stored (reference, scan) pairs in ``wanted``; the twin
-    still takes every scan of a reference up to the last wanted one, because the spin schedule
-    and the clock carry from scan to scan.
+
+def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int, int, Scan]]:
+    """The scans of a simulated run, taken again on fresh twins with the runner's sequence.
+
+    Yields (reference, scan, Scan) for the stored (reference, scan) pairs in ``wanted``, twin by
+    twin in the order of `worker_order`. A twin still takes every scan the run took at each
+    reference it visits (the plan's number), wanted or not: the spin schedule and the clock
+    carry from scan to scan and into the next reference, so skipping any would change the rest.
     """
     from scenarios.bench import SimBench
 
@@ -83,23 +94,28 @@ def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int
     # What the bench said it was beats what the command line asked for.
     seed = info.get("seed", config.get("seed")) or 0
     ideal = info.get("ideal", config.get("ideal"))
-    bench = SimBench(seed=int(seed), ideal=bool(ideal))
-    try:
-        bench.home()
-        for i, ref in enumerate(plan.references):
-            ks = sorted(k for (r, k) in wanted if r == i)
-            if not ks:
-                continue
-            bench.set_mount(ref.mount)
-            if ref.via is not None:
-                bench.move_to(*ref.via)
-            bench.move_to(ref.yaw_rad, ref.x_m)
-            bench.prepare(i, 0)
-            for k, scan in enumerate(bench.scans(ks[-1] + 1)):
-                if k in ks:
-                    yield i, k, scan
-    finally:
-        bench.close()
+    for refs in worker_order(store):
+        bench = SimBench(seed=int(seed), ideal=bool(ideal))
+        try:
+            bench.home()
+            mine = [i for i in refs if any(r == i for r, _ in wanted)]
+            for i in refs:
+                if not mine or i > mine[-1]:
+                    break  # nothing wanted from this twin any more
+                ref = plan.references[i]
+                ks = sorted(k for (r, k) in wanted if r == i)
+                bench.set_mount(ref.mount)
+                if ref.via is not None:
+                    bench.move_to(*ref.via)
+                bench.move_to(ref.yaw_rad, ref.x_m)
+                bench.prepare(i, 0)
+                # The last wanted reference needs its scans only up to the last wanted one.
+                n = ks[-1] + 1 if i == mine[-1] else max(plan.scans, ks[-1] + 1 if ks else 0)
+                for k, scan in enumerate(bench.scans(n)):
+                    if k in ks:
+                        yield i, k, scan
+        finally:
+            bench.close()
 
 
 def capture_scans(path: str | Path, whole_only: bool = True) -> list[Scan]:
@@ -212,6 +228,12 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
                                  "capture")
     if not summary.source:
         summary.source = "the result store only"
+    if config.get("bench", info.get("kind")) == "sim":
+        # Rows in the order the twins took them (the scan timeline is explicit, so a recording
+        # may be logged in any order), to meet the re-simulated scans one by one.
+        rank = {i: n for n, i in enumerate(i for refs in worker_order(store) for i in refs)}
+        rows.sort(key=lambda r: (rank[r["reference"]], r["scan"]))
+    position = {(r["reference"], r["scan"]): n for n, r in enumerate(rows)}
     estimator = run_estimator(config.get("method"))
     refs = store.references()
     # The store's events, merged with the scans by time, become annotations.
@@ -234,7 +256,7 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
                 stage = (ref["yaw_rad"], ref["x_m"])
             obs.on_reference(i, plan.references[i], stage)
         scan = None
-        while pending is not None and (pending[0], pending[1]) < (i, k):
+        while pending is not None and position.get((pending[0], pending[1]), -1) < n:
             pending = next(source, None)
         if pending is not None and (pending[0], pending[1]) == (i, k):
             scan = pending[2]

@@ -216,6 +216,7 @@ def test_capture_replay_pairs_scans_with_their_truth(tmp_path: Path):
     assert not any(e.startswith("/world/bench") for e in recording.entities)
 
 
+@pytest.mark.slow
 def test_cli_replay_saves_a_file_rerun_verifies(run_dir: Path, tmp_path: Path):
     out = tmp_path / "cli.rrd"
     cmd = [PYTHON, "-m", "scenarios.cli", "replay", str(run_dir), "--save", str(out),
@@ -331,3 +332,25 @@ def test_sweep_session_only_with_the_flag(tmp_path: Path):
     assert session is not None and session.sinks.save == str(other)
     session.close()
     assert other.is_file()
+
+
+def test_clouds_of_the_first_scans_only_are_still_the_runs_own(run_dir: Path, tmp_path: Path):
+    """--clouds-per-reference 1: the twin must still take every scan of each reference, or the
+    later references' scans would differ from the run's (the clock and spin carry over)."""
+    from scenarios.replay import replay_run
+
+    path = tmp_path / "first.rrd"
+    rec = rl.new_recording()
+    rec.save(path)
+    summary = replay_run(run_dir, rec, clouds_per_reference=1)
+    rec.flush()
+    rec.disconnect()
+    assert summary.clouds == len(YAWS_DEG) and summary.mismatches == 0
+    recording = read_rrd(path)
+    with Store.open(run_dir) as store:
+        points = {(r["reference"], r["scan"]): r["points"] for r in store.iter_scans()}
+    steps = recording.per_step("/world/sensor/scan", "scan", "Points3D:positions")
+    assert sorted(steps) == [i * SCANS for i in range(len(YAWS_DEG))]
+    for i in range(len(YAWS_DEG)):
+        (pos,) = recording.at("/world/sensor/scan", "scan", i * SCANS, "Points3D:positions")
+        assert len(pos) == points[(i, 0)]

@@ -40,7 +40,8 @@ CHROMIUM_FLAGS = [
 
 
 async def _capture(ws_url: str, url: str, width: int, height: int, wait_s: float,
-                   out: Path, quality: int | None) -> None:
+                   out: Path, quality: int | None, seek_end: bool = True,
+                   settle_s: float = 20.0) -> None:
     import websockets
 
     # No keepalive pings: a busy software renderer can leave them unanswered for a minute.
@@ -73,6 +74,13 @@ async def _capture(ws_url: str, url: str, width: int, height: int, wait_s: float
         else:
             raise RuntimeError("the viewer never created its canvas (no WebGL/WebGPU?)")
         await asyncio.sleep(wait_s)
+        if seek_end:
+            # A file plays from its first scan, and a software renderer plays slowly: click the
+            # right end of the time panel's ruler (the bottom bar) to show the last scan.
+            for kind in ("mousePressed", "mouseReleased"):
+                await call("Input.dispatchMouseEvent", type=kind, x=width - 8 - width // 16,
+                           y=height - 14, button="left", clickCount=1)
+            await asyncio.sleep(settle_s)
         params: dict[str, object] = {"format": "jpeg" if quality else "png"}
         if quality:
             params["quality"] = quality
@@ -113,7 +121,7 @@ def viewer_url(rrd: Path, web_port: int = 9090, file_port: int = 9091) -> str:
 
 
 def screenshot(url: str, out: Path, width: int = 1600, height: int = 900, wait_s: float = 25.0,
-               port: int = 9333, quality: int | None = None) -> Path:
+               port: int = 9333, quality: int | None = None, seek_end: bool = True) -> Path:
     """Open `url` in headless Chromium and save a screenshot of the page to `out`."""
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
@@ -137,7 +145,7 @@ def screenshot(url: str, out: Path, width: int = 1600, height: int = 900, wait_s
                 time.sleep(0.2)
             if ws_url is None:
                 raise SystemExit("chromium did not open its DevTools port")
-            asyncio.run(_capture(ws_url, url, width, height, wait_s, out, quality))
+            asyncio.run(_capture(ws_url, url, width, height, wait_s, out, quality, seek_end))
         finally:
             proc.terminate()
             proc.wait(timeout=20)
@@ -154,12 +162,15 @@ def main() -> None:
     p.add_argument("--wait", type=float, default=25.0,
                    help="seconds to let the viewer load and draw after its canvas appears")
     p.add_argument("--quality", type=int, help="JPEG quality (smaller file than PNG)")
+    p.add_argument("--no-seek-end", action="store_true",
+                   help="leave the time cursor where the viewer put it (default: click the end "
+                        "of the time panel, to show the last scan)")
     args = p.parse_args()
     url = args.source
     if not url.startswith("http"):
         url = viewer_url(Path(url))
     path = screenshot(url, args.out, args.width, args.height, args.wait,
-                      quality=args.quality)
+                      quality=args.quality, seek_end=not args.no_seek_end)
     print(f"{path}: {path.stat().st_size // 1024} KiB")
 
 
