@@ -282,8 +282,16 @@ class _Model:
         k = self.edge_kind
         mid_x = 0.5 * (x[self.bh] + x[self.bm])
         mid_z = 0.5 * (z[self.bh] + z[self.bm])
-        e = np.where(k == 1, self.edge_sign * self.board.width / 2 - mid_x,
-                     self.edge_sign * self.board.height / 2 - mid_z)
+        # the plate's side face: a ray heading inwards (against the edge's outward side) that
+        # passes the front edge by less than thickness x (its lateral over forward direction)
+        # still hits the board, so that edge sits that much further out for it
+        rot = rotation(theta[3], theta[4], theta[5])
+        dh = r.direction[self.bh] @ rot.T  # ray directions in {O}
+        t = self.board.thickness
+        ext_x = t * np.maximum(0.0, -self.edge_sign * dh[:, 0] / dh[:, 1])
+        ext_z = t * np.maximum(0.0, -self.edge_sign * dh[:, 2] / dh[:, 1])
+        e = np.where(k == 1, self.edge_sign * (self.board.width / 2 + ext_x) - mid_x,
+                     self.edge_sign * (self.board.height / 2 + ext_z) - mid_z)
         re = (e / self.edge_sd)[k > 0]
         return np.concatenate((rr, re))
 
