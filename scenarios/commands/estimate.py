@@ -29,6 +29,7 @@ def _row(first: int, n: int, res: align.PoseEstimate) -> dict:
 def run(args: argparse.Namespace) -> int:
     try:
         board = BoardSpec.from_mm(args.board_mm)
+        board = BoardSpec(board.width, board.height, args.board_thickness_mm * 1e-3)
     except ValueError as exc:
         raise AimbenchError(str(exc)) from exc
     if args.fuse < 1:
@@ -89,6 +90,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                                         "capture (per scan, or fused over N scans)")
     p.add_argument("capture", help="a pcap / pcapng capture of the VLP-16")
     p.add_argument("--board-mm", default="900x540", help="board WIDTHxHEIGHT, mm (900x540)")
+    p.add_argument("--board-thickness-mm", type=float, default=3.0,
+                   help="plate thickness, mm (its side face widens the near edge; default 3)")
     p.add_argument("--method", default=align.DEFAULT_METHOD, choices=align.METHODS,
                    help=f"estimator (default {align.DEFAULT_METHOD}; 'paper' is the reference "
                         "paper's, 'icp' the Open3D baseline)")
