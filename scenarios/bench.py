@@ -55,6 +55,8 @@ class Bench(abc.ABC):
 
     #: ``sim`` or ``hw``: stored with every run.
     kind: str = "bench"
+    #: Whether `set_mount` can change the LiDAR's mount (the simulated bench only).
+    can_set_mount: bool = False
 
     @abc.abstractmethod
     def info(self) -> dict[str, Any]:
@@ -453,6 +455,7 @@ class SimBench(Bench):
     """
 
     kind = "sim"
+    can_set_mount = True
 
     def __init__(self, seed: int = 0, ideal: bool = False, params: Any = None,
                  noise: Any = None) -> None:

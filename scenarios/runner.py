@@ -329,6 +329,12 @@ class Runner:
     def _check_travel(self, where: dict) -> None:
         """Refuse the plan before any move if a reference is beyond the stages' travel (the
         run fails at the first such reference)."""
+        mounted = [i for i, r in enumerate(self.plan.references) if r.mount]
+        if mounted and not self.bench.can_set_mount:
+            where["reference"] = mounted[0]
+            raise BenchError(f"the plan changes the LiDAR's mount ({len(mounted)} references), "
+                             f"which the {self.bench.kind} bench cannot do; run it with --bench "
+                             "sim; nothing was moved")
         yaw_lim, x_lim = self.bench.travel()
         beyond = list(references_beyond(self.plan, yaw_lim, x_lim))
         if beyond:

@@ -165,3 +165,12 @@ def test_capture_replay_fails_when_it_runs_out_and_resume_keeps_the_capture(tmp_
     assert sorted((r, k) for r, k, _, _ in rows) == [(i, k) for i in range(2) for k in range(4)]
     yaws = [math.degrees(y) for _, _, ok, y in rows if ok]
     assert len(yaws) >= 6 and abs(np.median(yaws) - 2.0) < 0.3
+
+
+def test_monte_carlo_refused_on_hardware_before_any_move(tmp_path: Path):
+    res = aimbench("sweep", "montecarlo", "--poses", "2", "--scans", "1", "--bench", "hw",
+                   "--port", "none", "--lidar", str(CAPTURE), "--out", "run", cwd=tmp_path)
+    line = one_error_line(res)
+    assert "changes the LiDAR's mount (2 references)" in line and "--bench sim" in line
+    assert "nothing was moved" in line
+    assert meta(tmp_path / "run", "status") == "failed"
