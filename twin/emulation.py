@@ -708,9 +708,9 @@ class VLP16Emulator:
                 lj *= x
                 lj += lp[:, j, None]
                 ok &= np.abs(lj) <= size[j]
-        if isinstance(rows, slice):
+        if isinstance(rows, slice):  # views: masked copies, no boolean indexing (slow)
             np.copyto(dist[rows, cols], x, where=ok)
-            gid[rows, cols][ok] = g
+            np.copyto(gid[rows, cols], g, where=ok)
             np.copyto(cos_inc[rows, cols], neg, where=ok)
         else:
             sub_d, sub_g, sub_c = d_now, gid[rows, cols], cos_inc[rows, cols]
@@ -910,16 +910,19 @@ class VLP16Emulator:
         range ``r`` (M,) m with ``energy`` and apparent reflectivity ``refl`` (M,)."""
         cfg = self.config
         rng = self.rng
+        # (Index arrays, not boolean masks, select below: numpy's boolean indexing is slow.)
         lit = energy > 0  # a black surface (reflectivity 0) returns nothing
         if not lit.all():
-            idx, r, energy, refl = idx[lit], r[lit], energy[lit], refl[lit]
+            sel = np.flatnonzero(lit)
+            idx, r, energy, refl = idx[sel], r[sel], energy[sel], refl[sel]
         if cfg.dropouts and len(idx):
             z = (np.log(energy) - math.log(cfg.detection_threshold)) / cfg.detection_softness
             near = np.flatnonzero(z < 8.3)  # beyond: detection probability 1 - 1e-16
             if len(near):
-                keep = np.ones(len(idx), dtype=bool)
-                keep[near] = rng.random(len(near)) < ndtr(z[near])
-                idx, r, refl = idx[keep], r[keep], refl[keep]
+                lost = near[rng.random(len(near)) >= ndtr(z[near])]
+                if len(lost):
+                    sel = np.delete(np.arange(len(idx)), lost)
+                    idx, r, refl = idx[sel], r[sel], refl[sel]
         lid = laser_id[idx]
         meas = r + (self.laser_offsets + cfg.range_bias)[lid]
         if cfg.range_noise_sigma > 0:
@@ -928,7 +931,8 @@ class VLP16Emulator:
             meas = np.rint(meas * (1.0 / vlp16.DISTANCE_UNIT)) * vlp16.DISTANCE_UNIT
         keep = (meas >= cfg.range_min) & (meas <= cfg.range_max)
         if not keep.all():
-            idx, r, refl, meas = idx[keep], r[keep], refl[keep], meas[keep]
+            sel = np.flatnonzero(keep)
+            idx, r, refl, meas = idx[sel], r[sel], refl[sel], meas[sel]
         if cfg.intensity_model:
             # float32: the result is an integer count 0..255.
             level = (100.0 * refl).astype(np.float32)

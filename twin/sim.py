@@ -254,8 +254,8 @@ class BenchSim:
             az[lo:hi] *= omega[i]
         az += self.cut_azimuth
         # Into [0, 2 pi): az lies within a turn of the cut (np.mod is several times slower).
-        az[az >= TWO_PI] -= TWO_PI
-        az[az < 0.0] += TWO_PI
+        np.subtract(az, TWO_PI, out=az, where=az >= TWO_PI)  # (ufunc where: no boolean
+        np.add(az, TWO_PI, out=az, where=az < 0.0)  # indexing, which is slow in numpy)
         return az, idx
 
     # ---------------------------------------------------------------------------------------
