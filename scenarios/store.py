@@ -295,6 +295,10 @@ class Store:
             self.conn = conn
 
         def __enter__(self) -> sqlite3.Connection:
+            if self.conn.in_transaction:
+                # A transaction left open by an interrupt between its INSERT and its COMMIT
+                # (a second Ctrl-C): it never committed, so it is dropped, and resume retakes it.
+                self.conn.execute("ROLLBACK")
             self.conn.execute("BEGIN IMMEDIATE")
             return self.conn
 
