@@ -149,15 +149,32 @@ def close_recording(rec: rr.RecordingStream, sinks: SinkOptions,
     rec.flush()
     if sinks.serve and wait:
         stream.write("rerun: serving the recording; Ctrl-C to stop\n")
-        try:
-            while True:
-                time.sleep(1.0)
-        except KeyboardInterrupt:
-            pass
+        _serve_until_interrupted()
     rec.disconnect()
     if sinks.save:
         stream.write(f"rerun: recording saved to {sinks.save} (open it with: rerun "
                      f"{sinks.save})\n")
+
+
+def _serve_until_interrupted() -> None:
+    """Sleep until Ctrl-C or SIGTERM (a service manager's stop), so the server stays up."""
+    import signal
+    import threading
+
+    def stop(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    saved = None
+    if threading.current_thread() is threading.main_thread():
+        saved = signal.signal(signal.SIGTERM, stop)
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        if saved is not None:
+            signal.signal(signal.SIGTERM, saved)
 
 
 class RerunObserver:

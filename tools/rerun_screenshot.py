@@ -78,7 +78,7 @@ async def _capture(ws_url: str, url: str, width: int, height: int, wait_s: float
             # A file plays from its first scan, and a software renderer plays slowly: click the
             # right end of the time panel's ruler (the bottom bar) to show the last scan.
             for kind in ("mousePressed", "mouseReleased"):
-                await call("Input.dispatchMouseEvent", type=kind, x=width - 8 - width // 16,
+                await call("Input.dispatchMouseEvent", type=kind, x=int(width * 0.905),
                            y=height - 14, button="left", clickCount=1)
             await asyncio.sleep(settle_s)
         params: dict[str, object] = {"format": "jpeg" if quality else "png"}
@@ -162,6 +162,8 @@ def main() -> None:
     p.add_argument("--wait", type=float, default=25.0,
                    help="seconds to let the viewer load and draw after its canvas appears")
     p.add_argument("--quality", type=int, help="JPEG quality (smaller file than PNG)")
+    p.add_argument("--palette", type=int, metavar="N",
+                   help="quantise the PNG to N colours (Pillow), a third of the size")
     p.add_argument("--no-seek-end", action="store_true",
                    help="leave the time cursor where the viewer put it (default: click the end "
                         "of the time panel, to show the last scan)")
@@ -171,6 +173,11 @@ def main() -> None:
         url = viewer_url(Path(url))
     path = screenshot(url, args.out, args.width, args.height, args.wait,
                       quality=args.quality, seek_end=not args.no_seek_end)
+    if args.palette:
+        from PIL import Image
+
+        Image.open(path).convert("RGB").quantize(colors=args.palette, dither=0).save(
+            path, optimize=True)
     print(f"{path}: {path.stat().st_size // 1024} KiB")
 
 
