@@ -369,6 +369,9 @@ def replay_capture(capture: str | Path, rec: rr.RecordingStream, *, method: str 
     capture = Path(capture)
     scans = capture_scans(capture, whole_only=False)
     whole = [s for s in scans if not s.meta.get("partial")]
+    if not whole:
+        # A capture shorter than a rotation: its pieces are all there is, flagged as such.
+        whole = [s for s in scans if len(s)]
     tpath = Path(truth) if truth is not None else truth_path(capture)
     truths = load_truth(tpath) if tpath.is_file() else []
     if truth is not None and not truths:
@@ -381,8 +384,12 @@ def replay_capture(capture: str | Path, rec: rr.RecordingStream, *, method: str 
     obs.on_start(capture.name, {"kind": "capture"})
     dropped = sum(s.missing_packets for s in scans)
     partial = len(scans) - len([s for s in scans if not s.meta.get("partial")])
-    if partial:
+    if partial and len(whole) < len(scans):
         obs.on_event(f"{partial} partial scan(s) at the capture's ends left out", "INFO")
+    elif partial:
+        obs.on_event(f"no whole rotation in the capture: replaying its {partial} partial "
+                     "scan(s)", "WARN")
+        summary.notes.append("no whole rotation in the capture: partial scans replayed")
     if dropped:
         obs.on_event(f"{dropped} packet(s) missing in the capture", "WARN")
     if truths:

@@ -354,3 +354,27 @@ def test_clouds_of_the_first_scans_only_are_still_the_runs_own(run_dir: Path, tm
     for i in range(len(YAWS_DEG)):
         (pos,) = recording.at("/world/sensor/scan", "scan", i * SCANS, "Points3D:positions")
         assert len(pos) == points[(i, 0)]
+
+
+def test_a_real_capture_shorter_than_a_rotation_is_replayed_in_pieces(sample_pcap: Path,
+                                                                      tmp_path: Path):
+    """The real VLP-16 capture of tests/data holds no whole rotation: its pieces are replayed,
+    flagged, with every return."""
+    from scenarios.replay import capture_scans, replay_capture
+
+    pieces = [s for s in capture_scans(sample_pcap, whole_only=False) if len(s)]
+    path = tmp_path / "real.rrd"
+    rec = rl.new_recording()
+    rec.save(path)
+    summary = replay_capture(sample_pcap, rec)
+    rec.flush()
+    rec.disconnect()
+    recording = read_rrd(path)
+    assert summary.scans == len(pieces) > 0
+    counts = [len(r.components["Points3D:positions"])
+              for r in recording.rows("/world/sensor/scan", "Points3D:positions")]
+    assert counts == [int(s.valid.sum()) for s in pieces]
+    texts = [r.components["TextLog:text"][0] for r in recording.rows("/log", "TextLog:text")]
+    assert any("no whole rotation" in t for t in texts)
+    assert "/world/truth" not in recording.entities or not recording.rows(
+        "/world/truth", "Transform3D:translation")
