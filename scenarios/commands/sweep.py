@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from scenarios import plans
@@ -71,8 +72,11 @@ def tolerances(args: argparse.Namespace) -> Tolerances:
 
 def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
             progress: bool = True, report: bool = True, tol: Tolerances | None = None,
-            stream=None) -> int:
+            stream=None, rerun: Callable | None = None) -> int:
     """Create (or resume) the run in `out`, run it, write the report; the exit code.
+
+    rerun: ``rerun(plan, bench_info) -> RerunSession | None`` (``--rerun``): the run is also
+    logged to rerun through an instrumented bench and estimator (one process only).
 
     0: completed and passed (or completed when the report is off); 1: completed but the verdict
     failed; 130: interrupted (resumable). A failure raises (the CLI prints one line) after the
@@ -119,6 +123,12 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
         prog = Progress(plan, stream=stream, enabled=progress)
         max_fail = int(config.get("max_consecutive_failures") or MAX_CONSECUTIVE_FAILURES)
         jobs = int(config.get("jobs") or 1)
+        session = rerun(plan, bench.info()) if rerun is not None else None
+        if session is not None:
+            if jobs > 1:
+                stream.write("rerun: logging needs one process; running with --jobs 1\n")
+                jobs = 1
+            bench, estimator = session.instrument(bench, config.get("method"))
         if jobs > 1:
             runner: Runner = ParallelSimRunner(
                 plan, bench, store, seed=int(config.get("seed") or 0),
@@ -127,7 +137,16 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
         else:
             runner = Runner(plan, bench, store, estimator, progress=prog,
                             max_consecutive_failures=max_fail)
-        status = runner.run()
+        try:
+            status = runner.run()
+        except AimbenchError as exc:
+            if session is not None:
+                session.error(str(exc))
+            raise
+        finally:
+            if session is not None:
+                session.finish(store.status, (store.get("failure") or {}).get("message"))
+                session.close()
         if status == "interrupted":
             stream.write(f"interrupted: {store.scan_count()} of {plan.total_scans} scans saved in "
                          f"{out}; continue with: aimbench sweep --resume --out {out}\n")
@@ -195,8 +214,20 @@ def run(args: argparse.Namespace) -> int:
             # A TOML file's defaults, unless the command line set them.
             if key in plan.settings and getattr(args, key) is None:
                 config[key] = plan.settings[key]
+    tol = tolerances(args)
+
+    def rerun(plan: plans.Plan, info: dict) -> object:  # a RerunSession or None
+        if not hasattr(args, "rerun"):
+            return None
+        from scenarios.rerun_observer import session_from_args
+
+        return session_from_args(args, out, plan, info,
+                                 tolerances={**{f"{a}_deg": tol.angle_deg
+                                                for a in ("roll", "tilt", "yaw")},
+                                             "x_mm": tol.x_mm})
+
     return execute(plan, config, out, args.resume, progress=not args.no_progress,
-                   report=not args.no_report, tol=tolerances(args))
+                   report=not args.no_report, tol=tol, rerun=rerun)
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -223,5 +254,11 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-report", action="store_true", help="do not write the report")
     add_tolerance_arguments(p)
+    try:  # rerun logging (scenarios/rerun_observer.py): optional, the sweep works without it
+        from scenarios.rerun_observer import add_rerun_arguments
+    except ImportError:
+        pass
+    else:
+        add_rerun_arguments(p)
     p.set_defaults(func=run)
     return p
