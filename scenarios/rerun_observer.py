@@ -317,14 +317,15 @@ class RerunObserver:
             self.geometry.log_joints(rec, float(stage[1]), float(stage[0]))
         rl.log_pose(rec, "world/truth", truth, axis_length=0.12)
         rl.log_pose(rec, "world/estimate", pose if success else None, axis_length=0.25)
-        # The scan is drawn where the estimate puts the sensor (so a wrong estimate shows as
-        # points off the board); without one, where the truth does.
-        sensor = pose if success else truth
-        if sensor is not None:
-            rec.log("world/sensor", rl.pose_transform(sensor))
         cloud = scan is not None and (self.clouds_per_reference is None
                                       or k < self.clouds_per_reference)
         if cloud and scan is not None:
+            # The scan is drawn where the estimate puts the sensor (so a wrong estimate shows as
+            # points off the board); without one, where the truth does. Moved only with a
+            # cloud, so that a cloud always sits on its own scan's pose.
+            sensor = pose if success else truth
+            if sensor is not None:
+                rec.log("world/sensor", rl.pose_transform(sensor))
             rl.log_scan_points(rec, scan, color_by=self.color_by, every=self.points_every)
             rl.log_used(rec, scan, getattr(estimate, "used", None) if success else None)
         if (truth is not None) not in self._styled:
