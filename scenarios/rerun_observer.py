@@ -1,10 +1,13 @@
 """`RerunObserver`: what a run looks like in rerun, live (the sweep runner calls it) or afterwards
 (`scenarios.replay` feeds it from a result store or a capture).
 
-The runner knows nothing of rerun: it calls an observer's ``on_reference``, ``on_scan`` and
-``on_error`` (every method optional, see `Observer`), and this module turns those calls into
-`twin.rerun_log` calls on an explicit `rerun.RecordingStream`. Without ``--rerun`` no observer
-exists and rerun is never imported.
+The runner knows nothing of rerun. For a live sweep, `RerunSession.instrument` hands it an
+`ObservedBench` and an `observed_estimator` that pass everything through and tell a
+`RerunObserver` what happened (``on_reference`` when the stages have arrived, ``on_scan`` with
+align's full answer, ``on_error``/``on_finish`` from the sweep command); a replay calls the same
+observer from a store or a capture. The observer turns those calls into `twin.rerun_log` calls
+on an explicit `rerun.RecordingStream`. Without ``--rerun`` no observer exists and rerun is
+never imported.
 
 Sinks follow rerun's own script conventions (``rr.script_add_args``): ``--save PATH`` writes an
 ``.rrd`` file, ``--connect [URL]`` streams to a running viewer, ``--serve`` hosts a gRPC server and
@@ -38,7 +41,8 @@ SCAN_PERIOD_S = 0.1
 
 
 class Observer(Protocol):
-    """What the runner may call (all optional: the runner checks with ``getattr``)."""
+    """What an observer of a run offers (`RerunObserver` is one): for other observers of the
+    same calls, e.g. a progress display or a test recorder."""
 
     def on_reference(self, index: int, reference: Any, stage: tuple[float, float] | None) -> None:
         ...
