@@ -110,14 +110,13 @@ def sink_options(args: Any, default_save: str | Path | None = None) -> SinkOptio
 
 
 def open_recording(name: str, sinks: SinkOptions, truth: bool = True,
-                   tolerances: Mapping[str, float] | None = None,
                    stream: TextIO | None = None) -> rr.RecordingStream:
-    """A new recording with aimbench's blueprint, attached to the chosen sinks."""
+    """A new recording with aimbench's blueprint (error plots with ``truth``, else estimates),
+    attached to the chosen sinks."""
     import rerun as rr
 
     stream = stream if stream is not None else sys.stderr
-    bp = rl.blueprint(truth=truth, tolerances=tolerances,
-                      live=bool(sinks.connect or sinks.serve or sinks.spawn))
+    bp = rl.blueprint(truth=truth, live=bool(sinks.connect or sinks.serve or sinks.spawn))
     rec = rl.new_recording(name)
     targets: list[Any] = []
     if sinks.save:
@@ -469,8 +468,7 @@ class RerunSession:
         self.plan = plan
         self.stream = stream if stream is not None else sys.stderr
         truth = (info or {}).get("kind") == "sim"
-        self.rec = open_recording(name, sinks, truth=truth, tolerances=tolerances,
-                                  stream=self.stream)
+        self.rec = open_recording(name, sinks, truth=truth, stream=self.stream)
         self.observer = RerunObserver(self.rec, tolerances=tolerances,
                                       scans_per_reference=plan.scans, points_every=points_every)
         self.observer.on_start(name, info)

@@ -378,3 +378,65 @@ def test_a_real_capture_shorter_than_a_rotation_is_replayed_in_pieces(sample_pca
     assert any("no whole rotation" in t for t in texts)
     assert "/world/truth" not in recording.entities or not recording.rows(
         "/world/truth", "Transform3D:translation")
+
+
+def _replay_points(run_dir: Path, tmp_path: Path) -> tuple[object, dict, dict]:
+    """Replay `run_dir`; (summary, points per (reference, scan) in the recording, in the store)."""
+    from scenarios.replay import replay_run
+
+    path = tmp_path / "replay.rrd"
+    rec = rl.new_recording()
+    rec.save(path)
+    summary = replay_run(run_dir, rec)
+    rec.flush()
+    rec.disconnect()
+    recording = read_rrd(path)
+    with Store.open(run_dir) as store:
+        plan = store.plan
+        stored = {(r["reference"], r["scan"]): r["points"] for r in store.iter_scans()}
+    logged = {}
+    for r in recording.rows("/world/sensor/scan", "Points3D:positions"):
+        step = r.times["scan"]
+        logged[divmod(step, plan.scans)] = len(r.components["Points3D:positions"])
+    return summary, logged, stored
+
+
+@pytest.mark.slow
+def test_a_parallel_run_is_replayed_twin_by_twin(tmp_path: Path):
+    """A run on two worker processes (--jobs 2): each worker's twin re-simulated in its order
+    gives back the very scans the run estimated."""
+    from scenarios.bench import SimBench
+    from scenarios.runner import ParallelSimRunner
+
+    refs = tuple(Reference(math.radians(y), 0.0) for y in (-1.0, 0.0, 1.0))
+    plan = Plan("parallel", "yaw", refs, 2)
+    bench = SimBench(seed=6)
+    store = Store.create(tmp_path / "run", plan, {"bench": "sim", "seed": 6, "jobs": 2},
+                         bench.info())
+    try:
+        assert ParallelSimRunner(plan, bench, store, seed=6, jobs=2).run() == "completed"
+    finally:
+        store.close()
+    summary, logged, stored = _replay_points(tmp_path / "run", tmp_path)
+    assert logged == stored and summary.mismatches == 0
+
+
+def test_a_run_that_replayed_a_capture_reads_it_again(tmp_path: Path):
+    """--bench hw --port none --lidar CAPTURE.pcap: the replay re-reads the capture in the order
+    the runner took its scans."""
+    from scenarios.bench import HardwareBench
+    from twin.sim import BenchSim
+
+    pcap = tmp_path / "cap.pcap"
+    BenchSim(seed=7).write_pcap(pcap, 6)
+    plan = Plan("capture", "yaw", (Reference(), Reference()), 2)
+    bench = HardwareBench(None, lidar=str(pcap))
+    store = Store.create(tmp_path / "run", plan, {"bench": "hw", "port": None,
+                                                  "lidar": str(pcap)}, bench.info())
+    try:
+        assert Runner(plan, bench, store, make_estimator(None)).run() == "completed"
+    finally:
+        store.close()
+    summary, logged, stored = _replay_points(tmp_path / "run", tmp_path)
+    assert summary.source == f"the capture {pcap}"
+    assert logged == stored and summary.mismatches == 0

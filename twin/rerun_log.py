@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -541,8 +541,7 @@ def scan_annotations(scan: Scan | None, status: str, success: bool,
 # ---------------------------------------------------------------------------------------------
 # Blueprint
 # ---------------------------------------------------------------------------------------------
-def blueprint(truth: bool = True, tolerances: Iterable[str] | None = None,
-              live: bool = False) -> rrb.Blueprint:
+def blueprint(truth: bool = True, live: bool = False) -> rrb.Blueprint:
     """The layout a recording opens with: the bench in 3-D (left), per-axis plots (right, top) and
     the log (right, bottom). ``truth``: plot errors (twin) or the estimates (hardware).
 

@@ -45,8 +45,7 @@ def run(args: argparse.Namespace) -> int:
     progress = _progress(not args.no_progress)
     if src.is_dir():
         sinks = sink_options(args, default_save=src / "replay.rrd")
-        rec = open_recording(f"replay {src.name}", sinks, truth=_run_has_truth(src),
-                             tolerances=tol)
+        rec = open_recording(f"replay {src.name}", sinks, truth=_run_has_truth(src))
         try:
             summary = replay.replay_run(
                 src, rec, clouds=not args.no_clouds,
@@ -57,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     elif src.is_file():
         sinks = sink_options(args, default_save=src.with_suffix(".rrd"))
         truth = Path(args.truth) if args.truth else replay.truth_path(src)
-        rec = open_recording(f"replay {src.name}", sinks, truth=truth.is_file(), tolerances=tol)
+        rec = open_recording(f"replay {src.name}", sinks, truth=truth.is_file())
         try:
             summary = replay.replay_capture(
                 src, rec, method=args.method, truth=args.truth, limit=args.limit,
