@@ -22,7 +22,7 @@ def aimbench(*args: str, cwd: Path) -> subprocess.CompletedProcess:
 @pytest.mark.slow
 def test_demo_runs_the_yaw_sweep_and_writes_the_report(tmp_path: Path):
     res = aimbench("demo", "--out", "runs/demo", "--scans", "2", "--jobs", "2", cwd=tmp_path)
-    assert res.returncode in (0, 1), res.stderr  # 1: an honest FAIL verdict
+    assert res.returncode == 0, res.stderr  # a FAIL verdict is the demo's result, not an error
     assert "2 scans per reference (the paper takes 100" in res.stderr
     assert "21 references x 2 scans on the sim bench" in res.stderr
     assert res.stdout.startswith("verdict: ")

@@ -2,10 +2,10 @@
 
 The paper's yaw sweep (-10 to +10 deg in 1 deg steps) on `SimBench` with the paper's noise
 model, every scan estimated and stored, then report.md / report.html with the paper-form table
-and the error plots. The paper takes 100 scans per reference (2,100 scans); the demo takes
-`DEMO_SCANS` per reference so that it finishes in a few minutes on a 2-core machine, and says so.
-``--scans 100`` runs the paper's full protocol. Run it again and it reuses a finished run (or
-resumes an interrupted one); ``--fresh`` starts over.
+and the error plots. The paper takes 100 scans per reference (2,100 scans); so does the demo
+(`DEMO_SCANS`), on 2 worker processes, which keeps it near a minute on a 2-core machine; it says
+how many it takes. ``--scans N`` takes fewer (or more). Run it again and it reuses a finished
+run (or resumes an interrupted one); ``--fresh`` starts over.
 """
 
 from __future__ import annotations
@@ -19,9 +19,10 @@ from scenarios import plans
 from scenarios.commands.sweep import add_tolerance_arguments, execute, tolerances
 from scenarios.store import STORE_NAME, Store
 
-#: Scans per reference in the demo (the paper: 100): 21 x 50 = 1,050 scans, about 1.5 min of
-#: one core (emulation ~60 ms + estimate ~15 ms + store ~8 ms per scan); --scans 100 for all.
-DEMO_SCANS = 50
+#: Scans per reference in the demo: the paper's 100 (2,100 scans). The pipeline costs about 60 ms
+#: of CPU per scan (benchmarks/bench_sweep.py: 16.9 scans per CPU second), so on 2 worker
+#: processes it takes about 75 s on an idle 2-core machine (measured: 37.5 s for 50 scans).
+DEMO_SCANS = 100
 
 
 def run(args: argparse.Namespace) -> int:
@@ -48,8 +49,11 @@ def run(args: argparse.Namespace) -> int:
     config = {"scenario": "yaw", "bench": "sim", "port": None, "lidar": None,
               "method": args.method, "seed": args.seed, "ideal": False, "scans": args.scans,
               "poses": None, "argv": sys.argv[1:], "demo": True, "jobs": args.jobs}
-    return execute(None if resume else plan, config, out, resume,
-                   progress=not args.no_progress, report=True, tol=tolerances(args))
+    rc = execute(None if resume else plan, config, out, resume,
+                 progress=not args.no_progress, report=True, tol=tolerances(args))
+    # The demo's job is the run and its report; a FAIL verdict is its result, not a failure of
+    # `make demo` (`aimbench sweep` and `aimbench report` exit 1 on FAIL, for CI gates).
+    return 0 if rc == 1 else rc
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
