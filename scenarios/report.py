@@ -396,7 +396,8 @@ def plot(rep: RunReport, es: ErrorSet, path: Path, axes: tuple[str, ...] = PAPER
         ax.grid(alpha=0.3)
     np.atleast_1d(panels)[0].set_title(
         f"{(rep.meta.get('plan') or {}).get('name', 'run')}: {es.name} error "
-        f"(tolerance ±{rep.tolerances.angle_deg:g} deg / ±{rep.tolerances.x_mm:g} mm dashed)")
+        f"(accuracy tolerance ±{rep.tolerances.angle_deg:g} deg / ±{rep.tolerances.x_mm:g} mm "
+        "dashed)")
     np.atleast_1d(panels)[0].legend(loc="upper right", fontsize=8)
     np.atleast_1d(panels)[-1].set_xlabel(label)
     fig.tight_layout()
