@@ -445,3 +445,28 @@ def test_a_run_that_replayed_a_capture_reads_it_again(tmp_path: Path):
     summary, logged, stored = _replay_points(tmp_path / "run", tmp_path)
     assert summary.source == f"the capture {pcap}"
     assert logged == stored and summary.mismatches == 0
+
+
+def test_stage_moves_follow_the_firmware_profile(tmp_path: Path):
+    """A move is drawn along the trapezoidal profile on stage_time, ending where it was told;
+    a target beyond the twin's travel (a longer real stage) is drawn at its arrival only."""
+    from twin.motion import X_AXIS, YAW_AXIS, StageMove
+    from twin.physics import BenchPhysics
+
+    path = tmp_path / "move.rrd"
+    rec = rl.new_recording()
+    rec.save(path)
+    geometry = rl.BenchGeometry.from_physics(BenchPhysics())
+    end = rl.log_stage_move(rec, geometry, (0.0, 0.0), (0.02, math.radians(5.0)), 1.0)
+    duration = StageMove.plan((0.0, 0.0), (0.02, math.radians(5.0)), (X_AXIS, YAW_AXIS)).duration
+    assert end == pytest.approx(1.0 + duration)
+    assert rl.log_stage_move(rec, geometry, (0.02, 0.0), (0.5, 0.0), end) == end
+    rec.flush()
+    rec.disconnect()
+    rows = read_rrd(path).rows("/world/bench/carriage", "Transform3D:translation")
+    xs = [r.components["Transform3D:translation"][0][0] for r in rows]
+    times = [r.times["stage_time"] * 1e-9 for r in rows]
+    assert times == sorted(times) and times[0] == pytest.approx(1.0)
+    assert xs[-2] - xs[0] == pytest.approx(0.02, abs=1e-6)  # the profiled move
+    assert xs[-1] - xs[0] == pytest.approx(0.5, abs=1e-6)  # the arrival beyond travel
+    assert len(rows) >= 2 + math.ceil(duration * 20)

@@ -314,9 +314,17 @@ def log_stage_move(rec: rr.RecordingStream, geometry: BenchGeometry,
     Used by replays, which know where the stages went but not how; the live twin logs its own
     joint positions instead. Only ``stage_time`` is set for these rows: they belong to no scan.
     """
+    from twin.errors import AimbenchError
     from twin.motion import X_AXIS, YAW_AXIS, StageMove
 
-    move = StageMove.plan(tuple(map(float, start)), tuple(map(float, end)), (X_AXIS, YAW_AXIS))
+    try:
+        move = StageMove.plan(tuple(map(float, start)), tuple(map(float, end)),
+                              (X_AXIS, YAW_AXIS))
+    except AimbenchError:
+        # Beyond the twin's travel (a real bench with longer stages): show the arrival only.
+        rec.set_time("stage_time", duration=t0)
+        geometry.log_joints(rec, float(end[0]), float(end[1]))
+        return t0
     n = max(2, math.ceil(move.duration * rate_hz) + 1)
     for t in np.linspace(0.0, move.duration, n):
         x, yaw = move.at(t)
