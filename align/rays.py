@@ -176,6 +176,16 @@ def _vertical_brackets(rays: _Rays, lab: np.ndarray, x: np.ndarray, x_c: float
     return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
 
 
+def _coords(rot: np.ndarray, theta: np.ndarray, o: np.ndarray, u: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Board coordinates X, Z of rays (origins o, directions u in {L}) and their directions in
+    {O}, for the rotation ``rot`` of pose ``theta``."""
+    d = u @ rot.T
+    oo = o @ rot.T + theta[:3]
+    lam = -oo[:, 1] / d[:, 1]
+    return oo[:, 0] + lam * d[:, 0], oo[:, 2] + lam * d[:, 2], d
+
+
 class _Model:
     """Whitened residuals of the joint fit for a pose theta."""
 
@@ -188,6 +198,9 @@ class _Model:
         # is 1.5 mrad tall (4 mm at 2.6 m) and the laser's elevation is only nominal
         self.blur_z = max(blur, EDGE_BLUR_Z)
         self.use_range = np.zeros(len(lab), dtype=bool)
+        self._range = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        self._bh = (rays.origin[bh], rays.direction[bh])
+        self._bm = (rays.origin[bm], rays.direction[bm])
         self.edge_kind = np.zeros(len(bh), dtype=np.int8)  # 0 skip, 1 vertical edge, 2 horizontal
         self.edge_sign = np.zeros(len(bh))
         self.edge_sd = np.ones(len(bh))
@@ -199,6 +212,10 @@ class _Model:
         inside = (np.abs(x) < w2 - EDGE_MARGIN) & (np.abs(z) < h2 - EDGE_MARGIN)
         res = self.rays.distance - lam
         self.use_range = (self.lab == 1) & inside & (np.abs(res) < 4 * self.sigma_r)
+        # the fit only ever looks at these rays: keep them contiguous
+        r = self.rays
+        self._range = (r.origin[self.use_range], r.direction[self.use_range],
+                       r.distance[self.use_range])
 
     def classify(self, theta: np.ndarray, guard: float, crossings: bool = True) -> None:
         """Fix which edge each bracket measures, for pose ``theta``; drop the ambiguous ones.
@@ -276,17 +293,19 @@ class _Model:
         return 1e6 * viol + cost
 
     def residuals(self, theta: np.ndarray) -> np.ndarray:
-        r = self.rays
-        x, z, lam = board_coordinates(theta, r.origin, r.direction)
-        rr = (r.distance[self.use_range] - lam[self.use_range]) / self.sigma_r
+        """Whitened residuals: ranges of the interior hits, then the used brackets."""
+        rot = rotation(theta[3], theta[4], theta[5])
+        o_r, u_r, d_r = self._range
+        lam = -(o_r @ rot[1] + theta[1]) / (u_r @ rot[1])
+        rr = (d_r - lam) / self.sigma_r
+        xh, zh, dh = _coords(rot, theta, *self._bh)
+        xm, zm, _ = _coords(rot, theta, *self._bm)
         k = self.edge_kind
-        mid_x = 0.5 * (x[self.bh] + x[self.bm])
-        mid_z = 0.5 * (z[self.bh] + z[self.bm])
+        mid_x = 0.5 * (xh + xm)
+        mid_z = 0.5 * (zh + zm)
         # the plate's side face: a ray heading inwards (against the edge's outward side) that
         # passes the front edge by less than thickness x (its lateral over forward direction)
         # still hits the board, so that edge sits that much further out for it
-        rot = rotation(theta[3], theta[4], theta[5])
-        dh = r.direction[self.bh] @ rot.T  # ray directions in {O}
         t = self.board.thickness
         ext_x = t * np.maximum(0.0, -self.edge_sign * dh[:, 0] / dh[:, 1])
         ext_z = t * np.maximum(0.0, -self.edge_sign * dh[:, 2] / dh[:, 1])
@@ -301,25 +320,27 @@ class _Model:
         X = o.r0 + t_x + lam u.r0, Z = o.r2 + t_z + lam u.r2, lam = -(o.r1 + t_y) / u.r1 (r_k
         the rows of R): t_x and t_z move X and Z one for one; t_y moves lam by -1 / u.r1.
         """
-        r = self.rays
         rot = rotation(theta[3], theta[4], theta[5])
-        uy = r.direction @ rot[1]
-        dlam = -1.0 / uy  # d lam / d t_y
-        dx_dty = dlam * (r.direction @ rot[0])
-        dz_dty = dlam * (r.direction @ rot[2])
         k = self.edge_kind
         use = k > 0
         vert = (k == 1)[use]
         j = np.empty((len(f0), 6))
-        nr = int(self.use_range.sum())
+        u_r = self._range[1]
+        nr = len(u_r)
         j[:nr, 0] = 0.0
-        j[:nr, 1] = -dlam[self.use_range] / self.sigma_r
+        j[:nr, 1] = (1.0 / (u_r @ rot[1])) / self.sigma_r  # -(d lam / d t_y) / sigma
         j[:nr, 2] = 0.0
         sd = self.edge_sd[use]
-        bh, bm = self.bh[use], self.bm[use]
+
+        def d_dty(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            dlam = -1.0 / (u @ rot[1])
+            return dlam * (u @ rot[0]), dlam * (u @ rot[2])
+
+        xh_t, zh_t = d_dty(self._bh[1][use])
+        xm_t, zm_t = d_dty(self._bm[1][use])
         j[nr:, 0] = np.where(vert, -1.0, 0.0) / sd
         j[nr:, 2] = np.where(vert, 0.0, -1.0) / sd
-        j[nr:, 1] = -0.5 * np.where(vert, dx_dty[bh] + dx_dty[bm], dz_dty[bh] + dz_dty[bm]) / sd
+        j[nr:, 1] = -0.5 * np.where(vert, xh_t + xm_t, zh_t + zm_t) / sd
         for i in range(3, 6):
             t = theta.copy()
             t[i] += 1e-7
