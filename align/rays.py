@@ -433,7 +433,7 @@ def _staged_fit(model: _Model, theta: np.ndarray, dz: np.ndarray
         theta = theta.copy()
         shift = dz[np.argmin(model.profile_z(theta, dz))]
         theta[2] += shift
-    if abs(shift) > 0:
+    if abs(shift) > 0.0015:  # the profile moved z by more than its 1 mm grid: refit
         model.classify(theta, 0.002, True)
         theta, j, conv, it = _gauss_newton(model, theta)
         iters += it
@@ -442,7 +442,7 @@ def _staged_fit(model: _Model, theta: np.ndarray, dz: np.ndarray
 
 
 def _posterior_mean(model: _Model, theta: np.ndarray, rng: np.random.Generator,
-                    samples: int = 4000) -> tuple[np.ndarray, np.ndarray] | None:
+                    samples: int = 2000) -> tuple[np.ndarray, np.ndarray] | None:
     """Mean and covariance of the pose given the brackets as hard intervals, not Gaussians.
 
     A bracket says the edge lies somewhere between its two rays, uniformly: a box constraint,
