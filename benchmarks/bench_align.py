@@ -102,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
                                      args.raise_mm)
         sim = BenchSim(params, seed=int(rng.integers(2**31)), noise=cfg)
         sim.move_to(x, np.deg2rad(yaw))
-        # one scan() per rotation (see the report: scans(n) of the twin lost the board at times)
+        # one scan() per rotation (scans(n) of an early twin lost the board after three)
         scans = [sim.scan() for _ in range(args.scans)]
         truth = scans[0].meta["truth_pose"]
         for m in methods:
