@@ -140,6 +140,15 @@ def test_board_too_far():
     assert res.status == Status.BOARD_TOO_FAR, res.diagnostics
 
 
+def test_too_few_rings():
+    # a 0.9 x 0.2 m board at 2.6 m spans two rings: no tilt, no roll to be had
+    sim = bench(seed=6, board_height=0.2)
+    res = align.estimate(sim.scan(), board=align.BoardSpec(0.9, 0.2))
+    assert res.status == Status.TOO_FEW_RINGS and "rings" in res.diagnostics["reason"]
+    assert align.estimate(sim.scan(), board=align.BoardSpec(0.9, 0.2),
+                          method="paper").status == Status.TOO_FEW_RINGS
+
+
 def test_half_a_board():
     # the left half of the board returns nothing (a black, absorbing patch)
     sim = bench(seed=5)
