@@ -8,8 +8,9 @@ harness observed on the STEP/DIR pins. So a host program that drives the pty and
 UDP port cannot tell the twin from the bench (`scenarios.bench.HardwareBench` runs unchanged).
 
 Pacing: packet k leaves at wall time start + k x 1.327 ms (the sensor's ~754 packets/s, on an
-absolute schedule so sleeps never drift); late packets (emulation slower than real time) go at
-once and are counted. Rotations are emulated one at a time (`BenchSim.scan`) and cut into whole
+absolute schedule so sleeps never drift), from a sender thread fed by an emulation thread that
+keeps up to two rotations ahead; late packets (emulation slower than real time) go at once and
+are counted. Rotations are emulated one at a time (`BenchSim.scan`) and cut into whole
 packets by `PacketStream`, so the stream has no gap or duplicate; the stage pose seen
 by the sensor is updated once per rotation (10 times a second at 600 rpm): exact for scans taken
 at rest, a staircase approximation during a move. Single-return modes only.
@@ -20,6 +21,7 @@ Units: SI inside; the harness reports positions relative to the bench reference 
 from __future__ import annotations
 
 import contextlib
+import queue
 import socket
 import threading
 import time
@@ -122,6 +124,9 @@ class WireTwin:
         self.stats = WireStats()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._producer: threading.Thread | None = None
+        self._queue: queue.Queue = queue.Queue(maxsize=2)
+        self._produced_all = threading.Event()
 
     @property
     def pty_path(self) -> str:
@@ -136,6 +141,13 @@ class WireTwin:
         self.sim = BenchSim(self.params, seed=self.seed, noise=self.noise)
         self.harness = SimavrHarness(**self.harness_options).start()
         self._sync_stages()
+        # Two rotations of lead: the first packets leave once two rotations are emulated, so a
+        # rotation's emulation (~60 ms of CPU) overlaps the sending of the one before.
+        self._queue = queue.Queue(maxsize=2)
+        self._produced_all = threading.Event()
+        self._producer = threading.Thread(target=self._emulate, name="vlp16-emulation",
+                                          daemon=True)
+        self._producer.start()
         self._thread = threading.Thread(target=self._stream, name="vlp16-udp", daemon=True)
         self._thread.start()
         return self
@@ -145,14 +157,12 @@ class WireTwin:
         pos = self.harness.positions()
         self.sim.set_stage_positions(pos.x_m, pos.yaw_rad)
 
-    def _stream(self) -> None:
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        if self.udp[0].endswith(".255"):
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+    def _emulate(self) -> None:
+        """Producer thread: one rotation's packets at a time into `_queue` (a few ahead), so the
+        sender never waits for the emulation at a rotation's start."""
         # The sensor's clock: seconds past the hour of the host's clock at start.
         packets = PacketStream(getattr(self.sim.config, "return_mode_byte",
                                        vlp16.RETURN_MODE_STRONGEST), time.time() % 3600.0)
-        wall0: float | None = None
         try:
             while not self._stop.is_set():
                 if not self.harness.running():
@@ -161,10 +171,35 @@ class WireTwin:
                 self._sync_stages()
                 payloads = packets.push(self.sim.scan())
                 self.stats.rotations += 1
+                while not self._stop.is_set():
+                    try:
+                        self._queue.put(payloads, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+        except Exception as exc:  # the streamer must say why it died, not vanish silently
+            self.stats.errors.append(f"{type(exc).__name__}: {exc}")
+            raise
+        finally:
+            self._produced_all.set()
+
+    def _stream(self) -> None:
+        """Sender thread: packet k at wall0 + k periods (an absolute schedule: no drift)."""
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        if self.udp[0].endswith(".255"):
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_BROADCAST, 1)
+        wall0: float | None = None
+        try:
+            while not self._stop.is_set():
+                try:
+                    payloads = self._queue.get(timeout=0.1)
+                except queue.Empty:
+                    if self._produced_all.is_set():
+                        return
+                    continue
                 if wall0 is None:
                     wall0 = time.perf_counter()
                 for payload in payloads:
-                    # Absolute schedule: packet k at wall0 + k periods (no drift from sleeps).
                     due = wall0 + self.stats.packets * vlp16.PACKET_PERIOD
                     ahead = due - time.perf_counter()
                     if ahead > 0:
@@ -176,21 +211,20 @@ class WireTwin:
                     with contextlib.suppress(OSError):  # nobody listening: UDP drops, as on a LAN
                         sock.sendto(payload.tobytes(), self.udp)
                     self.stats.packets += 1
-        except Exception as exc:  # the streamer must say why it died, not vanish silently
-            self.stats.errors.append(f"{type(exc).__name__}: {exc}")
-            raise
         finally:
             sock.close()
 
     def alive(self) -> bool:
         return (self._thread is not None and self._thread.is_alive()
+                and self._producer is not None and self._producer.is_alive()
                 and self.harness is not None and self.harness.running())
 
     def stop(self) -> None:
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5)
-            self._thread = None
+        for t in (self._thread, self._producer):
+            if t is not None:
+                t.join(timeout=5)
+        self._thread = self._producer = None
         if self.harness is not None:
             self.harness.stop()
             self.harness = None
