@@ -304,7 +304,7 @@ class HardwareBench(Bench):
         if c is not None:
             out["banner"] = getattr(c, "banner", None)
             out["axis_letters"] = list(getattr(c, "axis_letters", ()))
-            settings = getattr(c, "_settings", None) or {}
+            settings = _controller_settings(c)
             out["settings"] = {f"${k}": v for k, v in sorted(settings.items())}
         (y0, y1), (x0, x1) = self.travel()
         out["travel"] = {"yaw_deg": [math.degrees(y0), math.degrees(y1)],
@@ -316,7 +316,7 @@ class HardwareBench(Bench):
         homing direction: home at 0 with travel positive, or at 0 with travel negative),
         relative to the bench reference; the paper's defaults without a controller."""
         c = self.controller
-        settings = getattr(c, "_settings", None) or {}
+        settings = _controller_settings(c) if c is not None else {}
         if c is None or not settings:
             return DEFAULT_YAW_LIMITS_RAD, DEFAULT_X_LIMITS_M
         try:
@@ -369,6 +369,16 @@ class HardwareBench(Bench):
         self.source.close()
         if self.controller is not None:
             self.controller.close()
+
+
+def _controller_settings(controller: Any) -> dict[int, float]:
+    """The controller's settings as read at connect ($$), without asking it again."""
+    cached = getattr(controller, "cached_settings", None)  # a property of StageController
+    if callable(cached):
+        cached = cached()
+    if isinstance(cached, dict):
+        return dict(cached)
+    return dict(getattr(controller, "_settings", None) or {})
 
 
 class ServedBench(HardwareBench):
