@@ -315,3 +315,17 @@ def test_cli_simulate_writes_capture_and_truth(tmp_path, capsys) -> None:
     rc = cli_main(["simulate", "--yaw-deg", "45", "--out", str(out)])
     assert rc == 2
     assert "outside the travel" in capsys.readouterr().err
+
+
+def test_consecutive_scan_calls_are_back_to_back() -> None:
+    """scan() after scan() is the very next rotation (the physics stepping a little past the
+    next rotation's start to finish a window must not make it skip one), and packets() after
+    packets() continues the stream without repeating a packet."""
+    sim = BenchSim(seed=3)
+    rotations = [sim.scan().meta["rotation"] for _ in range(4)]
+    assert rotations == list(range(rotations[0], rotations[0] + 4))
+    first, _, _ = sim.packets(2)
+    second, _, _ = sim.packets(2)
+    stamps = np.frombuffer(np.vstack((first, second))[:, 1200:1204].tobytes(), "<u4")
+    steps = np.diff(stamps.astype(np.int64))
+    assert steps.min() > 0 and steps.max() <= 1328  # one packet period (1.327 ms) each

@@ -92,6 +92,11 @@ class BenchSim:
         self._rot_start: list[float] = []
         self._rot_omega: list[float] = []
         self._next_rotation = 0  # the next rotation scan() returns
+        # Sensor time when the last scan's window was emulated: if nothing has moved the clock
+        # since, the next scan continues back to back, although the physics stepped a little
+        # past the next rotation's start to finish the window.
+        self._fired_until = -1.0
+        self._packets_until = 0  # index of the first packet packets() has not emitted
         # Pose history of the current window (for firings slightly before "now").
         self._last_pose = self.physics.lidar_pose_world()
         self._window_record: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -350,6 +355,8 @@ class BenchSim:
         scan is whole: it starts at a pass of the cut azimuth)."""
         i = self._next_rotation
         self._ensure_rotations(i + 1)
+        if self.time == self._fired_until:
+            return i
         while self._rot_start[i] < self.time - 2 * vlp16.SEQUENCE_PERIOD:
             i += 1
             self._ensure_rotations(i + 1)
@@ -365,6 +372,7 @@ class BenchSim:
             _, hi = self._sequences_of_rotation(block[-1])
             f = self._fire_window(lo, hi)
             self._next_rotation = block[-1] + 1
+            self._fired_until = self.time
             out += self._to_scans(f, block)
         return out
 
@@ -397,10 +405,12 @@ class BenchSim:
             return Firings(seq, laser, t, azimuth, rotation, returns)
         times, ps, rs = record
         hist = self._pose_history
-        if hist is not None and hist[0][-1] < times[0]:
-            times = np.concatenate((hist[0], times))
-            ps = np.concatenate((hist[1], ps))
-            rs = np.concatenate((hist[2], rs))
+        if hist is not None:
+            # The new record may start at the very instant the history ends: keep each once.
+            before = hist[0] < times[0]
+            times = np.concatenate((hist[0][before], times))
+            ps = np.concatenate((hist[1][before], ps))
+            rs = np.concatenate((hist[2][before], rs))
         record = (times, ps, rs)
         self._window_record = record
         self._pose_history = (times[-20:], ps[-20:], rs[-20:])  # the last 20 ms
@@ -423,7 +433,8 @@ class BenchSim:
             return parts[0]
         if records:
             times = np.concatenate([r[0] for r in records])
-            keep = np.concatenate(([True], np.diff(times) > 0))  # drop the history overlaps
+            # Each chunk's record starts with the previous one's history: keep every instant once.
+            keep = np.concatenate(([True], times[1:] > np.maximum.accumulate(times)[:-1]))
             self._window_record = tuple(np.concatenate([r[j] for r in records])[keep]
                                         for j in range(3))
         ret = Returns(*(np.concatenate([getattr(p.returns, k) for p in parts], axis=1)
@@ -456,9 +467,13 @@ class BenchSim:
         seq_per_packet = vlp16.SEQUENCES_PER_PACKET // cfg.n_returns
         # Whole packets: sequences [p_lo * spp, p_hi * spp).
         p_lo = max(0, lo // seq_per_packet)
+        if self.time == self._fired_until:  # continuing: never emit a packet twice
+            p_lo = max(p_lo, self._packets_until)
         p_hi = -(-hi // seq_per_packet)
+        self._packets_until = p_hi
         f = self._fire_range(p_lo * seq_per_packet, p_hi * seq_per_packet)
         self._next_rotation = rotations[-1] + 1
+        self._fired_until = self.time
         scans = self._to_scans(f, rotations)
         n_pk = p_hi - p_lo
         n_seq = n_pk * seq_per_packet
