@@ -32,6 +32,7 @@ from align import plane
 from align.board import BoardSpec
 from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
+from align.segment import consecutive_ring_block
 from twin.pose import Pose
 from twin.scan import Scan
 
@@ -123,23 +124,6 @@ def levenberg_marquardt(
     return beta, _jacobian(beta, p_l, p_o), False, max_iter
 
 
-def _best_block(rings: np.ndarray) -> list[int]:
-    """The consecutive block of rings holding the most returns (rings with a quarter of the most
-    count as present)."""
-    per_ring = np.bincount(rings, minlength=16)
-    present = per_ring >= 0.25 * per_ring.max() if len(rings) else per_ring > 0
-    blocks, cur = [], []
-    for r in range(16):
-        if present[r]:
-            cur.append(r)
-        elif cur:
-            blocks.append(cur)
-            cur = []
-    if cur:
-        blocks.append(cur)
-    return max(blocks, key=lambda b: per_ring[b].sum()) if blocks else []
-
-
 def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> PoseEstimate:
     """The paper's pose from one scan whose board cluster ``segmentation`` already found."""
     pts_idx = segmentation.board
@@ -151,7 +135,7 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
     # the ROI is the board: its rings are consecutive, and the stand's base (a face 5 cm in
     # front of the board, within the RANSAC band) lights up a ring below a gap; keep the
     # consecutive block of rings with the most inliers
-    inl &= np.isin(scan.ring[pts_idx], _best_block(scan.ring[pts_idx][inl]))
+    inl &= np.isin(scan.ring[pts_idx], consecutive_ring_block(scan.ring[pts_idx][inl]))
     rings = np.unique(scan.ring[pts_idx[inl]])
     if len(rings) < 3:
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=len(rings),

@@ -33,7 +33,7 @@ from align import plane
 from align.board import BoardSpec
 from align.geometry import board_coordinates, pose_from_plane, rotation
 from align.result import Hints, PoseEstimate, Status
-from align.segment import Segmentation
+from align.segment import Segmentation, consecutive_ring_block
 from twin.pose import Pose
 from twin.scan import Scan
 
@@ -528,19 +528,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # 5 cm in front of the board) sit on other rings: keep rings with a quarter of the most
     # and the board's rings are consecutive: keep the consecutive block with the most returns
     # (the stand's base, a parallel face 5 cm in front, lights up a ring or two below a gap)
-    per_ring = np.bincount(ring_all[keep], minlength=16)
-    present = per_ring >= 0.25 * per_ring.max()
-    blocks, cur = [], []
-    for r in range(16):
-        if present[r]:
-            cur.append(r)
-        elif cur:
-            blocks.append(cur)
-            cur = []
-    if cur:
-        blocks.append(cur)
-    best = max(blocks, key=lambda b: per_ring[b].sum())
-    keep &= np.isin(ring_all, best)
+    keep &= np.isin(ring_all, consecutive_ring_block(ring_all[keep]))
     n, d, _, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d)
     sigma_r = hints.range_sigma or max(sigma, 1e-3)
     t_plane = time.perf_counter()

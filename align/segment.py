@@ -296,3 +296,21 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
                             int(st["rings"][lab]), reason=f"board-like cluster at "
                             f"{dist[lab]:.2f} m, beyond {hints.max_distance:.2f} m")
     return Segmentation(Status.NO_BOARD, empty, n_lab, reason="no cluster looks like the board")
+
+
+def consecutive_ring_block(rings: np.ndarray) -> list[int]:
+    """The consecutive block of rings holding the most of these returns (a ring counts as present
+    with a quarter of the busiest ring's returns). The board's rings are consecutive; a parallel
+    face in front of it (the stand's base) lights up a ring or two beyond a gap."""
+    per_ring = np.bincount(rings, minlength=16)
+    present = per_ring >= 0.25 * per_ring.max() if len(rings) else per_ring > 0
+    blocks, cur = [], []
+    for r in range(16):
+        if present[r]:
+            cur.append(r)
+        elif cur:
+            blocks.append(cur)
+            cur = []
+    if cur:
+        blocks.append(cur)
+    return max(blocks, key=lambda b: per_ring[b].sum()) if blocks else []

@@ -45,6 +45,20 @@ class RunFailed(AimbenchError):
     """The run stopped on a failure; the store says where (reference, scan) and why."""
 
 
+def _record_failure(store: Store, plan: Plan, where: dict[str, int | None],
+                    exc: AimbenchError) -> RunFailed:
+    """Mark the run (and the reference it failed at, if any) failed in the store, and return
+    the `RunFailed` to raise, its message saying where: ``where`` holds reference and scan."""
+    i, k = where["reference"], where["scan"]
+    message = str(exc)
+    if i is not None:
+        store.finish_reference(i, "failed", message)
+        message = (f"at reference {i} ({plan.references[i].describe()})"
+                   + (f", scan {k}" if k is not None else "") + f": {message}")
+    store.set_status("failed", message, i, k)
+    return RunFailed(message)
+
+
 @dataclass
 class Estimate:
     """What the runner keeps of an estimator's answer for one scan (SI units)."""
@@ -304,14 +318,7 @@ class Runner:
                 return self._interrupted(flag)
             except AimbenchError as exc:
                 self.progress.finish()
-                i, k = where["reference"], where["scan"]
-                message = str(exc)
-                if i is not None:
-                    store.finish_reference(i, "failed", message)
-                    message = (f"at reference {i} ({plan.references[i].describe()})"
-                               + (f", scan {k}" if k is not None else "") + f": {message}")
-                store.set_status("failed", message, i, k)
-                raise RunFailed(message) from exc
+                raise _record_failure(store, plan, where, exc) from exc
             finally:
                 self.bench.close()
 
@@ -567,14 +574,7 @@ class ParallelSimRunner(Runner):
                 return self._interrupted(flag)
             except AimbenchError as exc:
                 self.progress.finish()
-                i, k = where["reference"], where["scan"]
-                message = str(exc)
-                if i is not None:
-                    store.finish_reference(i, "failed", message)
-                    message = (f"at reference {i} ({plan.references[i].describe()})"
-                               + (f", scan {k}" if k is not None else "") + f": {message}")
-                store.set_status("failed", message, i, k)
-                raise RunFailed(message) from exc
+                raise _record_failure(store, plan, where, exc) from exc
             finally:
                 stop.set()
                 for p in procs:
