@@ -30,3 +30,11 @@ def test_ruff_clean():
     assert ruff, "ruff is a test dependency; make setup installs it"
     out = subprocess.run([ruff, "check", str(REPO_DIR)], capture_output=True, text=True)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_importing_aimbench_registers_the_gym_env(tmp_path):
+    code = ("import gymnasium as gym, aimbench; "
+            "assert aimbench.ENV_ID in gym.registry; print(gym.spec(aimbench.ENV_ID).id)")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
+                         text=True, check=True)
+    assert out.stdout.strip() == "aimbench/LidarAlign-v0"
