@@ -140,14 +140,15 @@ def scan_truth(scan: Scan) -> Pose | None:
     if isinstance(truth, Pose):
         return truth
     if isinstance(truth, dict):
-        if "x_mm" in truth or "yaw_deg" in truth:
-            return Pose.from_edge(**{k: v for k, v in truth.items() if k in
-                                     ("x_mm", "y_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg")})
         if "x_m" in truth:
-            # The simulate command's truth.json: metres and degrees.
+            # The simulate command's truth.json: metres and degrees. (Tested before the edge
+            # form: it has yaw_deg too, and reading it as edge units would drop x, y and z.)
             return Pose.from_edge(**{f"{a}_mm": truth[f"{a}_m"] * 1e3 for a in "xyz"},
                                   **{k: truth[k] for k in ("roll_deg", "tilt_deg", "yaw_deg")
                                      if k in truth})
+        if "x_mm" in truth or "yaw_deg" in truth:
+            return Pose.from_edge(**{k: v for k, v in truth.items() if k in
+                                     ("x_mm", "y_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg")})
         return Pose(**{k: float(truth.get(k, 0.0)) for k in
                        ("x", "y", "z", "roll", "tilt", "yaw")})
     return Pose.from_array(truth)

@@ -149,19 +149,13 @@ def recapture(store: Store, capture: Path,
 # ---------------------------------------------------------------------------------------------
 # Runs
 # ---------------------------------------------------------------------------------------------
-def run_estimator(method: str | None) -> Callable[[Scan], Any]:
-    """align's estimate of one scan with the run's method, the call the runner makes."""
-    import align
+def run_estimator(method: str | None, calibration: dict | None = None
+                  ) -> Callable[[Scan], Any]:
+    """align's estimate of one scan with the run's method and calibration, the call the runner
+    makes (`scenarios.runner.align_call`)."""
+    from scenarios.runner import align_call
 
-    spec = align.BoardSpec()
-
-    def est(scan: Scan) -> Any:
-        kwargs: dict[str, Any] = {"board": spec}
-        if method:
-            kwargs["method"] = method
-        return align.estimate([scan], **kwargs)
-
-    return est
+    return align_call(method or None, calibration=calibration)
 
 
 @dataclass
@@ -234,7 +228,7 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
         rank = {i: n for n, i in enumerate(i for refs in worker_order(store) for i in refs)}
         rows.sort(key=lambda r: (rank[r["reference"]], r["scan"]))
     position = {(r["reference"], r["scan"]): n for n, r in enumerate(rows)}
-    estimator = run_estimator(config.get("method"))
+    estimator = run_estimator(config.get("method"), config.get("calibration"))
     refs = store.references()
     # The store's events, merged with the scans by time, become annotations.
     events = sorted(store.events(), key=lambda e: e["at"])
@@ -336,12 +330,13 @@ def load_truth(path: str | Path) -> list[tuple[float | None, Pose]]:
         pose = scan_truth(Scan.empty(meta={"truth": e}))
         if pose is None:
             raise ReplayError(f"{path}: an entry without a pose: {e}")
-        t = e.get("sensor_time_s")
+        # write_truth names it sensor_time_s; `aimbench simulate`'s truth.json, time_s.
+        t = e.get("sensor_time_s", e.get("time_s"))
         out.append((None if t is None else float(t), pose))
     return out
 
 
-def _truth_for(scan: Scan, truths: list[tuple[float | None, Pose]]) -> Pose | None:
+def truth_for(scan: Scan, truths: list[tuple[float | None, Pose]]) -> Pose | None:
     """The truth entry of a decoded scan: the one whose sensor time is its first firing's (within
     a few firing sequences), or the single static pose."""
     if not truths:
@@ -397,7 +392,7 @@ def replay_capture(capture: str | Path, rec: rr.RecordingStream, *, method: str 
     estimator = run_estimator(method)
     for n, scan in enumerate(whole):
         est = estimator(scan)
-        obs.on_scan(scan, est, _truth_for(scan, truths), reference=0, k=n)
+        obs.on_scan(scan, est, truth_for(scan, truths), reference=0, k=n)
         summary.scans += 1
         summary.clouds += 1
         summary.failed += int(not est.success)

@@ -419,22 +419,18 @@ class ObservedBench:
             self.k += 1
 
 
-def observed_estimator(bench: ObservedBench, method: str | None = None,
-                       board: Any = None) -> Callable[[Scan], Any]:
-    """The runner's estimator (`scenarios.runner.make_estimator`'s call to `align.estimate`),
+def observed_estimator(bench: ObservedBench, method: str | None = None, board: Any = None,
+                       calibration: dict | None = None) -> Callable[[Scan], Any]:
+    """The runner's estimator (`scenarios.runner.align_call`, as `make_estimator` makes it),
     logging each scan with align's full answer (``used``: the board points and features, which
     the runner's `Estimate` does not keep) before handing the runner its usual `Estimate`."""
-    import align
-    from scenarios.runner import Estimate, adapt_estimate
+    from scenarios.runner import Estimate, adapt_estimate, align_call
 
-    spec = board if board is not None else align.BoardSpec()
+    call = align_call(method, board, calibration)
 
     def estimate(scan: Scan) -> Any:
-        kwargs: dict[str, Any] = {"board": spec}
-        if method is not None:
-            kwargs["method"] = method
         try:
-            pe = align.estimate([scan], **kwargs)
+            pe = call(scan)
             est = adapt_estimate(pe)
         except AimbenchError:
             raise
@@ -475,10 +471,11 @@ class RerunSession:
         self._closed = False
         self.stream.write(f"rerun: {sinks.describe()}\n")
 
-    def instrument(self, bench: Any, method: str | None) -> tuple[Any, Callable[[Scan], Any]]:
+    def instrument(self, bench: Any, method: str | None, calibration: dict | None = None
+                   ) -> tuple[Any, Callable[[Scan], Any]]:
         """The bench and estimator to hand the runner instead of the plain ones."""
         observed = ObservedBench(bench, self.observer, self.plan)
-        return observed, observed_estimator(observed, method)
+        return observed, observed_estimator(observed, method, calibration=calibration)
 
     def finish(self, status: str, message: str | None = None) -> None:
         self.observer.on_finish(status, message)

@@ -75,27 +75,45 @@ class Estimate:
 Estimator = Callable[[Scan], Estimate]
 
 
-def make_estimator(method: str | None = None, board: Any = None) -> Estimator:
-    """A single-scan estimator over `align.estimate` with `method` (None: align's default).
-
-    Adapts align's `PoseEstimate` (status, pose, covariance, std, diagnostics, timings, success)
-    to `Estimate`; an exception inside the estimator becomes a failed scan with the message as its
-    diagnostic rather than a crashed run (one bad scan must not lose a sweep).
-    """
+def align_call(method: str | None = None, board: Any = None,
+               calibration: dict | None = None) -> Callable[[Scan], Any]:
+    """align's estimate of one scan the way a run makes it: its method (None: align's default),
+    its board, and its sensor calibration (an `align.calibration` dict, applied to every scan
+    before estimating; stored in the run's configuration so a resume or a replay uses the same).
+    Returns align's `PoseEstimate`. An unknown method is refused here, before any move."""
     import align
+    from align import calibration as laser_calibration
 
     methods = getattr(align, "METHODS", None)
     if method is not None and methods is not None and method not in methods:
         raise AimbenchError(f"unknown estimation method {method!r}; use one of "
                             f"{', '.join(methods)}")
-    spec = board if board is not None else align.BoardSpec()
+    kwargs: dict[str, Any] = {"board": board if board is not None else align.BoardSpec()}
+    if method is not None:
+        kwargs["method"] = method
+    cal = (laser_calibration.LaserCalibration.from_dict(calibration)
+           if calibration else None)
+
+    def estimate(scan: Scan) -> Any:
+        if cal is not None:
+            scan = laser_calibration.apply(scan, cal)
+        return align.estimate([scan], **kwargs)
+
+    return estimate
+
+
+def make_estimator(method: str | None = None, board: Any = None,
+                   calibration: dict | None = None) -> Estimator:
+    """The runner's single-scan estimator: `align_call` adapted to `Estimate`.
+
+    An exception inside the estimator becomes a failed scan with the message as its diagnostic
+    rather than a crashed run (one bad scan must not lose a sweep).
+    """
+    call = align_call(method, board, calibration)
 
     def estimate(scan: Scan) -> Estimate:
-        kwargs = {"board": spec}
-        if method is not None:
-            kwargs["method"] = method
         try:
-            pe = align.estimate([scan], **kwargs)
+            pe = call(scan)
         except AimbenchError:
             raise
         except Exception as exc:  # an estimator bug on one scan: record it, keep the run
@@ -426,7 +444,7 @@ def _no_board(consecutive: int, status: str, diagnostics: dict) -> BenchError:
 # -- parallel runs on the simulated bench -------------------------------------------------------
 
 def _sim_worker(plan_dict: dict, todo: list[tuple[int, int, int]], seed: int, ideal: bool,
-                method: str | None, out: Any, stop: Any) -> None:
+                method: str | None, calibration: dict | None, out: Any, stop: Any) -> None:
     """Worker process: its own SimBench and estimator; takes the (reference, first scan, count)
     items of `todo` in order and sends every result to `out`; stops between scans on `stop`."""
     import warnings
@@ -439,7 +457,7 @@ def _sim_worker(plan_dict: dict, todo: list[tuple[int, int, int]], seed: int, id
     i = k = None
     try:
         bench = SimBench(seed=seed, ideal=ideal)
-        estimator = make_estimator(method)
+        estimator = make_estimator(method, calibration=calibration)
         bench.home()
         for i, first, n in todo:
             k = None
@@ -482,12 +500,14 @@ class ParallelSimRunner(Runner):
     """
 
     def __init__(self, plan: Plan, bench: Bench, store: Store, *, seed: int = 0,
-                 ideal: bool = False, method: str | None = None, jobs: int = 2,
+                 ideal: bool = False, method: str | None = None,
+                 calibration: dict | None = None, jobs: int = 2,
                  progress: Progress | None = None,
                  max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES) -> None:
         super().__init__(plan, bench, store, estimator=lambda scan: None,  # type: ignore[arg-type]
                          progress=progress, max_consecutive_failures=max_consecutive_failures)
         self.seed, self.ideal, self.method, self.jobs = seed, ideal, method, max(1, int(jobs))
+        self.calibration = calibration
 
     def run(self) -> str:
         import multiprocessing as mp
@@ -524,7 +544,7 @@ class ParallelSimRunner(Runner):
                     for w in range(min(self.jobs, len(todo))):
                         p = ctx.Process(target=_sim_worker, args=(
                             plan.to_dict(), todo[w::self.jobs], self.seed, self.ideal,
-                            self.method, out, stop), daemon=True)
+                            self.method, self.calibration, out, stop), daemon=True)
                         p.start()
                         procs.append(p)
                 finally:

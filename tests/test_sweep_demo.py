@@ -25,6 +25,8 @@ def test_demo_runs_the_yaw_sweep_and_writes_the_report(tmp_path: Path):
     assert res.returncode == 0, res.stderr  # a FAIL verdict is the demo's result, not an error
     assert "2 scans per reference (the paper takes 100" in res.stderr
     assert "21 references x 2 scans on the sim bench" in res.stderr
+    assert "calibrated 6 lasers' range offsets" in res.stderr
+    assert (tmp_path / "runs" / "demo" / "calibration.json").is_file()
     assert res.stdout.startswith("verdict: ")
     assert "| Estimation | Tilt (deg) | Roll (deg) | Yaw (deg) | ΔX (mm) |" in \
         (tmp_path / "runs" / "demo" / "report.md").read_text()

@@ -17,7 +17,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from scenarios import plans
+from scenarios import calibrate, plans
 from scenarios.bench import open_bench
 from scenarios.commands.version import versions
 from scenarios.report import Tolerances, summary_lines, write
@@ -48,6 +48,9 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="seed of the twin's noise and of the "
                                                        "Monte Carlo poses (default 0)")
     p.add_argument("--ideal", action="store_true", help="the twin with every error source off")
+    p.add_argument("--calibration", metavar="FILE",
+                   help="per-laser calibration (aimbench calibrate) applied to every scan before "
+                        "estimating; the run stores its content")
 
 
 def add_tolerance_arguments(p: argparse.ArgumentParser) -> None:
@@ -111,7 +114,8 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
     bench = None
     try:
         try:
-            estimator = make_estimator(config.get("method"))
+            estimator = make_estimator(config.get("method"),
+                                       calibration=config.get("calibration"))
             bench = open_bench(config)
         except AimbenchError as exc:
             store.set_status("failed", f"opening the {config.get('bench')} bench: {exc}")
@@ -128,11 +132,13 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
             if jobs > 1:
                 stream.write("rerun: logging needs one process; running with --jobs 1\n")
                 jobs = 1
-            bench, estimator = session.instrument(bench, config.get("method"))
+            bench, estimator = session.instrument(bench, config.get("method"),
+                                                  config.get("calibration"))
         if jobs > 1:
             runner: Runner = ParallelSimRunner(
                 plan, bench, store, seed=int(config.get("seed") or 0),
-                ideal=bool(config.get("ideal")), method=config.get("method"), jobs=jobs,
+                ideal=bool(config.get("ideal")), method=config.get("method"),
+                calibration=config.get("calibration"), jobs=jobs,
                 progress=prog, max_consecutive_failures=max_fail)
         else:
             runner = Runner(plan, bench, store, estimator, progress=prog,
@@ -173,7 +179,8 @@ def check_config(config: dict) -> None:
     if kind == "hw" and not config.get("port"):
         raise AimbenchError("--bench hw needs the stage controller's --port (e.g. /dev/ttyACM0),"
                             " or --port none for a LiDAR without stages or a capture replay")
-    make_estimator(config.get("method"))  # an unknown method fails here, not after a move
+    # An unknown method or a bad calibration fails here, not after a move.
+    make_estimator(config.get("method"), calibration=config.get("calibration"))
     if int(config.get("jobs") or 1) > 1 and kind != "sim":
         raise AimbenchError("--jobs runs several simulated benches; there is one "
                             f"{'real' if kind == 'hw' else 'served'} bench: drop --jobs")
@@ -197,6 +204,8 @@ def config_from_args(args: argparse.Namespace) -> dict:
         "ideal": bool(args.ideal),
         "scans": args.scans, "poses": args.poses, "argv": sys.argv[1:],
         "max_consecutive_failures": args.max_consecutive_failures, "jobs": args.jobs,
+        "calibration": (calibrate.read(args.calibration).to_dict()
+                        if args.calibration else None),
     }
 
 
