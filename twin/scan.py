@@ -46,7 +46,8 @@ class Scan:
     azimuth      float64  azimuth of the firing, rad in [0, 2*pi)
     laser_id     uint8    laser id 0..15 (firing order; `ring` gives elevation order)
     intensity    uint8    calibrated reflectivity 0..255
-    time         float64  firing time, s (sensor clock: seconds past the hour)
+    time         float64  firing time, s (sensor clock: seconds past the hour; counts on
+                          past 3600 across an hour's rollover so times only grow)
     return_type  uint8    `ReturnType` flags
     x, y, z      float64  position in {L}, m (0 where there is no return)
     ===========  =======  ================================================================
