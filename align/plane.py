@@ -36,7 +36,7 @@ def ransac(
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """RANSAC plane (paper III-A): hypotheses from 3 random points, the most inliers wins.
 
-    All hypotheses are scored at once (a (iterations, N) distance matrix); the winner is then
+    All hypotheses are scored at once (an (iterations, N) distance matrix); the winner is then
     refit by orthogonal least squares on its inliers, as usual for RANSAC. Returns (n, d, inlier
     mask). ``threshold`` is the inlier distance, m.
     """
@@ -46,14 +46,17 @@ def ransac(
     tri = rng.integers(0, n_pts, size=(iterations, 3))
     p0, p1, p2 = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
     normals = np.cross(p1 - p0, p2 - p0)
-    norm = np.linalg.norm(normals, axis=1)
+    norm = np.sqrt(np.einsum("ij,ij->i", normals, normals))
     good = norm > 1e-9
     normals = normals[good] / norm[good, None]
     ds = np.einsum("ij,ij->i", normals, p0[good])
-    dist = np.abs(points @ normals.T - ds)  # (N, H)
-    counts = (dist < threshold).sum(axis=0)
+    # (H, N): each hypothesis's distances contiguous, computed in place
+    dist = normals @ points.T
+    dist -= ds[:, None]
+    np.abs(dist, out=dist)
+    counts = np.count_nonzero(dist < threshold, axis=1)
     best = int(np.argmax(counts))
-    inl = dist[:, best] < threshold
+    inl = dist[best] < threshold
     n, d = fit_lsq(points[inl])
     inl = np.abs(points @ n - d) < threshold
     return n, d, inl
