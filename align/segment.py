@@ -74,28 +74,24 @@ def _grid(scan: Scan) -> tuple[int, int] | None:
 
 
 def _union_find(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
-    """Connected components of a small graph (n nodes, edges a-b): (count, label per node)."""
+    """Connected components of a small graph (n nodes, edges a-b): (count, label per node).
+
+    Minimum-label propagation with pointer jumping, vectorised: each node ends with the
+    smallest node of its component; labels number the components in that order.
+    """
     if len(a) > 20000:
         g = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
         return connected_components(g, directed=False)
-    parent = list(range(n))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    # links come in order along the rings: dropping repeats of the previous pair leaves few
-    key = np.minimum(a, b) * n + np.maximum(a, b)
-    keep = np.ones(len(key), dtype=bool)
-    keep[1:] = key[1:] != key[:-1]
-    for i, k in zip((key[keep] // n).tolist(), (key[keep] % n).tolist(), strict=True):
-        ri, rk = find(i), find(k)
-        if ri != rk:
-            parent[max(ri, rk)] = min(ri, rk)
-    roots = np.array([find(i) for i in range(n)], dtype=np.int64)
-    _, lab = np.unique(roots, return_inverse=True)
+    lab = np.arange(n)
+    while True:
+        new = lab.copy()
+        np.minimum.at(new, a, lab[b])
+        np.minimum.at(new, b, lab[a])
+        new = new[new]
+        if np.array_equal(new, lab):
+            break
+        lab = new
+    _, lab = np.unique(lab, return_inverse=True)
     return int(lab.max()) + 1 if n else 0, lab
 
 
@@ -112,11 +108,22 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
     sl = slice(k0, k0 + 16 * m)
     x, y, z = (a[sl].reshape(m, 16) for a in (scan.x, scan.y, scan.z))
     dist, az, okg = (a[sl].reshape(m, 16) for a in (scan.distance, scan.azimuth, ok))
-    thr = np.maximum(CLUSTER_RADIUS_PER_M * dist, CLUSTER_RADIUS_MIN) ** 2
+    thr = np.maximum(CLUSTER_RADIUS_PER_M * dist, CLUSTER_RADIUS_MIN)
+    thr *= thr
 
     def close(sa, sb) -> np.ndarray:
-        d2 = (x[sa] - x[sb]) ** 2 + (y[sa] - y[sb]) ** 2 + (z[sa] - z[sb]) ** 2
-        return okg[sa] & okg[sb] & (d2 < np.minimum(thr[sa], thr[sb]))
+        d2 = x[sa] - x[sb]
+        d2 *= d2
+        t = y[sa] - y[sb]
+        t *= t
+        d2 += t
+        t = z[sa] - z[sb]
+        t *= t
+        d2 += t
+        c = d2 < np.minimum(thr[sa], thr[sb])
+        c &= okg[sa]
+        c &= okg[sb]
+        return c
 
     # along each ring: consecutive sequences (a lost firing leaves its neighbours farther apart
     # than the distance threshold, so no azimuth test is needed)
@@ -147,14 +154,14 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
     # a run longer than the board (the floor's ring, a wall) joins nothing: otherwise the board,
     # its stand and the floor ring at the stand's foot chain into one cluster
     ends = starts + sums[0].astype(np.int64) - 1
-    az_f = az.T.ravel()
-    span = (az_f[ends] - az_f[starts]) % (2 * np.pi)
+    laser_s, seq_s = np.divmod(starts, m)
+    span = (az[ends % m, ends // m] - az[seq_s, laser_s]) % (2 * np.pi)
     long_run = span * sums[1] / np.maximum(sums[0], 1) > LONG_RUN * board_diagonal
     keep = ~(long_run[ra] | long_run[rb])
     n_comp, comp = _union_find(n_run, ra[keep], rb[keep])
     cnt = np.bincount(comp, sums[0], n_comp)
     ring_hit = np.zeros((n_comp, 16), dtype=bool)
-    ring_hit[comp, vlp16.RING_OF_LASER[starts // m]] = True
+    ring_hit[comp, vlp16.RING_OF_LASER[laser_s]] = True
     stats = {"count": cnt, "distance": np.bincount(comp, sums[1], n_comp) / np.maximum(cnt, 1),
              "rings": ring_hit.sum(axis=1)}
     labels = np.full(len(scan), -1, dtype=np.int64)  # -1: no cluster (or outside the grid)
