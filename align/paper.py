@@ -33,6 +33,7 @@ from align.board import BoardSpec
 from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
 from align.segment import consecutive_ring_block
+from twin import vlp16
 from twin.pose import Pose
 from twin.scan import Scan
 
@@ -135,8 +136,9 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
     # the ROI is the board: its rings are consecutive, and the stand's base (a face 5 cm in
     # front of the board, within the RANSAC band) lights up a ring below a gap; keep the
     # consecutive block of rings with the most inliers
-    inl &= np.isin(scan.ring[pts_idx], consecutive_ring_block(scan.ring[pts_idx][inl]))
-    rings = np.unique(scan.ring[pts_idx[inl]])
+    ring = vlp16.RING_OF_LASER[scan.laser_id[pts_idx]]  # (Scan.ring maps every firing)
+    inl &= np.isin(ring, consecutive_ring_block(ring[inl]))
+    rings = np.unique(ring[inl])
     if len(rings) < 3:
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=len(rings),
                                    reason="the board spans fewer than 3 rings")

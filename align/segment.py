@@ -253,9 +253,10 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     ``board_too_far``.
     """
     empty = np.zeros(0, dtype=np.int64)
-    if len(scan) == 0 or not np.any(scan.valid):
+    valid = scan.valid
+    if len(scan) == 0 or not np.any(valid):
         return Segmentation(Status.EMPTY_SCAN, empty, reason="no return in the scan")
-    m = scan.valid & (scan.distance >= hints.min_distance)
+    m = valid & (scan.distance >= hints.min_distance)
     if hints.azimuth_window is not None:
         c, hw = hints.azimuth_window
         m &= np.abs(_unwrap(scan.azimuth, c)) <= hw
@@ -279,8 +280,10 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     idx = np.flatnonzero(is_cand[labels + 1])
     idx = idx[np.argsort(labels[idx], kind="stable")]
     bounds = np.searchsorted(labels[idx], np.append(ids, len(dist)))
+    members = {}  # candidate label -> its firings, in scan order (the sort is stable)
     for k, lab in enumerate(ids):
         sel = idx[bounds[k]:bounds[k + 1]]
+        members[int(lab)] = sel
         p = np.stack((scan.x[sel], scan.y[sel], scan.z[sel]))
         extent = float(np.sqrt(12 * np.sum(np.var(p, axis=1))))  # a rectangle's diagonal
         if not 0.5 * board.diagonal < extent < 1.6 * board.diagonal:
@@ -294,11 +297,11 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     n_lab = int(np.count_nonzero(st["count"]))
     if np.any(near):
         lab = int(np.flatnonzero(near)[np.argmax(score[near])])
-        sel = np.flatnonzero(labels == lab)
+        sel = members[lab]
         return Segmentation(Status.OK, sel, n_lab, float(dist[lab]), int(st["rings"][lab]))
     if np.any(far):
         lab = int(np.flatnonzero(far)[np.argmax(score[far])])
-        sel = np.flatnonzero(labels == lab)
+        sel = members[lab]
         return Segmentation(Status.BOARD_TOO_FAR, sel, n_lab, float(dist[lab]),
                             int(st["rings"][lab]), reason=f"board-like cluster at "
                             f"{dist[lab]:.2f} m, beyond {hints.max_distance:.2f} m")
