@@ -43,11 +43,11 @@ RANSAC_ITERATIONS = 200
 
 def plane_axes(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """In-plane unit axes (horizontal, vertical) for a plane of normal n in {L}."""
-    h = np.cross([0.0, 0.0, 1.0], n)  # horizontal, orthogonal to the normal
+    h = np.array([-n[1], n[0], 0.0])  # e_z x n: horizontal, orthogonal to the normal
     h /= np.linalg.norm(h)
     if h[0] < 0:  # to the right, like X_O
         h = -h
-    v = np.cross(n, h)
+    v = plane._cross(n, h)
     if v[2] < 0:
         v = -v
     return h, v

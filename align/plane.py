@@ -15,6 +15,12 @@ from __future__ import annotations
 import numpy as np
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for two 3-vectors (np.cross's overhead dominates at this size)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
+                     a[0] * b[1] - a[1] * b[0]])
+
+
 def _orient(n: np.ndarray, d: float) -> tuple[np.ndarray, float]:
     return (n, d) if d >= 0 else (-n, -d)
 
@@ -86,11 +92,11 @@ def fit_rays(
     n, d = n0 / np.linalg.norm(n0), float(d0)
     for _ in range(iterations):
         # tangent basis of n: n' = n + a e1 + b e2 (then renormalised)
-        e1 = np.cross(n, [0.0, 0.0, 1.0])
+        e1 = np.array([n[1], -n[0], 0.0])  # n x e_z (np.cross costs ~30 us)
         if np.linalg.norm(e1) < 1e-6:
-            e1 = np.cross(n, [1.0, 0.0, 0.0])
+            e1 = np.array([0.0, n[2], -n[1]])  # n x e_x
         e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
+        e2 = _cross(n, e1)
         un = dirs @ n
         pred = (d - origins @ n) / un
         res = ranges - pred
