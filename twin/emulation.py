@@ -418,14 +418,31 @@ def _gaussian(rng: np.random.Generator, n: int, sigma: float) -> np.ndarray:
     (probability 8e-9 per sample), far beyond anything a scan can show.
     """
     m = (n + 1) // 2
-    u1 = np.float32(1.0) - rng.random(m, dtype=np.float32)  # (0, 1]
-    u2 = rng.random(m, dtype=np.float32)
-    rad = np.sqrt(np.float32(-2.0) * np.log(u1)) * np.float32(sigma)
-    ang = np.float32(2.0 * np.pi) * u2
-    out = np.empty(2 * m, dtype=np.float32)
-    np.multiply(rad, np.cos(ang), out=out[:m])
-    np.multiply(rad, np.sin(ang), out=out[m:])
-    return out[:n]
+    return np.concatenate(_gaussian_pair(rng, m, sigma, sigma))[:n]
+
+
+def _gaussian_pair(rng: np.random.Generator, n: int, sigma_a: float, sigma_b: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Two independent sets of n Gaussian samples (sigma_a, sigma_b), float32: both halves of
+    one Box-Muller draw (as `_gaussian`, in one pass)."""
+    # 2n 24-bit uniforms from n raw 64-bit draws (half the generator's per-sample cost).
+    bits = rng.bit_generator.random_raw(n).view(np.uint32)
+    bits >>= 8
+    u = bits.astype(np.float32)
+    u *= np.float32(2.0**-24)
+    u1, u2 = u[:n], u[n:]
+    u1 += np.float32(2.0**-24)  # (0, 1]
+    rad = np.log(u1)
+    rad *= np.float32(-2.0)
+    np.sqrt(rad, out=rad)
+    u2 *= np.float32(2.0 * np.pi)
+    a = np.cos(u2)
+    a *= rad
+    b = np.sin(u2, out=u2)
+    b *= rad
+    a *= np.float32(sigma_a)
+    b *= np.float32(sigma_b)
+    return a, b
 
 
 class VLP16Emulator:
@@ -915,43 +932,66 @@ class VLP16Emulator:
         if not lit.all():
             sel = np.flatnonzero(lit)
             idx, r, energy, refl = idx[sel], r[sel], energy[sel], refl[sel]
+        lost = None
         if cfg.dropouts and len(idx):
-            z = (np.log(energy) - math.log(cfg.detection_threshold)) / cfg.detection_softness
+            z = np.log(energy)
+            z -= math.log(cfg.detection_threshold)
+            z *= 1.0 / cfg.detection_softness
             near = np.flatnonzero(z < 8.3)  # beyond: detection probability 1 - 1e-16
             if len(near):
                 lost = near[rng.random(len(near)) >= ndtr(z[near])]
-                if len(lost):
-                    sel = np.delete(np.arange(len(idx)), lost)
-                    idx, r, refl = idx[sel], r[sel], refl[sel]
-        lid = laser_id[idx]
-        meas = r + (self.laser_offsets + cfg.range_bias)[lid]
-        if cfg.range_noise_sigma > 0:
+        # One compaction for the dropouts and the range limits: the noise is drawn for every
+        # lit return (the lost ones' draws are discarded).
+        meas = (self.laser_offsets + cfg.range_bias)[laser_id[idx]]
+        meas += r
+        use_inoise = cfg.intensity_model and cfg.intensity_noise_sigma > 0
+        inoise = None
+        if cfg.range_noise_sigma > 0 and use_inoise:
+            rnoise, inoise = _gaussian_pair(rng, len(idx), cfg.range_noise_sigma,
+                                            cfg.intensity_noise_sigma)
+            meas += rnoise
+        elif cfg.range_noise_sigma > 0:
             meas += _gaussian(rng, len(idx), cfg.range_noise_sigma)
+        elif use_inoise:
+            inoise = _gaussian(rng, len(idx), cfg.intensity_noise_sigma)
         if cfg.quantise:
-            meas = np.rint(meas * (1.0 / vlp16.DISTANCE_UNIT)) * vlp16.DISTANCE_UNIT
-        keep = (meas >= cfg.range_min) & (meas <= cfg.range_max)
+            meas *= 1.0 / vlp16.DISTANCE_UNIT
+            np.rint(meas, out=meas)
+            meas *= vlp16.DISTANCE_UNIT
+        keep = meas >= cfg.range_min
+        keep &= meas <= cfg.range_max
+        if lost is not None and len(lost):
+            keep[lost] = False
         if not keep.all():
             sel = np.flatnonzero(keep)
             idx, r, refl, meas = idx[sel], r[sel], refl[sel], meas[sel]
+            if inoise is not None:
+                inoise = inoise[sel]
         if cfg.intensity_model:
             # float32: the result is an integer count 0..255.
-            level = (100.0 * refl).astype(np.float32)
+            level = refl.astype(np.float32)
+            level *= np.float32(100.0)
             if cfg.intensity_range_exponent:
                 level *= r.astype(np.float32) ** np.float32(-cfg.intensity_range_exponent)
-            if cfg.intensity_noise_sigma > 0:
-                level += _gaussian(rng, len(idx), cfg.intensity_noise_sigma)
+            if inoise is not None:
+                level += inoise
         else:
             level = 100.0 * refl
-        inten = np.clip(np.rint(level), 0, 255).astype(np.uint8)
+        np.rint(level, out=level)
+        np.clip(level, 0, 255, out=level)
+        inten = level.astype(np.uint8)
         flags = {"strongest": [int(ReturnType.STRONGEST)], "last": [int(ReturnType.LAST)],
                  "dual": [int(ReturnType.LAST | ReturnType.STRONGEST)] * 2}[cfg.return_mode]
         distance = np.zeros((len(flags), n))
         intensity = np.zeros((len(flags), n), dtype=np.uint8)
-        rtype = np.zeros((len(flags), n), dtype=np.uint8)
-        for s, f in enumerate(flags):  # dual with a single echo: both blocks identical
-            distance[s, idx] = meas
-            intensity[s, idx] = inten
-            rtype[s, idx] = f
+        distance[0, idx] = meas
+        intensity[0, idx] = inten
+        # Every kept return has a distance >= range_min > 0: its flag follows from it.
+        rtype = (distance[:1] > 0).view(np.uint8) * np.uint8(flags[0])
+        if len(flags) == 2:  # dual with a single echo: both blocks identical
+            distance[1] = distance[0]
+            intensity[1] = intensity[0]
+            rtype = np.concatenate((rtype, rtype))
         return Returns(distance, intensity, rtype)
 
     def _measure(self, echo_r: np.ndarray, echo_e: np.ndarray, echo_refl: np.ndarray,
