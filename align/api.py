@@ -10,6 +10,7 @@ import numpy as np
 from align.board import BoardSpec
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, find_board
+from twin import vlp16
 from twin.scan import Scan
 
 #: The methods `estimate` knows, best first.
@@ -88,10 +89,12 @@ def _segment_static(scans: list[Scan], board: BoardSpec, hints: Hints) -> list[S
         c = float(np.angle(np.mean(np.exp(1j * az))))
         rel = (az - c + np.pi) % (2 * np.pi) - np.pi
         rel_s = (s.azimuth - c + np.pi) % (2 * np.pi) - np.pi
-        rings = np.unique(ref_scan.ring[ref.board])
+        rings = np.unique(vlp16.RING_OF_LASER[ref_scan.laser_id[ref.board]])
+        # the board's lasers as a table over laser ids (cheaper than Scan.ring and isin)
+        on_board = np.isin(vlp16.RING_OF_LASER, rings)
         dist = ref_scan.distance[ref.board]
         m = (s.distance > 0) & (rel_s >= rel.min() - np.deg2rad(0.5)) & \
-            (rel_s <= rel.max() + np.deg2rad(0.5)) & np.isin(s.ring, rings) & \
+            (rel_s <= rel.max() + np.deg2rad(0.5)) & on_board[s.laser_id] & \
             (s.distance >= dist.min() - 0.1) & (s.distance <= dist.max() + 0.1)
         idx = np.flatnonzero(m)
         if len(idx) < 0.5 * len(ref.board):

@@ -34,6 +34,7 @@ from align.board import BoardSpec
 from align.geometry import board_coordinates, pose_from_plane, rotation
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, consecutive_ring_block
+from twin import vlp16
 from twin.pose import Pose
 from twin.scan import Scan
 
@@ -88,15 +89,17 @@ def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
         # occluder): the rectangle must not extend where no ray was looked at
         margin = board.width / max(float(np.median(s.distance[g.board])), 0.5)
         lo, hi = rel_b.min() - margin, rel_b.max() + margin
-        rings = s.ring[g.board]
-        ring = s.ring
-        idx = np.flatnonzero((ring >= int(rings.min()) - 1) & (ring <= int(rings.max()) + 1))
-        rel = np.full(len(s), np.inf)
-        rel[idx] = _unwrap(s.azimuth[idx], c)
-        idx = idx[(rel[idx] >= lo) & (rel[idx] <= hi)]
+        rings = vlp16.RING_OF_LASER[s.laser_id[g.board]]
+        # the lasers of the board's rings and one more on each side (a table, not Scan.ring)
+        near_ring = np.arange(16)
+        near_ring = (near_ring >= int(rings.min()) - 1) & (near_ring <= int(rings.max()) + 1)
+        idx = np.flatnonzero(near_ring[vlp16.RING_OF_LASER][s.laser_id])
+        rel = _unwrap(s.azimuth[idx], c)
+        win = (rel >= lo) & (rel <= hi)
+        idx = idx[win]
         sub = s.select(idx)
         parts.append((sub.origins(), sub.directions(), sub.distance, sub.laser_id,
-                      rel[idx] + c, sub.ring, idx + offset))
+                      rel[win] + c, sub.ring, idx + offset))
         offset += len(s)
     cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
     rays = _Rays(*cat)
