@@ -463,6 +463,15 @@ class VLP16Emulator:
             self.laser_offsets = np.zeros(vlp16.N_LASERS)
         self._interval_cache: tuple | None = None
 
+    def _laser_ids(self, n_seq: int) -> np.ndarray:
+        """Laser ids 0..15 of ``n_seq`` whole sequences, firing order (cached; read-only)."""
+        cached = getattr(self, "_laser_id_cache", None)
+        if cached is None or len(cached) != n_seq * vlp16.N_LASERS:
+            cached = np.tile(np.arange(vlp16.N_LASERS, dtype=np.uint8), n_seq)
+            cached.flags.writeable = False
+            self._laser_id_cache = cached
+        return cached
+
     # -- geometry ----------------------------------------------------------------------------
     def rays(self, azimuth: np.ndarray, laser_id: np.ndarray, position: np.ndarray,
              rotation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -580,7 +589,8 @@ class VLP16Emulator:
         az_l = azimuth.T[order]  # (16, S), ring order
         dh_l = dh[:, None] / np.cos(w_l)[None, :]  # (K, 16) horizontal sub-ray offsets
         cw, sw = np.cos(el).reshape(-1, 1), np.sin(el).reshape(-1, 1)  # (R, 1), R = 16 K
-        az_rows = (az_l[None] + dh_l[:, :, None]).reshape(k * n_l, n_seq)  # (R, S)
+        # (R, S) rows; one ray per firing: the rows are az_l itself
+        az_rows = az_l if k == 1 else (az_l[None] + dh_l[:, :, None]).reshape(k * n_l, n_seq)
         offsets = _row_offsets(az_rows, azimuth[:, 0])
         sa, ca = _sincos_rows(az_rows, azimuth[:, 0], offsets)
         vo = vlp16.VERTICAL_OFFSET[order] if cfg.vertical_offsets else np.zeros(n_l)
@@ -590,8 +600,11 @@ class VLP16Emulator:
         data, model = caster.data, caster.model
         n_rows = k * n_l
         dist = np.full((n_rows, n_seq), np.inf)
-        gid = np.full((n_rows, n_seq), -1, dtype=np.int32)
+        # One ray per firing: no geom ids, and cos_inc holds reflectivity x cos(incidence)
+        # straight away (0 where nothing, or a black surface, is hit: no return either way).
+        gid = np.full((n_rows, n_seq), -1, dtype=np.int32) if k > 1 else None
         cos_inc = np.zeros((n_rows, n_seq))
+        b_u = np.unwrap(azimuth[:, 0])  # monotonic: the sensor spins one way
 
         for g in caster.plane_ids:  # MuJoCo's ray_plane rule, row-vectorised
             mat = data.geom_xmat[g].reshape(3, 3)
@@ -607,11 +620,11 @@ class VLP16Emulator:
             # Contiguous rows (the floor's: the downward rings) are a view, no gather/scatter.
             contiguous = live[-1] - live[0] + 1 == len(live)
             rows = slice(live[0], live[-1] + 1) if contiguous else live
-            for cols in self._plane_columns(g, origins, rotation, offsets, azimuth[:, 0]):
+            for cols in self._plane_columns(g, origins, rotation, offsets, b_u):
                 self._plane_block(g, m, lpnt, size, rows, cols, cw, sw, sa, ca, row_laser,
                                   dist, gid, cos_inc)
 
-        cand = (self._grid_candidates(offsets, azimuth[:, 0], cw, sw, origins, row_laser,
+        cand = (self._grid_candidates(offsets, b_u, cw, sw, origins, row_laser,
                                       rotation)
                 if cfg.culling else np.ones((n_rows, n_seq), dtype=bool))
         idx = np.flatnonzero(cand)  # row-major: each row's candidates are contiguous
@@ -624,18 +637,24 @@ class VLP16Emulator:
             dirs = u @ rotation.T
             d_c, g_c, n_c = caster.multiray_rows(origins, row_laser, r_of, dirs)
             dist.reshape(-1)[idx] = d_c
-            gid.reshape(-1)[idx] = g_c
-            cos_inc.reshape(-1)[idx] = np.where(g_c >= 0, np.abs(np.einsum("ij,ij->i", n_c,
-                                                                              dirs)), 0.0)
-        laser_id = np.tile(np.arange(n_l, dtype=np.uint8), n_seq)
+            c_c = np.where(g_c >= 0, np.abs(np.einsum("ij,ij->i", n_c, dirs)), 0.0)
+            if gid is None:
+                c_c *= self.reflectivity[np.maximum(g_c, 0)]
+            else:
+                gid.reshape(-1)[idx] = g_c
+            cos_inc.reshape(-1)[idx] = c_c
+        laser_id = self._laser_ids(n_seq)
         if k == 1:
             # One ray per firing: only the hits go on, straight from row space to the
             # firing index (sequence * 16 + laser), no full-size transposes.
-            hit = np.flatnonzero(gid.reshape(-1) >= 0)
+            rc_all = cos_inc.reshape(-1)
+            hit = np.flatnonzero(rc_all > 0)
             row = hit // n_seq  # (floor division: several times cheaper than np.divmod)
-            firing = (hit - row * n_seq) * n_l + order[row]
+            firing = hit - row * n_seq
+            firing *= n_l
+            firing += order[row]
             r = dist.reshape(-1)[hit]
-            rc = self.reflectivity[gid.reshape(-1)[hit]] * cos_inc.reshape(-1)[hit]
+            rc = rc_all[hit]
             out = self._measure_single(n_seq * n_l, firing, r, rc / (r * r), rc, laser_id)
         else:
             out = self._grid_echoes(dist, gid, cos_inc, weights, laser_id, order, k, n_l,
@@ -683,7 +702,7 @@ class VLP16Emulator:
             return [slice(0, n_s)]
         _, d_r, spread = offsets
         half = float(dev.max()) + float(np.abs(d_r).max()) + spread + 1e-9
-        b_u = np.unwrap(base)
+        b_u = base  # unwrapped by the caller
         two_pi = 2 * np.pi
         first = math.floor((b_u[0] - centre - half) / two_pi)
         out = []
@@ -697,8 +716,9 @@ class VLP16Emulator:
     def _plane_block(self, g: int, m: np.ndarray, lpnt: np.ndarray, size: np.ndarray,
                      rows: slice | np.ndarray, cols: slice, cw: np.ndarray, sw: np.ndarray,
                      sa: np.ndarray, ca: np.ndarray, row_laser: np.ndarray, dist: np.ndarray,
-                     gid: np.ndarray, cos_inc: np.ndarray) -> None:
-        """MuJoCo's ray_plane on the rays [rows, cols], keeping the nearest hit in place."""
+                     gid: np.ndarray | None, cos_inc: np.ndarray) -> None:
+        """MuJoCo's ray_plane on the rays [rows, cols], keeping the nearest hit in place.
+        Without ``gid``, ``cos_inc`` gets reflectivity x cos(incidence)."""
         c_l, s_l = cw[rows], sw[rows]
         sa_l, ca_l = sa[rows, cols], ca[rows, cols]
         lp = lpnt[row_laser[rows]]
@@ -725,16 +745,22 @@ class VLP16Emulator:
                 lj *= x
                 lj += lp[:, j, None]
                 ok &= np.abs(lj) <= size[j]
+        if gid is None:  # no geom ids kept: reflectivity x cos(incidence) instead
+            neg *= self.reflectivity[g]
         if isinstance(rows, slice):  # views: masked copies, no boolean indexing (slow)
             np.copyto(dist[rows, cols], x, where=ok)
-            np.copyto(gid[rows, cols], g, where=ok)
+            if gid is not None:
+                np.copyto(gid[rows, cols], g, where=ok)
             np.copyto(cos_inc[rows, cols], neg, where=ok)
         else:
-            sub_d, sub_g, sub_c = d_now, gid[rows, cols], cos_inc[rows, cols]
+            sub_d, sub_c = d_now, cos_inc[rows, cols]
             sub_d[ok] = x[ok]
-            sub_g[ok] = g
             sub_c[ok] = neg[ok]
-            dist[rows, cols], gid[rows, cols], cos_inc[rows, cols] = sub_d, sub_g, sub_c
+            dist[rows, cols], cos_inc[rows, cols] = sub_d, sub_c
+            if gid is not None:
+                sub_g = gid[rows, cols]
+                sub_g[ok] = g
+                gid[rows, cols] = sub_g
 
     def _grid_candidates(self, offsets: tuple[np.ndarray, np.ndarray, float],
                          base: np.ndarray, cw: np.ndarray,
@@ -765,7 +791,7 @@ class VLP16Emulator:
         if len(row) == 0:
             return mask
         two_pi = 2.0 * np.pi
-        b_u = np.unwrap(base)  # monotonic: the sensor spins one way
+        b_u = base  # unwrapped by the caller
         half = half0 + spread
         centre = centre0 - d_r[row]
         first = np.floor((b_u[0] - centre - half) / two_pi)
