@@ -207,6 +207,15 @@ class _Model:
         self.edge_kind = np.zeros(len(bh), dtype=np.int8)  # 0 skip, 1 vertical edge, 2 horizontal
         self.edge_sign = np.zeros(len(bh))
         self.edge_sd = np.ones(len(bh))
+        self._cache_edges()
+
+    def _cache_edges(self) -> None:
+        """The used brackets' rays, signs and sigmas, contiguous (the fit only reads these)."""
+        use = self.edge_kind > 0
+        self._ubh = (self._bh[0][use], self._bh[1][use])
+        self._ubm = (self._bm[0][use], self._bm[1][use])
+        self._usign, self._usd = self.edge_sign[use], self.edge_sd[use]
+        self._uvert = (self.edge_kind == 1)[use]
 
     def assign(self, theta: np.ndarray) -> None:
         """Which hits feed the range residuals: those safely inside the rectangle."""
@@ -235,6 +244,7 @@ class _Model:
         if not crossings:  # leave out rings crossing the top or bottom edge (sharp in z)
             kind = np.where((kind == 2) & (sd < 0.01), 0, kind).astype(np.int8)
         self.edge_kind, self.edge_sign, self.edge_sd = kind, sign, sd
+        self._cache_edges()
 
     def _edges(self, xh, zh, xm, zm, guard: float = 0.0):
         """Edge kind (1 side, 2 top or bottom, 0 left out), sign and sigma (m) of brackets.
@@ -301,20 +311,20 @@ class _Model:
         o_r, u_r, d_r = self._range
         lam = -(o_r @ rot[1] + theta[1]) / (u_r @ rot[1])
         rr = (d_r - lam) / self.sigma_r
-        xh, zh, dh = _coords(rot, theta, *self._bh)
-        xm, zm, _ = _coords(rot, theta, *self._bm)
-        k = self.edge_kind
+        xh, zh, dh = _coords(rot, theta, *self._ubh)
+        xm, zm, _ = _coords(rot, theta, *self._ubm)
+        sgn = self._usign
         mid_x = 0.5 * (xh + xm)
         mid_z = 0.5 * (zh + zm)
         # the plate's side face: a ray heading inwards (against the edge's outward side) that
         # passes the front edge by less than thickness x (its lateral over forward direction)
         # still hits the board, so that edge sits that much further out for it
         t = self.board.thickness
-        ext_x = t * np.maximum(0.0, -self.edge_sign * dh[:, 0] / dh[:, 1])
-        ext_z = t * np.maximum(0.0, -self.edge_sign * dh[:, 2] / dh[:, 1])
-        e = np.where(k == 1, self.edge_sign * (self.board.width / 2 + ext_x) - mid_x,
-                     self.edge_sign * (self.board.height / 2 + ext_z) - mid_z)
-        re = (e / self.edge_sd)[k > 0]
+        ext_x = t * np.maximum(0.0, -sgn * dh[:, 0] / dh[:, 1])
+        ext_z = t * np.maximum(0.0, -sgn * dh[:, 2] / dh[:, 1])
+        e = np.where(self._uvert, sgn * (self.board.width / 2 + ext_x) - mid_x,
+                     sgn * (self.board.height / 2 + ext_z) - mid_z)
+        re = e / self._usd
         return np.concatenate((rr, re))
 
     def jacobian(self, theta: np.ndarray, f0: np.ndarray) -> np.ndarray:
@@ -324,23 +334,21 @@ class _Model:
         the rows of R): t_x and t_z move X and Z one for one; t_y moves lam by -1 / u.r1.
         """
         rot = rotation(theta[3], theta[4], theta[5])
-        k = self.edge_kind
-        use = k > 0
-        vert = (k == 1)[use]
+        vert = self._uvert
         j = np.empty((len(f0), 6))
         u_r = self._range[1]
         nr = len(u_r)
         j[:nr, 0] = 0.0
         j[:nr, 1] = (1.0 / (u_r @ rot[1])) / self.sigma_r  # -(d lam / d t_y) / sigma
         j[:nr, 2] = 0.0
-        sd = self.edge_sd[use]
+        sd = self._usd
 
         def d_dty(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             dlam = -1.0 / (u @ rot[1])
             return dlam * (u @ rot[0]), dlam * (u @ rot[2])
 
-        xh_t, zh_t = d_dty(self._bh[1][use])
-        xm_t, zm_t = d_dty(self._bm[1][use])
+        xh_t, zh_t = d_dty(self._ubh[1])
+        xm_t, zm_t = d_dty(self._ubm[1])
         j[nr:, 0] = np.where(vert, -1.0, 0.0) / sd
         j[nr:, 2] = np.where(vert, 0.0, -1.0) / sd
         j[nr:, 1] = -0.5 * np.where(vert, xh_t + xm_t, zh_t + zm_t) / sd
