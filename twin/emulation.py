@@ -624,10 +624,9 @@ class VLP16Emulator:
                 self._plane_block(g, m, lpnt, size, rows, cols, cw, sw, sa, ca, row_laser,
                                   dist, gid, cos_inc)
 
-        cand = (self._grid_candidates(offsets, b_u, cw, sw, origins, row_laser,
-                                      rotation)
-                if cfg.culling else np.ones((n_rows, n_seq), dtype=bool))
-        idx = np.flatnonzero(cand)  # row-major: each row's candidates are contiguous
+        # row-major: each row's candidates are contiguous
+        idx = (self._grid_candidates(offsets, b_u, cw, sw, origins, row_laser, rotation)
+               if cfg.culling else np.arange(n_rows * n_seq))
         if len(idx):
             r_of = idx // n_seq
             u = np.empty((len(idx), 3))
@@ -766,7 +765,8 @@ class VLP16Emulator:
                          base: np.ndarray, cw: np.ndarray,
                          sw: np.ndarray, origins: np.ndarray, row_laser: np.ndarray,
                          rotation: np.ndarray) -> np.ndarray:
-        """Mask (R, S) of rays that may meet a non-plane geom (inside its bounding sphere).
+        """Flat row-major indices (sorted) into the (R, S) grid of the rays that may meet a
+        non-plane geom (inside its bounding sphere).
 
         Row r has one origin ``origins[row_laser[r]]``, one elevation (cos ``cw[r]``, sin
         ``sw[r]``) and azimuths ``base`` (the sequences' first firings, one per column) + a
@@ -775,21 +775,21 @@ class VLP16Emulator:
         A sphere seen under half-angle alpha holds the directions with
         cw (sin a cx + cos a cy) + sw cz >= cos(alpha), i.e. |a - phi| <= arccos(q): an
         azimuth interval per (row, sphere), found by one `np.searchsorted` on the unwrapped
-        ``base`` for all of them, widened by the row offsets' spread and 1e-9 rad so that the
-        culling can only cast too much, never too little.
+        ``base`` (unwrapped) for all of them, widened by the row offsets' spread and 1e-9 rad
+        so that the culling can only cast too much, never too little. The intervals become
+        index runs directly (a few hundred rays), never a full-size mask.
         """
         caster = self.caster
         _, d_r, spread = offsets
-        n_rows, n_s = len(d_r), len(base)
-        mask = np.zeros((n_rows, n_s), dtype=bool)
+        n_s = len(base)
         ids = caster.solid_ids
         if len(ids) == 0:
-            return mask
+            return np.zeros(0, dtype=np.intp)
         full, row, centre0, half0 = self._pose_intervals(ids, cw, sw, origins, row_laser,
                                                          rotation)
-        mask[full] = True
+        full_idx = (np.flatnonzero(full)[:, None] * n_s + np.arange(n_s)).ravel()
         if len(row) == 0:
-            return mask
+            return full_idx
         two_pi = 2.0 * np.pi
         b_u = base  # unwrapped by the caller
         half = half0 + spread
@@ -800,11 +800,13 @@ class VLP16Emulator:
         lo = np.searchsorted(b_u, ((centre - half)[:, None] + shift).ravel(), "left")
         hi = np.searchsorted(b_u, ((centre + half)[:, None] + shift).ravel(), "right")
         off = np.repeat(row, turns.shape[1]) * n_s
-        marks = np.zeros(n_rows * n_s + 1, dtype=np.int32)
-        np.add.at(marks, lo + off, 1)
-        np.add.at(marks, hi + off, -1)
-        mask |= (np.cumsum(marks[:-1]) > 0).reshape(n_rows, n_s)
-        return mask
+        length = hi - lo  # >= 0: half >= 0
+        start = lo + off
+        total = int(length.sum())
+        # Runs [start, start + length) as one index array: arange plus each run's shift.
+        shift = np.repeat(start - (np.cumsum(length) - length), length)
+        runs = np.arange(total) + shift
+        return np.unique(np.concatenate((full_idx, runs)))  # sorted, overlaps merged
 
     def _pose_intervals(self, ids: np.ndarray, cw: np.ndarray, sw: np.ndarray,
                         origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray
