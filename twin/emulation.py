@@ -756,7 +756,7 @@ class VLP16Emulator:
             x = lp[:, 2, None] / neg
         ok = neg > _MJMINVAL
         d_now = dist[rows, cols]
-        ok &= x < (d_now if np.isfinite(d_now).any() else self.caster.cutoff)
+        ok &= x < d_now  # (inf where nothing is hit yet)
         ok &= x <= self.caster.cutoff
         for j in (0, 1):
             if size[j] > 0:
