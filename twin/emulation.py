@@ -1010,11 +1010,9 @@ class VLP16Emulator:
         keep &= meas <= cfg.range_max
         if lost is not None and len(lost):
             keep[lost] = False
-        if not keep.all():
-            sel = np.flatnonzero(keep)
-            idx, r, refl, meas = idx[sel], r[sel], refl[sel], meas[sel]
-            if inoise is not None:
-                inoise = inoise[sel]
+        # The few returns lost (dropouts, range limits) are cleared after the scatter below:
+        # cheaper than compacting every array.
+        gone = None if keep.all() else idx[np.flatnonzero(~keep)]
         if cfg.intensity_model:
             # float32: the result is an integer count 0..255.
             level = refl.astype(np.float32)
@@ -1034,6 +1032,9 @@ class VLP16Emulator:
         intensity = np.zeros((len(flags), n), dtype=np.uint8)
         distance[0, idx] = meas
         intensity[0, idx] = inten
+        if gone is not None:
+            distance[0, gone] = 0.0
+            intensity[0, gone] = 0
         # Every kept return has a distance >= range_min > 0: its flag follows from it.
         rtype = (distance[:1] > 0).view(np.uint8) * np.uint8(flags[0])
         if len(flags) == 2:  # dual with a single echo: both blocks identical
