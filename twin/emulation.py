@@ -807,9 +807,9 @@ class VLP16Emulator:
             return np.zeros(0, dtype=np.intp)
         full, row, centre0, half0 = self._pose_intervals(ids, cw, sw, origins, row_laser,
                                                          rotation)
-        full_idx = (np.flatnonzero(full)[:, None] * n_s + np.arange(n_s)).ravel()
+        full_rows = np.flatnonzero(full)
         if len(row) == 0:
-            return full_idx
+            return (full_rows[:, None] * n_s + np.arange(n_s)).ravel()
         two_pi = 2.0 * np.pi
         b_u = base  # unwrapped by the caller
         half = half0 + spread
@@ -820,13 +820,23 @@ class VLP16Emulator:
         lo = np.searchsorted(b_u, ((centre - half)[:, None] + shift).ravel(), "left")
         hi = np.searchsorted(b_u, ((centre + half)[:, None] + shift).ravel(), "right")
         off = np.repeat(row, turns.shape[1]) * n_s
-        length = hi - lo  # >= 0: half >= 0
-        start = lo + off
-        total = int(length.sum())
-        # Runs [start, start + length) as one index array: arange plus each run's shift.
+        # Runs [start, end) of flat indices (each within its row), the whole rows included;
+        # merged where they overlap, then expanded: sorted, each index once.
+        start = np.concatenate((lo + off, full_rows * n_s))
+        end = np.concatenate((hi + off, full_rows * n_s + n_s))
+        o = np.argsort(start, kind="stable")
+        start, end = start[o], end[o]
+        reach = np.maximum.accumulate(end)
+        new = np.ones(len(start), dtype=bool)
+        new[1:] = start[1:] > reach[:-1]
+        first_run = np.flatnonzero(new)
+        start = start[first_run]
+        end = np.maximum.reduceat(end, first_run) if len(first_run) else end[:0]
+        length = end - start
+        # Runs as one index array: arange plus each run's shift.
         shift = np.repeat(start - (np.cumsum(length) - length), length)
-        runs = np.arange(total) + shift
-        return np.unique(np.concatenate((full_idx, runs)))  # sorted, overlaps merged
+        shift += np.arange(len(shift))
+        return shift
 
     def _pose_intervals(self, ids: np.ndarray, cw: np.ndarray, sw: np.ndarray,
                         origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray
