@@ -663,10 +663,11 @@ class VLP16Emulator:
             row = hit // n_seq  # (floor division: several times cheaper than np.divmod)
             firing = hit - row * n_seq
             firing *= n_l
-            firing += order[row]
+            lid = order[row]
+            firing += lid
             r = dist.reshape(-1)[hit]
             rc = rc_all[hit]
-            out = self._measure_single(n_seq * n_l, firing, r, rc / (r * r), rc, laser_id)
+            out = self._measure_single(n_seq * n_l, firing, r, rc / (r * r), rc, laser_id, lid)
         else:
             out = self._grid_echoes(dist, gid, cos_inc, weights, laser_id, order, k, n_l,
                                     n_seq)
@@ -980,16 +981,20 @@ class VLP16Emulator:
         return r_echo, e_echo, refl_echo
 
     def _measure_single(self, n: int, idx: np.ndarray, r: np.ndarray, energy: np.ndarray,
-                        refl: np.ndarray, laser_id: np.ndarray) -> Returns:
+                        refl: np.ndarray, laser_id: np.ndarray,
+                        lid: np.ndarray | None = None) -> Returns:
         """`_measure` for one echo per firing, on the hits only: firing ``idx`` (M,) returned
-        range ``r`` (M,) m with ``energy`` and apparent reflectivity ``refl`` (M,)."""
+        range ``r`` (M,) m with ``energy`` and apparent reflectivity ``refl`` (M,); ``lid``
+        (M,) intp: the hits' laser ids when the caller has them (else ``laser_id[idx]``)."""
         cfg = self.config
         rng = self.rng
         # (Index arrays, not boolean masks, select below: numpy's boolean indexing is slow.)
         lit = energy > 0  # a black surface (reflectivity 0) returns nothing
+        if lid is None:
+            lid = laser_id[idx].astype(np.intp)
         if not lit.all():
             sel = np.flatnonzero(lit)
-            idx, r, energy, refl = idx[sel], r[sel], energy[sel], refl[sel]
+            idx, r, energy, refl, lid = idx[sel], r[sel], energy[sel], refl[sel], lid[sel]
         lost = None
         if cfg.dropouts and len(idx):
             z = np.log(energy)
@@ -1000,7 +1005,7 @@ class VLP16Emulator:
                 lost = near[rng.random(len(near)) >= ndtr(z[near])]
         # One compaction for the dropouts and the range limits: the noise is drawn for every
         # lit return (the lost ones' draws are discarded).
-        meas = (self.laser_offsets + cfg.range_bias)[laser_id[idx]]
+        meas = (self.laser_offsets + cfg.range_bias)[lid]
         meas += r
         use_inoise = cfg.intensity_model and cfg.intensity_noise_sigma > 0
         inoise = None
