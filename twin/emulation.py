@@ -197,10 +197,11 @@ class RayCaster:
         ends = np.append(starts[1:], n)
         m, d, grp, body, cutoff = (self.model, self.data, self.geomgroup, self.sensor_body_id,
                                    self.cutoff)
-        for lo, hi in zip(starts.tolist(), ends.tolist(), strict=True):
-            o = np.ascontiguousarray(origins[row_origin[ray_row[lo]]])
-            mujoco.mj_multiRay(m, d, o, vec[3 * lo:3 * hi], grp, 1, body, gid[lo:hi],
-                               dist[lo:hi], nrm[3 * lo:3 * hi], hi - lo, cutoff)
+        row_o = np.ascontiguousarray(origins[row_origin[ray_row[starts]]], dtype=np.float64)
+        ray = mujoco.mj_multiRay
+        for o, lo, hi in zip(row_o, starts.tolist(), ends.tolist(), strict=True):
+            ray(m, d, o, vec[3 * lo:3 * hi], grp, 1, body, gid[lo:hi], dist[lo:hi],
+                nrm[3 * lo:3 * hi], hi - lo, cutoff)
         gid[dist > cutoff] = -1  # see `multiray`: beyond the cutoff is no return
         dist[gid < 0] = np.inf
         return dist, gid, nrm.reshape(n, 3)
