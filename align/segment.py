@@ -111,7 +111,7 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
     thr = np.maximum(CLUSTER_RADIUS_PER_M * dist, CLUSTER_RADIUS_MIN)
     thr *= thr
 
-    def close(sa, sb) -> np.ndarray:
+    def close(sa, sb, x=x, y=y, z=z, thr=thr, okg=okg) -> np.ndarray:
         d2 = x[sa] - x[sb]
         d2 *= d2
         t = y[sa] - y[sb]
@@ -140,7 +140,10 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
     run = (np.cumsum(start_flag) - 1).reshape(16, m)  # run id of each firing (laser, sequence)
     # adjacent rings = the lasers of consecutive elevations: column pairs (la, lb)
     la, lb = vlp16.LASER_OF_RING[:-1], vlp16.LASER_OF_RING[1:]
-    lv = close(np.s_[:, la], np.s_[:, lb])  # (m, 15)
+    # columns in ring order once (one gather per array), then ring neighbours are slices
+    lr = vlp16.LASER_OF_RING.astype(np.intp)
+    lv = close(np.s_[:, :-1], np.s_[:, 1:], x[:, lr], y[:, lr], z[:, lr], thr[:, lr],
+               okg[:, lr])  # (m, 15)
     ra_l, rb_l = [run[la].T[lv]], [run[lb].T[lv]]
     daz_w = np.abs((az[0] - az[-1] + np.pi) % (2 * np.pi) - np.pi)
     wrap = close(np.s_[-1], np.s_[0]) & (daz_w < MAX_AZIMUTH_GAP)
@@ -149,11 +152,13 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
     ra, rb = np.concatenate(ra_l), np.concatenate(rb_l)
     # count and mean distance per run (the sums over [start of a run, start of the next) add
     # zeros for the firings without a return in between)
-    sums = np.add.reduceat(np.stack((okf.astype(np.float64), dist.T.ravel() * okf)), starts,
-                           axis=1)
+    # a run ends at a return not linked to the next firing of its laser
+    last = okg.T.copy()
+    last[:, :-1] &= ~link_h.T
+    ends = np.flatnonzero(last)
+    sums = (ends - starts + 1).astype(np.float64), np.add.reduceat(dist.T.ravel() * okf, starts)
     # a run longer than the board (the floor's ring, a wall) joins nothing: otherwise the board,
     # its stand and the floor ring at the stand's foot chain into one cluster
-    ends = starts + sums[0].astype(np.int64) - 1
     laser_s, seq_s = np.divmod(starts, m)
     span = (az[ends % m, ends // m] - az[seq_s, laser_s]) % (2 * np.pi)
     long_run = span * sums[1] / np.maximum(sums[0], 1) > LONG_RUN * board_diagonal
@@ -165,8 +170,8 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
     stats = {"count": cnt, "distance": np.bincount(comp, sums[1], n_comp) / np.maximum(cnt, 1),
              "rings": ring_hit.sum(axis=1)}
     labels = np.full(len(scan), -1, dtype=np.int64)  # -1: no cluster (or outside the grid)
-    lab_lm = np.where(okf, comp[np.maximum(run.ravel(), 0)], -1).reshape(16, m)
-    labels[sl] = lab_lm.T.ravel()
+    comp_x = np.append(comp, -1)  # run -1 (and firings without a return): label -1
+    labels[sl].reshape(m, 16)[...] = comp_x[np.where(okg, run.T, -1)]
     return labels, stats
 
 
