@@ -369,10 +369,12 @@ def _row_offsets(az: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """Offsets of ``az`` (R, S) from ``base`` (S,) wrapped to (-pi, pi]: (d (R, S), the first
     column's d (R,), the largest deviation of a row from its first column, rad)."""
     d = az - base
-    t = d * (1.0 / (2 * np.pi))
-    np.rint(t, out=t)
-    t *= 2 * np.pi
-    d -= t  # the row may wrap past 2 pi
+    t = np.abs(d)
+    wrap = np.flatnonzero(t.reshape(-1) > np.pi)  # the row may wrap past 2 pi: a few entries
+    if len(wrap):  # (elsewhere rint(d / 2 pi) is 0: d stays as it is)
+        dw = d.reshape(-1)[wrap]
+        dw -= np.rint(dw * (1.0 / (2 * np.pi))) * (2 * np.pi)
+        d.reshape(-1)[wrap] = dw
     d_r = d[:, 0]
     np.subtract(d, d_r[:, None], out=t)
     np.abs(t, out=t)
