@@ -746,10 +746,12 @@ class VLP16Emulator:
         sa_l, ca_l = sa[rows, cols], ca[rows, cols]
         lp = lpnt[row_laser[rows]]
 
+        scratch = np.empty(sa_l.shape)
+
         def axis(j: int) -> np.ndarray:
             """d . (plane axis j) for every ray: cw (sa m0j + ca m1j) + sw m2j, in place."""
             out = sa_l * m[0, j]
-            out += ca_l * m[1, j]
+            out += np.multiply(ca_l, m[1, j], out=scratch)
             out *= c_l
             out += s_l * m[2, j]
             return out
@@ -760,14 +762,16 @@ class VLP16Emulator:
             x = lp[:, 2, None] / neg
         ok = neg > _MJMINVAL
         d_now = dist[rows, cols]
-        ok &= x < d_now  # (inf where nothing is hit yet)
-        ok &= x <= self.caster.cutoff
+        test = np.less(x, d_now)  # (inf where nothing is hit yet)
+        ok &= test
+        ok &= np.less_equal(x, self.caster.cutoff, out=test)
         for j in (0, 1):
             if size[j] > 0:
                 lj = axis(j)
                 lj *= x
                 lj += lp[:, j, None]
-                ok &= np.abs(lj) <= size[j]
+                np.abs(lj, out=lj)
+                ok &= np.less_equal(lj, size[j], out=test)
         if gid is None:  # no geom ids kept: reflectivity x cos(incidence) instead
             neg *= self.reflectivity[g]
         if isinstance(rows, slice):  # views: masked copies, no boolean indexing (slow)
