@@ -26,6 +26,8 @@ Readings the paper leaves open (docs/align.md lists them with reasons):
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from align import plane
@@ -73,8 +75,14 @@ def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
     u, _, vt = np.linalg.svd((p_l - cl).T @ (p_o - co))
     d = np.sign(np.linalg.det(vt.T @ u.T))
     r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    pose = Pose.from_matrix(r, co - r @ cl)
-    return pose.as_array()
+    t = co - r @ cl
+    # R = Rz(yaw) Rx(tilt) Ry(roll): R[2,1] = sin tilt, R[0,1] = -sin yaw cos tilt, R[1,1] =
+    # cos yaw cos tilt, R[2,0] = -cos tilt sin roll, R[2,2] = cos tilt cos roll (the angles
+    # Pose.from_matrix gets from scipy, without its overhead)
+    tilt = math.asin(min(max(float(r[2, 1]), -1.0), 1.0))
+    yaw = math.atan2(-float(r[0, 1]), float(r[1, 1]))
+    roll = math.atan2(-float(r[2, 0]), float(r[2, 2]))
+    return np.array([t[0], t[1], t[2], roll, tilt, yaw])
 
 
 def _residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
