@@ -14,7 +14,9 @@ import math
 import warnings
 
 import align
+from align import calibration as laser_calibration
 from align.board import BoardSpec
+from scenarios import calibrate
 from scenarios.commands.info import add_decode_options, decode_options, warn_lines
 from twin.capture import PcapSource, read_capture
 from twin.errors import AimbenchError
@@ -43,14 +45,7 @@ def run(args: argparse.Namespace) -> int:
                                 "-16:20") from exc
         window = (math.radians(c), math.radians(hw))
     hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window)
-    cal = None
-    if args.calibration:
-        from align import calibration
-
-        try:
-            cal = calibration.load(args.calibration)
-        except (OSError, ValueError) as exc:
-            raise AimbenchError(f"calibration {args.calibration}: {exc}") from exc
+    cal = calibrate.read(args.calibration) if args.calibration else None
     source = PcapSource(args.capture)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -61,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         raise AimbenchError(f"{args.capture}: no complete scan in the capture (VLP-16 data "
                             "on UDP port 2368); check the file with `aimbench info`")
     if cal is not None:
-        scans = [calibration.apply(s, cal) for s in scans]
+        scans = [laser_calibration.apply(s, cal) for s in scans]
     rows = []
     for i in range(0, len(scans) - args.fuse + 1, args.fuse):
         group = scans[i:i + args.fuse]
