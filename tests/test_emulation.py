@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from twin_analytic import board_intersections
 
-from twin import vlp16
+from twin import raykernel, vlp16
 from twin.bench_params import BenchParams
-from twin.emulation import EmulationConfig, VLP16Emulator, _gaussian, _sincos_rows
+from twin.emulation import EmulationConfig, VLP16Emulator, _gaussian
 from twin.scan import ReturnType
 from twin.sim import BenchSim
 
@@ -120,6 +120,25 @@ def test_fast_paths_equal_brute_force_mujoco_rays(divergence: bool) -> None:
     assert (brute.distance > 0).sum() > 0.5 * len(lid)
 
 
+def test_fire_grid_draws_the_same_noise_as_fire() -> None:
+    """The measurement model consumes the generator in firing order, one noise word per
+    firing whether it returns or not: the fast grid path and the generic per-firing path give
+    the same noisy returns for the same seed, and leave the generator in the same state."""
+    cfg = EmulationConfig(divergence=False, detection_threshold=3e-3)  # many dropouts too
+    sims = [BenchSim(seed=7, noise=cfg) for _ in range(2)]
+    az = _grid(1800)
+    lid = np.tile(np.arange(16, dtype=np.uint8), len(az))
+    p, r = sims[0].physics.lidar_pose_world()
+    grid = sims[0].emulator.fire_grid(az, p, r)
+    generic = sims[1].emulator.fire(az.reshape(-1), lid, p, r)
+    valid = grid.distance > 0
+    assert 0.3 < valid.mean() < 0.55  # returns, misses and dropouts (0.58 without)
+    np.testing.assert_array_equal(grid.distance, generic.distance)
+    np.testing.assert_array_equal(grid.intensity, generic.intensity)
+    np.testing.assert_array_equal(grid.return_type, generic.return_type)
+    assert sims[0].rng.random() == sims[1].rng.random()
+
+
 @pytest.mark.parametrize("x, yaw_deg, roll_deg, tilt_deg", [
     (-0.05, -30, 4, 5), (0.05, 30, -4, -5), (0.0, 12, 0, 8), (0.02, -20, 10, -3)])
 def test_culling_is_exact_over_the_travel(x, yaw_deg, roll_deg, tilt_deg) -> None:
@@ -202,14 +221,33 @@ def test_box_muller_noise_is_gaussian() -> None:
     assert np.mean(x**4) / 16 == pytest.approx(3.0, rel=0.05)
 
 
-def test_sincos_rows_is_exact() -> None:
+def test_grid_sincos_is_exact() -> None:
+    """The kernel's sines and cosines (one transcendental pair per sequence, a series for the
+    rest) equal numpy's: on the sensor's grid with two sub-rays per firing (rows not at the
+    same offset from the base), with jitter (rows not constant), and off the grid (libm)."""
     az = _grid(300)
-    a = (np.stack([az.T] * 2) + np.array([0.0, 1e-3])[:, None, None]).reshape(32, -1)
-    jitter = np.random.default_rng(0).uniform(-1e-6, 1e-6, a.shape)  # rows not constant
-    for rows in (a, a + jitter):
-        s, c = _sincos_rows(rows, az[:, 0])
-        np.testing.assert_allclose(s, np.sin(rows), atol=2e-15)
-        np.testing.assert_allclose(c, np.cos(rows), atol=2e-15)
+    rng = np.random.default_rng(0)
+    row_laser = np.repeat(np.arange(16), 2)
+    row_dh = np.tile([0.0, 1e-3], 16)
+    no_planes = (np.zeros((0, 16, 3)), np.zeros((0, 3, 3)), np.zeros((0, 2)),
+                 np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros(0))
+    for a in (az, az + rng.uniform(-1e-6, 1e-6, az.shape), rng.uniform(0, 2 * np.pi, az.shape)):
+        az_t = np.ascontiguousarray(a.T)
+        base = az_t[0]
+        s, c = np.empty(32 * 300), np.empty(32 * 300)
+        dist, cos_inc, gid = np.empty(32 * 300), np.empty(32 * 300), np.empty(32 * 300, np.int32)
+        d_first = np.empty(32)
+        spread = raykernel.grid_rays(az_t, row_laser, row_dh, np.ones(32), np.zeros(32),
+                                     *no_planes, 101.0, s, c, dist, gid, cos_inc, d_first)
+        rays = az_t[row_laser] + row_dh[:, None]  # row-major, as the kernel lays them out
+        np.testing.assert_allclose(s, np.sin(rays).reshape(-1), rtol=0, atol=2e-15)
+        np.testing.assert_allclose(c, np.cos(rays).reshape(-1), rtol=0, atol=2e-15)
+        assert np.all(np.isinf(dist)) and np.all(gid == -1)  # no planes: no hits
+        # The rows' offsets, and a bound of their spread (what the culling widens by).
+        d = (rays - base + np.pi) % (2 * np.pi) - np.pi
+        np.testing.assert_allclose(d_first, d[:, 0], rtol=0, atol=1e-12)
+        true_spread = np.abs(d - d[:, :1]).max()
+        assert true_spread <= spread <= max(true_spread, raykernel.SPREAD_BOUND)
 
 
 def test_intensity_follows_reflectivity_and_incidence() -> None:

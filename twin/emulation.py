@@ -31,7 +31,7 @@ import mujoco
 import numpy as np
 from scipy.special import ndtr
 
-from twin import vlp16
+from twin import raykernel, vlp16
 from twin.scan import ReturnType
 
 ReturnMode = Literal["strongest", "last", "dual"]
@@ -41,7 +41,6 @@ RAY_GEOM_GROUP = 0
 #: Origins closer than this share one mj_multiRay call (the cast is then made exact again by the
 #: plane correction of `RayCaster.cast`), m.
 ORIGIN_TOLERANCE = 2e-4
-_MJMINVAL = 1e-15  # mjMINVAL, as MuJoCo's ray_plane uses it
 
 
 @dataclass(frozen=True)
@@ -183,57 +182,43 @@ class RayCaster:
         d[g < 0] = np.inf
         return d, g, nrm.reshape(n, 3).copy()
 
-    def multiray_rows(self, origins: np.ndarray, row_origin: np.ndarray, ray_row: np.ndarray,
-                      dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Rays grouped by row: ray i starts at ``origins[row_origin[ray_row[i]]]``;
-        ``ray_row`` must be sorted (rays of a row contiguous). One mj_multiRay per row, written
-        straight into the output buffers. Returns (distance, inf if none; geom id; normal)."""
+    def multiray_rows(self, row_origins: np.ndarray, bounds: np.ndarray, dirs: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Rays in runs that share an origin: rays ``bounds[j]:bounds[j + 1]`` start at
+        ``row_origins[j]``; one mj_multiRay call per run, written straight into the outputs.
+        Returns MuJoCo's raw (distance, -1 if none; geom id, -1 if none; normal (n, 3)): unlike
+        `multiray`, hits beyond the cutoff are left to the caller
+        (`twin.raykernel.scatter_cast`)."""
         n = len(dirs)
         gid = np.empty(n, dtype=np.int32)
         dist = np.empty(n)
-        nrm = np.empty(3 * n)
-        vec = np.ascontiguousarray(dirs, dtype=np.float64).reshape(-1)
-        starts = np.flatnonzero(np.diff(ray_row, prepend=-1))
-        ends = np.append(starts[1:], n)
+        nrm = np.empty((n, 3))
+        vec = dirs.reshape(-1)
+        nv = nrm.reshape(-1)
         m, d, grp, body, cutoff = (self.model, self.data, self.geomgroup, self.sensor_body_id,
                                    self.cutoff)
-        row_o = np.ascontiguousarray(origins[row_origin[ray_row[starts]]], dtype=np.float64)
         ray = mujoco.mj_multiRay
-        for o, lo, hi in zip(row_o, starts.tolist(), ends.tolist(), strict=True):
+        b = bounds.tolist()
+        for j, o in enumerate(row_origins):
+            lo, hi = b[j], b[j + 1]
             ray(m, d, o, vec[3 * lo:3 * hi], grp, 1, body, gid[lo:hi], dist[lo:hi],
-                nrm[3 * lo:3 * hi], hi - lo, cutoff)
-        gid[dist > cutoff] = -1  # see `multiray`: beyond the cutoff is no return
-        dist[gid < 0] = np.inf
-        return dist, gid, nrm.reshape(n, 3)
+                nv[3 * lo:3 * hi], hi - lo, cutoff)
+        return dist, gid, nrm
 
     def planes(self, origin: np.ndarray, dirs: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The scene's planes only, by MuJoCo's ray_plane rule (front face, sized rectangle)."""
+        """The scene's planes only, by MuJoCo's ray_plane rule (front face, sized rectangle):
+        `twin.raykernel.ray_planes`. Returns (distance, inf if none; geom id; world normal)."""
         n = len(dirs)
-        best = np.full(n, np.inf)
-        gid = np.full(n, -1, dtype=np.int32)
-        nrm = np.zeros((n, 3))
-        for g in self.plane_ids:
-            pos = self.data.geom_xpos[g]
-            mat = self.data.geom_xmat[g].reshape(3, 3)
-            size = self.model.geom_size[g]
-            lpnt = mat.T @ (origin - pos)
-            lvec = dirs @ mat  # rows: mat.T @ dir
-            with np.errstate(divide="ignore", invalid="ignore"):
-                x = -lpnt[2] / lvec[:, 2]
-            ok = (lvec[:, 2] < -_MJMINVAL) & (x >= 0)
-            p0 = lpnt[0] + x * lvec[:, 0]
-            p1 = lpnt[1] + x * lvec[:, 1]
-            if size[0] > 0:
-                ok &= np.abs(p0) <= size[0]
-            if size[1] > 0:
-                ok &= np.abs(p1) <= size[1]
-            ok &= x < best
-            ok &= x <= self.cutoff
-            best[ok] = x[ok]
-            gid[ok] = g
-            nrm[ok] = mat[:, 2]
-        return best, gid, nrm
+        dist = np.empty(n)
+        gid = np.empty(n, dtype=np.int32)
+        nrm = np.empty((n, 3))
+        ids = self.plane_ids
+        raykernel.ray_planes(np.ascontiguousarray(origin, dtype=np.float64),
+                             np.ascontiguousarray(dirs, dtype=np.float64),
+                             self.data.geom_xpos[ids], self.data.geom_xmat[ids].reshape(-1, 3, 3),
+                             self.model.geom_size[ids], ids, self.cutoff, dist, gid, nrm)
+        return dist, gid, nrm
 
     def candidates(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Mask of rays whose direction enters the bounding sphere of a non-plane geom."""
@@ -365,97 +350,23 @@ _BOX_EDGES = np.array([(i, j) for i in range(8) for j in range(i + 1, 8)
                        if np.sum(_BOX_SIGNS[i] != _BOX_SIGNS[j]) == 1])
 
 
-def _row_offsets(az: np.ndarray, base: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """Offsets of ``az`` (R, S) from ``base`` (S,) wrapped to (-pi, pi]: (d (R, S), the first
-    column's d (R,), the largest deviation of a row from its first column, rad)."""
-    d = az - base
-    t = np.abs(d)
-    wrap = np.flatnonzero(t.reshape(-1) > np.pi)  # the row may wrap past 2 pi: a few entries
-    if len(wrap):  # (elsewhere rint(d / 2 pi) is 0: d stays as it is)
-        dw = d.reshape(-1)[wrap]
-        dw -= np.rint(dw * (1.0 / (2 * np.pi))) * (2 * np.pi)
-        d.reshape(-1)[wrap] = dw
-    d_r = d[:, 0]
-    np.subtract(d, d_r[:, None], out=t)
-    np.abs(t, out=t)
-    return d, d_r, float(t.max(initial=0.0))
-
-
-def _sincos_rows(az: np.ndarray, base: np.ndarray,
-                 offsets: tuple[np.ndarray, np.ndarray, float] | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """sin and cos of ``az`` (..., S) whose entries lie within a few mrad of ``base`` (S,).
-
-    The 16 lasers of a sequence fire within 35 us, so their azimuths differ from the
-    sequence's first by < 5 mrad (plus the divergence offsets): sin(b + d) = sin b cos d +
-    cos b sin d with d by its Taylor series to machine precision (|d| < 0.02 rad: the first
-    omitted terms are below 1e-17). Costs S transcendental pairs instead of 16 K S.
-    """
-    sb, cb = np.sin(base), np.cos(base)
-    d, d_r, spread = offsets if offsets is not None else _row_offsets(az, base)
-    if spread < 1e-4:
-        # Each row sits at a (nearly) constant offset d_r from the base: rotate by it, then
-        # by the small rest e = d - d_r (a window spanning rotations of slightly different
-        # rates) to second order: the error e^3 / 6 < 2e-13 rad.
-        sd, cd = np.sin(d_r), np.cos(d_r)
-        # s0 = sb cd + cb sd, c0 = cb cd - sb sd as outer products, one scratch array
-        s0 = np.multiply.outer(cd, sb)
-        t = np.multiply.outer(sd, cb)
-        s0 += t
-        c0 = np.multiply.outer(cd, cb)
-        np.multiply.outer(sd, sb, out=t)
-        c0 -= t
-        if spread < 1e-12:  # 1e-12 rad: 0.1 nm at 100 m (the subtraction's rounding)
-            return s0, c0
-        e = d - d_r[:, None]
-        h = e * e
-        h *= -0.5
-        h += 1.0  # cos e
-        s1 = s0 * h
-        s1 += e * c0
-        c1 = c0 * h
-        c1 -= e * s0
-        return s1, c1
-    if np.abs(d).max(initial=0.0) > 0.02:  # not a firing grid: do it the plain way
-        return np.sin(az), np.cos(az)
-    d2 = d * d
-    sd = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0)))
-    cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 * (1.0 / 720.0)))
-    return sb * cd + cb * sd, cb * cd - sb * sd
-
-
 def _gaussian(rng: np.random.Generator, n: int, sigma: float) -> np.ndarray:
-    """n Gaussian samples N(0, sigma^2) by Box-Muller from ``rng``'s uniforms, float32.
-
-    numpy's ziggurat costs about 20 ns a sample on the benchmark machine; this about 9 (all
-    float32: the noise needs 7 digits, not 16). Float32 uniforms cut the tails at 5.8 sigma
-    (probability 8e-9 per sample), far beyond anything a scan can show.
-    """
+    """n Gaussian samples N(0, sigma^2), float32: both halves of ceil(n / 2) Box-Muller pairs
+    (`_gaussian_pair`), first halves first."""
     m = (n + 1) // 2
     return np.concatenate(_gaussian_pair(rng, m, sigma, sigma))[:n]
 
 
 def _gaussian_pair(rng: np.random.Generator, n: int, sigma_a: float, sigma_b: float
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Two independent sets of n Gaussian samples (sigma_a, sigma_b), float32: both halves of
-    one Box-Muller draw (as `_gaussian`, in one pass)."""
-    # 2n 24-bit uniforms from n raw 64-bit draws (half the generator's per-sample cost).
-    bits = rng.bit_generator.random_raw(n).view(np.uint32)
-    bits >>= 8
-    u = bits.astype(np.float32)
-    u *= np.float32(2.0**-24)
-    u1, u2 = u[:n], u[n:]
-    u1 += np.float32(2.0**-24)  # (0, 1]
-    rad = np.log(u1)
-    rad *= np.float32(-2.0)
-    np.sqrt(rad, out=rad)
-    u2 *= np.float32(2.0 * np.pi)
-    a = np.cos(u2)
-    a *= rad
-    b = np.sin(u2, out=u2)
-    b *= rad
-    a *= np.float32(sigma_a)
-    b *= np.float32(sigma_b)
+    """Two independent sets of n Gaussian samples (sigma_a, sigma_b), float32: Box-Muller
+    (`twin.raykernel.box_muller`) on 2n 24-bit uniforms cut from n raw 64-bit words of
+    ``rng`` (half the generator's per-sample cost). numpy's ziggurat costs about 20 ns a
+    sample on the benchmark machine; float32 is enough (the noise needs 7 digits, not 16)."""
+    words = rng.bit_generator.random_raw(n).view(np.uint32)
+    a = np.empty(n, dtype=np.float32)
+    b = np.empty(n, dtype=np.float32)
+    raykernel.box_muller(words, float(sigma_a), float(sigma_b), a, b)
     return a, b
 
 
@@ -475,8 +386,35 @@ class VLP16Emulator:
                                                     vlp16.N_LASERS), -0.005, 0.005)
         else:
             self.laser_offsets = np.zeros(vlp16.N_LASERS)
+        #: Each laser's range offset plus the common bias, m (16,).
+        self._range_offsets = np.ascontiguousarray(self.laser_offsets + config.range_bias,
+                                                   dtype=np.float64)
+        #: Returns with a lower energy may drop out: detection probability Phi(z) < 1 - 1e-16,
+        #: z = (ln E - ln E_th) / s < 8.3 (1 % margin; `_measure_hits` decides on z).
+        self._near_energy = (config.detection_threshold
+                             * math.exp(8.3 * config.detection_softness) * 1.01
+                             if config.dropouts else 0.0)
+        #: The return-type byte of a single echo in the configured mode.
+        self._return_flag = {"strongest": int(ReturnType.STRONGEST),
+                             "last": int(ReturnType.LAST),
+                             "dual": int(ReturnType.LAST | ReturnType.STRONGEST)
+                             }[config.return_mode]
+        #: Weight 1 per geom (`twin.raykernel.grid_rays` then gives plain cosines).
+        self._unit_weights = np.ones(len(self.reflectivity))
+        #: Each laser's origin offset along Z_L, m (16,).
+        self._vertical_offsets = (vlp16.VERTICAL_OFFSET if config.vertical_offsets
+                                  else np.zeros(vlp16.N_LASERS))
         self._interval_cache: tuple | None = None
-        self._plane_extent_cache: dict[int, tuple] = {}
+
+    def _grid_offsets(self, n_seq: int) -> np.ndarray:
+        """Each firing's range offset (laser offset + bias) over ``n_seq`` whole sequences,
+        firing order (cached; read-only)."""
+        cached = getattr(self, "_grid_offset_cache", None)
+        if cached is None or len(cached) != n_seq * vlp16.N_LASERS:
+            cached = np.tile(self._range_offsets, n_seq)
+            cached.flags.writeable = False
+            self._grid_offset_cache = cached
+        return cached
 
     def _laser_ids(self, n_seq: int) -> np.ndarray:
         """Laser ids 0..15 of ``n_seq`` whole sequences, firing order (cached; read-only)."""
@@ -584,267 +522,157 @@ class VLP16Emulator:
         """Emulate S whole firing sequences from one pose (the stages at rest): the fast path.
 
         ``azimuth``: (S, 16) rad, sequence-major, lasers 0..15. ``position`` (3,), ``rotation``
-        (3, 3): the pose of {L} in the world. Works on (sub-ray, laser, sequence) grids whose
-        rows share one origin and one elevation, so the plane hits, the culling and the ray
-        directions are a few vector operations per row; rows are kept in elevation order so
-        that the rows that can meet the floor are one slice. Returns firings in sequence-major
-        order, as `fire` does, and the same values (tests/test_emulation.py).
+        (3, 3): the pose of {L} in the world. Returns firings in sequence-major order, as `fire`
+        does, and the same values (tests/test_emulation.py), with the firings' azimuth sines
+        and cosines.
+
+        The compiled kernels of `twin.raykernel` work on rows (laser, sub-ray) of rays that
+        share one origin and one elevation: every ray's azimuth sine and cosine and its nearest
+        plane (floor, wall) by MuJoCo's ray/plane rule in one loop per row (`grid_rays`); the
+        rays that may meet a solid (the culling, exact: `_grid_candidates`) go through
+        `mj_multiRay`, whose results replace the planes'. One ray per firing: the returns, in
+        firing order, go through the compiled measurement model (`_measure_hits`) straight
+        into the outputs; with divergence the sub-ray hits form echoes (`_from_hits`).
         """
         cfg = self.config
         n_seq = azimuth.shape[0]
         n_l = vlp16.N_LASERS
-        if cfg.divergence:
-            dh, dv, weights = _divergence_pattern(cfg)
-        else:
-            dh, dv, weights = np.zeros(1), np.zeros(1), np.ones(1)
-        k = len(weights)
-        order = vlp16.LASER_OF_RING.astype(np.intp)  # row j of a sub-ray block = ring j
-        w_l = vlp16.ELEVATION[order]
-        el = w_l[None, :] + dv[:, None]  # (K, 16)
-        az_l = azimuth.T[order]  # (16, S), ring order
-        dh_l = dh[:, None] / np.cos(w_l)[None, :]  # (K, 16) horizontal sub-ray offsets
-        cw, sw = np.cos(el).reshape(-1, 1), np.sin(el).reshape(-1, 1)  # (R, 1), R = 16 K
-        # (R, S) rows; one ray per firing: the rows are az_l itself
-        az_rows = az_l if k == 1 else (az_l[None] + dh_l[:, :, None]).reshape(k * n_l, n_seq)
-        offsets = _row_offsets(az_rows, azimuth[:, 0])
-        sa, ca = _sincos_rows(az_rows, azimuth[:, 0], offsets)
-        vo = vlp16.VERTICAL_OFFSET[order] if cfg.vertical_offsets else np.zeros(n_l)
-        origins = position + np.outer(vo, rotation[:, 2])  # (16, 3), ring order
-        row_laser = np.tile(np.arange(n_l), k)  # row -> ring index into origins
-        caster = self.caster
-        data, model = caster.data, caster.model
+        k, weights, row_laser, row_dh, cw, sw = self._grid_rows()
         n_rows = k * n_l
-        dist = np.full((n_rows, n_seq), np.inf)
-        # One ray per firing: no geom ids, and cos_inc holds reflectivity x cos(incidence)
-        # straight away (0 where nothing, or a black surface, is hit: no return either way).
-        gid = np.full((n_rows, n_seq), -1, dtype=np.int32) if k > 1 else None
-        cos_inc = np.zeros((n_rows, n_seq))
-        b_u = np.unwrap(azimuth[:, 0])  # monotonic: the sensor spins one way
-
-        for g in caster.plane_ids:  # MuJoCo's ray_plane rule, row-vectorised
-            mat = data.geom_xmat[g].reshape(3, 3)
-            size = model.geom_size[g]
-            lpnt = (origins - data.geom_xpos[g]) @ mat  # (16, 3) origins in the plane frame
-            m = rotation.T @ mat  # m[:, j]: plane axis j in {L}
-            # Rows that can meet the plane: the ray must head into its front face (lz < 0)
-            # from in front of it (lpnt_z >= 0); per row lz >= sw m2z - cw |m01z|.
-            lz_min = sw[:, 0] * m[2, 2] - cw[:, 0] * math.hypot(m[0, 2], m[1, 2])
-            live = np.flatnonzero((lz_min < -_MJMINVAL) & (lpnt[row_laser, 2] >= 0))
-            if len(live) == 0:
-                continue
-            # Contiguous rows (the floor's: the downward rings) are a view, no gather/scatter.
-            contiguous = live[-1] - live[0] + 1 == len(live)
-            rows = slice(live[0], live[-1] + 1) if contiguous else live
-            for cols in self._plane_columns(g, origins, rotation, offsets, b_u):
-                self._plane_block(g, m, lpnt, size, rows, cols, cw, sw, sa, ca, row_laser,
-                                  dist, gid, cos_inc)
-
-        # row-major: each row's candidates are contiguous
-        idx = (self._grid_candidates(offsets, b_u, cw, sw, origins, row_laser, rotation)
-               if cfg.culling else np.arange(n_rows * n_seq))
+        n = n_seq * n_l
+        if n_seq == 0:
+            empty = self._measure_hits(np.zeros(0), np.zeros(0), np.zeros(0))
+            empty.sin_azimuth, empty.cos_azimuth = np.zeros(0), np.zeros(0)
+            return empty
+        # Rays row-major (row * S + s): a row's rays share every per-row constant, so the
+        # kernels' loops over them vectorise.
+        az_t = np.ascontiguousarray(azimuth.T, dtype=np.float64)
+        base = az_t[0]
+        origins = position + np.outer(self._vertical_offsets, rotation[:, 2])  # (16, 3)
+        caster = self.caster
+        sa, ca = np.empty(n * k), np.empty(n * k)
+        dist, cos_inc = np.empty(n * k), np.empty(n * k)
+        gid = np.empty(n * k, dtype=np.int32)
+        d_first = np.empty(n_rows)
+        lpnt, axes, size, geom, extent = self._plane_frames(origins, rotation)
+        # One ray per firing: cos_inc carries reflectivity x cos(incidence) straight away (the
+        # measurement needs nothing else); with sub-rays the echoes need the geoms apart.
+        weights_g = self.reflectivity if k == 1 else self._unit_weights
+        spread = raykernel.grid_rays(az_t, row_laser, row_dh, cw, sw, lpnt, axes, size, geom,
+                                     extent, weights_g[geom], caster.cutoff, sa, ca, dist, gid,
+                                     cos_inc, d_first)
+        if cfg.culling:
+            idx, dirs, rows, bounds = self._grid_candidates(base, d_first, spread, sa, ca, cw,
+                                                            sw, origins, row_laser, rotation)
+        else:  # every ray through MuJoCo, one call per row
+            idx, dirs, rows, bounds = raykernel.grid_candidates(
+                base, np.ones(n_rows, dtype=np.bool_), np.zeros(0, dtype=np.int64),
+                np.zeros(0), np.zeros(0), d_first, spread, sa, ca, cw, sw, rotation)
         if len(idx):
-            r_of = idx // n_seq
-            u = np.empty((len(idx), 3))
-            np.multiply(cw[r_of, 0], sa.reshape(-1)[idx], out=u[:, 0])
-            np.multiply(cw[r_of, 0], ca.reshape(-1)[idx], out=u[:, 1])
-            u[:, 2] = sw[r_of, 0]
-            dirs = u @ rotation.T
-            d_c, g_c, n_c = caster.multiray_rows(origins, row_laser, r_of, dirs)
-            dist.reshape(-1)[idx] = d_c
-            c_c = np.where(g_c >= 0, np.abs(np.einsum("ij,ij->i", n_c, dirs)), 0.0)
-            if gid is None:
-                c_c *= self.reflectivity[np.maximum(g_c, 0)]
-            else:
-                gid.reshape(-1)[idx] = g_c
-            cos_inc.reshape(-1)[idx] = c_c
-        laser_id = self._laser_ids(n_seq)
+            d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
+            raykernel.scatter_cast(idx, d_c, g_c, n_c, dirs, weights_g, caster.cutoff, dist,
+                                   gid, cos_inc)
         if k == 1:
-            # One ray per firing: only the hits go on, straight from row space to the
-            # firing index (sequence * 16 + laser), no full-size transposes.
-            rc_all = cos_inc.reshape(-1)
-            hit = np.flatnonzero(rc_all > 0)
-            row = hit // n_seq  # (floor division: several times cheaper than np.divmod)
-            firing = hit - row * n_seq
-            firing *= n_l
-            lid = order[row]
-            firing += lid
-            r = dist.reshape(-1)[hit]
-            rc = rc_all[hit]
-            out = self._measure_single(n_seq * n_l, firing, r, rc / (r * r), rc, laser_id, lid)
-        else:
-            out = self._grid_echoes(dist, gid, cos_inc, weights, laser_id, order, k, n_l,
-                                    n_seq)
-        # The centre rays' azimuth sines and cosines in firing order, for the scan's points.
-        back = np.argsort(order)  # laser -> ring
-        out.sin_azimuth = sa[:n_l][back].T.reshape(-1)
-        out.cos_azimuth = ca[:n_l][back].T.reshape(-1)
-        return out
-
-    def _grid_echoes(self, dist: np.ndarray, gid: np.ndarray, cos_inc: np.ndarray,
-                     weights: np.ndarray, laser_id: np.ndarray, order: np.ndarray, k: int,
-                     n_l: int, n_seq: int) -> Returns:
-        """Sub-ray grids (K x 16 rows, S columns) to firing order, then `_from_hits`."""
-        # Back to firing order: rows (K, ring) -> (S, laser, K) -> (N, K).
-        back = np.argsort(order)  # laser -> ring
-        dist = dist.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
-        gid = gid.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
-        cos_inc = cos_inc.reshape(k, n_l, n_seq)[:, back].transpose(2, 1, 0).reshape(-1, k)
-        return self._from_hits(dist, gid, cos_inc, weights, laser_id)
-
-    def _plane_columns(self, g: int, origins: np.ndarray, rotation: np.ndarray,
-                       offsets: tuple[np.ndarray, np.ndarray, float], base: np.ndarray
-                       ) -> list[slice]:
-        """Column ranges (sequences) whose rays can meet plane geom ``g``'s rectangle.
-
-        An infinite plane (size 0): every column. A sized one: the rectangle's azimuth extent
-        seen from the sensor, from its corners (exact for a convex polygon whose projection on
-        the sensor's xy-plane leaves the origin outside; the lasers' origins differ only along
-        Z_L, so one extent serves all rows), widened by the rows' offsets and 1e-9 rad.
-        """
-        n_s = len(base)
-        size = self.caster.model.geom_size[g]
-        if size[0] <= 0 or size[1] <= 0:
-            return [slice(0, n_s)]
-        pos = self.caster.data.geom_xpos[g]
-        mat = self.caster.data.geom_xmat[g]
-        key = (int(g), origins[0].tobytes(), rotation.tobytes(), pos.tobytes(), mat.tobytes(),
-               size.tobytes())
-        cached = self._plane_extent_cache.get(int(g))
-        if cached is not None and cached[0] == key:  # the same pose: the same extent
-            centre, dev_max = cached[1]
-        else:
-            mat = mat.reshape(3, 3)
-            corners = np.array([pos + sx * size[0] * mat[:, 0] + sy * size[1] * mat[:, 1]
-                                for sx in (-1, 1) for sy in (-1, 1)])
-            c_l = (corners - origins[0]) @ rotation  # in {L}
-            az = np.arctan2(c_l[:, 0], c_l[:, 1])
-            centre = float(np.arctan2(np.sin(az).sum(), np.cos(az).sum()))
-            dev_max = float(np.abs((az - centre + np.pi) % (2 * np.pi) - np.pi).max())
-            self._plane_extent_cache[int(g)] = (key, (centre, dev_max))
-        if dev_max >= np.pi / 2 - 1e-6:  # the sensor sits over the rectangle: no bound
-            return [slice(0, n_s)]
-        _, d_r, spread = offsets
-        half = dev_max + float(np.abs(d_r).max()) + spread + 1e-9
-        b_u = base  # unwrapped by the caller
-        two_pi = 2 * np.pi
-        first = math.floor((b_u[0] - centre - half) / two_pi)
-        out = []
-        for turn in range(first, first + math.ceil((b_u[-1] - b_u[0]) / two_pi) + 2):
-            lo = int(np.searchsorted(b_u, centre - half + two_pi * turn, "left"))
-            hi = int(np.searchsorted(b_u, centre + half + two_pi * turn, "right"))
-            if hi > lo:
-                out.append(slice(lo, hi))
-        return out
-
-    def _plane_block(self, g: int, m: np.ndarray, lpnt: np.ndarray, size: np.ndarray,
-                     rows: slice | np.ndarray, cols: slice, cw: np.ndarray, sw: np.ndarray,
-                     sa: np.ndarray, ca: np.ndarray, row_laser: np.ndarray, dist: np.ndarray,
-                     gid: np.ndarray | None, cos_inc: np.ndarray) -> None:
-        """MuJoCo's ray_plane on the rays [rows, cols], keeping the nearest hit in place.
-        Without ``gid``, ``cos_inc`` gets reflectivity x cos(incidence)."""
-        c_l, s_l = cw[rows], sw[rows]
-        sa_l, ca_l = sa[rows, cols], ca[rows, cols]
-        lp = lpnt[row_laser[rows]]
-
-        scratch = np.empty(sa_l.shape)
-
-        def axis(j: int) -> np.ndarray:
-            """d . (plane axis j) for every ray: cw (sa m0j + ca m1j) + sw m2j, in place."""
-            out = sa_l * m[0, j]
-            out += np.multiply(ca_l, m[1, j], out=scratch)
-            out *= c_l
-            out += s_l * m[2, j]
+            r_f, rc_f, sin_f, cos_f = raykernel.lasers_to_firings(dist, cos_inc, sa, ca)
+            out = self._measure_hits(r_f, rc_f, self._grid_offsets(n_seq))
+            out.sin_azimuth, out.cos_azimuth = sin_f, cos_f
             return out
 
-        neg = axis(2)
-        np.negative(neg, out=neg)  # -lz: > 0 when the ray heads into the front face
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = lp[:, 2, None] / neg
-        ok = neg > _MJMINVAL
-        d_now = dist[rows, cols]
-        test = np.less(x, d_now)  # (inf where nothing is hit yet)
-        ok &= test
-        ok &= np.less_equal(x, self.caster.cutoff, out=test)
-        for j in (0, 1):
-            if size[j] > 0:
-                lj = axis(j)
-                lj *= x
-                lj += lp[:, j, None]
-                np.abs(lj, out=lj)
-                ok &= np.less_equal(lj, size[j], out=test)
-        if gid is None:  # no geom ids kept: reflectivity x cos(incidence) instead
-            neg *= self.reflectivity[g]
-        if isinstance(rows, slice):  # views: masked copies, no boolean indexing (slow)
-            np.copyto(dist[rows, cols], x, where=ok)
-            if gid is not None:
-                np.copyto(gid[rows, cols], g, where=ok)
-            np.copyto(cos_inc[rows, cols], neg, where=ok)
-        else:
-            sub_d, sub_c = d_now, cos_inc[rows, cols]
-            sub_d[ok] = x[ok]
-            sub_c[ok] = neg[ok]
-            dist[rows, cols], cos_inc[rows, cols] = sub_d, sub_c
-            if gid is not None:
-                sub_g = gid[rows, cols]
-                sub_g[ok] = g
-                gid[rows, cols] = sub_g
+        def firing_major(a: np.ndarray) -> np.ndarray:  # rows (laser, k) x S -> (N, K)
+            return a.reshape(n_l, k, n_seq).transpose(2, 0, 1).reshape(n, k)
 
-    def _grid_candidates(self, offsets: tuple[np.ndarray, np.ndarray, float],
-                         base: np.ndarray, cw: np.ndarray,
-                         sw: np.ndarray, origins: np.ndarray, row_laser: np.ndarray,
-                         rotation: np.ndarray) -> np.ndarray:
-        """Flat row-major indices (sorted) into the (R, S) grid of the rays that may meet a
-        non-plane geom (inside its bounding sphere).
+        out = self._from_hits(firing_major(dist), firing_major(gid), firing_major(cos_inc),
+                              weights, self._laser_ids(n_seq))
+        # Sub-ray 0 is the beam's centre (no offset): its sines and cosines are the firings'.
+        out.sin_azimuth = firing_major(sa)[:, 0].copy()
+        out.cos_azimuth = firing_major(ca)[:, 0].copy()
+        return out
 
-        Row r has one origin ``origins[row_laser[r]]``, one elevation (cos ``cw[r]``, sin
-        ``sw[r]``) and azimuths ``base`` (the sequences' first firings, one per column) + a
-        row offset (the laser's firing delay, the sub-ray's divergence offset): ``offsets`` of
-        `_row_offsets`.
-        A sphere seen under half-angle alpha holds the directions with
-        cw (sin a cx + cos a cy) + sw cz >= cos(alpha), i.e. |a - phi| <= arccos(q): an
-        azimuth interval per (row, sphere), found by one `np.searchsorted` on the unwrapped
-        ``base`` (unwrapped) for all of them, widened by the row offsets' spread and 1e-9 rad
-        so that the culling can only cast too much, never too little. The intervals become
-        index runs directly (a few hundred rays), never a full-size mask.
+    def _grid_rows(self) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                  np.ndarray]:
+        """The grid's rows (laser * K + k), fixed by the configuration (cached): (K, the
+        sub-rays' energy weights, each row's laser, azimuth offset (horizontal divergence is an
+        angle in the beam's own horizontal plane, as `fire` has it), elevation cosine and
+        sine)."""
+        cached = getattr(self, "_grid_rows_cache", None)
+        if cached is None:
+            if self.config.divergence:
+                dh, dv, weights = _divergence_pattern(self.config)
+            else:
+                dh, dv, weights = np.zeros(1), np.zeros(1), np.ones(1)
+            k = len(weights)
+            w_l = vlp16.ELEVATION
+            el = (w_l[:, None] + dv[None, :]).reshape(-1)
+            row_dh = (dh[None, :] / np.cos(w_l)[:, None]).reshape(-1)
+            cached = (k, weights, np.repeat(np.arange(vlp16.N_LASERS), k), row_dh, np.cos(el),
+                      np.sin(el))
+            self._grid_rows_cache = cached
+        return cached
+
+    def _plane_frames(self, origins: np.ndarray, rotation: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The scene's planes as `twin.raykernel.grid_rays` takes them, cached for the last
+        pose: the lasers' origins in each plane's frame (P, 16, 3), each plane's axes in {L}
+        (P, 3, 3; column j = axis j), half-sizes (P, 2), geom ids (P,), and the azimuths in
+        {L} each covers (P, 2: centre, half-width; pi = unbounded).
+
+        A sized plane's extent is its corners' azimuth range seen from the sensor: exact for a
+        convex polygon whose projection on the sensor's xy-plane leaves the origin outside
+        (the lasers' origins differ only along Z_L, so one extent serves all rows), widened by
+        1e-9 rad; unbounded when the sensor is over the rectangle or the plane is infinite.
         """
         caster = self.caster
-        _, d_r, spread = offsets
-        n_s = len(base)
-        ids = caster.solid_ids
+        ids = caster.plane_ids
+        xpos, xmat = caster.data.geom_xpos[ids], caster.data.geom_xmat[ids]
+        key = (origins.tobytes(), rotation.tobytes(), xpos.tobytes(), xmat.tobytes())
+        cached = getattr(self, "_plane_cache", None)
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        mats = xmat.reshape(-1, 3, 3)
+        size = np.ascontiguousarray(caster.model.geom_size[ids][:, :2])
+        # MuJoCo's ray_map: lpnt = mat^T (origin - pos), i.e. row-wise (origin - pos) @ mat.
+        lpnt = np.empty((len(ids), len(origins), 3))
+        extent = np.tile([0.0, np.pi], (len(ids), 1))
+        for p in range(len(ids)):
+            lpnt[p] = (origins - xpos[p]) @ mats[p]
+            if size[p, 0] > 0 and size[p, 1] > 0:
+                corners = np.array([xpos[p] + sx * size[p, 0] * mats[p][:, 0]
+                                    + sy * size[p, 1] * mats[p][:, 1]
+                                    for sx in (-1, 1) for sy in (-1, 1)])
+                c_l = (corners - origins[0]) @ rotation  # in {L}
+                az = np.arctan2(c_l[:, 0], c_l[:, 1])
+                centre = float(np.arctan2(np.sin(az).sum(), np.cos(az).sum()))
+                dev = float(np.abs((az - centre + np.pi) % (2 * np.pi) - np.pi).max())
+                if dev < np.pi / 2 - 1e-6:  # else the sensor sits over it: no bound
+                    extent[p] = centre, dev + 1e-9
+        out = (lpnt, np.ascontiguousarray(rotation.T @ mats), size, ids, extent)
+        self._plane_cache = (key, out)
+        return out
+
+    def _grid_candidates(self, base: np.ndarray, d_first: np.ndarray, spread: float,
+                         sin_a: np.ndarray, cos_a: np.ndarray, cw: np.ndarray, sw: np.ndarray,
+                         origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The rays that may meet a non-plane geom (inside its bounding sphere, cut down to a
+        box's angular extent), for MuJoCo: (ray index, world direction, rows, row bounds), as
+        `twin.raykernel.grid_candidates` gives them.
+
+        Row r has one origin ``origins[row_laser[r]]``, one elevation (cos ``cw[r]``, sin
+        ``sw[r]``) and azimuths ``base`` (the sequences' first firings) + the row's offset
+        (``d_first[r]`` in the first sequence, straying by at most ``spread``). A sphere seen
+        under half-angle alpha holds the directions with cw (sin a cx + cos a cy) + sw cz >=
+        cos(alpha), i.e. |a - phi| <= arccos(q): an azimuth interval per (row, geom), cached per
+        pose (`_pose_intervals`); the kernel turns them into rays, widened by the spread and
+        1e-9 rad so that the culling can only cast too much, never too little.
+        """
+        ids = self.caster.solid_ids
         if len(ids) == 0:
-            return np.zeros(0, dtype=np.intp)
-        full, row, centre0, half0 = self._pose_intervals(ids, cw, sw, origins, row_laser,
-                                                         rotation)
-        full_rows = np.flatnonzero(full)
-        if len(row) == 0:
-            return (full_rows[:, None] * n_s + np.arange(n_s)).ravel()
-        two_pi = 2.0 * np.pi
-        b_u = base  # unwrapped by the caller
-        half = half0 + spread
-        centre = centre0 - d_r[row]
-        first = np.floor((b_u[0] - centre - half) / two_pi)
-        turns = np.arange(int(np.ceil((b_u[-1] - b_u[0]) / two_pi)) + 2)[None, :]
-        shift = two_pi * (first[:, None] + turns)
-        lo = np.searchsorted(b_u, ((centre - half)[:, None] + shift).ravel(), "left")
-        hi = np.searchsorted(b_u, ((centre + half)[:, None] + shift).ravel(), "right")
-        off = np.repeat(row, turns.shape[1]) * n_s
-        # Runs [start, end) of flat indices (each within its row), the whole rows included;
-        # merged where they overlap, then expanded: sorted, each index once.
-        start = np.concatenate((lo + off, full_rows * n_s))
-        end = np.concatenate((hi + off, full_rows * n_s + n_s))
-        o = np.argsort(start, kind="stable")
-        start, end = start[o], end[o]
-        reach = np.maximum.accumulate(end)
-        new = np.ones(len(start), dtype=bool)
-        new[1:] = start[1:] > reach[:-1]
-        first_run = np.flatnonzero(new)
-        start = start[first_run]
-        end = np.maximum.reduceat(end, first_run) if len(first_run) else end[:0]
-        length = end - start
-        # Runs as one index array: arange plus each run's shift.
-        shift = np.repeat(start - (np.cumsum(length) - length), length)
-        shift += np.arange(len(shift))
-        return shift
+            return (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=np.int64),
+                    np.zeros(1, dtype=np.int64))
+        full, row, centre, half = self._pose_intervals(ids, cw[:, None], sw[:, None], origins,
+                                                       row_laser, rotation)
+        return raykernel.grid_candidates(base, full, row, centre, half, d_first, spread, sin_a,
+                                         cos_a, cw, sw, rotation)
 
     def _pose_intervals(self, ids: np.ndarray, cw: np.ndarray, sw: np.ndarray,
                         origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray
@@ -988,81 +816,76 @@ class VLP16Emulator:
         return r_echo, e_echo, refl_echo
 
     def _measure_single(self, n: int, idx: np.ndarray, r: np.ndarray, energy: np.ndarray,
-                        refl: np.ndarray, laser_id: np.ndarray,
-                        lid: np.ndarray | None = None) -> Returns:
-        """`_measure` for one echo per firing, on the hits only: firing ``idx`` (M,) returned
-        range ``r`` (M,) m with ``energy`` and apparent reflectivity ``refl`` (M,); ``lid``
-        (M,) intp: the hits' laser ids when the caller has them (else ``laser_id[idx]``)."""
+                        refl: np.ndarray, laser_id: np.ndarray) -> Returns:
+        """`_measure` for one echo per firing, from the hits only: firing ``idx`` (M,)
+        returned range ``r`` (M,) m with ``energy`` and apparent reflectivity ``refl`` (M,);
+        ``laser_id`` (N,) the firings' laser ids. A black surface (energy 0) returns
+        nothing."""
+        lit = energy > 0
+        r_f = np.full(n, np.inf)
+        refl_f = np.zeros(n)
+        energy_f = np.zeros(n)
+        r_f[idx] = r
+        refl_f[idx] = np.where(lit, refl, 0.0)
+        energy_f[idx] = energy
+        return self._measure_hits(r_f, refl_f, self._range_offsets[laser_id], energy_f)
+
+    def _measure_hits(self, r: np.ndarray, refl: np.ndarray, offsets: np.ndarray,
+                      energy: np.ndarray | None = None) -> Returns:
+        """The measurement model of N firings with one echo each, per firing (N,): true range
+        ``r`` m, apparent reflectivity ``refl`` (0: no return), range ``offsets`` (the laser's
+        offset + bias), received ``energy`` (None: refl / r^2, as for one ray per firing).
+
+        Every random number comes from ``self.rng``, in this order: the Gaussian noise of every
+        firing (`twin.raykernel.measure_firings`: one raw 64-bit word per firing for range and
+        intensity noise, half a word when only one of them is noisy), drawn whether the firing
+        returns or not; then one uniform per return whose detection is uncertain (dropouts, in
+        firing order). A firing's noise thus depends on nothing but the seed and its place in
+        the stream: `fire` and `fire_grid` give the same returns for the same seed.
+        """
         cfg = self.config
         rng = self.rng
-        # (Index arrays, not boolean masks, select below: numpy's boolean indexing is slow.)
-        lit = energy > 0  # a black surface (reflectivity 0) returns nothing
-        if lid is None:
-            lid = laser_id[idx].astype(np.intp)
-        if not lit.all():
-            sel = np.flatnonzero(lit)
-            idx, r, energy, refl, lid = idx[sel], r[sel], energy[sel], refl[sel], lid[sel]
-        lost = None
-        if cfg.dropouts and len(idx):
-            z = np.log(energy)
+        n = len(r)
+        r = np.ascontiguousarray(r, dtype=np.float64)
+        refl = np.ascontiguousarray(refl, dtype=np.float64)
+        use_inoise = cfg.intensity_model and cfg.intensity_noise_sigma > 0
+        if cfg.range_noise_sigma > 0 and use_inoise:
+            noise, n_words = raykernel.NOISE_BOTH, n
+        elif cfg.range_noise_sigma > 0:
+            noise, n_words = raykernel.NOISE_RANGE, (n + 1) // 2
+        elif use_inoise:
+            noise, n_words = raykernel.NOISE_INTENSITY, (n + 1) // 2
+        else:
+            noise, n_words = raykernel.NOISE_NONE, 0
+        words = (rng.bit_generator.random_raw(n_words) if n_words
+                 else np.zeros(0, dtype=np.uint64)).view(np.uint32)
+        if cfg.intensity_model and cfg.intensity_range_exponent:
+            # numpy's float32 pow (SIMD): the intensity is an integer count 0..255. No return's
+            # inf range is made finite first: numpy's pow takes a slow path (10x) on inf.
+            gain = r.astype(np.float32)
+            np.fmin(gain, np.float32(1e30), out=gain)
+            gain **= np.float32(-cfg.intensity_range_exponent)
+        else:
+            gain = np.ones(n, dtype=np.float32)
+        distance, intensity, rtype, near = raykernel.measure_firings(
+            r, refl, np.ascontiguousarray(offsets, dtype=np.float64), gain, words, noise,
+            float(cfg.range_noise_sigma), float(cfg.intensity_noise_sigma),
+            vlp16.DISTANCE_UNIT if cfg.quantise else 0.0, float(cfg.range_min),
+            float(cfg.range_max), bool(cfg.intensity_model), self._return_flag,
+            cfg.n_returns, self._near_energy)
+        if len(near):
+            # Detection probability Phi(z), z = (ln E - ln E_th) / s; beyond z = 8.3 it is
+            # 1 - 1e-16: no draw. (`near` is a preselection, 1 % wide; z decides.)
+            e = energy[near] if energy is not None else refl[near] / (r[near] * r[near])
+            z = np.log(e)
             z -= math.log(cfg.detection_threshold)
             z *= 1.0 / cfg.detection_softness
-            near = np.flatnonzero(z < 8.3)  # beyond: detection probability 1 - 1e-16
-            if len(near):
-                lost = near[rng.random(len(near)) >= ndtr(z[near])]
-        # One compaction for the dropouts and the range limits: the noise is drawn for every
-        # lit return (the lost ones' draws are discarded).
-        meas = (self.laser_offsets + cfg.range_bias)[lid]
-        meas += r
-        use_inoise = cfg.intensity_model and cfg.intensity_noise_sigma > 0
-        inoise = None
-        if cfg.range_noise_sigma > 0 and use_inoise:
-            rnoise, inoise = _gaussian_pair(rng, len(idx), cfg.range_noise_sigma,
-                                            cfg.intensity_noise_sigma)
-            meas += rnoise
-        elif cfg.range_noise_sigma > 0:
-            meas += _gaussian(rng, len(idx), cfg.range_noise_sigma)
-        elif use_inoise:
-            inoise = _gaussian(rng, len(idx), cfg.intensity_noise_sigma)
-        if cfg.quantise:
-            meas *= 1.0 / vlp16.DISTANCE_UNIT
-            np.rint(meas, out=meas)
-            meas *= vlp16.DISTANCE_UNIT
-        keep = meas >= cfg.range_min
-        keep &= meas <= cfg.range_max
-        if lost is not None and len(lost):
-            keep[lost] = False
-        # The few returns lost (dropouts, range limits) are cleared after the scatter below:
-        # cheaper than compacting every array.
-        gone = None if keep.all() else idx[np.flatnonzero(~keep)]
-        if cfg.intensity_model:
-            # float32: the result is an integer count 0..255.
-            level = refl.astype(np.float32)
-            level *= np.float32(100.0)
-            if cfg.intensity_range_exponent:
-                level *= r.astype(np.float32) ** np.float32(-cfg.intensity_range_exponent)
-            if inoise is not None:
-                level += inoise
-        else:
-            level = 100.0 * refl
-        np.rint(level, out=level)
-        np.clip(level, 0, 255, out=level)
-        inten = level.astype(np.uint8)
-        flags = {"strongest": [int(ReturnType.STRONGEST)], "last": [int(ReturnType.LAST)],
-                 "dual": [int(ReturnType.LAST | ReturnType.STRONGEST)] * 2}[cfg.return_mode]
-        distance = np.zeros((len(flags), n))
-        intensity = np.zeros((len(flags), n), dtype=np.uint8)
-        distance[0, idx] = meas
-        intensity[0, idx] = inten
-        if gone is not None:
-            distance[0, gone] = 0.0
-            intensity[0, gone] = 0
-        # Every kept return has a distance >= range_min > 0: its flag follows from it.
-        rtype = (distance[:1] > 0).view(np.uint8) * np.uint8(flags[0])
-        if len(flags) == 2:  # dual with a single echo: both blocks identical
-            distance[1] = distance[0]
-            intensity[1] = intensity[0]
-            rtype = np.concatenate((rtype, rtype))
+            sel = np.flatnonzero(z < 8.3)
+            if len(sel):
+                lost = near[sel[rng.random(len(sel)) >= ndtr(z[sel])]]
+                distance[:, lost] = 0.0
+                intensity[:, lost] = 0
+                rtype[:, lost] = 0
         return Returns(distance, intensity, rtype)
 
     def _measure(self, echo_r: np.ndarray, echo_e: np.ndarray, echo_refl: np.ndarray,
