@@ -222,32 +222,29 @@ def test_box_muller_noise_is_gaussian() -> None:
 
 
 def test_grid_sincos_is_exact() -> None:
-    """The kernel's sines and cosines (one transcendental pair per sequence, a series for the
-    rest) equal numpy's: on the sensor's grid with two sub-rays per firing (rows not at the
-    same offset from the base), with jitter (rows not constant), and off the grid (libm)."""
+    """The kernel's sines and cosines (a libm pair per 8 sequences, series for the rest) equal
+    numpy's: on the sensor's grid with two sub-rays per firing (rows not at the same offset
+    from the base), with jitter (rows not constant), and off the grid (libm); and the rows'
+    offsets and their spread (what the culling widens its intervals by) are right."""
     az = _grid(300)
     rng = np.random.default_rng(0)
     row_laser = np.repeat(np.arange(16), 2)
     row_dh = np.tile([0.0, 1e-3], 16)
-    no_planes = (np.zeros((0, 16, 3)), np.zeros((0, 3, 3)), np.zeros((0, 2)),
-                 np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros(0))
+    no_planes = (np.zeros((0, 32, 17)), np.zeros((0, 32, 1, 2), dtype=np.int64),
+                 np.zeros((0, 32), dtype=np.int64))
     for a in (az, az + rng.uniform(-1e-6, 1e-6, az.shape), rng.uniform(0, 2 * np.pi, az.shape)):
-        az_t = np.ascontiguousarray(a.T)
-        base = az_t[0]
-        s, c = np.empty(32 * 300), np.empty(32 * 300)
-        dist, cos_inc, gid = np.empty(32 * 300), np.empty(32 * 300), np.empty(32 * 300, np.int32)
-        d_first = np.empty(32)
-        spread = raykernel.grid_rays(az_t, row_laser, row_dh, np.ones(32), np.zeros(32),
-                                     *no_planes, 101.0, s, c, dist, gid, cos_inc, d_first)
-        rays = az_t[row_laser] + row_dh[:, None]  # row-major, as the kernel lays them out
+        base, d_first, spread = raykernel.grid_prepare(a, row_laser, row_dh)
+        s, c, dist, cos_inc = (np.empty(32 * 300) for _ in range(4))
+        gid = np.empty(32 * 300, np.int32)
+        raykernel.grid_rays(a, row_laser, row_dh, *no_planes, 101.0, s, c, dist, cos_inc, gid)
+        rays = a.T[row_laser] + row_dh[:, None]  # row-major, as the kernel lays them out
         np.testing.assert_allclose(s, np.sin(rays).reshape(-1), rtol=0, atol=2e-15)
         np.testing.assert_allclose(c, np.cos(rays).reshape(-1), rtol=0, atol=2e-15)
         assert np.all(np.isinf(dist)) and np.all(gid == -1)  # no planes: no hits
-        # The rows' offsets, and a bound of their spread (what the culling widens by).
+        np.testing.assert_array_equal(base, a[:, 0])
         d = (rays - base + np.pi) % (2 * np.pi) - np.pi
         np.testing.assert_allclose(d_first, d[:, 0], rtol=0, atol=1e-12)
-        true_spread = np.abs(d - d[:, :1]).max()
-        assert true_spread <= spread <= max(true_spread, raykernel.SPREAD_BOUND)
+        assert spread == pytest.approx(np.abs(d - d[:, :1]).max(), abs=1e-12)
 
 
 def test_intensity_follows_reflectivity_and_incidence() -> None:

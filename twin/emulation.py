@@ -35,6 +35,8 @@ from twin import raykernel, vlp16
 from twin.scan import ReturnType
 
 ReturnMode = Literal["strongest", "last", "dual"]
+_COS_EL = np.cos(vlp16.ELEVATION)
+_SIN_EL = np.sin(vlp16.ELEVATION)
 
 #: Geom group the emulator casts against (models/common.xml: 0 = reachable surfaces).
 RAY_GEOM_GROUP = 0
@@ -317,9 +319,11 @@ class Returns:
     distance: np.ndarray
     intensity: np.ndarray
     return_type: np.ndarray
-    #: sin and cos of each firing's azimuth (N,), when the emulator had them anyway.
-    sin_azimuth: np.ndarray | None = None
-    cos_azimuth: np.ndarray | None = None
+    #: The returns' positions in {L} (R, N) m, 0 where none, as `twin.scan.points_from_polar`
+    #: gives them, when the emulator had what they need anyway (`VLP16Emulator.fire_grid`).
+    x: np.ndarray | None = None
+    y: np.ndarray | None = None
+    z: np.ndarray | None = None
 
 
 def sensor_directions(azimuth: np.ndarray, laser_id: np.ndarray) -> np.ndarray:
@@ -366,7 +370,7 @@ def _gaussian_pair(rng: np.random.Generator, n: int, sigma_a: float, sigma_b: fl
     words = rng.bit_generator.random_raw(n).view(np.uint32)
     a = np.empty(n, dtype=np.float32)
     b = np.empty(n, dtype=np.float32)
-    raykernel.box_muller(words, float(sigma_a), float(sigma_b), a, b)
+    raykernel.box_muller(words[:n], words[n:], float(sigma_a), float(sigma_b), a, b)
     return a, b
 
 
@@ -399,6 +403,15 @@ class VLP16Emulator:
                              "last": int(ReturnType.LAST),
                              "dual": int(ReturnType.LAST | ReturnType.STRONGEST)
                              }[config.return_mode]
+        #: The intensity's residual range exponent (0: none, also without the model).
+        self._exponent = (float(config.intensity_range_exponent) if config.intensity_model
+                          else 0.0)
+        #: `twin.raykernel.measure_firings`' model parameters: unit (0: no rounding), range
+        #: limits, intensity model, return flag, return slots.
+        self._model_args = (vlp16.DISTANCE_UNIT if config.quantise else 0.0,
+                            float(config.range_min), float(config.range_max),
+                            bool(config.intensity_model), self._return_flag,
+                            config.n_returns, self._near_energy)
         #: Weight 1 per geom (`twin.raykernel.grid_rays` then gives plain cosines).
         self._unit_weights = np.ones(len(self.reflectivity))
         #: Each laser's origin offset along Z_L, m (16,).
@@ -406,14 +419,17 @@ class VLP16Emulator:
                                   else np.zeros(vlp16.N_LASERS))
         self._interval_cache: tuple | None = None
 
-    def _grid_offsets(self, n_seq: int) -> np.ndarray:
-        """Each firing's range offset (laser offset + bias) over ``n_seq`` whole sequences,
-        firing order (cached; read-only)."""
-        cached = getattr(self, "_grid_offset_cache", None)
-        if cached is None or len(cached) != n_seq * vlp16.N_LASERS:
-            cached = np.tile(self._range_offsets, n_seq)
-            cached.flags.writeable = False
-            self._grid_offset_cache = cached
+    def _grid_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per-laser constants for every firing of a block of whole sequences
+        (`twin.raykernel.BLOCK_FIRINGS`, firing order; the kernels read them in step with the
+        firings): range offset (laser offset + bias), elevation cosine and sine, origin offset
+        along Z_L. Cached."""
+        cached = getattr(self, "_grid_table_cache", None)
+        if cached is None:
+            reps = raykernel.BLOCK_FIRINGS // vlp16.N_LASERS
+            cached = tuple(np.tile(v, reps) for v in (self._range_offsets, _COS_EL, _SIN_EL,
+                                                        self._vertical_offsets))
+            self._grid_table_cache = cached
         return cached
 
     def _laser_ids(self, n_seq: int) -> np.ndarray:
@@ -527,12 +543,13 @@ class VLP16Emulator:
         and cosines.
 
         The compiled kernels of `twin.raykernel` work on rows (laser, sub-ray) of rays that
-        share one origin and one elevation: every ray's azimuth sine and cosine and its nearest
-        plane (floor, wall) by MuJoCo's ray/plane rule in one loop per row (`grid_rays`); the
-        rays that may meet a solid (the culling, exact: `_grid_candidates`) go through
-        `mj_multiRay`, whose results replace the planes'. One ray per firing: the returns, in
-        firing order, go through the compiled measurement model (`_measure_hits`) straight
-        into the outputs; with divergence the sub-ray hits form echoes (`_from_hits`).
+        share one origin and one elevation. First the rays that may meet a solid (the culling,
+        exact: `_grid_candidates`) go through `mj_multiRay`. Then, with one ray per firing,
+        one pass (`twin.raykernel.grid_pass`) does the rest block by block: every ray's azimuth
+        sine and cosine and nearest plane (floor, wall) by MuJoCo's ray/plane rule, MuJoCo's
+        results over the planes' for the cast rays, the measurement model (the same as
+        `fire`'s, `_measure_hits`) and the points. With divergence the sub-rays are traced
+        (`twin.raykernel.grid_rays`) and their hits form echoes (`_from_hits`).
         """
         cfg = self.config
         n_seq = azimuth.shape[0]
@@ -542,50 +559,54 @@ class VLP16Emulator:
         n = n_seq * n_l
         if n_seq == 0:
             empty = self._measure_hits(np.zeros(0), np.zeros(0), np.zeros(0))
-            empty.sin_azimuth, empty.cos_azimuth = np.zeros(0), np.zeros(0)
+            empty.x, empty.y, empty.z = (np.zeros((cfg.n_returns, 0)) for _ in range(3))
             return empty
-        # Rays row-major (row * S + s): a row's rays share every per-row constant, so the
-        # kernels' loops over them vectorise.
-        az_t = np.ascontiguousarray(azimuth.T, dtype=np.float64)
-        base = az_t[0]
+        azimuth = np.ascontiguousarray(azimuth, dtype=np.float64)
+        base, d_first, spread = raykernel.grid_prepare(azimuth, row_laser, row_dh)
         origins = position + np.outer(self._vertical_offsets, rotation[:, 2])  # (16, 3)
         caster = self.caster
-        sa, ca = np.empty(n * k), np.empty(n * k)
-        dist, cos_inc = np.empty(n * k), np.empty(n * k)
-        gid = np.empty(n * k, dtype=np.int32)
-        d_first = np.empty(n_rows)
         lpnt, axes, size, geom, extent = self._plane_frames(origins, rotation)
-        # One ray per firing: cos_inc carries reflectivity x cos(incidence) straight away (the
-        # measurement needs nothing else); with sub-rays the echoes need the geoms apart.
+        # One ray per firing: the cosines of incidence carry the reflectivity straight away
+        # (the measurement needs nothing else); with sub-rays the echoes need the geoms apart.
         weights_g = self.reflectivity if k == 1 else self._unit_weights
-        spread = raykernel.grid_rays(az_t, row_laser, row_dh, cw, sw, lpnt, axes, size, geom,
-                                     extent, weights_g[geom], caster.cutoff, sa, ca, dist, gid,
-                                     cos_inc, d_first)
+        planes = raykernel.plane_rows(cw, sw, row_laser, lpnt, axes, size, geom, extent,
+                                      weights_g[geom], base, d_first, spread)
         if cfg.culling:
-            idx, dirs, rows, bounds = self._grid_candidates(base, d_first, spread, sa, ca, cw,
-                                                            sw, origins, row_laser, rotation)
+            idx, dirs, rows, bounds = self._grid_candidates(base, d_first, spread, azimuth,
+                                                            row_laser, row_dh, cw, sw, origins,
+                                                            rotation)
         else:  # every ray through MuJoCo, one call per row
             idx, dirs, rows, bounds = raykernel.grid_candidates(
                 base, np.ones(n_rows, dtype=np.bool_), np.zeros(0, dtype=np.int64),
-                np.zeros(0), np.zeros(0), d_first, spread, sa, ca, cw, sw, rotation)
-        if len(idx):
-            d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
-            raykernel.scatter_cast(idx, d_c, g_c, n_c, dirs, weights_g, caster.cutoff, dist,
-                                   gid, cos_inc)
+                np.zeros(0), np.zeros(0), d_first, spread, azimuth, row_laser, row_dh, cw, sw,
+                rotation)
+        d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
+        offsets, cos_el, sin_el, vertical = self._grid_tables()
         if k == 1:
-            r_f, rc_f, sin_f, cos_f = raykernel.lasers_to_firings(dist, cos_inc, sa, ca)
-            out = self._measure_hits(r_f, rc_f, self._grid_offsets(n_seq))
-            out.sin_azimuth, out.cos_azimuth = sin_f, cos_f
+            words, sigma_r, sigma_i = self._noise_words(n)
+            *returns, near, near_energy = raykernel.grid_pass(
+                azimuth, *planes, caster.cutoff, idx, rows, bounds, d_c, g_c, n_c, dirs,
+                self.reflectivity, words, sigma_r, sigma_i, self._exponent, offsets, cos_el,
+                sin_el, vertical, *self._model_args)
+            out = Returns(*returns)
+            self._dropouts(out, near, near_energy)
             return out
+        sa, ca, dist, cos_inc = (np.empty(n * k) for _ in range(4))
+        gid = np.empty(n * k, dtype=np.int32)
+        raykernel.grid_rays(azimuth, row_laser, row_dh, *planes, caster.cutoff, sa, ca, dist,
+                            cos_inc, gid)
+        raykernel.scatter_cast(idx, d_c, g_c, n_c, dirs, weights_g, caster.cutoff, dist,
+                               cos_inc, gid)
 
         def firing_major(a: np.ndarray) -> np.ndarray:  # rows (laser, k) x S -> (N, K)
             return a.reshape(n_l, k, n_seq).transpose(2, 0, 1).reshape(n, k)
 
         out = self._from_hits(firing_major(dist), firing_major(gid), firing_major(cos_inc),
                               weights, self._laser_ids(n_seq))
-        # Sub-ray 0 is the beam's centre (no offset): its sines and cosines are the firings'.
-        out.sin_azimuth = firing_major(sa)[:, 0].copy()
-        out.cos_azimuth = firing_major(ca)[:, 0].copy()
+        # The points, with sub-ray 0's sines and cosines: the beam's centre, the firing's own.
+        out.x, out.y, out.z = raykernel.firing_points(
+            out.distance, np.ascontiguousarray(firing_major(sa)[:, 0]),
+            np.ascontiguousarray(firing_major(ca)[:, 0]), cos_el, sin_el, vertical)
         return out
 
     def _grid_rows(self) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
@@ -650,8 +671,9 @@ class VLP16Emulator:
         return out
 
     def _grid_candidates(self, base: np.ndarray, d_first: np.ndarray, spread: float,
-                         sin_a: np.ndarray, cos_a: np.ndarray, cw: np.ndarray, sw: np.ndarray,
-                         origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray
+                         azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray,
+                         cw: np.ndarray, sw: np.ndarray, origins: np.ndarray,
+                         rotation: np.ndarray
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The rays that may meet a non-plane geom (inside its bounding sphere, cut down to a
         box's angular extent), for MuJoCo: (ray index, world direction, rows, row bounds), as
@@ -671,8 +693,8 @@ class VLP16Emulator:
                     np.zeros(1, dtype=np.int64))
         full, row, centre, half = self._pose_intervals(ids, cw[:, None], sw[:, None], origins,
                                                        row_laser, rotation)
-        return raykernel.grid_candidates(base, full, row, centre, half, d_first, spread, sin_a,
-                                         cos_a, cw, sw, rotation)
+        return raykernel.grid_candidates(base, full, row, centre, half, d_first, spread,
+                                         azimuth, row_laser, row_dh, cw, sw, rotation)
 
     def _pose_intervals(self, ids: np.ndarray, cw: np.ndarray, sw: np.ndarray,
                         origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray
@@ -835,58 +857,51 @@ class VLP16Emulator:
         """The measurement model of N firings with one echo each, per firing (N,): true range
         ``r`` m, apparent reflectivity ``refl`` (0: no return), range ``offsets`` (the laser's
         offset + bias), received ``energy`` (None: refl / r^2, as for one ray per firing).
+        The model itself is `twin.raykernel.measure_firings`; the randomness
+        `_noise_words` and `_dropouts`."""
+        words, sigma_r, sigma_i = self._noise_words(len(r))
+        distance, intensity, rtype, near, near_energy = raykernel.measure_firings(
+            np.ascontiguousarray(r, dtype=np.float64), np.ascontiguousarray(refl, dtype=np.float64),
+            np.ascontiguousarray(offsets, dtype=np.float64), words, sigma_r, sigma_i,
+            self._exponent, *self._model_args)
+        out = Returns(distance, intensity, rtype)
+        self._dropouts(out, near, energy[near] if energy is not None else near_energy)
+        return out
+
+    def _noise_words(self, n: int) -> tuple[np.ndarray, float, float]:
+        """The raw random words of N firings' noise, and the range and intensity sigmas.
 
         Every random number comes from ``self.rng``, in this order: the Gaussian noise of every
-        firing (`twin.raykernel.measure_firings`: one raw 64-bit word per firing for range and
-        intensity noise, half a word when only one of them is noisy), drawn whether the firing
-        returns or not; then one uniform per return whose detection is uncertain (dropouts, in
-        firing order). A firing's noise thus depends on nothing but the seed and its place in
-        the stream: `fire` and `fire_grid` give the same returns for the same seed.
+        firing (one raw 64-bit word, two 32-bit uniforms, per firing: range and intensity noise
+        from one Box-Muller pair), drawn whether the firing returns or not; then (`_dropouts`)
+        one uniform per return whose detection is uncertain, in firing order. A firing's noise
+        thus depends on nothing but the seed and its place in the stream: `fire` and
+        `fire_grid` give the same returns for the same seed. No noise at all: no words.
         """
         cfg = self.config
-        rng = self.rng
-        n = len(r)
-        r = np.ascontiguousarray(r, dtype=np.float64)
-        refl = np.ascontiguousarray(refl, dtype=np.float64)
-        use_inoise = cfg.intensity_model and cfg.intensity_noise_sigma > 0
-        if cfg.range_noise_sigma > 0 and use_inoise:
-            noise, n_words = raykernel.NOISE_BOTH, n
-        elif cfg.range_noise_sigma > 0:
-            noise, n_words = raykernel.NOISE_RANGE, (n + 1) // 2
-        elif use_inoise:
-            noise, n_words = raykernel.NOISE_INTENSITY, (n + 1) // 2
-        else:
-            noise, n_words = raykernel.NOISE_NONE, 0
-        words = (rng.bit_generator.random_raw(n_words) if n_words
-                 else np.zeros(0, dtype=np.uint64)).view(np.uint32)
-        if cfg.intensity_model and cfg.intensity_range_exponent:
-            # numpy's float32 pow (SIMD): the intensity is an integer count 0..255. No return's
-            # inf range is made finite first: numpy's pow takes a slow path (10x) on inf.
-            gain = r.astype(np.float32)
-            np.fmin(gain, np.float32(1e30), out=gain)
-            gain **= np.float32(-cfg.intensity_range_exponent)
-        else:
-            gain = np.ones(n, dtype=np.float32)
-        distance, intensity, rtype, near = raykernel.measure_firings(
-            r, refl, np.ascontiguousarray(offsets, dtype=np.float64), gain, words, noise,
-            float(cfg.range_noise_sigma), float(cfg.intensity_noise_sigma),
-            vlp16.DISTANCE_UNIT if cfg.quantise else 0.0, float(cfg.range_min),
-            float(cfg.range_max), bool(cfg.intensity_model), self._return_flag,
-            cfg.n_returns, self._near_energy)
-        if len(near):
-            # Detection probability Phi(z), z = (ln E - ln E_th) / s; beyond z = 8.3 it is
-            # 1 - 1e-16: no draw. (`near` is a preselection, 1 % wide; z decides.)
-            e = energy[near] if energy is not None else refl[near] / (r[near] * r[near])
-            z = np.log(e)
-            z -= math.log(cfg.detection_threshold)
-            z *= 1.0 / cfg.detection_softness
-            sel = np.flatnonzero(z < 8.3)
-            if len(sel):
-                lost = near[sel[rng.random(len(sel)) >= ndtr(z[sel])]]
-                distance[:, lost] = 0.0
-                intensity[:, lost] = 0
-                rtype[:, lost] = 0
-        return Returns(distance, intensity, rtype)
+        sigma_r = float(cfg.range_noise_sigma)
+        sigma_i = float(cfg.intensity_noise_sigma) if cfg.intensity_model else 0.0
+        if sigma_r <= 0 and sigma_i <= 0:
+            return np.zeros(0, dtype=np.uint32), 0.0, 0.0
+        return self.rng.bit_generator.random_raw(n).view(np.uint32), sigma_r, sigma_i
+
+    def _dropouts(self, out: Returns, near: np.ndarray, near_energy: np.ndarray) -> None:
+        """Drop returns near the detection threshold, in place: detection probability Phi(z),
+        z = (ln E - ln E_th) / s for the returns ``near`` (ascending) with energy
+        ``near_energy`` (a preselection: beyond z = 8.3 the probability is 1 - 1e-16 and no
+        uniform is drawn). One uniform per candidate, in firing order."""
+        cfg = self.config
+        if not (cfg.dropouts and len(near)):
+            return
+        z = np.log(near_energy)
+        z -= math.log(cfg.detection_threshold)
+        z *= 1.0 / cfg.detection_softness
+        sel = np.flatnonzero(z < 8.3)
+        if len(sel):
+            lost = near[sel[self.rng.random(len(sel)) >= ndtr(z[sel])]]
+            for a in (out.distance, out.intensity, out.return_type, out.x, out.y, out.z):
+                if a is not None:
+                    a[:, lost] = 0
 
     def _measure(self, echo_r: np.ndarray, echo_e: np.ndarray, echo_refl: np.ndarray,
                  laser_id: np.ndarray) -> Returns:

@@ -3,16 +3,19 @@
 `twin.emulation.VLP16Emulator.fire_grid` emulates whole firing grids (28,800 firings a rotation).
 As numpy, every step (the azimuths' sines and cosines, MuJoCo's ray/plane rule for the floor
 and the wall, the culling's index runs, the measurement model on about 16,600 returns) was a
-handful of full-size passes with temporaries and a Python call each; here each is one loop.
-MuJoCo itself still casts every ray that may meet a solid (`mujoco.mj_multiRay`, from Python);
-these kernels do everything else.
+handful of full-size passes with temporaries and a Python call each. Here, with one ray per
+firing, everything but MuJoCo is one pass over the grid (`grid_pass`) in blocks of
+`BLOCK_SEQUENCES` sequences, each block's intermediate arrays small enough to stay in the CPU's
+caches: the rays' sines and cosines and their nearest plane, MuJoCo's results for the block's
+cast rays, firing order, the measurement model, the points. MuJoCo itself still casts every ray
+that may meet a solid (`mujoco.mj_multiRay`, from Python, before the pass: `grid_prepare`,
+`grid_candidates`).
 
-Ray layout: rays are row-major, ray ``i = row * S + s`` for sequence ``s`` of ``S``, row
-``laser * K + k`` for sub-ray ``k`` of ``K`` (1 without divergence). A row's rays share one
-origin (the laser's), one elevation and one azimuth offset, so the loops over a row hoist every
-per-row constant and LLVM vectorises them (loops over firing order, 16 rays at a time, do not
-vectorise: too short, too many arrays). The returns come out in firing order (``s * 16 +
-laser``), which is also the order in which they consume random numbers.
+Layouts. Rays come in rows: row ``laser * K + k`` for sub-ray ``k`` of ``K`` (1 without
+divergence); a row's rays share one origin (the laser's), one elevation and one azimuth offset,
+so the loops over a row hoist every per-row constant. Within a block (or, with divergence, the
+whole grid: `grid_rays`) rays are row-major; the returns come out in firing order
+(``s * 16 + laser``), which is also the order in which they consume random numbers.
 
 What the kernels keep from MuJoCo, exactly (tests/test_emulation.py checks ray for ray against
 brute-force `mj_multiRay`):
@@ -23,22 +26,25 @@ brute-force `mj_multiRay`):
 * hits beyond the caster's cutoff are no return (as `twin.emulation.RayCaster` treats MuJoCo's).
 
 Float32 transcendentals (Box-Muller's log, sine and cosine; the intensity's r^-exponent) are
-this module's own vectorisable polynomials (Cephes' single-precision ones), since numba calls
-libm one value at a time (about 15 ns each on the development machine, numpy's SIMD loops
-about 1 ns): within 2 float32 ulp, tests/test_emulation.py checks them over every possible
-uniform and over the ranges' span.
+this module's own vectorisable polynomials (Cephes' single-precision ones): numba calls libm
+one value at a time (about 15 ns each on the development machine, against about 1 ns for a
+vectorised polynomial). tests/test_emulation.py checks them against float64 numpy.
+
+Why the loops look as they do (each was measured on the development machine; the differences
+are 3x to 10x): LLVM vectorises a loop only if it has no branches (selects instead), no float
+reductions, no gathers through an index array, no load after a store in the same iteration
+(loads first, stores last), few arrays (it checks at run time that the arrays a loop writes do
+not overlap the others it touches, and gives up beyond about eight such checks: hence one or
+two arrays written per loop), and indices it can prove are not negative (numba wraps negative
+indices; views indexed from 0 avoid that). Rounding is `numpy.rint` (LLVM's rint), not
+``round()`` (which converts to an integer and back). In-place calls (the same array in and out)
+fall back to scalar code: the transcendental helpers take distinct buffers.
 
 Every kernel is compiled on first use and cached next to this file (``cache=True``: numba
 writes ``__pycache__/raykernel.*.nbi``/``.nbc``; if that directory is not writable numba
 compiles again in each process, silently). ``error_model="numpy"``: a float division by zero
 gives inf/nan as in numpy (the plane rule divides by directions parallel to a plane and then
 rejects the result) instead of raising, which also keeps the loops free of checks.
-
-Why the loops look as they do (each was measured; the difference is 3x to 10x): LLVM
-vectorises a loop only if it has no branches (selects instead), no float reductions, no
-gathers through an index array, and no load after a store in the same iteration (every load
-comes first, every store last; the arrays may alias as far as LLVM knows); and rounding is
-`numpy.rint` (LLVM's rint), not ``round()`` (which converts to an integer and back).
 
 Randomness never comes from here: the callers draw every random word from the emulator's
 `numpy.random.Generator` and pass them in, so a seed gives the same run bit for bit.
@@ -57,14 +63,17 @@ N_LASERS = 16
 MJMINVAL = 1e-15
 _TWO_PI = 2.0 * math.pi
 _INV_TWO_PI = 1.0 / _TWO_PI
-#: Largest offset (rad) of a ray's azimuth from its sequence's first azimuth for which
-#: `grid_rays` uses its series; farther rays get libm's sin and cos. On the sensor's grid the
-#: offsets are < 5 mrad (16 lasers in 35 us at up to 1200 rpm) plus < 2 mrad of divergence.
+#: Largest offset (rad) of a ray's azimuth from its sequence's first azimuth for which the
+#: kernels use their series for sin and cos; farther rays get libm's. On the sensor's grid
+#: the offsets are < 5 mrad (16 lasers in 35 us at up to 1200 rpm) plus < 2 mrad of divergence.
 SMALL_OFFSET = 0.02
-#: The culling widens its azimuth intervals by at least this much (rad) for the spread of the
-#: rows' offsets (`grid_rays`): 1e-4 rad covers rotations up to ~14 rpm apart in one grid at
-#: 600 rpm and costs about three extra MuJoCo rays a rotation.
-SPREAD_BOUND = 1e-4
+#: Sequences per block of `grid_pass`: 1024 firings, whose arrays stay in the L1/L2 caches.
+BLOCK_SEQUENCES = 64
+#: Firings per block of `measure_firings`.
+BLOCK_FIRINGS = BLOCK_SEQUENCES * N_LASERS
+#: Per-row plane constants (`plane_rows`): direction coefficients (9), origin (3), half-sizes
+#: (2), weight; then the geom id and the live flag as floats.
+_K_WEIGHT, _K_GEOM, _K_LIVE, _N_K = 14, 15, 16, 17
 
 
 # --------------------------------------------------------------------------------------------
@@ -81,6 +90,12 @@ def ray_plane(lp0: float, lp1: float, lp2: float, lv0: float, lv1: float, lv2: f
     ok &= (size0 <= 0.0) | (abs(lp0 + x * lv0) <= size0)
     ok &= (size1 <= 0.0) | (abs(lp1 + x * lv1) <= size1)
     return x if ok else -1.0
+
+
+@njit(inline="always", error_model="numpy")
+def _wrap(d: float) -> float:
+    """``d`` rad into [-pi, pi] (unchanged within it)."""
+    return d - np.rint(d * _INV_TWO_PI) * _TWO_PI
 
 
 @njit(cache=True, error_model="numpy")
@@ -124,23 +139,127 @@ def _column_ranges(b_u: np.ndarray, centre: float, half: float, out: np.ndarray)
 
 
 @njit(cache=True, error_model="numpy")
-def base_sincos(base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """sin and cos of ``base`` (S,), each sequence's first azimuth, to machine precision: libm
-    for every 8th (the anchors), a rotation by the Taylor series of the offset d from the
-    anchor for the rest (|d| < 7 sequences < 0.05 rad up to 1200 rpm: terms to d^9 / d^10,
-    the first omitted below 1e-22); libm itself where |d| > 0.06 (not a firing grid). A
-    quarter of the libm calls of doing them all (libm costs ~15 ns a call; numpy's loop no
-    less for 1800 values)."""
+def grid_prepare(azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, float]:
+    """What the culling needs of a grid before any ray is traced: (each sequence's first
+    azimuth (S,), each row's azimuth offset d from it in the first sequence (R,), and how far
+    a row's d strays from that over the grid, rad).
+
+    ``azimuth`` (S, 16) rad; row r is laser ``row_laser[r]`` shifted by ``row_dh[r]``. A row's
+    d is wrap(azimuth[s, laser] + dh - azimuth[s, 0]); its deviation is the laser's own
+    (dh cancels) as long as no d comes near +-pi, which holds on any firing grid (|d| <
+    `SMALL_OFFSET`); otherwise it is computed row by row.
+    """
+    n_seq = azimuth.shape[0]
+    n_rows = row_laser.shape[0]
+    base = np.ascontiguousarray(azimuth[:, 0])
+    d_first = np.empty(n_rows)
+    for r in range(n_rows):
+        d_first[r] = _wrap(azimuth[0, row_laser[r]] + row_dh[r] - azimuth[0, 0])
+    e0 = np.empty(N_LASERS)
+    lo = np.empty(N_LASERS)
+    hi = np.empty(N_LASERS)
+    for lsr in range(N_LASERS):
+        e0[lsr] = _wrap(azimuth[0, lsr] - azimuth[0, 0])
+        lo[lsr] = e0[lsr]
+        hi[lsr] = e0[lsr]
+    for s in range(n_seq):
+        b = azimuth[s, 0]
+        for lsr in range(N_LASERS):  # (a fixed 16, elementwise: vectorised across lasers)
+            e = _wrap(azimuth[s, lsr] - b)
+            lo[lsr] = min(lo[lsr], e)
+            hi[lsr] = max(hi[lsr], e)
+    dh_max = 0.0
+    for r in range(n_rows):
+        dh_max = max(dh_max, abs(row_dh[r]))
+    spread = 0.0
+    if max(-lo.min(), hi.max()) + dh_max < SMALL_OFFSET:
+        for lsr in range(N_LASERS):
+            spread = max(spread, hi[lsr] - e0[lsr], e0[lsr] - lo[lsr])
+    else:  # not a firing grid
+        for r in range(n_rows):
+            lsr = row_laser[r]
+            for s in range(n_seq):
+                d = _wrap(azimuth[s, lsr] + row_dh[r] - azimuth[s, 0])
+                spread = max(spread, abs(d - d_first[r]))
+    return base, d_first, spread
+
+
+@njit(cache=True, error_model="numpy")
+def plane_rows(cw: np.ndarray, sw: np.ndarray, row_laser: np.ndarray, lpnt: np.ndarray,
+               axes: np.ndarray, size: np.ndarray, geom: np.ndarray, extent: np.ndarray,
+               weight: np.ndarray, base: np.ndarray, d_first: np.ndarray, spread: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per (plane, row), what the plane rule needs (P planes in geom-id order, R rows): the
+    constants (P, R, `_N_K`) and the column ranges (P, R, T, 2) with their count (P, R).
+
+    Per plane p: ``lpnt[p]`` (16, 3) the lasers' origins in the plane's frame, ``axes[p]``
+    (3, 3) the plane's axes in {L} (column j = axis j), ``size[p]`` its half-sizes, ``geom[p]``
+    its geom id, ``extent[p]`` (centre, half-width) the azimuths in {L} its rectangle covers
+    (half-width >= pi: unbounded), ``weight[p]`` what the cosine of incidence is multiplied by
+    (e.g. the reflectivity). Row r (laser ``row_laser[r]``) has elevation cosine and sine
+    ``cw[r]``/``sw[r]``. A plane is live for a row only if some azimuth heads into its front
+    face from in front of it; its columns are those whose azimuths can fall within its extent,
+    widened by the row's offset ``d_first[r]``, the ``spread`` and 1e-9 rad (``base``: each
+    sequence's first azimuth). For every other ray MuJoCo's rule is a miss anyway.
+    """
+    n_p = geom.shape[0]
+    n_rows = row_laser.shape[0]
+    n_seq = base.shape[0]
+    b_u = unwrap(base)
+    n_turns = math.ceil((b_u[n_seq - 1] - b_u[0]) * _INV_TWO_PI) + 2
+    k = np.zeros((n_p, n_rows, _N_K))
+    ranges = np.zeros((n_p, n_rows, n_turns, 2), dtype=np.int64)
+    n_ranges = np.zeros((n_p, n_rows), dtype=np.int64)
+    for p in range(n_p):
+        m = axes[p]
+        nz_xy = math.hypot(m[0, 2], m[1, 2])  # best case of a direction's plane-frame z
+        for r in range(n_rows):
+            lsr = row_laser[r]
+            c = cw[r]
+            w = sw[r]
+            if not ((w * m[2, 2] - c * nz_xy < -MJMINVAL) and lpnt[p, lsr, 2] >= 0.0):
+                continue  # never into the front face, or from behind it
+            kr = k[p, r]
+            for j in range(3):  # direction in the plane's frame: sin a A + cos a B + C
+                kr[j] = c * m[0, j]
+                kr[3 + j] = c * m[1, j]
+                kr[6 + j] = w * m[2, j]
+                kr[9 + j] = lpnt[p, lsr, j]
+            kr[12] = size[p, 0]
+            kr[13] = size[p, 1]
+            kr[_K_WEIGHT] = weight[p]
+            kr[_K_GEOM] = geom[p]
+            kr[_K_LIVE] = 1.0
+            n_ranges[p, r] = _column_ranges(b_u, extent[p, 0] - d_first[r],
+                                            extent[p, 1] + spread + 1e-9, ranges[p, r])
+    return k, ranges, n_ranges
+
+
+@njit(inline="always", error_model="numpy")
+def _sincos_series(sb: float, cb: float, d: float) -> tuple[float, float]:
+    """sin and cos of b + d from sin b, cos b and |d| < `SMALL_OFFSET` (Taylor series of sin d
+    and cos d: the first omitted terms are below 3e-16)."""
+    d2 = d * d
+    sd = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0)))
+    cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 * (1.0 / 720.0)))
+    return sb * cd + cb * sd, cb * cd - sb * sd
+
+
+@njit(cache=True, error_model="numpy")
+def base_sincos(base: np.ndarray, sb: np.ndarray, cb: np.ndarray) -> None:
+    """sin and cos of ``base`` (S,) into ``sb``/``cb``, to machine precision: libm for every
+    8th value (the anchors), a rotation by the Taylor series of the offset d from the anchor
+    for the rest (|d| < 7 sequences < 0.05 rad up to 1200 rpm: terms to d^9 / d^10, the first
+    omitted below 1e-22), libm itself where |d| > 0.06 (not a firing grid). A quarter of the
+    libm calls (~15 ns each)."""
     n = base.shape[0]
-    sb = np.empty(n)
-    cb = np.empty(n)
     for s0 in range(0, n, 8):
         a = base[s0]
         sa = math.sin(a)
         ca = math.cos(a)
         for s in range(s0, min(n, s0 + 8)):
-            d = base[s] - a
-            d -= np.rint(d * _INV_TWO_PI) * _TWO_PI
+            d = _wrap(base[s] - a)
             if abs(d) > 0.06:
                 sb[s] = math.sin(base[s])
                 cb[s] = math.cos(base[s])
@@ -151,140 +270,111 @@ def base_sincos(base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                 1.0 - d2 / 56.0 * (1.0 - d2 / 90.0))))
             sb[s] = sa * cd + ca * sd
             cb[s] = ca * cd - sa * sd
-    return sb, cb
+    return None
 
 
-@njit(cache=True, error_model="numpy")
-def grid_rays(az_t: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray, cw: np.ndarray,
-              sw: np.ndarray, lpnt: np.ndarray, axes: np.ndarray, size: np.ndarray,
-              geom: np.ndarray, extent: np.ndarray, weight: np.ndarray, cutoff: float,
-              sin_a: np.ndarray, cos_a: np.ndarray, dist: np.ndarray, gid: np.ndarray,
-              cos_inc: np.ndarray, d_first: np.ndarray) -> float:
-    """Every ray of a grid: its azimuth's sine and cosine, and its nearest plane.
-
-    Rays: row r (laser ``row_laser[r]``, azimuth offset ``row_dh[r]`` rad, elevation cosine
-    and sine ``cw[r]``/``sw[r]``), sequence s: azimuth ``az_t[laser, s] + row_dh[r]``
-    (``az_t``: the firings' azimuths, (16, S)), direction in {L} (cw sin a, cw cos a, sw).
-    Outputs are row-major (module docstring).
-
-    Sine and cosine to machine precision from one libm pair per 8 sequences
-    (`base_sincos`): each sequence's first azimuth b = ``az_t[0, s]``; a ray's azimuth is
-    b + d with d wrapped to [-pi, pi]: sin(b + d) = sin b cos d + cos b sin d, with sin d
-    and cos d by their Taylor series (|d| < `SMALL_OFFSET`: the first omitted terms are below
-    3e-16); rays farther off (not a firing grid) get libm's. Writes ``sin_a``/``cos_a`` and
-    ``d_first`` (R,): each row's d in the first sequence.
-
-    Planes, by `ray_plane`, in geom-id order (the first wins a tie, as in ``mj_ray``): per
-    plane p, ``lpnt[p]`` (16, 3) the lasers' origins in the plane's frame, ``axes[p]`` (3, 3)
-    the plane's axes in {L} (column j = axis j), ``size[p]`` its half-sizes, ``geom[p]`` its
-    geom id, ``extent[p]`` (centre, half-width) the azimuths in {L} its rectangle covers
-    (half-width >= pi: unbounded). A plane is only tried on the rows that can head into its
-    front face from in front of it, and on the columns whose azimuths can fall within its
-    extent (widened by the rows' offsets, their spread and 1e-9 rad): for every other ray
-    MuJoCo's rule is a miss anyway. Writes ``dist`` (inf if no plane is hit within
-    ``cutoff``), ``gid`` (-1 if none), ``cos_inc`` (cosine of incidence times the plane's
-    ``weight[p]``, e.g. its reflectivity; 0 if none).
-
-    Returns a bound on how far a row's d strays from its ``d_first`` (rad), which the culling
-    widens its intervals by (`grid_candidates`): `SPREAD_BOUND` when every ray is within it,
-    else the exact largest deviation.
-    """
-    n_seq = az_t.shape[1]
-    n_rows = row_laser.shape[0]
-    base_sin, base_cos = base_sincos(az_t[0])
-    n_dev = 0  # rays whose d strays more than SPREAD_BOUND from their row's first
-    for r in range(n_rows):
-        lsr = row_laser[r]
-        dh = row_dh[r]
-        o = r * n_seq
-        d0 = az_t[lsr, 0] + dh - az_t[0, 0]
-        d0 -= np.rint(d0 * _INV_TWO_PI) * _TWO_PI
-        d_first[r] = d0
-        n_far = 0
-        for s in range(n_seq):
-            a = az_t[lsr, s]
-            b = az_t[0, s]
-            sb = base_sin[s]
-            cb = base_cos[s]
-            d = a + dh - b
-            # Wrap past +-pi (a row may cross 2 pi within a sequence); elsewhere rint is 0.
-            d -= np.rint(d * _INV_TWO_PI) * _TWO_PI
-            d2 = d * d
-            sd = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0)))
-            cd = 1.0 - d2 * (0.5 - d2 * (1.0 / 24.0 - d2 * (1.0 / 720.0)))
-            if abs(d) > SMALL_OFFSET:
-                n_far += 1
-            if abs(d - d0) > SPREAD_BOUND:
-                n_dev += 1
-            sin_a[o + s] = sb * cd + cb * sd
-            cos_a[o + s] = cb * cd - sb * sd
-            dist[o + s] = np.inf
-            gid[o + s] = -1
-            cos_inc[o + s] = 0.0
-        if n_far:  # not a firing grid: libm where the series does not hold
-            for s in range(n_seq):
-                a = az_t[lsr, s] + dh
-                d = a - az_t[0, s]
-                d -= np.rint(d * _INV_TWO_PI) * _TWO_PI
-                if abs(d) > SMALL_OFFSET:
-                    sin_a[o + s] = math.sin(a)
-                    cos_a[o + s] = math.cos(a)
-    spread = SPREAD_BOUND
-    if n_dev:
-        spread = 0.0
-        for r in range(n_rows):
-            for s in range(n_seq):
-                d = az_t[row_laser[r], s] + row_dh[r] - az_t[0, s]
-                d -= np.rint(d * _INV_TWO_PI) * _TWO_PI
-                spread = max(spread, abs(d - d_first[r]))
-    b_u = unwrap(az_t[0])
-    ranges = np.empty((math.ceil((b_u[n_seq - 1] - b_u[0]) * _INV_TWO_PI) + 2, 2),
-                      dtype=np.int64)
-    for p in range(geom.shape[0]):
-        m = axes[p]
-        g = np.int32(geom[p])
-        wt = weight[p]
-        s0 = size[p, 0]
-        s1 = size[p, 1]
-        # Best case of the plane-frame z of a row's direction over all azimuths.
-        nz_xy = math.hypot(m[0, 2], m[1, 2])
-        for r in range(n_rows):
-            lsr = row_laser[r]
-            c = cw[r]
-            w = sw[r]
-            l0, l1, l2 = lpnt[p, lsr, 0], lpnt[p, lsr, 1], lpnt[p, lsr, 2]
-            if not ((w * m[2, 2] - c * nz_xy < -MJMINVAL) and l2 >= 0.0):
-                continue  # never into the front face, or from behind it
-            # The direction in the plane's frame: sin a * A + cos a * B + C per axis.
-            a0, b0, c0 = c * m[0, 0], c * m[1, 0], w * m[2, 0]
-            a1, b1, c1 = c * m[0, 1], c * m[1, 1], w * m[2, 1]
-            a2, b2, c2 = c * m[0, 2], c * m[1, 2], w * m[2, 2]
-            o = r * n_seq
-            n_ranges = _column_ranges(b_u, extent[p, 0] - d_first[r],
-                                      extent[p, 1] + spread + 1e-9, ranges)
-            for j in range(n_ranges):
-                # Views from the range's start, indexed from 0: LLVM then knows the indices
-                # are not negative (numba's wraparound for negative indices would otherwise
-                # hide that each ray's load and store meet the same element, and the loop
-                # would not vectorise).
-                lo, hi = o + ranges[j, 0], o + ranges[j, 1]
-                sa_v, ca_v = sin_a[lo:hi], cos_a[lo:hi]
-                d_v, g_v, c_v = dist[lo:hi], gid[lo:hi], cos_inc[lo:hi]
+@njit(inline="always", error_model="numpy")
+def _row_segment(a_row: np.ndarray, b_row: np.ndarray, sb: np.ndarray, cb: np.ndarray,
+                 dh: float, s_lo: int, k: np.ndarray, ranges: np.ndarray,
+                 n_ranges: np.ndarray, r: int, cutoff: float, sin_a: np.ndarray,
+                 cos_a: np.ndarray, dist: np.ndarray, cos_inc: np.ndarray, gid: np.ndarray
+                 ) -> None:
+    """Row r's rays for the sequences [``s_lo``, ``s_lo`` + L): azimuths ``a_row`` + ``dh``,
+    the sequences' first azimuths ``b_row`` with sines/cosines ``sb``/``cb`` (all L,).
+    Writes (L,) views: ``sin_a``/``cos_a`` of each ray's azimuth (series from the sequence's,
+    libm off a firing grid); the nearest plane (constants ``k``, column ranges ``ranges`` /
+    ``n_ranges`` from `plane_rows`): ``dist`` (inf: none), ``cos_inc`` (weighted cosine, 0),
+    ``gid`` (-1; not written if empty)."""
+    n = a_row.shape[0]
+    n_far = 0
+    for s in range(n):
+        a = a_row[s]
+        b = b_row[s]
+        sbs = sb[s]
+        cbs = cb[s]
+        d = _wrap(a + dh - b)  # (a row may cross 2 pi within a sequence)
+        if abs(d) > SMALL_OFFSET:
+            n_far += 1
+        ss, cs = _sincos_series(sbs, cbs, d)
+        sin_a[s] = ss
+        cos_a[s] = cs
+    if n_far:  # not a firing grid: libm where the series does not hold
+        for s in range(n):
+            a = a_row[s] + dh
+            if abs(_wrap(a - b_row[s])) > SMALL_OFFSET:
+                sin_a[s] = math.sin(a)
+                cos_a[s] = math.cos(a)
+    for s in range(n):
+        dist[s] = np.inf
+        cos_inc[s] = 0.0
+    with_gid = gid.shape[0] > 0
+    if with_gid:
+        for s in range(n):
+            gid[s] = -1
+    for p in range(k.shape[0]):
+        kr = k[p, r]
+        if kr[_K_LIVE] == 0.0:
+            continue
+        # Constants in registers (not loads from an array the loop writes to).
+        a0, a1, a2, b0, b1, b2 = kr[0], kr[1], kr[2], kr[3], kr[4], kr[5]
+        c0, c1, c2, l0, l1, l2 = kr[6], kr[7], kr[8], kr[9], kr[10], kr[11]
+        s0, s1, wt, g = kr[12], kr[13], kr[_K_WEIGHT], np.int32(kr[_K_GEOM])
+        for j in range(n_ranges[p, r]):
+            lo = max(ranges[p, r, j, 0] - s_lo, 0)
+            hi = min(ranges[p, r, j, 1] - s_lo, n)
+            if hi <= lo:
+                continue
+            # Views from the range's start, indexed from 0 (see the module docstring).
+            sa_v, ca_v, d_v, c_v = sin_a[lo:hi], cos_a[lo:hi], dist[lo:hi], cos_inc[lo:hi]
+            if with_gid:
+                g_v = gid[lo:hi]
                 for s in range(hi - lo):
                     sa = sa_v[s]
                     ca = ca_v[s]
                     best = d_v[s]
                     best_g = g_v[s]
                     best_c = c_v[s]
-                    lv0 = sa * a0 + ca * b0 + c0
-                    lv1 = sa * a1 + ca * b1 + c1
                     lv2 = sa * a2 + ca * b2 + c2
-                    x = ray_plane(l0, l1, l2, lv0, lv1, lv2, s0, s1)
+                    x = ray_plane(l0, l1, l2, sa * a0 + ca * b0 + c0, sa * a1 + ca * b1 + c1,
+                                  lv2, s0, s1)
                     take = (x >= 0.0) & (x < best) & (x <= cutoff)
                     d_v[s] = x if take else best
                     g_v[s] = g if take else best_g
                     c_v[s] = -lv2 * wt if take else best_c
-    return spread
+            else:  # the same without geom ids: two arrays written, not three
+                for s in range(hi - lo):
+                    sa = sa_v[s]
+                    ca = ca_v[s]
+                    best = d_v[s]
+                    best_c = c_v[s]
+                    lv2 = sa * a2 + ca * b2 + c2
+                    x = ray_plane(l0, l1, l2, sa * a0 + ca * b0 + c0, sa * a1 + ca * b1 + c1,
+                                  lv2, s0, s1)
+                    take = (x >= 0.0) & (x < best) & (x <= cutoff)
+                    d_v[s] = x if take else best
+                    c_v[s] = -lv2 * wt if take else best_c
+
+
+@njit(cache=True, error_model="numpy")
+def grid_rays(azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray, k: np.ndarray,
+              ranges: np.ndarray, n_ranges: np.ndarray, cutoff: float, sin_a: np.ndarray,
+              cos_a: np.ndarray, dist: np.ndarray, cos_inc: np.ndarray, gid: np.ndarray
+              ) -> None:
+    """Every ray of a grid (``azimuth`` (S, 16); rows ``row_laser``/``row_dh``; planes ``k``,
+    ``ranges``, ``n_ranges`` from `plane_rows`), whole rows at a time (`_row_segment`), into
+    row-major (R * S,) arrays: azimuth sine and cosine, nearest plane's distance, weighted
+    cosine and geom id. For sub-rays (divergence), whose echoes `twin.emulation` forms."""
+    n_seq = azimuth.shape[0]
+    az_t = np.ascontiguousarray(azimuth.T)
+    sb = np.empty(n_seq)
+    cb = np.empty(n_seq)
+    base_sincos(az_t[0], sb, cb)
+    for r in range(row_laser.shape[0]):
+        o = r * n_seq
+        _row_segment(az_t[row_laser[r]], az_t[0], sb, cb, row_dh[r], 0, k, ranges, n_ranges, r,
+                     cutoff, sin_a[o:o + n_seq], cos_a[o:o + n_seq], dist[o:o + n_seq],
+                     cos_inc[o:o + n_seq], gid[o:o + n_seq])
+    return None
 
 
 @njit(cache=True, error_model="numpy")
@@ -293,9 +383,8 @@ def ray_planes(origin: np.ndarray, dirs: np.ndarray, pos: np.ndarray, mat: np.nd
                gid: np.ndarray, nrm: np.ndarray) -> None:
     """The scene's planes for rays of any direction from one ``origin`` (3,): unit world
     directions ``dirs`` (n, 3); planes at ``pos`` (P, 3) with orientation ``mat`` (P, 3, 3),
-    half-sizes ``size`` (P, >= 2), geom ids ``geom`` (P,), in geom-id order. By `ray_plane`,
-    as `grid_rays`; writes ``dist`` (inf if none), ``gid`` (-1), ``nrm`` (the plane's world
-    normal, else 0)."""
+    half-sizes ``size`` (P, >= 2), geom ids ``geom`` (P,), in geom-id order. By `ray_plane`;
+    writes ``dist`` (inf if none), ``gid`` (-1), ``nrm`` (the plane's world normal, else 0)."""
     n = dirs.shape[0]
     for i in range(n):
         dist[i] = np.inf
@@ -331,23 +420,23 @@ def ray_planes(origin: np.ndarray, dirs: np.ndarray, pos: np.ndarray, mat: np.nd
 @njit(cache=True, error_model="numpy")
 def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
                     centre: np.ndarray, half: np.ndarray, d_first: np.ndarray, spread: float,
-                    sin_a: np.ndarray, cos_a: np.ndarray, cw: np.ndarray, sw: np.ndarray,
-                    rotation: np.ndarray
+                    azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray,
+                    cw: np.ndarray, sw: np.ndarray, rotation: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The rays of a grid that may meet a solid, for MuJoCo: (ray index (n,), world unit
-    direction (n, 3), rows (m,), bounds (m + 1,)): the rays of ``rows[j]`` are
+    """The rays of a grid that may meet a solid, for MuJoCo: (ray index ``r * S + s`` (n,),
+    world unit direction (n, 3), rows (m,), bounds (m + 1,)): the rays of ``rows[j]`` are
     ``bounds[j]:bounds[j + 1]``, rows ascending, each row's rays in sequence order.
 
     ``base`` (S,): each sequence's first azimuth (the sensor spins one way, so it unwraps to a
     monotonic sequence). Whole rows ``full_rows`` (R,) bool; azimuth intervals ``centre`` +-
     ``half`` (rad, as `VLP16Emulator._pose_intervals` gives them) of rows ``row``, in which a
-    ray's azimuth base + d must lie, with d the row's offset: ``d_first`` (R,) and the bound
-    ``spread`` of its deviation, from `grid_rays`. Each interval becomes column ranges of the
-    row by binary search on the unwrapped base, widened by ``spread`` (so the culling can only
-    cast too much, never too little), one range per turn of the sensor the grid spans; a row's
+    ray's azimuth base + d must lie, with d the row's offset: ``d_first`` (R,) and its
+    deviation ``spread`` (`grid_prepare`). Each interval becomes column ranges of the row by
+    binary search on the unwrapped base, widened by ``spread`` (so the culling can only cast
+    too much, never too little), one range per turn of the sensor the grid spans; a row's
     ranges are merged before they are expanded, so every ray comes once. Directions: the
-    ``rotation`` of {L} applied to (cw sin a, cw cos a, sw), from `grid_rays`' ``sin_a``,
-    ``cos_a`` and the rows' ``cw``, ``sw``.
+    ``rotation`` of {L} applied to (cw sin a, cw cos a, sw) for the ray's azimuth a =
+    ``azimuth[s, laser] + row_dh[r]`` (libm: a few hundred rays).
     """
     n_seq = base.shape[0]
     n_rows = full_rows.shape[0]
@@ -413,83 +502,55 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
         c = cw[r]
         z = sw[r]
         for s in range(m_lo[j], m_hi[j]):
-            ray = r * n_seq + s
-            u0 = c * sin_a[ray]
-            u1 = c * cos_a[ray]
-            ray_index[i] = ray
-            for a in range(3):
-                dirs[i, a] = rotation[a, 0] * u0 + rotation[a, 1] * u1 + rotation[a, 2] * z
+            a = azimuth[s, row_laser[r]] + row_dh[r]
+            u0 = c * math.sin(a)
+            u1 = c * math.cos(a)
+            ray_index[i] = r * n_seq + s
+            for e in range(3):
+                dirs[i, e] = rotation[e, 0] * u0 + rotation[e, 1] * u1 + rotation[e, 2] * z
             i += 1
     bounds[n_r] = i
     return ray_index, dirs, rows[:n_r], bounds[:n_r + 1]
 
 
+@njit(inline="always", error_model="numpy")
+def _cast_hit(d: float, g: int, nrm: np.ndarray, dirs: np.ndarray, i: int,
+              weight: np.ndarray, cutoff: float) -> tuple[float, float, int]:
+    """MuJoCo's result for cast ray i as (distance, inf: none; |normal . direction| x the
+    geom's ``weight``, 0; geom id, -1). As `twin.emulation.RayCaster.multiray`: no geom, or a
+    hit beyond ``cutoff``, is no return (mj_multiRay's cutoff prunes geoms by their bounding
+    volume, not hits by distance)."""
+    if g >= 0 and d <= cutoff:
+        c = abs(nrm[i, 0] * dirs[i, 0] + nrm[i, 1] * dirs[i, 1] + nrm[i, 2] * dirs[i, 2])
+        return d, weight[g] * c, g
+    return np.inf, 0.0, -1
+
+
 @njit(cache=True, error_model="numpy")
 def scatter_cast(ray_index: np.ndarray, dist_c: np.ndarray, gid_c: np.ndarray,
                  nrm_c: np.ndarray, dirs: np.ndarray, weight: np.ndarray, cutoff: float,
-                 dist: np.ndarray, gid: np.ndarray, cos_inc: np.ndarray) -> None:
-    """Write MuJoCo's results for the cast rays over the planes' (MuJoCo saw every geom, the
-    planes included): distance (inf = none), geom id (-1), |normal . direction| times the
-    geom's ``weight`` (as `grid_rays`). As `twin.emulation.RayCaster.multiray`: no geom, or a
-    hit beyond ``cutoff``, is no return (mj_multiRay's cutoff prunes geoms by their bounding
-    volume, not hits by distance)."""
+                 dist: np.ndarray, cos_inc: np.ndarray, gid: np.ndarray) -> None:
+    """Write MuJoCo's results for the cast rays over the planes' in `grid_rays`' arrays
+    (MuJoCo saw every geom, the planes included); see `_cast_hit`."""
     for i in range(ray_index.shape[0]):
         j = ray_index[i]
-        g = gid_c[i]
-        d = dist_c[i]
-        if g >= 0 and d <= cutoff:
-            dist[j] = d
-            gid[j] = g
-            cos_inc[j] = weight[g] * abs(nrm_c[i, 0] * dirs[i, 0] + nrm_c[i, 1] * dirs[i, 1]
-                                         + nrm_c[i, 2] * dirs[i, 2])
-        else:
-            dist[j] = np.inf
-            gid[j] = -1
-            cos_inc[j] = 0.0
+        dist[j], cos_inc[j], gid[j] = _cast_hit(dist_c[i], gid_c[i], nrm_c, dirs, i, weight,
+                                                cutoff)
     return None
-
-
-@njit(inline="always")
-def _lasers_to_firings(a: np.ndarray, out: np.ndarray) -> None:
-    """Rows (laser) x sequences into firing order, ``out[s * 16 + laser] = a[laser * S + s]``
-    (the fixed 16 lets LLVM turn each sequence into a few vector shuffles)."""
-    n_seq = a.shape[0] // N_LASERS
-    src = a.reshape((N_LASERS, n_seq))
-    dst = out.reshape((n_seq, N_LASERS))
-    for s in range(n_seq):
-        for lsr in range(N_LASERS):
-            dst[s, lsr] = src[lsr, s]
-
-
-@njit(cache=True, error_model="numpy")
-def lasers_to_firings(dist: np.ndarray, cos_inc: np.ndarray, sin_a: np.ndarray,
-                      cos_a: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One ray per firing: `grid_rays`' rows (one per laser) in firing order, ``s * 16 +
-    laser``: (distance, cos_inc, sin, cos of the azimuth), each (N,)."""
-    out = (np.empty_like(dist), np.empty_like(cos_inc), np.empty_like(sin_a),
-           np.empty_like(cos_a))
-    _lasers_to_firings(dist, out[0])
-    _lasers_to_firings(cos_inc, out[1])
-    _lasers_to_firings(sin_a, out[2])
-    _lasers_to_firings(cos_a, out[3])
-    return out
 
 
 # --------------------------------------------------------------------------------------------
 # Float32 transcendentals (vectorisable; Cephes' single-precision polynomials)
 # --------------------------------------------------------------------------------------------
-@njit(cache=True, error_model="numpy")
-def ln_f32(x: np.ndarray, out: np.ndarray) -> None:
-    """Natural log of positive normal float32 ``x`` into ``out`` (not ``x`` itself: LLVM
-    vectorises the loops only for distinct arrays): Cephes' logf (exponent from the bits,
+@njit(inline="always", error_model="numpy")
+def _ln_f32(x: np.ndarray, out: np.ndarray, mant: np.ndarray, ex: np.ndarray) -> None:
+    """Natural log of positive normal float32 ``x`` into ``out`` (distinct arrays; ``mant``,
+    ``ex``: float32 scratch of the same length): Cephes' logf (exponent from the bits,
     mantissa in [sqrt(1/2), sqrt(2)), degree-9 polynomial), within 2 ulp. Zero, subnormal,
     negative or non-finite inputs give finite garbage, not exceptions."""
     n = x.shape[0]
     xb = x.view(np.int32)
-    mant = np.empty(n, dtype=np.float32)
     mb = mant.view(np.int32)
-    ex = np.empty(n, dtype=np.float32)
     for i in range(n):
         b = xb[i]
         ex[i] = np.float32((b >> 23) - 126)
@@ -509,35 +570,63 @@ def ln_f32(x: np.ndarray, out: np.ndarray) -> None:
         y += np.float32(-2.12194440e-4) * e
         y += np.float32(-0.5) * z
         out[i] = (f + y) + np.float32(0.693359375) * e
-    return None
+
+
+@njit(inline="always", error_model="numpy")
+def _exp_f32(x: np.ndarray, out: np.ndarray, pow2: np.ndarray) -> None:
+    """exp of float32 ``x`` (|x| < 87) into ``out`` (distinct arrays; ``pow2``: float32
+    scratch): Cephes' expf (x = n ln 2 + g, |g| <= ln 2 / 2, degree-7 polynomial, 2^n from the
+    bits), within 2 ulp."""
+    n = x.shape[0]
+    pb = pow2.view(np.int32)
+    for i in range(n):
+        v = x[i]
+        k = np.float32(math.floor(v * np.float32(1.44269504088896341) + np.float32(0.5)))
+        g = v - k * np.float32(0.693359375)
+        g -= k * np.float32(-2.12194440e-4)
+        z = g * g
+        p = (((((np.float32(1.9875691500e-4) * g + np.float32(1.3981999507e-3)) * g
+                + np.float32(8.3334519073e-3)) * g + np.float32(4.1665795894e-2)) * g
+              + np.float32(1.6666665459e-1)) * g + np.float32(5.0000001201e-1)) * z + g
+        out[i] = p + np.float32(1.0)
+        pb[i] = (np.int32(k) + 127) << 23
+    for i in range(n):
+        out[i] *= pow2[i]
 
 
 @njit(cache=True, error_model="numpy")
-def box_muller(words: np.ndarray, sigma_a: float, sigma_b: float, out_a: np.ndarray,
-               out_b: np.ndarray) -> None:
-    """Two independent sets of n Gaussian samples N(0, sigma^2), float32, by Box-Muller from
-    2n uint32 ``words`` (n = len(``out_a``)): pair i uses the uniforms u1 = ((w[i] >> 8) + 1)
-    2^-24 in (0, 1] and u2 = (w[n + i] >> 8) 2^-24 in [0, 1) (24 bits each, as float32
-    holds them exactly); a = sqrt(-2 ln u1) cos(2 pi u2) sigma_a, b = ... sin ... sigma_b.
+def ln_f32(x: np.ndarray) -> np.ndarray:
+    """`_ln_f32` as a function (tests)."""
+    n = x.shape[0]
+    out = np.empty(n, dtype=np.float32)
+    _ln_f32(x, out, np.empty(n, dtype=np.float32), np.empty(n, dtype=np.float32))
+    return out
 
-    cos and sin of 2 pi u2 without range reduction error: 4 u2 is exact, its nearest integer
-    q picks the quadrant, x = (4 u2 - q) pi / 2 is in [-pi/4, pi/4] for Cephes' sinf/cosf
-    polynomials. Float32 uniforms cut the tails at 5.8 sigma (probability 8e-9 per sample),
-    far beyond anything a scan can show; the noise needs 7 digits, not 16.
-    """
+
+@njit(cache=True, error_model="numpy")
+def exp_f32(x: np.ndarray) -> np.ndarray:
+    """`_exp_f32` as a function (tests)."""
+    out = np.empty(x.shape[0], dtype=np.float32)
+    _exp_f32(x, out, np.empty(x.shape[0], dtype=np.float32))
+    return out
+
+
+@njit(inline="always", error_model="numpy")
+def _box_muller(w1: np.ndarray, w2: np.ndarray, sigma_a: float, sigma_b: float,
+                out_a: np.ndarray, out_b: np.ndarray, u1: np.ndarray, rad: np.ndarray,
+                scratch: np.ndarray) -> None:
+    """`box_muller` with its float32 scratch arrays (``u1``, ``rad``, ``scratch``) given."""
     n = out_a.shape[0]
     scale = np.float32(2.0 ** -24)
-    u1 = np.empty(n, dtype=np.float32)
     for i in range(n):
-        u1[i] = np.float32(words[i] >> 8) * scale + scale
-    rad = np.empty(n, dtype=np.float32)
-    ln_f32(u1, rad)
+        u1[i] = np.float32(w1[i] >> 8) * scale + scale
+    _ln_f32(u1, rad, scratch, out_b)  # (out_b: scratch too, written below)
     for i in range(n):
         rad[i] = math.sqrt(np.float32(-2.0) * rad[i])
     sa = np.float32(sigma_a)
     sg = np.float32(sigma_b)
     for i in range(n):
-        t = np.float32(words[n + i] >> 8) * np.float32(2.0 ** -22)  # 4 u2, in [0, 4)
+        t = np.float32(w2[i] >> 8) * np.float32(2.0 ** -22)  # 4 u2, in [0, 4)
         q = np.float32(math.floor(t + np.float32(0.5)))
         x = (t - q) * np.float32(math.pi / 2)
         z = x * x
@@ -551,107 +640,382 @@ def box_muller(words: np.ndarray, sigma_a: float, sigma_b: float, out_a: np.ndar
         sq = c if odd else s
         cq = -cq if (q == np.float32(1.0)) | (q == np.float32(2.0)) else cq
         sq = -sq if (q == np.float32(2.0)) | (q == np.float32(3.0)) else sq
-        out_a[i] = rad[i] * cq * sa
-        out_b[i] = rad[i] * sq * sg
+        ra = rad[i]
+        out_a[i] = ra * cq * sa
+        out_b[i] = ra * sq * sg
+
+
+@njit(cache=True, error_model="numpy")
+def box_muller(w1: np.ndarray, w2: np.ndarray, sigma_a: float, sigma_b: float,
+               out_a: np.ndarray, out_b: np.ndarray) -> None:
+    """Two independent sets of n Gaussian samples N(0, sigma^2), float32, by Box-Muller from
+    uint32 words ``w1``, ``w2`` (n each): sample i uses the uniforms u1 = ((w1[i] >> 8) + 1)
+    2^-24 in (0, 1] and u2 = (w2[i] >> 8) 2^-24 in [0, 1) (24 bits each, as float32 holds
+    them exactly); a = sqrt(-2 ln u1) cos(2 pi u2) sigma_a, b = ... sin ... sigma_b.
+
+    cos and sin of 2 pi u2 without range reduction error: 4 u2 is exact, its nearest integer
+    q picks the quadrant, x = (4 u2 - q) pi / 2 is in [-pi/4, pi/4] for Cephes' sinf/cosf
+    polynomials. Float32 uniforms cut the tails at 5.8 sigma (probability 8e-9 per sample),
+    far beyond anything a scan can show; the noise needs 7 digits, not 16.
+    """
+    n = out_a.shape[0]
+    _box_muller(w1, w2, sigma_a, sigma_b, out_a, out_b, np.empty(n, dtype=np.float32),
+                np.empty(n, dtype=np.float32), np.empty(n, dtype=np.float32))
     return None
 
 
 # --------------------------------------------------------------------------------------------
 # Measurement model
 # --------------------------------------------------------------------------------------------
-#: Noise draws for `measure_firings`: none; range only; intensity only; both.
-NOISE_NONE, NOISE_RANGE, NOISE_INTENSITY, NOISE_BOTH = 0, 1, 2, 3
 #: 1.5 x 2^52: (x + it) - it is x rounded half to even (|x| < 2^51), in plain float
 #: arithmetic that vectorises (LLVM keeps it: no fast-math).
 _RINT_MAGIC = 6755399441055744.0
 _RINT_MAGIC32 = np.float32(12582912.0)  # 1.5 x 2^23, for float32 (|x| < 2^22)
 
 
-@njit(cache=True, error_model="numpy")
-def measure_firings(r: np.ndarray, refl: np.ndarray, offsets: np.ndarray, gain: np.ndarray,
-                    words: np.ndarray, noise: int, sigma_range: float, sigma_intensity: float,
-                    unit: float, range_min: float, range_max: float, intensity_model: bool,
-                    flag: int, n_slots: int, near_bound: float
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The measurement model of N firings with one echo each, in one vectorised pass.
-
-    Per firing (N,): true range ``r`` m, apparent reflectivity ``refl`` (> 0: a return; 0:
-    none), range ``offsets`` (the laser's offset + bias), intensity ``gain`` (float32, e.g.
-    r^-exponent). Gaussian noise (`box_muller`) from ``words`` (uint32), one pair of
-    uniforms per firing whether it returns or not, so a firing's noise depends on nothing but
-    its place in the stream: with ``noise`` `NOISE_BOTH`, 2N words give range and intensity
-    noise (firing i: pair i); with one of them, 2 ceil(N/2) words give N samples (pair i's
-    first sample to firing i, its second to firing ceil(N/2) + i). Range: r + offset + noise,
-    rounded to ``unit`` m (0: not rounded), kept within [``range_min``, ``range_max``].
-    Intensity with ``intensity_model``: float32 100 x refl x gain + noise, else 100 x refl;
-    rounded half to even, clipped to 0..255.
-
-    Returns (distance (n_slots, N) m, 0 = none; intensity (n_slots, N) uint8; return type
-    (n_slots, N) uint8: ``flag`` for a return with a positive distance; every slot gets the
-    return, as dual mode with one echo reports it in both blocks) and the returns whose energy
-    refl / r^2 is below ``near_bound`` (the dropout candidates, ascending; the caller decides
-    and clears the lost ones).
-    """
+@njit(inline="always", error_model="numpy")
+def _measure_block(r: np.ndarray, refl: np.ndarray, offsets: np.ndarray, w1: np.ndarray,
+                   w2: np.ndarray, noisy: bool, sigma_range: float, sigma_intensity: float,
+                   exponent: float, unit: float, range_min: float, range_max: float,
+                   intensity_model: bool, flag: int, d_out: np.ndarray, i_out: np.ndarray,
+                   t_out: np.ndarray, rn: np.ndarray, inn: np.ndarray, f1: np.ndarray,
+                   f2: np.ndarray, f3: np.ndarray) -> None:
+    """The measurement model of a block of B firings (see `measure_firings`) into the (B,)
+    views ``d_out``/``i_out``/``t_out``; ``rn``, ``inn``, ``f1``..``f3``: float32 scratch (B,).
+    One array written per loop (see the module docstring)."""
     n = r.shape[0]
-    half = (n + 1) // 2
-    rn = np.zeros(n, dtype=np.float32)
-    inn = np.zeros(n, dtype=np.float32)
-    if noise == NOISE_BOTH:
-        box_muller(words, sigma_range, sigma_intensity, rn, inn)
-    elif noise != NOISE_NONE:
-        sigma = sigma_range if noise == NOISE_RANGE else sigma_intensity
-        a = np.empty(half, dtype=np.float32)
-        b = np.empty(half, dtype=np.float32)
-        box_muller(words, sigma, sigma, a, b)
-        dst = rn if noise == NOISE_RANGE else inn
-        dst[:half] = a
-        dst[half:] = b[:n - half]
-    distance = np.zeros((n_slots, n))
-    intensity = np.zeros((n_slots, n), dtype=np.uint8)
-    rtype = np.zeros((n_slots, n), dtype=np.uint8)
-    d_out = distance[0]
-    i_out = intensity[0]
-    t_out = rtype[0]
+    if noisy:
+        _box_muller(w1, w2, sigma_range, sigma_intensity, rn, inn, f1, f2, f3)
+    else:
+        for i in range(n):
+            rn[i] = np.float32(0.0)
+            inn[i] = np.float32(0.0)
     quantise = unit > 0.0
     inv_unit = 1.0 / unit if quantise else 1.0
     step = unit if quantise else 1.0
     magic = _RINT_MAGIC if quantise else 0.0  # (0: x + 0 - 0 is x, not rounded)
-    hundred = np.float32(100.0)
-    u8 = np.uint8(flag)
-    zero8 = np.uint8(0)
-    n_near = 0
-    for i in range(n):  # every load first, selects only, no branches: vectorises
-        ri = r[i]
+    for i in range(n):  # range: a return with a distance > 0 within the limits, else 0
         ci = refl[i]
-        v = offsets[i] + ri
+        v = offsets[i] + r[i]
         v += rn[i]
-        g = gain[i]
-        e = inn[i]
         v = ((v * inv_unit + magic) - magic) * step
-        hit = ci > 0.0
-        keep = hit & (v >= range_min) & (v <= range_max)
-        if intensity_model:
-            v32 = np.float32(ci) * hundred
-            v32 *= g
-            v32 += e
-            lvl = np.float64((v32 + _RINT_MAGIC32) - _RINT_MAGIC32)
-        else:
-            lvl = (100.0 * ci + _RINT_MAGIC) - _RINT_MAGIC
-        lvl = min(max(lvl, 0.0), 255.0)
-        if hit & (ci < near_bound * (ri * ri)):
-            n_near += 1
+        keep = (ci > 0.0) & (v >= range_min) & (v <= range_max) & (v > 0.0)
         d_out[i] = v if keep else 0.0
-        i_out[i] = np.uint8(lvl) if keep else zero8
-        t_out[i] = u8 if keep & (v > 0.0) else zero8
-    near = np.empty(n_near, dtype=np.int64)
-    if n_near:  # rare on the bench
-        k = 0
+    if intensity_model:
+        if exponent != 0.0:  # gain r^-exponent = exp(-exponent ln r), float32
+            for i in range(n):
+                # (a miss's inf range: a finite garbage gain, never used)
+                f3[i] = np.float32(min(r[i], 1e30))
+            _ln_f32(f3, f1, f2, rn)  # (rn: scratch now)
+            e = np.float32(-exponent)
+            for i in range(n):
+                f2[i] = f1[i] * e
+            _exp_f32(f2, f1, f3)
+        else:
+            for i in range(n):
+                f1[i] = np.float32(1.0)
+        hundred = np.float32(100.0)
         for i in range(n):
-            if (refl[i] > 0.0) & (refl[i] < near_bound * (r[i] * r[i])):
-                near[k] = i
-                k += 1
+            v32 = np.float32(refl[i]) * hundred
+            v32 *= f1[i]
+            v32 += inn[i]
+            lvl = min(max(np.float64((v32 + _RINT_MAGIC32) - _RINT_MAGIC32), 0.0), 255.0)
+            i_out[i] = np.uint8(lvl) if d_out[i] > 0.0 else np.uint8(0)
+    else:
+        for i in range(n):
+            lvl = min(max((100.0 * refl[i] + _RINT_MAGIC) - _RINT_MAGIC, 0.0), 255.0)
+            i_out[i] = np.uint8(lvl) if d_out[i] > 0.0 else np.uint8(0)
+    u8 = np.uint8(flag)
+    for i in range(n):
+        t_out[i] = u8 if d_out[i] > 0.0 else np.uint8(0)
+
+
+@njit(inline="always", error_model="numpy")
+def _near(r: np.ndarray, refl: np.ndarray, near_bound: float, i0: int, near: np.ndarray,
+          near_energy: np.ndarray, n_near: int) -> int:
+    """Append the returns whose energy refl / r^2 is below ``near_bound`` to ``near`` (global
+    index ``i0`` + i) and ``near_energy``; returns the new count."""
+    for i in range(r.shape[0]):
+        ci = refl[i]
+        ri = r[i]
+        if (ci > 0.0) & (ci < near_bound * (ri * ri)):  # rare on the bench
+            near[n_near] = i0 + i
+            near_energy[n_near] = ci / (ri * ri)
+            n_near += 1
+    return n_near
+
+
+@njit(cache=True, error_model="numpy")
+def measure_firings(r: np.ndarray, refl: np.ndarray, offsets: np.ndarray, words: np.ndarray,
+                    sigma_range: float, sigma_intensity: float, exponent: float, unit: float,
+                    range_min: float, range_max: float, intensity_model: bool, flag: int,
+                    n_slots: int, near_bound: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The measurement model of N firings with one echo each, in firing order.
+
+    Per firing (N,): true range ``r`` m, apparent reflectivity ``refl`` (> 0: a return; 0:
+    none), range ``offsets`` (the laser's offset + bias). Gaussian noise (`box_muller`) from
+    ``words`` (uint32), one pair of uniforms per firing whether it returns or not, so a
+    firing's noise depends on nothing but its place in the stream: firing i uses ``words[i]``
+    and ``words[N + i]`` for its range noise (``sigma_range``) and intensity noise
+    (``sigma_intensity``); empty ``words``: no noise. Range: r + offset + noise, rounded to
+    ``unit`` m (0: not rounded), reported if within [``range_min``, ``range_max``] and > 0 (a
+    distance of 0 means no return). Intensity with ``intensity_model``: float32 100 x refl x
+    r^-``exponent`` + noise, else 100 x refl; rounded half to even, clipped to 0..255.
+
+    Returns (distance (n_slots, N) m, 0 = none; intensity (n_slots, N) uint8; return type
+    (n_slots, N) uint8: ``flag`` for a return; every slot gets the return, as dual mode with
+    one echo reports it in both blocks) and the returns whose energy refl / r^2 is below
+    ``near_bound`` (the dropout candidates, ascending, and their energies; the caller decides
+    and clears the lost ones). In blocks of `BLOCK_FIRINGS`.
+    """
+    n = r.shape[0]
+    noisy = words.shape[0] > 0
+    distance = np.empty((n_slots, n))
+    intensity = np.empty((n_slots, n), dtype=np.uint8)
+    rtype = np.empty((n_slots, n), dtype=np.uint8)
+    b = BLOCK_FIRINGS
+    rn, inn, f1, f2, f3 = (np.empty(b, dtype=np.float32), np.empty(b, dtype=np.float32),
+                           np.empty(b, dtype=np.float32), np.empty(b, dtype=np.float32),
+                           np.empty(b, dtype=np.float32))
+    near = np.empty(n, dtype=np.int64)
+    near_energy = np.empty(n)
+    n_near = 0
+    for i0 in range(0, n, b):
+        i1 = min(n, i0 + b)
+        m = i1 - i0
+        w1 = words[i0:i1] if noisy else words
+        w2 = words[n + i0:n + i1] if noisy else words
+        _measure_block(r[i0:i1], refl[i0:i1], offsets[i0:i1], w1, w2, noisy, sigma_range,
+                       sigma_intensity, exponent, unit, range_min, range_max, intensity_model,
+                       flag, distance[0, i0:i1], intensity[0, i0:i1], rtype[0, i0:i1], rn[:m],
+                       inn[:m], f1[:m], f2[:m], f3[:m])
+        n_near = _near(r[i0:i1], refl[i0:i1], near_bound, i0, near, near_energy, n_near)
     for slot in range(1, n_slots):
-        distance[slot] = d_out
-        intensity[slot] = i_out
-        rtype[slot] = t_out
-    return distance, intensity, rtype, near
+        distance[slot] = distance[0]
+        intensity[slot] = intensity[0]
+        rtype[slot] = rtype[0]
+    return distance, intensity, rtype, near[:n_near].copy(), near_energy[:n_near].copy()
+
+
+@njit(inline="always", error_model="numpy")
+def _points_block(d: np.ndarray, sin_a: np.ndarray, cos_a: np.ndarray, cos_el: np.ndarray,
+                  sin_el: np.ndarray, vertical: np.ndarray, x: np.ndarray, y: np.ndarray,
+                  z: np.ndarray, rc: np.ndarray) -> None:
+    """`firing_points` on (B,) views; ``rc``: float64 scratch."""
+    n = d.shape[0]
+    for i in range(n):
+        rc[i] = d[i] * cos_el[i]
+    for i in range(n):
+        x[i] = rc[i] * sin_a[i]
+    for i in range(n):
+        y[i] = rc[i] * cos_a[i]
+    for i in range(n):
+        di = d[i]
+        z[i] = di * sin_el[i] + (vertical[i] if di > 0.0 else 0.0)
+
+
+@njit(cache=True, error_model="numpy")
+def firing_points(distance: np.ndarray, sin_a: np.ndarray, cos_a: np.ndarray,
+                  cos_el: np.ndarray, sin_el: np.ndarray, vertical: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The returns' positions in {L} (DESIGN.md) for whole sequences in firing order:
+    ``distance`` (R, N) m (0: none), the azimuths' ``sin_a``/``cos_a`` (N,); the lasers'
+    elevation ``cos_el``/``sin_el`` and origin offset along Z_L ``vertical`` for every firing
+    of a block of `BLOCK_FIRINGS` (the pattern repeats). x = (d cos w) sin a, y = (d cos w)
+    cos a, z = d sin w + the offset where d > 0: the same operations as
+    `twin.scan.points_from_polar`, so the same values. Returns x, y, z (R, N) each."""
+    n_slots, n = distance.shape
+    x = np.empty((n_slots, n))
+    y = np.empty((n_slots, n))
+    z = np.empty((n_slots, n))
+    b = BLOCK_FIRINGS
+    rc = np.empty(b)
+    for slot in range(n_slots):
+        for i0 in range(0, n, b):
+            i1 = min(n, i0 + b)
+            m = i1 - i0
+            _points_block(distance[slot, i0:i1], sin_a[i0:i1], cos_a[i0:i1], cos_el[:m],
+                          sin_el[:m], vertical[:m], x[slot, i0:i1], y[slot, i0:i1],
+                          z[slot, i0:i1], rc[:m])
+    return x, y, z
+
+
+# --------------------------------------------------------------------------------------------
+# One ray per firing: the whole grid in one pass
+# --------------------------------------------------------------------------------------------
+@njit(inline="always")
+def _to_firings(src: np.ndarray, dst: np.ndarray) -> None:
+    """Rows of lasers (16, B) into firing order (B, 16) (the fixed 16 lets LLVM turn each
+    sequence into a few vector shuffles)."""
+    for s in range(dst.shape[0]):
+        for lsr in range(N_LASERS):
+            dst[s, lsr] = src[lsr, s]
+
+
+@njit(cache=True, error_model="numpy")
+def grid_pass(azimuth: np.ndarray, k: np.ndarray, ranges: np.ndarray, n_ranges: np.ndarray,
+              cutoff: float, ray_index: np.ndarray, rows: np.ndarray, bounds: np.ndarray,
+              dist_c: np.ndarray, gid_c: np.ndarray, nrm_c: np.ndarray, dirs: np.ndarray,
+              weight: np.ndarray, words: np.ndarray, sigma_range: float,
+              sigma_intensity: float, exponent: float, offsets: np.ndarray,
+              cos_el: np.ndarray, sin_el: np.ndarray, vertical: np.ndarray, unit: float,
+              range_min: float, range_max: float, intensity_model: bool, flag: int,
+              n_slots: int, near_bound: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                         np.ndarray, np.ndarray, np.ndarray]:
+    """One ray per firing, the whole grid in one pass of blocks of `BLOCK_SEQUENCES`.
+
+    ``azimuth`` (S, 16) rad; the rows are the lasers (no sub-rays); planes ``k``, ``ranges``,
+    ``n_ranges`` (`plane_rows`, weighted by the planes' reflectivity); MuJoCo's results for
+    the cast rays (`grid_candidates`' ``ray_index``, ``rows``, ``bounds``, ``dirs``; MuJoCo's
+    ``dist_c``, ``gid_c``, ``nrm_c``; the geoms' reflectivity ``weight``); the measurement
+    model's parameters (`measure_firings`: ``words``, ``sigma_*``, ``exponent``, ``unit``,
+    ``range_*``, ``intensity_model``, ``flag``, ``n_slots``, ``near_bound``); per-laser
+    constants for every firing of a block (`BLOCK_FIRINGS`,): range ``offsets``, elevation
+    ``cos_el``/``sin_el``, origin offset ``vertical``.
+
+    Per block: each laser's rays (`_row_segment`: sines, cosines, nearest plane), MuJoCo's
+    results over the planes' for the block's cast rays, firing order, the measurement model
+    (`_measure_block`) and the points (`_points_block`). Returns (distance, intensity, return
+    type, x, y, z (n_slots, N) each; the dropout candidates and their energies, as
+    `measure_firings`).
+    """
+    n_seq = azimuth.shape[0]
+    n = n_seq * N_LASERS
+    bs = BLOCK_SEQUENCES
+    b = bs * N_LASERS
+    noisy = words.shape[0] > 0
+    # outputs
+    distance = np.empty((n_slots, n))
+    intensity = np.empty((n_slots, n), dtype=np.uint8)
+    rtype = np.empty((n_slots, n), dtype=np.uint8)
+    x = np.empty((n_slots, n))
+    y = np.empty((n_slots, n))
+    z = np.empty((n_slots, n))
+    near = np.empty(n, dtype=np.int64)
+    near_energy = np.empty(n)
+    n_near = 0
+    # per block: rows of lasers (16, bs), firing order (bs, 16), float32 scratch
+    az_t = np.empty((N_LASERS, bs))
+    sb = np.empty(bs)
+    cb = np.empty(bs)
+    sa_r, ca_r, d_r, c_r = (np.empty((N_LASERS, bs)), np.empty((N_LASERS, bs)),
+                            np.empty((N_LASERS, bs)), np.empty((N_LASERS, bs)))
+    sa_f, ca_f, d_f, c_f = (np.empty((bs, N_LASERS)), np.empty((bs, N_LASERS)),
+                            np.empty((bs, N_LASERS)), np.empty((bs, N_LASERS)))
+    no_gid = np.empty(0, dtype=np.int32)
+    rn, inn, f1, f2, f3 = (np.empty(b, dtype=np.float32), np.empty(b, dtype=np.float32),
+                           np.empty(b, dtype=np.float32), np.empty(b, dtype=np.float32),
+                           np.empty(b, dtype=np.float32))
+    rc = np.empty(b)
+    # each laser's next cast ray (rows ascending: one run per laser that has any)
+    cast_next = np.zeros(N_LASERS, dtype=np.int64)
+    cast_end = np.zeros(N_LASERS, dtype=np.int64)
+    for j in range(rows.shape[0]):
+        cast_next[rows[j]] = bounds[j]
+        cast_end[rows[j]] = bounds[j + 1]
+    for s0 in range(0, n_seq, bs):
+        s1 = min(n_seq, s0 + bs)
+        m = s1 - s0
+        for s in range(m):
+            for lsr in range(N_LASERS):
+                az_t[lsr, s] = azimuth[s0 + s, lsr]
+        base_sincos(az_t[0, :m], sb[:m], cb[:m])
+        for lsr in range(N_LASERS):
+            _row_segment(az_t[lsr, :m], az_t[0, :m], sb[:m], cb[:m], 0.0, s0, k, ranges,
+                         n_ranges, lsr, cutoff, sa_r[lsr, :m], ca_r[lsr, :m], d_r[lsr, :m],
+                         c_r[lsr, :m], no_gid)
+            # MuJoCo's results for this laser's cast rays in this block
+            q = cast_next[lsr]
+            row_start = lsr * n_seq
+            while q < cast_end[lsr] and ray_index[q] - row_start < s1:
+                s = ray_index[q] - row_start - s0
+                d_r[lsr, s], c_r[lsr, s], _ = _cast_hit(dist_c[q], gid_c[q], nrm_c, dirs, q,
+                                                       weight, cutoff)
+                q += 1
+            cast_next[lsr] = q
+        _to_firings(sa_r[:, :m], sa_f[:m])
+        _to_firings(ca_r[:, :m], ca_f[:m])
+        _to_firings(d_r[:, :m], d_f[:m])
+        _to_firings(c_r[:, :m], c_f[:m])
+        i0 = s0 * N_LASERS
+        nb = m * N_LASERS
+        i1 = i0 + nb
+        r_b = d_f[:m].reshape(nb)
+        c_b = c_f[:m].reshape(nb)
+        w1 = words[i0:i1] if noisy else words
+        w2 = words[n + i0:n + i1] if noisy else words
+        _measure_block(r_b, c_b, offsets[:nb], w1, w2, noisy, sigma_range, sigma_intensity,
+                       exponent, unit, range_min, range_max, intensity_model, flag,
+                       distance[0, i0:i1], intensity[0, i0:i1], rtype[0, i0:i1], rn[:nb],
+                       inn[:nb], f1[:nb], f2[:nb], f3[:nb])
+        n_near = _near(r_b, c_b, near_bound, i0, near, near_energy, n_near)
+        _points_block(distance[0, i0:i1], sa_f[:m].reshape(nb), ca_f[:m].reshape(nb),
+                      cos_el[:nb], sin_el[:nb], vertical[:nb], x[0, i0:i1], y[0, i0:i1],
+                      z[0, i0:i1], rc[:nb])
+    for slot in range(1, n_slots):
+        distance[slot] = distance[0]
+        intensity[slot] = intensity[0]
+        rtype[slot] = rtype[0]
+        x[slot] = x[0]
+        y[slot] = y[0]
+        z[slot] = z[0]
+    return (distance, intensity, rtype, x, y, z, near[:n_near].copy(),
+            near_energy[:n_near].copy())
+
+
+# --------------------------------------------------------------------------------------------
+# The firing schedule
+# --------------------------------------------------------------------------------------------
+@njit(cache=True, error_model="numpy")
+def firing_schedule(lo: int, hi: int, sequence_period: float, laser_period: float,
+                    starts: np.ndarray, omegas: np.ndarray, cut: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every firing of sequences [``lo``, ``hi``) on the sensor's grid, in firing order:
+    (sequence (int64), laser (uint8), time t = sequence x ``sequence_period`` + laser x
+    ``laser_period`` s, azimuth rad in [0, 2 pi), rotation index (int64)).
+
+    The spin: rotation j passes the ``cut`` azimuth at ``starts[j]`` and turns at
+    ``omegas[j]`` rad/s until the next start; a firing at t is in rotation j (the last with
+    starts[j] <= t; -1 before the first, which extends backwards) and its azimuth is (t -
+    start) omega + cut, brought into [0, 2 pi) by one subtraction or addition of 2 pi (it is
+    within a turn of the cut). The same operations as `twin.sim.BenchSim`'s numpy had them,
+    so the same values."""
+    n_seq = hi - lo
+    n = n_seq * N_LASERS
+    seq = np.empty(n, dtype=np.int64)
+    laser = np.empty(n, dtype=np.uint8)
+    t = np.empty(n)
+    az = np.empty(n)
+    rot = np.empty(n, dtype=np.int64)
+    seq2 = seq.reshape((n_seq, N_LASERS))
+    laser2 = laser.reshape((n_seq, N_LASERS))
+    t2 = t.reshape((n_seq, N_LASERS))
+    for s in range(n_seq):
+        for lsr in range(N_LASERS):
+            seq2[s, lsr] = lo + s
+    for s in range(n_seq):
+        for lsr in range(N_LASERS):
+            laser2[s, lsr] = lsr
+    for s in range(n_seq):
+        ts = float(lo + s) * sequence_period
+        for lsr in range(N_LASERS):
+            t2[s, lsr] = ts + float(lsr) * laser_period
+    n_rot = starts.shape[0]
+    cuts = np.searchsorted(t, starts, side="left")  # t sorted: one slice per rotation
+    for kk in range(n_rot + 1):
+        a = 0 if kk == 0 else cuts[kk - 1]
+        b = n if kk == n_rot else cuts[kk]
+        j = min(max(kk - 1, 0), n_rot - 1)
+        st = starts[j]
+        om = omegas[j]
+        t_v, az_v, rot_v = t[a:b], az[a:b], rot[a:b]
+        for i in range(b - a):
+            v = (t_v[i] - st) * om
+            v += cut
+            v = v - _TWO_PI if v >= _TWO_PI else v
+            az_v[i] = v + _TWO_PI if v < 0.0 else v
+        for i in range(b - a):
+            rot_v[i] = kk - 1
+    return seq, laser, t, az, rot

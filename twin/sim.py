@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from twin import vlp16
+from twin import raykernel, vlp16
 from twin.bench_params import BenchParams
 from twin.emulation import EmulationConfig, RayCaster, Returns, VLP16Emulator
 from twin.motion import X_AXIS, YAW_AXIS, StageMove
@@ -32,8 +32,6 @@ from twin.pose import Pose
 from twin.scan import Scan, points_from_polar
 
 TWO_PI = 2.0 * math.pi
-_COS_EL = np.cos(vlp16.ELEVATION)
-_SIN_EL = np.sin(vlp16.ELEVATION)
 SECONDS_PER_HOUR = 3600.0
 #: A move is over when the servo error is below these (then the stepper's position is exact).
 SETTLE_X = 1e-6  # m
@@ -239,30 +237,6 @@ class BenchSim:
             self._rot_start.append(self._rot_start[i] + TWO_PI / self._rot_omega[i])
             self._rot_omega.append(self._draw_omega())
 
-    def _spin(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(azimuth rad in [0, 2 pi), rotation index) at times t (s); before the first
-        rotation the first rotation's rate extends backwards (index -1)."""
-        starts = np.asarray(self._rot_start)
-        omega = np.asarray(self._rot_omega)
-        # t is sorted: cut it at the rotation starts and work on slices.
-        cuts = np.searchsorted(t, starts, side="left")
-        idx = np.empty(len(t), dtype=np.int64)
-        az = np.empty(len(t))
-        bounds = np.concatenate(([0], cuts, [len(t)]))
-        for k in range(len(bounds) - 1):
-            lo, hi = bounds[k], bounds[k + 1]
-            if hi <= lo:
-                continue
-            i = min(max(k - 1, 0), len(starts) - 1)
-            idx[lo:hi] = k - 1
-            np.subtract(t[lo:hi], starts[i], out=az[lo:hi])
-            az[lo:hi] *= omega[i]
-        az += self.cut_azimuth
-        # Into [0, 2 pi): az lies within a turn of the cut (np.mod is several times slower).
-        np.subtract(az, TWO_PI, out=az, where=az >= TWO_PI)  # (ufunc where: no boolean
-        np.add(az, TWO_PI, out=az, where=az < 0.0)  # indexing, which is slow in numpy)
-        return az, idx
-
     # ---------------------------------------------------------------------------------------
     # Firings
     # ---------------------------------------------------------------------------------------
@@ -290,17 +264,8 @@ class BenchSim:
             parts = []
             for s in range(cfg.n_returns):
                 d = f.returns.distance[s, m]
-                if f.returns.sin_azimuth is not None:
-                    # DESIGN.md's r (cos w sin a, cos w cos a, sin w) + vertical offset, with
-                    # the emulator's own sin a and cos a (as `points_from_polar` computes them);
-                    # no return (d = 0) gives 0.
-                    lid = f.laser_id[m]
-                    rc = d * _COS_EL[lid]
-                    x = rc * f.returns.sin_azimuth[m]
-                    y = rc * f.returns.cos_azimuth[m]
-                    z = d * _SIN_EL[lid]
-                    if cfg.vertical_offsets:
-                        z += np.where(d > 0, vlp16.VERTICAL_OFFSET[lid], 0.0)
+                if f.returns.x is not None:  # the emulator's own (as `points_from_polar`)
+                    x, y, z = f.returns.x[s, m], f.returns.y[s, m], f.returns.z[s, m]
                 else:  # trigonometry for the returns only
                     x, y, z = (np.zeros(len(d)) for _ in range(3))
                     v = np.flatnonzero(d > 0)
@@ -386,15 +351,15 @@ class BenchSim:
         firing gets its own instant's pose. Firings a little before "now" (windows overlap by a
         sequence or two at rotation boundaries) take theirs from the previous window's record.
         The record is kept in `_window_record` for the scans' truth."""
-        seq = np.repeat(np.arange(lo, hi, dtype=np.int64), vlp16.N_LASERS)
-        laser = np.tile(np.arange(vlp16.N_LASERS, dtype=np.uint8), hi - lo)
-        t = seq * vlp16.SEQUENCE_PERIOD + laser * vlp16.LASER_PERIOD
-        t_end = float(t[-1])
+        t_end = (hi - 1) * vlp16.SEQUENCE_PERIOD + (vlp16.N_LASERS - 1) * vlp16.LASER_PERIOD
         i = len(self._rot_start) - 1
         while self._rot_start[-1] <= t_end:
             i += 1
             self._ensure_rotations(i)
-        azimuth, rotation = self._spin(t)
+        seq, laser, t, azimuth, rotation = raykernel.firing_schedule(
+            lo, hi, vlp16.SEQUENCE_PERIOD, vlp16.LASER_PERIOD, np.asarray(self._rot_start),
+            np.asarray(self._rot_omega), self.cut_azimuth)
+        t_end = float(t[-1])
         record = self._advance(t_end, record=True) if t_end > self.time else None
         if record is None:
             # Stages at rest throughout: one pose, the emulator's grid fast path.
@@ -439,9 +404,9 @@ class BenchSim:
                                         for j in range(3))
         ret = Returns(*(np.concatenate([getattr(p.returns, k) for p in parts], axis=1)
                         for k in ("distance", "intensity", "return_type")))
-        if all(p.returns.sin_azimuth is not None for p in parts):
-            ret.sin_azimuth = np.concatenate([p.returns.sin_azimuth for p in parts])
-            ret.cos_azimuth = np.concatenate([p.returns.cos_azimuth for p in parts])
+        if all(p.returns.x is not None for p in parts):
+            ret.x, ret.y, ret.z = (np.concatenate([getattr(p.returns, k) for p in parts], axis=1)
+                                   for k in "xyz")
         return Firings(*(np.concatenate([getattr(p, k) for p in parts])
                          for k in ("sequence", "laser_id", "time", "azimuth", "rotation")),
                        returns=ret)
