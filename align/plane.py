@@ -25,6 +25,16 @@ def _orient(n: np.ndarray, d: float) -> tuple[np.ndarray, float]:
     return (n, d) if d >= 0 else (-n, -d)
 
 
+def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors orthogonal to the unit normal n and to each other: the axes of the small
+    rotations alpha, beta of `fit_rays`' covariance (n x e_z, then n x e_x if n is vertical)."""
+    e1 = np.array([n[1], -n[0], 0.0])  # n x e_z (np.cross costs ~30 us)
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.array([0.0, n[2], -n[1]])  # n x e_x
+    e1 /= np.linalg.norm(e1)
+    return e1, _cross(n, e1)
+
+
 def fit_lsq(points: np.ndarray) -> tuple[np.ndarray, float]:
     """Orthogonal (total) least-squares plane through ``points`` (N, 3), m."""
     c = points.mean(axis=0)
@@ -86,17 +96,12 @@ def fit_rays(
 
     Parameters: measured ranges (N,), m; ray origins and unit directions (N, 3); a start plane.
     Returns (n, d, covariance of (alpha, beta, d), sigma): the covariance is for small rotations
-    alpha, beta of n about two axes orthogonal to it and for d, scaled by the residual variance
-    sigma^2 (m^2) estimated from the fit.
+    n + alpha e1 + beta e2 of n (e1, e2 = `tangent_basis` (n)) and for d, scaled by the residual
+    variance sigma^2 (m^2) estimated from the fit.
     """
     n, d = n0 / np.linalg.norm(n0), float(d0)
     for _ in range(iterations):
-        # tangent basis of n: n' = n + a e1 + b e2 (then renormalised)
-        e1 = np.array([n[1], -n[0], 0.0])  # n x e_z (np.cross costs ~30 us)
-        if np.linalg.norm(e1) < 1e-6:
-            e1 = np.array([0.0, n[2], -n[1]])  # n x e_x
-        e1 /= np.linalg.norm(e1)
-        e2 = _cross(n, e1)
+        e1, e2 = tangent_basis(n)  # n' = n + a e1 + b e2 (then renormalised)
         un = dirs @ n
         pred = (d - origins @ n) / un
         res = ranges - pred
@@ -116,5 +121,8 @@ def fit_rays(
     dof = max(len(ranges) - 3, 1)
     sigma = float(np.sqrt(res @ res / dof))
     cov = sigma**2 * np.linalg.pinv(j.T @ j)
-    n, d = _orient(n, d)
+    if d < 0:  # flipped to face away from the LiDAR: alpha (e1 flips with n) and d change sign
+        n, d = -n, -d
+        flip = np.array([-1.0, 1.0, -1.0])
+        cov = cov * np.outer(flip, flip)
     return n, d, cov, sigma

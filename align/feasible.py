@@ -1,0 +1,205 @@
+"""The board's in-plane pose (roll, x, z) given the plane, as the exact hit/miss posterior.
+
+For a fixed board plane every ray meets the plane at a point that does not depend on the roll or
+on the in-plane position (x, z): these only move the rectangle within the plane. A hit says the
+ray's point lies on the rectangle (widened by the plate's side face where the ray can see it), a
+miss that it does not. For one roll the hits confine the position (t_x, t_z) to a box and each
+miss cuts a box out of it (the positions that would have put its point on the board): the
+positions consistent with every label are a box minus a union of boxes, whose area and moments
+`label_moments` computes exactly (slabs between the boxes' x edges, free intervals in z).
+
+With no blur on the labels (hard constraints, as for a sharp beam without divergence) and a flat
+prior, the posterior of (roll, t_x, t_z) given the plane is uniform on the consistent set: its
+mean is the minimum-variance estimate and its covariance the honest uncertainty. Brackets (the
+rays on either side of an edge) as Gaussian measurements waste part of this: a dozen uniform
+intervals hold roll, and their intersection is much narrower than a least-squares sum says.
+
+A label the rectangle cannot explain at any pose nearby (a dropout inside the board, a return
+from the stand beside it) would empty the set: such rays (misses well inside, hits well outside
+the rectangle of the start pose) are left out, and when the set is still empty the caller keeps
+its least-squares pose.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+#: Labels farther than this inside (misses) or outside (hits) the start pose's rectangle are not
+#: edge information but dropouts or strays, m.
+OUTLIER_MARGIN = 0.03
+
+
+@njit(cache=True)
+def label_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
+                  ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float
+                  ) -> np.ndarray:
+    """Area and moments of the positions (t_x, t_z) consistent with every label, per roll.
+
+    ``p_hit``, ``p_miss`` (M, 3): the hits' and misses' points on the plane, {L}; ``ext_*``
+    (M, 4): each ray's widening of the left, right, bottom and top edge (the side face), m;
+    ``r0``, ``r2`` (K, 3): rows 0 and 2 of R at each roll (board coordinates X = p . r0 + t_x,
+    Z = p . r2 + t_z). A hit puts (t_x, t_z) in its box [-w2 - e_l - X, w2 + e_r - X] x
+    [-h2 - e_b - Z, h2 + e_t - Z]; a miss puts it outside its own. Returns (K, 6): area and the
+    integrals of t_x, t_z, t_x^2, t_z^2, t_x t_z over the consistent set (m^2 ... m^4).
+    """
+    n_k = r0.shape[0]
+    n_m = p_miss.shape[0]
+    out = np.zeros((n_k, 6))
+    xs = np.empty(2 * n_m + 2)
+    bx0, bx1, bz0, bz1 = np.empty(n_m), np.empty(n_m), np.empty(n_m), np.empty(n_m)
+    iz0, iz1 = np.empty(n_m), np.empty(n_m)
+    for k in range(n_k):
+        # the hits' box: the intersection of theirs
+        a0, a1, c0, c1 = -np.inf, np.inf, -np.inf, np.inf
+        for i in range(p_hit.shape[0]):
+            x = p_hit[i, 0] * r0[k, 0] + p_hit[i, 1] * r0[k, 1] + p_hit[i, 2] * r0[k, 2]
+            z = p_hit[i, 0] * r2[k, 0] + p_hit[i, 1] * r2[k, 1] + p_hit[i, 2] * r2[k, 2]
+            a0 = max(a0, -w2 - ext_hit[i, 0] - x)
+            a1 = min(a1, w2 + ext_hit[i, 1] - x)
+            c0 = max(c0, -h2 - ext_hit[i, 2] - z)
+            c1 = min(c1, h2 + ext_hit[i, 3] - z)
+        if not (a1 > a0 and c1 > c0) or np.isinf(a1 - a0) or np.isinf(c1 - c0):
+            continue
+        # the misses' boxes that overlap it
+        nb = 0
+        for i in range(n_m):
+            x = p_miss[i, 0] * r0[k, 0] + p_miss[i, 1] * r0[k, 1] + p_miss[i, 2] * r0[k, 2]
+            z = p_miss[i, 0] * r2[k, 0] + p_miss[i, 1] * r2[k, 1] + p_miss[i, 2] * r2[k, 2]
+            x0, x1 = -w2 - ext_miss[i, 0] - x, w2 + ext_miss[i, 1] - x
+            z0, z1 = -h2 - ext_miss[i, 2] - z, h2 + ext_miss[i, 3] - z
+            if x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1:
+                bx0[nb], bx1[nb], bz0[nb], bz1[nb] = x0, x1, z0, z1
+                nb += 1
+        # Most misses (a ring's misses beside the board, a ring's above it) cover the hits'
+        # box across its whole height or width from one side: they only shrink it. Apply
+        # those until none is left, so that the slabs below see only the few at corners.
+        changed = True
+        while changed and a1 > a0 and c1 > c0:
+            changed = False
+            m = 0
+            for i in range(nb):
+                x0, x1, z0, z1 = bx0[i], bx1[i], bz0[i], bz1[i]
+                if not (x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1):
+                    changed = True  # no longer overlaps: dropped
+                    continue
+                if z0 <= c0 and z1 >= c1 and (x0 <= a0 or x1 >= a1):
+                    if x0 <= a0:
+                        a0 = x1
+                    if x1 >= a1:
+                        a1 = x0
+                    changed = True
+                    continue
+                if x0 <= a0 and x1 >= a1 and (z0 <= c0 or z1 >= c1):
+                    if z0 <= c0:
+                        c0 = z1
+                    if z1 >= c1:
+                        c1 = z0
+                    changed = True
+                    continue
+                bx0[m], bx1[m], bz0[m], bz1[m] = x0, x1, z0, z1
+                m += 1
+            nb = m
+        if not (a1 > a0 and c1 > c0):
+            continue
+        for i in range(nb):  # clipped to the box
+            bx0[i], bx1[i] = max(bx0[i], a0), min(bx1[i], a1)
+            bz0[i], bz1[i] = max(bz0[i], c0), min(bz1[i], c1)
+        # slabs between consecutive x edges; in each, the free z intervals
+        xs[0], xs[1] = a0, a1
+        for i in range(nb):
+            xs[2 + 2 * i] = bx0[i]
+            xs[3 + 2 * i] = bx1[i]
+        xv = np.sort(xs[:2 * nb + 2])
+        for j in range(2 * nb + 1):
+            a, b = xv[j], xv[j + 1]
+            if b <= a:
+                continue
+            mid = 0.5 * (a + b)
+            ni = 0
+            for i in range(nb):
+                if bx0[i] < mid < bx1[i]:
+                    iz0[ni], iz1[ni] = bz0[i], bz1[i]
+                    ni += 1
+            order = np.argsort(iz0[:ni])
+            lx, lxx = b - a, (b * b - a * a) / 2.0
+            lxxx = (b * b * b - a * a * a) / 3.0
+            z = c0  # free from z up to the next covering interval
+            for q in range(ni + 1):
+                lo, hi = (iz0[order[q]], iz1[order[q]]) if q < ni else (c1, c1)
+                if lo > z:
+                    lz, lzz = lo - z, (lo * lo - z * z) / 2.0
+                    lzzz = (lo * lo * lo - z * z * z) / 3.0
+                    out[k, 0] += lx * lz
+                    out[k, 1] += lxx * lz
+                    out[k, 2] += lx * lzz
+                    out[k, 3] += lxxx * lz
+                    out[k, 4] += lx * lzzz
+                    out[k, 5] += lxx * lzz
+                z = max(z, hi)
+    return out
+
+
+@dataclass
+class InPlanePosterior:
+    """Mean and covariance of (roll rad, x m, z m) given the plane, from the labels."""
+
+    mean: np.ndarray  # (3,) roll, t_x, t_z
+    cov: np.ndarray  # (3, 3)
+    evidence: float  # the consistent set's volume, rad m^2 (the labels' marginal likelihood)
+    support: tuple[float, float]  # the first and last roll of the grid in the set, rad
+
+
+def _rows(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows r0 and r2 of R for the plane normal n at each roll (R's row r1 is n throughout):
+    `align.geometry.pose_from_plane` then `align.geometry.rotation`, vectorised."""
+    cr, sr = np.cos(rolls), np.sin(rolls)
+    m0 = cr * n[0] + sr * n[2]
+    m2 = -sr * n[0] + cr * n[2]
+    sy = np.clip(m0, -1.0, 1.0)
+    cy = np.sqrt(1.0 - sy * sy)
+    tilt = np.arctan2(-m2, n[1])
+    ct, st = np.cos(tilt), np.sin(tilt)
+    r0 = np.stack((cy * cr - sy * st * sr, -sy * ct, cy * sr + sy * st * cr), axis=1)
+    r2 = np.stack((-ct * sr, st, ct * cr), axis=1)
+    return r0, r2
+
+
+def in_plane_posterior(n: np.ndarray, points: np.ndarray, labels: np.ndarray,
+                       ext: np.ndarray, width: float, height: float, rolls: np.ndarray
+                       ) -> InPlanePosterior | None:
+    """The posterior of (roll, t_x, t_z) for the plane with normal ``n``, on a grid of rolls.
+
+    ``points`` (M, 3): where the rays meet the plane, in {L}; ``labels`` 1 hit, 0 miss;
+    ``ext`` (M, 4): the side face's widening of the left, right, bottom and top edge for each
+    ray, m; ``rolls``: evenly spaced, rad, spanning the support (`support`). The pose's t_x,
+    t_z are the board coordinates' shifts for `align.geometry.pose_from_plane` (n, d, roll).
+    None: no roll on the grid is consistent with the labels.
+    """
+    mom = _label_moments(n, points, labels, ext, width, height, rolls)
+    a = mom[:, 0]
+    total = a.sum()
+    if total <= 0:
+        return None
+    # sums over the roll grid (uniform steps: the step cancels)
+    e_r = a @ rolls / total
+    e_x, e_z = mom[:, 1].sum() / total, mom[:, 2].sum() / total
+    e_rr = a @ rolls**2 / total
+    e_rx, e_rz = mom[:, 1] @ rolls / total, mom[:, 2] @ rolls / total
+    e_xx, e_zz, e_xz = (mom[:, i].sum() / total for i in (3, 4, 5))
+    mean = np.array([e_r, e_x, e_z])
+    second = np.array([[e_rr, e_rx, e_rz], [e_rx, e_xx, e_xz], [e_rz, e_xz, e_zz]])
+    cov = second - np.outer(mean, mean)
+    step = rolls[1] - rolls[0] if len(rolls) > 1 else 1.0
+    live = np.flatnonzero(a > 0)
+    return InPlanePosterior(mean, cov, total * step,
+                            (float(rolls[live[0]]), float(rolls[live[-1]])))
+
+
+def _label_moments(n: np.ndarray, points: np.ndarray, labels: np.ndarray, ext: np.ndarray,
+                   width: float, height: float, rolls: np.ndarray) -> np.ndarray:
+    hit, miss = labels == 1, labels == 0
+    return label_moments(points[hit], points[miss], ext[hit], ext[miss], *_rows(rolls, n),
+                         width / 2, height / 2)

@@ -1,0 +1,108 @@
+"""align.feasible: the consistent set's area and moments against a brute-force raster, and the
+in-plane posterior's roll against the labels' geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from align import feasible
+
+W2, H2 = 0.45, 0.27
+
+
+def _raster(p_hit, p_miss, ext_hit, ext_miss, n=1500):
+    """(area, mean t_x, mean t_z, var t_x, var t_z, cov) of the consistent positions at roll 0
+    (board coordinates X = p_x, Z = p_z), by testing every cell of an n x n raster over the box
+    that the hits alone allow."""
+    lo_x = np.max(-W2 - ext_hit[:, 0] - p_hit[:, 0])
+    hi_x = np.min(W2 + ext_hit[:, 1] - p_hit[:, 0])
+    lo_z = np.max(-H2 - ext_hit[:, 2] - p_hit[:, 2])
+    hi_z = np.min(H2 + ext_hit[:, 3] - p_hit[:, 2])
+    u = (np.arange(n) + 0.5) / n
+    tx, tz = np.meshgrid(lo_x + u * (hi_x - lo_x), lo_z + u * (hi_z - lo_z), indexing="ij")
+    ok = np.ones_like(tx, dtype=bool)  # the window is the hits' box: each miss cuts it
+    for p, e in zip(p_miss, ext_miss, strict=True):
+        if not (W2 + e[1] - p[0] > lo_x and -W2 - e[0] - p[0] < hi_x and
+                H2 + e[3] - p[2] > lo_z and -H2 - e[2] - p[2] < hi_z):
+            continue  # misses the window
+        ok &= ~((p[0] + tx > -W2 - e[0]) & (p[0] + tx < W2 + e[1]) &
+                (p[2] + tz > -H2 - e[2]) & (p[2] + tz < H2 + e[3]))
+    cell = (hi_x - lo_x) * (hi_z - lo_z) / n**2
+    a = ok.sum() * cell
+    mx, mz = tx[ok].mean(), tz[ok].mean()
+    return a, mx, mz, tx[ok].var(), tz[ok].var(), np.mean((tx[ok] - mx) * (tz[ok] - mz))
+
+
+def _edge_rays(rng, n_ring=5, step=0.009):
+    """Rays of a few rings sampled every ``step`` m across a board at t = (0.01, -0.02):
+    hits and misses near the four edges, with a random side-face widening."""
+    t_true = np.array([0.01, -0.02])
+    hits, misses = [], []
+    z_rings = np.linspace(-0.33, 0.33, n_ring + 2)  # rings above and below the board too
+    for z in z_rings + rng.uniform(-0.01, 0.01, len(z_rings)):
+        x0 = rng.uniform(0, step)
+        for x in np.arange(-0.52 + x0, 0.52, step):
+            inside = abs(x + t_true[0]) <= W2 and abs(z + t_true[1]) <= H2
+            (hits if inside else misses).append((x, 0.0, z))
+    hits, misses = np.array(hits), np.array(misses)
+    return hits, misses, rng.uniform(0, 1e-3, (len(hits), 4)), rng.uniform(0, 1e-3,
+                                                                              (len(misses), 4))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_label_moments_match_a_raster(seed):
+    rng = np.random.default_rng(seed)
+    p_hit, p_miss, e_hit, e_miss = _edge_rays(rng)
+    # extra misses at random near the corners: boxes that cut the hits' box partly
+    corners = np.array([(sx * W2, 0.0, sz * H2) for sx in (-1, 1) for sz in (-1, 1)])
+    extra = corners[rng.integers(0, 4, 6)] * 1.0 + np.column_stack(
+        (rng.uniform(-0.04, 0.04, 6), np.zeros(6), rng.uniform(-0.04, 0.04, 6)))
+    extra[:, 0] += np.sign(extra[:, 0]) * 0.02  # outside the board in x: a real miss
+    p_miss = np.vstack((p_miss, extra))
+    e_miss = np.vstack((e_miss, np.zeros((6, 4))))
+    r0, r2 = np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
+    m = feasible.label_moments(p_hit, p_miss, e_hit, e_miss, r0, r2, W2, H2)[0]
+    a, mx, mz, vx, vz, cxz = _raster(p_hit, p_miss, e_hit, e_miss)
+    assert m[0] > 0
+    assert m[0] == pytest.approx(a, rel=0.005)
+    got = np.array([m[1], m[2]]) / m[0]
+    np.testing.assert_allclose(got, [mx, mz], atol=5e-5)
+    var = np.array([m[3] / m[0] - got[0] ** 2, m[4] / m[0] - got[1] ** 2])
+    np.testing.assert_allclose(var, [vx, vz], rtol=0.01, atol=1e-9)
+    assert m[5] / m[0] - got[0] * got[1] == pytest.approx(cxz, abs=2e-8)
+
+
+def test_inconsistent_labels_give_no_posterior():
+    # a hit far to the left and another far to the right of a 0.9 m board: no position fits
+    p_hit = np.array([[-0.6, 0.0, 0.0], [0.6, 0.0, 0.0]])
+    labels = np.ones(2, dtype=np.int8)
+    rolls = np.linspace(-0.01, 0.01, 21)
+    assert feasible.in_plane_posterior(np.array([0.0, 1.0, 0.0]), p_hit, labels,
+                                       np.zeros((2, 4)), 0.9, 0.54, rolls) is None
+
+
+def test_posterior_brackets_the_true_roll_and_position():
+    # the rays' points on the plane y = 2.5 (normal e_y: roll 0 gives X = p_x, Z = p_z); the
+    # board rolled by 0.5 deg and shifted: the posterior's mean is near the truth, within a
+    # few of its standard deviations
+    rng = np.random.default_rng(5)
+    roll, t = np.deg2rad(0.5), np.array([0.012, -0.03])
+    pts, lab = [], []
+    for z in np.arange(-0.35, 0.35, 0.087) + 0.01:
+        for x in np.arange(-0.55, 0.55, 0.0087) + rng.uniform(0, 0.0087):
+            # board coordinates of this point for the true roll (R's rows at roll, n = e_y)
+            bx = np.cos(roll) * x + np.sin(roll) * z + t[0]
+            bz = -np.sin(roll) * x + np.cos(roll) * z + t[1]
+            pts.append((x, 2.5, z))
+            lab.append(1 if abs(bx) <= W2 and abs(bz) <= H2 else 0)
+    pts, lab = np.array(pts), np.array(lab, dtype=np.int8)
+    rolls = np.deg2rad(np.linspace(-1.5, 2.5, 401))
+    post = feasible.in_plane_posterior(np.array([0.0, 1.0, 0.0]), pts, lab,
+                                       np.zeros((len(pts), 4)), 0.9, 0.54, rolls)
+    assert post is not None
+    sd = np.sqrt(np.diag(post.cov))
+    err = post.mean - np.array([roll, t[0], t[1]])
+    assert np.all(np.abs(err) < 4 * sd), (err, sd)
+    assert sd[0] < np.deg2rad(0.5) and sd[1] < 0.005
+    assert post.support[0] <= roll <= post.support[1]
