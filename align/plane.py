@@ -91,13 +91,14 @@ def fit_rays(
     d0: float,
     iterations: int = 8,
     tol: float = 1e-9,
+    sigma_floor: float = 0.0,
 ) -> tuple[np.ndarray, float, np.ndarray, float]:
     """Maximum-likelihood plane for Gaussian range noise along each ray (Gauss-Newton).
 
     Parameters: measured ranges (N,), m; ray origins and unit directions (N, 3); a start plane.
     Returns (n, d, covariance of (alpha, beta, d), sigma): the covariance is for small rotations
     n + alpha e1 + beta e2 of n (e1, e2 = `tangent_basis` (n)) and for d, scaled by the residual
-    variance sigma^2 (m^2) estimated from the fit.
+    variance sigma^2 (m^2) estimated from the fit, at least ``sigma_floor``^2.
     """
     n, d = n0 / np.linalg.norm(n0), float(d0)
     for _ in range(iterations):
@@ -119,7 +120,7 @@ def fit_rays(
     pred = predicted_range(n, d, origins, dirs)
     res = ranges - pred
     dof = max(len(ranges) - 3, 1)
-    sigma = float(np.sqrt(res @ res / dof))
+    sigma = max(float(np.sqrt(res @ res / dof)), sigma_floor)
     cov = sigma**2 * np.linalg.pinv(j.T @ j)
     if d < 0:  # flipped to face away from the LiDAR: alpha (e1 flips with n) and d change sign
         n, d = -n, -d

@@ -20,7 +20,7 @@ What a single flat board tells a 16-ring LiDAR (docs/align.md has the analysis):
 - Both kinds of measurement enter one Gauss-Newton fit of the six pose parameters (range
   residuals only from hits safely inside the rectangle: mixed returns at the edges pull ranges
   towards the wall). That fit finds the basin and is the fallback.
-- The estimate itself is the posterior mean (`_label_posterior`): for the plane of the ranges,
+- The estimate itself is the posterior mean (`align.label_posterior`): for the plane of the ranges,
   the poses consistent with every hit/miss label form a set whose volume and moments are exact
   (`align.feasible`); a dozen uniform brackets hold roll, and their intersection is narrower
   than the least-squares midpoints say. The plane is marginalised by importance sampling, and a
@@ -31,6 +31,7 @@ What a single flat board tells a 16-ring LiDAR (docs/align.md has the analysis):
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -38,7 +39,8 @@ import numpy as np
 
 from align import feasible, plane
 from align.board import BoardSpec
-from align.geometry import board_coordinates, plane_of_pose, pose_from_plane, rotation
+from align.geometry import board_coordinates, pose_from_plane, rotation
+from align.label_posterior import LabelledRays, label_posterior
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, consecutive_ring_block
 from twin import vlp16
@@ -459,19 +461,9 @@ def _staged_fit(model: _Model, theta: np.ndarray, dz: np.ndarray
     return theta, j, conv, iters, float(f @ f / max(len(f) - 6, 1))
 
 
-#: Rolls of the posterior's grid over the consistent ones.
-FINE_ROLLS = 121
-
-
-#: Planes drawn from the ranges' posterior (besides their mean) to weigh by the labels.
-PLANE_SAMPLES = 24
-
-
-def _ray_points(model: _Model, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                            np.ndarray]:
-    """The rays that carry edge information, for `align.feasible`: (origins, directions,
-    labels, side-face widening (left, right, bottom, top) m). Misses well inside and hits well
-    outside the rectangle at ``theta`` are left out (dropouts, strays)."""
+def _ray_points(model: _Model, theta: np.ndarray) -> LabelledRays:
+    """The rays that carry edge information, for `align.label_posterior`. Misses well inside
+    and hits well outside the rectangle at ``theta`` are left out (dropouts, strays)."""
     rays, board = model.rays, model.board
     x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
     lab = model.lab
@@ -486,121 +478,7 @@ def _ray_points(model: _Model, theta: np.ndarray) -> tuple[np.ndarray, np.ndarra
     ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
     ext = board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
                                                              -ratio_z)))
-    return rays.origin[use], u, lab[use], ext
-
-
-def _binding(board: BoardSpec, x: np.ndarray, z: np.ndarray, lab: np.ndarray, mx: float,
-             mz: float) -> np.ndarray:
-    """The labels that can constrain a rectangle within (mx, mz) m of the one at which the
-    rays' board coordinates are ``x``, ``z``: hits not deeper inside, misses not farther
-    outside."""
-    w2, h2 = board.width / 2, board.height / 2
-    inner = (np.abs(x) < w2 - mx) & (np.abs(z) < h2 - mz)
-    outer = (np.abs(x) > w2 + mx) | (np.abs(z) > h2 + mz)
-    return ((lab == 1) & ~inner) | ((lab == 0) & ~outer)
-
-
-def _label_posterior(model: _Model, theta: np.ndarray, cov: np.ndarray,
-                     ml_plane: tuple[np.ndarray, float, np.ndarray], n_scans: int,
-                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray] | None:
-    """The pose as the posterior mean given the ranges' plane and every hit/miss label.
-
-    For a plane, the posterior of roll, x and z given the labels is exact (`align.feasible`:
-    uniform on the poses consistent with every label). The plane is drawn from the ranges'
-    posterior (``ml_plane``: n, d and the covariance C_g of (alpha, beta, d) from
-    `align.plane.fit_rays`; the mean and antithetic pairs), each draw's pose weighted by the
-    labels' evidence for it (the consistent set's volume): importance sampling of the joint
-    posterior, so the labels also sharpen the plane a little (a board of known width seen at
-    the right distance and yaw). ``theta``, ``cov``: the least-squares fit, only for where to
-    look and how wide (``n_scans`` 1: +-4 deg of roll, wrong basins included).
-
-    Covariance: J C_g J^T + K P K^T, with J = d pose / d g fitted over the draws (the plane's
-    uncertainty carried through the whole estimate; the weighted spread of a couple of dozen
-    draws would understate it) and P the posterior's covariance of (roll, x, z) given the
-    plane, K = d pose / d (roll, x, z) at a fixed plane. None (the least-squares pose stands):
-    no roll explains the labels for the draws (blurred edges, a dropout at an edge).
-    """
-    board = model.board
-    o, u, lab, ext = _ray_points(model, theta)
-    n0, d0, c_plane = ml_plane
-    e1, e2 = plane.tangent_basis(n0)
-    sd_roll = float(np.sqrt(max(cov[3, 3], 0.0)))
-    if n_scans == 1:  # wide: a least-squares fit in a wrong basin is a few degrees off
-        half, step = np.deg2rad(4.0), np.deg2rad(0.02)
-    else:
-        half = float(np.clip(10 * sd_roll, np.deg2rad(0.2), np.deg2rad(4.0)))
-        step = half / 100
-
-    def moved(g: np.ndarray) -> tuple[np.ndarray, float]:
-        n = n0 + g[0] * e1 + g[1] * e2
-        return n / np.linalg.norm(n), d0 + g[2]
-
-    def points(n: np.ndarray, d: float, sel: np.ndarray) -> np.ndarray:
-        lam = (d - o[sel] @ n) / (u[sel] @ n)
-        return o[sel] + lam[:, None] * u[sel]
-
-    def pose(n: np.ndarray, d: float, q: np.ndarray) -> np.ndarray:
-        th = pose_from_plane(n, d, q[0])
-        th[0], th[2] = q[1], q[2]
-        return th
-
-    def near(ref: np.ndarray, reach: float) -> np.ndarray:
-        """The labels that can bind for rectangles whose roll, x and z differ from ``ref``'s
-        by at most ``reach`` rad and about 10 mm (100 mm in z: a ring spacing): a point
-        0.7 m from the plane's origin moves 0.7 m x the roll change."""
-        x, z, _ = board_coordinates(ref, o, u)
-        return _binding(board, x, z, lab, 0.02 + 0.7 * reach, 0.1 + 0.7 * reach)
-
-    # 1. where the rolls consistent with the labels lie
-    sel = near(theta, half)
-    rolls = theta[3] + np.arange(-half, half + 0.5 * step, step)
-    dims = (board.width, board.height)
-    coarse = feasible.in_plane_posterior(n0, points(n0, d0, sel), lab[sel], ext[sel], *dims,
-                                         rolls)
-    if coarse is None:
-        return None
-    # 2. the posterior on a fine grid over them (a little wider), from the labels that can bind
-    lo, hi = coarse.support
-    pad = max(2 * step, 0.25 * (hi - lo))
-    rolls = np.linspace(lo - pad, hi + pad, FINE_ROLLS)
-    sel = near(pose(n0, d0, coarse.mean), float(np.max(np.abs(rolls - coarse.mean[0]))))
-
-    def posterior(g: np.ndarray) -> tuple[np.ndarray, feasible.InPlanePosterior] | None:
-        n, d = moved(g)
-        post = feasible.in_plane_posterior(n, points(n, d, sel), lab[sel], ext[sel], *dims,
-                                           rolls)
-        return None if post is None else (pose(n, d, post.mean), post)
-
-    # the plane drawn from the ranges' posterior (antithetic pairs), each weighted by the
-    # labels' evidence for it: importance sampling of the joint posterior
-    half_draws = rng.multivariate_normal(np.zeros(3), c_plane, PLANE_SAMPLES // 2)
-    draws, thetas, weights, covs = [], [], [], []
-    for g in np.vstack((np.zeros((1, 3)), half_draws, -half_draws)):
-        found = posterior(g)
-        if found is not None:
-            draws.append(g)
-            thetas.append(found[0])
-            weights.append(found[1].evidence)
-            covs.append(found[1].cov)
-    if len(thetas) < 8:
-        return None
-    w = np.array(weights) / np.sum(weights)
-    thetas = np.array(thetas)
-    new = w @ thetas
-    # how the pose moves with the plane, J = d pose / d g (least squares over the draws): the
-    # plane's covariance propagated, J C_g J^T (the weighted spread of a few draws would
-    # understate it)
-    a = np.column_stack((np.ones(len(draws)), np.array(draws)))
-    j_g = np.linalg.lstsq(a, thetas, rcond=None)[0][1:].T
-    # K = d pose / d (roll, x, z) at a fixed plane: the posterior's spread given the plane
-    k = np.zeros((6, 3))
-    h = 1e-6
-    q = np.array([new[3], new[0], new[2]])
-    n, d = plane_of_pose(new)
-    k[:, 0] = (pose(n, d, q + np.array([h, 0.0, 0.0])) - pose(n, d, q)) / h
-    k[0, 1] = k[2, 2] = 1.0
-    within = np.einsum("s,sij->ij", w, np.array(covs))
-    return new, j_g @ c_plane @ j_g.T + k @ within @ k.T
+    return LabelledRays(rays.origin[use], u, lab[use], ext)
 
 
 def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
@@ -611,6 +489,19 @@ def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSp
     vh, vm = _vertical_brackets(rays, lab, x, 0.0)
     return _Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
                   sigma_r, blur)
+
+
+#: Returns farther than this many sigma from the plane are not the board's face (the stand, a
+#: mixed return at an edge); the variance of a unit Gaussian cut there (1 - 2 c phi(c) /
+#: (2 Phi(c) - 1)) corrects the noise estimated from the rest.
+TRIM = 2.5
+TRIMMED_VARIANCE = 1.0 - 2.0 * TRIM * math.exp(-TRIM**2 / 2) / math.sqrt(2 * math.pi) / math.erf(
+    TRIM / math.sqrt(2))
+
+
+#: The least range noise assumed, m: a noise-free simulation (or one return per ring) still gets
+#: a plane of finite uncertainty.
+RANGE_SIGMA_FLOOR = 1e-3
 
 
 def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
@@ -634,16 +525,19 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     o_all, u_all, r_all = np.concatenate(o_l), np.concatenate(u_l), np.concatenate(r_l)
     ring_all = np.concatenate(k_l)
     n, d, _, sigma = plane.fit_rays(r_all, o_all, u_all, n, d)
-    keep = np.abs(r_all - plane.predicted_range(n, d, o_all, u_all)) < 2.5 * sigma
+    keep = np.abs(r_all - plane.predicted_range(n, d, o_all, u_all)) < TRIM * sigma
     n, d, _, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d)
     # the board's rings hold many returns; the few that leak in from the stand (its base is
     # 5 cm in front of the board) sit on other rings: keep rings with a quarter of the most
     # and the board's rings are consecutive: keep the consecutive block with the most returns
     # (the stand's base, a parallel face 5 cm in front, lights up a ring or two below a gap)
     keep &= np.isin(ring_all, consecutive_ring_block(ring_all[keep]))
-    n, d, c_plane, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d)
-    ml_plane = (n, d, c_plane)
-    sigma_r = hints.range_sigma or max(sigma, 1e-3)
+    n, d, c_plane, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d,
+                                          sigma_floor=RANGE_SIGMA_FLOOR)
+    # the range noise: the user's, or the residuals' (a trimmed sample's understate it: undone
+    # for Gaussian noise); the plane's covariance scaled to it
+    sigma_r = hints.range_sigma or sigma / math.sqrt(TRIMMED_VARIANCE)
+    ml_plane = (n, d, c_plane * (sigma_r / sigma) ** 2)
     t_plane = time.perf_counter()
 
     # initial pose: the plane; roll from the cluster's side edges; centred on the cluster
@@ -697,7 +591,8 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         model.classify(theta, 0.002, True)  # the state of the kept fit, for the diagnostics
         model.assign(theta)
     cov = np.linalg.pinv(j.T @ j)
-    post = _label_posterior(model, theta, cov, ml_plane, len(scans), rng)
+    post = label_posterior(_ray_points(model, theta), board, theta,
+                           float(np.sqrt(max(cov[3, 3], 0.0))), ml_plane, len(scans), rng)
     if post is not None:
         theta, cov = post
         model.classify(theta, 0.002, True)  # the diagnostics below describe this pose

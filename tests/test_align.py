@@ -173,6 +173,20 @@ def test_unknown_method_is_a_status():
 
 
 @pytest.mark.slow
+def test_noise_free_scan_is_estimated():
+    # no range noise at all (EmulationConfig.ideal): the plane's residuals are only the 2 mm
+    # quantisation, or nothing; the estimate still carries a finite covariance that holds it
+    for quantise in (True, False):
+        sim = bench(1.2, -0.8, 2.1, x_mm=12.0, seed=3,
+                    noise=EmulationConfig.ideal(quantise=quantise))
+        s = sim.scan()
+        res = align.estimate(s)
+        assert res.status == Status.OK, res.diagnostics
+        assert np.all(np.isfinite(res.std)) and np.all(res.std > 0)
+        e = res.pose.as_array() - s.meta["truth_pose"].as_array()
+        assert np.all(np.abs(e) < 5 * res.std), e / res.std
+
+
 def test_sweep_range_and_grazing_ring():
     # the bench's sweep range (stage yaw +-10 deg, x +-30 mm) and a LiDAR raised so that a ring
     # grazes the board's top edge (+5 deg ring at the top edge: 0.27 - 2.6 tan 5 deg = 0.04 m)

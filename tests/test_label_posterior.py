@@ -1,0 +1,106 @@
+"""align.label_posterior: the hit/miss posterior with the plane marginalised, on synthetic scans
+whose labels are exact (a VLP-16's 16 rings, 0.2 deg azimuth steps, a board 2.5 m ahead), so
+that the only errors are the ones the posterior must account for: the edges' sampling and the
+plane's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from align import plane
+from align.board import BoardSpec
+from align.geometry import board_coordinates, plane_of_pose
+from align.label_posterior import LabelledRays, gauss_hermite, label_posterior
+
+BOARD = BoardSpec()
+#: The ranges' plane uncertainty of a single scan (tilt, yaw about 0.1 deg; distance 1.6 mm).
+SD_PLANE = np.array([np.deg2rad(0.1), np.deg2rad(0.1), 1.6e-3])
+
+
+def _pose(rng: np.random.Generator) -> np.ndarray:
+    """A board 2.5 m ahead: x, z within +-30 mm, roll, tilt and yaw within +-3 deg."""
+    return np.array([rng.uniform(-0.03, 0.03), -2.5, rng.uniform(-0.03, 0.03),
+                     *np.deg2rad(rng.uniform(-3.0, 3.0, 3))])
+
+
+def _scan(rng: np.random.Generator, theta: np.ndarray) -> LabelledRays:
+    """Every ray of one rotation's 16 rings near the board, labelled exactly by the board at
+    ``theta`` (a random start azimuth)."""
+    el = np.deg2rad(np.arange(-15.0, 16.0, 2.0))
+    az = np.deg2rad(np.arange(-14.0, 14.0, 0.2) + rng.uniform(0.0, 0.2))
+    e, a = (v.ravel() for v in np.meshgrid(el, az, indexing="ij"))
+    u = np.column_stack((np.cos(e) * np.sin(a), np.cos(e) * np.cos(a), np.sin(e)))
+    o = np.zeros_like(u)
+    x, z, lam = board_coordinates(theta, o, u)
+    hit = (np.abs(x) <= BOARD.width / 2) & (np.abs(z) <= BOARD.height / 2) & (lam > 0)
+    near = (np.abs(x) < BOARD.width / 2 + 0.05) & (np.abs(z) < BOARD.height / 2 + 0.1)
+    return LabelledRays(o[near], u[near], hit[near].astype(np.int8), np.zeros((near.sum(), 4)))
+
+
+def _plane_off(theta: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, float]:
+    """The true plane moved by g = (alpha, beta, d) as `label_posterior` moves its draws."""
+    n, d = plane_of_pose(theta)
+    e1, e2 = plane.tangent_basis(n)
+    m = n + g[0] * e1 + g[1] * e2
+    return m / np.linalg.norm(m), d + g[2]
+
+
+def test_roll_x_z_within_their_stated_uncertainty():
+    # the ranges' plane off by a draw from its own covariance, the start roll off by 0.3 deg: over
+    # 200 scans the errors' chi-square per axis is about 1 (the plane's uncertainty carried
+    # through, and no draw's posterior cut off by its roll grid)
+    rng = np.random.default_rng(0)
+    c_plane = np.diag(SD_PLANE**2)
+    chi2 = []
+    for _ in range(200):
+        theta = _pose(rng)
+        n, d = _plane_off(theta, rng.normal(0.0, SD_PLANE))
+        start = theta.copy()
+        start[3] += rng.normal(0.0, np.deg2rad(0.3))
+        out = label_posterior(_scan(rng, theta), BOARD, start, np.deg2rad(0.3),
+                              (n, d, c_plane), 1, rng)
+        assert out is not None
+        mean, cov = out
+        idx = [3, 0, 2]
+        chi2.append((mean - theta)[idx] ** 2 / np.diag(cov)[idx])
+    assert np.mean(chi2, axis=0) == pytest.approx([1.0, 1.0, 1.0], abs=0.3)
+
+
+def test_labels_that_rule_out_the_ranges_plane():
+    # the ranges' plane 6 mm short: the board's hits at one side edge and misses at the other
+    # are then closer together than the board is wide, for every roll. The posterior comes from
+    # the plane draws the labels allow and still holds the truth.
+    rng = np.random.default_rng(1)
+    c_plane = np.diag(np.array([np.deg2rad(0.1), np.deg2rad(0.1), 3e-3]) ** 2)
+    wide = np.deg2rad(np.linspace(-4.0, 4.0, 401))
+    for _ in range(50):
+        theta = _pose(rng)
+        rays = _scan(rng, theta)
+        n, d = _plane_off(theta, np.array([0.0, 0.0, -6e-3]))
+        if rays.in_plane(n, d, BOARD, theta[3] + wide) is None:
+            break
+    else:
+        pytest.fail("no seeded scene whose labels rule out a plane 6 mm short")
+    out = label_posterior(rays, BOARD, theta, np.deg2rad(0.3), (n, d, c_plane), 1, rng)
+    assert out is not None
+    mean, cov = out
+    err = (mean - theta)[[3, 0, 2, 1]]
+    sd = np.sqrt(np.diag(cov))[[3, 0, 2, 1]]
+    assert np.all(np.abs(err) < 4 * sd), (err, sd)
+    # the labels moved the distance towards the truth
+    assert abs(mean[1] - theta[1]) < 6e-3
+
+
+def test_gauss_hermite_rule_integrates_a_gaussians_moments():
+    # the rule's weights sum to 1 and reproduce the Gaussian's mean and covariance exactly
+    centre = np.array([0.01, -0.02, 0.003])
+    a = np.array([[1.0, 0.0, 0.0], [0.3, 2.0, 0.0], [-0.1, 0.2, 0.5]]) * 1e-3
+    cov = a @ a.T
+    nodes, log_q = gauss_hermite(centre, cov, 3)
+    w = np.exp(log_q)
+    assert nodes.shape == (27, 3)
+    assert w.sum() == pytest.approx(1.0)
+    np.testing.assert_allclose(w @ nodes, centre, atol=1e-15)
+    dev = nodes - centre
+    np.testing.assert_allclose((w[:, None] * dev).T @ dev, cov, atol=1e-15)
