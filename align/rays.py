@@ -461,11 +461,13 @@ def _staged_fit(model: _Model, theta: np.ndarray, dz: np.ndarray
     return theta, j, conv, iters, float(f @ f / max(len(f) - 6, 1))
 
 
-def _ray_points(model: _Model, theta: np.ndarray) -> LabelledRays:
+def _ray_points(model: _Model, theta: np.ndarray, tolerance: float) -> LabelledRays:
     """The rays that carry edge information, for `align.label_posterior`. Misses well inside
-    and hits well outside the rectangle at ``theta`` are left out (dropouts, strays)."""
+    and hits well outside the rectangle at ``theta`` are left out (dropouts, strays). A hit may
+    lie up to ``tolerance`` (rad, seen from the LiDAR) outside the rectangle and a miss as far
+    inside it (`Hints.edge_tolerance`)."""
     rays, board = model.rays, model.board
-    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
     lab = model.lab
     w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
     inner = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
@@ -478,7 +480,9 @@ def _ray_points(model: _Model, theta: np.ndarray) -> LabelledRays:
     ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
     ext = board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
                                                              -ratio_z)))
-    return LabelledRays(rays.origin[use], u, lab[use], ext)
+    lab = lab[use]
+    ext += (tolerance * lam[use] * np.where(lab == 1, 1.0, -1.0))[:, None]
+    return LabelledRays(rays.origin[use], u, lab, ext)
 
 
 def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
@@ -591,7 +595,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         model.classify(theta, 0.002, True)  # the state of the kept fit, for the diagnostics
         model.assign(theta)
     cov = np.linalg.pinv(j.T @ j)
-    post = label_posterior(_ray_points(model, theta), board, theta,
+    post = label_posterior(_ray_points(model, theta, hints.edge_tolerance), board, theta,
                            float(np.sqrt(max(cov[3, 3], 0.0))), ml_plane, len(scans), rng)
     if post is not None:
         theta, cov = post

@@ -42,6 +42,11 @@ class Hints:
     range_sigma: float | None = None
     #: 1-sigma of the random part of an edge's hit/miss transition, m (mixed returns, jitter).
     edge_blur: float = 0.2e-3
+    #: How far a hit may lie outside the board's edge, and a miss inside it, as an angle seen
+    #: from the LiDAR, rad: a beam that straddles an edge returns from whichever side reflects
+    #: more of it (the twin's VLP-16 with its 3 x 1.5 mrad beam: up to 0.08 mrad, 0.2 mm at
+    #: 2.5 m). 0 for a sharp beam (a twin without beam divergence).
+    edge_tolerance: float = 0.08e-3
     #: Seed for the randomised parts (RANSAC).
     seed: int = 0
 

@@ -44,7 +44,10 @@ def run(args: argparse.Namespace) -> int:
             raise AimbenchError("--azimuth-deg takes CENTRE:HALF_WIDTH in degrees, e.g. "
                                 "-16:20") from exc
         window = (math.radians(c), math.radians(hw))
-    hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window)
+    if args.edge_tolerance_mrad < 0:
+        raise AimbenchError("--edge-tolerance-mrad must be >= 0 (0: a sharp beam)")
+    hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window,
+                        edge_tolerance=args.edge_tolerance_mrad * 1e-3)
     cal = calibrate.read(args.calibration) if args.calibration else None
     source = PcapSource(args.capture)
     with warnings.catch_warnings():
@@ -97,6 +100,11 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="hint: distance to the board's centre, m")
     p.add_argument("--azimuth-deg", default=None, metavar="CENTRE:HALF",
                    help="hint: look for the board only within this azimuth window, deg")
+    p.add_argument("--edge-tolerance-mrad", type=float,
+                   default=align.Hints().edge_tolerance * 1e3,
+                   help="how far a hit may lie outside the board's edge (a miss inside), mrad "
+                        "seen from the LiDAR: mixed returns of a divergent beam (default "
+                        "%(default)g, the VLP-16; 0 for a sharp beam)")
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="per-laser calibration file (align.calibration) to apply first")
     p.add_argument("--keep-partial", action="store_true",
