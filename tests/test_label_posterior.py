@@ -67,6 +67,33 @@ def test_roll_x_z_within_their_stated_uncertainty():
     assert np.mean(chi2, axis=0) == pytest.approx([1.0, 1.0, 1.0], abs=0.3)
 
 
+def test_fused_pose_within_its_stated_uncertainty():
+    # ten scans' labels (brackets ten times narrower, so the labels also pin the plane's
+    # distance and yaw a little) and the plane off by a draw from a ten-scan covariance: every
+    # axis's chi-square about 1 (at most 1 + 4 sigma of its sampling spread; the covariance may
+    # be a little conservative) and no error beyond 5 sigma (a band of planes the first rule
+    # cannot resolve was once 20-50 sigma off)
+    rng = np.random.default_rng(3)
+    sd = SD_PLANE / np.sqrt(10)
+    c_plane = np.diag(sd**2)
+    z = []
+    for _ in range(80):
+        theta = _pose(rng)
+        parts = [_scan(rng, theta) for _ in range(10)]
+        rays = LabelledRays(*(np.concatenate([getattr(p, f) for p in parts])
+                              for f in ("origin", "direction", "label", "ext")))
+        n, d = _plane_off(theta, rng.normal(0.0, sd))
+        start = theta.copy()
+        start[3] += rng.normal(0.0, np.deg2rad(0.03))
+        out = label_posterior(rays, BOARD, start, np.deg2rad(0.03), (n, d, c_plane), 10, rng)
+        assert out is not None
+        mean, cov = out
+        z.append((mean - theta) / np.sqrt(np.diag(cov)))
+    chi2 = np.mean(np.square(z), axis=0)
+    assert np.all(chi2 > 0.4) and np.all(chi2 < 1.0 + 4 * np.sqrt(2 / 80)), chi2
+    assert np.max(np.abs(z)) < 5.0
+
+
 def test_labels_that_rule_out_the_ranges_plane():
     # the ranges' plane 6 mm short: the board's hits at one side edge and misses at the other
     # are then closer together than the board is wide, for every roll. The posterior comes from
