@@ -18,10 +18,12 @@ scans, 0.3 % of them on the paper's protocol, were 20-50 sigma off in yaw), the 
 again about the allowed nodes, a third as wide, up to twice; importance sampling in batches of
 antithetic draws is the last resort.
 
-The covariance is J C_g J^T + K P K^T: J = d pose / d g, fitted over the nodes (the plane's
-uncertainty carried through the whole estimate; the nodes' weighted spread understates it where
-the labels cut the Gaussian), P the posterior's covariance of (roll, x, z) given the plane
-(averaged over the nodes) and K = d pose / d (roll, x, z) at a fixed plane.
+The covariance is J C J^T + K P K^T: J = d pose / d g, fitted over the nodes (the plane's
+uncertainty carried through the whole estimate); C the plane's covariance given the ranges and
+the labels (C_g's precision plus the curvature of a quadratic fitted to the labels' log evidence
+over the nodes; the nodes' weighted spread understates it where the labels cut the Gaussian); P
+the posterior's covariance of (roll, x, z) given the plane (averaged over the nodes) and K =
+d pose / d (roll, x, z) at a fixed plane.
 """
 
 from __future__ import annotations
@@ -116,7 +118,8 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     ``theta``, ``sd_roll``: a least-squares fit and its roll's standard deviation, only for where
     to look and how wide (``n_scans`` 1: `SINGLE_SCAN_HALF` of roll, wrong basins included).
     ``ml_plane``: the ranges' plane n, d and the covariance of (alpha, beta, d), `fit_rays`.
-    ``rng``: only for the importance sampling fallback.
+    ``rng``: for the planes tried when the labels rule out the ML plane and the nearest
+    distances, and for the importance sampling fallback.
     """
     n0, d0, c_plane = ml_plane
     e1, e2 = plane.tangent_basis(n0)

@@ -461,11 +461,12 @@ def _staged_fit(model: _Model, theta: np.ndarray, dz: np.ndarray
     return theta, j, conv, iters, float(f @ f / max(len(f) - 6, 1))
 
 
-def _ray_points(model: _Model, theta: np.ndarray, tolerance: float) -> LabelledRays:
+def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
+                ) -> LabelledRays:
     """The rays that carry edge information, for `align.label_posterior`. Misses well inside
     and hits well outside the rectangle at ``theta`` are left out (dropouts, strays). A hit may
-    lie up to ``tolerance`` (rad, seen from the LiDAR) outside the rectangle and a miss as far
-    inside it (`Hints.edge_tolerance`)."""
+    lie up to ``tolerance`` (rad seen from the LiDAR: across the side edges, across the top and
+    bottom edges) outside the rectangle and a miss as far inside it (`Hints.edge_tolerance`)."""
     rays, board = model.rays, model.board
     x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
     lab = model.lab
@@ -481,7 +482,8 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: float) -> LabelledR
     ext = board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
                                                              -ratio_z)))
     lab = lab[use]
-    ext += (tolerance * lam[use] * np.where(lab == 1, 1.0, -1.0))[:, None]
+    per_edge = np.repeat(np.asarray(tolerance, dtype=float), 2)  # left, right, bottom, top
+    ext += (lam[use] * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
     return LabelledRays(rays.origin[use], u, lab, ext)
 
 

@@ -42,11 +42,14 @@ class Hints:
     range_sigma: float | None = None
     #: 1-sigma of the random part of an edge's hit/miss transition, m (mixed returns, jitter).
     edge_blur: float = 0.2e-3
-    #: How far a hit may lie outside the board's edge, and a miss inside it, as an angle seen
-    #: from the LiDAR, rad: a beam that straddles an edge returns from whichever side reflects
-    #: more of it (the twin's VLP-16 with its 3 x 1.5 mrad beam: up to 0.08 mrad, 0.2 mm at
-    #: 2.5 m). 0 for a sharp beam (a twin without beam divergence).
-    edge_tolerance: float = 0.08e-3
+    #: How far a hit may lie outside the board's edge, and a miss inside it, as angles seen
+    #: from the LiDAR across the side edges and across the top and bottom edges, rad: a beam
+    #: that straddles an edge returns from whichever side reflects more of it. The twin's
+    #: VLP-16 (3 x 1.5 mrad beam, a wall 1.5 m behind the board): hits seen up to 0.03 mrad
+    #: outside a side edge and 0.3 mrad outside the top or bottom one, where a ring runs along
+    #: the edge; 0.5 mrad is the most its beam allows there (a third of the divergence). (0, 0)
+    #: for a sharp beam (a twin without beam divergence).
+    edge_tolerance: tuple[float, float] = (0.08e-3, 0.5e-3)
     #: Seed for the randomised parts (RANSAC).
     seed: int = 0
 

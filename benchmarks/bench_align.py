@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     methods = [m for m in args.methods.split(",") if m]
     fuse_modes = [n for n in (1, 10, 50) if n <= args.scans]
     cfg = EmulationConfig(laser_offset_sigma=0.0, divergence=args.divergence)
-    hints = align.Hints() if args.divergence else align.Hints(edge_tolerance=0.0)
+    hints = align.Hints() if args.divergence else align.Hints(edge_tolerance=(0.0, 0.0))
     rng = np.random.default_rng(args.seed)
     # per method, mode: list over poses of arrays (k, 4) errors and sigmas
     res = {(m, n): [] for m in methods for n in fuse_modes}
@@ -161,7 +161,8 @@ def main(argv: list[str] | None = None) -> int:
             rows = [
                 ("accuracy signed", means.mean(axis=0)),
                 ("accuracy abs", np.abs(means).mean(axis=0)),
-                ("precision", stds.mean(axis=0) if len(stds) else np.full(4, np.nan)),
+                # one estimate per pose (the scans fused into one) has no spread to show
+                *([("precision", stds.mean(axis=0))] if len(stds) else []),
                 ("RMS", np.sqrt((allv**2).mean(axis=0))),
                 ("bound (RMS)", np.array(BOUNDS[n])),
                 ("chi2", np.nanmean((allv / alls) ** 2, axis=0)),

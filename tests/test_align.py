@@ -107,7 +107,7 @@ def test_fusion_of_ten_scans_shrinks_roll_faster_than_sqrt_n():
     sim = bench(roll=1.3, tilt=-0.7, yaw=0.9, x_mm=12, seed=3)
     scans = [sim.scan() for _ in range(10)]
     truth = scans[0].meta["truth_pose"]
-    sharp = Hints(edge_tolerance=0.0)  # the twin's beam here: no divergence
+    sharp = Hints(edge_tolerance=(0.0, 0.0))  # the twin's beam here: no divergence
     single = align.estimate(scans[0], hints=sharp)
     fused = align.estimate(scans, hints=sharp)
     assert fused.success and fused.diagnostics["scans_used"] == 10
@@ -269,7 +269,7 @@ def test_cli_estimate_json(tmp_path):
     assert rc == 0 and json.loads(buf.getvalue().splitlines()[0])["scans"] == 2
     # the edge tolerance reaches the estimator (the hit/miss posterior's set changes)
     stds = []
-    for tol in ("0.08", "0"):
+    for tol in ("0.08,0.5", "0"):
         buf = io.StringIO()
         with redirect_stdout(buf):
             rc = main(["estimate", str(path), "--json", "--fuse", "3",
@@ -284,8 +284,9 @@ def test_cli_estimate_rejects_a_negative_edge_tolerance(tmp_path, capsys):
 
     path = tmp_path / "cap.pcap"
     bench(seed=31).write_pcap(path, 1)
-    assert main(["estimate", str(path), "--edge-tolerance-mrad", "-1"]) != 0
-    assert "--edge-tolerance-mrad must be >= 0" in capsys.readouterr().err
+    for bad in ("-1", "0.1,0.2,0.3", "wide"):
+        assert main(["estimate", str(path), "--edge-tolerance-mrad", bad]) != 0
+        assert "--edge-tolerance-mrad" in capsys.readouterr().err
 
 
 def test_independent_generator_cross_check():

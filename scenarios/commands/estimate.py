@@ -28,6 +28,20 @@ def _row(first: int, n: int, res: align.PoseEstimate) -> dict:
     return row
 
 
+def _edge_tolerance(text: str) -> tuple[float, float]:
+    """``--edge-tolerance-mrad``: H,V or one value for both, mrad -> rad."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in (1, 2) or min(values) < 0:
+        raise AimbenchError(f"--edge-tolerance-mrad {text!r}: give H,V (across the side edges, "
+                            "across the top and bottom edges) or one value for both, mrad, "
+                            ">= 0 (0: a sharp beam)")
+    h, v = values if len(values) == 2 else values * 2
+    return h * 1e-3, v * 1e-3
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         board = BoardSpec.from_mm(args.board_mm)
@@ -44,10 +58,8 @@ def run(args: argparse.Namespace) -> int:
             raise AimbenchError("--azimuth-deg takes CENTRE:HALF_WIDTH in degrees, e.g. "
                                 "-16:20") from exc
         window = (math.radians(c), math.radians(hw))
-    if args.edge_tolerance_mrad < 0:
-        raise AimbenchError("--edge-tolerance-mrad must be >= 0 (0: a sharp beam)")
     hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window,
-                        edge_tolerance=args.edge_tolerance_mrad * 1e-3)
+                        edge_tolerance=_edge_tolerance(args.edge_tolerance_mrad))
     cal = calibrate.read(args.calibration) if args.calibration else None
     source = PcapSource(args.capture)
     with warnings.catch_warnings():
@@ -100,11 +112,12 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="hint: distance to the board's centre, m")
     p.add_argument("--azimuth-deg", default=None, metavar="CENTRE:HALF",
                    help="hint: look for the board only within this azimuth window, deg")
-    p.add_argument("--edge-tolerance-mrad", type=float,
-                   default=align.Hints().edge_tolerance * 1e3,
+    p.add_argument("--edge-tolerance-mrad", metavar="H,V",
+                   default=",".join(f"{1e3 * v:g}" for v in align.Hints().edge_tolerance),
                    help="how far a hit may lie outside the board's edge (a miss inside), mrad "
-                        "seen from the LiDAR: mixed returns of a divergent beam (default "
-                        "%(default)g, the VLP-16; 0 for a sharp beam)")
+                        "seen from the LiDAR, across the side edges and across the top and "
+                        "bottom ones: mixed returns of a divergent beam (default %(default)s, "
+                        "the VLP-16; 0 for a sharp beam)")
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="per-laser calibration file (align.calibration) to apply first")
     p.add_argument("--keep-partial", action="store_true",
