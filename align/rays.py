@@ -20,13 +20,14 @@ What a single flat board tells a 16-ring LiDAR (docs/align.md has the analysis):
 - Both kinds of measurement enter one Gauss-Newton fit of the six pose parameters (range
   residuals only from hits safely inside the rectangle: mixed returns at the edges pull ranges
   towards the wall). That fit finds the basin and is the fallback.
-- The estimate itself is the posterior mean (`align.label_posterior`): for the plane of the ranges,
-  the poses consistent with every hit/miss label form a set whose volume and moments are exact
+- The estimate itself is the posterior mean (`align.label_posterior`): for a plane, the poses
+  consistent with every hit/miss label form a set whose volume and moments are exact
   (`align.feasible`); a dozen uniform brackets hold roll, and their intersection is narrower
-  than the least-squares midpoints say. The plane is marginalised by importance sampling, and a
-  single scan's roll is searched over +-4 deg, so a fit caught in a wrong basin is corrected.
-  Where no pose explains the labels (beam divergence blurs edges into mixed returns that
-  flicker), the least-squares fit stands.
+  than the least-squares midpoints say. The ranges' plane is integrated out (a Gauss-Hermite
+  rule, each plane weighted by the labels' evidence), and a single scan's roll is searched over
+  +-4 deg, so a fit caught in a wrong basin is corrected. Mixed returns of a divergent beam are
+  allowed for by a tolerance on every label (`Hints.edge_tolerance`). Where no pose explains
+  the labels (a dropout at an edge), the least-squares fit stands.
 """
 
 from __future__ import annotations

@@ -50,7 +50,7 @@ class Hints:
     #: the edge; 0.5 mrad is the most its beam allows there (a third of the divergence). (0, 0)
     #: for a sharp beam (a twin without beam divergence).
     edge_tolerance: tuple[float, float] = (0.08e-3, 0.5e-3)
-    #: Seed for the randomised parts (RANSAC).
+    #: Seed for the randomised parts (RANSAC; the hit/miss posterior's fallbacks).
     seed: int = 0
 
 

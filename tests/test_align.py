@@ -191,7 +191,6 @@ def test_unknown_method_is_a_status():
     assert align.estimate(Scan.empty(), method="nope").status == Status.UNKNOWN_METHOD
 
 
-@pytest.mark.slow
 def test_noise_free_scan_is_estimated():
     # no range noise at all (EmulationConfig.ideal): the plane's residuals are only the 2 mm
     # quantisation, or nothing; the estimate still carries a finite covariance that holds it
@@ -206,6 +205,7 @@ def test_noise_free_scan_is_estimated():
         assert np.all(np.abs(e) < 5 * res.std), e / res.std
 
 
+@pytest.mark.slow
 def test_sweep_range_and_grazing_ring():
     # the bench's sweep range (stage yaw +-10 deg, x +-30 mm) and a LiDAR raised so that a ring
     # grazes the board's top edge (+5 deg ring at the top edge: 0.27 - 2.6 tan 5 deg = 0.04 m)
