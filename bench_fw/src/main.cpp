@@ -1,11 +1,11 @@
 // The stage controller's main program: the protocol loop on the Arduino core (setup/loop).
 //
-// Modules: serial (UART0 + realtime bytes), protocol (line collection and parsing), planner
-// (trapezoid blocks and the queue), stepper (Timer1 step ISR, Timer3 acceleration tick, limit
-// inputs), settings (EEPROM), homing, report. PROTOCOL.md documents the wire protocol.
+// Modules: system (machine state, realtime execution, waits), serial (UART0 + realtime bytes),
+// protocol (line collection and parsing), planner (trapezoid blocks and the queue), stepper
+// (Timer1 step ISR, Timer3 acceleration tick, limit inputs), settings (EEPROM), homing, report.
+// PROTOCOL.md documents the wire protocol.
 #include <Arduino.h>
 #include <avr/pgmspace.h>
-#include <avr/sleep.h>
 
 #include "codes.h"
 #include "config.h"
@@ -16,92 +16,9 @@
 #include "stepper.h"
 #include "system.h"
 
-System sys;
 ParserState parser_state;
 static LineCollector collector;
 static int32_t planned[N_AXIS];  // steps: where the last queued block ends
-static uint32_t idle_since_ms = 0;
-static bool idle_timing = false;
-
-void system_alarm(uint8_t code) {
-  stepper_abort();
-  sys.state = STATE_ALARM;
-  sys.alarm = code;
-  report_alarm(code);
-  report_unlock_message();
-}
-
-void protocol_execute_realtime() {
-  uint8_t sreg = SREG;
-  cli();
-  uint8_t rt = rt_exec;
-  rt_exec = static_cast<uint8_t>(rt & (EXEC_RESET | EXEC_RESET_IN_MOTION));  // reset is the loop's
-  SREG = sreg;
-  if (rt & EXEC_RESET) {
-    sys.abort = true;
-    return;
-  }
-  uint8_t alarm = stepper_take_alarm();
-  if (alarm) system_alarm(alarm);
-  if ((rt & EXEC_FEED_HOLD) && sys.state == STATE_RUN) {
-    stepper_hold();
-    sys.state = STATE_HOLD;
-  }
-  if ((rt & EXEC_CYCLE_START) && sys.state == STATE_HOLD) {
-    stepper_resume();
-    sys.state = STATE_RUN;
-  }
-  if (sys.state == STATE_RUN && !stepper_busy()) sys.state = STATE_IDLE;
-  if (rt & EXEC_STATUS_REPORT) report_status();
-
-  // $1: release the drivers after the steppers have been idle this long (255 = never).
-  if (stepper_busy()) {
-    idle_timing = false;
-  } else if (!idle_timing) {
-    idle_timing = true;
-    idle_since_ms = millis();
-  } else if (settings.idle_delay_ms != 255 && millis() - idle_since_ms >= settings.idle_delay_ms) {
-    stepper_enable(false);
-  }
-}
-
-// Idle sleep until the next interrupt (a received byte, a step, the 1 kHz tick, millis()), when
-// nothing is waiting in the receive buffer or the realtime flags. Timers and the UART keep
-// running in idle mode, so nothing is delayed by more than an interrupt's latency. On the board
-// it saves a little power; in simavr it lets the simulator skip the idle cycles instead of
-// interpreting a busy loop, which keeps the simulation in real time on a loaded host.
-static void idle_sleep() {
-  cli();
-  if (rt_exec == 0 && !serial_available()) {
-    set_sleep_mode(SLEEP_MODE_IDLE);
-    sleep_enable();
-    sei();  // the instruction after sei runs before any interrupt: no wake-up is lost
-    sleep_cpu();
-    sleep_disable();
-  } else {
-    sei();
-  }
-}
-
-bool wait_motion_done() {
-  while (stepper_busy()) {
-    protocol_execute_realtime();
-    if (sys.abort || sys.state == STATE_ALARM) return false;
-    idle_sleep();
-  }
-  protocol_execute_realtime();
-  return !sys.abort;
-}
-
-bool wait_ms(uint32_t ms) {
-  uint32_t start = millis();
-  while (millis() - start < ms) {
-    protocol_execute_realtime();
-    if (sys.abort || sys.state == STATE_ALARM) return false;
-    idle_sleep();
-  }
-  return true;
-}
 
 static void sync_planned_position() {
   if (!stepper_busy()) stepper_get_position(planned);

@@ -1,4 +1,5 @@
-// Machine state shared by the protocol loop, the reports and homing.
+// Machine state shared by the protocol loop, the reports and homing; system.cpp defines the
+// state and the waits, report.cpp the reports, homing.cpp the homing cycle.
 #ifndef BENCH_SYSTEM_H
 #define BENCH_SYSTEM_H
 
@@ -42,5 +43,7 @@ Status homing_cycle();
 bool wait_motion_done();
 // Waits `ms` milliseconds running realtime. False if aborted.
 bool wait_ms(uint32_t ms);
+// Sleeps until the next interrupt when no byte or realtime request is waiting.
+void idle_sleep();
 
 #endif
