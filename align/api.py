@@ -10,8 +10,8 @@ import numpy as np
 from align.board import BoardSpec
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, find_board
-from twin import vlp16
-from twin.scan import Scan
+from twin.core import vlp16
+from twin.core.scan import Scan
 
 #: The methods `estimate` knows, best first.
 METHODS = ("rays", "paper", "icp")
@@ -120,7 +120,7 @@ def _per_scan_mean(results: list[PoseEstimate], method: str) -> PoseEstimate:
     mean = a.mean(axis=0)
     # the scatter of the per-scan estimates, or the one estimate's own covariance
     cov = np.cov(a.T) / len(good) if len(good) > 1 else good[0].covariance
-    from twin.pose import Pose
+    from twin.core.pose import Pose
 
     diag = {"scans_ok": len(good), "fusion": "mean of per-scan estimates"}
     return PoseEstimate(Status.OK, method, Pose.from_array(mean), cov, diag,

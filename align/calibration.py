@@ -27,9 +27,9 @@ import numpy as np
 
 from align.board import BoardSpec
 from align.geometry import board_coordinates
-from twin import vlp16
-from twin.pose import Pose
-from twin.scan import Scan, points_from_polar
+from twin.core import vlp16
+from twin.core.pose import Pose
+from twin.core.scan import Scan, points_from_polar
 
 FORMAT = "aimbench.laser_calibration"
 VERSION = 1

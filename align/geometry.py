@@ -1,8 +1,8 @@
 """Rays against the board plane, and the board plane from a pose (and back).
 
-A pose (x, y, z, roll, tilt, yaw) maps {L} to {O}: p_O = R p_L + t (twin.pose). The board's front
-face is Y_O = 0, so in {L} it is the plane n . p = d with n = R^T e_y (the board's normal, pointing
-away from the LiDAR) and d = -t_y > 0 (the LiDAR is at negative Y_O).
+A pose (x, y, z, roll, tilt, yaw) maps {L} to {O}: p_O = R p_L + t (twin.core.pose). The board's
+front face is Y_O = 0, so in {L} it is the plane n . p = d with n = R^T e_y (the board's normal,
+pointing away from the LiDAR) and d = -t_y > 0 (the LiDAR is at negative Y_O).
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from twin.pose import Pose
+from twin.core.pose import Pose
 
 
 def rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:

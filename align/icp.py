@@ -16,8 +16,8 @@ from align.board import BoardSpec
 from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation
-from twin.pose import Pose
-from twin.scan import Scan
+from twin.core.pose import Pose
+from twin.core.scan import Scan
 
 MODEL_SPACING = 0.01  # m between model points
 MAX_CORRESPONDENCE = 0.10  # m

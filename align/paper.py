@@ -35,9 +35,9 @@ from align.board import BoardSpec
 from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
 from align.segment import consecutive_ring_block
-from twin import vlp16
-from twin.pose import Pose
-from twin.scan import Scan
+from twin.core import vlp16
+from twin.core.pose import Pose
+from twin.core.scan import Scan
 
 RANSAC_THRESHOLD = 0.030  # m
 RANSAC_ITERATIONS = 200

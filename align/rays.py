@@ -44,9 +44,9 @@ from align.geometry import board_coordinates, pose_from_plane, rotation
 from align.label_posterior import LabelledRays, label_posterior
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, consecutive_ring_block
-from twin import vlp16
-from twin.pose import Pose
-from twin.scan import Scan
+from twin.core import vlp16
+from twin.core.pose import Pose
+from twin.core.scan import Scan
 
 #: A return within this distance of the plane (along the ray) is a hit on the board, m. The
 #: nearest thing behind the paper's board (its stand) is 0.15 m behind it; the noise is 14 mm.

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from twin.pose import POSE_FIELDS_EDGE, Pose
+from twin.core.pose import POSE_FIELDS_EDGE, Pose
 
 
 class Status(enum.StrEnum):

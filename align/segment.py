@@ -21,8 +21,8 @@ from scipy.sparse.csgraph import connected_components
 
 from align.board import BoardSpec
 from align.result import Hints, Status
-from twin import vlp16
-from twin.scan import Scan
+from twin.core import vlp16
+from twin.core.scan import Scan
 
 #: Neighbours join when closer than this fraction of their range (0.06 rad = 3.4 deg: above the
 #: 2 deg ring spacing of a surface facing the sensor, far below a 1.5 m board-to-wall gap).

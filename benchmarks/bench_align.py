@@ -37,9 +37,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import align
-from twin.bench_params import BenchParams
-from twin.emulation import EmulationConfig
-from twin.sim import BenchSim
+from twin.sim.bench import BenchSim
+from twin.sim.emulation import EmulationConfig
+from twin.sim.params import BenchParams
 
 AXES = ("tilt", "roll", "yaw", "x")
 UNITS = ("deg", "deg", "deg", "mm")

@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 import velodyne_decoder as vd
 
-from twin import vlp16
-from twin.capture import PcapSource, read_capture
-from twin.packets import decode_data_packets
-from twin.pcap import PcapWriter, read_pcap
+from twin.core import vlp16
+from twin.lidar.capture import PcapSource, read_capture
+from twin.lidar.packets import decode_data_packets
+from twin.lidar.pcap import PcapWriter, read_pcap
 
 DATA = Path(__file__).resolve().parent.parent / "tests" / "data" / "vlp16-strongest-10hz.pcap"
 FLOOR_X_REAL_TIME = 100.0

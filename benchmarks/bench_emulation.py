@@ -38,9 +38,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from twin import vlp16
-from twin.emulation import EmulationConfig
-from twin.sim import BenchSim
+from twin.core import vlp16
+from twin.sim.bench import BenchSim
+from twin.sim.emulation import EmulationConfig
 
 N_SEQ = 1800  # 28,800 firings
 

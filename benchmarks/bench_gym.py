@@ -8,7 +8,7 @@ estimator (`align`, default method). Two workloads, the same every round:
 
 - random: one seeded episode of ``--steps`` steps to stage targets drawn uniformly within the
   paper's Monte Carlo range (+-3 deg, +-30 mm): the large moves of an exploring policy;
-- scripted: ``--episodes`` seeded episodes of `twin.gym_env.scripted_policy` (read the
+- scripted: ``--episodes`` seeded episodes of `scenarios.envs.lidar_align.scripted_policy` (read the
   estimate, command the correction) until aligned: small corrective moves.
 
 Only `env.step` is timed. The process is pinned to one CPU core; each figure is the best of
@@ -16,7 +16,7 @@ Only `env.step` is timed. The process is pinned to one CPU core; each figure is 
 steps per CPU second of this process (what a quiet core would do) and the load average.
 
 Anchor: the same steps on the real bench. A step there costs the stages' coordinated move (the
-firmware's speeds and accelerations, `twin.motion`) plus its scans at the VLP-16's 10 scans/s;
+firmware's speeds and accelerations, `twin.stage.motion`) plus its scans at the VLP-16's 10 scans/s;
 the env reports this as ``info["step_time_s"]``. Ratio > 1: the twin steps faster than the real
 bench would.
 """
@@ -31,7 +31,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from twin.gym_env import LidarAlignEnv, scripted_policy
+from scenarios.envs.lidar_align import LidarAlignEnv, scripted_policy
 
 Policy = Callable[[dict, int], np.ndarray]  # (observation, step index) -> action
 

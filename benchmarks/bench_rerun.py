@@ -7,7 +7,7 @@ recording's size per scan.
 The sweep: the paper's yaw sweep (21 references, -10..+10 deg) on the simulated bench with
 align's default method, run by the real runner into a real result store, exactly as ``aimbench
 sweep yaw --no-report`` runs it; with logging, the bench and the estimator are instrumented as
-``aimbench sweep --rerun`` does (`scenarios.rerun_observer.ObservedBench`,
+``aimbench sweep --rerun`` does (`scenarios.recording.observer.ObservedBench`,
 `observed_estimator`) and the recording is saved to an .rrd file (every scan's point cloud, the
 board points, features, plane, poses, stages, errors and annotations).
 
@@ -46,7 +46,7 @@ def run_sweep(plan: plans.Plan, out: Path, seed: int, rrd: Path | None) -> tuple
         if rrd is None:
             runner = Runner(plan, bench, store, make_estimator(None))
         else:
-            from scenarios.rerun_observer import (
+            from scenarios.recording.observer import (
                 ObservedBench,
                 RerunObserver,
                 SinkOptions,

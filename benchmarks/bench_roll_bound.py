@@ -36,8 +36,8 @@ from bench_align import BOUNDS, random_pose
 import align
 import align.rays
 from align.geometry import plane_of_pose
-from twin.emulation import EmulationConfig
-from twin.sim import BenchSim
+from twin.sim.bench import BenchSim
+from twin.sim.emulation import EmulationConfig
 
 SHARP = align.Hints(edge_tolerance=(0.0, 0.0))
 

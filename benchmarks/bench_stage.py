@@ -25,8 +25,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from twin.hil import SimavrHarness
-from twin.stage_controller import StageController, trapezoid_time
+from twin.stage.controller import StageController, trapezoid_time
+from twin.stage.hil import SimavrHarness
 
 
 def percentile(values: list[float], q: float) -> float:

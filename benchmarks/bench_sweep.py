@@ -27,7 +27,7 @@ from scenarios import plans
 from scenarios.bench import SimBench
 from scenarios.runner import Estimate, Runner, make_estimator
 from scenarios.store import Store
-from twin.scan import Scan
+from twin.core.scan import Scan
 
 SENSOR_SCANS_PER_S = 10.0  # VLP-16 at its default 600 rpm
 

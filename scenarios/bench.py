@@ -2,8 +2,8 @@
 
 A scenario only ever does this with a bench: home it, move the stages to a reference (yaw, x),
 wait until they are really there, take N scans, and close it. `SimBench` runs the twin in process
-(`twin.sim.BenchSim`); `HardwareBench` drives the stage controller over serial
-(`twin.stage_controller.StageController`) and reads scans from the VLP-16 over UDP or from a pcap
+(`twin.sim.bench.BenchSim`); `HardwareBench` drives the stage controller over serial
+(`twin.stage.controller.StageController`) and reads scans from the VLP-16 over UDP or from a pcap
 capture (a replay). `HardwareBench` runs unchanged against the real bench and against the
 wire-level twin of ``aimbench serve``.
 
@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from twin.errors import AimbenchError
-from twin.pose import Pose
-from twin.scan import Scan
+from twin.core.errors import AimbenchError
+from twin.core.pose import Pose
+from twin.core.scan import Scan
 
 #: The paper's bench travel, used when a bench cannot tell its own: yaw +-10 deg sweeps need at
 #: least that, x +-30 mm likewise. Real limits come from the controller's settings or the model.
@@ -189,8 +189,8 @@ class UdpScanSource(ScanSource):
         return {"lidar": f"udp://{self.host}:{self.port}", "timeout_s": self.timeout_s}
 
     def scans(self, n: int) -> Iterator[Scan]:
-        from twin.scans import ScanAssembler
-        from twin.udp import SensorSilentError, UdpReceiver
+        from twin.lidar.scans import ScanAssembler
+        from twin.lidar.udp import SensorSilentError, UdpReceiver
 
         if n <= 0:
             return
@@ -218,8 +218,8 @@ class PcapScanSource(ScanSource):
     scans; running out of capture is a `NoScanError` naming how many there were."""
 
     def __init__(self, path: str | Path) -> None:
-        from twin.pcap import PcapReader
-        from twin.scans import ScanAssembler
+        from twin.lidar.pcap import PcapReader
+        from twin.lidar.scans import ScanAssembler
 
         self.path = Path(path)
         if not self.path.is_file():
@@ -286,7 +286,7 @@ class HardwareBench(Bench):
         if port is not None and port.lower() == "none":
             self.port = port = None
         if self.controller is None and port is not None:
-            from twin.stage_controller import StageController
+            from twin.stage.controller import StageController
 
             try:
                 self.controller = StageController(port)
@@ -453,13 +453,13 @@ class ServedBench(HardwareBench):
 # -- the simulated bench ------------------------------------------------------------------------
 
 class SimBench(Bench):
-    """The twin in process: `twin.sim.BenchSim` (MuJoCo stages, VLP-16 emulation, truth).
+    """The twin in process: `twin.sim.bench.BenchSim` (MuJoCo stages, VLP-16 emulation, truth).
 
     seed: the twin's seed. It draws the sensor once (its per-laser range offsets: one physical
         VLP-16 for the whole run); each reference's scans then draw their noise from a generator
         seeded by (seed, reference, first scan), so a resumed run is reproducible too.
     ideal: every error source of the emulation off.
-    params: the bench (`twin.bench_params.BenchParams`; default: the paper's, a perfect mount).
+    params: the bench (`twin.sim.params.BenchParams`; default: the paper's, a perfect mount).
     A reference's mount misalignment (Monte Carlo) rebuilds the twin with it, keeping the same
     sensor; its ``x_mm`` shifts the LiDAR sideways on the turntable (the lever arm's x).
     Moves run in simulated time (the stages' trapezoidal profiles), so they cost no wall time.
@@ -470,9 +470,9 @@ class SimBench(Bench):
 
     def __init__(self, seed: int = 0, ideal: bool = False, params: Any = None,
                  noise: Any = None) -> None:
-        from twin.bench_params import BenchParams
-        from twin.emulation import EmulationConfig
-        from twin.sim import BenchSim
+        from twin.sim.bench import BenchSim
+        from twin.sim.emulation import EmulationConfig
+        from twin.sim.params import BenchParams
 
         self.seed = int(seed)
         self.ideal = bool(ideal)
@@ -499,7 +499,7 @@ class SimBench(Bench):
 
     @property
     def sim(self) -> Any:
-        """The `twin.sim.BenchSim` in use (for studies that need more than a `Bench`)."""
+        """The `twin.sim.bench.BenchSim` in use (for studies that need more than a `Bench`)."""
         return self._sim
 
     def info(self) -> dict[str, Any]:
@@ -519,13 +519,13 @@ class SimBench(Bench):
         }
 
     def travel(self) -> tuple[tuple[float, float], tuple[float, float]]:
-        from twin.motion import X_AXIS, YAW_AXIS
+        from twin.stage.motion import X_AXIS, YAW_AXIS
 
         return ((YAW_AXIS.travel_min, YAW_AXIS.travel_max),
                 (X_AXIS.travel_min, X_AXIS.travel_max))
 
     def set_mount(self, mount: dict[str, float] | None) -> None:
-        from twin.sim import BenchSim
+        from twin.sim.bench import BenchSim
 
         if (mount or None) != self._mount:
             self._mount = dict(mount) if mount else None

@@ -19,9 +19,9 @@ from pathlib import Path
 
 from align import calibration as laser_calibration
 from scenarios.bench import Bench, scan_truth
-from twin.errors import AimbenchError
-from twin.pose import Pose
-from twin.scan import Scan
+from twin.core.errors import AimbenchError
+from twin.core.pose import Pose
+from twin.core.scan import Scan
 
 #: Stage yaws the simulated calibration visits, deg: the sweep's range, so that every laser
 #: that meets the board in a sweep is calibrated (a partial correction can do more harm).
@@ -90,7 +90,7 @@ def on_bench(bench: Bench, yaws_deg: Sequence[float] = DEFAULT_YAWS_DEG,
 def from_capture(capture: str | Path, truth: str | Path | None = None
                  ) -> laser_calibration.LaserCalibration:
     """Calibrate from a capture's whole scans and its truth file (default CAPTURE.truth.json)."""
-    from scenarios.replay import capture_scans, load_truth, truth_for, truth_path
+    from scenarios.recording.replay import capture_scans, load_truth, truth_for, truth_path
 
     truth_file = Path(truth) if truth is not None else truth_path(capture)
     if not truth_file.is_file():

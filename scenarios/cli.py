@@ -3,7 +3,7 @@
 Each command module defines ``register(subparsers) -> argparse.ArgumentParser`` and sets
 ``func`` on its parser with ``set_defaults(func=...)``; ``func(args) -> int`` is the exit code.
 Errors a user can fix (a missing file, a bad capture, an unreachable port) are raised as
-`twin.errors.AimbenchError` (or a subclass) and printed as one line, never as a traceback.
+`twin.core.errors.AimbenchError` (or a subclass) and printed as one line, never as a traceback.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import pkgutil
 import sys
 
 from scenarios import commands
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
 
 
 def build_parser() -> argparse.ArgumentParser:

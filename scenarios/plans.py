@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
 
 #: Paper defaults (section V): the real bench's sweeps.
 PAPER_YAW_DEG = (-10.0, 10.0, 1.0)

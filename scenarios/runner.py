@@ -32,9 +32,9 @@ import numpy as np
 from scenarios.bench import Bench, BenchError, TravelError, scan_truth
 from scenarios.plans import Plan, Reference, references_beyond
 from scenarios.store import ScanResult, Store
-from twin.errors import AimbenchError
-from twin.pose import Pose
-from twin.scan import Scan
+from twin.core.errors import AimbenchError
+from twin.core.pose import Pose
+from twin.core.scan import Scan
 
 #: Stop a reference (and the run) when this many scans in a row gave no pose and none at this
 #: reference did: the board is not in view, and more scans will not bring it back.

@@ -34,8 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from scenarios.plans import Plan, Reference
-from twin.errors import AimbenchError
-from twin.pose import POSE_FIELDS, Pose
+from twin.core.errors import AimbenchError
+from twin.core.pose import POSE_FIELDS, Pose
 
 #: File name of the store inside a run folder.
 STORE_NAME = "run.sqlite"
@@ -134,7 +134,7 @@ class ScanResult:
     """One scan's outcome, as the store keeps it (SI units).
 
     pose, std, covariance: the estimate (None when the estimator found no pose); std and
-        covariance in the order of `twin.pose.POSE_FIELDS` (m, rad).
+        covariance in the order of `twin.core.pose.POSE_FIELDS` (m, rad).
     truth: the twin's true LiDAR pose in the board frame for this scan (None on hardware).
     stage: (yaw_rad, x_m) the stages reported while the scan was taken, if they did.
     scan_s: wall time to acquire the scan; estimate_s: wall time of the estimator (s).

@@ -1,6 +1,6 @@
 """An analytic VLP-16 scan of the bench, independent of the twin: a cross-check for `align`.
 
-Rays of the VLP-16 firing pattern (twin.vlp16) meet the board rectangle (Y_O = 0), a wall 1.5 m
+Rays of the VLP-16 firing pattern (twin.core.vlp16) meet the board rectangle (Y_O = 0), a wall 1.5 m
 behind it and the floor 0.5 m below its centre; ranges get Gaussian noise and 2 mm quantisation.
 No beam divergence, no mixed returns: the ideal sensor the estimator's geometry assumes.
 """
@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 
 from align.board import BoardSpec
-from twin import vlp16
-from twin.pose import Pose
-from twin.scan import Scan, points_from_polar
+from twin.core import vlp16
+from twin.core.pose import Pose
+from twin.core.scan import Scan, points_from_polar
 
 BENCH_POSE = Pose(x=0.7, y=-2.5, z=0.0)
 

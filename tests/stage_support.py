@@ -1,6 +1,6 @@
 """Shared pieces of the stage-controller tests (tests/test_stage_*.py).
 
-The stage tests run against the real firmware in simavr (`twin.hil.SimavrHarness`) by default,
+The stage tests run against the real firmware in simavr (`twin.stage.hil.SimavrHarness`) by default,
 or against a real board with ``pytest --port /dev/ttyACM0``. `RawLink` is a line-level Grbl client
 with no interpretation, so protocol tests can state exact command/response tables.
 """
@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import pytest
 import serial
 
-from twin import grbl
-from twin.hil import SimavrHarness
+from twin.stage import grbl
+from twin.stage.hil import SimavrHarness
 
 #: Where the simulated stages stand at power-up (mm, deg from home): close, so homing is quick.
 START_X_MM = 2.0

@@ -1,6 +1,6 @@
 """align on the twin: known poses recovered within their stated uncertainty, and clear statuses.
 
-The twin (twin.sim.BenchSim) with the paper's noise model: 14 mm range noise, 0.2 deg azimuth
+The twin (twin.sim.bench.BenchSim) with the paper's noise model: 14 mm range noise, 0.2 deg azimuth
 steps with rpm wander, 2 mm quantisation; per-laser offsets off (calibration removes them) and
 beam divergence off unless a test says otherwise.
 """
@@ -20,11 +20,11 @@ from scipy import stats
 import align
 import align.segment
 from align.result import Hints, Status
-from twin.bench_params import BenchParams
-from twin.emulation import EmulationConfig
-from twin.pose import POSE_FIELDS_EDGE
-from twin.scan import Scan
-from twin.sim import BenchSim
+from twin.core.pose import POSE_FIELDS_EDGE
+from twin.core.scan import Scan
+from twin.sim.bench import BenchSim
+from twin.sim.emulation import EmulationConfig
+from twin.sim.params import BenchParams
 
 PAPER_NOISE = EmulationConfig(laser_offset_sigma=0.0, divergence=False)
 
@@ -294,7 +294,7 @@ def test_independent_generator_cross_check():
     # recovers its poses within the stated uncertainty, so the twin is not the only witness
     from align_synth import BENCH_POSE, synth_scan
 
-    from twin.pose import Pose
+    from twin.core.pose import Pose
 
     rng = np.random.default_rng(3)
     d2 = []

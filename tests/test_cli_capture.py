@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from twin import vlp16
-from twin.pcap import PcapWriter, read_pcap
+from twin.core import vlp16
+from twin.lidar.pcap import PcapWriter, read_pcap
 
 
 def aimbench(*args: str, cwd: Path) -> subprocess.CompletedProcess:

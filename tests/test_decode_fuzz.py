@@ -17,15 +17,15 @@ from conftest import DATA_DIR
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from twin.packets import (
+from twin.lidar.packets import (
     MalformedPacketError,
     ProductIdWarning,
     UnsupportedSensorError,
     decode_data_packets,
     decode_position_packet,
 )
-from twin.pcap import CaptureFormatError, PcapWriter, read_pcap
-from twin.scans import ScanAssembler
+from twin.lidar.pcap import CaptureFormatError, PcapWriter, read_pcap
+from twin.lidar.scans import ScanAssembler
 
 FUZZ = settings(max_examples=60, deadline=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

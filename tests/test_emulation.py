@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from twin_analytic import board_intersections
 
-from twin import raykernel, vlp16
-from twin.bench_params import BenchParams
-from twin.emulation import EmulationConfig, VLP16Emulator, _gaussian
-from twin.scan import ReturnType
-from twin.sim import BenchSim
+from twin.core import vlp16
+from twin.core.scan import ReturnType
+from twin.sim.bench import BenchSim, raykernel
+from twin.sim.emulation import EmulationConfig, VLP16Emulator, _gaussian
+from twin.sim.params import BenchParams
 
 W, H = 0.90, 0.54
 

@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import twin.gym_env as gym_env
+import scenarios.envs.lidar_align as gym_env
 from scenarios.bench import BenchError, SimBench
-from twin.bench_params import BenchParams
-from twin.gym_env import ENV_ID, LidarAlignEnv, MountRange, scripted_policy
-from twin.sim import BenchSim
+from scenarios.envs.lidar_align import ENV_ID, LidarAlignEnv, MountRange, scripted_policy
+from twin.sim.bench import BenchSim
+from twin.sim.params import BenchParams
 
 TOL_YAW = gym_env.DEFAULT_YAW_TOLERANCE_RAD
 TOL_X = gym_env.DEFAULT_X_TOLERANCE_M
@@ -29,11 +29,11 @@ TOL_X = gym_env.DEFAULT_X_TOLERANCE_M
 
 def test_registered_on_import_with_time_limit() -> None:
     spec = gym.spec(ENV_ID)
-    assert spec.entry_point == "twin.gym_env:LidarAlignEnv"
+    assert spec.entry_point == "scenarios.envs.lidar_align:LidarAlignEnv"
     assert spec.max_episode_steps == gym_env.MAX_EPISODE_STEPS
     gym_env.register()  # idempotent
     # gymnasium 1.x has no plugin entry points; "module:id" imports the module itself.
-    env = gym.make(f"twin.gym_env:{ENV_ID}")
+    env = gym.make(f"scenarios.envs.lidar_align:{ENV_ID}")
     try:
         assert isinstance(env.unwrapped, LidarAlignEnv)
         assert env.spec is not None and env.spec.max_episode_steps == gym_env.MAX_EPISODE_STEPS
@@ -244,7 +244,7 @@ def test_over_hardware_bench_replaying_a_twin_capture(tmp_path: Path) -> None:
     wrote). No ground truth there: the error comes from the estimate, and the mount is the
     bench's own (no draw)."""
     params = BenchParams.from_edge(yaw_deg=1.5, tilt_deg=1.0)
-    pcap = tmp_path / "twin.pcap"
+    pcap = tmp_path / "twin.lidar.pcap"
     scans = BenchSim(params, seed=3).write_pcap(pcap, 6)
     truth_yaw = scans[0].meta["truth_pose"].yaw
     env = LidarAlignEnv(bench="hw", bench_kwargs={"port": "none", "lidar": str(pcap)},

@@ -11,9 +11,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from twin import vlp16
-from twin.bench_params import MODELS_DIR, BenchParams
-from twin.physics import BenchPhysics
+from models import MODELS_DIR, SCENE
+from twin.core import vlp16
+from twin.sim.params import BenchParams
+from twin.sim.physics import BenchPhysics
 
 SCENES = sorted(MODELS_DIR.glob("scene*.xml"))
 PARTS = ("linear_stage.xml", "rotation_stage.xml", "vlp16.xml", "target_board.xml",
@@ -67,7 +68,7 @@ def test_scene_steps_one_second_under_random_commands_without_warnings(scene: Pa
 
 
 def test_angles_are_radian_and_travel_is_the_bench_settings() -> None:
-    m = mujoco.MjModel.from_xml_path(str(MODELS_DIR / "scene.xml"))
+    m = mujoco.MjModel.from_xml_path(str(SCENE))
     np.testing.assert_allclose(m.joint("stage_yaw").range, np.radians([-30, 30]))
     np.testing.assert_allclose(m.joint("stage_x").range, [-0.05, 0.05])
     for part in PARTS:

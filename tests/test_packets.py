@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import velodyne_decoder as vd
 
-from twin import vlp16
-from twin.packets import (
+from twin.core import vlp16
+from twin.core.scan import ReturnType, points_from_polar
+from twin.lidar.packets import (
     DATA_PACKET_DTYPE,
     MalformedPacketError,
     ProductIdWarning,
@@ -23,8 +24,7 @@ from twin.packets import (
     firing_time_offsets,
     packet_timestamps_us,
 )
-from twin.pcap import read_pcap
-from twin.scan import ReturnType, points_from_polar
+from twin.lidar.pcap import read_pcap
 
 #: velodyne_decoder rounds every firing's azimuth to 0.01 deg; half a count, plus float slack.
 VD_AZIMUTH_QUANTUM = np.deg2rad(0.0051)

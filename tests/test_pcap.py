@@ -11,7 +11,7 @@ import pytest
 import velodyne_decoder as vd
 from pcapng import FileWriter, blocks
 
-from twin.pcap import (
+from twin.lidar.pcap import (
     LINKTYPE_LINUX_SLL,
     CaptureFormatError,
     PcapWriter,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from twin.pose import Pose
+from twin.core.pose import Pose
 
 
 def test_yaw_turns_forward_axis_to_the_left():

@@ -12,7 +12,7 @@ import pytest
 from scenarios import plans, report
 from scenarios.report import Tolerances
 from scenarios.store import ScanResult, Store
-from twin.pose import Pose
+from twin.core.pose import Pose
 
 D = 0.05  # deg: scan-to-scan spread used below
 BIAS_DEG = {0: 0.02, 1: -0.04, 2: 0.10}  # per-reference yaw bias of the "estimator"

@@ -15,10 +15,10 @@ import pytest
 from rerun_reader import Recording, read_rrd
 
 from scenarios.plans import Plan, Reference
+from scenarios.recording import log as rl
 from scenarios.runner import Runner, make_estimator
 from scenarios.store import Store
-from twin import rerun_log as rl
-from twin.pose import Pose
+from twin.core.pose import Pose
 
 REPO = Path(__file__).resolve().parent.parent
 PYTHON = sys.executable
@@ -54,7 +54,7 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def replayed(run_dir: Path) -> tuple[Recording, object, list[dict]]:
-    from scenarios.replay import replay_run
+    from scenarios.recording.replay import replay_run
 
     path = run_dir / "replay.rrd"
     rec = rl.new_recording("test replay")
@@ -146,7 +146,7 @@ def test_failed_scans_are_annotated_and_clear_the_estimate(replayed):
 def test_board_points_and_features_are_what_the_estimator_used(replayed, run_dir: Path):
     """The board points and the features at a scan are align's `used` for that very scan."""
     import align
-    from scenarios.replay import resimulate
+    from scenarios.recording.replay import resimulate
 
     recording, _, rows = replayed
     with Store.open(run_dir) as store:
@@ -164,7 +164,7 @@ def test_board_points_and_features_are_what_the_estimator_used(replayed, run_dir
 
 
 def test_store_only_replay_has_no_clouds(run_dir: Path, tmp_path: Path):
-    from scenarios.replay import replay_run
+    from scenarios.recording.replay import replay_run
 
     path = tmp_path / "store.rrd"
     rec = rl.new_recording()
@@ -181,8 +181,8 @@ def test_store_only_replay_has_no_clouds(run_dir: Path, tmp_path: Path):
 def test_capture_replay_pairs_scans_with_their_truth(tmp_path: Path):
     """A capture the twin wrote while the stages moved (so every scan has its own truth), with
     its truth file, replayed scan by scan: each decoded scan gets the truth of its own time."""
-    from scenarios.replay import replay_capture, write_truth
-    from twin.sim import BenchSim
+    from scenarios.recording.replay import replay_capture, write_truth
+    from twin.sim.bench import BenchSim
 
     sim = BenchSim(seed=5)
     sim.move_to(0.0, math.radians(-3.0))
@@ -232,23 +232,23 @@ def test_cli_replay_saves_a_file_rerun_verifies(run_dir: Path, tmp_path: Path):
 
 
 def test_the_estimator_and_the_twin_never_import_rerun():
-    code = ("import sys, align, twin.sim, twin.scan, scenarios.runner, scenarios.cli, "
-            "scenarios.commands.sweep, scenarios.commands.replay, scenarios.rerun_observer, "
-            "twin.rerun_log; assert 'rerun' not in sys.modules, 'rerun imported'")
+    code = ("import sys, align, twin.sim.bench, twin.core.scan, scenarios.runner, scenarios.cli, "
+            "scenarios.commands.sweep, scenarios.commands.replay, scenarios.recording.observer, "
+            "scenarios.recording.log; assert 'rerun' not in sys.modules, 'rerun imported'")
     res = subprocess.run([PYTHON, "-c", code], cwd=REPO, capture_output=True, text=True,
                          timeout=120)
     assert res.returncode == 0, res.stderr
     import re
 
-    imports = re.compile(r"^\s*(import rerun|from rerun\b|from twin\.rerun_log|"
-                         r"from twin import rerun_log)", re.MULTILINE)
-    for path in [*(REPO / "align").rglob("*.py"), REPO / "twin" / "sim.py",
-                 REPO / "twin" / "scan.py", REPO / "scenarios" / "runner.py"]:
+    imports = re.compile(r"^\s*(import rerun|from rerun\b|from scenarios\.recording\.log|"
+                         r"from scenarios\.recording import log)", re.MULTILINE)
+    for path in [*(REPO / "align").rglob("*.py"), REPO / "twin" / "sim" / "bench.py",
+                 REPO / "twin" / "core" / "scan.py", REPO / "scenarios" / "runner.py"]:
         assert not imports.search(path.read_text(encoding="utf-8")), path
 
 
 def test_point_colours_by_intensity_and_ring():
-    from twin.sim import BenchSim
+    from twin.sim.bench import BenchSim
 
     scan = BenchSim(seed=2).scan()
     lut = rl.turbo_lut()
@@ -273,7 +273,7 @@ def test_live_sweep_through_the_runner_logs_each_scan(tmp_path: Path):
     """The path of ``aimbench sweep --rerun``: the real runner drives an observed bench and the
     observed estimator; the recording has each scan once, with its truth and what align used."""
     from scenarios.bench import SimBench
-    from scenarios.rerun_observer import (
+    from scenarios.recording.observer import (
         ObservedBench,
         RerunObserver,
         SinkOptions,
@@ -319,7 +319,7 @@ def test_sweep_session_only_with_the_flag(tmp_path: Path):
     """``--rerun`` (or a sink flag) makes a session saving RUN/run.rrd; without, none."""
     import argparse
 
-    from scenarios.rerun_observer import add_rerun_arguments, session_from_args
+    from scenarios.recording.observer import add_rerun_arguments, session_from_args
 
     p = argparse.ArgumentParser()
     add_rerun_arguments(p)
@@ -342,7 +342,7 @@ def test_sweep_session_only_with_the_flag(tmp_path: Path):
 def test_clouds_of_the_first_scans_only_are_still_the_runs_own(run_dir: Path, tmp_path: Path):
     """--clouds-per-reference 1: the twin must still take every scan of each reference, or the
     later references' scans would differ from the run's (the clock and spin carry over)."""
-    from scenarios.replay import replay_run
+    from scenarios.recording.replay import replay_run
 
     path = tmp_path / "first.rrd"
     rec = rl.new_recording()
@@ -365,7 +365,7 @@ def test_a_real_capture_shorter_than_a_rotation_is_replayed_in_pieces(sample_pca
                                                                       tmp_path: Path):
     """The real VLP-16 capture of tests/data holds no whole rotation: its pieces are replayed,
     flagged, with every return."""
-    from scenarios.replay import capture_scans, replay_capture
+    from scenarios.recording.replay import capture_scans, replay_capture
 
     pieces = [s for s in capture_scans(sample_pcap, whole_only=False) if len(s)]
     path = tmp_path / "real.rrd"
@@ -387,7 +387,7 @@ def test_a_real_capture_shorter_than_a_rotation_is_replayed_in_pieces(sample_pca
 
 def _replay_points(run_dir: Path, tmp_path: Path) -> tuple[object, dict, dict]:
     """Replay `run_dir`; (summary, points per (reference, scan) in the recording, in the store)."""
-    from scenarios.replay import replay_run
+    from scenarios.recording.replay import replay_run
 
     path = tmp_path / "replay.rrd"
     rec = rl.new_recording()
@@ -430,7 +430,7 @@ def test_a_run_that_replayed_a_capture_reads_it_again(tmp_path: Path):
     """--bench hw --port none --lidar CAPTURE.pcap: the replay re-reads the capture in the order
     the runner took its scans."""
     from scenarios.bench import HardwareBench
-    from twin.sim import BenchSim
+    from twin.sim.bench import BenchSim
 
     pcap = tmp_path / "cap.pcap"
     BenchSim(seed=7).write_pcap(pcap, 6)
@@ -450,8 +450,8 @@ def test_a_run_that_replayed_a_capture_reads_it_again(tmp_path: Path):
 def test_stage_moves_follow_the_firmware_profile(tmp_path: Path):
     """A move is drawn along the trapezoidal profile on stage_time, ending where it was told;
     a target beyond the twin's travel (a longer real stage) is drawn at its arrival only."""
-    from twin.motion import X_AXIS, YAW_AXIS, StageMove
-    from twin.physics import BenchPhysics
+    from twin.sim.physics import BenchPhysics
+    from twin.stage.motion import X_AXIS, YAW_AXIS, StageMove
 
     path = tmp_path / "move.rrd"
     rec = rl.new_recording()

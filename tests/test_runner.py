@@ -161,7 +161,7 @@ def test_progress_line_shows_the_estimate_so_far():
     plan = _plan(scans=2)
     p = Progress(plan, enabled=True)
     p.start_reference(0, 0)
-    from twin.pose import Pose
+    from twin.core.pose import Pose
 
     p.scan(Estimate("ok", True, Pose(x=0.7, yaw=math.radians(-2.0))))
     p.scan(Estimate("no_board", False, None))

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from twin import vlp16
-from twin.scan import Scan, points_from_polar
+from twin.core import vlp16
+from twin.core.scan import Scan, points_from_polar
 
 
 def test_rings_are_elevation_order():

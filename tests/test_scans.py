@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 import velodyne_decoder as vd
 
-from twin import vlp16
-from twin.packets import (
+from twin.core import vlp16
+from twin.lidar.packets import (
     US_PER_HOUR,
     block_azimuths_cdeg,
     encode_data_packets,
     packet_timestamps_us,
 )
-from twin.pcap import read_pcap
-from twin.scans import ScanAssembler, scans_from_packets
+from twin.lidar.pcap import read_pcap
+from twin.lidar.scans import ScanAssembler, scans_from_packets
 
 PACKETS_PER_TURN_600RPM = 0.1 / (12 * 2 * vlp16.SEQUENCE_PERIOD)  # ~75.4
 

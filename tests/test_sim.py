@@ -13,15 +13,15 @@ import velodyne_decoder as vd
 from twin_analytic import board_intersections, board_intersections_moving
 
 from scenarios.cli import main as cli_main
-from twin import vlp16
-from twin.bench_params import BenchParams
-from twin.emulation import EmulationConfig
-from twin.motion import X_AXIS, YAW_AXIS, StageLimitError, StageMove, Trapezoid
-from twin.packets import decode_data_packets
-from twin.pcap import read_pcap
-from twin.pose import Pose
-from twin.scans import ScanAssembler
-from twin.sim import BenchSim
+from twin.core import vlp16
+from twin.core.pose import Pose
+from twin.lidar.packets import decode_data_packets
+from twin.lidar.pcap import read_pcap
+from twin.lidar.scans import ScanAssembler
+from twin.sim.bench import BenchSim
+from twin.sim.emulation import EmulationConfig
+from twin.sim.params import BenchParams
+from twin.stage.motion import X_AXIS, YAW_AXIS, StageLimitError, StageMove, Trapezoid
 
 W, H = 0.90, 0.54
 
@@ -108,7 +108,7 @@ def test_scans_are_whole_rotations_back_to_back() -> None:
 def test_scan_points_are_the_decoders_formula(mode: str) -> None:
     """x, y, z of the twin's scans are `points_from_polar` of their own ranges and azimuths
     (the formula the decoder uses), whichever path computed them."""
-    from twin.scan import points_from_polar
+    from twin.core.scan import points_from_polar
 
     sim = BenchSim(seed=3, noise=EmulationConfig(return_mode=mode))
     for s in sim.scans(2):
@@ -242,7 +242,7 @@ def test_packets_decode_to_the_twins_scans(mode: str) -> None:
 
 def test_pcap_decodes_the_same_with_velodyne_decoder_and_ours(tmp_path) -> None:
     sim = BenchSim(seed=9, noise=EmulationConfig(divergence=False))
-    path = tmp_path / "twin.pcap"
+    path = tmp_path / "twin.lidar.pcap"
     scans = sim.write_pcap(path, 2)
     payloads = [r.payload for r in read_pcap(path)]
     assert len(payloads) >= 2 * 75

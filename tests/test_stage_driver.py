@@ -12,8 +12,7 @@ from collections.abc import Iterator
 import pytest
 from stage_support import STEPS_PER_DEG, STEPS_PER_MM, Bench, bench
 
-from twin.hil import SimavrHarness
-from twin.stage_controller import (
+from twin.stage.controller import (
     GrblAlarm,
     GrblError,
     StageConnectionError,
@@ -21,6 +20,7 @@ from twin.stage_controller import (
     StageTimeout,
     trapezoid_time,
 )
+from twin.stage.hil import SimavrHarness
 
 pytestmark = [pytest.mark.simavr, pytest.mark.slow]
 __all__ = ["bench"]

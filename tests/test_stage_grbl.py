@@ -6,9 +6,9 @@ import math
 
 import pytest
 
-from twin import grbl
-from twin.errors import AimbenchError
-from twin.stage_controller import (
+from twin.core.errors import AimbenchError
+from twin.stage import grbl
+from twin.stage.controller import (
     GrblAlarm,
     GrblError,
     StageConnectionError,

@@ -15,7 +15,7 @@ from collections.abc import Iterator
 import pytest
 from stage_support import STEPS_PER_DEG, STEPS_PER_MM, Bench, RawLink, bench, expect
 
-from twin import grbl
+from twin.stage import grbl
 
 pytestmark = [pytest.mark.simavr, pytest.mark.slow]
 __all__ = ["bench"]  # the fixture, re-exported for pytest

@@ -13,9 +13,9 @@ import time
 
 import pytest
 
-from twin.hil import SimavrHarness
-from twin.physics import BenchPhysics
-from twin.stage_controller import StageController
+from twin.sim.physics import BenchPhysics
+from twin.stage.controller import StageController
+from twin.stage.hil import SimavrHarness
 
 pytestmark = [pytest.mark.simavr, pytest.mark.slow]
 

@@ -18,7 +18,7 @@ import pytest
 
 from scenarios import plans
 from scenarios.store import STORE_NAME, ScanResult, Store, StoreError
-from twin.pose import Pose
+from twin.core.pose import Pose
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -144,7 +144,7 @@ _WRITER = textwrap.dedent("""
     import numpy as np
     from scenarios import plans
     from scenarios.store import Store, ScanResult
-    from twin.pose import Pose
+    from twin.core.pose import Pose
     s = Store.create(sys.argv[1], plans.yaw_sweep(scans=1000))
     print("ready", flush=True)
     k = 0

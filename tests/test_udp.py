@@ -8,12 +8,12 @@ import threading
 import numpy as np
 import pytest
 
-from twin import vlp16
-from twin.capture import UdpSource, read_capture
-from twin.packets import encode_position_packet
-from twin.pcap import read_pcap
-from twin.scans import ScanAssembler
-from twin.udp import SensorSilentError, UdpError, UdpReceiver, send_packets
+from twin.core import vlp16
+from twin.lidar.capture import UdpSource, read_capture
+from twin.lidar.packets import encode_position_packet
+from twin.lidar.pcap import read_pcap
+from twin.lidar.scans import ScanAssembler
+from twin.lidar.udp import SensorSilentError, UdpError, UdpReceiver, send_packets
 
 
 def replay_stream(sample_pcap, n: int) -> np.ndarray:

@@ -1,15 +1,15 @@
 """An independent calculation of where VLP-16 rays meet the board: ray/plane in the board frame.
 
-Uses only the DESIGN.md conventions (twin.pose.Pose, the VLP-16 elevations and vertical offsets)
-and the board's size: no MuJoCo. The twin's tests compare the emulation against it.
+Uses only the DESIGN.md conventions (twin.core.pose.Pose, the VLP-16 elevations and vertical
+offsets) and the board's size: no MuJoCo. The twin's tests compare the emulation against it.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from twin import vlp16
-from twin.pose import Pose
+from twin.core import vlp16
+from twin.core.pose import Pose
 
 
 def board_intersections(pose: Pose, azimuth: np.ndarray, laser_id: np.ndarray,

@@ -15,7 +15,7 @@ import numpy as np
 
 from align import calibration as laser_calibration
 from scenarios import calibrate
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
 
 
 def run(args: argparse.Namespace) -> int:

@@ -2,7 +2,7 @@
 
 Per point: x, y, z (m, LiDAR frame {L}), distance (m, 0 = no return), intensity, laser_id,
 ring, azimuth_deg, time_s (sensor clock, s past the hour), scan (index), return_type (flags of
-`twin.scan.ReturnType`). Per scan: scan_index, scan_start (first point), scan_points,
+`twin.core.scan.ReturnType`). Per scan: scan_index, scan_start (first point), scan_points,
 scan_complete, scan_partial, scan_missing_packets, scan_packets, scan_rpm. ``summary``: the
 `aimbench info --json` object as a JSON string.
 """
@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from scenarios.commands.info import add_decode_options, decode_options, warn_lines
-from twin.capture import PcapSource, read_capture
-from twin.errors import AimbenchError
-from twin.scan import Scan
+from twin.core.errors import AimbenchError
+from twin.core.scan import Scan
+from twin.lidar.capture import PcapSource, read_capture
 
 
 def scans_to_arrays(scans: list[Scan], returns_only: bool = False) -> dict[str, np.ndarray]:

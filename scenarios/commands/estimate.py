@@ -18,8 +18,8 @@ from align import calibration as laser_calibration
 from align.board import BoardSpec
 from scenarios import calibrate
 from scenarios.commands.info import add_decode_options, decode_options, warn_lines
-from twin.capture import PcapSource, read_capture
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
+from twin.lidar.capture import PcapSource, read_capture
 
 
 def _row(first: int, n: int, res: align.PoseEstimate) -> dict:

@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from scenarios.store import Store
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
 
 
 def run(args: argparse.Namespace) -> int:

@@ -15,7 +15,7 @@ import math
 import sys
 import time
 
-from twin.hil import SimavrHarness
+from twin.stage.hil import SimavrHarness
 
 
 def run(args: argparse.Namespace) -> int:

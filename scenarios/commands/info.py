@@ -9,7 +9,7 @@ import math
 import sys
 import warnings
 
-from twin.capture import PcapSource, read_capture
+from twin.lidar.capture import PcapSource, read_capture
 
 
 def add_decode_options(p: argparse.ArgumentParser) -> None:

@@ -17,13 +17,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from scenarios.rerun_observer import (
+from scenarios.recording.observer import (
     add_sink_arguments,
     close_recording,
     open_recording,
     sink_options,
 )
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
 
 
 def _progress(enabled: bool):
@@ -37,8 +37,8 @@ def _progress(enabled: bool):
 
 
 def run(args: argparse.Namespace) -> int:
-    from scenarios import replay
-    from twin import rerun_log as rl
+    from scenarios.recording import log as rl
+    from scenarios.recording import replay
 
     src = Path(args.source)
     tol = rl.tolerance_band(args.tolerance_deg, args.tolerance_mm)

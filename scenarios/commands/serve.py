@@ -18,7 +18,7 @@ import signal
 import sys
 import time
 
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
 
 
 def parse_udp(text: str) -> tuple[str, int]:
@@ -33,8 +33,8 @@ def parse_udp(text: str) -> tuple[str, int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twin.emulation import EmulationConfig
-    from twin.wire import WireTwin
+    from twin.sim.emulation import EmulationConfig
+    from twin.sim.wire import WireTwin
 
     udp = parse_udp(args.udp)
     noise = EmulationConfig.ideal() if args.ideal else None

@@ -16,7 +16,7 @@ import json
 import math
 from pathlib import Path
 
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
 
 
 def truth_path(capture: Path) -> Path:
@@ -35,9 +35,9 @@ def _jsonable(obj) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
-    from twin.bench_params import BenchParams
-    from twin.emulation import EmulationConfig
-    from twin.sim import BenchSim
+    from twin.sim.bench import BenchSim
+    from twin.sim.emulation import EmulationConfig
+    from twin.sim.params import BenchParams
 
     if args.scans < 1:
         raise AimbenchError("--scans must be at least 1")

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from twin.stage_controller import StageController, StageStatus
+from twin.stage.controller import StageController, StageStatus
 
 
 def _print_status(st: StageStatus) -> None:

@@ -29,7 +29,7 @@ from scenarios.runner import (
     make_estimator,
 )
 from scenarios.store import Store
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
 
 
 def add_bench_arguments(p: argparse.ArgumentParser) -> None:
@@ -228,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
     def rerun(plan: plans.Plan, info: dict) -> object:  # a RerunSession or None
         if not hasattr(args, "rerun"):
             return None
-        from scenarios.rerun_observer import session_from_args
+        from scenarios.recording.observer import session_from_args
 
         return session_from_args(args, out, plan, info,
                                  tolerances={**{f"{a}_deg": tol.angle_deg
@@ -263,8 +263,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-report", action="store_true", help="do not write the report")
     add_tolerance_arguments(p)
-    try:  # rerun logging (scenarios/rerun_observer.py): optional, the sweep works without it
-        from scenarios.rerun_observer import add_rerun_arguments
+    try:  # rerun logging (scenarios/recording/observer.py): optional, the sweep works without it
+        from scenarios.recording.observer import add_rerun_arguments
     except ImportError:
         pass
     else:

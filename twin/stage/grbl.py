@@ -1,7 +1,7 @@
 """The Grbl 1.1 serial protocol, independent of any transport: codes, meanings, line parsing.
 
 The bench's stage controller (bench_fw/, see bench_fw/PROTOCOL.md) speaks a subset of Grbl 1.1,
-and a stock grbl-Mega board speaks all of it; `twin.stage_controller` uses this module for both.
+and a stock grbl-Mega board speaks all of it; `twin.stage.controller` uses this module for both.
 Positions in this module are in machine units as Grbl reports them (mm, or deg for the rotary
 axis); conversion to SI happens in the driver.
 """

@@ -1,6 +1,7 @@
 """Compiled per-ray kernels of the VLP-16 emulation (numba).
 
-`twin.emulation.VLP16Emulator.fire_grid` emulates whole firing grids (28,800 firings a rotation).
+`twin.sim.emulation.VLP16Emulator.fire_grid` emulates whole firing grids (28,800 firings a
+rotation).
 As numpy, every step (the azimuths' sines and cosines, MuJoCo's ray/plane rule for the floor
 and the wall, the culling's index runs, the measurement model on about 16,600 returns) was a
 handful of full-size passes with temporaries and a Python call each. Here, with one ray per
@@ -23,7 +24,7 @@ brute-force `mj_multiRay`):
 * `ray_plane` is engine_ray.c's ``ray_plane``: front face only (``lvec_z <= -mjMINVAL``),
   distance ``-lpnt_z / lvec_z >= 0``, inside the sized rectangle (a size of 0 is unbounded);
   among several planes the nearest wins, the first (lowest geom id) on a tie, as in ``mj_ray``;
-* hits beyond the caster's cutoff are no return (as `twin.emulation.RayCaster` treats MuJoCo's).
+* hits beyond the caster's cutoff are no return (as `twin.sim.emulation.RayCaster` treats MuJoCo's).
 
 Float32 transcendentals (Box-Muller's log, sine and cosine; the intensity's r^-exponent) are
 this module's own vectorisable polynomials (Cephes' single-precision ones): numba calls libm
@@ -57,7 +58,7 @@ import math
 import numpy as np
 from numba import njit
 
-#: Lasers of a VLP-16 (`twin.vlp16.N_LASERS`, a compile-time constant here).
+#: Lasers of a VLP-16 (`twin.core.vlp16.N_LASERS`, a compile-time constant here).
 N_LASERS = 16
 #: mjMINVAL, as MuJoCo's ray_plane uses it.
 MJMINVAL = 1e-15
@@ -363,7 +364,7 @@ def grid_rays(azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray, k:
     """Every ray of a grid (``azimuth`` (S, 16); rows ``row_laser``/``row_dh``; planes ``k``,
     ``ranges``, ``n_ranges`` from `plane_rows`), whole rows at a time (`_row_segment`), into
     row-major (R * S,) arrays: azimuth sine and cosine, nearest plane's distance, weighted
-    cosine and geom id. For sub-rays (divergence), whose echoes `twin.emulation` forms."""
+    cosine and geom id. For sub-rays (divergence), whose echoes `twin.sim.emulation` forms."""
     n_seq = azimuth.shape[0]
     az_t = np.ascontiguousarray(azimuth.T)
     sb = np.empty(n_seq)
@@ -517,7 +518,7 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
 def _cast_hit(d: float, g: int, nrm: np.ndarray, dirs: np.ndarray, i: int,
               weight: np.ndarray, cutoff: float) -> tuple[float, float, int]:
     """MuJoCo's result for cast ray i as (distance, inf: none; |normal . direction| x the
-    geom's ``weight``, 0; geom id, -1). As `twin.emulation.RayCaster.multiray`: no geom, or a
+    geom's ``weight``, 0; geom id, -1). As `twin.sim.emulation.RayCaster.multiray`: no geom, or a
     hit beyond ``cutoff``, is no return (mj_multiRay's cutoff prunes geoms by their bounding
     volume, not hits by distance)."""
     if g >= 0 and d <= cutoff:
@@ -824,7 +825,7 @@ def firing_points(distance: np.ndarray, sin_a: np.ndarray, cos_a: np.ndarray,
     elevation ``cos_el``/``sin_el`` and origin offset along Z_L ``vertical`` for every firing
     of a block of `BLOCK_FIRINGS` (the pattern repeats). x = (d cos w) sin a, y = (d cos w)
     cos a, z = d sin w + the offset where d > 0: the same operations as
-    `twin.scan.points_from_polar`, so the same values. Returns x, y, z (R, N) each."""
+    `twin.core.scan.points_from_polar`, so the same values. Returns x, y, z (R, N) each."""
     n_slots, n = distance.shape
     x = np.empty((n_slots, n))
     y = np.empty((n_slots, n))
@@ -980,7 +981,7 @@ def firing_schedule(lo: int, hi: int, sequence_period: float, laser_period: floa
     ``omegas[j]`` rad/s until the next start; a firing at t is in rotation j (the last with
     starts[j] <= t; -1 before the first, which extends backwards) and its azimuth is (t -
     start) omega + cut, brought into [0, 2 pi) by one subtraction or addition of 2 pi (it is
-    within a turn of the cut). The same operations as `twin.sim.BenchSim`'s numpy had them,
+    within a turn of the cut). The same operations as `twin.sim.bench.BenchSim`'s numpy had them,
     so the same values."""
     n_seq = hi - lo
     n = n_seq * N_LASERS

@@ -27,11 +27,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from scenarios.rerun_observer import RerunObserver, pose_from_row
+from scenarios.recording.observer import RerunObserver, pose_from_row
 from scenarios.store import Store
-from twin.errors import AimbenchError
-from twin.pose import Pose
-from twin.scan import Scan
+from twin.core.errors import AimbenchError
+from twin.core.pose import Pose
+from twin.core.scan import Scan
 
 if TYPE_CHECKING:
     import rerun as rr
@@ -121,9 +121,9 @@ def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int
 def capture_scans(path: str | Path, whole_only: bool = True) -> list[Scan]:
     """The scans of a VLP-16 capture in order (data packets on port 2368), as `PcapScanSource`
     assembles them; ``whole_only`` drops the partial first and last rotations."""
-    from twin.pcap import PcapReader
-    from twin.scans import ScanAssembler
-    from twin.vlp16 import DATA_PORT
+    from twin.core.vlp16 import DATA_PORT
+    from twin.lidar.pcap import PcapReader
+    from twin.lidar.scans import ScanAssembler
 
     path = Path(path)
     if not path.is_file():
@@ -302,9 +302,10 @@ def truth_path(capture: str | Path) -> Path:
 
 
 def write_truth(capture: str | Path, scans: list[Scan]) -> Path:
-    """Write the truth of the twin's scans beside their capture (`twin.sim.BenchSim.write_pcap`
-    returns them): per scan, its sensor time (s past the hour, first firing) and its true pose
-    in edge units (mm, deg), so a replay can pair decoded scans with their truth by time."""
+    """Write the truth of the twin's scans beside their capture
+    (`twin.sim.bench.BenchSim.write_pcap` returns them): per scan, its sensor time (s past the
+    hour, first firing) and its true pose in edge units (mm, deg), so a replay can pair decoded
+    scans with their truth by time."""
     entries = []
     for s in scans:
         truth = s.meta.get("truth_pose")

@@ -1,8 +1,8 @@
 """Host driver of the bench's stage controller (bench_fw/, or a stock grbl-Mega board).
 
 `StageController` talks Grbl 1.1 over ``serial.serial_for_url``, so a USB port
-(``/dev/ttyACM0``), the simavr harness's pty (`twin.hil`) or ``loop://`` all work. It copes with
-the boot banner of a board that resets when the port opens and with a board that does not
+(``/dev/ttyACM0``), the simavr harness's pty (`twin.stage.hil`) or ``loop://`` all work. It copes
+with the boot banner of a board that resets when the port opens and with a board that does not
 (it asks for a soft reset), waits until the stages have really arrived (Grbl's ``ok`` only means
 "accepted"), and turns timeouts, lost replies, errors and alarms into exceptions that carry
 Grbl's code and meaning.
@@ -23,8 +23,8 @@ from types import TracebackType
 
 import serial
 
-from twin import grbl
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
+from twin.stage import grbl
 
 #: The bench's machine position of the reference pose (PROTOCOL.md, "Bench settings").
 X_REF_MM = 50.0

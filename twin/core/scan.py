@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from twin import vlp16
+from twin.core import vlp16
 
 
 class ReturnType(enum.IntFlag):

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
 
 
 class StageLimitError(AimbenchError):

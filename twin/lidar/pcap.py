@@ -28,8 +28,8 @@ from types import TracebackType
 import pcapng
 from pcapng import blocks as pcapng_blocks
 
-from twin import vlp16
-from twin.errors import AimbenchError
+from twin.core import vlp16
+from twin.core.errors import AimbenchError
 
 
 class CaptureFormatError(AimbenchError):

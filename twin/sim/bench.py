@@ -6,12 +6,13 @@ the sensor. The VLP-16 fires on a fixed grid (a firing sequence every 55.296 us 
 2.304 us apart), spins at the configured rpm with a fresh scan-to-scan wander each rotation, and
 reports its clock as seconds past the hour (``Scan.time``, packet timestamps). A rotation runs
 from one pass of the cut azimuth to the next (default pi, behind the sensor, like
-`twin.scans.ScanAssembler`), so the twin's scans and the scans decoded from its packets coincide.
+`twin.lidar.scans.ScanAssembler`), so the twin's scans and the scans decoded from its packets
+coincide.
 
 Ground truth: every `Scan` carries ``meta["truth"]`` (the true LiDAR pose in the board frame at
 the scan's first firing, edge units: mm and deg, `Pose.to_edge`), ``meta["truth_pose"]`` (the same
-as a `twin.pose.Pose`) and ``meta["truth_end_pose"]`` (at the last firing: differs only when the
-stages moved during the scan). Each firing is cast from the pose of its own instant.
+as a `twin.core.pose.Pose`) and ``meta["truth_end_pose"]`` (at the last firing: differs only when
+the stages moved during the scan). Each firing is cast from the pose of its own instant.
 """
 
 from __future__ import annotations
@@ -23,13 +24,14 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from twin import raykernel, vlp16
-from twin.bench_params import BenchParams
-from twin.emulation import EmulationConfig, RayCaster, Returns, VLP16Emulator
-from twin.motion import X_AXIS, YAW_AXIS, StageMove
-from twin.physics import BenchPhysics
-from twin.pose import Pose
-from twin.scan import Scan, points_from_polar
+from twin.core import vlp16
+from twin.core.pose import Pose
+from twin.core.scan import Scan, points_from_polar
+from twin.sim import raykernel
+from twin.sim.emulation import EmulationConfig, RayCaster, Returns, VLP16Emulator
+from twin.sim.params import BenchParams
+from twin.sim.physics import BenchPhysics
+from twin.stage.motion import X_AXIS, YAW_AXIS, StageMove
 
 TWO_PI = 2.0 * math.pi
 SECONDS_PER_HOUR = 3600.0
@@ -422,7 +424,7 @@ class BenchSim:
         each, 12 in dual mode), so the first and the last packet also carry firings of the
         neighbouring rotations, emulated like the rest.
         """
-        from twin.packets import encode_data_packets  # the data-path encoder
+        from twin.lidar.packets import encode_data_packets  # the data-path encoder
 
         cfg = self.config
         first = self._next_rotation_index()
@@ -469,7 +471,7 @@ class BenchSim:
     def write_pcap(self, path: str | Path, n_scans: int) -> list[Scan]:
         """Write ``n_scans`` rotations as a pcap capture any VLP-16 tool reads; returns the scans
         (each with its ground truth)."""
-        from twin.pcap import PcapWriter
+        from twin.lidar.pcap import PcapWriter
 
         payloads, arrival, scans = self.packets(n_scans)
         with PcapWriter(path) as w:
@@ -481,8 +483,8 @@ class BenchSim:
                  realtime: bool = True) -> list[Scan]:
         """Send ``n_scans`` rotations as UDP datagrams to (host, port) at the sensor's real
         packet rate (about 754 packets/s, twice that in dual mode; ``realtime=False``: as fast
-        as possible), through `twin.udp.send_packets`. Returns the scans (with truth)."""
-        from twin.udp import send_packets
+        as possible), through `twin.lidar.udp.send_packets`. Returns the scans (with truth)."""
+        from twin.lidar.udp import send_packets
 
         payloads, _, scans = self.packets(n_scans)
         rate = vlp16.PACKET_RATE * self.config.n_returns if realtime else None

@@ -31,8 +31,9 @@ import mujoco
 import numpy as np
 from scipy.special import ndtr
 
-from twin import raykernel, vlp16
-from twin.scan import ReturnType
+from twin.core import vlp16
+from twin.core.scan import ReturnType
+from twin.sim import raykernel
 
 ReturnMode = Literal["strongest", "last", "dual"]
 _COS_EL = np.cos(vlp16.ELEVATION)
@@ -190,7 +191,7 @@ class RayCaster:
         ``row_origins[j]``; one mj_multiRay call per run, written straight into the outputs.
         Returns MuJoCo's raw (distance, -1 if none; geom id, -1 if none; normal (n, 3)): unlike
         `multiray`, hits beyond the cutoff are left to the caller
-        (`twin.raykernel.scatter_cast`)."""
+        (`twin.sim.raykernel.scatter_cast`)."""
         n = len(dirs)
         gid = np.empty(n, dtype=np.int32)
         dist = np.empty(n)
@@ -210,7 +211,7 @@ class RayCaster:
     def planes(self, origin: np.ndarray, dirs: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The scene's planes only, by MuJoCo's ray_plane rule (front face, sized rectangle):
-        `twin.raykernel.ray_planes`. Returns (distance, inf if none; geom id; world normal)."""
+        `twin.sim.raykernel.ray_planes`. Returns (distance, inf if none; geom id; world normal)."""
         n = len(dirs)
         dist = np.empty(n)
         gid = np.empty(n, dtype=np.int32)
@@ -319,7 +320,7 @@ class Returns:
     distance: np.ndarray
     intensity: np.ndarray
     return_type: np.ndarray
-    #: The returns' positions in {L} (R, N) m, 0 where none, as `twin.scan.points_from_polar`
+    #: The returns' positions in {L} (R, N) m, 0 where none, as `twin.core.scan.points_from_polar`
     #: gives them, when the emulator had what they need anyway (`VLP16Emulator.fire_grid`).
     x: np.ndarray | None = None
     y: np.ndarray | None = None
@@ -364,7 +365,7 @@ def _gaussian(rng: np.random.Generator, n: int, sigma: float) -> np.ndarray:
 def _gaussian_pair(rng: np.random.Generator, n: int, sigma_a: float, sigma_b: float
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Two independent sets of n Gaussian samples (sigma_a, sigma_b), float32: Box-Muller
-    (`twin.raykernel.box_muller`) on 2n 24-bit uniforms cut from n raw 64-bit words of
+    (`twin.sim.raykernel.box_muller`) on 2n 24-bit uniforms cut from n raw 64-bit words of
     ``rng`` (half the generator's per-sample cost). numpy's ziggurat costs about 20 ns a
     sample on the benchmark machine; float32 is enough (the noise needs 7 digits, not 16)."""
     words = rng.bit_generator.random_raw(n).view(np.uint32)
@@ -406,13 +407,13 @@ class VLP16Emulator:
         #: The intensity's residual range exponent (0: none, also without the model).
         self._exponent = (float(config.intensity_range_exponent) if config.intensity_model
                           else 0.0)
-        #: `twin.raykernel.measure_firings`' model parameters: unit (0: no rounding), range
+        #: `twin.sim.raykernel.measure_firings`' model parameters: unit (0: no rounding), range
         #: limits, intensity model, return flag, return slots.
         self._model_args = (vlp16.DISTANCE_UNIT if config.quantise else 0.0,
                             float(config.range_min), float(config.range_max),
                             bool(config.intensity_model), self._return_flag,
                             config.n_returns, self._near_energy)
-        #: Weight 1 per geom (`twin.raykernel.grid_rays` then gives plain cosines).
+        #: Weight 1 per geom (`twin.sim.raykernel.grid_rays` then gives plain cosines).
         self._unit_weights = np.ones(len(self.reflectivity))
         #: Each laser's origin offset along Z_L, m (16,).
         self._vertical_offsets = (vlp16.VERTICAL_OFFSET if config.vertical_offsets
@@ -421,7 +422,7 @@ class VLP16Emulator:
 
     def _grid_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Per-laser constants for every firing of a block of whole sequences
-        (`twin.raykernel.BLOCK_FIRINGS`, firing order; the kernels read them in step with the
+        (`twin.sim.raykernel.BLOCK_FIRINGS`, firing order; the kernels read them in step with the
         firings): range offset (laser offset + bias), elevation cosine and sine, origin offset
         along Z_L. Cached."""
         cached = getattr(self, "_grid_table_cache", None)
@@ -542,14 +543,14 @@ class VLP16Emulator:
         does, and the same values (tests/test_emulation.py), with the firings' azimuth sines
         and cosines.
 
-        The compiled kernels of `twin.raykernel` work on rows (laser, sub-ray) of rays that
+        The compiled kernels of `twin.sim.raykernel` work on rows (laser, sub-ray) of rays that
         share one origin and one elevation. First the rays that may meet a solid (the culling,
         exact: `_grid_candidates`) go through `mj_multiRay`. Then, with one ray per firing,
-        one pass (`twin.raykernel.grid_pass`) does the rest block by block: every ray's azimuth
+        one pass (`twin.sim.raykernel.grid_pass`) does the rest block by block: every ray's azimuth
         sine and cosine and nearest plane (floor, wall) by MuJoCo's ray/plane rule, MuJoCo's
         results over the planes' for the cast rays, the measurement model (the same as
         `fire`'s, `_measure_hits`) and the points. With divergence the sub-rays are traced
-        (`twin.raykernel.grid_rays`) and their hits form echoes (`_from_hits`).
+        (`twin.sim.raykernel.grid_rays`) and their hits form echoes (`_from_hits`).
         """
         cfg = self.config
         n_seq = azimuth.shape[0]
@@ -632,7 +633,7 @@ class VLP16Emulator:
 
     def _plane_frames(self, origins: np.ndarray, rotation: np.ndarray
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The scene's planes as `twin.raykernel.grid_rays` takes them, cached for the last
+        """The scene's planes as `twin.sim.raykernel.grid_rays` takes them, cached for the last
         pose: the lasers' origins in each plane's frame (P, 16, 3), each plane's axes in {L}
         (P, 3, 3; column j = axis j), half-sizes (P, 2), geom ids (P,), and the azimuths in
         {L} each covers (P, 2: centre, half-width; pi = unbounded).
@@ -677,7 +678,7 @@ class VLP16Emulator:
                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The rays that may meet a non-plane geom (inside its bounding sphere, cut down to a
         box's angular extent), for MuJoCo: (ray index, world direction, rows, row bounds), as
-        `twin.raykernel.grid_candidates` gives them.
+        `twin.sim.raykernel.grid_candidates` gives them.
 
         Row r has one origin ``origins[row_laser[r]]``, one elevation (cos ``cw[r]``, sin
         ``sw[r]``) and azimuths ``base`` (the sequences' first firings) + the row's offset
@@ -857,7 +858,7 @@ class VLP16Emulator:
         """The measurement model of N firings with one echo each, per firing (N,): true range
         ``r`` m, apparent reflectivity ``refl`` (0: no return), range ``offsets`` (the laser's
         offset + bias), received ``energy`` (None: refl / r^2, as for one ray per firing).
-        The model itself is `twin.raykernel.measure_firings`; the randomness
+        The model itself is `twin.sim.raykernel.measure_firings`; the randomness
         `_noise_words` and `_dropouts`."""
         words, sigma_r, sigma_i = self._noise_words(len(r))
         distance, intensity, rtype, near, near_energy = raykernel.measure_firings(

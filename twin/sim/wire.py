@@ -1,10 +1,10 @@
 """The wire-level twin: the simulated bench behind the real bench's interfaces.
 
-`WireTwin` runs the real stage firmware in simavr (`twin.hil.SimavrHarness`, a pty a Grbl sender
-or `twin.stage_controller.StageController` opens like ``/dev/ttyACM0``) and streams the emulated
-VLP-16's data packets over UDP at the sensor's real rate. The step pulses the firmware emits move
-the MuJoCo stages: before each rotation is emulated, the stages are set to the position the
-harness observed on the STEP/DIR pins. So a host program that drives the pty and listens on the
+`WireTwin` runs the real stage firmware in simavr (`twin.stage.hil.SimavrHarness`, a pty a Grbl
+sender or `twin.stage.controller.StageController` opens like ``/dev/ttyACM0``) and streams the
+emulated VLP-16's data packets over UDP at the sensor's real rate. The step pulses the firmware
+emits move the MuJoCo stages: before each rotation is emulated, the stages are set to the position
+the harness observed on the STEP/DIR pins. So a host program that drives the pty and listens on the
 UDP port cannot tell the twin from the bench (`scenarios.bench.HardwareBench` runs unchanged).
 
 Pacing: packet k leaves at wall time start + k x 1.327 ms (the sensor's ~754 packets/s, on an
@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from twin import vlp16
-from twin.errors import AimbenchError
-from twin.scan import Scan
+from twin.core import vlp16
+from twin.core.errors import AimbenchError
+from twin.core.scan import Scan
 
 
 @dataclass
@@ -70,7 +70,7 @@ class PacketStream:
 
     def push(self, scan: Scan) -> np.ndarray:
         """The whole packets (n, 1206) uint8 completed by `scan`'s firings."""
-        from twin.packets import encode_data_packets
+        from twin.lidar.packets import encode_data_packets
 
         new = {k: np.asarray(getattr(scan, k)) for k in
                ("distance", "intensity", "azimuth", "laser_id")}
@@ -108,7 +108,7 @@ class WireTwin:
     """The simulated bench on a pty (stage firmware in simavr) and UDP (VLP-16 packets).
 
     udp: (host, port) the packets go to (default 127.0.0.1:2368).
-    seed, noise, params: as `twin.sim.BenchSim`. harness_options: passed to `SimavrHarness`
+    seed, noise, params: as `twin.sim.bench.BenchSim`. harness_options: passed to `SimavrHarness`
     (start position, pacing). Use as a context manager or call `start` / `stop`.
     """
 
@@ -135,8 +135,8 @@ class WireTwin:
         return self.harness.pty_path
 
     def start(self) -> WireTwin:
-        from twin.hil import SimavrHarness
-        from twin.sim import BenchSim
+        from twin.sim.bench import BenchSim
+        from twin.stage.hil import SimavrHarness
 
         self.sim = BenchSim(self.params, seed=self.seed, noise=self.noise)
         self.harness = SimavrHarness(**self.harness_options).start()

@@ -26,9 +26,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from twin import vlp16
-from twin.errors import AimbenchError
-from twin.scan import ReturnType
+from twin.core import vlp16
+from twin.core.errors import AimbenchError
+from twin.core.scan import ReturnType
 
 # --------------------------------------------------------------------------------------------
 # Errors and warnings

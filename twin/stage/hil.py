@@ -3,7 +3,7 @@
 `SimavrHarness` builds bench_fw (firmware .elf and the C harness, ``make -C bench_fw all
 harness``) if needed, starts ``bench_fw/build/harness/bench_hil`` and gives
 
-- ``pty_path``: a pseudo-terminal that `twin.stage_controller.StageController` (or any Grbl
+- ``pty_path``: a pseudo-terminal that `twin.stage.controller.StageController` (or any Grbl
   sender) opens like ``/dev/ttyACM0``; opening it resets the simulated MCU, as on a real Mega;
 - ``positions()``: the live step counts of both stages as observed on the firmware's STEP/DIR
   pins, and the same in SI relative to the bench reference, so the twin can move its MuJoCo joints
@@ -36,7 +36,7 @@ from types import TracebackType
 from typing import Any
 
 from bench_fw import FIRMWARE_DIR
-from twin.errors import AimbenchError
+from twin.core.errors import AimbenchError
 
 BUILD_DIR = FIRMWARE_DIR / "build"
 ELF_PATH = BUILD_DIR / "bench_fw.elf"

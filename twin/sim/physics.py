@@ -9,8 +9,8 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from twin.bench_params import BOARD_BODY, SENSOR_BODY, BenchParams
-from twin.pose import Pose
+from twin.core.pose import Pose
+from twin.sim.params import BOARD_BODY, SENSOR_BODY, BenchParams
 
 X_JOINT = "stage_x"
 YAW_JOINT = "stage_yaw"
@@ -93,7 +93,7 @@ class BenchPhysics:
                 self.data.xmat[self.board_body_id].reshape(3, 3).copy())
 
     def lidar_pose_in_board(self) -> Pose:
-        """The ground truth: pose of {L} in {O} (p_O = R p_L + t), `twin.pose.Pose`."""
+        """The ground truth: pose of {L} in {O} (p_O = R p_L + t), `twin.core.pose.Pose`."""
         p_l, r_l = self.lidar_pose_world()
         p_o, r_o = self.board_pose_world()
         return Pose.from_matrix(r_o.T @ r_l, r_o.T @ (p_l - p_o))

@@ -45,20 +45,20 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from twin.bench_params import BOARD_BODY
-from twin.pose import Pose
-from twin.scan import Scan
+from twin.core.pose import Pose
+from twin.core.scan import Scan
+from twin.sim.params import BOARD_BODY
 
 if TYPE_CHECKING:  # rerun is imported by callers that asked for a recording, never at import
     import rerun as rr
     import rerun.blueprint as rrb
 
-    from twin.physics import BenchPhysics
+    from twin.sim.physics import BenchPhysics
 
 #: Application id of every aimbench recording (the viewer groups recordings and blueprints by it).
 APP_ID = "aimbench"
 
-#: Pose axes in the order of `twin.pose.POSE_FIELDS`, named with their edge units.
+#: Pose axes in the order of `twin.core.pose.POSE_FIELDS`, named with their edge units.
 AXES = ("x_mm", "y_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg")
 #: SI -> edge units, per axis of `AXES`.
 _EDGE_SCALE = np.array([1e3, 1e3, 1e3, *([180.0 / math.pi] * 3)])
@@ -202,7 +202,7 @@ BOARD_BODY_NAME = BOARD_BODY
 class BenchGeometry:
     """The bench's MuJoCo bodies drawn as boxes and cylinders, posed in the board frame.
 
-    Built from a `twin.physics.BenchPhysics` (the live twin's, or one made from the run's bench
+    Built from a `twin.sim.physics.BenchPhysics` (the live twin's, or one made from the run's bench
     parameters for a replay). The geoms are logged once, static, in their body's frame; afterwards
     only the transforms of the bodies that hang on a joint (the carriage, the turntable and what
     they carry) are logged, each time the stages' joint positions change. The floor and the wall
@@ -309,13 +309,13 @@ def log_stage_move(rec: rr.RecordingStream, geometry: BenchGeometry,
                    rate_hz: float = 20.0) -> float:
     """The stages' move from ``start`` to ``end`` ((x m, yaw rad)) on the ``stage_time`` timeline,
     sampled at ``rate_hz`` along the firmware's coordinated trapezoidal profile
-    (`twin.motion.StageMove`), from stage time ``t0`` (s). Returns the move's end time (s).
+    (`twin.stage.motion.StageMove`), from stage time ``t0`` (s). Returns the move's end time (s).
 
     Used by replays, which know where the stages went but not how; the live twin logs its own
     joint positions instead. Only ``stage_time`` is set for these rows: they belong to no scan.
     """
-    from twin.errors import AimbenchError
-    from twin.motion import X_AXIS, YAW_AXIS, StageMove
+    from twin.core.errors import AimbenchError
+    from twin.stage.motion import X_AXIS, YAW_AXIS, StageMove
 
     try:
         move = StageMove.plan(tuple(map(float, start)), tuple(map(float, end)),

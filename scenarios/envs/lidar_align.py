@@ -5,8 +5,8 @@ Importing this module registers ``aimbench/LidarAlign-v0`` (with a `TimeLimit` o
 it first or let `gymnasium.make` import it::
 
     import gymnasium as gym
-    env = gym.make("twin.gym_env:aimbench/LidarAlign-v0")       # imports twin.gym_env itself
-    env = gym.make("aimbench/LidarAlign-v0", bench="hw",         # after `import twin.gym_env`
+    env = gym.make("scenarios.envs.lidar_align:aimbench/LidarAlign-v0")  # imports the module
+    env = gym.make("aimbench/LidarAlign-v0", bench="hw",  # after `import aimbench`
                    bench_kwargs={"port": "/dev/ttyACM0", "lidar": "udp://0.0.0.0:2368"})
 
 The environment runs over any `scenarios.bench.Bench`: the MuJoCo twin (`SimBench`, default), the
@@ -31,9 +31,9 @@ from gymnasium import spaces
 import align
 from scenarios.bench import Bench, SimBench, open_bench, scan_truth
 from scenarios.plans import MOUNT_KEYS, PAPER_MC_ANGLE_DEG, PAPER_MC_X_MM
-from twin.motion import X_AXIS, YAW_AXIS, StageMove
-from twin.pose import Pose
-from twin.scan import Scan
+from twin.core.pose import Pose
+from twin.core.scan import Scan
+from twin.stage.motion import X_AXIS, YAW_AXIS, StageMove
 
 #: The registered id, and the `TimeLimit` it carries (steps).
 ENV_ID = "aimbench/LidarAlign-v0"
@@ -134,7 +134,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     key                     space            meaning
     ======================  ===============  =====================================================
     ``pose``                Box(6,) float64  estimated x, y, z (m), roll, tilt, yaw (rad) of the
-                                             LiDAR in {O} (`twin.pose.POSE_FIELDS` order);
+                                             LiDAR in {O} (`twin.core.pose.POSE_FIELDS` order);
                                              zeros when ``estimate_ok`` is 0
     ``pose_std``            Box(6,) float64  its 1-sigma, same order and units; `STD_LIMIT`
                                              (10) when ``estimate_ok`` is 0
@@ -287,7 +287,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         """x of a perfectly mounted LiDAR at stage home, m: from the twin's model when the bench
         is the twin (its own geometry, whatever its `BenchParams`), else the paper's bench."""
         if isinstance(self.bench, SimBench):
-            from twin.physics import BenchPhysics
+            from twin.sim.physics import BenchPhysics
 
             p = replace(self.bench.base_params, mount_roll=0.0, mount_tilt=0.0, mount_yaw=0.0)
             return float(BenchPhysics(p).lidar_pose_in_board().x)
@@ -494,7 +494,7 @@ _UNSET = _Unset()
 
 def _move_duration(start: np.ndarray, end: np.ndarray) -> float:
     """Duration of the coordinated (Grbl G1) stage move from ``start`` to ``end`` (yaw rad, x m),
-    s, with the firmware's speeds and accelerations (`twin.motion`). The travel check is the
+    s, with the firmware's speeds and accelerations (`twin.stage.motion`). The travel check is the
     bench's business, so the axes here have none."""
     axes = (replace(X_AXIS, travel_min=-math.inf, travel_max=math.inf),
             replace(YAW_AXIS, travel_min=-math.inf, travel_max=math.inf))

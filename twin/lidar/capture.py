@@ -17,18 +17,18 @@ from typing import NamedTuple
 
 import numpy as np
 
-from twin import vlp16
-from twin.packets import (
+from twin.core import vlp16
+from twin.core.scan import Scan
+from twin.lidar.packets import (
     PRODUCT_NAMES,
     RETURN_MODES,
     MalformedPacketError,
     PositionPacket,
     decode_position_packet,
 )
-from twin.pcap import CaptureStats, PcapReader
-from twin.scan import Scan
-from twin.scans import ScanAssembler, StreamStats
-from twin.udp import UdpReceiver
+from twin.lidar.pcap import CaptureStats, PcapReader
+from twin.lidar.scans import ScanAssembler, StreamStats
+from twin.lidar.udp import UdpReceiver
 
 
 class Packet(NamedTuple):

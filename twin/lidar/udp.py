@@ -27,8 +27,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from twin import vlp16
-from twin.errors import AimbenchError
+from twin.core import vlp16
+from twin.core.errors import AimbenchError
 
 #: Linux socket option that attaches the socket's drop counter to each received datagram.
 SO_RXQ_OVFL = getattr(socket, "SO_RXQ_OVFL", 40)

@@ -1,7 +1,7 @@
 """Assemble VLP-16 data packets into scans (one rotation each) and account for every packet.
 
 A `ScanAssembler` takes data-packet payloads in arrival order (from a pcap file or a socket)
-and yields `twin.scan.Scan` objects. On the way it:
+and yields `twin.core.scan.Scan` objects. On the way it:
 
 - checks each payload (size, block flags, factory bytes) and drops and counts bad ones;
 - orders packets by their sensor timestamp (us past the hour, unwrapped across the hour) in a
@@ -31,8 +31,9 @@ from typing import Literal
 
 import numpy as np
 
-from twin import vlp16
-from twin.packets import (
+from twin.core import vlp16
+from twin.core.scan import Scan
+from twin.lidar.packets import (
     DATA_PACKET_DTYPE,
     FIRINGS_PER_PACKET,
     US_PER_HOUR,
@@ -43,7 +44,6 @@ from twin.packets import (
     packet_period,
     validate_records,
 )
-from twin.scan import Scan
 
 TWO_PI = 2.0 * math.pi
 #: `ScanAssembler.push` takes payloads in groups of this many.

@@ -1,13 +1,13 @@
 """`RerunObserver`: what a run looks like in rerun, live (the sweep runner calls it) or afterwards
-(`scenarios.replay` feeds it from a result store or a capture).
+(`scenarios.recording.replay` feeds it from a result store or a capture).
 
 The runner knows nothing of rerun. For a live sweep, `RerunSession.instrument` hands it an
 `ObservedBench` and an `observed_estimator` that pass everything through and tell a
 `RerunObserver` what happened (``on_reference`` when the stages have arrived, ``on_scan`` with
 align's full answer, ``on_error``/``on_finish`` from the sweep command); a replay calls the same
-observer from a store or a capture. The observer turns those calls into `twin.rerun_log` calls
-on an explicit `rerun.RecordingStream`. Without ``--rerun`` no observer exists and rerun is
-never imported.
+observer from a store or a capture. The observer turns those calls into
+`scenarios.recording.log` calls on an explicit `rerun.RecordingStream`. Without ``--rerun`` no
+observer exists and rerun is never imported.
 
 Sinks follow rerun's own script conventions (``rr.script_add_args``): ``--save PATH`` writes an
 ``.rrd`` file, ``--connect [URL]`` streams to a running viewer, ``--serve`` hosts a gRPC server and
@@ -27,10 +27,10 @@ from typing import TYPE_CHECKING, Any, Protocol, TextIO
 
 import numpy as np
 
-from twin import rerun_log as rl
-from twin.errors import AimbenchError
-from twin.pose import Pose
-from twin.scan import Scan
+from scenarios.recording import log as rl
+from twin.core.errors import AimbenchError
+from twin.core.pose import Pose
+from twin.core.scan import Scan
 
 if TYPE_CHECKING:
     import rerun as rr
@@ -185,14 +185,15 @@ class RerunObserver:
 
     rec: the recording (an explicit stream; see `open_recording`).
     board: (width, height) of the target board, m.
-    tolerances: per-axis band of the error plots in edge units (`twin.rerun_log.tolerance_band`).
+    tolerances: per-axis band of the error plots in edge units
+        (`scenarios.recording.log.tolerance_band`).
     color_by: colour of the raw points, ``intensity`` or ``ring``.
     points_every: log every n-th return of a scan (1: all; larger keeps recordings small).
     clouds_per_reference: log the point clouds of only the first n scans of each reference
         (None: all); poses, errors and annotations are logged for every scan regardless.
     scans_per_reference: the plan's scans per reference, to number scans run-wide on the ``scan``
         timeline (reference * scans + k); None counts them as they come.
-    params: the `twin.bench_params.BenchParams` whose MuJoCo geometry draws the stages (default:
+    params: the `twin.sim.params.BenchParams` whose MuJoCo geometry draws the stages (default:
         the paper's bench). The observer keeps its own physics, posed from the stage positions it
         is told, so it never disturbs a live twin and works the same for hardware and replays.
     """
@@ -233,7 +234,7 @@ class RerunObserver:
         rl.log_world(rec)
         rl.log_board(rec, *self.board)
         if self._stages:
-            from twin.physics import BenchPhysics
+            from twin.sim.physics import BenchPhysics
 
             self.geometry = rl.BenchGeometry.from_physics(BenchPhysics(self._params))
             self.geometry.log_static(rec)

@@ -17,9 +17,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-#: The bench scene (one MJCF per part, composed with <include>).
-MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
-SCENE_PATH = MODELS_DIR / "scene.xml"
+from models import SCENE
 
 #: Names of the model elements this module edits (kept in one place so the MJCF and code agree).
 BOARD_BODY = "target_board"
@@ -41,7 +39,7 @@ class BenchParams:
 
     Attributes (SI):
         mount_roll, mount_tilt, mount_yaw: LiDAR mounting misalignment, rad, relative to the
-            turntable, in the convention of `twin.pose.Pose` (R = Rz(yaw) Rx(tilt) Ry(roll)).
+            turntable, in the convention of `twin.core.pose.Pose` (R = Rz(yaw) Rx(tilt) Ry(roll)).
         lever_arm: optical centre relative to the rotation axis on the turntable's top face, in
             the turntable frame (x right, y forward at stage yaw 0, z up), m. Default 60 mm up:
             the optical centre 0.5 m above the floor, level with the board centre.
@@ -116,7 +114,7 @@ class BenchParams:
         spec.body(SENSOR_MODULE_BODY).pos = np.asarray(self.sensor_module_position, dtype=float)
         return spec
 
-    def build_model(self, scene: Path | str = SCENE_PATH) -> mujoco.MjModel:
+    def build_model(self, scene: Path | str = SCENE) -> mujoco.MjModel:
         """Compile ``scene`` with these parameters applied."""
         spec = mujoco.MjSpec.from_file(str(scene))
         return self.apply(spec).compile()

@@ -1,0 +1,1 @@
+"""Gymnasium environments over the bench (the only place that imports gymnasium)."""
