@@ -29,13 +29,15 @@ from typing import Any
 import numpy as np
 
 from twin.core.errors import AimbenchError
-from twin.core.pose import Pose
 from twin.core.scan import Scan
+from twin.core.vlp16 import DATA_PORT
 
 #: The paper's bench travel, used when a bench cannot tell its own: yaw +-10 deg sweeps need at
 #: least that, x +-30 mm likewise. Real limits come from the controller's settings or the model.
 DEFAULT_YAW_LIMITS_RAD = (math.radians(-180.0), math.radians(180.0))
 DEFAULT_X_LIMITS_M = (-0.1, 0.1)
+#: Where a hardware bench listens for the LiDAR unless told: every interface, the data port.
+DEFAULT_LIDAR = f"udp://0.0.0.0:{DATA_PORT}"
 
 
 class BenchError(AimbenchError):
@@ -126,35 +128,6 @@ class Bench(abc.ABC):
         self.close()
 
 
-def scan_truth(scan: Scan) -> Pose | None:
-    """The twin's true LiDAR pose for `scan` (``scan.meta['truth']``), or None on hardware.
-
-    Accepts a `Pose`, a 6-array (SI), or a dict in SI or edge units, since the twin and a replay
-    of a capture's ``.truth.json`` may give either.
-    """
-    if not scan.meta:
-        return None
-    truth = scan.meta.get("truth_pose", scan.meta.get("truth"))
-    if truth is None:
-        return None
-    if isinstance(truth, Pose):
-        return truth
-    if isinstance(truth, dict):
-        if "x_m" in truth:
-            # The simulate command's truth.json: metres and degrees. (Tested before the edge
-            # form: it has yaw_deg too, and reading it as edge units would drop x, y and z.)
-            return Pose.from_edge(**{f"{a}_mm": truth[f"{a}_m"] * 1e3 for a in "xyz"},
-                                  **{k: truth[k] for k in ("roll_deg", "tilt_deg", "yaw_deg")
-                                     if k in truth})
-        if "x_mm" in truth or "yaw_deg" in truth:
-            return Pose.from_edge(**{k: v for k, v in truth.items() if k in
-                                     ("x_mm", "y_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg")})
-        return Pose(**{k: float(truth.get(k, 0.0)) for k in
-                       ("x", "y", "z", "roll", "tilt", "yaw")})
-    return Pose.from_array(truth)
-
-
-
 # -- scan sources (the LiDAR side of HardwareBench) ---------------------------------------------
 
 class ScanSource(abc.ABC):
@@ -179,7 +152,8 @@ class UdpScanSource(ScanSource):
     is dropped, so every scan returned began after the stages had arrived.
     """
 
-    def __init__(self, host: str = "0.0.0.0", port: int = 2368, timeout_s: float = 2.0) -> None:
+    def __init__(self, host: str = "0.0.0.0", port: int = DATA_PORT,
+                 timeout_s: float = 2.0) -> None:
         self.host = host
         self.port = port
         self.timeout_s = timeout_s
@@ -218,18 +192,13 @@ class PcapScanSource(ScanSource):
     scans; running out of capture is a `NoScanError` naming how many there were."""
 
     def __init__(self, path: str | Path) -> None:
-        from twin.lidar.pcap import PcapReader
-        from twin.lidar.scans import ScanAssembler
+        from twin.lidar.capture import capture_scans
 
         self.path = Path(path)
         if not self.path.is_file():
             raise NoScanError(f"no such capture {self.path}; give a .pcap file or "
                               "udp://HOST:PORT")
-        reader = PcapReader(self.path, ports=(2368,))
-        asm = ScanAssembler()
-        payloads = [rec.payload for rec in reader]
-        self._scans = [s for s in asm.push_many(payloads) + asm.finish()
-                       if not s.meta.get("partial")]
+        self._scans = capture_scans(self.path)
         self._next = 0
 
     def info(self) -> dict[str, Any]:
@@ -255,7 +224,7 @@ def scan_source(spec: str, timeout_s: float = 2.0) -> ScanSource:
             return UdpScanSource(host or "0.0.0.0", int(port), timeout_s)
         except ValueError:
             raise BenchError(f"bad LiDAR address {spec!r}; use udp://HOST:PORT, e.g. "
-                             "udp://0.0.0.0:2368") from None
+                             f"{DEFAULT_LIDAR}") from None
     return PcapScanSource(spec)
 
 
@@ -273,7 +242,7 @@ class HardwareBench(Bench):
 
     kind = "hw"
 
-    def __init__(self, port: str | None, lidar: str = "udp://0.0.0.0:2368",
+    def __init__(self, port: str | None, lidar: str = DEFAULT_LIDAR,
                  settle_s: float = 0.2, silence_timeout_s: float = 2.0,
                  controller: Any = None) -> None:
         self.port = port
@@ -569,7 +538,7 @@ def open_bench(config: dict[str, Any]) -> Bench:
         if not config.get("port"):
             raise BenchError("--bench hw needs the stage controller's --port (e.g. /dev/ttyACM0), "
                              "or --port none for a LiDAR without stages or a capture replay")
-        return HardwareBench(config["port"], config.get("lidar") or "udp://0.0.0.0:2368")
+        return HardwareBench(config["port"], config.get("lidar") or DEFAULT_LIDAR)
     if kind == "serve":
         return ServedBench.launch(seed=int(config.get("seed") or 0),
                                   ideal=bool(config.get("ideal")))

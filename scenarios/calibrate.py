@@ -18,7 +18,8 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from align import calibration as laser_calibration
-from scenarios.bench import Bench, scan_truth
+from scenarios.bench import Bench
+from scenarios.truth import scan_truth
 from twin.core.errors import AimbenchError
 from twin.core.pose import Pose
 from twin.core.scan import Scan
@@ -90,7 +91,8 @@ def on_bench(bench: Bench, yaws_deg: Sequence[float] = DEFAULT_YAWS_DEG,
 def from_capture(capture: str | Path, truth: str | Path | None = None
                  ) -> laser_calibration.LaserCalibration:
     """Calibrate from a capture's whole scans and its truth file (default CAPTURE.truth.json)."""
-    from scenarios.recording.replay import capture_scans, load_truth, truth_for, truth_path
+    from scenarios.truth import load_truth, truth_for, truth_path
+    from twin.lidar.capture import capture_scans
 
     truth_file = Path(truth) if truth is not None else truth_path(capture)
     if not truth_file.is_file():

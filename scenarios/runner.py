@@ -29,9 +29,10 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from scenarios.bench import Bench, BenchError, TravelError, scan_truth
+from scenarios.bench import Bench, BenchError, TravelError
 from scenarios.plans import Plan, Reference, references_beyond
 from scenarios.store import ScanResult, Store
+from scenarios.truth import scan_truth
 from twin.core.errors import AimbenchError
 from twin.core.pose import Pose
 from twin.core.scan import Scan
@@ -293,6 +294,10 @@ class Runner:
         """Stop after the scan in flight (what Ctrl-C does); safe from another thread."""
         self.stop = True
 
+    #: What Ctrl-C says while the run winds down.
+    stop_message = ("stopping after this scan (results so far are saved; --resume continues; "
+                    "Ctrl-C again to stop at once)")
+
     def run(self) -> str:
         """Run (or resume) the plan; returns the final status (``completed``/``interrupted``).
 
@@ -300,35 +305,13 @@ class Runner:
         """
         store, plan = self.store, self.plan
         resumed = store.scan_count() > 0 or store.status not in ("created",)
-        with _StopFlag(lambda: self.progress.message(
-                "stopping after this scan (results so far are saved; --resume continues; "
-                "Ctrl-C again to stop at once)")) as flag:
-            store.set_status("running", "resumed" if resumed else "started")
+        with _StopFlag(lambda: self.progress.message(self.stop_message)) as flag:
+            store.set_status("running", ("resumed" if resumed else "started") + self._how())
             where: dict[str, int | None] = {"reference": None, "scan": None}
             try:
                 self._check_travel(where)
-                self.bench.home()
-                for i, ref in enumerate(plan.references):
-                    where.update(reference=i, scan=None)
-                    done = store.done_scans(i)
-                    if len(done) >= plan.scans:
-                        self.progress.skip(len(done))
-                        if store.references()[i]["status"] != "done":
-                            store.finish_reference(i, "done")
-                        continue
-                    self.progress.skip(len(done))
-                    if self._stopping(flag):
-                        return self._interrupted(flag)
-                    stage = self._go_to(ref)
-                    store.start_reference(i, stage)
-                    self.progress.start_reference(i, len(done))
-                    first = (max(done) + 1) if done else 0
-                    self.bench.prepare(i, first)
-                    stopped = self._take_scans(i, ref, first, plan.scans - len(done), flag, where)
-                    if stopped:
-                        return self._interrupted(flag)
-                    store.finish_reference(i, "done")
-                    self.progress.end_reference()
+                if self._execute(self._pending(), flag, where):
+                    return self._interrupted(flag)
                 store.set_status("completed")
                 self.progress.finish()
                 return "completed"
@@ -338,7 +321,46 @@ class Runner:
                 self.progress.finish()
                 raise _record_failure(store, plan, where, exc) from exc
             finally:
-                self.bench.close()
+                self._release()
+
+    def _how(self) -> str:
+        """What the run's start event adds after "started"/"resumed"."""
+        return ""
+
+    def _pending(self) -> list[tuple[int, int, int]]:
+        """(reference, first scan, scans to take) of every reference not yet done, in order;
+        references already complete are counted as done (and marked so if they are not)."""
+        todo = []
+        for i in range(len(self.plan)):
+            done = self.store.done_scans(i)
+            self.progress.skip(len(done))
+            if len(done) >= self.plan.scans:
+                if self.store.references()[i]["status"] != "done":
+                    self.store.finish_reference(i, "done")
+            else:
+                todo.append((i, (max(done) + 1) if done else 0, self.plan.scans - len(done)))
+        return todo
+
+    def _execute(self, todo: list[tuple[int, int, int]], flag: _StopFlag, where: dict) -> bool:
+        """Take the scans of `todo` on this process's bench; True if stopped by a signal."""
+        self.bench.home()
+        for i, first, n in todo:
+            where.update(reference=i, scan=None)
+            if self._stopping(flag):
+                return True
+            ref = self.plan.references[i]
+            stage = self._go_to(ref)
+            self.store.start_reference(i, stage)
+            self.progress.start_reference(i, self.plan.scans - n)
+            self.bench.prepare(i, first)
+            if self._take_scans(i, ref, first, n, flag, where):
+                return True
+            self.store.finish_reference(i, "done")
+            self.progress.end_reference()
+        return False
+
+    def _release(self) -> None:
+        self.bench.close()
 
     # -- steps -----------------------------------------------------------------------------
 
@@ -387,8 +409,7 @@ class Runner:
     def _take_scans(self, i: int, ref: Reference, first: int, n: int, flag: _StopFlag,
                     where: dict) -> bool:
         """Take and store `n` scans numbered from `first`; True if stopped by a signal."""
-        consecutive = 0
-        successes = 0
+        watch = _FailureWatch(self.max_consecutive_failures)
         k = first
         where["scan"] = k
         scans = self.bench.scans(n)
@@ -405,10 +426,7 @@ class Runner:
                     stage = None
                 self.store.add_scan(scan_result(i, k, scan, est, stage, t_scan, t_est))
                 self.progress.scan(est)
-                successes += bool(est.success)
-                consecutive = 0 if est.success else consecutive + 1
-                if successes == 0 and consecutive >= self.max_consecutive_failures:
-                    raise _no_board(consecutive, est.status, est.diagnostics)
+                watch.add(est.success, est.status, est.diagnostics)
                 k += 1
                 where["scan"] = k
                 if self._stopping(flag):
@@ -430,6 +448,22 @@ def scan_result(reference: int, k: int, scan: Scan, est: Estimate,
         points=int(np.count_nonzero(scan.valid)), complete=bool(scan.complete),
         missing_packets=int(scan.missing_packets), acquired_at=time.time(),
         scan_s=scan_s, estimate_s=estimate_s, diagnostics=est.diagnostics, timings=est.timings)
+
+
+class _FailureWatch:
+    """Counts a reference's scans without a pose; raises when `limit` came in a row and none at
+    this reference gave one: the board is not in view, and more scans will not bring it back."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.consecutive = 0
+        self.successes = 0
+
+    def add(self, success: bool, status: str, diagnostics: dict) -> None:
+        self.successes += bool(success)
+        self.consecutive = 0 if success else self.consecutive + 1
+        if self.successes == 0 and self.consecutive >= self.limit:
+            raise _no_board(self.consecutive, status, diagnostics)
 
 
 def _no_board(consecutive: int, status: str, diagnostics: dict) -> BenchError:
@@ -508,98 +542,79 @@ class ParallelSimRunner(Runner):
                          progress=progress, max_consecutive_failures=max_consecutive_failures)
         self.seed, self.ideal, self.method, self.jobs = seed, ideal, method, max(1, int(jobs))
         self.calibration = calibration
+        self._procs: list[Any] = []
+        self._stop_event: Any = None
 
-    def run(self) -> str:
+    stop_message = ("stopping after the scans in flight (results so far are saved; --resume "
+                    "continues; Ctrl-C again to stop at once)")
+
+    def _how(self) -> str:
+        return f" on {self.jobs} worker processes"
+
+    def _execute(self, todo: list[tuple[int, int, int]], flag: _StopFlag, where: dict) -> bool:
+        """Deal `todo` to the workers and store what they send; True if stopped by a signal."""
         import multiprocessing as mp
 
-        store, plan = self.store, self.plan
-        resumed = store.scan_count() > 0 or store.status not in ("created",)
-        todo = []
-        for i in range(len(plan)):
-            done = store.done_scans(i)
-            self.progress.skip(len(done))
-            if len(done) >= plan.scans:
-                if store.references()[i]["status"] != "done":
-                    store.finish_reference(i, "done")
-            else:
-                todo.append((i, (max(done) + 1) if done else 0, plan.scans - len(done)))
         ctx = mp.get_context("spawn")  # MuJoCo and threads: never fork a live twin
-        out, stop = ctx.Queue(), ctx.Event()
-        procs = []
-        with _StopFlag(lambda: self.progress.message(
-                "stopping after the scans in flight (results so far are saved; --resume "
-                "continues; Ctrl-C again to stop at once)")) as flag:
-            store.set_status("running", ("resumed" if resumed else "started")
-                             + f" on {self.jobs} worker processes")
-            where: dict[str, int | None] = {"reference": None, "scan": None}
-            try:
-                self._check_travel(where)
-                self.bench.close()  # travel and info only: the workers have their own twins
-                # Workers inherit an ignored SIGINT (it survives exec), so a Ctrl-C at the
-                # terminal, which reaches the whole process group, only reaches them through
-                # `stop`, even while they are still importing.
-                main = threading.current_thread() is threading.main_thread()
-                saved = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
-                try:
-                    for w in range(min(self.jobs, len(todo))):
-                        p = ctx.Process(target=_sim_worker, args=(
-                            plan.to_dict(), todo[w::self.jobs], self.seed, self.ideal,
-                            self.method, self.calibration, out, stop), daemon=True)
-                        p.start()
-                        procs.append(p)
-                finally:
-                    if main:
-                        signal.signal(signal.SIGINT, saved)
-                running = len(procs)
-                fails: dict[int, list[int]] = {}  # reference -> [consecutive, successes]
-                while running:
-                    if (self._stopping(flag)) and not stop.is_set():
-                        stop.set()
-                    try:
-                        msg = out.get(timeout=0.5)
-                    except queue.Empty:
-                        if not any(p.is_alive() for p in procs):
-                            raise BenchError("a simulation worker died without a word") from None
-                        continue
-                    kind = msg[0]
-                    if kind == "exit":
-                        running -= 1
-                    elif kind == "start":
-                        _, i, stage, first = msg
-                        store.start_reference(i, stage)
-                        self.progress.start_reference(i, first)
-                        fails[i] = [0, 0]
-                    elif kind == "scan":
-                        r: ScanResult = msg[1]
-                        where.update(reference=r.reference, scan=r.scan)
-                        store.add_scan(r)
-                        self.progress.scan(Estimate(r.status, r.success, r.pose), r.reference)
-                        f = fails.setdefault(r.reference, [0, 0])
-                        f[0] = 0 if r.success else f[0] + 1
-                        f[1] += bool(r.success)
-                        if f[1] == 0 and f[0] >= self.max_consecutive_failures:
-                            raise _no_board(f[0], r.status, r.diagnostics)
-                    elif kind == "done":
-                        store.finish_reference(msg[1], "done")
-                        self.progress.end_reference(msg[1])
-                    elif kind == "error":
-                        where.update(reference=msg[1], scan=msg[2])
-                        raise BenchError(msg[3])
-                if stop.is_set():
-                    return self._interrupted(flag)
-                store.set_status("completed")
-                self.progress.finish()
-                return "completed"
-            except KeyboardInterrupt:
-                return self._interrupted(flag)
-            except AimbenchError as exc:
-                self.progress.finish()
-                raise _record_failure(store, plan, where, exc) from exc
-            finally:
+        out, self._stop_event = ctx.Queue(), ctx.Event()
+        stop = self._stop_event
+        self.bench.close()  # travel and info only: the workers have their own twins
+        # Workers inherit an ignored SIGINT (it survives exec), so a Ctrl-C at the terminal,
+        # which reaches the whole process group, only reaches them through `stop`, even while
+        # they are still importing.
+        main = threading.current_thread() is threading.main_thread()
+        saved = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
+        try:
+            for w in range(min(self.jobs, len(todo))):
+                p = ctx.Process(target=_sim_worker, args=(
+                    self.plan.to_dict(), todo[w::self.jobs], self.seed, self.ideal,
+                    self.method, self.calibration, out, stop), daemon=True)
+                p.start()
+                self._procs.append(p)
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, saved)
+        running = len(self._procs)
+        watches: dict[int, _FailureWatch] = {}
+        while running:
+            if self._stopping(flag) and not stop.is_set():
                 stop.set()
-                for p in procs:
-                    p.join(timeout=10)
-                    if p.is_alive():
-                        p.terminate()
-                        p.join()
-                self.bench.close()
+            try:
+                msg = out.get(timeout=0.5)
+            except queue.Empty:
+                if not any(p.is_alive() for p in self._procs):
+                    raise BenchError("a simulation worker died without a word") from None
+                continue
+            kind = msg[0]
+            if kind == "exit":
+                running -= 1
+            elif kind == "start":
+                _, i, stage, first = msg
+                self.store.start_reference(i, stage)
+                self.progress.start_reference(i, first)
+                watches[i] = _FailureWatch(self.max_consecutive_failures)
+            elif kind == "scan":
+                r: ScanResult = msg[1]
+                where.update(reference=r.reference, scan=r.scan)
+                self.store.add_scan(r)
+                self.progress.scan(Estimate(r.status, r.success, r.pose), r.reference)
+                watches.setdefault(r.reference, _FailureWatch(self.max_consecutive_failures)
+                                   ).add(r.success, r.status, r.diagnostics)
+            elif kind == "done":
+                self.store.finish_reference(msg[1], "done")
+                self.progress.end_reference(msg[1])
+            elif kind == "error":
+                where.update(reference=msg[1], scan=msg[2])
+                raise BenchError(msg[3])
+        return stop.is_set()
+
+    def _release(self) -> None:
+        if self._stop_event is not None:
+            self._stop_event.set()
+        for p in self._procs:
+            p.join(timeout=10)
+            if p.is_alive():
+                p.terminate()
+                p.join()
+        self._procs = []
+        self.bench.close()

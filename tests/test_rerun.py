@@ -181,7 +181,8 @@ def test_store_only_replay_has_no_clouds(run_dir: Path, tmp_path: Path):
 def test_capture_replay_pairs_scans_with_their_truth(tmp_path: Path):
     """A capture the twin wrote while the stages moved (so every scan has its own truth), with
     its truth file, replayed scan by scan: each decoded scan gets the truth of its own time."""
-    from scenarios.recording.replay import replay_capture, write_truth
+    from scenarios.recording.replay import replay_capture
+    from scenarios.truth import write_truth
     from twin.sim.bench import BenchSim
 
     sim = BenchSim(seed=5)
@@ -365,7 +366,8 @@ def test_a_real_capture_shorter_than_a_rotation_is_replayed_in_pieces(sample_pca
                                                                       tmp_path: Path):
     """The real VLP-16 capture of tests/data holds no whole rotation: its pieces are replayed,
     flagged, with every return."""
-    from scenarios.recording.replay import capture_scans, replay_capture
+    from scenarios.recording.replay import replay_capture
+    from twin.lidar.capture import capture_scans
 
     pieces = [s for s in capture_scans(sample_pcap, whole_only=False) if len(s)]
     path = tmp_path / "real.rrd"

@@ -39,6 +39,7 @@ def _progress(enabled: bool):
 def run(args: argparse.Namespace) -> int:
     from scenarios.recording import log as rl
     from scenarios.recording import replay
+    from scenarios.truth import truth_path
 
     src = Path(args.source)
     tol = rl.tolerance_band(args.tolerance_deg, args.tolerance_mm)
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
             close_recording(rec, sinks)
     elif src.is_file():
         sinks = sink_options(args, default_save=src.with_suffix(".rrd"))
-        truth = Path(args.truth) if args.truth else replay.truth_path(src)
+        truth = Path(args.truth) if args.truth else truth_path(src)
         rec = open_recording(f"replay {src.name}", sinks, truth=truth.is_file())
         try:
             summary = replay.replay_capture(

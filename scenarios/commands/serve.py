@@ -19,6 +19,7 @@ import sys
 import time
 
 from twin.core.errors import AimbenchError
+from twin.core.vlp16 import DATA_PORT
 
 
 def parse_udp(text: str) -> tuple[str, int]:
@@ -77,8 +78,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("serve", help="the wire-level twin: stage firmware in simavr on a pty, "
                                      "VLP-16 packets over UDP; prints the pty and UDP target",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--udp", default="127.0.0.1:2368",
-                   help="where the VLP-16 packets go, HOST:PORT (default 127.0.0.1:2368)")
+    p.add_argument("--udp", default=f"127.0.0.1:{DATA_PORT}",
+                   help=f"where the VLP-16 packets go, HOST:PORT (default 127.0.0.1:{DATA_PORT})")
     p.add_argument("--seed", type=int, default=0, help="the twin's noise seed (default 0)")
     p.add_argument("--ideal", action="store_true", help="every emulation error source off")
     p.add_argument("--x-start-mm", type=float, default=20.0,

@@ -12,21 +12,11 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import math
 from pathlib import Path
 
+from scenarios.truth import write_truth
 from twin.core.errors import AimbenchError
-
-
-def truth_path(capture: Path) -> Path:
-    """``CAPTURE.truth.json`` beside ``CAPTURE.pcap``."""
-    return capture.with_name(capture.stem + ".truth.json")
-
-
-def _pose_record(pose) -> dict[str, float]:
-    return {"x_m": pose.x, "y_m": pose.y, "z_m": pose.z, "roll_deg": math.degrees(pose.roll),
-            "tilt_deg": math.degrees(pose.tilt), "yaw_deg": math.degrees(pose.yaw)}
 
 
 def _jsonable(obj) -> dict:
@@ -54,20 +44,11 @@ def run(args: argparse.Namespace) -> int:
     sim = BenchSim(params, seed=args.seed, noise=noise)
     sim.move_to(args.x_mm * 1e-3, math.radians(args.yaw_deg))  # raises on out-of-travel
     scans = sim.write_pcap(out, args.scans)
-    record = {
-        "capture": out.name,
-        "frame": "board frame {O} of docs/DESIGN.md; pose at each scan's first firing",
-        "seed": args.seed,
-        "ideal": bool(args.ideal),
-        "stage": {"x_mm": sim.stage_x() * 1e3, "yaw_deg": math.degrees(sim.stage_yaw())},
-        "params": _jsonable(params),
-        "emulation": _jsonable(noise),
-        "laser_offsets_m": [float(v) for v in sim.emulator.laser_offsets],
-        "scans": [{"index": i, "time_s": float(s.time[0]), "rpm": s.meta["rpm"],
-                   **_pose_record(s.meta["truth_pose"])} for i, s in enumerate(scans)],
-    }
-    truth = truth_path(out)
-    truth.write_text(json.dumps(record, indent=1))
+    truth = write_truth(
+        out, scans, seed=args.seed, ideal=bool(args.ideal),
+        stage={"x_mm": sim.stage_x() * 1e3, "yaw_deg": math.degrees(sim.stage_yaw())},
+        params=_jsonable(params), emulation=_jsonable(noise),
+        laser_offsets_m=[float(v) for v in sim.emulator.laser_offsets])
     if not args.quiet:
         p = scans[0].meta["truth_pose"]
         print(f"wrote {out} ({len(scans)} scans) and {truth.name}; true pose: "

@@ -29,8 +29,9 @@ import numpy as np
 from gymnasium import spaces
 
 import align
-from scenarios.bench import Bench, SimBench, open_bench, scan_truth
+from scenarios.bench import Bench, SimBench, open_bench
 from scenarios.plans import MOUNT_KEYS, PAPER_MC_ANGLE_DEG, PAPER_MC_X_MM
+from scenarios.truth import scan_truth
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 from twin.stage.motion import X_AXIS, YAW_AXIS, StageMove

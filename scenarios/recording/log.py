@@ -45,6 +45,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from align.plane import fit_lsq
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 from twin.sim.params import BOARD_BODY
@@ -395,7 +396,7 @@ def log_used(rec: rr.RecordingStream, scan: Scan, used: Mapping[str, Any] | None
         rec.log(f"{entity}/board_points", rr.Points3D(pts.astype(np.float32),
                                                       colors=[BOARD_POINTS_COLOR],
                                                       radii=rr.Radius.ui_points(2.5)))
-        plane = fit_plane(pts)
+        plane = fit_lsq(pts) if len(pts) >= 3 else None
     else:
         rec.log(f"{entity}/board_points", rr.Clear(recursive=False))
         plane = None
@@ -407,12 +408,12 @@ def log_used(rec: rr.RecordingStream, scan: Scan, used: Mapping[str, Any] | None
         fpts = np.column_stack((scan.x[feats], scan.y[feats], scan.z[feats]))
         miss = ~scan.valid[feats]
         if miss.any() and plane is not None:
-            # Where a missing ray crosses the plane: o + s d with n.(o + s d) = -d0.
+            # Where a missing ray crosses the plane: o + s u with n.(o + s u) = d0.
             normal, d0 = plane
             o = scan.origins()[feats[miss]]
             dirs = scan.directions()[feats[miss]]
             den = dirs @ normal
-            s = np.where(np.abs(den) > 1e-9, -(d0 + o @ normal) / np.where(den == 0, 1, den), 0)
+            s = np.where(np.abs(den) > 1e-9, (d0 - o @ normal) / np.where(den == 0, 1, den), 0)
             fpts[miss] = o + s[:, None] * dirs
         colors = np.where(miss[:, None], np.array([[255, 255, 255]]), np.array([FEATURE_COLOR]))
         rec.log(f"{entity}/features", rr.Points3D(fpts.astype(np.float32),
@@ -423,21 +424,9 @@ def log_used(rec: rr.RecordingStream, scan: Scan, used: Mapping[str, Any] | None
     return len(board), len(feats)
 
 
-def fit_plane(points: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """Least-squares plane n.p + d = 0 through (N, 3) points (n unit, facing the sensor), or None
-    for fewer than 3 points."""
-    if len(points) < 3:
-        return None
-    c = points.mean(axis=0)
-    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
-    n = vt[-1]
-    if n @ c > 0:  # face the sensor (the origin of {L})
-        n = -n
-    return n, float(-n @ c)
-
-
 def plane_archetypes(points: np.ndarray, normal: np.ndarray, d: float) -> list[Any]:
-    """A translucent rectangle over the points' extent in the plane, and the plane's normal."""
+    """A translucent rectangle over the points' extent in the plane n.p = d (`align.plane`'s
+    convention: n points away from the sensor), and the plane's normal towards the sensor."""
     import rerun as rr
 
     c = points.mean(axis=0)
@@ -446,12 +435,12 @@ def plane_archetypes(points: np.ndarray, normal: np.ndarray, d: float) -> list[A
     u = u / np.linalg.norm(u) if np.linalg.norm(u) > 1e-9 else np.array([1.0, 0.0, 0.0])
     v = np.cross(normal, u)
     a, b = (points - c) @ u, (points - c) @ v
-    c = c - (normal @ c + d) * normal  # on the plane
+    c = c - (normal @ c - d) * normal  # on the plane
     corners = [c + a.min() * u + b.min() * v, c + a.max() * u + b.min() * v,
                c + a.max() * u + b.max() * v, c + a.min() * u + b.max() * v]
     return [rr.Mesh3D(vertex_positions=np.array(corners, dtype=np.float32),
                       triangle_indices=[[0, 1, 2], [0, 2, 3]], albedo_factor=PLANE_COLOR),
-            rr.Arrows3D(origins=[c], vectors=[0.15 * normal], colors=[BOARD_POINTS_COLOR])]
+            rr.Arrows3D(origins=[c], vectors=[-0.15 * normal], colors=[BOARD_POINTS_COLOR])]
 
 
 def log_errors(rec: rr.RecordingStream, estimate: Pose | None, truth: Pose | None,

@@ -302,7 +302,7 @@ class RerunObserver:
             k = self._k
         self._k = k + 1
         if truth is None and scan is not None:
-            from scenarios.bench import scan_truth
+            from scenarios.truth import scan_truth
 
             truth = scan_truth(scan)
         status = getattr(estimate, "status", "ok")

@@ -14,12 +14,11 @@ a live ``aimbench sweep --rerun``. The point clouds come back too, from where th
   in the order the runner took the scans.
 
 `replay_capture` replays any VLP-16 capture: each whole scan, estimated by `align`, with the truth
-of a ``CAPTURE.truth.json`` beside it if there is one (the twin writes it: see `write_truth`).
+of a ``CAPTURE.truth.json`` beside it if there is one (`scenarios.truth`).
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,9 +28,11 @@ import numpy as np
 
 from scenarios.recording.observer import RerunObserver, pose_from_row
 from scenarios.store import Store
+from scenarios.truth import load_truth, truth_for, truth_path
 from twin.core.errors import AimbenchError
 from twin.core.pose import Pose
 from twin.core.scan import Scan
+from twin.lidar.capture import capture_scans
 
 if TYPE_CHECKING:
     import rerun as rr
@@ -116,22 +117,6 @@ def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int
                         yield i, k, scan
         finally:
             bench.close()
-
-
-def capture_scans(path: str | Path, whole_only: bool = True) -> list[Scan]:
-    """The scans of a VLP-16 capture in order (data packets on port 2368), as `PcapScanSource`
-    assembles them; ``whole_only`` drops the partial first and last rotations."""
-    from twin.core.vlp16 import DATA_PORT
-    from twin.lidar.pcap import PcapReader
-    from twin.lidar.scans import ScanAssembler
-
-    path = Path(path)
-    if not path.is_file():
-        raise ReplayError(f"no such capture {path}")
-    asm = ScanAssembler()
-    payloads = [rec.payload for rec in PcapReader(path, ports=(DATA_PORT,))]
-    scans = asm.push_many(payloads) + asm.finish()
-    return [s for s in scans if not (whole_only and s.meta.get("partial"))]
 
 
 def recapture(store: Store, capture: Path,
@@ -295,63 +280,6 @@ def _level(level: str) -> str:
 # ---------------------------------------------------------------------------------------------
 # Captures
 # ---------------------------------------------------------------------------------------------
-def truth_path(capture: str | Path) -> Path:
-    """Where a capture's truth lives: ``CAPTURE.truth.json`` beside it."""
-    capture = Path(capture)
-    return capture.with_name(capture.stem + ".truth.json")
-
-
-def write_truth(capture: str | Path, scans: list[Scan]) -> Path:
-    """Write the truth of the twin's scans beside their capture
-    (`twin.sim.bench.BenchSim.write_pcap` returns them): per scan, its sensor time (s past the
-    hour, first firing) and its true pose in edge units (mm, deg), so a replay can pair decoded
-    scans with their truth by time."""
-    entries = []
-    for s in scans:
-        truth = s.meta.get("truth_pose")
-        if truth is None or not len(s):
-            continue
-        entries.append({"sensor_time_s": float(s.time[0]), **truth.to_edge()})
-    path = truth_path(capture)
-    path.write_text(json.dumps({"frame": "board", "units": "mm, deg", "scans": entries},
-                               indent=1), encoding="utf-8")
-    return path
-
-
-def load_truth(path: str | Path) -> list[tuple[float | None, Pose]]:
-    """(sensor time or None, pose) entries of a truth file: ``{"scans": [...]}``, a list, or
-    one pose for the whole capture (a static bench). Poses in edge units (``x_mm``...,
-    ``yaw_deg``) or the simulate command's metres and degrees (``x_m``...)."""
-    from scenarios.bench import scan_truth
-
-    data = json.loads(Path(path).read_text(encoding="utf-8"))
-    entries = data.get("scans", [data]) if isinstance(data, dict) else list(data)
-    out: list[tuple[float | None, Pose]] = []
-    for e in entries:
-        pose = scan_truth(Scan.empty(meta={"truth": e}))
-        if pose is None:
-            raise ReplayError(f"{path}: an entry without a pose: {e}")
-        # write_truth names it sensor_time_s; `aimbench simulate`'s truth.json, time_s.
-        t = e.get("sensor_time_s", e.get("time_s"))
-        out.append((None if t is None else float(t), pose))
-    return out
-
-
-def truth_for(scan: Scan, truths: list[tuple[float | None, Pose]]) -> Pose | None:
-    """The truth entry of a decoded scan: the one whose sensor time is its first firing's (within
-    a few firing sequences), or the single static pose."""
-    if not truths:
-        return None
-    if len(truths) == 1 and truths[0][0] is None:
-        return truths[0][1]
-    if not len(scan):
-        return None
-    t0 = float(scan.time[0])
-    times = np.array([np.inf if t is None else t for t, _ in truths])
-    j = int(np.argmin(np.abs(times - t0)))
-    return truths[j][1] if abs(times[j] - t0) < 1e-3 else None
-
-
 def replay_capture(capture: str | Path, rec: rr.RecordingStream, *, method: str | None = None,
                    truth: str | Path | None = None, limit: int | None = None,
                    points_every: int = 1, color_by: str = "intensity",

@@ -214,3 +214,11 @@ def _summary(
 def open_pcap(path: str | Path) -> PcapSource:
     """A `PcapSource` on the default VLP-16 ports."""
     return PcapSource(path)
+
+
+def capture_scans(path: str | Path, *, whole_only: bool = True) -> list[Scan]:
+    """The scans of a capture file in order, assembled as `read_capture` does with its defaults;
+    ``whole_only`` drops the partial rotations at the capture's ends. The one way every command
+    and bench turns a capture into scans."""
+    scans = read_capture(open_pcap(path)).scans
+    return [s for s in scans if not (whole_only and s.meta.get("partial"))]
