@@ -104,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         params, x, yaw = random_pose(rng, args.angle_deg, args.x_mm, args.stage_yaw_deg,
                                      args.raise_mm)
         sim = BenchSim(params, seed=int(rng.integers(2**31)), noise=cfg)
-        sim.move_to(x, np.deg2rad(yaw))
+        sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
         # one scan() per rotation (scans(n) of an early twin lost the board after three)
         scans = [sim.scan() for _ in range(args.scans)]
         truth = scans[0].meta["truth_pose"]

@@ -60,7 +60,7 @@ def roll_errors(stage_yaw_deg: float, poses: int, scans: int, seed: int
         for _ in range(poses):
             params, x, yaw = random_pose(rng, 3.0, 30.0, stage_yaw_deg)
             sim = BenchSim(params, seed=int(rng.integers(2**31)), noise=cfg)
-            sim.move_to(x, np.deg2rad(yaw))
+            sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
             for s in [sim.scan() for _ in range(scans)]:
                 truth["pose"] = t = s.meta["truth_pose"].as_array()
                 align.rays.label_posterior = posterior

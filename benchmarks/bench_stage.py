@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
 
         # The sweep: first to -10 deg (not timed), then 20 moves of +1 deg.
         yaws = [math.radians(d) for d in range(-10, 11)]
-        stage.move_to(0.0, yaws[0])
+        stage.move_to(x_m=0.0, yaw_rad=yaws[0])
         sim_times: list[float] = []
         pulse_times: list[float] = []
         wall_times: list[float] = []
@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         for yaw in yaws[1:]:
             before = hil.positions()
             t = time.perf_counter()
-            stage.move_to(0.0, yaw)
+            stage.move_to(x_m=0.0, yaw_rad=yaw)
             wall_times.append(time.perf_counter() - t)
             after = hil.positions()
             assert after.a_steps - before.a_steps == 800, "a 1 deg move must be 800 steps"

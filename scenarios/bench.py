@@ -1,6 +1,7 @@
 """The `Bench`: one interface over the simulated bench (MuJoCo, in process) and the real one.
 
-A scenario only ever does this with a bench: home it, move the stages to a reference (yaw, x),
+A scenario only ever does this with a bench: home it, move the stages to a reference (a
+`StagePose`: x and yaw, keyword-only everywhere),
 wait until they are really there, take N scans, and close it. `SimBench` runs the twin in process
 (`twin.sim.bench.BenchSim`); `HardwareBench` drives the stage controller over serial
 (`twin.stage.controller.StageController`) and reads scans from the VLP-16 over UDP or from a pcap
@@ -29,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from twin.core.errors import AimbenchError
+from twin.core.pose import StagePose
 from twin.core.scan import Scan
 from twin.core.vlp16 import DATA_PORT
 
@@ -75,17 +77,17 @@ class Bench(abc.ABC):
         """Find the stages' home (limit switches on hardware); afterwards yaw = x = 0."""
 
     @abc.abstractmethod
-    def move_to(self, yaw_rad: float, x_m: float) -> None:
-        """Command the stages to (yaw_rad, x_m); returns once the command is accepted."""
+    def move_to(self, *, x_m: float, yaw_rad: float) -> None:
+        """Command the stages to x (m) and yaw (rad); returns once the command is accepted."""
 
     @abc.abstractmethod
-    def wait_until_there(self, timeout_s: float = 120.0) -> tuple[float, float]:
-        """Block until the stages have stopped at the commanded pose; return (yaw_rad, x_m) as
-        the stages report it. Raises `BenchError` on a timeout or an alarm."""
+    def wait_until_there(self, timeout_s: float = 120.0) -> StagePose:
+        """Block until the stages have stopped at the commanded pose; return where the stages
+        report they are. Raises `BenchError` on a timeout or an alarm."""
 
     @abc.abstractmethod
-    def position(self) -> tuple[float, float]:
-        """(yaw_rad, x_m) now."""
+    def position(self) -> StagePose:
+        """Where the stages are now."""
 
     @abc.abstractmethod
     def scans(self, n: int) -> Iterator[Scan]:
@@ -111,11 +113,12 @@ class Bench(abc.ABC):
     def close(self) -> None:  # noqa: B027 - optional hook, nothing to release by default
         """Release the stages, the sensor and any process the bench started."""
 
-    def check_reachable(self, yaw_rad: float, x_m: float, what: str | None = None) -> None:
-        """Raise `TravelError` if (yaw_rad, x_m) lies beyond `travel`; `what` names it."""
+    def check_reachable(self, target: StagePose, what: str | None = None) -> None:
+        """Raise `TravelError` if `target` lies beyond `travel`; `what` names it."""
         (y0, y1), (x0, x1) = self.travel()
-        if not (y0 - 1e-9 <= yaw_rad <= y1 + 1e-9 and x0 - 1e-12 <= x_m <= x1 + 1e-12):
-            what = what or f"yaw {math.degrees(yaw_rad):+.2f} deg, x {x_m * 1e3:+.1f} mm"
+        if not (y0 - 1e-9 <= target.yaw_rad <= y1 + 1e-9
+                and x0 - 1e-12 <= target.x_m <= x1 + 1e-12):
+            what = what or target.describe()
             raise TravelError(
                 f"{what} is beyond the stages' travel (yaw {math.degrees(y0):+.1f}.."
                 f"{math.degrees(y1):+.1f} deg, x {x0 * 1e3:+.1f}..{x1 * 1e3:+.1f} mm); change "
@@ -248,7 +251,7 @@ class HardwareBench(Bench):
         self.port = port
         self.lidar = lidar
         self.settle_s = settle_s
-        self._target: tuple[float, float] = (0.0, 0.0)
+        self._target = StagePose()
         self._closed = False
         self.source = scan_source(lidar, silence_timeout_s)
         self.controller = controller
@@ -307,27 +310,27 @@ class HardwareBench(Bench):
     def home(self) -> None:
         if self.controller is not None:
             self.controller.home()
-        self._target = (0.0, 0.0)
+        self._target = StagePose()
 
-    def move_to(self, yaw_rad: float, x_m: float) -> None:
-        self.check_reachable(yaw_rad, x_m)
-        self._target = (yaw_rad, x_m)
+    def move_to(self, *, x_m: float, yaw_rad: float) -> None:
+        target = StagePose(x_m=x_m, yaw_rad=yaw_rad)
+        self.check_reachable(target)
+        self._target = target
         if self.controller is not None:
-            self.controller.move_to(x_m, yaw_rad, wait=False)
+            self.controller.move_to(x_m=x_m, yaw_rad=yaw_rad, wait=False)
 
-    def wait_until_there(self, timeout_s: float = 120.0) -> tuple[float, float]:
+    def wait_until_there(self, timeout_s: float = 120.0) -> StagePose:
         if self.controller is None:
             return self._target
         st = self.controller.wait_idle(timeout=timeout_s)
         # Idle means the step generator has stopped; let the mechanics settle before scanning.
         time.sleep(self.settle_s)
-        return float(st.yaw_rad), float(st.x_m)
+        return StagePose(x_m=float(st.x_m), yaw_rad=float(st.yaw_rad))
 
-    def position(self) -> tuple[float, float]:
+    def position(self) -> StagePose:
         if self.controller is None:
             return self._target
-        x_m, yaw_rad = self.controller.position()
-        return float(yaw_rad), float(x_m)
+        return self.controller.position()
 
     def scans(self, n: int) -> Iterator[Scan]:
         yield from self.source.scans(n)
@@ -507,20 +510,20 @@ class SimBench(Bench):
         self._sim.emulator.rng = rng
 
     def home(self) -> None:
-        self._sim.move_to(0.0, 0.0)
+        self._sim.move_to(x_m=0.0, yaw_rad=0.0)
 
-    def move_to(self, yaw_rad: float, x_m: float) -> None:
-        self.check_reachable(yaw_rad, x_m)
+    def move_to(self, *, x_m: float, yaw_rad: float) -> None:
+        self.check_reachable(StagePose(x_m=x_m, yaw_rad=yaw_rad))
         try:
-            self._sim.move_to(x_m, yaw_rad)  # blocks in simulated time until arrived
+            self._sim.move_to(x_m=x_m, yaw_rad=yaw_rad)  # blocks in simulated time until there
         except AimbenchError as exc:
             raise TravelError(str(exc)) from None
 
-    def wait_until_there(self, timeout_s: float = 120.0) -> tuple[float, float]:
+    def wait_until_there(self, timeout_s: float = 120.0) -> StagePose:
         return self.position()
 
-    def position(self) -> tuple[float, float]:
-        return float(self._sim.stage_yaw()), float(self._sim.stage_x())
+    def position(self) -> StagePose:
+        return StagePose(x_m=float(self._sim.stage_x()), yaw_rad=float(self._sim.stage_yaw()))
 
     def scans(self, n: int) -> Iterator[Scan]:
         # One at a time, so a Ctrl-C between scans wastes nothing.

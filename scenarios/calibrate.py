@@ -21,7 +21,7 @@ from align import calibration as laser_calibration
 from scenarios.bench import Bench
 from scenarios.truth import scan_truth
 from twin.core.errors import AimbenchError
-from twin.core.pose import Pose
+from twin.core.pose import Pose, StagePose
 from twin.core.scan import Scan
 
 #: Stage yaws the simulated calibration visits, deg: the sweep's range, so that every laser
@@ -72,8 +72,9 @@ def on_bench(bench: Bench, yaws_deg: Sequence[float] = DEFAULT_YAWS_DEG,
     poses: list[Pose] = []
     bench.home()
     for i, yaw in enumerate(yaws_deg):
-        bench.check_reachable(math.radians(yaw), 0.0, "calibration pose")
-        bench.move_to(math.radians(yaw), 0.0)
+        target = StagePose(x_m=0.0, yaw_rad=math.radians(yaw))
+        bench.check_reachable(target, "calibration pose")
+        bench.move_to(x_m=target.x_m, yaw_rad=target.yaw_rad)
         bench.wait_until_there()
         bench.prepare(_PREPARE_BASE + i, 0)
         for scan in bench.scans(scans_per_pose):

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from twin.core.errors import AimbenchError
+from twin.core.pose import StagePose
 
 #: Paper defaults (section V): the real bench's sweeps.
 PAPER_YAW_DEG = (-10.0, 10.0, 1.0)
@@ -61,16 +62,21 @@ class Reference:
     mount: the LiDAR's mounting misalignment for this reference, in edge units keyed by
         `MOUNT_KEYS` (roll_deg, tilt_deg, yaw_deg, x_mm), or None to keep the bench's own. Only
         a simulated bench can change its mount between references.
-    via: an optional (yaw_rad, x_m) the stages visit first, so a reference is approached from a
-        chosen side (repeatability).
+    via: an optional `StagePose` the stages visit first, so a reference is approached from a
+        chosen side (repeatability); stored as [yaw_rad, x_m].
     label: a short human name for tables and plots.
     """
 
     yaw_rad: float = 0.0
     x_m: float = 0.0
     mount: dict[str, float] | None = None
-    via: tuple[float, float] | None = None
+    via: StagePose | None = None
     label: str = ""
+
+    @property
+    def stage(self) -> StagePose:
+        """The stage command of this reference."""
+        return StagePose(x_m=self.x_m, yaw_rad=self.yaw_rad)
 
     @property
     def yaw_deg(self) -> float:
@@ -89,7 +95,7 @@ class Reference:
 
     def to_dict(self) -> dict:
         d = asdict(self)
-        d["via"] = list(self.via) if self.via is not None else None
+        d["via"] = [self.via.yaw_rad, self.via.x_m] if self.via is not None else None
         return d
 
     @classmethod
@@ -99,7 +105,7 @@ class Reference:
             yaw_rad=float(d.get("yaw_rad", 0.0)),
             x_m=float(d.get("x_m", 0.0)),
             mount=dict(d["mount"]) if d.get("mount") else None,
-            via=(float(via[0]), float(via[1])) if via else None,
+            via=StagePose(yaw_rad=float(via[0]), x_m=float(via[1])) if via else None,
             label=str(d.get("label", "")),
         )
 
@@ -244,7 +250,8 @@ def repeatability(yaw_deg: float = 0.0, x_mm: float = 0.0, repeats: int = 10,
     refs = []
     for i in range(repeats):
         sign = 1.0 if i % 2 == 0 else -1.0
-        via = (math.radians(yaw_deg + sign * approach_deg), (x_mm + sign * approach_mm) * 1e-3)
+        via = StagePose(yaw_rad=math.radians(yaw_deg + sign * approach_deg),
+                        x_m=(x_mm + sign * approach_mm) * 1e-3)
         refs.append(Reference(yaw_rad=math.radians(yaw_deg), x_m=x_mm * 1e-3, via=via,
                               label=f"visit {i + 1} from {'+' if sign > 0 else '-'}"))
     return Plan("repeatability", "repeatability", tuple(refs), scans, {
@@ -392,9 +399,9 @@ def references_beyond(plan: Plan, yaw_limits_rad: tuple[float, float],
                       x_limits_m: tuple[float, float]) -> Iterable[tuple[int, Reference]]:
     """The references (index, reference) whose stage command or `via` lies beyond the travel."""
     for i, r in enumerate(plan.references):
-        points = [(r.yaw_rad, r.x_m)] + ([r.via] if r.via is not None else [])
-        for yaw, x in points:
-            if not (yaw_limits_rad[0] - 1e-12 <= yaw <= yaw_limits_rad[1] + 1e-12
-                    and x_limits_m[0] - 1e-12 <= x <= x_limits_m[1] + 1e-12):
+        points = [r.stage] + ([r.via] if r.via is not None else [])
+        for p in points:
+            if not (yaw_limits_rad[0] - 1e-12 <= p.yaw_rad <= yaw_limits_rad[1] + 1e-12
+                    and x_limits_m[0] - 1e-12 <= p.x_m <= x_limits_m[1] + 1e-12):
                 yield i, r
                 break

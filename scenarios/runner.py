@@ -34,7 +34,7 @@ from scenarios.plans import Plan, Reference, references_beyond
 from scenarios.store import ScanResult, Store
 from scenarios.truth import scan_truth
 from twin.core.errors import AimbenchError
-from twin.core.pose import Pose
+from twin.core.pose import Pose, StagePose
 from twin.core.scan import Scan
 
 #: Stop a reference (and the run) when this many scans in a row gave no pose and none at this
@@ -388,23 +388,16 @@ class Runner:
             i, ref = beyond[0]
             where["reference"] = i
             try:
-                self.bench.check_reachable(ref.yaw_rad, ref.x_m, "the reference")
+                self.bench.check_reachable(ref.stage, "the reference")
                 if ref.via:
-                    yaw, x = ref.via
-                    self.bench.check_reachable(
-                        yaw, x, f"its approach point (yaw {math.degrees(yaw):+.2f} deg, "
-                                f"x {x * 1e3:+.1f} mm)")
+                    self.bench.check_reachable(ref.via,
+                                               f"its approach point ({ref.via.describe()})")
             except TravelError as exc:
                 more = f" ({len(beyond) - 1} more beyond travel)" if len(beyond) > 1 else ""
                 raise TravelError(f"{exc}{more}; nothing was moved") from None
 
-    def _go_to(self, ref: Reference) -> tuple[float, float]:
-        self.bench.set_mount(ref.mount)
-        if ref.via is not None:
-            self.bench.move_to(*ref.via)
-            self.bench.wait_until_there(self.move_timeout_s)
-        self.bench.move_to(ref.yaw_rad, ref.x_m)
-        return self.bench.wait_until_there(self.move_timeout_s)
+    def _go_to(self, ref: Reference) -> StagePose:
+        return visit(self.bench, ref, self.move_timeout_s)
 
     def _take_scans(self, i: int, ref: Reference, first: int, n: int, flag: _StopFlag,
                     where: dict) -> bool:
@@ -439,8 +432,19 @@ class Runner:
         return False
 
 
+def visit(bench: Bench, ref: Reference, timeout_s: float = 120.0) -> StagePose:
+    """Bring `bench` to `ref` the way every run does: its mount, its approach point if it has
+    one, then the reference itself; returns where the stages say they arrived."""
+    bench.set_mount(ref.mount)
+    if ref.via is not None:
+        bench.move_to(x_m=ref.via.x_m, yaw_rad=ref.via.yaw_rad)
+        bench.wait_until_there(timeout_s)
+    bench.move_to(x_m=ref.x_m, yaw_rad=ref.yaw_rad)
+    return bench.wait_until_there(timeout_s)
+
+
 def scan_result(reference: int, k: int, scan: Scan, est: Estimate,
-                stage: tuple[float, float] | None, scan_s: float, estimate_s: float) -> ScanResult:
+                stage: StagePose | None, scan_s: float, estimate_s: float) -> ScanResult:
     """What the store keeps of scan `k` at `reference` and its estimate."""
     return ScanResult(
         reference=reference, scan=k, status=est.status, success=est.success, pose=est.pose,
@@ -495,12 +499,7 @@ def _sim_worker(plan_dict: dict, todo: list[tuple[int, int, int]], seed: int, id
         bench.home()
         for i, first, n in todo:
             k = None
-            ref = plan.references[i]
-            bench.set_mount(ref.mount)
-            if ref.via is not None:
-                bench.move_to(*ref.via)
-            bench.move_to(ref.yaw_rad, ref.x_m)
-            out.put(("start", i, bench.wait_until_there(), first))
+            out.put(("start", i, visit(bench, plan.references[i]), first))
             bench.prepare(i, first)
             k = first
             t0 = time.monotonic()

@@ -35,7 +35,7 @@ import numpy as np
 
 from scenarios.plans import Plan, Reference
 from twin.core.errors import AimbenchError
-from twin.core.pose import POSE_FIELDS, Pose
+from twin.core.pose import POSE_FIELDS, Pose, StagePose
 
 #: File name of the store inside a run folder.
 STORE_NAME = "run.sqlite"
@@ -136,7 +136,7 @@ class ScanResult:
     pose, std, covariance: the estimate (None when the estimator found no pose); std and
         covariance in the order of `twin.core.pose.POSE_FIELDS` (m, rad).
     truth: the twin's true LiDAR pose in the board frame for this scan (None on hardware).
-    stage: (yaw_rad, x_m) the stages reported while the scan was taken, if they did.
+    stage: where the stages reported they were while the scan was taken, if they did.
     scan_s: wall time to acquire the scan; estimate_s: wall time of the estimator (s).
     """
 
@@ -148,7 +148,7 @@ class ScanResult:
     std: np.ndarray | None = None
     covariance: np.ndarray | None = None
     truth: Pose | None = None
-    stage: tuple[float, float] | None = None
+    stage: StagePose | None = None
     points: int | None = None
     complete: bool | None = None
     missing_packets: int | None = None
@@ -173,8 +173,8 @@ class ScanResult:
         row.update({
             "covariance": dumps(np.asarray(self.covariance, float))
             if self.covariance is not None else None,
-            "stage_yaw_rad": _real(self.stage[0]) if self.stage else None,
-            "stage_x_m": _real(self.stage[1]) if self.stage else None,
+            "stage_yaw_rad": _real(self.stage.yaw_rad) if self.stage else None,
+            "stage_x_m": _real(self.stage.x_m) if self.stage else None,
             "points": self.points, "complete": None if self.complete is None
             else int(self.complete),
             "missing_packets": self.missing_packets, "acquired_at": self.acquired_at,
@@ -250,7 +250,7 @@ class Store:
                 "INSERT INTO reference (reference, yaw_rad, x_m, mount, via, label) "
                 "VALUES (?, ?, ?, ?, ?, ?)",
                 [(i, r.yaw_rad, r.x_m, dumps(r.mount) if r.mount else None,
-                  dumps(list(r.via)) if r.via else None, r.label)
+                  dumps(r.to_dict()["via"]) if r.via else None, r.label)
                  for i, r in enumerate(plan.references)])
             conn.execute("INSERT INTO event (at, level, reference, message) VALUES (?,?,?,?)",
                          (now, "info", None, f"created: {plan.name}, {len(plan)} references x "
@@ -370,13 +370,14 @@ class Store:
     def reference(self, index: int) -> Reference:
         return self.plan.references[index]
 
-    def start_reference(self, index: int, stage: tuple[float, float] | None = None) -> None:
-        """The stages are at reference `index` (at `stage` = (yaw_rad, x_m) if they said)."""
+    def start_reference(self, index: int, stage: StagePose | None = None) -> None:
+        """The stages are at reference `index` (at `stage` if they said where)."""
+        yaw, x = (stage.yaw_rad, stage.x_m) if stage is not None else (None, None)
         with self._tx() as conn:
             conn.execute(
                 "UPDATE reference SET status='running', started_at=COALESCE(started_at, ?), "
                 "stage_yaw_rad=?, stage_x_m=?, error=NULL WHERE reference=?",
-                (time.time(), *(_real(v) for v in (stage or (None, None))), index))
+                (time.time(), _real(yaw), _real(x), index))
 
     def finish_reference(self, index: int, status: str = "done",
                          error: str | None = None) -> None:

@@ -40,7 +40,7 @@ def bench(roll=0.0, tilt=0.0, yaw=0.0, x_mm=0.0, stage_yaw_deg=0.0, seed=0, nois
           **params) -> BenchSim:
     sim = BenchSim(BenchParams.from_edge(roll_deg=roll, tilt_deg=tilt, yaw_deg=yaw, **params),
                    seed=seed, noise=noise)
-    sim.move_to(x_mm * 1e-3, np.deg2rad(stage_yaw_deg))
+    sim.move_to(x_m=x_mm * 1e-3, yaw_rad=np.deg2rad(stage_yaw_deg))
     return sim
 
 

@@ -41,7 +41,7 @@ def test_ideal_returns_lie_on_the_analytic_board_intersection(case: int) -> None
     params = BenchParams.from_edge(roll_deg=rng.uniform(-3, 3), tilt_deg=rng.uniform(-3, 3),
                                    yaw_deg=rng.uniform(-3, 3))
     sim = BenchSim(params, seed=case, noise=EmulationConfig.ideal())
-    sim.move_to(rng.uniform(-0.05, 0.05), math.radians(rng.uniform(-10, 10)))
+    sim.move_to(x_m=rng.uniform(-0.05, 0.05), yaw_rad=math.radians(rng.uniform(-10, 10)))
     scan = sim.scan()
     pose = scan.meta["truth_pose"]
     rng_a, on = board_intersections(pose, scan.azimuth, scan.laser_id, W, H)
@@ -106,7 +106,7 @@ def test_fast_paths_equal_brute_force_mujoco_rays(divergence: bool) -> None:
     cfg = EmulationConfig.ideal(quantise=False, divergence=divergence)
     sims = [BenchSim(params, seed=1, noise=cfg.with_(culling=c)) for c in (True, False)]
     for sim in sims:
-        sim.set_stage_positions(0.03, math.radians(-7))
+        sim.set_stage_positions(x_m=0.03, yaw_rad=math.radians(-7))
     # Three rotations in one grid: the culling must follow the azimuth round more than once.
     az = _grid(1000 if divergence else 5400)
     lid = np.tile(np.arange(16, dtype=np.uint8), len(az))
@@ -148,7 +148,7 @@ def test_culling_is_exact_over_the_travel(x, yaw_deg, roll_deg, tilt_deg) -> Non
     cfg = EmulationConfig.ideal(quantise=False)
     sims = [BenchSim(params, seed=2, noise=cfg.with_(culling=c)) for c in (True, False)]
     for sim in sims:
-        sim.set_stage_positions(x, math.radians(yaw_deg))
+        sim.set_stage_positions(x_m=x, yaw_rad=math.radians(yaw_deg))
     az = _grid(1800, phase=1.0)
     p, r = sims[0].physics.lidar_pose_world()
     fast = sims[0].emulator.fire_grid(az, p, r)

@@ -116,7 +116,7 @@ def test_rays_never_reach_the_mechanism_group(x: float, yaw_deg: float, tilt_deg
     """The emulator casts against geom group 0 only; the stages, stand and mount (group 2) sit
     in the sensor's shadow cone. Casting against groups 0 and 2 gives the same answer."""
     ph = BenchPhysics(BenchParams.from_edge(tilt_deg=tilt_deg, roll_deg=2.0))
-    ph.set_stage_positions(x, math.radians(yaw_deg))
+    ph.set_stage_positions(x_m=x, yaw_rad=math.radians(yaw_deg))
     origins, dirs = _all_rays(ph)
     n = len(dirs)
     out = {}

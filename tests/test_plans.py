@@ -57,7 +57,7 @@ def test_repeatability_approaches_from_alternate_sides():
     p = plans.repeatability(yaw_deg=2.0, x_mm=10.0, repeats=4, scans=5)
     assert len(p) == 4
     assert {(round(r.yaw_deg, 9), round(r.x_mm, 9)) for r in p.references} == {(2.0, 10.0)}
-    sides = [np.sign(r.via[0] - r.yaw_rad) for r in p.references]
+    sides = [np.sign(r.via.yaw_rad - r.yaw_rad) for r in p.references]
     assert sides == [1, -1, 1, -1]
 
 

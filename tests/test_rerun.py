@@ -186,8 +186,8 @@ def test_capture_replay_pairs_scans_with_their_truth(tmp_path: Path):
     from twin.sim.bench import BenchSim
 
     sim = BenchSim(seed=5)
-    sim.move_to(0.0, math.radians(-3.0))
-    sim.start_move(0.02, math.radians(3.0))
+    sim.move_to(x_m=0.0, yaw_rad=math.radians(-3.0))
+    sim.start_move(x_m=0.02, yaw_rad=math.radians(3.0))
     pcap = tmp_path / "cap.pcap"
     scans = sim.write_pcap(pcap, 4)
     write_truth(pcap, scans)

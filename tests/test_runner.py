@@ -15,6 +15,7 @@ from scenarios.bench import Bench, SimBench, TravelError
 from scenarios.plans import Plan, Reference
 from scenarios.runner import Estimate, Progress, RunFailed, Runner, make_estimator
 from scenarios.store import Store
+from twin.core.pose import StagePose
 
 #: The paper's method is the estimator every checkout has; the scenarios do not depend on which.
 METHOD = "paper"
@@ -133,7 +134,7 @@ def test_reference_beyond_travel_fails_before_any_move(tmp_path: Path):
         assert store.get("failure")["reference"] == 1
         assert store.references()[1]["status"] == "failed"
         assert store.scan_count() == 0
-    assert bench.position() == (0.0, 0.0)
+    assert bench.position() == StagePose()
 
 
 def test_board_not_in_view_fails_the_run_where_it_failed(tmp_path: Path):
@@ -154,7 +155,7 @@ def test_board_not_in_view_fails_the_run_where_it_failed(tmp_path: Path):
 def test_travel_error_from_the_bench_itself():
     bench = SimBench()
     with pytest.raises(TravelError, match="beyond the stages' travel"):
-        bench.move_to(0.0, 0.2)
+        bench.move_to(x_m=0.2, yaw_rad=0.0)
 
 
 def test_progress_line_shows_the_estimate_so_far():

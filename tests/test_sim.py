@@ -57,7 +57,7 @@ def test_coordinated_move_both_axes_arrive_together() -> None:
 def test_move_to_steps_physics_and_arrives() -> None:
     sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
     t0 = sim.time
-    duration = sim.move_to(-0.03, math.radians(-12))
+    duration = sim.move_to(x_m=-0.03, yaw_rad=math.radians(-12))
     assert duration == pytest.approx(StageMove.plan((0, 0), (-0.03, math.radians(-12))).duration,
                                      abs=0.2)
     assert sim.time - t0 == pytest.approx(duration)
@@ -71,7 +71,7 @@ def test_move_to_steps_physics_and_arrives() -> None:
 
 def test_servo_follows_the_profile_closely() -> None:
     sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
-    move = sim.start_move(0.0, math.radians(20))
+    move = sim.start_move(x_m=0.0, yaw_rad=math.radians(20))
     worst = 0.0
     for _ in range(int(move.duration / 0.01)):
         sim.wait(0.01)
@@ -81,7 +81,7 @@ def test_servo_follows_the_profile_closely() -> None:
 
 def test_set_stage_positions_for_an_external_step_source() -> None:
     sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
-    sim.set_stage_positions(0.01, math.radians(3))
+    sim.set_stage_positions(x_m=0.01, yaw_rad=math.radians(3))
     assert sim.stage_x() == 0.01 and sim.stage_yaw() == pytest.approx(math.radians(3))
     scan = sim.scan()
     assert scan.meta["truth_pose"].yaw == pytest.approx(math.radians(3))
@@ -139,8 +139,8 @@ def test_a_scan_while_the_rotation_stage_turns_shows_the_skew() -> None:
     """Stage cruising at 20 deg/s: the first and last firing see poses 2 deg apart, and every
     board return lies on the board for the pose of its own instant."""
     sim = BenchSim(seed=0, noise=EmulationConfig.ideal())
-    sim.move_to(0.0, math.radians(-25))
-    sim.start_move(0.0, math.radians(25))
+    sim.move_to(x_m=0.0, yaw_rad=math.radians(-25))
+    sim.start_move(x_m=0.0, yaw_rad=math.radians(25))
     sim.wait(0.8)  # past the 0.5 s ramp: cruising
     scan = sim.scan()
     y0, y1 = scan.meta["truth_pose"].yaw, scan.meta["truth_end_pose"].yaw
@@ -167,7 +167,7 @@ def test_scans_during_a_move_are_continuous_across_windows() -> None:
     each ends where the next begins, and the packets of a moving capture carry the same
     firings as the scans."""
     sim = BenchSim(seed=1, noise=EmulationConfig.ideal())
-    sim.start_move(0.05, 0.0)
+    sim.start_move(x_m=0.05, yaw_rad=0.0)
     sim.wait(0.5)
     scans = sim.scans(6)
     for a, b in itertools.pairwise(scans):
@@ -186,7 +186,7 @@ def test_scans_during_a_move_are_continuous_across_windows() -> None:
 def test_mount_misalignment_is_in_the_truth() -> None:
     params = BenchParams.from_edge(roll_deg=0.8, tilt_deg=-1.2, yaw_deg=0.5)
     sim = BenchSim(params, seed=0, noise=EmulationConfig.ideal())
-    sim.move_to(0.0, math.radians(4))
+    sim.move_to(x_m=0.0, yaw_rad=math.radians(4))
     t = sim.scan().meta["truth"]
     assert t["roll_deg"] == pytest.approx(0.8, abs=1e-6)
     assert t["tilt_deg"] == pytest.approx(-1.2, abs=1e-6)
@@ -206,7 +206,7 @@ def _seq_key(t: np.ndarray, lid: np.ndarray) -> np.ndarray:
 def test_packets_decode_to_the_twins_scans(mode: str) -> None:
     cfg = EmulationConfig(return_mode=mode, divergence=(mode == "dual"))
     sim = BenchSim(seed=6, noise=cfg)
-    sim.move_to(0.01, math.radians(3))
+    sim.move_to(x_m=0.01, yaw_rad=math.radians(3))
     payloads, arrival, scans = sim.packets(2)
     assert payloads.shape[1] == vlp16.DATA_PAYLOAD_SIZE
     period = vlp16.PACKET_PERIOD / cfg.n_returns

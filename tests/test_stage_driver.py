@@ -61,8 +61,8 @@ def test_connect_reads_banner_and_settings(stage: StageController) -> None:
 
 
 def test_home_then_position_is_machine_zero(bench: Bench, homed: StageController) -> None:
-    x_m, yaw = homed.position()
-    assert x_m == pytest.approx(-50 * MM) and yaw == pytest.approx(-30 * DEG)
+    here = homed.position()
+    assert here.x_m == pytest.approx(-50 * MM) and here.yaw_rad == pytest.approx(-30 * DEG)
     if bench.hil is not None:
         p = bench.hil.positions()
         assert (p.x_steps, p.a_steps) == (0, 0)
@@ -80,7 +80,7 @@ def test_moves_are_exact_in_steps(bench: Bench, homed: StageController) -> None:
         (-48.0001 * MM, -29.0 * DEG),
     ]
     for x_m, yaw in targets:
-        homed.move_to(x_m, yaw)
+        homed.move_to(x_m=x_m, yaw_rad=yaw)
         p = hil.positions()
         assert (p.x_steps, p.a_steps) == machine_steps(x_m, yaw)
         # The firmware's own count agrees with the pins, to its 3-decimal report.
@@ -93,9 +93,9 @@ def test_moves_are_exact_in_steps(bench: Bench, homed: StageController) -> None:
 
 def test_relative_moves_accumulate_exactly(bench: Bench, homed: StageController) -> None:
     hil = bench.need_hil()
-    homed.move_to(-48 * MM, -28 * DEG)
+    homed.move_to(x_m=-48 * MM, yaw_rad=-28 * DEG)
     for _ in range(4):
-        homed.move_by(0.25 * MM, 0.5 * DEG)
+        homed.move_by(dx_m=0.25 * MM, dyaw_rad=0.5 * DEG)
     p = hil.positions()
     assert (p.x_steps, p.a_steps) == (3 * STEPS_PER_MM, 4 * STEPS_PER_DEG)
 
@@ -103,7 +103,7 @@ def test_relative_moves_accumulate_exactly(bench: Bench, homed: StageController)
 def test_combined_move_axes_finish_together(bench: Bench, homed: StageController) -> None:
     hil = bench.need_hil()
     before = hil.positions()
-    homed.move_to(-47 * MM, -25 * DEG)  # 3 mm and 5 deg: 1200 and 4000 steps
+    homed.move_to(x_m=-47 * MM, yaw_rad=-25 * DEG)  # 3 mm and 5 deg: 1200 and 4000 steps
     p = hil.positions()
     assert (p.pulses[0] - before.pulses[0], p.pulses[1] - before.pulses[1]) == (1200, 4000)
     # The last pulses of both axes come out in the same interrupt: equal simulated times.
@@ -132,7 +132,7 @@ def test_move_time_follows_the_trapezoid(bench: Bench, homed: StageController) -
 def test_soft_limit_raises_grbl_error(bench: Bench, homed: StageController) -> None:
     before = bench.pulses()
     with pytest.raises(GrblError) as err:
-        homed.move_to(0.051, 0.0)
+        homed.move_to(x_m=0.051, yaw_rad=0.0)
     assert err.value.code == 15 and "travel" in err.value.meaning
     assert "error:15" in str(err.value)
     assert bench.pulses() == before
@@ -142,20 +142,20 @@ def test_hard_limit_raises_grbl_alarm(bench: Bench, homed: StageController) -> N
     homed.set_setting(20, 0)
     try:
         with pytest.raises(GrblAlarm) as err:
-            homed.move_by(-3 * MM, 0.0)
+            homed.move_by(dx_m=-3 * MM, dyaw_rad=0.0)
         assert err.value.code == 1 and "hard limit" in err.value.meaning
         assert homed.status().state == "Alarm"
         with pytest.raises(GrblError) as locked:
-            homed.move_to(-0.05, -30 * DEG)
+            homed.move_to(x_m=-0.05, yaw_rad=-30 * DEG)
         assert locked.value.code == 9
         homed.unlock()
-        homed.move_to(-0.05, -30 * DEG)
+        homed.move_to(x_m=-0.05, yaw_rad=-30 * DEG)
     finally:
         homed.set_setting(20, 1)
 
 
 def test_stop_resume_and_reset_during_move(bench: Bench, homed: StageController) -> None:
-    homed.move_to(-0.05, -22 * DEG, wait=False)
+    homed.move_to(x_m=-0.05, yaw_rad=-22 * DEG, wait=False)
     time.sleep(0.2)
     homed.stop()
     time.sleep(0.5)
@@ -164,7 +164,7 @@ def test_stop_resume_and_reset_during_move(bench: Bench, homed: StageController)
     homed.resume()
     st = homed.wait_idle(10)
     assert st.yaw_deg == 8.0
-    homed.move_to(-0.05, -30 * DEG, wait=False)
+    homed.move_to(x_m=-0.05, yaw_rad=-30 * DEG, wait=False)
     time.sleep(0.2)
     homed.reset()
     assert homed.last_alarm == 3
@@ -174,14 +174,14 @@ def test_stop_resume_and_reset_during_move(bench: Bench, homed: StageController)
 
 
 def test_wait_idle_times_out_clearly(homed: StageController) -> None:
-    homed.move_to(-0.05, -24 * DEG, wait=False)
+    homed.move_to(x_m=-0.05, yaw_rad=-24 * DEG, wait=False)
     with pytest.raises(StageTimeout, match="did not come to rest"):
         homed.wait_idle(timeout=0.1)
     homed.wait_idle(10)
 
 
 def test_lost_reply_times_out_clearly(homed: StageController) -> None:
-    homed.move_to(-0.05, -28 * DEG, wait=False)
+    homed.move_to(x_m=-0.05, yaw_rad=-28 * DEG, wait=False)
     time.sleep(0.1)
     homed.stop()  # G4 waits for the motion, which the hold never finishes: no reply
     old = homed.reply_timeout_s
@@ -232,7 +232,7 @@ def test_board_that_does_not_reset_on_open() -> None:
 def test_reconnect_keeps_position(bench: Bench, homed: StageController) -> None:
     # close() leaves DTR up (HUPCL cleared): the next open does not reset the board, so a homed
     # machine stays homed between two `aimbench stage` commands.
-    homed.move_to(-0.049, -29 * DEG)
+    homed.move_to(x_m=-0.049, yaw_rad=-29 * DEG)
     resets = bench.hil.positions().resets if bench.hil else None
     homed.close()
     try:

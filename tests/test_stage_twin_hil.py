@@ -28,19 +28,19 @@ def test_firmware_step_pulses_move_the_mujoco_joints() -> None:
         stage.unlock()  # trust the power-up position (MPos 0): the moves below are relative
         target = (0.0015, math.radians(1.5))  # from the reference: 1.5 mm and 1.5 deg
         p = hil.positions()
-        physics.set_stage_positions(p.x_m, p.yaw_rad)
+        physics.set_stage_positions(x_m=p.x_m, yaw_rad=p.yaw_rad)
         start_yaw = physics.stage_yaw()
-        stage.move_by(target[0] - p.x_m, target[1] - p.yaw_rad, wait=False)
+        stage.move_by(dx_m=target[0] - p.x_m, dyaw_rad=target[1] - p.yaw_rad, wait=False)
         trace = []
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline:
             p = hil.positions()
-            physics.set_stage_positions(p.x_m, p.yaw_rad)
+            physics.set_stage_positions(x_m=p.x_m, yaw_rad=p.yaw_rad)
             trace.append(physics.stage_yaw())
             if stage.status().state == "Idle":
                 break
         p = hil.positions()
-        physics.set_stage_positions(p.x_m, p.yaw_rad)
+        physics.set_stage_positions(x_m=p.x_m, yaw_rad=p.yaw_rad)
 
     assert len(trace) > 5, "the move should have been followed while it ran"
     assert all(b >= a for a, b in itertools.pairwise(trace)), "yaw went backwards"

@@ -18,7 +18,7 @@ import pytest
 
 from scenarios import plans
 from scenarios.store import STORE_NAME, ScanResult, Store, StoreError
-from twin.core.pose import Pose
+from twin.core.pose import Pose, StagePose
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -29,7 +29,8 @@ def _result(ref: int, k: int, ok: bool = True) -> ScanResult:
     return ScanResult(reference=ref, scan=k, status="ok" if ok else "no_board", success=ok,
                       pose=pose, std=np.full(6, 1e-3) if ok else None,
                       covariance=np.eye(6) * 1e-6 if ok else None, truth=truth,
-                      stage=(math.radians(ref), 0.0), points=1234, complete=True,
+                      stage=StagePose(x_m=0.0, yaw_rad=math.radians(ref)), points=1234,
+                      complete=True,
                       missing_packets=0, acquired_at=time.time(), scan_s=0.1, estimate_s=0.01,
                       diagnostics={"rings": np.int64(6), "residual": np.float32(0.01),
                                    "nan": math.nan, "arr": np.arange(3)},
@@ -87,7 +88,7 @@ def test_one_row_per_reference_and_scan(tmp_path: Path):
 def test_statuses_failure_and_events(tmp_path: Path):
     with Store.create(tmp_path, plans.yaw_sweep(scans=1)) as s:
         s.set_status("running")
-        s.start_reference(4, (0.1, 0.0))
+        s.start_reference(4, StagePose(x_m=0.0, yaw_rad=0.1))
         s.finish_reference(4, "failed", "stage alarm")
         s.set_status("failed", "stage alarm", reference=4, scan=0)
         assert s.get("failure") == {"reference": 4, "scan": 0, "message": "stage alarm"}

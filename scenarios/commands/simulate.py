@@ -42,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise AimbenchError(f"{exc}; pick a value inside the VLP-16's range") from None
     sim = BenchSim(params, seed=args.seed, noise=noise)
-    sim.move_to(args.x_mm * 1e-3, math.radians(args.yaw_deg))  # raises on out-of-travel
+    sim.move_to(x_m=args.x_mm * 1e-3, yaw_rad=math.radians(args.yaw_deg))  # checks the travel
     scans = sim.write_pcap(out, args.scans)
     truth = write_truth(
         out, scans, seed=args.seed, ideal=bool(args.ideal),

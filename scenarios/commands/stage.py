@@ -39,7 +39,7 @@ def run(args: argparse.Namespace) -> int:
             st = stage.status()
             x_m = st.x_m if args.x_mm is None else args.x_mm / 1000.0
             yaw = st.yaw_rad if args.yaw_deg is None else math.radians(args.yaw_deg)
-            stage.move_to(x_m, yaw, wait=True, timeout=args.timeout)
+            stage.move_to(x_m=x_m, yaw_rad=yaw, wait=True, timeout=args.timeout)
             _print_status(stage.status())
         elif args.action == "settings":
             for number, value in sorted(stage.settings().items()):

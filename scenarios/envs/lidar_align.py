@@ -322,7 +322,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
             self._homed = True
         # Homing leaves a real controller at its switches, not at the bench reference: every
         # episode starts from the reference (0, 0), where the mount misalignment shows whole.
-        self.bench.move_to(0.0, 0.0)
+        self.bench.move_to(x_m=0.0, yaw_rad=0.0)
         self.bench.wait_until_there()
         self._step_index = 0
         self._episode_time_s = 0.0
@@ -341,7 +341,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         command = np.clip(a, self._travel[0], self._travel[1])
         before = self._stage.copy()
         move_s = _move_duration(before, command)
-        self.bench.move_to(float(command[0]), float(command[1]))
+        self.bench.move_to(x_m=float(command[1]), yaw_rad=float(command[0]))
         self.bench.wait_until_there()
         self._stage = self._read_stage()
         self._step_index += 1
@@ -390,8 +390,8 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._mount = mount
 
     def _read_stage(self) -> np.ndarray:
-        yaw, x = self.bench.position()
-        return np.array([yaw, x], dtype=np.float64)
+        p = self.bench.position()
+        return np.array([p.yaw_rad, p.x_m], dtype=np.float64)
 
     def _scans(self) -> list[Scan]:
         # On the twin each step's scans draw their noise from (bench seed, episode key, step):

@@ -280,7 +280,7 @@ class BenchGeometry:
         ph = self.physics
         if x_m is not None and yaw_rad is not None and (
                 abs(ph.carriage_x() - x_m) > 1e-9 or abs(ph.stage_yaw() - yaw_rad) > 1e-9):
-            ph.set_stage_positions(float(x_m), float(yaw_rad))
+            ph.set_stage_positions(x_m=float(x_m), yaw_rad=float(yaw_rad))
         now = (ph.carriage_x(), ph.stage_yaw())
         if not force and self._last is not None and np.allclose(now, self._last, atol=1e-9):
             return

@@ -29,7 +29,7 @@ import numpy as np
 
 from scenarios.recording import log as rl
 from twin.core.errors import AimbenchError
-from twin.core.pose import Pose
+from twin.core.pose import Pose, StagePose
 from twin.core.scan import Scan
 
 if TYPE_CHECKING:
@@ -40,11 +40,17 @@ if TYPE_CHECKING:
 SCAN_PERIOD_S = 0.1
 
 
+def _known(stage: StagePose | None) -> bool:
+    """A stage position that was reported (a replayed row may hold NULLs)."""
+    return stage is not None and all(v is not None and math.isfinite(v)
+                                     for v in (stage.x_m, stage.yaw_rad))
+
+
 class Observer(Protocol):
     """What an observer of a run offers (`RerunObserver` is one): for other observers of the
     same calls, e.g. a progress display or a test recorder."""
 
-    def on_reference(self, index: int, reference: Any, stage: tuple[float, float] | None) -> None:
+    def on_reference(self, index: int, reference: Any, stage: StagePose | None) -> None:
         ...
 
     def on_scan(self, scan: Scan | None, estimate: Any, truth: Pose | None, **kw: Any) -> None:
@@ -214,7 +220,7 @@ class RerunObserver:
         self._stages = stages
         self.geometry: rl.BenchGeometry | None = None
         self.reference: int | None = None
-        self.stage: tuple[float, float] | None = None  # (yaw_rad, x_m) last seen
+        self.stage: StagePose | None = None  # last seen
         self.stage_time = 0.0
         self.count = 0  # scans logged
         self._k = 0  # scans of the current reference
@@ -249,8 +255,8 @@ class RerunObserver:
 
     # -- runner callbacks ------------------------------------------------------------------
     def on_reference(self, index: int, reference: Any = None,
-                     stage: tuple[float, float] | None = None) -> None:
-        """A reference begins; `stage` is (yaw_rad, x_m) where the stages arrived. The move from
+                     stage: StagePose | None = None) -> None:
+        """A reference begins; `stage` is where the stages arrived. The move from
         the previous stage position is drawn along the firmware's profile on ``stage_time``."""
         self.on_start()
         t0 = time.perf_counter()
@@ -260,17 +266,16 @@ class RerunObserver:
         # The move belongs to the reference's first scan on the scan timeline (latest-at that
         # scan: where the move ended), and runs along stage_time.
         first = self.scan_index(self.reference, 0)
-        if stage is not None and all(v is not None and math.isfinite(v) for v in stage):
-            yaw, x = (float(v) for v in stage)
+        if _known(stage):
             if self.geometry is not None:
-                start = (0.0, 0.0) if self.stage is None else (self.stage[1], self.stage[0])
+                start = (0.0, 0.0) if self.stage is None else (self.stage.x_m, self.stage.yaw_rad)
                 rec.reset_time()
                 rec.set_time("scan", sequence=first)
-                self.stage_time = rl.log_stage_move(rec, self.geometry, start, (x, yaw),
-                                                    self.stage_time)
-            self.stage = (yaw, x)
-        where = f" at yaw {math.degrees(self.stage[0]):+.3f} deg, x {self.stage[1] * 1e3:+.2f} mm" \
-            if self.stage else ""
+                self.stage_time = rl.log_stage_move(rec, self.geometry, start,
+                                                    (stage.x_m, stage.yaw_rad), self.stage_time)
+            self.stage = stage
+        where = (f" at yaw {math.degrees(self.stage.yaw_rad):+.3f} deg, "
+                 f"x {self.stage.x_m * 1e3:+.2f} mm") if self.stage else ""
         label = reference.describe() if hasattr(reference, "describe") else ""
         rec.reset_time()
         rec.set_time("scan", sequence=first)
@@ -286,7 +291,7 @@ class RerunObserver:
 
     def on_scan(self, scan: Scan | None, estimate: Any, truth: Pose | None = None, *,
                 reference: int | None = None, k: int | None = None,
-                stage: tuple[float, float] | None = None, wall_time: float | None = None,
+                stage: StagePose | None = None, wall_time: float | None = None,
                 sensor_time: float | None = None, missing_packets: int | None = None,
                 complete: bool | None = None) -> None:
         """One scan and its estimate (anything with ``status``, ``success``/``pose``,
@@ -316,9 +321,8 @@ class RerunObserver:
         rl.set_scan_time(rec, self.scan_index(reference, k), sensor_time=sensor_time,
                          stage_time=self.stage_time, wall_time=wall_time)
         self.stage_time += SCAN_PERIOD_S
-        if stage is not None and self.geometry is not None and \
-                all(v is not None and math.isfinite(v) for v in stage):
-            self.geometry.log_joints(rec, float(stage[1]), float(stage[0]))
+        if self.geometry is not None and _known(stage):
+            self.geometry.log_joints(rec, stage.x_m, stage.yaw_rad)
         rl.log_pose(rec, "world/truth", truth, axis_length=0.12)
         rl.log_pose(rec, "world/estimate", pose if success else None, axis_length=0.25)
         cloud = scan is not None and (self.clouds_per_reference is None

@@ -30,7 +30,7 @@ from scenarios.recording.observer import RerunObserver, pose_from_row
 from scenarios.store import Store
 from scenarios.truth import load_truth, truth_for, truth_path
 from twin.core.errors import AimbenchError
-from twin.core.pose import Pose
+from twin.core.pose import Pose, StagePose
 from twin.core.scan import Scan
 from twin.lidar.capture import capture_scans
 
@@ -88,6 +88,7 @@ def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int
     carry from scan to scan and into the next reference, so skipping any would change the rest.
     """
     from scenarios.bench import SimBench
+    from scenarios.runner import visit
 
     config = store.get("config", {}) or {}
     info = store.get("bench", {}) or {}
@@ -103,12 +104,8 @@ def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int
             for i in refs:
                 if not mine or i > mine[-1]:
                     break  # nothing wanted from this twin any more
-                ref = plan.references[i]
                 ks = sorted(k for (r, k) in wanted if r == i)
-                bench.set_mount(ref.mount)
-                if ref.via is not None:
-                    bench.move_to(*ref.via)
-                bench.move_to(ref.yaw_rad, ref.x_m)
+                visit(bench, plan.references[i])
                 bench.prepare(i, 0)
                 # The last wanted reference needs its scans only up to the last wanted one.
                 n = ks[-1] + 1 if i == mine[-1] else max(plan.scans, ks[-1] + 1 if ks else 0)
@@ -230,9 +227,7 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
         if i != current_ref:
             current_ref = i
             ref = refs[i]
-            stage = (ref.get("stage_yaw_rad"), ref.get("stage_x_m"))
-            if stage[0] is None:
-                stage = (ref["yaw_rad"], ref["x_m"])
+            stage = _stage(ref) or StagePose(x_m=ref["x_m"], yaw_rad=ref["yaw_rad"])
             obs.on_reference(i, plan.references[i], stage)
         scan = None
         while pending is not None and position.get((pending[0], pending[1]), -1) < n:
@@ -252,9 +247,7 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
                              "stored one (the point cloud may not be the one the run saw)", "WARN")
             summary.clouds += int(clouds_per_reference is None or k < clouds_per_reference)
         truth = pose_from_row(row, "truth_")
-        stage = (row.get("stage_yaw_rad"), row.get("stage_x_m"))
-        obs.on_scan(scan, stored, truth, reference=i, k=k,
-                    stage=stage if stage[0] is not None else None, wall_time=at,
+        obs.on_scan(scan, stored, truth, reference=i, k=k, stage=_stage(row), wall_time=at,
                     missing_packets=row.get("missing_packets"),
                     complete=None if row.get("complete") is None else bool(row["complete"]))
         summary.scans += 1
@@ -271,6 +264,12 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
     if close is not None:
         close()
     return summary
+
+
+def _stage(row: Mapping[str, Any]) -> StagePose | None:
+    """Where a stored row says the stages were, if it says."""
+    yaw, x = row.get("stage_yaw_rad"), row.get("stage_x_m")
+    return None if yaw is None or x is None else StagePose(x_m=x, yaw_rad=yaw)
 
 
 def _level(level: str) -> str:

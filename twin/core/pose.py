@@ -7,6 +7,7 @@ the beam), roll about Y (the pointing axis). Shared by the twin (ground truth) a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,3 +78,20 @@ class Pose:
         mm = [values.get(k, 0.0) * 1e-3 for k in POSE_FIELDS_EDGE[:3]]
         rad = [np.deg2rad(values.get(k, 0.0)) for k in POSE_FIELDS_EDGE[3:]]
         return cls(*(float(v) for v in (*mm, *rad)))
+
+
+@dataclass(frozen=True)
+class StagePose:
+    """Where the two stages stand relative to the bench reference (mid-travel): the linear
+    stage's x (m) and the rotation stage's yaw (rad, counter-clockwise seen from above).
+
+    A named type rather than a pair, and every ``move_to`` takes keyword-only ``x_m`` and
+    ``yaw_rad``: the two can never be swapped on the way from a plan to a motor.
+    """
+
+    x_m: float = 0.0
+    yaw_rad: float = 0.0
+
+    def describe(self) -> str:
+        """``yaw -3.00 deg, x +5.0 mm``: for messages."""
+        return f"yaw {math.degrees(self.yaw_rad):+.2f} deg, x {self.x_m * 1e3:+.1f} mm"

@@ -129,7 +129,7 @@ class BenchSim:
         """True while a commanded move has not settled."""
         return self._move is not None
 
-    def start_move(self, x_m: float, yaw_rad: float) -> StageMove:
+    def start_move(self, *, x_m: float, yaw_rad: float) -> StageMove:
         """Begin a coordinated trapezoidal move to (x, yaw); scans taken meanwhile see it."""
         self._finish_if_settled()
         start = (self.stage_x(), self.stage_yaw())
@@ -138,20 +138,20 @@ class BenchSim:
         self._move_t0 = self.time
         return move
 
-    def move_to(self, x_m: float, yaw_rad: float) -> float:
+    def move_to(self, *, x_m: float, yaw_rad: float) -> float:
         """Drive both stages to (x m, yaw rad) and return once they have arrived (both arrive
         together, as the firmware's coordinated move does); returns the move's duration, s."""
-        self.start_move(x_m, yaw_rad)
+        self.start_move(x_m=x_m, yaw_rad=yaw_rad)
         t0 = self._move_t0
         while self._move is not None:
             self._advance(self.time + 0.05)
         return self.time - t0
 
-    def set_stage_positions(self, x_m: float, yaw_rad: float) -> None:
+    def set_stage_positions(self, *, x_m: float, yaw_rad: float) -> None:
         """Put the stages at (x, yaw) now, at rest: for an external step source (the firmware's
         step counts in the simavr harness) that drives the joints itself."""
         self._move = None
-        self.physics.set_stage_positions(float(x_m), float(yaw_rad))
+        self.physics.set_stage_positions(x_m=float(x_m), yaw_rad=float(yaw_rad))
         self._last_pose = self.physics.lidar_pose_world()
 
     def wait(self, seconds: float) -> None:
@@ -178,7 +178,7 @@ class BenchSim:
         overdue = self.time - self._move_t0 > self._move.duration + SETTLE_TIMEOUT
         if (err_x < SETTLE_X and err_yaw < SETTLE_YAW) or overdue:
             self._move = None
-            self.physics.set_stage_positions(x_t, yaw_t)
+            self.physics.set_stage_positions(x_m=x_t, yaw_rad=yaw_t)
             self._last_pose = self.physics.lidar_pose_world()
 
     def _advance(self, t_end: float, record: bool = False
@@ -204,7 +204,8 @@ class BenchSim:
                 times.append(self.time)
                 pos.append(p)
                 rot.append(r)
-            ph.set_stage_targets(*self._setpoint(self.time + dt))
+            x_t, yaw_t = self._setpoint(self.time + dt)
+            ph.set_stage_targets(x_m=x_t, yaw_rad=yaw_t)
             ph.step()
             if record:
                 p, r = ph.lidar_pose_world()

@@ -63,18 +63,18 @@ class BenchPhysics:
         """(x rate m/s, yaw rate rad/s)."""
         return float(self.data.qvel[self._x_dof]), float(self.data.qvel[self._yaw_dof])
 
-    def set_stage_targets(self, x: float, yaw: float) -> None:
+    def set_stage_targets(self, *, x_m: float, yaw_rad: float) -> None:
         """Servo setpoints of both stepper axes (what the step train commands), m and rad."""
-        self.data.ctrl[self._x_ctrl] = x
-        self.data.ctrl[self._yaw_ctrl] = yaw
+        self.data.ctrl[self._x_ctrl] = x_m
+        self.data.ctrl[self._yaw_ctrl] = yaw_rad
 
-    def set_stage_positions(self, x: float, yaw: float) -> None:
+    def set_stage_positions(self, *, x_m: float, yaw_rad: float) -> None:
         """Place both stages at (x, yaw) at rest, setpoints too (for an external step source)."""
-        self.data.qpos[self._x_qpos] = x
-        self.data.qpos[self._yaw_qpos] = yaw
+        self.data.qpos[self._x_qpos] = x_m
+        self.data.qpos[self._yaw_qpos] = yaw_rad
         self.data.qvel[self._x_dof] = 0.0
         self.data.qvel[self._yaw_dof] = 0.0
-        self.set_stage_targets(x, yaw)
+        self.set_stage_targets(x_m=x_m, yaw_rad=yaw_rad)
         mujoco.mj_forward(self.model, self.data)
 
     def step(self, n: int = 1) -> None:

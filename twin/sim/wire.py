@@ -155,7 +155,7 @@ class WireTwin:
     def _sync_stages(self) -> None:
         """Put the MuJoCo stages where the firmware's step pulses have put the real ones."""
         pos = self.harness.positions()
-        self.sim.set_stage_positions(pos.x_m, pos.yaw_rad)
+        self.sim.set_stage_positions(x_m=pos.x_m, yaw_rad=pos.yaw_rad)
 
     def _emulate(self) -> None:
         """Producer thread: one rotation's packets at a time into `_queue` (a few ahead), so the

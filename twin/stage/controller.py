@@ -24,6 +24,7 @@ from types import TracebackType
 import serial
 
 from twin.core.errors import AimbenchError
+from twin.core.pose import StagePose
 from twin.stage import grbl
 
 #: The bench's machine position of the reference pose (PROTOCOL.md, "Bench settings").
@@ -399,10 +400,10 @@ class StageController:
             raw=st,
         )
 
-    def position(self) -> tuple[float, float]:
-        """(x_m, yaw_rad) relative to the bench reference, from a status report."""
+    def position(self) -> StagePose:
+        """Where the stages are relative to the bench reference, from a status report."""
         st = self.status()
-        return st.x_m, st.yaw_rad
+        return StagePose(x_m=st.x_m, yaw_rad=st.yaw_rad)
 
     def wait_idle(
         self,
@@ -481,7 +482,7 @@ class StageController:
             self.wait_idle(limit, target=target)
 
     def move_to(
-        self, x_m: float, yaw_rad: float, wait: bool = True, timeout: float | None = None
+        self, *, x_m: float, yaw_rad: float, wait: bool = True, timeout: float | None = None
     ) -> None:
         """Rapid move (G0) to x (m) and yaw (rad) relative to the bench reference.
 
@@ -497,7 +498,7 @@ class StageController:
         )
 
     def move_by(
-        self, dx_m: float, dyaw_rad: float, wait: bool = True, timeout: float | None = None
+        self, *, dx_m: float, dyaw_rad: float, wait: bool = True, timeout: float | None = None
     ) -> None:
         """Relative rapid move (G91 G0) by dx (m) and dyaw (rad)."""
         dx_mm = self._quantize(dx_m * 1000.0, 0)
