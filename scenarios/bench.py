@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from scenarios.config import RunConfig
 from twin.core.errors import AimbenchError
 from twin.core.pose import StagePose
 from twin.core.scan import Scan
@@ -531,18 +532,15 @@ class SimBench(Bench):
             yield self._sim.scan()
 
 
-def open_bench(config: dict[str, Any]) -> Bench:
-    """The bench a run's configuration names: ``bench`` = sim | hw | serve, with ``seed``,
-    ``ideal`` (sim), ``port`` and ``lidar`` (hw)."""
-    kind = config.get("bench", "sim")
-    if kind == "sim":
-        return SimBench(seed=int(config.get("seed") or 0), ideal=bool(config.get("ideal")))
-    if kind == "hw":
-        if not config.get("port"):
-            raise BenchError("--bench hw needs the stage controller's --port (e.g. /dev/ttyACM0), "
-                             "or --port none for a LiDAR without stages or a capture replay")
-        return HardwareBench(config["port"], config.get("lidar") or DEFAULT_LIDAR)
-    if kind == "serve":
-        return ServedBench.launch(seed=int(config.get("seed") or 0),
-                                  ideal=bool(config.get("ideal")))
-    raise BenchError(f"unknown bench {kind!r}; use sim, hw or serve")
+def open_bench(config: RunConfig) -> Bench:
+    """The bench a run's configuration names: sim (its seed, ideal), hw (its port and LiDAR) or
+    serve (its seed, ideal)."""
+    try:
+        config.check()
+    except AimbenchError as exc:
+        raise BenchError(str(exc)) from None
+    if config.bench == "sim":
+        return SimBench(seed=config.seed, ideal=config.ideal)
+    if config.bench == "hw":
+        return HardwareBench(config.port, config.lidar or DEFAULT_LIDAR)
+    return ServedBench.launch(seed=config.seed, ideal=config.ideal)

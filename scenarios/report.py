@@ -40,6 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scenarios.config import RunConfig
 from scenarios.store import Store
 
 #: Pose axes in the store's column order and their edge unit scale and name.
@@ -409,7 +410,7 @@ def plot(rep: RunReport, es: ErrorSet, path: Path, axes: tuple[str, ...] = PAPER
 def build_document(rep: RunReport, plots: dict[str, str]) -> _Doc:
     doc = _Doc()
     plan = rep.meta.get("plan") or {}
-    config = rep.meta.get("config") or {}
+    config = RunConfig.from_dict(rep.meta.get("config"))
     bench = rep.meta.get("bench") or {}
     passed, reasons = rep.verdict()
     tol = rep.tolerances
@@ -423,8 +424,8 @@ def build_document(rep: RunReport, plots: dict[str, str]) -> _Doc:
           f"done, {rep.n_scans} scans stored ({rep.n_failed} without a pose"
           + (": " + ", ".join(f"{k} {v}" for k, v in rep.failures_by_status.items())
              if rep.failures_by_status else "") + f"), {plan.get('scans')} scans per reference. "
-          f"Bench: {bench.get('kind', config.get('bench', '?'))}; method: "
-          f"{config.get('method', '?')}; seed: {config.get('seed', '–')}.")
+          f"Bench: {bench.get('kind', config.bench)}; method: "
+          f"{config.method or '?'}; seed: {config.seed}.")
     failure = rep.meta.get("failure")
     if rep.meta.get("status") == "failed" and failure:
         doc.p(f"Failed at reference {failure.get('reference')}, scan {failure.get('scan')}: "

@@ -30,16 +30,13 @@ from typing import Any, TextIO
 import numpy as np
 
 from scenarios.bench import Bench, BenchError, TravelError
+from scenarios.config import MAX_CONSECUTIVE_FAILURES
 from scenarios.plans import Plan, Reference, references_beyond
 from scenarios.store import ScanResult, Store
 from scenarios.truth import scan_truth
 from twin.core.errors import AimbenchError
 from twin.core.pose import Pose, StagePose
 from twin.core.scan import Scan
-
-#: Stop a reference (and the run) when this many scans in a row gave no pose and none at this
-#: reference did: the board is not in view, and more scans will not bring it back.
-MAX_CONSECUTIVE_FAILURES = 10
 
 
 class RunFailed(AimbenchError):

@@ -24,6 +24,7 @@ from align import calibration as laser_calibration
 from scenarios import calibrate, plans
 from scenarios.bench import SimBench
 from scenarios.commands.sweep import add_tolerance_arguments, execute, tolerances
+from scenarios.config import RunConfig
 from scenarios.store import STORE_NAME, Store
 
 #: Scans per reference in the demo: the paper's 100 (2,100 scans). The pipeline costs about 60 ms
@@ -64,10 +65,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"aimbench demo: calibrated {int((cal.returns > 0).sum())} lasers' range offsets "
               f"at stage yaw {list(calibrate.DEFAULT_YAWS_DEG)} deg -> "
               f"{out / CALIBRATION_NAME}", file=sys.stderr)
-    config = {"scenario": "yaw", "bench": "sim", "port": None, "lidar": None,
-              "method": args.method, "seed": args.seed, "ideal": False, "scans": args.scans,
-              "poses": None, "argv": sys.argv[1:], "demo": True, "jobs": args.jobs,
-              "calibration": cal.to_dict() if cal is not None else None}
+    config = RunConfig(scenario="yaw", bench="sim", method=args.method, seed=args.seed,
+                       scans=args.scans, argv=tuple(sys.argv[1:]), demo=True, jobs=args.jobs,
+                       calibration=cal.to_dict() if cal is not None else None)
     rc = execute(None if resume else plan, config, out, resume,
                  progress=not args.no_progress, report=True, tol=tolerances(args))
     # The demo's job is the run and its report; a FAIL verdict is its result, not a failure of

@@ -75,10 +75,11 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_has_truth(run_dir: Path) -> bool:
     """A run on the twin has the truth (error plots); a hardware run only its estimates."""
+    from scenarios.config import RunConfig
     from scenarios.store import Store
 
     with Store.open(run_dir) as store:
-        return (store.get("config", {}) or {}).get("bench") == "sim"
+        return RunConfig.from_dict(store.get("config")).bench == "sim"
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:

@@ -20,9 +20,9 @@ from pathlib import Path
 from scenarios import calibrate, plans
 from scenarios.bench import open_bench
 from scenarios.commands.version import versions
+from scenarios.config import MAX_CONSECUTIVE_FAILURES, RunConfig
 from scenarios.report import Tolerances, summary_lines, write
 from scenarios.runner import (
-    MAX_CONSECUTIVE_FAILURES,
     ParallelSimRunner,
     Progress,
     Runner,
@@ -73,7 +73,7 @@ def tolerances(args: argparse.Namespace) -> Tolerances:
                       max_failed_fraction=args.max_failed_percent / 100.0)
 
 
-def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
+def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
             progress: bool = True, report: bool = True, tol: Tolerances | None = None,
             stream=None, rerun: Callable | None = None) -> int:
     """Create (or resume) the run in `out`, run it, write the report; the exit code.
@@ -88,10 +88,10 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
     stream = stream if stream is not None else sys.stderr
     if resume:
         store = Store.open(out)
-        stored = store.get("config", {}) or {}
         # A resumed run keeps its settings; only where the hardware is may change.
-        config = {**stored, **{k: v for k, v in config.items()
-                               if k in ("port", "lidar") and v is not None}}
+        config = RunConfig.from_dict(store.get("config")).with_(
+            **{k: v for k, v in (("port", config.port), ("lidar", config.lidar))
+               if v is not None})
         plan = store.plan
         if store.status == "completed":
             stream.write(f"{out}: the run is already complete; rewriting its report\n")
@@ -105,40 +105,37 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
             raise AimbenchError("give a scenario (yaw, x, grid, montecarlo, repeatability or a "
                                 ".toml file), or --resume")
         check_config(config)
-        if not config.get("method"):
+        if not config.method:
             import align
 
             # Stored by name, so the run says what it used even if the default changes.
-            config = {**config, "method": align.DEFAULT_METHOD}
-        store = Store.create(out, plan, config=config, versions=versions())
+            config = config.with_(method=align.DEFAULT_METHOD)
+        store = Store.create(out, plan, config=config.as_dict(), versions=versions())
     bench = None
     try:
         try:
-            estimator = make_estimator(config.get("method"),
-                                       calibration=config.get("calibration"))
+            estimator = make_estimator(config.method, calibration=config.calibration)
             bench = open_bench(config)
         except AimbenchError as exc:
-            store.set_status("failed", f"opening the {config.get('bench')} bench: {exc}")
+            store.set_status("failed", f"opening the {config.bench} bench: {exc}")
             raise
         store.put(**{"bench_resumed" if resume else "bench": bench.info()})
         resumed = f" (resumed: {store.scan_count()} scans stored)" if resume else ""
         stream.write(f"aimbench sweep: {plan.name}, {len(plan)} references x {plan.scans} scans "
-                     f"on the {config.get('bench')} bench{resumed} -> {out}\n")
+                     f"on the {config.bench} bench{resumed} -> {out}\n")
         prog = Progress(plan, stream=stream, enabled=progress)
-        max_fail = int(config.get("max_consecutive_failures") or MAX_CONSECUTIVE_FAILURES)
-        jobs = int(config.get("jobs") or 1)
+        max_fail = config.max_consecutive_failures
+        jobs = config.jobs
         session = rerun(plan, bench.info()) if rerun is not None else None
         if session is not None:
             if jobs > 1:
                 stream.write("rerun: logging needs one process; running with --jobs 1\n")
                 jobs = 1
-            bench, estimator = session.instrument(bench, config.get("method"),
-                                                  config.get("calibration"))
+            bench, estimator = session.instrument(bench, config.method, config.calibration)
         if jobs > 1:
             runner: Runner = ParallelSimRunner(
-                plan, bench, store, seed=int(config.get("seed") or 0),
-                ideal=bool(config.get("ideal")), method=config.get("method"),
-                calibration=config.get("calibration"), jobs=jobs,
+                plan, bench, store, seed=config.seed, ideal=config.ideal,
+                method=config.method, calibration=config.calibration, jobs=jobs,
                 progress=prog, max_consecutive_failures=max_fail)
         else:
             runner = Runner(plan, bench, store, estimator, progress=prog,
@@ -171,19 +168,11 @@ def execute(plan: plans.Plan | None, config: dict, out: Path, resume: bool,
         store.close()
 
 
-def check_config(config: dict) -> None:
+def check_config(config: RunConfig) -> None:
     """Refuse settings that cannot work before a run folder is made."""
-    kind = config.get("bench")
-    if kind not in ("sim", "hw", "serve"):
-        raise AimbenchError(f"unknown bench {kind!r}; use sim, hw or serve")
-    if kind == "hw" and not config.get("port"):
-        raise AimbenchError("--bench hw needs the stage controller's --port (e.g. /dev/ttyACM0),"
-                            " or --port none for a LiDAR without stages or a capture replay")
+    config.check()
     # An unknown method or a bad calibration fails here, not after a move.
-    make_estimator(config.get("method"), calibration=config.get("calibration"))
-    if int(config.get("jobs") or 1) > 1 and kind != "sim":
-        raise AimbenchError("--jobs runs several simulated benches; there is one "
-                            f"{'real' if kind == 'hw' else 'served'} bench: drop --jobs")
+    make_estimator(config.method, calibration=config.calibration)
 
 
 def _report(store: Store, report: bool, tol: Tolerances | None, stream) -> int:
@@ -197,16 +186,14 @@ def _report(store: Store, report: bool, tol: Tolerances | None, stream) -> int:
     return 0 if rep.verdict()[0] else 1
 
 
-def config_from_args(args: argparse.Namespace) -> dict:
-    return {
-        "scenario": args.scenario, "bench": args.bench, "port": args.port, "lidar": args.lidar,
-        "method": args.method, "seed": 0 if args.seed is None else args.seed,
-        "ideal": bool(args.ideal),
-        "scans": args.scans, "poses": args.poses, "argv": sys.argv[1:],
-        "max_consecutive_failures": args.max_consecutive_failures, "jobs": args.jobs,
-        "calibration": (calibrate.read(args.calibration).to_dict()
-                        if args.calibration else None),
-    }
+def config_from_args(args: argparse.Namespace) -> RunConfig:
+    return RunConfig(
+        scenario=args.scenario, bench=args.bench, port=args.port, lidar=args.lidar,
+        method=args.method, seed=0 if args.seed is None else args.seed, ideal=bool(args.ideal),
+        scans=args.scans, poses=args.poses, argv=tuple(sys.argv[1:]),
+        max_consecutive_failures=args.max_consecutive_failures, jobs=args.jobs,
+        calibration=(calibrate.read(args.calibration).to_dict()
+                     if args.calibration else None))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -217,12 +204,11 @@ def run(args: argparse.Namespace) -> int:
         if args.scenario is None:
             raise AimbenchError("give a scenario (yaw, x, grid, montecarlo, repeatability or a "
                                 ".toml file), or --resume --out RUN")
-        plan = plans.build(args.scenario, scans=args.scans, seed=config["seed"],
+        plan = plans.build(args.scenario, scans=args.scans, seed=config.seed,
                            poses=args.poses)
-        for key in ("method", "seed"):
-            # A TOML file's defaults, unless the command line set them.
-            if key in plan.settings and getattr(args, key) is None:
-                config[key] = plan.settings[key]
+        # A TOML file's defaults, unless the command line set them.
+        config = config.with_(**{key: plan.settings[key] for key in ("method", "seed")
+                                 if key in plan.settings and getattr(args, key) is None})
     tol = tolerances(args)
 
     def rerun(plan: plans.Plan, info: dict) -> object:  # a RerunSession or None

@@ -30,6 +30,7 @@ from gymnasium import spaces
 
 import align
 from scenarios.bench import Bench, SimBench, open_bench
+from scenarios.config import RunConfig
 from scenarios.plans import MOUNT_KEYS, PAPER_MC_ANGLE_DEG, PAPER_MC_X_MM
 from scenarios.truth import scan_truth
 from twin.core.pose import Pose
@@ -276,7 +277,7 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 raise ValueError("bench_kwargs only apply when the env opens the bench itself")
             return bench, False
         if isinstance(bench, str):
-            return open_bench({"bench": bench, **(kwargs or {})}), True
+            return open_bench(RunConfig(bench=bench, **(kwargs or {}))), True
         if callable(bench):
             made = bench(**(kwargs or {}))
             if not isinstance(made, Bench):

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from scenarios.config import RunConfig
 from scenarios.recording.observer import RerunObserver, pose_from_row
 from scenarios.store import Store
 from scenarios.truth import load_truth, truth_for, truth_path
@@ -73,8 +74,7 @@ def worker_order(store: Store) -> list[list[int]]:
     """The references each twin of a simulated run took, in order: one twin for a plain run;
     with ``--jobs N`` (`scenarios.runner.ParallelSimRunner`), worker w took references w, w + N,
     ... on a twin of its own."""
-    config = store.get("config", {}) or {}
-    jobs = max(1, int(config.get("jobs") or 1))
+    jobs = max(1, RunConfig.from_dict(store.get("config")).jobs)
     n = len(store.plan.references)
     return [list(range(w, n, jobs)) for w in range(min(jobs, n))]
 
@@ -90,12 +90,12 @@ def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int
     from scenarios.bench import SimBench
     from scenarios.runner import visit
 
-    config = store.get("config", {}) or {}
+    config = RunConfig.from_dict(store.get("config"))
     info = store.get("bench", {}) or {}
     plan = store.plan
     # What the bench said it was beats what the command line asked for.
-    seed = info.get("seed", config.get("seed")) or 0
-    ideal = info.get("ideal", config.get("ideal"))
+    seed = info.get("seed", config.seed) or 0
+    ideal = info.get("ideal", config.ideal)
     for refs in worker_order(store):
         bench = SimBench(seed=int(seed), ideal=bool(ideal))
         try:
@@ -179,7 +179,7 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
                   clouds_per_reference: int | None, points_every: int, color_by: str,
                   tolerances: Mapping[str, float] | None,
                   progress: Callable[[int, int], None] | None) -> ReplaySummary:
-    config = store.get("config", {}) or {}
+    config = RunConfig.from_dict(store.get("config"))
     plan = store.plan
     info = store.get("bench", {}) or {}
     rows = list(store.iter_scans())
@@ -192,8 +192,8 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
               if clouds_per_reference is None or r["scan"] < clouds_per_reference}
     source: Iterator[tuple[int, int, Scan]] = iter(())
     if clouds and wanted:
-        lidar = config.get("lidar")
-        if config.get("bench", info.get("kind")) == "sim":
+        lidar = config.lidar
+        if config.bench == "sim":
             source = resimulate(store, wanted)
             summary.source = "the twin, re-simulated"
         elif lidar and not str(lidar).startswith("udp://") and Path(lidar).is_file():
@@ -204,13 +204,13 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
                                  "capture")
     if not summary.source:
         summary.source = "the result store only"
-    if config.get("bench", info.get("kind")) == "sim":
+    if config.bench == "sim":
         # Rows in the order the twins took them (the scan timeline is explicit, so a recording
         # may be logged in any order), to meet the re-simulated scans one by one.
         rank = {i: n for n, i in enumerate(i for refs in worker_order(store) for i in refs)}
         rows.sort(key=lambda r: (rank[r["reference"]], r["scan"]))
     position = {(r["reference"], r["scan"]): n for n, r in enumerate(rows)}
-    estimator = run_estimator(config.get("method"), config.get("calibration"))
+    estimator = run_estimator(config.method, config.calibration)
     refs = store.references()
     # The store's events, merged with the scans by time, become annotations.
     events = sorted(store.events(), key=lambda e: e["at"])

@@ -1,0 +1,86 @@
+"""`RunConfig`: how a run is made (which bench, which estimator, which seed), typed.
+
+The sweep command fills it from its options (and a TOML plan's defaults), the store keeps it as
+JSON (`as_dict`) so that ``--resume``, the report and the replay use exactly what the run used,
+and `from_dict` reads it back, with the defaults for keys an older store did not write.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, replace
+from typing import Any
+
+from twin.core.errors import AimbenchError
+
+#: Benches a run can use: the twin in process, the real one, the wire-level twin it starts.
+BENCHES = ("sim", "hw", "serve")
+#: Stop a reference (and the run) when this many scans in a row gave no pose and none at this
+#: reference did: the board is not in view, and more scans will not bring it back.
+MAX_CONSECUTIVE_FAILURES = 10
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """One run's settings (edge units where a unit shows: none do yet).
+
+    scenario: the plan's name or TOML path as given. bench: one of `BENCHES`. port: the stage
+    controller's serial port (``none`` for a bench without stages). lidar: the LiDAR source of a
+    hardware bench (``udp://HOST:PORT`` or a capture). method: align's method (None: its default,
+    resolved by name when the run is created). seed: the twin's noise and the Monte Carlo poses.
+    ideal: the twin with every error source off. scans, poses: what the command line asked for.
+    argv: the command line. demo: made by ``aimbench demo``. max_consecutive_failures: see
+    `MAX_CONSECUTIVE_FAILURES`. jobs: worker processes (simulated bench only). calibration: the
+    per-laser calibration applied to every scan (an `align.calibration` dict), or None.
+    """
+
+    scenario: str | None = None
+    bench: str = "sim"
+    port: str | None = None
+    lidar: str | None = None
+    method: str | None = None
+    seed: int = 0
+    ideal: bool = False
+    scans: int | None = None
+    poses: int | None = None
+    argv: tuple[str, ...] = ()
+    demo: bool = False
+    max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES
+    jobs: int = 1
+    calibration: dict | None = field(default=None, hash=False, compare=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-ready, the form the store keeps."""
+        d = asdict(self)
+        d["argv"] = list(self.argv)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any] | None) -> RunConfig:
+        """From a stored configuration; unknown keys are ignored, missing ones take defaults."""
+        d = dict(d or {})
+        names = {f.name for f in fields(cls)}
+        values = {k: v for k, v in d.items() if k in names and v is not None}
+        if "argv" in values:
+            values["argv"] = tuple(str(a) for a in values["argv"])
+        for key in ("seed", "jobs", "max_consecutive_failures"):
+            if key in values:
+                values[key] = int(values[key])
+        for key in ("ideal", "demo"):
+            if key in values:
+                values[key] = bool(values[key])
+        return cls(**values)
+
+    def with_(self, **changes: Any) -> RunConfig:
+        return replace(self, **changes)
+
+    def check(self) -> None:
+        """Refuse settings that cannot work, before a run folder is made."""
+        if self.bench not in BENCHES:
+            raise AimbenchError(f"unknown bench {self.bench!r}; use {', '.join(BENCHES)}")
+        if self.bench == "hw" and not self.port:
+            raise AimbenchError("--bench hw needs the stage controller's --port (e.g. "
+                                "/dev/ttyACM0), or --port none for a LiDAR without stages or a "
+                                "capture replay")
+        if self.jobs > 1 and self.bench != "sim":
+            raise AimbenchError("--jobs runs several simulated benches; there is one "
+                                f"{'real' if self.bench == 'hw' else 'served'} bench: drop --jobs")
