@@ -47,6 +47,17 @@ def test_scene_compiles_and_everything_is_named(scene: Path) -> None:
 
 
 @pytest.mark.parametrize("scene", SCENES, ids=lambda p: p.name)
+def test_every_servo_takes_its_travel_from_its_joint(scene: Path) -> None:
+    """The travel is written once, on the joint: each position actuator inherits it."""
+    m = mujoco.MjModel.from_xml_path(str(scene))
+    for a in range(m.nu):
+        j = m.actuator_trnid[a, 0]
+        np.testing.assert_array_equal(m.actuator_ctrlrange[a], m.jnt_range[j])
+    for act in ET.parse(scene).getroot().iter("position"):
+        assert act.get("inheritrange") == "1" and act.get("ctrlrange") is None, act.attrib
+
+
+@pytest.mark.parametrize("scene", SCENES, ids=lambda p: p.name)
 def test_scene_steps_one_second_under_random_commands_without_warnings(scene: Path) -> None:
     m = mujoco.MjModel.from_xml_path(str(scene))
     d = mujoco.MjData(m)
@@ -132,3 +143,10 @@ def test_rays_never_reach_the_mechanism_group(x: float, yaw_deg: float, tilt_deg
     for (g0, d0), (g2, d2) in zip(out[(1, 0, 0, 0, 0, 0)], out[(1, 0, 1, 0, 0, 0)], strict=True):
         np.testing.assert_array_equal(g0, g2)
         np.testing.assert_array_equal(d0, d2)
+
+
+@pytest.mark.parametrize("part", sorted(p.name for p in MODELS_DIR.glob("*.xml")))
+def test_every_mjcf_file_is_well_formed_xml(part: str) -> None:
+    """MuJoCo's parser forgives what XML does not (a double dash inside a comment): every file
+    must also parse as XML, so that other tools (viewers, linters, menagerie's checks) read it."""
+    ET.parse(MODELS_DIR / part)
