@@ -10,7 +10,6 @@ import numpy as np
 from align.board import BoardSpec
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, find_board
-from twin.core import vlp16
 from twin.core.scan import Scan
 
 #: The methods `estimate` knows, best first.
@@ -89,9 +88,10 @@ def _segment_static(scans: list[Scan], board: BoardSpec, hints: Hints) -> list[S
         c = float(np.angle(np.mean(np.exp(1j * az))))
         rel = (az - c + np.pi) % (2 * np.pi) - np.pi
         rel_s = (s.azimuth - c + np.pi) % (2 * np.pi) - np.pi
-        rings = np.unique(vlp16.RING_OF_LASER[ref_scan.laser_id[ref.board]])
+        ring_of_laser = ref_scan.lasers.ring_of_laser
+        rings = np.unique(ring_of_laser[ref_scan.laser_id[ref.board]])
         # the board's lasers as a table over laser ids (cheaper than Scan.ring and isin)
-        on_board = np.isin(vlp16.RING_OF_LASER, rings)
+        on_board = np.isin(ring_of_laser, rings)
         dist = ref_scan.distance[ref.board]
         m = (s.distance > 0) & (rel_s >= rel.min() - np.deg2rad(0.5)) & \
             (rel_s <= rel.max() + np.deg2rad(0.5)) & on_board[s.laser_id] & \

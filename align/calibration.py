@@ -11,7 +11,7 @@ the ring pins the ring's height to the edge), so it is reported only for those l
 
 File format (JSON, `save` / `load`): ``{"format": "aimbench.laser_calibration", "version": 1,
 "lasers": [{"laser_id", "elevation_deg", "range_offset_m", "range_offset_std_m",
-"elevation_offset_rad", "elevation_offset_std_rad", "returns", "edge_crossings"} x 16],
+"elevation_offset_rad", "elevation_offset_std_rad", "returns", "edge_crossings"} per laser],
 "source": {...}}``. Offsets are measured minus true: the corrected range is distance - offset.
 `apply` is pure; `load` and `save` are the only functions here that touch a file.
 """
@@ -41,18 +41,39 @@ ON_BOARD = 0.07
 
 @dataclass(frozen=True)
 class LaserCalibration:
-    """Per-laser corrections, indexed by laser id (0..15). SI units.
+    """Per-laser corrections, indexed by laser id (as many as the sensor has). SI units.
 
-    ``elevation_offset`` holds NaN where the scans could not observe it.
+    ``elevation_offset`` holds NaN where the scans could not observe it; ``elevation_deg`` is
+    the nominal elevation of each laser (from the scans' laser table; the VLP-16's by default),
+    kept so that a file says which lasers it is about.
     """
 
     range_offset: np.ndarray
     range_offset_std: np.ndarray
-    elevation_offset: np.ndarray = field(default_factory=lambda: np.full(16, np.nan))
-    elevation_offset_std: np.ndarray = field(default_factory=lambda: np.full(16, np.nan))
-    returns: np.ndarray = field(default_factory=lambda: np.zeros(16, dtype=np.int64))
-    edge_crossings: np.ndarray = field(default_factory=lambda: np.zeros(16, dtype=np.int64))
+    elevation_offset: np.ndarray | None = None
+    elevation_offset_std: np.ndarray | None = None
+    returns: np.ndarray | None = None
+    edge_crossings: np.ndarray | None = None
     source: dict = field(default_factory=dict)
+    elevation_deg: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        n = len(self.range_offset)
+        defaults = {"elevation_offset": np.full(n, np.nan), "elevation_offset_std":
+                    np.full(n, np.nan), "returns": np.zeros(n, dtype=np.int64),
+                    "edge_crossings": np.zeros(n, dtype=np.int64),
+                    "elevation_deg": (vlp16.ELEVATION_DEG if n == vlp16.N_LASERS
+                                      else np.full(n, np.nan))}
+        for name, default in defaults.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, default)
+            elif len(getattr(self, name)) != n:
+                raise ValueError(f"LaserCalibration.{name} has {len(getattr(self, name))} "
+                                 f"entries for {n} lasers")
+
+    @property
+    def n_lasers(self) -> int:
+        return len(self.range_offset)
 
     def to_dict(self) -> dict:
         def f(v: float) -> float | None:
@@ -60,14 +81,14 @@ class LaserCalibration:
 
         lasers = [{
             "laser_id": i,
-            "elevation_deg": float(vlp16.ELEVATION_DEG[i]),
+            "elevation_deg": f(self.elevation_deg[i]),
             "range_offset_m": f(self.range_offset[i]),
             "range_offset_std_m": f(self.range_offset_std[i]),
             "elevation_offset_rad": f(self.elevation_offset[i]),
             "elevation_offset_std_rad": f(self.elevation_offset_std[i]),
             "returns": int(self.returns[i]),
             "edge_crossings": int(self.edge_crossings[i]),
-        } for i in range(vlp16.N_LASERS)]
+        } for i in range(self.n_lasers)]
         return {"format": FORMAT, "version": VERSION, "lasers": lasers, "source": self.source}
 
     @classmethod
@@ -76,8 +97,8 @@ class LaserCalibration:
             raise ValueError(f"not an {FORMAT} v{VERSION} file "
                              f"(format={d.get('format')!r}, version={d.get('version')!r})")
         lasers = sorted(d["lasers"], key=lambda r: r["laser_id"])
-        if [r["laser_id"] for r in lasers] != list(range(vlp16.N_LASERS)):
-            raise ValueError("a laser calibration needs exactly the laser ids 0..15")
+        if not lasers or [r["laser_id"] for r in lasers] != list(range(len(lasers))):
+            raise ValueError("a laser calibration needs every laser id from 0 up, once each")
 
         def col(key: str) -> np.ndarray:
             return np.array([np.nan if r.get(key) is None else r[key] for r in lasers], float)
@@ -86,7 +107,7 @@ class LaserCalibration:
                    col("elevation_offset_std_rad"),
                    np.array([r.get("returns", 0) for r in lasers], dtype=np.int64),
                    np.array([r.get("edge_crossings", 0) for r in lasers], dtype=np.int64),
-                   d.get("source", {}))
+                   d.get("source", {}), col("elevation_deg"))
 
 
 def save(cal: LaserCalibration, path: str | Path) -> None:
@@ -105,18 +126,22 @@ def apply(scan: Scan, cal: LaserCalibration) -> Scan:
     Elevation offsets are applied to x, y, z where known; the scan's ``elevation`` (and so
     `Scan.directions`) stays the nominal one of its laser id, which is what the estimator uses.
     """
+    if cal.n_lasers != scan.lasers.n_lasers:
+        raise ValueError(f"a calibration of {cal.n_lasers} lasers cannot correct a scan of "
+                         f"{scan.lasers.n_lasers} ({scan.lasers.model}): it is another sensor's")
     off = np.nan_to_num(cal.range_offset, nan=0.0)[scan.laser_id]
     ret = scan.distance > 0
     dist = np.where(ret, np.maximum(scan.distance - off, 0.0), 0.0)
     x, y, z = points_from_polar(dist, scan.azimuth, scan.laser_id,
-                                vertical_offsets=scan.vertical_offsets_applied)
+                                vertical_offsets=scan.vertical_offsets_applied,
+                                lasers=scan.lasers)
     d_el = np.nan_to_num(cal.elevation_offset, nan=0.0)[scan.laser_id]
     if np.any(d_el != 0):
-        w = vlp16.ELEVATION[scan.laser_id] + d_el
+        w = scan.lasers.elevation[scan.laser_id] + d_el
         rc = dist * np.cos(w)
         x, y = rc * np.sin(scan.azimuth), rc * np.cos(scan.azimuth)
         z = dist * np.sin(w) + np.where(ret & scan.vertical_offsets_applied,
-                                         vlp16.VERTICAL_OFFSET[scan.laser_id], 0.0)
+                                         scan.lasers.vertical_offset[scan.laser_id], 0.0)
     meta = dict(scan.meta)
     meta["laser_calibration"] = cal.source.get("name", "applied")
     return replace(scan, distance=dist, x=x, y=y, z=z, meta=meta)
@@ -137,8 +162,10 @@ def estimate(scans: Sequence[Scan], poses: Sequence[Pose], board: BoardSpec = Bo
     the ring crosses the top or bottom edge, the elevation change that puts the edge at the
     middle of the pair; their mean and standard error (at least two crossings).
     """
-    res: list[list[float]] = [[] for _ in range(vlp16.N_LASERS)]
-    el: list[list[float]] = [[] for _ in range(vlp16.N_LASERS)]
+    lasers = scans[0].lasers if scans else vlp16.LASERS
+    n_lasers = lasers.n_lasers
+    res: list[list[float]] = [[] for _ in range(n_lasers)]
+    el: list[list[float]] = [[] for _ in range(n_lasers)]
     w2, h2 = board.width / 2, board.height / 2
     for scan, pose in zip(scans, poses, strict=True):
         theta = pose.as_array()
@@ -146,14 +173,14 @@ def estimate(scans: Sequence[Scan], poses: Sequence[Pose], board: BoardSpec = Bo
         x, z, lam = board_coordinates(theta, o, u)
         inside = (lam > 0) & (np.abs(x) < w2 - INTERIOR_MARGIN) & (np.abs(z) < h2 - INTERIOR_MARGIN)
         on = inside & (scan.distance > 0) & (np.abs(scan.distance - lam) < ON_BOARD)
-        for lid in range(vlp16.N_LASERS):
+        for lid in range(n_lasers):
             m = on & (scan.laser_id == lid)
             res[lid].extend((scan.distance[m] - lam[m]).tolist())
         # ring crossings of the top / bottom edge: consecutive firings of a laser, one on the
         # board and one off, both within the side edges and near the horizontal edge
         hit = (scan.distance > 0) & (np.abs(scan.distance - lam) < ON_BOARD) & (lam > 0)
         near = (lam > 0) & (np.abs(x) < w2 - INTERIOR_MARGIN) & (np.abs(np.abs(z) - h2) < 0.02)
-        for lid in range(vlp16.N_LASERS):
+        for lid in range(n_lasers):
             idx = np.flatnonzero((scan.laser_id == lid) & near)
             if len(idx) < 2:
                 continue
@@ -165,7 +192,7 @@ def estimate(scans: Sequence[Scan], poses: Sequence[Pose], board: BoardSpec = Bo
                 edge = np.sign(zm) * h2
                 # dZ/d(elevation) of the pair's midpoint, numerically
                 eps = 1e-5
-                e2 = vlp16.ELEVATION[lid] + eps
+                e2 = lasers.elevation[lid] + eps
                 u2 = _directions(scan.azimuth[[i, k]], np.full(2, e2))
                 _, z2, _ = board_coordinates(theta, o[[i, k]], u2)
                 dzde = (0.5 * (z2[0] + z2[1]) - zm) / eps
@@ -182,4 +209,4 @@ def estimate(scans: Sequence[Scan], poses: Sequence[Pose], board: BoardSpec = Bo
     el_std = np.array([np.std(e, ddof=1) / np.sqrt(len(e)) if len(e) >= 2 else np.nan
                        for e in el])
     source = {"name": name, "scans": len(scans), "board_m": [board.width, board.height]}
-    return LaserCalibration(mean, std, el_mean, el_std, n, ne, source)
+    return LaserCalibration(mean, std, el_mean, el_std, n, ne, source, lasers.elevation_deg)

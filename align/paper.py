@@ -35,7 +35,6 @@ from align.board import BoardSpec
 from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
 from align.segment import consecutive_ring_block
-from twin.core import vlp16
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 
@@ -144,7 +143,7 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
     # the ROI is the board: its rings are consecutive, and the stand's base (a face 5 cm in
     # front of the board, within the RANSAC band) lights up a ring below a gap; keep the
     # consecutive block of rings with the most inliers
-    ring = vlp16.RING_OF_LASER[scan.laser_id[pts_idx]]  # (Scan.ring maps every firing)
+    ring = scan.lasers.ring_of_laser[scan.laser_id[pts_idx]]  # (Scan.ring maps every firing)
     inl &= np.isin(ring, consecutive_ring_block(ring[inl]))
     rings = np.unique(ring[inl])
     if len(rings) < 3:

@@ -1,6 +1,6 @@
 """method="rays": the ML plane along the rays plus the board rectangle fitted to hit/miss labels.
 
-What a single flat board tells a 16-ring LiDAR (docs/align.md has the analysis):
+What a single flat board tells a LiDAR of a few rings (docs/align.md has the analysis):
 
 - The plane (tilt, yaw, distance) comes from the ranges. We fit it by maximum likelihood along
   the rays (`align.plane.fit_rays`), which is unbiased on an obliquely seen board, unlike an
@@ -44,7 +44,6 @@ from align.geometry import board_coordinates, pose_from_plane, rotation
 from align.label_posterior import LabelledRays, label_posterior
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, consecutive_ring_block
-from twin.core import vlp16
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 
@@ -99,11 +98,12 @@ def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
         # occluder): the rectangle must not extend where no ray was looked at
         margin = board.width / max(float(np.median(s.distance[g.board])), 0.5)
         lo, hi = rel_b.min() - margin, rel_b.max() + margin
-        rings = vlp16.RING_OF_LASER[s.laser_id[g.board]]
+        ring_of_laser = s.lasers.ring_of_laser
+        rings = ring_of_laser[s.laser_id[g.board]]
         # the lasers of the board's rings and one more on each side (a table, not Scan.ring)
-        near_ring = np.arange(16)
+        near_ring = np.arange(s.lasers.n_lasers)
         near_ring = (near_ring >= int(rings.min()) - 1) & (near_ring <= int(rings.max()) + 1)
-        idx = np.flatnonzero(near_ring[vlp16.RING_OF_LASER][s.laser_id])
+        idx = np.flatnonzero(near_ring[ring_of_laser][s.laser_id])
         rel = _unwrap(s.azimuth[idx], c)
         win = (rel >= lo) & (rel <= hi)
         idx = idx[win]

@@ -1,8 +1,8 @@
 """Region of interest: Euclidean clustering of a scan and the choice of the board's cluster.
 
 The paper (III-A) clusters the point cloud by Euclidean distance and picks the board's cluster by
-mean distance, point count and reflectivity. A VLP-16 scan is an organised cloud (16 rings by
-azimuth), so the neighbour search runs on that grid: two returns are neighbours when they are
+mean distance, point count and reflectivity. A spinning LiDAR's scan is an organised cloud (rings
+by azimuth), so the neighbour search runs on that grid: two returns are neighbours when they are
 adjacent on a ring or on adjacent rings at the nearest azimuth, and they join a cluster when their
 Euclidean distance is under a range-proportional threshold (beam spacing grows with range). The
 connected components of that graph are the clusters: the same partition a k-d-tree Euclidean
@@ -21,7 +21,6 @@ from scipy.sparse.csgraph import connected_components
 
 from align.board import BoardSpec
 from align.result import Hints, Status
-from twin.core import vlp16
 from twin.core.scan import Scan
 
 #: Neighbours join when closer than this fraction of their range (0.06 rad = 3.4 deg: above the
@@ -56,20 +55,21 @@ def _unwrap(azimuth: np.ndarray, centre: float) -> np.ndarray:
 def _grid(scan: Scan) -> tuple[int, int] | None:
     """(first, sequences) when the scan is in firing order, else None.
 
-    A scan from the decoder or the emulation lists the 16 lasers of each firing sequence in
+    A scan from the decoder or the emulation lists the L lasers of each firing sequence in
     order (a scan cut at an azimuth may start and end mid-sequence: those few firings are left
-    out); firings first .. first + 16 * sequences then form a (sequences, 16 lasers) grid of
+    out); firings first .. first + L * sequences then form a (sequences, L lasers) grid of
     views, and the organised cloud needs neither sorting nor gathering.
     """
     n = len(scan)
-    if n < 32:
+    nl = scan.lasers.n_lasers
+    if n < 2 * nl:
         return None
-    k0 = int(np.argmax(scan.laser_id[:16] == 0)) if scan.laser_id[0] != 0 else 0
+    k0 = int(np.argmax(scan.laser_id[:nl] == 0)) if scan.laser_id[0] != 0 else 0
     if scan.laser_id[k0] != 0:
         return None
-    m = (n - k0) // 16
-    lid = scan.laser_id[k0:k0 + 16 * m].reshape(m, 16)
-    if not np.array_equal(lid, np.broadcast_to(np.arange(16, dtype=lid.dtype), lid.shape)):
+    m = (n - k0) // nl
+    lid = scan.laser_id[k0:k0 + nl * m].reshape(m, nl)
+    if not np.array_equal(lid, np.broadcast_to(np.arange(nl, dtype=lid.dtype), lid.shape)):
         return None
     return k0, m
 
@@ -102,13 +102,14 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
 
     Runs along each laser's ring first (consecutive firings closer than the threshold), then
     runs joined across adjacent rings of the same firing sequence (and each ring's wrap-around)
-    by connected components over the (small) graph of runs. Everything works on (sequences, 16)
+    by connected components over the (small) graph of runs. Everything works on (sequences, lasers)
     views of the scan's arrays: a full rotation takes about 2 ms.
     """
     k0, m = grid
-    sl = slice(k0, k0 + 16 * m)
-    x, y, z = (a[sl].reshape(m, 16) for a in (scan.x, scan.y, scan.z))
-    dist, az, okg = (a[sl].reshape(m, 16) for a in (scan.distance, scan.azimuth, ok))
+    nl = scan.lasers.n_lasers
+    sl = slice(k0, k0 + nl * m)
+    x, y, z = (a[sl].reshape(m, nl) for a in (scan.x, scan.y, scan.z))
+    dist, az, okg = (a[sl].reshape(m, nl) for a in (scan.distance, scan.azimuth, ok))
     thr = np.maximum(CLUSTER_RADIUS_PER_M * dist, CLUSTER_RADIUS_MIN)
     thr *= thr
 
@@ -128,8 +129,8 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
 
     # along each ring: consecutive sequences (a lost firing leaves its neighbours farther apart
     # than the distance threshold, so no azimuth test is needed)
-    link_h = close(np.s_[:-1], np.s_[1:])  # (m-1, 16)
-    brk = np.ones((16, m), dtype=bool)  # laser-major: a laser's firings are contiguous
+    link_h = close(np.s_[:-1], np.s_[1:])  # (m-1, nl)
+    brk = np.ones((nl, m), dtype=bool)  # laser-major: a laser's firings are contiguous
     brk[:, 1:] = ~link_h.T
     okf = okg.T.ravel()
     start_flag = brk.ravel() & okf
@@ -138,13 +139,14 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
     if n_run == 0:
         return np.full(len(scan), -1, dtype=np.int64), {
             k: np.zeros(0) for k in ("count", "distance", "rings")}
-    run = (np.cumsum(start_flag) - 1).reshape(16, m)  # run id of each firing (laser, sequence)
+    run = (np.cumsum(start_flag) - 1).reshape(nl, m)  # run id of each firing (laser, sequence)
     # adjacent rings = the lasers of consecutive elevations: column pairs (la, lb)
-    la, lb = vlp16.LASER_OF_RING[:-1], vlp16.LASER_OF_RING[1:]
+    laser_of_ring = scan.lasers.laser_of_ring
+    la, lb = laser_of_ring[:-1], laser_of_ring[1:]
     # columns in ring order once (one gather per array), then ring neighbours are slices
-    lr = vlp16.LASER_OF_RING.astype(np.intp)
+    lr = laser_of_ring.astype(np.intp)
     lv = close(np.s_[:, :-1], np.s_[:, 1:], x[:, lr], y[:, lr], z[:, lr], thr[:, lr],
-               okg[:, lr])  # (m, 15)
+               okg[:, lr])  # (m, nl - 1)
     ra_l, rb_l = [run[la].T[lv]], [run[lb].T[lv]]
     daz_w = np.abs((az[0] - az[-1] + np.pi) % (2 * np.pi) - np.pi)
     wrap = close(np.s_[-1], np.s_[0]) & (daz_w < MAX_AZIMUTH_GAP)
@@ -166,13 +168,13 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
     keep = ~(long_run[ra] | long_run[rb])
     n_comp, comp = _union_find(n_run, ra[keep], rb[keep])
     cnt = np.bincount(comp, sums[0], n_comp)
-    ring_hit = np.zeros((n_comp, 16), dtype=bool)
-    ring_hit[comp, vlp16.RING_OF_LASER[laser_s]] = True
+    ring_hit = np.zeros((n_comp, nl), dtype=bool)
+    ring_hit[comp, scan.lasers.ring_of_laser[laser_s]] = True
     stats = {"count": cnt, "distance": np.bincount(comp, sums[1], n_comp) / np.maximum(cnt, 1),
              "rings": ring_hit.sum(axis=1)}
     labels = np.full(len(scan), -1, dtype=np.int64)  # -1: no cluster (or outside the grid)
     comp_x = np.append(comp, -1)  # run -1 (and firings without a return): label -1
-    labels[sl].reshape(m, 16)[...] = comp_x[np.where(okg, run.T, -1)]
+    labels[sl].reshape(m, nl)[...] = comp_x[np.where(okg, run.T, -1)]
     return labels, stats
 
 
@@ -242,7 +244,8 @@ def _cluster_stats(scan: Scan, labels: np.ndarray, m: np.ndarray) -> dict[str, n
         var += np.bincount(lab, c * c, k) / safe - mean**2
     # sqrt(12 * total variance) is the diagonal of a uniformly sampled rectangle
     out["extent"] = np.sqrt(12 * np.clip(var, 0, None))
-    ring_hit = np.bincount(lab * 16 + scan.ring[m], minlength=16 * k).reshape(k, 16) > 0
+    nl = scan.lasers.n_lasers
+    ring_hit = np.bincount(lab * nl + scan.ring[m], minlength=nl * k).reshape(k, nl) > 0
     out["rings"] = ring_hit.sum(axis=1)
     return out
 
@@ -321,10 +324,10 @@ def consecutive_ring_block(rings: np.ndarray) -> list[int]:
     """The consecutive block of rings holding the most of these returns (a ring counts as present
     with a quarter of the busiest ring's returns). The board's rings are consecutive; a parallel
     face in front of it (the stand's base) lights up a ring or two beyond a gap."""
-    per_ring = np.bincount(rings, minlength=16)
+    per_ring = np.bincount(rings) if len(rings) else np.zeros(0, dtype=np.int64)
     present = per_ring >= 0.25 * per_ring.max() if len(rings) else per_ring > 0
     blocks, cur = [], []
-    for r in range(16):
+    for r in range(len(per_ring)):
         if present[r]:
             cur.append(r)
         elif cur:

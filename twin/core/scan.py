@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from twin.core import vlp16
+from twin.core.lasers import LaserTable
 
 
 class ReturnType(enum.IntFlag):
@@ -44,7 +45,8 @@ class Scan:
     ===========  =======  ================================================================
     distance     float64  range, m; 0 means no return
     azimuth      float64  azimuth of the firing, rad in [0, 2*pi)
-    laser_id     uint8    laser id 0..15 (firing order; `ring` gives elevation order)
+    laser_id     uint8    laser id, an index of ``lasers`` (firing order; `ring` gives
+                          elevation order)
     intensity    uint8    calibrated reflectivity 0..255
     time         float64  firing time, s (sensor clock: seconds past the hour; counts on
                           past 3600 across an hour's rollover so times only grow)
@@ -53,7 +55,9 @@ class Scan:
     ===========  =======  ================================================================
 
     Scan-level metadata says how whole the scan is: a scan assembled with packets missing is
-    flagged (``complete=False``, ``missing_packets > 0``), never presented as whole.
+    flagged (``complete=False``, ``missing_packets > 0``), never presented as whole. ``lasers``
+    is the laser table of the sensor that made the scan (`twin.core.lasers.LaserTable`; the
+    VLP-16's by default): every geometric property below reads its elevations and offsets.
     """
 
     distance: np.ndarray
@@ -73,6 +77,7 @@ class Scan:
     product_id: int = vlp16.PRODUCT_ID_VLP16
     vertical_offsets_applied: bool = True
     meta: dict = field(default_factory=dict)
+    lasers: LaserTable = vlp16.LASERS
 
     def __post_init__(self) -> None:
         n = len(self.distance)
@@ -91,13 +96,13 @@ class Scan:
 
     @property
     def ring(self) -> np.ndarray:
-        """Elevation-ordered ring 0..15 (0 = lowest beam, -15 deg)."""
-        return vlp16.RING_OF_LASER[self.laser_id]
+        """Elevation-ordered ring of each firing (0 = the lowest beam)."""
+        return self.lasers.ring_of_laser[self.laser_id]
 
     @property
     def elevation(self) -> np.ndarray:
         """Elevation of each firing's laser, rad."""
-        return vlp16.ELEVATION[self.laser_id]
+        return self.lasers.elevation[self.laser_id]
 
     @property
     def xyz(self) -> np.ndarray:
@@ -115,7 +120,7 @@ class Scan:
         """Origin of every fired ray in {L}, (N, 3): the laser's vertical offset, if applied."""
         o = np.zeros((len(self), 3))
         if self.vertical_offsets_applied:
-            o[:, 2] = vlp16.VERTICAL_OFFSET[self.laser_id]
+            o[:, 2] = self.lasers.vertical_offset[self.laser_id]
         return o
 
     def select(self, mask: np.ndarray) -> Scan:
@@ -158,17 +163,19 @@ def points_from_polar(
     azimuth: np.ndarray,
     laser_id: np.ndarray,
     vertical_offsets: bool = True,
+    lasers: LaserTable = vlp16.LASERS,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """x, y, z in {L} from range, azimuth and laser id (DESIGN.md; zero where distance is 0).
 
-    r * (cos w sin a, cos w cos a, sin w), plus the laser's vertical offset along Z_L.
+    r * (cos w sin a, cos w cos a, sin w), plus the laser's vertical offset along Z_L; w and the
+    offset are the laser's in ``lasers``.
     """
-    w = vlp16.ELEVATION[laser_id]
+    w = lasers.elevation[laser_id]
     rc = distance * np.cos(w)
     x = rc * np.sin(azimuth)
     y = rc * np.cos(azimuth)
     z = distance * np.sin(w)
     if vertical_offsets:
-        z = z + np.where(distance > 0, vlp16.VERTICAL_OFFSET[laser_id], 0.0)
+        z = z + np.where(distance > 0, lasers.vertical_offset[laser_id], 0.0)
     return x, y, z
 

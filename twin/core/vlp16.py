@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from twin.core.lasers import LaserTable
+
 N_LASERS = 16
 #: Laser elevations by laser id (manual, table 9-1), rad.
 ELEVATION_DEG = np.array(
@@ -19,10 +21,12 @@ VERTICAL_OFFSET = 1e-3 * np.array(
     [11.2, -0.7, 9.7, -2.2, 8.1, -3.7, 6.6, -5.1, 5.1, -6.6, 3.7, -8.1, 2.2, -9.7, 0.7, -11.2],
     dtype=np.float64,
 )
+#: The VLP-16's laser table (what a `Scan` of this sensor carries).
+LASERS = LaserTable("VLP-16", ELEVATION, VERTICAL_OFFSET)
 #: ring = index in elevation order (0 = lowest, -15 deg); laser id -> ring.
-RING_OF_LASER = np.argsort(np.argsort(ELEVATION_DEG)).astype(np.uint8)
+RING_OF_LASER = LASERS.ring_of_laser
 #: ring -> laser id.
-LASER_OF_RING = np.argsort(ELEVATION_DEG).astype(np.uint8)
+LASER_OF_RING = LASERS.laser_of_ring
 
 # Firing timing (manual, section 9.5).
 LASER_PERIOD = 2.304e-6  # s between consecutive lasers of one sequence
