@@ -130,3 +130,33 @@ def test_silence_raises_a_clear_error():
 def test_bind_failure_is_a_clear_error():
     with pytest.raises(UdpError, match="cannot bind"):
         UdpReceiver("192.0.2.1", 0, None)  # TEST-NET-1: never an address of this host
+
+
+def test_a_flood_of_malformed_datagrams_is_no_sign_of_life(sample_pcap):
+    # Issue 19: ~200 malformed datagrams a second once kept the silence timer from ever running
+    # out. Short ones, and full-size ones that are not Velodyne data (no block flags).
+    good = bytes(replay_stream(sample_pcap, 1)[0])
+    junk = [b"\x00" * 100, b"\x01" * vlp16.DATA_PAYLOAD_SIZE]
+    with UdpReceiver("127.0.0.1", 0, None, timeout_s=0.4) as rx:
+        stop = threading.Event()
+
+        def flood() -> None:
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                s.sendto(good, ("127.0.0.1", rx.ports["data"]))
+                for i in range(600):  # bounded: 3 s at 200/s at most
+                    if stop.wait(0.005):
+                        return
+                    s.sendto(junk[i % 2], ("127.0.0.1", rx.ports["data"]))
+
+        thread = threading.Thread(target=flood)
+        thread.start()
+        try:
+            got = []
+            with pytest.raises(SensorSilentError, match=r"no valid Velodyne data packet for "
+                               r"0\.4 s .* but \d+ malformed datagrams"):
+                got.extend(rx.receive())
+        finally:
+            stop.set()
+            thread.join()
+        assert [len(d.payload) for d in got] == [vlp16.DATA_PAYLOAD_SIZE]
+        assert rx.stats.malformed >= 40 and rx.stats.data == 1

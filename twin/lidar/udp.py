@@ -5,7 +5,9 @@ packets (512 bytes) to port 8308, from its default address 192.168.1.201; the ho
 address on 192.168.1.x/24 (docs/vlp16.md). `UdpReceiver` binds both ports, asks for a receive
 buffer big enough to ride out scheduling hiccups (the sensor sends ~754 packets/s, ~0.9 MB/s),
 counts malformed datagrams, reads the kernel's own count of datagrams dropped on a full buffer
-(Linux SO_RXQ_OVFL), and gives up with a clear error when the sensor goes silent.
+(Linux SO_RXQ_OVFL), and gives up with a clear error when the sensor goes silent. Only a valid
+Velodyne data packet is a sign of life: a stream of malformed datagrams (another device on the
+port) is counted and named in the error, and does not keep a caller waiting for ever.
 
 `send_packets` replays payloads at the sensor's rate (or any rate, or as fast as the socket
 takes them): the twin's network face and the loopback tests use it.
@@ -58,7 +60,7 @@ class ReceiverStats:
 
     data: int = 0
     position: int = 0
-    malformed: int = 0  # wrong size for its port
+    malformed: int = 0  # wrong size for its port, or not a Velodyne data packet on the data port
     kernel_drops: int = 0  # dropped by the kernel on a full receive buffer (Linux)
     rcvbuf_bytes: int = 0  # receive buffer the kernel granted
 
@@ -170,29 +172,31 @@ class UdpReceiver:
         count = 0
         end = None if duration_s is None else time.monotonic() + duration_s
         last = time.monotonic()
+        malformed_then = self.stats.malformed
+        data_port = self.ports.get("data")
         while max_packets is None or count < max_packets:
             now = time.monotonic()
             if end is not None and now >= end:
                 return
+            # Checked on every turn, not only when nothing arrived: a flood of malformed
+            # datagrams must not hold the timer off.
+            if now - last >= self.timeout_s:
+                if stop_on_silence:
+                    return
+                raise SensorSilentError(
+                    self._silence_message(self.stats.malformed - malformed_then))
             wait = self.timeout_s - (now - last)
             if end is not None:
                 wait = min(wait, end - now)
-            events = self._sel.select(max(0.0, wait))
-            if not events:
-                if end is not None and time.monotonic() >= end:
-                    return
-                if time.monotonic() - last >= self.timeout_s:
-                    if stop_on_silence:
-                        return
-                    raise SensorSilentError(self._silence_message())
-                continue
-            for key, _ in events:
+            for key, _ in self._sel.select(max(0.0, wait)):
                 for dgram in self._drain(key.data):
+                    if data_port is None or dgram.port == data_port:
+                        last = time.monotonic()  # a data packet: the sensor is alive
+                        malformed_then = self.stats.malformed
                     count += 1
                     yield dgram
                     if max_packets is not None and count >= max_packets:
                         return
-            last = time.monotonic()
 
     def update_kernel_drops(self) -> int:
         """Bring ``stats.kernel_drops`` up to date and return it.
@@ -223,7 +227,8 @@ class UdpReceiver:
                     total = struct.unpack("I", data[:4])[0]
                     self.stats.kernel_drops += (total - self._ovfl[port]) & 0xFFFFFFFF
                     self._ovfl[port] = total
-            if len(payload) != size:
+            if len(payload) != size or (size == vlp16.DATA_PAYLOAD_SIZE
+                                        and not is_velodyne_data(payload)):
                 self.stats.malformed += 1
                 continue
             if size == vlp16.DATA_PAYLOAD_SIZE:
@@ -232,14 +237,37 @@ class UdpReceiver:
                 self.stats.position += 1
             yield Datagram(now, port, payload)
 
-    def _silence_message(self) -> str:
+    def _silence_message(self, malformed: int = 0) -> str:
         ports = ", ".join(f"{self.bind_addr}:{p}" for p in self._socks)
+        if malformed:
+            return (
+                f"no valid Velodyne data packet for {self.timeout_s:g} s on UDP {ports}, but "
+                f"{malformed} malformed datagrams (wrong size, or not a Velodyne data packet): "
+                "another device or program sends to this port; stop it, or give the sensor "
+                "its own port"
+            )
         return (
             f"no packets for {self.timeout_s:g} s on UDP {ports}: check that the sensor is "
             "powered and cabled, that this host has an address on the sensor's subnet "
             "(default sensor 192.168.1.201, host e.g. 192.168.1.100/24), that the sensor's "
             "data port is 2368, and that no firewall drops UDP"
         )
+
+
+#: Second bytes of a Velodyne block flag (0xFF first): 0xEE the upper bank (every VLP-16 and
+#: VLP-32C block), 0xDD, 0xCC, 0xBB the further banks of the HDL-64E and VLS-128.
+_BLOCK_FLAG_BANKS = frozenset(b"\xee\xdd\xcc\xbb")
+
+
+def is_velodyne_data(payload: bytes) -> bool:
+    """A 1206-byte payload whose 12 blocks start with a Velodyne block flag: a data packet of
+    some Velodyne sensor (which model is the decoder's to say), not stray traffic."""
+    if len(payload) != vlp16.DATA_PAYLOAD_SIZE:
+        return False
+    step = vlp16.BLOCK_SIZE
+    firsts = payload[0:step * vlp16.BLOCKS_PER_PACKET:step]
+    return firsts == b"\xff" * vlp16.BLOCKS_PER_PACKET and all(
+        b in _BLOCK_FLAG_BANKS for b in payload[1:step * vlp16.BLOCKS_PER_PACKET:step])
 
 
 def _proc_udp_drops(inodes: set[int]) -> int | None:
