@@ -22,9 +22,9 @@ from models import SCENE
 #: Names of the model elements this module edits (kept in one place so the MJCF and code agree).
 BOARD_BODY = "target_board"
 BOARD_GEOM = "board"
+BOARD_STAND_BODY = "target_stand"
 SENSOR_BODY = "vlp16"
 SENSOR_MODULE_BODY = "sensor_module"
-BOARD_THICKNESS = 0.003  # m, aluminium plate (models/target_board.xml)
 
 
 def _quat_wxyz(roll: float, tilt: float, yaw: float) -> np.ndarray:
@@ -44,9 +44,12 @@ class BenchParams:
             the turntable frame (x right, y forward at stage yaw 0, z up), m. Default 60 mm up:
             the optical centre 0.5 m above the floor, level with the board centre.
         board_width, board_height: board size, m (paper: 0.90 x 0.54).
+        board_thickness: plate thickness, m (3 mm aluminium, assumed: models/target_board.xml);
+            the front face stays on the board frame's Y_O = 0, the plate grows behind it.
         board_position: centre of the board's front face in the world frame {W} (origin on the
             floor below the nominal board centre), m.
-        board_roll, board_tilt, board_yaw: board orientation in {W}, rad (same convention).
+        board_roll, board_tilt, board_yaw: board orientation in {W}, rad (same convention:
+            board_roll turns the board about its own normal, its in-plane rotation).
         sensor_module_position: the sensor module stand's floor point in {W}, m (paper: 2.5 m in
             front of the board, 0.7 m to its side; models/bench_frame.xml explains the sign).
         board_reflectivity: diffuse reflectance of the board face (bare aluminium, assumed 0.55).
@@ -59,6 +62,7 @@ class BenchParams:
     lever_arm: tuple[float, float, float] = (0.0, 0.0, 0.06)
     board_width: float = 0.90
     board_height: float = 0.54
+    board_thickness: float = 0.003
     board_position: tuple[float, float, float] = (0.0, 0.0, 0.5)
     board_roll: float = 0.0
     board_tilt: float = 0.0
@@ -72,6 +76,9 @@ class BenchParams:
     def __post_init__(self) -> None:
         if self.board_width <= 0 or self.board_height <= 0:
             raise ValueError("board_width and board_height must be positive (m)")
+        if self.board_thickness <= 0:
+            # MuJoCo boxes need a positive half size; a sheet is a thin plate, not none.
+            raise ValueError("board_thickness must be positive (m)")
         for name in ("board_reflectivity", "background_reflectivity"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} is a diffuse reflectance in [0, 1]")
@@ -99,12 +106,20 @@ class BenchParams:
         board.pos = np.asarray(self.board_position, dtype=float)
         board.quat = self.board_quat()
         geom = spec.geom(BOARD_GEOM)
-        geom.size = [self.board_width / 2, BOARD_THICKNESS / 2, self.board_height / 2]
-        geom.pos = [0.0, BOARD_THICKNESS / 2, 0.0]
+        geom.size = [self.board_width / 2, self.board_thickness / 2, self.board_height / 2]
+        geom.pos = [0.0, self.board_thickness / 2, 0.0]
         for corner, (sx, sz) in {"tl": (-1, 1), "tr": (1, 1), "bl": (-1, -1),
                                  "br": (1, -1)}.items():
             spec.site(f"board_corner_{corner}").pos = [
                 sx * self.board_width / 2, 0.0, sz * self.board_height / 2]
+        # The stand stays on the floor behind the board, wherever the board goes and however it
+        # is turned: a board moved back would otherwise stand behind its own post.
+        stand = spec.body(BOARD_STAND_BODY)
+        off = np.asarray(stand.pos, dtype=float)  # behind the nominal board centre (x = y = 0)
+        c, s = np.cos(self.board_yaw), np.sin(self.board_yaw)
+        stand.pos = [self.board_position[0] + c * off[0] - s * off[1],
+                     self.board_position[1] + s * off[0] + c * off[1], off[2]]
+        stand.quat = [np.cos(self.board_yaw / 2), 0.0, 0.0, np.sin(self.board_yaw / 2)]
         # The vlp16 body frame is {L} with its origin at the optical centre, a child of the
         # turntable whose origin lies 10 mm below the rotation-axis site on its top face.
         rot_axis = np.asarray(spec.site("rotation_axis").pos, dtype=float)
