@@ -14,6 +14,7 @@ Units: SI (rad, m, s). Every bench reports its travel so that a plan is checked 
 from __future__ import annotations
 
 import abc
+import json
 import math
 import select
 import signal
@@ -30,6 +31,8 @@ from typing import Any
 import numpy as np
 
 from scenarios.config import RunConfig
+from scenarios.station import Station
+from scenarios.station import default as default_station
 from twin.core.errors import AimbenchError
 from twin.core.pose import StagePose
 from twin.core.scan import Scan
@@ -41,6 +44,16 @@ DEFAULT_YAW_LIMITS_RAD = (math.radians(-180.0), math.radians(180.0))
 DEFAULT_X_LIMITS_M = (-0.1, 0.1)
 #: Where a hardware bench listens for the LiDAR unless told: every interface, the data port.
 DEFAULT_LIDAR = f"udp://0.0.0.0:{DATA_PORT}"
+
+Travel = tuple[tuple[float, float], tuple[float, float]]
+
+
+def within(travel: Travel, station: Station | None) -> Travel:
+    """`travel` limited to what the station file allows (its ``[stages]`` travel)."""
+    if station is None:
+        return travel
+    return tuple((max(a[0], b[0]), min(a[1], b[1]))  # type: ignore[return-value]
+                 for a, b in zip(travel, station.travel(), strict=True))
 
 
 class BenchError(AimbenchError):
@@ -240,17 +253,25 @@ class HardwareBench(Bench):
     port: the controller's serial port or pyserial URL (``/dev/ttyACM0``, a pty of the simavr
         harness); None (``--port none``) for a bench without stages: a LiDAR on a fixed fixture,
         or the replay of a capture, taken to be at the plan's references.
-    lidar: ``udp://HOST:PORT`` or a capture path.
+    lidar: ``udp://HOST:PORT`` or a capture path (None: the station's sensor network).
     settle_s: wait after arrival before scanning, so the bench stops ringing (s).
+    station: the station file's bench (`scenarios.station.Station`): the stages' axis letters
+        and travel, the LiDAR's address, the lever arm the report uses; None: the paper's
+        defaults, with the travel the controller reports.
+    axis_letters: the controller's (linear, rotation) axis letters, if not the station's.
     """
 
     kind = "hw"
 
-    def __init__(self, port: str | None, lidar: str = DEFAULT_LIDAR,
+    def __init__(self, port: str | None, lidar: str | None = None,
                  settle_s: float = 0.2, silence_timeout_s: float = 2.0,
-                 controller: Any = None) -> None:
+                 controller: Any = None, station: Station | None = None,
+                 axis_letters: tuple[str, str] | None = None) -> None:
+        if lidar is None:
+            lidar = station.lidar_url() if station is not None else DEFAULT_LIDAR
         self.port = port
         self.lidar = lidar
+        self.station = station
         self.settle_s = settle_s
         self._target = StagePose()
         self._closed = False
@@ -262,7 +283,9 @@ class HardwareBench(Bench):
             from twin.stage.controller import StageController
 
             try:
-                self.controller = StageController(port)
+                letters = axis_letters or (station.axis_letters if station is not None
+                                           else ("X", "A"))
+                self.controller = StageController(port, letters)
                 self.controller.connect()
             except AimbenchError as exc:
                 self.source.close()
@@ -283,12 +306,20 @@ class HardwareBench(Bench):
         (y0, y1), (x0, x1) = self.travel()
         out["travel"] = {"yaw_deg": [math.degrees(y0), math.degrees(y1)],
                          "x_mm": [x0 * 1e3, x1 * 1e3]}
+        if self.station is not None:
+            out["station"] = self.station.name
+            # The turntable's frame at stage yaw 0 is taken square to the board, as on the twin.
+            out["lever_arm_m"] = [v / 1000.0 for v in self.station.mount.lever_arm_mm]
         return out
 
-    def travel(self) -> tuple[tuple[float, float], tuple[float, float]]:
+    def travel(self) -> Travel:
         """From the controller's settings as its firmware applies them ($13x max travel, $23
         homing direction: home at 0 with travel positive, or at 0 with travel negative),
-        relative to the bench reference; the paper's defaults without a controller."""
+        relative to the bench reference, within the station's travel; without a controller
+        that tells, the station's travel (or the paper's defaults)."""
+        return within(self._controller_travel(), self.station)
+
+    def _controller_travel(self) -> Travel:
         c = self.controller
         settings = _controller_settings(c) if c is not None else {}
         if c is None or not settings:
@@ -366,9 +397,10 @@ class ServedBench(HardwareBench):
     kind = "serve"
 
     def __init__(self, port: str, lidar: str, process: subprocess.Popen, log: Path,
-                 **kwargs: Any) -> None:
+                 station_json: Path | None = None, **kwargs: Any) -> None:
         self.process = process
         self.log = log
+        self.station_json = station_json
         try:
             super().__init__(port, lidar, **kwargs)
         except BaseException:
@@ -377,14 +409,22 @@ class ServedBench(HardwareBench):
 
     @classmethod
     def launch(cls, seed: int = 0, ideal: bool = False, start_timeout_s: float = 300.0,
-               **kwargs: Any) -> ServedBench:
-        """Start ``aimbench serve`` on a free loopback UDP port and connect to it."""
+               station: Station | None = None, **kwargs: Any) -> ServedBench:
+        """Start ``aimbench serve`` on a free loopback UDP port and connect to it; its twin is
+        built from `station` (handed over as the JSON the run stores). The served firmware is
+        the bench's own (axes X and A), whatever letters the station gives a real controller."""
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.bind(("127.0.0.1", 0))
             udp_port = s.getsockname()[1]
         log = Path(tempfile.mkstemp(prefix="aimbench-serve-", suffix=".log")[1])
         cmd = [sys.executable, "-m", "scenarios.cli", "serve", "--udp",
                f"127.0.0.1:{udp_port}", "--seed", str(seed)] + (["--ideal"] if ideal else [])
+        if station is not None:
+            fd, name = tempfile.mkstemp(prefix="aimbench-station-", suffix=".json")
+            with open(fd, "w", encoding="utf-8") as f:
+                json.dump(station.to_dict(), f)
+            cmd += ["--station", name]
+            kwargs["station_json"] = Path(name)
         with log.open("w") as err:
             # Its own session: a Ctrl-C at the terminal must stop the sweep between scans, not
             # the twin under the scan in flight; close() ends it.
@@ -397,9 +437,12 @@ class ServedBench(HardwareBench):
             proc.terminate()
             proc.wait(timeout=10)
             tail = log.read_text(errors="replace").strip().splitlines()[-3:]
+            if kwargs.get("station_json") is not None:
+                kwargs["station_json"].unlink(missing_ok=True)
             raise BenchError(f"aimbench serve did not start (no pty within "
                              f"{start_timeout_s:.0f} s): {' / '.join(tail) or 'no output'}")
-        return cls(pty, f"udp://127.0.0.1:{udp_port}", proc, log, **kwargs)
+        return cls(pty, f"udp://127.0.0.1:{udp_port}", proc, log, station=station,
+                   axis_letters=("X", "A"), **kwargs)
 
     def info(self) -> dict[str, Any]:
         return {**super().info(), "kind": "serve", "serve_pid": self.process.pid}
@@ -421,6 +464,8 @@ class ServedBench(HardwareBench):
         finally:
             self._stop_process()
             self.log.unlink(missing_ok=True)
+            if self.station_json is not None:
+                self.station_json.unlink(missing_ok=True)
 
 
 # -- the simulated bench ------------------------------------------------------------------------
@@ -432,9 +477,12 @@ class SimBench(Bench):
         VLP-16 for the whole run); each reference's scans then draw their noise from a generator
         seeded by (seed, reference, first scan), so a resumed run is reproducible too.
     ideal: every error source of the emulation off.
-    params: the bench (`twin.sim.params.BenchParams`; default: the paper's, a perfect mount).
-    A reference's mount misalignment (Monte Carlo) rebuilds the twin with it, keeping the same
-    sensor; its ``x_mm`` shifts the LiDAR sideways on the turntable (the lever arm's x).
+    station: the bench (`scenarios.station.Station`; default: the paper's, a perfect mount): the
+        twin is built from it (`Station.bench_params`) and plans keep within its travel.
+    params: a `twin.sim.params.BenchParams` instead of the station's (studies of the twin).
+    A reference's mount misalignment (Monte Carlo) rebuilds the twin with it added to the
+    station's nominal mount, keeping the same sensor; its ``x_mm`` shifts the LiDAR sideways on
+    the turntable (the lever arm's x).
     Moves run in simulated time (the stages' trapezoidal profiles), so they cost no wall time.
     """
 
@@ -442,14 +490,16 @@ class SimBench(Bench):
     can_set_mount = True
 
     def __init__(self, seed: int = 0, ideal: bool = False, params: Any = None,
-                 noise: Any = None) -> None:
+                 noise: Any = None, station: Station | None = None) -> None:
         from twin.sim.bench import BenchSim
         from twin.sim.emulation import EmulationConfig
-        from twin.sim.params import BenchParams
 
         self.seed = int(seed)
         self.ideal = bool(ideal)
-        self.base_params = params if params is not None else BenchParams()
+        self.station = station
+        if params is None:
+            params = (station if station is not None else default_station()).bench_params()
+        self.base_params = params
         if noise is None:
             noise = EmulationConfig.ideal() if ideal else EmulationConfig()
         self._mount: dict[str, float] | None = None
@@ -465,9 +515,9 @@ class SimBench(Bench):
         if not m:
             return p
         lever = tuple(p.lever_arm)
-        return replace(p, mount_roll=math.radians(m.get("roll_deg", 0.0)),
-                       mount_tilt=math.radians(m.get("tilt_deg", 0.0)),
-                       mount_yaw=math.radians(m.get("yaw_deg", 0.0)),
+        return replace(p, mount_roll=p.mount_roll + math.radians(m.get("roll_deg", 0.0)),
+                       mount_tilt=p.mount_tilt + math.radians(m.get("tilt_deg", 0.0)),
+                       mount_yaw=p.mount_yaw + math.radians(m.get("yaw_deg", 0.0)),
                        lever_arm=(lever[0] + m.get("x_mm", 0.0) * 1e-3, lever[1], lever[2]))
 
     @property
@@ -480,6 +530,7 @@ class SimBench(Bench):
         (y0, y1), (x0, x1) = self.travel()
         return {
             "kind": "sim", "seed": self.seed, "ideal": self.ideal,
+            **({"station": self.station.name} if self.station is not None else {}),
             "params": {k: (list(v) if isinstance(v, tuple) else v)
                        for k, v in vars(p).items() if not k.startswith("_")},
             "noise": {k: (list(v) if isinstance(v, tuple) else v)
@@ -491,11 +542,12 @@ class SimBench(Bench):
             "lever_arm_m": list(p.lever_arm),
         }
 
-    def travel(self) -> tuple[tuple[float, float], tuple[float, float]]:
+    def travel(self) -> Travel:
+        """The twin's stage travel (twin/stage/motion.py), within the station's."""
         from twin.stage.motion import X_AXIS, YAW_AXIS
 
-        return ((YAW_AXIS.travel_min, YAW_AXIS.travel_max),
-                (X_AXIS.travel_min, X_AXIS.travel_max))
+        return within(((YAW_AXIS.travel_min, YAW_AXIS.travel_max),
+                       (X_AXIS.travel_min, X_AXIS.travel_max)), self.station)
 
     def set_mount(self, mount: dict[str, float] | None) -> None:
         from twin.sim.bench import BenchSim
@@ -534,13 +586,13 @@ class SimBench(Bench):
 
 def open_bench(config: RunConfig) -> Bench:
     """The bench a run's configuration names: sim (its seed, ideal), hw (its port and LiDAR) or
-    serve (its seed, ideal)."""
+    serve (its seed, ideal), each the bench of the run's station."""
     try:
         config.check()
     except AimbenchError as exc:
         raise BenchError(str(exc)) from None
     if config.bench == "sim":
-        return SimBench(seed=config.seed, ideal=config.ideal)
+        return SimBench(seed=config.seed, ideal=config.ideal, station=config.station)
     if config.bench == "hw":
-        return HardwareBench(config.port, config.lidar or DEFAULT_LIDAR)
-    return ServedBench.launch(seed=config.seed, ideal=config.ideal)
+        return HardwareBench(config.port, config.lidar, station=config.station)
+    return ServedBench.launch(seed=config.seed, ideal=config.ideal, station=config.station)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from align import calibration as laser_calibration
 from scenarios.bench import Bench
@@ -49,12 +50,14 @@ def read(path: str | Path) -> laser_calibration.LaserCalibration:
                                "with `aimbench calibrate`") from exc
 
 
-def from_scans(scans: Sequence[Scan], poses: Sequence[Pose], name: str
+def from_scans(scans: Sequence[Scan], poses: Sequence[Pose], name: str, board: Any = None
                ) -> laser_calibration.LaserCalibration:
-    """The calibration of scans at known poses; refuses when no laser could be calibrated."""
+    """The calibration of scans at known poses of `board` (align's `BoardSpec`; None: the
+    paper's); refuses when no laser could be calibrated."""
     if not scans:
         raise CalibrationError(f"{name}: no scan with a known pose to calibrate from")
-    cal = laser_calibration.estimate(scans, poses, name=name)
+    kwargs = {"board": board} if board is not None else {}
+    cal = laser_calibration.estimate(scans, poses, name=name, **kwargs)
     if not (cal.returns > 0).any():
         raise CalibrationError(f"{name}: no return on the board's interior; is the board in "
                                "view and the pose right?")
@@ -62,8 +65,10 @@ def from_scans(scans: Sequence[Scan], poses: Sequence[Pose], name: str
 
 
 def on_bench(bench: Bench, yaws_deg: Sequence[float] = DEFAULT_YAWS_DEG,
-             scans_per_pose: int = DEFAULT_SCANS) -> laser_calibration.LaserCalibration:
-    """Calibrate the bench's sensor from scans at the given stage yaws (x at the reference).
+             scans_per_pose: int = DEFAULT_SCANS, board: Any = None
+             ) -> laser_calibration.LaserCalibration:
+    """Calibrate the bench's sensor from scans at the given stage yaws (x at the reference) of
+    `board` (align's `BoardSpec`, the bench's station's; None: the paper's).
 
     Needs a bench that knows its true pose (the twin); the real bench's pose is only known
     through a surveyed capture (`from_capture`).
@@ -86,12 +91,14 @@ def on_bench(bench: Bench, yaws_deg: Sequence[float] = DEFAULT_YAWS_DEG,
                     "--truth FILE")
             scans.append(scan)
             poses.append(truth)
-    return from_scans(scans, poses, f"{bench.kind} bench, stage yaw {list(yaws_deg)} deg")
+    return from_scans(scans, poses, f"{bench.kind} bench, stage yaw {list(yaws_deg)} deg",
+                      board)
 
 
-def from_capture(capture: str | Path, truth: str | Path | None = None
+def from_capture(capture: str | Path, truth: str | Path | None = None, board: Any = None
                  ) -> laser_calibration.LaserCalibration:
-    """Calibrate from a capture's whole scans and its truth file (default CAPTURE.truth.json)."""
+    """Calibrate from a capture's whole scans and its truth file (default CAPTURE.truth.json),
+    of `board` (align's `BoardSpec`; None: the paper's)."""
     from scenarios.truth import load_truth, truth_for, truth_path
     from twin.lidar.capture import capture_scans
 
@@ -106,4 +113,4 @@ def from_capture(capture: str | Path, truth: str | Path | None = None
         if pose is not None:
             scans.append(scan)
             poses.append(pose)
-    return from_scans(scans, poses, f"{Path(capture).name} with {truth_file.name}")
+    return from_scans(scans, poses, f"{Path(capture).name} with {truth_file.name}", board)

@@ -3,6 +3,10 @@
 The sweep command fills it from its options (and a TOML plan's defaults), the store keeps it as
 JSON (`as_dict`) so that ``--resume``, the report and the replay use exactly what the run used,
 and `from_dict` reads it back, with the defaults for keys an older store did not write.
+
+The run keeps its station (`scenarios.station.Station`: the board, the mount, the stages, the
+sensor) by content, not only by path: a resumed run, its report and its replay use the bench the
+run used even if the file has changed or gone since.
 """
 
 from __future__ import annotations
@@ -10,6 +14,9 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
+from scenarios.station import Station, StationError
+from scenarios.station import default as default_station
+from scenarios.station import from_dict as station_from_dict
 from twin.core.errors import AimbenchError
 
 #: Benches a run can use: the twin in process, the real one, the wire-level twin it starts.
@@ -31,6 +38,8 @@ class RunConfig:
     argv: the command line. demo: made by ``aimbench demo``. max_consecutive_failures: see
     `MAX_CONSECUTIVE_FAILURES`. jobs: worker processes (simulated bench only). calibration: the
     per-laser calibration applied to every scan (an `align.calibration` dict), or None.
+    station: the bench (`scenarios.station.Station`; default: the paper's), with any command
+    line override (``--board-mm``) applied; station_file: the file it was read from, if any.
     """
 
     scenario: str | None = None
@@ -47,11 +56,14 @@ class RunConfig:
     max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES
     jobs: int = 1
     calibration: dict | None = field(default=None, hash=False, compare=False)
+    station: Station = field(default_factory=default_station, hash=False, compare=False)
+    station_file: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready, the form the store keeps."""
         d = asdict(self)
         d["argv"] = list(self.argv)
+        d["station"] = self.station.to_dict()
         return d
 
     @classmethod
@@ -68,6 +80,12 @@ class RunConfig:
         for key in ("ideal", "demo"):
             if key in values:
                 values[key] = bool(values[key])
+        if "station" in values:
+            try:
+                values["station"] = station_from_dict(values["station"], "the run's station")
+            except StationError as exc:
+                raise AimbenchError(f"{exc} (the run was stored by another aimbench version; "
+                                    "start a new run)") from None
         return cls(**values)
 
     def with_(self, **changes: Any) -> RunConfig:

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from scenarios import station
 from twin.core.errors import AimbenchError
 from twin.core.pose import StagePose
 
@@ -292,7 +293,8 @@ def _axis(spec: object, key: str, where: str) -> list[float]:
                     f"got {spec!r}")
 
 
-_TOP_KEYS = {"name", "scans", "yaw_deg", "x_mm", "mount", "reference", "method", "seed"}
+_TOP_KEYS = {"name", "scans", "yaw_deg", "x_mm", "mount", "reference", "method", "seed",
+             "board_mm"}
 _REF_KEYS = {"yaw_deg", "x_mm", "mount", "label"}
 
 
@@ -308,8 +310,10 @@ def from_toml(path: str | Path) -> Plan:
 
     or explicit references (``[[reference]]`` tables with yaw_deg, x_mm, an optional label and,
     for the simulated bench, an optional mount table of roll_deg, tilt_deg, yaw_deg, x_mm).
-    A top-level ``[mount]`` applies to every reference that has none. ``method`` and ``seed`` are
-    defaults the command line may override; they are returned in ``settings``.
+    A top-level ``[mount]`` applies to every reference that has none. ``method``, ``seed`` and
+    ``board_mm`` (the board's size, ``"900x540"`` or ``[900, 540]``, in place of the station
+    file's) are defaults the command line may override; they are returned in ``settings``
+    (``board_mm`` as [width, height]).
     """
     path = Path(path)
     where = str(path)
@@ -358,6 +362,12 @@ def from_toml(path: str | Path) -> Plan:
     for key in ("method", "seed"):
         if key in data:
             settings[key] = data[key]
+    if "board_mm" in data:
+        try:
+            size = station.board_mm(data["board_mm"], where)
+        except station.StationError as exc:
+            raise PlanError(str(exc)) from None
+        settings["board_mm"] = [size["width_mm"], size["height_mm"]]
     return Plan(str(data.get("name", path.stem)), kind, tuple(refs), scans, settings)
 
 

@@ -479,11 +479,14 @@ def _no_board(consecutive: int, status: str, diagnostics: dict) -> BenchError:
 # -- parallel runs on the simulated bench -------------------------------------------------------
 
 def _sim_worker(plan_dict: dict, todo: list[tuple[int, int, int]], seed: int, ideal: bool,
-                method: str | None, calibration: dict | None, out: Any, stop: Any) -> None:
-    """Worker process: its own SimBench and estimator; takes the (reference, first scan, count)
-    items of `todo` in order and sends every result to `out`; stops between scans on `stop`."""
+                method: str | None, calibration: dict | None, station: dict | None, out: Any,
+                stop: Any) -> None:
+    """Worker process: its own SimBench (of the run's station, sent as its stored dict) and
+    estimator; takes the (reference, first scan, count) items of `todo` in order and sends every
+    result to `out`; stops between scans on `stop`."""
     import warnings
 
+    from scenarios import station as stations
     from scenarios.bench import SimBench
 
     warnings.simplefilter("ignore", RuntimeWarning)  # the twin's NaN masks
@@ -491,8 +494,9 @@ def _sim_worker(plan_dict: dict, todo: list[tuple[int, int, int]], seed: int, id
     plan = Plan.from_dict(plan_dict)
     i = k = None
     try:
-        bench = SimBench(seed=seed, ideal=ideal)
-        estimator = make_estimator(method, calibration=calibration)
+        st = stations.from_dict(station, "the run's station") if station else None
+        bench = SimBench(seed=seed, ideal=ideal, station=st)
+        estimator = make_estimator(method, st.board_spec() if st else None, calibration)
         bench.home()
         for i, first, n in todo:
             k = None
@@ -533,11 +537,14 @@ class ParallelSimRunner(Runner):
                  ideal: bool = False, method: str | None = None,
                  calibration: dict | None = None, jobs: int = 2,
                  progress: Progress | None = None,
-                 max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES) -> None:
+                 max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES,
+                 station: Any = None) -> None:
         super().__init__(plan, bench, store, estimator=lambda scan: None,  # type: ignore[arg-type]
                          progress=progress, max_consecutive_failures=max_consecutive_failures)
         self.seed, self.ideal, self.method, self.jobs = seed, ideal, method, max(1, int(jobs))
         self.calibration = calibration
+        #: The run's `scenarios.station.Station` (None: the paper's), for the workers' twins.
+        self.station = station
         self._procs: list[Any] = []
         self._stop_event: Any = None
 
@@ -564,7 +571,9 @@ class ParallelSimRunner(Runner):
             for w in range(min(self.jobs, len(todo))):
                 p = ctx.Process(target=_sim_worker, args=(
                     self.plan.to_dict(), todo[w::self.jobs], self.seed, self.ideal,
-                    self.method, self.calibration, out, stop), daemon=True)
+                    self.method, self.calibration,
+                    self.station.to_dict() if self.station is not None else None, out, stop),
+                    daemon=True)
                 p.start()
                 self._procs.append(p)
         finally:

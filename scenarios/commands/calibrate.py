@@ -4,6 +4,10 @@ poses, written to a file that `aimbench sweep --calibration` and `aimbench estim
 
     aimbench calibrate --bench sim [--seed S] [--yaw-deg -8,0,8] [--scans 20] --out cal.json
     aimbench calibrate CAPTURE.pcap [--truth CAPTURE.truth.json] --out cal.json
+
+``--station FILE`` (docs/station.md; default: the paper's bench): the board the scans see and,
+on ``--bench sim``, the twin built from it. Name the file it writes as the station's
+``sensor.range_calibration`` and every later command applies it.
 """
 
 from __future__ import annotations
@@ -15,18 +19,21 @@ import numpy as np
 
 from align import calibration as laser_calibration
 from scenarios import calibrate
+from scenarios import station as stations
 from twin.core.errors import AimbenchError
 
 
 def run(args: argparse.Namespace) -> int:
+    station, _ = stations.from_args(args, twin=args.bench == "sim")
+    board = station.board_spec()
     if args.capture:
-        cal = calibrate.from_capture(args.capture, args.truth)
+        cal = calibrate.from_capture(args.capture, args.truth, board)
     elif args.bench == "sim":
         from scenarios.bench import SimBench
 
         yaws = [float(v) for v in args.yaw_deg.split(",")]
-        with SimBench(seed=args.seed) as bench:
-            cal = calibrate.on_bench(bench, yaws, args.scans)
+        with SimBench(seed=args.seed, station=station) as bench:
+            cal = calibrate.on_bench(bench, yaws, args.scans, board)
     else:
         raise AimbenchError("give a CAPTURE.pcap with its truth file, or --bench sim")
     laser_calibration.save(cal, args.out)
@@ -50,5 +57,6 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--scans", type=int, default=calibrate.DEFAULT_SCANS,
                    help="scans per stage yaw (default %(default)s)")
     p.add_argument("--out", required=True, help="calibration file to write (JSON)")
+    stations.add_arguments(p)
     p.set_defaults(func=run)
     return p

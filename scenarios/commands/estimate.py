@@ -3,7 +3,12 @@
 With ``--json``: one JSON object per line per scan (or per group of ``--fuse N`` scans): scan,
 scans, status, x_m, y_m, z_m, roll_deg, tilt_deg, yaw_deg, their standard deviations (x_m_std ..
 yaw_deg_std, and the mm forms x_mm .. z_mm_std), the method, the time taken and diagnostics.
-Without: a table. The defaults find the paper's board without hints.
+Without: a table.
+
+The board is the station's (``--station FILE``, docs/station.md; default: the paper's 900 x 540
+mm plate), ``--board-mm`` and ``--board-thickness-mm`` override it; the station's range
+calibration is applied unless ``--calibration`` names another. The defaults find the paper's
+board without hints.
 """
 
 from __future__ import annotations
@@ -15,8 +20,8 @@ import warnings
 
 import align
 from align import calibration as laser_calibration
-from align.board import BoardSpec
 from scenarios import calibrate
+from scenarios import station as stations
 from scenarios.commands.info import add_decode_options, decode_options, warn_lines
 from twin.core.errors import AimbenchError
 from twin.lidar.capture import PcapSource, read_capture
@@ -43,11 +48,8 @@ def _edge_tolerance(text: str) -> tuple[float, float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        board = BoardSpec.from_mm(args.board_mm)
-        board = BoardSpec(board.width, board.height, args.board_thickness_mm * 1e-3)
-    except ValueError as exc:
-        raise AimbenchError(str(exc)) from exc
+    station, _ = stations.from_args(args)
+    board = station.board_spec()
     if args.fuse < 1:
         raise AimbenchError("--fuse needs N >= 1 scans per estimate")
     window = None
@@ -60,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
         window = (math.radians(c), math.radians(hw))
     hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window,
                         edge_tolerance=_edge_tolerance(args.edge_tolerance_mrad))
-    cal = calibrate.read(args.calibration) if args.calibration else None
+    cal_file = args.calibration or station.sensor.range_calibration
+    cal = calibrate.read(cal_file) if cal_file else None
     source = PcapSource(args.capture)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -99,9 +102,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("estimate", help="estimate the LiDAR's pose in the board frame from a "
                                         "capture (per scan, or fused over N scans)")
     p.add_argument("capture", help="a pcap / pcapng capture of the VLP-16")
-    p.add_argument("--board-mm", default="900x540", help="board WIDTHxHEIGHT, mm (900x540)")
-    p.add_argument("--board-thickness-mm", type=float, default=3.0,
-                   help="plate thickness, mm (its side face widens the near edge; default 3)")
+    stations.add_arguments(p)
+    p.add_argument("--board-thickness-mm", type=float, default=None,
+                   help="plate thickness, mm, instead of the station's (its side face widens the "
+                        "near edge; the paper's: 3)")
     p.add_argument("--method", default=align.DEFAULT_METHOD, choices=align.METHODS,
                    help=f"estimator (default {align.DEFAULT_METHOD}; 'paper' is the reference "
                         "paper's, 'icp' the Open3D baseline)")
@@ -119,7 +123,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "bottom ones: mixed returns of a divergent beam (default %(default)s, "
                         "the VLP-16; 0 for a sharp beam)")
     p.add_argument("--calibration", default=None, metavar="FILE",
-                   help="per-laser calibration file (align.calibration) to apply first")
+                   help="per-laser calibration file (align.calibration) to apply first "
+                        "(default: the station's sensor.range_calibration, if any)")
     p.add_argument("--keep-partial", action="store_true",
                    help="also estimate from incomplete scans (first/last of a capture)")
     add_decode_options(p)

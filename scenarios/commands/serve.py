@@ -7,7 +7,9 @@ the pty (open it like /dev/ttyACM0) and the UDP target:
     aimbench serve                       # e.g. /dev/pts/3 and udp://127.0.0.1:2368
     aimbench sweep yaw --bench hw --port /dev/pts/3 --lidar udp://0.0.0.0:2368 --out runs/wire
 
-`aimbench sweep --bench serve` starts one itself. Runs until Ctrl-C (or SIGTERM).
+`aimbench sweep --bench serve` starts one itself. Runs until Ctrl-C (or SIGTERM). ``--station
+FILE`` (docs/station.md; default: the paper's bench) builds the twin from a station file: its
+board, mount and stand, and the data port of its sensor network unless ``--udp`` names one.
 """
 
 from __future__ import annotations
@@ -18,8 +20,8 @@ import signal
 import sys
 import time
 
+from scenarios import station as stations
 from twin.core.errors import AimbenchError
-from twin.core.vlp16 import DATA_PORT
 
 
 def parse_udp(text: str) -> tuple[str, int]:
@@ -37,7 +39,8 @@ def run(args: argparse.Namespace) -> int:
     from twin.sim.emulation import EmulationConfig
     from twin.sim.wire import WireTwin
 
-    udp = parse_udp(args.udp)
+    station, _ = stations.from_args(args, twin=True)
+    udp = parse_udp(args.udp or f"127.0.0.1:{station.sensor.network.port}")
     noise = EmulationConfig.ideal() if args.ideal else None
     stop = {"flag": False}
 
@@ -46,8 +49,8 @@ def run(args: argparse.Namespace) -> int:
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, on_signal)
-    twin = WireTwin(udp, seed=args.seed, noise=noise, start_x_mm=args.x_start_mm,
-                    start_a_deg=args.a_start_deg)
+    twin = WireTwin(udp, seed=args.seed, noise=noise, params=station.bench_params(),
+                    start_x_mm=args.x_start_mm, start_a_deg=args.a_start_deg)
     twin.start()
     try:
         print(twin.pty_path, flush=True)
@@ -78,8 +81,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("serve", help="the wire-level twin: stage firmware in simavr on a pty, "
                                      "VLP-16 packets over UDP; prints the pty and UDP target",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--udp", default=f"127.0.0.1:{DATA_PORT}",
-                   help=f"where the VLP-16 packets go, HOST:PORT (default 127.0.0.1:{DATA_PORT})")
+    p.add_argument("--udp", default=None,
+                   help="where the VLP-16 packets go, HOST:PORT (default 127.0.0.1 and the "
+                        "station's data port, 2368 on the paper's bench)")
+    stations.add_arguments(p, board=False)
     p.add_argument("--seed", type=int, default=0, help="the twin's noise seed (default 0)")
     p.add_argument("--ideal", action="store_true", help="every emulation error source off")
     p.add_argument("--x-start-mm", type=float, default=20.0,

@@ -3,9 +3,13 @@
     aimbench simulate --yaw-deg 5 --x-mm 10 --roll-deg 0.5 --tilt-deg -1 --scans 20 --seed 1 \\
         --out capture.pcap
 
-writes ``capture.pcap`` (any VLP-16 tool reads it) and ``capture.truth.json`` beside it: the bench,
-the emulation settings and, for every scan, the true LiDAR pose in the board frame (x_m, y_m, z_m,
-roll_deg, tilt_deg, yaw_deg) at the scan's first firing.
+writes ``capture.pcap`` (any VLP-16 tool reads it) and ``capture.truth.json`` beside it: the bench
+(its station and parameters), the emulation settings and, for every scan, the true LiDAR pose in
+the board frame (x_m, y_m, z_m, roll_deg, tilt_deg, yaw_deg) at the scan's first firing.
+
+The twin is built from ``--station FILE`` (docs/station.md; default: the paper's bench); the
+mount misalignments add to the station's nominal mount, and the stage positions must lie within
+the station's travel.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import dataclasses
 import math
 from pathlib import Path
 
+from scenarios import station as stations
 from scenarios.truth import write_truth
 from twin.core.errors import AimbenchError
 
@@ -24,18 +29,33 @@ def _jsonable(obj) -> dict:
             for k, v in dataclasses.asdict(obj).items()}
 
 
+def _check_travel(station: stations.Station, args: argparse.Namespace) -> None:
+    """The stage positions within the station's travel (the twin's own is checked on the move)."""
+    (y0, y1), (x0, x1) = station.travel()
+    yaw, x = math.radians(args.yaw_deg), args.x_mm * 1e-3
+    if not (y0 - 1e-12 <= yaw <= y1 + 1e-12 and x0 - 1e-12 <= x <= x1 + 1e-12):
+        s = station.stages
+        raise AimbenchError(
+            f"--yaw-deg {args.yaw_deg:g} / --x-mm {args.x_mm:g} is outside the travel the "
+            f"station allows (stages.yaw_travel_deg {list(s.yaw_travel_deg)}, stages.x_travel_mm "
+            f"{list(s.x_travel_mm)}); move less or widen the travel in the station file")
+
+
 def run(args: argparse.Namespace) -> int:
     from twin.sim.bench import BenchSim
     from twin.sim.emulation import EmulationConfig
-    from twin.sim.params import BenchParams
-
     if args.scans < 1:
         raise AimbenchError("--scans must be at least 1")
     out = Path(args.out)
     if not out.parent.exists():
         raise AimbenchError(f"the folder of --out {out} does not exist; create it first")
-    params = BenchParams.from_edge(roll_deg=args.roll_deg, tilt_deg=args.tilt_deg,
-                                   yaw_deg=args.mount_yaw_deg)
+    station, station_file = stations.from_args(args, twin=True)
+    _check_travel(station, args)
+    base = station.bench_params()
+    params = dataclasses.replace(
+        base, mount_roll=base.mount_roll + math.radians(args.roll_deg),
+        mount_tilt=base.mount_tilt + math.radians(args.tilt_deg),
+        mount_yaw=base.mount_yaw + math.radians(args.mount_yaw_deg))
     noise = EmulationConfig.ideal() if args.ideal else EmulationConfig()
     try:
         noise = noise.with_(rpm=args.rpm, return_mode=args.return_mode)
@@ -47,6 +67,7 @@ def run(args: argparse.Namespace) -> int:
     truth = write_truth(
         out, scans, seed=args.seed, ideal=bool(args.ideal),
         stage={"x_mm": sim.stage_x() * 1e3, "yaw_deg": math.degrees(sim.stage_yaw())},
+        station=station.to_dict(), station_file=station_file,
         params=_jsonable(params), emulation=_jsonable(noise),
         laser_offsets_m=[float(v) for v in sim.emulator.laser_offsets])
     if not args.quiet:
@@ -62,9 +83,11 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="write a VLP-16 capture of the simulated bench and its "
                                         "ground truth")
     p.add_argument("--yaw-deg", type=float, default=0.0,
-                   help="rotation stage position, deg (travel +-30)")
+                   help="rotation stage position, deg (within the station's travel; "
+                        "the paper's: +-30)")
     p.add_argument("--x-mm", type=float, default=0.0,
-                   help="linear stage position, mm (travel +-50)")
+                   help="linear stage position, mm (within the station's travel; "
+                        "the paper's: +-50)")
     p.add_argument("--roll-deg", type=float, default=0.0, help="mount misalignment: roll, deg")
     p.add_argument("--tilt-deg", type=float, default=0.0, help="mount misalignment: tilt, deg")
     p.add_argument("--mount-yaw-deg", type=float, default=0.0,
@@ -75,6 +98,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--rpm", type=float, default=600.0, help="spin rate, rpm (300..1200)")
     p.add_argument("--return-mode", choices=("strongest", "last", "dual"), default="strongest")
     p.add_argument("--out", required=True, help="capture file to write (.pcap)")
+    stations.add_arguments(p)
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)
     return p

@@ -1,9 +1,15 @@
 """`aimbench sweep`: run a scenario on the simulated or the real bench into a run folder.
 
     aimbench sweep yaw|x|grid|montecarlo|repeatability|FILE.toml --out runs/NAME
+                   [--station FILE] [--board-mm WxH]
                    [--bench sim|hw|serve] [--port URL] [--lidar udp://HOST:PORT | CAPTURE.pcap]
                    [--scans N] [--poses N] [--method NAME] [--seed S] [--ideal]
     aimbench sweep --resume --out runs/NAME
+
+The station file (docs/station.md; default: the paper's bench) describes the bench: the twin is
+built from it on --bench sim and serve, the estimator takes its board, and on --bench hw the stage
+driver its axis letters and travel and the LiDAR source its network address. ``--board-mm`` (or a
+TOML sweep's ``board_mm``) changes its board's size. The run stores the station's content.
 
 The run folder gets ``run.sqlite`` (every scan's result, committed one by one), then the report
 (report.md, report.html, PNG plots) unless ``--no-report``. Ctrl-C stops cleanly between scans;
@@ -18,6 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from scenarios import calibrate, plans
+from scenarios import station as stations
 from scenarios.bench import open_bench
 from scenarios.commands.version import versions
 from scenarios.config import MAX_CONSECUTIVE_FAILURES, RunConfig
@@ -50,7 +57,9 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ideal", action="store_true", help="the twin with every error source off")
     p.add_argument("--calibration", metavar="FILE",
                    help="per-laser calibration (aimbench calibrate) applied to every scan before "
-                        "estimating; the run stores its content")
+                        "estimating (default: the station's sensor.range_calibration, if any); "
+                        "the run stores its content")
+    stations.add_arguments(p)
 
 
 def add_tolerance_arguments(p: argparse.ArgumentParser) -> None:
@@ -78,8 +87,8 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
             stream=None, rerun: Callable | None = None) -> int:
     """Create (or resume) the run in `out`, run it, write the report; the exit code.
 
-    rerun: ``rerun(plan, bench_info) -> RerunSession | None`` (``--rerun``): the run is also
-    logged to rerun through an instrumented bench and estimator (one process only).
+    rerun: ``rerun(plan, bench_info, station) -> RerunSession | None`` (``--rerun``): the run is
+    also logged to rerun through an instrumented bench and estimator (one process only).
 
     0: completed and passed (or completed when the report is off); 1: completed but the verdict
     failed; 130: interrupted (resumable). A failure raises (the CLI prints one line) after the
@@ -114,7 +123,8 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
     bench = None
     try:
         try:
-            estimator = make_estimator(config.method, calibration=config.calibration)
+            board = config.station.board_spec()
+            estimator = make_estimator(config.method, board, config.calibration)
             bench = open_bench(config)
         except AimbenchError as exc:
             store.set_status("failed", f"opening the {config.bench} bench: {exc}")
@@ -126,17 +136,18 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
         prog = Progress(plan, stream=stream, enabled=progress)
         max_fail = config.max_consecutive_failures
         jobs = config.jobs
-        session = rerun(plan, bench.info()) if rerun is not None else None
+        session = rerun(plan, bench.info(), config.station) if rerun is not None else None
         if session is not None:
             if jobs > 1:
                 stream.write("rerun: logging needs one process; running with --jobs 1\n")
                 jobs = 1
-            bench, estimator = session.instrument(bench, config.method, config.calibration)
+            bench, estimator = session.instrument(bench, config.method, config.calibration,
+                                                  board=board)
         if jobs > 1:
             runner: Runner = ParallelSimRunner(
                 plan, bench, store, seed=config.seed, ideal=config.ideal,
                 method=config.method, calibration=config.calibration, jobs=jobs,
-                progress=prog, max_consecutive_failures=max_fail)
+                progress=prog, max_consecutive_failures=max_fail, station=config.station)
         else:
             runner = Runner(plan, bench, store, estimator, progress=prog,
                             max_consecutive_failures=max_fail)
@@ -187,17 +198,24 @@ def _report(store: Store, report: bool, tol: Tolerances | None, stream) -> int:
 
 
 def config_from_args(args: argparse.Namespace) -> RunConfig:
+    """The run's configuration from the command line and its station file: the stage port and
+    the range calibration default to the station's."""
+    station, station_file = stations.from_args(args, twin=args.bench != "hw")
+    cal_file = args.calibration or station.sensor.range_calibration
     return RunConfig(
-        scenario=args.scenario, bench=args.bench, port=args.port, lidar=args.lidar,
-        method=args.method, seed=0 if args.seed is None else args.seed, ideal=bool(args.ideal),
-        scans=args.scans, poses=args.poses, argv=tuple(sys.argv[1:]),
+        scenario=args.scenario, bench=args.bench, port=args.port or station.stages.port,
+        lidar=args.lidar, method=args.method, seed=0 if args.seed is None else args.seed,
+        ideal=bool(args.ideal), scans=args.scans, poses=args.poses, argv=tuple(sys.argv[1:]),
         max_consecutive_failures=args.max_consecutive_failures, jobs=args.jobs,
-        calibration=(calibrate.read(args.calibration).to_dict()
-                     if args.calibration else None))
+        calibration=calibrate.read(cal_file).to_dict() if cal_file else None,
+        station=station, station_file=station_file)
 
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
+    if args.resume and (args.station or args.board_mm):
+        raise AimbenchError("a resumed run keeps the station it was started with (the store "
+                            "holds it); drop --station / --board-mm, or start a new run")
     config = config_from_args(args)
     plan = None
     if not args.resume:
@@ -209,9 +227,14 @@ def run(args: argparse.Namespace) -> int:
         # A TOML file's defaults, unless the command line set them.
         config = config.with_(**{key: plan.settings[key] for key in ("method", "seed")
                                  if key in plan.settings and getattr(args, key) is None})
+        if "board_mm" in plan.settings and args.board_mm is None:
+            w, h = plan.settings["board_mm"]
+            config = config.with_(station=config.station.with_board(
+                f"{args.scenario}: board_mm", width_mm=w, height_mm=h))
     tol = tolerances(args)
 
-    def rerun(plan: plans.Plan, info: dict) -> object:  # a RerunSession or None
+    def rerun(plan: plans.Plan, info: dict, station: stations.Station
+              ) -> object:  # a RerunSession or None
         if not hasattr(args, "rerun"):
             return None
         from scenarios.recording.observer import session_from_args
@@ -219,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
         return session_from_args(args, out, plan, info,
                                  tolerances={**{f"{a}_deg": tol.angle_deg
                                                 for a in ("roll", "tilt", "yaw")},
-                                             "x_mm": tol.x_mm})
+                                             "x_mm": tol.x_mm}, station=station)
 
     return execute(plan, config, out, args.resume, progress=not args.no_progress,
                    report=not args.no_report, tol=tol, rerun=rerun)

@@ -459,28 +459,36 @@ class RerunSession:
     run's end or failure, close.
 
     name: the recording's name; sinks: where it goes (`sink_options`); plan: the sweep's plan;
-    info: what the bench says about itself; tolerances: the error plots' band (edge units).
+    info: what the bench says about itself; tolerances: the error plots' band (edge units);
+    station: the run's `scenarios.station.Station` (its board and bench are drawn; None: the
+    paper's).
     """
 
     def __init__(self, name: str, sinks: SinkOptions, plan: Any, info: Mapping[str, Any] | None,
                  tolerances: Mapping[str, float] | None = None, points_every: int = 1,
-                 stream: TextIO | None = None) -> None:
+                 stream: TextIO | None = None, station: Any = None) -> None:
         self.sinks = sinks
         self.plan = plan
         self.stream = stream if stream is not None else sys.stderr
         truth = (info or {}).get("kind") == "sim"
         self.rec = open_recording(name, sinks, truth=truth, stream=self.stream)
+        scene: dict[str, Any] = {}
+        if station is not None:
+            board = station.board_spec()
+            scene = {"board": (board.width, board.height), "params": station.bench_params()}
         self.observer = RerunObserver(self.rec, tolerances=tolerances,
-                                      scans_per_reference=plan.scans, points_every=points_every)
+                                      scans_per_reference=plan.scans, points_every=points_every,
+                                      **scene)
         self.observer.on_start(name, info)
         self._closed = False
         self.stream.write(f"rerun: {sinks.describe()}\n")
 
-    def instrument(self, bench: Any, method: str | None, calibration: dict | None = None
-                   ) -> tuple[Any, Callable[[Scan], Any]]:
-        """The bench and estimator to hand the runner instead of the plain ones."""
+    def instrument(self, bench: Any, method: str | None, calibration: dict | None = None,
+                   board: Any = None) -> tuple[Any, Callable[[Scan], Any]]:
+        """The bench and estimator to hand the runner instead of the plain ones (``board``: the
+        run's align `BoardSpec`, None for the paper's)."""
         observed = ObservedBench(bench, self.observer, self.plan)
-        return observed, observed_estimator(observed, method, calibration=calibration)
+        return observed, observed_estimator(observed, method, board, calibration=calibration)
 
     def finish(self, status: str, message: str | None = None) -> None:
         self.observer.on_finish(status, message)
@@ -507,7 +515,7 @@ def add_rerun_arguments(p: Any) -> None:
 
 def session_from_args(args: Any, out: Path, plan: Any, info: Mapping[str, Any] | None,
                       tolerances: Mapping[str, float] | None = None,
-                      stream: TextIO | None = None) -> RerunSession | None:
+                      stream: TextIO | None = None, station: Any = None) -> RerunSession | None:
     """The sweep's `RerunSession`, or None without ``--rerun`` (nothing is imported or logged).
     A sink flag without ``--rerun`` implies it."""
     sinks = sink_options(args, default_save=Path(out) / "run.rrd")
@@ -516,4 +524,5 @@ def session_from_args(args: Any, out: Path, plan: Any, info: Mapping[str, Any] |
     if not (getattr(args, "rerun", False) or explicit):
         return None
     return RerunSession(f"sweep {Path(out).name}", sinks, plan, info, tolerances,
-                        points_every=getattr(args, "rerun_points_every", 1), stream=stream)
+                        points_every=getattr(args, "rerun_points_every", 1), stream=stream,
+                        station=station)

@@ -97,7 +97,7 @@ def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int
     seed = info.get("seed", config.seed) or 0
     ideal = info.get("ideal", config.ideal)
     for refs in worker_order(store):
-        bench = SimBench(seed=int(seed), ideal=bool(ideal))
+        bench = SimBench(seed=int(seed), ideal=bool(ideal), station=config.station)
         try:
             bench.home()
             mine = [i for i in refs if any(r == i for r, _ in wanted)]
@@ -131,13 +131,13 @@ def recapture(store: Store, capture: Path,
 # ---------------------------------------------------------------------------------------------
 # Runs
 # ---------------------------------------------------------------------------------------------
-def run_estimator(method: str | None, calibration: dict | None = None
+def run_estimator(method: str | None, calibration: dict | None = None, board: Any = None
                   ) -> Callable[[Scan], Any]:
-    """align's estimate of one scan with the run's method and calibration, the call the runner
-    makes (`scenarios.runner.align_call`)."""
+    """align's estimate of one scan with the run's method, calibration and board (its station's
+    `BoardSpec`; None: the paper's), the call the runner makes (`scenarios.runner.align_call`)."""
     from scenarios.runner import align_call
 
-    return align_call(method or None, calibration=calibration)
+    return align_call(method or None, board, calibration=calibration)
 
 
 @dataclass
@@ -184,9 +184,11 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
     info = store.get("bench", {}) or {}
     rows = list(store.iter_scans())
     summary = ReplaySummary()
+    board = config.station.board_spec()
     obs = RerunObserver(rec, tolerances=tolerances, color_by=color_by, points_every=points_every,
                         clouds_per_reference=clouds_per_reference,
-                        scans_per_reference=plan.scans)
+                        scans_per_reference=plan.scans, board=(board.width, board.height),
+                        params=config.station.bench_params())
     obs.on_start(f"{run_dir.name}: {plan.name}", info)
     wanted = {(r["reference"], r["scan"]) for r in rows
               if clouds_per_reference is None or r["scan"] < clouds_per_reference}
@@ -210,7 +212,7 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
         rank = {i: n for n, i in enumerate(i for refs in worker_order(store) for i in refs)}
         rows.sort(key=lambda r: (rank[r["reference"]], r["scan"]))
     position = {(r["reference"], r["scan"]): n for n, r in enumerate(rows)}
-    estimator = run_estimator(config.method, config.calibration)
+    estimator = run_estimator(config.method, config.calibration, board)
     refs = store.references()
     # The store's events, merged with the scans by time, become annotations.
     events = sorted(store.events(), key=lambda e: e["at"])

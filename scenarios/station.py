@@ -1,0 +1,551 @@
+"""The station file: one TOML file that describes a real bench, and from which the twin is built.
+
+A `Station` says what a bench is (docs/station.md has every key): the target board (size,
+thickness, pose in the bench frame, in-plane rotation, reflectivity, an optional printed
+pattern), the sensor (model, factory calibration, network, the per-laser range calibration of
+``aimbench calibrate``), the mount (lever arm from the rotation axis, the LiDAR's nominal
+orientation on it and, for an inspection, its nominal pose in the station frame), the stages
+(serial port, axis letters, travel, where they stand), the inspection's tolerances and decision
+rule, and the station/vehicle frame the inspection reports in.
+
+The same file configures the real bench (`aimbench sweep --bench hw`: the stage driver's axis
+letters and travel, the LiDAR's address), the estimator (the board as align's `BoardSpec`) and
+the twin (`bench_params`: the `twin.sim.params.BenchParams` the MuJoCo scene is compiled with),
+so that ``--bench sim`` and ``--bench hw`` describe the same bench. The model's defaults are the
+paper's bench, which ships as ``scenarios/stations/paper.toml``.
+
+Units: the file is for people, so degrees and millimetres with the unit in every key name; the
+accessors (`board_spec`, `bench_params`, `travel`...) return SI. Why pydantic (v2): a station
+file is nested, typed and user-written; pydantic validates it with the location of every bad
+key, refuses unknown keys (a typo must not be silently ignored) and dumps it back to JSON for
+the run store, which hand-written dataclass checks would repeat for every field.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import sys
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictFloat,
+    StrictInt,
+    StrictStr,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from twin.core.errors import AimbenchError
+from twin.core.pose import Pose
+
+#: The sensor models aimbench can decode and emulate (twin/core/vlp16.py).
+SENSOR_MODELS = ("VLP-16",)
+#: The decision rules an inspection may use (docs/station.md says what each does).
+DECISION_RULES = ("iso14253-1", "simple")
+#: Where the shipped example stations live (package data of `scenarios`).
+STATIONS_PACKAGE = "scenarios.stations"
+#: The default station: the reference paper's bench.
+DEFAULT_STATION = "paper"
+
+Mm = StrictFloat
+Deg = StrictFloat
+Positive = Annotated[StrictFloat, Field(gt=0)]
+NonNegative = Annotated[StrictFloat, Field(ge=0)]
+Reflectance = Annotated[StrictFloat, Field(ge=0, le=1)]
+Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
+
+
+class StationError(AimbenchError):
+    """A station file that cannot be read or is not valid (the message names the key)."""
+
+
+class _Section(BaseModel):
+    """A table of the station file: typed, frozen, no unknown keys, defaults validated too."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+
+class PoseMmDeg(_Section):
+    """A pose in edge units: position in mm, roll/tilt/yaw in deg (R = Rz(yaw) Rx(tilt) Ry(roll),
+    docs/DESIGN.md)."""
+
+    x_mm: Mm = 0.0
+    y_mm: Mm = 0.0
+    z_mm: Mm = 0.0
+    roll_deg: Deg = 0.0
+    tilt_deg: Deg = 0.0
+    yaw_deg: Deg = 0.0
+
+    def to_pose(self) -> Pose:
+        return Pose.from_edge(**self.model_dump())
+
+
+class Pattern(_Section):
+    """A pattern printed on the board's face: a chessboard of ``squares`` (columns x rows) of
+    ``square_mm``, centred on the board (offset by ``offset_mm`` in the board plane, x right and
+    z up), its light squares the board's own reflectivity and its dark ones
+    ``dark_reflectivity``; the top-left square is dark unless ``first_dark`` is false."""
+
+    kind: Literal["chessboard"] = "chessboard"
+    squares: tuple[Annotated[StrictInt, Field(ge=1)], Annotated[StrictInt, Field(ge=1)]]
+    square_mm: Positive
+    dark_reflectivity: Reflectance = 0.05
+    offset_mm: tuple[StrictFloat, StrictFloat] = (0.0, 0.0)
+    first_dark: bool = True
+
+
+class Board(_Section):
+    """The target board. Its frame {O} (docs/DESIGN.md) has its origin at the centre of the front
+    face; the pose is that of {O} in the bench frame."""
+
+    width_mm: Positive = 900.0
+    height_mm: Positive = 540.0
+    thickness_mm: Positive = 3.0
+    #: Centre of the front face in the bench frame, mm (paper: 0.5 m above the floor).
+    position_mm: Vec3 = (0.0, 0.0, 500.0)
+    #: Turned about the vertical (positive: the face turns to the left seen from above), deg.
+    yaw_deg: Deg = 0.0
+    #: Tipped about its horizontal edge (positive: the face looks up), deg.
+    tilt_deg: Deg = 0.0
+    #: Rotated in its own plane, about its normal, clockwise as seen from the LiDAR, deg
+    #: (45: a diamond).
+    in_plane_deg: Deg = 0.0
+    #: Diffuse (Lambertian) reflectance of the face, 0..1 (bare aluminium, assumed 0.55).
+    reflectivity: Reflectance = 0.55
+    pattern: Pattern | None = None
+
+    @model_validator(mode="after")
+    def _pattern_fits(self) -> Board:
+        p = self.pattern
+        if p is not None:
+            w, h = p.squares[0] * p.square_mm, p.squares[1] * p.square_mm
+            if (w / 2 + abs(p.offset_mm[0]) > self.width_mm / 2 + 1e-9
+                    or h / 2 + abs(p.offset_mm[1]) > self.height_mm / 2 + 1e-9):
+                raise ValueError(f"the pattern's {w:g} x {h:g} mm (pattern.squares x square_mm, "
+                                 f"plus offset_mm) do not fit on the {self.width_mm:g} x "
+                                 f"{self.height_mm:g} mm board")
+        return self
+
+
+class Network(_Section):
+    """Where the LiDAR's data packets arrive: the address to listen on and the data port."""
+
+    host: StrictStr = "0.0.0.0"
+    port: Annotated[StrictInt, Field(ge=1, le=65535)] = 2368
+
+
+def _existing_file(value: str | None, info: ValidationInfo, what: str) -> str | None:
+    """A path of the file resolved against the station file's folder; when read from a file
+    (context ``base``), it must exist."""
+    if value is None:
+        return None
+    ctx = info.context or {}
+    base = ctx.get("base")
+    path = Path(value).expanduser()
+    if base is not None and not path.is_absolute():
+        path = Path(base) / path
+    if ctx.get("check_files") and not path.is_file():
+        raise ValueError(f"no such file {path}; {what}")
+    return str(path)
+
+
+class Sensor(_Section):
+    """The LiDAR: its model, the unit's factory calibration, its network and the per-laser
+    range calibration (`aimbench calibrate`) every scan gets before estimating."""
+
+    model: StrictStr = "VLP-16"
+    #: The unit's factory calibration (Velodyne's db.xml or the ROS driver's YAML), if any.
+    calibration_file: StrictStr | None = None
+    #: The per-laser range calibration written by `aimbench calibrate`, if any.
+    range_calibration: StrictStr | None = None
+    network: Network = Network()
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str) -> str:
+        if value not in SENSOR_MODELS:
+            raise ValueError(f"unknown sensor model {value!r}; aimbench knows "
+                             f"{', '.join(SENSOR_MODELS)}")
+        return value
+
+    @field_validator("calibration_file")
+    @classmethod
+    def _factory_file(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return _existing_file(value, info, "give the unit's factory calibration file or remove "
+                                           "the key")
+
+    @field_validator("range_calibration")
+    @classmethod
+    def _range_file(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return _existing_file(value, info, "make one with `aimbench calibrate` or remove the key")
+
+
+class Mount(_Section):
+    """How the LiDAR sits. ``lever_arm_mm``: the optical centre relative to the rotation axis on
+    the rotation stage's top face, in the turntable's frame (x right, y forward at stage yaw 0,
+    z up), mm. ``roll_deg``, ``tilt_deg``, ``yaw_deg``: the LiDAR's orientation on the turntable
+    when perfectly mounted (the twin mounts it so; a Monte Carlo misalignment adds to it).
+    ``nominal``: the LiDAR's intended pose in the station frame, what an inspection measures
+    the mounting error from (None: not stated)."""
+
+    lever_arm_mm: Vec3 = (0.0, 0.0, 60.0)
+    roll_deg: Deg = 0.0
+    tilt_deg: Deg = 0.0
+    yaw_deg: Deg = 0.0
+    nominal: PoseMmDeg | None = None
+
+
+AxisLetter = Literal["X", "Y", "Z", "A", "B", "C"]
+
+
+class Stages(_Section):
+    """The stage controller (Grbl subset, bench_fw/PROTOCOL.md) and where its stages stand.
+
+    port: serial port or pyserial URL (None: give ``--port``; ``none``: a bench without stages).
+    x_axis, yaw_axis: the Grbl axis letters of the linear and the rotation stage.
+    x_travel_mm, yaw_travel_deg: the travel a plan may use, relative to the bench reference
+    (mid-travel; the controller's own settings limit it further).
+    base_position_mm: the floor point of the sensor module's stand in the bench frame (paper:
+    0.7 m to the board's side, 2.5 m in front of it; models/bench_frame.xml explains the sign).
+    """
+
+    port: StrictStr | None = None
+    x_axis: AxisLetter = "X"
+    yaw_axis: AxisLetter = "A"
+    x_travel_mm: tuple[StrictFloat, StrictFloat] = (-50.0, 50.0)
+    yaw_travel_deg: tuple[StrictFloat, StrictFloat] = (-30.0, 30.0)
+    base_position_mm: Vec3 = (700.0, -2500.0, 0.0)
+
+    @field_validator("x_travel_mm", "yaw_travel_deg")
+    @classmethod
+    def _holds_reference(cls, value: tuple[float, float]) -> tuple[float, float]:
+        lo, hi = value
+        if not lo <= 0.0 <= hi:
+            raise ValueError(f"[{lo:g}, {hi:g}] must hold the bench reference 0 (give "
+                             "[min, max] with min <= 0 <= max)")
+        return value
+
+    @model_validator(mode="after")
+    def _two_axes(self) -> Stages:
+        if self.x_axis == self.yaw_axis:
+            raise ValueError(f"x_axis and yaw_axis are both {self.x_axis!r}; give two different "
+                             "Grbl axis letters (X and A on the paper's bench)")
+        return self
+
+
+Limit = Annotated[StrictFloat, Field(gt=0)] | None
+
+
+class Tolerances(_Section):
+    """An inspection's specification: the largest allowed mounting error per axis (None: the
+    axis is not judged) and the decision rule. ``iso14253-1``: PASS only when the error plus its
+    expanded uncertainty (``coverage_k`` sigma) is inside the limit, FAIL when the error minus
+    it is outside, otherwise inconclusive; ``simple``: the error alone against the limit.
+    Example limits: the paper states none; its method's accuracy (0.2 deg, 4 mm) fits well
+    inside these. y and z are not judged (the paper inspects orientation and horizontal
+    position only)."""
+
+    roll_deg: Limit = 1.0
+    tilt_deg: Limit = 1.0
+    yaw_deg: Limit = 1.0
+    x_mm: Limit = 10.0
+    y_mm: Limit = None
+    z_mm: Limit = None
+    rule: Literal["iso14253-1", "simple"] = "iso14253-1"
+    coverage_k: Positive = 2.0
+
+
+class StationFrame(_Section):
+    """The station (or vehicle) frame {S} an inspection reports the mounting pose in, as its pose
+    in the bench frame (axes as the bench's: X right, Y towards the board, Z up). Identity: {S}
+    is the bench frame (origin on the floor below the board's nominal centre)."""
+
+    name: StrictStr = "bench"
+    pose: PoseMmDeg = PoseMmDeg()
+
+
+class Station(_Section):
+    """A bench, as the station file describes it (module docstring; docs/station.md)."""
+
+    name: StrictStr = "paper"
+    description: StrictStr = ""
+    board: Board = Board()
+    sensor: Sensor = Sensor()
+    mount: Mount = Mount()
+    stages: Stages = Stages()
+    tolerances: Tolerances = Tolerances()
+    frame: StationFrame = StationFrame()
+
+    # -- what the rest of aimbench takes (SI) -------------------------------------------------
+    def board_spec(self) -> Any:
+        """align's `BoardSpec`: the board's size and thickness, m."""
+        from align.board import BoardSpec
+
+        b = self.board
+        return BoardSpec(*_m((b.width_mm, b.height_mm, b.thickness_mm)))
+
+    def bench_params(self, **changes: Any) -> Any:
+        """The twin's `twin.sim.params.BenchParams` for this station (``changes``: fields to set
+        besides, e.g. a reflectivity override). Imported lazily: MuJoCo only when a twin is
+        built."""
+        from twin.sim.params import BenchParams
+
+        b, m = self.board, self.mount
+        values: dict[str, Any] = {
+            **dict(zip(("board_width", "board_height", "board_thickness"),
+                       _m((b.width_mm, b.height_mm, b.thickness_mm)), strict=True)),
+            "board_position": _m(b.position_mm),
+            # R = Rz(yaw) Rx(tilt) Ry(roll): roll about the board's normal Y_O is the in-plane
+            # rotation.
+            "board_roll": math.radians(b.in_plane_deg), "board_tilt": math.radians(b.tilt_deg),
+            "board_yaw": math.radians(b.yaw_deg), "board_reflectivity": b.reflectivity,
+            "lever_arm": _m(m.lever_arm_mm),
+            "mount_roll": math.radians(m.roll_deg), "mount_tilt": math.radians(m.tilt_deg),
+            "mount_yaw": math.radians(m.yaw_deg),
+            "sensor_module_position": _m(self.stages.base_position_mm),
+        }
+        values.update(changes)
+        return BenchParams(**values)
+
+    def travel(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """((yaw_min_rad, yaw_max_rad), (x_min_m, x_max_m)) the station allows, as
+        `scenarios.bench.Bench.travel`."""
+        s = self.stages
+        return ((math.radians(s.yaw_travel_deg[0]), math.radians(s.yaw_travel_deg[1])),
+                _m(s.x_travel_mm))
+
+    @property
+    def axis_letters(self) -> tuple[str, str]:
+        """(linear, rotation) Grbl axis letters, as `StageController` takes them."""
+        return (self.stages.x_axis, self.stages.yaw_axis)
+
+    def lidar_url(self) -> str:
+        """The LiDAR source of the sensor's network: ``udp://HOST:PORT``."""
+        n = self.sensor.network
+        return f"udp://{n.host}:{n.port}"
+
+    def board_in_bench(self) -> np.ndarray:
+        """4 x 4 transform of the board frame {O} into the bench frame {W}."""
+        b = self.board
+        return Pose(*_m(b.position_mm), math.radians(b.in_plane_deg), math.radians(b.tilt_deg),
+                    math.radians(b.yaw_deg)).matrix()
+
+    def lidar_in_station(self, pose_in_board: Pose) -> Pose:
+        """The LiDAR's pose in the station frame {S} from its pose in the board frame (what the
+        estimator returns): {S} <- {W} <- {O} <- {L}."""
+        w_from_s = self.frame.pose.to_pose().matrix()
+        s_from_l = np.linalg.solve(w_from_s, self.board_in_bench() @ pose_in_board.matrix())
+        return Pose.from_matrix(s_from_l[:3, :3], s_from_l[:3, 3])
+
+    def with_board(self, where: str = "the command line", **board_mm: float | None) -> Station:
+        """The same station with board keys changed (``--board-mm``: width_mm and height_mm;
+        ``--board-thickness-mm``), validated again; `where` names the override in errors."""
+        changes = {k: float(v) for k, v in board_mm.items() if v is not None}
+        if not changes:
+            return self
+        data = self.model_dump()
+        data["board"].update(changes)
+        return from_dict(data, where=where)
+
+    def notes(self, twin: bool = False) -> list[str]:
+        """What of this station a command does not apply yet (said, never silently dropped):
+        the factory calibration file, and on the twin a printed pattern."""
+        out = []
+        if self.sensor.calibration_file:
+            out.append(f"sensor.calibration_file {self.sensor.calibration_file} is stored with "
+                       "the run but not applied yet: scans use the "
+                       f"{self.sensor.model}'s own laser table")
+        if twin and self.board.pattern is not None:
+            out.append("board.pattern is stored but the twin's board is plain until board "
+                       "patterns reach twin.sim.params.BenchParams")
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready, the form a run's configuration keeps (file paths resolved)."""
+        return self.model_dump(mode="json")
+
+
+def _m(mm: tuple[float, ...]) -> tuple[float, ...]:
+    # Divided, not multiplied by 1e-3: 700 mm is then exactly the paper's 0.7 m.
+    return tuple(float(v) / 1000.0 for v in mm)
+
+
+# -- reading -----------------------------------------------------------------------------------
+
+def from_dict(data: dict[str, Any], where: str = "station", *, base: Path | None = None,
+              check_files: bool = False) -> Station:
+    """A `Station` from the file's tables; a `StationError` naming each bad key otherwise.
+
+    base: the folder relative file paths are resolved against; check_files: refuse a named
+    file that does not exist (when read from a file; a stored run's station is taken as is).
+    """
+    try:
+        return Station.model_validate(data, context={"base": base, "check_files": check_files})
+    except ValidationError as exc:
+        raise StationError(f"{where}: {_describe(exc)}; see docs/station.md") from None
+
+
+def load(spec: str | Path | None = None) -> Station:
+    """The station of a file path, of a shipped example's name (``paper``), or the default."""
+    path = resolve(spec)
+    try:
+        text = path.read_text(encoding="utf-8")
+        if path.suffix == ".json":
+            # A station as a run stores it (`Station.to_dict`): `aimbench serve` gets it so.
+            return from_dict(json.loads(text), str(path))
+    except FileNotFoundError:
+        raise StationError(f"no such station file {path}; give a TOML station file "
+                           f"(docs/station.md) or one of: {', '.join(shipped())}") from None
+    except (IsADirectoryError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise StationError(f"{path} is not a station file ({exc}); give a TOML file") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise StationError(f"{path} is not valid TOML: {exc}") from None
+    return from_dict(data, str(path), base=path.parent, check_files=True)
+
+
+def board_mm(text: str | list | tuple, where: str) -> dict[str, float]:
+    """``"900x540"`` (the CLI's form) or ``[900, 540]`` (a TOML list) to width_mm, height_mm."""
+    values: list = []
+    if isinstance(text, str):
+        try:
+            values = [float(v) for v in text.lower().split("x")]
+        except ValueError:
+            values = []
+    elif isinstance(text, list | tuple) and all(
+            isinstance(v, int | float) and not isinstance(v, bool) for v in text):
+        values = [float(v) for v in text]
+    if len(values) != 2 or min(values) <= 0:
+        raise StationError(f"{where}: board_mm {text!r}: give WIDTHxHEIGHT in mm, e.g. "
+                           "\"900x540\" (or [900, 540] in a TOML file)")
+    return {"width_mm": values[0], "height_mm": values[1]}
+
+
+def add_arguments(p: Any, board: bool = True) -> None:
+    """``--station`` (and ``--board-mm``) on a command's parser."""
+    p.add_argument("--station", metavar="FILE|NAME",
+                   help="the bench's station file (TOML, docs/station.md) or a shipped one's name "
+                        f"({', '.join(shipped())}); default: the paper's bench")
+    if board:
+        p.add_argument("--board-mm", metavar="WxH",
+                       help="board WIDTHxHEIGHT, mm, instead of the station's (e.g. 900x540)")
+
+
+def from_args(args: Any, twin: bool = False) -> tuple[Station, str | None]:
+    """The station a command's ``--station`` names, with ``--board-mm`` (and
+    ``--board-thickness-mm`` where a command has it) applied; and the file it came from. Its
+    `Station.notes` go to stderr (``twin``: the command builds the twin)."""
+    spec = getattr(args, "station", None)
+    station = load(spec)
+    changes: dict[str, float | None] = {}
+    if getattr(args, "board_mm", None) is not None:
+        changes.update(board_mm(args.board_mm, "--board-mm"))
+    changes["thickness_mm"] = getattr(args, "board_thickness_mm", None)
+    station = station.with_board("--board-mm / --board-thickness-mm", **changes)
+    for note in station.notes(twin):
+        print(f"aimbench: note: {note}", file=sys.stderr)
+    return station, (str(resolve(spec).resolve()) if spec is not None else None)
+
+
+@functools.cache
+def default() -> Station:
+    """The default station: the shipped paper's bench (read once; a `Station` is frozen)."""
+    return load(DEFAULT_STATION)
+
+
+def resolve(spec: str | Path | None) -> Path:
+    """The file a ``--station`` value names: a path, or a shipped station's name."""
+    if spec is None:
+        spec = DEFAULT_STATION
+    text = str(spec)
+    if text in shipped():
+        return shipped_path(text)
+    return Path(text).expanduser()
+
+
+def shipped() -> tuple[str, ...]:
+    """The names of the example stations installed with aimbench."""
+    folder = resources.files(STATIONS_PACKAGE)
+    return tuple(sorted(p.name.removesuffix(".toml") for p in folder.iterdir()
+                        if p.name.endswith(".toml")))
+
+
+def shipped_path(name: str) -> Path:
+    return Path(str(resources.files(STATIONS_PACKAGE).joinpath(f"{name}.toml")))
+
+
+def _describe(exc: ValidationError) -> str:
+    """The validation errors as one line: ``key.path: problem (got value)`` joined by ``; ``."""
+    parts = []
+    for err in exc.errors(include_url=False):
+        loc = [str(p) for p in err["loc"]]
+        # A tuple's element index: name the key and say how many values it takes.
+        while loc and loc[-1].isdigit():
+            loc.pop()
+        key = ".".join(loc) or "station"
+        kind = err["type"]
+        if kind == "extra_forbidden":
+            parts.append(f"{key}: unknown key; allowed here: {', '.join(_allowed(loc[:-1]))}")
+            continue
+        msg = err["msg"].removeprefix("Value error, ")
+        if kind in ("missing", "too_short", "too_long", "tuple_type") and _arity(loc):
+            msg = f"expects a list of {_arity(loc)} numbers"
+        elif kind == "missing":
+            msg = "required key missing"
+        elif kind in ("model_type", "dict_type"):
+            msg = f"must be a table ([{key}] or {key} = {{...}})"
+        got = err.get("input")
+        # A value error's own message already says what it got.
+        if kind not in ("missing", "value_error") and not isinstance(got, dict):
+            msg += f" (got {got!r})"
+        parts.append(f"{key}: {msg}")
+    # One message per key (a tuple's elements would repeat it).
+    return "; ".join(dict.fromkeys(parts))
+
+
+def _model_at(loc: list[str]) -> type[BaseModel] | None:
+    model: type[BaseModel] | None = Station
+    for name in loc:
+        field = model.model_fields.get(name) if model is not None else None
+        if field is None:
+            return None
+        model = _section_type(field.annotation)
+    return model
+
+
+def _section_type(annotation: Any) -> type[BaseModel] | None:
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in getattr(annotation, "__args__", ()):
+        found = _section_type(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _allowed(loc: list[str]) -> list[str]:
+    model = _model_at(loc)
+    return list(model.model_fields) if model is not None else []
+
+
+def _arity(loc: list[str]) -> int | None:
+    """How many values a tuple key takes (None: not a tuple key)."""
+    if not loc:
+        return None
+    model = _model_at(loc[:-1])
+    field = model.model_fields.get(loc[-1]) if model is not None else None
+    if field is None or getattr(field.annotation, "__origin__", None) is not tuple:
+        return None
+    return len(field.annotation.__args__)

@@ -1,0 +1,1 @@
+"""Example station files shipped with aimbench (`scenarios.station.shipped` lists them)."""

@@ -1,0 +1,291 @@
+"""The station file: the paper's bench as the shipped default, one clear line for a bad file, and
+the twin built from a non-default file with its board, mount and stand where the file says (the
+compiled model's bodies, geoms and sites, and a scan's returns), on every command that takes
+``--station``."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial import ConvexHull
+
+from align.board import BoardSpec
+from scenarios import station as stations
+from scenarios.bench import HardwareBench, SimBench, open_bench
+from scenarios.config import RunConfig
+
+REPO = Path(__file__).resolve().parents[1]
+
+#: A bench unlike the paper's: a bigger, thicker board, moved, turned, tipped and hung at 30 deg
+#: in its plane, brighter; the LiDAR higher and off the axis; the stand elsewhere.
+ODD = """
+name = "odd"
+[board]
+width_mm = 1200
+height_mm = 700
+thickness_mm = 10
+position_mm = [100, 200, 750]
+yaw_deg = 5
+tilt_deg = -3
+in_plane_deg = 30
+reflectivity = 0.8
+[mount]
+lever_arm_mm = [10, 20, 80]
+[stages]
+base_position_mm = [600, -2300, 0]
+"""
+
+#: A level board of another size and height, which today's estimator handles (a board hung at
+#: an in-plane rotation is the estimator's issue, not the station file's).
+BIG = """
+name = "big"
+[board]
+width_mm = 1200
+height_mm = 700
+thickness_mm = 5
+position_mm = [0, 0, 560]
+reflectivity = 0.7
+"""
+
+
+def aimbench(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    return subprocess.run([sys.executable, "-m", "scenarios.cli", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+def write(tmp_path: Path, text: str, name: str = "station.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def test_the_paper_station_is_the_default_and_ships_installed():
+    from twin.sim.params import BenchParams
+
+    assert "paper" in stations.shipped()
+    paper = stations.load("paper")
+    assert paper.model_copy(update={"description": ""}) == stations.Station()
+    assert stations.load(None) == paper
+    # The twin's and the estimator's defaults are the paper's bench, and so is the file.
+    assert paper.bench_params() == BenchParams()
+    assert paper.board_spec() == BoardSpec()
+    assert paper.axis_letters == ("X", "A") and paper.lidar_url() == "udp://0.0.0.0:2368"
+    assert RunConfig().station == paper
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("[board]\nwidht_mm = 900\n", "board.widht_mm: unknown key; allowed here: width_mm,"),
+    ("[board]\nwidth_mm = -900\n", "board.width_mm: Input should be greater than 0"),
+    ("[board]\nwidth_mm = '900'\n", "board.width_mm: Input should be a valid number"),
+    ("[board]\nposition_mm = [0, 2500]\n", "board.position_mm: expects a list of 3 numbers"),
+    ("[board]\nreflectivity = 1.5\n", "board.reflectivity: Input should be less than or equal"),
+    ("[board.pattern]\nsquares = [7, 5]\nsquare_mm = 200\n", "do not fit on the 900 x 540 mm"),
+    ("[sensor]\nmodel = 'HDL-64E'\n", "sensor.model: unknown sensor model 'HDL-64E'"),
+    ("[sensor]\nrange_calibration = 'cal.json'\n", "sensor.range_calibration: no such file"),
+    ("[sensor.network]\nport = 70000\n", "sensor.network.port: Input should be less than"),
+    ("[stages]\nyaw_axis = 'X'\n", "x_axis and yaw_axis are both 'X'"),
+    ("[stages]\nx_travel_mm = [10, 50]\n", "stages.x_travel_mm: [10, 50] must hold the bench"),
+    ("[tolerances]\nrule = 'loose'\n", "tolerances.rule: Input should be 'iso14253-1' or"),
+    ("board = 3\n", "board: must be a table"),
+    ("[board\n", "is not valid TOML"),
+])
+def test_a_bad_station_file_names_the_key(tmp_path: Path, text: str, message: str):
+    path = write(tmp_path, text)
+    with pytest.raises(stations.StationError, match="^" + str(path)) as err:
+        stations.load(path)
+    assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_bad_station_is_one_line_on_the_command_line(tmp_path: Path, sample_pcap: Path):
+    write(tmp_path, "[board]\nheight_mm = 0\n", "bad.toml")
+    for args in (("estimate", str(sample_pcap), "--station", "bad.toml"),
+                 ("estimate", str(sample_pcap), "--station", "missing.toml"),
+                 ("sweep", "yaw", "--station", "bad.toml", "--out", "r")):
+        res = aimbench(*args, cwd=tmp_path)
+        lines = res.stderr.strip().splitlines()
+        assert res.returncode == 2 and len(lines) == 1, res.stderr
+        assert ("board.height_mm" in lines[0]
+                or "no such station file missing.toml" in lines[0]), lines[0]
+    assert not (tmp_path / "r").exists()  # refused before a run folder is made
+
+
+def test_what_is_not_applied_yet_is_said(tmp_path: Path):
+    (tmp_path / "db.xml").write_text("<DB/>")
+    st = stations.load(write(tmp_path, "[sensor]\ncalibration_file = 'db.xml'\n"
+                                       "[board.pattern]\nsquares = [7, 5]\nsquare_mm = 95\n"))
+    assert st.sensor.calibration_file == str(tmp_path / "db.xml")  # beside the station file
+    assert st.board.pattern is not None and st.board.pattern.dark_reflectivity == 0.05
+    notes = st.notes(twin=True)
+    assert len(notes) == 2 and "calibration_file" in notes[0] and "pattern" in notes[1]
+    assert len(st.notes(twin=False)) == 1
+
+
+@pytest.fixture(scope="module")
+def odd(tmp_path_factory: pytest.TempPathFactory) -> stations.Station:
+    return stations.load(write(tmp_path_factory.mktemp("odd"), ODD))
+
+
+def test_the_twin_puts_the_board_where_the_file_says(odd: stations.Station):
+    import mujoco
+
+    from twin.sim.params import (
+        BOARD_BODY,
+        BOARD_GEOM,
+        BOARD_STAND_BODY,
+        SENSOR_BODY,
+        SENSOR_MODULE_BODY,
+    )
+    from twin.sim.physics import BenchPhysics
+
+    params = odd.bench_params()
+    phys = BenchPhysics(params)
+    m, d = phys.model, phys.data
+    b = odd.board
+    w, h, t = b.width_mm / 1e3, b.height_mm / 1e3, b.thickness_mm / 1e3
+    # The board frame {O} in the bench frame, from the file alone (not from the model).
+    o = odd.board_in_bench()
+    np.testing.assert_allclose(d.xpos[m.body(BOARD_BODY).id], [0.1, 0.2, 0.75], atol=1e-12)
+    np.testing.assert_allclose(d.xmat[m.body(BOARD_BODY).id].reshape(3, 3), o[:3, :3],
+                               atol=1e-9)
+    geom = m.geom(BOARD_GEOM)
+    np.testing.assert_allclose(geom.size, [w / 2, t / 2, h / 2], atol=1e-12)
+    # The plate's front face is Y_O = 0: its centre sits half a thickness behind it.
+    np.testing.assert_allclose(d.geom_xpos[geom.id], (o @ [0, t / 2, 0, 1])[:3], atol=1e-9)
+    for name, (sx, sz) in {"tl": (-1, 1), "tr": (1, 1), "bl": (-1, -1), "br": (1, -1)}.items():
+        np.testing.assert_allclose(d.site_xpos[m.site(f"board_corner_{name}").id],
+                                   (o @ [sx * w / 2, 0, sz * h / 2, 1])[:3], atol=1e-9)
+    # 30 deg in its plane, clockwise seen from the LiDAR: the right edge runs down to the right.
+    right = d.site_xpos[m.site("board_corner_tr").id] - d.site_xpos[m.site("board_corner_tl").id]
+    assert math.degrees(math.atan2(-right[2], math.hypot(right[0], right[1]))) == \
+        pytest.approx(30.0, abs=0.2)
+    # The stand where the file puts it, the optical centre at the lever arm from the axis.
+    np.testing.assert_allclose(d.xpos[m.body(SENSOR_MODULE_BODY).id], [0.6, -2.3, 0.0],
+                               atol=1e-12)
+    axis = d.site_xpos[m.site("rotation_axis").id]
+    np.testing.assert_allclose(d.xpos[m.body(SENSOR_BODY).id] - axis, [0.01, 0.02, 0.08],
+                               atol=1e-9)
+    assert params.geom_reflectivity(m)[geom.id] == 0.8
+    # Its stand came along: on the floor, behind the board's centre, turned with it.
+    stand = d.xpos[m.body(BOARD_STAND_BODY).id]
+    assert stand[2] == 0.0 and (o[:3, :3].T @ (stand - o[:3, 3]))[1] > 0.1
+    assert mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, BOARD_GEOM) == geom.id
+
+
+def test_a_scan_of_the_twin_sees_the_board_where_the_file_says(odd: stations.Station):
+    from twin.sim.bench import BenchSim
+    from twin.sim.emulation import EmulationConfig
+
+    sim = BenchSim(odd.bench_params(), seed=0, noise=EmulationConfig.ideal())
+    scan = sim.scan()
+    p_l, r_l = sim.physics.lidar_pose_world()  # where the sensor is: no board in it
+    ok = scan.valid
+    pts_l = np.column_stack((scan.x, scan.y, scan.z))[ok]
+    world = pts_l @ r_l.T + p_l
+    o = odd.board_in_bench()
+    # Every return, in the file's board frame.
+    u, v, z = ((world - o[:3, 3]) @ o[:3, :3]).T
+    b = odd.board
+    w2, h2 = b.width_mm / 2e3, b.height_mm / 2e3
+    face = np.abs(v) < 3e-3  # on the front face's plane (2 mm range quantum)
+    near = face & (np.abs(u) < w2 + 0.05) & (np.abs(z) < h2 + 0.05)
+    assert near.sum() > 500
+    # The face's returns lie on the rectangle the file gives and fill it: the board is this
+    # size, at this pose and in-plane rotation, and nowhere else.
+    assert np.abs(u[near]).max() <= w2 + 2e-3 and np.abs(z[near]).max() <= h2 + 2e-3
+    hull = ConvexHull(np.column_stack((u[near], z[near])))
+    assert hull.volume > 0.75 * (2 * w2) * (2 * h2)
+    # Its brighter face (0.8 against the background's 0.3) returns more light than the wall.
+    wall = ~face & (np.linalg.norm(pts_l, axis=1) > 3.0)
+    assert np.median(scan.intensity[ok][near]) > np.median(scan.intensity[ok][wall])
+    # The truth in the board frame, taken to the station (here the bench) frame, is the sensor.
+    station_pose = odd.lidar_in_station(scan.meta["truth_pose"])
+    np.testing.assert_allclose(station_pose.translation, sim.physics.lidar_pose_world()[0],
+                               atol=1e-6)
+    np.testing.assert_allclose(station_pose.rotation(), r_l, atol=1e-6)
+
+
+def test_the_station_frame_moves_the_reported_pose(odd: stations.Station):
+    from twin.core.pose import Pose
+
+    moved = odd.model_copy(update={"frame": stations.StationFrame(
+        name="vehicle", pose=stations.PoseMmDeg(x_mm=500, y_mm=-3000, yaw_deg=90))})
+    in_board = Pose(0.1, -2.4, -0.1, 0.01, 0.02, 0.03)
+    bench, vehicle = odd.lidar_in_station(in_board), moved.lidar_in_station(in_board)
+    # {S} turned 90 deg left at (0.5, -3.0): a bench point (X, Y) is (Y + 3.0, 0.5 - X) in it.
+    np.testing.assert_allclose(vehicle.translation,
+                               [bench.y + 3.0, 0.5 - bench.x, bench.z], atol=1e-9)
+    assert math.degrees(vehicle.yaw - bench.yaw) == pytest.approx(-90.0)
+
+
+def test_benches_are_built_from_the_station(odd: stations.Station, tmp_path: Path,
+                                            sample_pcap: Path):
+    narrow = odd.model_copy(update={"stages": odd.stages.model_copy(update={
+        "yaw_travel_deg": (-5.0, 8.0), "x_travel_mm": (-20.0, 10.0)})})
+    config = RunConfig(station=narrow)
+    with open_bench(config) as bench:
+        assert isinstance(bench, SimBench)
+        assert bench.base_params == narrow.bench_params()
+        (y0, y1), (x0, x1) = bench.travel()
+        assert (math.degrees(y0), math.degrees(y1)) == pytest.approx((-5.0, 8.0))
+        assert (x0, x1) == pytest.approx((-0.02, 0.01))
+        assert bench.info()["lever_arm_m"] == [0.01, 0.02, 0.08]
+    # A hardware bench: the LiDAR source from the sensor's network, the travel from the file.
+    net = narrow.model_copy(update={"sensor": narrow.sensor.model_copy(update={
+        "network": stations.Network(host="127.0.0.1", port=2401)})})
+    with HardwareBench(None, station=net) as hw:
+        assert hw.source.info()["lidar"] == "udp://127.0.0.1:2401"
+        assert hw.travel() == net.travel()
+    with HardwareBench("none", str(sample_pcap), station=net) as hw:
+        assert hw.info()["station"] == "odd" and hw.info()["lever_arm_m"] == [0.01, 0.02, 0.08]
+
+
+@pytest.mark.slow
+@pytest.mark.simavr
+def test_stage_axis_letters_and_travel_reach_the_stage_driver(odd: stations.Station):
+    from scenarios.bench import BenchError
+    from twin.stage.hil import SimavrHarness
+
+    narrow = odd.model_copy(update={"stages": odd.stages.model_copy(update={
+        "yaw_travel_deg": (-5.0, 8.0)})})
+    wrong = odd.model_copy(update={"stages": odd.stages.model_copy(update={"yaw_axis": "Y"})})
+    with SimavrHarness(start_x_mm=1.0, start_a_deg=1.0) as hil:
+        with HardwareBench(hil.url, "udp://127.0.0.1:2402", station=narrow) as hw:
+            assert hw.controller.axis_letters == ("X", "A")
+            (y0, y1), (x0, x1) = hw.travel()
+            # yaw from the station (narrower than the firmware's), x from the firmware's $13x.
+            assert (math.degrees(y0), math.degrees(y1)) == pytest.approx((-5.0, 8.0))
+            assert x1 - x0 > 0
+        with pytest.raises(BenchError, match="axis Y is not an axis"):
+            HardwareBench(hil.url, "udp://127.0.0.1:2402", station=wrong)
+
+
+@pytest.mark.slow
+def test_a_sweep_keeps_its_station(tmp_path: Path):
+    write(tmp_path, BIG.replace("width_mm = 1200\nheight_mm = 700\n", ""), "level.toml")
+    # The TOML sweep sets the board's size (board_mm), the station the rest.
+    (tmp_path / "plan.toml").write_text("scans = 3\nyaw_deg = [-2, 2]\nboard_mm = '1200x700'\n")
+    res = aimbench("sweep", "plan.toml", "--station", "level.toml", "--out", "r", "--jobs", "2",
+                   "--no-progress", "--no-report", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    with sqlite3.connect(tmp_path / "r" / "run.sqlite") as db:
+        config = json.loads(db.execute("select value from meta where key = 'config'")
+                            .fetchone()[0])
+        rows = db.execute("select success, x_m - truth_x_m from scan").fetchall()
+    stored = RunConfig.from_dict(config).station
+    assert stored.board.width_mm == 1200 and stored.board.height_mm == 700
+    assert stored.board.position_mm == (0.0, 0.0, 560.0) and stored.name == "big"
+    assert config["station_file"] == str((tmp_path / "level.toml").resolve())
+    # Both workers' twins and estimators used the station's 1200 x 700 board.
+    assert len(rows) == 6 and all(s for s, _ in rows)
+    assert max(abs(e) for _, e in rows) < 0.03
+    again = aimbench("sweep", "--resume", "--out", "r", "--station", "level.toml", cwd=tmp_path)
+    assert again.returncode == 2 and "keeps the station it was started with" in again.stderr
