@@ -269,6 +269,40 @@ def test_stage_axis_letters_and_travel_reach_the_stage_driver(odd: stations.Stat
 
 
 @pytest.mark.slow
+def test_simulate_and_estimate_with_a_station(tmp_path: Path):
+    write(tmp_path, BIG, "big.toml")
+    sim = aimbench("simulate", "--station", "big.toml", "--scans", "2", "--yaw-deg", "3",
+                   "--seed", "5", "--out", "cap.pcap", cwd=tmp_path)
+    assert sim.returncode == 0, sim.stderr
+    truth = json.loads((tmp_path / "cap.truth.json").read_text())
+    assert truth["station"]["board"]["width_mm"] == 1200 and truth["station_file"]
+    res = aimbench("estimate", "cap.pcap", "--station", "big.toml", "--fuse", "2", "--json",
+                   cwd=tmp_path)
+    assert res.returncode == 0, res.stderr
+    (row,) = [json.loads(line) for line in res.stdout.splitlines()]
+    assert row["status"] == "ok"
+    # Every quantity with its 1-sigma, and its error against the truth found beside the capture
+    # (within what an uncalibrated twin sensor gives on two scans: its range offsets bias roll).
+    for k, most in (("x_mm", 15), ("y_mm", 10), ("z_mm", 30), ("roll_deg", 1.5),
+                    ("tilt_deg", 1.0), ("yaw_deg", 0.5)):
+        assert row[f"{k}_std"] > 0 and abs(row[f"{k}_error"]) < most, (k, row)
+    assert row["truth"]["z_mm"] == pytest.approx(truth["scans"][0]["z_m"] * 1e3)
+    # The human table: a 1-sigma beside each quantity, the errors below, the mean and RMS.
+    table = aimbench("estimate", "cap.pcap", "--station", "big.toml", "--truth",
+                     "cap.truth.json", cwd=tmp_path)
+    lines = table.stdout.splitlines()
+    assert table.returncode == 0 and lines[1].count("+-") == 6, table.stdout
+    assert lines[2].split()[0] == "error" and any(li.split()[:2] == ["rms", "error"]
+                                                  for li in lines)
+    # --board-mm overrides the station's board: the paper's size on this board misplaces it.
+    wrong = aimbench("estimate", "cap.pcap", "--station", "big.toml", "--board-mm", "900x540",
+                     "--fuse", "2", "--json", cwd=tmp_path)
+    (bad,) = [json.loads(line) for line in wrong.stdout.splitlines()]
+    assert bad["status"] != "ok" or abs(bad["z_mm_error"]) > 3 * abs(row["z_mm_error"]) + 10 \
+        or abs(bad["x_mm_error"]) > 3 * abs(row["x_mm_error"]) + 10, (bad, row)
+
+
+@pytest.mark.slow
 def test_a_sweep_keeps_its_station(tmp_path: Path):
     write(tmp_path, BIG.replace("width_mm = 1200\nheight_mm = 700\n", ""), "level.toml")
     # The TOML sweep sets the board's size (board_mm), the station the rest.

@@ -1,9 +1,15 @@
 """`aimbench estimate CAPTURE.pcap`: the LiDAR's pose in the board frame, per scan or fused.
 
+Without ``--json``: a table of every estimated quantity with its 1-sigma (x, y, z in mm; roll,
+tilt, yaw in deg) and, when the truth is known (``--truth FILE``, or the ``CAPTURE.truth.json``
+that `aimbench simulate` writes beside its capture), the error of each (estimate - truth) on the
+line below, and the mean and RMS error over the estimates at the end.
+
 With ``--json``: one JSON object per line per scan (or per group of ``--fuse N`` scans): scan,
 scans, status, x_m, y_m, z_m, roll_deg, tilt_deg, yaw_deg, their standard deviations (x_m_std ..
-yaw_deg_std, and the mm forms x_mm .. z_mm_std), the method, the time taken and diagnostics.
-Without: a table.
+yaw_deg_std, and the mm forms x_mm .. z_mm_std), the method, the time taken and diagnostics;
+with the truth, ``truth`` (the true pose, mm and deg) and the errors ``x_mm_error`` ..
+``yaw_deg_error``.
 
 The board is the station's (``--station FILE``, docs/station.md; default: the paper's 900 x 540
 mm plate), ``--board-mm`` and ``--board-thickness-mm`` override it; the station's range
@@ -23,14 +29,76 @@ from align import calibration as laser_calibration
 from scenarios import calibrate
 from scenarios import station as stations
 from scenarios.commands.info import add_decode_options, decode_options, warn_lines
+from scenarios.truth import load_truth, truth_for, truth_path
 from twin.core.errors import AimbenchError
+from twin.core.pose import POSE_FIELDS_EDGE, Pose
 from twin.lidar.capture import PcapSource, read_capture
 
+#: The table's columns: (key, width, decimals) of each quantity, its 1-sigma and its error.
+COLUMNS = (("x_mm", 16, 1), ("y_mm", 18, 1), ("z_mm", 16, 1),
+           ("roll_deg", 17, 3), ("tilt_deg", 17, 3), ("yaw_deg", 17, 3))
 
-def _row(first: int, n: int, res: align.PoseEstimate) -> dict:
+
+def _row(first: int, n: int, res: align.PoseEstimate, truth: Pose | None = None) -> dict:
     row = {"scan": first, "scans": n}
     row.update(res.to_edge_dict())
+    if truth is not None:
+        row["truth"] = truth.to_edge()
+        if res.pose is not None:
+            row.update({f"{k}_error": v for k, v in errors(res.pose, truth).items()})
     return row
+
+
+def errors(estimate: Pose, truth: Pose) -> dict[str, float]:
+    """estimate - truth per axis, mm and deg; angle differences wrapped into [-180, 180)."""
+    est, tru = estimate.to_edge(), truth.to_edge()
+    out = {}
+    for k in POSE_FIELDS_EDGE:
+        d = est[k] - tru[k]
+        out[k] = (d + 180.0) % 360.0 - 180.0 if k.endswith("_deg") else d
+    return out
+
+
+def table(rows: list[dict]) -> list[str]:
+    """The human table: each estimate's quantities with their 1-sigma, its error line beneath
+    when the truth is known, and the mean and RMS error over the estimates with status ok."""
+    head = f"{'scan':>5} {'n':>3} {'status':14}" + "".join(
+        f"{k:>{w}}" for k, w, _ in COLUMNS)
+    lines = [head + "   (value +- 1-sigma)"]
+    for r in rows:
+        lead = f"{r['scan']:5d} {r['scans']:3d} {r['status']:14}"
+        if r["x_mm"] is None:
+            lines.append(f"{lead} {r.get('reason', '')}".rstrip())
+            continue
+        cells = []
+        for k, w, d in COLUMNS:
+            sd = r.get(f"{k}_std")
+            text = f"{r[k]:.{d}f}" + (f" +-{sd:.{d}f}" if sd is not None else "")
+            cells.append(f"{text:>{w}}")
+        lines.append(lead + "".join(cells))
+        if "x_mm_error" in r:
+            lines.append(f"{'':9} {'error':14}" + "".join(
+                f"{r[f'{k}_error']:>+{w}.{d}f}" for k, w, d in COLUMNS))
+    with_err = [r for r in rows if "x_mm_error" in r and r["status"] == "ok"]
+    if with_err:
+        for name, sign, fn in (
+                ("mean error", "+", lambda v: sum(v) / len(v)),
+                ("rms error", "", lambda v: math.sqrt(sum(e * e for e in v) / len(v)))):
+            lines.append(f"{'':9} {name:14}" + "".join(
+                f"{fn([r[f'{k}_error'] for r in with_err]):>{sign}{w}.{d}f}"
+                for k, w, d in COLUMNS))
+        n = len(with_err)
+        lines.append(f"{'':9} errors: estimate - truth, over the {n} estimate{'s' * (n != 1)} "
+                     "with status ok")
+    return lines
+
+
+def _truths(args: argparse.Namespace) -> list[tuple[float | None, Pose]]:
+    """The capture's truth entries: ``--truth FILE``, else ``CAPTURE.truth.json`` if there."""
+    if args.truth is not None:
+        return load_truth(args.truth)
+    beside = truth_path(args.capture)
+    return load_truth(beside) if beside.is_file() else []
 
 
 def _edge_tolerance(text: str) -> tuple[float, float]:
@@ -64,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
                         edge_tolerance=_edge_tolerance(args.edge_tolerance_mrad))
     cal_file = args.calibration or station.sensor.range_calibration
     cal = calibrate.read(cal_file) if cal_file else None
+    truths = _truths(args)
     source = PcapSource(args.capture)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -79,22 +148,13 @@ def run(args: argparse.Namespace) -> int:
     for i in range(0, len(scans) - args.fuse + 1, args.fuse):
         group = scans[i:i + args.fuse]
         res = align.estimate(group if args.fuse > 1 else group[0], board, args.method, hints)
-        row = _row(group[0].index, len(group), res)
+        row = _row(group[0].index, len(group), res, truth_for(group[0], truths))
         rows.append(row)
         if args.json:
             print(json.dumps(row), flush=True)
     if not args.json:
-        print(f"{'scan':>5} {'n':>3} {'status':14} {'x_mm':>8} {'y_mm':>9} {'z_mm':>8} "
-              f"{'roll_deg':>9} {'tilt_deg':>9} {'yaw_deg':>9}  (1-sigma)")
-        for r in rows:
-            if r["x_mm"] is None:
-                print(f"{r['scan']:5d} {r['scans']:3d} {r['status']:14} {r.get('reason', '')}")
-                continue
-            print(f"{r['scan']:5d} {r['scans']:3d} {r['status']:14} {r['x_mm']:8.1f} "
-                  f"{r['y_mm']:9.1f} {r['z_mm']:8.1f} {r['roll_deg']:9.3f} {r['tilt_deg']:9.3f} "
-                  f"{r['yaw_deg']:9.3f}  ({r['x_mm_std']:.1f} mm, {r['roll_deg_std']:.3f}/"
-                  f"{r['tilt_deg_std']:.3f}/{r['yaw_deg_std']:.3f} deg)"
-                  if r["x_mm_std"] is not None else "")
+        for line in table(rows):
+            print(line)
     return 0 if any(r["status"] == "ok" for r in rows) else 1
 
 
@@ -106,6 +166,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--board-thickness-mm", type=float, default=None,
                    help="plate thickness, mm, instead of the station's (its side face widens the "
                         "near edge; the paper's: 3)")
+    p.add_argument("--truth", default=None, metavar="FILE",
+                   help="the capture's true poses (a truth file: aimbench simulate writes "
+                        "CAPTURE.truth.json, which is read when present): print the errors")
     p.add_argument("--method", default=align.DEFAULT_METHOD, choices=align.METHODS,
                    help=f"estimator (default {align.DEFAULT_METHOD}; 'paper' is the reference "
                         "paper's, 'icp' the Open3D baseline)")
