@@ -94,15 +94,16 @@ class PoseMmDeg(_Section):
 class Pattern(_Section):
     """A pattern printed on the board's face: a chessboard of ``squares`` (columns x rows) of
     ``square_mm``, centred on the board (offset by ``offset_mm`` in the board plane, x right and
-    z up), its light squares the board's own reflectivity and its dark ones
-    ``dark_reflectivity``; the top-left square is dark unless ``first_dark`` is false."""
+    z up), its squares alternately ``dark_reflectivity`` (the top-left one, seen from the LiDAR)
+    and ``light_reflectivity``; defaults as the twin's `BoardPattern` (a black print, white
+    paper). A dark reflectivity of 0 returns nothing, as black squares do on some sensors."""
 
     kind: Literal["chessboard"] = "chessboard"
     squares: tuple[Annotated[StrictInt, Field(ge=1)], Annotated[StrictInt, Field(ge=1)]]
     square_mm: Positive
-    dark_reflectivity: Reflectance = 0.05
+    dark_reflectivity: Reflectance = 0.03
+    light_reflectivity: Reflectance = 0.8
     offset_mm: tuple[StrictFloat, StrictFloat] = (0.0, 0.0)
-    first_dark: bool = True
 
 
 class Board(_Section):

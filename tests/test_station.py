@@ -123,7 +123,7 @@ def test_what_is_not_applied_yet_is_said(tmp_path: Path):
     st = stations.load(write(tmp_path, "[sensor]\ncalibration_file = 'db.xml'\n"
                                        "[board.pattern]\nsquares = [7, 5]\nsquare_mm = 95\n"))
     assert st.sensor.calibration_file == str(tmp_path / "db.xml")  # beside the station file
-    assert st.board.pattern is not None and st.board.pattern.dark_reflectivity == 0.05
+    assert st.board.pattern is not None and st.board.pattern.dark_reflectivity == 0.03
     notes = st.notes(twin=True)
     assert len(notes) == 2 and "calibration_file" in notes[0] and "pattern" in notes[1]
     assert len(st.notes(twin=False)) == 1
