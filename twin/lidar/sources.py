@@ -33,7 +33,8 @@ from __future__ import annotations
 
 import abc
 import math
-from collections.abc import Iterable, Iterator
+import warnings
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -145,15 +146,20 @@ class ScanSource(abc.ABC):
     """The scans of one named source, in order (iterate once), and a summary of the source.
 
     ``max_scans``: stop after this many whole scans (partial ones, at a stream's ends, are
-    yielded and flagged but not counted). Use as a context manager, or call `close`.
+    yielded and flagged but not counted). ``extra``: more summary entries, values or functions
+    called when the summary is made (a socket's or a bag's counts). ``closer``: releases the
+    file, socket or bag. Use as a context manager, or call `close`.
     """
 
-    def __init__(self, name: SourceName, max_scans: int | None = None) -> None:
+    def __init__(self, name: SourceName, max_scans: int | None = None,
+                 extra: dict | None = None, closer: Callable[[], None] | None = None) -> None:
         if max_scans is not None and max_scans < 1:
             raise SourceError(f"--scans {max_scans}: give at least 1 scan")
         self.name = name
         self.max_scans = max_scans
         self.whole = 0
+        self._extra = extra or {}
+        self._closer = closer
 
     @abc.abstractmethod
     def _scans(self) -> Iterator[Scan]:
@@ -171,11 +177,21 @@ class ScanSource(abc.ABC):
             self.close()
 
     @abc.abstractmethod
+    def _summary(self) -> dict:
+        """The figures of this kind of source."""
+
     def summary(self) -> dict:
         """What the source held (valid once iteration ended): the `aimbench info` object."""
+        out = {"source": self.name.text, "kind": self.name.kind, **self._summary()}
+        for key, value in self._extra.items():
+            out[key] = value() if callable(value) else value
+        return out
 
-    def close(self) -> None:  # noqa: B027 - optional hook
-        """Release the file, socket or bag."""
+    def close(self) -> None:
+        """Release the file, socket or bag (once)."""
+        if self._closer is not None:
+            closer, self._closer = self._closer, None
+            closer()
 
     def __enter__(self) -> ScanSource:
         return self
@@ -189,27 +205,17 @@ class PacketScanSource(ScanSource):
     """Scans assembled from a packet source (pcap, live UDP, a bag of VelodyneScan)."""
 
     def __init__(self, name: SourceName, packets: Iterable, *, max_scans: int | None = None,
-                 batch: int = 4096, extra: dict | None = None, closer=None,
-                 **decode) -> None:
-        super().__init__(name, max_scans)
+                 batch: int = 4096, extra: dict | None = None,
+                 closer: Callable[[], None] | None = None, **decode) -> None:
+        super().__init__(name, max_scans, extra, closer)
         self.packets = packets
         self.reader = PacketScans(packets, batch=batch, **decode)
-        self._extra = extra or {}
-        self._closer = closer
 
     def _scans(self) -> Iterator[Scan]:
         return iter(self.reader)
 
-    def summary(self) -> dict:
-        out = {"source": self.name.text, "kind": self.name.kind, **self.reader.summary()}
-        for key, value in self._extra.items():
-            out[key] = value() if callable(value) else value
-        return out
-
-    def close(self) -> None:
-        if self._closer is not None:
-            closer, self._closer = self._closer, None
-            closer()
+    def _summary(self) -> dict:
+        return self.reader.summary()
 
 
 class CloudScanSource(ScanSource):
@@ -217,18 +223,14 @@ class CloudScanSource(ScanSource):
 
     def __init__(self, name: SourceName, clouds: Iterable[Cloud], *,
                  max_scans: int | None = None, lasers: LaserTable = vlp16.LASERS,
-                 extra: dict | None = None, closer=None) -> None:
-        super().__init__(name, max_scans)
+                 extra: dict | None = None, closer: Callable[[], None] | None = None) -> None:
+        super().__init__(name, max_scans, extra, closer)
         self.clouds = clouds
         self.lasers = lasers
-        self._extra = extra or {}
-        self._closer = closer
-        self._tally: list[Scan] = []
+        self._tally: list[_CloudTally] = []
         self._warnings: list[str] = []
 
     def _scans(self) -> Iterator[Scan]:
-        import warnings
-
         for i, cloud in enumerate(self.clouds):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
@@ -243,11 +245,10 @@ class CloudScanSource(ScanSource):
             self._tally.append(_CloudTally.of(scan))
             yield scan
 
-    def summary(self) -> dict:
+    def _summary(self) -> dict:
         t = self._tally
         rpm = [s.rpm for s in t if math.isfinite(s.rpm)]
-        out = {
-            "source": self.name.text, "kind": self.name.kind,
+        return {
             "model": self.lasers.model, "product_id": None, "return_mode": None,
             "rpm": float(sorted(rpm)[len(rpm) // 2]) if rpm else None,
             "clouds": len(t),
@@ -262,14 +263,6 @@ class CloudScanSource(ScanSource):
             "vertical_offsets": any(s.offsets for s in t),
             "warnings": list(self._warnings),
         }
-        for key, value in self._extra.items():
-            out[key] = value() if callable(value) else value
-        return out
-
-    def close(self) -> None:
-        if self._closer is not None:
-            closer, self._closer = self._closer, None
-            closer()
 
 
 @dataclass(frozen=True)
