@@ -12,6 +12,7 @@ import json
 import shutil
 import socket
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +26,7 @@ from twin.core import vlp16
 from twin.core.scan import ARRAY_FIELDS, Scan
 from twin.lidar.bags import Bag
 from twin.lidar.capture import Packet, open_pcap, read_capture
+from twin.lidar.export import export_scans
 from twin.lidar.packets import block_azimuths_cdeg, encode_data_packets, packet_timestamps_us
 from twin.lidar.pcap import PcapWriter, read_pcap
 from twin.lidar.pcd import read_pcd_scans
@@ -292,3 +294,17 @@ def test_dual_return_info_counts_returns_and_distinct_points_like_velodyne_decod
     text = cli("info", str(path), capsys=capsys).stdout
     assert f"{s['returns']} returns (every echo" in text
     assert f"{theirs} distinct points" in text
+
+
+def test_a_scrap_among_the_scans_of_a_pcd_is_a_partial_scan_not_an_error(pcap_scans, tmp_path):
+    # A capture's last few firings, exported with the rest: the file's other scans still count.
+    scrap = pcap_scans[1].select(np.flatnonzero(pcap_scans[1].valid)[:5])
+    path = tmp_path / "scans.pcd"
+    export_scans([pcap_scans[0], replace(scrap, index=7)], path)
+    with (pytest.warns(RuntimeWarning, match="too few returns, taken as an empty partial scan"),
+          open_scans(path) as source):
+        got = list(source)
+    assert [s.index for s in got] == [0, 7]
+    assert_same_firings(got[0], pcap_scans[0])
+    assert len(got[1]) == 0 and got[1].meta["partial"] and not got[1].complete
+    assert source.summary()["partial_scans"] == 2  # the sample's half rotation, and the scrap

@@ -44,7 +44,7 @@ from twin.core.errors import AimbenchError
 from twin.core.lasers import LaserTable
 from twin.core.scan import Scan
 from twin.lidar.capture import PacketScans, PcapSource, UdpSource
-from twin.lidar.clouds import Cloud, scan_from_cloud
+from twin.lidar.clouds import Cloud, SparseCloudError, scan_from_cloud
 
 #: What every error about a source name says can be given.
 KINDS_HELP = ("a .pcap/.pcapng capture, udp://HOST:PORT, a ROS 1 .bag, a ROS 2 bag (folder, "
@@ -232,13 +232,23 @@ class CloudScanSource(ScanSource):
 
     def _scans(self) -> Iterator[Scan]:
         for i, cloud in enumerate(self.clouds):
+            index = int(cloud.meta.get("scan_in_file", i))
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                scan = scan_from_cloud(cloud, self.lasers, index=i)
+                try:
+                    scan = scan_from_cloud(cloud, self.lasers, index=index)
+                except SparseCloudError as exc:
+                    # A scrap among many (a capture's last few firings, say) is a partial scan,
+                    # as the assembler makes it, not the end of the source.
+                    warnings.warn(f"{cloud.name}: a cloud of too few returns, taken as an empty "
+                                  f"partial scan ({str(exc).removeprefix(cloud.name + ': ')})",
+                                  RuntimeWarning, stacklevel=1)
+                    scan = Scan.empty(index=index, complete=False, lasers=self.lasers, meta={
+                        "partial": True, "from_cloud": True, "cloud_points": len(cloud),
+                        "source": cloud.name})
             for w in caught:
-                text = str(w.message)
-                # one line for the source, not one per scan
-                generic = text.split(": ", 1)[-1]
+                # one line for the source, not one per scan: the cloud's name taken off
+                generic = str(w.message).removeprefix(f"{cloud.name}: ")
                 if generic not in self._warnings:
                     self._warnings.append(generic)
                     warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
