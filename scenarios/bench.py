@@ -145,106 +145,6 @@ class Bench(abc.ABC):
         self.close()
 
 
-# -- scan sources (the LiDAR side of HardwareBench) ---------------------------------------------
-
-class ScanSource(abc.ABC):
-    """Where a hardware bench's scans come from: live UDP or a pcap replay."""
-
-    @abc.abstractmethod
-    def scans(self, n: int) -> Iterator[Scan]:
-        """The next `n` whole scans that begin after this call."""
-
-    def info(self) -> dict[str, Any]:
-        return {}
-
-    def close(self) -> None:  # noqa: B027 - optional hook
-        pass
-
-
-class UdpScanSource(ScanSource):
-    """Scans from a VLP-16 (or the wire-level twin) over UDP.
-
-    The socket is bound only while scans are taken: packets sent while the stages were moving
-    are never read, and the first scan (joined mid-rotation, flagged partial by the assembler)
-    is dropped, so every scan returned began after the stages had arrived.
-    """
-
-    def __init__(self, host: str = "0.0.0.0", port: int = DATA_PORT,
-                 timeout_s: float = 2.0) -> None:
-        self.host = host
-        self.port = port
-        self.timeout_s = timeout_s
-        self.stats: dict[str, Any] = {}
-
-    def info(self) -> dict[str, Any]:
-        return {"lidar": f"udp://{self.host}:{self.port}", "timeout_s": self.timeout_s}
-
-    def scans(self, n: int) -> Iterator[Scan]:
-        from twin.lidar.scans import ScanAssembler
-        from twin.lidar.udp import SensorSilentError, UdpReceiver
-
-        if n <= 0:
-            return
-        got = 0
-        with UdpReceiver(self.host, data_port=self.port, position_port=None,
-                         timeout_s=self.timeout_s) as rx:
-            asm = ScanAssembler()
-            try:
-                for dgram in rx.receive():
-                    for scan in asm.push(dgram.payload):
-                        if scan.meta.get("partial"):
-                            continue
-                        yield scan
-                        got += 1
-                        if got >= n:
-                            return
-            except SensorSilentError as exc:
-                raise NoScanError(f"LiDAR silent after {got} of {n} scans: {exc}") from None
-            finally:
-                self.stats = {**asm.stats.as_dict(), **rx.stats.as_dict()}
-
-
-class PcapScanSource(ScanSource):
-    """Scans replayed from a capture, in order: each `scans(n)` call takes the next `n` whole
-    scans; running out of capture is a `NoScanError` naming how many there were."""
-
-    def __init__(self, path: str | Path) -> None:
-        from twin.lidar.capture import capture_scans
-
-        self.path = Path(path)
-        if not self.path.is_file():
-            raise NoScanError(f"no such capture {self.path}; give a .pcap file or "
-                              "udp://HOST:PORT")
-        self._scans = capture_scans(self.path)
-        self._next = 0
-
-    def info(self) -> dict[str, Any]:
-        return {"lidar": str(self.path), "scans_in_capture": len(self._scans)}
-
-    def scans(self, n: int) -> Iterator[Scan]:
-        for _ in range(n):
-            if self._next >= len(self._scans):
-                raise NoScanError(f"the capture {self.path} has run out: it holds "
-                                  f"{len(self._scans)} whole scans and the plan needs more; "
-                                  "use fewer --scans or a longer capture")
-            scan = self._scans[self._next]
-            self._next += 1
-            yield scan
-
-
-def scan_source(spec: str, timeout_s: float = 2.0) -> ScanSource:
-    """A `ScanSource` from ``udp://HOST:PORT`` or a capture path."""
-    if spec.startswith("udp://"):
-        hostport = spec[len("udp://"):]
-        host, _, port = hostport.rpartition(":")
-        try:
-            return UdpScanSource(host or "0.0.0.0", int(port), timeout_s)
-        except ValueError:
-            raise BenchError(f"bad LiDAR address {spec!r}; use udp://HOST:PORT, e.g. "
-                             f"{DEFAULT_LIDAR}") from None
-    return PcapScanSource(spec)
-
-
 # -- the hardware bench -------------------------------------------------------------------------
 
 class HardwareBench(Bench):
@@ -253,7 +153,9 @@ class HardwareBench(Bench):
     port: the controller's serial port or pyserial URL (``/dev/ttyACM0``, a pty of the simavr
         harness); None (``--port none``) for a bench without stages: a LiDAR on a fixed fixture,
         or the replay of a capture, taken to be at the plan's references.
-    lidar: ``udp://HOST:PORT`` or a capture path (None: the station's sensor network).
+    lidar: any source name of `twin.lidar.sources` (``udp://HOST:PORT``, a capture, a bag, a
+        PCD file), read through a `twin.lidar.sources.ScanFeed` (None: the station's sensor
+        network).
     settle_s: wait after arrival before scanning, so the bench stops ringing (s).
     station: the station file's bench (`scenarios.station.Station`): the stages' axis letters
         and travel, the LiDAR's address, the lever arm the report uses; None: the paper's
@@ -275,7 +177,7 @@ class HardwareBench(Bench):
         self.settle_s = settle_s
         self._target = StagePose()
         self._closed = False
-        self.source = scan_source(lidar, silence_timeout_s)
+        self.source = _scan_feed(lidar, silence_timeout_s)
         self.controller = controller
         if port is not None and port.lower() == "none":
             self.port = port = None
@@ -365,7 +267,18 @@ class HardwareBench(Bench):
         return self.controller.position()
 
     def scans(self, n: int) -> Iterator[Scan]:
-        yield from self.source.scans(n)
+        from twin.lidar.sources import SourceExhaustedError
+        from twin.lidar.udp import SensorSilentError
+
+        got = 0
+        try:
+            for scan in self.source.take(n):
+                got += 1
+                yield scan
+        except SensorSilentError as exc:
+            raise NoScanError(f"LiDAR silent after {got} of {n} scans: {exc}") from None
+        except SourceExhaustedError as exc:
+            raise NoScanError(str(exc)) from None
 
     def close(self) -> None:
         if self._closed:
@@ -374,6 +287,16 @@ class HardwareBench(Bench):
         self.source.close()
         if self.controller is not None:
             self.controller.close()
+
+
+def _scan_feed(lidar: str, timeout_s: float) -> Any:
+    """The `twin.lidar.sources.ScanFeed` of a LiDAR source name; its errors as `NoScanError`."""
+    from twin.lidar.sources import ScanFeed
+
+    try:
+        return ScanFeed(lidar, timeout_s)
+    except AimbenchError as exc:
+        raise NoScanError(f"{exc}") from None
 
 
 def _controller_settings(controller: Any) -> dict[int, float]:

@@ -100,8 +100,11 @@ def from_capture(capture: str | Path, truth: str | Path | None = None, board: An
     """Calibrate from a capture's whole scans and its truth file (default CAPTURE.truth.json),
     of `board` (align's `BoardSpec`; None: the paper's)."""
     from scenarios.truth import load_truth, truth_for, truth_path
-    from twin.lidar.capture import capture_scans
+    from twin.lidar.sources import capture_scans, parse_source
 
+    if parse_source(capture).live:
+        raise CalibrationError(f"{capture}: a live sensor; calibration needs a recording of the "
+                               "board at known poses and its truth file (record it first)")
     truth_file = Path(truth) if truth is not None else truth_path(capture)
     if not truth_file.is_file():
         raise CalibrationError(f"no truth file {truth_file}: calibration needs the LiDAR's true "

@@ -367,7 +367,7 @@ def test_a_real_capture_shorter_than_a_rotation_is_replayed_in_pieces(sample_pca
     """The real VLP-16 capture of tests/data holds no whole rotation: its pieces are replayed,
     flagged, with every return."""
     from scenarios.recording.replay import replay_capture
-    from twin.lidar.capture import capture_scans
+    from twin.lidar.sources import capture_scans
 
     pieces = [s for s in capture_scans(sample_pcap, whole_only=False) if len(s)]
     path = tmp_path / "real.rrd"

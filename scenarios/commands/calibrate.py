@@ -3,7 +3,7 @@ poses, written to a file that `aimbench sweep --calibration` and `aimbench estim
 --calibration` apply.
 
     aimbench calibrate --bench sim [--seed S] [--yaw-deg -8,0,8] [--scans 20] --out cal.json
-    aimbench calibrate CAPTURE.pcap [--truth CAPTURE.truth.json] --out cal.json
+    aimbench calibrate RECORDING [--truth RECORDING.truth.json] --out cal.json
 
 ``--station FILE`` (docs/station.md; default: the paper's bench): the board the scans see and,
 on ``--bench sim``, the twin built from it. Name the file it writes as the station's
@@ -48,7 +48,9 @@ def run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("calibrate", help="per-laser range offsets from scans at known poses",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("capture", nargs="?", help="a capture of the board (with a truth file)")
+    p.add_argument("capture", nargs="?", metavar="SOURCE",
+                   help="a recording of the board (a .pcap/.pcapng capture, a ROS bag or a "
+                        ".pcd file) with its truth file")
     p.add_argument("--truth", help="the capture's true poses (default CAPTURE.truth.json)")
     p.add_argument("--bench", choices=("sim",), help="calibrate on the simulated bench")
     p.add_argument("--seed", type=int, default=0, help="the twin's seed (its sensor; default 0)")

@@ -1,4 +1,7 @@
-"""`aimbench estimate CAPTURE.pcap`: the LiDAR's pose in the board frame, per scan or fused.
+"""`aimbench estimate SOURCE`: the LiDAR's pose in the board frame, per scan or fused.
+
+SOURCE: a capture, the live sensor (udp://HOST:PORT: estimates as it turns, until Ctrl-C or
+``--scans N``), a ROS bag or a PCD file (`twin.lidar.sources`).
 
 Without ``--json``: a table of every estimated quantity with its 1-sigma (x, y, z in mm; roll,
 tilt, yaw in deg) and, when the truth is known (``--truth FILE``, or the ``CAPTURE.truth.json``
@@ -22,17 +25,21 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import warnings
 
 import align
 from align import calibration as laser_calibration
 from scenarios import calibrate
 from scenarios import station as stations
-from scenarios.commands.info import add_decode_options, decode_options, warn_lines
+from scenarios.commands.info import (
+    add_decode_options,
+    add_source_arguments,
+    open_source,
+    quiet_scans,
+    warn_lines,
+)
 from scenarios.truth import load_truth, truth_for, truth_path
 from twin.core.errors import AimbenchError
 from twin.core.pose import POSE_FIELDS_EDGE, Pose
-from twin.lidar.capture import PcapSource, read_capture
 
 #: The table's columns: (key, width, decimals) of each quantity, its 1-sigma and its error.
 COLUMNS = (("x_mm", 16, 1), ("y_mm", 18, 1), ("z_mm", 16, 1),
@@ -133,25 +140,31 @@ def run(args: argparse.Namespace) -> int:
     cal_file = args.calibration or station.sensor.range_calibration
     cal = calibrate.read(cal_file) if cal_file else None
     truths = _truths(args)
-    source = PcapSource(args.capture)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        result = read_capture(source, keep_scans=True, **decode_options(args))
-    warn_lines("estimate", {"capture": str(args.capture), **result.summary})
-    scans = [s for s in result.scans if s.complete or args.keep_partial]
-    if not scans:
-        raise AimbenchError(f"{args.capture}: no complete scan in the capture (VLP-16 data "
-                            "on UDP port 2368); check the file with `aimbench info`")
-    if cal is not None:
-        scans = [laser_calibration.apply(s, cal) for s in scans]
-    rows = []
-    for i in range(0, len(scans) - args.fuse + 1, args.fuse):
-        group = scans[i:i + args.fuse]
-        res = align.estimate(group if args.fuse > 1 else group[0], board, args.method, hints)
-        row = _row(group[0].index, len(group), res, truth_for(group[0], truths))
-        rows.append(row)
-        if args.json:
-            print(json.dumps(row), flush=True)
+    rows, seen, group = [], 0, []
+    with open_source(args) as source:
+        try:
+            # Scan by scan as the source yields them: a live sensor's estimates come as it turns.
+            for scan in quiet_scans(source):
+                seen += 1
+                if not (scan.complete or args.keep_partial):
+                    continue
+                group.append(laser_calibration.apply(scan, cal) if cal is not None else scan)
+                if len(group) < args.fuse:
+                    continue
+                res = align.estimate(group if args.fuse > 1 else group[0], board, args.method,
+                                     hints)
+                row = _row(group[0].index, len(group), res, truth_for(group[0], truths))
+                group = []
+                rows.append(row)
+                if args.json:
+                    print(json.dumps(row), flush=True)
+        except KeyboardInterrupt:  # a live source: Ctrl-C ends it; what was estimated stands
+            pass
+    warn_lines("estimate", {"capture": str(args.capture), **source.summary()})
+    if not rows and not group:
+        raise AimbenchError(f"{args.capture}: no complete scan in it ({seen} scans, none "
+                            "whole; VLP-16 data on UDP port 2368, or point clouds); check it "
+                            "with `aimbench info`")
     if not args.json:
         for line in table(rows):
             print(line)
@@ -161,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("estimate", help="estimate the LiDAR's pose in the board frame from a "
                                         "capture (per scan, or fused over N scans)")
-    p.add_argument("capture", help="a pcap / pcapng capture of the VLP-16")
+    add_source_arguments(p)
     stations.add_arguments(p)
     p.add_argument("--board-thickness-mm", type=float, default=None,
                    help="plate thickness, mm, instead of the station's (its side face widens the "

@@ -1,5 +1,6 @@
-"""`aimbench info CAPTURE`: what a VLP-16 capture holds (model, return mode, rpm, packets, scans,
-gaps), as text or as one JSON object (``--json``)."""
+"""`aimbench info SOURCE`: what a VLP-16 source holds (model, return mode, rpm, packets, scans,
+gaps), as text or as one JSON object (``--json``). SOURCE is any name `twin.lidar.sources`
+reads: a capture, a live sensor (udp://HOST:PORT), a ROS bag or a PCD file."""
 
 from __future__ import annotations
 
@@ -8,8 +9,57 @@ import json
 import math
 import sys
 import warnings
+from collections.abc import Iterator
 
-from twin.lidar.capture import PcapSource, read_capture
+from twin.core.errors import AimbenchError
+from twin.core.scan import Scan
+from twin.lidar.sources import ScanSource, open_scans
+
+SOURCE_HELP = ("a capture (.pcap/.pcapng), the live sensor (udp://HOST:PORT, e.g. "
+               "udp://0.0.0.0:2368; Ctrl-C ends it), a ROS 1 .bag, a ROS 2 bag (its folder, "
+               ".db3 or .mcap; BAG#TOPIC names the LiDAR topic) or a .pcd file")
+
+
+def add_source_arguments(p: argparse.ArgumentParser) -> None:
+    """The source every capture-taking command reads, and how much of it."""
+    p.add_argument("capture", metavar="SOURCE", help=SOURCE_HELP)
+    p.add_argument("--scans", type=int, default=None, metavar="N",
+                   help="stop after N whole scans (a live sensor is read until Ctrl-C "
+                        "without it)")
+
+
+def open_source(args: argparse.Namespace) -> ScanSource:
+    """The `ScanSource` the command line names, decoded as its options say."""
+    if getattr(args, "scans", None) is not None and args.scans < 1:
+        raise AimbenchError(f"--scans {args.scans}: give at least 1")
+    return open_scans(args.capture, max_scans=getattr(args, "scans", None),
+                      **decode_options(args))
+
+
+def quiet_scans(source: ScanSource) -> Iterator[Scan]:
+    """The source's scans with its warnings held back: they are in its summary, and
+    `warn_lines` prints each once (the commands' own code keeps its warnings)."""
+    scans = iter(source)
+    while True:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            scan = next(scans, None)
+        if scan is None:
+            return
+        yield scan
+
+
+def read_source(args: argparse.Namespace, keep_scans: bool) -> tuple[list[Scan], dict]:
+    """Every scan of the named source (or until --scans or Ctrl-C) and its summary."""
+    scans = []
+    with open_source(args) as source:
+        try:
+            for scan in quiet_scans(source):
+                if keep_scans:
+                    scans.append(scan)
+        except KeyboardInterrupt:  # a live source: Ctrl-C ends the reading, not the command
+            pass
+    return scans, {"capture": str(args.capture), **source.summary()}
 
 
 def add_decode_options(p: argparse.ArgumentParser) -> None:
@@ -47,11 +97,7 @@ def warn_lines(command: str, summary: dict) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    source = PcapSource(args.capture)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # collected in the summary, printed once below
-        result = read_capture(source, keep_scans=False, **decode_options(args))
-    summary = {"capture": str(args.capture), **result.summary}
+    _, summary = read_source(args, keep_scans=False)
     warn_lines("info", summary)
     if args.json:
         print(json.dumps(summary))
@@ -61,14 +107,24 @@ def run(args: argparse.Namespace) -> int:
 
 
 def format_summary(s: dict) -> str:
-    f = s.get("file", {})
+    """The summary as aligned lines of text, for whichever kind of source it came from."""
+    kind = s.get("kind", "pcap")
     rpm = "-" if s["rpm"] is None else f"{s['rpm']:.1f}"
-    skipped = ", ".join(f"{k} {v}" for k, v in f.get("skipped", {}).items()) or "none"
-    rejected = ", ".join(f"{k} {v}" for k, v in s["rejected"].items()) or "none"
-    lines = [
-        ("capture", f"{s['capture']} ({f.get('format', '?')}, "
-                    f"{'ns' if f.get('nanosecond') else 'us'} timestamps, "
-                    f"{f.get('byte_order', '?')}-endian)"),
+    lines = [("source", _describe(s))]
+    if kind in ("pcd",) or "clouds" in s:
+        lines += [
+            ("model", f"{s['model']} (from the rings and elevations of the points)"),
+            ("rpm", f"{rpm} (from the azimuth step of the firings)"),
+            ("clouds", s["clouds"]),
+            ("scans", f"{s['scans']} ({s['complete_scans']} whole rotations, "
+                      f"{s['partial_scans']} partial)"),
+            ("points", f"{s['points']} firings: {s['returns']} returns from the cloud, "
+                       f"{s['rebuilt_misses']} misses rebuilt from the firing grid"),
+            ("vertical offsets", "in the points' z" if s["vertical_offsets"] else
+             "not applied (as the ROS driver writes)"),
+        ]
+        return "\n".join(f"{k:17s} {v}" for k, v in lines)
+    lines += [
         ("model", f"{s['model'] or '-'} (product id {s['product_id'] or '-'})"),
         ("return mode", s["return_mode"] or "-"),
         ("rpm", rpm),
@@ -76,21 +132,59 @@ def format_summary(s: dict) -> str:
         ("position packets", s["position_packets"]),
         ("scans", f"{s['scans']} ({s['complete_scans']} complete, {s['partial_scans']} partial "
                   f"at the ends, {s['scans_with_missing_packets']} with missing packets)"),
-        ("points", f"{s['points']} fired, {s['returns']} returns"),
+        ("points", _points(s)),
         ("gaps", f"{s['gaps']} ({s['missing_packets']} packets missing)"),
         ("time breaks", s["time_breaks"]),
         ("duplicates", s["duplicates"]),
         ("out of order", f"{s['out_of_order']} ({s['late']} too late, dropped)"),
-        ("rejected", rejected),
-        ("skipped", f"{skipped} (of {f.get('records', 0)} records)"),
-        ("duration", "-" if s["duration_s"] is None else f"{s['duration_s']:.3f} s"),
+        ("rejected", ", ".join(f"{k} {v}" for k, v in s["rejected"].items()) or "none"),
     ]
+    f = s.get("file")
+    if f is not None:
+        skipped = ", ".join(f"{k} {v}" for k, v in f.get("skipped", {}).items()) or "none"
+        lines.append(("skipped", f"{skipped} (of {f.get('records', 0)} records)"))
+    if "udp" in s:
+        u = s["udp"]
+        lines.append(("received", f"{u['data']} data packets, {u['malformed']} malformed "
+                                  f"datagrams, {u['kernel_drops']} dropped by the kernel"))
+    lines.append(("duration", "-" if s["duration_s"] is None else f"{s['duration_s']:.3f} s"))
+    if s.get("interrupted"):
+        lines.append(("interrupted", "yes (Ctrl-C): the figures cover what was received"))
     return "\n".join(f"{k:17s} {v}" for k, v in lines)
 
 
+def _describe(s: dict) -> str:
+    kind = s.get("kind", "pcap")
+    if kind == "udp":
+        return f"{s['capture']} (live)"
+    if "bag" in s:
+        b = s["bag"]
+        return (f"{s['capture']} (ROS bag, topic {b['topic']}, {b['type']}, "
+                f"{b['messages']} messages)")
+    f = s.get("file")
+    if f is not None:
+        return (f"{s['capture']} ({f.get('format', '?')}, "
+                f"{'ns' if f.get('nanosecond') else 'us'} timestamps, "
+                f"{f.get('byte_order', '?')}-endian)")
+    return f"{s['capture']} (point cloud file)"
+
+
+def _points(s: dict) -> str:
+    """Fired and returned points; in dual-return mode also the distinct points, which is what
+    velodyne_decoder and the ROS driver count (an echo that is both the strongest and the last
+    comes twice in the packets and is counted once)."""
+    text = f"{s['points']} fired, {s['returns']} returns"
+    distinct = s.get("distinct_returns", s["returns"])
+    if distinct != s["returns"] or s.get("return_mode") == "dual":
+        text += (f" (every echo of both blocks of each pair), {distinct} distinct points (an "
+                 "echo both strongest and last counted once, as velodyne_decoder counts)")
+    return text
+
+
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    p = sub.add_parser("info", help="summarise a VLP-16 capture (pcap or pcapng)")
-    p.add_argument("capture", help="capture file (.pcap or .pcapng)")
+    p = sub.add_parser("info", help="summarise a VLP-16 source (capture, live sensor, ROS bag, "
+                                    "PCD file)")
+    add_source_arguments(p)
     p.add_argument("--json", action="store_true", help="one JSON object")
     add_decode_options(p)
     p.set_defaults(func=run)

@@ -2,12 +2,13 @@
 
     aimbench replay runs/NAME        [--save FILE.rrd | --connect [URL] | --serve | --spawn]
                                      [--no-clouds] [--clouds-per-reference N] [--points-every N]
-    aimbench replay CAPTURE.pcap     [--method NAME] [--truth FILE.json] [--limit N] [sinks]
+    aimbench replay SOURCE           [--method NAME] [--truth FILE.json] [--limit N] [sinks]
 
 A run folder: its result store (every scan's estimate, truth, stage position and status, and the
 run's events) and its scans again (re-simulated for a run on the twin, re-read for a run that
-replayed a capture). A capture: every whole scan with align's estimate, and the truth of
-``CAPTURE.truth.json`` if it exists. With no sink chosen, the recording is saved beside the input
+replayed a capture). A SOURCE (a capture, udp://HOST:PORT until Ctrl-C or --limit N, a ROS bag,
+a PCD file): every whole scan with align's estimate, and the truth of ``CAPTURE.truth.json`` if
+it exists. With no sink chosen, the recording is saved beside the input
 (``runs/NAME/replay.rrd``, ``CAPTURE.rrd``); open it with ``rerun FILE.rrd``.
 """
 
@@ -44,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     src = Path(args.source)
     tol = rl.tolerance_band(args.tolerance_deg, args.tolerance_mm)
     progress = _progress(not args.no_progress)
-    if src.is_dir():
+    if src.is_dir() and (src / "run.sqlite").is_file():
         sinks = sink_options(args, default_save=src / "replay.rrd")
         rec = open_recording(f"replay {src.name}", sinks, truth=_run_has_truth(src))
         try:
@@ -54,23 +55,39 @@ def run(args: argparse.Namespace) -> int:
                 color_by=args.color_by, tolerances=tol, progress=progress)
         finally:
             close_recording(rec, sinks)
-    elif src.is_file():
-        sinks = sink_options(args, default_save=src.with_suffix(".rrd"))
-        truth = Path(args.truth) if args.truth else truth_path(src)
-        rec = open_recording(f"replay {src.name}", sinks, truth=truth.is_file())
+    else:
+        name = _source_or_run(args.source)
+        if name.live:
+            default = Path(f"replay-{name.host}-{name.port}.rrd")
+            truth = Path(args.truth) if args.truth else None
+        else:
+            default = src.with_suffix(".rrd")
+            truth = Path(args.truth) if args.truth else truth_path(src)
+        sinks = sink_options(args, default_save=default)
+        label = args.source if name.live else src.name
+        rec = open_recording(f"replay {label}", sinks,
+                             truth=truth is not None and truth.is_file())
         try:
             summary = replay.replay_capture(
-                src, rec, method=args.method, truth=args.truth, limit=args.limit,
+                args.source, rec, method=args.method, truth=args.truth, limit=args.limit,
                 points_every=args.points_every, color_by=args.color_by, tolerances=tol,
                 progress=progress)
         finally:
             close_recording(rec, sinks)
-    else:
-        raise AimbenchError(f"no run folder or capture at {src}; give runs/NAME or a .pcap file")
     print(f"replay: {summary.line()}", file=sys.stderr)
     for note in summary.notes:
         print(f"replay: {note}", file=sys.stderr)
     return 0
+
+
+def _source_or_run(text: str):
+    """The source a replay names (`twin.lidar.sources.SourceName`); else say what it takes."""
+    from twin.lidar.sources import SourceError, parse_source
+
+    try:
+        return parse_source(text)
+    except SourceError as exc:
+        raise AimbenchError(f"{exc}; or a run folder (runs/NAME, with its run.sqlite)") from None
 
 
 def _run_has_truth(run_dir: Path) -> bool:
@@ -86,7 +103,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("replay", help="build a rerun recording of a run folder or a capture",
                        description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("source", help="run folder (runs/NAME) or VLP-16 capture (.pcap/.pcapng)")
+    p.add_argument("source", help="run folder (runs/NAME), or a VLP-16 source: a capture "
+                                  "(.pcap/.pcapng), udp://HOST:PORT, a ROS bag or a .pcd file")
     add_sink_arguments(p, "write the recording to this .rrd file (default: runs/NAME/replay.rrd "
                           "or CAPTURE.rrd)")
     p.add_argument("--no-clouds", action="store_true",
@@ -99,7 +117,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="colour of the raw returns (default intensity)")
     p.add_argument("--method", help="capture: estimation method (default: align's)")
     p.add_argument("--truth", help="capture: truth file (default CAPTURE.truth.json if present)")
-    p.add_argument("--limit", type=int, metavar="N", help="capture: the first N scans only")
+    p.add_argument("--limit", "--scans", type=int, metavar="N",
+                   help="source: the first N whole scans only (a live sensor: stop after N)")
     p.add_argument("--tolerance-deg", type=float, default=0.2,
                    help="band of the angle error plots, deg (default 0.2, the report's)")
     p.add_argument("--tolerance-mm", type=float, default=4.0,

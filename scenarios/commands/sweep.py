@@ -2,7 +2,7 @@
 
     aimbench sweep yaw|x|grid|montecarlo|repeatability|FILE.toml --out runs/NAME
                    [--station FILE] [--board-mm WxH]
-                   [--bench sim|hw|serve] [--port URL] [--lidar udp://HOST:PORT | CAPTURE.pcap]
+                   [--bench sim|hw|serve] [--port URL] [--lidar udp://HOST:PORT | RECORDING]
                    [--scans N] [--poses N] [--method NAME] [--seed S] [--ideal]
     aimbench sweep --resume --out runs/NAME
 
@@ -51,7 +51,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
     # No argparse default: --resume must keep the stored source unless one is given.
     p.add_argument("--lidar", default=None,
                    help="VLP-16 source for --bench hw: udp://HOST:PORT (default "
-                        "udp://0.0.0.0:2368) or a CAPTURE.pcap to replay")
+                        "udp://0.0.0.0:2368), or a recording to replay: a .pcap/.pcapng "
+                        "capture, a ROS bag or a .pcd file")
     p.add_argument("--seed", type=int, help="seed of the twin's noise and of the "
                                                        "Monte Carlo poses (default 0)")
     p.add_argument("--ideal", action="store_true", help="the twin with every error source off")

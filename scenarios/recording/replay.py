@@ -33,7 +33,7 @@ from scenarios.truth import load_truth, truth_for, truth_path
 from twin.core.errors import AimbenchError
 from twin.core.pose import Pose, StagePose
 from twin.core.scan import Scan
-from twin.lidar.capture import capture_scans
+from twin.lidar.sources import capture_scans, parse_source
 
 if TYPE_CHECKING:
     import rerun as rr
@@ -198,7 +198,7 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
         if config.bench == "sim":
             source = resimulate(store, wanted)
             summary.source = "the twin, re-simulated"
-        elif lidar and not str(lidar).startswith("udp://") and Path(lidar).is_file():
+        elif lidar and not str(lidar).startswith("udp://") and Path(lidar).exists():
             source = recapture(store, Path(lidar), wanted)
             summary.source = f"the capture {lidar}"
         else:
@@ -291,22 +291,23 @@ def replay_capture(capture: str | Path, rec: rr.RecordingStream, *, method: str 
     truth: a truth file (default: ``CAPTURE.truth.json`` if it exists).
     limit: the first n scans only.
     """
-    capture = Path(capture)
-    scans = capture_scans(capture, whole_only=False)
+    live = parse_source(capture).live  # udp://: read until `limit` scans or Ctrl-C
+    label = str(capture) if live else Path(capture).name
+    scans = capture_scans(capture, whole_only=False, max_scans=limit)
     whole = [s for s in scans if not s.meta.get("partial")]
     if not whole:
         # A capture shorter than a rotation: its pieces are all there is, flagged as such.
         whole = [s for s in scans if len(s)]
     tpath = Path(truth) if truth is not None else truth_path(capture)
-    truths = load_truth(tpath) if tpath.is_file() else []
+    truths = load_truth(tpath) if not live and tpath.is_file() else []
     if truth is not None and not truths:
         raise ReplayError(f"no truth in {tpath}")
     if limit is not None:
         whole = whole[:limit]
-    summary = ReplaySummary(source=f"the capture {capture.name}")
+    summary = ReplaySummary(source=f"the capture {label}")
     obs = RerunObserver(rec, tolerances=tolerances, color_by=color_by, points_every=points_every,
                         stages=False)
-    obs.on_start(capture.name, {"kind": "capture"})
+    obs.on_start(label, {"kind": "capture"})
     dropped = sum(s.missing_packets for s in scans)
     partial = len(scans) - len([s for s in scans if not s.meta.get("partial")])
     if partial and len(whole) < len(scans):

@@ -87,6 +87,95 @@ class CaptureResult:
     positions: list[PositionPacket] = field(default_factory=list)
 
 
+class PacketScans:
+    """The scans of a packet source, yielded as each rotation completes, and its summary.
+
+    Data payloads go to a `ScanAssembler` in batches of ``batch`` (vectorised decoding; a live
+    source wants a small one, so that each scan comes out soon after its last packet); position
+    packets are decoded and kept. Warnings (product id 0x21) are issued once each and collected
+    in ``summary()["warnings"]``. A Ctrl-C while the source waits for packets ends the stream:
+    what was received is assembled and yielded, and ``interrupted`` says so.
+    """
+
+    def __init__(
+        self,
+        source: Iterable[Packet],
+        *,
+        cut_azimuth: float | None = math.pi,
+        split: str = "firing",
+        vertical_offsets: bool = True,
+        model: str | None = None,
+        batch: int = 4096,
+    ) -> None:
+        self.source = source
+        self.batch = max(1, int(batch))
+        self.assembler = ScanAssembler(cut_azimuth, split=split,
+                                       vertical_offsets=vertical_offsets, model=model)
+        self.positions: list[PositionPacket] = []
+        self.warnings: list[str] = []
+        self.interrupted = False
+        self._tally = _ScanTally()
+        self._malformed_position = 0
+        self._first_ts: float | None = None
+        self._last_ts: float | None = None
+
+    def _assemble(self, push, *args) -> list[Scan]:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            new = push(*args)
+        for w in caught:
+            if str(w.message) not in self.warnings:
+                self.warnings.append(str(w.message))
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        for s in new:
+            self._tally.add(s)
+        return new
+
+    def __iter__(self) -> Iterator[Scan]:
+        asm = self.assembler
+        pending: list[bytes] = []
+        packets = iter(self.source)
+        while True:
+            try:
+                pkt = next(packets, None)
+            except KeyboardInterrupt:
+                self.interrupted = True
+                pkt = None
+            if pkt is None:
+                break
+            self._first_ts = pkt.timestamp if self._first_ts is None else self._first_ts
+            self._last_ts = pkt.timestamp
+            if pkt.port == vlp16.POSITION_PORT:
+                try:
+                    self.positions.append(decode_position_packet(pkt.payload))
+                except MalformedPacketError:
+                    self._malformed_position += 1
+                continue
+            pending.append(pkt.payload)
+            if len(pending) >= self.batch:
+                yield from self._assemble(asm.push_many, pending)
+                pending = []
+        if pending:
+            yield from self._assemble(asm.push_many, pending)
+        yield from self._assemble(asm.finish)
+
+    @property
+    def stream(self) -> StreamStats:
+        return self.assembler.stats
+
+    def summary(self) -> dict:
+        """What `aimbench info` prints: a JSON-ready dict (complete once iteration ended)."""
+        summary = _summary(self.assembler, self._tally, self.positions, self._malformed_position,
+                           self._first_ts, self._last_ts)
+        summary["warnings"] = list(self.warnings)
+        stats = getattr(self.source, "stats", None)
+        if isinstance(stats, CaptureStats):
+            summary["file"] = stats.as_dict()
+        if self.interrupted:
+            summary["interrupted"] = True
+        return summary
+
+
 def read_capture(
     source: Iterable[Packet],
     *,
@@ -97,56 +186,14 @@ def read_capture(
     model: str | None = None,
     batch: int = 4096,
 ) -> CaptureResult:
-    """Assemble all scans of a source and summarise it.
-
-    Data payloads go to a `ScanAssembler` in batches of ``batch`` (vectorised decoding);
-    position packets are decoded and kept. Warnings (product id 0x21) are collected in
-    ``summary["warnings"]`` as well as issued.
-    """
-    asm = ScanAssembler(cut_azimuth, split=split, vertical_offsets=vertical_offsets,
-                        model=model)
-    scans: list[Scan] = []
-    positions: list[PositionPacket] = []
-    acc = _ScanTally()
-    malformed_position = 0
-    first_ts = last_ts = None
-    pending: list[bytes] = []
-
-    def take(new: list[Scan]) -> None:
-        for s in new:
-            acc.add(s)
+    """Assemble all scans of a source and summarise it (`PacketScans`, read to the end)."""
+    reader = PacketScans(source, cut_azimuth=cut_azimuth, split=split,
+                         vertical_offsets=vertical_offsets, model=model, batch=batch)
+    scans = []
+    for scan in reader:
         if keep_scans:
-            scans.extend(new)
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        for pkt in source:
-            first_ts = pkt.timestamp if first_ts is None else first_ts
-            last_ts = pkt.timestamp
-            if pkt.port == vlp16.POSITION_PORT:
-                try:
-                    positions.append(decode_position_packet(pkt.payload))
-                except MalformedPacketError:
-                    malformed_position += 1
-                continue
-            pending.append(pkt.payload)
-            if len(pending) >= batch:
-                take(asm.push_many(pending))
-                pending = []
-        if pending:
-            take(asm.push_many(pending))
-        take(asm.finish())
-    messages = []
-    for w in caught:
-        messages.append(str(w.message))
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-
-    summary = _summary(asm, acc, positions, malformed_position, first_ts, last_ts)
-    summary["warnings"] = messages
-    stats = getattr(source, "stats", None)
-    if isinstance(stats, CaptureStats):
-        summary["file"] = stats.as_dict()
-    return CaptureResult(scans, summary, asm.stats, positions)
+            scans.append(scan)
+    return CaptureResult(scans, reader.summary(), reader.stream, reader.positions)
 
 
 @dataclass
@@ -156,6 +203,7 @@ class _ScanTally:
     rpm: list[float] = field(default_factory=list)
     points: int = 0
     returns: int = 0
+    distinct: int = 0
     return_mode: int | None = None
     product_id: int | None = None
     with_missing: int = 0
@@ -166,6 +214,8 @@ class _ScanTally:
             self.rpm.append(s.meta["rpm"])
         self.points += len(s)
         self.returns += int(s.valid.sum())
+        # A dual-return pair that holds one echo twice flags its second copy 0 (decoder).
+        self.distinct += int((s.valid & (s.return_type != 0)).sum())
         self.return_mode = s.return_mode if self.return_mode is None else self.return_mode
         self.product_id = s.product_id if self.product_id is None else self.product_id
 
@@ -197,6 +247,9 @@ def _summary(
         "scans_with_missing_packets": acc.with_missing,
         "points": acc.points,
         "returns": acc.returns,
+        # Points as velodyne_decoder and the ROS driver count them: in dual-return mode an echo
+        # that is both the strongest and the last is sent twice and counted here once.
+        "distinct_returns": acc.distinct,
         "gaps": st.gaps,
         "missing_packets": st.missing,
         "duplicates": st.duplicates,
@@ -214,11 +267,3 @@ def _summary(
 def open_pcap(path: str | Path) -> PcapSource:
     """A `PcapSource` on the default VLP-16 ports."""
     return PcapSource(path)
-
-
-def capture_scans(path: str | Path, *, whole_only: bool = True) -> list[Scan]:
-    """The scans of a capture file in order, assembled as `read_capture` does with its defaults;
-    ``whole_only`` drops the partial rotations at the capture's ends. The one way every command
-    and bench turns a capture into scans."""
-    scans = read_capture(open_pcap(path)).scans
-    return [s for s in scans if not (whole_only and s.meta.get("partial"))]

@@ -62,6 +62,10 @@ class CloudError(AimbenchError):
     """A point cloud cannot be turned into a scan (no points, no coordinates, bad fields)."""
 
 
+class SparseCloudError(CloudError):
+    """Too few returns to find a rotation's firing grid (a scrap of a rotation, say)."""
+
+
 class UnsupportedCloudError(CloudError):
     """The cloud comes from another sensor than the laser table describes."""
 
@@ -218,7 +222,7 @@ def _points(cloud: Cloud, lasers: LaserTable, vertical_offsets: bool | None
                 "another sensor, which aimbench does not rebuild")
     notes["unusable"] = int((~ok).sum())
     if ok.sum() < 2 * lasers.n_lasers:
-        raise CloudError(f"{cloud.name}: {int(ok.sum())} usable points (finite, not at the "
+        raise SparseCloudError(f"{cloud.name}: {int(ok.sum())} usable points (finite, not at the "
                          "origin): too few for a scan of a rotation")
     x, y, z = x[ok], y[ok], z[ok]
     rxy = np.hypot(x, y)
@@ -305,8 +309,8 @@ def _azimuth_step(pts: _Points) -> float:
         steps.append(d[(d > 0) & (d < math.radians(2.0))])
     d = np.concatenate(steps) if steps else np.zeros(0)
     if len(d) < 8:
-        raise CloudError("too few neighbouring returns along the rings to find the azimuth step "
-                         "of the firings (is this a spinning LiDAR's rotation?)")
+        raise SparseCloudError("too few neighbouring returns along the rings to find the azimuth "
+                               "step of the firings (is this a spinning LiDAR's rotation?)")
     return float(np.median(d))
 
 

@@ -1,0 +1,419 @@
+"""Every LiDAR source by one name: captures, live UDP, ROS bags, PCD files, as scans.
+
+A source is named by one string, the same everywhere a command takes a capture (``info``,
+``decode``, ``estimate``, ``replay``, ``calibrate``, ``sweep --lidar``):
+
+=============================  ==============================================================
+name                           what is read
+=============================  ==============================================================
+``FILE.pcap``, ``.pcapng``     a capture of the sensor's UDP packets (tcpdump, Wireshark)
+``udp://HOST:PORT``            the live sensor: its data packets on that address and port
+                               (``udp://0.0.0.0:2368`` the default; Ctrl-C or a scan count
+                               ends it)
+``FILE.bag``                   a ROS 1 bag
+``FOLDER`` (``metadata.yaml``),  a ROS 2 bag, or its lone storage file
+``FILE.db3``, ``FILE.mcap``
+``FILE.pcd``                   a point cloud file (one scan, or one per value of a ``scan``
+                               field)
+=============================  ==============================================================
+
+A bag's LiDAR topic is found by its type (velodyne_msgs/VelodyneScan raw packets, else
+sensor_msgs/PointCloud2); ``BAG#TOPIC`` names one. Files are recognised by their first bytes,
+so a capture named ``.cap`` or ``.dump`` is read too.
+
+Two layers, as in velodyne_decoder and ouster-sdk: packet sources (a pcap file, a socket, a bag
+of VelodyneScan messages) yield `twin.lidar.capture.Packet`s for the one decoder and scan
+assembler; cloud sources (PCD files, PointCloud2 messages) yield clouds whose missed firings
+`twin.lidar.clouds` rebuilds. `open_scans` turns any name into a `ScanSource`: the scans in
+order and a summary of what the source held. `ScanFeed` serves a bench: the next n whole scans
+on demand.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+import warnings
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from types import TracebackType
+
+from twin.core import vlp16
+from twin.core.errors import AimbenchError
+from twin.core.lasers import LaserTable
+from twin.core.scan import Scan
+from twin.lidar.capture import PacketScans, PcapSource, UdpSource
+from twin.lidar.clouds import Cloud, SparseCloudError, scan_from_cloud
+
+#: What every error about a source name says can be given.
+KINDS_HELP = ("a .pcap/.pcapng capture, udp://HOST:PORT, a ROS 1 .bag, a ROS 2 bag (folder, "
+              ".db3 or .mcap) or a .pcd file")
+DEFAULT_UDP = f"udp://0.0.0.0:{vlp16.DATA_PORT}"
+#: Decoding packets as they arrive on a live socket: this many at a time (~40 ms of data).
+LIVE_BATCH = 32
+
+_MAGIC = (
+    (b"\xd4\xc3\xb2\xa1", "pcap"), (b"\xa1\xb2\xc3\xd4", "pcap"),
+    (b"\x4d\x3c\xb2\xa1", "pcap"), (b"\xa1\xb2\x3c\x4d", "pcap"),
+    (b"\x0a\x0d\x0d\x0a", "pcap"),  # pcapng section header
+    (b"#ROSBAG", "bag"), (b"SQLite format 3\x00", "bag"), (b"\x89MCAP", "bag"),
+    (b"# .PCD", "pcd"), (b"VERSION", "pcd"), (b"FIELDS", "pcd"),
+)
+_SUFFIXES = {".pcap": "pcap", ".pcapng": "pcap", ".bag": "bag", ".db3": "bag", ".mcap": "bag",
+             ".pcd": "pcd"}
+
+
+class SourceError(AimbenchError):
+    """A source name that names nothing readable (bad URL, no such file, unknown format)."""
+
+
+class SourceExhaustedError(SourceError):
+    """A recorded source has no more whole scans."""
+
+
+@dataclass(frozen=True)
+class SourceName:
+    """A parsed source name: its ``kind`` (pcap, udp, bag, pcd) and where it is."""
+
+    text: str
+    kind: str
+    path: Path | None = None
+    host: str = ""
+    port: int = 0
+    topic: str | None = None
+
+    @property
+    def live(self) -> bool:
+        return self.kind == "udp"
+
+    def __str__(self) -> str:
+        return self.text
+
+
+def parse_source(text: str | Path) -> SourceName:
+    """The `SourceName` of a name (module docstring); `SourceError` if it names nothing."""
+    text = str(text)
+    if "://" in text:
+        scheme, _, rest = text.partition("://")
+        if scheme.lower() != "udp":
+            raise SourceError(f"{text}: unknown source scheme {scheme}://; give {KINDS_HELP}")
+        host, sep, port = rest.rpartition(":")
+        try:
+            number = int(port)
+            if not sep or not 0 < number < 65536:
+                raise ValueError
+        except ValueError:
+            raise SourceError(f"{text}: give the live sensor as udp://HOST:PORT, e.g. "
+                              f"{DEFAULT_UDP} (every interface, the VLP-16's data port)") from None
+        return SourceName(text, "udp", host=host.strip("[]") or "0.0.0.0", port=number)
+    path, topic = Path(text), None
+    if not path.exists() and "#" in text:
+        head, _, topic = text.rpartition("#")
+        path = Path(head)
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or folder; give {KINDS_HELP}")
+    return SourceName(text, _kind_of(path), path=path, topic=topic or None)
+
+
+def _kind_of(path: Path) -> str:
+    if path.is_dir():
+        if (path / "metadata.yaml").is_file() or any(path.glob("*.db3")) or any(
+                path.glob("*.mcap")):
+            return "bag"
+        raise SourceError(f"{path}: a folder, but not a ROS 2 bag (no metadata.yaml, .db3 or "
+                          f".mcap in it); give {KINDS_HELP}")
+    try:
+        with path.open("rb") as f:
+            head = f.read(16)
+    except OSError as exc:
+        raise SourceError(f"{path}: cannot read it ({exc.strerror})") from None
+    for magic, kind in _MAGIC:
+        if head.startswith(magic):
+            return kind
+    kind = _SUFFIXES.get(path.suffix.lower())
+    if kind is None:
+        raise SourceError(f"{path}: not a format aimbench reads (starts with "
+                          f"{head[:8].hex() or 'nothing'}); give {KINDS_HELP}")
+    return kind  # its own reader says what is wrong with it (empty, cut off, damaged)
+
+
+# ----------------------------------------------------------------------------------------------
+# Scan sources
+
+
+class ScanSource(abc.ABC):
+    """The scans of one named source, in order (iterate once), and a summary of the source.
+
+    ``max_scans``: stop after this many whole scans (partial ones, at a stream's ends, are
+    yielded and flagged but not counted). ``extra``: more summary entries, values or functions
+    called when the summary is made (a socket's or a bag's counts). ``closer``: releases the
+    file, socket or bag. Use as a context manager, or call `close`.
+    """
+
+    def __init__(self, name: SourceName, max_scans: int | None = None,
+                 extra: dict | None = None, closer: Callable[[], None] | None = None) -> None:
+        if max_scans is not None and max_scans < 1:
+            raise SourceError(f"--scans {max_scans}: give at least 1 scan")
+        self.name = name
+        self.max_scans = max_scans
+        self.whole = 0
+        self._extra = extra or {}
+        self._closer = closer
+
+    @abc.abstractmethod
+    def _scans(self) -> Iterator[Scan]:
+        """Every scan of the source."""
+
+    def __iter__(self) -> Iterator[Scan]:
+        try:
+            for scan in self._scans():
+                yield scan
+                if not scan.meta.get("partial"):
+                    self.whole += 1
+                    if self.max_scans is not None and self.whole >= self.max_scans:
+                        return
+        finally:
+            self.close()
+
+    @abc.abstractmethod
+    def _summary(self) -> dict:
+        """The figures of this kind of source."""
+
+    def summary(self) -> dict:
+        """What the source held (valid once iteration ended): the `aimbench info` object."""
+        out = {"source": self.name.text, "kind": self.name.kind, **self._summary()}
+        for key, value in self._extra.items():
+            out[key] = value() if callable(value) else value
+        return out
+
+    def close(self) -> None:
+        """Release the file, socket or bag (once)."""
+        if self._closer is not None:
+            closer, self._closer = self._closer, None
+            closer()
+
+    def __enter__(self) -> ScanSource:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.close()
+
+
+class PacketScanSource(ScanSource):
+    """Scans assembled from a packet source (pcap, live UDP, a bag of VelodyneScan)."""
+
+    def __init__(self, name: SourceName, packets: Iterable, *, max_scans: int | None = None,
+                 batch: int = 4096, extra: dict | None = None,
+                 closer: Callable[[], None] | None = None, **decode) -> None:
+        super().__init__(name, max_scans, extra, closer)
+        self.packets = packets
+        self.reader = PacketScans(packets, batch=batch, **decode)
+
+    def _scans(self) -> Iterator[Scan]:
+        return iter(self.reader)
+
+    def _summary(self) -> dict:
+        return self.reader.summary()
+
+
+class CloudScanSource(ScanSource):
+    """Scans rebuilt from point clouds (PCD files, a bag of PointCloud2)."""
+
+    def __init__(self, name: SourceName, clouds: Iterable[Cloud], *,
+                 max_scans: int | None = None, lasers: LaserTable = vlp16.LASERS,
+                 extra: dict | None = None, closer: Callable[[], None] | None = None) -> None:
+        super().__init__(name, max_scans, extra, closer)
+        self.clouds = clouds
+        self.lasers = lasers
+        self._tally: list[_CloudTally] = []
+        self._warnings: list[str] = []
+
+    def _scans(self) -> Iterator[Scan]:
+        for i, cloud in enumerate(self.clouds):
+            index = int(cloud.meta.get("scan_in_file", i))
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                try:
+                    scan = scan_from_cloud(cloud, self.lasers, index=index)
+                except SparseCloudError as exc:
+                    # A scrap among many (a capture's last few firings, say) is a partial scan,
+                    # as the assembler makes it, not the end of the source.
+                    warnings.warn(f"{cloud.name}: a cloud of too few returns, taken as an empty "
+                                  f"partial scan ({str(exc).removeprefix(cloud.name + ': ')})",
+                                  RuntimeWarning, stacklevel=1)
+                    scan = Scan.empty(index=index, complete=False, lasers=self.lasers, meta={
+                        "partial": True, "from_cloud": True, "cloud_points": len(cloud),
+                        "source": cloud.name})
+            for w in caught:
+                # one line for the source, not one per scan: the cloud's name taken off
+                generic = str(w.message).removeprefix(f"{cloud.name}: ")
+                if generic not in self._warnings:
+                    self._warnings.append(generic)
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            self._tally.append(_CloudTally.of(scan))
+            yield scan
+
+    def _summary(self) -> dict:
+        t = self._tally
+        rpm = [s.rpm for s in t if math.isfinite(s.rpm)]
+        return {
+            "model": self.lasers.model, "product_id": None, "return_mode": None,
+            "rpm": float(sorted(rpm)[len(rpm) // 2]) if rpm else None,
+            "clouds": len(t),
+            "scans": len(t),
+            "complete_scans": sum(s.complete for s in t),
+            "partial_scans": sum(not s.complete for s in t),
+            "cloud_points": sum(s.cloud_points for s in t),
+            "points": sum(s.firings for s in t),
+            "returns": sum(s.returns for s in t),
+            "distinct_returns": sum(s.returns for s in t),  # a cloud lists each echo once
+            "rebuilt_misses": sum(s.firings - s.returns for s in t),
+            "vertical_offsets": any(s.offsets for s in t),
+            "warnings": list(self._warnings),
+        }
+
+
+@dataclass(frozen=True)
+class _CloudTally:
+    """What a summary needs of each rebuilt scan, so that no scan is kept for it."""
+
+    complete: bool
+    rpm: float
+    cloud_points: int
+    firings: int
+    returns: int
+    offsets: bool
+
+    @classmethod
+    def of(cls, scan: Scan) -> _CloudTally:
+        return cls(scan.complete, float(scan.meta.get("rpm", math.nan)),
+                   int(scan.meta.get("cloud_points", 0)), len(scan), int(scan.valid.sum()),
+                   scan.vertical_offsets_applied)
+
+
+def open_scans(
+    name: str | Path | SourceName,
+    *,
+    max_scans: int | None = None,
+    timeout_s: float = 2.0,
+    lasers: LaserTable = vlp16.LASERS,
+    cut_azimuth: float | None = math.pi,
+    split: str = "firing",
+    vertical_offsets: bool = True,
+    model: str | None = None,
+) -> ScanSource:
+    """A `ScanSource` for any source name (module docstring).
+
+    ``timeout_s``: silence on a live socket after which `twin.lidar.udp.SensorSilentError` is
+    raised. ``cut_azimuth``, ``split``, ``vertical_offsets``, ``model``: how packets become
+    scans (`twin.lidar.scans.ScanAssembler`); a point cloud is a rotation already, and its z
+    carries whatever offsets its driver applied. ``lasers``: the table clouds are rebuilt on.
+    """
+    src = name if isinstance(name, SourceName) else parse_source(name)
+    decode = {"cut_azimuth": cut_azimuth, "split": split, "vertical_offsets": vertical_offsets,
+              "model": model}
+    if src.kind == "pcap":
+        pcap = PcapSource(src.path)
+        return PacketScanSource(src, pcap, max_scans=max_scans, closer=pcap.reader.close,
+                                **decode)
+    if src.kind == "udp":
+        from twin.lidar.udp import UdpReceiver
+
+        rx = UdpReceiver(src.host, data_port=src.port, position_port=None, timeout_s=timeout_s)
+        return PacketScanSource(src, UdpSource(rx), max_scans=max_scans, batch=LIVE_BATCH,
+                                extra={"udp": lambda: rx.stats.as_dict()}, closer=rx.close,
+                                **decode)
+    if src.kind == "pcd":
+        from twin.lidar.pcd import read_pcd
+
+        return CloudScanSource(src, read_pcd(src.path), max_scans=max_scans, lasers=lasers)
+    from twin.lidar.bags import Bag
+
+    bag = Bag(src.path, src.topic)
+    if bag.kind == "packets":
+        return PacketScanSource(src, bag.packets(), max_scans=max_scans, extra={"bag": bag.info},
+                                closer=bag.close, **decode)
+    return CloudScanSource(src, bag.clouds(), max_scans=max_scans, lasers=lasers,
+                           extra={"bag": bag.info}, closer=bag.close)
+
+
+def capture_scans(name: str | Path, *, whole_only: bool = True,
+                  max_scans: int | None = None) -> list[Scan]:
+    """The scans of a source in order, with the default decoding: the one way every command and
+    bench turns a recording into scans. ``whole_only`` drops the partial rotations at a
+    capture's ends; ``max_scans`` stops after that many whole scans. A live sensor is read
+    until ``max_scans`` or Ctrl-C."""
+    scans: list[Scan] = []
+    with open_scans(name, max_scans=max_scans) as source:
+        try:
+            for s in source:
+                if not (whole_only and s.meta.get("partial")):
+                    scans.append(s)
+        except KeyboardInterrupt:
+            if not source.name.live:
+                raise
+    return scans
+
+
+# ----------------------------------------------------------------------------------------------
+# Scans on demand, for a bench
+
+
+class ScanFeed:
+    """The next n whole scans of a source, on demand (`take`): what a hardware bench reads.
+
+    A live sensor's socket is bound only while scans are taken, so packets sent while the stages
+    moved are never read, and the first scan (joined mid-rotation, partial) is dropped: every
+    scan returned began after the call. A recording is read on from where the last call
+    stopped; running out raises `SourceExhaustedError` naming how many whole scans it held.
+    """
+
+    def __init__(self, name: str | Path, timeout_s: float = 2.0) -> None:
+        self.name = parse_source(name)
+        self.timeout_s = timeout_s
+        self.stats: dict = {}
+        self._recorded: Iterator[Scan] | None = None
+        self._source: ScanSource | None = None
+        self._taken = 0
+        if not self.name.live:
+            self._source = open_scans(self.name)
+            self._recorded = iter(self._source)
+
+    def info(self) -> dict:
+        out = {"lidar": self.name.text, "kind": self.name.kind}
+        if self.name.live:
+            out["timeout_s"] = self.timeout_s
+        return out
+
+    def take(self, n: int) -> Iterator[Scan]:
+        """The next ``n`` whole scans, each yielded as soon as it is whole."""
+        if n <= 0:
+            return
+        if self.name.live:
+            yield from self._take_live(n)
+            return
+        for _ in range(n):
+            scan = next((s for s in self._recorded if not s.meta.get("partial")), None)
+            if scan is None:
+                raise SourceExhaustedError(
+                    f"the capture {self.name} has run out: it holds {self._taken} whole scans "
+                    "and the plan needs more; use fewer --scans or a longer capture")
+            self._taken += 1
+            yield scan
+
+    def _take_live(self, n: int) -> Iterator[Scan]:
+        source = open_scans(self.name, max_scans=n, timeout_s=self.timeout_s)
+        try:
+            for scan in source:
+                if not scan.meta.get("partial"):
+                    yield scan
+        finally:
+            source.close()
+            self.stats = source.summary()
+
+    def close(self) -> None:
+        if self._source is not None:
+            self._source.close()
+            self._source = None
