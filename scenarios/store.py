@@ -22,9 +22,11 @@ Layout of ``run.sqlite`` (SI units throughout; the CSV/Parquet exports add edge-
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
+import os
 import sqlite3
 import time
 from collections.abc import Iterator
@@ -95,6 +97,217 @@ CREATE TABLE IF NOT EXISTS event (
 
 class StoreError(AimbenchError):
     """A run folder that cannot be created, opened or resumed."""
+
+#: Name prefix of the temporary file a store is built in before it becomes ``run.sqlite``.
+_TEMP_PREFIX = f".{STORE_NAME}.creating-"
+#: Metadata every store has from its creation on.
+_REQUIRED_META = ("schema_version", "plan", "config", "status", "created_at")
+#: JSON columns of the scan table (checked with SQLite's json_valid, row by row).
+_JSON_COLS = ("covariance", "diagnostics", "timings")
+#: Most problems `check_store` names in one message.
+_MAX_PROBLEMS = 5
+
+
+def _build(tmp: Path, plan: Plan, config: dict | None, bench: dict | None,
+           versions: dict | None) -> None:
+    """Write a complete store (schema, metadata, references) into `tmp`, synced to disk.
+
+    Everything a store needs is encoded before the file is touched, so a plan it cannot hold
+    (a NaN, an object JSON cannot write) fails here with nothing written."""
+    now = time.time()
+    try:
+        meta = [(k, dumps(v)) for k, v in {
+            "schema_version": SCHEMA_VERSION, "plan": plan.to_dict(),
+            "config": config or {}, "bench": bench or {}, "versions": versions or {},
+            "status": "created", "created_at": now, "updated_at": now}.items()]
+        refs = [(i, _finite_real(r.yaw_rad, f"reference {i}: yaw"),
+                 _finite_real(r.x_m, f"reference {i}: x"),
+                 dumps(r.mount) if r.mount else None,
+                 dumps(r.to_dict()["via"]) if r.via else None, r.label)
+                for i, r in enumerate(plan.references)]
+    except (TypeError, ValueError) as exc:
+        raise StoreError(f"the plan {plan.name!r} cannot be stored: {exc}") from None
+    tmp.unlink(missing_ok=True)
+    conn = sqlite3.connect(tmp, isolation_level=None)
+    try:
+        # A rollback journal while it is private; the WAL is switched on once it is the store.
+        conn.execute("PRAGMA synchronous=FULL")
+        conn.executescript(_SCHEMA)
+        conn.execute("BEGIN IMMEDIATE")
+        conn.executemany("INSERT INTO meta (key, value) VALUES (?, ?)", meta)
+        conn.executemany("INSERT INTO reference (reference, yaw_rad, x_m, mount, via, label) "
+                         "VALUES (?, ?, ?, ?, ?, ?)", refs)
+        conn.execute("INSERT INTO event (at, level, reference, message) VALUES (?,?,?,?)",
+                     (now, "info", None, f"created: {plan.name}, {len(plan)} references x "
+                                         f"{plan.scans} scans"))
+        conn.execute("COMMIT")
+    finally:
+        conn.close()
+    with tmp.open("rb+") as f:
+        os.fsync(f.fileno())
+
+
+def _finite_real(v: float, what: str) -> float:
+    f = float(v)
+    if not math.isfinite(f):
+        raise ValueError(f"{what} is {f}, not a finite number")
+    return f
+
+
+def _fsync_dir(folder: Path) -> None:
+    """Make a rename in `folder` durable (a power cut after it keeps the new name)."""
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _remove_stale_temps(folder: Path) -> None:
+    """Remove the temporary stores of creations that were killed (their process is gone): they
+    never became a store and hold no results."""
+    for tmp in folder.glob(f"{_TEMP_PREFIX}*"):
+        pid = tmp.name[len(_TEMP_PREFIX):]
+        if not pid.isdigit() or not _alive(int(pid)):
+            tmp.unlink(missing_ok=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _is_unborn(path: Path) -> bool:
+    """True for a ``run.sqlite`` that a run killed while creating its store left behind (before
+    stores were created atomically): empty, or an SQLite file without the ``meta`` table and
+    without a single scan. It holds no results, so a new run may replace it."""
+    try:
+        if path.stat().st_size == 0:
+            return True
+        conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0)
+    except (OSError, sqlite3.DatabaseError):
+        return False
+    try:
+        tables = {r[0] for r in conn.execute(
+            "SELECT name FROM sqlite_master WHERE type='table'")}
+        if "meta" in tables and conn.execute("SELECT COUNT(*) FROM meta").fetchone()[0]:
+            return False
+        return "scan" not in tables or not conn.execute("SELECT COUNT(*) FROM scan").fetchone()[0]
+    except sqlite3.DatabaseError:
+        return False
+    finally:
+        conn.close()
+
+
+def _json_or_none(text: object) -> object:
+    try:
+        return json.loads(text) if isinstance(text, str | bytes) else None
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return None
+
+
+def _damaged(path: Path, problems: list[str]) -> str:
+    shown = "; ".join(problems[:_MAX_PROBLEMS])
+    more = f" (and {len(problems) - _MAX_PROBLEMS} more)" if len(problems) > _MAX_PROBLEMS else ""
+    return (f"{path} is damaged: {shown}{more}; its results cannot be trusted. Keep the file "
+            "as it is (a copy of it may be salvaged with sqlite3's .recover) and run the "
+            "sweep again into another --out")
+
+
+def check_store(path: Path, conn: sqlite3.Connection) -> list[str]:
+    """What is damaged in the store at `path` (an empty list: nothing), read-only.
+
+    SQLite's ``PRAGMA integrity_check`` catches broken pages and indexes but not a file cut
+    short inside its last page (it reads the missing bytes as zeros), so the file's length is
+    checked against its pages too; then the metadata must decode and the rows must fit the plan
+    (one reference row per plan reference, scans numbered within the plan, valid JSON)."""
+    problems = _file_problems(path)
+    if problems:
+        return problems  # the rows of a truncated file are not worth reading
+    try:
+        rows = [r[0] for r in conn.execute("PRAGMA integrity_check")]
+    except sqlite3.DatabaseError as exc:
+        rows = [str(exc)]
+    if rows != ["ok"]:
+        return ["SQLite's integrity check fails: " + " / ".join(rows[:3])]
+    tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    if not {"meta", "reference", "scan", "event"} <= tables:
+        return [f"tables {sorted({'meta', 'reference', 'scan', 'event'} - tables)} missing"]
+    meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
+    missing = [k for k in _REQUIRED_META if k not in meta]
+    if missing:
+        problems.append(f"metadata {', '.join(missing)} missing")
+    bad = [k for k, v in meta.items() if _json_or_none(v) is None and v != "null"]
+    if bad:
+        problems.append(f"metadata {', '.join(sorted(bad))} unreadable (not JSON)")
+    try:
+        plan = Plan.from_dict(json.loads(meta["plan"]))
+    except (KeyError, TypeError, ValueError, AimbenchError, json.JSONDecodeError) as exc:
+        problems.append(f"its plan cannot be read ({type(exc).__name__}: {exc})")
+        return problems
+    return problems + _row_problems(conn, plan)
+
+
+_MAGIC = b"SQLite format 3\x00"
+
+
+def _sqlite_header(path: Path) -> bool:
+    """Whether `path` begins like an SQLite file (empty files do not)."""
+    with path.open("rb") as f:
+        return f.read(len(_MAGIC)) == _MAGIC
+
+
+def _file_problems(path: Path) -> list[str]:
+    """A file cut short, from its own header (SQLite's file format, section 1.3: page size at
+    byte 16, page count at 28, valid when the change counter at 24 equals the one at 92), read
+    without SQLite, which fails on such a file with a bare "malformed"."""
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        head = f.read(100)
+    if len(head) < 100 or not head.startswith(_MAGIC):
+        return ["not an SQLite file (its first bytes are not SQLite's header)"]
+    page = int.from_bytes(head[16:18], "big")
+    page = 65536 if page == 1 else page
+    pages = int.from_bytes(head[28:32], "big")
+    counted = head[24:28] == head[92:96] and pages > 0
+    wal = path.with_name(path.name + "-wal")
+    in_wal = wal.is_file() and wal.stat().st_size > 0
+    if page < 512 or page & (page - 1):
+        return [f"its header is damaged (page size {page})"]
+    if size % page:
+        return [f"the file is cut short ({size} bytes, not a whole number of its "
+                f"{page}-byte pages: truncated)"]
+    if counted and not in_wal and size < pages * page:
+        return [f"the file is cut short ({size} of the {pages * page} bytes its {pages} "
+                "pages take: truncated)"]
+    return []
+
+
+def _row_problems(conn: sqlite3.Connection, plan: Plan) -> list[str]:
+    """The reference and scan rows against the plan."""
+    problems = []
+    refs = [r[0] for r in conn.execute("SELECT reference FROM reference ORDER BY reference")]
+    if refs != list(range(len(plan))):
+        problems.append(f"{len(refs)} reference rows where the plan has {len(plan)}")
+    outside = conn.execute(
+        "SELECT COUNT(*), MIN(reference), MIN(scan) FROM scan WHERE reference < 0 OR "
+        "reference >= ? OR scan < 0 OR scan >= ?", (len(plan), plan.scans)).fetchone()
+    if outside[0]:
+        problems.append(f"{outside[0]} scan rows outside the plan's {len(plan)} references x "
+                        f"{plan.scans} scans (first: reference {outside[1]}, scan {outside[2]})")
+    valid = " AND ".join(f"({c} IS NULL OR json_valid({c}))" for c in _JSON_COLS)
+    broken = conn.execute(f"SELECT COUNT(*), MIN(reference), MIN(scan) FROM scan "
+                          f"WHERE NOT ({valid})").fetchone()
+    if broken[0]:
+        problems.append(f"{broken[0]} scan rows with unreadable JSON (first: reference "
+                        f"{broken[1]}, scan {broken[2]})")
+    return problems
+
 
 
 def _json_default(obj: object) -> object:
@@ -225,55 +438,75 @@ class Store:
 
         Refuses a folder that already holds a run: a new run never overwrites results; use
         `Store.open` (``--resume``) to continue one, or another ``--out``.
+
+        Atomic: the store is built whole (schema, plan, references) in a temporary file beside
+        it and renamed to ``run.sqlite`` only then, so a kill at any instant leaves either no
+        store or a complete one, and a plan the store cannot hold leaves nothing at all.
         """
         run_dir = Path(run_dir)
         path = run_dir / STORE_NAME
-        if path.exists():
+        if path.exists() and not _is_unborn(path):
             raise StoreError(f"{run_dir} already holds a run; continue it with --resume or "
                              "choose another --out")
+        made_dir = not run_dir.exists()
         try:
             run_dir.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise StoreError(f"cannot create the run folder {run_dir}: {exc.strerror}") from None
-        conn = cls._connect(path)
-        store = cls(path, conn)
-        now = time.time()
-        # executescript commits on its own, so the schema is created outside _tx.
-        conn.executescript(_SCHEMA)
-        with store._tx():
-            store._put_many(conn, {
-                "schema_version": SCHEMA_VERSION, "plan": plan.to_dict(),
-                "config": config or {}, "bench": bench or {}, "versions": versions or {},
-                "status": "created", "created_at": now, "updated_at": now,
-            })
-            conn.executemany(
-                "INSERT INTO reference (reference, yaw_rad, x_m, mount, via, label) "
-                "VALUES (?, ?, ?, ?, ?, ?)",
-                [(i, r.yaw_rad, r.x_m, dumps(r.mount) if r.mount else None,
-                  dumps(r.to_dict()["via"]) if r.via else None, r.label)
-                 for i, r in enumerate(plan.references)])
-            conn.execute("INSERT INTO event (at, level, reference, message) VALUES (?,?,?,?)",
-                         (now, "info", None, f"created: {plan.name}, {len(plan)} references x "
-                                             f"{plan.scans} scans"))
-        return store
+        _remove_stale_temps(run_dir)
+        tmp = run_dir / f"{_TEMP_PREFIX}{os.getpid()}"
+        try:
+            _build(tmp, plan, config, bench, versions)
+            # The rename is atomic on POSIX: run.sqlite appears complete or not at all.
+            os.replace(tmp, path)
+            _fsync_dir(run_dir)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            if made_dir:
+                with contextlib.suppress(OSError):
+                    run_dir.rmdir()  # only if empty: nothing of anyone's is removed
+            raise
+        return cls(path, cls._connect(path))
 
     @classmethod
-    def open(cls, run_dir: str | Path) -> Store:
-        """The store of an existing run (to resume it, report on it or export it)."""
+    def open(cls, run_dir: str | Path, check: bool = True) -> Store:
+        """The store of an existing run (to resume it, report on it or export it).
+
+        check: before anything is trusted, verify the file (`check_store`: SQLite's own
+        integrity check, a file cut short, the metadata, the rows against the plan) and refuse
+        a damaged store with a `StoreError` saying what is damaged. Nothing is written first.
+        """
         run_dir = Path(run_dir)
         path = run_dir / STORE_NAME if run_dir.is_dir() or not run_dir.suffix else run_dir
         if not path.is_file():
             raise StoreError(f"no run in {run_dir} (no {STORE_NAME}); run a sweep with --out "
                              f"{run_dir} first")
+        if _is_unborn(path):
+            raise StoreError(f"{path} was never initialised (its run was stopped while the "
+                             "store was being created) and holds no results; start the run "
+                             f"again: a new sweep with --out {path.parent} replaces it")
+        if not _sqlite_header(path):
+            raise StoreError(f"{path} is not a readable aimbench run store: not an SQLite "
+                             "file; give the folder of a run that aimbench sweep made")
         try:
-            conn = cls._connect(path)
-            version = conn.execute("SELECT value FROM meta WHERE key='schema_version'").fetchone()
+            conn = sqlite3.connect(path, isolation_level=None, timeout=30.0)
         except sqlite3.DatabaseError as exc:
             raise StoreError(f"{path} is not a readable aimbench run store: {exc}") from None
-        if version is None or json.loads(version[0]) != SCHEMA_VERSION:
-            raise StoreError(f"{path}: unknown store schema {version and version[0]}; "
-                             f"this aimbench reads version {SCHEMA_VERSION}")
-        return cls(path, conn)
+        try:
+            try:
+                problems = check_store(path, conn) if check else []
+                if problems:
+                    raise StoreError(_damaged(path, problems))
+                version = conn.execute(
+                    "SELECT value FROM meta WHERE key='schema_version'").fetchone()
+            except sqlite3.DatabaseError as exc:
+                raise StoreError(f"{path} is not a readable aimbench run store: {exc}") from None
+            if version is None or _json_or_none(version[0]) != SCHEMA_VERSION:
+                raise StoreError(f"{path}: unknown store schema {version and version[0]}; "
+                                 f"this aimbench reads version {SCHEMA_VERSION}")
+        finally:
+            conn.close()
+        return cls(path, cls._connect(path))
 
     def close(self) -> None:
         self.conn.close()
