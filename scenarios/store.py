@@ -745,9 +745,24 @@ class Store:
         path = Path(path)
         header, rows = self._export_rows()
         columns = list(zip(*rows, strict=True)) if rows else [[] for _ in header]
-        table = pa.table({name: pa.array(list(col)) for name, col in
+        table = pa.table({name: _arrow_column(pa, name, list(col)) for name, col in
                           zip(header, columns, strict=True)})
         meta = {k: dumps(self.get(k)) for k in ("plan", "config", "bench", "versions", "status")}
         table = table.replace_schema_metadata({f"aimbench.{k}": v for k, v in meta.items()})
         pq.write_table(table, path)
         return path
+
+
+#: Export columns that are instants (Unix time, s), written to Parquet as UTC timestamps.
+TIMESTAMP_COLUMNS = ("acquired_at",)
+
+
+def _arrow_column(pa: object, name: str, values: list[object]) -> object:
+    """One Parquet column: instants as ``timestamp[us, UTC]`` (a reader sees times, not
+    floats: pandas, DuckDB and Polars all take them as such), the rest as inferred."""
+    if name in TIMESTAMP_COLUMNS:
+        micros = [None if v is None else round(float(v) * 1e6) for v in values]
+        return pa.array(micros, type=pa.timestamp("us", tz="UTC"))
+    if not values:
+        return pa.array(values, type=pa.null())
+    return pa.array(values)

@@ -138,6 +138,15 @@ def test_csv_and_parquet_exports(tmp_path: Path):
     assert table.num_rows == 3
     assert table.column("yaw_deg").to_pylist()[0] == pytest.approx(3.0 + math.degrees(1e-4))
     assert b"aimbench.plan" in table.schema.metadata
+    # Times are timestamps (UTC, microseconds), not floats (issue 22).
+    import pyarrow as pa
+
+    acquired = table.column("acquired_at")
+    assert acquired.type == pa.timestamp("us", tz="UTC")
+    with Store.open(tmp_path) as s:
+        stored = [r["acquired_at"] for r in s.iter_scans()]
+    got = [t.timestamp() for t in acquired.to_pylist()]
+    assert got == pytest.approx(stored, abs=1e-6)
 
 
 _WRITER = textwrap.dedent("""

@@ -66,17 +66,28 @@ def test_a_store_cut_short_is_refused_saying_so(tmp_path: Path, cut: int):
     assert path.read_bytes() == before[:len(before) - cut]
 
 
-@pytest.mark.parametrize("offset", [0, 4096, 8192, 16384, -8192])
-def test_garbage_in_the_store_is_refused_by_report_and_export(tmp_path: Path, offset: int):
-    run = _filled(tmp_path / "run")
+def _garbage(run: Path, offset: int, n: int = 8192) -> None:
     path = run / STORE_NAME
     data = bytearray(path.read_bytes())
     at = offset % len(data)
-    data[at:at + 8192] = np.random.default_rng(offset & 0xFFFF).bytes(8192)
-    path.write_bytes(bytes(data[:len(data)]))
+    data[at:at + n] = np.random.default_rng(offset & 0xFFFF).bytes(n)
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("offset", [0, 4096, 8192, 16384, -8192, -100])
+def test_garbage_in_the_store_is_refused(tmp_path: Path, offset: int):
+    run = _filled(tmp_path / "run")
+    _garbage(run, offset)
+    with pytest.raises(StoreError, match=r"is damaged|not a readable aimbench run store"):
+        Store.open(run)
+
+
+def test_report_and_export_of_a_damaged_store_say_so_in_one_line(tmp_path: Path):
+    run = _filled(tmp_path / "run")
+    _garbage(run, 8192)
     for command in (("report", "run"), ("export", "run", "--csv", "x.csv")):
         line = _one_line(aimbench(*command, cwd=tmp_path), command[0])
-        assert "damaged" in line or "not a readable aimbench run store" in line, line
+        assert "is damaged: SQLite's integrity check fails" in line, line
     assert not (tmp_path / "x.csv").exists()
 
 
@@ -112,7 +123,7 @@ def test_a_store_left_uninitialised_by_an_older_version_is_replaced(tmp_path: Pa
     run.mkdir()
     # What a kill between connect and schema used to leave: an empty or schema-only file.
     sqlite3.connect(run / STORE_NAME).execute("CREATE TABLE meta (key TEXT, value TEXT)")
-    with pytest.raises(StoreError, match="never initialised .* new sweep with --out"):
+    with pytest.raises(StoreError, match=r"never initialised .* new sweep with --out"):
         Store.open(run)
     with Store.create(run, plans.x_sweep(scans=1)) as s:
         assert s.status == "created"
