@@ -122,7 +122,7 @@ class Bench(abc.ABC):
 
     def prepare(self, reference: int, first_scan: int) -> None:  # noqa: B027 - optional hook
         """Called before the scans of `reference` numbered from `first_scan` (a simulated bench
-        seeds its noise from them, so resumed runs are reproducible)."""
+        seeds each scan from them, so resumed runs are reproducible)."""
 
     def close(self) -> None:  # noqa: B027 - optional hook, nothing to release by default
         """Release the stages, the sensor and any process the bench started."""
@@ -397,8 +397,11 @@ class SimBench(Bench):
     """The twin in process: `twin.sim.bench.BenchSim` (MuJoCo stages, VLP-16 emulation, truth).
 
     seed: the twin's seed. It draws the sensor once (its per-laser range offsets: one physical
-        VLP-16 for the whole run); each reference's scans then draw their noise from a generator
-        seeded by (seed, reference, first scan), so a resumed run is reproducible too.
+        VLP-16 for the whole run); then every scan is drawn by itself: scan k of reference i
+        (`prepare` names them) takes its noise, its rpm and its rotation phase from a generator
+        seeded by (seed, i, k) and begins at a sensor time fixed by k (`scan_start_s`), so it
+        depends on nothing scanned or moved before. A resumed run, a run on any number of
+        worker processes and a replay of one scan all give the very same scans.
     ideal: every error source of the emulation off.
     station: the bench (`scenarios.station.Station`; default: the paper's, a perfect mount): the
         twin is built from it (`Station.bench_params`) and plans keep within its travel.
@@ -426,6 +429,7 @@ class SimBench(Bench):
         if noise is None:
             noise = EmulationConfig.ideal() if ideal else EmulationConfig()
         self._mount: dict[str, float] | None = None
+        self._reference, self._next_scan = 0, 0
         self._sim = BenchSim(self.base_params, seed=self.seed, noise=noise)
         # Freeze the sensor drawn from the seed so a rebuilt twin (new mount) has the same one.
         offsets = getattr(self._sim.emulator, "laser_offsets", None)
@@ -452,7 +456,7 @@ class SimBench(Bench):
         p = self.base_params
         (y0, y1), (x0, x1) = self.travel()
         return {
-            "kind": "sim", "seed": self.seed, "ideal": self.ideal,
+            "kind": "sim", "seed": self.seed, "ideal": self.ideal, "seeding": SEEDING,
             **({"station": self.station.name} if self.station is not None else {}),
             "params": {k: (list(v) if isinstance(v, tuple) else v)
                        for k, v in vars(p).items() if not k.startswith("_")},
@@ -480,10 +484,10 @@ class SimBench(Bench):
             self._sim = BenchSim(self._params(), seed=self.seed, noise=self.noise)
 
     def prepare(self, reference: int, first_scan: int) -> None:
-        rng = np.random.default_rng((self.seed, int(reference), int(first_scan)))
-        # BenchSim and its emulator share one generator (noise, rpm wander, dropouts).
-        self._sim.rng = rng
-        self._sim.emulator.rng = rng
+        """The scans that follow are scans `first_scan`, `first_scan` + 1, ... of `reference`."""
+        if int(reference) < 0 or int(first_scan) < 0:
+            raise ValueError(f"prepare({reference}, {first_scan}): indices must be >= 0")
+        self._reference, self._next_scan = int(reference), int(first_scan)
 
     def home(self) -> None:
         self._sim.move_to(x_m=0.0, yaw_rad=0.0)
@@ -504,7 +508,27 @@ class SimBench(Bench):
     def scans(self, n: int) -> Iterator[Scan]:
         # One at a time, so a Ctrl-C between scans wastes nothing.
         for _ in range(n):
+            i, k = self._reference, self._next_scan
+            self._next_scan += 1
+            # The twin's generator (noise, rpm wander, dropouts, the rotation's phase) and its
+            # clock, both from (seed, reference, scan) alone.
+            self._sim.restart_sensor(np.random.default_rng((self.seed, i, k)), scan_start_s(k))
             yield self._sim.scan()
+
+
+#: How `SimBench` seeds its scans (stored in a run's bench info, so that a replay knows a run
+#: made before scans were seeded one by one).
+SEEDING = "per scan: (seed, reference, scan)"
+#: Sensor time between the starts of consecutive scans of a reference on `SimBench` (longer than
+#: a rotation at 300 rpm plus its phase), and how many fit before the clock's hour wraps.
+SCAN_SLOT_S = 0.4
+SCAN_SLOTS = 9000
+
+
+def scan_start_s(k: int) -> float:
+    """The sensor time (s past the hour) at which `SimBench` begins scan `k` of a reference:
+    fixed by k alone, increasing with k within the hour (the clock's own wrap)."""
+    return SCAN_SLOT_S * (int(k) % SCAN_SLOTS)
 
 
 def open_bench(config: RunConfig) -> Bench:

@@ -527,8 +527,8 @@ class ParallelSimRunner(Runner):
     """`Runner` on `jobs` SimBench worker processes (the simulated bench only).
 
     References are dealt to the workers in turn (reference order, round robin) and each worker
-    takes its share in order, so a run is reproducible for a given seed and `jobs`; the results
-    differ from a one-process run only by the noise draws, not in distribution. The store is
+    takes its share in order; `SimBench` seeds every scan from (seed, reference, scan), so the
+    results are those of a one-process run with the same seed, whatever `jobs`. The store is
     written by this process only, one transaction per scan as always; Ctrl-C stops every worker
     between scans and everything finished is kept.
     """

@@ -409,8 +409,8 @@ def _replay_points(run_dir: Path, tmp_path: Path) -> tuple[object, dict, dict]:
 
 
 @pytest.mark.slow
-def test_a_parallel_run_is_replayed_twin_by_twin(tmp_path: Path):
-    """A run on two worker processes (--jobs 2): each worker's twin re-simulated in its order
+def test_a_parallel_run_is_replayed_scan_by_scan(tmp_path: Path):
+    """A run on two worker processes (--jobs 2): re-simulated on one twin, scan by scan, it
     gives back the very scans the run estimated."""
     from scenarios.bench import SimBench
     from scenarios.runner import ParallelSimRunner

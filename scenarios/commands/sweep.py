@@ -267,7 +267,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         f"{MAX_CONSECUTIVE_FAILURES})")
     p.add_argument("--jobs", type=int, default=1,
                    help="simulated bench only: run references on this many worker processes "
-                        "(default 1; reproducible for a given --seed and --jobs)")
+                        "(default 1; the same results for a given --seed whatever --jobs)")
     p.add_argument("--resume", action="store_true",
                    help="continue the interrupted run in --out with its stored settings")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -4,12 +4,12 @@
 errors, stage positions and status, and the store's events, on the same timelines and entities as
 a live ``aimbench sweep --rerun``. The point clouds come back too, from where the scans came from:
 
-- a run on the simulated bench is re-simulated: `SimBench` is deterministic given the run's
-  seed and the runner's sequence (home, then for each reference: mount, move, seed the noise from
-  (seed, reference, first scan), scan), so the same scans come back bit for bit; the estimator is
-  run again on each, for what it used (board points, features), and its pose is checked against
-  the stored one (a mismatch, e.g. a run resumed part-way or made by another estimator version,
-  is annotated rather than hidden);
+- a run on the simulated bench is re-simulated: `SimBench` draws every scan from (seed,
+  reference, scan) alone, so visiting the reference and taking that scan gives it back bit for
+  bit, however the run went (resumed, parallel); the estimator is run again on each, for what it
+  used (board points, features), and its pose is checked against the stored one (a mismatch,
+  e.g. a run made by another estimator version or before scans were seeded one by one, is
+  annotated rather than hidden);
 - a run that read its scans from a capture (``--lidar CAPTURE.pcap``) reads the capture again,
   in the order the runner took the scans.
 
@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from scenarios.bench import SEEDING
 from scenarios.config import RunConfig
 from scenarios.recording.observer import RerunObserver, pose_from_row
 from scenarios.store import Store
@@ -70,22 +71,14 @@ class ReplaySummary:
 # ---------------------------------------------------------------------------------------------
 # Scans of a run, again
 # ---------------------------------------------------------------------------------------------
-def worker_order(store: Store) -> list[list[int]]:
-    """The references each twin of a simulated run took, in order: one twin for a plain run;
-    with ``--jobs N`` (`scenarios.runner.ParallelSimRunner`), worker w took references w, w + N,
-    ... on a twin of its own."""
-    jobs = max(1, RunConfig.from_dict(store.get("config")).jobs)
-    n = len(store.plan.references)
-    return [list(range(w, n, jobs)) for w in range(min(jobs, n))]
-
-
 def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int, int, Scan]]:
-    """The scans of a simulated run, taken again on fresh twins with the runner's sequence.
+    """The scans of a simulated run, taken again on a fresh twin.
 
-    Yields (reference, scan, Scan) for the stored (reference, scan) pairs in ``wanted``, twin by
-    twin in the order of `worker_order`. A twin still takes every scan the run took at each
-    reference it visits (the plan's number), wanted or not: the spin schedule and the clock
-    carry from scan to scan and into the next reference, so skipping any would change the rest.
+    Yields (reference, scan, Scan) for the (reference, scan) pairs in ``wanted``, in that
+    order. `SimBench` draws every scan from (seed, reference, scan) alone (its noise, its rpm,
+    its rotation's phase and start), so visiting a reference and taking scan k there gives the
+    very scan the run took, however the run got there: resumed, on several worker processes,
+    or with every other scan skipped.
     """
     from scenarios.bench import SimBench
     from scenarios.runner import visit
@@ -96,24 +89,16 @@ def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int
     # What the bench said it was beats what the command line asked for.
     seed = info.get("seed", config.seed) or 0
     ideal = info.get("ideal", config.ideal)
-    for refs in worker_order(store):
-        bench = SimBench(seed=int(seed), ideal=bool(ideal), station=config.station)
-        try:
-            bench.home()
-            mine = [i for i in refs if any(r == i for r, _ in wanted)]
-            for i in refs:
-                if not mine or i > mine[-1]:
-                    break  # nothing wanted from this twin any more
-                ks = sorted(k for (r, k) in wanted if r == i)
-                visit(bench, plan.references[i])
-                bench.prepare(i, 0)
-                # The last wanted reference needs its scans only up to the last wanted one.
-                n = ks[-1] + 1 if i == mine[-1] else max(plan.scans, ks[-1] + 1 if ks else 0)
-                for k, scan in enumerate(bench.scans(n)):
-                    if k in ks:
-                        yield i, k, scan
-        finally:
-            bench.close()
+    bench = SimBench(seed=int(seed), ideal=bool(ideal), station=config.station)
+    try:
+        bench.home()
+        for i in sorted({r for r, _ in wanted}):
+            visit(bench, plan.references[i])
+            for k in sorted(k for r, k in wanted if r == i):
+                bench.prepare(i, k)
+                yield i, k, next(iter(bench.scans(1)))
+    finally:
+        bench.close()
 
 
 def recapture(store: Store, capture: Path,
@@ -207,10 +192,12 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
     if not summary.source:
         summary.source = "the result store only"
     if config.bench == "sim":
-        # Rows in the order the twins took them (the scan timeline is explicit, so a recording
-        # may be logged in any order), to meet the re-simulated scans one by one.
-        rank = {i: n for n, i in enumerate(i for refs in worker_order(store) for i in refs)}
-        rows.sort(key=lambda r: (rank[r["reference"]], r["scan"]))
+        # Rows in (reference, scan) order, the re-simulated scans' (the scan timeline is
+        # explicit, so a recording may be logged in any order), to meet them one by one.
+        rows.sort(key=lambda r: (r["reference"], r["scan"]))
+        if clouds and info.get("seeding") != SEEDING:
+            summary.notes.append("the run predates per-scan seeding: its re-simulated point "
+                                 "clouds are not the scans it estimated (flagged per scan)")
     position = {(r["reference"], r["scan"]): n for n, r in enumerate(rows)}
     estimator = run_estimator(config.method, config.calibration, board)
     refs = store.references()

@@ -103,6 +103,8 @@ class BenchSim:
         self._pose_history: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._truth_cache: tuple[tuple, Pose] | None = None
         self.scan_count = 0
+        # When the spin schedule begins (the first cut pass lies within a rotation after it).
+        self._spin_epoch = 0.0
 
     # ---------------------------------------------------------------------------------------
     # Stages
@@ -153,6 +155,26 @@ class BenchSim:
         self._move = None
         self.physics.set_stage_positions(x_m=float(x_m), yaw_rad=float(yaw_rad))
         self._last_pose = self.physics.lidar_pose_world()
+
+    def restart_sensor(self, rng: np.random.Generator, at: float) -> None:
+        """Start the sensor afresh at time ``at`` (s) with generator ``rng``: a new spin
+        schedule (its phase and rpm drawn from ``rng``), no window history, the clock set to
+        ``at``. With the stages at rest the next scan then depends on nothing but ``rng``,
+        ``at`` and the stage pose, whatever was scanned or moved before: what makes a scan
+        reproducible by itself (`scenarios.bench.SimBench` seeds every scan this way). The
+        stages must be at rest (nothing in the scene moves, so the clock may be set)."""
+        if self._move is not None:
+            raise RuntimeError("restart_sensor while the stages move")
+        self.rng = rng
+        self.emulator.rng = rng
+        self.physics.data.time = float(at)
+        self._spin_epoch = float(at)
+        self._rot_start, self._rot_omega = [], []
+        self._next_rotation = 0
+        self._fired_until = -1.0
+        self._packets_until = 0
+        self._window_record = None
+        self._pose_history = None
 
     def wait(self, seconds: float) -> None:
         """Let simulated time pass (stages keep moving if a move is under way)."""
@@ -233,7 +255,8 @@ class BenchSim:
         if not self._rot_start:
             omega = self._draw_omega()
             # The sensor was already spinning: the first cut pass lies within one rotation.
-            self._rot_start.append(float(self.rng.uniform(0.0, TWO_PI / omega)))
+            self._rot_start.append(self._spin_epoch
+                                   + float(self.rng.uniform(0.0, TWO_PI / omega)))
             self._rot_omega.append(omega)
         while len(self._rot_start) <= upto + 1:
             i = len(self._rot_start) - 1
