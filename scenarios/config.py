@@ -99,6 +99,9 @@ class RunConfig:
             raise AimbenchError("--bench hw needs the stage controller's --port (e.g. "
                                 "/dev/ttyACM0), or --port none for a LiDAR without stages or a "
                                 "capture replay")
+        if self.jobs < 1 or self.max_consecutive_failures < 1:
+            raise AimbenchError(f"jobs ({self.jobs}) and max_consecutive_failures "
+                                f"({self.max_consecutive_failures}) must be at least 1")
         if self.jobs > 1 and self.bench != "sim":
             raise AimbenchError("--jobs runs several simulated benches; there is one "
                                 f"{'real' if self.bench == 'hw' else 'served'} bench: drop --jobs")

@@ -48,6 +48,11 @@ PAPER_MC_POSES = 200
 
 #: Names of the mount misalignment keys a reference may carry (edge units).
 MOUNT_KEYS = ("roll_deg", "tilt_deg", "yaw_deg", "x_mm")
+#: Most references a plan may have: the paper's grid has 273; a million would take a store of
+#: gigabytes before its first scan. A sweep step of 1e-9 once tried to allocate 149 GiB.
+MAX_REFERENCES = 100_000
+#: Most scans per reference (a day of the sensor at 10 scans/s is 864,000).
+MAX_SCANS = 1_000_000
 
 
 class PlanError(AimbenchError):
@@ -132,6 +137,12 @@ class Plan:
         if self.scans < 1:
             raise PlanError(f"plan {self.name!r}: scans per reference must be >= 1, "
                             f"got {self.scans}")
+        if self.scans > MAX_SCANS:
+            raise PlanError(f"plan {self.name!r}: {self.scans} scans per reference is more than "
+                            f"the {MAX_SCANS} a plan may take")
+        if len(self.references) > MAX_REFERENCES:
+            raise PlanError(f"plan {self.name!r}: {len(self.references)} references is more "
+                            f"than the {MAX_REFERENCES} a plan may have; use a coarser step")
 
     def __len__(self) -> int:
         return len(self.references)
@@ -165,11 +176,18 @@ def steps(start: float, stop: float, step: float) -> np.ndarray:
 
     Built from integer multiples so that -10..10 by 1 gives exactly 21 values with an exact 0.
     """
+    if not all(math.isfinite(v) for v in (start, stop, step)):
+        raise PlanError(f"start, stop and step must be finite numbers, got {start}, {stop}, "
+                        f"{step}")
     if step <= 0:
         raise PlanError(f"step must be positive, got {step}")
     if stop < start:
         raise PlanError(f"stop ({stop}) is below start ({start})")
+    # Counted before anything is allocated: a tiny step must not ask for gigabytes.
     n = math.floor((stop - start) / step + 1e-9) + 1
+    if n > MAX_REFERENCES:
+        raise PlanError(f"{start:g}..{stop:g} by {step:g} is {n} values, more than the "
+                        f"{MAX_REFERENCES} references a plan may have; use a coarser step")
     # Rounded to 1e-12 so -10 + 10 * 1 is exactly 0 (and + 0.0 turns -0.0 into 0.0).
     return np.round(start + step * np.arange(n), 12) + 0.0
 
@@ -223,8 +241,8 @@ def monte_carlo(poses: int = PAPER_MC_POSES, scans: int = PAPER_MC_SCANS, seed: 
     misalignments, not stage commands: only a simulated bench can run this plan. The stages stay
     at home (0, 0); the error reference is the twin's truth.
     """
-    if poses < 1:
-        raise PlanError(f"Monte Carlo needs at least one pose, got {poses}")
+    if not 1 <= poses <= MAX_REFERENCES:
+        raise PlanError(f"Monte Carlo needs 1..{MAX_REFERENCES} poses, got {poses}")
     rng = np.random.default_rng(seed)
     angles = rng.uniform(-angle_deg, angle_deg, size=(poses, 3))
     xs = rng.uniform(-x_mm, x_mm, size=poses)
@@ -246,8 +264,8 @@ def repeatability(yaw_deg: float = 0.0, x_mm: float = 0.0, repeats: int = 10,
     the positive and negative side, so the spread of the per-visit means shows the stages'
     repeatability (backlash included) on top of the estimator's scan-to-scan precision.
     """
-    if repeats < 1:
-        raise PlanError(f"repeatability needs at least one visit, got {repeats}")
+    if not 1 <= repeats <= MAX_REFERENCES:
+        raise PlanError(f"repeatability needs 1..{MAX_REFERENCES} visits, got {repeats}")
     refs = []
     for i in range(repeats):
         sign = 1.0 if i % 2 == 0 else -1.0
@@ -275,22 +293,39 @@ def _axis(spec: object, key: str, where: str) -> list[float]:
     if isinstance(spec, bool):
         raise PlanError(f"{where}: {key} must be a number, a list or {{start, stop, step}}")
     if isinstance(spec, int | float):
-        return [float(spec)]
+        return [_finite(spec, key, where)]
     if isinstance(spec, list):
         if not spec or not all(isinstance(v, int | float) and not isinstance(v, bool)
                                 for v in spec):
             raise PlanError(f"{where}: {key} must be a non-empty list of numbers, got {spec!r}")
-        return [float(v) for v in spec]
+        if len(spec) > MAX_REFERENCES:
+            raise PlanError(f"{where}: {key} has {len(spec)} values, more than the "
+                            f"{MAX_REFERENCES} references a plan may have")
+        return [_finite(v, key, where) for v in spec]
     if isinstance(spec, dict):
         missing = {"start", "stop", "step"} - set(spec)
         extra = set(spec) - {"start", "stop", "step"}
         if missing or extra:
             raise PlanError(f"{where}: {key} as a table needs exactly start, stop and step "
                             f"(missing {sorted(missing)}, unknown {sorted(extra)})")
-        return [float(v) for v in steps(float(spec["start"]), float(spec["stop"]),
-                                        float(spec["step"]))]
+        bounds = [spec[k] for k in ("start", "stop", "step")]
+        if not all(isinstance(v, int | float) and not isinstance(v, bool) for v in bounds):
+            raise PlanError(f"{where}: {key}: start, stop and step must be numbers, got "
+                            f"{bounds!r}")
+        try:
+            return [float(v) for v in steps(*(_finite(v, key, where) for v in bounds))]
+        except PlanError as exc:
+            raise PlanError(f"{where}: {key}: {exc}") from None
     raise PlanError(f"{where}: {key} must be a number, a list or {{start, stop, step}}, "
                     f"got {spec!r}")
+
+
+def _finite(value: object, key: str, where: str) -> float:
+    """A TOML number as a float, refusing NaN and inf (TOML has both; neither is a place)."""
+    f = float(value)  # type: ignore[arg-type]
+    if not math.isfinite(f):
+        raise PlanError(f"{where}: {key} must be a finite number, got {value!r}")
+    return f
 
 
 _TOP_KEYS = {"name", "scans", "yaw_deg", "x_mm", "mount", "reference", "method", "seed",
@@ -328,8 +363,9 @@ def from_toml(path: str | Path) -> Plan:
     if unknown:
         raise PlanError(f"{where}: unknown keys {sorted(unknown)}; allowed: {sorted(_TOP_KEYS)}")
     scans = data.get("scans", PAPER_SCANS)
-    if not isinstance(scans, int) or isinstance(scans, bool) or scans < 1:
-        raise PlanError(f"{where}: scans must be a positive integer, got {scans!r}")
+    if not isinstance(scans, int) or isinstance(scans, bool) or not 1 <= scans <= MAX_SCANS:
+        raise PlanError(f"{where}: scans must be a whole number 1..{MAX_SCANS}, got {scans!r}")
+    _check_settings(data, where)
     default_mount = _mount(data.get("mount"), where)
     refs: list[Reference] = []
     if "reference" in data:
@@ -338,7 +374,12 @@ def from_toml(path: str | Path) -> Plan:
                             "not both")
         if not isinstance(data["reference"], list):
             raise PlanError(f"{where}: reference must be an array of tables ([[reference]])")
+        if len(data["reference"]) > MAX_REFERENCES:
+            raise PlanError(f"{where}: {len(data['reference'])} references, more than the "
+                            f"{MAX_REFERENCES} a plan may have")
         for i, r in enumerate(data["reference"]):
+            if not isinstance(r, dict):
+                raise PlanError(f"{where}: reference {i + 1} must be a table ([[reference]])")
             unknown = set(r) - _REF_KEYS
             if unknown:
                 raise PlanError(f"{where}: reference {i + 1}: unknown keys {sorted(unknown)}")
@@ -353,6 +394,10 @@ def from_toml(path: str | Path) -> Plan:
     else:
         yaws = _axis(data.get("yaw_deg", 0.0), "yaw_deg", where)
         xs = _axis(data.get("x_mm", 0.0), "x_mm", where)
+        if len(xs) * len(yaws) > MAX_REFERENCES:
+            raise PlanError(f"{where}: {len(xs)} x values by {len(yaws)} yaw values is "
+                            f"{len(xs) * len(yaws)} references, more than the "
+                            f"{MAX_REFERENCES} a plan may have")
         for x, y in itertools.product(xs, yaws):
             refs.append(Reference(math.radians(y), x * 1e-3, default_mount,
                                   label=f"yaw {y:+g} deg, x {x:+g} mm"))
@@ -371,6 +416,16 @@ def from_toml(path: str | Path) -> Plan:
     return Plan(str(data.get("name", path.stem)), kind, tuple(refs), scans, settings)
 
 
+def _check_settings(data: dict, where: str) -> None:
+    """The top-level name, method and seed of a TOML plan, if given, are of the right kind."""
+    for key in ("name", "method"):
+        if key in data and not (isinstance(data[key], str) and data[key].strip()):
+            raise PlanError(f"{where}: {key} must be a non-empty string, got {data[key]!r}")
+    seed = data.get("seed", 0)
+    if not isinstance(seed, int) or isinstance(seed, bool) or not 0 <= seed < 2**63:
+        raise PlanError(f"{where}: seed must be a whole number 0..2**63-1, got {seed!r}")
+
+
 def _mount(spec: object, where: str) -> dict[str, float] | None:
     if spec is None:
         return None
@@ -380,7 +435,12 @@ def _mount(spec: object, where: str) -> dict[str, float] | None:
     if unknown:
         raise PlanError(f"{where}: mount: unknown keys {sorted(unknown)}; allowed: "
                         f"{', '.join(MOUNT_KEYS)}")
-    return {k: float(spec.get(k, 0.0)) for k in MOUNT_KEYS}
+    values = {k: spec.get(k, 0.0) for k in MOUNT_KEYS}
+    bad = {k: v for k, v in values.items()
+           if isinstance(v, bool) or not isinstance(v, int | float)}
+    if bad:
+        raise PlanError(f"{where}: mount values must be numbers, got {bad}")
+    return {k: _finite(v, f"mount {k}", where) for k, v in values.items()}
 
 
 def build(name: str, *, scans: int | None = None, seed: int = 0,

@@ -118,7 +118,7 @@ def test_toml_references_with_mount(tmp_path: Path):
 
 
 @pytest.mark.parametrize("text, match", [
-    ("scans = 0\n", "positive integer"),
+    ("scans = 0\n", "scans must be a whole number 1.."),
     ("yaw_deg = 'ten'\n", "yaw_deg"),
     ("bogus = 1\n", "unknown keys"),
     ("yaw_deg = { start = 1, stop = 0, step = 1 }\n", "below start"),

@@ -18,7 +18,7 @@ import sys
 import numpy as np
 
 from align import calibration as laser_calibration
-from scenarios import calibrate
+from scenarios import calibrate, cliargs
 from scenarios import station as stations
 from twin.core.errors import AimbenchError
 
@@ -53,12 +53,14 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         ".pcd file) with its truth file")
     p.add_argument("--truth", help="the capture's true poses (default CAPTURE.truth.json)")
     p.add_argument("--bench", choices=("sim",), help="calibrate on the simulated bench")
-    p.add_argument("--seed", type=int, default=0, help="the twin's seed (its sensor; default 0)")
+    p.add_argument("--seed", type=cliargs.seed, default=0,
+                   help="the twin's seed (its sensor; default 0)")
     p.add_argument("--yaw-deg", default=",".join(f"{v:g}" for v in calibrate.DEFAULT_YAWS_DEG),
                    help="stage yaws to scan at, deg, comma-separated (default %(default)s)")
-    p.add_argument("--scans", type=int, default=calibrate.DEFAULT_SCANS,
+    p.add_argument("--scans", type=cliargs.positive_int, default=calibrate.DEFAULT_SCANS,
                    help="scans per stage yaw (default %(default)s)")
-    p.add_argument("--out", required=True, help="calibration file to write (JSON)")
+    p.add_argument("--out", required=True, type=cliargs.output_file,
+                   help="calibration file to write (JSON)")
     stations.add_arguments(p)
     p.set_defaults(func=run)
     return p

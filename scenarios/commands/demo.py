@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 from align import calibration as laser_calibration
-from scenarios import calibrate, plans
+from scenarios import calibrate, cliargs, plans
 from scenarios.bench import SimBench
 from scenarios.commands.sweep import add_tolerance_arguments, execute, tolerances
 from scenarios.config import RunConfig
@@ -80,11 +80,11 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                                     "report (what `make demo` runs)",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default="runs/demo", help="run folder (default runs/demo)")
-    p.add_argument("--scans", type=int, default=DEMO_SCANS,
+    p.add_argument("--scans", type=cliargs.positive_int, default=DEMO_SCANS,
                    help=f"scans per reference (default {DEMO_SCANS}; the paper: 100)")
-    p.add_argument("--seed", type=int, default=0, help="the twin's noise seed (default 0)")
+    p.add_argument("--seed", type=cliargs.seed, default=0, help="the twin's noise seed (default 0)")
     p.add_argument("--method", help="estimation method (default: align's)")
-    p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
+    p.add_argument("--jobs", type=cliargs.positive_int, default=min(2, os.cpu_count() or 1),
                    help="worker processes (default: 2 or the CPU count if lower)")
     p.add_argument("--fresh", action="store_true", help="discard a previous run in --out")
     p.add_argument("--no-calibration", action="store_true",

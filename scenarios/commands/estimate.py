@@ -28,7 +28,7 @@ import math
 
 import align
 from align import calibration as laser_calibration
-from scenarios import calibrate
+from scenarios import calibrate, cliargs
 from scenarios import station as stations
 from scenarios.commands.info import (
     add_decode_options,
@@ -45,15 +45,30 @@ from twin.core.pose import POSE_FIELDS_EDGE, Pose
 COLUMNS = (("x_mm", 16, 1), ("y_mm", 18, 1), ("z_mm", 16, 1),
            ("roll_deg", 17, 3), ("tilt_deg", 17, 3), ("yaw_deg", 17, 3))
 
+#: The keys of a row that are the pose or its standard deviations (edge units and SI).
+_POSE_KEYS = (*POSE_FIELDS_EDGE, *(f"{k}_std" for k in POSE_FIELDS_EDGE), "x_m", "y_m", "z_m",
+              "x_m_std", "y_m_std", "z_m_std")
+
 
 def _row(first: int, n: int, res: align.PoseEstimate, truth: Pose | None = None) -> dict:
+    """One output row. Without success (a part of the board, no board) the estimator's pose is
+    not one it can support (with the board out of view it once printed a tilt of 130 deg with
+    sigma x 0.0): the row keeps the status and the reason, and its pose is null."""
     row = {"scan": first, "scans": n}
     row.update(res.to_edge_dict())
+    if not res.success:
+        row.update(dict.fromkeys(_POSE_KEYS))
+        row.setdefault("reason", _REASONS.get(row["status"], "no pose"))
     if truth is not None:
         row["truth"] = truth.to_edge()
-        if res.pose is not None:
+        if res.success and res.pose is not None:
             row.update({f"{k}_error": v for k, v in errors(res.pose, truth).items()})
-    return row
+    # JSON has no NaN: a value that is not a number is null, so every JSON reader takes it.
+    return {k: None if isinstance(v, float) and not math.isfinite(v) else v
+            for k, v in row.items()}
+
+
+_REASONS = {"partial_board": "only a part of the board is seen: no pose it can support"}
 
 
 def errors(estimate: Pose, truth: Pose) -> dict[str, float]:
@@ -157,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
                 group = []
                 rows.append(row)
                 if args.json:
-                    print(json.dumps(row), flush=True)
+                    print(json.dumps(row, allow_nan=False), flush=True)
         except KeyboardInterrupt:  # a live source: Ctrl-C ends it; what was estimated stands
             pass
     warn_lines("estimate", {"capture": str(args.capture), **source.summary()})
@@ -176,7 +191,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                                         "capture (per scan, or fused over N scans)")
     add_source_arguments(p)
     stations.add_arguments(p)
-    p.add_argument("--board-thickness-mm", type=float, default=None,
+    p.add_argument("--board-thickness-mm", type=cliargs.non_negative_float, default=None,
                    help="plate thickness, mm, instead of the station's (its side face widens the "
                         "near edge; the paper's: 3)")
     p.add_argument("--truth", default=None, metavar="FILE",
@@ -185,10 +200,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--method", default=align.DEFAULT_METHOD, choices=align.METHODS,
                    help=f"estimator (default {align.DEFAULT_METHOD}; 'paper' is the reference "
                         "paper's, 'icp' the Open3D baseline)")
-    p.add_argument("--fuse", type=int, default=1, metavar="N",
+    p.add_argument("--fuse", type=cliargs.positive_int, default=1, metavar="N",
                    help="one estimate per N consecutive scans of a static pose (default 1)")
     p.add_argument("--json", action="store_true", help="one JSON object per line")
-    p.add_argument("--expected-distance-m", type=float, default=None,
+    p.add_argument("--expected-distance-m", type=cliargs.positive_float, default=None,
                    help="hint: distance to the board's centre, m")
     p.add_argument("--azimuth-deg", default=None, metavar="CENTRE:HALF",
                    help="hint: look for the board only within this azimuth window, deg")

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
+from scenarios import cliargs
 from scenarios.store import Store
 from twin.core.errors import AimbenchError
 
@@ -21,11 +23,19 @@ def run(args: argparse.Namespace) -> int:
         raise AimbenchError("give --csv FILE and/or --parquet FILE")
     with Store.open(Path(args.run)) as store:
         n = store.scan_count()
-        if args.csv:
-            print(f"{store.export_csv(args.csv)}: {n} scans", file=sys.stderr)
-        if args.parquet:
-            print(f"{store.export_parquet(args.parquet)}: {n} scans", file=sys.stderr)
+        for path, write in ((args.csv, store.export_csv), (args.parquet, store.export_parquet)):
+            if path:
+                print(f"{_write(path, write)}: {n} scans", file=sys.stderr)
     return 0
+
+
+def _write(path: Path, write: Callable[[Path], Path]) -> Path:
+    """`write` to `path`, a file system's refusal (permissions, a full disk) as one line."""
+    try:
+        return write(path)
+    except OSError as exc:
+        raise AimbenchError(f"cannot write {path}: {exc.strerror or exc}; choose another "
+                            "file") from None
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -33,7 +43,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                        description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run", help="run folder (holding run.sqlite)")
-    p.add_argument("--csv", type=Path, help="CSV file to write")
-    p.add_argument("--parquet", type=Path, help="Parquet file to write")
+    p.add_argument("--csv", type=cliargs.output_file, help="CSV file to write")
+    p.add_argument("--parquet", type=cliargs.output_file, help="Parquet file to write")
     p.set_defaults(func=run)
     return p

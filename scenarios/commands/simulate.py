@@ -19,6 +19,7 @@ import dataclasses
 import math
 from pathlib import Path
 
+from scenarios import cliargs
 from scenarios import station as stations
 from scenarios.truth import write_truth
 from twin.core.errors import AimbenchError
@@ -82,22 +83,26 @@ def run(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="write a VLP-16 capture of the simulated bench and its "
                                         "ground truth")
-    p.add_argument("--yaw-deg", type=float, default=0.0,
+    p.add_argument("--yaw-deg", type=cliargs.finite_float, default=0.0,
                    help="rotation stage position, deg (within the station's travel; "
                         "the paper's: +-30)")
-    p.add_argument("--x-mm", type=float, default=0.0,
+    p.add_argument("--x-mm", type=cliargs.finite_float, default=0.0,
                    help="linear stage position, mm (within the station's travel; "
                         "the paper's: +-50)")
-    p.add_argument("--roll-deg", type=float, default=0.0, help="mount misalignment: roll, deg")
-    p.add_argument("--tilt-deg", type=float, default=0.0, help="mount misalignment: tilt, deg")
-    p.add_argument("--mount-yaw-deg", type=float, default=0.0,
+    p.add_argument("--roll-deg", type=cliargs.finite_float, default=0.0,
+                   help="mount misalignment: roll, deg")
+    p.add_argument("--tilt-deg", type=cliargs.finite_float, default=0.0,
+                   help="mount misalignment: tilt, deg")
+    p.add_argument("--mount-yaw-deg", type=cliargs.finite_float, default=0.0,
                    help="mount misalignment: yaw on the turntable, deg")
-    p.add_argument("--scans", type=int, default=10, help="number of rotations")
-    p.add_argument("--seed", type=int, default=0, help="seed of every random draw")
+    p.add_argument("--scans", type=cliargs.positive_int, default=10, help="number of rotations")
+    p.add_argument("--seed", type=cliargs.seed, default=0, help="seed of every random draw")
     p.add_argument("--ideal", action="store_true", help="turn every error source off")
-    p.add_argument("--rpm", type=float, default=600.0, help="spin rate, rpm (300..1200)")
+    p.add_argument("--rpm", type=cliargs.finite_float, default=600.0,
+                   help="spin rate, rpm (300..1200)")
     p.add_argument("--return-mode", choices=("strongest", "last", "dual"), default="strongest")
-    p.add_argument("--out", required=True, help="capture file to write (.pcap)")
+    p.add_argument("--out", required=True, type=cliargs.output_file,
+                   help="capture file to write (.pcap)")
     stations.add_arguments(p)
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)

@@ -23,7 +23,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
-from scenarios import calibrate, plans
+from scenarios import calibrate, cliargs, plans
 from scenarios import station as stations
 from scenarios.bench import open_bench
 from scenarios.commands.version import versions
@@ -53,7 +53,7 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                    help="VLP-16 source for --bench hw: udp://HOST:PORT (default "
                         "udp://0.0.0.0:2368), or a recording to replay: a .pcap/.pcapng "
                         "capture, a ROS bag or a .pcd file")
-    p.add_argument("--seed", type=int, help="seed of the twin's noise and of the "
+    p.add_argument("--seed", type=cliargs.seed, help="seed of the twin's noise and of the "
                                                        "Monte Carlo poses (default 0)")
     p.add_argument("--ideal", action="store_true", help="the twin with every error source off")
     p.add_argument("--calibration", metavar="FILE",
@@ -64,16 +64,16 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_tolerance_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--tolerance-deg", type=float, default=0.2,
+    p.add_argument("--tolerance-deg", type=cliargs.non_negative_float, default=0.2,
                    help="pass/fail limit on the accuracy (mean error) of tilt, roll and yaw, "
                         "deg (default 0.2, the paper's claim)")
-    p.add_argument("--tolerance-mm", type=float, default=4.0,
+    p.add_argument("--tolerance-mm", type=cliargs.non_negative_float, default=4.0,
                    help="pass/fail limit on the accuracy of x, mm (default 4)")
-    p.add_argument("--precision-deg", type=float,
+    p.add_argument("--precision-deg", type=cliargs.non_negative_float,
                    help="also a limit on the angles' precision (std), deg (default: not judged)")
-    p.add_argument("--precision-mm", type=float,
+    p.add_argument("--precision-mm", type=cliargs.non_negative_float,
                    help="also a limit on x precision (std), mm (default: not judged)")
-    p.add_argument("--max-failed-percent", type=float, default=1.0,
+    p.add_argument("--max-failed-percent", type=cliargs.float_within(0.0, 100.0), default=1.0,
                    help="largest share of scans allowed without a pose, %% (default 1)")
 
 
@@ -257,15 +257,16 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                                                "FILE.toml (not needed with --resume)")
     p.add_argument("--out", required=True, help="run folder, e.g. runs/NAME")
     add_bench_arguments(p)
-    p.add_argument("--scans", type=int, help="scans per reference (default: the paper's, 100; "
-                                             "50 for montecarlo)")
-    p.add_argument("--poses", type=int, help="Monte Carlo poses (default 200)")
+    p.add_argument("--scans", type=cliargs.positive_int,
+                   help="scans per reference (default: the paper's, 100; 50 for montecarlo)")
+    p.add_argument("--poses", type=cliargs.positive_int, help="Monte Carlo poses (default 200)")
     p.add_argument("--method", help="estimation method (default: align's)")
-    p.add_argument("--max-consecutive-failures", type=int, default=MAX_CONSECUTIVE_FAILURES,
+    p.add_argument("--max-consecutive-failures", type=cliargs.positive_int,
+                   default=MAX_CONSECUTIVE_FAILURES,
                    help="fail the run after this many scans in a row without a pose at a "
                         f"reference with none (board not in view; default "
                         f"{MAX_CONSECUTIVE_FAILURES})")
-    p.add_argument("--jobs", type=int, default=1,
+    p.add_argument("--jobs", type=cliargs.positive_int, default=1,
                    help="simulated bench only: run references on this many worker processes "
                         "(default 1; the same results for a given --seed whatever --jobs)")
     p.add_argument("--resume", action="store_true",
