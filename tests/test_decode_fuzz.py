@@ -14,7 +14,8 @@ from pathlib import Path
 
 import numpy as np
 from conftest import DATA_DIR
-from hypothesis import HealthCheck, given, settings
+from fuzzing import fuzz, fuzz_input
+from hypothesis import given
 from hypothesis import strategies as st
 
 from twin.lidar.packets import (
@@ -27,8 +28,7 @@ from twin.lidar.packets import (
 from twin.lidar.pcap import CaptureFormatError, PcapWriter, read_pcap
 from twin.lidar.scans import ScanAssembler
 
-FUZZ = settings(max_examples=60, deadline=None,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+FUZZ = fuzz(60)
 DECODER_ERRORS = (MalformedPacketError, UnsupportedSensorError)
 
 REAL = [r.payload for r in read_pcap(DATA_DIR / "vlp16-strongest-10hz.pcap")]
@@ -49,7 +49,7 @@ mutations = st.lists(st.tuples(st.integers(0, 1205), st.integers(0, 255)), max_s
 @given(st.lists(st.binary(min_size=0, max_size=1300), max_size=6))
 def test_random_bytes(payloads):
     try:
-        with warnings.catch_warnings():
+        with fuzz_input("packets (random bytes)"), warnings.catch_warnings():
             warnings.simplefilter("ignore", ProductIdWarning)
             dec = decode_data_packets(payloads)
     except DECODER_ERRORS:
@@ -63,7 +63,7 @@ def test_random_bytes(payloads):
 def test_mutated_real_packets(picks, model):
     payloads = [mutate(REAL[i], flips) for i, flips in picks]
     try:
-        with warnings.catch_warnings():
+        with fuzz_input("packets (mutated real)"), warnings.catch_warnings():
             warnings.simplefilter("ignore", ProductIdWarning)
             dec = decode_data_packets(payloads, model=model)
     except DECODER_ERRORS:
@@ -80,9 +80,10 @@ def test_mutated_stream_through_the_assembler(picks):
     payloads = [mutate(REAL[i], flips) for i, flips in picks]
     asm = ScanAssembler(model="VLP-16", reorder_window=4, decode_batch=8)
     scans = []
-    for p in payloads:
-        scans += asm.push(p)
-    scans += asm.finish()
+    with fuzz_input("packet stream through the assembler"):
+        for p in payloads:
+            scans += asm.push(p)
+        scans += asm.finish()
     s = asm.stats
     accepted = sum(s.rejected.values()) + s.duplicates + s.late
     assert s.packets + accepted == len(payloads)
@@ -95,7 +96,8 @@ def test_mutated_stream_through_the_assembler(picks):
 @given(st.binary(max_size=600))
 def test_random_position_packets(payload):
     try:
-        pos = decode_position_packet(payload)
+        with fuzz_input("position packets"):
+            pos = decode_position_packet(payload)
     except MalformedPacketError:
         assert len(payload) != 512
         return
@@ -130,8 +132,9 @@ def test_mutated_pcap_files(flips, keep):
         path = Path(tmp) / "fuzzed.pcap"
         path.write_bytes(data)
         try:
-            reader = read_pcap(path)
-            records = list(reader)
+            with fuzz_input("pcap file (mutated)"):
+                reader = read_pcap(path)
+                records = list(reader)
         except CaptureFormatError:
             return
     st_ = reader.stats
@@ -148,8 +151,9 @@ def test_random_files(data):
         path = Path(tmp) / "random.pcap"
         path.write_bytes(data)
         try:
-            reader = read_pcap(path)
-            records = list(reader)
+            with fuzz_input("pcap file (random bytes)"):
+                reader = read_pcap(path)
+                records = list(reader)
         except CaptureFormatError:
             return
     assert reader.stats.records == reader.stats.udp + reader.stats.n_skipped
