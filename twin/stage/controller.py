@@ -48,6 +48,11 @@ class StageResetError(StageError):
     """The controller reset (banner seen) while a reply was awaited."""
 
 
+class StageReplyError(StageError, ValueError):
+    """A reply that cannot be read (a status report garbled on the line). A ValueError too,
+    as `grbl.parse_status` raises, so callers that caught that still do."""
+
+
 class GrblError(StageError):
     """The controller refused a line with ``error:N``."""
 
@@ -382,7 +387,13 @@ class StageController:
                     f"{timeout:.1f} s; check the cable, or reset it"
                 )
             if line.startswith("<"):
-                return grbl.parse_status(line)
+                try:
+                    return grbl.parse_status(line)
+                except ValueError as exc:
+                    raise StageReplyError(
+                        f"the stage controller on {self.url!r} sent a status report that "
+                        f"cannot be read ({exc}); check the cable and the baud rate "
+                        f"{self.baudrate}") from None
             self._note(line)
 
     def _to_status(self, st: grbl.GrblStatus) -> StageStatus:

@@ -76,7 +76,7 @@ SOFT_RESET = b"\x18"
 _BANNER = re.compile(r"^Grbl\s+(\d+\.\d+\w*)")
 _ERROR = re.compile(r"^error:(\d+)$")
 _ALARM = re.compile(r"^ALARM:(\d+)$")
-_SETTING = re.compile(r"^\$(\d+)=(-?[\d.]+)")
+_SETTING = re.compile(r"^\$(\d+)=(-?(?:\d+\.?\d*|\.\d+))")  # a number, never a bare "."
 
 
 def error_meaning(code: int) -> str:
