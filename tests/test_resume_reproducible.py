@@ -15,14 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_sweep_resume import count
 
 REPO = Path(__file__).resolve().parents[1]
-PLAN = """
-name = "reproducible"
-scans = 5
-method = "paper"
-yaw_deg = [-2, 0, 2]
-"""
+#: 3 references x 5 scans: room for kills at random points, short to run.
+PLAN = 'name = "reproducible"\nscans = 5\nmethod = "paper"\nyaw_deg = [-2, 0, 2]\n'
 TOTAL = 15
 #: What a scan's result is (timings and wall-clock times differ between any two runs).
 COLUMNS = ("reference, scan, status, success, x_m, y_m, z_m, roll_rad, tilt_rad, yaw_rad, "
@@ -41,17 +38,6 @@ def sweep(*args: str, cwd: Path) -> subprocess.Popen:
 def finish(proc: subprocess.Popen) -> None:
     _out, err = proc.communicate(timeout=300)
     assert proc.returncode == 0, err
-
-
-def count(run: Path) -> int:
-    path = run / "run.sqlite"
-    if not path.exists():
-        return 0
-    try:
-        with sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5) as c:
-            return c.execute("SELECT COUNT(*) FROM scan").fetchone()[0]
-    except sqlite3.OperationalError:
-        return 0
 
 
 def results(run: Path) -> list[tuple]:
