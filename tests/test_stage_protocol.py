@@ -91,8 +91,12 @@ OK_TABLE = [
     ("G1F100", ["ok"]),
     ("G4P0", ["ok"]),
     ("$", [r"\[HLP:.*\]", "ok"]),
-    ("$I", [r"\[VER:1\.1h\.aimbench-[\d.]+:\]", r"\[OPT:H,7,256,AXES:XA\]", "ok"]),
-    ("$G", [re.escape("[GC:G0 G90 G21 G94 F0]"), "ok"]),
+    ("$I", [r"\[VER:1\.1h\.aimbench-[\d.]+:\]", re.escape("[OPT:,7,256]"),
+            re.escape("[AXS:2:XA]"), "ok"]),
+    ("$G", [re.escape("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]"), "ok"]),
+    ("$#", [*(re.escape(f"[G{n}:0.000,0.000,0.000]") for n in (54, 55, 56, 57, 58, 59, 28, 30, 92)),
+            re.escape("[TLO:0.000]"), re.escape("[PRB:0.000,0.000,0.000:0]"), "ok"]),
+    ("$N", [re.escape("$N0="), re.escape("$N1="), "ok"]),
     ("$X", ["ok"]),
     ("$110=600", ["ok"]),
     ("$27=1", ["ok"]),
@@ -107,20 +111,31 @@ ERROR_TABLE = [
     ("$1=256", 2),
     ("$100=0", 2),
     ("$Q", 3),
-    ("$J=X1F10", 3),
-    ("$C", 3),
-    ("$#", 3),
+    ("$J", 3),
+    ("$N0=G0X1", 3),
+    ("$J=X1", 22),
+    ("$J=F100", 26),
+    ("$J=G0X1F100", 16),
+    ("$J=X100.01F100", 15),
+    ("$J=A60.01F100", 15),
     ("$102=1", 3),
     ("F-1", 4),
     ("G4P-1", 4),
     ("$100=-400", 4),
     ("$0=2", 6),
     ("$111=2400", 12),
+    ("$111=1600", 12),
+    ("$110=3001", 12),
     ("G0X100.01", 15),
     ("G0A60.01", 15),
     ("G0X-0.01", 15),
     ("G0A-0.01", 15),
-    ("Y1", 20),
+    ("Z1", 20),
+    ("Y1A1", 25),
+    ("$130=5368709", 2),
+    ("$131=5368709", 2),
+    ("$2=8", 2),
+    ("$0=50", 12),
     ("M3", 20),
     ("T1", 20),
     ("G2X1", 20),
@@ -204,19 +219,20 @@ def test_homing_sets_zero(bench: Bench, link: RawLink) -> None:
     expect(link.send("$H", timeout=60), ["ok"])
     assert time.monotonic() - t < 30
     st = link.status()
-    assert st.state == "Idle" and st.mpos == (0.0, 0.0)
+    assert st.state == "Idle" and st.mpos == (0.0, 0.0, 0.0)
     if bench.hil is not None:
         p = bench.hil.positions()
         assert (p.x_steps, p.a_steps) == (0, 0)  # the switch model: homed zero == step 0
 
 
 def test_status_report_format(homed: RawLink) -> None:
-    assert re.fullmatch(r"<Idle\|MPos:0\.000,0\.000\|FS:0,0>", homed.status_line())
+    # Three values, X Y Z, as every Grbl 1.1 build reports: the rotary stage in Y, Z unused.
+    assert re.fullmatch(r"<Idle\|MPos:0\.000,0\.000,0\.000\|FS:0,0>", homed.status_line())
     expect(homed.send("G0A3"), ["ok"])
     time.sleep(0.05)
-    assert re.fullmatch(r"<Run\|MPos:0\.000,\d+\.\d{3}\|FS:0,0>", homed.status_line())
+    assert re.fullmatch(r"<Run\|MPos:0\.000,\d+\.\d{3},0\.000\|FS:0,0>", homed.status_line())
     homed.wait_state("Idle")
-    assert homed.status().mpos == (0.0, 3.0)
+    assert homed.status().mpos == (0.0, 3.0, 0.0)
 
 
 def test_move_and_g1_feed(bench: Bench, homed: RawLink) -> None:
@@ -226,7 +242,7 @@ def test_move_and_g1_feed(bench: Bench, homed: RawLink) -> None:
     assert 0.4 < time.monotonic() - t < 2.0
     expect(homed.send("G91G0X0.5A-0"), ["ok"])
     homed.wait_state("Idle")
-    assert homed.status().mpos == (1.5, 0.0)
+    assert homed.status().mpos == (1.5, 0.0, 0.0)
     if bench.hil is not None:
         assert bench.hil.positions().x_steps == 600
 
@@ -236,7 +252,7 @@ def test_not_idle_errors(homed: RawLink) -> None:
     for cmd in ("$$", "$H", "$X", "$110=600", "$RST=$"):
         expect(homed.send(cmd), ["error:8"])
     homed.wait_state("Idle")
-    assert homed.status().mpos == (0.0, 6.0)
+    assert homed.status().mpos == (0.0, 6.0, 0.0)
 
 
 def test_queue_full_holds_replies(bench: Bench, homed: RawLink) -> None:
@@ -246,7 +262,7 @@ def test_queue_full_holds_replies(bench: Bench, homed: RawLink) -> None:
         expect(homed.send("G91G0A0.5", timeout=5), ["ok"])
     assert time.monotonic() - t > 0.3, "the 8th move's ok should wait for a free slot"
     homed.wait_state("Idle")
-    assert homed.status().mpos == (0.0, 5.0)
+    assert homed.status().mpos == (0.0, 5.0, 0.0)
     if bench.hil is not None:
         assert bench.hil.positions().a_steps == 5 * STEPS_PER_DEG
 
@@ -269,7 +285,7 @@ def test_feed_hold_and_resume(bench: Bench, homed: RawLink) -> None:
     assert 0.0 < held[1] < 8.0
     homed.write(grbl.CYCLE_START)
     homed.wait_state("Idle", timeout=5)
-    assert homed.status().mpos == (0.0, 8.0)
+    assert homed.status().mpos == (0.0, 8.0, 0.0)
     if bench.hil is not None:
         assert bench.hil.positions().a_steps == 8 * STEPS_PER_DEG
 
@@ -278,7 +294,7 @@ def test_reset_while_idle_keeps_position(homed: RawLink) -> None:
     expect(homed.send("G0X0.25"), ["ok"])
     homed.wait_state("Idle")
     expect(homed.reset(), [BANNER])
-    assert homed.status().state == "Idle" and homed.status().mpos == (0.25, 0.0)
+    assert homed.status().state == "Idle" and homed.status().mpos == (0.25, 0.0, 0.0)
 
 
 def test_reset_during_move_alarm_3(bench: Bench, homed: RawLink) -> None:
@@ -325,7 +341,7 @@ def test_soft_limit_refuses_and_never_moves(bench: Bench, homed: RawLink) -> Non
     assert homed.status().state == "Idle"
     expect(homed.send("G91G0X-1A-1"), ["ok"])  # exactly onto the end of travel is allowed
     homed.wait_state("Idle")
-    assert homed.status().mpos == (0.0, 0.0)
+    assert homed.status().mpos == (0.0, 0.0, 0.0)
 
 
 def test_hard_limit_alarm_1(bench: Bench, homed: RawLink) -> None:
@@ -336,7 +352,7 @@ def test_hard_limit_alarm_1(bench: Bench, homed: RawLink) -> None:
         lines = ([first] if first else []) + homed.drain(quiet=0.3, limit=5)
         expect(lines, ["ALARM:1", UNLOCK_MSG])
         st = homed.status()
-        assert st.state == "Alarm" and st.pins == "X"
+        assert st.state == "Alarm" and st.pins == "X"  # the X slot's switch
         if bench.hil is not None:
             # Stopped dead at the first step past the switch's trip point.
             assert bench.hil.positions().x_steps == -1 * STEPS_PER_MM - 1
@@ -402,7 +418,7 @@ def test_garbage_flood(bench: Bench, homed: RawLink) -> None:
     expect(homed.send("$I")[-1:], ["ok"])
     expect(homed.send("G91G0X0.5"), ["ok"])
     homed.wait_state("Idle")
-    assert homed.status().mpos == (0.5, 0.0)
+    assert homed.status().mpos == (0.5, 0.0, 0.0)
 
 
 def test_garbage_flood_with_realtime_bytes(bench: Bench, homed: RawLink) -> None:
@@ -420,3 +436,78 @@ def test_garbage_flood_with_realtime_bytes(bench: Bench, homed: RawLink) -> None
     expect(homed.send("G90G0A0.25"), ["ok"])
     homed.wait_state("Idle")
     assert homed.status().mpos[1] == 0.25
+
+
+# ---- Grbl 1.1 queries, check mode, jogging, exact step rounding -------------------------------
+
+def test_targets_round_to_steps_exactly(bench: Bench, homed: RawLink) -> None:
+    # Parsed in single precision, 60.000624 deg (48000.4992 steps) became 48000.5 and was refused
+    # as beyond the 60 deg travel; 65.818749 mm (26327.4996 steps) arrived a step off.
+    expect(homed.send("G0X65.818749A60.000624", timeout=5), ["ok"])
+    st = homed.wait_state("Idle", timeout=20)
+    assert st.mpos == (65.818, 60.0, 0.0)  # 26327 steps = 65.8175 mm, printed half away from 0
+    if bench.hil is not None:
+        p = bench.hil.positions()
+        assert (p.x_steps, p.a_steps) == (26327, 48000)
+    expect(homed.send("G0A60.000625"), ["error:15"])  # 48000.5 steps: half a step beyond
+
+
+def test_rotary_axis_answers_to_its_slot_letter(bench: Bench, homed: RawLink) -> None:
+    # A sender that knows only X, Y, Z sees the rotary stage as Y and may drive it as Y.
+    expect(homed.send("G91G0Y0.5"), ["ok"])
+    assert homed.wait_state("Idle").mpos == (0.0, 0.5, 0.0)
+    if bench.hil is not None:
+        assert bench.hil.positions().a_steps == STEPS_PER_DEG // 2
+
+
+def test_check_mode_checks_without_moving(bench: Bench, homed: RawLink) -> None:
+    before = bench.pulses()
+    expect(homed.send("$C"), [re.escape("[MSG:Enabled]"), "ok"])
+    assert homed.status().state == "Check"
+    expect(homed.send("G0X10A5"), ["ok"])
+    expect(homed.send("G91G0X95"), ["error:15"])   # 105 mm: the parser's position counts
+    expect(homed.send("G4P5"), ["ok"])              # no dwell in check mode
+    expect(homed.send("$H"), ["error:8"])
+    expect(homed.send("$J=X1F100"), ["error:8"])
+    assert homed.status().mpos == (0.0, 0.0, 0.0) and bench.pulses() == before
+    # Leaving check mode resets, as Grbl does: the reply, then the banner.
+    homed.write(b"$C\n")
+    lines = homed.wait_banner()
+    expect(lines, [re.escape("[MSG:Disabled]"), "ok", BANNER])
+    st = homed.status()
+    assert st.state == "Idle" and st.mpos == (0.0, 0.0, 0.0)
+    expect(homed.send("G91G0X1"), ["ok"])  # from the machine's position, not the parser's
+    assert homed.wait_state("Idle").mpos == (1.0, 0.0, 0.0)
+    assert bench.pulses() != before
+
+
+def test_jog_moves_and_keeps_the_modal_state(bench: Bench, homed: RawLink) -> None:
+    expect(homed.send("$J=G91X0.5A0.25F300"), ["ok"])
+    assert homed.status().state == "Jog"
+    expect(homed.send("G0X1"), ["error:9"])  # G-code is locked while jogging, as in Grbl
+    homed.wait_state("Idle")
+    assert homed.status().mpos == (0.5, 0.25, 0.0)
+    expect(homed.send("$G"), [re.escape("[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]"), "ok"])
+    expect(homed.send("$J=X1A1F600"), ["ok"])  # absolute: the parser's G90
+    assert homed.wait_state("Idle").mpos == (1.0, 1.0, 0.0)
+
+
+def test_jog_cancel_stops_and_keeps_the_position(bench: Bench, homed: RawLink) -> None:
+    expect(homed.send("$J=G91A20F1200"), ["ok"])   # 20 deg at 20 deg/s
+    expect(homed.send("$J=G91A20F1200"), ["ok"])   # queued behind it
+    time.sleep(0.4)
+    homed.write(grbl.JOG_CANCEL)
+    st = homed.wait_state("Idle", timeout=3)
+    assert 0.0 < st.mpos[1] < 20.0, st
+    time.sleep(0.3)
+    if bench.hil is not None:  # stopped for good, and the firmware counted every step it made
+        p = bench.hil.positions()
+        assert round(st.mpos[1] * STEPS_PER_DEG) == p.a_steps
+        time.sleep(0.2)
+        assert bench.hil.positions().pulses == p.pulses
+    # A feed hold while jogging cancels the jog as well.
+    expect(homed.send("$J=G91A5F1200"), ["ok"])
+    time.sleep(0.1)
+    homed.write(grbl.FEED_HOLD)
+    st = homed.wait_state("Idle", timeout=3)
+    assert homed.status().state == "Idle"

@@ -17,8 +17,8 @@
  * end open (so a host opening the port cannot be seen) and uses a fixed path, and free-running
  * it is ~4x faster than real time, which breaks every host-side timeout.
  *
- * Shared memory file (little-endian, 128 bytes), a seqlock: read `seq`, the fields, `seq` again;
- * retry if it changed or is odd.
+ * Shared memory file (little-endian, 192 bytes), a seqlock: read `seq`, the fields, `seq` again;
+ * retry if it changed or is odd. Bytes 0..175 are the harness's; the host writes only 176.
  *   0  char[8]   magic "AIMBHIL1"
  *   8  uint32    seq
  *  12  uint32    resets          MCU resets so far (power-up counts as none)
@@ -32,7 +32,13 @@
  *  96  int64[2]  trip_max        ... or steps > trip_max
  * 112  uint64    last_rx_cycle  cycle at which the host's latest byte entered the UART
  * 120  uint64    rx_bytes       bytes from the host fed to the UART so far
- * 128            (size)
+ * 128  uint64    idle_cycles    cycles the MCU spent asleep (idle mode): 1 - idle/cycle = CPU load
+ * 136  int64[2]  steps_min      lowest position of each axis since the last mark ...
+ * 152  int64[2]  steps_max      ... and highest: where the stages really went, between polls
+ * 168  uint32    mark_ack       the last mark request the extremes were reset for
+ * 172  uint32    (padding)
+ * 176  uint32    mark_request   written by the host: a new value resets the extremes to here
+ * 192            (size)
  */
 #define _GNU_SOURCE
 #include <errno.h>
@@ -61,7 +67,7 @@
 
 #define N_AXIS 2
 #define FREQ 16000000UL
-#define SHM_SIZE 128
+#define SHM_SIZE 192
 
 struct shm_layout {
   char magic[8];
@@ -77,7 +83,16 @@ struct shm_layout {
   int64_t trip_max[N_AXIS];
   uint64_t last_rx_cycle;
   uint64_t rx_bytes;
+  uint64_t idle_cycles;
+  int64_t steps_min[N_AXIS];
+  int64_t steps_max[N_AXIS];
+  uint32_t mark_ack;
+  uint32_t pad;
+  uint32_t mark_request; /* the host's: never copied from `local` */
+  uint32_t pad2[3];
 };
+
+_Static_assert(sizeof(struct shm_layout) == SHM_SIZE, "the shared-memory layout above");
 
 static avr_t *avr;
 static int master_fd = -1;
@@ -108,7 +123,8 @@ static void publish(void) {
   local.cycle = now_cycle();
   __atomic_store_n(&shared->seq, shared->seq + 1, __ATOMIC_RELEASE); /* odd: writing */
   __atomic_thread_fence(__ATOMIC_SEQ_CST);
-  memcpy(&shared->resets, &local.resets, sizeof(local) - offsetof(struct shm_layout, resets));
+  memcpy(&shared->resets, &local.resets,
+         offsetof(struct shm_layout, mark_request) - offsetof(struct shm_layout, resets));
   __atomic_thread_fence(__ATOMIC_SEQ_CST);
   __atomic_store_n(&shared->seq, shared->seq + 1, __ATOMIC_RELEASE); /* even: stable */
 }
@@ -135,6 +151,8 @@ static void on_step(struct avr_irq_t *irq, uint32_t value, void *param) {
   step_level[k] = value ? 1 : 0;
   if (!rising) return;
   local.steps[k] += dir_level[k] ? -1 : 1; /* DIR high = negative (pins.h, $3 = 0) */
+  if (local.steps[k] < local.steps_min[k]) local.steps_min[k] = local.steps[k];
+  if (local.steps[k] > local.steps_max[k]) local.steps_max[k] = local.steps[k];
   local.pulses[k]++;
   local.last_step_cycle[k] = now_cycle();
   drive_limits(0); /* synchronously: the firmware reads the switch right after its step */
@@ -200,7 +218,16 @@ static void mcu_reset(void) {
  * them, with the OS's oversleep each time. The pacing below keeps real time already, so skip. */
 static void sleep_skip(avr_t *a, avr_cycle_count_t how_long) {
   (void)a;
-  (void)how_long;
+  local.idle_cycles += how_long + 1; /* simavr adds 1 + how_long to the clock for a sleep */
+}
+
+/* The host asked for a new window of extremes: start it at the present position. */
+static void check_mark(void) {
+  if (!shared) return;
+  uint32_t req = __atomic_load_n(&shared->mark_request, __ATOMIC_ACQUIRE);
+  if (req == local.mark_ack) return;
+  for (int k = 0; k < N_AXIS; k++) local.steps_min[k] = local.steps_max[k] = local.steps[k];
+  local.mark_ack = req;
 }
 
 static void on_signal(int sig) {
@@ -316,6 +343,7 @@ int main(int argc, char **argv) {
     memcpy(shared->magic, "AIMBHIL1", 8);
   }
   local.frequency = FREQ;
+  for (int k = 0; k < N_AXIS; k++) local.steps_min[k] = local.steps_max[k] = local.steps[k];
 
   for (int k = 0; k < N_AXIS; k++) {
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ(STEP_PORT_LETTER), kStepBit[k]),
@@ -415,6 +443,7 @@ int main(int argc, char **argv) {
       in_len -= fed;
     }
 
+    check_mark();
     publish();
 
     /* Pace to real time: sleep while the simulation is ahead of the wall clock. If it falls far

@@ -13,6 +13,12 @@
 #define AXIS_A 1
 // Axis letters on the wire: X the linear stage (mm), A the rotary stage (deg).
 #define AXIS_LETTERS "XA"
+// Status reports and $# carry three values, X Y Z, as every Grbl 1.1 build sends. The rotary stage
+// sits in the Y slot (grbl-Mega's second axis, whose pins it is wired to) and answers to Y as well
+// as A, so senders that know only X, Y and Z can drive it; Z is unused and reads 0.
+#define REPORT_SLOTS 3
+#define AXIS_A_SLOT_LETTER 'Y'
+#define REPORT_SLOT_LETTERS "XYZ"
 
 // 80 characters like Grbl: longer lines are rejected whole with error:11.
 #define LINE_BUFFER_SIZE 80
@@ -47,7 +53,14 @@
 // The stepper timer ticks at F_CPU/8 = 2 MHz; its 16-bit compare sets the slowest rate.
 #define STEP_TIMER_HZ 2000000UL
 #define MIN_STEP_RATE 31.0f              // steps/s: 2 MHz / 65535
-#define MAX_STEP_RATE 30000.0f           // steps/s: the ISR's budget on a 16 MHz AVR ($11x check)
+// The fastest step rate the firmware accepts for an axis ($10x x $11x, $24/$25 x $10x, G1 F):
+// measured in simavr (benchmarks/bench_stage.py, PROTOCOL.md "Step rate"): at 30 kHz the step
+// interrupt alone took 85 % of the CPU, the acceleration tick could no longer finish within its
+// millisecond and the main loop starved. At this limit a combined move keeps the CPU below 75 %.
+#define MAX_STEP_RATE 20000.0f
+// The step interrupt's own duration (us) beside the pulse: the shortest step period is the pulse
+// plus this (ticks_for); $0 is refused when it would make MAX_STEP_RATE unreachable.
+#define STEP_ISR_US 30
 #define ACCEL_TICK_HZ 1000               // velocity updates per second (Timer3)
 
 #endif

@@ -18,9 +18,9 @@ static int8_t run_block(uint8_t axis, float distance, float rate, BlockMode mode
   s.soft_limits = 0;  // homing starts from an unknown position
   int32_t from[N_AXIS];
   stepper_get_position(from);
-  float target[N_AXIS];
-  for (uint8_t k = 0; k < N_AXIS; k++) target[k] = static_cast<float>(from[k]) / s.steps_per_unit[k];
-  target[axis] += distance;
+  int32_t target[N_AXIS];
+  for (uint8_t k = 0; k < N_AXIS; k++) target[k] = from[k];
+  target[axis] += units_to_steps(s, axis, distance);
   Block b;
   bool zero;
   if (plan_move(s, from, target, rate, b, &zero) != STATUS_OK || zero) return 0;

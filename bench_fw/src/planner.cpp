@@ -7,28 +7,62 @@ int32_t units_to_steps(const Settings &s, uint8_t axis, float units) {
   return static_cast<int32_t>(lroundf(units * s.steps_per_unit[axis]));
 }
 
-void travel_range(const Settings &s, uint8_t axis, float *lo, float *hi) {
-  if (s.homing_dir_mask & (1 << axis)) {
-    *lo = 0.0f;
-    *hi = s.max_travel[axis];
+static int64_t pow10_64(uint8_t n) {
+  int64_t p = 1;
+  while (n--) p *= 10;
+  return p;
+}
+
+// round(num / den) for den > 0, half away from zero.
+static int64_t div_round(int64_t num, int64_t den) {
+  return num >= 0 ? (num + den / 2) / den : -((-num + den / 2) / den);
+}
+
+bool decimal_to_steps(const Settings &s, uint8_t axis, const Decimal &units, int32_t *steps) {
+  const int64_t kLimit = 1L << 30;
+  // steps = mantissa x 10^exponent x spu_milli / 1000
+  int64_t num = static_cast<int64_t>(units.mantissa) * s.spu_milli[axis];
+  int8_t shift = static_cast<int8_t>(units.exponent - 3);
+  int64_t v;
+  if (shift >= 0) {
+    // Multiplying only grows |num|: refuse what is already out of range (no int64 overflow).
+    v = num;
+    for (int8_t e = 0; e < shift; e++) {
+      if (v > kLimit || v < -kLimit) return false;
+      v *= 10;
+    }
   } else {
-    *lo = -s.max_travel[axis];
-    *hi = 0.0f;
+    v = div_round(num, pow10_64(static_cast<uint8_t>(-shift)));
+  }
+  if (v > kLimit || v < -kLimit) return false;
+  *steps = static_cast<int32_t>(v);
+  return true;
+}
+
+int32_t steps_to_milli(const Settings &s, uint8_t axis, int32_t steps) {
+  return static_cast<int32_t>(div_round(static_cast<int64_t>(steps) * 1000000, s.spu_milli[axis]));
+}
+
+void travel_range(const Settings &s, uint8_t axis, int32_t *lo, int32_t *hi) {
+  if (s.homing_dir_mask & (1 << axis)) {
+    *lo = 0;
+    *hi = s.travel_steps[axis];
+  } else {
+    *lo = -s.travel_steps[axis];
+    *hi = 0;
   }
 }
 
-bool within_travel(const Settings &s, const float target[N_AXIS]) {
+bool within_travel(const Settings &s, const int32_t target[N_AXIS]) {
   for (uint8_t k = 0; k < N_AXIS; k++) {
-    float lo, hi;
+    int32_t lo, hi;
     travel_range(s, k, &lo, &hi);
-    // Compare in steps so that a target that rounds onto the end of travel is allowed.
-    int32_t t = units_to_steps(s, k, target[k]);
-    if (t < units_to_steps(s, k, lo) || t > units_to_steps(s, k, hi)) return false;
+    if (target[k] < lo || target[k] > hi) return false;
   }
   return true;
 }
 
-Status plan_move(const Settings &s, const int32_t from[N_AXIS], const float target[N_AXIS],
+Status plan_move(const Settings &s, const int32_t from[N_AXIS], const int32_t target[N_AXIS],
                  float feed, Block &out, bool *zero_length) {
   *zero_length = false;
   if (s.soft_limits && !within_travel(s, target)) return STATUS_TRAVEL_EXCEEDED;
@@ -40,7 +74,7 @@ Status plan_move(const Settings &s, const int32_t from[N_AXIS], const float targ
   float delta[N_AXIS];
   float length_sq = 0.0f;
   for (uint8_t k = 0; k < N_AXIS; k++) {
-    int32_t d = units_to_steps(s, k, target[k]) - from[k];
+    int32_t d = target[k] - from[k];
     if (d < 0) b.dir_negative_mask |= static_cast<uint8_t>(1 << k);
     b.steps[k] = static_cast<uint32_t>(d < 0 ? -d : d);
     if (b.steps[k] > b.step_event_count) b.step_event_count = b.steps[k];

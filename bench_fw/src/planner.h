@@ -9,6 +9,7 @@
 #include <stdint.h>
 #include "codes.h"
 #include "config.h"
+#include "protocol.h"
 #include "settings.h"
 
 // Homing blocks stop on a limit input instead of running to the end.
@@ -29,20 +30,26 @@ struct Block {
   uint8_t homing_axis;         // for the homing modes
 };
 
-// Plans a move from `from` (steps) to `target` (machine units). feed_units_per_min == 0 means
-// rapid (G0): each axis' max rate. The speed and acceleration along the path are the largest
-// that keep every axis within its own $11x and $12x. Returns STATUS_TRAVEL_EXCEEDED if soft limits
-// are on and the target lies outside the travel (then `out` is untouched: no move).
-// *zero_length is set when the target rounds to the current position (nothing to queue).
-Status plan_move(const Settings &s, const int32_t from[N_AXIS], const float target[N_AXIS],
+// Plans a move from `from` to `target` (both in steps). feed_units_per_min == 0 means rapid (G0):
+// each axis' max rate. The speed and acceleration along the path are the largest that keep every
+// axis within its own $11x and $12x. Returns STATUS_TRAVEL_EXCEEDED if soft limits are on and the
+// target lies outside the travel (then `out` is untouched: no move).
+// *zero_length is set when the target is the current position (nothing to queue).
+Status plan_move(const Settings &s, const int32_t from[N_AXIS], const int32_t target[N_AXIS],
                  float feed_units_per_min, Block &out, bool *zero_length);
 
-// The machine-unit travel of an axis: [0, travel] when it homes toward min, [-travel, 0] else.
-void travel_range(const Settings &s, uint8_t axis, float *lo, float *hi);
-bool within_travel(const Settings &s, const float target[N_AXIS]);
+// The travel of an axis in steps: [0, $13x] when it homes toward min, [-$13x, 0] otherwise.
+void travel_range(const Settings &s, uint8_t axis, int32_t *lo, int32_t *hi);
+bool within_travel(const Settings &s, const int32_t target[N_AXIS]);
 
-// Rounds units to steps, the one conversion used everywhere.
+// A number as written (mantissa x 10^exponent) in steps of `axis`, computed in integers: the
+// nearest step, half a step away from zero. False if it lies beyond +-2^30 steps.
+bool decimal_to_steps(const Settings &s, uint8_t axis, const Decimal &units, int32_t *steps);
+// The same from a float (homing distances, tests): lroundf(units x steps/unit).
 int32_t units_to_steps(const Settings &s, uint8_t axis, float units);
+// A position in thousandths of a unit, for reports: round(steps / steps-per-unit x 1000), in
+// integers (half away from zero), so MPos shows each step exactly as far as 3 decimals can.
+int32_t steps_to_milli(const Settings &s, uint8_t axis, int32_t steps);
 
 // Time (s) of a trapezoidal profile over `distance` at `rate` and `accel`, starting and ending at
 // rest: the reference the benchmark and the tests compare the real moves against.

@@ -12,6 +12,7 @@
 #define RT_FEED_HOLD '!'
 #define RT_CYCLE_START '~'
 #define RT_RESET 0x18
+#define RT_JOG_CANCEL 0x85  // Grbl 1.1's extended realtime byte
 
 enum LineEvent : uint8_t { LINE_NONE = 0, LINE_READY, LINE_OVERFLOW };
 
@@ -39,6 +40,14 @@ class LineCollector {
 
 enum MotionMode : uint8_t { MOTION_RAPID = 0, MOTION_LINEAR = 1 };
 
+// A number exactly as written: mantissa x 10^exponent (at most 9 significant digits kept). Axis
+// words stay in this form until they are turned into steps with integer arithmetic
+// (decimal_to_steps), so that single precision never moves a target by a step.
+struct Decimal {
+  int32_t mantissa;
+  int8_t exponent;
+};
+
 // Modal state kept between lines (G0/G1, G90/G91, F).
 struct ParserState {
   MotionMode motion;
@@ -60,6 +69,10 @@ enum CommandKind : uint8_t {
   CMD_SYS_INFO,        // $I
   CMD_SYS_STATE,       // $G
   CMD_SYS_RESTORE,     // $RST=$ / $RST=*
+  CMD_SYS_PARAMS,      // $#
+  CMD_SYS_STARTUP,     // $N (list the startup lines; there are none)
+  CMD_SYS_CHECK,       // $C (toggle check mode)
+  CMD_JOG,             // $J=<G91/G90, axis words, F>
 };
 
 struct Command {
@@ -70,6 +83,7 @@ struct Command {
   float feed;                 // units/min (G1), 0 for G0
   bool has_axis[N_AXIS];
   float axis[N_AXIS];         // units as written (absolute or incremental per `absolute`)
+  Decimal axis_dec[N_AXIS];   // the same, exactly as written
   // CMD_DWELL
   float dwell_s;
   // CMD_SYS_SET
@@ -85,5 +99,7 @@ Status parse_line(const char *line, const ParserState &st, Command &out);
 // Reads a decimal number (optional sign, digits, optional point; no exponent) at line[*i].
 // Advances *i past it. Returns false for a malformed number.
 bool read_float(const char *line, uint8_t *i, float *out);
+bool read_decimal(const char *line, uint8_t *i, Decimal *out);
+float decimal_to_float(const Decimal &d);
 
 #endif

@@ -36,6 +36,7 @@ ISR(USART0_RX_vect) {
     case RT_STATUS_REPORT: rt_exec |= EXEC_STATUS_REPORT; return;
     case RT_FEED_HOLD: rt_exec |= EXEC_FEED_HOLD; return;
     case RT_CYCLE_START: rt_exec |= EXEC_CYCLE_START; return;
+    case RT_JOG_CANCEL: rt_exec |= EXEC_JOG_CANCEL; return;
     case RT_RESET:
       // Stop the motors now, from the interrupt: the main loop may be busy for a while.
       if (stepper_abort()) rt_exec |= EXEC_RESET_IN_MOTION;

@@ -31,6 +31,7 @@ void serial_print_float3(float v);
 #define EXEC_CYCLE_START 0x04
 #define EXEC_RESET 0x08
 #define EXEC_RESET_IN_MOTION 0x10
+#define EXEC_JOG_CANCEL 0x20
 extern volatile uint8_t rt_exec;
 
 #endif

@@ -1,6 +1,7 @@
 // Settings: defaults, validation of $N=value, and the EEPROM image (struct + 8-bit checksum).
 #include "settings.h"
 
+#include <math.h>
 #include <string.h>
 
 Settings settings;
@@ -40,6 +41,20 @@ void settings_defaults(Settings &s) {
   s.accel[AXIS_A] = DEFAULT_A_ACCEL;
   s.max_travel[AXIS_X] = DEFAULT_X_MAX_TRAVEL;
   s.max_travel[AXIS_A] = DEFAULT_A_MAX_TRAVEL;
+  settings_derive(s);
+}
+
+// Thousandths of `v` (v >= 0, at most SETTING_MAX_TRAVEL), rounded half up.
+static int32_t milli(float v) { return static_cast<int32_t>(lroundf(v * 1000.0f)); }
+
+void settings_derive(Settings &s) {
+  for (uint8_t k = 0; k < N_AXIS; k++) {
+    s.spu_milli[k] = milli(s.steps_per_unit[k]);
+    // travel (milli-units) x steps/unit (milli) / 10^6, in integers: the same rounding as a
+    // target written with three decimals (decimal_to_steps).
+    int64_t p = static_cast<int64_t>(milli(s.max_travel[k])) * s.spu_milli[k];
+    s.travel_steps[k] = static_cast<int32_t>((p + 500000) / 1000000);
+  }
 }
 
 static uint8_t checksum(const Settings &s) {
@@ -62,6 +77,7 @@ bool settings_load(Settings &s) {
   nvm_read(SETTINGS_EEPROM_ADDR + sizeof(Settings), &sum, 1);
   if (image.version == SETTINGS_VERSION && sum == checksum(image)) {
     s = image;
+    settings_derive(s);
     return true;
   }
   settings_defaults(s);
@@ -99,6 +115,41 @@ bool settings_get(const Settings &s, uint16_t n, float &v) {
   return false;
 }
 
+// The fastest step rate any axis of `s` asks for (steps/s), and the slowest.
+static float fastest_rate(const Settings &s, float *slowest) {
+  float hi = 0.0f, lo = 1e30f;
+  for (uint8_t k = 0; k < N_AXIS; k++) {
+    float r = s.steps_per_unit[k] * s.max_rate[k] / 60.0f;
+    hi = fmaxf(hi, r);
+    lo = fminf(lo, r);
+  }
+  *slowest = lo;
+  return hi;
+}
+
+// Checks that hold between settings: every axis' rate within what the step interrupt makes at
+// this pulse width, and every distance within the step counter's exact range.
+static Status check_combination(const Settings &s) {
+  float slowest;
+  float fastest = fastest_rate(s, &slowest);
+  float limit = fminf(MAX_STEP_RATE, 1e6f / static_cast<float>(s.pulse_us + STEP_ISR_US));
+  if (fastest > limit) return STATUS_MAX_STEP_RATE_EXCEEDED;
+  if (slowest < MIN_STEP_RATE) return STATUS_BAD_NUMBER_FORMAT;  // slower than the timer can
+  for (uint8_t k = 0; k < N_AXIS; k++) {
+    if (s.spu_milli[k] <= 0) return STATUS_BAD_NUMBER_FORMAT;
+    if (s.travel_steps[k] <= 0 || s.travel_steps[k] > SETTING_MAX_STEPS)
+      return STATUS_BAD_NUMBER_FORMAT;
+    if (s.homing_pulloff * s.steps_per_unit[k] > static_cast<float>(SETTING_MAX_STEPS))
+      return STATUS_BAD_NUMBER_FORMAT;
+  }
+  return STATUS_OK;
+}
+
+static bool in_range(float v, float lo, float hi) { return v >= lo && v <= hi; }
+
+// Rounds to the three decimals $$ prints, so what is listed is what is used.
+static float three_decimals(float v) { return static_cast<float>(lroundf(v * 1000.0f)) / 1000.0f; }
+
 Status settings_set(Settings &s, uint16_t n, float value) {
   float unused;
   if (!settings_get(s, n, unused)) return STATUS_INVALID_STATEMENT;
@@ -106,22 +157,34 @@ Status settings_set(Settings &s, uint16_t n, float value) {
   Settings next = s;  // validate on a copy: a refused value changes nothing
   if (n >= 100) {
     uint8_t axis = n % 10;
-    // Zero would divide by zero in the planner; such a value is out of range.
-    if (value <= 0.0f) return STATUS_BAD_NUMBER_FORMAT;
     switch (n / 10) {
-      case 10: next.steps_per_unit[axis] = value; break;
-      case 11: next.max_rate[axis] = value; break;
-      case 12: next.accel[axis] = value; break;
-      case 13: next.max_travel[axis] = value; break;
+      case 10:
+        if (!in_range(value, SETTING_MIN_STEPS_PER_UNIT, SETTING_MAX_STEPS_PER_UNIT))
+          return STATUS_BAD_NUMBER_FORMAT;
+        next.steps_per_unit[axis] = three_decimals(value);
+        break;
+      case 11:
+        if (!in_range(value, 1e-3f, SETTING_MAX_RATE)) return STATUS_BAD_NUMBER_FORMAT;
+        next.max_rate[axis] = value;
+        break;
+      case 12:
+        if (!in_range(value, 1e-3f, SETTING_MAX_ACCEL)) return STATUS_BAD_NUMBER_FORMAT;
+        next.accel[axis] = value;
+        break;
+      case 13:
+        if (!in_range(value, 1e-3f, SETTING_MAX_TRAVEL)) return STATUS_BAD_NUMBER_FORMAT;
+        next.max_travel[axis] = three_decimals(value);
+        break;
     }
-    // Like Grbl: refuse a rate the step ISR cannot produce.
-    if (next.steps_per_unit[axis] * next.max_rate[axis] / 60.0f > MAX_STEP_RATE)
-      return STATUS_MAX_STEP_RATE_EXCEEDED;
   } else if (settings_is_integer(n)) {
+    if (value > 65535.0f) return STATUS_BAD_NUMBER_FORMAT;
     uint16_t iv = static_cast<uint16_t>(value);
-    if (value > 65535.0f || static_cast<float>(iv) != value) return STATUS_BAD_NUMBER_FORMAT;
+    if (static_cast<float>(iv) != value) return STATUS_BAD_NUMBER_FORMAT;
     if (n != 26 && iv > 255) return STATUS_BAD_NUMBER_FORMAT;
     uint8_t b = static_cast<uint8_t>(iv);
+    // Masks have a bit per report slot (X Y Z); switches are 0 or 1.
+    if ((n == 2 || n == 3 || n == 23) && iv > 7) return STATUS_BAD_NUMBER_FORMAT;
+    if ((n == 4 || n == 5 || (n >= 20 && n <= 22)) && iv > 1) return STATUS_BAD_NUMBER_FORMAT;
     bool flag = iv != 0;
     switch (n) {
       case 0:
@@ -148,11 +211,23 @@ Status settings_set(Settings &s, uint16_t n, float value) {
     }
   } else {
     switch (n) {
-      case 24: if (value <= 0.0f) return STATUS_BAD_NUMBER_FORMAT; next.homing_feed = value; break;
-      case 25: if (value <= 0.0f) return STATUS_BAD_NUMBER_FORMAT; next.homing_seek = value; break;
-      case 27: next.homing_pulloff = value; break;
+      case 24:
+        if (!in_range(value, 1e-3f, SETTING_MAX_RATE)) return STATUS_BAD_NUMBER_FORMAT;
+        next.homing_feed = value;
+        break;
+      case 25:
+        if (!in_range(value, 1e-3f, SETTING_MAX_RATE)) return STATUS_BAD_NUMBER_FORMAT;
+        next.homing_seek = value;
+        break;
+      case 27:
+        if (!in_range(value, 0.0f, SETTING_MAX_PULLOFF)) return STATUS_BAD_NUMBER_FORMAT;
+        next.homing_pulloff = value;
+        break;
     }
   }
+  settings_derive(next);
+  Status st = check_combination(next);
+  if (st != STATUS_OK) return st;
   s = next;
   settings_save(s);
   return STATUS_OK;

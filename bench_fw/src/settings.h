@@ -8,7 +8,7 @@
 #include "config.h"
 
 // Bumped whenever the layout changes, so an old EEPROM image is replaced by the defaults.
-#define SETTINGS_VERSION 3
+#define SETTINGS_VERSION 4
 #define SETTINGS_EEPROM_ADDR 0
 
 struct Settings {
@@ -31,7 +31,20 @@ struct Settings {
   float max_rate[N_AXIS];        // $110+ units/min
   float accel[N_AXIS];           // $120+ units/s^2
   float max_travel[N_AXIS];      // $130+ units
+  // Derived from the above (settings_derive), the integers every step decision uses:
+  int32_t spu_milli[N_AXIS];     // $10x in thousandths of a step per unit (exact: 3 decimals)
+  int32_t travel_steps[N_AXIS];  // $13x in steps, rounded like every target
 };
+
+// Limits of the values a setting may take (PROTOCOL.md lists them): beyond them a value would
+// overflow a step count or ask for a rate the step interrupt cannot make.
+#define SETTING_MAX_STEPS_PER_UNIT 10000.0f
+#define SETTING_MIN_STEPS_PER_UNIT 0.001f
+#define SETTING_MAX_RATE 1000000.0f      // units/min
+#define SETTING_MAX_ACCEL 1000000.0f     // units/s^2
+#define SETTING_MAX_TRAVEL 100000.0f     // units
+#define SETTING_MAX_PULLOFF 1000.0f      // units
+#define SETTING_MAX_STEPS 16777216L      // 2^24 steps: positions stay exact in single precision
 
 extern Settings settings;
 
@@ -43,6 +56,8 @@ void settings_save(const Settings &s);
 Status settings_set(Settings &s, uint16_t number, float value);
 // The value of setting N (false if there is no such setting).
 bool settings_get(const Settings &s, uint16_t number, float &value);
+// Fills the derived integers (spu_milli, travel_steps) from the float settings.
+void settings_derive(Settings &s);
 // Setting numbers in $$ order; returns how many.
 uint8_t settings_numbers(const uint16_t *&numbers);
 // True for settings printed as integers.

@@ -88,9 +88,9 @@ static uint16_t ticks_for(float r) {
   float t = static_cast<float>(STEP_TIMER_HZ) / r;
   if (t > 65535.0f) return 65535;
   // The step ISR waits for TCNT1 to pass the pulse width; the period must leave room for that
-  // and for the ISR itself (20 us), or the counter would wrap before it and the ISR never end.
-  float shortest = static_cast<float>(pulse_ticks) + 40.0f;
-  if (shortest < 60.0f) shortest = 60.0f;
+  // and for the ISR itself, or the counter would wrap before it and the ISR never end.
+  float shortest = static_cast<float>(pulse_ticks) +
+                   static_cast<float>(STEP_ISR_US * (STEP_TIMER_HZ / 1000000UL));
   if (t < shortest) return static_cast<uint16_t>(shortest);
   return static_cast<uint16_t>(t);
 }
@@ -112,22 +112,40 @@ static void timer_start(uint16_t first) {
   TCCR1B = _BV(WGM12) | _BV(CS11);  // clk/8 = 2 MHz
 }
 
+static uint8_t homing_mask = 0;            // limit bit of the current homing block's axis
+static uint8_t dir_negative = 0;           // the current block's dir_negative_mask
+
 // Makes the oldest queued block current (ISR context or interrupts off).
 static void load_block() {
   current = block_queue.peek();
   if (!current) return;
   events_done = 0;
   for (uint8_t k = 0; k < N_AXIS; k++) counter[k] = 0;
+  dir_negative = current->dir_negative_mask;
   uint8_t dir = 0;
   for (uint8_t k = 0; k < N_AXIS; k++)
-    if (current->dir_negative_mask & (1 << k)) dir |= kDirBit[k];
+    if (dir_negative & (1 << k)) dir |= kDirBit[k];
   PORTC = static_cast<uint8_t>((PORTC & ~DIR_MASK) | (dir ^ dir_invert_bits));
+  homing_mask = static_cast<uint8_t>(1 << current->homing_axis);
   rate = current->start_rate;
   ramp_origin = 0;
   interval_ticks = ticks_for(rate);
   stopped_by_switch = false;
   limit_prev = limits_read();
 }
+
+// One axis' Bresenham step: written out per axis (no loop, no variable shifts) because this
+// interrupt runs at up to MAX_STEP_RATE and its length sets that limit (PROTOCOL.md, Step rate).
+#define STEP_AXIS(k, bit)                                  \
+  do {                                                     \
+    counter[k] += b->steps[k];                             \
+    if (counter[k] >= n) {                                 \
+      counter[k] -= n;                                     \
+      bits |= kStepBit[k];                                 \
+      if (dir_negative & (bit)) position[k]--;             \
+      else position[k]++;                                  \
+    }                                                      \
+  } while (0)
 
 ISR(TIMER1_COMPA_vect) {
   Block *b = current;
@@ -137,30 +155,25 @@ ISR(TIMER1_COMPA_vect) {
   }
   uint32_t n = b->step_event_count;
   uint8_t bits = 0;
-  for (uint8_t k = 0; k < N_AXIS; k++) {
-    // Bresenham from 0: an axis' last step falls on the block's last event, with the dominant
-    // axis, so the axes finish in the same interrupt.
-    counter[k] += b->steps[k];
-    if (counter[k] >= n) {
-      counter[k] -= n;
-      bits |= kStepBit[k];
-      if (b->dir_negative_mask & (1 << k)) position[k]--;
-      else position[k]++;
-    }
-  }
+  // Bresenham from 0: an axis' last step falls on the block's last event, with the dominant
+  // axis, so the axes finish in the same interrupt.
+  STEP_AXIS(AXIS_X, 1 << AXIS_X);
+  STEP_AXIS(AXIS_A, 1 << AXIS_A);
   PORTA = static_cast<uint8_t>((PORTA & ~STEP_MASK) | (step_idle_bits ^ bits));
-  events_done++;
+  uint32_t done_events = events_done + 1;
+  events_done = done_events;
   uint8_t lim = limits_read();
   // Hold the pulse for $0 us: TCNT1 restarted at this compare match, so it times the pulse.
   while (TCNT1 < pulse_ticks) {
   }
   PORTA = static_cast<uint8_t>((PORTA & ~STEP_MASK) | step_idle_bits);
 
-  bool done = events_done >= n;
-  if (b->mode == BLOCK_STOP_ON_TRIGGER) {
-    if (lim & (1 << b->homing_axis)) { stopped_by_switch = true; done = true; }
-  } else if (b->mode == BLOCK_STOP_ON_RELEASE) {
-    if (!(lim & (1 << b->homing_axis))) { stopped_by_switch = true; done = true; }
+  bool done = done_events >= n;
+  BlockMode mode = b->mode;
+  if (mode == BLOCK_STOP_ON_TRIGGER) {
+    if (lim & homing_mask) { stopped_by_switch = true; done = true; }
+  } else if (mode == BLOCK_STOP_ON_RELEASE) {
+    if (!(lim & homing_mask)) { stopped_by_switch = true; done = true; }
   } else if (!homing && settings.hard_limits && (lim & ~limit_prev)) {
     // A switch closed during a move: stop dead (decelerating would drive further into it).
     alarm = ALARM_HARD_LIMIT;
@@ -187,14 +200,13 @@ ISR(TIMER1_COMPA_vect) {
 // every block at its last step exactly on the braking curve (a time-driven ramp drifts and
 // either crawls or arrives fast). s0 is where the current ramp started (0, or a resume).
 // A feed hold decelerates in time (there is no end point to brake for).
-// Interruptible (ISR_NOBLOCK) so the float arithmetic never delays a step pulse; it shares
-// `events_done` and `interval_ticks` with the step ISR under cli().
-ISR(TIMER3_COMPA_vect, ISR_NOBLOCK) {
-  static volatile bool busy = false;
-  if (busy || !running) return;
-  busy = true;
-  cli();
-  Block *b = current;
+// The float arithmetic runs with interrupts on, so it never delays a step pulse. Its own
+// interrupt is masked meanwhile: a tick that overran its millisecond (a loaded CPU) is taken
+// after it, never nested in it - nested ticks would pile frames on the stack until it overflowed.
+ISR(TIMER3_COMPA_vect) {
+  if (!running) return;
+  TIMSK3 = 0;
+  Block *b = current;  // a consistent snapshot: interrupts are still off here
   uint32_t done = events_done;
   uint32_t origin = ramp_origin;
   sei();
@@ -204,16 +216,10 @@ ISR(TIMER3_COMPA_vect, ISR_NOBLOCK) {
     float two_a = 2.0f * b->accel;
     float braking = v0sq + two_a * static_cast<float>(b->step_event_count - done);
     float r;
+    bool stop = false;
     if (hold == 1) {
       r = fminf(rate - b->accel / ACCEL_TICK_HZ, sqrtf(braking));
-      if (r <= start) {
-        cli();
-        timer_stop();
-        hold = 2;
-        sei();
-        busy = false;
-        return;
-      }
+      stop = r <= start;
     } else {
       float ramp = v0sq + two_a * static_cast<float>(done - origin);
       float nominal_sq = b->nominal_rate * b->nominal_rate;
@@ -223,12 +229,17 @@ ISR(TIMER3_COMPA_vect, ISR_NOBLOCK) {
     uint16_t t = ticks_for(r);
     cli();
     if (current == b) {  // the step ISR may have moved on to the next block meanwhile
-      rate = r;
-      interval_ticks = t;
+      if (stop) {
+        timer_stop();
+        hold = 2;
+      } else {
+        rate = r;
+        interval_ticks = t;
+      }
     }
-    sei();
   }
-  busy = false;
+  cli();
+  TIMSK3 = _BV(OCIE3A);
 }
 
 void stepper_wake() {

@@ -38,11 +38,25 @@ void protocol_execute_realtime() {
     stepper_hold();
     sys.state = STATE_HOLD;
   }
+  // Like Grbl: a jog cancel, or a feed hold while jogging, decelerates to a stop and drops the
+  // rest of the jogs; the position is kept (the motors never lost a step).
+  if ((rt & (EXEC_JOG_CANCEL | EXEC_FEED_HOLD)) && sys.state == STATE_JOG && !sys.jog_cancel) {
+    stepper_hold();
+    sys.jog_cancel = true;
+  }
+  if (sys.jog_cancel && (stepper_hold_complete() || !stepper_running())) {
+    stepper_abort();
+    sys.jog_cancel = false;
+    sys.state = STATE_IDLE;
+  }
   if ((rt & EXEC_CYCLE_START) && sys.state == STATE_HOLD) {
     stepper_resume();
     sys.state = STATE_RUN;
   }
-  if (sys.state == STATE_RUN && !stepper_busy()) sys.state = STATE_IDLE;
+  if ((sys.state == STATE_RUN || sys.state == STATE_JOG) && !stepper_busy()) {
+    sys.state = STATE_IDLE;
+    sys.jog_cancel = false;
+  }
   if (rt & EXEC_STATUS_REPORT) report_status();
 
   // $1: release the drivers after the steppers have been idle this long (255 = never).

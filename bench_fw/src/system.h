@@ -12,12 +12,16 @@ enum MachineState : uint8_t {
   STATE_HOLD,    // reported Hold:1 while decelerating, Hold:0 at rest
   STATE_HOME,
   STATE_ALARM,
+  STATE_JOG,     // a $J= jog is moving
+  STATE_CHECK,   // $C check mode: lines are checked, nothing moves
 };
 
 struct System {
   MachineState state;
   bool abort;       // Ctrl-X seen: unwind every wait and re-initialise
   uint8_t alarm;    // the alarm that put us in STATE_ALARM (0 = "homing required" at power-up)
+  bool jog_cancel;  // a jog is decelerating to be dropped (0x85, or a feed hold while jogging)
+  bool reset_after_reply;  // soft-reset once this line's reply is out ($C leaving check mode)
 };
 
 extern System sys;
@@ -33,6 +37,9 @@ void report_settings();
 void report_parser_state();
 void report_help();
 void report_info();
+void report_ngc_parameters();
+void report_startup_lines();
+void report_message(const char *progmem_text);
 void report_banner();
 void report_unlock_message();
 // Raises an alarm from the main loop: stops motion, prints ALARM:N, locks G-code.

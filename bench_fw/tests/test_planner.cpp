@@ -9,13 +9,28 @@ static Settings defaults() {
   return s;
 }
 
+// plan_move with a target in units (rounded by units_to_steps), as most cases read best.
+static Status plan_units(const Settings &s, const int32_t from[N_AXIS], const float units[N_AXIS],
+                         float feed, Block &b, bool *zero) {
+  int32_t target[N_AXIS];
+  for (uint8_t k = 0; k < N_AXIS; k++) target[k] = units_to_steps(s, k, units[k]);
+  return plan_move(s, from, target, feed, b, zero);
+}
+
+static Decimal dec(const char *text) {
+  Decimal d{0, 0};
+  uint8_t i = 0;
+  read_decimal(text, &i, &d);
+  return d;
+}
+
 TEST(planner_single_axis_rates) {
   Settings s = defaults();
   int32_t from[N_AXIS] = {0, 0};
   float target[N_AXIS] = {10.0f, 0.0f};
   Block b;
   bool zero;
-  CHECK_EQ(plan_move(s, from, target, 0.0f, b, &zero), STATUS_OK);
+  CHECK_EQ(plan_units(s, from, target, 0.0f, b, &zero), STATUS_OK);
   CHECK(!zero);
   CHECK_EQ(b.steps[AXIS_X], 4000);
   CHECK_EQ(b.steps[AXIS_A], 0);
@@ -25,9 +40,9 @@ TEST(planner_single_axis_rates) {
   CHECK_NEAR(b.accel, 50.0 * 400, 1.0);               // 20000 steps/s^2
   CHECK_NEAR(b.start_rate, std::sqrt(20000.0), 0.5);
   // G1 feed below the max rate wins; above it the max rate does.
-  CHECK_EQ(plan_move(s, from, target, 120.0f, b, &zero), STATUS_OK);
+  CHECK_EQ(plan_units(s, from, target, 120.0f, b, &zero), STATUS_OK);
   CHECK_NEAR(b.nominal_rate, 2.0 * 400, 0.5);
-  CHECK_EQ(plan_move(s, from, target, 5000.0f, b, &zero), STATUS_OK);
+  CHECK_EQ(plan_units(s, from, target, 5000.0f, b, &zero), STATUS_OK);
   CHECK_NEAR(b.nominal_rate, 4000.0, 0.5);
 }
 
@@ -37,7 +52,7 @@ TEST(planner_rotary_axis_and_direction) {
   float target[N_AXIS] = {0.0f, 20.0f};
   Block b;
   bool zero;
-  CHECK_EQ(plan_move(s, from, target, 0.0f, b, &zero), STATUS_OK);
+  CHECK_EQ(plan_units(s, from, target, 0.0f, b, &zero), STATUS_OK);
   CHECK_EQ(b.steps[AXIS_A], 8000);
   CHECK_EQ(b.dir_negative_mask, 1 << AXIS_A);
   CHECK_NEAR(b.nominal_rate, 20.0 * 800, 1.0);   // 16000 steps/s
@@ -51,7 +66,7 @@ TEST(planner_combined_move_respects_every_axis) {
   float target[N_AXIS] = {3.0f, 4.0f};
   Block b;
   bool zero;
-  CHECK_EQ(plan_move(s, from, target, 0.0f, b, &zero), STATUS_OK);
+  CHECK_EQ(plan_units(s, from, target, 0.0f, b, &zero), STATUS_OK);
   CHECK_EQ(b.steps[AXIS_X], 1200);
   CHECK_EQ(b.steps[AXIS_A], 3200);
   CHECK_EQ(b.step_event_count, 3200);
@@ -70,14 +85,50 @@ TEST(planner_rounding_and_zero_length) {
   float target[N_AXIS] = {0.0012f, 0.0f};   // 0.48 steps -> 0
   Block b;
   bool zero;
-  CHECK_EQ(plan_move(s, from, target, 0.0f, b, &zero), STATUS_OK);
+  CHECK_EQ(plan_units(s, from, target, 0.0f, b, &zero), STATUS_OK);
   CHECK(zero);
   target[0] = 0.0013f;   // 0.52 steps -> 1
-  CHECK_EQ(plan_move(s, from, target, 0.0f, b, &zero), STATUS_OK);
+  CHECK_EQ(plan_units(s, from, target, 0.0f, b, &zero), STATUS_OK);
   CHECK(!zero);
   CHECK_EQ(b.steps[AXIS_X], 1);
   CHECK_EQ(units_to_steps(s, AXIS_A, -12.3456f), -9876);
   CHECK_EQ(units_to_steps(s, AXIS_X, 50.0f), 20000);
+}
+
+TEST(decimal_to_steps_is_exact) {
+  Settings s = defaults();
+  int32_t v = 0;
+  // Single precision moved these by a step (issue: A60.000624 refused, X65.818749 one step off):
+  // 60.000624 x 800 = 48000.4992 and 65.818749 x 400 = 26327.4996 round down.
+  CHECK(decimal_to_steps(s, AXIS_A, dec("60.000624"), &v) && v == 48000);
+  CHECK(decimal_to_steps(s, AXIS_X, dec("65.818749"), &v) && v == 26327);
+  CHECK(decimal_to_steps(s, AXIS_X, dec("65.81875"), &v) && v == 26328);    // a tie: away from 0
+  CHECK(decimal_to_steps(s, AXIS_X, dec("-65.81875"), &v) && v == -26328);
+  CHECK(decimal_to_steps(s, AXIS_A, dec("-12.3456"), &v) && v == -9876);
+  CHECK(decimal_to_steps(s, AXIS_X, dec("0.00125"), &v) && v == 1);         // 0.5 step
+  CHECK(decimal_to_steps(s, AXIS_X, dec("0.0012"), &v) && v == 0);
+  CHECK(decimal_to_steps(s, AXIS_X, dec("123456789012"), &v) == false);    // beyond 2^30 steps
+  CHECK(decimal_to_steps(s, AXIS_X, dec("0"), &v) && v == 0);
+  // A fractional steps/unit is used to its three decimals: 78.74 x 10 = 787.4.
+  s.steps_per_unit[AXIS_X] = 78.74f;
+  settings_derive(s);
+  CHECK(decimal_to_steps(s, AXIS_X, dec("10"), &v) && v == 787);
+  // Reports: steps back to thousandths, exactly.
+  s = defaults();
+  CHECK_EQ(steps_to_milli(s, AXIS_X, 26327), 65818);   // 65.8175 -> 65.818 (half away)
+  CHECK_EQ(steps_to_milli(s, AXIS_X, -26327), -65818);
+  CHECK_EQ(steps_to_milli(s, AXIS_A, 48000), 60000);
+}
+
+TEST(planner_soft_limits_in_steps) {
+  Settings s = defaults();
+  int32_t from[N_AXIS] = {0, 0};
+  Block b;
+  bool zero;
+  int32_t end[N_AXIS] = {40000, 48000};   // exactly the ends of travel: allowed
+  CHECK_EQ(plan_move(s, from, end, 0.0f, b, &zero), STATUS_OK);
+  int32_t past[N_AXIS] = {40000, 48001};
+  CHECK_EQ(plan_move(s, from, past, 0.0f, b, &zero), STATUS_TRAVEL_EXCEEDED);
 }
 
 TEST(planner_soft_limits) {
@@ -87,22 +138,22 @@ TEST(planner_soft_limits) {
   b.step_event_count = 12345;
   bool zero;
   float inside[N_AXIS] = {100.0f, 60.0f};
-  CHECK_EQ(plan_move(s, from, inside, 0.0f, b, &zero), STATUS_OK);
+  CHECK_EQ(plan_units(s, from, inside, 0.0f, b, &zero), STATUS_OK);
   float over[N_AXIS] = {100.01f, 0.0f};
   Block untouched;
   untouched.step_event_count = 777;
-  CHECK_EQ(plan_move(s, from, over, 0.0f, untouched, &zero), STATUS_TRAVEL_EXCEEDED);
+  CHECK_EQ(plan_units(s, from, over, 0.0f, untouched, &zero), STATUS_TRAVEL_EXCEEDED);
   CHECK_EQ(untouched.step_event_count, 777);
   float under[N_AXIS] = {0.0f, -0.01f};
-  CHECK_EQ(plan_move(s, from, under, 0.0f, b, &zero), STATUS_TRAVEL_EXCEEDED);
+  CHECK_EQ(plan_units(s, from, under, 0.0f, b, &zero), STATUS_TRAVEL_EXCEEDED);
   // Homing toward max puts the travel at [-travel, 0].
   s.homing_dir_mask = 0;
   float neg[N_AXIS] = {-100.0f, -60.0f};
-  CHECK_EQ(plan_move(s, from, neg, 0.0f, b, &zero), STATUS_OK);
-  CHECK_EQ(plan_move(s, from, inside, 0.0f, b, &zero), STATUS_TRAVEL_EXCEEDED);
+  CHECK_EQ(plan_units(s, from, neg, 0.0f, b, &zero), STATUS_OK);
+  CHECK_EQ(plan_units(s, from, inside, 0.0f, b, &zero), STATUS_TRAVEL_EXCEEDED);
   // Soft limits off: anything goes.
   s.soft_limits = 0;
-  CHECK_EQ(plan_move(s, from, over, 0.0f, b, &zero), STATUS_OK);
+  CHECK_EQ(plan_units(s, from, over, 0.0f, b, &zero), STATUS_OK);
 }
 
 TEST(trapezoid_reference_time) {

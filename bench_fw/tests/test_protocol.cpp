@@ -121,7 +121,8 @@ TEST(parser_errors) {
       {"XA", STATUS_BAD_NUMBER_FORMAT},
       {"X", STATUS_BAD_NUMBER_FORMAT},
       {"G", STATUS_BAD_NUMBER_FORMAT},
-      {"Y1", STATUS_GCODE_UNSUPPORTED_COMMAND},     // not an axis of this machine
+      {"Z1", STATUS_GCODE_UNSUPPORTED_COMMAND},     // not an axis of this machine
+      {"Y1A1", STATUS_GCODE_WORD_REPEATED},         // Y is the rotary axis' report slot: A again
       {"M3", STATUS_GCODE_UNSUPPORTED_COMMAND},
       {"G2X1", STATUS_GCODE_UNSUPPORTED_COMMAND},
       {"G20", STATUS_GCODE_UNSUPPORTED_COMMAND},    // inches: no
@@ -142,6 +143,24 @@ TEST(parser_errors) {
     if (s != c.s) std::printf("  line %s\n", c.line);
     CHECK_EQ(s, c.s);
   }
+}
+
+TEST(parser_jog) {
+  // $J= takes G90/G91, G21, G94, axis words, F (required) and N, as Grbl's jog does, and never
+  // changes the modal state.
+  ParserState st = fresh();
+  Command c;
+  CHECK(parse("$J=G91X1.5Y-2F300", c, st) == STATUS_OK && c.kind == CMD_JOG);
+  CHECK(!c.absolute && c.feed == 300.0f && c.has_axis[AXIS_X] && c.has_axis[AXIS_A]);
+  CHECK(c.axis_dec[AXIS_X].mantissa == 15 && c.axis_dec[AXIS_X].exponent == -1);
+  CHECK(c.next.absolute && c.next.feed == 0.0f);  // G91 and F were the jog's only
+  CHECK(parse("$J=A3F100", c, st) == STATUS_OK && c.absolute);
+  CHECK_EQ(parse("$J=X1", c, st), STATUS_GCODE_UNDEFINED_FEED_RATE);
+  CHECK_EQ(parse("$J=F100", c, st), STATUS_GCODE_NO_AXIS_WORDS);
+  CHECK_EQ(parse("$J=G0X1F100", c, st), STATUS_INVALID_JOG_COMMAND);
+  CHECK_EQ(parse("$J=G4P1", c, st), STATUS_INVALID_JOG_COMMAND);
+  CHECK_EQ(parse("$J=M3X1F10", c, st), STATUS_INVALID_JOG_COMMAND);
+  CHECK_EQ(parse("$J=X1F-1", c, st), STATUS_NEGATIVE_VALUE);
 }
 
 TEST(parser_error_leaves_state) {
@@ -165,7 +184,11 @@ TEST(parser_system_commands) {
   CHECK(parse("$110=450.5", c, fresh()) == STATUS_OK && c.kind == CMD_SYS_SET);
   CHECK(c.setting == 110 && c.value == 450.5f);
   CHECK_EQ(parse("$Q", c, fresh()), STATUS_INVALID_STATEMENT);
-  CHECK_EQ(parse("$J=X1", c, fresh()), STATUS_INVALID_STATEMENT);   // jogging: not supported
+  CHECK(parse("$#", c, fresh()) == STATUS_OK && c.kind == CMD_SYS_PARAMS);
+  CHECK(parse("$N", c, fresh()) == STATUS_OK && c.kind == CMD_SYS_STARTUP);
+  CHECK(parse("$C", c, fresh()) == STATUS_OK && c.kind == CMD_SYS_CHECK);
+  CHECK_EQ(parse("$N0=G0X1", c, fresh()), STATUS_INVALID_STATEMENT);  // no startup lines
+  CHECK_EQ(parse("$J", c, fresh()), STATUS_INVALID_STATEMENT);
   CHECK_EQ(parse("$HX", c, fresh()), STATUS_INVALID_STATEMENT);
   CHECK_EQ(parse("$1", c, fresh()), STATUS_INVALID_STATEMENT);
   CHECK_EQ(parse("$1000=1", c, fresh()), STATUS_INVALID_STATEMENT);

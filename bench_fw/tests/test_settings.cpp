@@ -1,4 +1,6 @@
 // Settings: defaults equal the bench's fixed numbers, validation of $N=value, EEPROM round trip.
+#include <cstring>
+
 #include "check.h"
 #include "nvm_host.h"
 #include "settings.h"
@@ -48,9 +50,12 @@ TEST(settings_validation) {
   CHECK_EQ(settings_set(s, 0, 10.0f), STATUS_OK);
   CHECK_EQ(settings_set(s, 1, 256.0f), STATUS_BAD_NUMBER_FORMAT);
   CHECK_EQ(settings_set(s, 1, 1.5f), STATUS_BAD_NUMBER_FORMAT);
-  // 800 steps/deg * 2400 deg/min = 32 kHz: more than the ISR can make.
-  CHECK_EQ(settings_set(s, 111, 2400.0f), STATUS_MAX_STEP_RATE_EXCEEDED);
-  CHECK_EQ(settings_set(s, 101, 1600.0f), STATUS_MAX_STEP_RATE_EXCEEDED);
+  // 800 steps/deg * 1600 deg/min = 21.3 kHz: more than the ISR can make (MAX_STEP_RATE).
+  CHECK_EQ(settings_set(s, 111, 1600.0f), STATUS_MAX_STEP_RATE_EXCEEDED);
+  CHECK_EQ(settings_set(s, 101, 1100.0f), STATUS_MAX_STEP_RATE_EXCEEDED);
+  CHECK_EQ(settings_set(s, 111, 1500.0f), STATUS_OK);              // 20 kHz: the limit itself
+  CHECK_EQ(settings_set(s, 0, 50.0f), STATUS_MAX_STEP_RATE_EXCEEDED);  // 80 us a step: 12.5 kHz
+  CHECK_EQ(settings_set(s, 111, 1200.0f), STATUS_OK);
   float v;
   CHECK(settings_get(s, 111, v) && v == 1200.0f);   // refused: unchanged
   // Soft limits need homing; turning homing off turns soft limits off.
@@ -62,4 +67,49 @@ TEST(settings_validation) {
   CHECK_EQ(settings_set(s, 26, 300.0f), STATUS_OK);
   CHECK_EQ(settings_set(s, 27, 0.5f), STATUS_OK);
   CHECK_EQ(settings_set(s, 24, 0.0f), STATUS_BAD_NUMBER_FORMAT);
+}
+
+TEST(settings_ranges) {
+  // Every value that would overflow a step count, or that the hardware cannot do, is refused and
+  // changes nothing ($130=5368709 was accepted and then every move failed with error:15).
+  nvm_erase();
+  Settings s;
+  settings_defaults(s);
+  float v;
+  struct { uint16_t n; float value; Status s; } cases[] = {
+      {130, 5368709.0f, STATUS_BAD_NUMBER_FORMAT},   // 2.1e9 steps: beyond the step counter
+      {131, 1e7f, STATUS_BAD_NUMBER_FORMAT},
+      {130, 41943.05f, STATUS_BAD_NUMBER_FORMAT},    // 2^24 steps and a bit at 400 steps/mm
+      {130, 41943.0f, STATUS_OK},
+      {130, 100.0f, STATUS_OK},
+      {100, 20000.0f, STATUS_BAD_NUMBER_FORMAT},     // above 10000 steps/unit
+      {100, 0.0001f, STATUS_BAD_NUMBER_FORMAT},      // below 0.001 steps/unit
+      {110, 1.0f, STATUS_BAD_NUMBER_FORMAT},         // 6.7 steps/s: slower than the timer can
+      {120, 2e6f, STATUS_BAD_NUMBER_FORMAT},
+      {2, 8.0f, STATUS_BAD_NUMBER_FORMAT},           // masks: a bit per X Y Z slot
+      {3, 7.0f, STATUS_OK},
+      {3, 0.0f, STATUS_OK},
+      {4, 2.0f, STATUS_BAD_NUMBER_FORMAT},           // switches: 0 or 1
+      {21, 2.0f, STATUS_BAD_NUMBER_FORMAT},
+      {23, 9.0f, STATUS_BAD_NUMBER_FORMAT},
+      {24, 2e6f, STATUS_BAD_NUMBER_FORMAT},
+      {27, 5000.0f, STATUS_BAD_NUMBER_FORMAT},
+      {26, 65536.0f, STATUS_BAD_NUMBER_FORMAT},
+  };
+  for (auto &c : cases) {
+    Settings before = s;
+    Status got = settings_set(s, c.n, c.value);
+    if (got != c.s) std::printf("  $%u=%g\n", c.n, c.value);
+    CHECK_EQ(got, c.s);
+    if (got != STATUS_OK) CHECK(std::memcmp(&before, &s, sizeof(s)) == 0);
+  }
+  // A steps/unit that would push the travel past 2^24 steps is refused as well.
+  CHECK_EQ(settings_set(s, 130, 30000.0f), STATUS_OK);
+  CHECK_EQ(settings_set(s, 100, 600.0f), STATUS_BAD_NUMBER_FORMAT);
+  CHECK_EQ(settings_set(s, 130, 100.0f), STATUS_OK);
+  // Axis values keep the three decimals $$ prints, and the integers follow them.
+  CHECK_EQ(settings_set(s, 100, 78.7404f), STATUS_OK);
+  CHECK(settings_get(s, 100, v) && v == 78.74f);
+  CHECK_EQ(s.spu_milli[AXIS_X], 78740);
+  CHECK_EQ(s.travel_steps[AXIS_X], 7874);
 }

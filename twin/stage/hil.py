@@ -9,10 +9,12 @@ harness``) if needed, starts ``bench_fw/build/harness/bench_hil`` and gives
   pins, and the same in SI relative to the bench reference, so the twin can move its MuJoCo joints
   from the firmware's real step pulses.
 
-Channel from the harness to Python: a 128-byte shared-memory file (``mmap``), written by the
+Channel from the harness to Python: a 192-byte shared-memory file (``mmap``), written by the
 harness at every step pulse under a seqlock; the layout is documented at the top of
 bench_fw/harness/bench_hil.c and in bench_fw/PROTOCOL.md. Reading it costs no syscalls and is
-never stale.
+never stale. The host writes one field, a mark request: the harness then restarts the window
+over which it records each axis' lowest and highest position (``mark()``, ``positions().extremes``),
+so a test sees where the stages really went between two status polls.
 
 Physical model: step 0 is the homed machine zero; the min switch reads hit below
 -pulloff, the max switch above travel + pulloff (so after ``$H`` the observed steps equal the
@@ -42,8 +44,9 @@ BUILD_DIR = FIRMWARE_DIR / "build"
 ELF_PATH = BUILD_DIR / "bench_fw.elf"
 HARNESS_PATH = BUILD_DIR / "harness" / "bench_hil"
 
-_SHM_SIZE = 128
-_SHM_FORMAT = "<8sII2qQ2Q2QII2q2qQQ"
+_SHM_SIZE = 192
+_SHM_FORMAT = "<8sII2qQ2Q2QII2q2qQQQ2q2qII"
+_MARK_REQUEST_OFFSET = 176
 _MAGIC = b"AIMBHIL1"
 
 
@@ -89,6 +92,10 @@ class HilPositions:
     rx_bytes: bytes from the host fed to the UART so far.
     pulses: step pulses seen per axis, either direction.
     limits: (X switch hit, A switch hit). resets: MCU resets so far (port opens, crashes).
+    idle_s: simulated time the MCU spent asleep with nothing to do (s); the CPU load over a
+    stretch is 1 - d(idle_s) / d(sim_time_s).
+    extremes: ((x_min, x_max), (a_min, a_max)) in steps since the last ``mark()``.
+    marked: whether the harness has taken the latest ``mark()`` (extremes start from it).
     """
 
     x_steps: int
@@ -102,6 +109,9 @@ class HilPositions:
     pulses: tuple[int, int]
     limits: tuple[bool, bool]
     resets: int
+    idle_s: float
+    extremes: tuple[tuple[int, int], tuple[int, int]]
+    marked: bool
 
 
 def build(quiet: bool = True) -> None:
@@ -204,8 +214,9 @@ class SimavrHarness:
                 f"(got {line!r}); see {self.log_path}"
             )
         self.pty_path = line
-        with open(self.shm_path, "rb") as f:
-            self._map = mmap.mmap(f.fileno(), _SHM_SIZE, access=mmap.ACCESS_READ)
+        with open(self.shm_path, "r+b") as f:
+            self._map = mmap.mmap(f.fileno(), _SHM_SIZE, access=mmap.ACCESS_WRITE)
+        self._mark = 0
         return self
 
     def running(self) -> bool:
@@ -235,7 +246,8 @@ class SimavrHarness:
     def positions(self) -> HilPositions:
         """The live positions of both stages as observed on the STEP/DIR pins."""
         rec = self.raw()
-        _, _, resets, xs, as_, cycle, lx, la, px, pa, limits, freq, *_, rx_cycle, rx_bytes = rec
+        (_, _, resets, xs, as_, cycle, lx, la, px, pa, limits, freq, _, _, _, _, rx_cycle,
+         rx_bytes, idle, xmin, amin, xmax, amax, ack, _) = rec
         ax = self.axes
         return HilPositions(
             x_steps=xs,
@@ -249,7 +261,20 @@ class SimavrHarness:
             pulses=(px, pa),
             limits=(bool(limits & 1), bool(limits & 2)),
             resets=resets,
+            idle_s=idle / freq,
+            extremes=((xmin, xmax), (amin, amax)),
+            marked=ack == self._mark,
         )
+
+    def mark(self, timeout_s: float = 2.0) -> None:
+        """Restart the window of `HilPositions.extremes` at the present position; returns once
+        the harness has taken it (it looks every 0.2 ms of simulated time)."""
+        if self._map is None:
+            raise HilError("the simavr harness is not running: call start() first")
+        self._mark = (self._mark + 1) & 0xFFFFFFFF
+        struct.pack_into("<I", self._map, _MARK_REQUEST_OFFSET, self._mark)
+        if not wait_until(lambda: self.positions().marked, timeout_s, poll_s=0.001):
+            raise HilError("the simavr harness did not take the mark request")
 
     def stop(self) -> None:
         """Stop the harness and remove its temporary files."""
