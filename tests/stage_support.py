@@ -194,3 +194,138 @@ def bench(request: pytest.FixtureRequest) -> Iterator[Bench]:
         return
     with SimavrHarness(start_x_mm=START_X_MM, start_a_deg=START_A_DEG) as hil:
         yield Bench(url=hil.url, hil=hil)
+
+
+# ---- a stock grbl-Mega 1.1g at the wire level -------------------------------------------------
+
+#: grbl-Mega 1.1g's defaults (grbl/defaults.h, DEFAULTS_GENERIC) with the bench's axis values on X
+#: and Y (the rotary stage wired to Y's pins): $$ lists them in this order, as report.c does.
+STOCK_SETTINGS: dict[int, str] = {
+    0: "10", 1: "25", 2: "0", 3: "0", 4: "0", 5: "0", 6: "0", 10: "1", 11: "0.010",
+    12: "0.002", 13: "0", 20: "0", 21: "0", 22: "1", 23: "3", 24: "25.000", 25: "500.000",
+    26: "250", 27: "1.000", 30: "1000", 31: "0", 32: "0",
+    100: "400.000", 101: "800.000", 102: "250.000", 110: "600.000", 111: "1200.000",
+    112: "500.000", 120: "50.000", 121: "40.000", 122: "10.000", 130: "100.000",
+    131: "60.000", 132: "200.000",
+}
+
+
+class StockGrblMega:
+    """A stock grbl-Mega 1.1g as a host sees it on the wire, on a real pty: its banner on open,
+    its replies (text taken from grbl-Mega's report.c and system.c) and a machine position that
+    jumps to each target (no motion model). Why not the real one: its GPLv3 source cannot be
+    fetched or vendored here, and bench_fw built with three axes would answer in bench_fw's own
+    formats (no WCO, error:15 for soft limits), so it would test the driver against itself."""
+
+    BANNER = "Grbl 1.1g ['$' for help]"
+
+    def __init__(self) -> None:
+        import os
+        import pty
+        import threading
+
+        self._os = os
+        self.master, slave = pty.openpty()
+        attrs = termios.tcgetattr(slave)
+        attrs[3] &= ~(termios.ECHO | termios.ICANON)  # raw: no echo, no line editing
+        attrs[1] &= ~termios.OPOST
+        termios.tcsetattr(slave, termios.TCSANOW, attrs)
+        self.url = os.ttyname(slave)
+        os.close(slave)
+        self.state = "Alarm"  # $22=1 and HOMING_INIT_LOCK: locked until $H or $X
+        self.mpos = [0.0, 0.0, 0.0]
+        self.received: list[str] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self._os.close(self.master)
+
+    def _send(self, text: str) -> None:
+        self._os.write(self.master, text.replace("\n", "\r\n").encode())
+
+    def _serve(self) -> None:
+        import select
+
+        poller = select.poll()
+        poller.register(self.master, select.POLLIN)
+        opened = False
+        buf = b""
+        while not self._stop.is_set():
+            events = dict(poller.poll(10))
+            hung_up = bool(events.get(self.master, 0) & select.POLLHUP)
+            if hung_up:  # no host has the port open
+                opened = False
+                time.sleep(0.01)
+                continue
+            if not opened:  # a host opened it: a Mega resets (DTR) and greets it, as in main.c
+                opened = True
+                time.sleep(0.05)
+                self._send(f"\n{self.BANNER}\n")
+                if self.state == "Alarm":
+                    self._send("[MSG:'$H'|'$X' to unlock]\n")
+            if not events:
+                continue
+            try:
+                buf += self._os.read(self.master, 1024)
+            except OSError:
+                continue
+            while buf:
+                if buf[:1] == b"?":
+                    buf = buf[1:]
+                    self._send(self._status() + "\n")
+                    continue
+                if buf[:1] == b"\x18":
+                    buf = buf[1:]
+                    self._send(f"\n{self.BANNER}\n")
+                    if self.state == "Alarm":
+                        self._send("[MSG:'$H'|'$X' to unlock]\n")
+                    continue
+                i = buf.find(b"\n")
+                if i < 0:
+                    break
+                line, buf = buf[:i].decode().strip().upper().replace(" ", ""), buf[i + 1:]
+                self.received.append(line)
+                for reply in self._line(line):
+                    self._send(reply + "\n")
+
+    def _status(self) -> str:
+        pos = ",".join(f"{v:.3f}" for v in self.mpos)
+        return f"<{self.state}|MPos:{pos}|FS:0,0|WCO:0.000,0.000,0.000>"
+
+    def _line(self, line: str) -> list[str]:
+        if line == "$I":
+            return ["[VER:1.1g.20180813.Mega:]", "[OPT:VNM+,35,255]", "ok"]
+        if line == "$$":
+            return [f"${n}={v}" for n, v in STOCK_SETTINGS.items()] + ["ok"]
+        if line == "$X":
+            was = self.state
+            self.state = "Idle"
+            return ["[MSG:Caution: Unlocked]", "ok"] if was == "Alarm" else ["ok"]
+        if line == "$H":
+            # limits.c: homed toward the min end ($23 bit set) the position is -travel + pull-off.
+            for k in range(3):
+                travel = float(STOCK_SETTINGS[130 + k])
+                self.mpos[k] = -travel + 1.0
+            self.state = "Idle"
+            return ["ok"]
+        if line.startswith("$"):
+            m = re.fullmatch(r"\$(\d+)=(-?[\d.]+)", line)
+            if m and int(m.group(1)) in STOCK_SETTINGS:
+                STOCK_SETTINGS[int(m.group(1))] = m.group(2)
+                return ["ok"]
+            return ["error:3"]
+        if self.state == "Alarm":
+            return ["error:9"]
+        absolute = "G91" not in line
+        words = dict(re.findall(r"([A-Z])(-?[\d.]+)", line))
+        if any(letter in words for letter in "ABC"):
+            return ["error:20"]  # a 3-axis build has no A, B, C: unsupported command
+        for k, letter in enumerate("XYZ"):
+            if letter in words:
+                v = float(words[letter])
+                self.mpos[k] = v if absolute else self.mpos[k] + v
+        return ["ok"]

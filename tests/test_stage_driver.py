@@ -208,8 +208,8 @@ def test_axis_letters_the_controller_lacks(bench: Bench, stage: StageController)
         pytest.skip("depends on the bench firmware's axis set")
     stage.close()
     try:
-        with pytest.raises(StageConnectionError, match="axis Y is not an axis"):
-            StageController(bench.url, axis_letters=("X", "Y")).connect()
+        with pytest.raises(StageConnectionError, match="axis Z is not an axis"):
+            StageController(bench.url, axis_letters=("X", "Z")).connect()
     finally:
         stage.connect()
 
@@ -222,7 +222,7 @@ def test_board_that_does_not_reset_on_open() -> None:
         t = time.monotonic()
         with StageController(hil.url, boot_timeout_s=0.5) as s:
             assert s.banner in (None, "")
-            assert s.mpos_axes == "XA"  # from the two MPos values
+            assert s.mpos_axes == "XA"  # from $I: its [VER:] names aimbench
             assert time.monotonic() - t < 3.0
             assert s.status().state == "Alarm"
             assert s.settings()[100] == 400

@@ -23,6 +23,28 @@ def test_parse_status_bench_firmware() -> None:
     assert st.mpos == (12.345, -0.5) and st.feed == 0.0 and st.pins == "XA"
 
 
+def test_parse_status_three_values_of_bench_firmware() -> None:
+    # bench_fw now reports X, Y, Z like every Grbl 1.1: the rotary stage in Y, Z unused.
+    st = grbl.parse_status("<Jog|MPos:12.345,-0.500,0.000|FS:0,0|Pn:XY>")
+    assert st.state == "Jog" and st.mpos == (12.345, -0.5, 0.0) and st.pins == "XY"
+
+
+def test_build_info_lines() -> None:
+    assert grbl.parse_axes("[AXS:2:XA]") == "XA"
+    assert grbl.parse_axes("[AXS:3:XA]") is None  # the count must match the letters
+    assert grbl.parse_axes("[OPT:VNM+,35,255]") is None
+    assert grbl.parse_version("[VER:1.1h.aimbench-0.1.0:]") == "1.1h.aimbench-0.1.0"
+    assert grbl.parse_version("[VER:1.1g.20180813.Mega:my bench]") == "1.1g.20180813.Mega"
+
+
+def test_setting_meanings_and_units() -> None:
+    assert grbl.setting_meaning(0) == ("step pulse time", "us")
+    assert grbl.setting_meaning(101, "XA", "mm,deg") == ("A steps per deg", "steps/deg")
+    assert grbl.setting_meaning(120, "XA", "mm,deg") == ("X acceleration", "mm/s^2")
+    assert grbl.setting_meaning(132, "XYZ") == ("Z maximum travel", "mm")
+    assert grbl.setting_meaning(7)[0] == "not a Grbl 1.1 setting"
+
+
 def test_parse_status_stock_grbl_variants() -> None:
     line = "<Hold:1|MPos:1.000,2.000,3.000|Bf:15,128|FS:500,0|WCO:0.000,0.000,0.000>"
     st = grbl.parse_status(line)
@@ -55,7 +77,7 @@ def test_format_number() -> None:
 
 
 def test_every_emitted_code_has_a_meaning() -> None:
-    for code in (1, 2, 3, 4, 5, 6, 8, 9, 10, 11, 12, 15, 20, 21, 22, 25, 27, 28, 31, 36):
+    for code in (1, 2, 3, 4, 5, 6, 8, 9, 10, 11, 12, 15, 16, 20, 21, 22, 25, 26, 27, 28, 31, 36):
         assert code in grbl.ERRORS
     for code in (1, 3, 6, 8, 9):
         assert code in grbl.ALARMS

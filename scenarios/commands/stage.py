@@ -7,7 +7,9 @@
 
 --x-mm and --yaw-deg are relative to the bench reference (x = 0 at the bench centre, yaw = 0
 facing the board), like StageController.move_to; status prints both those and the machine
-position. For a stock grbl-Mega board pass --axes XY (or XZ).
+position. The driver finds the controller's axes itself (bench_fw: X and A; a stock grbl-Mega:
+X and Y, where the bench wires the rotary stage) and says which it drives; --axes overrides.
+`settings` prints each `$N=value` with its meaning and unit.
 """
 
 from __future__ import annotations
@@ -15,22 +17,42 @@ from __future__ import annotations
 import argparse
 import math
 
+from twin.stage import grbl
 from twin.stage.controller import StageController, StageStatus
 
 
 def _print_status(st: StageStatus) -> None:
     print(f"state     {st.state}" + (f":{st.substate}" if st.substate is not None else ""))
-    print(f"x         {st.x_m * 1000.0:+.3f} mm from the bench centre (machine {st.x_mm:.3f} mm)")
-    yaw = math.degrees(st.yaw_rad)
-    print(f"yaw       {yaw:+.4f} deg from the reference (machine {st.yaw_deg:.4f} deg)")
+    if st.position_known:
+        print(f"x         {st.x_m * 1000.0:+.3f} mm from the bench centre "
+              f"(machine {st.x_mm:.3f} mm)")
+        yaw = math.degrees(st.yaw_rad)
+        print(f"yaw       {yaw:+.4f} deg from the reference (machine {st.yaw_deg:.4f} deg)")
+    else:
+        print("position  not known: the controller is in Alarm (after power-up, a hard limit or a "
+              "reset in motion); home it (aimbench stage --port P home)")
     print(f"limits    {st.limits or 'none hit'}")
 
 
+def _print_settings(stage: StageController) -> None:
+    letters = stage.mpos_axes
+    rotary = stage.slot(1)  # the rotary stage's slot: its settings are in degrees
+    units = ",".join("deg" if i == rotary else "mm" for i in range(len(letters)))
+    for number, value in sorted(stage.settings().items()):
+        meaning, unit = grbl.setting_meaning(number, letters, units)
+        shown = f"{value:g}"
+        print(f"${number}={shown:<10} {meaning}" + (f" ({unit})" if unit else ""))
+
+
 def run(args: argparse.Namespace) -> int:
-    axes = args.axes.upper()
-    if len(axes) != 2:
-        raise SystemExit("aimbench stage: error: --axes takes two letters, e.g. XA or XY")
-    with StageController(args.port, axis_letters=(axes[0], axes[1])) as stage:
+    letters = None
+    if args.axes is not None:
+        axes = args.axes.upper()
+        if len(axes) != 2:
+            raise SystemExit("aimbench stage: error: --axes takes two letters, e.g. XA or XY")
+        letters = (axes[0], axes[1])
+    with StageController(args.port, axis_letters=letters) as stage:
+        print(f"axes      {stage.axis_note}")
         if args.action == "status":
             _print_status(stage.status())
         elif args.action == "home":
@@ -42,8 +64,7 @@ def run(args: argparse.Namespace) -> int:
             stage.move_to(x_m=x_m, yaw_rad=yaw, wait=True, timeout=args.timeout)
             _print_status(stage.status())
         elif args.action == "settings":
-            for number, value in sorted(stage.settings().items()):
-                print(f"${number}={value:g}")
+            _print_settings(stage)
     return 0
 
 
@@ -51,8 +72,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("stage", help="status, home, move or settings of the stage controller")
     p.add_argument("--port", required=True,
                    help="serial port or pyserial URL (/dev/ttyACM0, the pty of `aimbench hil`)")
-    p.add_argument("--axes", default="XA",
-                   help="letters of the linear and rotary axes (XA; XY for a stock grbl-Mega)")
+    p.add_argument("--axes", default=None,
+                   help="letters of the linear and rotary axes (default: found from the "
+                        "controller, XA on bench_fw, XY on a stock grbl-Mega)")
     p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for arrival")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     actions.add_parser("status", help="state and position")

@@ -11,6 +11,13 @@ Units: the public API is SI and relative to the bench reference (x in m from the
 yaw in rad, positive counter-clockwise seen from above). On the wire the linear axis is in mm and
 the rotary axis in degrees of machine position; the bench reference sits at machine
 X = ``x_ref_mm`` (50 mm) and A = ``yaw_ref_deg`` (30 deg). Conversion happens here only.
+
+Axes: at connect the driver finds out which controller it talks to and which axes it has, from
+the banner, ``$I`` (``[VER:...]``, ``[AXS:n:letters]``) and the status report's MPos values:
+bench_fw reports X, Y, Z slots with the rotary stage A in the Y slot; a stock grbl-Mega reports
+X, Y, Z, and the bench wires the rotary stage to its Y pins (bench_fw/PROTOCOL.md). Unless told
+otherwise the driver then drives X and A (bench_fw) or X and Y (stock Grbl), and says which in
+`axis_note`.
 """
 
 from __future__ import annotations
@@ -98,18 +105,29 @@ class StageStatus:
     limits: str
     raw: grbl.GrblStatus
 
+    @property
+    def position_known(self) -> bool:
+        """False in Alarm: after power-up, a hard limit or a reset in motion the controller's
+        position is not the stages' until they are homed (or unlocked, trusting it)."""
+        return self.state != "Alarm"
+
 
 class StageController:
     """Driver of the two-axis stage controller.
 
     url: anything ``serial.serial_for_url`` opens (``/dev/ttyACM0``, a pty, ``loop://``).
-    axis_letters: the letters of the (linear, rotary) axes on the controller: ("X", "A") for
-    bench_fw, ("X", "Y") or ("X", "Z") for a stock grbl-Mega.
+    axis_letters: the letters of the (linear, rotary) axes on the controller; None (default):
+    chosen at connect, ("X", "A") for bench_fw and ("X", "Y") for a stock grbl-Mega (its Y pins
+    drive the rotary stage), see `axis_note`. Letters the controller lacks are an error.
+    x_ref_mm, yaw_ref_deg: machine position of the bench reference; None (default): 50 mm and
+    30 deg on bench_fw (travel [0, $13x]), the middle of the travel on a stock Grbl (travel
+    [-$13x, 0]: -$130/2, -$131/2).
     reply_timeout_s: how long a line's ``ok``/``error`` may take (s).
     boot_timeout_s: how long to wait for the banner after opening the port (s); a board that has
     not sent one by then is soft-reset.
-    mpos_axes: the controller's axis order in MPos; default "XA" for bench_fw (its banner says
-    aimbench, or its MPos has two values) and "XYZ..." for anything else.
+    mpos_axes: the controller's axis letter per MPos value; default: detected at connect ("XA"
+    for bench_fw, whose rotary A fills the Y slot; "XYZ..." from $I or the number of values
+    for anything else).
     hold_dtr: on close, leave DTR up (clear HUPCL), so that the next open does not reset an
     Arduino and its position survives between connections (the first open after plugging the
     board in still resets it).
@@ -118,33 +136,40 @@ class StageController:
     def __init__(
         self,
         url: str,
-        axis_letters: tuple[str, str] = ("X", "A"),
+        axis_letters: tuple[str, str] | None = None,
         *,
         baudrate: int = 115200,
-        x_ref_mm: float = X_REF_MM,
-        yaw_ref_deg: float = YAW_REF_DEG,
+        x_ref_mm: float | None = None,
+        yaw_ref_deg: float | None = None,
         reply_timeout_s: float = 2.0,
         boot_timeout_s: float = 2.5,
         mpos_axes: str | None = None,
         hold_dtr: bool = True,
     ) -> None:
-        letters = tuple(s.upper() for s in axis_letters)
-        if len(letters) != 2 or letters[0] == letters[1] or not all(
-            len(s) == 1 and s in "XYZABC" for s in letters
-        ):
-            raise ValueError(
-                f"axis_letters must be two different Grbl axis letters, got {axis_letters}"
-            )
+        self._requested_letters: tuple[str, str] | None = None
+        if axis_letters is not None:
+            letters = tuple(s.upper() for s in axis_letters)
+            if len(letters) != 2 or letters[0] == letters[1] or not all(
+                len(s) == 1 and s in "XYZABC" for s in letters
+            ):
+                raise ValueError(
+                    f"axis_letters must be two different Grbl axis letters, got {axis_letters}"
+                )
+            self._requested_letters = (letters[0], letters[1])
         self.url = url
-        self.axis_letters: tuple[str, str] = (letters[0], letters[1])
+        self.axis_letters: tuple[str, str] = self._requested_letters or ("X", "A")
         self.baudrate = baudrate
-        self.x_ref_mm = x_ref_mm
-        self.yaw_ref_deg = yaw_ref_deg
+        self._ref_override = (x_ref_mm, yaw_ref_deg)
+        self.x_ref_mm = X_REF_MM if x_ref_mm is None else x_ref_mm
+        self.yaw_ref_deg = YAW_REF_DEG if yaw_ref_deg is None else yaw_ref_deg
         self.reply_timeout_s = reply_timeout_s
         self.boot_timeout_s = boot_timeout_s
         self._mpos_axes_override = mpos_axes
         self.hold_dtr = hold_dtr
         self.mpos_axes = mpos_axes or "XA"
+        self._slots: dict[str, int] = {"X": 0, "A": 1, "Y": 1}
+        self.bench_firmware = True  # bench_fw (True) or another Grbl such as stock grbl-Mega
+        self.axis_note = ""  # which axes the driver chose, and why
         self.banner: str | None = None
         self.messages: list[str] = []  # [MSG:...] and other push messages, oldest first
         self.last_alarm: int | None = None
@@ -193,24 +218,67 @@ class StageController:
                     f"nothing after a soft reset): is the stage firmware flashed "
                     f"(make -C bench_fw flash) and the baud rate {self.baudrate}?"
                 )
-        if self._mpos_axes_override is None:
-            if banner and "aimbench" in banner:
-                self.mpos_axes = "XA"
-            else:
-                n = len((first or self._raw_status()).mpos)
-                self.mpos_axes = "XA" if n == 2 else "XYZABC"[:n]
-        for letter in self.axis_letters:
-            if letter not in self.mpos_axes:
-                self.close()
-                raise StageConnectionError(
-                    f"axis {letter} is not an axis of the controller on {self.url!r} "
-                    f"(it has {self.mpos_axes}); pass axis_letters that it has"
-                )
+        self._detect_axes(banner, first)
         try:
             self._settings = self.settings()
         except StageError:
             self._settings = {}
+        self._choose_reference()
         return banner or ""
+
+    def _detect_axes(self, banner: str | None, first: grbl.GrblStatus | None) -> None:
+        """Which controller this is, the letter of each MPos value, and the letters to drive."""
+        version = axes = None
+        try:
+            for line in self.command("$I"):
+                version = grbl.parse_version(line) or version
+                axes = grbl.parse_axes(line) or axes
+        except StageError:
+            pass  # $I refused (moving) or unknown: the banner and the status report decide
+        self.bench_firmware = "aimbench" in (banner or "") or "aimbench" in (version or "")
+        if self._mpos_axes_override is not None:
+            self.mpos_axes = self._mpos_axes_override
+        elif self.bench_firmware:
+            self.mpos_axes = "XA"  # MPos X, then A in the Y slot (and Z = 0 on 3-value builds)
+        else:
+            n = len((first or self._raw_status()).mpos)
+            self.mpos_axes = axes if axes and len(axes) == n else "XYZABC"[:n]
+        self._slots = {letter: i for i, letter in enumerate(self.mpos_axes)}
+        if self.bench_firmware:
+            self._slots.setdefault("Y", self._slots.get("A", 1))  # A answers to its slot's Y
+        kind = "bench_fw" if self.bench_firmware else "a stock Grbl controller"
+        if self._requested_letters is None:
+            rotary = "A" if "A" in self._slots else "Y"
+            self.axis_letters = ("X", rotary)
+            wiring = "" if self.bench_firmware else " (the bench wires the rotary stage to Y)"
+            self.axis_note = (
+                f"{kind} with axes {self.mpos_axes}: linear stage on X, rotary stage on "
+                f"{rotary}{wiring}"
+            )
+        else:
+            self.axis_note = f"{kind} with axes {self.mpos_axes}: axes {''.join(self.axis_letters)}"
+        for letter in self.axis_letters:
+            if letter not in self._slots:
+                self.close()
+                raise StageConnectionError(
+                    f"axis {letter} is not an axis of the controller on {self.url!r} "
+                    f"(it has {self.mpos_axes}); pass axis letters that it has "
+                    f"(aimbench stage --axes), or leave them out to let the driver choose"
+                )
+
+    def _choose_reference(self) -> None:
+        """The bench reference in machine units, unless given: bench_fw's fixed 50 mm / 30 deg;
+        on a stock Grbl (travel [-$13x, 0]) the middle of each axis' travel."""
+        if self.bench_firmware:
+            return
+        for which, attr in ((0, "x_ref_mm"), (1, "yaw_ref_deg")):
+            travel = self._settings.get(130 + self.slot(which))
+            if self._ref_override[which] is None and travel:
+                setattr(self, attr, -travel / 2.0)
+
+    def slot(self, which: int) -> int:
+        """Index in MPos (and in the $1Nk settings) of axis `which`: 0 linear, 1 rotary."""
+        return self._slots[self.axis_letters[which]]
 
     def _hupcl(self) -> bool | None:
         """Whether the port drops DTR on close (None: not a terminal, e.g. loop://)."""
@@ -397,9 +465,7 @@ class StageController:
             self._note(line)
 
     def _to_status(self, st: grbl.GrblStatus) -> StageStatus:
-        ix = self.mpos_axes.index(self.axis_letters[0])
-        ia = self.mpos_axes.index(self.axis_letters[1])
-        x_mm, yaw_deg = st.mpos[ix], st.mpos[ia]
+        x_mm, yaw_deg = st.mpos[self.slot(0)], st.mpos[self.slot(1)]
         return StageStatus(
             state=st.state,
             substate=st.substate,
@@ -460,7 +526,7 @@ class StageController:
     def _at(self, st: StageStatus, target: tuple[float, float]) -> bool:
         """The status position equals `target` to a step (plus the report's 3-decimal rounding)."""
         for value, goal, which in ((st.x_mm, target[0], 0), (st.yaw_deg, target[1], 1)):
-            spu = self._settings.get(100 + self.mpos_axes.index(self.axis_letters[which]))
+            spu = self._settings.get(100 + self.slot(which))
             tol = (1.0 / spu + 0.001) if spu else 0.005
             if abs(value - goal) > tol:
                 return False
@@ -529,15 +595,14 @@ class StageController:
         """`value` (machine units) rounded to a whole step of axis `which` (0 linear, 1 rotary),
         half a step up, when the steps per unit are known: the controller then receives a value
         that is a step exactly, so no decimal rounding on the wire can flip a step."""
-        spu = self._settings.get(100 + self.mpos_axes.index(self.axis_letters[which]))
+        spu = self._settings.get(100 + self.slot(which))
         if not spu:
             return value
         return math.floor(value * spu + 0.5) / spu
 
     def _estimate_s(self, x: float, a: float, relative: bool) -> float:
         """A generous estimate of a move's duration from the settings (s), for the timeout."""
-        ix = self.mpos_axes.index(self.axis_letters[0])
-        ia = self.mpos_axes.index(self.axis_letters[1])
+        ix, ia = self.slot(0), self.slot(1)
         s = self._settings
         try:
             travel = (s[130 + ix], s[130 + ia])

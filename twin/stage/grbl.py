@@ -67,16 +67,52 @@ ALARMS: dict[int, str] = {
     10: "homing fail: second dual-axis switch not found",
 }
 
+#: $N setting meanings and units (Grbl 1.1 numbering, after grbl-Mega's setting_codes table).
+#: Axis settings ($100..$13x) are built by `setting_meaning`, whose unit depends on the axis.
+SETTINGS: dict[int, tuple[str, str]] = {
+    0: ("step pulse time", "us"),
+    1: ("step idle delay (255 = keep the drivers enabled)", "ms"),
+    2: ("step pulse invert", "mask"),
+    3: ("step direction invert", "mask"),
+    4: ("invert the drivers' enable pin", "bool"),
+    5: ("invert the limit inputs", "bool"),
+    6: ("invert the probe input", "bool"),
+    10: ("status report options", "mask"),
+    11: ("junction deviation", "mm"),
+    12: ("arc tolerance", "mm"),
+    13: ("report in inches", "bool"),
+    20: ("soft limits", "bool"),
+    21: ("hard limits", "bool"),
+    22: ("homing cycle", "bool"),
+    23: ("homing direction (bit set = toward the min end)", "mask"),
+    24: ("homing locate feed", "units/min"),
+    25: ("homing search rate", "units/min"),
+    26: ("homing switch debounce", "ms"),
+    27: ("homing pull-off", "units"),
+    30: ("maximum spindle speed", "rpm"),
+    31: ("minimum spindle speed", "rpm"),
+    32: ("laser mode", "bool"),
+}
+_AXIS_SETTINGS = {
+    10: ("steps per {unit}", "steps/{unit}"),
+    11: ("maximum rate", "{unit}/min"),
+    12: ("acceleration", "{unit}/s^2"),
+    13: ("maximum travel", "{unit}"),
+}
+
 #: Realtime bytes: sent on their own, never followed by a newline.
 STATUS_QUERY = b"?"
 FEED_HOLD = b"!"
 CYCLE_START = b"~"
 SOFT_RESET = b"\x18"
+JOG_CANCEL = b"\x85"
 
 _BANNER = re.compile(r"^Grbl\s+(\d+\.\d+\w*)")
 _ERROR = re.compile(r"^error:(\d+)$")
 _ALARM = re.compile(r"^ALARM:(\d+)$")
 _SETTING = re.compile(r"^\$(\d+)=(-?(?:\d+\.?\d*|\.\d+))")  # a number, never a bare "."
+_AXES = re.compile(r"^\[AXS:(\d+):([XYZABCUVW]+)\]$")
+_VERSION = re.compile(r"^\[VER:([^:\]]*):?(.*)\]$")
 
 
 def error_meaning(code: int) -> str:
@@ -166,6 +202,33 @@ def parse_setting(line: str) -> tuple[int, float] | None:
     """(N, value) for a ``$N=value`` line of a ``$$`` listing, else None."""
     m = _SETTING.match(line.strip())
     return (int(m.group(1)), float(m.group(2))) if m else None
+
+
+def setting_meaning(number: int, axis_letters: str = "XYZ", units: str = "mm") -> tuple[str, str]:
+    """(meaning, unit) of setting $number. Axis settings $1Nk name axis_letters[k] in `units`
+    (one unit per letter: "mm", "deg"; a single unit applies to every axis)."""
+    if number in SETTINGS:
+        return SETTINGS[number]
+    group, index = divmod(number, 10)
+    if group in _AXIS_SETTINGS and index < len(axis_letters):
+        unit = units.split(",")[index] if "," in units else units
+        meaning, unit_text = _AXIS_SETTINGS[group]
+        letter = axis_letters[index]
+        return f"{letter} {meaning.format(unit=unit)}", unit_text.format(unit=unit)
+    return ("not a Grbl 1.1 setting", "")
+
+
+def parse_axes(line: str) -> str | None:
+    """The axis letters of an ``[AXS:count:letters]`` line of ``$I`` (bench_fw, grblHAL), else
+    None."""
+    m = _AXES.match(line.strip())
+    return m.group(2) if m and int(m.group(1)) == len(m.group(2)) else None
+
+
+def parse_version(line: str) -> str | None:
+    """The version text of a ``[VER:1.1g.20180813:]`` line of ``$I``, else None."""
+    m = _VERSION.match(line.strip())
+    return m.group(1) if m else None
 
 
 def format_number(value: float) -> str:
