@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import resource
 import statistics
 import sys
 import time
@@ -28,10 +29,39 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from twin.stage.controller import StageController, trapezoid_time
 from twin.stage.hil import SimavrHarness
 
+T0 = time.perf_counter()
+
 
 def percentile(values: list[float], q: float) -> float:
     s = sorted(values)
     return s[min(len(s) - 1, round(q * (len(s) - 1)))]
+
+
+MAX_STEP_RATE = 20000.0  # steps/s, bench_fw/src/config.h
+
+
+def cruise_load(hil: SimavrHarness, stage: StageController, fraction: float) -> tuple[float, float]:
+    """(step rate seen on the pins at cruise, CPU load) for a combined move with both axes at
+    `fraction` of the limit, polled every 20 ms."""
+    stage.set_setting(110, 3000 * fraction)  # 400 steps/mm: 20 kHz at 3000 mm/min
+    stage.set_setting(111, 1500 * fraction)  # 800 steps/deg: 20 kHz at 1500 deg/min
+    stage.move_to(x_m=-0.05, yaw_rad=math.radians(-30))
+    stage.move_to(x_m=0.05, yaw_rad=math.radians(30), wait=False)
+    samples = []
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        st = stage.status()
+        samples.append(hil.positions())
+        if st.state == "Idle" and len(samples) > 3:
+            break
+        time.sleep(0.02)
+    # The cruise: the middle half of the samples (away from both ramps).
+    a, b = samples[len(samples) // 4], samples[3 * len(samples) // 4]
+    dt = b.sim_time_s - a.sim_time_s
+    rate = (b.pulses[1] - a.pulses[1]) / dt
+    load = 1.0 - (b.idle_s - a.idle_s) / dt
+    stage.wait_idle(10)
+    return rate, load
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,6 +116,15 @@ def main(argv: list[str] | None = None) -> int:
         ideal = trapezoid_time(1.0, rate_dps, accel)
         final = hil.positions()
 
+        # The step-rate limit, at half of it and at it.
+        stage.set_setting(120, 1000)
+        stage.set_setting(121, 1000)
+        half_rate, half_load = cruise_load(hil, stage, 0.5)
+        full_rate, full_load = cruise_load(hil, stage, 1.0)
+        per_step = (full_load - half_load) / (full_rate - half_rate)  # CPU share per step/s
+        ceiling = full_rate + (1.0 - full_load) / per_step
+        stage.command("$RST=$")
+
     n = len(sim_times)
     rows = [
         ("round trip `?` -> status report, median", f"{statistics.median(rt_status) * 1e3:.2f} ms",
@@ -111,6 +150,15 @@ def main(argv: list[str] | None = None) -> int:
         ("simulation pace (sim time / wall time)", f"{pace:.3f}", "1.000 = real time"),
         ("final yaw from the STEP pulses", f"{math.degrees(final.yaw_rad):+.4f} deg",
          f"{final.a_steps} steps (commanded -10 deg = {(30 - 10) * 800} steps)"),
+        ("step rate at the limit, combined move, 20 ms polls", f"{full_rate:.0f} steps/s",
+         f"limit {MAX_STEP_RATE:.0f}, ratio {full_rate / MAX_STEP_RATE:.3f}"),
+        ("MCU CPU load at half the limit / at the limit", f"{full_load * 100:.1f} %",
+         f"half: {half_load * 100:.1f} % at {half_rate:.0f} steps/s"),
+        ("cost of a step (both axes stepping)", f"{per_step * 16e6:.0f} cycles",
+         "from the two loads, 16 MHz"),
+        ("step rate that would fill the CPU (ceiling)", f"{ceiling:.0f} steps/s",
+         f"limit / ceiling {MAX_STEP_RATE / ceiling:.2f}; the old 30000 would be "
+         f"{30000 / ceiling:.2f}"),
     ]
     w0 = max(len(r[0]) for r in rows)
     w1 = max(len(r[1]) for r in rows)
@@ -118,6 +166,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"|{'-' * (w0 + 2)}|{'-' * (w1 + 2)}|------")
     for name, value, note in rows:
         print(f"| {name:<{w0}} | {value:>{w1}} | {note}")
+    me = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+    wall = time.perf_counter() - T0
+    print(f"CPU time: {cpu:.1f} s (this process and the harness), wall {wall:.1f} s")
     return 0
 
 

@@ -56,7 +56,7 @@
 // The fastest step rate the firmware accepts for an axis ($10x x $11x, $24/$25 x $10x, G1 F):
 // measured in simavr (benchmarks/bench_stage.py, PROTOCOL.md "Step rate"): at 30 kHz the step
 // interrupt alone took 85 % of the CPU, the acceleration tick could no longer finish within its
-// millisecond and the main loop starved. At this limit a combined move keeps the CPU below 75 %.
+// millisecond and the main loop starved. At this limit the interrupts take about 62 % of it.
 #define MAX_STEP_RATE 20000.0f
 // The step interrupt's own duration (us) beside the pulse: the shortest step period is the pulse
 // plus this (ticks_for); $0 is refused when it would make MAX_STEP_RATE unreachable.
