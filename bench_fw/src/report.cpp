@@ -37,26 +37,11 @@ void report_banner() {
 
 void report_unlock_message() { serial_print_P(PSTR("[MSG:'$H'|'$X' to unlock]\r\n")); }
 
-// A position in thousandths printed with three decimals ("-12.345").
-static void print_milli(int32_t milli) {
-  if (milli < 0) {
-    serial_write('-');
-    milli = -milli;
-  }
-  uint32_t m = static_cast<uint32_t>(milli);
-  serial_print_uint(m / 1000);
-  serial_write('.');
-  uint16_t frac = static_cast<uint16_t>(m % 1000);
-  serial_write(static_cast<uint8_t>('0' + frac / 100));
-  serial_write(static_cast<uint8_t>('0' + (frac / 10) % 10));
-  serial_write(static_cast<uint8_t>('0' + frac % 10));
-}
-
 // The three report slots X, Y, Z: the linear stage in X, the rotary stage in Y, Z unused (0).
 static void print_slots(const int32_t milli[N_AXIS]) {
-  print_milli(milli[AXIS_X]);
+  serial_print_milli(milli[AXIS_X]);
   serial_write(',');
-  print_milli(milli[AXIS_A]);
+  serial_print_milli(milli[AXIS_A]);
   serial_print_P(PSTR(",0.000"));
 }
 

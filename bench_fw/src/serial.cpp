@@ -117,18 +117,22 @@ void serial_print_uint(uint32_t v) {
   while (n) serial_write(static_cast<uint8_t>(digits[--n]));
 }
 
-void serial_print_float3(float v) {
-  // avr-libc's printf has no %f by default; print fixed point with round-half-away.
-  if (v < 0.0f) {
-    v = -v;
-    // "-0.000" would read oddly: only print the sign if something nonzero follows
-    if (lroundf(v * 1000.0f) != 0) serial_write('-');
+void serial_print_milli(int32_t milli) {
+  if (milli < 0) {
+    serial_write('-');
+    milli = -milli;
   }
-  uint32_t milli = static_cast<uint32_t>(lroundf(v * 1000.0f));
-  serial_print_uint(milli / 1000);
+  uint32_t m = static_cast<uint32_t>(milli);
+  serial_print_uint(m / 1000);
   serial_write('.');
-  uint16_t frac = static_cast<uint16_t>(milli % 1000);
+  uint16_t frac = static_cast<uint16_t>(m % 1000);
   serial_write(static_cast<uint8_t>('0' + frac / 100));
   serial_write(static_cast<uint8_t>('0' + (frac / 10) % 10));
   serial_write(static_cast<uint8_t>('0' + frac % 10));
+}
+
+void serial_print_float3(float v) {
+  // avr-libc's printf has no %f by default; print fixed point with round-half-away (lroundf).
+  // "-0.000" would read oddly: the sign only shows when something nonzero follows.
+  serial_print_milli(static_cast<int32_t>(lroundf(v * 1000.0f)));
 }

@@ -23,6 +23,8 @@ void serial_write(uint8_t c);
 void serial_print(const char *s);
 void serial_print_P(const char *progmem_s);
 void serial_print_uint(uint32_t v);
+// Thousandths as a value with three decimals ("-12.345").
+void serial_print_milli(int32_t milli);
 // A value with three decimals, like Grbl's reports ("-12.345").
 void serial_print_float3(float v);
 // Realtime requests set by the receive interrupt (bits of rt_exec).
