@@ -227,8 +227,7 @@ class HardwareBench(Bench):
         if c is None or not settings:
             return DEFAULT_YAW_LIMITS_RAD, DEFAULT_X_LIMITS_M
         try:
-            ix = c.mpos_axes.index(c.axis_letters[0])
-            ia = c.mpos_axes.index(c.axis_letters[1])
+            ix, ia = c.slot(0), c.slot(1)  # MPos/settings index of each axis (A and Y alike)
             mask = int(settings.get(23, 0))
 
             def span(axis: int) -> tuple[float, float]:

@@ -99,7 +99,7 @@ def test_pygrbl_streamer_connect_home_stream_and_alarm(hil: SimavrHarness) -> No
         assert s.sync() == pygrbl_streamer.State.IDLE
         assert s.last_status["raw"].startswith("<Idle|MPos:2.000,1.500,0.000|")
         assert not s.command("G0 Z1")  # no Z on this machine: refused, reported
-        assert errors and errors[-1] == "error:20"
+        wait_for(lambda: errors[-1:] == ["error:20"], 5, "the error callback (its own thread)")
         assert s.command("$20=0")
         try:  # drive X past its switch: a hard-limit alarm
             s.write_line("G91 G0 X-5")

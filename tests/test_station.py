@@ -256,7 +256,8 @@ def test_stage_axis_letters_and_travel_reach_the_stage_driver(odd: stations.Stat
 
     narrow = odd.model_copy(update={"stages": odd.stages.model_copy(update={
         "yaw_travel_deg": (-5.0, 8.0)})})
-    wrong = odd.model_copy(update={"stages": odd.stages.model_copy(update={"yaw_axis": "Y"})})
+    # Z: bench_fw has no Z (Y is its rotary stage's report slot, an alias of A).
+    wrong = odd.model_copy(update={"stages": odd.stages.model_copy(update={"yaw_axis": "Z"})})
     with SimavrHarness(start_x_mm=1.0, start_a_deg=1.0) as hil:
         with HardwareBench(hil.url, "udp://127.0.0.1:2402", station=narrow) as hw:
             assert hw.controller.axis_letters == ("X", "A")
@@ -264,7 +265,7 @@ def test_stage_axis_letters_and_travel_reach_the_stage_driver(odd: stations.Stat
             # yaw from the station (narrower than the firmware's), x from the firmware's $13x.
             assert (math.degrees(y0), math.degrees(y1)) == pytest.approx((-5.0, 8.0))
             assert x1 - x0 > 0
-        with pytest.raises(BenchError, match="axis Y is not an axis"):
+        with pytest.raises(BenchError, match="axis Z is not an axis"):
             HardwareBench(hil.url, "udp://127.0.0.1:2402", station=wrong)
 
 
