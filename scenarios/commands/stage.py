@@ -40,8 +40,8 @@ def _print_settings(stage: StageController) -> None:
     units = ",".join("deg" if i == rotary else "mm" for i in range(len(letters)))
     for number, value in sorted(stage.settings().items()):
         meaning, unit = grbl.setting_meaning(number, letters, units)
-        shown = f"{value:g}"
-        print(f"${number}={shown:<10} {meaning}" + (f" ({unit})" if unit else ""))
+        setting = f"${number}={value:g}"
+        print(f"{setting:<14} {meaning}" + (f" ({unit})" if unit else ""))
 
 
 def run(args: argparse.Namespace) -> int:
