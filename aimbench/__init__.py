@@ -9,7 +9,7 @@ that the distribution's own name is the import a user reaches for::
 
 from importlib import metadata
 
-from scenarios.envs.lidar_align import ENV_ID, LidarAlignEnv
+from scenarios.envs.lidar_align import ENV_ID, ENV_ID_NORMALIZED, LidarAlignEnv
 
 __version__ = metadata.version("aimbench")
-__all__ = ["ENV_ID", "LidarAlignEnv", "__version__"]
+__all__ = ["ENV_ID", "ENV_ID_NORMALIZED", "LidarAlignEnv", "__version__"]

@@ -10,7 +10,12 @@ cd "$(dirname "$0")/.."
 #   gcc-avr avr-libc arduino-core-avr  build the Arduino Mega firmware (bench_fw/)
 #   libsimavr-dev libelf-dev pkg-config  build the simavr hardware-in-the-loop harness
 #   make g++                           the firmware's host-side unit tests and the harness
-DEBS=(libusb-1.0-0 gcc-avr avr-libc arduino-core-avr libsimavr-dev libelf-dev pkg-config make g++)
+#   libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0
+#                                      MuJoCo's offscreen rendering without a display (EGL with
+#                                      Mesa's software rasteriser): `aimbench render`, the gym
+#                                      env's render_mode="rgb_array"
+DEBS=(libusb-1.0-0 gcc-avr avr-libc arduino-core-avr libsimavr-dev libelf-dev pkg-config make g++
+      libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0)
 
 PYTHON=${PYTHON:-}
 if [ -z "$PYTHON" ]; then

@@ -1,8 +1,9 @@
 """`LidarAlignEnv`: active alignment of the LiDAR on the bench, as a Gymnasium environment.
 
-Importing this module registers ``aimbench/LidarAlign-v0`` (with a `TimeLimit` of
-`MAX_EPISODE_STEPS` steps). Gymnasium 1.x has no plugin entry points any more, so either import
-it first or let `gymnasium.make` import it::
+Importing this module registers ``aimbench/LidarAlign-v0`` (actions in SI units) and
+``aimbench/LidarAlignNormalized-v0`` (the same task with the float32 [-1, 1] actions RL libraries
+expect), both with a `TimeLimit` of `MAX_EPISODE_STEPS` steps. Gymnasium 1.x has no plugin
+entry points any more, so either import it first or let `gymnasium.make` import it::
 
     import gymnasium as gym
     env = gym.make("scenarios.envs.lidar_align:aimbench/LidarAlign-v0")  # imports the module
@@ -31,14 +32,16 @@ from gymnasium import spaces
 import align
 from scenarios.bench import Bench, SimBench, open_bench
 from scenarios.config import RunConfig
+from scenarios.envs.view import BenchView, Frame, check_display
 from scenarios.plans import MOUNT_KEYS, PAPER_MC_ANGLE_DEG, PAPER_MC_X_MM
 from scenarios.truth import scan_truth
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 from twin.stage.motion import X_AXIS, YAW_AXIS, StageMove
 
-#: The registered id, and the `TimeLimit` it carries (steps).
+#: The registered ids (SI actions; normalised actions), and the `TimeLimit` they carry (steps).
 ENV_ID = "aimbench/LidarAlign-v0"
+ENV_ID_NORMALIZED = "aimbench/LidarAlignNormalized-v0"
 MAX_EPISODE_STEPS = 20
 
 #: "Aligned": the LiDAR's true yaw and x in the board frame within these of the target.
@@ -130,6 +133,12 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     1    stage x      m     the linear stage's travel (twin: +-0.050)
     ===  ===========  ====  ==========================================================
 
+    With ``normalized_actions=True`` (registered as ``aimbench/LidarAlignNormalized-v0``) the
+    action is ``Box(-1, 1, (2,))`` float32, the same two targets scaled linearly over the travel
+    (-1: one end, 0: mid-travel, +1: the other end), as PPO, SAC and friends expect; values
+    beyond +-1 are clipped. ``info["stage_command"]`` is always in SI units, and
+    `LidarAlignEnv.action_for` turns SI targets into this env's actions.
+
     **Observation** ``Dict``; the estimator's result from the scans taken after the move:
 
     ======================  ===============  =====================================================
@@ -171,6 +180,14 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     ``stage_command`` (the clipped action); ``step_time_s`` and ``episode_time_s`` (modelled
     bench time, s); ``scans`` (how many were taken for the estimate).
 
+    **Rendering** (``render_mode``): ``"rgb_array"``: `render` returns a picture of the bench
+    (``render_height`` x ``render_width`` x 3 uint8, MuJoCo's offscreen renderer, no display
+    needed) from the scene's overview camera, with the board, the stages where they are, the
+    estimate (a red disc at the estimated optical centre, a red arrow along its forward axis,
+    the board returns it used as yellow dots), the target direction (green arrow) and a caption
+    (`scenarios.envs.view`). ``"human"``: MuJoCo's viewer window, refreshed after every reset
+    and step (needs a display).
+
     **Seeding.** All randomness of an episode comes from ``reset(seed=...)`` through
     ``self.np_random``: the mount, and a key that seeds every scan's noise on the twin
     (`SimBench.prepare`). The twin's sensor itself (its per-laser range offsets) is fixed by the
@@ -185,9 +202,13 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
     ``reset(options={"mount": {...}})`` sets one episode's mount (edge units, `MOUNT_KEYS`).
     The first reset homes the stages (``rehome=True``: every reset); every reset then moves
     them to the bench reference (0, 0).
+    ``render_mode`` ("rgb_array", "human" or None) with ``render_width`` x ``render_height``
+    pixels; ``normalized_actions`` the [-1, 1] float32 action space.
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012 (gymnasium's class attr)
+    # A step costs about a second of bench time; 4 frames/s plays an episode a little faster.
+    metadata: dict[str, Any] = {"render_modes": ["human", "rgb_array"],  # noqa: RUF012
+                                "render_fps": 4}
 
     def __init__(
         self,
@@ -207,17 +228,25 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         reward_weights: RewardWeights | None = None,
         rehome: bool = False,
         render_mode: str | None = None,
+        render_width: int = 640,
+        render_height: int = 480,
+        normalized_actions: bool = False,
     ) -> None:
         super().__init__()
         if scans_per_step < 1:
             raise ValueError(f"scans_per_step must be at least 1, got {scans_per_step}")
         if n_board_points < 0:
             raise ValueError(f"n_board_points must be >= 0, got {n_board_points}")
-        if render_mode is not None:
-            raise ValueError(f"render_mode {render_mode!r}: this environment does not render")
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode {render_mode!r}: use one of "
+                             f"{self.metadata['render_modes']} or None")
+        if render_mode == "human":
+            check_display()  # before a bench is opened: nothing to clean up
         if isinstance(mount_range, str) and mount_range != "auto":
             raise ValueError(f"mount_range {mount_range!r}: a MountRange, None or 'auto'")
         self.render_mode = render_mode
+        self._view = BenchView(render_width, render_height) if render_mode else None
+        self.normalized_actions = bool(normalized_actions)
         self.scans_per_step = int(scans_per_step)
         self.method = method
         self.board = board or align.BoardSpec()
@@ -243,7 +272,10 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
                 self.bench.close()
             raise
         self._travel = np.array([[y0, x0], [y1, x1]], dtype=np.float64)
-        self.action_space = spaces.Box(self._travel[0], self._travel[1], dtype=np.float64)
+        if self.normalized_actions:
+            self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+        else:
+            self.action_space = spaces.Box(self._travel[0], self._travel[1], dtype=np.float64)
         big = np.array([POSITION_LIMIT_M] * 3 + [math.pi] * 3)
         obs: dict[str, spaces.Space] = {
             "pose": spaces.Box(-big, big, dtype=np.float64),
@@ -331,15 +363,18 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         self._stage = self._read_stage()
         obs, est = self._observe()
         info = self._info(est, step_time_s=0.0, command=None)
+        if self.render_mode == "human":
+            self.render()
         return obs, info
 
     def step(self, action: np.ndarray) -> tuple[dict[str, np.ndarray], float, bool, bool,
                                                  dict[str, Any]]:
         a = np.asarray(action, dtype=np.float64).reshape(-1)
         if a.shape != (2,) or not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be 2 finite numbers (yaw rad, x m), got {action!r}")
+            units = "in [-1, 1]" if self.normalized_actions else "(yaw rad, x m)"
+            raise ValueError(f"action must be 2 finite numbers {units}, got {action!r}")
         # Policies with unbounded outputs overshoot; the stages stop at their travel.
-        command = np.clip(a, self._travel[0], self._travel[1])
+        command = np.clip(self._to_si(a), self._travel[0], self._travel[1])
         before = self._stage.copy()
         move_s = _move_duration(before, command)
         self.bench.move_to(x_m=float(command[1]), yaw_rad=float(command[0]))
@@ -364,19 +399,60 @@ class LidarAlignEnv(gym.Env[dict[str, np.ndarray], np.ndarray]):
         }
         info["reward_terms"] = terms
         reward = float(sum(terms.values()))
+        if self.render_mode == "human":
+            self.render()
         return obs, reward, bool(info["aligned"]), False, info
 
-    def render(self) -> None:
-        """Nothing to render (``render_modes`` is empty); log scans with rerun instead."""
-        return None
+    def render(self) -> np.ndarray | None:
+        """``rgb_array``: the picture of the bench (see the class docstring); ``human``: refresh
+        the viewer window (returns None); no render mode: None."""
+        if self._view is None:
+            return None
+        frame = Frame(self.bench, self._stage.copy(), self.last_estimate, self.last_scans,
+                      self.target_yaw_rad, self._caption())
+        if self.render_mode == "human":
+            self._view.show(frame)
+            return None
+        return self._view.rgb(frame)
+
+    def action_for(self, stage_target: np.ndarray) -> np.ndarray:
+        """The action that commands the stage targets (yaw rad, x m) in this env's action space
+        (the targets themselves, or scaled to [-1, 1] with ``normalized_actions``)."""
+        target = np.asarray(stage_target, dtype=np.float64).reshape(2)
+        if not self.normalized_actions:
+            return target
+        low, high = self._travel
+        return np.clip(2.0 * (target - low) / (high - low) - 1.0, -1.0, 1.0).astype(np.float32)
 
     def close(self) -> None:
-        """Close the bench if this env opened it (idempotent)."""
+        """Close the bench if this env opened it, and the renderer (idempotent)."""
+        if self._view is not None:
+            self._view.close()
         if self._owns_bench and self.bench is not None:
             self.bench.close()
         super().close()
 
     # -- internals -----------------------------------------------------------------------------
+    def _to_si(self, action: np.ndarray) -> np.ndarray:
+        """Stage targets (yaw rad, x m) of an action of this env's action space."""
+        if not self.normalized_actions:
+            return action
+        low, high = self._travel
+        return low + (np.clip(action, -1.0, 1.0) + 1.0) * 0.5 * (high - low)
+
+    def _caption(self) -> list[str]:
+        """The picture's caption: the step, the estimate and the error (deg, mm)."""
+        est, head = self.last_estimate, f"step {self._step_index}"
+        if est is None or not _usable(est):
+            return [f"{head}  no estimate ({est.status if est is not None else 'not yet'})"]
+        e = est.pose.to_edge()
+        lines = [f"{head}  estimate: yaw {e['yaw_deg']:+.3f} deg, x {e['x_mm']:.1f} mm",
+                 f"tilt {e['tilt_deg']:+.3f} deg, roll {e['roll_deg']:+.3f} deg"]
+        if self._last_error is not None:
+            e_yaw, e_x = self._last_error
+            lines.append(f"error: yaw {math.degrees(e_yaw):+.3f} deg, x {e_x * 1e3:+.1f} mm")
+        return lines
+
     def _set_mount(self, mount: dict[str, float] | None) -> None:
         """Give the twin this episode's mount, always as a freshly built twin: `SimBench` only
         rebuilds on a changed mount, and a reused twin carries its clock and spin phase from the
@@ -509,25 +585,28 @@ def scripted_policy(env: gym.Env, obs: Mapping[str, Any]) -> np.ndarray:
 
     New stage target = where the stages are - (estimated pose - target), in yaw and x. The yaw
     error is the stage's to cancel exactly (the LiDAR's yaw in {O} is the stage yaw plus the
-    mount's); x likewise along the linear stage. Without an estimate, stay put.
+    mount's); x likewise along the linear stage. Without an estimate, stay put. Returned in the
+    env's action space (`LidarAlignEnv.action_for`), so it drives either registered id.
     """
     target_yaw, target_x = env.unwrapped.target_yaw_rad, env.unwrapped.target_x_m
     stage = np.asarray(obs["stage"], dtype=np.float64)
     if not obs["estimate_ok"]:
-        return stage.copy()
+        return env.unwrapped.action_for(stage)
     pose = np.asarray(obs["pose"], dtype=np.float64)
     correction = np.array([_wrap(pose[5] - target_yaw), pose[0] - target_x])
-    return stage - correction
+    return env.unwrapped.action_for(stage - correction)
 
 
 def register() -> None:
-    """Register `ENV_ID` with gymnasium (idempotent: a re-import does not re-register)."""
-    if ENV_ID not in gym.registry:
-        gym.register(id=ENV_ID, entry_point=f"{__name__}:LidarAlignEnv",
-                     max_episode_steps=MAX_EPISODE_STEPS)
+    """Register `ENV_ID` and `ENV_ID_NORMALIZED` with gymnasium (idempotent: a re-import does
+    not re-register)."""
+    for env_id, kwargs in ((ENV_ID, {}), (ENV_ID_NORMALIZED, {"normalized_actions": True})):
+        if env_id not in gym.registry:
+            gym.register(id=env_id, entry_point=f"{__name__}:LidarAlignEnv",
+                         max_episode_steps=MAX_EPISODE_STEPS, kwargs=kwargs)
 
 
 register()
 
-__all__ = ["ENV_ID", "MAX_EPISODE_STEPS", "LidarAlignEnv", "MountRange", "RewardWeights",
-           "register", "scripted_policy"]
+__all__ = ["ENV_ID", "ENV_ID_NORMALIZED", "MAX_EPISODE_STEPS", "LidarAlignEnv", "MountRange",
+           "RewardWeights", "register", "scripted_policy"]
