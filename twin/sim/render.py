@@ -125,7 +125,7 @@ class OffscreenRenderer:
             return cam
         cam_id = camera if isinstance(camera, int) else mujoco.mj_name2id(
             self.model, mujoco.mjtObj.mjOBJ_CAMERA, camera)
-        if not -1 <= cam_id < self.model.ncam:
+        if not -1 <= cam_id < self.model.ncam or (isinstance(camera, str) and cam_id < 0):
             raise RenderError(f"no camera {camera!r} in the model; it has "
                               f"{', '.join(camera_names(self.model)) or 'none'}")
         if cam_id >= 0:
