@@ -14,7 +14,16 @@ import pkgutil
 import sys
 
 from scenarios import commands
+from scenarios.commands import version
 from twin.core.errors import AimbenchError
+
+
+class _Version(argparse.Action):
+    """``--version``: asks git for the commit only when given (not on every command)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
+        print(version.short())
+        parser.exit(0)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,6 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="aimbench",
         description="LiDAR alignment inspection bench and its digital twin.",
     )
+    parser.add_argument("--version", action=_Version, nargs=0,
+                        help="print aimbench's version and commit, and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         module = importlib.import_module(f"{commands.__name__}.{info.name}")

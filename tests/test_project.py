@@ -38,3 +38,39 @@ def test_importing_aimbench_registers_the_gym_env(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
                          text=True, check=True)
     assert out.stdout.strip() == "aimbench/LidarAlign-v0"
+
+
+def test_cli_version_names_every_library_and_the_commit(tmp_path):
+    from scenarios.commands.version import git_commit
+
+    v = json.loads(subprocess.run([sys.executable, "-m", "scenarios.cli", "version", "--json"],
+                                  cwd=tmp_path, capture_output=True, text=True,
+                                  check=True).stdout)
+    for dist in ("numba", "pyarrow", "matplotlib", "python-pcapng", "numpy", "mujoco"):
+        assert v[dist] not in ("", "not installed"), dist
+    head = subprocess.run(["git", "-C", str(REPO_DIR), "rev-parse", "HEAD"], capture_output=True,
+                          text=True, check=True).stdout.strip()
+    assert v["aimbench-commit"].split("+")[0] == head
+    assert git_commit(tmp_path) == "unknown"  # not a checkout (an installed wheel)
+
+
+def test_cli_dash_dash_version_exits_0(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "scenarios.cli", "--version"], cwd=tmp_path,
+                         capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    version = json.loads(subprocess.run(
+        [sys.executable, "-m", "scenarios.cli", "version", "--json"], cwd=tmp_path,
+        capture_output=True, text=True, check=True).stdout)
+    assert out.stdout.startswith(f"aimbench {version['aimbench']} (commit ")
+    assert version["aimbench-commit"][:12] in out.stdout
+
+
+def test_method_options_list_their_choices(tmp_path):
+    for command in ("sweep", "demo", "replay"):
+        out = subprocess.run([sys.executable, "-m", "scenarios.cli", command, "--help"],
+                             cwd=tmp_path, capture_output=True, text=True, check=True)
+        assert "--method {rays,paper,icp}" in out.stdout, command
+    bad = subprocess.run([sys.executable, "-m", "scenarios.cli", "sweep", "yaw", "--method",
+                          "nope", "--out", "r"], cwd=tmp_path, capture_output=True, text=True)
+    assert bad.returncode == 2 and "choose from 'rays', 'paper', 'icp'" in bad.stderr
+    assert not (tmp_path / "r").exists()

@@ -18,6 +18,7 @@ import argparse
 import sys
 from pathlib import Path
 
+import align
 from scenarios.recording.observer import (
     add_sink_arguments,
     close_recording,
@@ -115,7 +116,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="log every N-th return of a scan (smaller recordings; default 1)")
     p.add_argument("--color-by", choices=("intensity", "ring"), default="intensity",
                    help="colour of the raw returns (default intensity)")
-    p.add_argument("--method", help="capture: estimation method (default: align's)")
+    p.add_argument("--method", choices=align.METHODS,
+                   help=f"capture: estimation method (default: align's, {align.DEFAULT_METHOD})")
     p.add_argument("--truth", help="capture: truth file (default CAPTURE.truth.json if present)")
     p.add_argument("--limit", "--scans", type=int, metavar="N",
                    help="source: the first N whole scans only (a live sensor: stop after N)")

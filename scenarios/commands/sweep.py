@@ -3,7 +3,7 @@
     aimbench sweep yaw|x|grid|montecarlo|repeatability|FILE.toml --out runs/NAME
                    [--station FILE] [--board-mm WxH]
                    [--bench sim|hw|serve] [--port URL] [--lidar udp://HOST:PORT | RECORDING]
-                   [--scans N] [--poses N] [--method NAME] [--seed S] [--ideal]
+                   [--scans N] [--poses N] [--method rays|paper|icp] [--seed S] [--ideal]
     aimbench sweep --resume --out runs/NAME
 
 The station file (docs/station.md; default: the paper's bench) describes the bench: the twin is
@@ -23,6 +23,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+import align
 from scenarios import calibrate, cliargs, plans
 from scenarios import station as stations
 from scenarios.bench import open_bench
@@ -260,7 +261,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--scans", type=cliargs.positive_int,
                    help="scans per reference (default: the paper's, 100; 50 for montecarlo)")
     p.add_argument("--poses", type=cliargs.positive_int, help="Monte Carlo poses (default 200)")
-    p.add_argument("--method", help="estimation method (default: align's)")
+    p.add_argument("--method", choices=align.METHODS,
+                   help=f"estimation method (default: align's, {align.DEFAULT_METHOD})")
     p.add_argument("--max-consecutive-failures", type=cliargs.positive_int,
                    default=MAX_CONSECUTIVE_FAILURES,
                    help="fail the run after this many scans in a row without a pose at a "
