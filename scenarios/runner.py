@@ -32,6 +32,7 @@ import numpy as np
 from scenarios.bench import Bench, BenchError, TravelError
 from scenarios.config import MAX_CONSECUTIVE_FAILURES
 from scenarios.plans import Plan, Reference, references_beyond
+from scenarios.progress import Bar, is_terminal
 from scenarios.store import ScanResult, Store
 from scenarios.truth import scan_truth
 from twin.core.errors import AimbenchError
@@ -144,29 +145,43 @@ def adapt_estimate(pe: Any) -> Estimate:
 
 
 class Progress:
-    """A one-line progress bar on stderr with the estimate so far at the current reference.
+    """The sweep's progress on stderr with the estimate so far at the current reference.
 
-    On a terminal it redraws in place (at most 10 times a second); otherwise it prints one line
-    per finished reference, so logs stay short. Keeps the running estimate per reference, so
-    parallel workers interleaving references each show their own.
+    On a terminal a `scenarios.progress.Bar` (tqdm) over all the plan's scans, with the current
+    reference and its running estimate after it; otherwise one whole line per finished
+    reference, so logs stay short. Keeps the running estimate per reference, so parallel
+    workers interleaving references each show their own.
     """
 
-    def __init__(self, plan: Plan, stream: TextIO | None = None, enabled: bool = True) -> None:
+    def __init__(self, plan: Plan, stream: TextIO | None = None, enabled: bool = True,
+                 tty: bool | None = None) -> None:
         self.plan = plan
         self.stream = stream if stream is not None else sys.stderr
         self.enabled = enabled
-        self.tty = enabled and hasattr(self.stream, "isatty") and self.stream.isatty()
         self.total = plan.total_scans
         self.done = 0
         self.started = time.monotonic()
         self.session_scans = 0
-        self._last = 0.0
         self._ref = 0
         self._acc: dict[int, dict] = {}
+        self._tty = tty
+        self._bar: Bar | None = None
+
+    @property
+    def tty(self) -> bool:
+        return self.enabled and (is_terminal(self.stream) if self._tty is None else self._tty)
+
+    def _ensure_bar(self) -> Bar:
+        # Made at the first reference, once `skip` has counted what a resumed run holds.
+        if self._bar is None:
+            self._bar = Bar(self.total, self.plan.name, "scans", stream=self.stream,
+                            enabled=self.enabled, every=None, initial=self.done, tty=self.tty)
+        return self._bar
 
     def start_reference(self, index: int, already: int) -> None:
         self._ref = index
         self._acc[index] = {"done": already, "yaw": [], "x": [], "fail": 0}
+        self._ensure_bar().set_status(self.status(index))
 
     def skip(self, n: int) -> None:
         self.done += n
@@ -183,24 +198,15 @@ class Progress:
             acc["x"].append(est.pose.x)
         else:
             acc["fail"] += 1
-        now = time.monotonic()
-        if self.tty and (now - self._last > 0.1 or acc["done"] == self.plan.scans):
-            self._last = now
-            self.stream.write("\r" + self.line() + "\x1b[K")
-            self.stream.flush()
+        self._ensure_bar().update(1, self.status() if self.tty else None)
 
-    def line(self, reference: int | None = None) -> str:
+    def status(self, reference: int | None = None) -> str:
+        """The reference, its scan count and its estimate so far (what follows the bar)."""
         i = self._ref if reference is None else reference
         ref = self.plan.references[i]
         acc = self._acc.get(i, {"done": 0, "yaw": [], "x": [], "fail": 0})
-        frac = self.done / self.total if self.total else 1.0
-        width = 20
-        bar = "#" * int(frac * width) + "-" * (width - int(frac * width))
-        elapsed = time.monotonic() - self.started
-        rate = self.session_scans / elapsed if elapsed > 0 else 0.0
-        eta = (self.total - self.done) / rate if rate > 0 else math.nan
-        text = (f"[{bar}] {100 * frac:5.1f}% ref {i + 1}/{len(self.plan)} "
-                f"({ref.describe()}) scan {acc['done']}/{self.plan.scans}")
+        text = (f"ref {i + 1}/{len(self.plan)} ({ref.describe()}) "
+                f"scan {acc['done']}/{self.plan.scans}")
         if acc["yaw"]:
             yaw = np.degrees(acc["yaw"])
             x = np.array(acc["x"]) * 1e3
@@ -208,7 +214,15 @@ class Progress:
                      f" x {x.mean():+.1f}±{x.std():.1f} mm")
         if acc["fail"]:
             text += f" | {acc['fail']} without pose"
-        text += f" | {rate:.1f} scans/s"
+        return text
+
+    def line(self, reference: int | None = None) -> str:
+        """The whole line a log gets per finished reference: share done, status, rate, ETA."""
+        frac = self.done / self.total if self.total else 1.0
+        elapsed = time.monotonic() - self.started
+        rate = self.session_scans / elapsed if elapsed > 0 else 0.0
+        eta = (self.total - self.done) / rate if rate > 0 else math.nan
+        text = f"{100 * frac:5.1f}% {self.status(reference)} | {rate:.1f} scans/s"
         if math.isfinite(eta):
             text += f" ETA {int(eta // 60)}m{int(eta % 60):02d}s"
         return text
@@ -216,25 +230,23 @@ class Progress:
     def end_reference(self, reference: int | None = None) -> None:
         if not self.enabled:
             return
-        if self.tty:
-            self.stream.write("\r" + self.line(reference) + "\x1b[K")
-        else:
-            self.stream.write(self.line(reference) + "\n")
-        self.stream.flush()
+        if not self.tty:
+            self._ensure_bar().write(self.line(reference))
         self._acc.pop(self._ref if reference is None else reference, None)
 
     def finish(self) -> None:
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
 
     def message(self, text: str) -> None:
         if not self.enabled:
             return
-        if self.tty:
-            self.stream.write("\r\x1b[K")
-        self.stream.write(text + "\n")
-        self.stream.flush()
+        if self._bar is not None:
+            self._bar.write(text)
+        else:
+            self.stream.write(text + "\n")
+            self.stream.flush()
 
 
 class _StopFlag:
@@ -272,13 +284,21 @@ class Runner:
     max_consecutive_failures: scans in a row without a pose, with none at this reference, after
         which the board is declared not in view and the run fails.
     move_timeout_s: longest wait for the stages to arrive at a reference.
+    check_scans: called once with the run's first few raw scans (before any calibration is
+        applied), e.g. to check that they fit the calibration; it reports what it finds.
     """
+
+    #: Scans `check_scans` gets.
+    CHECK_SCANS = 3
 
     def __init__(self, plan: Plan, bench: Bench, store: Store, estimator: Estimator,
                  progress: Progress | None = None,
                  max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES,
-                 move_timeout_s: float = 120.0) -> None:
+                 move_timeout_s: float = 120.0,
+                 check_scans: Callable[[list[Scan]], None] | None = None) -> None:
         self.plan = plan
+        self._check_scans = check_scans
+        self._first_scans: list[Scan] = []
         self.bench = bench
         self.store = store
         self.estimator = estimator
@@ -407,6 +427,7 @@ class Runner:
             t0 = time.monotonic()
             for scan in scans:
                 t_scan = time.monotonic() - t0
+                self._checking(scan)
                 t1 = time.monotonic()
                 est = self.estimator(scan)
                 t_est = time.monotonic() - t1
@@ -427,6 +448,17 @@ class Runner:
             if close is not None:
                 close()
         return False
+
+
+    def _checking(self, scan: Scan) -> None:
+        """Hand the run's first `CHECK_SCANS` scans to ``check_scans``, once."""
+        if self._check_scans is None:
+            return
+        self._first_scans.append(scan)
+        if len(self._first_scans) >= self.CHECK_SCANS:
+            check, self._check_scans = self._check_scans, None
+            check(self._first_scans)
+            self._first_scans = []
 
 
 def visit(bench: Bench, ref: Reference, timeout_s: float = 120.0) -> StagePose:

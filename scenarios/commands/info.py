@@ -10,7 +10,9 @@ import math
 import sys
 import warnings
 from collections.abc import Iterator
+from pathlib import Path
 
+from scenarios.progress import Bar
 from twin.core.errors import AimbenchError
 from twin.core.scan import Scan
 from twin.lidar.sources import ScanSource, open_scans
@@ -49,12 +51,34 @@ def quiet_scans(source: ScanSource) -> Iterator[Scan]:
         yield scan
 
 
+#: Files at least this big show their progress (a minute of VLP-16 data is ~56 MB in a pcap);
+#: smaller ones read in a second or two, and a bar would only flash. A live sensor always does.
+PROGRESS_BYTES = 50_000_000
+#: Bytes one VLP-16 rotation at 600 rpm takes in a pcap (75.4 packets of 16 + 42 + 1206 bytes):
+#: a pcap's estimated scan count is its size over this.
+PCAP_SCAN_BYTES = 95_300
+
+
+def progress_bar(name: str, command: str, min_bytes: int = PROGRESS_BYTES) -> Bar:
+    """The `scenarios.progress.Bar` of reading source ``name``: over the estimated scans of a
+    big pcap, counting scans of another big file or of a live sensor, off for small files."""
+    path = Path(name)
+    live = name.startswith("udp://")
+    size = path.stat().st_size if path.is_file() else 0
+    pcap = path.suffix.lower() in (".pcap", ".pcapng")
+    total = max(1, size // PCAP_SCAN_BYTES) if pcap else None
+    return Bar(total, command, "scans", enabled=live or size >= min_bytes,
+               every=None if live else 0, estimated=True)
+
+
 def read_source(args: argparse.Namespace, keep_scans: bool) -> tuple[list[Scan], dict]:
     """Every scan of the named source (or until --scans or Ctrl-C) and its summary."""
     scans = []
-    with open_source(args) as source:
+    with open_source(args) as source, progress_bar(str(args.capture),
+                                                   getattr(args, "command", "read")) as bar:
         try:
             for scan in quiet_scans(source):
+                bar.update(1)
                 if keep_scans:
                     scans.append(scan)
         except KeyboardInterrupt:  # a live source: Ctrl-C ends the reading, not the command

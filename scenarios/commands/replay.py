@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 import align
+from scenarios.progress import Bar
 from scenarios.recording.observer import (
     add_sink_arguments,
     close_recording,
@@ -28,14 +29,22 @@ from scenarios.recording.observer import (
 from twin.core.errors import AimbenchError
 
 
-def _progress(enabled: bool):
-    def show(done: int, total: int) -> None:
-        if enabled and (done == total or done % 25 == 0):
-            sys.stderr.write(f"\rreplay: {done}/{total} scans")
-            if done == total:
-                sys.stderr.write("\n")
-            sys.stderr.flush()
-    return show
+class _Progress:
+    """The replay's ``progress(done, total)`` callback on a `scenarios.progress.Bar` (a bar on a
+    terminal, a line every 25 scans otherwise), made at the first call, when the total is known."""
+
+    def __init__(self, enabled: bool) -> None:
+        self.enabled = enabled
+        self.bar: Bar | None = None
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.bar is None:
+            self.bar = Bar(total, "replay", "scans", enabled=self.enabled, every=25)
+        self.bar.update(done - self.bar.done)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -45,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
 
     src = Path(args.source)
     tol = rl.tolerance_band(args.tolerance_deg, args.tolerance_mm)
-    progress = _progress(not args.no_progress)
+    progress = _Progress(not args.no_progress)
     if src.is_dir() and (src / "run.sqlite").is_file():
         sinks = sink_options(args, default_save=src / "replay.rrd")
         rec = open_recording(f"replay {src.name}", sinks, truth=_run_has_truth(src))
@@ -55,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
                 clouds_per_reference=args.clouds_per_reference, points_every=args.points_every,
                 color_by=args.color_by, tolerances=tol, progress=progress)
         finally:
+            progress.close()
             close_recording(rec, sinks)
     else:
         name = _source_or_run(args.source)
@@ -74,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
                 points_every=args.points_every, color_by=args.color_by, tolerances=tol,
                 progress=progress)
         finally:
+            progress.close()
             close_recording(rec, sinks)
     print(f"replay: {summary.line()}", file=sys.stderr)
     for note in summary.notes:
