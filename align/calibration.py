@@ -9,10 +9,21 @@ only where the ring crosses the board's top or bottom edge (there the hit/miss t
 the ring pins the ring's height to the edge), so it is reported only for those lasers, and as
 "not observed" (None) for the others.
 
-File format (JSON, `save` / `load`): ``{"format": "aimbench.laser_calibration", "version": 1,
-"lasers": [{"laser_id", "elevation_deg", "range_offset_m", "range_offset_std_m",
-"elevation_offset_rad", "elevation_offset_std_rad", "returns", "edge_crossings"} per laser],
-"source": {...}}``. Offsets are measured minus true: the corrected range is distance - offset.
+File format (JSON, `save` / `load`): ``{"format": "aimbench.laser_calibration", "version": 2,
+"sensor": {"id", "model", "n_lasers"}, "made": {...}, "lasers": [{"laser_id", "elevation_deg",
+"range_offset_m", "range_offset_std_m", "elevation_offset_rad", "elevation_offset_std_rad",
+"returns", "edge_crossings"} per laser], "source": {...}}``. Offsets are measured minus true: the
+corrected range is distance - offset.
+
+Identity (version 2): ``sensor`` says which unit the file is for: ``id`` (its serial number, or
+an id the user gave it; None when nobody said), ``model`` (the scans' laser table, e.g. VLP-16)
+and ``n_lasers``. ``made`` says when and how: ``at`` (UTC, ISO 8601), ``how`` (e.g. "sim bench",
+"capture"), ``poses`` (the distinct true poses, edge units), ``scans``, ``residuals`` (RMS of
+measured minus true range on the board's interior before and after the correction, m, and the
+returns counted), and whatever the caller adds (the software's version). Version 1 files (no
+identity) still load, with an unknown sensor. `identity_warnings` and `ring_bias` are the pieces
+of the check that a capture fits a calibration (`scenarios.calibrate.check`).
+
 `apply` is pure; `load` and `save` are the only functions here that touch a file.
 """
 
@@ -32,7 +43,11 @@ from twin.core.pose import Pose
 from twin.core.scan import Scan, points_from_polar
 
 FORMAT = "aimbench.laser_calibration"
-VERSION = 1
+VERSION = 2
+#: Versions `from_dict` reads (1: before the sensor's identity was recorded).
+READS = (1, 2)
+#: Distinct poses kept in ``made["poses"]`` (a calibration visits a few; a capture may hold many).
+MAX_POSES = 50
 #: Returns used for range offsets: at least this far inside the board's edges, m.
 INTERIOR_MARGIN = 0.03
 #: A return within this of the true range is on the board, m (5 sigma of 14 mm noise).
@@ -56,6 +71,10 @@ class LaserCalibration:
     edge_crossings: np.ndarray | None = None
     source: dict = field(default_factory=dict)
     elevation_deg: np.ndarray | None = None
+    #: Which unit: {"id": serial or user id or None, "model": ..., "n_lasers": ...}.
+    sensor: dict = field(default_factory=dict)
+    #: When and how it was made (see the module docstring).
+    made: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         n = len(self.range_offset)
@@ -75,6 +94,29 @@ class LaserCalibration:
     def n_lasers(self) -> int:
         return len(self.range_offset)
 
+    @property
+    def sensor_id(self) -> str | None:
+        return self.sensor.get("id")
+
+    @property
+    def model(self) -> str | None:
+        return self.sensor.get("model")
+
+    def describe(self) -> str:
+        """One line naming the calibration: the sensor, when and how it was made."""
+        who = f"{self.model or 'unknown model'} " + (f"{self.sensor_id!r}" if self.sensor_id
+                                                     else "(no sensor id)")
+        made = self.made
+        if not made:
+            return f"{who}, {self.source.get('name') or 'origin not recorded'} (a version 1 file)"
+        res = made.get("residuals") or {}
+        how = (f", made {made.get('at', '?')} from {made.get('how', '?')}: "
+               f"{len(made.get('poses', []))} poses, {made.get('scans', '?')} scans")
+        if res.get("rms_before_m") is not None and res.get("rms_after_m") is not None:
+            how += (f", range residual {res['rms_before_m'] * 1e3:.1f} -> "
+                    f"{res['rms_after_m'] * 1e3:.1f} mm RMS")
+        return who + how
+
     def to_dict(self) -> dict:
         def f(v: float) -> float | None:
             return None if not np.isfinite(v) else float(v)
@@ -89,12 +131,15 @@ class LaserCalibration:
             "returns": int(self.returns[i]),
             "edge_crossings": int(self.edge_crossings[i]),
         } for i in range(self.n_lasers)]
-        return {"format": FORMAT, "version": VERSION, "lasers": lasers, "source": self.source}
+        return {"format": FORMAT, "version": VERSION,
+                "sensor": {"id": self.sensor_id, "model": self.model,
+                           "n_lasers": self.n_lasers},
+                "made": self.made, "lasers": lasers, "source": self.source}
 
     @classmethod
     def from_dict(cls, d: dict) -> LaserCalibration:
-        if d.get("format") != FORMAT or d.get("version") != VERSION:
-            raise ValueError(f"not an {FORMAT} v{VERSION} file "
+        if d.get("format") != FORMAT or d.get("version") not in READS:
+            raise ValueError(f"not an {FORMAT} file of version {' or '.join(map(str, READS))} "
                              f"(format={d.get('format')!r}, version={d.get('version')!r})")
         lasers = sorted(d["lasers"], key=lambda r: r["laser_id"])
         if not lasers or [r["laser_id"] for r in lasers] != list(range(len(lasers))):
@@ -107,7 +152,8 @@ class LaserCalibration:
                    col("elevation_offset_std_rad"),
                    np.array([r.get("returns", 0) for r in lasers], dtype=np.int64),
                    np.array([r.get("edge_crossings", 0) for r in lasers], dtype=np.int64),
-                   d.get("source", {}), col("elevation_deg"))
+                   d.get("source", {}), col("elevation_deg"), dict(d.get("sensor") or {}),
+                   dict(d.get("made") or {}))
 
 
 def save(cal: LaserCalibration, path: str | Path) -> None:
@@ -143,7 +189,7 @@ def apply(scan: Scan, cal: LaserCalibration) -> Scan:
         z = dist * np.sin(w) + np.where(ret & scan.vertical_offsets_applied,
                                          scan.lasers.vertical_offset[scan.laser_id], 0.0)
     meta = dict(scan.meta)
-    meta["laser_calibration"] = cal.source.get("name", "applied")
+    meta["laser_calibration"] = cal.sensor_id or cal.source.get("name") or "applied"
     return replace(scan, distance=dist, x=x, y=y, z=z, meta=meta)
 
 
@@ -153,7 +199,8 @@ def _directions(azimuth: np.ndarray, elevation: np.ndarray) -> np.ndarray:
 
 
 def estimate(scans: Sequence[Scan], poses: Sequence[Pose], board: BoardSpec = BoardSpec(),  # noqa: B008
-             name: str = "") -> LaserCalibration:
+             name: str = "", sensor_id: str | None = None,
+             made: dict | None = None) -> LaserCalibration:
     """Per-laser range offsets (and elevation offsets where observable) from board scans.
 
     ``poses``: the true LiDAR pose in the board frame for each scan. Range offset of laser l:
@@ -161,6 +208,10 @@ def estimate(scans: Sequence[Scan], poses: Sequence[Pose], board: BoardSpec = Bo
     standard error. Elevation offset of laser l: from each hit/miss pair along its ring where
     the ring crosses the top or bottom edge, the elevation change that puts the edge at the
     middle of the pair; their mean and standard error (at least two crossings).
+
+    ``sensor_id`` names the unit; the model comes from the scans' laser table. ``made``: what
+    the caller knows of how it was made (when, how); the poses, the scans and the residuals
+    before and after the correction are added here.
     """
     lasers = scans[0].lasers if scans else vlp16.LASERS
     n_lasers = lasers.n_lasers
@@ -209,4 +260,72 @@ def estimate(scans: Sequence[Scan], poses: Sequence[Pose], board: BoardSpec = Bo
     el_std = np.array([np.std(e, ddof=1) / np.sqrt(len(e)) if len(e) >= 2 else np.nan
                        for e in el])
     source = {"name": name, "scans": len(scans), "board_m": [board.width, board.height]}
-    return LaserCalibration(mean, std, el_mean, el_std, n, ne, source, lasers.elevation_deg)
+    sensor = {"id": sensor_id, "model": lasers.model, "n_lasers": n_lasers}
+    return LaserCalibration(mean, std, el_mean, el_std, n, ne, source, lasers.elevation_deg,
+                            sensor, {**(made or {}), "poses": _distinct(poses),
+                                     "scans": len(scans), "residuals": _residuals(res)})
+
+
+def _distinct(poses: Sequence[Pose]) -> list[dict[str, float]]:
+    """The distinct poses (edge units, rounded to 1 um / 1e-6 deg), at most `MAX_POSES`."""
+    seen: dict[tuple, dict[str, float]] = {}
+    for pose in poses:
+        edge = {k: round(v, 6) for k, v in pose.to_edge().items()}
+        seen.setdefault(tuple(edge.values()), edge)
+    return list(seen.values())[:MAX_POSES]
+
+
+def _residuals(res: list[list[float]]) -> dict[str, float | int | None]:
+    """RMS of measured minus true range before and after removing each laser's mean, m."""
+    every = [np.asarray(r) for r in res if r]
+    if not every:
+        return {"rms_before_m": None, "rms_after_m": None, "returns": 0}
+    before = np.concatenate(every)
+    after = np.concatenate([r - r.mean() for r in every])
+    return {"rms_before_m": float(np.sqrt(np.mean(before ** 2))),
+            "rms_after_m": float(np.sqrt(np.mean(after ** 2))), "returns": int(before.size)}
+
+
+def identity_warnings(cal: LaserCalibration, model: str | None,
+                      sensor_id: str | None = None) -> list[str]:
+    """Why the calibration may not be this sensor's: another model, another unit (when both
+    ids are known), or no identity at all (a version 1 file). Empty when nothing says so."""
+    out = []
+    if model is not None and cal.model is not None and model != cal.model:
+        out.append(f"the calibration is for a {cal.model}, the scans come from a {model}")
+    if sensor_id is not None and cal.sensor_id is not None and sensor_id != cal.sensor_id:
+        out.append(f"the calibration was made for sensor {cal.sensor_id!r}, this is "
+                   f"{sensor_id!r}: another unit's offsets make tilt worse, not better")
+    if not cal.sensor:
+        out.append("the calibration file does not say which sensor it is for (a version 1 "
+                   "file); remake it with `aimbench calibrate --sensor-id ID`")
+    return out
+
+
+#: A laser needs this many board returns for its ring's bias to count in `ring_bias`.
+MIN_RING_RETURNS = 20
+
+
+def ring_bias(scans: Sequence[Scan], board_indices: np.ndarray) -> float | None:
+    """How much the lasers' rings disagree about the board: the RMS over lasers of each ring's
+    mean range offset from the plane fitted to all the board returns, m (None with fewer than
+    three rings). A right calibration shrinks it (the rings then agree); another unit's offsets
+    do not. Pure: the board returns come from the caller (e.g. an estimate's ``used["board"]``,
+    indices into the concatenated scans)."""
+    whole = Scan.concatenate(list(scans))
+    idx = np.asarray(board_indices, dtype=np.int64)
+    if idx.size < 3 * MIN_RING_RETURNS:
+        return None
+    pts, lid, u = whole.xyz[idx], whole.laser_id[idx], whole.directions()[idx]
+    centre = pts.mean(axis=0)
+    normal = np.linalg.svd(pts - centre)[2][2]
+    along = u @ normal
+    keep = np.abs(along) > 0.1  # rays nearly parallel to the board say little about range
+    off = ((pts - centre) @ normal)[keep] / along[keep]  # signed distance along the ray
+    lid = lid[keep]
+    means = [off[lid == k].mean() for k in np.unique(lid)
+             if np.count_nonzero(lid == k) >= MIN_RING_RETURNS]
+    if len(means) < 3:
+        return None
+    m = np.asarray(means)
+    return float(np.sqrt(np.mean((m - m.mean()) ** 2)))

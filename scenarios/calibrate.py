@@ -9,14 +9,23 @@ uses the same).
 
 Known poses come from the twin's truth (the simulated bench) or from a capture's truth file
 (``CAPTURE.truth.json``: the twin writes one; on the real bench, a surveyed pose of the LiDAR).
+
+A calibration belongs to one sensor: the file names it (``--sensor-id``: its serial number or an
+id of your own; the twin's is ``twin seed S``) and says when and how it was made. `check` warns
+when scans do not fit it: another model or unit, or rings that agree no better about the board
+with the calibration than without (another unit's offsets). `applied` is the line every report
+and result store shows: which calibration, or that none was applied.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from align import calibration as laser_calibration
 from scenarios.bench import Bench
@@ -32,6 +41,14 @@ DEFAULT_SCANS = 20
 #: `Bench.prepare` reference numbers for calibration scans: apart from any plan's, so a
 #: simulated calibration never reuses a sweep's noise draws.
 _PREPARE_BASE = 1_000_000
+#: `check`: scans fused to find the board, and how much of the rings' disagreement a calibration
+#: must remove to fit (a right one removes 55-80% on the twin, another unit's 0-25%); below the
+#: floor the rings agree anyway and there is nothing to judge.
+CHECK_SCANS = 3
+FIT_RATIO = 0.7
+RING_BIAS_FLOOR_M = 0.8e-3
+
+Progress = Callable[[int, int], None]
 
 
 class CalibrationError(AimbenchError):
@@ -50,14 +67,29 @@ def read(path: str | Path) -> laser_calibration.LaserCalibration:
                                "with `aimbench calibrate`") from exc
 
 
-def from_scans(scans: Sequence[Scan], poses: Sequence[Pose], name: str, board: Any = None
+def twin_sensor_id(seed: int) -> str:
+    """The id of the twin's sensor: the seed draws its per-laser offsets (one unit per seed)."""
+    return f"twin seed {int(seed)}"
+
+
+def _made(how: str) -> dict:
+    from scenarios.commands.version import versions
+
+    v = versions()
+    return {"at": datetime.now(UTC).isoformat(timespec="seconds"), "how": how,
+            "aimbench": v["aimbench"], "aimbench_commit": v["aimbench-commit"]}
+
+
+def from_scans(scans: Sequence[Scan], poses: Sequence[Pose], name: str, board: Any = None,
+               sensor_id: str | None = None, how: str = "scans at known poses"
                ) -> laser_calibration.LaserCalibration:
     """The calibration of scans at known poses of `board` (align's `BoardSpec`; None: the
     paper's); refuses when no laser could be calibrated."""
     if not scans:
         raise CalibrationError(f"{name}: no scan with a known pose to calibrate from")
     kwargs = {"board": board} if board is not None else {}
-    cal = laser_calibration.estimate(scans, poses, name=name, **kwargs)
+    cal = laser_calibration.estimate(scans, poses, name=name, sensor_id=sensor_id,
+                                     made=_made(how), **kwargs)
     if not (cal.returns > 0).any():
         raise CalibrationError(f"{name}: no return on the board's interior; is the board in "
                                "view and the pose right?")
@@ -65,14 +97,19 @@ def from_scans(scans: Sequence[Scan], poses: Sequence[Pose], name: str, board: A
 
 
 def on_bench(bench: Bench, yaws_deg: Sequence[float] = DEFAULT_YAWS_DEG,
-             scans_per_pose: int = DEFAULT_SCANS, board: Any = None
+             scans_per_pose: int = DEFAULT_SCANS, board: Any = None,
+             sensor_id: str | None = None, progress: Progress | None = None
              ) -> laser_calibration.LaserCalibration:
     """Calibrate the bench's sensor from scans at the given stage yaws (x at the reference) of
     `board` (align's `BoardSpec`, the bench's station's; None: the paper's).
 
     Needs a bench that knows its true pose (the twin); the real bench's pose is only known
-    through a surveyed capture (`from_capture`).
+    through a surveyed capture (`from_capture`). ``sensor_id``: default, the twin's
+    (`twin_sensor_id`). ``progress(done, total)`` after every scan.
     """
+    if sensor_id is None and getattr(bench, "kind", None) == "sim":
+        sensor_id = twin_sensor_id(bench.seed)
+    total = len(yaws_deg) * scans_per_pose
     scans: list[Scan] = []
     poses: list[Pose] = []
     bench.home()
@@ -91,12 +128,15 @@ def on_bench(bench: Bench, yaws_deg: Sequence[float] = DEFAULT_YAWS_DEG,
                     "--truth FILE")
             scans.append(scan)
             poses.append(truth)
+            if progress is not None:
+                progress(len(scans), total)
     return from_scans(scans, poses, f"{bench.kind} bench, stage yaw {list(yaws_deg)} deg",
-                      board)
+                      board, sensor_id,
+                      how=f"{bench.kind} bench at stage yaw {list(yaws_deg)} deg")
 
 
-def from_capture(capture: str | Path, truth: str | Path | None = None, board: Any = None
-                 ) -> laser_calibration.LaserCalibration:
+def from_capture(capture: str | Path, truth: str | Path | None = None, board: Any = None,
+                 sensor_id: str | None = None) -> laser_calibration.LaserCalibration:
     """Calibrate from a capture's whole scans and its truth file (default CAPTURE.truth.json),
     of `board` (align's `BoardSpec`; None: the paper's)."""
     from scenarios.truth import load_truth, truth_for, truth_path
@@ -116,4 +156,53 @@ def from_capture(capture: str | Path, truth: str | Path | None = None, board: An
         if pose is not None:
             scans.append(scan)
             poses.append(pose)
-    return from_scans(scans, poses, f"{Path(capture).name} with {truth_file.name}", board)
+    return from_scans(scans, poses, f"{Path(capture).name} with {truth_file.name}", board,
+                      sensor_id, how=f"capture {Path(capture).name} with truth {truth_file.name}")
+
+
+def check(cal: laser_calibration.LaserCalibration, scans: Sequence[Scan],
+          sensor_id: str | None = None) -> list[str]:
+    """Warnings when ``scans`` (raw, as the sensor sent them) do not fit ``cal``: another model
+    or unit (`align.calibration.identity_warnings`), or the board's rings agreeing no better
+    with the calibration applied than without (`align.calibration.ring_bias`, on the first
+    `CHECK_SCANS` scans fused). Empty when nothing is wrong."""
+    import align
+
+    scans = list(scans)[:CHECK_SCANS]
+    model = scans[0].lasers.model if scans else None
+    out = laser_calibration.identity_warnings(cal, model, sensor_id)
+    if not scans or cal.n_lasers != scans[0].lasers.n_lasers:
+        return out
+    fixed = [laser_calibration.apply(s, cal) for s in scans]
+    bias = []
+    for group in (scans, fixed):
+        est = align.estimate(group)
+        board = est.used.get("board", []) if est.success else []
+        bias.append(laser_calibration.ring_bias(group, np.asarray(board)))
+    raw, corrected = bias
+    if raw is None or corrected is None or raw < RING_BIAS_FLOOR_M:
+        return out
+    if corrected > FIT_RATIO * raw:
+        worse = "worse" if corrected > raw else "hardly better"
+        out.append(f"the calibration does not fit these scans: with it the lasers' rings "
+                   f"disagree about the board by {corrected * 1e3:.1f} mm RMS, without it by "
+                   f"{raw * 1e3:.1f} mm ({worse}); is it this sensor's? It is "
+                   f"{cal.describe()}")
+    return out
+
+
+def applied(calibration: dict | None) -> str:
+    """What a report or a store says of a run's calibration (its stored dict, or None)."""
+    if not calibration:
+        return "none applied (raw ranges; `aimbench calibrate` makes one for --calibration)"
+    try:
+        cal = laser_calibration.LaserCalibration.from_dict(calibration)
+    except (ValueError, KeyError, TypeError):
+        return "applied (a calibration this version cannot read)"
+    return f"applied: {cal.describe()}"
+
+
+#: What a failing uncalibrated run adds to its verdict.
+UNCALIBRATED_HINT = ("the angles failed without a sensor calibration, the likely fix: per-laser "
+                     "range offsets bias tilt and roll by tenths of a degree; calibrate the "
+                     "sensor (aimbench calibrate) and run again with --calibration FILE")

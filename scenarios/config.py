@@ -40,6 +40,8 @@ class RunConfig:
     per-laser calibration applied to every scan (an `align.calibration` dict), or None.
     station: the bench (`scenarios.station.Station`; default: the paper's), with any command
     line override (``--board-mm``) applied; station_file: the file it was read from, if any.
+    sensor_id: the LiDAR's serial number or a user's id for it (None: not given; on the twin
+    its seed names it), checked against the calibration's.
     """
 
     scenario: str | None = None
@@ -58,6 +60,7 @@ class RunConfig:
     calibration: dict | None = field(default=None, hash=False, compare=False)
     station: Station = field(default_factory=default_station, hash=False, compare=False)
     station_file: str | None = None
+    sensor_id: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready, the form the store keeps."""

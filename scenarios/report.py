@@ -426,6 +426,7 @@ def build_document(rep: RunReport, plots: dict[str, str]) -> _Doc:
              if rep.failures_by_status else "") + f"), {plan.get('scans')} scans per reference. "
           f"Bench: {bench.get('kind', config.bench)}; method: "
           f"{config.method or '?'}; seed: {config.seed}.")
+    doc.p(f"Sensor calibration: {calibration_line(rep)}.")
     failure = rep.meta.get("failure")
     if rep.meta.get("status") == "failed" and failure:
         doc.p(f"Failed at reference {failure.get('reference')}, scan {failure.get('scan')}: "
@@ -516,11 +517,26 @@ def write(store: Store, tolerances: Tolerances | None = None,
     return rep, md, page
 
 
+def calibration_line(rep: RunReport) -> str:
+    """Which sensor calibration the run applied, or that none was; a failed verdict without
+    one adds that calibrating is the likely fix."""
+    from scenarios.calibrate import UNCALIBRATED_HINT, applied
+
+    config = rep.meta.get("config") or {}
+    line = applied(config.get("calibration"))
+    _, reasons = rep.verdict()
+    angles = any(r.split()[:2] in (["tilt", "accuracy"], ["roll", "accuracy"]) for r in reasons)
+    if angles and not config.get("calibration"):
+        line += f"; {UNCALIBRATED_HINT}"
+    return line
+
+
 def summary_lines(rep: RunReport) -> list[str]:
-    """A short plain-text summary for the terminal: verdict and the paper table."""
+    """A short plain-text summary for the terminal: verdict, calibration and the paper table."""
     passed, reasons = rep.verdict()
     lines = [f"verdict: {'PASS' if passed else 'FAIL'}"
-             + ("" if passed else " (" + "; ".join(reasons) + ")")]
+             + ("" if passed else " (" + "; ".join(reasons) + ")"),
+             f"calibration: {calibration_line(rep)}"]
     for es in (rep.primary, rep.relative if rep.primary is rep.absolute else None):
         if es is None or not es.per_ref:
             continue

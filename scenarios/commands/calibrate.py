@@ -1,13 +1,20 @@
 """`aimbench calibrate`: per-laser range offsets of the VLP-16 from scans of the board at known
 poses, written to a file that `aimbench sweep --calibration` and `aimbench estimate
---calibration` apply.
+--calibration` apply; or, with ``--check``, whether a capture fits a calibration.
 
     aimbench calibrate --bench sim [--seed S] [--yaw-deg -8,0,8] [--scans 20] --out cal.json
-    aimbench calibrate RECORDING [--truth RECORDING.truth.json] --out cal.json
+    aimbench calibrate RECORDING [--truth RECORDING.truth.json] --sensor-id SERIAL --out cal.json
+    aimbench calibrate RECORDING --check cal.json [--sensor-id SERIAL]
 
 ``--station FILE`` (docs/station.md; default: the paper's bench): the board the scans see and,
 on ``--bench sim``, the twin built from it. Name the file it writes as the station's
 ``sensor.range_calibration`` and every later command applies it.
+
+The file names the sensor (``--sensor-id``: its serial number or an id of your own; on the twin,
+``twin seed S``; its model comes from the scans) and says when and how it was made (poses, scans,
+range residuals before and after). ``--check`` exits 1 with a warning per line when the
+recording does not fit (another model or unit, or the calibration does not make the board's
+rings agree).
 """
 
 from __future__ import annotations
@@ -20,25 +27,54 @@ import numpy as np
 from align import calibration as laser_calibration
 from scenarios import calibrate, cliargs
 from scenarios import station as stations
+from scenarios.progress import Bar
 from twin.core.errors import AimbenchError
 
 
+def _check(args: argparse.Namespace) -> int:
+    from twin.lidar.sources import capture_scans
+
+    cal = calibrate.read(args.check)
+    scans = capture_scans(args.capture)
+    if not scans:
+        raise AimbenchError(f"{args.capture}: no whole scan to check the calibration against")
+    warnings = calibrate.check(cal, scans, args.sensor_id)
+    for w in warnings:
+        print(f"aimbench calibrate: warning: {w}", file=sys.stderr)
+    verdict = "does not fit" if warnings else "fits"
+    print(f"{args.capture} {verdict} {args.check} ({cal.describe()})")
+    return 1 if warnings else 0
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.check:
+        if not args.capture:
+            raise AimbenchError("--check CAL needs a recording to check it against")
+        return _check(args)
+    if not args.out:
+        raise AimbenchError("give --out FILE.json for the calibration (or --check CAL)")
     station, _ = stations.from_args(args, twin=args.bench == "sim")
     board = station.board_spec()
     if args.capture:
-        cal = calibrate.from_capture(args.capture, args.truth, board)
+        cal = calibrate.from_capture(args.capture, args.truth, board, args.sensor_id)
     elif args.bench == "sim":
         from scenarios.bench import SimBench
 
         yaws = [float(v) for v in args.yaw_deg.split(",")]
-        with SimBench(seed=args.seed, station=station) as bench:
-            cal = calibrate.on_bench(bench, yaws, args.scans, board)
+        with SimBench(seed=args.seed, station=station) as bench, Bar(
+                len(yaws) * args.scans, "calibrate", "scans",
+                enabled=not args.no_progress) as bar:
+            cal = calibrate.on_bench(bench, yaws, args.scans, board, args.sensor_id,
+                                     progress=lambda done, _total: bar.update(done - bar.done))
     else:
         raise AimbenchError("give a CAPTURE.pcap with its truth file, or --bench sim")
     laser_calibration.save(cal, args.out)
     used = np.flatnonzero(cal.returns > 0)
     print(f"aimbench calibrate: {len(used)} lasers calibrated -> {args.out}", file=sys.stderr)
+    print(f"aimbench calibrate: {cal.describe()}", file=sys.stderr)
+    if cal.sensor_id is None:
+        print("aimbench calibrate: warning: no --sensor-id: the file cannot tell another unit's "
+              "scans from this one's", file=sys.stderr)
     for lid in used:
         print(f"  laser {lid:2d}: range offset {cal.range_offset[lid] * 1e3:+6.2f} "
               f"+- {cal.range_offset_std[lid] * 1e3:.2f} mm ({cal.returns[lid]} returns)")
@@ -59,8 +95,14 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="stage yaws to scan at, deg, comma-separated (default %(default)s)")
     p.add_argument("--scans", type=cliargs.positive_int, default=calibrate.DEFAULT_SCANS,
                    help="scans per stage yaw (default %(default)s)")
-    p.add_argument("--out", required=True, type=cliargs.output_file,
+    p.add_argument("--sensor-id", help="the sensor's serial number or your id for it (default: "
+                                       "on the twin 'twin seed S', else none)")
+    p.add_argument("--out", type=cliargs.output_file,
                    help="calibration file to write (JSON)")
+    p.add_argument("--check", metavar="CAL",
+                   help="check that the recording fits this calibration file instead (exit 1 "
+                        "if not)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     stations.add_arguments(p)
     p.set_defaults(func=run)
     return p

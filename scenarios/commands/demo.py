@@ -26,6 +26,7 @@ from scenarios import calibrate, cliargs, plans
 from scenarios.bench import SimBench
 from scenarios.commands.sweep import add_tolerance_arguments, execute, tolerances
 from scenarios.config import RunConfig
+from scenarios.progress import Bar
 from scenarios.store import STORE_NAME, Store
 
 #: Scans per reference in the demo: the paper's 100 (2,100 scans). The pipeline costs about 60 ms
@@ -59,8 +60,11 @@ def run(args: argparse.Namespace) -> int:
     cal = None
     if not resume and not args.no_calibration:
         # The same seed is the same twin sensor as the sweep's (SimBench draws it from the seed).
-        with SimBench(seed=args.seed) as bench:
-            cal = calibrate.on_bench(bench)
+        total = len(calibrate.DEFAULT_YAWS_DEG) * calibrate.DEFAULT_SCANS
+        with SimBench(seed=args.seed) as bench, Bar(total, "calibrate", "scans",
+                                                    enabled=not args.no_progress) as bar:
+            cal = calibrate.on_bench(bench,
+                                     progress=lambda done, _total: bar.update(done - bar.done))
         out.mkdir(parents=True, exist_ok=True)
         laser_calibration.save(cal, out / CALIBRATION_NAME)
         print(f"aimbench demo: calibrated {int((cal.returns > 0).sum())} lasers' range offsets "

@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 
 import align
 from align import calibration as laser_calibration
@@ -156,6 +157,11 @@ def run(args: argparse.Namespace) -> int:
     cal = calibrate.read(cal_file) if cal_file else None
     truths = _truths(args)
     rows, seen, group = [], 0, []
+    # The first whole raw scans go to the check that they fit the calibration, once.
+    first: list | None = [] if cal is not None else None
+    if cal is not None:
+        print(f"aimbench estimate: calibration {calibrate.applied(cal.to_dict())}",
+              file=sys.stderr)
     with open_source(args) as source:
         try:
             # Scan by scan as the source yields them: a live sensor's estimates come as it turns.
@@ -163,6 +169,11 @@ def run(args: argparse.Namespace) -> int:
                 seen += 1
                 if not (scan.complete or args.keep_partial):
                     continue
+                if first is not None:
+                    first.append(scan)
+                    if len(first) == calibrate.CHECK_SCANS:
+                        _warn_fit(cal, first, args.sensor_id)
+                        first = None
                 group.append(laser_calibration.apply(scan, cal) if cal is not None else scan)
                 if len(group) < args.fuse:
                     continue
@@ -175,6 +186,8 @@ def run(args: argparse.Namespace) -> int:
                     print(json.dumps(row, allow_nan=False), flush=True)
         except KeyboardInterrupt:  # a live source: Ctrl-C ends it; what was estimated stands
             pass
+    if first:  # fewer whole scans than the check takes: check those
+        _warn_fit(cal, first, args.sensor_id)
     warn_lines("estimate", {"capture": str(args.capture), **source.summary()})
     if not rows and not group:
         raise AimbenchError(f"{args.capture}: no complete scan in it ({seen} scans, none "
@@ -184,6 +197,13 @@ def run(args: argparse.Namespace) -> int:
         for line in table(rows):
             print(line)
     return 0 if any(r["status"] == "ok" for r in rows) else 1
+
+
+def _warn_fit(cal: laser_calibration.LaserCalibration, scans: list, sensor_id: str | None
+              ) -> None:
+    """One warning line per reason the raw scans do not fit the calibration."""
+    for w in calibrate.check(cal, scans, sensor_id):
+        print(f"aimbench estimate: warning: {w}", file=sys.stderr)
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -216,6 +236,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="per-laser calibration file (align.calibration) to apply first "
                         "(default: the station's sensor.range_calibration, if any)")
+    p.add_argument("--sensor-id", help="the LiDAR's serial number or your id for it, checked "
+                                       "against the calibration's")
     p.add_argument("--keep-partial", action="store_true",
                    help="also estimate from incomplete scans (first/last of a capture)")
     add_decode_options(p)

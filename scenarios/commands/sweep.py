@@ -61,6 +61,8 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                    help="per-laser calibration (aimbench calibrate) applied to every scan before "
                         "estimating (default: the station's sensor.range_calibration, if any); "
                         "the run stores its content")
+    p.add_argument("--sensor-id", help="the LiDAR's serial number or your id for it, checked "
+                                       "against the calibration's (the twin's: 'twin seed S')")
     stations.add_arguments(p)
 
 
@@ -132,6 +134,9 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
             store.set_status("failed", f"opening the {config.bench} bench: {exc}")
             raise
         store.put(**{"bench_resumed" if resume else "bench": bench.info()})
+        if not resume:
+            store.put(calibration=calibration_record(config))
+        check = calibration_check(config, store, stream)
         resumed = f" (resumed: {store.scan_count()} scans stored)" if resume else ""
         stream.write(f"aimbench sweep: {plan.name}, {len(plan)} references x {plan.scans} scans "
                      f"on the {config.bench} bench{resumed} -> {out}\n")
@@ -152,7 +157,7 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
                 progress=prog, max_consecutive_failures=max_fail, station=config.station)
         else:
             runner = Runner(plan, bench, store, estimator, progress=prog,
-                            max_consecutive_failures=max_fail)
+                            max_consecutive_failures=max_fail, check_scans=check)
         try:
             status = runner.run()
         except AimbenchError as exc:
@@ -179,6 +184,47 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
         if bench is not None:
             bench.close()
         store.close()
+
+
+def run_sensor_id(config: RunConfig) -> str | None:
+    """The id of the run's sensor: given (--sensor-id), or the twin's (its seed) on the twin."""
+    if config.sensor_id is not None:
+        return config.sensor_id
+    return calibrate.twin_sensor_id(config.seed) if config.bench == "sim" else None
+
+
+def calibration_record(config: RunConfig) -> dict:
+    """What the store keeps of the run's calibration: whether one was applied, the line the
+    report shows, and its identity (the whole file is in the configuration)."""
+    cal = config.calibration or {}
+    return {"applied": bool(cal), "describe": calibrate.applied(config.calibration),
+            "sensor": cal.get("sensor"), "made": cal.get("made"),
+            "run_sensor_id": run_sensor_id(config)}
+
+
+def calibration_check(config: RunConfig, store: Store, stream) -> Callable | None:
+    """Warn now of a calibration that names another sensor; return the check of the first
+    scans (`scenarios.calibrate.check`) for the runner, None without a calibration. Each
+    warning goes to the store's events and to ``stream``."""
+    if not config.calibration:
+        return None
+    from align import calibration as laser_calibration
+
+    cal = laser_calibration.LaserCalibration.from_dict(config.calibration)
+    sensor_id = run_sensor_id(config)
+
+    def warn(messages: list[str]) -> None:
+        for m in messages:
+            store.log(m, "warning")
+            stream.write(f"aimbench sweep: warning: {m}\n")
+
+    warn(laser_calibration.identity_warnings(cal, None, sensor_id))
+    already = set(laser_calibration.identity_warnings(cal, None, sensor_id))
+
+    def check(scans: list) -> None:
+        warn([m for m in calibrate.check(cal, scans, sensor_id) if m not in already])
+
+    return check
 
 
 def check_config(config: RunConfig) -> None:
@@ -210,7 +256,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
         ideal=bool(args.ideal), scans=args.scans, poses=args.poses, argv=tuple(sys.argv[1:]),
         max_consecutive_failures=args.max_consecutive_failures, jobs=args.jobs,
         calibration=calibrate.read(cal_file).to_dict() if cal_file else None,
-        station=station, station_file=station_file)
+        station=station, station_file=station_file, sensor_id=args.sensor_id)
 
 
 def run(args: argparse.Namespace) -> int:
