@@ -148,7 +148,10 @@ def test_write_makes_markdown_html_and_plots(yaw_run: Store):
     html = page.read_text()
     assert html.startswith("<!doctype html>") and "<table>" in html and "PASS" in html
     lines = report.summary_lines(rep)
-    assert lines[0] == "verdict: PASS" and "Accuracy" in lines[3]
+    assert lines[0] == "verdict: PASS" and "Accuracy" in lines[4]
+    # the run applied no calibration, and says so (without a hint: its verdict passed)
+    assert lines[1].startswith("calibration: none applied") and "likely fix" not in lines[1]
+    assert "Sensor calibration: none applied" in md.read_text()
 
 
 def test_report_of_an_empty_run(tmp_path: Path):
