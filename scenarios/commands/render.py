@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 import models
+from scenarios import cliargs
 from twin.core.errors import AimbenchError
 from twin.sim.render import BACKENDS, FreeCamera
 
@@ -108,12 +109,15 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--camera", help="a camera of the model by name, or 'free' (default: the "
                                     "model's first camera, else the free one)")
     p.add_argument("--lookat", metavar="X,Y,Z", help="free camera: the point it looks at, m")
-    p.add_argument("--distance", type=float, help="free camera: distance to that point, m")
-    p.add_argument("--azimuth-deg", type=float, help="free camera: azimuth, deg")
-    p.add_argument("--elevation-deg", type=float,
+    p.add_argument("--distance", type=cliargs.positive_float,
+                   help="free camera: distance to that point, m")
+    p.add_argument("--azimuth-deg", type=cliargs.finite_float, help="free camera: azimuth, deg")
+    p.add_argument("--elevation-deg", type=cliargs.finite_float,
                    help="free camera: elevation, deg (negative looks down)")
-    p.add_argument("--width", type=int, default=1280, help="pixels (default %(default)s)")
-    p.add_argument("--height", type=int, default=720, help="pixels (default %(default)s)")
+    p.add_argument("--width", type=cliargs.positive_int, default=1280,
+                   help="pixels (default %(default)s)")
+    p.add_argument("--height", type=cliargs.positive_int, default=720,
+                   help="pixels (default %(default)s)")
     p.add_argument("--keyframe", help="put the model in this keyframe first (default: qpos0)")
     p.add_argument("--backend", choices=BACKENDS,
                    help="OpenGL backend (default: MUJOCO_GL if set, else egl, then osmesa)")
