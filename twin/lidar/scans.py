@@ -159,6 +159,7 @@ class ScanAssembler:
         self._first_sid: int | None = None
         self._missing_by_sid: Counter = Counter()
         self._open: list[_Chunk] = []
+        self._closed_below: int | None = None  # scans below this id have been emitted
 
     # ---------------------------------------------------------------------------------------
     # Input
@@ -425,10 +426,19 @@ class ScanAssembler:
     def _emit(self, final: bool) -> list[Scan]:
         if not self._open:
             return []
-        chunk = self._open[0] if len(self._open) == 1 else _concat(self._open)
+        emitted_below = self._closed_below
+        chunk = _in_scan_order(self._open[0] if len(self._open) == 1 else _concat(self._open),
+                               emitted_below)
         self._open = []
         top = int(chunk.sid.max()) if len(chunk.sid) else 0
         close_below = top + 1 if final else top
+        self._closed_below = close_below if emitted_below is None else max(close_below,
+                                                                             emitted_below)
+        if emitted_below is not None:
+            # Holes charged (damaged azimuths) to a scan already emitted: counted in the
+            # stream's stats, but that scan cannot be emitted again.
+            for k in [k for k in self._missing_by_sid if k < emitted_below]:
+                del self._missing_by_sid[k]
         scans = []
         sid = chunk.sid
         starts = np.concatenate(([0], np.flatnonzero(sid[1:] != sid[:-1]) + 1))  # sorted ids
@@ -508,6 +518,27 @@ def _raw(records: np.ndarray) -> np.ndarray:
 def _records(raw: np.ndarray) -> np.ndarray:
     """Raw (n, 1206) bytes viewed as `DATA_PACKET_DTYPE` records."""
     return np.ascontiguousarray(raw).view(DATA_PACKET_DTYPE)[:, 0]
+
+
+def _in_scan_order(chunk: _Chunk, closed_below: int | None) -> _Chunk:
+    """The chunk's firings sorted by scan id (stable), none below ``closed_below``.
+
+    Each decoded chunk is in scan order by itself, but damaged block azimuths can put a later
+    chunk's firings into a rotation before the held-back tail of the one before, or into a scan
+    already emitted. Such firings join the oldest scan still open (their azimuths are garbage
+    anyway; dropping them would lose a return silently) rather than open an emitted scan again.
+    """
+    sid = chunk.sid
+    if closed_below is not None and len(sid) and sid.min() < closed_below:
+        sid = np.maximum(sid, closed_below)
+    if len(sid) < 2 or (sid[1:] >= sid[:-1]).all():
+        if sid is not chunk.sid:
+            chunk.sid = sid
+        return chunk
+    order = np.argsort(sid, kind="stable")
+    chunk.arrays = {name: a[order] for name, a in chunk.arrays.items()}
+    chunk.sid, chunk.u = sid[order], chunk.u[order]
+    return chunk
 
 
 def _concat(chunks: list[_Chunk]) -> _Chunk:
