@@ -1,6 +1,7 @@
-"""`aimbench info SOURCE`: what a VLP-16 source holds (model, return mode, rpm, packets, scans,
-gaps), as text or as one JSON object (``--json``). SOURCE is any name `twin.lidar.sources`
-reads: a capture, a live sensor (udp://HOST:PORT), a ROS bag or a PCD file."""
+"""`aimbench info SOURCE`: what a source holds (model: VLP-16, Puck Hi-Res, VLP-32C or
+HDL-32E; return mode, rpm, packets, scans, gaps), as text or as one JSON object (``--json``).
+SOURCE is any name `twin.lidar.sources` reads: a capture, a live sensor (udp://HOST:PORT), a ROS
+bag or a PCD file."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ from collections.abc import Iterator
 
 from twin.core.errors import AimbenchError
 from twin.core.scan import Scan
+from twin.core.sensors import MODELS
+from twin.lidar.calibration_file import read_calibration_file
 from twin.lidar.sources import ScanSource, open_scans
 
 SOURCE_HELP = ("a capture (.pcap/.pcapng), the live sensor (udp://HOST:PORT, e.g. "
@@ -74,8 +77,13 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
                         "velodyne_decoder do)")
     p.add_argument("--no-vertical-offsets", action="store_true",
                    help="do not add the lasers' vertical offsets to z")
-    p.add_argument("--model", choices=("VLP-16",), default=None,
-                   help="decode as VLP-16 whatever the product id byte says")
+    p.add_argument("--model", choices=tuple(MODELS), default=None,
+                   help="decode as this model whatever the product id byte says (default: "
+                        "from the product id)")
+    p.add_argument("--sensor-calibration", metavar="FILE", default=None,
+                   help="the unit's factory laser table (VeloView .xml or ROS driver .yaml) "
+                        "instead of the model's nominal one (not aimbench's own per-laser range "
+                        "calibration, --calibration of estimate)")
 
 
 def decode_options(args: argparse.Namespace) -> dict:
@@ -84,6 +92,8 @@ def decode_options(args: argparse.Namespace) -> dict:
         "split": args.split,
         "vertical_offsets": not args.no_vertical_offsets,
         "model": args.model,
+        "lasers": (None if getattr(args, "sensor_calibration", None) is None
+                   else read_calibration_file(args.sensor_calibration)[0]),
     }
 
 
@@ -182,7 +192,7 @@ def _points(s: dict) -> str:
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    p = sub.add_parser("info", help="summarise a VLP-16 source (capture, live sensor, ROS bag, "
+    p = sub.add_parser("info", help="summarise a lidar source (capture, live sensor, ROS bag, "
                                     "PCD file)")
     add_source_arguments(p)
     p.add_argument("--json", action="store_true", help="one JSON object")
