@@ -41,8 +41,9 @@ VD_AZIMUTH_QUANTUM = np.deg2rad(0.0051)
 
 
 def read_bag_packets(bag: Path) -> np.ndarray:
-    """The VLP-32C packets of the nebula test bag, (n, 1206) uint8, with the `rosbags` package
-    (a test-only reader: the library's own bag source is another module's)."""
+    """The VLP-32C packets of the nebula test bag, (n, 1206) uint8, read with `rosbags`
+    directly: independent of the library's own bag reader (twin/lidar/bags.py), which
+    tests/test_sources.py checks against it."""
     rosbags = pytest.importorskip("rosbags")  # noqa: F841 (the test extra)
     from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore

@@ -151,6 +151,28 @@ def test_the_real_ros2_bag_gives_every_packet_with_its_stamp(tmp_path, capsys):
         assert np.array_equal(npz["laser_id"], dec.laser_id.reshape(-1))
 
 
+@pytest.mark.parametrize("command", ["info", "decode", "estimate", "calibrate", "replay"])
+def test_every_command_that_reads_a_source_takes_the_sensor_options(command, tmp_path, capsys):
+    from scenarios.cli import build_parser
+    from scenarios.commands.info import sensor_options
+
+    folder = NEBULA / "1713492677464078412"
+    table = str(NEBULA / "VLP32.yaml")
+    out = {"decode": ["--out", str(tmp_path / "x.npz")],
+           "calibrate": ["--out", str(tmp_path / "cal.json")]}.get(command, [])
+    args = build_parser().parse_args([command, str(folder), "--model", "VLP-32C",
+                                      "--sensor-calibration", table, *out])
+    options = sensor_options(args)
+    assert options["model"] == "VLP-32C" and options["lasers"].model == "calibration VLP32.yaml"
+    if command == "info":  # and the table decodes the bag's packets
+        proc = cli("info", str(folder), "--sensor-calibration", table, "--json", capsys=capsys)
+        summary = json.loads(proc.stdout)
+        assert summary["model"] == "VLP-32C" and summary["laser_table"] == "calibration VLP32.yaml"
+        line = one_error_line(cli("info", str(folder), "--model", "VLP-16", "--sensor-calibration",
+                                  table, capsys=capsys), "info")
+        assert "32 lasers" in line and "VLP-16" in line
+
+
 def test_bags_without_a_lidar_topic_or_with_several_say_which_they_have(packets, tmp_path,
                                                                         capsys):
     other = write_other_bag(tmp_path / "imu.bag", ros2=False)

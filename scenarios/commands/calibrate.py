@@ -6,8 +6,9 @@ poses, written to a file that `aimbench sweep --calibration` and `aimbench estim
     aimbench calibrate RECORDING [--truth RECORDING.truth.json] --out cal.json
 
 ``--station FILE`` (docs/station.md; default: the paper's bench): the board the scans see and,
-on ``--bench sim``, the twin built from it. Name the file it writes as the station's
-``sensor.range_calibration`` and every later command applies it.
+on ``--bench sim``, the twin built from it; a recording is decoded as its sensor (model, factory
+calibration file) unless ``--model`` / ``--sensor-calibration`` say otherwise. Name the file it
+writes as the station's ``sensor.range_calibration`` and every later command applies it.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import numpy as np
 from align import calibration as laser_calibration
 from scenarios import calibrate, cliargs
 from scenarios import station as stations
+from scenarios.commands.info import add_sensor_arguments, sensor_options
 from twin.core.errors import AimbenchError
 
 
@@ -27,7 +29,9 @@ def run(args: argparse.Namespace) -> int:
     station, _ = stations.from_args(args, twin=args.bench == "sim")
     board = station.board_spec()
     if args.capture:
-        cal = calibrate.from_capture(args.capture, args.truth, board)
+        cal = calibrate.from_capture(
+            args.capture, args.truth, board,
+            **sensor_options(args, station if args.station is not None else None))
     elif args.bench == "sim":
         from scenarios.bench import SimBench
 
@@ -62,5 +66,6 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=cliargs.output_file,
                    help="calibration file to write (JSON)")
     stations.add_arguments(p)
+    add_sensor_arguments(p)
     p.set_defaults(func=run)
     return p
