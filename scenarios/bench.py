@@ -161,6 +161,9 @@ class HardwareBench(Bench):
         and travel, the LiDAR's address, the lever arm the report uses; None: the paper's
         defaults, with the travel the controller reports.
     axis_letters: the controller's (linear, rotation) axis letters, if not the station's.
+    decode: how the LiDAR's packets are decoded (`twin.lidar.sources.open_scans`'s ``model``
+        and ``lasers``: a named station's sensor, `scenarios.config.RunConfig.lidar_decoding`);
+        None: as their product id says.
     """
 
     kind = "hw"
@@ -168,7 +171,8 @@ class HardwareBench(Bench):
     def __init__(self, port: str | None, lidar: str | None = None,
                  settle_s: float = 0.2, silence_timeout_s: float = 2.0,
                  controller: Any = None, station: Station | None = None,
-                 axis_letters: tuple[str, str] | None = None) -> None:
+                 axis_letters: tuple[str, str] | None = None,
+                 decode: dict[str, Any] | None = None) -> None:
         if lidar is None:
             lidar = station.lidar_url() if station is not None else DEFAULT_LIDAR
         self.port = port
@@ -177,7 +181,7 @@ class HardwareBench(Bench):
         self.settle_s = settle_s
         self._target = StagePose()
         self._closed = False
-        self.source = _scan_feed(lidar, silence_timeout_s)
+        self.source = _scan_feed(lidar, silence_timeout_s, decode or {})
         self.controller = controller
         if port is not None and port.lower() == "none":
             self.port = port = None
@@ -288,12 +292,12 @@ class HardwareBench(Bench):
             self.controller.close()
 
 
-def _scan_feed(lidar: str, timeout_s: float) -> Any:
+def _scan_feed(lidar: str, timeout_s: float, decode: dict[str, Any]) -> Any:
     """The `twin.lidar.sources.ScanFeed` of a LiDAR source name; its errors as `NoScanError`."""
     from twin.lidar.sources import ScanFeed
 
     try:
-        return ScanFeed(lidar, timeout_s)
+        return ScanFeed(lidar, timeout_s, **decode)
     except AimbenchError as exc:
         raise NoScanError(f"{exc}") from None
 
@@ -403,7 +407,8 @@ class SimBench(Bench):
         worker processes and a replay of one scan all give the very same scans.
     ideal: every error source of the emulation off.
     station: the bench (`scenarios.station.Station`; default: the paper's, a perfect mount): the
-        twin is built from it (`Station.bench_params`) and plans keep within its travel.
+        twin is built from it (`Station.bench_params`; it emulates the station's sensor.model
+        unless ``noise`` says otherwise) and plans keep within its travel.
     params: a `twin.sim.params.BenchParams` instead of the station's (studies of the twin).
     A reference's mount misalignment (Monte Carlo) rebuilds the twin with it added to the
     station's nominal mount, keeping the same sensor; its ``x_mm`` shifts the LiDAR sideways on
@@ -426,7 +431,10 @@ class SimBench(Bench):
             params = (station if station is not None else default_station()).bench_params()
         self.base_params = params
         if noise is None:
-            noise = EmulationConfig.ideal() if ideal else EmulationConfig()
+            # The station's sensor model (its nominal lasers: the twin is no particular unit).
+            model = (station if station is not None else default_station()).sensor.model
+            noise = (EmulationConfig.ideal(model=model) if ideal
+                     else EmulationConfig(model=model))
         self._mount: dict[str, float] | None = None
         self._reference, self._next_scan = 0, 0
         self._sim = BenchSim(self.base_params, seed=self.seed, noise=noise)
@@ -540,5 +548,6 @@ def open_bench(config: RunConfig) -> Bench:
     if config.bench == "sim":
         return SimBench(seed=config.seed, ideal=config.ideal, station=config.station)
     if config.bench == "hw":
-        return HardwareBench(config.port, config.lidar, station=config.station)
+        return HardwareBench(config.port, config.lidar, station=config.station,
+                             decode=config.lidar_decoding())
     return ServedBench.launch(seed=config.seed, ideal=config.ideal, station=config.station)

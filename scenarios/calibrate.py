@@ -136,9 +136,11 @@ def on_bench(bench: Bench, yaws_deg: Sequence[float] = DEFAULT_YAWS_DEG,
 
 
 def from_capture(capture: str | Path, truth: str | Path | None = None, board: Any = None,
-                 sensor_id: str | None = None) -> laser_calibration.LaserCalibration:
+                 sensor_id: str | None = None, model: Any = None, lasers: Any = None
+                 ) -> laser_calibration.LaserCalibration:
     """Calibrate from a capture's whole scans and its truth file (default CAPTURE.truth.json),
-    of `board` (align's `BoardSpec`; None: the paper's)."""
+    of `board` (align's `BoardSpec`; None: the paper's), decoded as `model` with `lasers`
+    (`twin.lidar.sources.open_scans`: ``--model``, ``--sensor-calibration``, the station's)."""
     from scenarios.truth import load_truth, truth_for, truth_path
     from twin.lidar.sources import capture_scans, parse_source
 
@@ -151,7 +153,7 @@ def from_capture(capture: str | Path, truth: str | Path | None = None, board: An
                                "pose for the capture's scans (--truth FILE)")
     truths = load_truth(truth_file)
     scans, poses = [], []
-    for scan in capture_scans(capture):
+    for scan in capture_scans(capture, model=model, lasers=lasers):
         pose = truth_for(scan, truths)
         if pose is not None:
             scans.append(scan)

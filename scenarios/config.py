@@ -94,6 +94,12 @@ class RunConfig:
     def with_(self, **changes: Any) -> RunConfig:
         return replace(self, **changes)
 
+    def lidar_decoding(self) -> dict[str, Any]:
+        """How the run's LiDAR packets are decoded (`twin.lidar.sources.open_scans`'s ``model``
+        and ``lasers``): as its station's sensor when the run named a station file
+        (`scenarios.station.Station.decoding`), else as the packets' product id says."""
+        return self.station.decoding() if self.station_file is not None else {}
+
     def check(self) -> None:
         """Refuse settings that cannot work, before a run folder is made."""
         if self.bench not in BENCHES:

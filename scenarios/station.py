@@ -48,9 +48,10 @@ from pydantic import (
 
 from twin.core.errors import AimbenchError
 from twin.core.pose import Pose
+from twin.core.sensors import MODELS, model_named
 
-#: The sensor models aimbench can decode and emulate (twin/core/vlp16.py).
-SENSOR_MODELS = ("VLP-16",)
+#: The sensor models aimbench can decode and emulate (twin/core/sensors.py).
+SENSOR_MODELS = tuple(MODELS)
 #: The decision rules an inspection may use (docs/station.md says what each does).
 DECISION_RULES = ("iso14253-1", "simple")
 #: Where the shipped example stations live (package data of `scenarios`).
@@ -163,8 +164,11 @@ def _existing_file(value: str | None, info: ValidationInfo, what: str) -> str | 
 
 class Sensor(_Section):
     """The LiDAR: its model, the unit's factory calibration, its network and the per-laser
-    range calibration (`aimbench calibrate`) every scan gets before estimating."""
+    range calibration (`aimbench calibrate`) every scan gets before estimating. A station file
+    given to a command decodes the sensor's packets as its model with the factory calibration's
+    laser table (`Station.decoding`), as ``--model`` and ``--sensor-calibration`` do."""
 
+    #: One of `SENSOR_MODELS` (as users write it: ``VLP-32C``, ``vlp32c``... kept by its name).
     model: StrictStr = "VLP-16"
     #: The unit's factory calibration (Velodyne's db.xml or the ROS driver's YAML), if any.
     calibration_file: StrictStr | None = None
@@ -175,10 +179,11 @@ class Sensor(_Section):
     @field_validator("model")
     @classmethod
     def _known_model(cls, value: str) -> str:
-        if value not in SENSOR_MODELS:
+        try:
+            return model_named(value).name
+        except KeyError:
             raise ValueError(f"unknown sensor model {value!r}; aimbench knows "
-                             f"{', '.join(SENSOR_MODELS)}")
-        return value
+                             f"{', '.join(SENSOR_MODELS)}") from None
 
     @field_validator("calibration_file")
     @classmethod
@@ -331,6 +336,33 @@ class Station(_Section):
         """(linear, rotation) Grbl axis letters, as `StageController` takes them."""
         return (self.stages.x_axis, self.stages.yaw_axis)
 
+    def factory_lasers(self) -> Any:
+        """The laser table (`twin.core.lasers.LaserTable`) of the sensor's factory calibration
+        file, None without one; a `StationError` naming the key if the file cannot be read or
+        is another model's (another number of lasers)."""
+        path = self.sensor.calibration_file
+        if path is None:
+            return None
+        from twin.lidar.calibration_file import read_calibration_file
+
+        try:
+            table, _ = read_calibration_file(path)
+        except AimbenchError as exc:
+            raise StationError(f"sensor.calibration_file: {exc}; see docs/station.md") from None
+        model = model_named(self.sensor.model)
+        if table.n_lasers != model.n_lasers:
+            raise StationError(f"sensor.calibration_file {path}: {table.n_lasers} lasers, but a "
+                               f"{model.name} (sensor.model) has {model.n_lasers}; give that "
+                               "unit's file or its model; see docs/station.md")
+        return table
+
+    def decoding(self) -> dict[str, Any]:
+        """How this station's sensor is decoded, as `twin.lidar.sources.open_scans` takes it:
+        ``model`` (sensor.model, whatever the packets' product id says, as ``--model``) and
+        ``lasers`` (sensor.calibration_file's table, as ``--sensor-calibration``; None: the
+        model's nominal one)."""
+        return {"model": self.sensor.model, "lasers": self.factory_lasers()}
+
     def lidar_url(self) -> str:
         """The LiDAR source of the sensor's network: ``udp://HOST:PORT``."""
         n = self.sensor.network
@@ -360,13 +392,14 @@ class Station(_Section):
         return from_dict(data, where=where)
 
     def notes(self, twin: bool = False) -> list[str]:
-        """What of this station a command does not apply yet (said, never silently dropped):
-        the factory calibration file, and on the twin a printed pattern."""
+        """What of this station a command does not apply (said, never silently dropped): on
+        the twin, the factory calibration file (the twin emulates the model's nominal lasers;
+        decoding applies the file) and a printed pattern."""
         out = []
-        if self.sensor.calibration_file:
-            out.append(f"sensor.calibration_file {self.sensor.calibration_file} is stored with "
-                       "the run but not applied yet: scans use the "
-                       f"{self.sensor.model}'s own laser table")
+        if twin and self.sensor.calibration_file:
+            out.append(f"sensor.calibration_file {self.sensor.calibration_file} decodes the real "
+                       f"sensor's packets; the twin emulates the {self.sensor.model}'s nominal "
+                       "laser table")
         if twin and self.board.pattern is not None:
             out.append("board.pattern is stored but the twin's board is plain until board "
                        "patterns reach twin.sim.params.BenchParams")

@@ -95,9 +95,9 @@ def test_old_firmware_id_warns_in_one_line_and_other_models_fail_in_one(sample_p
     assert json.loads(proc.stdout)["model"] == "VLP-16"
     proc = cli("info", str(old), "--model", "VLP-16", capsys=capsys)
     assert proc.returncode == 0 and proc.stderr == ""
-    line = one_error_line(cli("info", str(relabelled(0x28, "vlp32c.pcap")), capsys=capsys),
+    line = one_error_line(cli("info", str(relabelled(0xA1, "vls128.pcap")), capsys=capsys),
                           "info")
-    assert "VLP-32C" in line
+    assert "VLS-128" in line
 
 
 # Two of them in a real process, the others in-process (same code, faster).
@@ -138,4 +138,4 @@ def test_decode_of_a_capture_without_vlp16_data(tmp_path, capsys):
         w.write_udp(b"\x00" * 40, 1.0, dst_port=53)
     line = one_error_line(
         cli("decode", str(path), "--out", str(tmp_path / "x.npz"), capsys=capsys), "decode")
-    assert "no VLP-16 data packets" in line
+    assert "no lidar data packets" in line

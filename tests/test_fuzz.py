@@ -19,7 +19,6 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-import pytest
 import tomli_w
 from conftest import DATA_DIR
 from fuzzing import fuzz, fuzz_input
@@ -117,9 +116,6 @@ byte_flips = st.lists(st.tuples(st.integers(0, len(REAL) - 1), st.integers(0, 12
                                 st.integers(0, 255)), max_size=6)
 
 
-@pytest.mark.xfail(raises=IndexError, strict=False,
-                   reason="branch models fixes ScanAssembler._make_scan's IndexError on corrupted "
-                          "block azimuths; this property tolerates that error only")
 @fuzz(40)
 @given(azimuth_hits, byte_flips, st.integers(10, len(REAL)))
 def test_mutated_captures_through_the_data_path(azimuths, flips, n):
@@ -137,12 +133,11 @@ def test_mutated_captures_through_the_data_path(azimuths, flips, n):
         assert ((scan.azimuth >= 0) & (scan.azimuth < 2 * np.pi)).all()
 
 
-@pytest.mark.xfail(raises=IndexError, strict=True,
-                   reason="branch models: ScanAssembler._make_scan raises IndexError ('index 0 "
-                          "is out of bounds') on packets with corrupted block azimuths")
 def test_two_corrupted_block_azimuths_do_not_crash_the_assembler():
     """Found by the fuzz suite: two block azimuths overwritten (107.17 deg in packet 41's
-    block 0, 233.99 deg in packet 21's block 8) in the first 50 packets of the real capture."""
+    block 0, 233.99 deg in packet 21's block 8) in the first 50 packets of the real capture
+    made `ScanAssembler._make_scan` raise IndexError ('index 0 is out of bounds'); fixed with
+    issue 19 (twin/lidar/scans.py)."""
     payloads = [bytearray(p) for p in REAL[:50]]
     for j, block, value in ((41, 0, 10717), (21, 8, 23399)):
         payloads[j][AZIMUTH_AT[block]:AZIMUTH_AT[block] + 2] = value.to_bytes(2, "little")

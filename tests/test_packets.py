@@ -267,20 +267,40 @@ def test_product_id_0x21_with_vlp16_timing_is_accepted_with_a_warning(real_paylo
         assert len(decode_data_packets(arr, model="VLP-16")) == 84
 
 
-def test_hdl32e_timing_with_0x21_is_refused():
+def test_hdl32e_timing_with_0x21_decodes_as_an_hdl32e():
     rng = np.random.default_rng(5)
     f = synthetic(20, rng)
     # HDL-32E packets: 12 blocks of 46.08 us -> 552.96 us apart.
     f["timestamps_us"] = (np.arange(20) * 552.96).round().astype(np.uint32)
-    with pytest.raises(UnsupportedSensorError, match="HDL-32E"):
-        decode_data_packets(encode_data_packets(**f, product_id=0x21))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the timing tells: no warning
+        dec = decode_data_packets(encode_data_packets(**f, product_id=0x21))
+    assert dec.sensor.name == "HDL-32E" and dec.sensor.lasers.n_lasers == 32
+    assert np.array_equal(dec.laser_id[0, :32], np.arange(32))
 
 
-@pytest.mark.parametrize("pid,name", [(0x28, "VLP-32C"), (0xA1, "VLS-128"), (0x99, "unknown")])
+def test_a_single_0x21_packet_is_told_apart_by_its_block_layout(real_payloads):
+    # One packet: no timestamp step. A real VLP-16 block's channels c and c + 16 are one laser
+    # fired twice (nearly equal ranges); an HDL-32E's are two lasers 10 deg apart.
+    vlp = relabel(np.frombuffer(real_payloads[10], np.uint8)[None], 0x21)
+    with pytest.warns(ProductIdWarning, match="VLP-16"):
+        assert decode_data_packets(vlp).sensor.name == "VLP-16"
+
+
+@pytest.mark.parametrize("pid,name", [(0xA1, "VLS-128"), (0x31, "Velarray"), (0x99, "unknown")])
 def test_other_sensors_are_refused(pid, name):
     f = synthetic(2, np.random.default_rng(1))
     with pytest.raises(UnsupportedSensorError, match=name):
         decode_data_packets(encode_data_packets(**f, product_id=pid))
+
+
+@pytest.mark.parametrize("pid,name", [(0x22, "VLP-16"), (0x24, "Puck Hi-Res"),
+                                      (0x28, "VLP-32C")])
+def test_product_ids_pick_the_model(pid, name):
+    f = synthetic(2, np.random.default_rng(1))
+    assert decode_data_packets(encode_data_packets(**f, product_id=pid)).sensor.name == name
+    with pytest.raises(UnsupportedSensorError, match="VLP-32C"):
+        decode_data_packets(encode_data_packets(**f, product_id=pid), model="HDL-64E")
 
 
 def test_malformed_packets_are_dropped_and_counted(real_payloads):

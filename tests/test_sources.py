@@ -3,7 +3,8 @@ the scans the pcap path gives, where both exist.
 
 Bags are written here from the real capture with rosbags, as the ROS drivers write them, and
 read back; the real ROS 2 bag of VLP-32C packets proves the reader takes every packet with its
-stamp; live UDP on loopback is a replay of a capture, compared with the file.
+stamp, and that they decode through it as the packets themselves do; live UDP on loopback is a
+replay of a capture, compared with the file.
 """
 
 from __future__ import annotations
@@ -22,12 +23,19 @@ from tests.bag_support import write_cloud_bag, write_other_bag, write_packet_bag
 from tests.conftest import DATA_DIR
 from tests.test_cli_capture import cli, one_error_line
 from tests.test_clouds import assert_same_firings
+from tests.test_sensors import read_bag_packets
 from twin.core import vlp16
 from twin.core.scan import ARRAY_FIELDS, Scan
+from twin.core.sensors import VLP32C
 from twin.lidar.bags import Bag
 from twin.lidar.capture import Packet, open_pcap, read_capture
 from twin.lidar.export import export_scans
-from twin.lidar.packets import block_azimuths_cdeg, encode_data_packets, packet_timestamps_us
+from twin.lidar.packets import (
+    block_azimuths_cdeg,
+    decode_data_packets,
+    encode_data_packets,
+    packet_timestamps_us,
+)
 from twin.lidar.pcap import PcapWriter, read_pcap
 from twin.lidar.pcd import read_pcd_scans
 from twin.lidar.sources import (
@@ -114,12 +122,55 @@ def test_the_real_ros2_bag_gives_every_packet_with_its_stamp(tmp_path, capsys):
     sensor_s = np.array([int.from_bytes(p.payload[1200:1204], "little") for p in got]) * 1e-6
     assert abs((stamps[-1] - stamps[0]) - (sensor_s[-1] - sensor_s[0])) < 0.06
     assert {(p.payload[1204], p.payload[1205]) for p in got} == {(0x37, 0x28)}  # VLP-32C
-    # Decoding VLP-32C packets is another model's work: until then one clear line names it.
+    # The same bytes rosbags gives read directly (tests/test_sensors.py's own reader), whose
+    # decoding tests/test_sensors.py matches point by point with nebula's decoded cloud.
+    payloads = np.frombuffer(b"".join(p.payload for p in got), np.uint8).reshape(-1, 1206)
+    assert np.array_equal(payloads, read_bag_packets(folder))
+    dec = decode_data_packets(payloads)
+    assert dec.sensor is VLP32C
+    # Through the bag reader and the assembler: every firing of those packets, in order, in
+    # scans of the VLP-32C's table (its half turns: partial scans or scans with a gap).
+    with open_scans(folder) as source:
+        scans = list(source)
+        summary = source.summary()
+    assert summary["model"] == "VLP-32C" and summary["lasers"] == 32
+    assert summary["data_packets"] == len(got) and summary["bag"]["packets"] == len(got)
+    assert all(s.lasers is VLP32C.lasers and s.meta["model"] == "VLP-32C" for s in scans)
+    for name in ("distance", "azimuth", "laser_id", "intensity", "time", "return_type"):
+        ours = np.concatenate([getattr(s, name) for s in scans])
+        assert np.array_equal(ours, getattr(dec, name).reshape(-1)), name
+    # And on the command line: info names the model, decode writes those points.
     proc = cli("info", str(folder), "--json", capsys=capsys)
-    if proc.returncode == 0:
-        assert json.loads(proc.stdout)["model"] == "VLP-32C"
-    else:
-        assert "VLP-32C" in one_error_line(proc, "info")
+    assert proc.returncode == 0, proc.stderr
+    info = json.loads(proc.stdout)
+    assert info["model"] == "VLP-32C" and info["returns"] == int((dec.distance > 0).sum())
+    out = tmp_path / "vlp32c.npz"
+    assert cli("decode", str(folder), "--out", str(out), capsys=capsys).returncode == 0
+    with np.load(out) as npz:
+        assert np.array_equal(npz["distance"], dec.distance.reshape(-1))
+        assert np.array_equal(npz["laser_id"], dec.laser_id.reshape(-1))
+
+
+@pytest.mark.parametrize("command", ["info", "decode", "estimate", "calibrate", "replay"])
+def test_every_command_that_reads_a_source_takes_the_sensor_options(command, tmp_path, capsys):
+    from scenarios.cli import build_parser
+    from scenarios.commands.info import sensor_options
+
+    folder = NEBULA / "1713492677464078412"
+    table = str(NEBULA / "VLP32.yaml")
+    out = {"decode": ["--out", str(tmp_path / "x.npz")],
+           "calibrate": ["--out", str(tmp_path / "cal.json")]}.get(command, [])
+    args = build_parser().parse_args([command, str(folder), "--model", "VLP-32C",
+                                      "--sensor-calibration", table, *out])
+    options = sensor_options(args)
+    assert options["model"] == "VLP-32C" and options["lasers"].model == "calibration VLP32.yaml"
+    if command == "info":  # and the table decodes the bag's packets
+        proc = cli("info", str(folder), "--sensor-calibration", table, "--json", capsys=capsys)
+        summary = json.loads(proc.stdout)
+        assert summary["model"] == "VLP-32C" and summary["laser_table"] == "calibration VLP32.yaml"
+        line = one_error_line(cli("info", str(folder), "--model", "VLP-16", "--sensor-calibration",
+                                  table, capsys=capsys), "info")
+        assert "32 lasers" in line and "VLP-16" in line
 
 
 def test_bags_without_a_lidar_topic_or_with_several_say_which_they_have(packets, tmp_path,

@@ -124,9 +124,93 @@ def test_what_is_not_applied_yet_is_said(tmp_path: Path):
                                        "[board.pattern]\nsquares = [7, 5]\nsquare_mm = 95\n"))
     assert st.sensor.calibration_file == str(tmp_path / "db.xml")  # beside the station file
     assert st.board.pattern is not None and st.board.pattern.dark_reflectivity == 0.03
+    # The factory calibration decodes the real sensor's packets; only the twin, which emulates
+    # the model's nominal lasers, does not apply it.
     notes = st.notes(twin=True)
     assert len(notes) == 2 and "calibration_file" in notes[0] and "pattern" in notes[1]
-    assert len(st.notes(twin=False)) == 1
+    assert st.notes(twin=False) == []
+    # Read when a command decodes with it: an unreadable file is one error naming the key.
+    with pytest.raises(stations.StationError, match=r"sensor\.calibration_file"):
+        st.decoding()
+
+
+NEBULA = REPO / "tests" / "data" / "nebula-vlp32c"
+#: A VLP-32C bench with the unit's factory calibration (nebula's ROS driver YAML).
+VLP32C_STATION = f"""
+name = "vlp32c"
+[sensor]
+model = "vlp32c"
+calibration_file = "{NEBULA / 'VLP32.yaml'}"
+"""
+
+
+def test_the_stations_sensor_decodes_its_packets(tmp_path: Path):
+    """sensor.model and sensor.calibration_file are --model and --sensor-calibration for the
+    commands that read a source with a station file, which the command line overrides."""
+    from scenarios.cli import build_parser
+    from scenarios.commands.info import open_source, sensor_options
+    from twin.core.sensors import MODELS, VLP16, VLP32C
+    from twin.lidar.calibration_file import read_calibration_file
+
+    assert tuple(MODELS) == stations.SENSOR_MODELS
+    st = stations.load(write(tmp_path, VLP32C_STATION))
+    assert st.sensor.model == "VLP-32C"  # as the user wrote it, kept by its name
+    table, _ = read_calibration_file(NEBULA / "VLP32.yaml")
+    dec = st.decoding()
+    assert dec["model"] == "VLP-32C" and dec["lasers"].same_geometry(table)
+    parser = build_parser()
+    bag = str(NEBULA / "1713492677464078412")
+    args = parser.parse_args(["estimate", bag, "--station", str(tmp_path / "station.toml")])
+    with open_source(args, st) as source:
+        scans = list(source)
+        summary = source.summary()
+    assert scans and all(s.lasers.same_geometry(table) for s in scans)
+    assert not any(s.lasers.vertical_offset.any() for s in scans)  # nebula's table has none
+    assert summary["model"] == "VLP-32C" and summary["laser_table"] == "calibration VLP32.yaml"
+    # The command line wins: --model of another sensor drops the station's (VLP-32C) table.
+    args = parser.parse_args(["estimate", bag, "--model", "VLP-16"])
+    assert sensor_options(args, st) == {"model": "VLP-16", "lasers": None}
+    args = parser.parse_args(["estimate", bag])
+    assert sensor_options(args) == {"model": None, "lasers": None}  # no station: product id
+    # A table of another model's lasers is refused by the station, naming the key.
+    text = VLP32C_STATION.replace('model = "vlp32c"', 'model = "VLP-16"')
+    wrong = stations.load(write(tmp_path, text, "wrong.toml"))
+    with pytest.raises(stations.StationError, match="32 lasers, but a VLP-16"):
+        wrong.decoding()
+    assert VLP16.n_lasers == 16 and VLP32C.n_lasers == 32
+
+
+@pytest.mark.slow
+def test_a_vlp32c_station_simulates_and_decodes_its_sensor(tmp_path: Path):
+    """The twin emulates the station's model; a hardware bench, a run's replayed capture and
+    estimate decode its packets as the station's sensor, with its factory calibration."""
+    from scenarios.recording.replay import recapture
+
+    write(tmp_path, VLP32C_STATION)
+    sim = aimbench("simulate", "--station", "station.toml", "--scans", "2", "--ideal",
+                   "--out", "cap.pcap", cwd=tmp_path)
+    assert sim.returncode == 0, sim.stderr
+    assert "sensor.calibration_file" in sim.stderr  # the twin's nominal lasers, said
+    truth = json.loads((tmp_path / "cap.truth.json").read_text())
+    assert truth["emulation"]["model"] == "VLP-32C"
+    info = json.loads(aimbench("info", "cap.pcap", "--json", cwd=tmp_path).stdout)
+    assert info["model"] == "VLP-32C" and info["laser_table"] == "VLP-32C"  # by its product id
+    st = stations.load(tmp_path / "station.toml")
+    config = RunConfig(bench="hw", port="none", lidar=str(tmp_path / "cap.pcap"), station=st,
+                       station_file=str(tmp_path / "station.toml"))
+    with open_bench(config) as bench:
+        (scan,) = list(bench.scans(1))
+    assert scan.lasers.model == "calibration VLP32.yaml" and scan.lasers.n_lasers == 32
+    # Without a station file named, the run decodes by the product id.
+    assert config.with_(station_file=None).lidar_decoding() == {}
+
+    class _Store:  # what recapture reads of a run's store
+        def get(self, key: str):
+            return config.as_dict() if key == "config" else None
+
+    (_, _, again), = list(recapture(_Store(), tmp_path / "cap.pcap", {(0, 0)}))
+    assert again.lasers.model == "calibration VLP32.yaml"
+    assert np.array_equal(again.distance, scan.distance)
 
 
 @pytest.fixture(scope="module")

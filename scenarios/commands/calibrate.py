@@ -7,8 +7,9 @@ poses, written to a file that `aimbench sweep --calibration` and `aimbench estim
     aimbench calibrate RECORDING --check cal.json [--sensor-id SERIAL]
 
 ``--station FILE`` (docs/station.md; default: the paper's bench): the board the scans see and,
-on ``--bench sim``, the twin built from it. Name the file it writes as the station's
-``sensor.range_calibration`` and every later command applies it.
+on ``--bench sim``, the twin built from it; a recording is decoded as its sensor (model, factory
+calibration file) unless ``--model`` / ``--sensor-calibration`` say otherwise. Name the file it
+writes as the station's ``sensor.range_calibration`` and every later command applies it.
 
 The file names the sensor (``--sensor-id``: its serial number or an id of your own; on the twin,
 ``twin seed S``; its model comes from the scans) and says when and how it was made (poses, scans,
@@ -27,6 +28,7 @@ import numpy as np
 from align import calibration as laser_calibration
 from scenarios import calibrate, cliargs
 from scenarios import station as stations
+from scenarios.commands.info import add_sensor_arguments, sensor_options
 from scenarios.progress import Bar
 from twin.core.errors import AimbenchError
 
@@ -35,7 +37,9 @@ def _check(args: argparse.Namespace) -> int:
     from twin.lidar.sources import capture_scans
 
     cal = calibrate.read(args.check)
-    scans = capture_scans(args.capture)
+    station, _ = stations.from_args(args, twin=False)
+    scans = capture_scans(args.capture,
+                          **sensor_options(args, station if args.station is not None else None))
     if not scans:
         raise AimbenchError(f"{args.capture}: no whole scan to check the calibration against")
     warnings = calibrate.check(cal, scans, args.sensor_id)
@@ -56,7 +60,9 @@ def run(args: argparse.Namespace) -> int:
     station, _ = stations.from_args(args, twin=args.bench == "sim")
     board = station.board_spec()
     if args.capture:
-        cal = calibrate.from_capture(args.capture, args.truth, board, args.sensor_id)
+        cal = calibrate.from_capture(
+            args.capture, args.truth, board, args.sensor_id,
+            **sensor_options(args, station if args.station is not None else None))
     elif args.bench == "sim":
         from scenarios.bench import SimBench
 
@@ -104,5 +110,6 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "if not)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     stations.add_arguments(p)
+    add_sensor_arguments(p)
     p.set_defaults(func=run)
     return p

@@ -1,5 +1,5 @@
-"""`aimbench decode SOURCE --out FILE`: every scan of a source written out, the format by the
-extension (`twin.lidar.export`):
+"""`aimbench decode SOURCE --out FILE`: every scan of a source (any model aimbench decodes)
+written out, the format by the extension (`twin.lidar.export`):
 
 - ``.npz`` / ``.parquet``: every firing (misses too) as flat arrays in the LiDAR frame {L}: x, y,
   z (m), distance (m, 0 = no return), intensity, laser_id, ring, azimuth_deg, time_s (sensor
@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
     warn_lines("decode", summary)
     if not scans:
         raise AimbenchError(
-            f"{args.capture}: no scans: no VLP-16 data packets (1206-byte UDP payloads on port "
+            f"{args.capture}: no scans: no lidar data packets (1206-byte UDP payloads on port "
             "2368) or points in it; `aimbench info` shows what it holds")
     n = export_scans(scans, out, summary=summary, returns_only=args.returns_only,
                      compress=args.compress)
@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    p = sub.add_parser("decode", help="decode a VLP-16 source into points (.npz, .parquet, "
+    p = sub.add_parser("decode", help="decode a lidar source into points (.npz, .parquet, "
                                       ".pcd, .ply)", description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     add_source_arguments(p)

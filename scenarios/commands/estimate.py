@@ -16,8 +16,10 @@ with the truth, ``truth`` (the true pose, mm and deg) and the errors ``x_mm_erro
 
 The board is the station's (``--station FILE``, docs/station.md; default: the paper's 900 x 540
 mm plate), ``--board-mm`` and ``--board-thickness-mm`` override it; the station's range
-calibration is applied unless ``--calibration`` names another. The defaults find the paper's
-board without hints.
+calibration is applied unless ``--calibration`` names another. A station file also says which
+sensor the packets come from: its ``sensor.model`` and ``sensor.calibration_file`` decode them
+unless ``--model`` / ``--sensor-calibration`` say otherwise (without ``--station``, the
+packets' product id decides). The defaults find the paper's board without hints.
 """
 
 from __future__ import annotations
@@ -162,7 +164,9 @@ def run(args: argparse.Namespace) -> int:
     if cal is not None:
         print(f"aimbench estimate: calibration {calibrate.applied(cal.to_dict())}",
               file=sys.stderr)
-    with open_source(args) as source:
+    # A station file named on the command line decodes as its sensor (model, factory
+    # calibration); without one the packets' product id decides.
+    with open_source(args, station if args.station is not None else None) as source:
         try:
             # Scan by scan as the source yields them: a live sensor's estimates come as it turns.
             for scan in quiet_scans(source):
@@ -191,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
     warn_lines("estimate", {"capture": str(args.capture), **source.summary()})
     if not rows and not group:
         raise AimbenchError(f"{args.capture}: no complete scan in it ({seen} scans, none "
-                            "whole; VLP-16 data on UDP port 2368, or point clouds); check it "
+                            "whole; lidar data on UDP port 2368, or point clouds); check it "
                             "with `aimbench info`")
     if not args.json:
         for line in table(rows):

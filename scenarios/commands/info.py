@@ -1,6 +1,7 @@
-"""`aimbench info SOURCE`: what a VLP-16 source holds (model, return mode, rpm, packets, scans,
-gaps), as text or as one JSON object (``--json``). SOURCE is any name `twin.lidar.sources`
-reads: a capture, a live sensor (udp://HOST:PORT), a ROS bag or a PCD file."""
+"""`aimbench info SOURCE`: what a source holds (model: VLP-16, Puck Hi-Res, VLP-32C or
+HDL-32E; return mode, rpm, packets, scans, gaps), as text or as one JSON object (``--json``).
+SOURCE is any name `twin.lidar.sources` reads: a capture, a live sensor (udp://HOST:PORT), a ROS
+bag or a PCD file."""
 
 from __future__ import annotations
 
@@ -11,10 +12,13 @@ import sys
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from scenarios.progress import Bar
 from twin.core.errors import AimbenchError
 from twin.core.scan import Scan
+from twin.core.sensors import MODELS, model_named
+from twin.lidar.calibration_file import read_calibration_file
 from twin.lidar.sources import ScanSource, open_scans
 
 SOURCE_HELP = ("a capture (.pcap/.pcapng), the live sensor (udp://HOST:PORT, e.g. "
@@ -30,12 +34,13 @@ def add_source_arguments(p: argparse.ArgumentParser) -> None:
                         "without it)")
 
 
-def open_source(args: argparse.Namespace) -> ScanSource:
-    """The `ScanSource` the command line names, decoded as its options say."""
+def open_source(args: argparse.Namespace, station: Any = None) -> ScanSource:
+    """The `ScanSource` the command line names, decoded as its options say (and, for what they
+    leave unsaid, as ``station``'s sensor: `decode_options`)."""
     if getattr(args, "scans", None) is not None and args.scans < 1:
         raise AimbenchError(f"--scans {args.scans}: give at least 1")
     return open_scans(args.capture, max_scans=getattr(args, "scans", None),
-                      **decode_options(args))
+                      **decode_options(args, station))
 
 
 def quiet_scans(source: ScanSource) -> Iterator[Scan]:
@@ -98,16 +103,47 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
                         "velodyne_decoder do)")
     p.add_argument("--no-vertical-offsets", action="store_true",
                    help="do not add the lasers' vertical offsets to z")
-    p.add_argument("--model", choices=("VLP-16",), default=None,
-                   help="decode as VLP-16 whatever the product id byte says")
+    add_sensor_arguments(p)
 
 
-def decode_options(args: argparse.Namespace) -> dict:
+def add_sensor_arguments(p: argparse.ArgumentParser) -> None:
+    """Which sensor the packets come from: ``--model`` and ``--sensor-calibration``, on every
+    command that reads a source (a ``--station`` file's [sensor] gives both otherwise)."""
+    p.add_argument("--model", choices=tuple(MODELS), default=None,
+                   help="decode as this model whatever the product id byte says (default: "
+                        "the --station file's sensor.model if one is given, else from the "
+                        "product id); point clouds are rebuilt on its grid (default VLP-16)")
+    p.add_argument("--sensor-calibration", metavar="FILE", default=None,
+                   help="the unit's factory laser table (VeloView .xml or ROS driver .yaml) "
+                        "instead of the model's nominal one (default: the --station file's "
+                        "sensor.calibration_file, if any; not aimbench's own per-laser range "
+                        "calibration, --calibration of estimate)")
+
+
+def sensor_options(args: argparse.Namespace, station: Any = None) -> dict:
+    """``model`` and ``lasers`` for `twin.lidar.sources.open_scans`: ``--model`` and
+    ``--sensor-calibration``, else the sensor of ``station`` (a `scenarios.station.Station` the
+    command was given, None: none): its model and its factory calibration file's table. A
+    ``--model`` other than the station's drops the station's file (another model's table)."""
+    model = getattr(args, "model", None)
+    cal = getattr(args, "sensor_calibration", None)
+    lasers = None if cal is None else read_calibration_file(cal)[0]
+    if station is not None:
+        same = model is None or model_named(model).name == station.sensor.model
+        if model is None:
+            model = station.sensor.model
+        if lasers is None and same:
+            lasers = station.factory_lasers()
+    return {"model": model, "lasers": lasers}
+
+
+def decode_options(args: argparse.Namespace, station: Any = None) -> dict:
+    """How the command line (and ``station``, `sensor_options`) says packets become scans."""
     return {
         "cut_azimuth": None if args.cut_at_start else math.radians(args.cut_azimuth_deg),
         "split": args.split,
         "vertical_offsets": not args.no_vertical_offsets,
-        "model": args.model,
+        **sensor_options(args, station),
     }
 
 
@@ -206,7 +242,7 @@ def _points(s: dict) -> str:
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    p = sub.add_parser("info", help="summarise a VLP-16 source (capture, live sensor, ROS bag, "
+    p = sub.add_parser("info", help="summarise a lidar source (capture, live sensor, ROS bag, "
                                     "PCD file)")
     add_source_arguments(p)
     p.add_argument("--json", action="store_true", help="one JSON object")

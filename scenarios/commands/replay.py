@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 import align
+from scenarios.commands.info import add_sensor_arguments, sensor_options
 from scenarios.progress import Bar
 from scenarios.recording.observer import (
     add_sink_arguments,
@@ -82,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
             summary = replay.replay_capture(
                 args.source, rec, method=args.method, truth=args.truth, limit=args.limit,
                 points_every=args.points_every, color_by=args.color_by, tolerances=tol,
-                progress=progress)
+                progress=progress, **sensor_options(args))
         finally:
             progress.close()
             close_recording(rec, sinks)
@@ -115,7 +116,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("replay", help="build a rerun recording of a run folder or a capture",
                        description=__doc__,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("source", help="run folder (runs/NAME), or a VLP-16 source: a capture "
+    p.add_argument("source", help="run folder (runs/NAME), or a lidar source: a capture "
                                   "(.pcap/.pcapng), udp://HOST:PORT, a ROS bag or a .pcd file")
     add_sink_arguments(p, "write the recording to this .rrd file (default: runs/NAME/replay.rrd "
                           "or CAPTURE.rrd)")
@@ -132,6 +133,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--truth", help="capture: truth file (default CAPTURE.truth.json if present)")
     p.add_argument("--limit", "--scans", type=int, metavar="N",
                    help="source: the first N whole scans only (a live sensor: stop after N)")
+    add_sensor_arguments(p)
     p.add_argument("--tolerance-deg", type=float, default=0.2,
                    help="band of the angle error plots, deg (default 0.2, the report's)")
     p.add_argument("--tolerance-mm", type=float, default=4.0,

@@ -40,6 +40,10 @@ def run(args: argparse.Namespace) -> int:
     from twin.sim.wire import WireTwin
 
     station, _ = stations.from_args(args, twin=True)
+    if station.sensor.model != "VLP-16":
+        raise AimbenchError(f"the wire-level twin emulates a VLP-16 only (its packet stream, "
+                            f"twin/sim/wire.py); the station's sensor.model is "
+                            f"{station.sensor.model}: use --bench sim for that model")
     udp = parse_udp(args.udp or f"127.0.0.1:{station.sensor.network.port}")
     noise = EmulationConfig.ideal() if args.ideal else None
     stop = {"flag": False}

@@ -1,11 +1,13 @@
-"""`aimbench simulate`: a VLP-16 capture of the simulated bench, with the true pose of every scan.
+"""`aimbench simulate`: a lidar capture of the simulated bench, with the true pose of every scan.
 
     aimbench simulate --yaw-deg 5 --x-mm 10 --roll-deg 0.5 --tilt-deg -1 --scans 20 --seed 1 \\
         --out capture.pcap
 
-writes ``capture.pcap`` (any VLP-16 tool reads it) and ``capture.truth.json`` beside it: the bench
-(its station and parameters), the emulation settings and, for every scan, the true LiDAR pose in
-the board frame (x_m, y_m, z_m, roll_deg, tilt_deg, yaw_deg) at the scan's first firing.
+writes ``capture.pcap`` (any Velodyne tool reads it; ``--model`` picks VLP-16, Puck Hi-Res,
+VLP-32C or HDL-32E, default the station's sensor.model) and ``capture.truth.json`` beside it:
+the bench (its station and parameters), the emulation settings and, for every scan, the true
+LiDAR pose in the board frame (x_m, y_m, z_m, roll_deg, tilt_deg, yaw_deg) at the scan's first
+firing.
 
 The twin is built from ``--station FILE`` (docs/station.md; default: the paper's bench); the
 mount misalignments add to the station's nominal mount, and the stage positions must lie within
@@ -23,6 +25,7 @@ from scenarios import cliargs
 from scenarios import station as stations
 from scenarios.truth import write_truth
 from twin.core.errors import AimbenchError
+from twin.core.sensors import MODELS
 
 
 def _jsonable(obj) -> dict:
@@ -57,11 +60,13 @@ def run(args: argparse.Namespace) -> int:
         base, mount_roll=base.mount_roll + math.radians(args.roll_deg),
         mount_tilt=base.mount_tilt + math.radians(args.tilt_deg),
         mount_yaw=base.mount_yaw + math.radians(args.mount_yaw_deg))
-    noise = EmulationConfig.ideal() if args.ideal else EmulationConfig()
+    model = args.model or station.sensor.model
     try:
+        noise = (EmulationConfig.ideal(model=model) if args.ideal
+                 else EmulationConfig(model=model))
         noise = noise.with_(rpm=args.rpm, return_mode=args.return_mode)
     except ValueError as exc:
-        raise AimbenchError(f"{exc}; pick a value inside the VLP-16's range") from None
+        raise AimbenchError(f"{exc}; pick a value inside the {model}'s range") from None
     sim = BenchSim(params, seed=args.seed, noise=noise)
     sim.move_to(x_m=args.x_mm * 1e-3, yaw_rad=math.radians(args.yaw_deg))  # checks the travel
     scans = sim.write_pcap(out, args.scans)
@@ -81,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    p = sub.add_parser("simulate", help="write a VLP-16 capture of the simulated bench and its "
+    p = sub.add_parser("simulate", help="write a lidar capture of the simulated bench and its "
                                         "ground truth")
     p.add_argument("--yaw-deg", type=cliargs.finite_float, default=0.0,
                    help="rotation stage position, deg (within the station's travel; "
@@ -105,5 +110,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="capture file to write (.pcap)")
     stations.add_arguments(p)
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
+    p.add_argument("--model", choices=tuple(MODELS), default=None,
+                   help="the sensor emulated (default: the station's sensor.model; the "
+                        "paper's: VLP-16)")
     p.set_defaults(func=run)
     return p

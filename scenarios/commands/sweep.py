@@ -51,9 +51,10 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                                   "capture replay")
     # No argparse default: --resume must keep the stored source unless one is given.
     p.add_argument("--lidar", default=None,
-                   help="VLP-16 source for --bench hw: udp://HOST:PORT (default "
+                   help="LiDAR source for --bench hw: udp://HOST:PORT (default "
                         "udp://0.0.0.0:2368), or a recording to replay: a .pcap/.pcapng "
-                        "capture, a ROS bag or a .pcd file")
+                        "capture, a ROS bag or a .pcd file; decoded as the --station file's "
+                        "sensor (model, factory calibration) if one is given")
     p.add_argument("--seed", type=cliargs.seed, help="seed of the twin's noise and of the "
                                                        "Monte Carlo poses (default 0)")
     p.add_argument("--ideal", action="store_true", help="the twin with every error source off")

@@ -104,8 +104,9 @@ def resimulate(store: Store, wanted: set[tuple[int, int]]) -> Iterator[tuple[int
 def recapture(store: Store, capture: Path,
               wanted: set[tuple[int, int]]) -> Iterator[tuple[int, int, Scan]]:
     """The scans of a run that replayed a capture, matched to the store's rows in the order the
-    runner took them (reference by reference, scan by scan)."""
-    scans = capture_scans(capture)
+    runner took them (reference by reference, scan by scan), decoded as the run decoded them."""
+    config = RunConfig.from_dict(store.get("config"))
+    scans = capture_scans(capture, **config.lidar_decoding())
     rows = sorted(wanted)
     for n, (i, k) in enumerate(rows):
         if n >= len(scans):
@@ -272,15 +273,19 @@ def replay_capture(capture: str | Path, rec: rr.RecordingStream, *, method: str 
                    truth: str | Path | None = None, limit: int | None = None,
                    points_every: int = 1, color_by: str = "intensity",
                    tolerances: Mapping[str, float] | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> ReplaySummary:
+                   progress: Callable[[int, int], None] | None = None,
+                   model: Any = None, lasers: Any = None) -> ReplaySummary:
     """Log every whole scan of a capture with align's estimate (and the truth, if known).
 
     truth: a truth file (default: ``CAPTURE.truth.json`` if it exists).
     limit: the first n scans only.
+    model, lasers: how its packets are decoded (`twin.lidar.sources.open_scans`: ``--model``,
+    ``--sensor-calibration``; None: the product id and the model's nominal table).
     """
     live = parse_source(capture).live  # udp://: read until `limit` scans or Ctrl-C
     label = str(capture) if live else Path(capture).name
-    scans = capture_scans(capture, whole_only=False, max_scans=limit)
+    scans = capture_scans(capture, whole_only=False, max_scans=limit, model=model,
+                          lasers=lasers)
     whole = [s for s in scans if not s.meta.get("partial")]
     if not whole:
         # A capture shorter than a rotation: its pieces are all there is, flagged as such.

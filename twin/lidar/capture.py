@@ -18,7 +18,9 @@ from typing import NamedTuple
 import numpy as np
 
 from twin.core import vlp16
+from twin.core.lasers import LaserTable
 from twin.core.scan import Scan
+from twin.core.sensors import SensorModel
 from twin.lidar.packets import (
     PRODUCT_NAMES,
     RETURN_MODES,
@@ -104,13 +106,15 @@ class PacketScans:
         cut_azimuth: float | None = math.pi,
         split: str = "firing",
         vertical_offsets: bool = True,
-        model: str | None = None,
+        model: str | SensorModel | None = None,
+        lasers: LaserTable | None = None,
         batch: int = 4096,
     ) -> None:
         self.source = source
         self.batch = max(1, int(batch))
         self.assembler = ScanAssembler(cut_azimuth, split=split,
-                                       vertical_offsets=vertical_offsets, model=model)
+                                       vertical_offsets=vertical_offsets, model=model,
+                                       lasers=lasers)
         self.positions: list[PositionPacket] = []
         self.warnings: list[str] = []
         self.interrupted = False
@@ -183,12 +187,14 @@ def read_capture(
     cut_azimuth: float | None = math.pi,
     split: str = "firing",
     vertical_offsets: bool = True,
-    model: str | None = None,
+    model: str | SensorModel | None = None,
+    lasers: LaserTable | None = None,
     batch: int = 4096,
 ) -> CaptureResult:
     """Assemble all scans of a source and summarise it (`PacketScans`, read to the end)."""
     reader = PacketScans(source, cut_azimuth=cut_azimuth, split=split,
-                         vertical_offsets=vertical_offsets, model=model, batch=batch)
+                         vertical_offsets=vertical_offsets, model=model, lasers=lasers,
+                         batch=batch)
     scans = []
     for scan in reader:
         if keep_scans:
@@ -226,10 +232,9 @@ def _summary(
 ) -> dict:
     st = asm.stats
     pid = asm.product_id if asm.product_id is not None else acc.product_id
-    model = None
-    if pid is not None:
-        model = "VLP-16" if pid in (vlp16.PRODUCT_ID_VLP16,
-                                    vlp16.PRODUCT_ID_VLP16_OLD_FIRMWARE) else PRODUCT_NAMES.get(pid)
+    model = asm.sensor.name if asm.sensor is not None else None
+    if model is None and pid is not None:
+        model = PRODUCT_NAMES.get(pid)
     pps = Counter(p.pps for p in positions)
     return {
         "model": model,
@@ -261,6 +266,8 @@ def _summary(
         "cut_azimuth_deg": None if asm.cut_azimuth is None else math.degrees(asm.cut_azimuth),
         "split": asm.split,
         "vertical_offsets": asm.vertical_offsets,
+        "lasers": None if asm.sensor is None else asm.sensor.n_lasers,
+        "laser_table": None if asm.sensor is None else asm.sensor.lasers.model,
     }
 
 

@@ -7,8 +7,9 @@ azimuth, one sequence every 55.296 us on a VLP-16, each laser a fixed time after
 starts. So the grid can be rebuilt from the returns' azimuths:
 
 1. each point's laser from its ``ring`` (elevation order), or from its elevation when the cloud has
-   no ring (with a `RingsFromElevationWarning`); a cloud whose rings or elevations are not a
-   VLP-16's is refused (`UnsupportedCloudError`);
+   no ring (with a `RingsFromElevationWarning`); a cloud whose rings or elevations are not the
+   sensor's (a VLP-16's unless its model or laser table is given) is refused
+   (`UnsupportedCloudError`);
 2. each point's azimuth with its laser's firing delay taken off (the rotation during the delay),
    which puts the returns of one sequence at one azimuth; the returns are walked in time order
    (the ``time`` field, else the file's order when it is a sweep) so that a cloud spanning a
@@ -41,6 +42,7 @@ from twin.core import vlp16
 from twin.core.errors import AimbenchError
 from twin.core.lasers import LaserTable
 from twin.core.scan import ReturnType, Scan
+from twin.core.sensors import MODELS, SensorModel
 
 TWO_PI = 2.0 * math.pi
 #: Interior gaps of the sweep up to this wide are firings that all missed and are rebuilt; a
@@ -52,9 +54,10 @@ FILL_LIMIT = math.radians(10.0)
 #: as another sensor's, as a share of the table's smallest ring spacing.
 ELEVATION_TOLERANCE = 0.25
 #: Firing timing of the models whose grids can be rebuilt: (delay of each laser after its
-#: sequence's start, s, by laser id; sequence period, s). The VLP-16's from its manual (9.5).
+#: sequence's start, s, by laser id; sequence period, s), by model name: each `SensorModel`'s
+#: own (`twin.core.sensors`, from its manual), so that a rebuilt grid is the decoder's.
 FIRING_TIMING: dict[str, tuple[np.ndarray, float]] = {
-    "VLP-16": (np.arange(vlp16.N_LASERS) * vlp16.LASER_PERIOD, vlp16.SEQUENCE_PERIOD),
+    m.name: (m.firing_offset, m.sequence_period) for m in MODELS.values()
 }
 
 
@@ -123,19 +126,29 @@ def scan_from_cloud(
     *,
     vertical_offsets: bool | None = None,
     index: int = 0,
+    model: SensorModel | None = None,
 ) -> Scan:
     """The `Scan` of a cloud's rotation with the misses rebuilt (module docstring).
 
-    ``lasers``: the sensor's laser table (the VLP-16's by default; its model must be one of
-    `FIRING_TIMING`). ``vertical_offsets``: whether the cloud's z carries the lasers' vertical
-    offsets (our decoder's default) or not (the ROS velodyne driver's); None decides from the
-    points: with the right choice every laser's returns lie at one elevation.
+    ``lasers``: the sensor's laser table (the VLP-16's by default). ``model``: the sensor whose
+    firing timing the grid has (`twin.core.sensors`); None: the model ``lasers`` is named after,
+    one of `FIRING_TIMING` (a unit's calibration table needs its model given).
+    ``vertical_offsets``: whether the cloud's z carries the lasers' vertical offsets (our
+    decoder's default) or not (the ROS velodyne driver's); None decides from the points: with
+    the right choice every laser's returns lie at one elevation.
     """
-    if lasers.model not in FIRING_TIMING:
+    if model is not None:
+        if model.n_lasers != lasers.n_lasers:
+            raise UnsupportedCloudError(
+                f"{cloud.name}: the laser table {lasers.model!r} has {lasers.n_lasers} lasers, "
+                f"a {model.name} {model.n_lasers}: it is another sensor's table")
+        delay, period = model.firing_offset, model.sequence_period
+    elif lasers.model in FIRING_TIMING:
+        delay, period = FIRING_TIMING[lasers.model]
+    else:
         raise UnsupportedCloudError(
             f"{cloud.name}: cannot rebuild the firing grid of a {lasers.model}: aimbench knows "
-            f"the firing timing of {', '.join(FIRING_TIMING)} only")
-    delay, period = FIRING_TIMING[lasers.model]
+            f"the firing timing of {', '.join(FIRING_TIMING)} only (name the model)")
     pts, offsets_applied, notes = _points(cloud, lasers, vertical_offsets)
     step0 = _azimuth_step(pts)
     seq_az, seq_index, slot_seq, step, partial, unfilled = _sequences(pts, delay / period,

@@ -1,4 +1,8 @@
-"""VLP-16 packet format: data packets (port 2368) and position packets (port 8308).
+"""Velodyne packet format: data packets (port 2368) and position packets (port 8308).
+
+The VLP-16, Puck Hi-Res, VLP-32C and HDL-32E share this layout; what differs between them (laser
+table, firing timing, distance unit) is their `twin.core.sensors.SensorModel`, which decoding
+takes from the product id (or an override) and every decoded batch carries.
 
 Bytes in, arrays out (and back): nothing here touches a socket or a file. Decoding is vectorised
 over many packets at once: a batch of payloads is viewed as a NumPy structured array
@@ -11,8 +15,9 @@ Layout of a data packet (VLP-16 user manual 63-9243 Rev. E, section 9.3), little
                            32 x (uint16 distance (2 mm), uint8 reflectivity)
     uint32 timestamp (us past the hour), uint8 return mode, uint8 product id
 
-Firings of a block: channels 0..15 are the first firing sequence of lasers 0..15, channels
-16..31 the second. Firing order in the arrays returned here: (packet, block, channel), i.e.
+Firings of a block: for the 16-laser models channels 0..15 are the first firing sequence of
+lasers 0..15, channels 16..31 the second; for the 32-laser models channel c is laser c.
+Firing order in the arrays returned here: (packet, block, channel), i.e.
 384 firings per packet in the order they appear in the bytes.
 
 Units: SI in the arrays (m, rad, s); raw counts (2 mm, 0.01 deg, us) only where the name says so.
@@ -28,7 +33,17 @@ import numpy as np
 
 from twin.core import vlp16
 from twin.core.errors import AimbenchError
+from twin.core.lasers import LaserTable
 from twin.core.scan import ReturnType
+from twin.core.sensors import (
+    HDL32E,
+    MODELS,
+    PRODUCT_NAMES,
+    VLP16,
+    SensorModel,
+    model_named,
+    model_of_product_id,
+)
 
 # --------------------------------------------------------------------------------------------
 # Errors and warnings
@@ -39,11 +54,11 @@ class MalformedPacketError(AimbenchError):
 
 
 class UnsupportedSensorError(AimbenchError):
-    """The packets come from a sensor other than a VLP-16 (HDL-32E, VLP-32C, ...)."""
+    """The packets come from a sensor aimbench does not decode (VLS-128, Velarray, ...)."""
 
 
 class ProductIdWarning(UserWarning):
-    """VLP-16 data carries product id 0x21 (older firmware); decoded as VLP-16."""
+    """Product id 0x21 on data whose model had to be inferred (old VLP-16 firmware sends it)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -76,47 +91,60 @@ RETURN_MODES = {
     vlp16.RETURN_MODE_DUAL: "dual",
 }
 
-#: Product ids of the factory bytes (manuals of the VLP-16, HDL-32E, VLP-32C, VLS-128).
-PRODUCT_NAMES = {
-    0x21: "HDL-32E",
-    0x22: "VLP-16",
-    0x24: "Puck Hi-Res",
-    0x28: "VLP-32C",
-    0x31: "Velarray",
-    0xA1: "VLS-128",
-}
-
-#: Time between the first firings of consecutive blocks in single-return mode, s.
-BLOCK_PERIOD = vlp16.SEQUENCES_PER_BLOCK * vlp16.SEQUENCE_PERIOD
-#: An HDL-32E fires 32 lasers per block at 1.152 us each plus recharge: 46.08 us per block.
-HDL32E_BLOCK_PERIOD = 46.08e-6
+#: Time between the first firings of consecutive VLP-16 blocks in single-return mode, s.
+BLOCK_PERIOD = VLP16.block_period
 
 
-def packet_period(return_mode: int) -> float:
-    """Time between consecutive data packets, s: 1.327 ms, or half that in dual-return mode."""
-    blocks = vlp16.BLOCKS_PER_PACKET // (2 if return_mode == vlp16.RETURN_MODE_DUAL else 1)
-    return blocks * BLOCK_PERIOD
+def packet_period(return_mode: int, sensor: SensorModel = VLP16) -> float:
+    """Time between consecutive data packets, s (VLP-16: 1.327 ms; half in dual-return mode)."""
+    return sensor.packet_period(return_mode)
 
 
-def firing_time_offsets(return_mode: int) -> np.ndarray:
-    """Time of each firing after the packet's timestamp, shape (12, 32), s (manual 9.5).
+def firing_time_offsets(return_mode: int, sensor: SensorModel = VLP16) -> np.ndarray:
+    """Time of each firing after the packet's timestamp, shape (12, 32), s (VLP-16 manual 9.5,
+    VLP-32C manual figures 9-7/9-8, HDL-32E manual "laser timing").
 
     In dual-return mode blocks come in pairs holding two echoes of the same firings, so block
     ``b`` fires at the time of block ``b // 2`` of a single-return packet.
     """
-    block = np.arange(vlp16.BLOCKS_PER_PACKET)
-    if return_mode == vlp16.RETURN_MODE_DUAL:
-        block = block // 2
-    within = vlp16.firing_offsets().reshape(FIRINGS_PER_BLOCK)  # (2 sequences x 16 lasers)
-    return block[:, None] * BLOCK_PERIOD + within[None, :]
+    return sensor.firing_time_offsets(return_mode)
 
 
-WITHIN_BLOCK_OFFSETS = vlp16.firing_offsets().reshape(FIRINGS_PER_BLOCK)
-_OFFSETS = {mode: firing_time_offsets(mode) for mode in RETURN_MODES}
-_LASER_OF_CHANNEL = np.tile(np.arange(vlp16.N_LASERS, dtype=np.uint8), 2)
-_SIN_ELEVATION = np.sin(vlp16.ELEVATION)[_LASER_OF_CHANNEL]
-_COS_ELEVATION = np.cos(vlp16.ELEVATION)[_LASER_OF_CHANNEL]
-_VERTICAL_OFFSET = vlp16.VERTICAL_OFFSET[_LASER_OF_CHANNEL]
+#: The VLP-16's firing times within a block, (32,) s.
+WITHIN_BLOCK_OFFSETS = VLP16.channel_offsets()
+
+
+@dataclass(frozen=True, eq=False)
+class _Channels:
+    """A model's per-channel constants (32,) for the decoder, and per-mode firing times."""
+
+    laser: np.ndarray
+    within: np.ndarray  # s after the block's first firing
+    azimuth_offset: np.ndarray  # rad
+    sin_el: np.ndarray
+    cos_el: np.ndarray
+    vertical: np.ndarray  # m
+    horizontal: np.ndarray  # m
+    offsets: dict[int, np.ndarray]  # return mode -> (12, 32) s after the timestamp
+
+
+_CHANNEL_CACHE: dict[int, tuple[SensorModel, _Channels]] = {}
+
+
+def _channels(sensor: SensorModel) -> _Channels:
+    hit = _CHANNEL_CACHE.get(id(sensor))
+    if hit is not None and hit[0] is sensor:
+        return hit[1]
+    lasers, lid = sensor.lasers, sensor.laser_of_channel
+    ch = _Channels(
+        laser=lid, within=sensor.channel_offsets(), azimuth_offset=lasers.azimuth_offset[lid],
+        sin_el=np.sin(lasers.elevation)[lid], cos_el=np.cos(lasers.elevation)[lid],
+        vertical=lasers.vertical_offset[lid], horizontal=lasers.horizontal_offset[lid],
+        offsets={mode: sensor.firing_time_offsets(mode) for mode in RETURN_MODES})
+    if len(_CHANNEL_CACHE) > 64:
+        _CHANNEL_CACHE.clear()
+    _CHANNEL_CACHE[id(sensor)] = (sensor, ch)
+    return ch
 
 
 # --------------------------------------------------------------------------------------------
@@ -158,80 +186,98 @@ def as_packet_records(
 # Model identification
 
 
+def resolve_model(model: str | SensorModel | None) -> SensorModel | None:
+    """A model override as the caller gives it (a name or a `SensorModel`), checked."""
+    if model is None or isinstance(model, SensorModel):
+        return model
+    try:
+        return model_named(model)
+    except KeyError:
+        raise UnsupportedSensorError(
+            f"model override {model!r} is not supported: aimbench decodes "
+            f"{', '.join(MODELS)} (pass one of these, or leave the model unset)") from None
+
+
 def identify_model(
     product_ids: np.ndarray,
     timestamps_us: np.ndarray,
     return_modes: np.ndarray,
-    model: str | None = None,
-) -> int:
-    """Decide which product id a batch of packets is decoded as; refuse other sensors.
+    model: str | SensorModel | None = None,
+    distances: np.ndarray | None = None,
+) -> tuple[int, SensorModel]:
+    """Decide which sensor a batch of packets comes from; refuse the ones aimbench does not know.
 
-    ``product_ids``, ``timestamps_us`` and ``return_modes`` are per-packet arrays of the batch.
-    ``model="VLP-16"`` is the override: the caller vouches that the data are a VLP-16's, whatever
-    the factory byte says. Without it:
-
-    - 0x22 is a VLP-16.
-    - 0x21 is the HDL-32E's id, but older VLP-16 firmware sends it too. The two differ in their
-      structure: an HDL-32E block holds one firing of 32 lasers (46.08 us), a VLP-16 block two
-      sequences of 16 (110.592 us), so consecutive HDL-32E packets are 0.553 ms apart and
-      VLP-16 packets 1.327 ms (half each in dual mode). When the batch has two or more packets the
-      median timestamp step decides; with a single packet nothing can tell, and it is decoded as
-      a VLP-16. Either way a `ProductIdWarning` says so.
-    - anything else (0x28 VLP-32C, 0x24 Puck Hi-Res, ...) raises `UnsupportedSensorError`.
+    ``product_ids``, ``timestamps_us`` and ``return_modes`` are per-packet arrays of the batch,
+    ``distances`` (n, 12, 32) the packets' raw distances (for the block-layout test below).
+    ``model`` (a name or a `SensorModel`) is the override: the caller vouches for the sensor,
+    whatever the factory byte says. Without it the product id decides (0x22 VLP-16, 0x24 Puck
+    Hi-Res, 0x28 VLP-32C, 0x21 HDL-32E), but for 0x21: older VLP-16 firmware sends it too. The
+    two differ in structure, and `_sixteen_laser_structure` tells them apart, by the timestamp
+    step (HDL-32E packets 0.553 ms apart, VLP-16 1.327 ms) or, from a single packet, by the
+    block layout (a VLP-16 block's channels c and c + 16 are one laser fired twice, an
+    HDL-32E's are two lasers 10 deg apart). 0x21 decoded as a VLP-16 issues a
+    `ProductIdWarning`; so does 0x21 with nothing to tell (then decoded as an HDL-32E).
+    Anything else (0xA1 VLS-128, ...) raises `UnsupportedSensorError`.
 
     Returns the product id the batch is decoded as (its most common one; packets with another
-    id are then dropped as malformed).
+    id are then dropped as malformed) and the model.
     """
+    override = resolve_model(model)
     if len(product_ids) == 0:
-        return vlp16.PRODUCT_ID_VLP16
+        return (override or VLP16).product_id, override or VLP16
     # The most common id, so that one corrupted byte cannot decide for the batch.
     pid = int(np.argmax(np.bincount(np.asarray(product_ids, dtype=np.uint8), minlength=256)))
-    if model is not None:
-        if model.upper().replace("-", "").replace("_", "") != "VLP16":
-            raise UnsupportedSensorError(
-                f"model override {model!r} is not supported: aimbench decodes VLP-16 data only "
-                "(use model='VLP-16' or leave the model unset)"
-            )
-        return pid
-    if pid == vlp16.PRODUCT_ID_VLP16:
-        return pid
-    name = PRODUCT_NAMES.get(pid, f"unknown product id 0x{pid:02x}")
+    if override is not None:
+        return pid, override
+    sensor = model_of_product_id(pid)
+    if sensor is None:
+        name = PRODUCT_NAMES.get(pid, f"unknown product id 0x{pid:02x}")
+        raise UnsupportedSensorError(
+            f"the packets come from a {name} (product id 0x{pid:02x}): aimbench decodes "
+            f"{', '.join(MODELS)} (if this really is one of them, pass --model NAME)")
     if pid != vlp16.PRODUCT_ID_VLP16_OLD_FIRMWARE:
-        raise UnsupportedSensorError(
-            f"the packets come from a {name} (product id 0x{pid:02x}), not a VLP-16: "
-            "aimbench decodes VLP-16 data only (if this really is a VLP-16, pass model='VLP-16' "
-            "or --model VLP-16)"
-        )
-    if _looks_like_hdl32e(timestamps_us, return_modes):
-        raise UnsupportedSensorError(
-            "the packets carry product id 0x21 and HDL-32E timing (packets 0.55 ms apart, one "
-            "32-laser firing per block): this is an HDL-32E, which aimbench does not decode "
-            "(if it really is a VLP-16, pass model='VLP-16' or --model VLP-16)"
-        )
-    warnings.warn(
-        "product id 0x21 (HDL-32E) on data with VLP-16 structure: older VLP-16 firmware sends it; "
-        "decoding as VLP-16 (pass model='VLP-16' or --model VLP-16 to silence this)",
-        ProductIdWarning,
-        stacklevel=3,
-    )
-    return pid
+        return pid, sensor
+    sixteen = _sixteen_laser_structure(timestamps_us, return_modes, distances)
+    if sixteen:
+        warnings.warn(
+            "product id 0x21 (HDL-32E) on data with VLP-16 structure: older VLP-16 firmware "
+            "sends it; decoding as VLP-16 (pass model='VLP-16' or --model VLP-16 to silence this)",
+            ProductIdWarning, stacklevel=3)
+        return pid, VLP16
+    if sixteen is None:
+        warnings.warn(
+            "product id 0x21 on too little data to tell an HDL-32E from an old VLP-16; decoding "
+            "as HDL-32E (pass --model to say which)", ProductIdWarning, stacklevel=3)
+    return pid, HDL32E
 
 
-def _looks_like_hdl32e(timestamps_us: np.ndarray, return_modes: np.ndarray) -> bool:
-    """True if the median packet-to-packet time step matches an HDL-32E rather than a VLP-16."""
-    if len(timestamps_us) < 2:
-        return False
-    step_us = np.diff(timestamps_us.astype(np.int64)) % US_PER_HOUR
-    step_us = step_us[(step_us > 0) & (step_us < 5_000)]  # ignore gaps and reordering
-    if len(step_us) == 0:
-        return False
-    dual = int(np.median(return_modes)) == vlp16.RETURN_MODE_DUAL
-    blocks = vlp16.BLOCKS_PER_PACKET // (2 if dual else 1)
-    step = float(np.median(step_us)) * 1e-6
-    # Closer (in ratio) to the HDL-32E's packet period than to the VLP-16's.
-    return abs(np.log(step / (blocks * HDL32E_BLOCK_PERIOD))) < abs(
-        np.log(step / (blocks * BLOCK_PERIOD))
-    )
+def _sixteen_laser_structure(
+    timestamps_us: np.ndarray, return_modes: np.ndarray, distances: np.ndarray | None,
+) -> bool | None:
+    """True if 0x21 packets are a VLP-16's, False if an HDL-32E's, None if nothing tells."""
+    if len(timestamps_us) >= 2:
+        step_us = np.diff(timestamps_us.astype(np.int64)) % US_PER_HOUR
+        step_us = step_us[(step_us > 0) & (step_us < 5_000)]  # ignore gaps and reordering
+        if len(step_us):
+            dual = int(np.median(return_modes)) == vlp16.RETURN_MODE_DUAL
+            mode = vlp16.RETURN_MODE_DUAL if dual else vlp16.RETURN_MODE_STRONGEST
+            step = float(np.median(step_us)) * 1e-6
+            # Closer (in ratio) to the VLP-16's packet period than to the HDL-32E's.
+            return bool(abs(np.log(step / VLP16.packet_period(mode)))
+                        < abs(np.log(step / HDL32E.packet_period(mode))))
+    if distances is None:
+        return None
+    # Block layout: ranges of channel c against channel c + 16 of the same block (VLP-16: one
+    # laser, one sequence apart) and against channel c of the next block (both models: the
+    # same laser, one block later). Needs a few channels with returns in all three.
+    d = distances.astype(np.float64)
+    a, b, nxt = d[:, :-1, :16], d[:, :-1, 16:], d[:, 1:, :16]
+    ok = (a > 0) & (b > 0) & (nxt > 0)
+    if ok.sum() < 20:
+        return None
+    within = np.median(np.abs(np.log(a[ok] / b[ok])))
+    across = np.median(np.abs(np.log(a[ok] / nxt[ok])))
+    return bool(within <= 2.0 * across)
 
 
 # --------------------------------------------------------------------------------------------
@@ -283,6 +329,7 @@ class DecodedPackets:
     z: np.ndarray
     vertical_offsets_applied: bool = True
     rejected: dict[str, int] = field(default_factory=dict)
+    sensor: SensorModel = VLP16
 
     def __len__(self) -> int:
         return len(self.timestamp_us)
@@ -293,8 +340,8 @@ class DecodedPackets:
 
     @property
     def ring(self) -> np.ndarray:
-        """Elevation-ordered ring 0..15 of each firing (0 = lowest beam)."""
-        return vlp16.RING_OF_LASER[self.laser_id]
+        """Elevation-ordered ring of each firing (0 = lowest beam)."""
+        return self.sensor.lasers.ring_of_laser[self.laser_id]
 
     @property
     def rpm(self) -> np.ndarray:
@@ -306,16 +353,20 @@ def decode_data_packets(
     payloads: np.ndarray | bytes | Sequence[bytes],
     vertical_offsets: bool = True,
     *,
-    model: str | None = None,
+    model: str | SensorModel | None = None,
+    lasers: LaserTable | None = None,
     strict: bool = False,
 ) -> DecodedPackets:
-    """Decode VLP-16 data packets, all at once, into per-firing arrays.
+    """Decode data packets of a VLP-16, Puck Hi-Res, VLP-32C or HDL-32E, all at once, into
+    per-firing arrays.
 
     ``payloads``: an (n, 1206) uint8 array, one payload, or a sequence of payloads.
     ``vertical_offsets``: add each laser's vertical offset (manual table 9-1) to z; the manual's
     model and the default (velodyne_decoder 3.x applies them too, with its built-in
     calibration; the VLP-16.yml file it ships leaves them out).
-    ``model``: ``"VLP-16"`` forces VLP-16 decoding whatever the product id (see `identify_model`).
+    ``model``: a model's name (``"VLP-32C"``...) or `SensorModel` forces that model whatever
+    the product id (see `identify_model`). ``lasers``: a unit's own laser table (its
+    calibration file, `twin.lidar.calibration_file`) instead of the model's.
     ``strict``: raise `MalformedPacketError` on the first bad payload instead of dropping and
     counting it in ``rejected``.
 
@@ -346,7 +397,11 @@ def decode_data_packets(
     if bad.any():  # a copy of the records only when there is something to drop
         records, index = records[~bad], index[~bad]
 
-    pid = identify_model(records["product_id"], records["timestamp"], records["return_mode"], model)
+    pid, sensor = identify_model(records["product_id"], records["timestamp"],
+                                 records["return_mode"], model,
+                                 records["blocks"]["channels"]["distance"])
+    if lasers is not None:
+        sensor = sensor.with_lasers(lasers)
     other = records["product_id"] != pid
     rejected["product_id"] = int(other.sum())
     if strict and other.any():
@@ -357,7 +412,7 @@ def decode_data_packets(
         )
     if other.any():
         records, index = records[~other], index[~other]
-    return decode_records(records, index, vertical_offsets, rejected)
+    return decode_records(records, index, vertical_offsets, rejected, sensor)
 
 
 def _describe_fault(reason: str, record: np.void, position: int) -> str:
@@ -378,9 +433,11 @@ _CHUNK = 128
 
 
 def decode_records(
-    records: np.ndarray, index: np.ndarray, vertical_offsets: bool, rejected: dict[str, int]
+    records: np.ndarray, index: np.ndarray, vertical_offsets: bool, rejected: dict[str, int],
+    sensor: SensorModel = VLP16,
 ) -> DecodedPackets:
-    """Decode `DATA_PACKET_DTYPE` records that have been checked (`validate_records`).
+    """Decode `DATA_PACKET_DTYPE` records that have been checked (`validate_records`), as
+    ``sensor``'s packets.
 
     The vectorised core of `decode_data_packets`, for callers (the scan assembler) that
     validate and order packets themselves. ``index``/``rejected`` are passed through.
@@ -392,11 +449,12 @@ def decode_records(
     mode = records["return_mode"]
     dual = mode == vlp16.RETURN_MODE_DUAL
     ts_us = records["timestamp"]
+    ch = _channels(sensor)
 
     # Rotation rate from the packet's first and last distinct block azimuths.
     last = np.where(dual, vlp16.BLOCKS_PER_PACKET - 2, vlp16.BLOCKS_PER_PACKET - 1)
     span_cdeg = (az_cdeg[np.arange(n), last].astype(np.int64) - az_cdeg[:, 0]) % AZIMUTH_COUNTS
-    span_s = np.where(dual, last // 2, last) * BLOCK_PERIOD
+    span_s = np.where(dual, last // 2, last) * sensor.block_period
     rate = span_cdeg * (np.pi / 18000.0) / span_s  # rad/s
 
     shape = (n, vlp16.BLOCKS_PER_PACKET, FIRINGS_PER_BLOCK)
@@ -404,7 +462,8 @@ def decode_records(
     for lo in range(0, n, _CHUNK):
         sl = slice(lo, min(n, lo + _CHUNK))
         _decode_chunk(channels[sl], az_cdeg[sl], ts_us[sl], dual[sl], rate[sl],
-                      vertical_offsets, {k: v[sl] for k, v in out.items()})
+                      vertical_offsets, {k: v[sl] for k, v in out.items()}, ch,
+                      sensor.distance_unit)
 
     flat = (n, FIRINGS_PER_PACKET)
     return DecodedPackets(
@@ -414,46 +473,58 @@ def decode_records(
         product_id=records["product_id"].copy(),
         block_azimuth_cdeg=az_cdeg.copy(),
         azimuth_rate=rate,
-        laser_id=np.broadcast_to(np.tile(_LASER_OF_CHANNEL, vlp16.BLOCKS_PER_PACKET), flat),
+        laser_id=np.broadcast_to(np.tile(ch.laser, vlp16.BLOCKS_PER_PACKET), flat),
         intensity=channels["reflectivity"].reshape(flat).copy(),
         return_type=_return_types(channels, mode).reshape(flat),
         **{k: v.reshape(flat) for k, v in out.items()},
         vertical_offsets_applied=vertical_offsets,
         rejected=rejected,
+        sensor=sensor,
     )
 
 
 def _decode_chunk(
     channels: np.ndarray, az_cdeg: np.ndarray, ts_us: np.ndarray, dual: np.ndarray,
-    rate: np.ndarray, vertical_offsets: bool, out: dict[str, np.ndarray],
+    rate: np.ndarray, vertical_offsets: bool, out: dict[str, np.ndarray], ch: _Channels,
+    unit: float,
 ) -> None:
     """Fill ``out`` (views of the result arrays) for a few packets; ufuncs write in place."""
     distance, azimuth, time = out["distance"], out["azimuth"], out["time"]
     x, y, z = out["x"], out["y"], out["z"]
     # Firing times: a per-mode offset table (mixed-mode batches are rare but legal).
-    offsets = _OFFSETS[vlp16.RETURN_MODE_STRONGEST]
+    offsets = ch.offsets[vlp16.RETURN_MODE_STRONGEST]
     if dual.any():
-        offsets = np.where(dual[:, None, None], _OFFSETS[vlp16.RETURN_MODE_DUAL], offsets)
+        offsets = np.where(dual[:, None, None], ch.offsets[vlp16.RETURN_MODE_DUAL], offsets)
     np.add((ts_us * 1e-6)[:, None, None], offsets, out=time)
 
     block_az = az_cdeg * (np.pi / 18000.0)  # (m, 12)
-    delta = rate[:, None] * WITHIN_BLOCK_OFFSETS[None, :]  # (m, 32): rotation since block az
+    # Rotation since the block azimuth, plus the beam's own azimuth offset (VLP-32C manual
+    # 9.5: precise azimuth = block azimuth + rotation since the first firing + delta).
+    delta = rate[:, None] * ch.within[None, :] + ch.azimuth_offset  # (m, 32)
     np.add(block_az[:, :, None], delta[:, None, :], out=azimuth)
-    over = np.flatnonzero((block_az + delta[:, -1:] >= 2 * np.pi).any(axis=1))
+    over = np.flatnonzero(((block_az + delta.max(axis=1)[:, None] >= 2 * np.pi)
+                           | (block_az + delta.min(axis=1)[:, None] < 0)).any(axis=1))
     if len(over):  # only packets whose firings pass 359.99 -> 0 need the wrap
         a = azimuth[over]
-        azimuth[over] = np.where(a >= 2 * np.pi, a - 2 * np.pi, a)
+        a = np.where(a >= 2 * np.pi, a - 2 * np.pi, a)
+        azimuth[over] = np.where(a < 0, a + 2 * np.pi, a)
 
-    np.multiply(channels["distance"], vlp16.DISTANCE_UNIT, out=distance)
+    np.multiply(channels["distance"], unit, out=distance)
     # cos a + i sin a of every firing as one complex product e^{iA} e^{i delta}: 12 + 32
     # transcendental calls per packet instead of 384, and one pass over the firings.
     # The laser's cos(elevation) rides on the small per-channel factor, saving a pass.
-    rot = np.exp(1j * block_az)[:, :, None] * (np.exp(1j * delta) * _COS_ELEVATION)[:, None, :]
+    rot = np.exp(1j * block_az)[:, :, None] * (np.exp(1j * delta) * ch.cos_el)[:, None, :]
     np.multiply(distance, rot.imag, out=x)
     np.multiply(distance, rot.real, out=y)
-    np.multiply(distance, _SIN_ELEVATION, out=z)
+    np.multiply(distance, ch.sin_el, out=z)
     if vertical_offsets:
-        np.add(z, _VERTICAL_OFFSET, out=z, where=distance > 0)
+        np.add(z, ch.vertical, out=z, where=distance > 0)
+    if ch.horizontal.any():
+        # A horizontal offset h moves the laser's origin across its beam: (-h cos a, h sin a)
+        # in (X_L, Y_L) (the ROS driver's rawdata.cc, from the HDL-64E S2 manual).
+        hit = distance > 0
+        np.add(x, -ch.horizontal * rot.real / ch.cos_el, out=x, where=hit)
+        np.add(y, ch.horizontal * rot.imag / ch.cos_el, out=y, where=hit)
 
 
 def _return_types(channels: np.ndarray, mode: np.ndarray) -> np.ndarray:
@@ -649,9 +720,10 @@ def gprmc_sentence(timestamp_us: int, hour: int = 12, date: str = "010125") -> s
 
 def block_azimuths_cdeg(
     n_packets: int, rpm: float, start_cdeg: float = 0.0,
-    return_mode: int = vlp16.RETURN_MODE_STRONGEST,
+    return_mode: int = vlp16.RETURN_MODE_STRONGEST, sensor: SensorModel = VLP16,
 ) -> np.ndarray:
-    """Block azimuths of ``n_packets`` consecutive packets at a constant ``rpm``, (12 n,) uint16.
+    """Block azimuths of ``n_packets`` consecutive packets of ``sensor`` at a constant ``rpm``,
+    (12 n,) uint16.
 
     What the sensor's encoder reports: the azimuth at each block's first firing, rounded to
     0.01 deg and wrapped to [0, 36000). In dual mode the two blocks of a pair share one azimuth.
@@ -660,13 +732,14 @@ def block_azimuths_cdeg(
     if return_mode == vlp16.RETURN_MODE_DUAL:
         slot = slot // 2  # one firing time per block pair
     cdeg_per_s = rpm * 36000.0 / 60.0
-    az = start_cdeg + slot * BLOCK_PERIOD * cdeg_per_s
+    az = start_cdeg + slot * sensor.block_period * cdeg_per_s
     return (np.round(az).astype(np.int64) % AZIMUTH_COUNTS).astype(np.uint16)
 
 
 def packet_timestamps_us(
     n_packets: int, start_us: int = 0, return_mode: int = vlp16.RETURN_MODE_STRONGEST,
+    sensor: SensorModel = VLP16,
 ) -> np.ndarray:
     """Timestamps (us past the hour, wrapping at the hour) of consecutive packets, (n,) uint32."""
-    t = start_us + np.round(np.arange(n_packets) * packet_period(return_mode) * 1e6)
+    t = start_us + np.round(np.arange(n_packets) * sensor.packet_period(return_mode) * 1e6)
     return (t.astype(np.int64) % US_PER_HOUR).astype(np.uint32)

@@ -1,4 +1,5 @@
-"""Assemble VLP-16 data packets into scans (one rotation each) and account for every packet.
+"""Assemble data packets (VLP-16, Puck Hi-Res, VLP-32C, HDL-32E) into scans (one rotation
+each) and account for every packet.
 
 A `ScanAssembler` takes data-packet payloads in arrival order (from a pcap file or a socket)
 and yields `twin.core.scan.Scan` objects. On the way it:
@@ -7,8 +8,9 @@ and yields `twin.core.scan.Scan` objects. On the way it:
 - orders packets by their sensor timestamp (us past the hour, unwrapped across the hour) in a
   small reorder window, counting ``out_of_order`` arrivals, ``duplicates`` (a timestamp seen
   before) and ``late`` packets (arrived after their place in the stream was passed: dropped);
-- counts ``missing`` packets from the timestamp steps (one packet every 1.327 ms, or 0.664 ms
-  in dual-return mode) and charges each missing packet to the scan(s) it belonged to, so a scan
+- counts ``missing`` packets from the timestamp steps (the model's packet period: 1.327 ms for
+  a VLP-16, 0.664 ms for a VLP-32C, 0.553 ms for an HDL-32E; half in dual-return mode) and
+  charges each missing packet to the scan(s) it belonged to, so a scan
   with holes says so (``complete=False``, ``missing_packets > 0``);
 - cuts scans at a fixed azimuth (default pi: behind the sensor, opposite the board, so the board
   is never split between two scans). Every firing is kept; the first and last scans of a stream
@@ -32,16 +34,18 @@ from typing import Literal
 import numpy as np
 
 from twin.core import vlp16
+from twin.core.lasers import LaserTable
 from twin.core.scan import Scan
+from twin.core.sensors import VLP16, SensorModel
 from twin.lidar.packets import (
     DATA_PACKET_DTYPE,
     FIRINGS_PER_PACKET,
     US_PER_HOUR,
-    WITHIN_BLOCK_OFFSETS,
+    UnsupportedSensorError,
     as_packet_records,
     decode_records,
     identify_model,
-    packet_period,
+    resolve_model,
     validate_records,
 )
 
@@ -98,8 +102,11 @@ class ScanAssembler:
     forward); ``None`` cuts at the azimuth of the stream's first firing (or first packet), so
     the first scan is whole. ``split``: ``"firing"`` or ``"packet"`` (module docstring).
     ``vertical_offsets``: apply the lasers' vertical offsets (default, as the manual says).
-    ``model``: ``"VLP-16"`` to decode whatever the product id says. ``reorder_window``: how many
-    packets are held back to put out-of-order arrivals in place (latency: window x 1.3 ms).
+    ``model``: a model's name or `SensorModel` to decode as, whatever the product id says
+    (default: from the product id, `twin.lidar.packets.identify_model`). ``lasers``: the unit's
+    own laser table (a calibration file) instead of the model's; scans carry it.
+    ``reorder_window``: how many packets are held back to put out-of-order arrivals in place
+    (latency: window x 1.3 ms for a VLP-16).
     ``decode_batch``: released packets are decoded this many at a time. ``break_s``: a
     timestamp step longer than this is a break (counted in ``stats.breaks``, flagged on its
     scan), not that many lost packets: a single corrupted timestamp then costs nothing, but
@@ -115,7 +122,8 @@ class ScanAssembler:
         *,
         split: Literal["firing", "packet"] = "firing",
         vertical_offsets: bool = True,
-        model: str | None = None,
+        model: str | SensorModel | None = None,
+        lasers: LaserTable | None = None,
         reorder_window: int = 16,
         decode_batch: int = 32,
         break_s: float = BREAK_S,
@@ -125,7 +133,10 @@ class ScanAssembler:
         self.cut_azimuth = None if cut_azimuth is None else float(cut_azimuth) % TWO_PI
         self.split = split
         self.vertical_offsets = vertical_offsets
-        self.model = model
+        self.model = resolve_model(model)
+        self.lasers = lasers
+        #: The sensor the stream is decoded as (known once the first packets are in).
+        self.sensor: SensorModel | None = None
         self.reorder_window = max(0, int(reorder_window))
         self.decode_batch = max(1, int(decode_batch))
         self.break_s = float(break_s)
@@ -159,6 +170,7 @@ class ScanAssembler:
         self._first_sid: int | None = None
         self._missing_by_sid: Counter = Counter()
         self._open: list[_Chunk] = []
+        self._closed_below: int | None = None  # scans below this id have been emitted
 
     # ---------------------------------------------------------------------------------------
     # Input
@@ -215,9 +227,10 @@ class ScanAssembler:
         # keeps its place in arrival order and the break is counted and flagged.
         brk = np.abs(step) > self.break_s * 1e6
         self.stats.breaks += int(brk.sum())
+        sensor = self.sensor or self.model or VLP16
         nominal = np.where(records["return_mode"] == vlp16.RETURN_MODE_DUAL,
-                           packet_period(vlp16.RETURN_MODE_DUAL),
-                           packet_period(vlp16.RETURN_MODE_STRONGEST)) * 1e6
+                           sensor.packet_period(vlp16.RETURN_MODE_DUAL),
+                           sensor.packet_period(vlp16.RETURN_MODE_STRONGEST)) * 1e6
         kept = np.where(brk, np.round(nominal).astype(np.int64), step)
         ts = self._last_unwrapped + np.cumsum(kept)
         # Whole hours since the first packet's hour: the timeline without the breaks' shifts
@@ -247,8 +260,10 @@ class ScanAssembler:
         if self.product_id is None:
             if len(rec) < 2 and not final:
                 return []  # one packet cannot tell a VLP-16 with id 0x21 from an HDL-32E
-            self.product_id = identify_model(
-                rec["product_id"], rec["timestamp"], rec["return_mode"], self.model)
+            self.product_id, sensor = identify_model(
+                rec["product_id"], rec["timestamp"], rec["return_mode"], self.model,
+                rec["blocks"]["channels"]["distance"])
+            self.sensor = sensor if self.lasers is None else _with_table(sensor, self.lasers)
         other = rec["product_id"] != self.product_id
         self.stats.rejected["product_id"] += int(other.sum())
         if other.any():
@@ -296,7 +311,7 @@ class ScanAssembler:
         ts = np.concatenate(self._rel_ts)
         aux = np.concatenate(self._rel_aux)
         self._rel_rec, self._rel_ts, self._rel_aux = [], [], []
-        dec = decode_records(rec, np.arange(len(rec)), self.vertical_offsets, {})
+        dec = decode_records(rec, np.arange(len(rec)), self.vertical_offsets, {}, self.sensor)
         self.stats.packets += len(rec)
         chunk = self._assign(dec, ts, aux)
         self._open.append(chunk)
@@ -319,7 +334,7 @@ class ScanAssembler:
         # rotation since the block's first firing (as the decoder computed it).
         block_az = dec.block_azimuth_cdeg * (math.pi / 18000.0)
         ublock = u0[:, None] + (block_az - az0[:, None]) % TWO_PI  # (n, 12)
-        delta = rate[:, None] * WITHIN_BLOCK_OFFSETS[None, :]  # (n, 32)
+        delta = rate[:, None] * self.sensor.channel_offsets()[None, :]  # (n, 32)
         u = (ublock[:, :, None] + delta[:, None, :]).reshape(len(ts), -1)  # (n, 384)
         ulast = u0 + span
         if self._cut_ref is None:
@@ -340,7 +355,7 @@ class ScanAssembler:
             self._first_sid = int(sid[0, 0])
         for k in sid[aux[:, 1] > 0, 0].tolist():
             self._breaks_by_sid[int(k)] += 1
-        self._count_gaps(ts, u0, span, packet_period(int(dec.return_mode[0])) * 1e6)
+        self._count_gaps(ts, u0, span, self.sensor.packet_period(int(dec.return_mode[0])) * 1e6)
         self._prev_ts, self._prev_az0 = int(ts[-1]), float(az0[-1])
         self._prev_u0, self._prev_ulast, self._prev_span = float(u0[-1]), float(ulast[-1]), \
             float(span[-1])
@@ -425,10 +440,19 @@ class ScanAssembler:
     def _emit(self, final: bool) -> list[Scan]:
         if not self._open:
             return []
-        chunk = self._open[0] if len(self._open) == 1 else _concat(self._open)
+        emitted_below = self._closed_below
+        chunk = _in_scan_order(self._open[0] if len(self._open) == 1 else _concat(self._open),
+                               emitted_below)
         self._open = []
         top = int(chunk.sid.max()) if len(chunk.sid) else 0
         close_below = top + 1 if final else top
+        self._closed_below = close_below if emitted_below is None else max(close_below,
+                                                                             emitted_below)
+        if emitted_below is not None:
+            # Holes charged (damaged azimuths) to a scan already emitted: counted in the
+            # stream's stats, but that scan cannot be emitted again.
+            for k in [k for k in self._missing_by_sid if k < emitted_below]:
+                del self._missing_by_sid[k]
         scans = []
         sid = chunk.sid
         starts = np.concatenate(([0], np.flatnonzero(sid[1:] != sid[:-1]) + 1))  # sorted ids
@@ -452,7 +476,7 @@ class ScanAssembler:
         self.stats.incomplete_scans += 1
         return Scan.empty(
             index=k - (self._first_sid or 0), complete=False, packets=0, missing_packets=missing,
-            vertical_offsets_applied=self.vertical_offsets,
+            vertical_offsets_applied=self.vertical_offsets, lasers=(self.sensor or VLP16).lasers,
             meta={"partial": False, "lost": True, "split": self.split,
                   "cut_azimuth_deg": math.degrees(self._cut_ref % TWO_PI)},
         )
@@ -460,8 +484,9 @@ class ScanAssembler:
     def _make_scan(self, chunk: _Chunk, k: int, lo: int, hi: int, last: bool) -> Scan:
         pk = (chunk.packet_sid_min <= k) & (chunk.packet_sid_max >= k)
         rpm = float(np.median(chunk.rpm[pk])) if pk.any() else float("nan")
-        block_step = TWO_PI * rpm / 60.0 * 2 * vlp16.SEQUENCE_PERIOD
-        tol = 1.5 * block_step + (TWO_PI * rpm / 60.0 * 24 * vlp16.SEQUENCE_PERIOD
+        sensor = self.sensor or VLP16
+        block_step = TWO_PI * rpm / 60.0 * sensor.block_period
+        tol = 1.5 * block_step + (TWO_PI * rpm / 60.0 * sensor.packet_period()
                                   if self.split == "packet" else 0.0)
         start_ref = self._cut_ref + TWO_PI * k
         u = chunk.u[lo:hi]
@@ -485,8 +510,10 @@ class ScanAssembler:
             return_mode=int(chunk.return_mode[pk][0]) if pk.any() else 0,
             product_id=int(chunk.product_id[pk][0]) if pk.any() else 0,
             vertical_offsets_applied=self.vertical_offsets,
+            lasers=sensor.lasers,
             meta={
                 "rpm": rpm,
+                "model": sensor.name,
                 "first_packet_timestamp_us": int(ts[0]) if len(ts) else None,
                 "last_packet_timestamp_us": int(ts[-1]) if len(ts) else None,
                 "start_time_s": float(arrays["time"][0]),
@@ -500,6 +527,15 @@ class ScanAssembler:
         )
 
 
+def _with_table(sensor: SensorModel, lasers: LaserTable) -> SensorModel:
+    """``sensor`` with a unit's own laser table, refused if the table is another sensor's."""
+    if lasers.n_lasers != sensor.n_lasers:
+        raise UnsupportedSensorError(
+            f"the laser table {lasers.model!r} has {lasers.n_lasers} lasers, the packets are a "
+            f"{sensor.name}'s ({sensor.n_lasers}): it is another sensor's calibration")
+    return sensor.with_lasers(lasers)
+
+
 def _raw(records: np.ndarray) -> np.ndarray:
     """Records as their raw bytes, (n, 1206) uint8 (no copy when already contiguous)."""
     return np.ascontiguousarray(records).view(np.uint8).reshape(len(records), -1)
@@ -508,6 +544,27 @@ def _raw(records: np.ndarray) -> np.ndarray:
 def _records(raw: np.ndarray) -> np.ndarray:
     """Raw (n, 1206) bytes viewed as `DATA_PACKET_DTYPE` records."""
     return np.ascontiguousarray(raw).view(DATA_PACKET_DTYPE)[:, 0]
+
+
+def _in_scan_order(chunk: _Chunk, closed_below: int | None) -> _Chunk:
+    """The chunk's firings sorted by scan id (stable), none below ``closed_below``.
+
+    Each decoded chunk is in scan order by itself, but damaged block azimuths can put a later
+    chunk's firings into a rotation before the held-back tail of the one before, or into a scan
+    already emitted. Such firings join the oldest scan still open (their azimuths are garbage
+    anyway; dropping them would lose a return silently) rather than open an emitted scan again.
+    """
+    sid = chunk.sid
+    if closed_below is not None and len(sid) and sid.min() < closed_below:
+        sid = np.maximum(sid, closed_below)
+    if len(sid) < 2 or (sid[1:] >= sid[:-1]).all():
+        if sid is not chunk.sid:
+            chunk.sid = sid
+        return chunk
+    order = np.argsort(sid, kind="stable")
+    chunk.arrays = {name: a[order] for name, a in chunk.arrays.items()}
+    chunk.sid, chunk.u = sid[order], chunk.u[order]
+    return chunk
 
 
 def _concat(chunks: list[_Chunk]) -> _Chunk:

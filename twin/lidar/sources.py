@@ -43,8 +43,10 @@ from twin.core import vlp16
 from twin.core.errors import AimbenchError
 from twin.core.lasers import LaserTable
 from twin.core.scan import Scan
+from twin.core.sensors import VLP16, SensorModel
 from twin.lidar.capture import PacketScans, PcapSource, UdpSource
-from twin.lidar.clouds import Cloud, SparseCloudError, scan_from_cloud
+from twin.lidar.clouds import Cloud, CloudError, SparseCloudError, scan_from_cloud
+from twin.lidar.packets import resolve_model
 
 #: What every error about a source name says can be given.
 KINDS_HELP = ("a .pcap/.pcapng capture, udp://HOST:PORT, a ROS 1 .bag, a ROS 2 bag (folder, "
@@ -219,14 +221,22 @@ class PacketScanSource(ScanSource):
 
 
 class CloudScanSource(ScanSource):
-    """Scans rebuilt from point clouds (PCD files, a bag of PointCloud2)."""
+    """Scans rebuilt from point clouds (PCD files, a bag of PointCloud2) on the grid of
+    ``model`` (its firing timing; the VLP-16 by default) with its laser table, or ``lasers``
+    (a unit's calibration table) instead."""
 
     def __init__(self, name: SourceName, clouds: Iterable[Cloud], *,
-                 max_scans: int | None = None, lasers: LaserTable = vlp16.LASERS,
-                 extra: dict | None = None, closer: Callable[[], None] | None = None) -> None:
+                 max_scans: int | None = None, model: SensorModel = VLP16,
+                 lasers: LaserTable | None = None, extra: dict | None = None,
+                 closer: Callable[[], None] | None = None) -> None:
+        if lasers is not None and lasers.n_lasers != model.n_lasers:
+            raise CloudError(f"the laser table {lasers.model!r} has {lasers.n_lasers} lasers, a "
+                             f"{model.name} {model.n_lasers}: give the model it calibrates "
+                             "(--model)")
         super().__init__(name, max_scans, extra, closer)
         self.clouds = clouds
-        self.lasers = lasers
+        self.model = model
+        self.lasers = model.lasers if lasers is None else lasers
         self._tally: list[_CloudTally] = []
         self._warnings: list[str] = []
 
@@ -236,7 +246,7 @@ class CloudScanSource(ScanSource):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 try:
-                    scan = scan_from_cloud(cloud, self.lasers, index=index)
+                    scan = scan_from_cloud(cloud, self.lasers, index=index, model=self.model)
                 except SparseCloudError as exc:
                     # A scrap among many (a capture's last few firings, say) is a partial scan,
                     # as the assembler makes it, not the end of the source.
@@ -259,7 +269,8 @@ class CloudScanSource(ScanSource):
         t = self._tally
         rpm = [s.rpm for s in t if math.isfinite(s.rpm)]
         return {
-            "model": self.lasers.model, "product_id": None, "return_mode": None,
+            "model": self.model.name, "product_id": None, "return_mode": None,
+            "lasers": self.lasers.n_lasers, "laser_table": self.lasers.model,
             "rpm": float(sorted(rpm)[len(rpm) // 2]) if rpm else None,
             "clouds": len(t),
             "scans": len(t),
@@ -298,22 +309,28 @@ def open_scans(
     *,
     max_scans: int | None = None,
     timeout_s: float = 2.0,
-    lasers: LaserTable = vlp16.LASERS,
+    lasers: LaserTable | None = None,
     cut_azimuth: float | None = math.pi,
     split: str = "firing",
     vertical_offsets: bool = True,
-    model: str | None = None,
+    model: str | SensorModel | None = None,
 ) -> ScanSource:
     """A `ScanSource` for any source name (module docstring).
 
     ``timeout_s``: silence on a live socket after which `twin.lidar.udp.SensorSilentError` is
-    raised. ``cut_azimuth``, ``split``, ``vertical_offsets``, ``model``: how packets become
-    scans (`twin.lidar.scans.ScanAssembler`); a point cloud is a rotation already, and its z
-    carries whatever offsets its driver applied. ``lasers``: the table clouds are rebuilt on.
+    raised. ``cut_azimuth``, ``split``, ``vertical_offsets``: how packets become scans
+    (`twin.lidar.scans.ScanAssembler`); a point cloud is a rotation already, and its z carries
+    whatever offsets its driver applied. ``model`` (a name or a `twin.core.sensors.SensorModel`):
+    the sensor packets are decoded as, whatever their product id says (None: from the product
+    id), and whose grid clouds are rebuilt on (None: the VLP-16's). ``lasers``: the unit's own
+    laser table (a calibration file, `twin.lidar.calibration_file`) instead of the model's,
+    for packets and clouds alike.
     """
     src = name if isinstance(name, SourceName) else parse_source(name)
+    sensor = resolve_model(model)
     decode = {"cut_azimuth": cut_azimuth, "split": split, "vertical_offsets": vertical_offsets,
-              "model": model}
+              "model": sensor, "lasers": lasers}
+    cloud = {"model": sensor or VLP16, "lasers": lasers}
     if src.kind == "pcap":
         pcap = PcapSource(src.path)
         return PacketScanSource(src, pcap, max_scans=max_scans, closer=pcap.reader.close,
@@ -328,25 +345,31 @@ def open_scans(
     if src.kind == "pcd":
         from twin.lidar.pcd import read_pcd
 
-        return CloudScanSource(src, read_pcd(src.path), max_scans=max_scans, lasers=lasers)
+        return CloudScanSource(src, read_pcd(src.path), max_scans=max_scans, **cloud)
     from twin.lidar.bags import Bag
 
     bag = Bag(src.path, src.topic)
     if bag.kind == "packets":
         return PacketScanSource(src, bag.packets(), max_scans=max_scans, extra={"bag": bag.info},
                                 closer=bag.close, **decode)
-    return CloudScanSource(src, bag.clouds(), max_scans=max_scans, lasers=lasers,
-                           extra={"bag": bag.info}, closer=bag.close)
+    try:
+        return CloudScanSource(src, bag.clouds(), max_scans=max_scans, extra={"bag": bag.info},
+                               closer=bag.close, **cloud)
+    except CloudError:
+        bag.close()
+        raise
 
 
 def capture_scans(name: str | Path, *, whole_only: bool = True,
-                  max_scans: int | None = None) -> list[Scan]:
+                  max_scans: int | None = None, model: str | SensorModel | None = None,
+                  lasers: LaserTable | None = None) -> list[Scan]:
     """The scans of a source in order, with the default decoding: the one way every command and
     bench turns a recording into scans. ``whole_only`` drops the partial rotations at a
-    capture's ends; ``max_scans`` stops after that many whole scans. A live sensor is read
-    until ``max_scans`` or Ctrl-C."""
+    capture's ends; ``max_scans`` stops after that many whole scans; ``model``/``lasers`` as
+    `open_scans` (the station's sensor, say). A live sensor is read until ``max_scans`` or
+    Ctrl-C."""
     scans: list[Scan] = []
-    with open_scans(name, max_scans=max_scans) as source:
+    with open_scans(name, max_scans=max_scans, model=model, lasers=lasers) as source:
         try:
             for s in source:
                 if not (whole_only and s.meta.get("partial")):
@@ -368,17 +391,21 @@ class ScanFeed:
     moved are never read, and the first scan (joined mid-rotation, partial) is dropped: every
     scan returned began after the call. A recording is read on from where the last call
     stopped; running out raises `SourceExhaustedError` naming how many whole scans it held.
+    ``model``/``lasers``: how its packets are decoded, as `open_scans` (the station's sensor).
     """
 
-    def __init__(self, name: str | Path, timeout_s: float = 2.0) -> None:
+    def __init__(self, name: str | Path, timeout_s: float = 2.0, *,
+                 model: str | SensorModel | None = None,
+                 lasers: LaserTable | None = None) -> None:
         self.name = parse_source(name)
         self.timeout_s = timeout_s
+        self.decode = {"model": resolve_model(model), "lasers": lasers}
         self.stats: dict = {}
         self._recorded: Iterator[Scan] | None = None
         self._source: ScanSource | None = None
         self._taken = 0
         if not self.name.live:
-            self._source = open_scans(self.name)
+            self._source = open_scans(self.name, **self.decode)
             self._recorded = iter(self._source)
 
     def info(self) -> dict:
@@ -404,7 +431,7 @@ class ScanFeed:
             yield scan
 
     def _take_live(self, n: int) -> Iterator[Scan]:
-        source = open_scans(self.name, max_scans=n, timeout_s=self.timeout_s)
+        source = open_scans(self.name, max_scans=n, timeout_s=self.timeout_s, **self.decode)
         try:
             for scan in source:
                 if not scan.meta.get("partial"):

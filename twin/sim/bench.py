@@ -1,10 +1,13 @@
 """`BenchSim`: the simulated bench. Bench parameters and a seed in; stage moves, scans with ground
-truth, and VLP-16 packets out.
+truth, and the lidar's packets out (VLP-16 by default; Puck Hi-Res, VLP-32C, HDL-32E by
+``EmulationConfig.model``).
 
 Time: one simulation clock (s, MuJoCo's ``data.time``) drives the physics, the stage moves and
-the sensor. The VLP-16 fires on a fixed grid (a firing sequence every 55.296 us from t = 0, lasers
-2.304 us apart), spins at the configured rpm with a fresh scan-to-scan wander each rotation, and
-reports its clock as seconds past the hour (``Scan.time``, packet timestamps). A rotation runs
+the sensor. The sensor fires on its fixed grid (`twin.core.sensors.SensorModel`: for a VLP-16 a
+firing sequence every 55.296 us from t = 0, lasers 2.304 us apart; the VLP-32C's lasers in pairs,
+the HDL-32E's 1.152 us apart in 46.08 us), spins at the configured rpm with a fresh
+scan-to-scan wander each rotation, and reports its clock as seconds past the hour (``Scan.time``,
+packet timestamps). A rotation runs
 from one pass of the cut azimuth to the next (default pi, behind the sensor, like
 `twin.lidar.scans.ScanAssembler`), so the twin's scans and the scans decoded from its packets
 coincide.
@@ -27,8 +30,9 @@ from scipy.spatial.transform import Rotation, Slerp
 from twin.core import vlp16
 from twin.core.pose import Pose
 from twin.core.scan import Scan, points_from_polar
+from twin.core.sensors import VLP16, model_named
 from twin.sim import raykernel
-from twin.sim.emulation import EmulationConfig, RayCaster, Returns, VLP16Emulator
+from twin.sim.emulation import EmulationConfig, LidarEmulator, RayCaster, Returns
 from twin.sim.params import BenchParams
 from twin.sim.physics import BenchPhysics
 from twin.stage.motion import X_AXIS, YAW_AXIS, StageMove
@@ -70,19 +74,24 @@ class BenchSim:
     ``params``: the physical bench (`BenchParams`, default the paper's). ``seed``: an int, a
     `numpy.random.Generator` or None; every random draw (noise, rpm wander, laser offsets,
     dropouts) comes from it. ``noise``: the `EmulationConfig` (default: every effect on).
-    ``cut_azimuth``: where one rotation ends and the next begins, rad.
+    ``cut_azimuth``: where one rotation ends and the next begins, rad. ``model``: the sensor
+    (a name of `twin.core.sensors.MODELS`) when ``noise`` is not given (else ``noise.model``).
     """
 
     def __init__(self, params: BenchParams | None = None,
                  seed: int | np.random.Generator | None = None,
-                 noise: EmulationConfig | None = None, cut_azimuth: float = math.pi) -> None:
+                 noise: EmulationConfig | None = None, cut_azimuth: float = math.pi,
+                 model: str | None = None) -> None:
         self.params = params or BenchParams()
-        self.config = noise or EmulationConfig()
+        self.config = noise or EmulationConfig(model=model or VLP16.name)
+        if model is not None and model_named(model).name != self.config.model:
+            raise ValueError(f"model {model!r} differs from the emulation's {self.config.model!r}")
+        self.sensor = self.config.sensor
         self.rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
         self.physics = BenchPhysics(self.params)
         self.caster = RayCaster(self.physics.model, self.physics.data,
-                                self.physics.sensor_body_id)
-        self.emulator = VLP16Emulator(self.caster,
+                                self.physics.sensor_body_id, cutoff=self.config.range_max + 1.0)
+        self.emulator = LidarEmulator(self.caster,
                                       self.params.geom_reflectivity(self.physics.model),
                                       self.config, self.rng)
         self.cut_azimuth = float(cut_azimuth) % TWO_PI
@@ -247,7 +256,7 @@ class BenchSim:
         rpm = self.config.rpm
         if self.config.rpm_wander_sigma > 0:
             rpm = rpm + self.rng.normal(0.0, self.config.rpm_wander_sigma)
-        rpm = float(np.clip(rpm, vlp16.RPM_MIN, vlp16.RPM_MAX))
+        rpm = float(np.clip(rpm, self.sensor.rpm_min, self.sensor.rpm_max))
         return rpm * TWO_PI / 60.0
 
     def _ensure_rotations(self, upto: int) -> None:
@@ -270,8 +279,9 @@ class BenchSim:
         """Sequence index range [lo, hi) covering rotation i's firings."""
         self._ensure_rotations(i + 1)
         t0, t1 = self._rot_start[i], self._rot_start[i + 1]
-        lo = max(0, math.floor(t0 / vlp16.SEQUENCE_PERIOD) - 1)
-        hi = math.ceil(t1 / vlp16.SEQUENCE_PERIOD) + 1
+        period = self.sensor.sequence_period
+        lo = max(0, math.floor(t0 / period) - 1)
+        hi = math.ceil(t1 / period) + 1
         return lo, hi
 
     def _to_scans(self, f: Firings, rotations: list[int]) -> list[Scan]:
@@ -288,6 +298,7 @@ class BenchSim:
             truth = self._truth_at(t_first)
             truth_end = self._truth_at(t_last)
             parts = []
+            beam_az = self._beam_azimuth(f.azimuth[m], f.laser_id[m])
             for s in range(cfg.n_returns):
                 d = f.returns.distance[s, m]
                 if f.returns.x is not None:  # the emulator's own (as `points_from_polar`)
@@ -295,9 +306,9 @@ class BenchSim:
                 else:  # trigonometry for the returns only
                     x, y, z = (np.zeros(len(d)) for _ in range(3))
                     v = np.flatnonzero(d > 0)
-                    x[v], y[v], z[v] = points_from_polar(d[v], f.azimuth[m][v],
-                                                         f.laser_id[m][v], cfg.vertical_offsets)
-                parts.append(dict(distance=d, azimuth=f.azimuth[m], laser_id=f.laser_id[m],
+                    x[v], y[v], z[v] = points_from_polar(d[v], beam_az[v], f.laser_id[m][v],
+                                                         cfg.vertical_offsets, self.sensor.lasers)
+                parts.append(dict(distance=d, azimuth=beam_az, laser_id=f.laser_id[m],
                                   intensity=f.returns.intensity[s, m],
                                   time=_past_the_hour(f.time[m]),
                                   return_type=f.returns.return_type[s, m], x=x, y=y, z=z))
@@ -312,14 +323,23 @@ class BenchSim:
             rpm = self._rot_omega[i] * 60.0 / TWO_PI
             scans.append(Scan(
                 **arrays, index=self.scan_count, complete=True, packets=0, missing_packets=0,
-                return_mode=cfg.return_mode_byte, product_id=vlp16.PRODUCT_ID_VLP16,
-                vertical_offsets_applied=cfg.vertical_offsets,
+                return_mode=cfg.return_mode_byte, product_id=self.sensor.product_id,
+                vertical_offsets_applied=cfg.vertical_offsets, lasers=self.sensor.lasers,
                 meta={"truth": truth.to_edge(), "truth_pose": truth,
                       "truth_end": truth_end.to_edge(), "truth_end_pose": truth_end,
-                      "source": "twin", "rpm": rpm, "rotation": i,
+                      "source": "twin", "rpm": rpm, "rotation": i, "model": self.sensor.name,
                       "stage_x_m": self.stage_x(), "stage_yaw_rad": self.stage_yaw()}))
             self.scan_count += 1
         return scans
+
+    def _beam_azimuth(self, azimuth: np.ndarray, laser_id: np.ndarray) -> np.ndarray:
+        """The beams' azimuths of firings at encoder azimuths ``azimuth``: plus each laser's
+        azimuth offset (VLP-32C manual 9.5), in [0, 2 pi). The VLP-16's offsets are 0."""
+        offset = self.sensor.lasers.azimuth_offset
+        if not offset.any():
+            return azimuth
+        a = azimuth + offset[laser_id]
+        return np.where(a >= TWO_PI, a - TWO_PI, np.where(a < 0.0, a + TWO_PI, a))
 
     def _truth_at(self, t: float) -> Pose:
         """True pose of {L} in {O} at time t within the last window (interpolated)."""
@@ -348,7 +368,7 @@ class BenchSim:
         self._ensure_rotations(i + 1)
         if self.time == self._fired_until:
             return i
-        while self._rot_start[i] < self.time - 2 * vlp16.SEQUENCE_PERIOD:
+        while self._rot_start[i] < self.time - 2 * self.sensor.sequence_period:
             i += 1
             self._ensure_rotations(i + 1)
         return i
@@ -377,13 +397,14 @@ class BenchSim:
         firing gets its own instant's pose. Firings a little before "now" (windows overlap by a
         sequence or two at rotation boundaries) take theirs from the previous window's record.
         The record is kept in `_window_record` for the scans' truth."""
-        t_end = (hi - 1) * vlp16.SEQUENCE_PERIOD + (vlp16.N_LASERS - 1) * vlp16.LASER_PERIOD
+        sensor = self.sensor
+        t_end = (hi - 1) * sensor.sequence_period + float(sensor.firing_offset[-1])
         i = len(self._rot_start) - 1
         while self._rot_start[-1] <= t_end:
             i += 1
             self._ensure_rotations(i)
         seq, laser, t, azimuth, rotation = raykernel.firing_schedule(
-            lo, hi, vlp16.SEQUENCE_PERIOD, vlp16.LASER_PERIOD, np.asarray(self._rot_start),
+            lo, hi, sensor.sequence_period, sensor.firing_offset, np.asarray(self._rot_start),
             np.asarray(self._rot_omega), self.cut_azimuth)
         t_end = float(t[-1])
         record = self._advance(t_end, record=True) if t_end > self.time else None
@@ -392,7 +413,8 @@ class BenchSim:
             self._window_record = None
             self._pose_history = None
             pos, rot = self._last_pose
-            returns = self.emulator.fire_grid(azimuth.reshape(-1, vlp16.N_LASERS), pos, rot)
+            returns = self.emulator.fire_grid(
+                self._beam_azimuth(azimuth, laser).reshape(-1, sensor.n_lasers), pos, rot)
             return Firings(seq, laser, t, azimuth, rotation, returns)
         times, ps, rs = record
         hist = self._pose_history
@@ -408,7 +430,7 @@ class BenchSim:
         tc = np.clip(t, times[0], times[-1])
         pos = np.column_stack([np.interp(tc, times, ps[:, j]) for j in range(3)])
         rot = Slerp(times, Rotation.from_matrix(rs))(tc).as_matrix()
-        returns = self.emulator.fire(azimuth, laser, pos, rot)
+        returns = self.emulator.fire(self._beam_azimuth(azimuth, laser), laser, pos, rot)
         return Firings(seq, laser, t, azimuth, rotation, returns)
 
     def _fire_range(self, lo: int, hi: int) -> Firings:
@@ -441,11 +463,12 @@ class BenchSim:
     # Packets
     # ---------------------------------------------------------------------------------------
     def packets(self, n_scans: int) -> tuple[np.ndarray, np.ndarray, list[Scan]]:
-        """Byte-exact VLP-16 data packets covering the next ``n_scans`` rotations.
+        """Byte-exact data packets of the sensor covering the next ``n_scans`` rotations.
 
         Returns (payloads (n_packets, 1206) uint8, arrival times (n_packets,) s on the
-        simulation clock, the scans). Packets sit on the sensor's own grid (24 firing sequences
-        each, 12 in dual mode), so the first and the last packet also carry firings of the
+        simulation clock, the scans). Packets sit on the sensor's own grid (12 blocks of 32
+        channels: 24 firing sequences of a 16-laser model, 12 of a 32-laser one; half in dual
+        mode), so the first and the last packet also carry firings of the
         neighbouring rotations, emulated like the rest.
         """
         from twin.lidar.packets import encode_data_packets  # the data-path encoder
@@ -455,7 +478,9 @@ class BenchSim:
         rotations = list(range(first, first + n_scans))
         lo, _ = self._sequences_of_rotation(rotations[0])
         _, hi = self._sequences_of_rotation(rotations[-1])
-        seq_per_packet = vlp16.SEQUENCES_PER_PACKET // cfg.n_returns
+        sensor = self.sensor
+        n_l = sensor.n_lasers
+        seq_per_packet = sensor.sequences_per_packet // cfg.n_returns
         # Whole packets: sequences [p_lo * spp, p_hi * spp).
         p_lo = max(0, lo // seq_per_packet)
         if self.time == self._fired_until:  # continuing: never emit a packet twice
@@ -468,32 +493,33 @@ class BenchSim:
         scans = self._to_scans(f, rotations)
         n_pk = p_hi - p_lo
         n_seq = n_pk * seq_per_packet
-        raw = np.rint(f.returns.distance / vlp16.DISTANCE_UNIT).astype(np.uint16)
-        raw = raw.reshape(cfg.n_returns, n_seq // 2, 2 * vlp16.N_LASERS)
-        refl = f.returns.intensity.reshape(cfg.n_returns, n_seq // 2, 2 * vlp16.N_LASERS)
-        # Block azimuth = azimuth of the block's first firing, 0.01 deg counts.
-        az_first = f.azimuth[::2 * vlp16.N_LASERS]
+        ch = 32  # channels per block (every model's packet)
+        raw = np.rint(f.returns.distance / sensor.distance_unit).astype(np.uint16)
+        raw = raw.reshape(cfg.n_returns, n_seq * n_l // ch, ch)
+        refl = f.returns.intensity.reshape(cfg.n_returns, n_seq * n_l // ch, ch)
+        # Block azimuth = encoder azimuth of the block's first firing, 0.01 deg counts.
+        az_first = f.azimuth[::ch]
         az_cdeg = (np.rint(np.rad2deg(az_first) / vlp16.AZIMUTH_UNIT_DEG).astype(np.int64)
                    % 36000).astype(np.uint16)
         if cfg.n_returns == 1:
             block_raw, block_refl, block_az = raw[0], refl[0], az_cdeg
         else:
             # Dual: block pairs (last return, then strongest / second strongest), same azimuth.
-            block_raw = np.stack((raw[0], raw[1]), axis=1).reshape(-1, 2 * vlp16.N_LASERS)
-            block_refl = np.stack((refl[0], refl[1]), axis=1).reshape(-1, 2 * vlp16.N_LASERS)
+            block_raw = np.stack((raw[0], raw[1]), axis=1).reshape(-1, ch)
+            block_refl = np.stack((refl[0], refl[1]), axis=1).reshape(-1, ch)
             block_az = np.repeat(az_cdeg, 2)
-        t_packet = f.time[::seq_per_packet * vlp16.N_LASERS]
+        t_packet = f.time[::seq_per_packet * n_l]
         ts_us = (np.rint(np.mod(t_packet, SECONDS_PER_HOUR) * 1e6).astype(np.int64)
                  % int(SECONDS_PER_HOUR * 1e6)).astype(np.uint32)
         payloads = encode_data_packets(block_az, block_raw, block_refl, ts_us,
                                        return_mode=cfg.return_mode_byte,
-                                       product_id=vlp16.PRODUCT_ID_VLP16)
+                                       product_id=sensor.product_id)
         # A packet leaves the sensor once its last firing is done.
-        arrival = t_packet + seq_per_packet * vlp16.SEQUENCE_PERIOD
+        arrival = t_packet + seq_per_packet * sensor.sequence_period
         return payloads, arrival, scans
 
     def write_pcap(self, path: str | Path, n_scans: int) -> list[Scan]:
-        """Write ``n_scans`` rotations as a pcap capture any VLP-16 tool reads; returns the scans
+        """Write ``n_scans`` rotations as a pcap capture any Velodyne tool reads; returns the scans
         (each with its ground truth)."""
         from twin.lidar.pcap import PcapWriter
 
@@ -511,6 +537,6 @@ class BenchSim:
         from twin.lidar.udp import send_packets
 
         payloads, _, scans = self.packets(n_scans)
-        rate = vlp16.PACKET_RATE * self.config.n_returns if realtime else None
+        rate = self.sensor.packet_rate(self.config.return_mode_byte) if realtime else None
         send_packets(payloads, dst=(host, port), rate_hz=rate)
         return scans

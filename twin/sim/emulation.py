@@ -1,4 +1,5 @@
-"""VLP-16 emulation: MuJoCo rays from each laser at its own firing instant, and a measurement model.
+"""Lidar emulation (VLP-16, Puck Hi-Res, VLP-32C, HDL-32E): MuJoCo rays from each laser at its
+own firing instant, and a measurement model.
 
 Two layers:
 
@@ -18,7 +19,11 @@ Two layers:
   return energy. Every effect is switchable in `EmulationConfig`; randomness only from the
   `numpy.random.Generator` handed in.
 
-SI units throughout (m, rad, s); intensity is the VLP-16's calibrated reflectivity 0..255.
+The sensor model (`EmulationConfig.model`, `twin.core.sensors`) gives the lasers (elevations,
+azimuth and vertical offsets), the distance unit and the defaults of the envelope (range,
+divergence, rpm) and of the range noise.
+
+SI units throughout (m, rad, s); intensity is the sensor's calibrated reflectivity 0..255.
 """
 
 from __future__ import annotations
@@ -32,12 +37,16 @@ import numpy as np
 from scipy.special import ndtr
 
 from twin.core import vlp16
+from twin.core.lasers import LaserTable
 from twin.core.scan import ReturnType
+from twin.core.sensors import VLP16, SensorModel, model_named
 from twin.sim import raykernel
 
 ReturnMode = Literal["strongest", "last", "dual"]
-_COS_EL = np.cos(vlp16.ELEVATION)
-_SIN_EL = np.sin(vlp16.ELEVATION)
+#: The paper's VLP-16 range noise (section III-A: "up to 14 mm (1 sigma)"), m; other models get
+#: it scaled by their datasheet accuracy against the VLP-16's (+-3 cm): the HDL-32E's < 2 cm
+#: gives 9.3 mm. (An assumption: the paper measured a VLP-16 only.)
+PAPER_RANGE_NOISE = 0.014
 
 #: Geom group the emulator casts against (models/common.xml: 0 = reachable surfaces).
 RAY_GEOM_GROUP = 0
@@ -48,26 +57,28 @@ ORIGIN_TOLERANCE = 2e-4
 
 @dataclass(frozen=True)
 class EmulationConfig:
-    """Every measurement effect of the VLP-16 emulation, each switchable. SI units.
+    """Every measurement effect of the emulation, each switchable. SI units.
 
     Defaults follow the reference paper (section III-A: 14 mm 1-sigma range noise, offsets up to
-    5 mm, rpm within 3 rpm) and the VLP-16 datasheet / manual (divergence, range, timing).
+    5 mm, rpm within 3 rpm) and the sensor's datasheet / manual (divergence, range, timing):
+    ``None`` in a field marked so means "the model's" (`twin.core.sensors.SensorModel`), filled
+    in at construction.
     """
 
-    #: 1-sigma Gaussian range noise, m (paper: "up to 14 mm (1 sigma)").
-    range_noise_sigma: float = 0.014
+    #: 1-sigma Gaussian range noise, m (None: `PAPER_RANGE_NOISE` scaled to the model).
+    range_noise_sigma: float | None = None
     #: Common range offset of every laser, m.
     range_bias: float = 0.0
     #: 1-sigma of the per-laser range offsets drawn once per sensor, m (clipped to +-5 mm, the
     #: paper's "offset up to 5 millimeters"). Ignored when `laser_offsets` is given.
     laser_offset_sigma: float = 0.0025
-    #: Explicit per-laser range offsets (16 values by laser id), m.
+    #: Explicit per-laser range offsets (one value per laser, by laser id), m.
     laser_offsets: tuple[float, ...] | None = None
     #: Round ranges to the packet's 2 mm unit (the wire format; kept by `ideal()`).
     quantise: bool = True
-    #: Closest and farthest reported return, m.
-    range_min: float = vlp16.RANGE_MIN
-    range_max: float = vlp16.RANGE_MAX
+    #: Closest and farthest reported return, m (None: the model's).
+    range_min: float | None = None
+    range_max: float | None = None
     #: Intensity from reflectivity, incidence and range, with noise (else exactly
     #: 100 x reflectivity x cos(incidence)).
     intensity_model: bool = True
@@ -77,8 +88,8 @@ class EmulationConfig:
     intensity_noise_sigma: float = 2.0
     #: Beam divergence with sub-rays and mixed returns at edges.
     divergence: bool = True
-    divergence_h: float = vlp16.BEAM_DIVERGENCE_H  # rad, full angle
-    divergence_v: float = vlp16.BEAM_DIVERGENCE_V  # rad, full angle
+    divergence_h: float | None = None  # rad, full angle (None: the model's)
+    divergence_v: float | None = None  # rad, full angle (None: the model's)
     #: Sub-ray echoes closer than this merge into one return at their energy-weighted range
     #: (the mixed-pixel effect); farther apart they are separate echoes, m (assumed: about the
     #: VLP-16's pulse length).
@@ -100,20 +111,44 @@ class EmulationConfig:
     vertical_offsets: bool = True
     #: Cull rays that can only meet planes (exact; see the module docstring).
     culling: bool = True
+    #: The sensor model emulated (a name of `twin.core.sensors.MODELS`).
+    model: str = VLP16.name
 
     def __post_init__(self) -> None:
-        if not vlp16.RPM_MIN <= self.rpm <= vlp16.RPM_MAX:
-            raise ValueError(f"rpm must be within {vlp16.RPM_MIN:.0f}..{vlp16.RPM_MAX:.0f}")
+        try:
+            sensor = model_named(self.model)
+        except KeyError as exc:
+            raise ValueError(str(exc.args[0])) from None
+        object.__setattr__(self, "model", sensor.name)
+        defaults = {
+            "range_noise_sigma": PAPER_RANGE_NOISE * sensor.range_accuracy / VLP16.range_accuracy,
+            "range_min": sensor.range_min, "range_max": sensor.range_max,
+            "divergence_h": sensor.beam_divergence_h, "divergence_v": sensor.beam_divergence_v,
+        }
+        for name, value in defaults.items():
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, float(value))
+        if not sensor.rpm_min <= self.rpm <= sensor.rpm_max:
+            raise ValueError(f"rpm must be within {sensor.rpm_min:.0f}..{sensor.rpm_max:.0f} "
+                             f"(the {sensor.name}'s)")
         if self.return_mode not in ("strongest", "last", "dual"):
             raise ValueError("return_mode is 'strongest', 'last' or 'dual'")
-        if self.laser_offsets is not None and len(self.laser_offsets) != vlp16.N_LASERS:
-            raise ValueError("laser_offsets needs one value per laser (16)")
+        if self.return_mode_byte not in sensor.return_modes:
+            raise ValueError(f"the {sensor.name} has no {self.return_mode} return mode")
+        if self.laser_offsets is not None and len(self.laser_offsets) != sensor.n_lasers:
+            raise ValueError(f"laser_offsets needs one value per laser ({sensor.n_lasers})")
+
+    @property
+    def sensor(self) -> SensorModel:
+        """The emulated sensor model."""
+        return model_named(self.model)
 
     @classmethod
     def ideal(cls, quantise: bool = True, **overrides) -> EmulationConfig:
         """Every error source off: no noise, offsets, divergence, dropouts or rpm wander, and
         intensity = 100 x reflectivity x cos(incidence). Ranges stay rounded to the packet's
-        2 mm unit unless ``quantise=False`` (the wire format has no finer unit)."""
+        unit (2 mm; 4 mm for the VLP-32C) unless ``quantise=False`` (the wire format has no
+        finer unit)."""
         base = dict(range_noise_sigma=0.0, range_bias=0.0, laser_offset_sigma=0.0,
                     laser_offsets=None, quantise=quantise, intensity_model=False,
                     divergence=False, dropouts=False, rpm_wander_sigma=0.0)
@@ -327,9 +362,11 @@ class Returns:
     z: np.ndarray | None = None
 
 
-def sensor_directions(azimuth: np.ndarray, laser_id: np.ndarray) -> np.ndarray:
-    """Unit ray directions in {L}, (N, 3), DESIGN.md: (cos w sin a, cos w cos a, sin w)."""
-    w = vlp16.ELEVATION[laser_id]
+def sensor_directions(azimuth: np.ndarray, laser_id: np.ndarray,
+                      lasers: LaserTable = vlp16.LASERS) -> np.ndarray:
+    """Unit ray directions in {L}, (N, 3), DESIGN.md: (cos w sin a, cos w cos a, sin w), for the
+    beams' azimuths a and the lasers' elevations w in ``lasers``."""
+    w = lasers.elevation[laser_id]
     cw = np.cos(w)
     return np.column_stack((cw * np.sin(azimuth), cw * np.cos(azimuth), np.sin(w)))
 
@@ -375,11 +412,22 @@ def _gaussian_pair(rng: np.random.Generator, n: int, sigma_a: float, sigma_b: fl
     return a, b
 
 
-class VLP16Emulator:
-    """The VLP-16 measurement model on top of `RayCaster`."""
+class LidarEmulator:
+    """A spinning lidar's measurement model (``config.model``) on top of `RayCaster`.
+
+    Firings are given by their beam's azimuth (the encoder azimuth of the firing plus the
+    laser's azimuth offset, `twin.core.lasers.LaserTable.azimuth_offset`) and laser id.
+    """
 
     def __init__(self, caster: RayCaster, geom_reflectivity: np.ndarray,
                  config: EmulationConfig, rng: np.random.Generator) -> None:
+        self.sensor = config.sensor
+        lasers = self.sensor.lasers
+        self.lasers = lasers
+        self._n_l = lasers.n_lasers
+        self._el = lasers.elevation
+        self._cos_el = np.cos(lasers.elevation)
+        self._sin_el = np.sin(lasers.elevation)
         self.caster = caster
         self.reflectivity = np.asarray(geom_reflectivity, dtype=float)
         self.config = config
@@ -388,10 +436,10 @@ class VLP16Emulator:
             self.laser_offsets = np.asarray(config.laser_offsets, dtype=float)
         elif config.laser_offset_sigma > 0:
             self.laser_offsets = np.clip(rng.normal(0.0, config.laser_offset_sigma,
-                                                    vlp16.N_LASERS), -0.005, 0.005)
+                                                    self._n_l), -0.005, 0.005)
         else:
-            self.laser_offsets = np.zeros(vlp16.N_LASERS)
-        #: Each laser's range offset plus the common bias, m (16,).
+            self.laser_offsets = np.zeros(self._n_l)
+        #: Each laser's range offset plus the common bias, m (L,).
         self._range_offsets = np.ascontiguousarray(self.laser_offsets + config.range_bias,
                                                    dtype=np.float64)
         #: Returns with a lower energy may drop out: detection probability Phi(z) < 1 - 1e-16,
@@ -409,15 +457,15 @@ class VLP16Emulator:
                           else 0.0)
         #: `twin.sim.raykernel.measure_firings`' model parameters: unit (0: no rounding), range
         #: limits, intensity model, return flag, return slots.
-        self._model_args = (vlp16.DISTANCE_UNIT if config.quantise else 0.0,
+        self._model_args = (self.sensor.distance_unit if config.quantise else 0.0,
                             float(config.range_min), float(config.range_max),
                             bool(config.intensity_model), self._return_flag,
                             config.n_returns, self._near_energy)
         #: Weight 1 per geom (`twin.sim.raykernel.grid_rays` then gives plain cosines).
         self._unit_weights = np.ones(len(self.reflectivity))
-        #: Each laser's origin offset along Z_L, m (16,).
-        self._vertical_offsets = (vlp16.VERTICAL_OFFSET if config.vertical_offsets
-                                  else np.zeros(vlp16.N_LASERS))
+        #: Each laser's origin offset along Z_L, m (L,).
+        self._vertical_offsets = (lasers.vertical_offset if config.vertical_offsets
+                                  else np.zeros(self._n_l))
         self._interval_cache: tuple | None = None
 
     def _grid_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -427,17 +475,19 @@ class VLP16Emulator:
         along Z_L. Cached."""
         cached = getattr(self, "_grid_table_cache", None)
         if cached is None:
-            reps = raykernel.BLOCK_FIRINGS // vlp16.N_LASERS
-            cached = tuple(np.tile(v, reps) for v in (self._range_offsets, _COS_EL, _SIN_EL,
-                                                        self._vertical_offsets))
+            # A block of `grid_pass` is BLOCK_SEQUENCES sequences; of `firing_points`
+            # BLOCK_FIRINGS firings (a multiple of the lasers): the longer of the two.
+            reps = max(raykernel.BLOCK_SEQUENCES, raykernel.BLOCK_FIRINGS // self._n_l)
+            cached = tuple(np.tile(v, reps) for v in (self._range_offsets, self._cos_el,
+                                                        self._sin_el, self._vertical_offsets))
             self._grid_table_cache = cached
         return cached
 
     def _laser_ids(self, n_seq: int) -> np.ndarray:
-        """Laser ids 0..15 of ``n_seq`` whole sequences, firing order (cached; read-only)."""
+        """Laser ids of ``n_seq`` whole sequences, firing order (cached; read-only)."""
         cached = getattr(self, "_laser_id_cache", None)
-        if cached is None or len(cached) != n_seq * vlp16.N_LASERS:
-            cached = np.tile(np.arange(vlp16.N_LASERS, dtype=np.uint8), n_seq)
+        if cached is None or len(cached) != n_seq * self._n_l:
+            cached = np.tile(np.arange(self._n_l, dtype=np.uint8), n_seq)
             cached.flags.writeable = False
             self._laser_id_cache = cached
         return cached
@@ -450,8 +500,8 @@ class VLP16Emulator:
         ``position`` (3,) or (N, 3) and ``rotation`` (3, 3) or (N, 3, 3): pose of {L} in the
         world at each firing's instant.
         """
-        u = sensor_directions(azimuth, laser_id)
-        vo = (vlp16.VERTICAL_OFFSET[laser_id] if self.config.vertical_offsets
+        u = sensor_directions(azimuth, laser_id, self.lasers)
+        vo = (self.lasers.vertical_offset[laser_id] if self.config.vertical_offsets
               else np.zeros(len(laser_id)))
         if rotation.ndim == 2:
             dirs = u @ rotation.T
@@ -470,7 +520,7 @@ class VLP16Emulator:
         if cfg.divergence:
             dh, dv, weights = _divergence_pattern(cfg)
             k = len(weights)
-            w = vlp16.ELEVATION[laser_id]
+            w = self._el[laser_id]
             # Horizontal divergence is an angle in the beam's own horizontal plane.
             az_s = (azimuth[:, None] + dh[None, :] / np.cos(w)[:, None]).reshape(-1)
             el_offset = np.broadcast_to(dv, (n, k)).reshape(-1)
@@ -484,7 +534,7 @@ class VLP16Emulator:
             origins, dirs = self.rays(azimuth, laser_id, position, rotation)
         if rotation.ndim == 2:
             # At rest: each laser's rays share one origin (its vertical offset along Z_L).
-            vo = (vlp16.VERTICAL_OFFSET if cfg.vertical_offsets else np.zeros(vlp16.N_LASERS))
+            vo = self._vertical_offsets
             laser_origins = position + np.outer(vo, rotation[:, 2])
             lid = laser_id if k == 1 else np.repeat(laser_id, k)
             dist, gid, nrm = self.caster.cast_groups(laser_origins, lid, dirs, cfg.culling)
@@ -538,8 +588,9 @@ class VLP16Emulator:
                   ) -> Returns:
         """Emulate S whole firing sequences from one pose (the stages at rest): the fast path.
 
-        ``azimuth``: (S, 16) rad, sequence-major, lasers 0..15. ``position`` (3,), ``rotation``
-        (3, 3): the pose of {L} in the world. Returns firings in sequence-major order, as `fire`
+        ``azimuth``: (S, L) rad, the beams' azimuths, sequence-major, lasers 0..L-1.
+        ``position`` (3,), ``rotation`` (3, 3): the pose of {L} in the world. Returns firings in
+        sequence-major order, as `fire`
         does, and the same values (tests/test_emulation.py), with the firings' azimuth sines
         and cosines.
 
@@ -554,7 +605,7 @@ class VLP16Emulator:
         """
         cfg = self.config
         n_seq = azimuth.shape[0]
-        n_l = vlp16.N_LASERS
+        n_l = self._n_l
         k, weights, row_laser, row_dh, cw, sw = self._grid_rows()
         n_rows = k * n_l
         n = n_seq * n_l
@@ -623,10 +674,10 @@ class VLP16Emulator:
             else:
                 dh, dv, weights = np.zeros(1), np.zeros(1), np.ones(1)
             k = len(weights)
-            w_l = vlp16.ELEVATION
+            w_l = self._el
             el = (w_l[:, None] + dv[None, :]).reshape(-1)
             row_dh = (dh[None, :] / np.cos(w_l)[:, None]).reshape(-1)
-            cached = (k, weights, np.repeat(np.arange(vlp16.N_LASERS), k), row_dh, np.cos(el),
+            cached = (k, weights, np.repeat(np.arange(self._n_l), k), row_dh, np.cos(el),
                       np.sin(el))
             self._grid_rows_cache = cached
         return cached
@@ -792,10 +843,10 @@ class VLP16Emulator:
         return centre, half, el_lo, el_hi
 
     def _rays_with_elevation_offset(self, azimuth, laser_id, el_offset, position, rotation):
-        w = vlp16.ELEVATION[laser_id] + el_offset
+        w = self._el[laser_id] + el_offset
         cw = np.cos(w)
         u = np.column_stack((cw * np.sin(azimuth), cw * np.cos(azimuth), np.sin(w)))
-        vo = (vlp16.VERTICAL_OFFSET[laser_id] if self.config.vertical_offsets
+        vo = (self.lasers.vertical_offset[laser_id] if self.config.vertical_offsets
               else np.zeros(len(laser_id)))
         if rotation.ndim == 2:
             return position + np.outer(vo, rotation[:, 2]), u @ rotation.T
@@ -977,7 +1028,8 @@ class VLP16Emulator:
             r_true = echo_r.reshape(-1)[fi]
             r = r_true + offsets[laser_id[sel]] + noise[fi]
             if cfg.quantise:
-                r = np.rint(r / vlp16.DISTANCE_UNIT) * vlp16.DISTANCE_UNIT
+                unit = self.sensor.distance_unit
+                r = np.rint(r / unit) * unit
             keep = (r >= cfg.range_min) & (r <= cfg.range_max)
             sel, fi, r, r_true = sel[keep], fi[keep], r[keep], r_true[keep]
             level = 100.0 * echo_refl.reshape(-1)[fi]
@@ -989,3 +1041,7 @@ class VLP16Emulator:
             intensity[s, sel] = np.clip(np.rint(level), 0, 255).astype(np.uint8)
             rtype[s, sel] = flags if np.isscalar(flags) else flags[sel]
         return Returns(distance, intensity, rtype)
+
+
+#: The emulator's former name (it emulated the VLP-16 only).
+VLP16Emulator = LidarEmulator

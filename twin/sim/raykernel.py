@@ -58,7 +58,9 @@ import math
 import numpy as np
 from numba import njit
 
-#: Lasers of a VLP-16 (`twin.core.vlp16.N_LASERS`, a compile-time constant here).
+#: Lasers of a VLP-16 (`twin.core.vlp16.N_LASERS`): the kernels take any number of lasers per
+#: sequence (the grid's second axis, 32 for the VLP-32C and the HDL-32E), with the VLP-16's 16
+#: given a loop of its own where a fixed trip count lets LLVM vectorise (`_to_firings`).
 N_LASERS = 16
 #: mjMINVAL, as MuJoCo's ray_plane uses it.
 MJMINVAL = 1e-15
@@ -70,7 +72,8 @@ _INV_TWO_PI = 1.0 / _TWO_PI
 SMALL_OFFSET = 0.02
 #: Sequences per block of `grid_pass`: 1024 firings, whose arrays stay in the L1/L2 caches.
 BLOCK_SEQUENCES = 64
-#: Firings per block of `measure_firings`.
+#: Firings per block of `measure_firings` and `firing_points` (a multiple of every model's
+#: lasers per sequence, 16 or 32, so that per-laser tables repeat block by block).
 BLOCK_FIRINGS = BLOCK_SEQUENCES * N_LASERS
 #: Per-row plane constants (`plane_rows`): direction coefficients (9), origin (3), half-sizes
 #: (2), weight; then the geom id and the live flag as floats.
@@ -157,16 +160,17 @@ def grid_prepare(azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray
     d_first = np.empty(n_rows)
     for r in range(n_rows):
         d_first[r] = _wrap(azimuth[0, row_laser[r]] + row_dh[r] - azimuth[0, 0])
-    e0 = np.empty(N_LASERS)
-    lo = np.empty(N_LASERS)
-    hi = np.empty(N_LASERS)
-    for lsr in range(N_LASERS):
+    n_l = azimuth.shape[1]
+    e0 = np.empty(n_l)
+    lo = np.empty(n_l)
+    hi = np.empty(n_l)
+    for lsr in range(n_l):
         e0[lsr] = _wrap(azimuth[0, lsr] - azimuth[0, 0])
         lo[lsr] = e0[lsr]
         hi[lsr] = e0[lsr]
     for s in range(n_seq):
         b = azimuth[s, 0]
-        for lsr in range(N_LASERS):  # (a fixed 16, elementwise: vectorised across lasers)
+        for lsr in range(n_l):  # (elementwise: vectorised across lasers)
             e = _wrap(azimuth[s, lsr] - b)
             lo[lsr] = min(lo[lsr], e)
             hi[lsr] = max(hi[lsr], e)
@@ -175,7 +179,7 @@ def grid_prepare(azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray
         dh_max = max(dh_max, abs(row_dh[r]))
     spread = 0.0
     if max(-lo.min(), hi.max()) + dh_max < SMALL_OFFSET:
-        for lsr in range(N_LASERS):
+        for lsr in range(n_l):
             spread = max(spread, hi[lsr] - e0[lsr], e0[lsr] - lo[lsr])
     else:  # not a firing grid
         for r in range(n_rows):
@@ -847,11 +851,16 @@ def firing_points(distance: np.ndarray, sin_a: np.ndarray, cos_a: np.ndarray,
 # --------------------------------------------------------------------------------------------
 @njit(inline="always")
 def _to_firings(src: np.ndarray, dst: np.ndarray) -> None:
-    """Rows of lasers (16, B) into firing order (B, 16) (the fixed 16 lets LLVM turn each
-    sequence into a few vector shuffles)."""
-    for s in range(dst.shape[0]):
-        for lsr in range(N_LASERS):
-            dst[s, lsr] = src[lsr, s]
+    """Rows of lasers (L, B) into firing order (B, L) (for the VLP-16 a loop of a fixed 16,
+    which LLVM turns into a few vector shuffles per sequence)."""
+    if dst.shape[1] == N_LASERS:
+        for s in range(dst.shape[0]):
+            for lsr in range(N_LASERS):
+                dst[s, lsr] = src[lsr, s]
+    else:
+        for s in range(dst.shape[0]):
+            for lsr in range(dst.shape[1]):
+                dst[s, lsr] = src[lsr, s]
 
 
 @njit(cache=True, error_model="numpy")
@@ -867,8 +876,9 @@ def grid_pass(azimuth: np.ndarray, k: np.ndarray, ranges: np.ndarray, n_ranges: 
                          np.ndarray, np.ndarray, np.ndarray]:
     """One ray per firing, the whole grid in one pass of blocks of `BLOCK_SEQUENCES`.
 
-    ``azimuth`` (S, 16) rad; the rows are the lasers (no sub-rays); planes ``k``, ``ranges``,
-    ``n_ranges`` (`plane_rows`, weighted by the planes' reflectivity); MuJoCo's results for
+    ``azimuth`` (S, L) rad (L lasers per sequence); the rows are the lasers (no sub-rays);
+    planes ``k``, ``ranges``, ``n_ranges`` (`plane_rows`, weighted by the planes' reflectivity);
+    MuJoCo's results for
     the cast rays (`grid_candidates`' ``ray_index``, ``rows``, ``bounds``, ``dirs``; MuJoCo's
     ``dist_c``, ``gid_c``, ``nrm_c``; the geoms' reflectivity ``weight``); the measurement
     model's parameters (`measure_firings`: ``words``, ``sigma_*``, ``exponent``, ``unit``,
@@ -883,9 +893,10 @@ def grid_pass(azimuth: np.ndarray, k: np.ndarray, ranges: np.ndarray, n_ranges: 
     `measure_firings`).
     """
     n_seq = azimuth.shape[0]
-    n = n_seq * N_LASERS
+    n_l = azimuth.shape[1]
+    n = n_seq * n_l
     bs = BLOCK_SEQUENCES
-    b = bs * N_LASERS
+    b = bs * n_l
     noisy = words.shape[0] > 0
     # outputs
     distance = np.empty((n_slots, n))
@@ -898,21 +909,21 @@ def grid_pass(azimuth: np.ndarray, k: np.ndarray, ranges: np.ndarray, n_ranges: 
     near_energy = np.empty(n)
     n_near = 0
     # per block: rows of lasers (16, bs), firing order (bs, 16), float32 scratch
-    az_t = np.empty((N_LASERS, bs))
+    az_t = np.empty((n_l, bs))
     sb = np.empty(bs)
     cb = np.empty(bs)
-    sa_r, ca_r, d_r, c_r = (np.empty((N_LASERS, bs)), np.empty((N_LASERS, bs)),
-                            np.empty((N_LASERS, bs)), np.empty((N_LASERS, bs)))
-    sa_f, ca_f, d_f, c_f = (np.empty((bs, N_LASERS)), np.empty((bs, N_LASERS)),
-                            np.empty((bs, N_LASERS)), np.empty((bs, N_LASERS)))
+    sa_r, ca_r, d_r, c_r = (np.empty((n_l, bs)), np.empty((n_l, bs)),
+                            np.empty((n_l, bs)), np.empty((n_l, bs)))
+    sa_f, ca_f, d_f, c_f = (np.empty((bs, n_l)), np.empty((bs, n_l)),
+                            np.empty((bs, n_l)), np.empty((bs, n_l)))
     no_gid = np.empty(0, dtype=np.int32)
     rn, inn, f1, f2, f3 = (np.empty(b, dtype=np.float32), np.empty(b, dtype=np.float32),
                            np.empty(b, dtype=np.float32), np.empty(b, dtype=np.float32),
                            np.empty(b, dtype=np.float32))
     rc = np.empty(b)
     # each laser's next cast ray (rows ascending: one run per laser that has any)
-    cast_next = np.zeros(N_LASERS, dtype=np.int64)
-    cast_end = np.zeros(N_LASERS, dtype=np.int64)
+    cast_next = np.zeros(n_l, dtype=np.int64)
+    cast_end = np.zeros(n_l, dtype=np.int64)
     for j in range(rows.shape[0]):
         cast_next[rows[j]] = bounds[j]
         cast_end[rows[j]] = bounds[j + 1]
@@ -920,10 +931,10 @@ def grid_pass(azimuth: np.ndarray, k: np.ndarray, ranges: np.ndarray, n_ranges: 
         s1 = min(n_seq, s0 + bs)
         m = s1 - s0
         for s in range(m):
-            for lsr in range(N_LASERS):
+            for lsr in range(n_l):
                 az_t[lsr, s] = azimuth[s0 + s, lsr]
         base_sincos(az_t[0, :m], sb[:m], cb[:m])
-        for lsr in range(N_LASERS):
+        for lsr in range(n_l):
             _row_segment(az_t[lsr, :m], az_t[0, :m], sb[:m], cb[:m], 0.0, s0, k, ranges,
                          n_ranges, lsr, cutoff, sa_r[lsr, :m], ca_r[lsr, :m], d_r[lsr, :m],
                          c_r[lsr, :m], no_gid)
@@ -940,8 +951,8 @@ def grid_pass(azimuth: np.ndarray, k: np.ndarray, ranges: np.ndarray, n_ranges: 
         _to_firings(ca_r[:, :m], ca_f[:m])
         _to_firings(d_r[:, :m], d_f[:m])
         _to_firings(c_r[:, :m], c_f[:m])
-        i0 = s0 * N_LASERS
-        nb = m * N_LASERS
+        i0 = s0 * n_l
+        nb = m * n_l
         i1 = i0 + nb
         r_b = d_f[:m].reshape(nb)
         c_b = c_f[:m].reshape(nb)
@@ -970,12 +981,13 @@ def grid_pass(azimuth: np.ndarray, k: np.ndarray, ranges: np.ndarray, n_ranges: 
 # The firing schedule
 # --------------------------------------------------------------------------------------------
 @njit(cache=True, error_model="numpy")
-def firing_schedule(lo: int, hi: int, sequence_period: float, laser_period: float,
+def firing_schedule(lo: int, hi: int, sequence_period: float, laser_offsets: np.ndarray,
                     starts: np.ndarray, omegas: np.ndarray, cut: float
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every firing of sequences [``lo``, ``hi``) on the sensor's grid, in firing order:
-    (sequence (int64), laser (uint8), time t = sequence x ``sequence_period`` + laser x
-    ``laser_period`` s, azimuth rad in [0, 2 pi), rotation index (int64)).
+    (sequence (int64), laser (uint8), time t = sequence x ``sequence_period`` +
+    ``laser_offsets[laser]`` s (each laser's firing time within its sequence), azimuth rad in
+    [0, 2 pi), rotation index (int64)).
 
     The spin: rotation j passes the ``cut`` azimuth at ``starts[j]`` and turns at
     ``omegas[j]`` rad/s until the next start; a firing at t is in rotation j (the last with
@@ -984,25 +996,26 @@ def firing_schedule(lo: int, hi: int, sequence_period: float, laser_period: floa
     within a turn of the cut). The same operations as `twin.sim.bench.BenchSim`'s numpy had them,
     so the same values."""
     n_seq = hi - lo
-    n = n_seq * N_LASERS
+    n_l = laser_offsets.shape[0]
+    n = n_seq * n_l
     seq = np.empty(n, dtype=np.int64)
     laser = np.empty(n, dtype=np.uint8)
     t = np.empty(n)
     az = np.empty(n)
     rot = np.empty(n, dtype=np.int64)
-    seq2 = seq.reshape((n_seq, N_LASERS))
-    laser2 = laser.reshape((n_seq, N_LASERS))
-    t2 = t.reshape((n_seq, N_LASERS))
+    seq2 = seq.reshape((n_seq, n_l))
+    laser2 = laser.reshape((n_seq, n_l))
+    t2 = t.reshape((n_seq, n_l))
     for s in range(n_seq):
-        for lsr in range(N_LASERS):
+        for lsr in range(n_l):
             seq2[s, lsr] = lo + s
     for s in range(n_seq):
-        for lsr in range(N_LASERS):
+        for lsr in range(n_l):
             laser2[s, lsr] = lsr
     for s in range(n_seq):
         ts = float(lo + s) * sequence_period
-        for lsr in range(N_LASERS):
-            t2[s, lsr] = ts + float(lsr) * laser_period
+        for lsr in range(n_l):
+            t2[s, lsr] = ts + laser_offsets[lsr]
     n_rot = starts.shape[0]
     cuts = np.searchsorted(t, starts, side="left")  # t sorted: one slice per rotation
     for kk in range(n_rot + 1):
