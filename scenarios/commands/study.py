@@ -28,7 +28,7 @@ from scenarios.study import run as study_run
 from scenarios.study.engines import make_engine
 from scenarios.study.report import write
 from scenarios.study.spec import load
-from scenarios.study.store import StudyStore
+from scenarios.study.store import STORE_NAME, StudyStore
 from twin.core.errors import AimbenchError
 
 
@@ -37,30 +37,37 @@ def run(args: argparse.Namespace) -> int:
     target = study_results.parse_target(args.target) if args.target else None
     if args.within_s is not None and target is None:
         raise AimbenchError("--within-s needs --target (the precision the design must reach)")
+    spec = folder = None
     if args.report or args.resume:
         if args.study:
             raise AimbenchError("--resume and --report take the study stored in --out; drop "
                                 f"{args.study}")
         store = StudyStore.open(out)
+    elif not args.study:
+        raise AimbenchError("give a study file (FILE.toml, docs/study.md), or --resume / "
+                            "--report --out STUDY")
     else:
-        if not args.study:
-            raise AimbenchError("give a study file (FILE.toml, docs/study.md), or --resume / "
-                                "--report --out STUDY")
+        if (out / STORE_NAME).exists():
+            raise AimbenchError(f"{out} already holds a study; continue it with --resume or "
+                                "choose another --out")
         spec, folder = load(args.study)
-        store = study_run.create(spec, folder, out, {
-            "argv": sys.argv[1:], "engine": args.engine, "jobs": args.jobs,
-            "address": args.address, "study_file": str(Path(args.study).resolve())})
+        study_run.check(spec, folder)
+        store = None
+    engine = None
     try:
-        status = store.status
-        if not args.report and status != "completed":
+        if store is None or (not args.report and store.status != "completed"):
+            # Before a study folder is made: a missing Ray or cluster makes nothing.
             engine = make_engine(args.engine, args.jobs, args.address, ray_env=args.ray_env)
-            try:
-                n = len(store.points())
-                sys.stderr.write(f"aimbench study: {store.get('spec')['name']}, {n} design "
-                                 f"points on {engine.describe()} -> {out}\n")
-                status = study_run.execute(store, engine, progress=not args.no_progress)
-            finally:
-                engine.close()
+        if store is None:
+            store = study_run.create(spec, folder, out, {
+                "argv": sys.argv[1:], "engine": args.engine, "jobs": args.jobs,
+                "address": args.address, "study_file": str(Path(args.study).resolve())})
+        status = store.status
+        if engine is not None:
+            n = len(store.points())
+            sys.stderr.write(f"aimbench study: {store.get('spec')['name']}, {n} design "
+                             f"points on {engine.describe()} -> {out}\n")
+            status = study_run.execute(store, engine, progress=not args.no_progress)
         elif status == "completed" and not args.report:
             sys.stderr.write(f"{out}: the study is already complete; rewriting its report\n")
         if status == "interrupted":
@@ -79,7 +86,10 @@ def run(args: argparse.Namespace) -> int:
         sys.stderr.write(f"report: {md} ({len(res)} designs)\n")
         return 130 if status == "interrupted" else 0
     finally:
-        store.close()
+        if engine is not None:
+            engine.close()
+        if store is not None:
+            store.close()
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:

@@ -145,8 +145,8 @@ class LocalEngine:
         todo = list(tasks)
         tries: dict[Hashable, int] = {}
         while True:
-            lost = self._run_pool(ctx, messages, stop, fn, todo, on_result, on_message,
-                                  should_stop)
+            lost, rest = self._run_pool(ctx, messages, stop, fn, todo, on_result, on_message,
+                                        should_stop)
             if not lost or stop.is_set():
                 return stop.is_set()
             todo = []
@@ -161,11 +161,13 @@ class LocalEngine:
                 if args is not None:
                     todo.append((key, args))
                     self.retries += 1
+            todo += rest
 
     def _run_pool(self, ctx: Any, messages: Any, stop: Any, fn: Callable, todo: list[Task],
                   on_result: OnResult, on_message: OnMessage | None,
-                  should_stop: Callable[[], bool]) -> list[Task]:
-        """Run `todo` on one pool; the tasks it lost to a dead worker (the pool is then gone)."""
+                  should_stop: Callable[[], bool]) -> tuple[list[Task], list[Task]]:
+        """Run `todo` on one pool; the tasks it lost to a dead worker (the pool is then gone)
+        and those it had not started."""
         pending = list(reversed(todo))
         running: dict[cf.Future, Task] = {}
         finished: dict[Hashable, Any] = {}  # results waiting for their end marker
@@ -205,13 +207,13 @@ class LocalEngine:
                     deadline = time.monotonic() + 10.0
                     while finished and time.monotonic() < deadline:
                         deliver(block=True)
-                    return lost + list(reversed(pending))
+                    return lost, list(reversed(pending))
         except BaseException:
             stop.set()  # the caller is going away: the workers stop between their steps
             raise
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
-        return lost
+        return lost, []
 
     @staticmethod
     def _drain(messages: Any, on_message: OnMessage | None, ended: set, block: bool) -> None:

@@ -29,15 +29,22 @@ def base_station(spec: StudySpec, folder: Path) -> stations.Station:
     return stations.load(path if path.suffix and path.is_file() else spec.station)
 
 
+def check(spec: StudySpec, folder: Path) -> tuple[stations.Station, list[dict[str, Any]]]:
+    """The study's station and design points, every point checked (a `StudyError` naming the
+    first bad one)."""
+    base = base_station(spec, folder)
+    points = design(spec)
+    for values in points:
+        apply(base, spec, values, spec.name)
+    return base, points
+
+
 def create(spec: StudySpec, folder: Path, out: Path, config: dict[str, Any]) -> StudyStore:
     """A new study store in `out`, every design point checked first (nothing is made for a
     study that cannot run)."""
     from scenarios.commands.version import versions
 
-    base = base_station(spec, folder)
-    points = design(spec)
-    for values in points:
-        apply(base, spec, values, spec.name)
+    base, points = check(spec, folder)
     tasks = math.ceil(spec.protocol.poses / spec.protocol.poses_per_task)
     return StudyStore.create(out, points, tasks, {
         "spec": spec.model_dump(mode="json"), "station": base.to_dict(), "config": config,

@@ -307,7 +307,7 @@ def apply(base: stations.Station, spec: StudySpec, values: dict[str, Any],
         elif key in OWN_PARAMETERS:
             own[key] = value
         else:
-            _set(data, key, value)
+            _set(data, key, value, where)
     try:
         point = stations.from_dict(data, f"{where}: design point {values}")
     except stations.StationError as exc:
@@ -327,7 +327,7 @@ def apply(base: stations.Station, spec: StudySpec, values: dict[str, Any],
     return point, own
 
 
-def _set(data: dict[str, Any], key: str, value: Any) -> None:
+def _set(data: dict[str, Any], key: str, value: Any, where: str) -> None:
     m = _INDEXED.match(key)
     name, index = (m["key"], int(m["index"])) if m else (key, None)
     *path, last = name.split(".")
@@ -341,7 +341,8 @@ def _set(data: dict[str, Any], key: str, value: Any) -> None:
         return
     seq = list(node.get(last) or ())
     if index >= len(seq):
-        raise StudyError(f"{key}: {last} has {len(seq)} values; index {index} is beyond them")
+        raise StudyError(f"{where}: {key}: {last} has {len(seq)} values; index {index} is "
+                         "beyond them")
     seq[index] = _like(seq[index], value)
     node[last] = tuple(seq)
 
