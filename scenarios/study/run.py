@@ -96,9 +96,9 @@ class Progress:
         return text
 
     def message(self, text: str) -> None:
-        if self.enabled:
-            self.stream.write(("\r\x1b[K" if self.tty else "") + text + "\n")
-            self.stream.flush()
+        """A note (a lost worker, a missing bound): said even without the bar."""
+        self.stream.write(("\r\x1b[K" if self.tty else "") + text + "\n")
+        self.stream.flush()
 
     def finish(self) -> None:
         if self.tty:
