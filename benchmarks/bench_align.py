@@ -37,9 +37,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import align
+from scenarios.study.protocol import pose_errors, random_pose
 from twin.sim.bench import BenchSim
 from twin.sim.emulation import EmulationConfig
-from twin.sim.params import BenchParams
 
 AXES = ("tilt", "roll", "yaw", "x")
 UNITS = ("deg", "deg", "deg", "mm")
@@ -51,25 +51,12 @@ PAPER = {"accuracy": (0.01, 0.28, 0.04, 1.1), "precision": (0.15, 0.20, 0.1, 4.8
 
 
 def errors(est: align.PoseEstimate, truth) -> tuple[np.ndarray, np.ndarray]:
-    """(tilt, roll, yaw deg, x mm) error and reported sigma (NaN where none)."""
-    e = est.pose.as_array() - truth.as_array()
-    err = np.array([np.rad2deg(e[4]), np.rad2deg(e[3]), np.rad2deg(e[5]), 1e3 * e[0]])
-    sd = est.std
-    if sd is None:
-        sig = np.full(4, np.nan)
-    else:
-        sig = np.array([np.rad2deg(sd[4]), np.rad2deg(sd[3]), np.rad2deg(sd[5]), 1e3 * sd[0]])
-    return err, sig
-
-
-def random_pose(rng: np.random.Generator, ang_deg: float, x_mm: float, yaw_deg: float,
-                raise_mm: float = 0.0):
-    roll, tilt, mount_yaw = rng.uniform(-ang_deg, ang_deg, 3)
-    stage_yaw = rng.uniform(-yaw_deg, yaw_deg)
-    x = rng.uniform(-x_mm, x_mm) * 1e-3
-    lever = (0.0, 0.0, 60.0 + raise_mm)  # mm: the default lever arm, raised
-    return (BenchParams.from_edge(roll_deg=roll, tilt_deg=tilt, yaw_deg=mount_yaw,
-                                  lever_arm_mm=lever), x, stage_yaw)
+    """(tilt, roll, yaw deg, x mm) error and reported sigma (NaN where none), from the
+    protocol's `pose_errors`."""
+    e, sd = pose_errors(est, truth)
+    order = [4, 3, 5, 0]
+    scale = np.array([np.rad2deg(1.0)] * 3 + [1e3])
+    return e[order] * scale, sd[order] * scale
 
 
 def main(argv: list[str] | None = None) -> int:

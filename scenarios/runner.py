@@ -18,7 +18,6 @@ scan) and why, and raise `RunFailed` with one clear line.
 from __future__ import annotations
 
 import math
-import queue
 import signal
 import sys
 import threading
@@ -510,59 +509,73 @@ def _no_board(consecutive: int, status: str, diagnostics: dict) -> BenchError:
 
 # -- parallel runs on the simulated bench -------------------------------------------------------
 
-def _sim_worker(plan_dict: dict, todo: list[tuple[int, int, int]], seed: int, ideal: bool,
-                method: str | None, calibration: dict | None, station: dict | None, out: Any,
-                stop: Any) -> None:
-    """Worker process: its own SimBench (of the run's station, sent as its stored dict) and
-    estimator; takes the (reference, first scan, count) items of `todo` in order and sends every
-    result to `out`; stops between scans on `stop`."""
+#: A worker process's bench, estimator and plan, kept between its references (key: the run's
+#: setup as JSON): building the twin once per process, not once per reference.
+_worker_bench: dict[str, tuple[Any, Estimator, Plan]] = {}
+
+
+def _worker_setup(setup: dict) -> tuple[Any, Estimator, Plan]:
+    import json
     import warnings
 
     from scenarios import station as stations
     from scenarios.bench import SimBench
 
-    warnings.simplefilter("ignore", RuntimeWarning)  # the twin's NaN masks
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
-    plan = Plan.from_dict(plan_dict)
-    i = k = None
-    try:
+    key = json.dumps(setup, sort_keys=True, default=str)
+    if key not in _worker_bench:
+        warnings.simplefilter("ignore", RuntimeWarning)  # the twin's NaN masks
+        _worker_bench.clear()
+        station = setup["station"]
         st = stations.from_dict(station, "the run's station") if station else None
-        bench = SimBench(seed=seed, ideal=ideal, station=st)
-        estimator = make_estimator(method, st.board_spec() if st else None, calibration)
+        bench = SimBench(seed=setup["seed"], ideal=setup["ideal"], station=st)
+        estimator = make_estimator(setup["method"], st.board_spec() if st else None,
+                                   setup["calibration"])
         bench.home()
-        for i, first, n in todo:
-            k = None
-            out.put(("start", i, visit(bench, plan.references[i]), first))
-            bench.prepare(i, first)
-            k = first
+        _worker_bench[key] = (bench, estimator, Plan.from_dict(setup["plan"]))
+    return _worker_bench[key]
+
+
+def _sim_reference(setup: dict, i: int, first: int, n: int) -> Any:
+    """A task of the parallel path (`scenarios.study.engines`): scans `first` .. `first` + `n` - 1
+    of reference `i` on this worker's SimBench (of the run's station, sent as its stored dict),
+    each result emitted as it is made; returns "done", "stopped" (the caller asked to stop,
+    between scans) or ("error", reference, scan, message)."""
+    from scenarios.study.engines import emit, stopping
+
+    k = None
+    try:
+        bench, estimator, plan = _worker_setup(setup)
+        emit(("start", i, visit(bench, plan.references[i]), first))
+        bench.prepare(i, first)
+        k = first
+        t0 = time.monotonic()
+        for scan in bench.scans(n):
+            t_scan = time.monotonic() - t0
+            t1 = time.monotonic()
+            est = estimator(scan)
+            t_est = time.monotonic() - t1
+            emit(("scan", scan_result(i, k, scan, est, bench.position(), t_scan, t_est)))
+            k += 1
+            if stopping():
+                return "stopped"
             t0 = time.monotonic()
-            for scan in bench.scans(n):
-                t_scan = time.monotonic() - t0
-                t1 = time.monotonic()
-                est = estimator(scan)
-                t_est = time.monotonic() - t1
-                out.put(("scan", scan_result(i, k, scan, est, bench.position(), t_scan, t_est)))
-                k += 1
-                if stop.is_set():
-                    return
-                t0 = time.monotonic()
-            out.put(("done", i))
+        return "done"
     except AimbenchError as exc:
-        out.put(("error", i, k, str(exc)))
+        return ("error", i, k, str(exc))
     except Exception as exc:  # a bug in a worker must reach the user, not hang the run
-        out.put(("error", i, k, f"{type(exc).__name__}: {exc}"))
-    finally:
-        out.put(("exit", None))
+        return ("error", i, k, f"{type(exc).__name__}: {exc}")
 
 
 class ParallelSimRunner(Runner):
-    """`Runner` on `jobs` SimBench worker processes (the simulated bench only).
+    """`Runner` on `jobs` SimBench worker processes (the simulated bench only), through the
+    project's one parallel path, `scenarios.study.engines.LocalEngine` (as ``aimbench study``).
 
-    References are dealt to the workers in turn (reference order, round robin) and each worker
-    takes its share in order; `SimBench` seeds every scan from (seed, reference, scan), so the
-    results are those of a one-process run with the same seed, whatever `jobs`. The store is
-    written by this process only, one transaction per scan as always; Ctrl-C stops every worker
-    between scans and everything finished is kept.
+    Each reference is a task, dealt in reference order to the next free worker; every scan is
+    drawn from (seed, reference, scan) alone (`SimBench`), so a run is the same whatever
+    `jobs`. The store is written by this process only, one transaction per scan as always;
+    Ctrl-C stops every worker between scans and everything finished is kept. A worker that dies
+    (SIGKILL, out of memory) costs nothing but time: its reference runs again on a new worker,
+    from the first scan the store does not have.
     """
 
     def __init__(self, plan: Plan, bench: Bench, store: Store, *, seed: int = 0,
@@ -577,8 +590,9 @@ class ParallelSimRunner(Runner):
         self.calibration = calibration
         #: The run's `scenarios.station.Station` (None: the paper's), for the workers' twins.
         self.station = station
-        self._procs: list[Any] = []
-        self._stop_event: Any = None
+        #: The engine of the last `run` (its ``retries``: references run again after a lost
+        #: worker; ``workers``: its processes' ids).
+        self.engine: Any = None
 
     stop_message = ("stopping after the scans in flight (results so far are saved; --resume "
                     "continues; Ctrl-C again to stop at once)")
@@ -588,44 +602,17 @@ class ParallelSimRunner(Runner):
 
     def _execute(self, todo: list[tuple[int, int, int]], flag: _StopFlag, where: dict) -> bool:
         """Deal `todo` to the workers and store what they send; True if stopped by a signal."""
-        import multiprocessing as mp
+        from scenarios.study.engines import LocalEngine
 
-        ctx = mp.get_context("spawn")  # MuJoCo and threads: never fork a live twin
-        out, self._stop_event = ctx.Queue(), ctx.Event()
-        stop = self._stop_event
         self.bench.close()  # travel and info only: the workers have their own twins
-        # Workers inherit an ignored SIGINT (it survives exec), so a Ctrl-C at the terminal,
-        # which reaches the whole process group, only reaches them through `stop`, even while
-        # they are still importing.
-        main = threading.current_thread() is threading.main_thread()
-        saved = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
-        try:
-            for w in range(min(self.jobs, len(todo))):
-                p = ctx.Process(target=_sim_worker, args=(
-                    self.plan.to_dict(), todo[w::self.jobs], self.seed, self.ideal,
-                    self.method, self.calibration,
-                    self.station.to_dict() if self.station is not None else None, out, stop),
-                    daemon=True)
-                p.start()
-                self._procs.append(p)
-        finally:
-            if main:
-                signal.signal(signal.SIGINT, saved)
-        running = len(self._procs)
+        setup = {"plan": self.plan.to_dict(), "seed": self.seed, "ideal": self.ideal,
+                 "method": self.method, "calibration": self.calibration,
+                 "station": self.station.to_dict() if self.station is not None else None}
         watches: dict[int, _FailureWatch] = {}
-        while running:
-            if self._stopping(flag) and not stop.is_set():
-                stop.set()
-            try:
-                msg = out.get(timeout=0.5)
-            except queue.Empty:
-                if not any(p.is_alive() for p in self._procs):
-                    raise BenchError("a simulation worker died without a word") from None
-                continue
+
+        def on_message(_key: int, msg: tuple) -> None:
             kind = msg[0]
-            if kind == "exit":
-                running -= 1
-            elif kind == "start":
+            if kind == "start":
                 _, i, stage, first = msg
                 self.store.start_reference(i, stage)
                 self.progress.start_reference(i, first)
@@ -637,21 +624,28 @@ class ParallelSimRunner(Runner):
                 self.progress.scan(Estimate(r.status, r.success, r.pose), r.reference)
                 watches.setdefault(r.reference, _FailureWatch(self.max_consecutive_failures)
                                    ).add(r.success, r.status, r.diagnostics)
-            elif kind == "done":
-                self.store.finish_reference(msg[1], "done")
-                self.progress.end_reference(msg[1])
-            elif kind == "error":
-                where.update(reference=msg[1], scan=msg[2])
-                raise BenchError(msg[3])
-        return stop.is_set()
 
-    def _release(self) -> None:
-        if self._stop_event is not None:
-            self._stop_event.set()
-        for p in self._procs:
-            p.join(timeout=10)
-            if p.is_alive():
-                p.terminate()
-                p.join()
-        self._procs = []
-        self.bench.close()
+        def on_result(i: int, result: Any) -> None:
+            if result == "done":
+                self.store.finish_reference(i, "done")
+                self.progress.end_reference(i)
+            elif isinstance(result, tuple) and result[0] == "error":
+                where.update(reference=result[1], scan=result[2])
+                raise BenchError(result[3])
+
+        def retry(i: int, args: tuple) -> tuple | None:
+            """A lost worker's reference: only the scans the store does not have."""
+            done = self.store.done_scans(i)
+            if len(done) >= self.plan.scans:
+                self.store.finish_reference(i, "done")
+                return None
+            return (setup, i, (max(done) + 1) if done else 0, self.plan.scans - len(done))
+
+        def on_lost(i: int) -> None:
+            self.store.log(f"a worker process died at reference {i}; it runs again", "warning",
+                           reference=i)
+
+        self.engine = LocalEngine(self.jobs)
+        return self.engine.run(_sim_reference, [(i, (setup, i, first, n)) for i, first, n in todo],
+                               on_result, on_message, should_stop=lambda: self._stopping(flag),
+                               retry=retry, on_lost=on_lost)
