@@ -49,7 +49,8 @@ def run_study(spec: dict, folder: Path, engine) -> tuple[float, float, list]:
     """(wall s, tasks' CPU s, the stored results) of the study on `engine`."""
     store = study_run.create(from_dict(spec), folder, folder / engine.name, {})
     t0 = time.perf_counter()
-    status = study_run.execute(store, engine, progress=False, stream=open(os.devnull, "w"))
+    with open(os.devnull, "w") as quiet:
+        status = study_run.execute(store, engine, progress=False, stream=quiet)
     wall = time.perf_counter() - t0
     store.close()
     assert status == "completed", status
