@@ -177,15 +177,31 @@ class LiveAcquisition(Acquisition):
             os.replace(self._part, self.capture)
 
 
+def unit_sensor(seed: int) -> Any:
+    """The `EmulationConfig` of a twin unit's own sensor: per-laser range offsets and a common
+    range offset drawn from its seed (module docstring), the twin's other effects as usual."""
+    from twin.sim.emulation import EmulationConfig
+
+    base = EmulationConfig()
+    rng = np.random.default_rng((int(seed), 16))
+    offsets = np.clip(rng.normal(0.0, base.laser_offset_sigma, vlp16.N_LASERS),
+                      -UNIT_RANGE_BIAS_CLIP, UNIT_RANGE_BIAS_CLIP)
+    bias = float(np.clip(rng.normal(0.0, UNIT_RANGE_BIAS_SIGMA), -UNIT_RANGE_BIAS_CLIP,
+                         UNIT_RANGE_BIAS_CLIP))
+    return base.with_(laser_offsets=tuple(float(v) for v in offsets), range_bias=bias)
+
+
 class TwinAcquisition(Acquisition):
     """A twin unit (module docstring): the station's bench with ``misalignment`` (edge units,
     `MISALIGNMENT_KEYS`) added to its mount, the unit's sensor drawn from ``seed`` (or an ideal
     sensor without ``sensor_errors``: no per-laser or common range offsets; range noise stays),
-    optionally ``noise`` (an `EmulationConfig`) instead. Its packets go into ``capture``."""
+    optionally ``noise`` (an `EmulationConfig`) instead. The scans' noise comes from
+    ``noise_seed`` (default: ``seed``): the same unit measured again. Its packets go into
+    ``capture``."""
 
     def __init__(self, station: Any, misalignment: dict[str, float] | None = None,
                  seed: int = 0, capture: Path | None = None, sensor_errors: bool = True,
-                 noise: Any = None) -> None:
+                 noise: Any = None, noise_seed: int | None = None) -> None:
         from dataclasses import replace
 
         from twin.sim.bench import BenchSim
@@ -205,16 +221,11 @@ class TwinAcquisition(Acquisition):
                          mount_yaw=p.mount_yaw + math.radians(m.get("yaw_deg", 0.0)),
                          lever_arm=tuple(float(v) for v in lever))
         if noise is None:
-            noise = EmulationConfig()
-            if sensor_errors:
-                rng = np.random.default_rng((int(seed), 16))
-                bias = float(np.clip(rng.normal(0.0, UNIT_RANGE_BIAS_SIGMA),
-                                     -UNIT_RANGE_BIAS_CLIP, UNIT_RANGE_BIAS_CLIP))
-                noise = noise.with_(range_bias=bias)
-            else:
-                noise = noise.with_(laser_offset_sigma=0.0, laser_offsets=None, range_bias=0.0)
+            noise = unit_sensor(seed) if sensor_errors else EmulationConfig().with_(
+                laser_offset_sigma=0.0, laser_offsets=None, range_bias=0.0)
         self.misalignment = m
-        self.sim = BenchSim(params, seed=int(seed), noise=noise)
+        self.sim = BenchSim(params, seed=int(seed if noise_seed is None else noise_seed),
+                            noise=noise)
         self.sensor.update({"serial": f"twin-{int(seed)}", "range_bias_m": noise.range_bias,
                             "laser_offsets_m": [float(v) for v in self.sim.emulator.laser_offsets]})
         self._writer = None
