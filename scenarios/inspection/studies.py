@@ -6,7 +6,7 @@ records), each into the record store so that a killed study resumes where it sto
   unit on the station again with a placement error (appraiser j's own systematic part plus a
   random part per mounting, ``placement`` sigma per axis in edge units), which the station
   cannot tell from the mounting; trials are new scans with the unit left in place. The records'
-  operator is ``mount-j``.
+  operator is ``mount-j``. A measurement that found no board is kept and taken again.
 - `grr_data`: the y[part, appraiser, trial] array of one axis from records (a real line's:
   units x operators x inspections), refusing an unbalanced design with what is missing.
 - `run_bias_twin`: n twin units, each measured once, with the truth known.
@@ -62,9 +62,11 @@ def run_grr_twin(station: Any, records: Records, *, parts: int, appraisers: int,
                       + (f" noise {range_noise_mm:g} mm" if range_noise_mm is not None else "")
                       + ("" if sensor_errors else " ideal sensor"))
     units = line_units(station, parts, seed, spread=1.0, prefix=f"grr{seed}-")
-    done: dict[tuple[str, str], int] = defaultdict(int)
+    done: dict[tuple[str, str], int] = defaultdict(int)  # measurements with a pose
+    tried: dict[tuple[str, str], int] = defaultdict(int)  # all, failed ones too
     for r in records.rows("WHERE batch = ?", (batch,)):
-        done[(r["unit"], r["operator"])] += 1
+        tried[(r["unit"], r["operator"])] += 1
+        done[(r["unit"], r["operator"])] += r["status"] == "ok"
     rng = np.random.default_rng((int(seed), 7))
     # Appraiser j's systematic placement: half the placement variance, the rest per mounting.
     sys_part = {j: {k: rng.normal(0, s / math.sqrt(2)) for k, s in placement.items()}
@@ -77,7 +79,10 @@ def run_grr_twin(station: Any, records: Records, *, parts: int, appraisers: int,
                      for k, s in placement.items()}
             mis = {k: u.misalignment.get(k, 0.0) + place.get(k, 0.0) for k in
                    set(u.misalignment) | set(place)}
-            for t in range(done[(u.name, op)], trials):
+            # A measurement without a pose (the board not found) is kept, and measured again,
+            # as an operator would, up to twice per trial.
+            while done[(u.name, op)] < trials and tried[(u.name, op)] < 3 * trials:
+                t = tried[(u.name, op)]
                 started = time.time()
                 acq = TwinAcquisition(station, mis, seed=u.seed,
                                       noise=_noise(u.seed, sensor_errors, range_noise_mm),
@@ -91,6 +96,8 @@ def run_grr_twin(station: Any, records: Records, *, parts: int, appraisers: int,
                     insp, station=station, operator=op, source="sim", capture=None,
                     capture_sha256=None, sensor=acq.sensor, calibration={},
                     started_at=started, batch=batch))
+                tried[(u.name, op)] += 1
+                done[(u.name, op)] += insp.status == "ok"
                 if on_record is not None:
                     on_record(insp, rid)
     return batch
