@@ -24,13 +24,15 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from scenarios import station as stations
-from scenarios.inspection import msa, studies
 from scenarios.inspection.records import Records
 from scenarios.inspection.verdict import EDGE_SCALE, EDGE_UNIT, edge_key, limits_si
 from twin.core.errors import AimbenchError
+
+if TYPE_CHECKING:  # scipy.stats and statsmodels load only when a study runs (a second or two)
+    from scenarios.inspection import msa
 
 
 def _station_of(args: argparse.Namespace, rows: list[dict]) -> stations.Station:
@@ -41,6 +43,8 @@ def _station_of(args: argparse.Namespace, rows: list[dict]) -> stations.Station:
 
 def grr_report(rows: list[dict], station: stations.Station, confidence: float,
                seed: int = 0) -> list[msa.GaugeRR]:
+    from scenarios.inspection import msa, studies
+
     out = []
     for axis, lim in limits_si(station.tolerances).items():
         y, _, _ = studies.grr_data(rows, axis)
@@ -74,6 +78,8 @@ def grr_lines(results: list[msa.GaugeRR]) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from scenarios.inspection import studies
+
     if args.linearity:
         return _linearity(args)
     db = Path(args.db) if args.db else None
@@ -118,6 +124,8 @@ def _progress(args: argparse.Namespace) -> Any:
 
 
 def _bias(args: argparse.Namespace, records: Records) -> int:
+    from scenarios.inspection import msa, studies
+
     if not args.twin:
         raise AimbenchError("--bias needs the truth: run it on the twin (--twin)")
     station = stations.from_args(args, twin=True)[0]
@@ -150,6 +158,7 @@ def _bias(args: argparse.Namespace, records: Records) -> int:
 
 def _linearity(args: argparse.Namespace) -> int:
     from scenarios.bench import HardwareBench, ServedBench, SimBench
+    from scenarios.inspection import msa, studies
 
     station = stations.from_args(args, twin=args.bench != "hw")[0]
     if args.bench == "sim":
