@@ -157,16 +157,13 @@ def _bias(args: argparse.Namespace, records: Records) -> int:
 
 
 def _linearity(args: argparse.Namespace) -> int:
-    from scenarios.bench import HardwareBench, ServedBench, SimBench
+    from scenarios.bench import open_bench
+    from scenarios.config import RunConfig
     from scenarios.inspection import msa, studies
 
     station = stations.from_args(args, twin=args.bench != "hw")[0]
-    if args.bench == "sim":
-        bench = SimBench(seed=args.seed, station=station)
-    elif args.bench == "serve":
-        bench = ServedBench.launch(seed=args.seed, station=station)
-    else:
-        bench = HardwareBench(args.port, args.lidar, station=station)
+    bench = open_bench(RunConfig(bench=args.bench, port=args.port, lidar=args.lidar,
+                                 seed=args.seed, station=station))
     yaw = [float(v) for v in args.yaw_refs_deg.split(",")]
     xs = [float(v) for v in args.x_refs_mm.split(",")]
     with bench:

@@ -35,7 +35,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from scenarios.store import _file_problems, _fsync_dir, _sqlite_header, dumps
+from scenarios.store import _alive, _file_problems, _fsync_dir, _sqlite_header, dumps
 from twin.core.errors import AimbenchError
 
 SCHEMA_VERSION = 1
@@ -143,16 +143,6 @@ def _create(path: Path) -> None:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def check(path: Path) -> list[str]:
