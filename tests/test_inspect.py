@@ -230,3 +230,21 @@ def test_the_live_view_shows_board_frames_points_and_verdict(tmp_path: Path):
     yaw = rec.rows("/plots/estimate/yaw_deg", "Scalars:scalars")[-1].components[
         "Scalars:scalars"][0]
     assert abs(yaw - 2.0) < 0.3
+
+
+@pytest.mark.slow
+def test_a_recording_is_read_on_by_a_re_measure(tmp_path: Path):
+    """take() twice from a capture gives the next scans, not the same ones and not none (a
+    re-measure reads on from the same stream); the recording is its own capture."""
+    from scenarios.inspection.acquire import RecordedAcquisition, sha256_of
+
+    r = cli("simulate", "--scans", "8", "--seed", "2", "--out", "cap.pcap", "--quiet",
+            cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    with RecordedAcquisition(str(tmp_path / "cap.pcap")) as acq:
+        first, second = acq.take(3), acq.take(3)
+        rest = acq.take(10)
+    stamps = [s.time[0] for s in first + second + rest]
+    assert len(first) == len(second) == 3 and len(rest) >= 1
+    assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+    assert acq.capture_sha256() == sha256_of(tmp_path / "cap.pcap")

@@ -73,8 +73,10 @@ def _one(args: argparse.Namespace, records: rec_mod.Records, station: Any, unit:
         insp = inspect_unit(acq, station, unit, scans=args.scans, max_scans=args.max_scans,
                             method=args.method, calibration=calibration,
                             on_attempt=live.on_attempt if live is not None else None)
-    finally:
-        acq.close()
+    except BaseException:
+        acq.close(complete=False)  # no verdict: its capture stays a .part file, no record
+        raise
+    acq.close()
     row = rec_mod.record_row(
         insp, station=station, operator=args.operator, source=source, capture=acq.capture,
         capture_sha256=acq.capture_sha256(), sensor=acq.sensor,

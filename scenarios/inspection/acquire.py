@@ -100,14 +100,25 @@ class Acquisition(abc.ABC):
         return sha256_of(self.capture) if self.capture is not None and self.capture.exists() \
             else None
 
-    def close(self) -> None:  # noqa: B027 - nothing to release by default
-        """Release the source and finish the capture file."""
+    def close(self, complete: bool = True) -> None:  # noqa: B027 - nothing by default
+        """Release the source and finish the capture file (``complete=False``: the inspection
+        did not end; a capture being written stays a ``.part`` file)."""
 
     def __enter__(self) -> Acquisition:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: object, *exc: object) -> None:
+        self.close(complete=exc_type is None)
+
+
+def _on(it: Iterator[Scan]) -> Iterator[Scan]:
+    """The scans of a long-lived iterator, without closing it when `take` stops early (``yield
+    from`` would: a re-measure reads on from the same stream)."""
+    while True:
+        scan = next(it, None)
+        if scan is None:
+            return
+        yield scan
 
 
 class RecordedAcquisition(Acquisition):
@@ -123,11 +134,11 @@ class RecordedAcquisition(Acquisition):
 
     def _scans(self, n: int) -> Iterator[Scan]:
         try:
-            yield from self._it
+            yield from _on(self._it)
         except AimbenchError as exc:
             raise AcquisitionError(f"{self.source}: {exc}") from None
 
-    def close(self) -> None:
+    def close(self, complete: bool = True) -> None:
         self._src.close()
 
 
@@ -166,14 +177,14 @@ class LiveAcquisition(Acquisition):
         from twin.lidar.udp import SensorSilentError
 
         try:
-            yield from self._it
+            yield from _on(self._it)
         except SensorSilentError as exc:
             raise AcquisitionError(f"{self.source}: {exc}") from None
 
-    def close(self) -> None:
+    def close(self, complete: bool = True) -> None:
         self._rx.close()
         self._writer.close()
-        if self._part.exists():
+        if complete and self._part.exists():
             os.replace(self._part, self.capture)
 
 
@@ -246,10 +257,11 @@ class TwinAcquisition(Acquisition):
                                        dst_port=vlp16.DATA_PORT)
         yield from scans
 
-    def close(self) -> None:
+    def close(self, complete: bool = True) -> None:
         if self._writer is not None:
             self._writer.close()
-            os.replace(self._part, self.capture)
+            if complete:
+                os.replace(self._part, self.capture)
             self._writer = None
 
 
