@@ -253,6 +253,20 @@ class Stages(_Section):
 Limit = Annotated[StrictFloat, Field(gt=0)] | None
 
 
+class SystemSigma(_Section):
+    """The measurement system's own 1-sigma per axis beyond the estimator's covariance (0: none
+    stated): what the estimator does not know of, such as a new unit's uncalibrated per-laser
+    range offsets or the fixture's placement, measured by the inspection's bias study (`aimbench
+    grr --bias`, docs/inspection.md). Added in quadrature to every unit's estimator sigma."""
+
+    x_mm: NonNegative = 0.0
+    y_mm: NonNegative = 0.0
+    z_mm: NonNegative = 0.0
+    roll_deg: NonNegative = 0.0
+    tilt_deg: NonNegative = 0.0
+    yaw_deg: NonNegative = 0.0
+
+
 class Tolerances(_Section):
     """An inspection's specification: the largest allowed mounting error per axis (None: the
     axis is not judged) and the decision rule. ``iso14253-1``: PASS only when the error plus its
@@ -270,6 +284,7 @@ class Tolerances(_Section):
     z_mm: Limit = None
     rule: Literal["iso14253-1", "simple"] = "iso14253-1"
     coverage_k: Positive = 2.0
+    system_sigma: SystemSigma = SystemSigma()
 
 
 class StationFrame(_Section):

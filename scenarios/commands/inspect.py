@@ -1,0 +1,273 @@
+"""`aimbench inspect SOURCE --unit ID --db inspections.sqlite`: is this unit's LiDAR mounted within
+its specification? (docs/inspection.md)
+
+SOURCE: ``sim`` (the twin: ``--roll-deg``.. set the unit's mount misalignment; the unit has its
+own sensor errors, drawn from ``--seed``), ``udp://HOST:PORT`` (the live sensor; default: the
+station's sensor network) or a recording (pcap/pcapng, bags, PCD). Takes ``--scans N`` (default
+10: 1 s of data), estimates the mounting pose in the station frame with its covariance, judges
+every axis the station's ``[tolerances]`` limit (ISO 14253-1 guard bands unless the station
+says ``rule = "simple"``), re-measures with more scans when that is inconclusive
+(``--max-scans``), stores the record (crash-safe SQLite, with the raw capture kept beside it)
+and only then prints the verdict. Exit status: 0 PASS, 1 FAIL, 3 INCONCLUSIVE, 2 an error.
+
+    aimbench inspect sim --unit VIN123 --tilt-deg 0.4 --db line.sqlite --report reports/
+    aimbench inspect udp://0.0.0.0:2368 --station my-line.toml --unit VIN124 --db line.sqlite
+    aimbench inspect sim --units 200 --seed 7 --db line.sqlite   # a simulated line (resumable)
+    aimbench inspect --db line.sqlite --list | --show 12 | --export line.parquet
+    aimbench inspect --db line.sqlite --summary --report reports/
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import align
+from scenarios import calibrate
+from scenarios import station as stations
+from scenarios.inspection import records as rec_mod
+from scenarios.inspection.acquire import open_acquisition
+from scenarios.inspection.identity import calibration_identity
+from scenarios.inspection.line import DEFAULT_SPREAD, line_units
+from scenarios.inspection.procedure import DEFAULT_SCANS, Inspection, inspect_unit
+from scenarios.inspection.verdict import RULE_TEXT, Verdict
+from twin.core.errors import AimbenchError
+
+EXIT = {Verdict.PASS: 0, Verdict.FAIL: 1, Verdict.INCONCLUSIVE: 3}
+
+
+def verdict_line(insp: Inspection, rid: int | None = None, trial: int | None = None) -> str:
+    """One line per unit: the verdict, then each judged axis as error +- U (limit) verdict."""
+    head = f"{insp.unit:<14} {str(insp.verdict).upper():<13}"
+    if insp.status != "ok":
+        return f"{head} {insp.message}"
+    cells = []
+    for j in insp.axes:
+        e = j.to_edge()
+        mark = {"pass": "", "fail": " FAIL", "inconclusive": " ?"}[e["verdict"]]
+        cells.append(f"{e['axis']} {e['error']:+.3f} +-{e['U']:.3f}{mark}")
+    tail = f"  [{insp.scans_used} scans" + (f", record {rid}" if rid is not None else "") + \
+        (f", trial {trial}" if trial and trial > 1 else "") + "]"
+    return head + "  ".join(cells) + tail
+
+
+def _misalignment(args: argparse.Namespace) -> dict[str, float]:
+    keys = ("x_mm", "y_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg")
+    return {k: float(getattr(args, k)) for k in keys if getattr(args, k) is not None}
+
+
+def _one(args: argparse.Namespace, records: rec_mod.Records, station: Any, unit: str,
+         source: str, misalignment: dict[str, float], seed: int, batch: str | None,
+         calibration: dict | None, cal_file: str | None, live: Any) -> tuple[Inspection, int]:
+    """Inspect one unit and commit its record; returns the inspection and its record id."""
+    keep = source == "sim" or source.startswith("udp://")
+    capture = records.capture_path(unit) if keep else None
+    started = time.time()
+    acq = open_acquisition(source, station, capture, misalignment=misalignment, seed=seed,
+                           sensor_errors=not args.no_sensor_errors)
+    try:
+        insp = inspect_unit(acq, station, unit, scans=args.scans, max_scans=args.max_scans,
+                            method=args.method, calibration=calibration,
+                            on_attempt=live.on_attempt if live is not None else None)
+    except BaseException:
+        acq.close(complete=False)  # no verdict: its capture stays a .part file, no record
+        raise
+    acq.close()
+    row = rec_mod.record_row(
+        insp, station=station, operator=args.operator, source=source, capture=acq.capture,
+        capture_sha256=acq.capture_sha256(), sensor=acq.sensor,
+        calibration=calibration_identity(station, cal_file), started_at=started, batch=batch)
+    rid, trial = records.add(row)
+    if args.report:
+        from scenarios.inspection.report import unit_report
+
+        unit_report(records.get(rid), insp, Path(args.report))
+    if live is not None:
+        live.on_verdict(insp, rid)
+    if args.json:
+        print(json.dumps({"record": rid, "trial": trial, **insp.to_edge()}, default=str),
+              flush=True)
+    else:
+        print(verdict_line(insp, rid, trial), flush=True)
+    return insp, rid
+
+
+def run(args: argparse.Namespace) -> int:
+    db = Path(args.db)
+    if args.list or args.show or args.export or args.summary:
+        return _browse(args, db)
+    if args.scans < 1:
+        raise AimbenchError(f"--scans {args.scans}: give at least 1")
+    if args.max_scans is not None and args.max_scans < args.scans:
+        raise AimbenchError(f"--max-scans {args.max_scans} is below --scans {args.scans}; give "
+                            "at least as many (equal: no re-measure)")
+    source = args.source
+    station, _ = stations.from_args(args, twin=source in (None, "sim"))
+    if source is None:
+        source = station.lidar_url()
+    misalignment = _misalignment(args)
+    if args.units is not None and source != "sim":
+        raise AimbenchError("--units N simulates a line of twin units: give the source sim")
+    if args.units is None and not args.unit:
+        raise AimbenchError("give the unit's id with --unit ID (a VIN, a serial), or --units N "
+                            "for a simulated line")
+    cal_file = args.calibration or station.sensor.range_calibration
+    calibration = calibrate.read(cal_file) if cal_file else None
+    tol = station.tolerances
+    if not args.json:
+        print(f"station {station.name}: rule {tol.rule} ({RULE_TEXT[tol.rule]}, k = "
+              f"{tol.coverage_k:g})", file=sys.stderr)
+    live = None
+    if args.rerun:
+        from scenarios.inspection.live import LiveView
+
+        live = LiveView.from_args(args, station)
+    try:
+        with rec_mod.Records.open(db, create=True) as records:
+            if args.units is None:
+                insp, _ = _one(args, records, station, args.unit, source, misalignment,
+                               args.seed, None, calibration, cal_file, live)
+                return EXIT[insp.verdict]
+            if misalignment:
+                raise AimbenchError("a simulated line draws each unit's misalignment: give "
+                                    "--units without --roll-deg .. --z-mm")
+            batch = f"sim-line seed {args.seed} spread {args.spread:g}"
+            done = records.units_of_batch(batch)
+            for u in line_units(station, args.units, args.seed, args.spread):
+                if u.name in done:
+                    continue
+                _one(args, records, station, u.name, "sim", u.misalignment, u.seed, batch,
+                     calibration, cal_file, live)
+            return 0
+    finally:
+        if live is not None:
+            live.close()
+
+
+def _browse(args: argparse.Namespace, db: Path) -> int:
+    with rec_mod.Records.open(db) as records:
+        if args.list:
+            for line in list_lines(records.rows()):
+                print(line)
+        if args.show:
+            row = records.get(args.show)
+            if args.json:
+                print(json.dumps(row, default=str))
+            else:
+                for line in show_lines(row):
+                    print(line)
+        if args.export:
+            path = records.export(args.export)
+            print(f"wrote {path} ({records.count()} records)", file=sys.stderr)
+        if args.summary:
+            if not args.report:
+                raise AimbenchError("--summary writes the line's summary into --report DIR")
+            from scenarios.inspection.report import line_summary
+
+            page = line_summary(records.rows(), Path(args.report))
+            print(f"wrote {page}", file=sys.stderr)
+    return 0
+
+
+def list_lines(rows: list[dict]) -> list[str]:
+    out = [f"{'id':>5} {'unit':<14} {'trial':>5} {'when (UTC)':<19} {'operator':<10} "
+           f"{'verdict':<12} {'scans':>5}  source"]
+    for r in rows:
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(r["started_at"]))
+        out.append(f"{r['id']:>5} {r['unit']:<14} {r['trial']:>5} {when:<19} "
+                   f"{(r['operator'] or '-'):<10} {r['verdict'].upper():<12} {r['scans']:>5}  "
+                   f"{r['source']}")
+    return out
+
+
+def show_lines(r: dict) -> list[str]:
+    when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(r["started_at"]))
+    lines = [f"record {r['id']}: unit {r['unit']} (trial {r['trial']}), {when}, operator "
+             f"{r['operator'] or '-'}",
+             f"verdict {r['verdict'].upper()} ({r['status']}; rule {r['rule']}, k = "
+             f"{r['coverage_k']:g}): {r['message']}",
+             f"station {r['station']} (sha256 {r['station_sha256'][:16]}...), aimbench "
+             f"{r['software_version']} at {r['git_commit'] or 'unknown commit'}",
+             f"sensor {r['sensor_model']} serial {r['sensor_serial'] or '(not reported)'}; "
+             f"calibration {json.dumps(r['calibration']) if r['calibration'] else 'none'}",
+             f"source {r['source']}; capture {r['capture_path'] or '-'} (sha256 "
+             f"{r['capture_sha256'] or '-'})",
+             f"scans {r['scans']} (rejected {r['rejected_scans']}), board found "
+             f"{bool(r['board_found'])}, rings {r['rings']}, points {r['board_points']}",
+             f"{'axis':<10}{'error':>10}{'u est':>9}{'u sys':>9}{'U':>9}{'limit':>9}  verdict"]
+    for a in rec_mod.AXES:
+        if r[f"err_{a}"] is None:
+            continue
+        s, unit = rec_mod._SCALE[a], rec_mod._UNIT[a]
+        def cell(c: str, r: dict = r, a: str = a, s: float = s) -> str:
+            v = r[f"{c}_{a}"]
+            return f"{'-':>9}" if v is None else f"{v * s:>9.3f}"
+        big_u = None if r[f"u_{a}"] is None else r[f"u_{a}"] * r["coverage_k"] * s
+        true = r[f"true_{a}"]
+        lines.append(f"{a + '_' + unit:<10}{r[f'err_{a}'] * s:>+10.3f}{cell('u_est')}"
+                     f"{cell('u_sys')}{'-' if big_u is None else f'{big_u:.3f}':>9}"
+                     f"{cell('limit')}  {r[f'verdict_{a}'] or 'not judged'}"
+                     + ("" if true is None else f"   (true {true * s:+.3f})"))
+    return lines
+
+
+def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    p = sub.add_parser("inspect", help="inspect a unit's LiDAR mounting against the station's "
+                                       "tolerances (guard-banded verdict, per-unit records)",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("source", nargs="?", metavar="SOURCE",
+                   help="sim, udp://HOST:PORT or a recording (default: the station's sensor)")
+    stations.add_arguments(p)
+    p.add_argument("--unit", help="the unit's id (a VIN, a serial number)")
+    p.add_argument("--db", required=True, metavar="FILE",
+                   help="the record store (SQLite, created if missing; captures kept in "
+                        "FILE's folder under NAME.captures/)")
+    p.add_argument("--scans", type=int, default=DEFAULT_SCANS,
+                   help=f"scans per measurement (default {DEFAULT_SCANS}: 1 s of data)")
+    p.add_argument("--max-scans", type=int, default=None, metavar="N",
+                   help="most scans an automatic re-measure may reach (default 3 x --scans; "
+                        "= --scans: no re-measure)")
+    p.add_argument("--operator", default=None, help="who inspects (kept in the record)")
+    p.add_argument("--report", default=None, metavar="DIR",
+                   help="write the unit's one-page report (HTML and PNG) into DIR")
+    p.add_argument("--json", action="store_true", help="one JSON object per unit")
+    p.add_argument("--method", default=align.DEFAULT_METHOD, choices=align.METHODS,
+                   help=f"estimator (default {align.DEFAULT_METHOD})")
+    p.add_argument("--calibration", default=None, metavar="FILE",
+                   help="per-laser range calibration to apply (default: the station's "
+                        "sensor.range_calibration, if any)")
+    twin = p.add_argument_group("the twin (source sim)")
+    for key, what in (("roll_deg", "roll, deg"), ("tilt_deg", "tilt, deg"),
+                      ("yaw_deg", "yaw, deg"), ("x_mm", "x shift, mm"), ("y_mm", "y shift, mm"),
+                      ("z_mm", "z shift, mm")):
+        twin.add_argument(f"--{key.replace('_', '-')}", dest=key, type=float, default=None,
+                          help=f"the unit's mount misalignment: {what}")
+    twin.add_argument("--seed", type=int, default=0,
+                      help="the twin unit's seed: its sensor errors and noise (default 0)")
+    twin.add_argument("--no-sensor-errors", action="store_true",
+                      help="a sensor without per-laser or common range offsets (noise stays)")
+    twin.add_argument("--units", type=int, default=None, metavar="N",
+                      help="a simulated line: N twin units with random misalignments (unit i "
+                           "is the same for a given --seed; a rerun skips units recorded)")
+    twin.add_argument("--spread", type=float, default=DEFAULT_SPREAD,
+                      help="with --units: misalignments uniform within +-SPREAD x each limit "
+                           f"(default {DEFAULT_SPREAD})")
+    browse = p.add_argument_group("the records")
+    browse.add_argument("--list", action="store_true", help="list the records")
+    browse.add_argument("--show", metavar="ID", help="one record (an id, or a unit's latest)")
+    browse.add_argument("--export", metavar="FILE", help="every record to FILE (.csv, .parquet)")
+    browse.add_argument("--summary", action="store_true",
+                        help="the line's summary (pass rate, histograms, control charts) into "
+                             "--report DIR")
+    p.add_argument("--rerun", action="store_true",
+                   help="show the inspection live in rerun (the board, the points, the "
+                        "estimated and nominal frames, the verdict)")
+    from scenarios.recording.observer import add_sink_arguments
+
+    add_sink_arguments(p, "with --rerun: write the recording to this .rrd file")
+    p.set_defaults(func=run)
+    return p
