@@ -50,10 +50,11 @@ from twin.core.scan import Scan
 #: A return within this distance of the plane (along the ray) is a hit on the board, m. The
 #: nearest thing behind the paper's board (its stand) is 0.15 m behind it; the noise is 14 mm.
 LABEL_TOLERANCE = 0.07
-#: A return nearer than this many range sigmas in front of the plane is not the board but
-#: something in front of it (unknown): a stand or a hand near the board's edge, whose return
-#: would otherwise count as a hit beside the board. 3.5 sigma leaves out 2 in 10,000 of the
-#: board's own returns, which as unknowns cost nothing.
+#: A hit is a return within this many range sigmas of the plane (and `LABEL_TOLERANCE`); one
+#: farther in front is something before the board (unknown), one farther behind but within
+#: `LABEL_TOLERANCE` may be a thing close behind it (unknown too): a stand or its clamp near
+#: the board's edge, whose returns would otherwise count as hits beside the board. 3.5 sigma
+#: leaves out 5 in 10,000 of the board's own returns, which as unknowns cost nothing.
 FRONT_SIGMAS = 3.5
 #: Range residuals only from hits at least this far inside the rectangle, m (beam footprint
 #: 3 mrad x 2.6 m = 8 mm, half of it plus the azimuth step).
@@ -156,8 +157,8 @@ MIN_DROPOUTS = 3
 
 
 def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
-    """`HIT`, `MISS` (no return or far behind), `UNKNOWN` (something in front: `FRONT_SIGMAS`
-    of the range noise ``sigma_r``, m) for each ray, and
+    """`HIT`, `MISS` (no return or far behind), `UNKNOWN` (something in front, or just behind:
+    `FRONT_SIGMAS` of the range noise ``sigma_r``, m) for each ray, and
     `DROPOUT` for the rays without a return when the board itself drops returns.
 
     A board is convex, so a laser's rays between two of its hits on the board lie on the board:
@@ -169,9 +170,11 @@ def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     lab = np.zeros(len(lam), dtype=np.int8)
     ret = rays.distance > 0
     res = rays.distance - lam
-    front = min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
-    lab[ret & (res >= -front) & (res <= LABEL_TOLERANCE)] = HIT
-    lab[ret & (res < -front)] = UNKNOWN
+    near = min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
+    lab[ret & (np.abs(res) <= near)] = HIT
+    # in front: something before the board; just behind (beyond the noise, within the label
+    # tolerance): the board's noise or a thing close behind it (a stand's clamp): unknown
+    lab[ret & ((res < -near) | ((res > near) & (res <= LABEL_TOLERANCE)))] = UNKNOWN
     inner = _between_hits(rays, lab) & ~ret
     hits = int(np.count_nonzero(lab == HIT))
     if np.count_nonzero(inner) >= max(MIN_DROPOUTS, DROPOUT_FRACTION * hits):

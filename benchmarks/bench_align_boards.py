@@ -122,7 +122,7 @@ def _in_view(scan, board: align.BoardSpec) -> bool:
 def _stand_clear(sim: BenchSim, board: align.BoardSpec) -> bool:
     """Whether the twin's board stand stays behind the board: a tilted board on the twin's
     fixed stand can sink its post through the plate (a bench nobody builds). Every corner of
-    the stand's geoms at least 5 cm behind the board's face, or clear of its outline."""
+    the stand's geoms at least 10 cm behind the board's face, or clear of its outline."""
     m, d = sim.physics.model, sim.physics.data
     p_o, r_o = sim.physics.board_pose_world()
     for name in ("stand_post", "stand_base"):
@@ -132,7 +132,7 @@ def _stand_clear(sim: BenchSim, board: align.BoardSpec) -> bool:
                             for sz in (-1, 1)]) * half
         world = d.geom_xpos[g] + corners @ d.geom_xmat[g].reshape(3, 3).T
         local = (world - p_o) @ r_o  # in {O}
-        near = ((local[:, 1] < 0.05) & (np.abs(local[:, 0]) < board.width / 2 + 0.1)
+        near = ((local[:, 1] < 0.10) & (np.abs(local[:, 0]) < board.width / 2 + 0.1)
                 & (np.abs(local[:, 2]) < board.height / 2 + 0.1))
         if np.any(near):
             return False
