@@ -36,7 +36,7 @@ import numpy as np
 
 from align import feasible, plane, symmetry
 from align.board import BoardSpec
-from align.geometry import board_coordinates, plane_of_pose, pose_from_plane, rotation
+from align.geometry import board_coordinates, lidar_up, plane_of_pose, pose_from_plane
 
 #: Rolls of each in-plane posterior's grid over the consistent ones.
 FINE_ROLLS = 121
@@ -80,7 +80,7 @@ class LabelledRays:
         LiDAR's up direction on the board: a ring spacing): a point as far from the plane's
         origin as the board's corners (plus 0.2 m) moves that far x the roll change."""
         x, z, _ = board_coordinates(ref, self.origin, self.direction)
-        vx, vz = _lidar_up(ref)
+        vx, vz = lidar_up(ref)
         arm = (0.5 * board.diagonal + 0.2) * reach
         return self.select(binding(board, x, z, self.label, 0.02 + 0.08 * abs(vx) + arm,
                                    0.02 + 0.08 * abs(vz) + arm))
@@ -110,13 +110,6 @@ def binding(board: BoardSpec, x: np.ndarray, z: np.ndarray, lab: np.ndarray, mx:
     inner = (np.abs(x) < w2 - mx) & (np.abs(z) < h2 - mz)
     outer = (np.abs(x) > w2 + mx) | (np.abs(z) > h2 + mz)
     return ((lab == 1) & ~inner) | ((lab == 0) & ~outer)
-
-
-def _lidar_up(theta: np.ndarray) -> tuple[float, float]:
-    """The LiDAR's up axis in the board's plane, a unit (X_O, Z_O) direction."""
-    r = rotation(theta[3], theta[4], theta[5])
-    nv = float(np.hypot(r[0, 2], r[2, 2]))
-    return (0.0, 1.0) if nv < 1e-9 else (float(r[0, 2] / nv), float(r[2, 2] / nv))
 
 
 def _pose(n: np.ndarray, d: float, q: np.ndarray) -> np.ndarray:

@@ -40,7 +40,8 @@ import numpy as np
 
 from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
-from align.geometry import board_coordinates, pose_from_plane, rotation
+from align.geometry import (board_coordinates, in_plane_rotation, lidar_up, pose_from_plane,
+                            rotation)
 from align.label_posterior import LabelledRays, label_posterior
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, consecutive_ring_block
@@ -294,15 +295,6 @@ def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
         hits.append(col[bottom])
         misses.append(col[bottom - 1])
     return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
-
-
-def lidar_up(theta: np.ndarray) -> tuple[float, float]:
-    """The LiDAR's up axis Z_L seen in the board's plane, as a unit (X_O, Z_O) direction: the
-    direction across its rings, along which a position on the board is known least well."""
-    r = rotation(theta[3], theta[4], theta[5])
-    v = np.array([r[0, 2], r[2, 2]])
-    nv = float(np.hypot(*v))
-    return (0.0, 1.0) if nv < 1e-9 else (float(v[0] / nv), float(v[1] / nv))
 
 
 def _coords(rot: np.ndarray, theta: np.ndarray, o: np.ndarray, u: np.ndarray
@@ -896,6 +888,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         "edges_bottom": n_bottom, "occluded_rays": occluded, "inside_misses": inside_miss,
         "dropouts": dropouts, "starts": len(starts), "strays_dropped": dropped,
         "label_posterior": post is not None,
+        "in_plane_rotation_rad": in_plane_rotation(theta),
         "range_sigma_m": sigma_r, "iterations": iters,
         "chi2_per_dof": float(np.sum(model.residuals(theta) ** 2) / max(len(j) - 6, 1)),
     }
