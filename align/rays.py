@@ -40,8 +40,7 @@ import numpy as np
 
 from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
-from align.geometry import (board_coordinates, in_plane_rotation, lidar_up, pose_from_plane,
-                            rotation)
+from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
 from align.label_posterior import LabelledRays, label_posterior
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, consecutive_ring_block

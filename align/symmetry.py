@@ -5,7 +5,8 @@ the scans of a plain board cannot tell the poses related by these turns apart. I
 frame {O} a turn S = Ry(a) about Y_O maps the LiDAR's pose (R, t) to (S R, S t): a roll of the
 LiDAR by a, with x and z (and, with the LiDAR turned or tilted, tilt and yaw) changed too.
 
-Convention: the reported pose is the one with roll in (-90, 90] deg (a square: (-45, 45] deg).
+Convention: the reported pose is the one with roll in (-90, 90] deg (a square: (-45, 45] deg,
+or where its 90 deg turns mix a large tilt or yaw into the roll, the one with the least roll).
 Why: a LiDAR is not mounted upside down, and with |tilt| < 90 deg the LiDAR's up axis Z_L has a
 positive component along the board's up axis Z_O exactly when |roll| < 90 deg (Z_L . Z_O =
 cos tilt cos roll). So the board's top edge is the one the LiDAR sees as nearer its own up; for
@@ -73,16 +74,21 @@ def canonical(theta: np.ndarray, board: BoardSpec, cov: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray | None]:
     """The equivalent of ``theta`` whose roll lies in `roll_range`, and ``cov`` carried to it.
 
-    The covariance is carried through the map's Jacobian (finite differences: for the 180 deg
-    turn it is a sign flip of x, z, tilt and yaw; for a square's 90 deg turns tilt and yaw mix).
+    Of the board's turns (`equivalents`), the one whose roll is in the range (for a square
+    seen at large tilt or yaw, the one with the least roll: its 90 deg turns mix tilt and yaw
+    into the roll). The covariance is carried through the map's Jacobian (finite differences:
+    for the 180 deg turn it is a sign flip of x, z, tilt and yaw).
     """
     lo, hi = roll_range(board)
     p = period(board)
-    # k turns by -p bring roll into (lo, hi]
-    k = math.ceil((float(theta[3]) - hi) / p)
-    angle = -k * p
-    out = np.asarray(theta, dtype=float).copy() if k == 0 else turned(theta, angle)
-    out[3] = lo + (hi - lo) - ((hi - out[3]) % p)  # the same roll, exactly in (lo, hi]
+    turns = round(2 * math.pi / p)
+    cands = [np.asarray(theta, dtype=float).copy()] + [turned(theta, k * p)
+                                                       for k in range(1, turns)]
+    for c in cands:
+        c[3] = float(_wrap(c[3]))
+    inside = [k for k, c in enumerate(cands) if lo < c[3] <= hi]
+    k = inside[0] if inside else int(np.argmin([abs(c[3]) for c in cands]))
+    out = cands[k]
     if cov is None or k == 0:
         return out, cov
     j = np.zeros((6, 6))
@@ -90,7 +96,7 @@ def canonical(theta: np.ndarray, board: BoardSpec, cov: np.ndarray | None = None
     for i in range(6):
         d = np.zeros(6)
         d[i] = h
-        diff = turned(theta + d, angle) - turned(theta, angle)
+        diff = turned(theta + d, k * p) - turned(theta, k * p)
         diff[3:] = _wrap(diff[3:])
         j[:, i] = diff / h
     return out, j @ cov @ j.T
