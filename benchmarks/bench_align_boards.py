@@ -52,6 +52,8 @@ from twin.sim.emulation import EmulationConfig
 from twin.sim.params import BenchParams, BoardPattern
 
 AXES = ("x", "y", "z", "roll", "tilt", "yaw")
+#: The 99.9 % point of chi-square with 6 degrees of freedom.
+stats_chi2_999 = 22.458
 #: Half the VLP-16's vertical field of view less a margin, and the least vertical extent, rad.
 FOV_HALF = np.deg2rad(14.0)
 MIN_EXTENT = np.deg2rad(7.0)
@@ -165,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     posterior = {m: 0 for m in modes}
     n_est = {m: 0 for m in modes}
     cpu = {m: [] for m in modes}
+    via = {m: [] for m in modes}  # per estimate: did the hit/miss posterior hold
     t0 = time.time()
     done = 0
     while done < args.poses:
@@ -187,11 +190,13 @@ def main(argv: list[str] | None = None) -> int:
                 if not est.success:
                     fails[m][str(est.status)] += 1
                     continue
-                posterior[m] += bool(est.diagnostics.get("label_posterior", True))
+                held = bool(est.diagnostics.get("label_posterior", True))
+                posterior[m] += held
                 e = error(est, truth, case.board)
                 err[m].append(e)
                 z[m].append(e / est.std)
                 d2[m].append(float(e @ np.linalg.solve(est.covariance, e)))
+                via[m].append(held)
         if done % 10 == 0:
             print(f"  {done}/{args.poses} poses, {time.time() - t0:.0f} s", file=sys.stderr)
 
@@ -217,7 +222,15 @@ def main(argv: list[str] | None = None) -> int:
         wrong = int(np.sum(np.abs(e[:, 3]) > np.deg2rad(45)))
         print(f"{m:7} {'failed':22} {sum(fails[m].values())} of {n_est[m]} "
               f"({dict(fails[m]) or 'none'}); in-plane rotation off by > 45 deg: {wrong}")
-        print(f"{m:7} {'hit/miss posterior held':22} {posterior[m]} of {len(err[m])}")
+        dd, hv = np.array(d2[m]), np.array(via[m])
+        tail = stats_chi2_999
+        print(f"{m:7} {'hit/miss posterior held':22} {posterior[m]} of {len(err[m])}; d2 beyond "
+              f"chi2(6)'s 99.9 % ({tail:.1f}): {int(np.sum(dd[hv] > tail))} of {int(hv.sum())} "
+              f"posterior estimates, {int(np.sum(dd[~hv] > tail))} of {int((~hv).sum())} "
+              "least-squares fallbacks")
+        if hv.any():
+            print(f"{m:7} {'Mahalanobis / dof, post.':22} {np.mean(dd[hv]) / 6:8.3f}   anchor "
+                  f"1.000 (the estimates where the posterior held)")
         print(f"{m:7} {'cpu ms / est. (median)':22} {1e3 * np.median(cpu[m]):8.1f}")
     return 0
 
