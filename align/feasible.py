@@ -168,17 +168,20 @@ def _rows(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def in_plane_posterior(n: np.ndarray, points: np.ndarray, labels: np.ndarray,
-                       ext: np.ndarray, width: float, height: float, rolls: np.ndarray
-                       ) -> InPlanePosterior | None:
+                       ext: np.ndarray, width: float, height: float, rolls: np.ndarray,
+                       weight: np.ndarray | None = None) -> InPlanePosterior | None:
     """The posterior of (roll, t_x, t_z) for the plane with normal ``n``, on a grid of rolls.
 
     ``points`` (M, 3): where the rays meet the plane, in {L}; ``labels`` 1 hit, 0 miss;
     ``ext`` (M, 4): the side face's widening of the left, right, bottom and top edge for each
     ray, m; ``rolls``: evenly spaced, rad, spanning the support (`support`). The pose's t_x,
     t_z are the board coordinates' shifts for `align.geometry.pose_from_plane` (n, d, roll).
-    None: no roll on the grid is consistent with the labels.
+    ``weight``: a prior density over ``rolls`` (None: flat). None: no roll on the grid is
+    consistent with the labels.
     """
     mom = _label_moments(n, points, labels, ext, width, height, rolls)
+    if weight is not None:  # a prior density over the rolls (else flat)
+        mom = mom * weight[:, None]
     a = mom[:, 0]
     total = a.sum()
     if total <= 0:

@@ -62,5 +62,23 @@ def pose_from_plane(n: np.ndarray, d: float, roll: float = 0.0) -> np.ndarray:
     return np.array([0.0, -d, 0.0, roll, tilt, yaw])
 
 
+def lidar_up(theta: np.ndarray) -> tuple[float, float]:
+    """The LiDAR's up axis Z_L seen in the board's plane, a unit (X_O, Z_O) direction: across
+    its rings, the direction along which a position on the board is known least well."""
+    r = rotation(theta[3], theta[4], theta[5])
+    nv = math.hypot(r[0, 2], r[2, 2])
+    return (0.0, 1.0) if nv < 1e-9 else (float(r[0, 2] / nv), float(r[2, 2] / nv))
+
+
+def in_plane_rotation(theta: np.ndarray) -> float:
+    """The board's rotation about its normal as the LiDAR sees it, rad: from the LiDAR's up
+    direction on the board to the board's Z_O axis, clockwise as seen from the LiDAR (the
+    twin's ``BenchParams.board_roll`` for a level LiDAR; minus the roll of a LiDAR looking
+    straight at the board). 0 on the paper's bench, about 40 deg for a board hung as a
+    diamond."""
+    vx, vz = lidar_up(theta)
+    return math.atan2(-vx, vz)
+
+
 def theta_of(pose: Pose) -> np.ndarray:
     return pose.as_array()

@@ -34,9 +34,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from align import feasible, plane
+from align import feasible, plane, symmetry
 from align.board import BoardSpec
-from align.geometry import board_coordinates, plane_of_pose, pose_from_plane
+from align.geometry import board_coordinates, lidar_up, plane_of_pose, pose_from_plane
 
 #: Rolls of each in-plane posterior's grid over the consistent ones.
 FINE_ROLLS = 121
@@ -76,19 +76,29 @@ class LabelledRays:
 
     def near(self, board: BoardSpec, ref: np.ndarray, reach: float) -> LabelledRays:
         """The labels that can bind for rectangles whose roll, x and z differ from the pose
-        ``ref``'s by at most ``reach`` rad and about 20 mm (100 mm in z: a ring spacing): a
-        point 0.7 m from the plane's origin moves 0.7 m x the roll change."""
+        ``ref``'s by at most ``reach`` rad and about 20 mm (100 mm across the rings, the
+        LiDAR's up direction on the board: a ring spacing): a point as far from the plane's
+        origin as the board's corners (plus 0.2 m) moves that far x the roll change."""
         x, z, _ = board_coordinates(ref, self.origin, self.direction)
-        return self.select(binding(board, x, z, self.label, 0.02 + 0.7 * reach,
-                                   0.1 + 0.7 * reach))
+        vx, vz = lidar_up(ref)
+        arm = (0.5 * board.diagonal + 0.2) * reach
+        return self.select(binding(board, x, z, self.label, 0.02 + 0.08 * abs(vx) + arm,
+                                   0.02 + 0.08 * abs(vz) + arm))
 
-    def in_plane(self, n: np.ndarray, d: float, board: BoardSpec, rolls: np.ndarray
+    def in_plane(self, n: np.ndarray, d: float, board: BoardSpec, rolls: np.ndarray,
+                 roll_prior: tuple[float, float] | None = None
                  ) -> feasible.InPlanePosterior | None:
-        """`align.feasible.in_plane_posterior` for the plane n . p = d."""
+        """`align.feasible.in_plane_posterior` for the plane n . p = d, with the roll prior
+        (mean, 1-sigma, rad; compared modulo the board's symmetry) if given."""
         lam = (d - self.origin @ n) / (self.direction @ n)
         points = self.origin + lam[:, None] * self.direction
+        weight = None
+        if roll_prior is not None:
+            p = symmetry.period(board)
+            dev = (rolls - roll_prior[0] + p / 2) % p - p / 2
+            weight = np.exp(-0.5 * (dev / roll_prior[1]) ** 2)
         return feasible.in_plane_posterior(n, points, self.label, self.ext, board.width,
-                                           board.height, rolls)
+                                           board.height, rolls, weight)
 
 
 def binding(board: BoardSpec, x: np.ndarray, z: np.ndarray, lab: np.ndarray, mx: float,
@@ -111,7 +121,8 @@ def _pose(n: np.ndarray, d: float, q: np.ndarray) -> np.ndarray:
 
 def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_roll: float,
                     ml_plane: tuple[np.ndarray, float, np.ndarray], n_scans: int,
-                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray] | None:
+                    rng: np.random.Generator, roll_prior: tuple[float, float] | None = None
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
     """The posterior mean pose and its covariance (6, 6), or None: too few planes explain the
     labels (blurred edges, a dropout at an edge).
 
@@ -119,7 +130,8 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     to look and how wide (``n_scans`` 1: `SINGLE_SCAN_HALF` of roll, wrong basins included).
     ``ml_plane``: the ranges' plane n, d and the covariance of (alpha, beta, d), `fit_rays`.
     ``rng``: for the planes tried when the labels rule out the ML plane and the nearest
-    distances, and for the importance sampling fallback.
+    distances, and for the importance sampling fallback. ``roll_prior``: (mean, 1-sigma) of
+    the roll, rad (`align.Hints.roll_prior`), multiplied into the posterior; None: flat.
     """
     n0, d0, c_plane = ml_plane
     e1, e2 = plane.tangent_basis(n0)
@@ -137,12 +149,15 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
         step = half / 100
     wide = rays.near(board, theta, half)
     rolls = theta[3] + np.arange(-half, half + 0.5 * step, step)
-    sd_d = float(np.sqrt(c_plane[2, 2]))
-    starts = [np.array([0.0, 0.0, k * sd_d]) for k in (0, 1, -1, 2, -2, 3, -3)]
+    # other distances k sigma away, the normal moved with them as the ranges correlate it
+    # (a board seen obliquely: distance and tilt are strongly correlated, and a distance moved
+    # alone would leave the ranges' ellipsoid by far more than k sigma)
+    along_d = c_plane[:, 2] / np.sqrt(c_plane[2, 2])
+    starts = [k * along_d for k in (0, 1, -1, 2, -2, 3, -3)]
     random = (rng.multivariate_normal(np.zeros(3), c_plane) for _ in range(PLANE_SAMPLES))
     for centre in itertools.chain(starts, random):
         n, d = moved(centre)
-        coarse = wide.in_plane(n, d, board, rolls)
+        coarse = wide.in_plane(n, d, board, rolls, roll_prior)
         if coarse is not None:
             break
     else:
@@ -165,7 +180,7 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
             reach = float(np.max(np.abs(rolls - ref[3])))
             if reach not in subsets:
                 subsets[reach] = rays.near(board, ref, reach)
-            post = subsets[reach].in_plane(n, d, board, rolls)
+            post = subsets[reach].in_plane(n, d, board, rolls, roll_prior)
             if post is None:
                 return None
             low, high = post.support[0] <= rolls[0], post.support[1] >= rolls[-1]

@@ -38,9 +38,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from align import feasible, plane
+from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
-from align.geometry import board_coordinates, pose_from_plane, rotation
+from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
 from align.label_posterior import LabelledRays, label_posterior
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, consecutive_ring_block
@@ -50,6 +50,12 @@ from twin.core.scan import Scan
 #: A return within this distance of the plane (along the ray) is a hit on the board, m. The
 #: nearest thing behind the paper's board (its stand) is 0.15 m behind it; the noise is 14 mm.
 LABEL_TOLERANCE = 0.07
+#: A hit is a return within this many range sigmas of the plane (and `LABEL_TOLERANCE`); one
+#: farther in front is something before the board (unknown), one farther behind but within
+#: `LABEL_TOLERANCE` may be a thing close behind it (unknown too): a stand or its clamp near
+#: the board's edge, whose returns would otherwise count as hits beside the board. 3.5 sigma
+#: leaves out 5 in 10,000 of the board's own returns, which as unknowns cost nothing.
+FRONT_SIGMAS = 3.5
 #: Range residuals only from hits at least this far inside the rectangle, m (beam footprint
 #: 3 mrad x 2.6 m = 8 mm, half of it plus the azimuth step).
 EDGE_MARGIN = 0.015
@@ -61,11 +67,16 @@ MAX_GAP = np.deg2rad(0.7)
 STRAY = 0.04
 #: 1-sigma of a top/bottom edge crossing across the ring (the ring's height), m.
 EDGE_BLUR_Z = 2.0e-3
-#: Rays considered: within this of the rectangle's side edges (board coordinates), m ...
-WINDOW = 0.12
-#: ... and of its top and bottom edges: one ring spacing (2 deg at 2.6 m = 91 mm) plus the lean
-#: of a rolled ring, not more (the board's stand, 5 cm in front of the plane, sits lower), m.
-WINDOW_Z = 0.13
+#: A bracket whose extent across its edge is below this fraction of its extent along it comes
+#: from a ring crossing the edge at a grazing angle (under 14 deg).
+GRAZING = 0.25
+#: Rays considered: within this of the rectangle's edges (board coordinates), m: one ring
+#: spacing (2 deg at 2.6 m = 91 mm) plus the lean of a rolled ring, not much more (the board's
+#: stand, 5 cm in front of the plane, sits lower) ...
+WINDOW = 0.13
+#: ... or 1.2 ring spacings at the board's distance where that is more (a far board: the ring
+#: beyond its edge must be looked at).
+WINDOW_RINGS = 1.2
 
 
 @dataclass
@@ -79,6 +90,7 @@ class _Rays:
     azimuth: np.ndarray  # (M,) rad, unwrapped around the board
     ring: np.ndarray
     gidx: np.ndarray  # index into the concatenation of the scans
+    scan: np.ndarray  # which scan
 
 
 def _unwrap(az: np.ndarray, c: float) -> np.ndarray:
@@ -95,8 +107,9 @@ def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
         c = float(np.angle(np.mean(np.exp(1j * az_b))))
         rel_b = _unwrap(az_b, c)
         # wide enough for the whole board even if only part of it returned (a dark patch, an
-        # occluder): the rectangle must not extend where no ray was looked at
-        margin = board.width / max(float(np.median(s.distance[g.board])), 0.5)
+        # occluder), at any in-plane rotation: the rectangle must not extend where no ray was
+        # looked at
+        margin = board.diagonal / max(float(np.median(s.distance[g.board])), 0.5)
         lo, hi = rel_b.min() - margin, rel_b.max() + margin
         ring_of_laser = s.lasers.ring_of_laser
         rings = ring_of_laser[s.laser_id[g.board]]
@@ -109,32 +122,95 @@ def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
         idx = idx[win]
         sub = s.select(idx)
         parts.append((sub.origins(), sub.directions(), sub.distance, sub.laser_id,
-                      rel[win] + c, sub.ring, idx + offset))
+                      rel[win] + c, sub.ring, idx + offset, np.full(len(idx), len(parts))))
         offset += len(s)
     cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
     rays = _Rays(*cat)
     x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
-    keep = (lam > 0) & (np.abs(x) < board.width / 2 + WINDOW) & \
-        (np.abs(z) < board.height / 2 + WINDOW_Z)
+    spacing = float(np.max(np.diff(np.sort(scans[0].lasers.elevation))))
+    win = max(WINDOW, WINDOW_RINGS * _ring_spacing(theta, spacing))
+    keep = (lam > 0) & (np.abs(x) < board.width / 2 + win) & (np.abs(z) < board.height / 2 + win)
     return _Rays(*(a[keep] for a in cat))
 
 
-def _labels(rays: _Rays, lam: np.ndarray) -> np.ndarray:
-    """1 hit on the board, 0 miss (no return or far behind), -1 unknown (something in front)."""
+def _ring_spacing(theta: np.ndarray, spacing: float) -> float:
+    """How far apart on the board two rings ``spacing`` (rad) apart cross its centre, m: the
+    range times the spacing, stretched where the board is tilted away from the rays."""
+    r = rotation(theta[3], theta[4], theta[5])
+    n, d = r[1], -theta[1]
+    u = -r.T @ theta[:3]  # the board's centre in {L}
+    u /= np.linalg.norm(u)
+    up = np.array([0.0, 0.0, 1.0]) - u[2] * u
+    up /= max(float(np.linalg.norm(up)), 1e-9)
+    p = [(d / float(v @ n)) * v for v in (u + 0.5 * spacing * up, u - 0.5 * spacing * up)]
+    return float(np.linalg.norm(p[0] - p[1]))
+
+
+#: Labels: a hit on the board, a miss (no return, or one far behind), unknown (a return in front:
+#: an occluder), and a dropout (no return where the board's own dropouts show that no return
+#: does not mean no board: a dark square of a printed pattern).
+HIT, MISS, UNKNOWN, DROPOUT = 1, 0, -1, -2
+#: The board shows dropouts when more of its rays than this (and at least `MIN_DROPOUTS`) return
+#: nothing although the same laser hits the board on both sides of them.
+DROPOUT_FRACTION = 0.01
+MIN_DROPOUTS = 3
+
+
+def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
+    """`HIT`, `MISS` (no return or far behind), `UNKNOWN` (something in front, or just behind:
+    `FRONT_SIGMAS` of the range noise ``sigma_r``, m) for each ray, and
+    `DROPOUT` for the rays without a return when the board itself drops returns.
+
+    A board is convex, so a laser's rays between two of its hits on the board lie on the board:
+    if such rays return nothing (black squares of a chessboard, on some sensors), then no return
+    is no evidence of a miss anywhere on this board, and every ray without a return is left
+    out. A board that returns everywhere keeps them as misses (they bound it where nothing
+    stands behind it).
+    """
     lab = np.zeros(len(lam), dtype=np.int8)
     ret = rays.distance > 0
     res = rays.distance - lam
-    lab[ret & (np.abs(res) <= LABEL_TOLERANCE)] = 1
-    lab[ret & (res < -LABEL_TOLERANCE)] = -1
+    near = min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
+    lab[ret & (np.abs(res) <= near)] = HIT
+    # in front: something before the board; just behind (beyond the noise, within the label
+    # tolerance): the board's noise or a thing close behind it (a stand's clamp): unknown
+    lab[ret & ((res < -near) | ((res > near) & (res <= LABEL_TOLERANCE)))] = UNKNOWN
+    inner = _between_hits(rays, lab) & ~ret
+    hits = int(np.count_nonzero(lab == HIT))
+    if np.count_nonzero(inner) >= max(MIN_DROPOUTS, DROPOUT_FRACTION * hits):
+        lab[~ret] = DROPOUT
     return lab
 
 
+def _between_hits(rays: _Rays, lab: np.ndarray) -> np.ndarray:
+    """Rays that lie between two hits of the same laser in the same scan (by azimuth)."""
+    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
+    group = np.concatenate(([0], np.cumsum(key[1:] != key[:-1])))
+    is_hit = (lab[order] == HIT).astype(np.int64)
+    cum = np.cumsum(is_hit)
+    first = np.concatenate(([0], np.flatnonzero(key[1:] != key[:-1]) + 1))
+    before = cum - is_hit - (cum[first] - is_hit[first])[group]  # hits before, in the group
+    total = np.bincount(group, is_hit)[group]
+    out = np.zeros(len(lab), dtype=bool)
+    out[order] = (before >= 1) & (total - before - is_hit >= 1)
+    return out
+
+
 def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Hit/miss brackets along each laser: pairs (hit-side ray, miss-side ray) of indices."""
+    """Hit/miss brackets along each laser: pairs (hit-side ray, miss-side ray) of indices.
+
+    Only where a laser enters and leaves the board: the board is convex, so a transition
+    between its first and last hit is not its edge but a dropout or a stray inside it (a black
+    square that ranged wrong). Dropouts are skipped: a bracket spans them (the edge lies
+    anywhere between the hit and the miss).
+    """
     order = np.lexsort((rays.azimuth, rays.laser))
+    order = order[lab[order] != DROPOUT]
     ls, az, lb = rays.laser[order], rays.azimuth[order], lab[order]
     link = (ls[1:] == ls[:-1]) & (np.diff(az) < MAX_GAP) & (lb[1:] >= 0) & (lb[:-1] >= 0)
     trans = np.flatnonzero(link & (lb[1:] != lb[:-1]))
+    first_hit, last_hit = _board_spans(ls, az, lb)
     hits, misses = [], []
     i = 0
     while i < len(trans):
@@ -148,6 +224,9 @@ def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         i = j + 1
         if left == right:
             continue  # in and out again: no net crossing (a grazing ring, a flicker)
+        f, g = first_hit[ls[a]], last_hit[ls[a]]
+        if not (a < f <= b or a <= g < b):
+            continue  # inside the board's span on this laser: not its edge
         z = lb[a:b + 1]
         # split after position s: errors = wrong labels left of it + wrong labels right of it
         wrong_left = np.cumsum(z != left)[:-1]
@@ -161,20 +240,48 @@ def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
 
 
-def _vertical_brackets(rays: _Rays, lab: np.ndarray, x: np.ndarray, x_c: float
-                       ) -> tuple[np.ndarray, np.ndarray]:
-    """Ring-to-ring brackets of the top and bottom edges at the board's central column.
+def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Per laser, the first and last hit (positions in the rays sorted by laser and azimuth) of
+    its longest run of hits, a run ending where the next hit is more than `ZONE_AZIMUTH` away:
+    the board's span on that laser, not a stray beside it (a stand's part within the label
+    tolerance of the plane, on the same ring). -1 for a laser without hits."""
+    n_l = int(ls.max()) + 1 if len(ls) else 0
+    first, last = np.full(n_l, -1), np.full(n_l, -1)
+    pos = np.flatnonzero(lb == HIT)
+    if not len(pos):
+        return first, last
+    new_run = np.concatenate(([True], (ls[pos[1:]] != ls[pos[:-1]])
+                              | (az[pos[1:]] - az[pos[:-1]] > ZONE_AZIMUTH)))
+    run = np.cumsum(new_run) - 1
+    size = np.bincount(run)
+    starts = pos[new_run]
+    ends = pos[np.concatenate((new_run[1:], [True]))]
+    best = np.full(n_l, -1)
+    for r in np.argsort(size, kind="stable"):  # the largest run of each laser written last
+        best[ls[starts[r]]] = r
+    have = best >= 0
+    first[have], last[have] = starts[best[have]], ends[best[have]]
+    return first, last
 
-    For each ring, the ray nearest the column X = x_c; going up from the lowest ring that hits,
-    the first ring that misses brackets the top edge with the ring below it (and likewise down).
-    One bracket per edge for all scans: the rings sit at the same heights in every scan.
+
+def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Ring-to-ring brackets of the edges above and below the board's centre, as the LiDAR sees
+    them (the top and bottom edges of a level board).
+
+    ``off``: each ray's distance from the board's central column, the line through its centre
+    along the LiDAR's up direction. For each ring, the ray nearest that column; going up from
+    the lowest ring that hits, the first ring that misses brackets the edge above with the ring
+    below it (and likewise down). One bracket per edge for all scans: the rings sit at the same
+    heights in every scan.
     """
     rings = np.unique(rays.ring)
     col = {}
     for r in rings:
         m = np.flatnonzero((rays.ring == r) & (lab >= 0))
         if len(m):
-            col[int(r)] = int(m[np.argmin(np.abs(x[m] - x_c))])
+            col[int(r)] = int(m[np.argmin(off[m])])
     hit_rings = [r for r in col if lab[col[r]] == 1]
     hits, misses = [], []
     if not hit_rings:
@@ -210,6 +317,8 @@ class _Model:
         # a ring's height on the board is known less well than a position along it: the beam
         # is 1.5 mrad tall (4 mm at 2.6 m) and the laser's elevation is only nominal
         self.blur_z = max(blur, EDGE_BLUR_Z)
+        # the blur across the side edges and across the top and bottom edges (`set_blur`)
+        self.blur_edges = (blur, self.blur_z)
         self.use_range = np.zeros(len(lab), dtype=bool)
         self._range = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
         self._bh = (rays.origin[bh], rays.direction[bh])
@@ -217,6 +326,7 @@ class _Model:
         self.edge_kind = np.zeros(len(bh), dtype=np.int8)  # 0 skip, 1 vertical edge, 2 horizontal
         self.edge_sign = np.zeros(len(bh))
         self.edge_sd = np.ones(len(bh))
+        self.excluded = np.zeros(len(bh), dtype=bool)  # left out of every fit (gross errors)
         self._cache_edges()
 
     def _cache_edges(self) -> None:
@@ -250,11 +360,26 @@ class _Model:
         makes the cost jump and traps the fit in wrong basins.
         """
         x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
-        kind, sign, sd = self._edges(x[self.bh], z[self.bh], x[self.bm], z[self.bm], guard)
-        if not crossings:  # leave out rings crossing the top or bottom edge (sharp in z)
-            kind = np.where((kind == 2) & (sd < 0.01), 0, kind).astype(np.int8)
+        self.set_blur(theta)
+        xh, zh, xm, zm = x[self.bh], z[self.bh], x[self.bm], z[self.bm]
+        kind, sign, sd = self._edges(xh, zh, xm, zm, guard)
+        if not crossings:
+            # leave out rings that cross an edge at a grazing angle (a level board's top or
+            # bottom edge): such a bracket is sharp across its edge, and wrong if matched to
+            # the wrong edge
+            across = np.abs(np.where(kind == 1, xm - xh, zm - zh))
+            along = np.abs(np.where(kind == 1, zm - zh, xm - xh))
+            kind = np.where((kind > 0) & (across < GRAZING * along), 0, kind).astype(np.int8)
+        kind = np.where(self.excluded, 0, kind).astype(np.int8)
         self.edge_kind, self.edge_sign, self.edge_sd = kind, sign, sd
         self._cache_edges()
+
+    def set_blur(self, theta: np.ndarray) -> None:
+        """The blur across each pair of edges at pose ``theta``: along the rings ``blur``,
+        across them (the LiDAR's up direction) ``blur_z``, mixed by the edge's direction."""
+        vx, vz = lidar_up(theta)
+        self.blur_edges = (float(np.hypot(self.blur * vz, self.blur_z * vx)),
+                           float(np.hypot(self.blur * vx, self.blur_z * vz)))
 
     def _edges(self, xh, zh, xm, zm, guard: float = 0.0):
         """Edge kind (1 side, 2 top or bottom, 0 left out), sign and sigma (m) of brackets.
@@ -273,7 +398,7 @@ class _Model:
         # the sign of its tiny height change says nothing)
         sign = np.where(vert, np.sign(xm), np.sign(zm))
         width = np.where(vert, dx, dz)
-        sd = np.sqrt(width**2 / 12 + np.where(vert, self.blur, self.blur_z) ** 2)
+        sd = np.sqrt(width**2 / 12 + np.where(vert, *self.blur_edges) ** 2)
         return kind, sign, sd
 
     def _width(self, theta: np.ndarray) -> np.ndarray:
@@ -281,39 +406,62 @@ class _Model:
         x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
         return np.where(self.edge_kind == 1, x[self.bm] - x[self.bh], z[self.bm] - z[self.bh])
 
-    def profile_z(self, theta: np.ndarray, dz: np.ndarray, tol: float = 3e-3) -> np.ndarray:
-        """A cost for the pose shifted by each of ``dz`` in z (m): label violations first.
+    def profile(self, theta: np.ndarray, ds: np.ndarray, tol: float = 3e-3) -> np.ndarray:
+        """A cost for the pose shifted by each of ``ds`` (m) along the LiDAR's up direction in
+        the plane (`lidar_up`: z for a level board): label violations first.
 
-        A z shift moves every board coordinate Z by the same amount and leaves the ranges
-        alone, so the profile is cheap. The cost counts hits outside the rectangle and misses
-        inside it (more than ``tol`` from its edge), then adds the brackets' squared
-        residuals with their edges reassigned for each shift.
+        The shift moves every board coordinate by the same amount and leaves the ranges alone,
+        so the profile is cheap. The cost counts hits outside the rectangle and misses inside it
+        (more than ``tol`` from its edge), then adds the brackets' squared residuals with their
+        edges reassigned for each shift.
         """
         x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        vx, vz = lidar_up(theta)
         w2, h2 = self.board.width / 2, self.board.height / 2
-        hit, miss = self.lab == 1, self.lab == 0
-        n = len(dz)
+        hit, miss = self.lab == HIT, self.lab == MISS
+        n = len(ds)
 
         def count_in(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
             """For each shift, how many intervals (lo, hi) contain it (interval counting)."""
-            a = np.searchsorted(dz, lo, side="right")
-            b = np.searchsorted(dz, hi, side="left")
+            a = np.searchsorted(ds, lo, side="right")
+            b = np.searchsorted(ds, hi, side="left")
             c = np.bincount(a, minlength=n + 1) - np.bincount(np.maximum(b, a), minlength=n + 1)
             return np.cumsum(c)[:n]
 
-        # a hit violates when |z + s| > h2 + tol (or it is outside in x at any shift); a miss
-        # within the side edges violates when |z + s| < h2 - tol
-        zh = z[hit & (np.abs(x) <= w2 + tol)]
-        viol = np.count_nonzero(hit & (np.abs(x) > w2 + tol)) + len(zh) - count_in(
-            -h2 - tol - zh, h2 + tol - zh)
-        zm = z[miss & (np.abs(x) < w2 - tol)]
-        viol = viol + count_in(-h2 + tol - zm, h2 - tol - zm)
-        xh, xm = x[self.bh][:, None], x[self.bm][:, None]
-        zh, zm = z[self.bh][:, None] + dz[None, :], z[self.bm][:, None] + dz[None, :]
+        def inside(c: np.ndarray, v: float, half: float) -> tuple[np.ndarray, np.ndarray]:
+            """The shifts s with |c + s v| < half, as intervals (empty where none)."""
+            if abs(v) < 1e-12:
+                full = np.abs(c) < half
+                return np.where(full, -np.inf, np.inf), np.where(full, np.inf, -np.inf)
+            a, b = (-half - c) / v, (half - c) / v
+            return np.minimum(a, b), np.maximum(a, b)
+
+        def both(xs, zs, grow):
+            lo1, hi1 = inside(xs, vx, w2 + grow)
+            lo2, hi2 = inside(zs, vz, h2 + grow)
+            return np.maximum(lo1, lo2), np.minimum(hi1, hi2)
+
+        # a hit violates outside the rectangle grown by tol; a miss inside it shrunk by tol
+        lo, hi = both(x[hit], z[hit], tol)
+        viol = np.count_nonzero(hit) - count_in(lo, hi)
+        lo, hi = both(x[miss], z[miss], -tol)
+        viol = viol + count_in(lo, hi)
+        sh = ds[None, :]
+        xh, xm = x[self.bh][:, None] + sh * vx, x[self.bm][:, None] + sh * vx
+        zh, zm = z[self.bh][:, None] + sh * vz, z[self.bm][:, None] + sh * vz
         kind, sign, sd = self._edges(xh, zh, xm, zm)
         e = np.where(kind == 1, sign * w2 - 0.5 * (xh + xm), sign * h2 - 0.5 * (zh + zm))
         cost = np.sum(np.where(kind > 0, (e / sd) ** 2, 0.0), axis=0)
         return 1e6 * viol + cost
+
+    def shift(self, theta: np.ndarray, ds: np.ndarray) -> np.ndarray:
+        """``theta`` moved to the cheapest shift of `profile` over ``ds``."""
+        s = float(ds[np.argmin(self.profile(theta, ds))])
+        vx, vz = lidar_up(theta)
+        out = theta.copy()
+        out[0] += s * vx
+        out[2] += s * vz
+        return out
 
     def residuals(self, theta: np.ndarray) -> np.ndarray:
         """Whitened residuals: ranges of the interior hits, then the used brackets."""
@@ -406,55 +554,38 @@ def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
     return theta, j, converged, it
 
 
-def _initial_roll(x: np.ndarray, z: np.ndarray, ring: np.ndarray) -> float:
-    """Roll from the leftmost and rightmost return of each ring (Theil-Sen, both sides).
-
-    ``x``, ``z``: board coordinates computed with roll 0. A ring that crosses the top or bottom
-    edge ends on that edge rather than on a side, so its extremes sit inside the side edges:
-    the median of pairwise slopes over rings within 25 mm of the widest ring resists them. A
-    positive roll leans the side edges so that X grows downwards (dX/dZ = -tan roll).
-    """
-    zs, xl, xr = [], [], []
-    for r in np.unique(ring):
-        m = ring == r
-        if m.sum() >= 3:
-            zs.append(np.median(z[m]))
-            xl.append(x[m].min())
-            xr.append(x[m].max())
-    if len(zs) < 2:
-        return 0.0
-    zs, xl, xr = np.array(zs), np.array(xl), np.array(xr)
-    slopes = []
-    for xs in (xl, xr):
-        edge = np.abs(xs - np.median(xs))
-        full = np.flatnonzero(edge <= np.sort(edge)[min(1, len(edge) - 1)] + 0.025)
-        for i in full:
-            for k in full:
-                if zs[k] - zs[i] > 0.05:
-                    slopes.append((xs[k] - xs[i]) / (zs[k] - zs[i]))
-    if not slopes:
-        return 0.0
-    return float(-np.arctan(np.median(slopes)))
+#: A bracket whose whitened residual exceeds this is a gross error (`_gross_brackets`).
+GROSS = 8.0
 
 
-def _staged_fit(model: _Model, theta: np.ndarray, dz: np.ndarray
+def _gross_brackets(model: _Model, theta: np.ndarray) -> np.ndarray:
+    """The brackets (a mask over all of the model's) the fit at ``theta`` misses by more than
+    `GROSS` sigma."""
+    f = model.residuals(theta)
+    out = np.zeros(len(model.bh), dtype=bool)
+    out[np.flatnonzero(model.edge_kind > 0)[np.abs(f[len(model._range[0]):]) > GROSS]] = True
+    return out
+
+
+def _staged_fit(model: _Model, theta: np.ndarray, ds: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, bool, int, float]:
     """Fit in stages; returns (theta, J, converged, iterations, chi2 per degree of freedom).
 
-    First without the top/bottom crossings: roll and x from the side edges alone, so that a
-    poor start cannot lock z and roll into a wrong pair of crossings; then with them, the
-    bracket assignment redone with a tighter corner guard; a z profile after each stage, and a
-    last fit if that profile moved z.
+    First without the grazing crossings (rings crossing a level board's top or bottom edge):
+    roll and x from the edges the rings cross steeply, so that a poor start cannot lock z and
+    roll into a wrong pair of crossings; then with them, the bracket assignment redone with a
+    tighter corner guard; a profile across the rings (`_Model.profile`) after each stage, and
+    a last fit if that profile moved the rectangle.
     """
     iters = 0
     for guard, crossings in ((0.005, False), (0.002, True)):
         model.classify(theta, guard, crossings)
         theta, j, conv, it = _gauss_newton(model, theta)
         iters += it
-        theta = theta.copy()
-        shift = dz[np.argmin(model.profile_z(theta, dz))]
-        theta[2] += shift
-    if abs(shift) > 0.0015:  # the profile moved z by more than its 1 mm grid: refit
+        moved = model.shift(theta, ds)
+        shift = float(np.hypot(moved[0] - theta[0], moved[2] - theta[2]))
+        theta = moved
+    if shift > 0.0015:  # the profile moved the rectangle by more than its 1 mm grid: refit
         model.classify(theta, 0.002, True)
         theta, j, conv, it = _gauss_newton(model, theta)
         iters += it
@@ -463,11 +594,12 @@ def _staged_fit(model: _Model, theta: np.ndarray, dz: np.ndarray
 
 
 def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
-                ) -> LabelledRays:
+                ) -> tuple[LabelledRays, np.ndarray]:
     """The rays that carry edge information, for `align.label_posterior`. Misses well inside
     and hits well outside the rectangle at ``theta`` are left out (dropouts, strays). A hit may
     lie up to ``tolerance`` (rad seen from the LiDAR: across the side edges, across the top and
-    bottom edges) outside the rectangle and a miss as far inside it (`Hints.edge_tolerance`)."""
+    bottom edges) outside the rectangle and a miss as far inside it (`Hints.edge_tolerance`).
+    Also returns the rays' indices in the model's."""
     rays, board = model.rays, model.board
     x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
     lab = model.lab
@@ -483,17 +615,45 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     ext = board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
                                                              -ratio_z)))
     lab = lab[use]
-    per_edge = np.repeat(np.asarray(tolerance, dtype=float), 2)  # left, right, bottom, top
+    # the tolerance across each edge as the beam's footprint allows it: the support of the
+    # ellipse with half-axes (side, top/bottom tolerance) along the LiDAR's horizontal and up
+    # directions, in the edge's normal direction (a level board: the tolerances as given)
+    vx, vz = lidar_up(theta)
+    t_h, t_v = tolerance
+    per_x, per_z = np.hypot(t_h * vz, t_v * vx), np.hypot(t_h * vx, t_v * vz)
+    per_edge = np.array([per_x, per_x, per_z, per_z])  # left, right, bottom, top
     ext += (lam[use] * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
-    return LabelledRays(rays.origin[use], u, lab, ext)
+    return LabelledRays(rays.origin[use], u, lab, ext), np.flatnonzero(use)
+
+
+#: Labels the pose of the least-squares fit violates by more than this (m) may be strays (the
+#: stand beside a rolled board: 2-3 cm; a real scan's edge hits, 3-10 mm outside with a 3 cm range
+#: offset, are not) ...
+STRAY_VIOLATION = 0.01
+#: ... and at most this many of them (or this fraction of the labels) are dropped, in at most
+#: this many rounds (each refits without the last round's).
+MAX_STRAYS = 16
+MAX_STRAY_FRACTION = 0.01
+STRAY_ROUNDS = 3
+
+
+def _violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.ndarray:
+    """How far each hit lies outside the rectangle at ``theta``, and each miss inside it (m;
+    0 where the label holds)."""
+    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+    w2, h2, e = board.width / 2, board.height / 2, rays.ext
+    out = np.max(np.column_stack((-w2 - e[:, 0] - x, x - w2 - e[:, 1], -h2 - e[:, 2] - z,
+                                  z - h2 - e[:, 3])), axis=1)  # > 0 outside
+    return np.where(rays.label == HIT, np.maximum(out, 0.0), np.maximum(-out, 0.0))
 
 
 def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
                  sigma_r: float, blur: float) -> _Model:
     """Brackets along the rings and between rings at the board's centre column, as a model."""
-    x, _, _ = board_coordinates(theta, rays.origin, rays.direction)
+    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+    vx, vz = lidar_up(theta)
     bh, bm = _brackets(rays, lab)
-    vh, vm = _vertical_brackets(rays, lab, x, 0.0)
+    vh, vm = _vertical_brackets(rays, lab, np.abs(vz * x - vx * z))
     return _Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
                   sigma_r, blur)
 
@@ -509,6 +669,109 @@ TRIMMED_VARIANCE = 1.0 - 2.0 * TRIM * math.exp(-TRIM**2 / 2) / math.sqrt(2 * mat
 #: The least range noise assumed, m: a noise-free simulation (or one return per ring) still gets
 #: a plane of finite uncertainty.
 RANGE_SIGMA_FLOOR = 1e-3
+
+
+@dataclass
+class _Fit:
+    """The least-squares fit from one start pose."""
+
+    theta: np.ndarray
+    j: np.ndarray
+    conv: bool
+    iters: int
+    chi2: float
+    model: _Model
+    rings: np.ndarray  # the rings with hits
+    violations: int  # labels it contradicts by more than 1 cm (`_contradicted`)
+
+
+def _roll_window(board: BoardSpec, hints: Hints) -> tuple[float, float]:
+    """The rolls searched for a start (rad): the whole symmetry range, or the prior's."""
+    lo, hi = symmetry.roll_range(board)
+    if hints.roll_prior is None:
+        return lo, hi
+    centre, sd = hints.roll_prior
+    half = min(PRIOR_REACH * sd + np.deg2rad(1.0), 0.5 * (hi - lo))
+    return centre - half, centre + half
+
+
+#: A roll prior narrows the search to this many standard deviations either side.
+PRIOR_REACH = 4.0
+#: The profile across the rings reaches at least this many ring spacings (on the board) either
+#: side, and a hit is a stray at least this many of them outside the start rectangle.
+PROFILE_SPACINGS = 0.6
+STRAY_SPACINGS = 0.4
+
+
+def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: BoardSpec,
+         sigma_r: float, hints: Hints, ds: np.ndarray) -> _Fit | None:
+    """The joint least-squares fit from the start pose ``theta``; None: fewer than 3 rings hit.
+
+    The position across the rings is the weakly known one (rings are 2 deg apart) and a ring
+    that crosses an edge at a grazing angle pins it down sharply, but only once its bracket is
+    matched to the right edge. So: profile across the rings over more than a ring spacing
+    (label violations first); then returns far outside the rectangle are not the board (the
+    stand's base is level with the plane a ring or two below it): mark them unknown and rebuild
+    the brackets; profile again; fix the bracket assignments leaving out those at corners, fit;
+    reassign tighter, refit (`_staged_fit`).
+    """
+    rays = _candidates(scans, segs, theta, board)
+    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    lab = _labels(rays, lam, sigma_r)
+    rings_hit = np.unique(rays.ring[lab == HIT])
+    if len(rings_hit) < 3:
+        return None
+    # the profile and the stray margin grow with the rings' spacing on the board: the start
+    # can be off by half of it (a far board, one tilted away)
+    spacing = _ring_spacing(theta, float(np.max(np.diff(np.sort(scans[0].lasers.elevation)))))
+    reach = max(float(ds[-1]), PROFILE_SPACINGS * spacing)
+    ds = np.arange(-reach, reach + 0.5e-3, 1e-3)
+    stray_margin = max(STRAY, STRAY_SPACINGS * spacing)
+    model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur)
+    theta = model.shift(theta, ds)
+    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+    stray = (lab == HIT) & ((np.abs(x) > board.width / 2 + stray_margin) |
+                            (np.abs(z) > board.height / 2 + stray_margin))
+    if np.any(stray):
+        lab = lab.copy()
+        lab[stray] = UNKNOWN
+        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur)
+        theta = model.shift(theta, ds)
+    theta, j, conv, iters, chi2 = _staged_fit(model, theta, ds)
+    for _ in range(2):
+        # a bracket the fit misses by many sigma is not the board's edge: a stray's (a post
+        # just behind the board's edge, within the label tolerance of its plane, on a ring
+        # that never crosses the board): left out of the fit, which is redone. The labels stay
+        # (the hit/miss posterior judges them).
+        gross = _gross_brackets(model, theta)
+        if not np.any(gross):
+            break
+        model.excluded |= gross
+        theta, j, conv, it, chi2 = _staged_fit(model, theta, ds)
+        iters += it
+    if chi2 > 1.5:
+        # a misfit (roll started too far off and a pair of grazing crossings held it there):
+        # restart from other rolls and keep the best
+        for droll in np.deg2rad([-2.0, -1.0, 1.0, 2.0]):
+            start = theta.copy()
+            start[3] += droll
+            cand = _staged_fit(model, start, ds)
+            if cand[4] < chi2:
+                theta, j, conv, it, chi2 = cand
+                iters += it
+        model.classify(theta, 0.002, True)  # the state of the kept fit, for the diagnostics
+        model.assign(theta)
+    return _Fit(theta, j, conv, iters, chi2, model, rings_hit, _contradicted(model, theta))
+
+
+def _contradicted(model: _Model, theta: np.ndarray, margin: float = 0.01) -> int:
+    """How many hits lie outside the rectangle at ``theta`` and misses inside it, by more than
+    ``margin`` (m)."""
+    x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
+    w2, h2 = model.board.width / 2, model.board.height / 2
+    out = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
+    deep = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
+    return int(np.sum((model.lab == HIT) & out) + np.sum((model.lab == MISS) & deep))
 
 
 def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
@@ -547,66 +810,61 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     ml_plane = (n, d, c_plane * (sigma_r / sigma) ** 2)
     t_plane = time.perf_counter()
 
-    # initial pose: the plane; roll from the cluster's side edges; centred on the cluster
-    ring_all = ring_all[keep]
-    o_k, u_k = o_all[keep], u_all[keep]
-    theta = pose_from_plane(n, d, 0.0)
-    x, z, _ = board_coordinates(theta, o_k, u_k)
-    theta = pose_from_plane(n, d, _initial_roll(x, z, ring_all))
-    x, z, _ = board_coordinates(theta, o_k, u_k)
-    # x, z shift the rays' board coordinates one for one (the plane does not depend on them)
-    theta[0] -= 0.5 * (x.max() + x.min())
-    theta[2] -= 0.5 * (z.max() + z.min())
-    rays = _candidates(scans, segs, theta, board)
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
-    lab = _labels(rays, lam)
-    hit = lab == 1
-    rings_hit = np.unique(rays.ring[hit])
-    if len(rings_hit) < 3:
-        return PoseEstimate.failed(Status.TOO_FEW_RINGS, "rays", rings=len(rings_hit),
-                                   reason=f"the board spans {len(rings_hit)} rings; 3 needed")
-
-    dz = np.arange(-0.06, 0.0605, 0.001)
-    model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur)
-    # z is the weakly known coordinate (rings are 2 deg apart) and a ring that crosses the top or
-    # bottom edge pins it down sharply, but only once its bracket is matched to the right edge.
-    # So: profile z over more than a ring spacing (label violations first); then returns far
-    # outside the rectangle are not the board (the stand's base is level with the plane a ring
-    # or two below it): mark them unknown and rebuild the brackets; profile again; fix the
-    # bracket assignments leaving out those at corners, fit; reassign tighter, refit.
-    theta[2] += dz[np.argmin(model.profile_z(theta, dz))]
-    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
-    stray = (lab == 1) & ((np.abs(x) > board.width / 2 + STRAY) |
-                          (np.abs(z) > board.height / 2 + STRAY))
-    if np.any(stray):
-        lab = lab.copy()
-        lab[stray] = -1
-        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur)
-        theta[2] += dz[np.argmin(model.profile_z(theta, dz))]
-    iters = 0
-    theta, j, conv, iters, chi2 = _staged_fit(model, theta, dz)
-    if chi2 > 1.5:
-        # a misfit (roll started too far off and a pair of top/bottom crossings held it there):
-        # restart from other rolls and keep the best
-        for droll in np.deg2rad([-2.0, -1.0, 1.0, 2.0]):
-            start = theta.copy()
-            start[3] += droll
-            cand = _staged_fit(model, start, dz)
-            if cand[4] < chi2:
-                theta, j, conv, it, chi2 = cand
-                iters += it
-        model.classify(theta, 0.002, True)  # the state of the kept fit, for the diagnostics
-        model.assign(theta)
-    cov = np.linalg.pinv(j.T @ j)
-    post = label_posterior(_ray_points(model, theta, hints.edge_tolerance), board, theta,
-                           float(np.sqrt(max(cov[3, 3], 0.0))), ml_plane, len(scans), rng)
+    # start poses: the plane at the rolls where the board's returns fit the rectangle, found
+    # over the whole symmetry range (or the prior's), each centred on the returns
+    first = keep.copy()
+    first[len(o_l[0]):] = False  # the first scan's returns are enough to find the roll
+    o_k, u_k = o_all[first], u_all[first]
+    lam_k = (d - o_k @ n) / (u_k @ n)
+    starts = roll_search.search(o_k + lam_k[:, None] * u_k, n, board, *_roll_window(board, hints),
+                                period=symmetry.period(board))
+    ds = np.arange(-0.06, 0.0605, 0.001)
+    best = None
+    for st in starts:
+        theta = pose_from_plane(n, d, st.roll)
+        theta[0], theta[2] = st.t_x, st.t_z
+        fit = _fit(scans, segs, theta, board, sigma_r, hints, ds)
+        # the start whose fit contradicts the fewest labels wins (the chi2 of a fit that had
+        # to leave its brackets out says little), then the lower chi2
+        if fit is not None and (best is None or (fit.violations, fit.chi2) <
+                                (best.violations, best.chi2)):
+            best = fit
+    if best is None:
+        return PoseEstimate.failed(Status.TOO_FEW_RINGS, "rays", rings=0,
+                                   reason="the board spans fewer than 3 rings; 3 needed")
+    theta, j, conv, iters, model = best.theta, best.j, best.conv, best.iters, best.model
+    rings_hit = best.rings
+    # the hit/miss posterior. Where a few labels make it empty (returns near the board's plane
+    # from something beside it: the stand's base at a corner of a rolled board, a hand; a
+    # dropout at an edge), the labels the least-squares pose violates are left out (unknown),
+    # the fit redone without them and the posterior tried again
+    dropped = 0
+    for _ in range(STRAY_ROUNDS):
+        cov = np.linalg.pinv(j.T @ j)
+        labelled, idx = _ray_points(model, theta, hints.edge_tolerance)
+        post = label_posterior(labelled, board, theta, float(np.sqrt(max(cov[3, 3], 0.0))),
+                               ml_plane, len(scans), rng, hints.roll_prior)
+        if post is not None:
+            break
+        bad = idx[_violation(labelled, board, theta) > STRAY_VIOLATION]
+        limit = max(MAX_STRAYS, MAX_STRAY_FRACTION * len(idx))
+        if len(bad) == 0 or dropped + len(bad) > limit:
+            break
+        dropped += len(bad)
+        lab = model.lab.copy()
+        lab[bad] = UNKNOWN
+        model = _build_model(model.rays, lab, theta, board, sigma_r, hints.edge_blur)
+        theta, j, conv, it, _ = _staged_fit(model, theta, ds)
+        iters += it
+    rays, lab = model.rays, model.lab
+    hit = lab == HIT
     if post is not None:
         theta, cov = post
         model.classify(theta, 0.002, True)  # the diagnostics below describe this pose
         model.assign(theta)
     t_fit = time.perf_counter()
 
-    # what was seen: both side edges on at least two rings, nothing in front of the board
+    # what was seen: every edge, nothing in front of the board
     x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
     k, sgn = model.edge_kind, model.edge_sign
     n_left = int(np.sum((k == 1) & (sgn < 0)))
@@ -614,36 +872,72 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     n_top = int(np.sum((k == 2) & (sgn > 0)))
     n_bottom = int(np.sum((k == 2) & (sgn < 0)))
     w2, h2 = board.width / 2, board.height / 2
+    seen = _edges_seen(x, z, lab, board)
     inside = (np.abs(x) < w2) & (np.abs(z) < h2)
-    occluded = int(np.sum(inside & (lab == -1)))
+    # blocked: a return in front of the board where the board is (not a stray left out)
+    front = min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
+    occluded = int(np.sum(inside & (rays.distance > 0) & (rays.distance - lam < -front)))
+    dropouts = int(np.sum(inside & (lab == DROPOUT)))
     inside_miss = int(np.sum(inside & (np.abs(x) < w2 - 0.02) & (np.abs(z) < h2 - 0.02) &
-                             (lab == 0)))
+                             (lab == MISS)))
     diag = {
         "rings": len(rings_hit), "rays": len(lab), "hits": int(hit.sum()),
         "range_residuals": int(model.use_range.sum()), "brackets": int(np.sum(k > 0)),
         "edges_left": n_left, "edges_right": n_right, "edges_top": n_top,
         "edges_bottom": n_bottom, "occluded_rays": occluded, "inside_misses": inside_miss,
+        "dropouts": dropouts, "starts": len(starts), "strays_dropped": dropped,
+        "label_posterior": post is not None,
+        "in_plane_rotation_rad": in_plane_rotation(theta),
         "range_sigma_m": sigma_r, "iterations": iters,
         "chi2_per_dof": float(np.sum(model.residuals(theta) ** 2) / max(len(j) - 6, 1)),
     }
-    outside_hits = int(np.sum((lab == 1) & ((np.abs(x) > w2 + 0.02) | (np.abs(z) > h2 + 0.02))))
+    outside_hits = int(np.sum((lab == HIT) & ((np.abs(x) > w2 + 0.02) |
+                                              (np.abs(z) > h2 + 0.02))))
     diag["outside_hits"] = outside_hits
     status = Status.OK
     n_inside = max(int(np.sum(inside)), 1)
     n_hit = max(int(hit.sum()), 1)
-    if (n_left < 2 or n_right < 2 or occluded > 0.03 * n_inside or inside_miss > 0.03 * n_inside
+    diag["edges_seen"] = "".join("lrbt"[i] for i in range(4) if seen[i])
+    if (not all(seen) or int(np.sum(k > 0)) < MIN_BRACKETS
+            or occluded > 0.03 * n_inside or inside_miss > 0.03 * n_inside
             or outside_hits > 0.03 * n_hit or diag["chi2_per_dof"] > 3.0
             or model.use_range.sum() < 0.5 * n_hit):
         # the known rectangle does not explain what was seen: part of the board is hidden,
         # dark or outside the field of view (or something board-like is not the board)
         status = Status.PARTIAL_BOARD
-        diag["reason"] = ("the board's rectangle is not fully seen: side edges on "
-                          f"{n_left}/{n_right} rings, {occluded} rays blocked in front, "
-                          f"{inside_miss} misses inside, {outside_hits} hits outside, "
+        missing = "/".join(n for n, ok in zip(("left", "right", "bottom", "top"), seen,
+                                              strict=True) if not ok)
+        diag["reason"] = ("the board's rectangle is not fully seen: "
+                          + (f"nothing seen beyond its {missing} edge, " if missing else "")
+                          + f"{int(np.sum(k > 0))} edge brackets (left/right/bottom/top "
+                          f"{n_left}/{n_right}/{n_bottom}/{n_top}), {occluded} rays blocked in "
+                          f"front, {inside_miss} misses inside, {outside_hits} hits outside, "
                           f"chi2/dof {diag['chi2_per_dof']:.1f}")
     elif not conv:
         status = Status.NOT_CONVERGED
     used = {"board": rays.gidx[model.use_range],
             "features": np.stack((rays.gidx[model.bh[k > 0]], rays.gidx[model.bm[k > 0]]), axis=1)}
     timings = {"plane": t_plane - t0, "fit": t_fit - t_plane}
+    theta, cov = symmetry.canonical(theta, board, cov)
     return PoseEstimate(status, "rays", Pose.from_array(theta), cov, diag, used, timings)
+
+
+#: At least this many hit/miss brackets (3 in-plane unknowns: roll, x, z, and one to spare).
+MIN_BRACKETS = 4
+
+
+def _edges_seen(x: np.ndarray, z: np.ndarray, lab: np.ndarray, board: BoardSpec
+                ) -> tuple[bool, bool, bool, bool]:
+    """Whether the LiDAR looked beyond each edge (left, right, bottom, top) and saw no board
+    there: a miss just outside it (within `WINDOW`), alongside it. An edge beyond the field of
+    view, behind an occluder or on a dark patch that returns nothing has none: the rectangle
+    could extend there, so the board is not wholly seen."""
+    w2, h2 = board.width / 2, board.height / 2
+    miss = lab == MISS
+    along_x, along_z = np.abs(z) <= h2, np.abs(x) <= w2
+    out = []
+    for c, half, along, side in ((x, w2, along_x, -1), (x, w2, along_x, 1),
+                                 (z, h2, along_z, -1), (z, h2, along_z, 1)):
+        beyond = (side * c > half) & (side * c < half + WINDOW)
+        out.append(bool(np.any(miss & along & beyond)))
+    return tuple(out)

@@ -50,6 +50,11 @@ class Hints:
     #: the edge; 0.5 mrad is the most its beam allows there (a third of the divergence). (0, 0)
     #: for a sharp beam (a twin without beam divergence).
     edge_tolerance: tuple[float, float] = (0.08e-3, 0.5e-3)
+    #: Prior on the LiDAR's roll in the board frame, (mean, 1-sigma), rad, or None: the board's
+    #: in-plane rotation is then found over the whole range (-90, 90] deg. A board hung turned
+    #: by a about its normal (clockwise as the LiDAR sees it) puts a level LiDAR's roll at -a.
+    #: The search and the posterior use it.
+    roll_prior: tuple[float, float] | None = None
     #: Seed for the randomised parts (RANSAC; the hit/miss posterior's fallbacks).
     seed: int = 0
 

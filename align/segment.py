@@ -33,6 +33,22 @@ CLUSTER_RADIUS_MIN = 0.05
 MAX_AZIMUTH_GAP = np.deg2rad(1.0)
 #: A run along a ring longer than this many board diagonals is floor or wall, never the board.
 LONG_RUN = 1.5
+#: Returns of a laser join across firings without a return over at most this fraction of the
+#: board's smaller side (m): a printed pattern's dark squares that drop out (a chessboard's
+#: squares are a fifth of the board or less).
+BRIDGE = 0.25
+#: Returns on adjacent rings join when closer than this many ring spacings (times their range),
+#: if that is more than `CLUSTER_RADIUS_PER_M`: a board turned or tilted by 60 deg puts its
+#: rings 1 / cos 60 = 2 spacings apart along it (2.5 spacings: up to 66 deg).
+RING_RADIUS_SPACINGS = 2.5
+
+
+def ring_radius_scale(scan: Scan) -> float:
+    """The cross-ring join threshold over the along-ring one (at least 1): `RING_RADIUS_SPACINGS`
+    of the sensor's widest ring spacing against `CLUSTER_RADIUS_PER_M`."""
+    el = np.sort(scan.lasers.elevation)
+    spacing = float(np.max(np.diff(el))) if len(el) > 1 else 0.0
+    return max(1.0, RING_RADIUS_SPACINGS * spacing / CLUSTER_RADIUS_PER_M)
 
 
 @dataclass
@@ -96,8 +112,8 @@ def _union_find(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
     return int(lab.max()) + 1 if n else 0, lab
 
 
-def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagonal: float
-                 ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagonal: float,
+                 short_side: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Cluster labels on the firing grid, and count, mean distance and rings per cluster.
 
     Runs along each laser's ring first (consecutive firings closer than the threshold), then
@@ -112,8 +128,9 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
     dist, az, okg = (a[sl].reshape(m, nl) for a in (scan.distance, scan.azimuth, ok))
     thr = np.maximum(CLUSTER_RADIUS_PER_M * dist, CLUSTER_RADIUS_MIN)
     thr *= thr
+    ring_scale = ring_radius_scale(scan) ** 2
 
-    def close(sa, sb, x=x, y=y, z=z, thr=thr, okg=okg) -> np.ndarray:
+    def close(sa, sb, x=x, y=y, z=z, thr=thr, okg=okg, scale=1.0) -> np.ndarray:
         d2 = x[sa] - x[sb]
         d2 *= d2
         t = y[sa] - y[sb]
@@ -122,44 +139,57 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
         t = z[sa] - z[sb]
         t *= t
         d2 += t
-        c = d2 < np.minimum(thr[sa], thr[sb])
+        c = d2 < scale * np.minimum(thr[sa], thr[sb])
         c &= okg[sa]
         c &= okg[sb]
         return c
 
-    # along each ring: consecutive sequences (a lost firing leaves its neighbours farther apart
-    # than the distance threshold, so no azimuth test is needed)
-    link_h = close(np.s_[:-1], np.s_[1:])  # (m-1, nl)
-    brk = np.ones((nl, m), dtype=bool)  # laser-major: a laser's firings are contiguous
-    brk[:, 1:] = ~link_h.T
+    # along each ring: each return and the laser's next return. Neighbouring firings join when
+    # closer than the threshold; across firings without a return (a dark patch of the board
+    # that drops out: a chessboard's black squares) when nothing else returned in between, the
+    # ranges agree within the threshold and the gap is under `BRIDGE` of the board's smaller
+    # side (a lost firing is not a gap in the surface). Laser-major order: a laser's firings
+    # are contiguous.
     okf = okg.T.ravel()
-    start_flag = brk.ravel() & okf
-    starts = np.flatnonzero(start_flag)
-    n_run = len(starts)
-    if n_run == 0:
+    pos = np.flatnonzero(okf)
+    n_run_max = len(pos)
+    if n_run_max == 0:
         return np.full(len(scan), -1, dtype=np.int64), {
             k: np.zeros(0) for k in ("count", "distance", "rings")}
-    run = (np.cumsum(start_flag) - 1).reshape(nl, m)  # run id of each firing (laser, sequence)
+    xf, yf, zf, df = (a.T.ravel()[pos] for a in (x, y, z, dist))
+    thr_f = thr.T.ravel()[pos]
+    a, b = pos[:-1], pos[1:]
+    d2 = (xf[1:] - xf[:-1]) ** 2 + (yf[1:] - yf[:-1]) ** 2 + (zf[1:] - zf[:-1]) ** 2
+    t2 = np.minimum(thr_f[1:], thr_f[:-1])
+    returned = np.cumsum(dist.T.ravel() > 0)  # returns of any kind up to each firing
+    empty_between = returned[b - 1] - returned[a] == 0
+    bridge2 = max(t2.max(initial=0.0), (BRIDGE * short_side) ** 2)
+    link = (a // m == b // m) & np.where(
+        b - a == 1, d2 < t2,
+        empty_between & ((df[1:] - df[:-1]) ** 2 < t2) & (d2 < np.maximum(t2, bridge2)))
+    start_flag = np.concatenate(([True], ~link))  # per return: does it start a run?
+    run_of = np.cumsum(start_flag) - 1  # run id of each return
+    n_run = int(run_of[-1]) + 1
+    starts = pos[start_flag]
+    ends = pos[np.concatenate((~link, [True]))]
+    run = np.full(nl * m, -1, dtype=np.int64)
+    run[pos] = run_of
+    run = run.reshape(nl, m)  # run id of each firing (laser, sequence); -1 without a return
     # adjacent rings = the lasers of consecutive elevations: column pairs (la, lb)
     laser_of_ring = scan.lasers.laser_of_ring
     la, lb = laser_of_ring[:-1], laser_of_ring[1:]
     # columns in ring order once (one gather per array), then ring neighbours are slices
     lr = laser_of_ring.astype(np.intp)
     lv = close(np.s_[:, :-1], np.s_[:, 1:], x[:, lr], y[:, lr], z[:, lr], thr[:, lr],
-               okg[:, lr])  # (m, nl - 1)
+               okg[:, lr], scale=ring_scale)  # (m, nl - 1)
     ra_l, rb_l = [run[la].T[lv]], [run[lb].T[lv]]
     daz_w = np.abs((az[0] - az[-1] + np.pi) % (2 * np.pi) - np.pi)
     wrap = close(np.s_[-1], np.s_[0]) & (daz_w < MAX_AZIMUTH_GAP)
     ra_l.append(run[:, -1][wrap])
     rb_l.append(run[:, 0][wrap])
     ra, rb = np.concatenate(ra_l), np.concatenate(rb_l)
-    # count and mean distance per run (the sums over [start of a run, start of the next) add
-    # zeros for the firings without a return in between)
-    # a run ends at a return not linked to the next firing of its laser
-    last = okg.T.copy()
-    last[:, :-1] &= ~link_h.T
-    ends = np.flatnonzero(last)
-    sums = (ends - starts + 1).astype(np.float64), np.add.reduceat(dist.T.ravel() * okf, starts)
+    sums = (np.bincount(run_of, minlength=n_run).astype(np.float64),
+            np.bincount(run_of, df, minlength=n_run))
     # a run longer than the board (the floor's ring, a wall) joins nothing: otherwise the board,
     # its stand and the floor ring at the stand's foot chain into one cluster
     laser_s, seq_s = np.divmod(starts, m)
@@ -212,8 +242,8 @@ def _edges_sorted(scan: Scan, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return idx[np.concatenate(a_list)], idx[np.concatenate(b_list)]
 
 
-def cluster(scan: Scan, ok: np.ndarray, board_diagonal: float = np.inf
-            ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+def cluster(scan: Scan, ok: np.ndarray, board_diagonal: float = np.inf,
+            short_side: float = 0.0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Euclidean clusters of the returns where ``ok``: a label per firing, and their statistics.
 
     Statistics per label (count, mean distance and reflectivity, RMS extent, rings) count only
@@ -222,7 +252,7 @@ def cluster(scan: Scan, ok: np.ndarray, board_diagonal: float = np.inf
     n = len(scan)
     grid = _grid(scan)
     if grid is not None:
-        return _labels_grid(scan, grid, ok, board_diagonal)
+        return _labels_grid(scan, grid, ok, board_diagonal, short_side)
     a, b = _edges_sorted(scan, ok)
     g = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
     _, labels = connected_components(g, directed=False)
@@ -250,6 +280,84 @@ def _cluster_stats(scan: Scan, labels: np.ndarray, m: np.ndarray) -> dict[str, n
     return out
 
 
+#: A return within this of a cluster's plane is on it (about 3 sigma of the VLP-16's noise), m.
+FLAT_BAND = 0.04
+#: How hard a cluster's returns outside the board's rectangle, and the rays inside it that
+#: pass the cluster, count against it: 10 % of them cost a factor 0.35, 2 % a factor 0.8.
+HELD_POWER = 10
+#: The rectangle's interior for the fill, m: clear of its edges (mixed returns, the fit).
+FILL_MARGIN = 0.03
+#: The band outside the rectangle whose returns should not lie on its plane, m (from, to), and
+#: how hard they count: a real board's surround, 2-7 % on its plane (a stand, a hand), costs a
+#: factor 0.75-0.9; a wall's piece (40 %) a factor 0.1.
+SURROUND = (0.01, 0.08)
+FREE_POWER = 4
+#: RANSAC hypotheses for a cluster's main plane.
+PLANE_HYPOTHESES = 60
+
+
+def planar_part(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Which of a cluster's returns (N, 3) lie on its main plane (RANSAC, `FLAT_BAND`): a board
+    linked to its stand behind it, or to the floor in front of a tilted board, is split off."""
+    from align.plane import ransac
+
+    if len(points) < 3:
+        return np.zeros(len(points), dtype=bool)
+    return ransac(points, FLAT_BAND, rng, PLANE_HYPOTHESES)[2]
+
+
+def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
+                  ) -> tuple[float, float, float]:
+    """How board-like a flat cluster (the firings ``sel`` of ``scan``) is, three fractions:
+    held, of its returns that the board's rectangle holds at the best in-plane rotation
+    (`align.roll_search`, coarse pass: 1 for the board, less for a larger surface); fill, of
+    the rays inside that rectangle that return from its plane rather than from behind it (1 for
+    the board, less for a smaller object); free, of the returns just outside the rectangle
+    (`SURROUND`) that are not on its plane (1 for a board that stands free, less for a piece of
+    a larger surface that the clustering cut out: a door in a wall). Rays without a return, or
+    with one in front, count for none: a dark patch, an occluder."""
+    from align.feasible import _rows
+    from align.plane import fit_lsq
+    from align.roll_search import COARSE_STEP, TOLERANCE, _left_out, _subsample
+
+    points = scan.xyz[sel]
+    if len(points) < 3:
+        return 0.0, 0.0
+    n, d = fit_lsq(points)
+    p = _subsample(points - (points @ n - d)[:, None] * n, 300)
+    rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
+    grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
+    left, tx, tz = _left_out(p, n, board, rolls, grow)
+    best = int(np.argmin(left))
+    held = float(1.0 - left[best] / (2 * len(p)))
+    # the rays around the cluster (its rings, its azimuths and a board's width more)
+    ring = scan.ring
+    az0 = float(np.angle(np.mean(np.exp(1j * scan.azimuth[sel]))))
+    rel = _unwrap(scan.azimuth, az0)
+    span = np.abs(_unwrap(scan.azimuth[sel], az0)).max() + board.diagonal / max(d, 0.5)
+    near = np.flatnonzero((np.abs(rel) <= span) & (ring >= ring[sel].min())
+                          & (ring <= ring[sel].max()))
+    u, o = scan.directions()[near], scan.origins()[near]
+    un = u @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (d - o @ n) / un
+    q = o + lam[:, None] * u
+    r0, r2 = _rows(rolls[best:best + 1], n)
+    x, z = q @ r0[0] + tx[best], q @ r2[0] + tz[best]
+    inside = (lam > 0) & (np.abs(x) < board.width / 2 - FILL_MARGIN) & (
+        np.abs(z) < board.height / 2 - FILL_MARGIN)
+    dist = scan.distance[near]
+    ret = (lam > 0) & (dist > 0)
+    on_plane = ret & (np.abs(dist - lam) <= FLAT_BAND)
+    n_on, n_behind = int(np.sum(inside & on_plane)), int(np.sum(inside & ret & (dist - lam
+                                                                              > FLAT_BAND)))
+    fill = n_on / (n_on + n_behind) if n_on + n_behind else 0.0
+    beyond = np.maximum(np.abs(x) - board.width / 2, np.abs(z) - board.height / 2)
+    band = ret & (beyond > SURROUND[0]) & (beyond < SURROUND[1])
+    free = 1.0 - float(np.sum(band & on_plane)) / max(int(band.sum()), 1)
+    return held, fill, free
+
+
 def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     """Cluster the scan and pick the board's cluster (paper III-A).
 
@@ -258,7 +366,9 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     least a quarter of the returns the board would give at their range. Among them the paper's
     criteria decide: point count relative to the board's expected count, mean reflectivity (a
     target board is brighter than its surroundings), and mean distance (nearest the expected
-    distance, when one is given). A board-like candidate beyond ``hints.max_distance`` gives
+    distance, when one is given), weighted by how much of it the board's rectangle holds and how
+    much of that rectangle it fills (`rectangle_fit`). Each cluster counts by its main plane's
+    returns (`planar_part`). A board-like candidate beyond ``hints.max_distance`` gives
     ``board_too_far``.
     """
     empty = np.zeros(0, dtype=np.int64)
@@ -273,7 +383,7 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
         m &= np.abs(scan.distance - hints.expected_distance) <= board.diagonal + 0.5
     if not np.any(m):
         return Segmentation(Status.NO_BOARD, empty, reason="no return in the search region")
-    labels, st = cluster(scan, m, board.diagonal)
+    labels, st = cluster(scan, m, board.diagonal, min(board.width, board.height))
     dist = st["distance"]
     az_step = np.deg2rad(0.2)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -290,9 +400,17 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     idx = idx[np.argsort(labels[idx], kind="stable")]
     bounds = np.searchsorted(labels[idx], np.append(ids, len(dist)))
     members = {}  # candidate label -> its firings, in scan order (the sort is stable)
+    rng = np.random.default_rng(hints.seed)
     for k, lab in enumerate(ids):
         sel = idx[bounds[k]:bounds[k + 1]]
+        # the cluster's main plane only: the board's returns, not its stand's or the floor's
+        sel = sel[planar_part(scan.xyz[sel], rng)]
         members[int(lab)] = sel
+        if len(sel) < 3:
+            cand[lab] = False
+            continue
+        dist[lab] = float(np.mean(scan.distance[sel]))
+        frac[lab] = len(sel) / expect[lab]
         var = 0.0  # total variance, as np.var per coordinate (without its overhead)
         for c in (scan.x[sel], scan.y[sel], scan.z[sel]):
             c = c - c.sum() / len(c)
@@ -301,7 +419,14 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
         if not 0.5 * board.diagonal < extent < 1.6 * board.diagonal:
             cand[lab] = False
             continue
-        score[lab] = min(frac[lab], 1.5) * (1.0 + float(np.mean(scan.intensity[sel])) / 255.0)
+        # the board fits its rectangle: a cabinet, a wall's piece or a person of the same size
+        # and range does not (seen in the real ACFR scans: both outscored the board on count
+        # and reflectivity alone)
+        # A board's returns all fit (held about 1); a larger flat surface's spill over, and
+        # its count above the board's is no merit (a wall's piece cut out by the plane fit).
+        held, fill, free = rectangle_fit(scan, sel, board)
+        score[lab] = (held * fill)**HELD_POWER * free**FREE_POWER * min(frac[lab], 1.0) * (
+            1.0 + float(np.mean(scan.intensity[sel])) / 255.0)
     if hints.expected_distance is not None:
         score = score / (1.0 + np.abs(dist - hints.expected_distance))
     near = cand & (st["rings"] >= 2) & (dist <= hints.max_distance)

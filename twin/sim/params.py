@@ -25,12 +25,61 @@ BOARD_GEOM = "board"
 BOARD_STAND_BODY = "target_stand"
 SENSOR_BODY = "vlp16"
 SENSOR_MODULE_BODY = "sensor_module"
+#: Name prefix of a patterned board's squares (geoms of the board body): ``board_square_R_C``.
+PATTERN_GEOM_PREFIX = "board_square_"
 
 
 def _quat_wxyz(roll: float, tilt: float, yaw: float) -> np.ndarray:
     """MuJoCo quaternion (w, x, y, z) of R = Rz(yaw) Rx(tilt) Ry(roll) (DESIGN.md convention)."""
     x, y, z, w = Rotation.from_euler("ZXY", [yaw, tilt, roll]).as_quat()
     return np.array([w, x, y, z])
+
+
+@dataclass(frozen=True)
+class BoardPattern:
+    """A chessboard printed on the board's face: ``rows`` x ``cols`` squares of side ``square``.
+
+    The squares alternate between two diffuse reflectances, the top-left one (seen from the
+    LiDAR: -X_O, +Z_O) ``dark``; the pattern is centred on the board's face at ``offset`` (X_O,
+    Z_O), m. Each square is a box geom ``print_thickness`` thick in front of the face (paper on
+    the plate: a print stands proud of it, and a coplanar pair of faces would leave the ray cast
+    to pick either), so the patterned face lies that much nearer the LiDAR than the bare plate.
+    A dark reflectance of 0 returns nothing (the squares drop out, as black squares do on some
+    sensors). SI units.
+    """
+
+    rows: int
+    cols: int
+    square: float
+    dark_reflectivity: float = 0.03
+    light_reflectivity: float = 0.8
+    offset: tuple[float, float] = (0.0, 0.0)
+    print_thickness: float = 1e-4
+
+    def __post_init__(self) -> None:
+        if self.rows < 1 or self.cols < 1 or not self.square > 0:
+            raise ValueError("a board pattern needs rows, cols >= 1 and a positive square (m)")
+        if not self.print_thickness > 0:
+            raise ValueError("print_thickness must be positive (m): MuJoCo boxes need it")
+        for name in ("dark_reflectivity", "light_reflectivity"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ValueError(f"{name} is a diffuse reflectance in [0, 1]")
+
+    @property
+    def size(self) -> tuple[float, float]:
+        """Width (along X_O) and height (along Z_O) of the pattern, m."""
+        return self.cols * self.square, self.rows * self.square
+
+    def squares(self) -> list[tuple[str, float, float, bool]]:
+        """(geom name, X_O, Z_O of the square's centre, dark) for every square."""
+        w, h = self.size
+        out = []
+        for r in range(self.rows):
+            for c in range(self.cols):
+                x = self.offset[0] - w / 2 + (c + 0.5) * self.square
+                z = self.offset[1] + h / 2 - (r + 0.5) * self.square
+                out.append((f"{PATTERN_GEOM_PREFIX}{r}_{c}", x, z, (r + c) % 2 == 0))
+        return out
 
 
 @dataclass(frozen=True)
@@ -54,6 +103,7 @@ class BenchParams:
             front of the board, 0.7 m to its side; models/bench_frame.xml explains the sign).
         board_reflectivity: diffuse reflectance of the board face (bare aluminium, assumed 0.55).
         background_reflectivity: diffuse reflectance of floor, wall, beams and stands (0.3).
+        board_pattern: a chessboard printed on the board's face (`BoardPattern`), or None.
     """
 
     mount_roll: float = 0.0
@@ -72,6 +122,7 @@ class BenchParams:
     background_reflectivity: float = 0.30
     #: Per-geom reflectivity overrides by geom name (e.g. {"wall": 0.8}).
     reflectivity_overrides: dict[str, float] = field(default_factory=dict)
+    board_pattern: BoardPattern | None = None
 
     def __post_init__(self) -> None:
         if self.board_width <= 0 or self.board_height <= 0:
@@ -79,6 +130,13 @@ class BenchParams:
         if self.board_thickness <= 0:
             # MuJoCo boxes need a positive half size; a sheet is a thin plate, not none.
             raise ValueError("board_thickness must be positive (m)")
+        pat = self.board_pattern
+        if pat is not None:
+            w, h = pat.size
+            if (abs(pat.offset[0]) + w / 2 > self.board_width / 2 + 1e-9
+                    or abs(pat.offset[1]) + h / 2 > self.board_height / 2 + 1e-9):
+                raise ValueError(f"the board pattern ({w:.3f} x {h:.3f} m at {pat.offset}) does "
+                                 f"not fit on the {self.board_width} x {self.board_height} m board")
         for name in ("board_reflectivity", "background_reflectivity"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} is a diffuse reflectance in [0, 1]")
@@ -127,7 +185,20 @@ class BenchParams:
         sensor.pos = rot_axis + np.asarray(self.lever_arm, dtype=float)
         sensor.quat = self.mount_quat()
         spec.body(SENSOR_MODULE_BODY).pos = np.asarray(self.sensor_module_position, dtype=float)
+        if self.board_pattern is not None:
+            self._add_pattern(spec)
         return spec
+
+    def _add_pattern(self, spec: mujoco.MjSpec) -> None:
+        """The pattern's squares as box geoms of the board body, just in front of its face."""
+        pat = self.board_pattern
+        board, cls = spec.body(BOARD_BODY), spec.find_default("board")
+        t = pat.print_thickness
+        for name, x, z, _ in pat.squares():
+            g = board.add_geom(cls)
+            g.name = name
+            g.size = [pat.square / 2, t / 2, pat.square / 2]
+            g.pos = [x, -t / 2, z]
 
     def build_model(self, scene: Path | str = SCENE) -> mujoco.MjModel:
         """Compile ``scene`` with these parameters applied."""
@@ -138,6 +209,11 @@ class BenchParams:
         """Diffuse reflectance of every geom of ``model``, shape (ngeom,)."""
         refl = np.full(model.ngeom, self.background_reflectivity)
         refl[model.geom(BOARD_GEOM).id] = self.board_reflectivity
+        if self.board_pattern is not None:
+            pat = self.board_pattern
+            for name, _, _, dark in pat.squares():
+                refl[model.geom(name).id] = (pat.dark_reflectivity if dark
+                                             else pat.light_reflectivity)
         for name, value in self.reflectivity_overrides.items():
             refl[model.geom(name).id] = value
         return refl

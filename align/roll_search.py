@@ -1,0 +1,140 @@
+"""The board's in-plane rotation found without a hint: the roll at which its returns fit the
+known rectangle.
+
+For a fixed plane every return's point on it is fixed; a roll only turns the rectangle about
+the plane's normal. At the true roll every return lies inside the W x H rectangle; turned by
+delta, the returns' extent along the rectangle's axes grows (about W |sin delta| + H (1 - cos
+delta) across the height), so returns fall outside whatever the position. For each roll of a
+grid over the whole symmetry range (a rectangle: 180 deg) we count the returns a W x H box
+cannot hold, its best position found along each axis by a sliding window over the sorted
+coordinates. The rolls with the fewest left out form one or a few intervals; their middles are
+the start rolls for the fit. A prior on the roll (`Hints.roll_prior`) narrows the grid.
+
+Only the returns are used here: they are many and sit inside the board by construction, so a
+few strays (a hand, a stand) do not move the minimum. The misses, which bound the rectangle from
+outside, are left to the fit and the hit/miss posterior that follow (`align.label_posterior`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from align.board import BoardSpec
+from align.feasible import _rows
+
+#: Roll grid steps, rad: a coarse pass over the whole range, then a fine one about the coarse
+#: pass's best rolls. The interval of rolls that fit is a degree or more wide for a board seen
+#: by a few rings; its middle is refined by the fit.
+COARSE_STEP = np.deg2rad(1.0)
+FINE_STEP = np.deg2rad(0.1)
+#: The fine pass covers this much either side of each coarse interval, rad.
+FINE_REACH = np.deg2rad(1.5)
+#: Starts across a wide interval of rolls are at most this far apart, rad (the fit's own reach:
+#: it restarts 1 and 2 deg away, and a single scan's posterior searches 4 deg either side).
+SPREAD = np.deg2rad(6.0)
+#: How far a return may lie outside the rectangle and still fit, m (mixed returns at the edge;
+#: the plane's error moves the points by less).
+TOLERANCE = 0.01
+#: Returns used by the coarse and the fine pass (evenly subsampled): the count of returns left
+#: out only has to resist a few strays.
+COARSE_POINTS = 150
+FINE_POINTS = 1000
+
+
+@dataclass(frozen=True)
+class RollStart:
+    """A start for the fit: roll (rad), position of the rectangle (t_x, t_z, m, for
+    `align.geometry.pose_from_plane` at that roll) and how many returns it leaves out."""
+
+    roll: float
+    t_x: float
+    t_z: float
+    left_out: int
+
+
+def _window_fit(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each column of ``coords`` (n, K): the most points a window of ``length`` holds, and
+    the shift that centres the window on them (minus the middle of their extent)."""
+    return _slide(np.sort(coords, axis=0).T.copy(), length)
+
+
+@njit(cache=True)
+def _slide(xs: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """`_window_fit` on rows sorted ascending (K, n): two pointers along each row."""
+    k, n = xs.shape
+    count = np.zeros(k, dtype=np.int64)
+    shift = np.zeros(k)
+    for r in range(k):
+        j = 0
+        best, lo, hi = 0, 0.0, 0.0
+        for i in range(n):
+            if j < i:
+                j = i
+            while j + 1 < n and xs[r, j + 1] <= xs[r, i] + length:
+                j += 1
+            if j - i + 1 > best:
+                best, lo, hi = j - i + 1, xs[r, i], xs[r, j]
+        count[r] = best
+        shift[r] = -0.5 * (lo + hi)
+    return count, shift
+
+
+def _subsample(points: np.ndarray, k: int) -> np.ndarray:
+    return points if len(points) <= k else points[np.linspace(0, len(points) - 1, k).astype(
+        np.int64)]
+
+
+def _left_out(points: np.ndarray, n: np.ndarray, board: BoardSpec, rolls: np.ndarray,
+              tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per roll: how many returns a W x H box (grown by ``tol``) leaves out, and its shift."""
+    r0, r2 = _rows(rolls, n)
+    cx, tx = _window_fit(points @ r0.T, board.width + 2 * tol)
+    cz, tz = _window_fit(points @ r2.T, board.height + 2 * tol)
+    return 2 * len(points) - cx - cz, tx, tz
+
+
+def _runs(good: np.ndarray) -> list[tuple[int, int]]:
+    """(first, last) index of each run of True."""
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], good.astype(np.int8), [0]))))
+    return list(zip(edges[::2], edges[1::2] - 1, strict=True))
+
+
+def search(points: np.ndarray, n: np.ndarray, board: BoardSpec, lo: float, hi: float,
+           period: float = np.pi, max_starts: int = 12) -> list[RollStart]:
+    """Start rolls in [lo, hi] (rad) for the plane with unit normal ``n``, best first.
+
+    ``points`` (M, 3): the board's returns projected along their rays onto the plane, {L}.
+    The starts are the middles of the intervals of rolls that leave out the fewest returns
+    (within one of the least), several across a wide one, at most ``max_starts`` of them. A
+    coarse pass (its box grown by what half a coarse step turns the board's corners by) finds
+    where to look; a fine pass there gives the intervals. A grid over the whole symmetry
+    ``period`` runs a little past both ends, so that an interval at the seam is seen whole (its
+    twin one period away is dropped).
+    """
+    whole = hi - lo >= period - 1e-9
+    pad = np.deg2rad(10.0) if whole else 0.0
+    rolls = np.arange(lo - pad, hi + pad + 0.5 * COARSE_STEP, COARSE_STEP)
+    coarse = _subsample(points, COARSE_POINTS)
+    grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
+    left, _, _ = _left_out(coarse, n, board, rolls, grow)
+    fine = _subsample(points, FINE_POINTS)
+    starts: list[RollStart] = []
+    for a, b in _runs(left <= left.min() + 1):
+        grid = np.arange(rolls[a] - FINE_REACH, rolls[b] + FINE_REACH + 0.5 * FINE_STEP,
+                         FINE_STEP)
+        out, tx, tz = _left_out(fine, n, board, grid, TOLERANCE)
+        for c, e in _runs(out <= out.min() + 1):
+            # a wide interval (few rings on the board: its returns fit the rectangle at many
+            # rolls) gets starts across it, `SPREAD` apart: the misses decide in the fit
+            k_n = int(np.ceil((grid[e] - grid[c]) / SPREAD)) if e > c else 1
+            for k in np.unique(np.linspace(c, e, k_n + 2)[1:-1].round().astype(int)):
+                r = float(grid[k])
+                if any(abs(((r - s.roll) + period / 2) % period - period / 2) < FINE_REACH
+                       for s in starts):
+                    continue  # the same interval seen again (one period away, or twice)
+                starts.append(RollStart(r, float(tx[k]), float(tz[k]), int(out[k])))
+    starts.sort(key=lambda s: s.left_out)
+    return starts[:max_starts]
