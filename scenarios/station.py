@@ -320,9 +320,14 @@ class Station(_Section):
         """The twin's `twin.sim.params.BenchParams` for this station (``changes``: fields to set
         besides, e.g. a reflectivity override). Imported lazily: MuJoCo only when a twin is
         built."""
-        from twin.sim.params import BenchParams
+        from twin.sim.params import BenchParams, BoardPattern
 
         b, m = self.board, self.mount
+        p = b.pattern
+        pattern = None if p is None else BoardPattern(
+            rows=p.squares[1], cols=p.squares[0], square=float(p.square_mm) / 1000.0,
+            dark_reflectivity=p.dark_reflectivity, light_reflectivity=p.light_reflectivity,
+            offset=_m(p.offset_mm))
         values: dict[str, Any] = {
             **dict(zip(("board_width", "board_height", "board_thickness"),
                        _m((b.width_mm, b.height_mm, b.thickness_mm)), strict=True)),
@@ -331,6 +336,7 @@ class Station(_Section):
             # rotation.
             "board_roll": math.radians(b.in_plane_deg), "board_tilt": math.radians(b.tilt_deg),
             "board_yaw": math.radians(b.yaw_deg), "board_reflectivity": b.reflectivity,
+            "board_pattern": pattern,
             "lever_arm": _m(m.lever_arm_mm),
             "mount_roll": math.radians(m.roll_deg), "mount_tilt": math.radians(m.tilt_deg),
             "mount_yaw": math.radians(m.yaw_deg),
@@ -409,15 +415,12 @@ class Station(_Section):
     def notes(self, twin: bool = False) -> list[str]:
         """What of this station a command does not apply (said, never silently dropped): on
         the twin, the factory calibration file (the twin emulates the model's nominal lasers;
-        decoding applies the file) and a printed pattern."""
+        decoding applies the file)."""
         out = []
         if twin and self.sensor.calibration_file:
             out.append(f"sensor.calibration_file {self.sensor.calibration_file} decodes the real "
                        f"sensor's packets; the twin emulates the {self.sensor.model}'s nominal "
                        "laser table")
-        if twin and self.board.pattern is not None:
-            out.append("board.pattern is stored but the twin's board is plain until board "
-                       "patterns reach twin.sim.params.BenchParams")
         return out
 
     def to_dict(self) -> dict[str, Any]:

@@ -127,7 +127,7 @@ def test_what_is_not_applied_yet_is_said(tmp_path: Path):
     # The factory calibration decodes the real sensor's packets; only the twin, which emulates
     # the model's nominal lasers, does not apply it.
     notes = st.notes(twin=True)
-    assert len(notes) == 2 and "calibration_file" in notes[0] and "pattern" in notes[1]
+    assert len(notes) == 1 and "calibration_file" in notes[0]
     assert st.notes(twin=False) == []
     # Read when a command decodes with it: an unreadable file is one error naming the key.
     with pytest.raises(stations.StationError, match=r"sensor\.calibration_file"):
@@ -408,3 +408,17 @@ def test_a_sweep_keeps_its_station(tmp_path: Path):
     assert max(abs(e) for _, e in rows) < 0.03
     again = aimbench("sweep", "--resume", "--out", "r", "--station", "level.toml", cwd=tmp_path)
     assert again.returncode == 2 and "keeps the station it was started with" in again.stderr
+
+
+def test_the_twin_draws_the_stations_pattern(tmp_path: Path):
+    from twin.sim.bench import BenchSim
+    from twin.sim.params import BoardPattern
+
+    st = stations.load(write(tmp_path, "[board.pattern]\nsquares = [9, 4]\nsquare_mm = 90\n"
+                                       "offset_mm = [10.0, -20.0]\ndark_reflectivity = 0.0\n"))
+    params = st.bench_params()
+    assert params.board_pattern == BoardPattern(rows=4, cols=9, square=0.09,
+                                                dark_reflectivity=0.0, offset=(0.01, -0.02))
+    sim = BenchSim(params, seed=1)
+    names = [sim.physics.model.geom(i).name for i in range(sim.physics.model.ngeom)]
+    assert sum(n.startswith("board_square_") for n in names) == 36
