@@ -316,6 +316,20 @@ class Station(_Section):
         b = self.board
         return BoardSpec(*_m((b.width_mm, b.height_mm, b.thickness_mm)))
 
+    def roll_prior(self) -> tuple[float, float] | None:
+        """The estimator's prior on the LiDAR's roll in the board frame (`align.Hints.roll_prior`,
+        rad): where a nominally mounted LiDAR sees a board hung turned in its plane, within
+        `ROLL_PRIOR_SD_DEG`. None for a board hung level (in_plane_deg 0): the search then
+        covers every rotation, as it always did on such benches."""
+        if self.board.in_plane_deg == 0.0:
+            return None
+        m = self.mount
+        r_wl = Pose(0.0, 0.0, 0.0, math.radians(m.roll_deg), math.radians(m.tilt_deg),
+                    math.radians(m.yaw_deg)).rotation()
+        r_ol = self.board_in_bench()[:3, :3].T @ r_wl
+        roll = Pose.from_matrix(r_ol, np.zeros(3)).roll
+        return roll, math.radians(ROLL_PRIOR_SD_DEG)
+
     def bench_params(self, **changes: Any) -> Any:
         """The twin's `twin.sim.params.BenchParams` for this station (``changes``: fields to set
         besides, e.g. a reflectivity override). Imported lazily: MuJoCo only when a twin is
@@ -426,6 +440,12 @@ class Station(_Section):
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready, the form a run's configuration keeps (file paths resolved)."""
         return self.model_dump(mode="json")
+
+
+#: How far a unit's roll on the board may be from the station's nominal, 1 sigma, deg: wide
+#: enough for a badly bolted unit and a stage turned by its travel, narrow enough that the
+#: board's symmetric rotations (90 deg apart) are told apart.
+ROLL_PRIOR_SD_DEG = 10.0
 
 
 def _m(mm: tuple[float, ...]) -> tuple[float, ...]:

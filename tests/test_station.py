@@ -422,3 +422,31 @@ def test_the_twin_draws_the_stations_pattern(tmp_path: Path):
     sim = BenchSim(params, seed=1)
     names = [sim.physics.model.geom(i).name for i in range(sim.physics.model.ngeom)]
     assert sum(n.startswith("board_square_") for n in names) == 36
+
+
+def test_a_diamond_station_gives_the_estimator_its_rotation(tmp_path: Path):
+    # A board hung turned 45 deg clockwise (as the LiDAR sees it) puts a level LiDAR's roll at
+    # -45 deg; a unit bolted rolled by 2 deg sits at -43. A level board gives no prior.
+    st = stations.load(write(tmp_path, "[board]\nin_plane_deg = 45.0\n[mount]\nroll_deg = 2.0\n"))
+    centre, sd = st.roll_prior()
+    assert math.degrees(centre) == pytest.approx(-43.0, abs=1e-9)
+    assert math.degrees(sd) == stations.ROLL_PRIOR_SD_DEG
+    assert stations.default().roll_prior() is None
+
+
+@pytest.mark.slow
+def test_simulate_and_estimate_a_diamond_station(tmp_path: Path):
+    write(tmp_path, "[board]\nwidth_mm = 610\nheight_mm = 850\nin_plane_deg = 45.0\n"
+                    "position_mm = [0.0, 0.0, 700.0]\n", "diamond.toml")
+    sim = aimbench("simulate", "--station", "diamond.toml", "--scans", "3", "--seed", "3",
+                   "--out", "cap.pcap", cwd=tmp_path)
+    assert sim.returncode == 0, sim.stderr
+    for extra in ((), ("--roll-hint-deg=-45:5",)):
+        res = aimbench("estimate", "cap.pcap", "--station", "diamond.toml", "--fuse", "3",
+                       "--json", *extra, cwd=tmp_path)
+        assert res.returncode == 0, res.stderr
+        (row,) = [json.loads(line) for line in res.stdout.splitlines()]
+        assert row["status"] == "ok", row
+        assert abs(row["roll_deg_error"]) < 4 * row["roll_deg_std"] + 0.3, row
+    bad = aimbench("estimate", "cap.pcap", "--roll-hint-deg", "x", cwd=tmp_path)
+    assert bad.returncode != 0 and "--roll-hint-deg takes CENTRE" in bad.stderr

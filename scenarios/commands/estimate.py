@@ -140,6 +140,21 @@ def _edge_tolerance(text: str) -> tuple[float, float]:
     return h * 1e-3, v * 1e-3
 
 
+def _roll_prior(text: str | None, station: stations.Station) -> tuple[float, float] | None:
+    """``--roll-hint-deg CENTRE[:SD]`` in rad, else the station's (its board's in-plane turn)."""
+    if text is None:
+        return station.roll_prior()
+    try:
+        values = [float(v) for v in text.split(":")]
+        centre, sd = values if len(values) == 2 else (values[0], stations.ROLL_PRIOR_SD_DEG)
+    except ValueError as exc:
+        raise AimbenchError("--roll-hint-deg takes CENTRE or CENTRE:SD in degrees, e.g. "
+                            "-45:10") from exc
+    if not sd > 0:
+        raise AimbenchError("--roll-hint-deg: the SD must be positive, deg")
+    return math.radians(centre), math.radians(sd)
+
+
 def run(args: argparse.Namespace) -> int:
     station, _ = stations.from_args(args)
     board = station.board_spec()
@@ -154,7 +169,8 @@ def run(args: argparse.Namespace) -> int:
                                 "-16:20") from exc
         window = (math.radians(c), math.radians(hw))
     hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window,
-                        edge_tolerance=_edge_tolerance(args.edge_tolerance_mrad))
+                        edge_tolerance=_edge_tolerance(args.edge_tolerance_mrad),
+                        roll_prior=_roll_prior(args.roll_hint_deg, station))
     cal_file = args.calibration or station.sensor.range_calibration
     cal = calibrate.read(cal_file) if cal_file else None
     truths = _truths(args)
@@ -231,6 +247,11 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="hint: distance to the board's centre, m")
     p.add_argument("--azimuth-deg", default=None, metavar="CENTRE:HALF",
                    help="hint: look for the board only within this azimuth window, deg")
+    p.add_argument("--roll-hint-deg", metavar="CENTRE[:SD]", default=None,
+                   help="hint: the LiDAR's roll on the board, deg (a board hung turned by a "
+                        "clockwise puts a level LiDAR at -a; default: the station's "
+                        f"board.in_plane_deg, SD {stations.ROLL_PRIOR_SD_DEG:g}; the rotation "
+                        "is found without it)")
     p.add_argument("--edge-tolerance-mrad", metavar="H,V",
                    default=",".join(f"{1e3 * v:g}" for v in align.Hints().edge_tolerance),
                    help="how far a hit may lie outside the board's edge (a miss inside), mrad "

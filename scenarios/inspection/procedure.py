@@ -127,6 +127,8 @@ def inspect_unit(acq: Acquisition, station: Station, unit: str, *,
     if scans < 1:
         raise ValueError("an inspection needs at least 1 scan")
     max_scans = scans * (1 + REMEASURE_FACTOR) if max_scans is None else max(max_scans, scans)
+    if hints is None:
+        hints = align.Hints(roll_prior=station.roll_prior())
     t_trigger = time.perf_counter()
     cpu0 = time.process_time()
     tol = station.tolerances
