@@ -15,7 +15,7 @@ import open3d as o3d
 from align.board import BoardSpec
 from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
-from align.segment import Segmentation
+from align.segment import Segmentation, on_board_rings
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 
@@ -36,7 +36,8 @@ def board_model(board: BoardSpec) -> o3d.geometry.PointCloud:
 
 def estimate_icp(scan: Scan, board: BoardSpec, hints: Hints, seg: Segmentation) -> PoseEstimate:
     """Point-to-plane ICP from the nominal start (board straight ahead at the centroid)."""
-    pts = np.column_stack((scan.x[seg.board], scan.y[seg.board], scan.z[seg.board]))
+    board_idx = on_board_rings(scan, seg.board)
+    pts = np.column_stack((scan.x[board_idx], scan.y[board_idx], scan.z[board_idx]))
     c = pts.mean(axis=0)
     yaw0 = float(np.arctan2(-c[0], c[1]))  # turn so that the centroid is straight ahead
     r0 = rotation(0.0, 0.0, yaw0)
@@ -52,4 +53,4 @@ def estimate_icp(scan: Scan, board: BoardSpec, hints: Hints, seg: Segmentation) 
     pose = Pose.from_matrix(m[:3, :3], m[:3, 3])
     diag = {"fitness": float(reg.fitness), "inlier_rmse_m": float(reg.inlier_rmse),
             "note": "x, z and roll are unobservable for point-to-plane ICP on a flat board"}
-    return PoseEstimate(Status.OK, "icp", pose, None, diag, used={"board": seg.board})
+    return PoseEstimate(Status.OK, "icp", pose, None, diag, used={"board": board_idx})

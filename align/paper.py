@@ -34,7 +34,7 @@ from align import plane
 from align.board import BoardSpec
 from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
-from align.segment import consecutive_ring_block
+from align.segment import consecutive_ring_block, on_board_rings
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 
@@ -134,7 +134,7 @@ def levenberg_marquardt(
 
 def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> PoseEstimate:
     """The paper's pose from one scan whose board cluster ``segmentation`` already found."""
-    pts_idx = segmentation.board
+    pts_idx = on_board_rings(scan, segmentation.board)
     pts = np.column_stack((scan.x[pts_idx], scan.y[pts_idx], scan.z[pts_idx]))
     if len(pts) < 10:
         return PoseEstimate.failed(Status.NO_BOARD, "paper", reason="too few board returns")

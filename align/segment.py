@@ -445,6 +445,16 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     return Segmentation(Status.NO_BOARD, empty, n_lab, reason="no cluster looks like the board")
 
 
+def on_board_rings(scan: Scan, idx: np.ndarray) -> np.ndarray:
+    """The returns ``idx`` of a board cluster on its `consecutive_ring_block`: the board's own
+    rings. The clustering joins rings up to `RING_RADIUS_SPACINGS` apart (a board turned by 60
+    deg), which also reaches a stand's face a ring or two below the board, coplanar within
+    the plane fit's band: methods that fit a plane to every return (the paper's, ICP) must
+    leave it out first or it tilts their plane by tenths of a degree."""
+    ring = scan.lasers.ring_of_laser[scan.laser_id[idx]]  # (Scan.ring maps every firing)
+    return idx[np.isin(ring, consecutive_ring_block(ring))]
+
+
 def consecutive_ring_block(rings: np.ndarray) -> list[int]:
     """The consecutive block of rings holding the most of these returns (a ring counts as present
     with a quarter of the busiest ring's returns). The board's rings are consecutive; a parallel
