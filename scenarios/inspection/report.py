@@ -178,7 +178,7 @@ def _axes_panel(ax: Any, row: dict, judged: list[str]) -> None:
     ax.axvline(-1, c="#2e7d32", lw=1)
     ax.axvline(1, c="#2e7d32", lw=1)
     ax.set_xlim(-2.2, 2.9)
-    ax.set_xlabel("error / limit (tolerance zone: -1..1; inner band: acceptance zone)")
+    ax.set_xlabel("error / limit\n(tolerance zone -1..1; inner band: acceptance zone)")
     ax.set_title(f"each axis: error +- U (k = {k:g})")
 
 
