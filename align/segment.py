@@ -358,6 +358,52 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     return held, fill, free
 
 
+#: A cluster is a candidate with at least this fraction of the returns the board would give.
+MIN_FRACTION = 0.25
+#: Planes tried per cluster (board, floor, stand or wall behind it).
+PLANES_PER_CLUSTER = 3
+
+
+def beam_grid(scan: Scan) -> tuple[float, float]:
+    """(azimuth step between a laser's firings, mean spacing of the rings), rad, of the scan's
+    sensor: the grid on which a board's expected count of returns is reckoned. Any model: the
+    azimuth step from the firings a whole rotation holds (clipped to what spinning sensors do),
+    the ring spacing from the laser table's span."""
+    el = np.sort(scan.lasers.elevation)
+    ring_step = float((el[-1] - el[0]) / (len(el) - 1)) if len(el) > 1 else np.deg2rad(2.0)
+    per_laser = len(scan) / max(len(el), 1)
+    az_step = 2 * np.pi / per_laser if per_laser > 0 else np.deg2rad(0.2)
+    return float(np.clip(az_step, np.deg2rad(0.05), np.deg2rad(1.0))), ring_step
+
+
+def _rings(scan: Scan, sel: np.ndarray) -> int:
+    """How many rings the returns ``sel`` lie on."""
+    return len(np.unique(scan.lasers.ring_of_laser[scan.laser_id[sel]]))
+
+
+def _board_score(scan: Scan, sel: np.ndarray, board: BoardSpec, expect: float
+                 ) -> float | None:
+    """How board-like one plane's returns ``sel`` are (the paper's count and reflectivity,
+    weighted by `rectangle_fit`), or None when their extent is not the board's."""
+    if len(sel) < 3:
+        return None
+    var = 0.0  # total variance, as np.var per coordinate (without its overhead)
+    for c in (scan.x[sel], scan.y[sel], scan.z[sel]):
+        c = c - c.sum() / len(c)
+        var += float((c * c).sum()) / len(c)
+    extent = math.sqrt(12 * var)  # a rectangle's diagonal
+    if not 0.5 * board.diagonal < extent < 1.6 * board.diagonal:
+        return None
+    # the board fits its rectangle: a cabinet, a wall's piece or a person of the same size and
+    # range does not (seen in the real ACFR scans: both outscored the board on count and
+    # reflectivity alone). A board's returns all fit (held about 1); a larger flat surface's
+    # spill over, and its count above the board's is no merit (a wall's piece cut out by the
+    # plane fit).
+    held, fill, free = rectangle_fit(scan, sel, board)
+    return (held * fill)**HELD_POWER * free**FREE_POWER * min(len(sel) / expect, 1.0) * (
+        1.0 + float(np.mean(scan.intensity[sel])) / 255.0)
+
+
 def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     """Cluster the scan and pick the board's cluster (paper III-A).
 
@@ -385,12 +431,13 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
         return Segmentation(Status.NO_BOARD, empty, reason="no return in the search region")
     labels, st = cluster(scan, m, board.diagonal, min(board.width, board.height))
     dist = st["distance"]
-    az_step = np.deg2rad(0.2)
+    az_step, ring_step = beam_grid(scan)
     with np.errstate(divide="ignore", invalid="ignore"):
         # returns the board would give at that range: its angular size over the beam grid
-        expect = (board.width / (dist * az_step)) * (board.height / (dist * np.deg2rad(2.0)) + 1)
+        expect = (board.width / (dist * az_step)) * (board.height / (dist * ring_step) + 1)
         frac = st["count"] / expect
-    cand = (st["count"] >= 3) & (frac > 0.25) & ((st["rings"] >= 2) | (dist > hints.max_distance))
+    cand = (st["count"] >= 3) & (frac > MIN_FRACTION) & (
+        (st["rings"] >= 2) | (dist > hints.max_distance))
     score = np.zeros(len(dist))
     # the rest of the paper's criteria for the few clusters left: size and reflectivity
     ids = np.flatnonzero(cand)
@@ -402,31 +449,29 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     members = {}  # candidate label -> its firings, in scan order (the sort is stable)
     rng = np.random.default_rng(hints.seed)
     for k, lab in enumerate(ids):
-        sel = idx[bounds[k]:bounds[k + 1]]
-        # the cluster's main plane only: the board's returns, not its stand's or the floor's
-        sel = sel[planar_part(scan.xyz[sel], rng)]
-        members[int(lab)] = sel
-        if len(sel) < 3:
+        # The cluster's planes, largest first (RANSAC, then again on what is left): the
+        # board's returns, not its stand's or the floor's. A sensor whose lasers reach the
+        # floor in front of the board (the HDL-32E's, down to -30 deg) joins the floor to the
+        # board through the stand, and the floor is then the largest plane: the best
+        # board-like plane of the cluster stands for it.
+        best: tuple[float, np.ndarray] | None = None
+        rest = idx[bounds[k]:bounds[k + 1]]
+        for _ in range(PLANES_PER_CLUSTER):
+            if len(rest) < 3 or len(rest) < MIN_FRACTION * expect[lab]:
+                break  # what is left cannot be the board
+            on = planar_part(scan.xyz[rest], rng)
+            sel, rest = rest[on], rest[~on]
+            found = _board_score(scan, sel, board, float(expect[lab]))
+            if found is not None and (best is None or found > best[0]):
+                best = (found, sel)
+        if best is None:
             cand[lab] = False
+            members[int(lab)] = empty
             continue
+        score[lab], sel = best
+        members[int(lab)] = sel
         dist[lab] = float(np.mean(scan.distance[sel]))
         frac[lab] = len(sel) / expect[lab]
-        var = 0.0  # total variance, as np.var per coordinate (without its overhead)
-        for c in (scan.x[sel], scan.y[sel], scan.z[sel]):
-            c = c - c.sum() / len(c)
-            var += float((c * c).sum()) / len(c)
-        extent = math.sqrt(12 * var)  # a rectangle's diagonal
-        if not 0.5 * board.diagonal < extent < 1.6 * board.diagonal:
-            cand[lab] = False
-            continue
-        # the board fits its rectangle: a cabinet, a wall's piece or a person of the same size
-        # and range does not (seen in the real ACFR scans: both outscored the board on count
-        # and reflectivity alone)
-        # A board's returns all fit (held about 1); a larger flat surface's spill over, and
-        # its count above the board's is no merit (a wall's piece cut out by the plane fit).
-        held, fill, free = rectangle_fit(scan, sel, board)
-        score[lab] = (held * fill)**HELD_POWER * free**FREE_POWER * min(frac[lab], 1.0) * (
-            1.0 + float(np.mean(scan.intensity[sel])) / 255.0)
     if hints.expected_distance is not None:
         score = score / (1.0 + np.abs(dist - hints.expected_distance))
     near = cand & (st["rings"] >= 2) & (dist <= hints.max_distance)
@@ -435,12 +480,12 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     if np.any(near):
         lab = int(np.flatnonzero(near)[np.argmax(score[near])])
         sel = members[lab]
-        return Segmentation(Status.OK, sel, n_lab, float(dist[lab]), int(st["rings"][lab]))
+        return Segmentation(Status.OK, sel, n_lab, float(dist[lab]), _rings(scan, sel))
     if np.any(far):
         lab = int(np.flatnonzero(far)[np.argmax(score[far])])
         sel = members[lab]
         return Segmentation(Status.BOARD_TOO_FAR, sel, n_lab, float(dist[lab]),
-                            int(st["rings"][lab]), reason=f"board-like cluster at "
+                            _rings(scan, sel), reason=f"board-like cluster at "
                             f"{dist[lab]:.2f} m, beyond {hints.max_distance:.2f} m")
     return Segmentation(Status.NO_BOARD, empty, n_lab, reason="no cluster looks like the board")
 
