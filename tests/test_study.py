@@ -96,12 +96,50 @@ def reference_study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ({"grid": {"noise.range_sigma_mm": [-1.0]}}, "noise: range_sigma_mm: Input should be "
                                                  "greater than or equal to 0"),
     ({"grid": {"stages.base_position_mm[7]": [1.0]}}, "index 7 is beyond them"),
+    ({"grid": {"board.width_mm": 900.0}}, "grid.board.width_mm: give a list of values"),
+    ({"grid": {"board.width_mm": [[600.0, 900.0]]}},
+     "grid.board.width_mm: each value must be a number, a string or true/false"),
+    ({"draws": {"n": 3, "ranges": {"distance_mm": [2000.0]}}},
+     "draws.ranges.distance_mm: give [low, high], two numbers"),
+    ({"draws": {"ranges": {"distance_mm": [2000.0, 3000.0]}}}, "draws.n: Field required"),
+    ({"gird": {"board.width_mm": [900.0]}}, "gird: unknown key"),
+    ({"noise": {"range_sigma": 3.0}}, "noise.range_sigma: unknown key"),
+    ({"grid": {"distance_mm": [2000.0], "stages.base_position_mm[1]": [-2000.0]}},
+     "distance_mm and stages.base_position_mm[1] both set where the LiDAR stand is"),
 ])
 def test_a_bad_study_file_is_refused_naming_the_key(data: dict, message: str):
     with pytest.raises(StudyError, match=None) as info:
         from_dict(data, "s.toml")
     assert message in str(info.value)
     assert str(info.value).startswith("s.toml") and "\n" not in str(info.value)
+    assert str(info.value).count(": ") <= 6  # one problem said once, not pydantic's four
+
+
+def test_the_progress_is_a_line_per_design_point_and_notes_come_through_without_it():
+    import io
+
+    from scenarios.study.run import Progress
+
+    stream = io.StringIO()
+    bar = Progress(3, 2, {(0, 0), (0, 1), (1, 0)}, stream)
+    assert bar.done_points == 1
+    bar.task(1)
+    bar.task(2)  # half a point: no line yet
+    bar.message("aimbench study: a worker died; its task (2, 1) runs again")
+    bar.task(2)
+    bar.finish()
+    lines = stream.getvalue().splitlines()
+    assert lines[0].startswith("aimbench study: 2/3 design points | 4/6 tasks | ")
+    assert lines[1] == "aimbench study: a worker died; its task (2, 1) runs again"
+    assert lines[2].startswith("aimbench study: 3/3 design points | 6/6 tasks | ")
+    assert len(lines) == 3 and "points/min" in lines[2]
+    quiet = io.StringIO()
+    off = Progress(3, 2, set(), quiet, enabled=False)
+    off.task(0)
+    off.task(0)
+    off.message("a note")
+    off.finish()
+    assert quiet.getvalue() == "a note\n"
 
 
 def test_the_command_line_refuses_a_bad_study_in_one_line_and_makes_nothing(tmp_path: Path):
