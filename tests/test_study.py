@@ -322,13 +322,17 @@ def test_the_report_shows_every_design_and_the_cheapest_meeting_the_target(
 
 @pytest.mark.slow
 def test_the_bound_agrees_with_the_simulation_at_the_checked_points(tmp_path: Path):
-    """Within 15 % per axis where the estimator reaches the bound (the paper's bench, single
-    scans, sharp beam); without align.bound in this aimbench the study says it has none."""
+    """Single scans on the paper's bench at 2.5 m (sharp beam, 14 mm noise), the design point
+    of board-distance.toml with its seed and its first 4 scans of 30 poses: every axis within
+    15 % of the bound (docs/studies.md has where it is not: tilt and z on small boards, fused
+    scans). 120 estimates: their RMS is known to about 7 %; 64 were too few (16 poses of seed 5
+    gave roll 29 % above the bound, the whole study's 240 at this point 3 %). Without
+    align.bound in this aimbench the study says it has none."""
     from scenarios.study import run as study_run
     from scenarios.study.engines import LocalEngine
     from scenarios.study.results import EDGE, summarize
 
-    spec = from_dict({"seed": 5, "protocol": {"poses": 16, "scans": 4, "poses_per_task": 8},
+    spec = from_dict({"seed": 2026, "protocol": {"poses": 30, "scans": 4, "poses_per_task": 15},
                       "grid": {"distance_mm": [2500.0]}})
     store = study_run.create(spec, tmp_path, tmp_path / "b", {})
     import io
@@ -341,6 +345,6 @@ def test_the_bound_agrees_with_the_simulation_at_the_checked_points(tmp_path: Pa
         assert NO_BOUND in stream.getvalue()
         assert all(math.isnan(v) for v in r.bound)
         return
-    for name in ("tilt_deg", "yaw_deg", "x_mm"):
-        k = EDGE.index(name)
-        assert abs(r.ratio[k] - 1.0) < 0.15, (name, r.rms[k], r.bound[k])
+    ratio = {name: float(r.ratio[EDGE.index(name)]) for name in EDGE}
+    for name in ("x_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg"):
+        assert abs(ratio[name] - 1.0) < 0.15, (name, ratio)
