@@ -153,6 +153,9 @@ def test_the_command_line_refuses_a_bad_study_in_one_line_and_makes_nothing(tmp_
     proc = study("--out", "s", "--target", "roll_mm=1", cwd=tmp_path)
     _out, err = proc.communicate(timeout=120)
     assert proc.returncode == 2 and "--target: 'roll_mm=1' is not AXIS_UNIT=VALUE" in err
+    proc = study("bad.toml", "--out", "s", "--target", "roll_deg=1", "--no-report", cwd=tmp_path)
+    _out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and "--target is answered in the report; drop --no-report" in err
 
 
 def test_the_grid_is_every_combination_and_the_draws_are_seeded_latin_hypercubes():

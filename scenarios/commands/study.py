@@ -37,6 +37,10 @@ def run(args: argparse.Namespace) -> int:
     target = study_results.parse_target(args.target) if args.target else None
     if args.within_s is not None and target is None:
         raise AimbenchError("--within-s needs --target (the precision the design must reach)")
+    if target is not None and args.no_report:
+        # the cheapest design is the report's answer: without the report it would be dropped
+        raise AimbenchError("--target is answered in the report; drop --no-report (or ask "
+                            "later with --report --target)")
     spec = folder = None
     if args.report or args.resume:
         if args.study:
