@@ -96,12 +96,50 @@ def reference_study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ({"grid": {"noise.range_sigma_mm": [-1.0]}}, "noise: range_sigma_mm: Input should be "
                                                  "greater than or equal to 0"),
     ({"grid": {"stages.base_position_mm[7]": [1.0]}}, "index 7 is beyond them"),
+    ({"grid": {"board.width_mm": 900.0}}, "grid.board.width_mm: give a list of values"),
+    ({"grid": {"board.width_mm": [[600.0, 900.0]]}},
+     "grid.board.width_mm: each value must be a number, a string or true/false"),
+    ({"draws": {"n": 3, "ranges": {"distance_mm": [2000.0]}}},
+     "draws.ranges.distance_mm: give [low, high], two numbers"),
+    ({"draws": {"ranges": {"distance_mm": [2000.0, 3000.0]}}}, "draws.n: Field required"),
+    ({"gird": {"board.width_mm": [900.0]}}, "gird: unknown key"),
+    ({"noise": {"range_sigma": 3.0}}, "noise.range_sigma: unknown key"),
+    ({"grid": {"distance_mm": [2000.0], "stages.base_position_mm[1]": [-2000.0]}},
+     "distance_mm and stages.base_position_mm[1] both set where the LiDAR stand is"),
 ])
 def test_a_bad_study_file_is_refused_naming_the_key(data: dict, message: str):
     with pytest.raises(StudyError, match=None) as info:
         from_dict(data, "s.toml")
     assert message in str(info.value)
     assert str(info.value).startswith("s.toml") and "\n" not in str(info.value)
+    assert str(info.value).count(": ") <= 6  # one problem said once, not pydantic's four
+
+
+def test_the_progress_is_a_line_per_design_point_and_notes_come_through_without_it():
+    import io
+
+    from scenarios.study.run import Progress
+
+    stream = io.StringIO()
+    bar = Progress(3, 2, {(0, 0), (0, 1), (1, 0)}, stream)
+    assert bar.done_points == 1
+    bar.task(1)
+    bar.task(2)  # half a point: no line yet
+    bar.message("aimbench study: a worker died; its task (2, 1) runs again")
+    bar.task(2)
+    bar.finish()
+    lines = stream.getvalue().splitlines()
+    assert lines[0].startswith("aimbench study: 2/3 design points | 4/6 tasks | ")
+    assert lines[1] == "aimbench study: a worker died; its task (2, 1) runs again"
+    assert lines[2].startswith("aimbench study: 3/3 design points | 6/6 tasks | ")
+    assert len(lines) == 3 and "points/min" in lines[2]
+    quiet = io.StringIO()
+    off = Progress(3, 2, set(), quiet, enabled=False)
+    off.task(0)
+    off.task(0)
+    off.message("a note")
+    off.finish()
+    assert quiet.getvalue() == "a note\n"
 
 
 def test_the_command_line_refuses_a_bad_study_in_one_line_and_makes_nothing(tmp_path: Path):
@@ -115,6 +153,9 @@ def test_the_command_line_refuses_a_bad_study_in_one_line_and_makes_nothing(tmp_
     proc = study("--out", "s", "--target", "roll_mm=1", cwd=tmp_path)
     _out, err = proc.communicate(timeout=120)
     assert proc.returncode == 2 and "--target: 'roll_mm=1' is not AXIS_UNIT=VALUE" in err
+    proc = study("bad.toml", "--out", "s", "--target", "roll_deg=1", "--no-report", cwd=tmp_path)
+    _out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2 and "--target is answered in the report; drop --no-report" in err
 
 
 def test_the_grid_is_every_combination_and_the_draws_are_seeded_latin_hypercubes():
@@ -284,13 +325,17 @@ def test_the_report_shows_every_design_and_the_cheapest_meeting_the_target(
 
 @pytest.mark.slow
 def test_the_bound_agrees_with_the_simulation_at_the_checked_points(tmp_path: Path):
-    """Within 15 % per axis where the estimator reaches the bound (the paper's bench, single
-    scans, sharp beam); without align.bound in this aimbench the study says it has none."""
+    """Single scans on the paper's bench at 2.5 m (sharp beam, 14 mm noise), the design point
+    of board-distance.toml with its seed and its first 4 scans of 30 poses: every axis within
+    15 % of the bound (docs/studies.md has where it is not: tilt and z on small boards, fused
+    scans). 120 estimates: their RMS is known to about 7 %; 64 were too few (16 poses of seed 5
+    gave roll 29 % above the bound, the whole study's 240 at this point 3 %). Without
+    align.bound in this aimbench the study says it has none."""
     from scenarios.study import run as study_run
     from scenarios.study.engines import LocalEngine
     from scenarios.study.results import EDGE, summarize
 
-    spec = from_dict({"seed": 5, "protocol": {"poses": 16, "scans": 4, "poses_per_task": 8},
+    spec = from_dict({"seed": 2026, "protocol": {"poses": 30, "scans": 4, "poses_per_task": 15},
                       "grid": {"distance_mm": [2500.0]}})
     store = study_run.create(spec, tmp_path, tmp_path / "b", {})
     import io
@@ -303,6 +348,6 @@ def test_the_bound_agrees_with_the_simulation_at_the_checked_points(tmp_path: Pa
         assert NO_BOUND in stream.getvalue()
         assert all(math.isnan(v) for v in r.bound)
         return
-    for name in ("tilt_deg", "yaw_deg", "x_mm"):
-        k = EDGE.index(name)
-        assert abs(r.ratio[k] - 1.0) < 0.15, (name, r.rms[k], r.bound[k])
+    ratio = {name: float(r.ratio[EDGE.index(name)]) for name in EDGE}
+    for name in ("x_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg"):
+        assert abs(ratio[name] - 1.0) < 0.15, (name, ratio)

@@ -6,7 +6,7 @@
     aimbench study --resume --out studies/NAME          # after Ctrl-C, a crash, a lost node
     aimbench study --report --out studies/NAME --target roll_deg=0.05 --within-s 1
 
-The study file (docs/study.md) names a station, the parameters to vary (a grid, random or
+The study file (docs/studies.md) names a station, the parameters to vary (a grid, random or
 Latin-hypercube draws) and the Monte Carlo protocol. Every design point is evaluated twice: the
 Monte Carlo on the twin (poses x scans: per-axis RMS, bias, chi-square, failures) and the
 precision bound. The study folder gets ``study.sqlite`` (every task's results, committed one by
@@ -37,6 +37,10 @@ def run(args: argparse.Namespace) -> int:
     target = study_results.parse_target(args.target) if args.target else None
     if args.within_s is not None and target is None:
         raise AimbenchError("--within-s needs --target (the precision the design must reach)")
+    if target is not None and args.no_report:
+        # the cheapest design is the report's answer: without the report it would be dropped
+        raise AimbenchError("--target is answered in the report; drop --no-report (or ask "
+                            "later with --report --target)")
     spec = folder = None
     if args.report or args.resume:
         if args.study:
@@ -44,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
                                 f"{args.study}")
         store = StudyStore.open(out)
     elif not args.study:
-        raise AimbenchError("give a study file (FILE.toml, docs/study.md), or --resume / "
+        raise AimbenchError("give a study file (FILE.toml, docs/studies.md), or --resume / "
                             "--report --out STUDY")
     else:
         if (out / STORE_NAME).exists():
@@ -96,7 +100,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("study", help="a design study over station parameters (board, distance, "
                                      "sensor, noise...), locally or on Ray",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("study", nargs="?", help="the study file (TOML, docs/study.md)")
+    p.add_argument("study", nargs="?", help="the study file (TOML, docs/studies.md)")
     p.add_argument("--out", required=True, help="the study folder, e.g. studies/NAME")
     p.add_argument("--engine", choices=("local", "ray"), default="local",
                    help="local: worker processes on this machine (default); ray: a Ray cluster")

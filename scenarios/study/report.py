@@ -34,13 +34,15 @@ def write(store: StudyStore, target: dict[str, float] | None = None,
     export_parquet(store, results)
     spec = store.get("spec")
     params = _varied(results)
+    plotted = _plotted(results)
     figures = []
-    numeric = [p for p in params if all(_is_number(r.params.get(p)) for r in results)]
+    numeric = [p for p in plotted if p != "scans_fused" and all(
+        _is_number(r.params.get(p)) for r in results)]
     if len(numeric) >= 2:
         for n in sorted({r.fused for r in results}):
             figures.append(_heatmap(store.folder, [r for r in results if r.fused == n],
                                     numeric[0], numeric[1], n))
-    for p in params:
+    for p in plotted:
         figures.append(_curve(store.folder, results, p))
     best = cheapest(results, target, within_s, by) if target else None
     md = store.folder / "report.md"
@@ -54,11 +56,18 @@ def _is_number(v: Any) -> bool:
 
 
 def _varied(results: list[DesignResult]) -> list[str]:
+    """The study's parameters, scans fused too when the study has several values of it."""
     names: list[str] = []
     for r in results:
         names += [k for k in r.params if k not in names]
-    # scans fused is a parameter too when the study has several
     return names + (["scans_fused"] if len({r.fused for r in results}) > 1 else [])
+
+
+def _plotted(results: list[DesignResult]) -> list[str]:
+    """The parameters that take more than one value (a grid key with one value, such as the
+    diamond study's board height, is a setting, not an axis of a figure)."""
+    return [p for p in _varied(results)
+            if len({repr(_value(r, p)) for r in results}) > 1]
 
 
 def _value(r: DesignResult, p: str) -> Any:
@@ -85,12 +94,16 @@ def _heatmap(folder: Path, results: list[DesignResult], px: str, py: str, n: int
                 grid = np.full((len(ys), len(xs)), np.nan)
                 for r, v in zip(results, values, strict=True):
                     grid[ys.index(r.params[py]), xs.index(r.params[px])] = v
+                # One cell per grid value, evenly spaced whatever the values' steps (2000,
+                # 2500, 3000, 4000 mm would otherwise draw cells of different sizes).
                 im = ax.imshow(grid, origin="lower", aspect="auto", vmin=lo, vmax=hi,
-                               cmap="viridis", extent=_extent(xs, ys))
-                for yi, y in enumerate(ys):
-                    for xi, x in enumerate(xs):
+                               cmap="viridis")
+                ax.set_xticks(range(len(xs)), [f"{x:g}" for x in xs])
+                ax.set_yticks(range(len(ys)), [f"{y:g}" for y in ys])
+                for yi in range(len(ys)):
+                    for xi in range(len(xs)):
                         if np.isfinite(grid[yi, xi]):
-                            ax.text(x, y, f"{grid[yi, xi]:.3g}", ha="center", va="center",
+                            ax.text(xi, yi, f"{grid[yi, xi]:.3g}", ha="center", va="center",
                                     fontsize=7, color="white")
             else:
                 im = ax.scatter([r.params[px] for r in results],
@@ -110,51 +123,68 @@ def _heatmap(folder: Path, results: list[DesignResult], px: str, py: str, n: int
     return path
 
 
-def _extent(xs: list[float], ys: list[float]) -> tuple[float, float, float, float]:
-    def edges(v: list[float]) -> tuple[float, float]:
-        step = (v[-1] - v[0]) / (len(v) - 1) if len(v) > 1 else 1.0
-        return v[0] - step / 2, v[-1] + step / 2
-
-    return (*edges(xs), *edges(ys))
+#: Most series one panel of a curve shows (tab20's colours); more is the table's job.
+MAX_SERIES = 20
 
 
 def _curve(folder: Path, results: list[DesignResult], p: str) -> Path:
+    """RMS against `p`, per axis (columns); one row per scans fused when the study has several
+    (so that a panel's lines differ by the other parameters only), a line per combination of
+    the other parameters, the bound dashed in the same colour."""
     import matplotlib.pyplot as plt
 
     values = [_value(r, p) for r in results]
     numeric = all(_is_number(v) for v in values)
     ticks = sorted(set(values), key=lambda v: (str(type(v)), v))
-    others = [q for q in _varied(results) if q != p]
+    plotted = _plotted(results)
+    by_fused = p != "scans_fused" and "scans_fused" in plotted
+    fused_rows = sorted({r.fused for r in results}) if by_fused else [None]
+    others = [q for q in plotted if q != p and q != "scans_fused"] + (
+        ["scans_fused"] if not by_fused and p != "scans_fused" and "scans_fused" in plotted
+        else [])
 
     def series_key(r: DesignResult) -> tuple:
         return tuple((q, _value(r, q)) for q in others)
 
-    groups: dict[tuple, list[DesignResult]] = {}
-    for r in results:
-        groups.setdefault(series_key(r), []).append(r)
-    fig, axes = plt.subplots(1, len(PLOT_AXES), figsize=(3.4 * len(PLOT_AXES), 3.6),
+    nrows = len(fused_rows)
+    fig, axes = plt.subplots(nrows, len(PLOT_AXES), figsize=(3.4 * len(PLOT_AXES),
+                                                             0.6 + 3.0 * nrows),
                              squeeze=False, constrained_layout=True)
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    shown = list(groups.items())[:8]  # more series than this is a table's job
-    for j, name in enumerate(PLOT_AXES):
-        ax = axes[0, j]
-        k = EDGE.index(name)
-        for c, (key, rows) in enumerate(shown):
-            rows = sorted(rows, key=lambda r: ticks.index(_value(r, p)))
-            x = [(_value(r, p) if numeric else ticks.index(_value(r, p))) for r in rows]
-            color = colors[c % len(colors)]
-            label = ", ".join(f"{q}={v:g}" if _is_number(v) else f"{q}={v}" for q, v in key)
-            ax.plot(x, [r.rms[k] for r in rows], "o-", color=color, label=label or "simulation")
-            ax.plot(x, [r.bound[k] for r in rows], "--", color=color)
-        if not numeric:
-            ax.set_xticks(range(len(ticks)), [str(t) for t in ticks])
-        ax.set_title(f"{name.replace('_', ' RMS, ')}", fontsize=9)
-        ax.set_xlabel(p, fontsize=8)
-        ax.tick_params(labelsize=7)
-        ax.set_ylim(bottom=0)
-    if len(shown) > 1 or (shown and shown[0][0]):
-        axes[0, -1].legend(fontsize=6, loc="best")
-    fig.suptitle(f"RMS error against {p}: simulation (markers) and bound (dashed)", fontsize=10)
+    colors = plt.colormaps["tab20"].colors
+    omitted = 0
+    handles: dict[str, Any] = {}
+    for row, n in enumerate(fused_rows):
+        groups: dict[tuple, list[DesignResult]] = {}
+        for r in results:
+            if n is None or r.fused == n:
+                groups.setdefault(series_key(r), []).append(r)
+        shown = list(groups.items())[:MAX_SERIES]
+        omitted = max(omitted, len(groups) - len(shown))
+        for j, name in enumerate(PLOT_AXES):
+            ax = axes[row, j]
+            k = EDGE.index(name)
+            for c, (key, rows) in enumerate(shown):
+                rows = sorted(rows, key=lambda r: ticks.index(_value(r, p)))
+                x = [(_value(r, p) if numeric else ticks.index(_value(r, p))) for r in rows]
+                color = colors[(2 * c) % 20 if len(shown) <= 10 else c % 20]
+                label = ", ".join(f"{q}={v:g}" if _is_number(v) else f"{q}={v}"
+                                  for q, v in key) or "simulation"
+                (line,) = ax.plot(x, [r.rms[k] for r in rows], "o-", color=color, ms=4)
+                ax.plot(x, [r.bound[k] for r in rows], "--", color=color)
+                handles.setdefault(label, line)
+            if not numeric:
+                ax.set_xticks(range(len(ticks)), [str(t) for t in ticks])
+            title = name.replace("_", " RMS, ")
+            ax.set_title(title + (f", {n} scan{'s' if n > 1 else ''} fused" if n else ""),
+                         fontsize=9)
+            ax.set_xlabel(p, fontsize=8)
+            ax.tick_params(labelsize=7)
+            ax.set_ylim(bottom=0)
+    if len(handles) > 1 or (handles and "simulation" not in handles):
+        fig.legend(list(handles.values()), list(handles), fontsize=7, loc="outside right upper")
+    more = f"; {omitted} more series in the table" if omitted else ""
+    fig.suptitle(f"RMS error against {p}: simulation (markers) and bound (dashed){more}",
+                 fontsize=10)
     path = folder / f"curve_{_safe(p)}.png"
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from scenarios import station as stations
+from scenarios.progress import Bar
 from scenarios.runner import _StopFlag
 from scenarios.study.evaluate import NO_BOUND, STOPPED, bound_available, evaluate_task
 from scenarios.study.spec import StudySpec, apply, design
@@ -52,20 +53,22 @@ def create(spec: StudySpec, folder: Path, out: Path, config: dict[str, Any]) -> 
 
 
 class Progress:
-    """A one-line progress bar over design points on stderr (redrawn in place on a terminal,
-    a line per finished point otherwise)."""
+    """Progress over design points on stderr, through the project's one progress library
+    (`scenarios.progress.Bar`, tqdm): a bar redrawn in place on a terminal, a line per finished
+    design point elsewhere (with the tasks done, the rate and the time left, so a log says how
+    long a study took). Notes (a lost worker, a missing bound) are said even without the bar."""
 
     def __init__(self, points: int, tasks_per_point: int, done: set[tuple[int, int]],
                  stream: TextIO | None = None, enabled: bool = True) -> None:
         self.points, self.per = points, tasks_per_point
         self.stream = stream if stream is not None else sys.stderr
-        self.enabled = enabled
-        self.tty = enabled and hasattr(self.stream, "isatty") and self.stream.isatty()
         self.tasks: dict[int, int] = {}
         for i, _ in done:
             self.tasks[i] = self.tasks.get(i, 0) + 1
         self.started = time.monotonic()
         self.session_points = 0.0
+        self.bar = Bar(points, "aimbench study", unit="design points", stream=self.stream,
+                       enabled=enabled, every=None, initial=self.done_points)
 
     @property
     def done_points(self) -> int:
@@ -74,36 +77,41 @@ class Progress:
     def task(self, point: int) -> None:
         self.tasks[point] = self.tasks.get(point, 0) + 1
         self.session_points += 1.0 / self.per
-        if not self.enabled:
-            return
-        if self.tty:
-            self.stream.write("\r" + self.line() + "\x1b[K")
-        elif self.tasks[point] == self.per:
-            self.stream.write(self.line() + "\n")
-        self.stream.flush()
+        finished = self.tasks[point] == self.per
+        if self.bar.tty:
+            # tqdm shows the rate and the time left itself; the status says the tasks
+            self.bar.update(int(finished), status=self._tasks())
+        elif finished:
+            self.bar.update(1)
+            self.bar.write(self.line())
+
+    def _tasks(self) -> str:
+        done = sum(min(n, self.per) for n in self.tasks.values())
+        return f"{done}/{self.points * self.per} tasks"
 
     def line(self) -> str:
-        done = self.done_points
-        frac = done / self.points if self.points else 1.0
-        bar = "#" * int(20 * frac) + "-" * (20 - int(20 * frac))
+        """``aimbench study: 3/12 design points | 18/72 tasks | 0.64 points/min | ETA 12m30s``
+        (the rate of this session: a resumed study's earlier points are not in it)."""
         elapsed = time.monotonic() - self.started
         rate = 60.0 * self.session_points / elapsed if elapsed > 0 else 0.0
         left = self.points - sum(min(n, self.per) for n in self.tasks.values()) / self.per
-        text = f"[{bar}] {done}/{self.points} design points | {rate:.2f} points/min"
+        text = (f"aimbench study: {self.done_points}/{self.points} design points | "
+                f"{self._tasks()} | {rate:.2f} points/min")
         if rate > 0:
             eta = 60.0 * left / rate
             text += f" | ETA {int(eta // 60)}m{int(eta % 60):02d}s"
         return text
 
     def message(self, text: str) -> None:
-        """A note (a lost worker, a missing bound): said even without the bar."""
-        self.stream.write(("\r\x1b[K" if self.tty else "") + text + "\n")
-        self.stream.flush()
+        """A note: above the bar on a terminal, a line elsewhere, said even with no bar."""
+        if self.bar.enabled:
+            self.bar.write(text)
+        else:
+            self.stream.write(text + "\n")
+            self.stream.flush()
 
     def finish(self) -> None:
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        self.bar.close()
 
 
 def execute(store: StudyStore, engine: Any, progress: bool = True,

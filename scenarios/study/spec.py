@@ -1,6 +1,6 @@
 """The study file: which station, which parameters to vary, and the Monte Carlo protocol.
 
-A study is a TOML file (docs/study.md has every key)::
+A study is a TOML file (docs/studies.md has every key)::
 
     name = "board-distance"
     station = "paper"            # a station file (relative to this file) or a shipped name
@@ -136,7 +136,7 @@ class Draws(_Section):
 
 
 class StudySpec(_Section):
-    """A study, as the study file describes it (module docstring; docs/study.md)."""
+    """A study, as the study file describes it (module docstring; docs/studies.md)."""
 
     name: StrictStr = "study"
     description: StrictStr = ""
@@ -169,7 +169,7 @@ def load(path: str | Path) -> tuple[StudySpec, Path]:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise StudyError(f"no such study file {path}; give a TOML study file "
-                         "(docs/study.md)") from None
+                         "(docs/studies.md)") from None
     except (IsADirectoryError, UnicodeDecodeError) as exc:
         raise StudyError(f"{path} is not a study file ({exc}); give a TOML file") from None
     except tomllib.TOMLDecodeError as exc:
@@ -181,22 +181,40 @@ def from_dict(data: dict[str, Any], where: str = "study") -> StudySpec:
     try:
         spec = StudySpec.model_validate(data)
     except ValidationError as exc:
-        raise StudyError(f"{where}: {_describe(exc)}; see docs/study.md") from None
+        raise StudyError(f"{where}: {_describe(exc)}; see docs/studies.md") from None
     _check_parameters(spec, where)
     return spec
 
 
+#: The members of `Value` as pydantic names them in an error's location.
+_VALUE_TAGS = {"float", "int", "str", "bool"}
+
+
 def _describe(exc: ValidationError) -> str:
-    parts = []
+    """pydantic's errors as ``key: problem`` (one per key, the key spelt as in the file)."""
+    parts: dict[str, str] = {}
     for err in exc.errors(include_url=False):
-        loc = ".".join(str(p) for p in err["loc"] if not str(p).isdigit()) or "study"
+        loc = [str(p) for p in err["loc"]]
+        # A grid value is a number, a string or true/false (`Value`): pydantic says why each
+        # of the four does not fit; one sentence says it better.
+        union = bool(loc) and loc[-1] in _VALUE_TAGS
+        loc = [p for p in loc if p not in _VALUE_TAGS]
+        ranges = loc[:2] == ["draws", "ranges"] and len(loc) >= 3
+        key = ".".join(loc[:3] if ranges else [p for p in loc if not p.isdigit()]) or "study"
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
-        elif err["type"] != "missing" and not isinstance(err.get("input"), dict):
+        elif union:
+            msg = "each value must be a number, a string or true/false"
+        elif ranges:
+            msg = "give [low, high], two numbers"
+        elif loc[:1] == ["grid"] and err["type"] == "list_type":
+            msg = "give a list of values, e.g. [900.0]"
+        if err["type"] not in ("missing", "extra_forbidden") and not isinstance(
+                err.get("input"), dict) and not (ranges and err["type"] == "missing"):
             msg += f" (got {err.get('input')!r})"
-        parts.append(f"{loc}: {msg}")
-    return "; ".join(dict.fromkeys(parts))
+        parts.setdefault(key, f"{key}: {msg}")
+    return "; ".join(parts.values())
 
 
 def _check_parameters(spec: StudySpec, where: str) -> None:
@@ -215,6 +233,10 @@ def _check_parameters(spec: StudySpec, where: str) -> None:
             if not lo <= hi:
                 raise StudyError(f"{where}: draws.ranges.{key}: [{lo:g}, {hi:g}] needs low <= "
                                  "high")
+    varied = set(spec.parameters())
+    if "distance_mm" in varied and "stages.base_position_mm[1]" in varied:
+        raise StudyError(f"{where}: distance_mm and stages.base_position_mm[1] both set where the "
+                         "LiDAR stand is; vary one of them")
     if "scans_fused" in spec.grid:
         bad = [v for v in spec.grid["scans_fused"] if not isinstance(v, int) or isinstance(
             v, bool) or not 1 <= v <= spec.protocol.scans]
@@ -246,7 +268,7 @@ def check_name(key: str, where: str) -> None:
             allowed = ", ".join(list(model.model_fields) if isinstance(model, type) else [])
             raise StudyError(f"{where}: {key}: not a station key ({'.'.join(parts[:i + 1])} "
                              f"unknown; allowed there: {allowed}) nor one of the study's own "
-                             f"({', '.join(OWN_PARAMETERS)}); see docs/study.md")
+                             f"({', '.join(OWN_PARAMETERS)}); see docs/studies.md")
         model = stations._section_type(field.annotation) or field.annotation
     if isinstance(model, type) and issubclass(model, BaseModel):
         raise StudyError(f"{where}: {key}: a table of the station file, not a value; name one of "
@@ -312,13 +334,13 @@ def apply(base: stations.Station, spec: StudySpec, values: dict[str, Any],
         point = stations.from_dict(data, f"{where}: design point {values}")
     except stations.StationError as exc:
         raise StudyError(str(exc).replace("see docs/station.md", "see docs/station.md and "
-                                          "docs/study.md")) from None
+                                          "docs/studies.md")) from None
     try:
         Noise.model_validate({k.removeprefix("noise."): v for k, v in own.items()
                               if k.startswith("noise.")})
     except ValidationError as exc:
         raise StudyError(f"{where}: design point {values}: noise: {_describe(exc)}; see "
-                         "docs/study.md") from None
+                         "docs/studies.md") from None
     import align
 
     if own["method"] not in align.METHODS:
