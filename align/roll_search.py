@@ -58,7 +58,10 @@ class RollStart:
 def _window_fit(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
     """For each column of ``coords`` (n, K): the most points a window of ``length`` holds, and
     the shift that centres the window on them (minus the middle of their extent)."""
-    return _slide(np.sort(coords, axis=0).T.copy(), length)
+    # sorted along contiguous rows: np.sort along the strided axis 0 cost 2-3x more
+    rows = np.ascontiguousarray(coords.T)
+    rows.sort(axis=1)
+    return _slide(rows, length)
 
 
 @njit(cache=True)
