@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -100,6 +101,32 @@ def _unwrap(az: np.ndarray, c: float) -> np.ndarray:
 def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
                 board: BoardSpec) -> _Rays:
     """Every fired ray (hit or not) near the board's rectangle, from all scans."""
+    cat = _candidate_pool(scans, segs, board)
+    rays = _Rays(*cat)
+    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    spacing = float(np.max(np.diff(np.sort(scans[0].lasers.elevation))))
+    win = max(WINDOW, WINDOW_RINGS * _ring_spacing(theta, spacing))
+    keep = (lam > 0) & (np.abs(x) < board.width / 2 + win) & (np.abs(z) < board.height / 2 + win)
+    return _Rays(*(a[keep] for a in cat))
+
+
+#: The last `_candidate_pool`: weak references to its scans and segmentations, its board and
+#: its arrays. An estimate fits from several start poses and the pool does not depend on the
+#: pose: it is gathered once. Weak, so that the cache never keeps a caller's scans alive.
+_last_pool: tuple | None = None
+
+
+def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpec
+                    ) -> list[np.ndarray]:
+    """The fired rays of the board's rings (and one more on each side) within its azimuth
+    window, from all scans, as the arrays of `_Rays`; the same lists of scans and
+    segmentations (the same objects, in the same order) reuse the last pool."""
+    global _last_pool
+    last = _last_pool
+    if (last is not None and last[2] == board and len(last[0]) == len(scans)
+            and all(r() is s for r, s in zip(last[0], scans, strict=True))
+            and all(r() is g for r, g in zip(last[1], segs, strict=True))):
+        return last[3]
     parts = []
     offset = 0
     for s, g in zip(scans, segs, strict=True):
@@ -125,12 +152,8 @@ def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
                       rel[win] + c, sub.ring, idx + offset, np.full(len(idx), len(parts))))
         offset += len(s)
     cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
-    rays = _Rays(*cat)
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
-    spacing = float(np.max(np.diff(np.sort(scans[0].lasers.elevation))))
-    win = max(WINDOW, WINDOW_RINGS * _ring_spacing(theta, spacing))
-    keep = (lam > 0) & (np.abs(x) < board.width / 2 + win) & (np.abs(z) < board.height / 2 + win)
-    return _Rays(*(a[keep] for a in cat))
+    _last_pool = ([weakref.ref(s) for s in scans], [weakref.ref(g) for g in segs], board, cat)
+    return cat
 
 
 def _ring_spacing(theta: np.ndarray, spacing: float) -> float:
