@@ -337,7 +337,8 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     span = np.abs(_unwrap(scan.azimuth[sel], az0)).max() + board.diagonal / max(d, 0.5)
     near = np.flatnonzero((np.abs(rel) <= span) & (ring >= ring[sel].min())
                           & (ring <= ring[sel].max()))
-    u, o = scan.directions()[near], scan.origins()[near]
+    sub = scan.select(near)  # the rays of the few rings near the cluster, not the scan's
+    u, o = sub.directions(), sub.origins()
     un = u @ n
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = (d - o @ n) / un
