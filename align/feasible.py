@@ -293,15 +293,29 @@ class InPlanePosterior:
 def _rows(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows r0 and r2 of R for the plane normal n at each roll (R's row r1 is n throughout):
     `align.geometry.pose_from_plane` then `align.geometry.rotation`, vectorised."""
-    cr, sr = np.cos(rolls), np.sin(rolls)
-    m0 = cr * n[0] + sr * n[2]
-    m2 = -sr * n[0] + cr * n[2]
-    sy = np.clip(m0, -1.0, 1.0)
-    cy = np.sqrt(1.0 - sy * sy)
-    tilt = np.arctan2(-m2, n[1])
-    ct, st = np.cos(tilt), np.sin(tilt)
-    r0 = np.stack((cy * cr - sy * st * sr, -sy * ct, cy * sr + sy * st * cr), axis=1)
-    r2 = np.stack((-ct * sr, st, ct * cr), axis=1)
+    return _rows_kernel(np.asarray(rolls, dtype=np.float64), np.asarray(n, dtype=np.float64))
+
+
+@njit(cache=True)
+def _rows_kernel(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`_rows` in one loop: the same operations in the same order as numpy's elementwise
+    ones (two dozen numpy calls on ~100 rolls cost 5x more in call overhead than the maths)."""
+    k = rolls.shape[0]
+    r0, r2 = np.empty((k, 3)), np.empty((k, 3))
+    for i in range(k):
+        cr, sr = np.cos(rolls[i]), np.sin(rolls[i])
+        m0 = cr * n[0] + sr * n[2]
+        m2 = -sr * n[0] + cr * n[2]
+        sy = min(max(m0, -1.0), 1.0)
+        cy = np.sqrt(1.0 - sy * sy)
+        tilt = np.arctan2(-m2, n[1])
+        ct, st = np.cos(tilt), np.sin(tilt)
+        r0[i, 0] = cy * cr - sy * st * sr
+        r0[i, 1] = -sy * ct
+        r0[i, 2] = cy * sr + sy * st * cr
+        r2[i, 0] = -ct * sr
+        r2[i, 1] = st
+        r2[i, 2] = ct * cr
     return r0, r2
 
 
