@@ -106,3 +106,23 @@ def test_posterior_brackets_the_true_roll_and_position():
     assert np.all(np.abs(err) < 4 * sd), (err, sd)
     assert sd[0] < np.deg2rad(0.5) and sd[1] < 0.005
     assert post.support[0] <= roll <= post.support[1]
+
+
+def test_label_moments_over_a_roll_grid_match_roll_by_roll():
+    # label_moments leaves out, per block of rolls, the labels that cannot bind anywhere in
+    # it: a grid call must give exactly what each roll alone gives (a block of one roll), over
+    # rolls wide enough that the blocks' bounds are loose, for a board off the plane's origin
+    # (as seen from the LiDAR: points 2.5 m away) with random side-face widenings
+    rng = np.random.default_rng(7)
+    p_hit, p_miss, e_hit, e_miss = _edge_rays(rng)
+    offset = np.array([0.3, 2.5, -0.1])
+    p_hit, p_miss = p_hit + offset, p_miss + offset
+    n = np.array([0.0, 1.0, 0.0])
+    rolls = np.deg2rad(np.linspace(-3.0, 3.0, 301))
+    r0, r2 = feasible._rows(rolls, n)
+    args = (p_hit, p_miss, e_hit, e_miss)
+    grid = feasible.label_moments(*args, r0, r2, W2, H2)
+    one = np.vstack([feasible.label_moments(*args, r0[k:k + 1], r2[k:k + 1], W2, H2)
+                     for k in range(len(rolls))])
+    assert np.count_nonzero(grid[:, 0]) > 10  # some rolls are consistent
+    np.testing.assert_array_equal(grid, one)
