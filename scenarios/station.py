@@ -296,6 +296,13 @@ class StationFrame(_Section):
     pose: PoseMmDeg = PoseMmDeg()
 
 
+class Twin(_Section):
+    """What only the twin uses: the scene the simulated bench stands in (`models.SCENES`:
+    "bench", the paper's floor, wall and beams; "lab", the same bench in a cluttered lab)."""
+
+    scene: Literal["bench", "lab"] = "bench"
+
+
 class Station(_Section):
     """A bench, as the station file describes it (module docstring; docs/station.md)."""
 
@@ -307,6 +314,7 @@ class Station(_Section):
     stages: Stages = Stages()
     tolerances: Tolerances = Tolerances()
     frame: StationFrame = StationFrame()
+    twin: Twin = Twin()
 
     # -- what the rest of aimbench takes (SI) -------------------------------------------------
     def board_spec(self) -> Any:
@@ -355,6 +363,7 @@ class Station(_Section):
             "mount_roll": math.radians(m.roll_deg), "mount_tilt": math.radians(m.tilt_deg),
             "mount_yaw": math.radians(m.yaw_deg),
             "sensor_module_position": _m(self.stages.base_position_mm),
+            "scene": self.twin.scene,
         }
         values.update(changes)
         return BenchParams(**values)

@@ -21,6 +21,7 @@ import dataclasses
 import math
 from pathlib import Path
 
+from models import SCENES
 from scenarios import cliargs
 from scenarios import station as stations
 from scenarios.truth import write_truth
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         raise AimbenchError(f"the folder of --out {out} does not exist; create it first")
     station, station_file = stations.from_args(args, twin=True)
     _check_travel(station, args)
-    base = station.bench_params()
+    base = station.bench_params(**({} if args.scene is None else {"scene": args.scene}))
     params = dataclasses.replace(
         base, mount_roll=base.mount_roll + math.radians(args.roll_deg),
         mount_tilt=base.mount_tilt + math.radians(args.tilt_deg),
@@ -109,6 +110,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=cliargs.output_file,
                    help="capture file to write (.pcap)")
     stations.add_arguments(p)
+    p.add_argument("--scene", choices=tuple(SCENES), default=None,
+                   help="the scene the bench stands in (default: the station's twin.scene; "
+                        "'bench': floor, wall and beams; 'lab': a cluttered lab around it)")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
     p.add_argument("--model", choices=tuple(MODELS), default=None,
                    help="the sensor emulated (default: the station's sensor.model; the "

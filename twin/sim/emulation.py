@@ -111,6 +111,12 @@ class EmulationConfig:
     vertical_offsets: bool = True
     #: Cull rays that can only meet planes (exact; see the module docstring).
     culling: bool = True
+    #: Which sub-rays a beam's divergence casts through MuJoCo on the grid path (the stages at
+    #: rest): "adaptive" casts each beam's centre first and a sub-ray only where the footprint
+    #: may leave the face the centre hit (`twin.sim.raykernel.subray_faces`); "all" casts
+    #: every sub-ray that may meet a solid (the brute-force reference). Planes are exact either
+    #: way; tests/test_emulation.py compares the two.
+    subrays: Literal["adaptive", "all"] = "adaptive"
     #: The sensor model emulated (a name of `twin.core.sensors.MODELS`).
     model: str = VLP16.name
 
@@ -131,6 +137,8 @@ class EmulationConfig:
         if not sensor.rpm_min <= self.rpm <= sensor.rpm_max:
             raise ValueError(f"rpm must be within {sensor.rpm_min:.0f}..{sensor.rpm_max:.0f} "
                              f"(the {sensor.name}'s)")
+        if self.subrays not in ("adaptive", "all"):
+            raise ValueError("subrays is 'adaptive' or 'all'")
         if self.return_mode not in ("strongest", "last", "dual"):
             raise ValueError("return_mode is 'strongest', 'last' or 'dual'")
         if self.return_mode_byte not in sensor.return_modes:
@@ -483,6 +491,16 @@ class LidarEmulator:
             self._grid_table_cache = cached
         return cached
 
+    def _firing_offsets(self, n_seq: int) -> np.ndarray:
+        """Each firing's range offset (laser offset + bias) for ``n_seq`` whole sequences,
+        firing order (cached; read-only)."""
+        cached = getattr(self, "_firing_offset_cache", None)
+        if cached is None or len(cached) != n_seq * self._n_l:
+            cached = np.tile(self._range_offsets, n_seq)
+            cached.flags.writeable = False
+            self._firing_offset_cache = cached
+        return cached
+
     def _laser_ids(self, n_seq: int) -> np.ndarray:
         """Laser ids of ``n_seq`` whole sequences, firing order (cached; read-only)."""
         cached = getattr(self, "_laser_id_cache", None)
@@ -632,8 +650,11 @@ class LidarEmulator:
                 base, np.ones(n_rows, dtype=np.bool_), np.zeros(0, dtype=np.int64),
                 np.zeros(0), np.zeros(0), d_first, spread, azimuth, row_laser, row_dh, cw, sw,
                 rotation)
-        d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
         offsets, cos_el, sin_el, vertical = self._grid_tables()
+        if k > 1 and cfg.subrays == "adaptive":
+            return self._fire_grid_adaptive(azimuth, planes, idx, dirs, rows, bounds, origins,
+                                            k, weights, row_laser)
+        d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
         if k == 1:
             words, sigma_r, sigma_i = self._noise_words(n)
             *returns, near, near_energy = raykernel.grid_pass(
@@ -660,6 +681,99 @@ class LidarEmulator:
             out.distance, np.ascontiguousarray(firing_major(sa)[:, 0]),
             np.ascontiguousarray(firing_major(ca)[:, 0]), cos_el, sin_el, vertical)
         return out
+
+    def _fire_grid_adaptive(self, azimuth: np.ndarray, planes: tuple, idx: np.ndarray,
+                            dirs: np.ndarray, rows: np.ndarray, bounds: np.ndarray,
+                            origins: np.ndarray, k: int, weights: np.ndarray,
+                            row_laser: np.ndarray) -> Returns:
+        """`fire_grid` with divergence, spending MuJoCo's sub-rays only where the scene's depth
+        may change inside the beam. ``idx``, ``dirs``, ``rows``, ``bounds``: every ray that
+        may meet a solid (`_grid_candidates`, rows ``laser * k + sub-ray``); ``planes``: the
+        planes' rows (`twin.sim.raykernel.plane_rows`).
+
+        1. Every sub-ray's nearest plane (floor, walls), exactly (`raykernel.grid_rays`).
+        2. The beams' centres that may meet a solid through MuJoCo.
+        3. The other sub-rays that may meet a solid: finished on their centre's box face where
+           the footprint provably stays on it (`raykernel.subray_faces`), the rest (edges,
+           curved geoms, centres on a plane) through MuJoCo.
+        4. The echoes: beams wholly on one geom in the kernel (`raykernel.beam_echoes`), the
+           others (mixed and multiple echoes) by the brute-force model's own `_echoes` and
+           `_measure`; the noise is drawn as `_from_hits` draws it.
+        """
+        cfg = self.config
+        caster = self.caster
+        n_seq = azimuth.shape[0]
+        n_l = self._n_l
+        n = n_seq * n_l
+        sa, ca, dist, cos_inc = (np.empty(n * k) for _ in range(4))
+        gid = np.empty(n * k, dtype=np.int32)
+        raykernel.grid_rays(azimuth, row_laser, self._grid_rows()[3], *planes, caster.cutoff,
+                            sa, ca, dist, cos_inc, gid)
+        counts = np.diff(bounds)
+        centre_rows = rows % k == 0
+        ray_row = np.repeat(rows, counts)
+        in_centre = np.repeat(centre_rows, counts)
+        c_idx, c_dirs = idx[in_centre], dirs[in_centre]
+        c_rows = rows[centre_rows]
+        c_bounds = np.concatenate(([0], np.cumsum(counts[centre_rows])))
+        d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[c_rows]], c_bounds, c_dirs)
+        raykernel.scatter_cast(c_idx, d_c, g_c, n_c, c_dirs, self._unit_weights, caster.cutoff,
+                               dist, cos_inc, gid)
+        centre_of = np.full(n, -1, dtype=np.int64)
+        c_ray_row = ray_row[in_centre]
+        centre_of[(c_ray_row // k) * n_seq + (c_idx - c_ray_row * n_seq)] = np.arange(len(c_idx))
+        s_idx, s_dirs = idx[~in_centre], dirs[~in_centre]
+        if len(s_idx):
+            geo = self._box_tables()
+            need = raykernel.subray_faces(s_idx, s_dirs, k, n_seq, row_laser, origins,
+                                          centre_of, n_c, *geo, caster.cutoff, dist, cos_inc,
+                                          gid)
+            s_idx, s_dirs = s_idx[need], np.ascontiguousarray(s_dirs[need])
+            if len(s_idx):
+                # One call per laser: its sub-rays' rows share its origin (rows ascending).
+                s_lasers, first = np.unique(row_laser[s_idx // n_seq], return_index=True)
+                s_bounds = np.append(first, len(s_idx))
+                d_s, g_s, n_s = caster.multiray_rows(origins[s_lasers], s_bounds, s_dirs)
+                raykernel.scatter_cast(s_idx, d_s, g_s, n_s, s_dirs, self._unit_weights,
+                                       caster.cutoff, dist, cos_inc, gid)
+        self.last_subrays_cast = len(c_idx) + len(s_idx)  # (benchmarks: MuJoCo's share)
+        kind, r_f, refl_f, energy_f = raykernel.beam_echoes(
+            dist, gid, cos_inc, n_seq, n_l, k, weights, self.reflectivity, cfg.echo_separation)
+        laser_id = self._laser_ids(n_seq)
+        # As `_from_hits`: the one-echo beams' noise first (a word per firing), then the rest's.
+        out = self._measure_hits(r_f, refl_f, self._firing_offsets(n_seq), energy_f)
+        rest = np.flatnonzero(kind == 2)
+        if len(rest):
+            # The rest's sub-rays, firing-major (n_rest, K), for the general echo model.
+            s_r, l_r = np.divmod(rest, n_l)
+            j = ((l_r * k)[:, None] + np.arange(k)[None, :]) * n_seq + s_r[:, None]
+            d_m, g_m = dist[j], gid[j]
+            hit = g_m >= 0
+            refl = np.where(hit, self.reflectivity[np.maximum(g_m, 0)], 0.0)
+            r_safe = np.where(hit, d_m, 1.0)
+            energy = np.where(hit, weights[None, :] * refl * cos_inc[j] / r_safe**2, 0.0)
+            sub = self._measure(*raykernel.echoes(d_m, energy, float(cfg.echo_separation)),
+                                laser_id[rest])
+            out.distance[:, rest] = sub.distance
+            out.intensity[:, rest] = sub.intensity
+            out.return_type[:, rest] = sub.return_type
+        _, cos_el, sin_el, vertical = self._grid_tables()
+        # The points, with sub-ray 0's sines and cosines: the beam's centre, the firing's own.
+        centre = (np.arange(n_l)[None, :] * k * n_seq + np.arange(n_seq)[:, None]).reshape(-1)
+        out.x, out.y, out.z = raykernel.firing_points(out.distance, sa[centre], ca[centre],
+                                                      cos_el, sin_el, vertical)
+        return out
+
+    def _box_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Every geom's world position (G, 3), orientation (G, 9), half-sizes (G, 3) and
+        whether it is a box (G,), for `twin.sim.raykernel.subray_faces`."""
+        model, data = self.caster.model, self.caster.data
+        is_box = getattr(self, "_is_box", None)
+        if is_box is None:
+            is_box = np.ascontiguousarray(model.geom_type == mujoco.mjtGeom.mjGEOM_BOX)
+            self._is_box = is_box
+        return (np.ascontiguousarray(data.geom_xpos), np.ascontiguousarray(data.geom_xmat),
+                np.ascontiguousarray(model.geom_size), is_box)
 
     def _grid_rows(self) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                   np.ndarray]:

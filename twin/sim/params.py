@@ -17,7 +17,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from models import SCENE
+from models import SCENES
 
 #: Names of the model elements this module edits (kept in one place so the MJCF and code agree).
 BOARD_BODY = "target_board"
@@ -123,8 +123,13 @@ class BenchParams:
     #: Per-geom reflectivity overrides by geom name (e.g. {"wall": 0.8}).
     reflectivity_overrides: dict[str, float] = field(default_factory=dict)
     board_pattern: BoardPattern | None = None
+    #: The scene the bench stands in, by name (`models.SCENES`): "bench" (the paper's: floor,
+    #: wall, beams) or "lab" (the same bench in a cluttered lab, models/scene_lab.xml).
+    scene: str = "bench"
 
     def __post_init__(self) -> None:
+        if self.scene not in SCENES:
+            raise ValueError(f"scene {self.scene!r} is not one of {', '.join(SCENES)}")
         if self.board_width <= 0 or self.board_height <= 0:
             raise ValueError("board_width and board_height must be positive (m)")
         if self.board_thickness <= 0:
@@ -200,9 +205,9 @@ class BenchParams:
             g.size = [pat.square / 2, t / 2, pat.square / 2]
             g.pos = [x, -t / 2, z]
 
-    def build_model(self, scene: Path | str = SCENE) -> mujoco.MjModel:
-        """Compile ``scene`` with these parameters applied."""
-        spec = mujoco.MjSpec.from_file(str(scene))
+    def build_model(self, scene: Path | str | None = None) -> mujoco.MjModel:
+        """Compile ``scene`` (default: this bench's `scene`) with these parameters applied."""
+        spec = mujoco.MjSpec.from_file(str(SCENES[self.scene] if scene is None else scene))
         return self.apply(spec).compile()
 
     def geom_reflectivity(self, model: mujoco.MjModel) -> np.ndarray:

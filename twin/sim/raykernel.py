@@ -545,6 +545,222 @@ def scatter_cast(ray_index: np.ndarray, dist_c: np.ndarray, gid_c: np.ndarray,
 
 
 # --------------------------------------------------------------------------------------------
+# Divergence: sub-rays only where the beam's footprint leaves a face (adaptive)
+# --------------------------------------------------------------------------------------------
+@njit(cache=True, error_model="numpy")
+def subray_faces(sub_index: np.ndarray, sub_dirs: np.ndarray, n_k: int, n_seq: int,
+                 row_laser: np.ndarray, origins: np.ndarray, centre_of: np.ndarray,
+                 nrm_c: np.ndarray, box_pos: np.ndarray, box_mat: np.ndarray,
+                 box_size: np.ndarray, is_box: np.ndarray, cutoff: float, dist: np.ndarray,
+                 cos_inc: np.ndarray, gid: np.ndarray) -> np.ndarray:
+    """Which of the sub-rays that may meet a solid MuJoCo must still cast; the others are
+    finished here, on the face their beam's centre hit. Returns the mask (n,) of those to cast.
+
+    Sub-ray j is ray ``sub_index[j]`` (row-major ``r * n_seq + s``, row ``r = laser * n_k + k``,
+    k >= 1) along world ``sub_dirs[j]`` from ``origins[row_laser[r]]``. Its beam's centre (row
+    ``laser * n_k``) was cast by MuJoCo if ``centre_of[laser * n_seq + s]`` >= 0, with world
+    normal ``nrm_c`` at that index; ``dist``/``cos_inc``/``gid`` (row-major, every row) hold
+    the centres' results and, for the sub-rays, the nearest plane's (`grid_rays`).
+
+    A sub-ray is finished here only when all of these hold: its centre hit a box (``is_box``,
+    world ``box_pos`` (G, 3), ``box_mat`` (G, 9) row-major, half-sizes ``box_size`` (G, 3));
+    the same laser's neighbouring firings (one sequence before and after: 3.5 mrad apart at
+    600 rpm) hit that box too, so no other solid's edge lies between them; and the sub-ray
+    enters the centre's face, through its front, inside its rectangle (by 1e-9 relative plus
+    1 nm). A convex box is entered through the first face whose plane the ray crosses from
+    outside inside its rectangle, so that is MuJoCo's hit on the box; the nearer of it and the
+    planes' is the sub-ray's hit, as MuJoCo's nearest-geom rule has it. Everything else (a
+    centre on a plane or a curved geom, a footprint over an edge, a neighbour on another geom)
+    goes to MuJoCo. Cosines are plain (the sub-rays' weights are the echoes').
+    """
+    n = sub_index.shape[0]
+    need = np.ones(n, dtype=np.bool_)
+    p = np.empty(3)
+    u = np.empty(3)
+    for j in range(n):
+        ray = sub_index[j]
+        r = ray // n_seq
+        s = ray - r * n_seq
+        lsr = r // n_k
+        q = centre_of[lsr * n_seq + s]
+        if q < 0:
+            continue  # the centre met only planes: this sub-ray may meet a solid's edge
+        c_row = lsr * n_k * n_seq
+        g0 = gid[c_row + s]
+        if g0 < 0 or not is_box[g0]:
+            continue
+        if s > 0 and gid[c_row + s - 1] != g0:
+            continue
+        if s + 1 < n_seq and gid[c_row + s + 1] != g0:
+            continue
+        m = box_mat[g0]
+        # The centre's face: the box axis along its normal (normal in the box frame: m^T n).
+        best = -1.0
+        a = 0
+        sign = 1.0
+        for e in range(3):
+            v = m[e] * nrm_c[q, 0] + m[3 + e] * nrm_c[q, 1] + m[6 + e] * nrm_c[q, 2]
+            if abs(v) > best:
+                best = abs(v)
+                a = e
+                sign = 1.0 if v > 0.0 else -1.0
+        o = origins[row_laser[r]]
+        for e in range(3):
+            p[e] = (m[e] * (o[0] - box_pos[g0, 0]) + m[3 + e] * (o[1] - box_pos[g0, 1])
+                    + m[6 + e] * (o[2] - box_pos[g0, 2]))
+            u[e] = m[e] * sub_dirs[j, 0] + m[3 + e] * sub_dirs[j, 1] + m[6 + e] * sub_dirs[j, 2]
+        if not sign * u[a] < 0.0:
+            continue  # not into the face's front
+        t = (sign * box_size[g0, a] - p[a]) / u[a]
+        if not (t > 0.0 and t <= cutoff):
+            continue
+        inside = True
+        for e in range(3):
+            if e != a:
+                lim = box_size[g0, e] * (1.0 - 1e-9) - 1e-9
+                inside &= abs(p[e] + t * u[e]) <= lim
+        if not inside:
+            continue
+        need[j] = False
+        if t < dist[ray]:
+            dist[ray] = t
+            gid[ray] = g0
+            cos_inc[ray] = abs(nrm_c[q, 0] * sub_dirs[j, 0] + nrm_c[q, 1] * sub_dirs[j, 1]
+                               + nrm_c[q, 2] * sub_dirs[j, 2])
+    return need
+
+
+@njit(cache=True, error_model="numpy")
+def beam_echoes(dist: np.ndarray, gid: np.ndarray, cos_inc: np.ndarray, n_seq: int,
+                n_l: int, n_k: int, weights: np.ndarray, refl: np.ndarray, separation: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The beams that return one echo, from their K sub-rays' hits (row-major (R * S,) arrays
+    of `grid_rays`, rows ``laser * n_k + k``), in firing order (``s * n_l + laser``).
+
+    A beam whose sub-rays all hit its centre's geom within ``separation`` of each other is one
+    echo: energy e = sum of weight x reflectivity x cosine / r^2, range the energy-weighted
+    mean (the plain mean if e = 0), summed in sub-ray order, as the brute-force model's
+    `twin.sim.emulation.LidarEmulator._from_hits` does. Returns, per firing (N,): kind (int8:
+    0 no sub-ray hit, 1 one echo, 2 anything else, whose echoes the general model forms), and
+    what `twin.sim.emulation.LidarEmulator._measure_hits` takes for the one-echo beams (inf,
+    0, 0 for the others): range, apparent reflectivity e r^2 (0 if e = 0), energy. Per laser,
+    the sub-rays are summed row by row over all sequences (loops without branches)."""
+    n = n_seq * n_l
+    kind = np.zeros(n, dtype=np.int8)
+    r_out = np.full(n, np.inf)
+    refl_out = np.zeros(n)
+    e_out = np.zeros(n)
+    lo = np.empty(n_seq)
+    hi = np.empty(n_seq)
+    same = np.empty(n_seq, dtype=np.bool_)
+    anyhit = np.empty(n_seq, dtype=np.bool_)
+    rf = np.empty(n_seq)
+    e = np.empty(n_seq)
+    re = np.empty(n_seq)
+    rs = np.empty(n_seq)
+    for lsr in range(n_l):
+        o0 = lsr * n_k * n_seq
+        g0v = gid[o0:o0 + n_seq]
+        for s in range(n_seq):
+            g = g0v[s]
+            lo[s] = np.inf
+            hi[s] = -np.inf
+            same[s] = g >= 0
+            anyhit[s] = False
+            rf[s] = refl[max(g, 0)]
+            e[s] = 0.0
+            re[s] = 0.0
+            rs[s] = 0.0
+        for k in range(n_k):
+            dv = dist[o0 + k * n_seq:o0 + (k + 1) * n_seq]
+            gv = gid[o0 + k * n_seq:o0 + (k + 1) * n_seq]
+            cv = cos_inc[o0 + k * n_seq:o0 + (k + 1) * n_seq]
+            wk = weights[k]
+            for s in range(n_seq):
+                g = gv[s]
+                anyhit[s] |= g >= 0
+                same[s] &= g == g0v[s]
+            for s in range(n_seq):
+                d = dv[s]
+                lo[s] = min(lo[s], d)
+                hi[s] = max(hi[s], d)
+            for s in range(n_seq):
+                d = dv[s]
+                ek = wk * rf[s] * cv[s] / (d * d)
+                e[s] += ek
+                re[s] += ek * d  # (nan for a miss: such a beam is not one echo)
+                rs[s] += d
+        for s in range(n_seq):
+            if not anyhit[s]:
+                continue
+            i = s * n_l + lsr
+            if not (same[s] and hi[s] - lo[s] <= separation):
+                kind[i] = 2
+                continue
+            es = e[s]
+            r = re[s] / es if es > 0.0 else rs[s] / n_k
+            kind[i] = 1
+            r_out[i] = r
+            e_out[i] = es
+            refl_out[i] = es * r ** 2 if es > 0.0 else 0.0
+    return kind, r_out, refl_out, e_out
+
+
+@njit(cache=True, error_model="numpy")
+def echoes(r: np.ndarray, e: np.ndarray, separation: float
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`twin.sim.emulation.LidarEmulator._echoes` compiled (the same sums in the same order):
+    the K sub-ray hits of N beams (``r`` (N, K) m, inf = none; ``e`` their energies) merged
+    into echoes. Sorted by range (a stable sort), hits closer than ``separation`` to the
+    previous one join its echo, at the energy-weighted range (the plain mean if the energy is
+    0); an echo's apparent reflectivity is its energy x r^2. Returns (N, K) ranges (inf
+    padded), energies and reflectivities (0 padded)."""
+    n, k = r.shape
+    r_echo = np.full((n, k), np.inf)
+    e_echo = np.zeros((n, k))
+    refl_echo = np.zeros((n, k))
+    order = np.empty(k, dtype=np.int64)
+    for i in range(n):
+        for a in range(k):  # insertion sort: stable, K is 5
+            order[a] = a
+            b = a
+            while b > 0 and r[i, order[b - 1]] > r[i, a]:
+                order[b] = order[b - 1]
+                b -= 1
+            order[b] = a
+        c = -1
+        prev = -np.inf
+        e_sum = 0.0
+        re_sum = 0.0
+        r_sum = 0.0
+        cnt = 0
+        for a in range(k + 1):
+            ra = r[i, order[a]] if a < k else np.inf
+            fin = np.isfinite(ra)
+            if a == k or not fin or not (ra - prev <= separation) or c < 0:
+                if c >= 0 and cnt > 0:  # close echo c
+                    rc = re_sum / e_sum if e_sum > 0.0 else r_sum / cnt
+                    r_echo[i, c] = rc
+                    e_echo[i, c] = e_sum
+                    refl_echo[i, c] = e_sum * rc ** 2
+                if a == k:
+                    break
+                c += 1
+                e_sum = 0.0
+                re_sum = 0.0
+                r_sum = 0.0
+                cnt = 0
+            if fin:
+                ea = e[i, order[a]]
+                e_sum += ea
+                re_sum += ra * ea
+                r_sum += ra
+                cnt += 1
+            prev = ra
+    return r_echo, e_echo, refl_echo
+
+
+# --------------------------------------------------------------------------------------------
 # Float32 transcendentals (vectorisable; Cephes' single-precision polynomials)
 # --------------------------------------------------------------------------------------------
 @njit(inline="always", error_model="numpy")
