@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from scenarios.study.store import AXES, StudyStore
 from twin.core.errors import AimbenchError
@@ -132,6 +131,9 @@ def _result(i: int, n: int, values: dict, est: dict, m: np.ndarray, bnd: dict,
         dof = good.sum(axis=0)
         total = np.where(good, z2, 0.0).sum(axis=0)
         chi2 = np.where(dof > 0, total / np.maximum(dof, 1), np.nan)
+        from scipy import stats  # (lazy: scipy.stats costs ~1 s to import, and every
+        # command's start imports this module through the CLI's parser)
+
         p_low = stats.chi2.cdf(total, np.maximum(dof, 1))
         chi2_p = np.where(dof > 0, 2 * np.minimum(p_low, 1 - p_low), np.nan)
         finite = np.isfinite(std)

@@ -54,14 +54,37 @@ Randomness never comes from here: the callers draw every random word from the em
 from __future__ import annotations
 
 import math
+import sys
 
 import numpy as np
 from numba import njit
+from numba.core import event as _numba_event
 
 #: Lasers of a VLP-16 (`twin.core.vlp16.N_LASERS`): the kernels take any number of lasers per
 #: sequence (the grid's second axis, 32 for the VLP-32C and the HDL-32E), with the VLP-16's 16
 #: given a loop of its own where a fixed trip count lets LLVM vectorise (`_to_firings`).
 N_LASERS = 16
+
+
+class _CompileNotice(_numba_event.Listener):
+    """Says once per process, on stderr, that numba is compiling (a cache miss: a fresh
+    install whose set-up did not warm the cache, or kernels edited since), so that a command
+    which waits 10-30 s for it says why. Loading from the cache fires no compile event."""
+
+    said = False
+
+    def on_start(self, event: _numba_event.Event) -> None:
+        if not _CompileNotice.said:
+            _CompileNotice.said = True
+            print("aimbench: compiling the numba kernels (once; later runs load them from "
+                  "the cache; `make setup` does this ahead)...", file=sys.stderr, flush=True)
+
+    def on_end(self, event: _numba_event.Event) -> None:
+        pass
+
+
+_numba_event.register("numba:compile", _CompileNotice())
+
 #: mjMINVAL, as MuJoCo's ray_plane uses it.
 MJMINVAL = 1e-15
 _TWO_PI = 2.0 * math.pi

@@ -1,0 +1,60 @@
+"""Compile the numba kernels ahead of the first command, into numba's cache.
+
+    .venv/bin/python -m twin.sim.warmup
+
+The emulation's kernels (`twin.sim.raykernel`) and the estimator's (`align`) are compiled with
+``cache=True``: the first process that calls them compiles them (12-35 s on the development
+machine) and writes them to numba's cache beside their modules (``__pycache__``), and every
+later process loads them (well under a second). The set-up (tools/setup.sh, ``make setup``)
+runs this module once, so the first ``aimbench simulate`` of a fresh install does not wait.
+It runs the twin the ways the commands do (every effect on, no divergence, ideal, dual and
+last returns, the brute-force sub-rays, a moving scan, packets, the lab scene) and the default
+estimate once: each kernel is compiled for the argument types those calls give it, which are
+the types every command gives it (numba compiles per type signature).
+
+A kernel whose source changed since it was cached compiles again on first use; the command
+then says so on stderr (`twin.sim.raykernel`'s notice), once.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+
+def warm_up() -> float:
+    """Run every kernel once (compiling what the cache lacks); returns the CPU time spent, s."""
+    t0 = time.process_time()
+    from twin.sim.bench import BenchSim
+    from twin.sim.emulation import EmulationConfig
+    from twin.sim.params import BenchParams
+
+    configs = (EmulationConfig(), EmulationConfig(divergence=False), EmulationConfig.ideal(),
+               EmulationConfig(return_mode="dual"), EmulationConfig(return_mode="last"),
+               EmulationConfig(subrays="all"), EmulationConfig(divergence=False,
+                                                               return_mode="dual"))
+    scans = []
+    for cfg in configs:
+        scans.append(BenchSim(seed=0, noise=cfg).scan())
+    lab = BenchSim(BenchParams(scene="lab"), seed=0)
+    lab.scan()
+    moving = BenchSim(seed=0)
+    moving.start_move(x_m=0.001, yaw_rad=math.radians(0.2))
+    moving.scan()
+    BenchSim(seed=0, model="VLP-32C").packets(1)
+    from align.api import estimate
+
+    estimate(scans[0])
+    return time.process_time() - t0
+
+
+def main() -> int:
+    spent = warm_up()
+    print(f"warm-up: the emulation's and the estimator's numba kernels are compiled and cached "
+          f"({spent:.1f} s of CPU)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
