@@ -52,7 +52,9 @@ CHUNK_SEQUENCES = 7200
 def _past_the_hour(t: np.ndarray) -> np.ndarray:
     """Simulation time (s) as the sensor's clock: seconds past the hour."""
     if len(t) and t[0] >= 0.0 and t[-1] < SECONDS_PER_HOUR:
-        return t.copy()
+        # The times themselves (a view): a scan of a longer window copies its arrays anyway
+        # (`BenchSim._to_scans`), and a scan of its own window is all that holds them.
+        return t
     return np.mod(t, SECONDS_PER_HOUR)
 
 
@@ -256,7 +258,8 @@ class BenchSim:
         rpm = self.config.rpm
         if self.config.rpm_wander_sigma > 0:
             rpm = rpm + self.rng.normal(0.0, self.config.rpm_wander_sigma)
-        rpm = float(np.clip(rpm, self.sensor.rpm_min, self.sensor.rpm_max))
+        # (min/max, not np.clip: the same value without numpy's scalar overhead, per rotation)
+        rpm = min(max(float(rpm), self.sensor.rpm_min), self.sensor.rpm_max)
         return rpm * TWO_PI / 60.0
 
     def _ensure_rotations(self, upto: int) -> None:
@@ -296,7 +299,11 @@ class BenchSim:
             t_first = float(f.time[lo]) if hi > lo else self._rot_start[i]
             t_last = float(f.time[hi - 1]) if hi > lo else self._rot_start[i]
             truth = self._truth_at(t_first)
-            truth_end = self._truth_at(t_last)
+            # At rest (no pose record) the truth is one pose: computed and converted once.
+            at_rest = self._window_record is None
+            truth_end = truth if at_rest else self._truth_at(t_last)
+            edge = truth.to_edge()
+            edge_end = dict(edge) if at_rest else truth_end.to_edge()
             parts = []
             beam_az = self._beam_azimuth(f.azimuth[m], f.laser_id[m])
             for s in range(cfg.n_returns):
@@ -325,8 +332,8 @@ class BenchSim:
                 **arrays, index=self.scan_count, complete=True, packets=0, missing_packets=0,
                 return_mode=cfg.return_mode_byte, product_id=self.sensor.product_id,
                 vertical_offsets_applied=cfg.vertical_offsets, lasers=self.sensor.lasers,
-                meta={"truth": truth.to_edge(), "truth_pose": truth,
-                      "truth_end": truth_end.to_edge(), "truth_end_pose": truth_end,
+                meta={"truth": edge, "truth_pose": truth,
+                      "truth_end": edge_end, "truth_end_pose": truth_end,
                       "source": "twin", "rpm": rpm, "rotation": i, "model": self.sensor.name,
                       "stage_x_m": self.stage_x(), "stage_yaw_rad": self.stage_yaw()}))
             self.scan_count += 1

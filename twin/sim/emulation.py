@@ -653,8 +653,12 @@ class LidarEmulator:
         offsets, cos_el, sin_el, vertical = self._grid_tables()
         if k > 1 and cfg.subrays == "adaptive":
             return self._fire_grid_adaptive(azimuth, planes, idx, dirs, rows, bounds, origins,
-                                            k, weights, row_laser)
-        d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
+                                            k, weights, row_laser, base, d_first, spread)
+        if cfg.culling and k == 1:
+            d_c, g_c, n_c, _ = self._cast_candidates(idx, dirs, rows, bounds, origins,
+                                                     row_laser, base, d_first, spread)
+        else:
+            d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
         if k == 1:
             words, sigma_r, sigma_i = self._noise_words(n)
             *returns, near, near_energy = raykernel.grid_pass(
@@ -685,20 +689,24 @@ class LidarEmulator:
     def _fire_grid_adaptive(self, azimuth: np.ndarray, planes: tuple, idx: np.ndarray,
                             dirs: np.ndarray, rows: np.ndarray, bounds: np.ndarray,
                             origins: np.ndarray, k: int, weights: np.ndarray,
-                            row_laser: np.ndarray) -> Returns:
+                            row_laser: np.ndarray, base: np.ndarray, d_first: np.ndarray,
+                            spread: float) -> Returns:
         """`fire_grid` with divergence, spending MuJoCo's sub-rays only where the scene's depth
         may change inside the beam. ``idx``, ``dirs``, ``rows``, ``bounds``: every ray that
         may meet a solid (`_grid_candidates`, rows ``laser * k + sub-ray``); ``planes``: the
-        planes' rows (`twin.sim.raykernel.plane_rows`).
+        planes' rows (`twin.sim.raykernel.plane_rows`); ``base``, ``d_first``, ``spread``:
+        the grid's azimuths (`twin.sim.raykernel.grid_prepare`).
 
         1. Every sub-ray's nearest plane (floor, walls), exactly (`raykernel.grid_rays`).
-        2. The beams' centres that may meet a solid through MuJoCo.
-        3. The other sub-rays that may meet a solid: finished on their centre's box face where
-           the footprint provably stays on it (`raykernel.subray_faces`), the rest (edges,
-           curved geoms, centres on a plane) through MuJoCo.
+        2. Every ray that may meet only boxes and planes, exactly as MuJoCo would
+           (`_cast_candidates`: MuJoCo's ray_box, the same bits).
+        3. Of the rest (a curved geom or a mesh may be in the way): the beams' centres through
+           MuJoCo; a sub-ray is finished on its centre's box face where the footprint provably
+           stays on it (`raykernel.subray_faces`), else through MuJoCo too.
         4. The echoes: beams wholly on one geom in the kernel (`raykernel.beam_echoes`), the
-           others (mixed and multiple echoes) by the brute-force model's own `_echoes` and
-           `_measure`; the noise is drawn as `_from_hits` draws it.
+           others (mixed and multiple echoes) by the brute-force model's own echo formation
+           (compiled: `raykernel.echoes`) and `_measure`; the noise is drawn as `_from_hits`
+           draws it.
         """
         cfg = self.config
         caster = self.caster
@@ -709,24 +717,30 @@ class LidarEmulator:
         gid = np.empty(n * k, dtype=np.int32)
         raykernel.grid_rays(azimuth, row_laser, self._grid_rows()[3], *planes, caster.cutoff,
                             sa, ca, dist, cos_inc, gid)
-        counts = np.diff(bounds)
-        centre_rows = rows % k == 0
-        ray_row = np.repeat(rows, counts)
-        in_centre = np.repeat(centre_rows, counts)
-        c_idx, c_dirs = idx[in_centre], dirs[in_centre]
-        c_rows = rows[centre_rows]
-        c_bounds = np.concatenate(([0], np.cumsum(counts[centre_rows])))
-        d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[c_rows]], c_bounds, c_dirs)
-        raykernel.scatter_cast(c_idx, d_c, g_c, n_c, c_dirs, self._unit_weights, caster.cutoff,
-                               dist, cos_inc, gid)
+        d_a, g_a, n_a, mj = self._cast_candidates(idx, dirs, rows, bounds, origins, row_laser,
+                                                  base, d_first, spread, mujoco_too=False)
+        ray_row = idx // n_seq
+        centre = ray_row % k == 0
+        # MuJoCo for the centres the boxes could not answer, one call per laser.
+        c_q = np.flatnonzero(centre & mj)
+        if len(c_q):
+            c_lasers, first = np.unique(row_laser[ray_row[c_q]], return_index=True)
+            d_a[c_q], g_a[c_q], n_a[c_q] = caster.multiray_rows(
+                origins[c_lasers], np.append(first, len(c_q)), np.ascontiguousarray(dirs[c_q]))
+        done = ~mj | centre
+        raykernel.scatter_cast(idx[done], d_a[done], g_a[done], n_a[done],
+                               np.ascontiguousarray(dirs[done]), self._unit_weights,
+                               caster.cutoff, dist, cos_inc, gid)
+        c_all = np.flatnonzero(centre)
         centre_of = np.full(n, -1, dtype=np.int64)
-        c_ray_row = ray_row[in_centre]
-        centre_of[(c_ray_row // k) * n_seq + (c_idx - c_ray_row * n_seq)] = np.arange(len(c_idx))
-        s_idx, s_dirs = idx[~in_centre], dirs[~in_centre]
-        if len(s_idx):
+        centre_of[(ray_row[c_all] // k) * n_seq + (idx[c_all] - ray_row[c_all] * n_seq)] = c_all
+        s_q = np.flatnonzero(~centre & mj)
+        s_idx = idx[s_q]
+        if len(s_q):
+            s_dirs = np.ascontiguousarray(dirs[s_q])
             geo = self._box_tables()
             need = raykernel.subray_faces(s_idx, s_dirs, k, n_seq, row_laser, origins,
-                                          centre_of, n_c, *geo, caster.cutoff, dist, cos_inc,
+                                          centre_of, n_a, *geo, caster.cutoff, dist, cos_inc,
                                           gid)
             s_idx, s_dirs = s_idx[need], np.ascontiguousarray(s_dirs[need])
             if len(s_idx):
@@ -736,7 +750,8 @@ class LidarEmulator:
                 d_s, g_s, n_s = caster.multiray_rows(origins[s_lasers], s_bounds, s_dirs)
                 raykernel.scatter_cast(s_idx, d_s, g_s, n_s, s_dirs, self._unit_weights,
                                        caster.cutoff, dist, cos_inc, gid)
-        self.last_subrays_cast = len(c_idx) + len(s_idx)  # (benchmarks: MuJoCo's share)
+        #: Rays MuJoCo cast in the last call (benchmarks: its share).
+        self.last_mujoco_rays = len(c_q) + len(s_idx)
         kind, r_f, refl_f, energy_f = raykernel.beam_echoes(
             dist, gid, cos_inc, n_seq, n_l, k, weights, self.reflectivity, cfg.echo_separation)
         laser_id = self._laser_ids(n_seq)
@@ -763,6 +778,40 @@ class LidarEmulator:
         out.x, out.y, out.z = raykernel.firing_points(out.distance, sa[centre], ca[centre],
                                                       cos_el, sin_el, vertical)
         return out
+
+    def _cast_candidates(self, idx: np.ndarray, dirs: np.ndarray, rows: np.ndarray,
+                         bounds: np.ndarray, origins: np.ndarray, row_laser: np.ndarray,
+                         base: np.ndarray, d_first: np.ndarray, spread: float,
+                         mujoco_too: bool = True
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """MuJoCo's answer (raw: distance, geom id, normal) for the rays that may meet a solid
+        (`_grid_candidates`' ``idx``, ``dirs``, ``rows``, ``bounds``): those whose solids are
+        all boxes from `twin.sim.raykernel.solid_cast` (MuJoCo's ray_box and ray_plane, the
+        same operations: the same bits, tests/test_emulation.py), the others (a curved geom,
+        a mesh, a whole row) through `mj_multiRay`, one call per row; with ``mujoco_too``
+        False those are left undone (distance and geom -1). Returns the three and the mask of
+        the rays MuJoCo cast (or must).
+
+        Why: mj_multiRay tests every geom of the scene against every ray it is given; the
+        culling's intervals already say which few solids a ray may meet, so a scene of many
+        boxes (the lab) costs a handful of box tests per ray instead of a hundred geoms."""
+        caster = self.caster
+        if len(idx) == 0:
+            return (np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
+                    np.zeros(0, dtype=np.bool_))
+        full, row, geom, centre, half = self._intervals
+        pos, mat, size, is_box = self._box_tables()
+        d, g, nv, mj = raykernel.solid_cast(idx, dirs, len(base), full, row, geom, centre, half,
+                                            d_first, spread, base, is_box, pos, mat, size,
+                                            caster.plane_ids, origins, row_laser)
+        if mujoco_too and mj.any():
+            q = np.flatnonzero(mj)
+            q_rows, first = np.unique(idx[q] // len(base), return_index=True)
+            d_m, g_m, n_m = caster.multiray_rows(origins[row_laser[q_rows]],
+                                                 np.append(first, len(q)),
+                                                 np.ascontiguousarray(dirs[q]))
+            d[q], g[q], nv[q] = d_m, g_m, n_m
+        return d, g, nv, mj
 
     def _box_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every geom's world position (G, 3), orientation (G, 9), half-sizes (G, 3) and
@@ -857,8 +906,9 @@ class LidarEmulator:
         if len(ids) == 0:
             return (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=np.int64),
                     np.zeros(1, dtype=np.int64))
-        full, row, centre, half = self._pose_intervals(ids, cw[:, None], sw[:, None], origins,
-                                                       row_laser, rotation)
+        full, row, centre, half, geom = self._pose_intervals(ids, cw[:, None], sw[:, None],
+                                                             origins, row_laser, rotation)
+        self._intervals = (full, row, geom, centre, half)  # (for `_cast_candidates`)
         return raykernel.grid_candidates(base, full, row, centre, half, d_first, spread,
                                          azimuth, row_laser, row_dh, cw, sw, rotation)
 
@@ -866,9 +916,9 @@ class LidarEmulator:
                         origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The pose-dependent half of `_grid_candidates`: rows to cast whole (R,), and for the
-        other (row, geom) pairs that can meet a geom, the row index and the azimuth interval
-        (centre, half-width; rad, before the row offsets). Cached for the last pose: scans at
-        one stage position reuse it."""
+        other (row, geom) pairs that can meet a geom, the row index, the azimuth interval
+        (centre, half-width; rad, before the row offsets) and the geom id. Cached for the
+        last pose: scans at one stage position reuse it."""
         caster = self.caster
         key = (origins.tobytes(), rotation.tobytes(), cw.tobytes(), sw.tobytes(),
                caster.data.geom_xpos[ids].tobytes(), caster.data.geom_xmat[ids].tobytes())
@@ -904,23 +954,27 @@ class LidarEmulator:
         lo_ = np.where(bounded, np.maximum(-hs, delta - box_h[geom]), -hs)
         hi_ = np.where(bounded, np.minimum(hs, delta + box_h[geom]), hs)
         keep = lo_ <= hi_
-        row, lo_, hi_, cs_ = row[keep], lo_[keep], hi_[keep], cs_[keep]
-        out = (full, row, cs_ + (lo_ + hi_) / 2, (hi_ - lo_) / 2 + 1e-9)
+        row, geom, lo_, hi_, cs_ = row[keep], geom[keep], lo_[keep], hi_[keep], cs_[keep]
+        out = (full, row, cs_ + (lo_ + hi_) / 2, (hi_ - lo_) / 2 + 1e-9,
+               np.ascontiguousarray(ids[geom], dtype=np.int64))
         self._interval_cache = (key, out)
         return out
 
     def _box_bounds(self, ids: np.ndarray, origins: np.ndarray, rotation: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Angular extent of each box geom seen from the sensor, exact-or-wider, in {L}:
-        (azimuth centre (G,), azimuth half-width (G,), elevation min (16, G), max (16, G)).
+        """Angular extent of each geom's bounding box (the box itself for a box; MuJoCo's
+        geom_aabb in the geom's frame for the others, which lie inside it) seen from the
+        sensor, exact-or-wider, in {L}: (azimuth centre (G,), azimuth half-width (G,),
+        elevation min (16, G), max (16, G)).
 
-        A ray that meets a convex body points at a point of it; that point's projection on the
-        sensor's xy-plane lies in the projection of the body, a convex polygon whose azimuths
-        run between its corners' when the origin's projection is outside it; its height over
-        its horizontal distance is bounded by the corners' heights and the polygon's nearest
-        and farthest distance (nearest: over the projected edges). Non-boxes, or an origin
-        above or below the box, get no bound (half-width pi, elevations +-pi/2). The lasers'
-        origins differ only along Z_L: one projection, per-laser heights.
+        A ray that meets the geom meets its box, a convex body, and points at a point of it;
+        that point's projection on the sensor's xy-plane lies in the projection of the body,
+        a convex polygon whose azimuths run between its corners' when the origin's
+        projection is outside it; its height over its horizontal distance is bounded by the
+        corners' heights and the polygon's nearest and farthest distance (nearest: over the
+        projected edges). An origin above or below the box gets no bound (half-width pi,
+        elevations +-pi/2). The lasers' origins differ only along Z_L: one projection, per-
+        laser heights.
         """
         model, data = self.caster.model, self.caster.data
         n_l, n_g = len(origins), len(ids)
@@ -928,12 +982,16 @@ class LidarEmulator:
         half = np.full(n_g, np.pi)
         el_lo = np.full((n_l, n_g), -np.pi / 2)
         el_hi = np.full((n_l, n_g), np.pi / 2)
-        box = np.flatnonzero(model.geom_type[ids] == mujoco.mjtGeom.mjGEOM_BOX)
+        # Every solid by its bounding box in its own frame (MuJoCo's geom_aabb: centre and
+        # half-sizes; a box's is the box itself): a capsule, a cylinder or a mesh lies inside
+        # it, so its bounds hold for them too, and are far tighter than their spheres.
+        box = np.arange(n_g)
         if len(box) == 0:
             return centre, half, el_lo, el_hi
         gb = ids[box]
         mats = data.geom_xmat[gb].reshape(-1, 3, 3)
-        local = _BOX_SIGNS[None] * model.geom_size[gb][:, None, :]  # (B, 8, 3)
+        aabb = model.geom_aabb[gb]
+        local = aabb[:, None, :3] + _BOX_SIGNS[None] * aabb[:, None, 3:]  # (B, 8, 3)
         corners = data.geom_xpos[gb][:, None, :] + np.einsum("bkj,bij->bki", local, mats)
         c_l = (corners - origins[0]) @ rotation  # (B, 8, 3) in {L}
         az = np.arctan2(c_l[..., 0], c_l[..., 1])

@@ -567,6 +567,127 @@ def scatter_cast(ray_index: np.ndarray, dist_c: np.ndarray, gid_c: np.ndarray,
     return None
 
 
+@njit(inline="always", error_model="numpy")
+def _ray_box(o: np.ndarray, v: np.ndarray, pos: np.ndarray, mat: np.ndarray, size: np.ndarray
+             ) -> tuple[float, int, float]:
+    """MuJoCo's ``ray_box`` (engine_ray.c), the same operations in the same order: the ray
+    from world ``o`` along ``v`` mapped into the box's frame (``mat`` row-major, the
+    transpose applied as mju_mulMatTVec3 does), each face's plane solved where the direction's
+    component exceeds mjMINVAL, a solution >= 0 kept when it lies inside the face (<= the
+    half-sizes), the smallest kept. Returns (distance or -1, axis, side)."""
+    d0 = o[0] - pos[0]
+    d1 = o[1] - pos[1]
+    d2 = o[2] - pos[2]
+    x = -1.0
+    ax = -1
+    sd = 0.0
+    lp = (mat[0] * d0 + mat[3] * d1 + mat[6] * d2, mat[1] * d0 + mat[4] * d1 + mat[7] * d2,
+          mat[2] * d0 + mat[5] * d1 + mat[8] * d2)
+    lv = (mat[0] * v[0] + mat[3] * v[1] + mat[6] * v[2],
+          mat[1] * v[0] + mat[4] * v[1] + mat[7] * v[2],
+          mat[2] * v[0] + mat[5] * v[1] + mat[8] * v[2])
+    for i in range(3):
+        if abs(lv[i]) > MJMINVAL:
+            j = 1 if i == 0 else 0
+            k = 1 if i == 2 else 2
+            for side in (-1.0, 1.0):
+                sol = (side * size[i] - lp[i]) / lv[i]
+                inside = (abs(lp[j] + sol * lv[j]) <= size[j]) and (
+                    abs(lp[k] + sol * lv[k]) <= size[k])
+                if sol >= 0.0 and inside and (x < 0.0 or sol < x):
+                    x = sol
+                    ax = i
+                    sd = side
+    return x, ax, sd
+
+
+@njit(cache=True, error_model="numpy")
+def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: np.ndarray,
+               iv_row: np.ndarray, iv_geom: np.ndarray, iv_centre: np.ndarray,
+               iv_half: np.ndarray, d_first: np.ndarray, spread: float, base: np.ndarray,
+               is_box: np.ndarray, g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray,
+               plane_ids: np.ndarray, origins: np.ndarray, row_laser: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """MuJoCo's answer for the culled rays that can only meet boxes and planes, computed here;
+    the mask of those MuJoCo must still cast.
+
+    ``ray_index``/``dirs``: the rays that may meet a solid (`grid_candidates`: ascending
+    ``r * n_seq + s``); the intervals (row ``iv_row``, geom id ``iv_geom``, azimuth
+    ``iv_centre`` +- ``iv_half``, `twin.sim.emulation.LidarEmulator._pose_intervals`) become
+    the same column ranges as there (`_column_ranges`, widened by ``spread``), so each ray
+    learns which solids it may meet. A ray of a ``full_rows`` row, or one that may meet a
+    geom other than a box (``is_box`` by geom id), is left to MuJoCo. For the others the hit
+    is MuJoCo's: `_ray_box` on each of its boxes and `ray_plane` on every plane
+    (``plane_ids``), the nearest, the lowest geom id on a tie (mj_ray's strict <), with the
+    face's world normal (the box's axis times the side; the plane's z axis) as mj_multiRay
+    gives it. World poses ``g_pos`` (G, 3), ``g_mat`` (G, 9), half-sizes ``g_size`` (G, 3);
+    the rows' origins ``origins[row_laser[r]]``.
+
+    Returns (distance, -1: none; geom id, -1; normal (n, 3); needs MuJoCo (n,) bool), in
+    mj_multiRay's raw form (`_cast_hit` applies the cutoff).
+    """
+    n = ray_index.shape[0]
+    dist = np.full(n, -1.0)
+    gid = np.full(n, -1, dtype=np.int32)
+    nrm = np.zeros((n, 3))
+    mj = np.zeros(n, dtype=np.bool_)
+    if n == 0:
+        return dist, gid, nrm, mj
+    for q in range(n):
+        if full_rows[ray_index[q] // n_seq]:
+            mj[q] = True
+    b_u = unwrap(base)
+    n_turns = math.ceil((b_u[n_seq - 1] - b_u[0]) * _INV_TWO_PI) + 2
+    ranges = np.empty((n_turns, 2), dtype=np.int64)
+    for i in range(iv_row.shape[0]):
+        r = iv_row[i]
+        g = iv_geom[i]
+        n_r = _column_ranges(b_u, iv_centre[i] - d_first[r], iv_half[i] + spread, ranges)
+        o = origins[row_laser[r]]
+        box = is_box[g]
+        for jr in range(n_r):
+            lo = np.searchsorted(ray_index, r * n_seq + ranges[jr, 0])
+            hi = np.searchsorted(ray_index, r * n_seq + ranges[jr, 1])
+            for q in range(lo, hi):
+                if not box:
+                    mj[q] = True
+                    continue
+                x, ax, sd = _ray_box(o, dirs[q], g_pos[g], g_mat[g], g_size[g])
+                if x >= 0.0 and (gid[q] < 0 or x < dist[q] or (x == dist[q] and g < gid[q])):
+                    dist[q] = x
+                    gid[q] = g
+                    for e in range(3):
+                        nrm[q, e] = g_mat[g, 3 * e + ax] * sd
+    # The planes, as `ray_planes` has MuJoCo's rule, for the rays finished here.
+    for p in range(plane_ids.shape[0]):
+        g = plane_ids[p]
+        m = g_mat[g]
+        for q in range(n):
+            if mj[q]:
+                continue
+            o = origins[row_laser[ray_index[q] // n_seq]]
+            d0 = o[0] - g_pos[g, 0]
+            d1 = o[1] - g_pos[g, 1]
+            d2 = o[2] - g_pos[g, 2]
+            lp0 = m[0] * d0 + m[3] * d1 + m[6] * d2
+            lp1 = m[1] * d0 + m[4] * d1 + m[7] * d2
+            lp2 = m[2] * d0 + m[5] * d1 + m[8] * d2
+            v0 = dirs[q, 0]
+            v1 = dirs[q, 1]
+            v2 = dirs[q, 2]
+            lv0 = m[0] * v0 + m[3] * v1 + m[6] * v2
+            lv1 = m[1] * v0 + m[4] * v1 + m[7] * v2
+            lv2 = m[2] * v0 + m[5] * v1 + m[8] * v2
+            x = ray_plane(lp0, lp1, lp2, lv0, lv1, lv2, g_size[g, 0], g_size[g, 1])
+            if x >= 0.0 and (gid[q] < 0 or x < dist[q] or (x == dist[q] and g < gid[q])):
+                dist[q] = x
+                gid[q] = g
+                nrm[q, 0] = m[2]
+                nrm[q, 1] = m[5]
+                nrm[q, 2] = m[8]
+    return dist, gid, nrm, mj
+
+
 # --------------------------------------------------------------------------------------------
 # Divergence: sub-rays only where the beam's footprint leaves a face (adaptive)
 # --------------------------------------------------------------------------------------------
