@@ -28,6 +28,7 @@ SI units throughout (m, rad, s); intensity is the sensor's calibrated reflectivi
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, replace
 from typing import Literal
@@ -50,6 +51,8 @@ PAPER_RANGE_NOISE = 0.014
 
 #: Geom group the emulator casts against (models/common.xml: 0 = reachable surfaces).
 RAY_GEOM_GROUP = 0
+#: The spare geom group `RayCaster`'s copy of the model puts the curved geoms in.
+CURVED_GROUP = 5
 #: Origins closer than this share one mj_multiRay call (the cast is then made exact again by the
 #: plane correction of `RayCaster.cast`), m.
 ORIGIN_TOLERANCE = 2e-4
@@ -194,6 +197,16 @@ class RayCaster:
         is_plane = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
         self.plane_ids = np.flatnonzero(visible & is_plane)
         self.solid_ids = np.flatnonzero(visible & ~is_plane)
+        # A copy of the model in which only the ray-visible geoms that are neither planes nor
+        # boxes are in group CURVED_GROUP: `multiray_rows(curved=True)` casts against those
+        # alone (the kernels answer boxes and planes), a few geoms instead of the scene's.
+        # The physics' data serves it (the same geoms in the same places).
+        curved = visible & ~is_plane & (model.geom_type != mujoco.mjtGeom.mjGEOM_BOX)
+        self._curved_model = copy.copy(model)
+        self._curved_model.geom_group[:] = 0
+        self._curved_model.geom_group[curved] = CURVED_GROUP
+        self._curved_groups = np.zeros(6, dtype=np.uint8)
+        self._curved_groups[CURVED_GROUP] = 1
         # Scratch buffers for mj_multiRay, grown on demand.
         self._gid = np.zeros(0, dtype=np.int32)
         self._dist = np.zeros(0)
@@ -228,13 +241,14 @@ class RayCaster:
         d[g < 0] = np.inf
         return d, g, nrm.reshape(n, 3).copy()
 
-    def multiray_rows(self, row_origins: np.ndarray, bounds: np.ndarray, dirs: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def multiray_rows(self, row_origins: np.ndarray, bounds: np.ndarray, dirs: np.ndarray,
+                      curved: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rays in runs that share an origin: rays ``bounds[j]:bounds[j + 1]`` start at
         ``row_origins[j]``; one mj_multiRay call per run, written straight into the outputs.
         Returns MuJoCo's raw (distance, -1 if none; geom id, -1 if none; normal (n, 3)): unlike
         `multiray`, hits beyond the cutoff are left to the caller
-        (`twin.sim.raykernel.scatter_cast`)."""
+        (`twin.sim.raykernel.scatter_cast`). ``curved``: against the geoms that are neither
+        planes nor boxes only (`twin.sim.raykernel.merge_nearest` adds the others')."""
         n = len(dirs)
         gid = np.empty(n, dtype=np.int32)
         dist = np.empty(n)
@@ -243,6 +257,8 @@ class RayCaster:
         nv = nrm.reshape(-1)
         m, d, grp, body, cutoff = (self.model, self.data, self.geomgroup, self.sensor_body_id,
                                    self.cutoff)
+        if curved:
+            m, grp = self._curved_model, self._curved_groups
         ray = mujoco.mj_multiRay
         b = bounds.tolist()
         for j, o in enumerate(row_origins):
@@ -724,9 +740,7 @@ class LidarEmulator:
         # MuJoCo for the centres the boxes could not answer, one call per laser.
         c_q = np.flatnonzero(centre & mj)
         if len(c_q):
-            c_lasers, first = np.unique(row_laser[ray_row[c_q]], return_index=True)
-            d_a[c_q], g_a[c_q], n_a[c_q] = caster.multiray_rows(
-                origins[c_lasers], np.append(first, len(c_q)), np.ascontiguousarray(dirs[c_q]))
+            self._cast_curved(c_q, idx, dirs, n_seq, origins, row_laser, d_a, g_a, n_a)
         done = ~mj | centre
         raykernel.scatter_cast(idx[done], d_a[done], g_a[done], n_a[done],
                                np.ascontiguousarray(dirs[done]), self._unit_weights,
@@ -735,23 +749,21 @@ class LidarEmulator:
         centre_of = np.full(n, -1, dtype=np.int64)
         centre_of[(ray_row[c_all] // k) * n_seq + (idx[c_all] - ray_row[c_all] * n_seq)] = c_all
         s_q = np.flatnonzero(~centre & mj)
-        s_idx = idx[s_q]
+        n_s = 0
         if len(s_q):
-            s_dirs = np.ascontiguousarray(dirs[s_q])
             geo = self._box_tables()
-            need = raykernel.subray_faces(s_idx, s_dirs, k, n_seq, row_laser, origins,
-                                          centre_of, n_a, *geo, caster.cutoff, dist, cos_inc,
-                                          gid)
-            s_idx, s_dirs = s_idx[need], np.ascontiguousarray(s_dirs[need])
-            if len(s_idx):
-                # One call per laser: its sub-rays' rows share its origin (rows ascending).
-                s_lasers, first = np.unique(row_laser[s_idx // n_seq], return_index=True)
-                s_bounds = np.append(first, len(s_idx))
-                d_s, g_s, n_s = caster.multiray_rows(origins[s_lasers], s_bounds, s_dirs)
-                raykernel.scatter_cast(s_idx, d_s, g_s, n_s, s_dirs, self._unit_weights,
+            need = raykernel.subray_faces(idx[s_q], np.ascontiguousarray(dirs[s_q]), k, n_seq,
+                                          row_laser, origins, centre_of, n_a, *geo,
+                                          caster.cutoff, dist, cos_inc, gid)
+            s_q = s_q[need]
+            n_s = len(s_q)
+            if n_s:
+                self._cast_curved(s_q, idx, dirs, n_seq, origins, row_laser, d_a, g_a, n_a)
+                raykernel.scatter_cast(idx[s_q], d_a[s_q], g_a[s_q], n_a[s_q],
+                                       np.ascontiguousarray(dirs[s_q]), self._unit_weights,
                                        caster.cutoff, dist, cos_inc, gid)
         #: Rays MuJoCo cast in the last call (benchmarks: its share).
-        self.last_mujoco_rays = len(c_q) + len(s_idx)
+        self.last_mujoco_rays = len(c_q) + n_s
         kind, r_f, refl_f, energy_f = raykernel.beam_echoes(
             dist, gid, cos_inc, n_seq, n_l, k, weights, self.reflectivity, cfg.echo_separation)
         laser_id = self._laser_ids(n_seq)
@@ -805,13 +817,32 @@ class LidarEmulator:
                                             d_first, spread, base, is_box, pos, mat, size,
                                             caster.plane_ids, origins, row_laser)
         if mujoco_too and mj.any():
-            q = np.flatnonzero(mj)
-            q_rows, first = np.unique(idx[q] // len(base), return_index=True)
-            d_m, g_m, n_m = caster.multiray_rows(origins[row_laser[q_rows]],
-                                                 np.append(first, len(q)),
-                                                 np.ascontiguousarray(dirs[q]))
-            d[q], g[q], nv[q] = d_m, g_m, n_m
+            self._cast_curved(np.flatnonzero(mj), idx, dirs, len(base), origins, row_laser,
+                              d, g, nv)
         return d, g, nv, mj
+
+    def _cast_curved(self, q: np.ndarray, idx: np.ndarray, dirs: np.ndarray, n_seq: int,
+                     origins: np.ndarray, row_laser: np.ndarray, d: np.ndarray, g: np.ndarray,
+                     nv: np.ndarray) -> None:
+        """MuJoCo for the candidates ``q`` that `twin.sim.raykernel.solid_cast` left to it, in
+        place: a whole row's rays against every geom; the others against the curved geoms
+        only, merged with the boxes' and planes' hit the kernel found (the nearer wins). One
+        mj_multiRay call per row (per laser where the rows share its origin)."""
+        full = self._intervals[0]
+        caster = self.caster
+        rows_q = idx[q] // n_seq
+        whole = full[rows_q]
+        for sel, curved in ((whole, False), (~whole, True)):
+            qq = q[sel]
+            if not len(qq):
+                continue
+            lasers, first = np.unique(row_laser[rows_q[sel]], return_index=True)
+            d_m, g_m, n_m = caster.multiray_rows(origins[lasers], np.append(first, len(qq)),
+                                                 np.ascontiguousarray(dirs[qq]), curved=curved)
+            if curved:
+                raykernel.merge_nearest(qq, d, g, nv, d_m, g_m, n_m)
+            else:
+                d[qq], g[qq], nv[qq] = d_m, g_m, n_m
 
     def _box_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every geom's world position (G, 3), orientation (G, 9), half-sizes (G, 3) and

@@ -624,7 +624,9 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: n
     the rows' origins ``origins[row_laser[r]]``.
 
     Returns (distance, -1: none; geom id, -1; normal (n, 3); needs MuJoCo (n,) bool), in
-    mj_multiRay's raw form (`_cast_hit` applies the cutoff).
+    mj_multiRay's raw form (`_cast_hit` applies the cutoff). A ray that needs MuJoCo for a
+    curved geom still gets its boxes' and planes' nearest hit (MuJoCo then casts it against the
+    curved geoms only: `merge_nearest`); a whole row's rays get nothing.
     """
     n = ray_index.shape[0]
     dist = np.full(n, -1.0)
@@ -652,18 +654,21 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: n
                 if not box:
                     mj[q] = True
                     continue
+                if full_rows[r]:
+                    continue  # (MuJoCo casts the whole row against every geom)
                 x, ax, sd = _ray_box(o, dirs[q], g_pos[g], g_mat[g], g_size[g])
                 if x >= 0.0 and (gid[q] < 0 or x < dist[q] or (x == dist[q] and g < gid[q])):
                     dist[q] = x
                     gid[q] = g
                     for e in range(3):
                         nrm[q, e] = g_mat[g, 3 * e + ax] * sd
-    # The planes, as `ray_planes` has MuJoCo's rule, for the rays finished here.
+    # The planes, as `ray_planes` has MuJoCo's rule, for every ray but whole rows' (a ray
+    # left to MuJoCo for a curved geom keeps its boxes' and planes' hit: `merge_nearest`).
     for p in range(plane_ids.shape[0]):
         g = plane_ids[p]
         m = g_mat[g]
         for q in range(n):
-            if mj[q]:
+            if full_rows[ray_index[q] // n_seq]:
                 continue
             o = origins[row_laser[ray_index[q] // n_seq]]
             d0 = o[0] - g_pos[g, 0]
@@ -686,6 +691,24 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: n
                 nrm[q, 1] = m[5]
                 nrm[q, 2] = m[8]
     return dist, gid, nrm, mj
+
+
+@njit(cache=True, error_model="numpy")
+def merge_nearest(q: np.ndarray, dist: np.ndarray, gid: np.ndarray, nrm: np.ndarray,
+                  d_m: np.ndarray, g_m: np.ndarray, n_m: np.ndarray) -> None:
+    """MuJoCo's hits (``d_m``, ``g_m``, ``n_m``: rays ``q`` cast against some of the geoms)
+    into the hits of the others (``dist``, ``gid``, ``nrm`` at ``q``), in place: the nearer,
+    the lower geom id on a tie (mj_ray's rule over all of them); -1 is no hit."""
+    for i in range(q.shape[0]):
+        j = q[i]
+        g = g_m[i]
+        if g >= 0 and (gid[j] < 0 or d_m[i] < dist[j] or (d_m[i] == dist[j] and g < gid[j])):
+            dist[j] = d_m[i]
+            gid[j] = g
+            nrm[j, 0] = n_m[i, 0]
+            nrm[j, 1] = n_m[i, 1]
+            nrm[j, 2] = n_m[i, 2]
+    return None
 
 
 # --------------------------------------------------------------------------------------------
