@@ -434,6 +434,7 @@ def test_the_box_kernel_gives_mujocos_bits() -> None:
     em, caster = sim.emulator, sim.caster
     az = _grid(1800, phase=0.7)
     p, r = sim.physics.lidar_pose_world()
+    em.fire_grid(az, p, r)  # (its planes' rows for this grid, which the kernel uses too)
     _, _, row_laser, row_dh, cw, sw = em._grid_rows()
     base, d_first, spread = raykernel.grid_prepare(az, row_laser, row_dh)
     origins = p + np.outer(em._vertical_offsets, r[:, 2])

@@ -657,6 +657,7 @@ class LidarEmulator:
         weights_g = self.reflectivity if k == 1 else self._unit_weights
         planes = raykernel.plane_rows(cw, sw, row_laser, lpnt, axes, size, geom, extent,
                                       weights_g[geom], base, d_first, spread)
+        self._planes = planes  # (for `_cast_candidates`)
         if cfg.culling:
             idx, dirs, rows, bounds = self._grid_candidates(base, d_first, spread, azimuth,
                                                             row_laser, row_dh, cw, sw, origins,
@@ -815,7 +816,8 @@ class LidarEmulator:
         pos, mat, size, is_box = self._box_tables()
         d, g, nv, mj = raykernel.solid_cast(idx, dirs, len(base), full, row, geom, centre, half,
                                             d_first, spread, base, is_box, pos, mat, size,
-                                            caster.plane_ids, origins, row_laser)
+                                            caster.plane_ids, *self._planes, origins,
+                                            row_laser)
         if mujoco_too and mj.any():
             self._cast_curved(np.flatnonzero(mj), idx, dirs, len(base), origins, row_laser,
                               d, g, nv)

@@ -606,7 +606,8 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: n
                iv_row: np.ndarray, iv_geom: np.ndarray, iv_centre: np.ndarray,
                iv_half: np.ndarray, d_first: np.ndarray, spread: float, base: np.ndarray,
                is_box: np.ndarray, g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray,
-               plane_ids: np.ndarray, origins: np.ndarray, row_laser: np.ndarray
+               plane_ids: np.ndarray, pl_k: np.ndarray, pl_ranges: np.ndarray,
+               pl_n_ranges: np.ndarray, origins: np.ndarray, row_laser: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """MuJoCo's answer for the culled rays that can only meet boxes and planes, computed here;
     the mask of those MuJoCo must still cast.
@@ -618,7 +619,8 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: n
     learns which solids it may meet. A ray of a ``full_rows`` row, or one that may meet a
     geom other than a box (``is_box`` by geom id), is left to MuJoCo. For the others the hit
     is MuJoCo's: `_ray_box` on each of its boxes and `ray_plane` on every plane
-    (``plane_ids``), the nearest, the lowest geom id on a tie (mj_ray's strict <), with the
+    (``plane_ids``, where `plane_rows`' ``pl_k``, ``pl_ranges``, ``pl_n_ranges`` let it be
+    met), the nearest, the lowest geom id on a tie (mj_ray's strict <), with the
     face's world normal (the box's axis times the side; the plane's z axis) as mj_multiRay
     gives it. World poses ``g_pos`` (G, 3), ``g_mat`` (G, 9), half-sizes ``g_size`` (G, 3);
     the rows' origins ``origins[row_laser[r]]``.
@@ -663,33 +665,46 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: n
                     for e in range(3):
                         nrm[q, e] = g_mat[g, 3 * e + ax] * sd
     # The planes, as `ray_planes` has MuJoCo's rule, for every ray but whole rows' (a ray
-    # left to MuJoCo for a curved geom keeps its boxes' and planes' hit: `merge_nearest`).
+    # left to MuJoCo for a curved geom keeps its boxes' and planes' hit: `merge_nearest`); only
+    # where `plane_rows` says the plane can be met at all (its live rows and their column
+    # ranges: elsewhere MuJoCo's rule is a miss). The origin in each plane's frame once per
+    # laser, as MuJoCo maps it.
+    n_l = origins.shape[0]
     for p in range(plane_ids.shape[0]):
         g = plane_ids[p]
         m = g_mat[g]
-        for q in range(n):
-            if full_rows[ray_index[q] // n_seq]:
-                continue
-            o = origins[row_laser[ray_index[q] // n_seq]]
+        lpl = np.empty((n_l, 3))
+        for lsr in range(n_l):
+            o = origins[lsr]
             d0 = o[0] - g_pos[g, 0]
             d1 = o[1] - g_pos[g, 1]
             d2 = o[2] - g_pos[g, 2]
-            lp0 = m[0] * d0 + m[3] * d1 + m[6] * d2
-            lp1 = m[1] * d0 + m[4] * d1 + m[7] * d2
-            lp2 = m[2] * d0 + m[5] * d1 + m[8] * d2
-            v0 = dirs[q, 0]
-            v1 = dirs[q, 1]
-            v2 = dirs[q, 2]
-            lv0 = m[0] * v0 + m[3] * v1 + m[6] * v2
-            lv1 = m[1] * v0 + m[4] * v1 + m[7] * v2
-            lv2 = m[2] * v0 + m[5] * v1 + m[8] * v2
-            x = ray_plane(lp0, lp1, lp2, lv0, lv1, lv2, g_size[g, 0], g_size[g, 1])
-            if x >= 0.0 and (gid[q] < 0 or x < dist[q] or (x == dist[q] and g < gid[q])):
-                dist[q] = x
-                gid[q] = g
-                nrm[q, 0] = m[2]
-                nrm[q, 1] = m[5]
-                nrm[q, 2] = m[8]
+            lpl[lsr, 0] = m[0] * d0 + m[3] * d1 + m[6] * d2
+            lpl[lsr, 1] = m[1] * d0 + m[4] * d1 + m[7] * d2
+            lpl[lsr, 2] = m[2] * d0 + m[5] * d1 + m[8] * d2
+        for r in range(pl_k.shape[1]):
+            if pl_k[p, r, _K_LIVE] == 0.0 or full_rows[r]:
+                continue
+            lsr = row_laser[r]
+            lp0, lp1, lp2 = lpl[lsr, 0], lpl[lsr, 1], lpl[lsr, 2]
+            for jr in range(pl_n_ranges[p, r]):
+                lo = np.searchsorted(ray_index, r * n_seq + pl_ranges[p, r, jr, 0])
+                hi = np.searchsorted(ray_index, r * n_seq + pl_ranges[p, r, jr, 1])
+                for q in range(lo, hi):
+                    v0 = dirs[q, 0]
+                    v1 = dirs[q, 1]
+                    v2 = dirs[q, 2]
+                    lv0 = m[0] * v0 + m[3] * v1 + m[6] * v2
+                    lv1 = m[1] * v0 + m[4] * v1 + m[7] * v2
+                    lv2 = m[2] * v0 + m[5] * v1 + m[8] * v2
+                    x = ray_plane(lp0, lp1, lp2, lv0, lv1, lv2, g_size[g, 0], g_size[g, 1])
+                    if x >= 0.0 and (gid[q] < 0 or x < dist[q]
+                                     or (x == dist[q] and g < gid[q])):
+                        dist[q] = x
+                        gid[q] = g
+                        nrm[q, 0] = m[2]
+                        nrm[q, 1] = m[5]
+                        nrm[q, 2] = m[8]
     return dist, gid, nrm, mj
 
 
