@@ -115,8 +115,9 @@ class EmulationConfig:
     #: Cull rays that can only meet planes (exact; see the module docstring).
     culling: bool = True
     #: Which sub-rays a beam's divergence casts through MuJoCo on the grid path (the stages at
-    #: rest): "adaptive" casts each beam's centre first and a sub-ray only where the footprint
-    #: may leave the face the centre hit (`twin.sim.raykernel.subray_faces`); "all" casts
+    #: rest): "adaptive" answers the rays that can only meet boxes and planes in the kernels
+    #: (MuJoCo's rules, its bits), casts each beam's centre first and a sub-ray near a curved
+    #: geom only where the beam's neighbourhood shows one (`raykernel.subray_needs`); "all" casts
     #: every sub-ray that may meet a solid (the brute-force reference). Planes are exact either
     #: way; tests/test_emulation.py compares the two.
     subrays: Literal["adaptive", "all"] = "adaptive"
@@ -718,8 +719,9 @@ class LidarEmulator:
         2. Every ray that may meet only boxes and planes, exactly as MuJoCo would
            (`_cast_candidates`: MuJoCo's ray_box, the same bits).
         3. Of the rest (a curved geom or a mesh may be in the way): the beams' centres through
-           MuJoCo; a sub-ray is finished on its centre's box face where the footprint provably
-           stays on it (`raykernel.subray_faces`), else through MuJoCo too.
+           MuJoCo; a sub-ray too unless its centre and the neighbouring firings' hit one geom
+           that is not curved (`raykernel.subray_needs`): then its boxes' and planes' hit
+           stands.
         4. The echoes: beams wholly on one geom in the kernel (`raykernel.beam_echoes`), the
            others (mixed and multiple echoes) by the brute-force model's own echo formation
            (compiled: `raykernel.echoes`) and `_measure`; the noise is drawn as `_from_hits`
@@ -746,23 +748,21 @@ class LidarEmulator:
         raykernel.scatter_cast(idx[done], d_a[done], g_a[done], n_a[done],
                                np.ascontiguousarray(dirs[done]), self._unit_weights,
                                caster.cutoff, dist, cos_inc, gid)
-        c_all = np.flatnonzero(centre)
-        centre_of = np.full(n, -1, dtype=np.int64)
-        centre_of[(ray_row[c_all] // k) * n_seq + (idx[c_all] - ray_row[c_all] * n_seq)] = c_all
         s_q = np.flatnonzero(~centre & mj)
         n_s = 0
         if len(s_q):
-            geo = self._box_tables()
-            need = raykernel.subray_faces(idx[s_q], np.ascontiguousarray(dirs[s_q]), k, n_seq,
-                                          row_laser, origins, centre_of, n_a, *geo,
-                                          caster.cutoff, dist, cos_inc, gid)
+            need = raykernel.subray_needs(idx[s_q], k, n_seq, gid, self._curved(),
+                                          self._intervals[0])
             s_q = s_q[need]
             n_s = len(s_q)
             if n_s:
                 self._cast_curved(s_q, idx, dirs, n_seq, origins, row_laser, d_a, g_a, n_a)
-                raykernel.scatter_cast(idx[s_q], d_a[s_q], g_a[s_q], n_a[s_q],
-                                       np.ascontiguousarray(dirs[s_q]), self._unit_weights,
-                                       caster.cutoff, dist, cos_inc, gid)
+        # The sub-rays that may meet a curved geom: MuJoCo's merged hit, or the boxes' and
+        # planes' where their beam's neighbourhood shows none.
+        sub = ~centre & mj
+        raykernel.scatter_cast(idx[sub], d_a[sub], g_a[sub], n_a[sub],
+                               np.ascontiguousarray(dirs[sub]), self._unit_weights,
+                               caster.cutoff, dist, cos_inc, gid)
         #: Rays MuJoCo cast in the last call (benchmarks: its share).
         self.last_mujoco_rays = len(c_q) + n_s
         kind, r_f, refl_f, energy_f = raykernel.beam_echoes(
@@ -846,9 +846,21 @@ class LidarEmulator:
             else:
                 d[qq], g[qq], nv[qq] = d_m, g_m, n_m
 
+    def _curved(self) -> np.ndarray:
+        """Per geom id: ray-visible and neither a plane nor a box (a sphere, capsule,
+        cylinder, ellipsoid or mesh: what the kernels leave to MuJoCo). Cached."""
+        curved = getattr(self, "_curved_cache", None)
+        if curved is None:
+            model = self.caster.model
+            curved = np.zeros(model.ngeom, dtype=np.bool_)
+            curved[self.caster.solid_ids] = True
+            curved &= model.geom_type != mujoco.mjtGeom.mjGEOM_BOX
+            self._curved_cache = curved
+        return curved
+
     def _box_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every geom's world position (G, 3), orientation (G, 9), half-sizes (G, 3) and
-        whether it is a box (G,), for `twin.sim.raykernel.subray_faces`."""
+        whether it is a box (G,), for `twin.sim.raykernel.solid_cast`."""
         model, data = self.caster.model, self.caster.data
         is_box = getattr(self, "_is_box", None)
         if is_box is None:

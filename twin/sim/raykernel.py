@@ -730,85 +730,39 @@ def merge_nearest(q: np.ndarray, dist: np.ndarray, gid: np.ndarray, nrm: np.ndar
 # Divergence: sub-rays only where the beam's footprint leaves a face (adaptive)
 # --------------------------------------------------------------------------------------------
 @njit(cache=True, error_model="numpy")
-def subray_faces(sub_index: np.ndarray, sub_dirs: np.ndarray, n_k: int, n_seq: int,
-                 row_laser: np.ndarray, origins: np.ndarray, centre_of: np.ndarray,
-                 nrm_c: np.ndarray, box_pos: np.ndarray, box_mat: np.ndarray,
-                 box_size: np.ndarray, is_box: np.ndarray, cutoff: float, dist: np.ndarray,
-                 cos_inc: np.ndarray, gid: np.ndarray) -> np.ndarray:
-    """Which of the sub-rays that may meet a solid MuJoCo must still cast; the others are
-    finished here, on the face their beam's centre hit. Returns the mask (n,) of those to cast.
+def subray_needs(sub_index: np.ndarray, n_k: int, n_seq: int, gid: np.ndarray,
+                 curved: np.ndarray, full_rows: np.ndarray) -> np.ndarray:
+    """Which sub-rays that may meet a curved geom or a mesh MuJoCo must still cast; for the
+    others the boxes' and planes' hit `solid_cast` found stands. Returns the mask (n,).
 
-    Sub-ray j is ray ``sub_index[j]`` (row-major ``r * n_seq + s``, row ``r = laser * n_k + k``,
-    k >= 1) along world ``sub_dirs[j]`` from ``origins[row_laser[r]]``. Its beam's centre (row
-    ``laser * n_k``) was cast by MuJoCo if ``centre_of[laser * n_seq + s]`` >= 0, with world
-    normal ``nrm_c`` at that index; ``dist``/``cos_inc``/``gid`` (row-major, every row) hold
-    the centres' results and, for the sub-rays, the nearest plane's (`grid_rays`).
-
-    A sub-ray is finished here only when all of these hold: its centre hit a box (``is_box``,
-    world ``box_pos`` (G, 3), ``box_mat`` (G, 9) row-major, half-sizes ``box_size`` (G, 3));
-    the same laser's neighbouring firings (one sequence before and after: 3.5 mrad apart at
-    600 rpm) hit that box too, so no other solid's edge lies between them; and the sub-ray
-    enters the centre's face, through its front, inside its rectangle (by 1e-9 relative plus
-    1 nm). A convex box is entered through the first face whose plane the ray crosses from
-    outside inside its rectangle, so that is MuJoCo's hit on the box; the nearer of it and the
-    planes' is the sub-ray's hit, as MuJoCo's nearest-geom rule has it. Everything else (a
-    centre on a plane or a curved geom, a footprint over an edge, a neighbour on another geom)
-    goes to MuJoCo. Cosines are plain (the sub-rays' weights are the echoes').
+    Sub-ray j is ray ``sub_index[j]`` (row-major ``r * n_seq + s``, row ``laser * n_k + k``,
+    k >= 1); ``gid`` (row-major, every row) holds the beams' centres' final geoms (MuJoCo's
+    over every geom where a curved one was near). A sub-ray is left to the boxes and planes
+    when its centre hit a geom that is not ``curved`` (by geom id) and the same laser's
+    neighbouring firings (one sequence before and after: 3.5 mrad apart at 600 rpm, the
+    sub-rays 1 mrad from the centre) hit that geom too: no curved geom's silhouette then
+    crosses the beam's neighbourhood, unless it is narrower than the firings' spacing or
+    crosses between the sub-ray and its centre only vertically (a few beams in 10^4 in the
+    lab; tests/test_emulation.py). Everything else goes to MuJoCo, and so does every ray of
+    a ``full_rows`` row (the kernel left those to it whole).
     """
     n = sub_index.shape[0]
     need = np.ones(n, dtype=np.bool_)
-    p = np.empty(3)
-    u = np.empty(3)
     for j in range(n):
         ray = sub_index[j]
         r = ray // n_seq
+        if full_rows[r]:
+            continue
         s = ray - r * n_seq
-        lsr = r // n_k
-        q = centre_of[lsr * n_seq + s]
-        if q < 0:
-            continue  # the centre met only planes: this sub-ray may meet a solid's edge
-        c_row = lsr * n_k * n_seq
+        c_row = (r // n_k) * n_k * n_seq
         g0 = gid[c_row + s]
-        if g0 < 0 or not is_box[g0]:
+        if g0 < 0 or curved[g0]:
             continue
         if s > 0 and gid[c_row + s - 1] != g0:
             continue
         if s + 1 < n_seq and gid[c_row + s + 1] != g0:
             continue
-        m = box_mat[g0]
-        # The centre's face: the box axis along its normal (normal in the box frame: m^T n).
-        best = -1.0
-        a = 0
-        sign = 1.0
-        for e in range(3):
-            v = m[e] * nrm_c[q, 0] + m[3 + e] * nrm_c[q, 1] + m[6 + e] * nrm_c[q, 2]
-            if abs(v) > best:
-                best = abs(v)
-                a = e
-                sign = 1.0 if v > 0.0 else -1.0
-        o = origins[row_laser[r]]
-        for e in range(3):
-            p[e] = (m[e] * (o[0] - box_pos[g0, 0]) + m[3 + e] * (o[1] - box_pos[g0, 1])
-                    + m[6 + e] * (o[2] - box_pos[g0, 2]))
-            u[e] = m[e] * sub_dirs[j, 0] + m[3 + e] * sub_dirs[j, 1] + m[6 + e] * sub_dirs[j, 2]
-        if not sign * u[a] < 0.0:
-            continue  # not into the face's front
-        t = (sign * box_size[g0, a] - p[a]) / u[a]
-        if not (t > 0.0 and t <= cutoff):
-            continue
-        inside = True
-        for e in range(3):
-            if e != a:
-                lim = box_size[g0, e] * (1.0 - 1e-9) - 1e-9
-                inside &= abs(p[e] + t * u[e]) <= lim
-        if not inside:
-            continue
         need[j] = False
-        if t < dist[ray]:
-            dist[ray] = t
-            gid[ray] = g0
-            cos_inc[ray] = abs(nrm_c[q, 0] * sub_dirs[j, 0] + nrm_c[q, 1] * sub_dirs[j, 1]
-                               + nrm_c[q, 2] * sub_dirs[j, 2])
     return need
 
 
