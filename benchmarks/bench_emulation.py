@@ -23,9 +23,9 @@ bench in a closed room with 70 more geoms: furniture, a person, mesh objects), a
 
 Each figure is the best of ``--repeats`` runs (a shared machine's load only ever adds time), as
 CPU time of this single-threaded process (what one core spends) and as wall time. ``ratio`` is
-anchor / figure on CPU time (> 1 meets the anchor): 2 ms (50x real time) without divergence, 3 ms
-with it, per firing at least 2x faster than mujoco-lidar's CPU backend (its time per ray over
-ours per firing, over 2), and the scan within 1.2x of its emulation. ``--profile`` adds
+anchor / figure on CPU time (> 1 meets the anchor): on the bench 2 ms (50x real time) without
+divergence and 3 ms with it; on both scenes per firing at least 2x faster than mujoco-lidar's
+CPU backend per ray (its time over 2), and the scan within 1.2x of its emulation. ``--profile`` adds
 cProfile's view of the full model's rotation on each scene (docs/twin.md, "Speed").
 """
 
@@ -133,7 +133,9 @@ def bench_scene(scene: str, az: np.ndarray, repeats: int, profile: bool
         em = s.emulator
         cpu, wall = timed(lambda em=em, p=p, r=r: em.fire_grid(az, p, r), repeats)
         emu_cpu[name] = cpu
-        limit = {"no divergence": 2e-3, "divergence": 3e-3}.get(name)
+        # The issue's real-time floors are the bench's; the lab's anchor is mujoco-lidar.
+        limit = ({"no divergence": 2e-3, "divergence": 3e-3}.get(name) if scene == "bench"
+                 else None)
         if limit is not None:
             rows.append((name, cpu, wall, f"<= {limit * 1e3:.0f} ms", limit))
         if t_ml is not None and name != "divergence, all sub-rays":
