@@ -54,6 +54,6 @@ fi
 echo "setup: installing aimbench and its test extras into .venv"
 .venv/bin/python -m pip install -q -e '.[test]'
 # Compile the numba kernels now, into numba's cache (beside their modules), so the first command
-# of a fresh install does not wait for them (twin/sim/warmup.py).
+# of a fresh install does not wait for them (scenarios/warmup.py).
 echo "setup: compiling the numba kernels (once, about 30 s)"
-.venv/bin/python -m twin.sim.warmup
+.venv/bin/python -m scenarios.warmup

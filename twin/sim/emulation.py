@@ -8,10 +8,13 @@ Two layers:
   per distinct ray origin (one per laser while the sensor stands still; the vertical offsets put
   the 16 lasers at 16 origins). Rays that provably can only meet the scene's planes (floor, wall)
   are finished by MuJoCo's own ray/plane rule (same formula, same finite-rectangle rule as
-  ``ray_plane`` in MuJoCo's engine_ray.c) instead of a C call per ray: a ray is cast through
-  `mj_multiRay` whenever its direction falls inside the bounding sphere (``geom_rbound``) of any
-  non-plane geom. tests/test_emulation.py proves that this culled cast equals brute-force
-  `mj_multiRay` on every ray, so it is a speed-up, never an approximation.
+  ``ray_plane`` in MuJoCo's engine_ray.c) instead of a C call per ray. A ray whose direction
+  falls inside the bounding sphere (``geom_rbound``) of a non-plane geom, cut down to its
+  bounding box's angular extent, may meet it: if every such geom is a box, the kernels answer
+  it with MuJoCo's own ray_box (the same bits); otherwise `mj_multiRay` casts it against the
+  curved geoms and meshes alone (`RayCaster.multiray_rows(curved=True)`).
+  tests/test_emulation.py proves that this culled cast equals brute-force `mj_multiRay` on every
+  ray, so it is a speed-up, never an approximation.
 * `VLP16Emulator` turns firings (laser, azimuth, pose) into returns: beam divergence sub-rays with
   echo formation (mixed returns where a beam straddles the board's edge and the wall behind it),
   strongest / last / dual return selection, range noise and per-laser offsets, 2 mm quantisation,
@@ -780,11 +783,11 @@ class LidarEmulator:
             refl = np.where(hit, self.reflectivity[np.maximum(g_m, 0)], 0.0)
             r_safe = np.where(hit, d_m, 1.0)
             energy = np.where(hit, weights[None, :] * refl * cos_inc[j] / r_safe**2, 0.0)
-            sub = self._measure(*raykernel.echoes(d_m, energy, float(cfg.echo_separation)),
-                                laser_id[rest])
-            out.distance[:, rest] = sub.distance
-            out.intensity[:, rest] = sub.intensity
-            out.return_type[:, rest] = sub.return_type
+            mixed = self._measure(*raykernel.echoes(d_m, energy, float(cfg.echo_separation)),
+                                  laser_id[rest])
+            out.distance[:, rest] = mixed.distance
+            out.intensity[:, rest] = mixed.intensity
+            out.return_type[:, rest] = mixed.return_type
         _, cos_el, sin_el, vertical = self._grid_tables()
         # The points, with sub-ray 0's sines and cosines: the beam's centre, the firing's own.
         centre = (np.arange(n_l)[None, :] * k * n_seq + np.arange(n_seq)[:, None]).reshape(-1)
@@ -959,7 +962,7 @@ class LidarEmulator:
 
     def _pose_intervals(self, ids: np.ndarray, cw: np.ndarray, sw: np.ndarray,
                         origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The pose-dependent half of `_grid_candidates`: rows to cast whole (R,), and for the
         other (row, geom) pairs that can meet a geom, the row index, the azimuth interval
         (centre, half-width; rad, before the row offsets) and the geom id. Cached for the

@@ -8,9 +8,11 @@ handful of full-size passes with temporaries and a Python call each. Here, with 
 firing, everything but MuJoCo is one pass over the grid (`grid_pass`) in blocks of
 `BLOCK_SEQUENCES` sequences, each block's intermediate arrays small enough to stay in the CPU's
 caches: the rays' sines and cosines and their nearest plane, MuJoCo's results for the block's
-cast rays, firing order, the measurement model, the points. MuJoCo itself still casts every ray
-that may meet a solid (`mujoco.mj_multiRay`, from Python, before the pass: `grid_prepare`,
-`grid_candidates`).
+cast rays, firing order, the measurement model, the points. The rays that may meet a solid
+(`grid_prepare`, `grid_candidates`) are answered before the pass: those that can meet only
+boxes and planes here (`solid_cast`, MuJoCo's own ray_box and ray_plane), the others by
+`mujoco.mj_multiRay` from Python. With divergence, `subray_needs`, `beam_echoes` and `echoes`
+spend MuJoCo's sub-rays only where a curved geom may cross a beam and form the echoes.
 
 Layouts. Rays come in rows: row ``laser * K + k`` for sub-ray ``k`` of ``K`` (1 without
 divergence); a row's rays share one origin (the laser's), one elevation and one azimuth offset,

@@ -1,6 +1,6 @@
 """Compile the numba kernels ahead of the first command, into numba's cache.
 
-    .venv/bin/python -m twin.sim.warmup
+    .venv/bin/python -m scenarios.warmup
 
 The emulation's kernels (`twin.sim.raykernel`) and the estimator's (`align`) are compiled with
 ``cache=True``: the first process that calls them compiles them (12-35 s on the development
@@ -13,7 +13,8 @@ estimate once: each kernel is compiled for the argument types those calls give i
 the types every command gives it (numba compiles per type signature).
 
 A kernel whose source changed since it was cached compiles again on first use; the command
-then says so on stderr (`twin.sim.raykernel`'s notice), once.
+then says so on stderr (`twin.sim.raykernel`'s notice), once. It lives in `scenarios/`
+because it runs the estimator as well as the twin (docs/DESIGN.md, "Layout").
 """
 
 from __future__ import annotations
