@@ -29,6 +29,7 @@ d pose / d (roll, x, z) at a fixed plane.
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -57,6 +58,32 @@ PLANE_BATCHES = 4
 #: least-squares fit caught in a wrong basin is a few degrees off.
 SINGLE_SCAN_HALF = np.deg2rad(4.0)
 SINGLE_SCAN_STEP = np.deg2rad(0.02)
+
+
+@dataclass
+class OffsetModel:
+    """A common range offset b as a nuisance of the plane: the ranges' joint Gaussian of
+    g = (alpha, beta, d) (about the ML plane, `plane.fit_rays_offsets`) and b, given as b's
+    estimate from the ranges ``b_hat``, its covariance with g ``c_gb`` (3,) and variance
+    ``c_bb``; ``centre``, ``centre_std``: b and its sigma from a fit that saw the board's size
+    (the least squares), where to look. `label_posterior` fills in ``mean`` and ``std``: b's
+    posterior given the ranges and the labels."""
+
+    b_hat: float
+    c_gb: np.ndarray
+    c_bb: float
+    centre: float = 0.0
+    centre_std: float = 0.0
+    mean: float | None = None
+    std: float | None = None
+
+
+#: The offset's profile (`_offset_profile`): points per grid, reach in the start's sigmas,
+#: refinements about the allowed band when fewer than `PROFILE_MIN` points are allowed.
+PROFILE_POINTS = 21
+PROFILE_REACH = 5.0
+PROFILE_REFINE = 3
+PROFILE_MIN = 5
 
 
 @dataclass(frozen=True)
@@ -121,7 +148,8 @@ def _pose(n: np.ndarray, d: float, q: np.ndarray) -> np.ndarray:
 
 def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_roll: float,
                     ml_plane: tuple[np.ndarray, float, np.ndarray], n_scans: int,
-                    rng: np.random.Generator, roll_prior: tuple[float, float] | None = None
+                    rng: np.random.Generator, roll_prior: tuple[float, float] | None = None,
+                    offset: OffsetModel | None = None
                     ) -> tuple[np.ndarray, np.ndarray] | None:
     """The posterior mean pose and its covariance (6, 6), or None: too few planes explain the
     labels (blurred edges, a dropout at an edge).
@@ -132,6 +160,11 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     ``rng``: for the planes tried when the labels rule out the ML plane and the nearest
     distances, and for the importance sampling fallback. ``roll_prior``: (mean, 1-sigma) of
     the roll, rad (`align.Hints.roll_prior`), multiplied into the posterior; None: flat.
+    ``offset``: the ranges carry a common offset (``ml_plane``'s covariance includes it): the
+    labels then hold the distance along the direction the offset moves the plane, which is
+    first profiled in one dimension (`_offset_profile`; the band the labels allow can be far
+    narrower than the offset's prior), and the rule placed on that band. Its posterior is
+    written into ``offset``.
     """
     n0, d0, c_plane = ml_plane
     e1, e2 = plane.tangent_basis(n0)
@@ -155,13 +188,33 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     along_d = c_plane[:, 2] / np.sqrt(c_plane[2, 2])
     starts = [k * along_d for k in (0, 1, -1, 2, -2, 3, -3)]
     random = (rng.multivariate_normal(np.zeros(3), c_plane) for _ in range(PLANE_SAMPLES))
-    for centre in itertools.chain(starts, random):
+    # the rule's proposal: the ranges' Gaussian, or with an offset its band along the
+    # offset's direction as the labels allow it
+    c_q, v, band_var = c_plane, None, 0.0
+    profile = None
+    if offset is not None:
+        v = offset.c_gb / offset.c_bb
+        profile = _offset_profile(offset, v, lambda g: wide.in_plane(*moved(g), board, rolls,
+                                                                     roll_prior))
+    if profile is not None:
+        centre, coarse, band_var = profile
+        # the profile runs along one line: the band it finds is conditional on the plane's
+        # other directions (yaw trades against distance in the board's width), and narrower
+        # than the marginal band; the least-squares fit's offset variance, which carries that
+        # coupling (and treats each bracket as a Gaussian: conservative), is its floor
+        band_var = max(band_var, offset.centre_std**2)
+        c_cond = c_plane - np.outer(offset.c_gb, offset.c_gb) / offset.c_bb
+        c_q = c_cond + band_var * np.outer(v, v)
         n, d = moved(centre)
-        coarse = wide.in_plane(n, d, board, rolls, roll_prior)
-        if coarse is not None:
-            break
     else:
-        return None
+        v = None  # no band found: the ranges' Gaussian as without an offset
+        for centre in itertools.chain(starts, random):
+            n, d = moved(centre)
+            coarse = wide.in_plane(n, d, board, rolls, roll_prior)
+            if coarse is not None:
+                break
+        else:
+            return None
 
     # 2. each plane's posterior on a fine grid over those rolls (a little wider), from the
     # labels that can bind. Where a plane's consistent rolls run off the grid's end, that plane
@@ -199,34 +252,102 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     # some direction), the rule again about the nodes they allowed, a third as wide; last,
     # importance sampling in batches. The ranges' density over the rule's or sampler's goes
     # into each node's weight.
-    c_inv = np.linalg.inv(c_plane)
+    c_inv, q_inv = np.linalg.inv(c_plane), np.linalg.inv(c_q)
+
+    def done(nodes: list[_Node]) -> tuple[np.ndarray, np.ndarray]:
+        if v is None:
+            return _moments(nodes, c_plane)
+        # the offset's band: the labels' information along it is the profile's (exact in
+        # one dimension), the rest the ranges' given the offset with the labels' curvature
+        out = _moments(nodes, c_cond, band_var * np.outer(v, v))
+        _offset_posterior(offset, nodes, c_plane, out[2])
+        return out[:2]
+
     m, scale = centre, 1.0
     for _ in range(RULE_REFINEMENTS):
-        planes, log_q = gauss_hermite(m, scale**2 * c_plane, QUADRATURE_ORDER)
-        nodes = evaluate(planes, log_q + _log_density_ratio(planes, c_inv, m, scale))
+        planes, log_q = gauss_hermite(m, scale**2 * c_q, QUADRATURE_ORDER)
+        nodes = evaluate(planes, log_q + _log_density_ratio(planes, c_inv, m, scale, q_inv))
         if len(nodes) >= MIN_PLANES and _spans(nodes):
-            return _moments(nodes, c_plane)
+            return done(nodes)
         if not nodes:
             break
         m = _weights(nodes) @ np.array([nd.g for nd in nodes])
         scale /= 3.0
     nodes = []
     for _ in range(PLANE_BATCHES):
-        half_batch = rng.multivariate_normal(np.zeros(3), c_plane, PLANE_SAMPLES // 2)
+        half_batch = rng.multivariate_normal(np.zeros(3), c_q, PLANE_SAMPLES // 2)
         planes = centre + np.vstack((half_batch, -half_batch))
-        nodes += evaluate(planes, _log_density_ratio(planes, c_inv, centre, 1.0))
+        nodes += evaluate(planes, _log_density_ratio(planes, c_inv, centre, 1.0, q_inv))
         if len(nodes) >= MIN_PLANES:
-            return _moments(nodes, c_plane)
+            return done(nodes)
     return None
 
 
-def _log_density_ratio(g: np.ndarray, c_inv: np.ndarray, m: np.ndarray, scale: float
-                       ) -> np.ndarray:
-    """log N(g; 0, C) - log N(g; m, scale^2 C), up to a constant: the ranges' density over the
-    one the planes g were drawn from (or placed by a rule for)."""
+def _offset_profile(offset: OffsetModel, v: np.ndarray, in_plane
+                    ) -> tuple[np.ndarray, feasible.InPlanePosterior, float] | None:
+    """Where the labels put the offset: the evidence of the planes g = v (b - b_hat) (the
+    ranges' plane for offset b) times the ranges' density of b, on a grid about the
+    least-squares offset, refined about the band it allows. Returns the plane at the band's
+    mean, its coarse in-plane posterior and the band's variance of b (m^2), or None where no
+    plane on the grid explains the labels."""
+    sd_prior = math.sqrt(offset.c_bb)
+    sd = float(np.clip(offset.centre_std, 1e-4, sd_prior))
+    lo, hi = offset.centre - PROFILE_REACH * sd, offset.centre + PROFILE_REACH * sd
+    bs_all, lw_all, post_all = [], [], []
+    for _ in range(PROFILE_REFINE):
+        bs = np.linspace(lo, hi, PROFILE_POINTS)
+        for b in bs:
+            post = in_plane(v * (b - offset.b_hat))
+            if post is not None and post.evidence > 0:
+                bs_all.append(b)
+                lw_all.append(math.log(post.evidence) - 0.5 * (b - offset.b_hat)**2 / offset.c_bb)
+                post_all.append(post)
+        step = bs[1] - bs[0]
+        inside = [b for b in bs_all if lo <= b <= hi]
+        if len(inside) >= PROFILE_MIN:
+            break
+        if not bs_all:
+            # nothing allowed: widen once to the prior's reach, then give up
+            if hi - lo >= 2 * PROFILE_REACH * sd_prior:
+                return None
+            lo = offset.b_hat - PROFILE_REACH * sd_prior
+            hi = offset.b_hat + PROFILE_REACH * sd_prior
+            continue
+        lo, hi = min(inside or bs_all) - step, max(inside or bs_all) + step
+    if not bs_all:
+        return None
+    b = np.array(bs_all)
+    w = np.exp(np.array(lw_all) - max(lw_all))
+    w /= w.sum()
+    mean = float(w @ b)
+    # the grid's spacing is the resolution of the band's edges: its variance as a floor
+    var = float(w @ (b - mean) ** 2) + step**2 / 12
+    best = post_all[int(np.argmax(w))]
+    return v * (mean - offset.b_hat), best, var
+
+
+def _offset_posterior(offset: OffsetModel, nodes: list[_Node], c_plane: np.ndarray,
+                      c_post: np.ndarray) -> None:
+    """b's posterior, into ``offset``: b given a plane is the ranges' conditional (b_hat +
+    k . g, k = C_gg^-1 C_gb; the labels see the plane, not b), averaged over the plane's
+    posterior (the nodes' weights, its covariance ``c_post``)."""
+    k = np.linalg.solve(c_plane, offset.c_gb)
+    g = np.array([nd.g for nd in nodes])
+    w = _weights(nodes)
+    offset.mean = float(offset.b_hat + w @ (g @ k))
+    var = offset.c_bb - offset.c_gb @ k + k @ c_post @ k
+    offset.std = float(math.sqrt(max(var, 0.0)))
+
+
+def _log_density_ratio(g: np.ndarray, c_inv: np.ndarray, m: np.ndarray, scale: float,
+                       q_inv: np.ndarray | None = None) -> np.ndarray:
+    """log N(g; 0, C) - log N(g; m, scale^2 Q), up to a constant (Q = C unless ``q_inv`` =
+    Q^-1 is given): the ranges' density over the one the planes g were drawn from (or placed
+    by a rule for)."""
     dev = g - m
+    q_inv = c_inv if q_inv is None else q_inv
     return (-0.5 * np.einsum("ij,jk,ik->i", g, c_inv, g)
-            + 0.5 * np.einsum("ij,jk,ik->i", dev, c_inv, dev) / scale**2)
+            + 0.5 * np.einsum("ij,jk,ik->i", dev, q_inv, dev) / scale**2)
 
 
 def _spans(nodes: list[_Node]) -> bool:
@@ -266,9 +387,9 @@ def _weights(nodes: list[_Node]) -> np.ndarray:
     return w / w.sum()
 
 
-def _moments(nodes: list[_Node], c_plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _moments(nodes: list[_Node], c_plane: np.ndarray, c_extra: np.ndarray | None = None):
     """The weighted mean of the nodes' poses and the covariance J C J^T + K P K^T (C: the
-    plane's, `_plane_posterior_cov`)."""
+    plane's, `_plane_posterior_cov`, plus ``c_extra`` if given; then C is returned third)."""
     g = np.array([nd.g for nd in nodes])
     thetas = np.array([nd.pose for nd in nodes])
     w = _weights(nodes)
@@ -285,6 +406,9 @@ def _moments(nodes: list[_Node], c_plane: np.ndarray) -> tuple[np.ndarray, np.nd
     k[0, 1] = k[2, 2] = 1.0
     within = np.einsum("s,sij->ij", w, np.array([nd.post.cov for nd in nodes]))
     c_post = _plane_posterior_cov(g, np.log([nd.post.evidence for nd in nodes]), c_plane)
+    if c_extra is not None:
+        c_post = c_post + c_extra
+        return mean, j_g @ c_post @ j_g.T + k @ within @ k.T, c_post
     return mean, j_g @ c_post @ j_g.T + k @ within @ k.T
 
 

@@ -127,3 +127,92 @@ def fit_rays(
         flip = np.array([-1.0, 1.0, -1.0])
         cov = cov * np.outer(flip, flip)
     return n, d, cov, sigma
+
+
+def _design(ranges: np.ndarray, origins: np.ndarray, dirs: np.ndarray, n: np.ndarray, d: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """d predicted range / d (alpha, beta, d) at the plane (n, d), (N, 3), and the
+    predicted ranges, as in `fit_rays`."""
+    e1, e2 = tangent_basis(n)
+    un = dirs @ n
+    pred = (d - origins @ n) / un
+    j = np.empty((len(ranges), 3))
+    j[:, 0] = -(origins @ e1 + pred * (dirs @ e1)) / un
+    j[:, 1] = -(origins @ e2 + pred * (dirs @ e2)) / un
+    j[:, 2] = 1.0 / un
+    return j, pred
+
+
+#: A "free" offset's 1-sigma, m: finite so that the normal matrix stays invertible when the
+#: rays' incidence hardly varies (the ranges then cannot tell the offset from the distance).
+FREE_OFFSET_SIGMA = 1.0
+
+
+def fit_rays_offsets(
+    ranges: np.ndarray,
+    origins: np.ndarray,
+    dirs: np.ndarray,
+    lasers: np.ndarray,
+    n0: np.ndarray,
+    d0: float,
+    sigma: float,
+    offset_prior: tuple[float, float],
+    laser_sigma: float = 0.0,
+    iterations: int = 2,
+) -> tuple[np.ndarray, float, np.ndarray, float, np.ndarray, float]:
+    """The plane of `fit_rays` when every range carries a common offset b (prior ``offset_prior``
+    = (mean, 1-sigma), m) and each laser its own offset (1-sigma ``laser_sigma``, m): the
+    measured range is (d - n.o)/(n.u) + b + delta_laser + noise (1-sigma ``sigma``).
+
+    The offsets are Gaussian nuisance parameters fitted jointly with the plane and marginalised:
+    the plane's covariance carries them. Returns (n, d, C_gg, b, C_gb, C_bb): the plane, the
+    marginal covariance of g = (alpha, beta, d) (`fit_rays`' parametrisation about the returned
+    n), the offset's estimate given the ranges alone, its covariance with g (3,) and its
+    variance. The joint Gaussian of (g, b) is what lets a caller that learns g from elsewhere
+    (the board's known size seen through the hit/miss labels) update b.
+    """
+    n, d = n0 / np.linalg.norm(n0), float(d0)
+    b0, sb = offset_prior
+    sb = min(float(sb), FREE_OFFSET_SIGMA)
+    ids, col = np.unique(lasers, return_inverse=True)
+    n_l = len(ids) if laser_sigma > 0 else 0
+    # the nuisance values so far: b, then one offset per laser present
+    nu = np.zeros(1 + n_l)
+    nu[0] = b0
+    prior_mean = np.zeros(1 + n_l)
+    prior_mean[0] = b0
+    prior_prec = np.concatenate(([1.0 / sb**2], np.full(n_l, 1.0 / max(laser_sigma, 1e-12)**2)))
+    for _ in range(iterations):
+        j, pred = _design(ranges, origins, dirs, n, d)
+        res = ranges - pred - nu[0]
+        if n_l:
+            res = res - nu[1:][col]
+        w = 1.0 / sigma**2
+        # normal matrix of (g, b, deltas): the nuisance columns are a column of ones and the
+        # lasers' indicators, so their blocks are sums (no N x L matrix is built)
+        a = np.zeros((4 + n_l, 4 + n_l))
+        a[:3, :3] = w * j.T @ j
+        a[:3, 3] = a[3, :3] = w * j.sum(axis=0)
+        a[3, 3] = w * len(ranges)
+        rhs = np.empty(4 + n_l)
+        rhs[:3] = w * j.T @ res
+        rhs[3] = w * res.sum()
+        if n_l:
+            jl = np.zeros((n_l, 3))
+            np.add.at(jl, col, j)
+            cnt = np.bincount(col, minlength=n_l).astype(float)
+            a[:3, 4:] = w * jl.T
+            a[4:, :3] = w * jl
+            a[3, 4:] = a[4:, 3] = w * cnt
+            a[4:, 4:] = np.diag(w * cnt)
+            rhs[4:] = w * np.bincount(col, weights=res, minlength=n_l)
+        a[3:, 3:] += np.diag(prior_prec)
+        rhs[3:] += prior_prec * (prior_mean - nu)
+        cov = np.linalg.inv(a)
+        step = cov @ rhs
+        e1, e2 = tangent_basis(n)
+        n = n + step[0] * e1 + step[1] * e2
+        n /= np.linalg.norm(n)
+        d += step[2]
+        nu += step[3:]
+    return n, d, cov[:3, :3], float(nu[0]), cov[:3, 3].copy(), float(cov[3, 3])

@@ -42,7 +42,7 @@ import numpy as np
 from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
-from align.label_posterior import LabelledRays, label_posterior
+from align.label_posterior import LabelledRays, OffsetModel, label_posterior
 from align.result import Hints, PoseEstimate, Status
 from align.segment import Segmentation, consecutive_ring_block, on_board_rings
 from twin.core.pose import Pose
@@ -350,6 +350,10 @@ class _Model:
         self.edge_sign = np.zeros(len(bh))
         self.edge_sd = np.ones(len(bh))
         self.excluded = np.zeros(len(bh), dtype=bool)  # left out of every fit (gross errors)
+        #: The common range offset the ranges carry (m), and its prior (mean, 1-sigma) when it
+        #: is fitted with the pose (`_gauss_newton`); None: held at ``offset``.
+        self.offset = 0.0
+        self.offset_prior: tuple[float, float] | None = None
         self._cache_edges()
 
     def _cache_edges(self) -> None:
@@ -365,7 +369,7 @@ class _Model:
         w2, h2 = self.board.width / 2, self.board.height / 2
         x, z, lam = board_coordinates(theta, self.rays.origin, self.rays.direction)
         inside = (np.abs(x) < w2 - EDGE_MARGIN) & (np.abs(z) < h2 - EDGE_MARGIN)
-        res = self.rays.distance - lam
+        res = self.rays.distance - self.offset - lam
         self.use_range = (self.lab == 1) & inside & (np.abs(res) < 4 * self.sigma_r)
         # the fit only ever looks at these rays: keep them contiguous
         r = self.rays
@@ -491,7 +495,7 @@ class _Model:
         rot = rotation(theta[3], theta[4], theta[5])
         o_r, u_r, d_r = self._range
         lam = -(o_r @ rot[1] + theta[1]) / (u_r @ rot[1])
-        rr = (d_r - lam) / self.sigma_r
+        rr = (d_r - self.offset - lam) / self.sigma_r
         xh, zh, dh = _coords(rot, theta, *self._ubh)
         xm, zm, _ = _coords(rot, theta, *self._ubm)
         sgn = self._usign
@@ -547,34 +551,63 @@ def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
     The bracket assignment and the set of range residuals stay fixed during one call (they are
     chosen for the start pose), so the cost is one smooth function and the steps decrease it.
     Converged when every step is below a hundredth of the parameter's standard deviation.
+    With ``model.offset_prior`` the common range offset is a seventh parameter (its prior one
+    more residual): the ranges alone cannot tell it from the distance, the brackets (the
+    board's known size) can. The Jacobian returned then has seven columns.
     """
     converged = False
     it = 0
     lam = 1e-6
     model.assign(theta)
-    f = model.residuals(theta)
+    fit_b = model.offset_prior is not None
+    n_p = 7 if fit_b else 6
+
+    def res(p: np.ndarray) -> np.ndarray:
+        if not fit_b:
+            return model.residuals(p)
+        model.offset = float(p[6])
+        b0, sb = model.offset_prior
+        f = model.residuals(p[:6])
+        return np.concatenate((f, [(p[6] - b0) / sb]))
+
+    def jac(p: np.ndarray, f: np.ndarray) -> np.ndarray:
+        if not fit_b:
+            return model.jacobian(p, f)
+        model.offset = float(p[6])
+        j = np.zeros((len(f), 7))
+        j[:-1, :6] = model.jacobian(p[:6], f[:-1])
+        j[:len(model._range[0]), 6] = -1.0 / model.sigma_r
+        j[-1, 6] = 1.0 / model.offset_prior[1]
+        return j
+
+    p = np.append(theta, model.offset) if fit_b else theta
+    f = res(p)
     cost = f @ f
-    j = model.jacobian(theta, f)
+    j = jac(p, f)
     for it in range(1, max_iter + 1):
         a = j.T @ j
         g = j.T @ f
         sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(a)), 1e-18, None))
         while True:
-            step = np.linalg.solve(a + lam * np.diag(np.diag(a)) + 1e-12 * np.eye(6), -g)
-            f_new = model.residuals(theta + step)
+            step = np.linalg.solve(a + lam * np.diag(np.diag(a)) + 1e-12 * np.eye(n_p), -g)
+            f_new = res(p + step)
             c_new = f_new @ f_new
             if c_new <= cost * (1 + 1e-12):
                 break
             lam *= 10
             if lam > 1e8:
-                return theta, j, bool(np.all(np.abs(step) < 1e-2 * sd)), it
-        theta, f, cost = theta + step, f_new, c_new
+                if fit_b:
+                    model.offset = float(p[6])
+                return p[:6], j, bool(np.all(np.abs(step) < 1e-2 * sd)), it
+        p, f, cost = p + step, f_new, c_new
         lam = max(lam / 10, 1e-9)
-        j = model.jacobian(theta, f)
+        j = jac(p, f)
         if np.all(np.abs(step) < 1e-2 * sd + 1e-10):
             converged = True
             break
-    return theta, j, converged, it
+    if fit_b:
+        model.offset = float(p[6])
+    return p[:6], j, converged, it
 
 
 #: A bracket whose whitened residual exceeds this is a gross error (`_gross_brackets`).
@@ -671,14 +704,18 @@ def _violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.nd
 
 
 def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
-                 sigma_r: float, blur: float) -> _Model:
-    """Brackets along the rings and between rings at the board's centre column, as a model."""
+                 sigma_r: float, blur: float, like: _Model | None = None,
+                 offset: tuple[float, tuple[float, float] | None] = (0.0, None)) -> _Model:
+    """Brackets along the rings and between rings at the board's centre column, as a model.
+    Its range offset and the offset's prior: ``like``'s (a model rebuilt), else ``offset``."""
     x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
     vx, vz = lidar_up(theta)
     bh, bm = _brackets(rays, lab)
     vh, vm = _vertical_brackets(rays, lab, np.abs(vz * x - vx * z))
-    return _Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
-                  sigma_r, blur)
+    model = _Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
+                   sigma_r, blur)
+    model.offset, model.offset_prior = (like.offset, like.offset_prior) if like else offset
+    return model
 
 
 #: Returns farther than this many sigma from the plane are not the board's face (the stand, a
@@ -688,6 +725,10 @@ TRIM = 2.5
 TRIMMED_VARIANCE = 1.0 - 2.0 * TRIM * math.exp(-TRIM**2 / 2) / math.sqrt(2 * math.pi) / math.erf(
     TRIM / math.sqrt(2))
 
+
+#: The prior 1-sigma of a common range offset taken as known (only per-laser offsets
+#: uncertain), m: a number, not zero, so that the joint fit's normal matrix stays regular.
+OFFSET_KNOWN = 1e-6
 
 #: The least range noise assumed, m: a noise-free simulation (or one return per ring) still gets
 #: a plane of finite uncertainty.
@@ -727,7 +768,8 @@ STRAY_SPACINGS = 0.4
 
 
 def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: BoardSpec,
-         sigma_r: float, hints: Hints, ds: np.ndarray) -> _Fit | None:
+         sigma_r: float, hints: Hints, ds: np.ndarray,
+         offset: tuple[float, tuple[float, float] | None] = (0.0, None)) -> _Fit | None:
     """The joint least-squares fit from the start pose ``theta``; None: fewer than 3 rings hit.
 
     The position across the rings is the weakly known one (rings are 2 deg apart) and a ring
@@ -740,7 +782,7 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     """
     rays = _candidates(scans, segs, theta, board)
     x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
-    lab = _labels(rays, lam, sigma_r)
+    lab = _labels(rays, lam + offset[0], sigma_r)  # the range expected, offset included
     rings_hit = np.unique(rays.ring[lab == HIT])
     if len(rings_hit) < 3:
         return None
@@ -750,7 +792,7 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     reach = max(float(ds[-1]), PROFILE_SPACINGS * spacing)
     ds = np.arange(-reach, reach + 0.5e-3, 1e-3)
     stray_margin = max(STRAY, STRAY_SPACINGS * spacing)
-    model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur)
+    model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, offset=offset)
     theta = model.shift(theta, ds)
     x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
     stray = (lab == HIT) & ((np.abs(x) > board.width / 2 + stray_margin) |
@@ -758,7 +800,7 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     if np.any(stray):
         lab = lab.copy()
         lab[stray] = UNKNOWN
-        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur)
+        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, like=model)
         theta = model.shift(theta, ds)
     theta, j, conv, iters, chi2 = _staged_fit(model, theta, ds)
     for _ in range(2):
@@ -775,6 +817,7 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     if chi2 > 1.5:
         # a misfit (roll started too far off and a pair of grazing crossings held it there):
         # restart from other rolls and keep the best
+        kept_offset = model.offset
         for droll in np.deg2rad([-2.0, -1.0, 1.0, 2.0]):
             start = theta.copy()
             start[3] += droll
@@ -782,6 +825,8 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
             if cand[4] < chi2:
                 theta, j, conv, it, chi2 = cand
                 iters += it
+                kept_offset = model.offset
+        model.offset = kept_offset
         model.classify(theta, 0.002, True)  # the state of the kept fit, for the diagnostics
         model.assign(theta)
     return _Fit(theta, j, conv, iters, chi2, model, rings_hit, _contradicted(model, theta))
@@ -835,6 +880,19 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # for Gaussian noise); the plane's covariance scaled to it
     sigma_r = hints.range_sigma or sigma / math.sqrt(TRIMMED_VARIANCE)
     ml_plane = (n, d, c_plane * (sigma_r / sigma) ** 2)
+    offset_model, offset_start = None, (0.0, None)
+    if hints.range_offset_prior is not None or hints.laser_offset_sigma > 0:
+        # the ranges' offsets as nuisance parameters: the plane's covariance carries them, and
+        # the joint Gaussian of plane and common offset lets the labels (which see the board's
+        # known size, not the ranges) update the offset
+        prior = hints.range_offset_prior or (0.0, OFFSET_KNOWN)
+        n, d, c_gg, b_hat, c_gb, c_bb = plane.fit_rays_offsets(
+            r_all[keep], o_all[keep], u_all[keep], ring_all[keep], n, d, sigma_r, prior,
+            hints.laser_offset_sigma)
+        ml_plane = (n, d, c_gg)
+        offset_start = (b_hat, hints.range_offset_prior)
+        if hints.range_offset_prior is not None:
+            offset_model = OffsetModel(b_hat, c_gb, c_bb)
     t_plane = time.perf_counter()
 
     # start poses: the plane at the rolls where the board's returns fit the rectangle, found
@@ -850,7 +908,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     for st in starts:
         theta = pose_from_plane(n, d, st.roll)
         theta[0], theta[2] = st.t_x, st.t_z
-        fit = _fit(scans, segs, theta, board, sigma_r, hints, ds)
+        fit = _fit(scans, segs, theta, board, sigma_r, hints, ds, offset_start)
         # the start whose fit contradicts the fewest labels wins (the chi2 of a fit that had
         # to leave its brackets out says little), then the lower chi2
         if fit is not None and (best is None or (fit.violations, fit.chi2) <
@@ -867,10 +925,14 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # the fit redone without them and the posterior tried again
     dropped = 0
     for _ in range(STRAY_ROUNDS):
-        cov = np.linalg.pinv(j.T @ j)
+        cov_ls = np.linalg.pinv(j.T @ j)  # 7 x 7 when the offset is fitted: pose, offset
+        cov = cov_ls[:6, :6]
         labelled, idx = _ray_points(model, theta, hints.edge_tolerance)
+        if offset_model is not None:
+            offset_model.centre = model.offset
+            offset_model.centre_std = float(np.sqrt(cov_ls[6, 6])) if len(cov_ls) > 6 else 0.0
         post = label_posterior(labelled, board, theta, float(np.sqrt(max(cov[3, 3], 0.0))),
-                               ml_plane, len(scans), rng, hints.roll_prior)
+                               ml_plane, len(scans), rng, hints.roll_prior, offset_model)
         if post is not None:
             break
         bad = idx[_violation(labelled, board, theta) > STRAY_VIOLATION]
@@ -880,7 +942,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         dropped += len(bad)
         lab = model.lab.copy()
         lab[bad] = UNKNOWN
-        model = _build_model(model.rays, lab, theta, board, sigma_r, hints.edge_blur)
+        model = _build_model(model.rays, lab, theta, board, sigma_r, hints.edge_blur, like=model)
         theta, j, conv, it, _ = _staged_fit(model, theta, ds)
         iters += it
     rays, lab = model.rays, model.lab
@@ -889,6 +951,15 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         theta, cov = post
         model.classify(theta, 0.002, True)  # the diagnostics below describe this pose
         model.assign(theta)
+    offset_diag, b = {}, model.offset
+    if offset_model is not None:
+        if post is not None and offset_model.mean is not None:
+            b, b_sd = offset_model.mean, offset_model.std
+        else:  # the least-squares fit's
+            b, b_sd = model.offset, offset_model.centre_std
+        offset_diag = {"range_offset_m": float(b), "range_offset_std_m": float(b_sd),
+                       "range_offset_lsq_m": float(model.offset),
+                       "range_offset_lsq_std_m": float(offset_model.centre_std)}
     t_fit = time.perf_counter()
 
     # what was seen: every edge, nothing in front of the board
@@ -903,7 +974,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     inside = (np.abs(x) < w2) & (np.abs(z) < h2)
     # blocked: a return in front of the board where the board is (not a stray left out)
     front = min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
-    occluded = int(np.sum(inside & (rays.distance > 0) & (rays.distance - lam < -front)))
+    occluded = int(np.sum(inside & (rays.distance > 0) & (rays.distance - b - lam < -front)))
     dropouts = int(np.sum(inside & (lab == DROPOUT)))
     inside_miss = int(np.sum(inside & (np.abs(x) < w2 - 0.02) & (np.abs(z) < h2 - 0.02) &
                              (lab == MISS)))
@@ -915,7 +986,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         "dropouts": dropouts, "starts": len(starts), "strays_dropped": dropped,
         "label_posterior": post is not None,
         "in_plane_rotation_rad": in_plane_rotation(theta),
-        "range_sigma_m": sigma_r, "iterations": iters,
+        "range_sigma_m": sigma_r, "iterations": iters, **offset_diag,
         "chi2_per_dof": float(np.sum(model.residuals(theta) ** 2) / max(len(j) - 6, 1)),
     }
     outside_hits = int(np.sum((lab == HIT) & ((np.abs(x) > w2 + 0.02) |

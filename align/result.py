@@ -55,6 +55,18 @@ class Hints:
     #: by a about its normal (clockwise as the LiDAR sees it) puts a level LiDAR's roll at -a.
     #: The search and the posterior use it.
     roll_prior: tuple[float, float] | None = None
+    #: Prior on a common range offset the sensor adds to every range, (mean, 1-sigma), m, or
+    #: None: ranges taken as unbiased (a calibrated unit). Given, the offset is a nuisance
+    #: parameter of `rays`: the board's known width and height against its angular extent
+    #: hold the distance, the ranges the plane's orientation; it is estimated (shared by every
+    #: fused scan) and reported (``diagnostics["range_offset_m"]``, ``..._std_m``). A unit's
+    #: known offset: (its value, its standard error); a new unit: (0, the datasheet's spread);
+    #: 1-sigma ``math.inf``: free.
+    range_offset_prior: tuple[float, float] | None = None
+    #: 1-sigma of per-laser range offsets left uncalibrated, m (0: none). Each laser's rings
+    #: then share an unknown offset: a random effect in the plane's fit, whose tilt it would
+    #: otherwise bias (about 0.35 deg for +-5 mm) with a sigma that does not cover it.
+    laser_offset_sigma: float = 0.0
     #: Seed for the randomised parts (RANSAC; the hit/miss posterior's fallbacks).
     seed: int = 0
 

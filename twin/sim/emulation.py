@@ -80,6 +80,13 @@ class EmulationConfig:
     laser_offset_sigma: float = 0.0025
     #: Explicit per-laser range offsets (one value per laser, by laser id), m.
     laser_offsets: tuple[float, ...] | None = None
+    #: Half-width of a common range offset drawn once per sensor, uniform, m, added to
+    #: `range_bias`: every unit on a line is a new one with its own (0: none; the emulator's
+    #: ``range_bias`` is the value drawn).
+    range_bias_spread: float = 0.0
+    #: Half-width of per-laser range offsets drawn once per sensor, uniform, m; when above 0 it
+    #: replaces `laser_offset_sigma`'s Gaussian. Ignored when `laser_offsets` is given.
+    laser_offset_spread: float = 0.0
     #: Round ranges to the packet's 2 mm unit (the wire format; kept by `ideal()`).
     quantise: bool = True
     #: Closest and farthest reported return, m (None: the model's).
@@ -462,13 +469,21 @@ class LidarEmulator:
         self.rng = rng
         if config.laser_offsets is not None:
             self.laser_offsets = np.asarray(config.laser_offsets, dtype=float)
+        elif config.laser_offset_spread > 0:
+            self.laser_offsets = rng.uniform(-config.laser_offset_spread,
+                                             config.laser_offset_spread, self._n_l)
         elif config.laser_offset_sigma > 0:
             self.laser_offsets = np.clip(rng.normal(0.0, config.laser_offset_sigma,
                                                     self._n_l), -0.005, 0.005)
         else:
             self.laser_offsets = np.zeros(self._n_l)
+        #: The common range offset of this unit, m: `range_bias` plus its draw (drawn after the
+        #: laser offsets, and only with a spread, so that other seeds' streams are unchanged).
+        self.range_bias = config.range_bias + (
+            float(rng.uniform(-config.range_bias_spread, config.range_bias_spread))
+            if config.range_bias_spread > 0 else 0.0)
         #: Each laser's range offset plus the common bias, m (L,).
-        self._range_offsets = np.ascontiguousarray(self.laser_offsets + config.range_bias,
+        self._range_offsets = np.ascontiguousarray(self.laser_offsets + self.range_bias,
                                                    dtype=np.float64)
         #: Returns with a lower energy may drop out: detection probability Phi(z) < 1 - 1e-16,
         #: z = (ln E - ln E_th) / s < 8.3 (1 % margin; `_measure_hits` decides on z).
@@ -1240,7 +1255,7 @@ class LidarEmulator:
         if use_inoise:
             inoise = np.zeros(n * n_e)
             inoise[flat_valid] = _gaussian(rng, len(flat_valid), cfg.intensity_noise_sigma)
-        offsets = self.laser_offsets + cfg.range_bias
+        offsets = self.laser_offsets + self.range_bias
         for s, (idx, flags) in enumerate(slots):
             sel = np.flatnonzero(valid[np.arange(n), idx]) if n_e > 1 else np.flatnonzero(
                 valid[:, 0])
