@@ -174,6 +174,16 @@ class Sensor(_Section):
     calibration_file: StrictStr | None = None
     #: The per-laser range calibration written by `aimbench calibrate`, if any.
     range_calibration: StrictStr | None = None
+    #: The unit's common range offset (what it adds to every range), mm, and its 1-sigma: the
+    #: estimate's prior on it (`align.Hints.range_offset_prior`). A unit measured before:
+    #: its value and standard error; a new unit: 0 and the datasheet's spread (the VLP-16's
+    #: +-30 mm accuracy, about 17 mm as a uniform's sigma). No ``range_offset_std_mm``: the
+    #: ranges are taken as unbiased (a calibrated unit) and the offset is not estimated.
+    range_offset_mm: StrictFloat = 0.0
+    range_offset_std_mm: NonNegative | None = None
+    #: 1-sigma of per-laser range offsets no calibration removed, mm (the paper: up to 5 mm):
+    #: carried in the covariance (`align.Hints.laser_offset_sigma`). 0 with a range calibration.
+    laser_offset_std_mm: NonNegative = 0.0
     network: Network = Network()
 
     @field_validator("model")
@@ -337,6 +347,13 @@ class Station(_Section):
         r_ol = self.board_in_bench()[:3, :3].T @ r_wl
         roll = Pose.from_matrix(r_ol, np.zeros(3)).roll
         return roll, math.radians(ROLL_PRIOR_SD_DEG)
+
+    def range_offset_hints(self) -> dict[str, Any]:
+        """The sensor's range-offset priors as `align.Hints` fields, m."""
+        s = self.sensor
+        prior = (None if s.range_offset_std_mm is None
+                 else (s.range_offset_mm * 1e-3, s.range_offset_std_mm * 1e-3))
+        return {"range_offset_prior": prior, "laser_offset_sigma": s.laser_offset_std_mm * 1e-3}
 
     def bench_params(self, **changes: Any) -> Any:
         """The twin's `twin.sim.params.BenchParams` for this station (``changes``: fields to set

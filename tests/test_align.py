@@ -346,3 +346,18 @@ def test_ml_plane_along_rays_is_unbiased_where_least_squares_is_not():
     se = np.std(ml) / np.sqrt(len(ml))
     assert abs(np.mean(ml)) < 3 * se
     assert abs(np.mean(ls)) > 3 * se
+
+
+def test_cli_estimate_fuses_the_scans_there_are(tmp_path, capsys):
+    # a capture with fewer whole scans than --fuse asks for: the scans there are are fused and
+    # the command says so (it once printed nothing and exited 1)
+    from scenarios.cli import main
+
+    path = tmp_path / "cap.pcap"
+    bench(seed=33).write_pcap(path, 3)
+    rc = main(["estimate", str(path), "--json", "--fuse", "10"])
+    out, err = capsys.readouterr()
+    rows = [json.loads(line) for line in out.splitlines()]
+    assert rc == 0 and len(rows) == 1 and rows[0]["status"] == "ok"
+    assert rows[0]["scans"] == int(err.split(" holds ")[1].split()[0])
+    assert "fewer than --fuse 10" in err and "--fuse" in err.split("give")[1]

@@ -170,7 +170,8 @@ def run(args: argparse.Namespace) -> int:
         window = (math.radians(c), math.radians(hw))
     hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window,
                         edge_tolerance=_edge_tolerance(args.edge_tolerance_mrad),
-                        roll_prior=_roll_prior(args.roll_hint_deg, station))
+                        roll_prior=_roll_prior(args.roll_hint_deg, station),
+                        **station.range_offset_hints())
     cal_file = args.calibration or station.sensor.range_calibration
     cal = calibrate.read(cal_file) if cal_file else None
     truths = _truths(args)
@@ -208,6 +209,21 @@ def run(args: argparse.Namespace) -> int:
             pass
     if first:  # fewer whole scans than the check takes: check those
         _warn_fit(cal, first, args.sensor_id)
+    if group and not rows:
+        # fewer whole scans than --fuse asks for: fuse those there are rather than print
+        # nothing, and say so
+        print(f"aimbench estimate: {args.capture} holds {len(group)} whole scan"
+              f"{'s' if len(group) != 1 else ''}, fewer than --fuse {args.fuse}: fused "
+              f"{'those' if len(group) > 1 else 'that one'} (capture longer, or give --fuse "
+              f"{len(group)} or less)", file=sys.stderr)
+        res = align.estimate(group if len(group) > 1 else group[0], board, args.method, hints)
+        rows.append(_row(group[0].index, len(group), res, truth_for(group[0], truths)))
+        if args.json:
+            print(json.dumps(rows[-1], allow_nan=False), flush=True)
+    elif group:
+        print(f"aimbench estimate: the last {len(group)} whole scan"
+              f"{'s' if len(group) != 1 else ''} (fewer than --fuse {args.fuse}) left out",
+              file=sys.stderr)
     warn_lines("estimate", {"capture": str(args.capture), **source.summary()})
     if not rows and not group:
         raise AimbenchError(f"{args.capture}: no complete scan in it ({seen} scans, none "
