@@ -832,6 +832,20 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     return _Fit(theta, j, conv, iters, chi2, model, rings_hit, _contradicted(model, theta))
 
 
+def _pose_per_plane(theta: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
+    """d pose / d g (6, 3) at ``theta``: how the pose moves with the plane's small rotations and
+    distance g = (alpha, beta, d) about (n, d) (`plane.fit_rays`' parametrisation), its roll and
+    in-plane position held."""
+    e1, e2 = plane.tangent_basis(n)
+    h = 1e-6
+    base = pose_from_plane(n, d, theta[3])
+    j = np.zeros((6, 3))
+    for i, (dn, dd) in enumerate(((e1, 0.0), (e2, 0.0), (np.zeros(3), 1.0))):
+        m = n + h * dn
+        j[:, i] = (pose_from_plane(m / np.linalg.norm(m), d + h * dd, theta[3]) - base) / h
+    return j
+
+
 def _contradicted(model: _Model, theta: np.ndarray, margin: float = 0.01) -> int:
     """How many hits lie outside the rectangle at ``theta`` and misses inside it, by more than
     ``margin`` (m)."""
@@ -951,6 +965,14 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         theta, cov = post
         model.classify(theta, 0.002, True)  # the diagnostics below describe this pose
         model.assign(theta)
+    elif hints.laser_offset_sigma > 0:
+        # the least-squares fit's covariance knows the ranges' noise (and the common offset it
+        # fits), not the per-laser offsets: their share of the plane's covariance is added
+        prior = hints.range_offset_prior or (0.0, OFFSET_KNOWN)
+        c_common = plane.fit_rays_offsets(r_all[keep], o_all[keep], u_all[keep],
+                                          ring_all[keep], n, d, sigma_r, prior, 0.0, 1)[2]
+        j_p = _pose_per_plane(theta, n, d)
+        cov = cov + j_p @ (ml_plane[2] - c_common) @ j_p.T
     offset_diag, b = {}, model.offset
     if offset_model is not None:
         if post is not None and offset_model.mean is not None:
