@@ -10,7 +10,7 @@ diffuse (Lambertian) reflectance 0..1.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import mujoco
@@ -27,6 +27,31 @@ SENSOR_BODY = "vlp16"
 SENSOR_MODULE_BODY = "sensor_module"
 #: Name prefix of a patterned board's squares (geoms of the board body): ``board_square_R_C``.
 PATTERN_GEOM_PREFIX = "board_square_"
+#: The lab wall behind the board (models/bench_frame.xml) and the stand's parts it moves.
+WALL_GEOM = "wall"
+#: Name prefixes of the geoms `BenchParams` adds: holders on the board, clutter in the room.
+HOLDER_GEOM_PREFIX = "board_holder_"
+CLUTTER_GEOM_PREFIX = "clutter_"
+
+
+@dataclass(frozen=True)
+class SceneBox:
+    """A box the scene holds besides the nominal bench: a holder on the board (``pos`` in the
+    board frame {O}: a clamp or bracket at an edge, just beyond it, near the board's plane) or
+    a piece of clutter in the room (``pos`` in {W}: a cabinet, a tripod, a box on the floor).
+    ``size``: half sizes along the frame's axes, m; ``yaw``: turned about the vertical, rad;
+    ``reflectivity``: its diffuse reflectance (None: the background's)."""
+
+    pos: tuple[float, float, float]
+    size: tuple[float, float, float]
+    yaw: float = 0.0
+    reflectivity: float | None = None
+
+    def __post_init__(self) -> None:
+        if min(self.size) <= 0:
+            raise ValueError("a scene box needs positive half sizes (m)")
+        if self.reflectivity is not None and not 0.0 <= self.reflectivity <= 1.0:
+            raise ValueError("reflectivity is a diffuse reflectance in [0, 1]")
 
 
 def _quat_wxyz(roll: float, tilt: float, yaw: float) -> np.ndarray:
@@ -104,6 +129,14 @@ class BenchParams:
         board_reflectivity: diffuse reflectance of the board face (bare aluminium, assumed 0.55).
         background_reflectivity: diffuse reflectance of floor, wall, beams and stands (0.3).
         board_pattern: a chessboard printed on the board's face (`BoardPattern`), or None.
+        wall_distance: the lab wall's distance behind the board's nominal face, m (None: the
+            model's 1.5 m).
+        stand_offset: the board stand's distance behind the board's face, m (None: the
+            model's 0.15 m; its base then sits that far behind, its post hidden by the board).
+        holders: boxes fixed to the board (`SceneBox`, board frame): clamps, brackets.
+        clutter: boxes standing in the room (`SceneBox`, world frame).
+        `random_scene` draws all four (and the reflectivities) for a twin of a bench not known
+        in detail: an estimator must not depend on one scene's particulars.
     """
 
     mount_roll: float = 0.0
@@ -126,6 +159,10 @@ class BenchParams:
     #: The scene the bench stands in, by name (`models.SCENES`): "bench" (the paper's: floor,
     #: wall, beams) or "lab" (the same bench in a cluttered lab, models/scene_lab.xml).
     scene: str = "bench"
+    wall_distance: float | None = None
+    stand_offset: float | None = None
+    holders: tuple[SceneBox, ...] = ()
+    clutter: tuple[SceneBox, ...] = ()
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
@@ -145,6 +182,10 @@ class BenchParams:
         for name in ("board_reflectivity", "background_reflectivity"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} is a diffuse reflectance in [0, 1]")
+        if self.wall_distance is not None and not self.wall_distance > self.board_thickness:
+            raise ValueError("wall_distance must put the wall behind the board (m)")
+        if self.stand_offset is not None and not self.stand_offset > 0:
+            raise ValueError("stand_offset must put the stand behind the board's face (m)")
 
     @classmethod
     def from_edge(cls, *, roll_deg: float = 0.0, tilt_deg: float = 0.0, yaw_deg: float = 0.0,
@@ -179,6 +220,8 @@ class BenchParams:
         # is turned: a board moved back would otherwise stand behind its own post.
         stand = spec.body(BOARD_STAND_BODY)
         off = np.asarray(stand.pos, dtype=float)  # behind the nominal board centre (x = y = 0)
+        if self.stand_offset is not None:
+            off[1] = self.stand_offset
         c, s = np.cos(self.board_yaw), np.sin(self.board_yaw)
         stand.pos = [self.board_position[0] + c * off[0] - s * off[1],
                      self.board_position[1] + s * off[0] + c * off[1], off[2]]
@@ -192,7 +235,29 @@ class BenchParams:
         spec.body(SENSOR_MODULE_BODY).pos = np.asarray(self.sensor_module_position, dtype=float)
         if self.board_pattern is not None:
             self._add_pattern(spec)
+        if self.wall_distance is not None:
+            wall = spec.geom(WALL_GEOM)
+            wall.pos = [wall.pos[0], float(self.wall_distance), wall.pos[2]]
+        self._add_boxes(spec)
         return spec
+
+    def _add_boxes(self, spec: mujoco.MjSpec) -> None:
+        """The holders (geoms of the board body) and the clutter (of a body of the world), each
+        of the environment class, named by its index."""
+        cls = spec.find_default("environment")
+        board = spec.body(BOARD_BODY)
+        for i, box in enumerate(self.holders):
+            g = board.add_geom(cls)
+            g.name, g.type = f"{HOLDER_GEOM_PREFIX}{i}", mujoco.mjtGeom.mjGEOM_BOX
+            g.size, g.pos = list(box.size), list(box.pos)
+            g.quat = [np.cos(box.yaw / 2), 0.0, 0.0, np.sin(box.yaw / 2)]
+        if self.clutter:
+            room = spec.worldbody.add_body(name="clutter", childclass="aimbench")
+            for i, box in enumerate(self.clutter):
+                g = room.add_geom(cls)
+                g.name, g.type = f"{CLUTTER_GEOM_PREFIX}{i}", mujoco.mjtGeom.mjGEOM_BOX
+                g.size, g.pos = list(box.size), list(box.pos)
+                g.quat = [np.cos(box.yaw / 2), 0.0, 0.0, np.sin(box.yaw / 2)]
 
     def _add_pattern(self, spec: mujoco.MjSpec) -> None:
         """The pattern's squares as box geoms of the board body, just in front of its face."""
@@ -219,6 +284,64 @@ class BenchParams:
             for name, _, _, dark in pat.squares():
                 refl[model.geom(name).id] = (pat.dark_reflectivity if dark
                                              else pat.light_reflectivity)
+        for prefix, boxes in ((HOLDER_GEOM_PREFIX, self.holders),
+                              (CLUTTER_GEOM_PREFIX, self.clutter)):
+            for i, box in enumerate(boxes):
+                if box.reflectivity is not None:
+                    refl[model.geom(f"{prefix}{i}").id] = box.reflectivity
         for name, value in self.reflectivity_overrides.items():
             refl[model.geom(name).id] = value
         return refl
+
+
+def random_scene(rng: np.random.Generator, base: BenchParams | None = None) -> BenchParams:
+    """``base`` (default the paper's bench) in a scene drawn at random: the wall 0.5-3 m behind
+    the board, the stand 0.05-0.35 m behind it, up to four holders at the board's edges (a clamp
+    or bracket reaching 0-40 mm beyond an edge, its face from just behind the plate to
+    60 mm behind it), up to six pieces of clutter wholly behind the board's plane (behind and
+    beside it, up to the wall), and
+    every reflectivity (wall, floor, stand, holders, clutter) between dark and bright.
+
+    Nothing is put between the LiDAR and the board's face: an occluder is another test. What
+    is drawn is what differs between labs and between the twin and a real bench (the twin's
+    own scene once hid an estimator's reliance on a far, grey wall behind a bare board)."""
+    base = base or BenchParams()
+    w2, h2 = base.board_width / 2, base.board_height / 2
+    holders = []
+    for _ in range(int(rng.integers(0, 5))):
+        edge = int(rng.integers(4))  # left, right, bottom, top
+        reach = rng.uniform(0.0, 0.04)  # beyond the edge, m
+        depth = rng.uniform(0.01, 0.04)  # half size across the edge, m
+        along = rng.uniform(0.01, 0.05)  # half size along it
+        # its front face behind the board's (from just behind the plate: a bracket on its
+        # back), m; a clamp's jaw in front of the face would be an occluder
+        face = rng.uniform(base.board_thickness, 0.06)
+        thick = rng.uniform(0.005, 0.03)  # half size along Y_O
+        y = face + thick
+        if edge < 2:
+            sx = -1 if edge == 0 else 1
+            pos = (sx * (w2 + reach - depth), y, rng.uniform(-h2 + along, h2 - along))
+            size = (depth, thick, along)
+        else:
+            sz = -1 if edge == 2 else 1
+            pos = (rng.uniform(-w2 + along, w2 - along), y, sz * (h2 + reach - depth))
+            size = (along, thick, depth)
+        holders.append(SceneBox(tuple(float(v) for v in pos), tuple(float(v) for v in size),
+                                reflectivity=float(rng.uniform(0.05, 0.9))))
+    wall = float(rng.uniform(0.5, 3.0))
+    clutter = []
+    bx, by, _ = base.board_position
+    for _ in range(int(rng.integers(0, 7))):
+        size = rng.uniform(0.05, 0.4, 3)
+        # behind the board's plane (between it and the wall) or beside it, on the floor
+        y = by + size[1] + rng.uniform(0.02, max(wall - 2 * size[1], 0.05))
+        x = bx + rng.uniform(-2.0, 2.0)
+        clutter.append(SceneBox((float(x), float(y), float(size[2])), tuple(float(v) for v in size),
+                                yaw=float(rng.uniform(-np.pi, np.pi)),
+                                reflectivity=float(rng.uniform(0.05, 0.9))))
+    refl = dict(base.reflectivity_overrides)
+    refl.update({"wall": float(rng.uniform(0.05, 0.9)), "floor": float(rng.uniform(0.05, 0.6)),
+                 "stand_base": float(rng.uniform(0.05, 0.9)),
+                 "stand_post": float(rng.uniform(0.05, 0.9))})
+    return replace(base, wall_distance=wall, stand_offset=float(rng.uniform(0.05, 0.35)),
+                   holders=tuple(holders), clutter=tuple(clutter), reflectivity_overrides=refl)
