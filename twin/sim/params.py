@@ -294,13 +294,16 @@ class BenchParams:
         return refl
 
 
-def random_scene(rng: np.random.Generator, base: BenchParams | None = None) -> BenchParams:
+def random_scene(rng: np.random.Generator, base: BenchParams | None = None,
+                 max_holders: int = 4) -> BenchParams:
     """``base`` (default the paper's bench) in a scene drawn at random: the wall 0.5-3 m behind
     the board, the stand 0.05-0.35 m behind it, up to four holders at the board's edges (a clamp
     or bracket reaching 0-40 mm beyond an edge, its face from just behind the plate to
     60 mm behind it), up to six pieces of clutter wholly behind the board's plane (behind and
     beside it, up to the wall), and
     every reflectivity (wall, floor, stand, holders, clutter) between dark and bright.
+    ``max_holders``: at most this many of the holders drawn are kept (0: a board on its stand
+    alone).
 
     Nothing is put between the LiDAR and the board's face: an occluder is another test. What
     is drawn is what differs between labs and between the twin and a real bench (the twin's
@@ -308,7 +311,10 @@ def random_scene(rng: np.random.Generator, base: BenchParams | None = None) -> B
     base = base or BenchParams()
     w2, h2 = base.board_width / 2, base.board_height / 2
     holders = []
-    for _ in range(int(rng.integers(0, 5))):
+    # drawn whatever max_holders is, so that a seed gives the same wall and clutter with and
+    # without them
+    n_holders = int(rng.integers(0, 5))
+    for k in range(n_holders):
         edge = int(rng.integers(4))  # left, right, bottom, top
         reach = rng.uniform(0.0, 0.04)  # beyond the edge, m
         depth = rng.uniform(0.01, 0.04)  # half size across the edge, m
@@ -326,6 +332,8 @@ def random_scene(rng: np.random.Generator, base: BenchParams | None = None) -> B
             sz = -1 if edge == 2 else 1
             pos = (rng.uniform(-w2 + along, w2 - along), y, sz * (h2 + reach - depth))
             size = (along, thick, depth)
+        if k >= max_holders:
+            continue
         holders.append(SceneBox(tuple(float(v) for v in pos), tuple(float(v) for v in size),
                                 reflectivity=float(rng.uniform(0.05, 0.9))))
     wall = float(rng.uniform(0.5, 3.0))
