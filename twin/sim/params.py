@@ -332,10 +332,10 @@ def random_scene(rng: np.random.Generator, base: BenchParams | None = None,
             sz = -1 if edge == 2 else 1
             pos = (rng.uniform(-w2 + along, w2 - along), y, sz * (h2 + reach - depth))
             size = (along, thick, depth)
-        if k >= max_holders:
-            continue
-        holders.append(SceneBox(tuple(float(v) for v in pos), tuple(float(v) for v in size),
-                                reflectivity=float(rng.uniform(0.05, 0.9))))
+        refl_h = float(rng.uniform(0.05, 0.9))
+        if k < max_holders:
+            holders.append(SceneBox(tuple(float(v) for v in pos),
+                                    tuple(float(v) for v in size), reflectivity=refl_h))
     wall = float(rng.uniform(0.5, 3.0))
     clutter = []
     bx, by, _ = base.board_position
