@@ -198,11 +198,54 @@ def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     # in front: something before the board; just behind (beyond the noise, within the label
     # tolerance): the board's noise or a thing close behind it (a stand's clamp): unknown
     lab[ret & ((res < -near) | ((res > near) & (res <= LABEL_TOLERANCE)))] = UNKNOWN
+    lab[_behind_ends(rays, lab, res, sigma_r)] = UNKNOWN
     inner = _between_hits(rays, lab) & ~ret
     hits = int(np.count_nonzero(lab == HIT))
     if np.count_nonzero(inner) >= max(MIN_DROPOUTS, DROPOUT_FRACTION * hits):
         lab[~ret] = DROPOUT
     return lab
+
+
+#: A laser's outermost hits are something just behind the board beside its edge (a holder, a
+#: box standing behind it) when their mean range residual is this many standard errors and at
+#: least `BEHIND_MIN` behind the plane (`_behind_ends`). 5 sigma: a board's own ends pass
+#: (about 1 in 1000 scans trims an end it should not, which costs a bracket, not a bias).
+BEHIND_SIGMAS = 5.0
+BEHIND_MIN = 0.01
+#: At most this many hits from each end are tested, and at least this many at once.
+BEHIND_REACH = 40
+BEHIND_RUN = 3
+
+
+def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float) -> np.ndarray:
+    """The hits at either end of a laser's run on the board (per scan, by azimuth) that lie
+    behind the plane as a group: a mask over the rays.
+
+    A thing standing a few cm behind the board right beside an edge returns within the label
+    tolerance of the plane, each return alone within the noise; as hits it would move that
+    laser's edge outwards by its width. Together its returns are clearly behind: the longest
+    run from an end whose mean residual is `BEHIND_SIGMAS` standard errors and `BEHIND_MIN`
+    behind is not the board."""
+    out = np.zeros(len(lab), dtype=bool)
+    hit = np.flatnonzero(lab == HIT)
+    if not len(hit):
+        return out
+    order = hit[np.lexsort((rays.azimuth[hit], rays.laser[hit], rays.scan[hit]))]
+    key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
+    cuts = np.flatnonzero(key[1:] != key[:-1]) + 1
+    for grp in np.split(order, cuts):
+        n = len(grp)
+        if n < 2 * BEHIND_RUN:
+            continue
+        reach = min(BEHIND_REACH, n // 3)
+        for seq in (grp[:reach], grp[::-1][:reach]):
+            m = np.arange(1, len(seq) + 1)
+            mean = np.cumsum(res[seq]) / m
+            ok = (m >= BEHIND_RUN) & (mean > BEHIND_MIN) & \
+                (mean * np.sqrt(m) > BEHIND_SIGMAS * sigma_r)
+            if np.any(ok):
+                out[seq[:int(np.flatnonzero(ok)[-1]) + 1]] = True
+    return out
 
 
 def _between_hits(rays: _Rays, lab: np.ndarray) -> np.ndarray:

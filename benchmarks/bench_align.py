@@ -3,6 +3,7 @@
     .venv/bin/python benchmarks/bench_align.py                 # the paper's protocol (long)
     .venv/bin/python benchmarks/bench_align.py --poses 30 --scans 50
     .venv/bin/python benchmarks/bench_align.py --offsets --poses 40   # a new unit's range errors
+    .venv/bin/python benchmarks/bench_align.py --scenes --poses 40 --scans 5 --stage-yaw-deg 10
 
 Protocol (paper, section IV-B): random poses, every angle within +-3 deg and x within +-30 mm
 of the bench's reference, 50 scans each. Angles: the LiDAR's mount misalignment (roll, tilt,
@@ -183,6 +184,56 @@ def offsets(args: argparse.Namespace) -> int:
     return 0
 
 
+def scenes(args: argparse.Namespace) -> int:
+    """Single-scan roll over the sweep range on twins whose wall, stand, clutter (and, with
+    ``--holders``, holders at the board's edges) are drawn at random, against the bound of each
+    pose's geometry (`align.bound.precision_bound`, variances averaged over the poses)."""
+    from align.board import BoardSpec
+    from align.bound import Firing, RangeNoise, precision_bound
+    from twin.sim.params import random_scene
+
+    rng = np.random.default_rng(args.seed)
+    cfg = EmulationConfig(laser_offset_sigma=0.0)
+    hints = align.Hints(edge_tolerance=(0.0, 0.0))
+    err, sig, bound_var, fails, total = [], [], [], {}, 0
+    t0 = time.time()
+    for k in range(args.poses):
+        params, x, yaw = random_pose(rng, args.angle_deg, args.x_mm, args.stage_yaw_deg)
+        params = random_scene(np.random.default_rng(rng.integers(2**31)), params,
+                              max_holders=args.holders)
+        scans, _ = _scans(params, x, yaw, int(rng.integers(2**31)), cfg, args.scans)
+        truth = scans[0].meta["truth_pose"]
+        b = precision_bound(truth, lasers=scans[0].lasers, board=BoardSpec(0.9, 0.54),
+                            firing=Firing(rpm=600), noise=RangeNoise(0.014), n_scans=1)
+        bound_var.append(b.std[3] ** 2)
+        for s in scans:
+            total += 1
+            est = align.estimate(s, hints=hints)
+            if not est.success:
+                fails[str(est.status)] = fails.get(str(est.status), 0) + 1
+                continue
+            e, sd = pose_errors(est, truth)
+            err.append(e[3])
+            sig.append(sd[3])
+        if (k + 1) % 5 == 0 or k + 1 == args.poses:
+            print(f"  {k + 1}/{args.poses} poses, {time.time() - t0:.0f} s", file=sys.stderr)
+    e, sd = np.array(err), np.array(sig)
+    rms, bnd = float(np.rad2deg(np.sqrt(np.mean(e**2)))), float(np.rad2deg(np.sqrt(np.mean(
+        bound_var))))
+    n_fail = sum(fails.values())
+    print(f"\n# single-scan roll on random scenes: {args.poses} poses x {args.scans} scans, "
+          f"angles within +-{args.angle_deg:g} deg + stage yaw +-{args.stage_yaw_deg:g}, "
+          f"holders <= {args.holders}, 14 mm noise, sharp beam, seed {args.seed}\n")
+    print(f"{'case':22} {'figure':34} {'measured':>10} {'anchor':>10} {'ratio':>8}")
+    _row("random scenes single", "roll RMS deg / 1.1 x bound", rms, 1.1 * bnd, rms <= 1.1 * bnd)
+    _row("random scenes single", "roll bound (RMS) deg", bnd, bnd)
+    _row("random scenes single", "roll chi2", float(np.mean((e / sd) ** 2)), 1.0)
+    _row("random scenes single", "failed scans %", 100 * n_fail / total, 0.5,
+         100 * n_fail / total <= 0.5)
+    print(f"  (failed: {fails or 'none'} of {total})")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--poses", type=int, default=200, help="random poses (paper: 200)")
@@ -199,10 +250,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--icp-scans", type=int, default=3, help="ICP baseline: scans per pose")
     ap.add_argument("--offsets", action="store_true",
                     help="the cases of a unit's own range errors instead (common, per laser)")
+    ap.add_argument("--scenes", action="store_true",
+                    help="single-scan roll on random scenes (wall, stand, clutter) instead")
+    ap.add_argument("--holders", type=int, default=0,
+                    help="--scenes: at most this many holders at the board's edges (0-4)")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
     if args.offsets:
         return offsets(args)
+    if args.scenes:
+        return scenes(args)
     methods = [m for m in args.methods.split(",") if m]
     fuse_modes = [n for n in (1, 10, 50) if n <= args.scans]
     cfg = EmulationConfig(laser_offset_sigma=0.0, divergence=args.divergence)
