@@ -857,16 +857,6 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
         model.excluded |= gross
         theta, j, conv, it, chi2 = _staged_fit(model, theta, ds)
         iters += it
-    ext = _extensions(model, theta)
-    if np.any(ext):
-        # something beside the board extends it on some lasers (a holder, a bracket, the
-        # stand just beyond an edge, within the range noise of the plane): those lasers' hits
-        # beyond the edge are unknown, not the board, and the fit is redone without them
-        lab = model.lab.copy()
-        lab[ext] = UNKNOWN
-        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, like=model)
-        theta, j, conv, it, chi2 = _staged_fit(model, theta, ds)
-        iters += it
     if chi2 > 1.5:
         # a misfit (roll started too far off and a pair of grazing crossings held it there):
         # restart from other rolls and keep the best
@@ -897,41 +887,6 @@ def _pose_per_plane(theta: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
         m = n + h * dn
         j[:, i] = (pose_from_plane(m / np.linalg.norm(m), d + h * dd, theta[3]) - base) / h
     return j
-
-
-#: A bracket whose hit lies beyond the fitted edge by more than this many of its sigmas is an
-#: extension of the board by something beside it (`_extensions`). A bracket that measures the
-#: edge cannot: its residual is at most half its width, sqrt(3) sigma, plus the fit's error.
-EXTENSION_SIGMAS = 4.0
-
-
-def _extensions(model: _Model, theta: np.ndarray) -> np.ndarray:
-    """The hits (a mask over the model's rays) that extend the board beyond an edge on a
-    laser whose bracket there the fit at ``theta`` misses by more than `EXTENSION_SIGMAS` on
-    the far side: every hit of that laser (all scans) beyond that edge.
-
-    On a real bench the board is held by something (a stand, clamps, a frame) whose parts just
-    beyond an edge and a few mm behind the face return within the range noise of its plane:
-    as hits they would move that laser's edge outwards, and a single scan's roll with it
-    (degrees, seen on twins with holders drawn at random)."""
-    nr = len(model._range[0])
-    f = model.residuals(theta)[nr:]
-    used = np.flatnonzero(model.edge_kind > 0)
-    out = np.zeros(len(model.lab), dtype=bool)
-    bad = used[np.abs(f) > EXTENSION_SIGMAS]
-    if not len(bad):
-        return out
-    rays = model.rays
-    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
-    w2, h2 = model.board.width / 2, model.board.height / 2
-    hit = model.lab == HIT
-    for i in bad:
-        h, sgn = model.bh[i], model.edge_sign[i]
-        c, half = (x, w2) if model.edge_kind[i] == 1 else (z, h2)
-        if sgn * c[h] <= half:
-            continue  # the hit inside: a bracket short of the edge (a dropout), not an extension
-        out |= hit & (rays.laser == rays.laser[h]) & (sgn * c > half)
-    return out
 
 
 def _contradicted(model: _Model, theta: np.ndarray, margin: float = 0.01) -> int:
