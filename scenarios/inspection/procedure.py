@@ -128,7 +128,9 @@ def inspect_unit(acq: Acquisition, station: Station, unit: str, *,
         raise ValueError("an inspection needs at least 1 scan")
     max_scans = scans * (1 + REMEASURE_FACTOR) if max_scans is None else max(max_scans, scans)
     if hints is None:
-        hints = align.Hints(roll_prior=station.roll_prior())
+        # a unit on the line is a new one: its own range offset (the station's prior on it)
+        # is estimated with its pose, not taken as zero
+        hints = align.Hints(roll_prior=station.roll_prior(), **station.range_offset_hints())
     t_trigger = time.perf_counter()
     cpu0 = time.process_time()
     tol = station.tolerances
