@@ -181,9 +181,11 @@ class Sensor(_Section):
     #: ranges are taken as unbiased (a calibrated unit) and the offset is not estimated.
     range_offset_mm: StrictFloat = 0.0
     range_offset_std_mm: NonNegative | None = None
-    #: 1-sigma of per-laser range offsets no calibration removed, mm (the paper: up to 5 mm):
-    #: carried in the covariance (`align.Hints.laser_offset_sigma`). 0 with a range calibration.
-    laser_offset_std_mm: NonNegative = 0.0
+    #: 1-sigma of the unit's per-laser range offsets, mm (the paper: up to 5 mm): carried in
+    #: the covariance (`align.Hints.laser_offset_sigma`) of an estimate from ranges that no
+    #: range calibration corrected; one that is applied removes them (`range_offset_hints`).
+    #: Default the paper's: a Velodyne unit's are there unless a calibration removed them.
+    laser_offset_std_mm: NonNegative = 2.5
     network: Network = Network()
 
     @field_validator("model")
@@ -348,12 +350,16 @@ class Station(_Section):
         roll = Pose.from_matrix(r_ol, np.zeros(3)).roll
         return roll, math.radians(ROLL_PRIOR_SD_DEG)
 
-    def range_offset_hints(self) -> dict[str, Any]:
-        """The sensor's range-offset priors as `align.Hints` fields, m."""
+    def range_offset_hints(self, calibrated: bool = False) -> dict[str, Any]:
+        """The sensor's range-offset priors as `align.Hints` fields, m. ``calibrated``: a
+        per-laser range calibration is applied to the scans, so the per-laser offsets it
+        measured are gone (what is left of them is its standard errors: far below the
+        estimate's noise) and not put into the covariance."""
         s = self.sensor
         prior = (None if s.range_offset_std_mm is None
                  else (s.range_offset_mm * 1e-3, s.range_offset_std_mm * 1e-3))
-        return {"range_offset_prior": prior, "laser_offset_sigma": s.laser_offset_std_mm * 1e-3}
+        laser = 0.0 if calibrated else s.laser_offset_std_mm * 1e-3
+        return {"range_offset_prior": prior, "laser_offset_sigma": laser}
 
     def bench_params(self, **changes: Any) -> Any:
         """The twin's `twin.sim.params.BenchParams` for this station (``changes``: fields to set

@@ -168,12 +168,12 @@ def run(args: argparse.Namespace) -> int:
             raise AimbenchError("--azimuth-deg takes CENTRE:HALF_WIDTH in degrees, e.g. "
                                 "-16:20") from exc
         window = (math.radians(c), math.radians(hw))
+    cal_file = args.calibration or station.sensor.range_calibration
+    cal = calibrate.read(cal_file) if cal_file else None
     hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window,
                         edge_tolerance=_edge_tolerance(args.edge_tolerance_mrad),
                         roll_prior=_roll_prior(args.roll_hint_deg, station),
-                        **station.range_offset_hints())
-    cal_file = args.calibration or station.sensor.range_calibration
-    cal = calibrate.read(cal_file) if cal_file else None
+                        **station.range_offset_hints(calibrated=cal is not None))
     truths = _truths(args)
     rows, seen, group = [], 0, []
     # The first whole raw scans go to the check that they fit the calibration, once.

@@ -130,7 +130,8 @@ def inspect_unit(acq: Acquisition, station: Station, unit: str, *,
     if hints is None:
         # a unit on the line is a new one: its own range offset (the station's prior on it)
         # is estimated with its pose, not taken as zero
-        hints = align.Hints(roll_prior=station.roll_prior(), **station.range_offset_hints())
+        hints = align.Hints(roll_prior=station.roll_prior(),
+                            **station.range_offset_hints(calibrated=calibration is not None))
     t_trigger = time.perf_counter()
     cpu0 = time.process_time()
     tol = station.tolerances
