@@ -23,7 +23,10 @@ uncertainty carried through the whole estimate); C the plane's covariance given 
 the labels (C_g's precision plus the curvature of a quadratic fitted to the labels' log evidence
 over the nodes; the nodes' weighted spread understates it where the labels cut the Gaussian); P
 the posterior's covariance of (roll, x, z) given the plane (averaged over the nodes) and K =
-d pose / d (roll, x, z) at a fixed plane.
+d pose / d (roll, x, z) at a fixed plane. With a common range offset b as a nuisance, C is the
+joint profile's instead (`_joint_profile`): the labels' evidence on a grid over b and a 3-point
+rule over the one direction of the plane the least-squares fit says they couple with b (the
+board's width ties distance to yaw), the ranges' conditional in the rest.
 """
 
 from __future__ import annotations
@@ -66,7 +69,9 @@ class OffsetModel:
     g = (alpha, beta, d) (about the ML plane, `plane.fit_rays_offsets`) and b, given as b's
     estimate from the ranges ``b_hat``, its covariance with g ``c_gb`` (3,) and variance
     ``c_bb``; ``centre``, ``centre_std``: b and its sigma from a fit that saw the board's size
-    (the least squares), where to look. `label_posterior` fills in ``mean`` and ``std``: b's
+    (the least squares), where to look; ``slope``: that fit's d pose / d b (its covariance's
+    regression, (6,)), the direction in which the labels trade the offset against the plane's
+    other directions (None: not known). `label_posterior` fills in ``mean`` and ``std``: b's
     posterior given the ranges and the labels."""
 
     b_hat: float
@@ -74,6 +79,7 @@ class OffsetModel:
     c_bb: float
     centre: float = 0.0
     centre_std: float = 0.0
+    slope: np.ndarray | None = None
     mean: float | None = None
     std: float | None = None
 
@@ -84,6 +90,13 @@ PROFILE_POINTS = 21
 PROFILE_REACH = 5.0
 PROFILE_REFINE = 3
 PROFILE_MIN = 5
+#: The joint profile (`_joint_profile`) along the direction the labels couple with the
+#: offset: fewer than `COUPLED_MIN` of its 3 Gauss-Hermite levels allowed, a grid of
+#: `COUPLED_POINTS` levels over the band they allow instead, refined up to `COUPLED_REFINE`
+#: times.
+COUPLED_MIN = 3
+COUPLED_POINTS = 7
+COUPLED_REFINE = 2
 
 
 @dataclass(frozen=True)
@@ -162,9 +175,10 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     the roll, rad (`align.Hints.roll_prior`), multiplied into the posterior; None: flat.
     ``offset``: the ranges carry a common offset (``ml_plane``'s covariance includes it): the
     labels then hold the distance along the direction the offset moves the plane, which is
-    first profiled in one dimension (`_offset_profile`; the band the labels allow can be far
-    narrower than the offset's prior), and the rule placed on that band. Its posterior is
-    written into ``offset``.
+    first profiled jointly with the plane's direction the labels trade it against
+    (`_joint_profile`; the band the labels allow can be far narrower than the offset's prior),
+    the rule placed on the plane's posterior it gives and the covariance taken from it. Its
+    posterior is written into ``offset``.
     """
     n0, d0, c_plane = ml_plane
     e1, e2 = plane.tangent_basis(n0)
@@ -188,26 +202,22 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     along_d = c_plane[:, 2] / np.sqrt(c_plane[2, 2])
     starts = [k * along_d for k in (0, 1, -1, 2, -2, 3, -3)]
     random = (rng.multivariate_normal(np.zeros(3), c_plane) for _ in range(PLANE_SAMPLES))
-    # the rule's proposal: the ranges' Gaussian, or with an offset its band along the
-    # offset's direction as the labels allow it
-    c_q, v, band_var = c_plane, None, 0.0
+    # the rule's proposal: the ranges' Gaussian, or with an offset the plane's posterior from
+    # the joint profile of the offset and the direction it trades against
+    c_q, c_band = c_plane, None
     profile = None
     if offset is not None:
         v = offset.c_gb / offset.c_bb
-        profile = _offset_profile(offset, v, lambda g: wide.in_plane(*moved(g), board, rolls,
-                                                                     roll_prior))
-    if profile is not None:
-        centre, coarse, band_var = profile
-        # the profile runs along one line: the band it finds is conditional on the plane's
-        # other directions (yaw trades against distance in the board's width), and narrower
-        # than the marginal band; the least-squares fit's offset variance, which carries that
-        # coupling (and treats each bracket as a Gaussian: conservative), is its floor
-        band_var = max(band_var, offset.centre_std**2)
         c_cond = c_plane - np.outer(offset.c_gb, offset.c_gb) / offset.c_bb
-        c_q = c_cond + band_var * np.outer(v, v)
+        w = _coupled_direction(offset, theta, n0, d0, v, c_cond)
+        profile = _joint_profile(offset, v, w, c_cond,
+                                 lambda g: wide.in_plane(*moved(g), board, rolls, roll_prior))
+    if profile is not None:
+        centre, coarse, c_band = profile
+        c_q = c_band
         n, d = moved(centre)
     else:
-        v = None  # no band found: the ranges' Gaussian as without an offset
+        # no band found: the ranges' Gaussian as without an offset
         for centre in itertools.chain(starts, random):
             n, d = moved(centre)
             coarse = wide.in_plane(n, d, board, rolls, roll_prior)
@@ -255,13 +265,16 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     c_inv, q_inv = np.linalg.inv(c_plane), np.linalg.inv(c_q)
 
     def done(nodes: list[_Node]) -> tuple[np.ndarray, np.ndarray]:
-        if v is None:
+        if c_band is None:
             return _moments(nodes, c_plane)
-        # the offset's band: the labels' information along it is the profile's (exact in
-        # one dimension), the rest the ranges' given the offset with the labels' curvature
-        out = _moments(nodes, c_cond, band_var * np.outer(v, v))
-        _offset_posterior(offset, nodes, c_plane, out[2])
-        return out[:2]
+        # with an offset the labels' information is the joint profile's (exact in the plane's
+        # two directions it couples, the offset's line and w); the plane's third direction is
+        # the ranges' given b. A quadratic fitted to the labels' log evidence over the rule's
+        # nodes instead (as without an offset) sees a band of flat evidence with cliffs: it put
+        # 2.3 mm of sigma on an offset known to 0.7 mm, and roll's sigma twice its error
+        mean, cov = _moments(nodes, c_band, given=True)
+        _offset_posterior(offset, nodes, c_plane, c_band)
+        return mean, cov
 
     m, scale = centre, 1.0
     for _ in range(RULE_REFINEMENTS):
@@ -283,47 +296,146 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     return None
 
 
-def _offset_profile(offset: OffsetModel, v: np.ndarray, in_plane
-                    ) -> tuple[np.ndarray, feasible.InPlanePosterior, float] | None:
-    """Where the labels put the offset: the evidence of the planes g = v (b - b_hat) (the
-    ranges' plane for offset b) times the ranges' density of b, on a grid about the
-    least-squares offset, refined about the band it allows. Returns the plane at the band's
-    mean, its coarse in-plane posterior and the band's variance of b (m^2), or None where no
-    plane on the grid explains the labels."""
+def _coupled_direction(offset: OffsetModel, theta: np.ndarray, n0: np.ndarray, d0: float,
+                       v: np.ndarray, c_cond: np.ndarray) -> np.ndarray | None:
+    """The direction w of the plane g = (alpha, beta, d) about (n0, d0), other than the offset's
+    own line ``v``, along which the labels pull the plane as b moves: w = v - r, r the
+    least-squares fit's d g / d b (its ``offset.slope`` mapped to the plane; the brackets hold
+    the board's width, so a longer offset there also turns the plane in yaw), scaled to one
+    sigma of the ranges' conditional ``c_cond`` (the plane given b). None: no slope, or the
+    fit moves the plane exactly as the ranges do (nothing to couple)."""
+    if offset.slope is None or not np.all(np.isfinite(offset.slope)):
+        return None
+    e1, e2 = plane.tangent_basis(n0)
+
+    def g_of(th: np.ndarray) -> np.ndarray:
+        # the inverse of label_posterior's moved(g): n ~ n0 + alpha e1 + beta e2, d = d0 + g[2]
+        n, d = plane_of_pose(th)
+        return np.array([n @ e1 / (n @ n0), n @ e2 / (n @ n0), d - d0])
+
+    h = 1e-4  # m of offset: the pose's response is linear far beyond it
+    r = (g_of(theta + h * offset.slope) - g_of(theta - h * offset.slope)) / (2 * h)
+    y = v - r
+    m2 = float(y @ np.linalg.solve(c_cond, y))
+    if not (np.isfinite(m2) and m2 > 0):
+        return None
+    return y / math.sqrt(m2)
+
+
+def _joint_profile(offset: OffsetModel, v: np.ndarray, w: np.ndarray | None,
+                   c_cond: np.ndarray, in_plane
+                   ) -> tuple[np.ndarray, feasible.InPlanePosterior, np.ndarray] | None:
+    """The labels' evidence over the offset b jointly with the plane's direction ``w`` it
+    trades against (`_coupled_direction`): the plane g = v (b - b_hat) + s w, s the ranges'
+    standard normal along w (given b, independent of it), integrated over s by a 3-point
+    Gauss-Hermite rule and over b by `_offset_profile` at each s. The band found along the one
+    line s = 0 is conditional on s and too narrow where the labels couple b with w (yaw and
+    distance in the board's width: fused, b's chi2 was 3.5 against it). ``c_cond``: the
+    ranges' covariance of g given b (w is one sigma of it). Returns the plane at the posterior
+    mean, the most probable node's coarse in-plane posterior and the plane's posterior
+    covariance (3, 3), or None where no plane explains the labels."""
+    if w is None:
+        levels, spacing = [(0.0, 0.0)], 0.0
+    else:
+        x, wt = np.polynomial.hermite_e.hermegauss(3)
+        levels, spacing = list(zip(x, np.log(wt / wt.sum()), strict=True)), float(x[1] - x[0])
+    floor = 0.0
+    for _ in range(1 + COUPLED_REFINE):
+        found = []
+        for s, log_ws in levels:
+            prof = _offset_profile(offset, v, in_plane, s * w if w is not None else np.zeros(3))
+            if prof is not None:
+                found.append((s, log_ws + prof[0], *prof[1:]))
+        if not found:
+            return None
+        if w is None or len(found) >= COUPLED_MIN:
+            break
+        # the labels allow a band in s narrower than the levels' spacing (a near miss of the
+        # board's width: one level left a sliver of 0.06 mm in b, and yaw 3.7 sigma off): a
+        # uniform grid over it instead, the ranges' density times the spacing the weights,
+        # the spacing's resolution a floor of s's variance
+        lo = min(f[0] for f in found) - spacing
+        hi = max(f[0] for f in found) + spacing
+        grid = np.linspace(lo, hi, COUPLED_POINTS + 2)[1:-1]
+        spacing = float(grid[1] - grid[0])
+        levels = [(float(g), -0.5 * g**2 + math.log(spacing)) for g in grid]
+        floor = spacing**2 / 12
+    s_l = np.array([f[0] for f in found])
+    log_p = np.array([f[1] for f in found])
+    p = np.exp(log_p - log_p.max())
+    p /= p.sum()
+    m_b = np.array([f[2] for f in found])
+    v_b = np.array([f[3] for f in found])
+    mean_b, mean_s = float(p @ m_b), float(p @ s_l)
+    var_b = float(p @ (v_b + m_b**2) - mean_b**2)
+    cov_bs = float(p @ (s_l * m_b) - mean_b * mean_s)
+    ridge = v + (w * cov_bs / var_b if w is not None else 0.0)
+    centre = v * (mean_b - offset.b_hat) + (mean_s * w if w is not None else 0.0)
+    best = found[int(np.argmax(log_p + np.log([f[5] for f in found])))][4]
+    # the plane's covariance by the law of total variance over b: between offsets, b's
+    # marginal variance along the way the plane's mean moves with it (the ridge: distance and
+    # yaw together, as the board's width allows); given b, the profile's spread along w and
+    # the ranges' conditional in the direction independent of w
+    c_band = c_cond + var_b * np.outer(ridge, ridge)
+    if w is not None:
+        var_s = float(p @ s_l**2 - mean_s**2) + floor
+        c_band += (var_s - cov_bs**2 / var_b - 1.0) * np.outer(w, w)
+    return centre, best, c_band
+
+
+def _offset_profile(offset: OffsetModel, v: np.ndarray, in_plane, g0: np.ndarray
+                    ) -> tuple[float, float, float, feasible.InPlanePosterior, float] | None:
+    """Where the labels put the offset along one line: the evidence of the planes
+    g0 + v (b - b_hat) (the ranges' plane for offset b, moved by ``g0``) times the ranges'
+    density of b, on a grid about the least-squares offset, refined about the band it allows.
+    Returns the log of its integral over b (trapezoids over every b tried, those with no
+    consistent pose at zero), b's mean and variance (m, m^2) on the line, the most probable
+    plane's coarse in-plane posterior and its normalised weight, or None where no plane on
+    the grid explains the labels."""
     sd_prior = math.sqrt(offset.c_bb)
     sd = float(np.clip(offset.centre_std, 1e-4, sd_prior))
     lo, hi = offset.centre - PROFILE_REACH * sd, offset.centre + PROFILE_REACH * sd
-    bs_all, lw_all, post_all = [], [], []
+    tried: dict[float, tuple[float, feasible.InPlanePosterior | None]] = {}
     for _ in range(PROFILE_REFINE):
         bs = np.linspace(lo, hi, PROFILE_POINTS)
         for b in bs:
-            post = in_plane(v * (b - offset.b_hat))
-            if post is not None and post.evidence > 0:
-                bs_all.append(b)
-                lw_all.append(math.log(post.evidence) - 0.5 * (b - offset.b_hat)**2 / offset.c_bb)
-                post_all.append(post)
+            post = in_plane(g0 + v * (b - offset.b_hat))
+            ok = post is not None and post.evidence > 0
+            tried[float(b)] = ((math.log(post.evidence) - 0.5 * (b - offset.b_hat)**2
+                                / offset.c_bb) if ok else -math.inf, post if ok else None)
         step = bs[1] - bs[0]
-        inside = [b for b in bs_all if lo <= b <= hi]
+        allowed = [b for b, (lw, _) in tried.items() if lw > -math.inf]
+        inside = [b for b in allowed if lo <= b <= hi]
         if len(inside) >= PROFILE_MIN:
             break
-        if not bs_all:
+        if not allowed:
             # nothing allowed: widen once to the prior's reach, then give up
             if hi - lo >= 2 * PROFILE_REACH * sd_prior:
                 return None
             lo = offset.b_hat - PROFILE_REACH * sd_prior
             hi = offset.b_hat + PROFILE_REACH * sd_prior
             continue
-        lo, hi = min(inside or bs_all) - step, max(inside or bs_all) + step
-    if not bs_all:
+        lo, hi = min(inside or allowed) - step, max(inside or allowed) + step
+    b = np.array(sorted(tried))
+    lw = np.array([tried[k][0] for k in b])
+    if not np.isfinite(lw).any():
         return None
-    b = np.array(bs_all)
-    w = np.exp(np.array(lw_all) - max(lw_all))
-    w /= w.sum()
-    mean = float(w @ b)
-    # the grid's spacing is the resolution of the band's edges: its variance as a floor
-    var = float(w @ (b - mean) ** 2) + step**2 / 12
-    best = post_all[int(np.argmax(w))]
-    return v * (mean - offset.b_hat), best, var
+    top = lw.max()
+    dens = np.exp(lw - top)
+    # trapezoid weights on the union of the grids (a refinement is denser about the band)
+    q = np.zeros(len(b))
+    q[1:] += 0.5 * np.diff(b)
+    q[:-1] += 0.5 * np.diff(b)
+    mass = dens * q
+    if len(b) == 1 or mass.sum() <= 0:
+        mass = dens
+    z = float(mass.sum())
+    wn = mass / z
+    mean = float(wn @ b)
+    # the finest spacing is the resolution of the band's edges: its variance as a floor
+    var = float(wn @ (b - mean) ** 2) + step**2 / 12
+    i = int(np.argmax(dens))
+    return top + math.log(z), mean, var, tried[float(b[i])][1], float(wn[i])
 
 
 def _offset_posterior(offset: OffsetModel, nodes: list[_Node], c_plane: np.ndarray,
@@ -387,9 +499,11 @@ def _weights(nodes: list[_Node]) -> np.ndarray:
     return w / w.sum()
 
 
-def _moments(nodes: list[_Node], c_plane: np.ndarray, c_extra: np.ndarray | None = None):
+def _moments(nodes: list[_Node], c_plane: np.ndarray, given: bool = False
+             ) -> tuple[np.ndarray, np.ndarray]:
     """The weighted mean of the nodes' poses and the covariance J C J^T + K P K^T (C: the
-    plane's, `_plane_posterior_cov`, plus ``c_extra`` if given; then C is returned third)."""
+    plane's given the ranges ``c_plane`` and the labels, `_plane_posterior_cov`; with
+    ``given``, ``c_plane`` is already the plane's posterior covariance)."""
     g = np.array([nd.g for nd in nodes])
     thetas = np.array([nd.pose for nd in nodes])
     w = _weights(nodes)
@@ -405,10 +519,8 @@ def _moments(nodes: list[_Node], c_plane: np.ndarray, c_extra: np.ndarray | None
     k[:, 0] = (_pose(n, d, q + np.array([h, 0.0, 0.0])) - _pose(n, d, q)) / h
     k[0, 1] = k[2, 2] = 1.0
     within = np.einsum("s,sij->ij", w, np.array([nd.post.cov for nd in nodes]))
-    c_post = _plane_posterior_cov(g, np.log([nd.post.evidence for nd in nodes]), c_plane)
-    if c_extra is not None:
-        c_post = c_post + c_extra
-        return mean, j_g @ c_post @ j_g.T + k @ within @ k.T, c_post
+    c_post = (c_plane if given else
+              _plane_posterior_cov(g, np.log([nd.post.evidence for nd in nodes]), c_plane))
     return mean, j_g @ c_post @ j_g.T + k @ within @ k.T
 
 

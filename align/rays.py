@@ -988,6 +988,10 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         if offset_model is not None:
             offset_model.centre = model.offset
             offset_model.centre_std = float(np.sqrt(cov_ls[6, 6])) if len(cov_ls) > 6 else 0.0
+            # how the least-squares pose moves with the offset when the brackets (the board's
+            # size) hold it: the direction the labels trade distance against yaw and x
+            offset_model.slope = (cov_ls[:6, 6] / cov_ls[6, 6] if len(cov_ls) > 6
+                                  and cov_ls[6, 6] > 0 else None)
         post = label_posterior(labelled, board, theta, float(np.sqrt(max(cov[3, 3], 0.0))),
                                ml_plane, len(scans), rng, hints.roll_prior, offset_model)
         if post is not None:

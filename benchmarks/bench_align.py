@@ -94,6 +94,7 @@ def offsets(args: argparse.Namespace) -> int:
     h_laser = align.Hints(**sharp, laser_offset_sigma=spread / np.sqrt(3.0))
     sens = {"prior": [], "none": []}
     unit_e, unit_s, far_e, far_b, las = [], [], [], [], {"uncal": [], "model": [], "cal": []}
+    unit_b = []  # the unit's offset: its error over its reported sigma
     fails = 0
     t0 = time.time()
     for k in range(args.poses):
@@ -117,6 +118,8 @@ def offsets(args: argparse.Namespace) -> int:
             e, sd = errors(est, su[0].meta["truth_pose"])
             unit_e.append(e)
             unit_s.append(sd)
+            unit_b.append((est.diagnostics["range_offset_m"] - sim.emulator.range_bias)
+                          / est.diagnostics["range_offset_std_m"])
         else:
             fails += 1
         # 3. a unit 30 mm short, 50 scans fused, the datasheet's prior
@@ -164,6 +167,8 @@ def offsets(args: argparse.Namespace) -> int:
     for i, a in enumerate(AXES):
         _row("unit +-5 mm fused 10", f"chi2 {a} (0.8-1.25)", chi2[i], 1.0,
              0.8 <= chi2[i] <= 1.25)
+    chi2_b = float(np.mean(np.square(unit_b)))
+    _row("unit +-5 mm fused 10", "chi2 offset (0.8-1.25)", chi2_b, 1.0, 0.8 <= chi2_b <= 1.25)
     fb, fe = 1e3 * np.abs(np.array(far_b)), np.abs(np.array(far_e))
     _row("-30 mm fused 50", "offset error mm, max", float(fb.max()), 2.0, fb.max() <= 2.0)
     _row("-30 mm fused 50", "offset error mm, RMS", float(np.sqrt((fb**2).mean())), 1.5,

@@ -86,6 +86,28 @@ def test_offset_sigmas_are_honest_over_many_units():
     assert np.all((chi2 > 0.3) & (chi2 < 2.2)), chi2
 
 
+@pytest.mark.slow
+def test_offset_sigmas_are_honest_over_40_units_fused_10():
+    # issue 21's check at a size that tells an honest covariance from the one before the joint
+    # profile (yaw chi2 1.6-1.8, x 1.5-1.7, roll 0.7): 40 units uniform within +-5 mm, the
+    # prior saying so, 10 scans fused. One axis's chi2 over 40 units has a sd of about 0.22
+    # (0.11 pooled over yaw and x, the axes the offset trades against)
+    rng = np.random.default_rng(24)
+    hints = align.Hints(**SHARP, range_offset_prior=(0.0, 0.005 / np.sqrt(3.0)))
+    z2 = []
+    for _ in range(40):
+        scans, sim = _scans(rng, 10, range_bias_spread=0.005)
+        est = align.estimate(scans, hints=hints)
+        assert est.success, est.diagnostics.get("reason")
+        e, sd = pose_errors(est, scans[0].meta["truth_pose"])
+        db = est.diagnostics["range_offset_m"] - sim.emulator.range_bias
+        z2.append(np.append((e / sd)[[4, 3, 5, 0]], db / est.diagnostics["range_offset_std_m"])
+                  ** 2)
+    chi2 = np.mean(z2, axis=0)  # tilt, roll, yaw, x, offset
+    assert np.all((chi2 > 0.6) & (chi2 < 1.5)), chi2
+    assert 0.75 < np.mean(chi2[2:4]) < 1.3, chi2
+
+
 def test_per_laser_offsets_uncalibrated_are_in_tilts_sigma():
     rng = np.random.default_rng(23)
     modelled = align.Hints(**SHARP, laser_offset_sigma=0.005 / np.sqrt(3.0))
