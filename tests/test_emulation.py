@@ -114,6 +114,10 @@ def test_fast_paths_equal_brute_force_mujoco_rays(divergence: bool) -> None:
     grid = sims[0].emulator.fire_grid(az, p, r)
     generic = sims[0].emulator.fire(az.reshape(-1), lid, p, r)
     brute = sims[1].emulator.fire(az.reshape(-1), lid, p, r)
+    # the grid path without culling (every row through MuJoCo) too: it once failed with
+    # divergence on, the sub-ray pass reading intervals only the culling had made
+    unculled = sims[1].emulator.fire_grid(az, p, r)
+    np.testing.assert_allclose(unculled.distance, brute.distance, rtol=0, atol=1e-9)
     np.testing.assert_allclose(grid.distance, brute.distance, rtol=0, atol=1e-9)
     np.testing.assert_allclose(generic.distance, brute.distance, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(grid.intensity, brute.intensity)

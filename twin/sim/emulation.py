@@ -682,6 +682,9 @@ class LidarEmulator:
                                                             row_laser, row_dh, cw, sw, origins,
                                                             rotation)
         else:  # every ray through MuJoCo, one call per row
+            # (the sub-ray pass reads the intervals: every row whole, none per geom)
+            self._intervals = (np.ones(n_rows, dtype=np.bool_), np.zeros(0, dtype=np.int64),
+                               np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
             idx, dirs, rows, bounds = raykernel.grid_candidates(
                 base, np.ones(n_rows, dtype=np.bool_), np.zeros(0, dtype=np.int64),
                 np.zeros(0), np.zeros(0), d_first, spread, azimuth, row_laser, row_dh, cw, sw,
