@@ -12,6 +12,8 @@ tests/test_segment_kernels.py checks it against the numpy reference on real scan
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -203,3 +205,154 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
             labels[k0 + (f - lz * m) * nl + lz] = comp[run[f]]
     return labels, count, distance, rings
 
+
+
+@njit(cache=True)
+def _slide_sorted(xs: np.ndarray, length: float) -> tuple[int, float]:
+    """`align.roll_search._slide` of one sorted row: the most points a window of ``length``
+    holds and the shift that centres the window on them (the first such window)."""
+    n = xs.shape[0]
+    j = 0
+    best, lo, hi = 0, 0.0, 0.0
+    for i in range(n):
+        if j < i:
+            j = i
+        while j + 1 < n and xs[j + 1] <= xs[i] + length:
+            j += 1
+        if j - i + 1 > best:
+            best, lo, hi = j - i + 1, xs[i], xs[j]
+    return best, -0.5 * (lo + hi)
+
+
+@njit(cache=True)
+def _count_within(xs: np.ndarray, length: float) -> int:
+    """The most points of the sorted row ``xs`` a window of ``length`` holds."""
+    n = xs.shape[0]
+    j = 0
+    best = 0
+    for i in range(n):
+        if j < i:
+            j = i
+        while j + 1 < n and xs[j + 1] <= xs[i] + length:
+            j += 1
+        if j - i + 1 > best:
+            best = j - i + 1
+    return best
+
+
+#: Rolls between the anchors of `best_roll`, whose bounds spare the sorts of the rolls
+#: between them.
+ANCHOR_EVERY = 6
+#: Slack on `best_roll`'s bound for rounding, m and relative.
+_BOUND_SLACK = 1e-9
+
+
+@njit(cache=True)
+def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray,
+              r2: np.ndarray, len_x: float, len_z: float) -> tuple[int, int, float, float]:
+    """The roll at which a W x H box leaves out the fewest of a cluster's points:
+    `align.roll_search._left_out` over the rolls (columns of ``px`` = points @ r0.T and ``pz``
+    = points @ r2.T, (n, K)) followed by its argmin, without sorting every column.
+
+    Returns (index of the best roll, points left out there, the box's shifts t_x, t_z there),
+    exactly what `_left_out` and `np.argmin` give (the first of equal minima). How: every
+    `ANCHOR_EVERY`-th roll (an anchor) is evaluated. The points a window holds at a roll b lie,
+    at an anchor a, within the window grown by the points' diameter times how far the rows
+    turn between a and b; so that grown window's count at a bounds from below what b leaves
+    out, and each roll takes the larger bound of the two anchors either side. Only the rolls
+    whose bound can beat the least count found (or tie with it at an earlier roll) are then
+    evaluated, most promising first: a board's cluster sorts about 50 of the 2 x 180 columns
+    (the flat bottom of its curve of rolls), not all.
+    """
+    n, k = px.shape
+    # radius of the points about their mean: their diameter is at most twice it
+    c0 = c1 = c2 = 0.0
+    for i in range(n):
+        c0 += points[i, 0]
+        c1 += points[i, 1]
+        c2 += points[i, 2]
+    c0, c1, c2 = c0 / n, c1 / n, c2 / n
+    rad = 0.0
+    for i in range(n):
+        d = math.sqrt((points[i, 0] - c0) ** 2 + (points[i, 1] - c1) ** 2
+                      + (points[i, 2] - c2) ** 2)
+        rad = max(rad, d)
+    diam = 2.0 * rad * (1.0 + _BOUND_SLACK) + _BOUND_SLACK
+    left = np.full(k, -1, dtype=np.int64)  # exact counts left out; -1: not evaluated
+    tx = np.zeros(k)
+    tz = np.zeros(k)
+    lower = np.zeros(k, dtype=np.int64)  # lower bounds of the counts left out
+    xs = np.empty(n)
+    zs = np.empty(n)
+    least, first = 2 * n + 1, k  # the least count left out so far, and its first roll
+    grow = diam * (1.0 + _BOUND_SLACK)
+    for a in range(0, k, ANCHOR_EVERY):
+        for i in range(n):
+            xs[i] = px[i, a]
+            zs[i] = pz[i, a]
+        xs.sort()
+        zs.sort()
+        cx, sx_ = _slide_sorted(xs, len_x)
+        cz, sz_ = _slide_sorted(zs, len_z)
+        left[a] = lower[a] = 2 * n - cx - cz
+        tx[a], tz[a] = sx_, sz_
+        if left[a] < least:
+            least, first = left[a], a
+        # one bound for every roll b less than a block away on either side: the window grown
+        # by the most the rows turn between a and any of them (each roll takes the larger of
+        # its two anchors' bounds)
+        turn_x = turn_z = 0.0
+        for b in range(max(0, a - ANCHOR_EVERY + 1), min(k, a + ANCHOR_EVERY)):
+            sx = sz = 0.0
+            for j in range(3):
+                sx += (r0[b, j] - r0[a, j]) ** 2
+                sz += (r2[b, j] - r2[a, j]) ** 2
+            turn_x = max(turn_x, math.sqrt(sx))
+            turn_z = max(turn_z, math.sqrt(sz))
+        gx = _count_within(xs, len_x + grow * turn_x + _BOUND_SLACK)
+        gz = _count_within(zs, len_z + grow * turn_z + _BOUND_SLACK)
+        for b in range(max(0, a - ANCHOR_EVERY + 1), min(k, a + ANCHOR_EVERY)):
+            if b != a:
+                lower[b] = max(lower[b], 2 * n - gx - gz)
+    # the other rolls, most promising first, while their bound can still beat the least (or
+    # tie with it at an earlier roll: np.argmin's is the first of equal minima)
+    for b in np.argsort(lower, kind="mergesort"):
+        if lower[b] > least:
+            break
+        if left[b] >= 0 or (lower[b] == least and b > first):
+            continue
+        for i in range(n):
+            xs[i] = px[i, b]
+            zs[i] = pz[i, b]
+        xs.sort()
+        zs.sort()
+        cx, sx_ = _slide_sorted(xs, len_x)
+        cz, sz_ = _slide_sorted(zs, len_z)
+        left[b] = 2 * n - cx - cz
+        tx[b], tz[b] = sx_, sz_
+        if left[b] < least or (left[b] == least and b < first):
+            least, first = left[b], b
+    if first < k:
+        return first, least, tx[first], tz[first]
+    return 0, left[0], tx[0], tz[0]  # not reached: the least is an evaluated roll's
+
+
+@njit(cache=True)
+def near_rays(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarray,
+              centre: float, span: float, ring_lo: int, ring_hi: int) -> np.ndarray:
+    """Indices of the firings within ``span`` (rad) of azimuth ``centre`` on rings ``ring_lo``
+    .. ``ring_hi``: `align.segment.rectangle_fit`'s rays around a cluster, in one pass over
+    the scan (the same wrap as `segment._unwrap`, element by element)."""
+    n = azimuth.shape[0]
+    out = np.empty(n, dtype=np.int64)
+    k = 0
+    two_pi = 2 * np.pi
+    for i in range(n):
+        ring = ring_of_laser[laser_id[i]]
+        if ring < ring_lo or ring > ring_hi:
+            continue
+        rel = (azimuth[i] - centre + np.pi) % two_pi - np.pi
+        if abs(rel) <= span:
+            out[k] = i
+            k += 1
+    return out[:k]

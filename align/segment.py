@@ -230,34 +230,46 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     a larger surface that the clustering cut out: a door in a wall). Rays without a return, or
     with one in front, count for none: a dark patch, an occluder."""
     from align.feasible import _rows
+    from align.kernels import best_roll, near_rays
     from align.plane import fit_lsq
-    from align.roll_search import COARSE_STEP, TOLERANCE, _left_out, _subsample
+    from align.roll_search import COARSE_STEP, TOLERANCE, _subsample
 
     points = scan.xyz[sel]
     if len(points) < 3:
-        return 0.0, 0.0
+        return 0.0, 0.0, 0.0
     n, d = fit_lsq(points)
     p = _subsample(points - (points @ n - d)[:, None] * n, 300)
     rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
     grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
-    left, tx, tz = _left_out(p, n, board, rolls, grow)
-    best = int(np.argmin(left))
-    held = float(1.0 - left[best] / (2 * len(p)))
-    # the rays around the cluster (its rings, its azimuths and a board's width more)
-    ring = scan.ring
-    az0 = float(np.angle(np.mean(np.exp(1j * scan.azimuth[sel]))))
-    rel = _unwrap(scan.azimuth, az0)
-    span = np.abs(_unwrap(scan.azimuth[sel], az0)).max() + board.diagonal / max(d, 0.5)
-    near = np.flatnonzero((np.abs(rel) <= span) & (ring >= ring[sel].min())
-                          & (ring <= ring[sel].max()))
-    sub = scan.select(near)  # the rays of the few rings near the cluster, not the scan's
-    u, o = sub.directions(), sub.origins()
+    # `roll_search._left_out` and its argmin, sorting only the rolls that can be the best
+    r0s, r2s = _rows(rolls, n)
+    best, left_best, tx_best, tz_best = best_roll(
+        p @ r0s.T, p @ r2s.T, p, r0s, r2s, board.width + 2 * grow, board.height + 2 * grow)
+    held = float(1.0 - left_best / (2 * len(p)))
+    # the rays around the cluster (its rings, its azimuths and a board's width more), found in
+    # one pass over the scan's azimuths and lasers
+    az = scan.azimuth
+    az0 = float(np.angle(np.mean(np.exp(1j * az[sel]))))
+    span = float(np.abs(_unwrap(az[sel], az0)).max() + board.diagonal / max(d, 0.5))
+    ring_of_laser = np.asarray(scan.lasers.ring_of_laser, np.int64)
+    ring_sel = ring_of_laser[scan.laser_id[sel]]
+    near = near_rays(az, scan.laser_id, ring_of_laser, az0, span, int(ring_sel.min()),
+                     int(ring_sel.max()))
+    # their rays, as `Scan.directions` and `Scan.origins` make them (the same operations)
+    lid = scan.laser_id[near]
+    el = scan.lasers.elevation[lid]
+    az_near = az[near]
+    ce = np.cos(el)
+    u = np.column_stack((ce * np.sin(az_near), ce * np.cos(az_near), np.sin(el)))
+    o = np.zeros((len(near), 3))
+    if scan.vertical_offsets_applied:
+        o[:, 2] = scan.lasers.vertical_offset[lid]
     un = u @ n
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = (d - o @ n) / un
     q = o + lam[:, None] * u
     r0, r2 = _rows(rolls[best:best + 1], n)
-    x, z = q @ r0[0] + tx[best], q @ r2[0] + tz[best]
+    x, z = q @ r0[0] + tx_best, q @ r2[0] + tz_best
     inside = (lam > 0) & (np.abs(x) < board.width / 2 - FILL_MARGIN) & (
         np.abs(z) < board.height / 2 - FILL_MARGIN)
     dist = scan.distance[near]

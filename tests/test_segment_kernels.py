@@ -15,12 +15,17 @@ from scipy.sparse.csgraph import connected_components
 
 import align
 from align import segment
+from align.board import BoardSpec
 from align.segment import (
     BRIDGE,
     CLUSTER_RADIUS_MIN,
     CLUSTER_RADIUS_PER_M,
+    FILL_MARGIN,
+    FLAT_BAND,
     LONG_RUN,
     MAX_AZIMUTH_GAP,
+    SURROUND,
+    _unwrap,
     ring_radius_scale,
 )
 from tests.conftest import DATA_DIR
@@ -181,3 +186,108 @@ def test_grid_clusters_match_the_numpy_reference_on_real_scans(real_scans):
             compared += int(want["count"].size)
     assert compared > 100  # the scans had clusters to compare
 
+
+
+def rectangle_fit_reference(scan: Scan, sel: np.ndarray, board: BoardSpec
+                  ) -> tuple[float, float, float]:
+    """`segment.rectangle_fit` before its compiled parts (`best_roll`, `near_rays`)."""
+    from align.feasible import _rows
+    from align.plane import fit_lsq
+    from align.roll_search import COARSE_STEP, TOLERANCE, _left_out, _subsample
+
+    points = scan.xyz[sel]
+    if len(points) < 3:
+        return 0.0, 0.0, 0.0
+    n, d = fit_lsq(points)
+    p = _subsample(points - (points @ n - d)[:, None] * n, 300)
+    rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
+    grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
+    left, tx, tz = _left_out(p, n, board, rolls, grow)
+    best = int(np.argmin(left))
+    held = float(1.0 - left[best] / (2 * len(p)))
+    # the rays around the cluster (its rings, its azimuths and a board's width more)
+    ring = scan.ring
+    az0 = float(np.angle(np.mean(np.exp(1j * scan.azimuth[sel]))))
+    rel = _unwrap(scan.azimuth, az0)
+    span = np.abs(_unwrap(scan.azimuth[sel], az0)).max() + board.diagonal / max(d, 0.5)
+    near = np.flatnonzero((np.abs(rel) <= span) & (ring >= ring[sel].min())
+                          & (ring <= ring[sel].max()))
+    sub = scan.select(near)  # the rays of the few rings near the cluster, not the scan's
+    u, o = sub.directions(), sub.origins()
+    un = u @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (d - o @ n) / un
+    q = o + lam[:, None] * u
+    r0, r2 = _rows(rolls[best:best + 1], n)
+    x, z = q @ r0[0] + tx[best], q @ r2[0] + tz[best]
+    inside = (lam > 0) & (np.abs(x) < board.width / 2 - FILL_MARGIN) & (
+        np.abs(z) < board.height / 2 - FILL_MARGIN)
+    dist = scan.distance[near]
+    ret = (lam > 0) & (dist > 0)
+    on_plane = ret & (np.abs(dist - lam) <= FLAT_BAND)
+    n_on, n_behind = int(np.sum(inside & on_plane)), int(np.sum(inside & ret & (dist - lam
+                                                                              > FLAT_BAND)))
+    fill = n_on / (n_on + n_behind) if n_on + n_behind else 0.0
+    beyond = np.maximum(np.abs(x) - board.width / 2, np.abs(z) - board.height / 2)
+    band = ret & (beyond > SURROUND[0]) & (beyond < SURROUND[1])
+    free = 1.0 - float(np.sum(band & on_plane)) / max(int(band.sum()), 1)
+    return held, fill, free
+
+
+def test_rectangle_fit_matches_the_numpy_reference_on_real_clusters(real_scans):
+    """held, fill and free of every real cluster the board search weighs (each candidate's
+    planes) equal the numpy reference's exactly."""
+    weighed = 0
+    for scan, board, hints in real_scans:
+        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+                                     min(board.width, board.height))
+        rng = np.random.default_rng(0)
+        for lab in np.flatnonzero((st["count"] >= 20) & (st["rings"] >= 2)):
+            rest = np.flatnonzero(labels == lab)
+            for _ in range(segment.PLANES_PER_CLUSTER):
+                if len(rest) < 3:
+                    break
+                on = segment.planar_part(scan.xyz[rest], rng)
+                sel, rest = rest[on], rest[~on]
+                if len(sel) < 3:
+                    continue
+                assert segment.rectangle_fit(scan, sel, board) == rectangle_fit_reference(
+                    scan, sel, board)
+                weighed += 1
+    assert weighed > 50
+
+
+def test_best_roll_is_the_argmin_of_left_out_on_awkward_point_sets():
+    """`best_roll` against `roll_search._left_out` and `np.argmin` where its bound is put to
+    the test: points on a coarse lattice (many equal counts across rolls: the first of equal
+    minima), strays far off the plane, a handful of points, clusters much larger than the box."""
+    from align.feasible import _rows
+    from align.kernels import best_roll
+    from align.roll_search import COARSE_STEP, TOLERANCE, _left_out
+
+    board = align.BoardSpec()
+    rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
+    grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
+    rng = np.random.default_rng(20)
+    for case in range(200):
+        n = rng.normal(size=3)
+        n[1] = abs(n[1]) + 2.0
+        n /= np.linalg.norm(n)
+        e1 = np.cross(n, [0.0, 0.0, 1.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        size = rng.uniform(0.2, 2.5, 2)
+        uv = rng.uniform(-0.5, 0.5, (int(rng.integers(3, 300)), 2)) * size
+        if case % 3 == 0:
+            uv = np.round(uv / 0.05) * 0.05
+        c, s = np.cos(rng.uniform(0, np.pi)), np.sin(rng.uniform(0, np.pi))
+        uv = uv @ np.array([[c, s], [-s, c]])
+        p = rng.uniform(0.5, 20.0) * n + uv[:, :1] * e1 + uv[:, 1:] * e2
+        if case % 2:
+            p[:3] += rng.normal(size=(min(3, len(p)), 3))
+        left, tx, tz = _left_out(p, n, board, rolls, grow)
+        b = int(np.argmin(left))
+        r0, r2 = _rows(rolls, n)
+        got = best_roll(p @ r0.T, p @ r2.T, p, r0, r2, board.width + 2 * grow,
+                        board.height + 2 * grow)
+        assert got == (b, int(left[b]), float(tx[b]), float(tz[b])), case
