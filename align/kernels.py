@@ -356,3 +356,106 @@ def near_rays(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarr
             out[k] = i
             k += 1
     return out[:k]
+
+
+@njit(cache=True)
+def _fit_residuals(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
+                   d_r: np.ndarray, offset: float, sigma_r: float, oh: np.ndarray,
+                   uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
+                   sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
+                   out: np.ndarray) -> None:
+    """`align.rays._Model.residuals` into ``out``: the whitened range residuals of the
+    interior hits (rays o_r + lam u_r, measured ranges d_r, m), then the used brackets' (hit
+    rays oh, uh and miss rays om, um; the edge's side ``sgn``, sigma ``sd`` (m), whether it is
+    a side edge ``vert``). ``rot``: R of ``theta``. The same expressions as the numpy version,
+    ray by ray (no temporaries)."""
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    t0, t1, t2 = theta[0], theta[1], theta[2]
+    nr = o_r.shape[0]
+    for i in range(nr):
+        lam = -(o_r[i, 0] * r10 + o_r[i, 1] * r11 + o_r[i, 2] * r12 + t1) / (
+            u_r[i, 0] * r10 + u_r[i, 1] * r11 + u_r[i, 2] * r12)
+        out[i] = (d_r[i] - offset - lam) / sigma_r
+    for i in range(oh.shape[0]):
+        # both rays in {O}: X, Z where each meets the board plane Y = 0
+        dh0 = uh[i, 0] * rot[0, 0] + uh[i, 1] * rot[0, 1] + uh[i, 2] * rot[0, 2]
+        dh1 = uh[i, 0] * r10 + uh[i, 1] * r11 + uh[i, 2] * r12
+        dh2 = uh[i, 0] * rot[2, 0] + uh[i, 1] * rot[2, 1] + uh[i, 2] * rot[2, 2]
+        oh0 = oh[i, 0] * rot[0, 0] + oh[i, 1] * rot[0, 1] + oh[i, 2] * rot[0, 2] + t0
+        oh1 = oh[i, 0] * r10 + oh[i, 1] * r11 + oh[i, 2] * r12 + t1
+        oh2 = oh[i, 0] * rot[2, 0] + oh[i, 1] * rot[2, 1] + oh[i, 2] * rot[2, 2] + t2
+        lh = -oh1 / dh1
+        dm0 = um[i, 0] * rot[0, 0] + um[i, 1] * rot[0, 1] + um[i, 2] * rot[0, 2]
+        dm1 = um[i, 0] * r10 + um[i, 1] * r11 + um[i, 2] * r12
+        dm2 = um[i, 0] * rot[2, 0] + um[i, 1] * rot[2, 1] + um[i, 2] * rot[2, 2]
+        om0 = om[i, 0] * rot[0, 0] + om[i, 1] * rot[0, 1] + om[i, 2] * rot[0, 2] + t0
+        om1 = om[i, 0] * r10 + om[i, 1] * r11 + om[i, 2] * r12 + t1
+        om2 = om[i, 0] * rot[2, 0] + om[i, 1] * rot[2, 1] + om[i, 2] * rot[2, 2] + t2
+        lm = -om1 / dm1
+        s = sgn[i]
+        # the plate's side face widens the edge for a ray heading inwards past it
+        if vert[i]:
+            ext = thick * max(0.0, -s * dh0 / dh1)
+            e = s * (w2 + ext) - 0.5 * ((oh0 + lh * dh0) + (om0 + lm * dm0))
+        else:
+            ext = thick * max(0.0, -s * dh2 / dh1)
+            e = s * (h2 + ext) - 0.5 * ((oh2 + lh * dh2) + (om2 + lm * dm2))
+        out[nr + i] = e / sd[i]
+
+
+@njit(cache=True)
+def fit_residuals(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
+                  d_r: np.ndarray, offset: float, sigma_r: float, oh: np.ndarray,
+                  uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
+                  sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float
+                  ) -> np.ndarray:
+    """`_fit_residuals` as a new array (range residuals first, then the brackets')."""
+    out = np.empty(o_r.shape[0] + oh.shape[0])
+    _fit_residuals(theta, rot, o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn, sd, vert,
+                   w2, h2, thick, out)
+    return out
+
+
+@njit(cache=True)
+def fit_jacobian(theta: np.ndarray, rots: np.ndarray, f0: np.ndarray, o_r: np.ndarray,
+                 u_r: np.ndarray, d_r: np.ndarray, offset: float, sigma_r: float,
+                 oh: np.ndarray, uh: np.ndarray, om: np.ndarray, um: np.ndarray,
+                 sgn: np.ndarray, sd: np.ndarray, vert: np.ndarray, w2: float, h2: float,
+                 thick: float, step: float) -> np.ndarray:
+    """`align.rays._Model.jacobian`: d residuals / d theta at ``theta`` (residuals ``f0``),
+    the translations analytically, the rotations by forward differences of ``step`` (rad).
+    ``rots`` (4, 3, 3): R at theta, then with roll, tilt, yaw each moved by ``step``."""
+    nr = o_r.shape[0]
+    nb = oh.shape[0]
+    j = np.empty((nr + nb, 6))
+    r0, r1, r2 = rots[0, 0], rots[0, 1], rots[0, 2]
+    for i in range(nr):
+        j[i, 0] = 0.0
+        j[i, 1] = (1.0 / (u_r[i, 0] * r1[0] + u_r[i, 1] * r1[1] + u_r[i, 2] * r1[2])) / sigma_r
+        j[i, 2] = 0.0
+    for i in range(nb):
+        # t_x, t_z move X, Z one for one; t_y moves each ray's lam by -1 / u.r1
+        dlh = -1.0 / (uh[i, 0] * r1[0] + uh[i, 1] * r1[1] + uh[i, 2] * r1[2])
+        dlm = -1.0 / (um[i, 0] * r1[0] + um[i, 1] * r1[1] + um[i, 2] * r1[2])
+        if vert[i]:
+            j[nr + i, 0] = -1.0 / sd[i]
+            j[nr + i, 2] = 0.0 / sd[i]
+            xh_t = dlh * (uh[i, 0] * r0[0] + uh[i, 1] * r0[1] + uh[i, 2] * r0[2])
+            xm_t = dlm * (um[i, 0] * r0[0] + um[i, 1] * r0[1] + um[i, 2] * r0[2])
+            j[nr + i, 1] = -0.5 * (xh_t + xm_t) / sd[i]
+        else:
+            j[nr + i, 0] = 0.0 / sd[i]
+            j[nr + i, 2] = -1.0 / sd[i]
+            zh_t = dlh * (uh[i, 0] * r2[0] + uh[i, 1] * r2[1] + uh[i, 2] * r2[2])
+            zm_t = dlm * (um[i, 0] * r2[0] + um[i, 1] * r2[1] + um[i, 2] * r2[2])
+            j[nr + i, 1] = -0.5 * (zh_t + zm_t) / sd[i]
+    f = np.empty(nr + nb)
+    t = theta.copy()
+    for k in range(3):
+        t[:] = theta
+        t[3 + k] += step
+        _fit_residuals(t, rots[1 + k], o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn,
+                       sd, vert, w2, h2, thick, f)
+        for i in range(nr + nb):
+            j[i, 3 + k] = (f[i] - f0[i]) / step
+    return j
