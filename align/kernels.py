@@ -8,6 +8,12 @@ the same label numbering and bit for bit the same statistics: every sum runs in 
 `np.bincount` runs it, every comparison is the same expression on the same floats (numba does
 not contract or reorder floating-point arithmetic without ``fastmath``).
 tests/test_segment_kernels.py checks it against the numpy reference on real scans.
+
+`ransac` is `align.plane.ransac` with its hypotheses scored in one loop (no (hypotheses x
+points) distance matrix): the same random draws, and on a machine whose BLAS fuses multiply and
+add as OpenBLAS's Haswell kernels do, the very same distances (`_fma`), so the same plane.
+`fit_residuals` and `fit_jacobian` are `align.rays._Model`'s residuals and Jacobian, one pass
+over the rays each (to rounding: numpy's matrix-vector products fuse differently).
 """
 
 from __future__ import annotations
@@ -15,7 +21,20 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import intrinsic
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a * b + c rounded once (LLVM's fma): what a BLAS matrix product's FMA kernels compute
+    per term, so that a compiled loop reproduces their sums bit for bit."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return sig, codegen
 
 
 @njit(cache=True)
@@ -459,3 +478,66 @@ def fit_jacobian(theta: np.ndarray, rots: np.ndarray, f0: np.ndarray, o_r: np.nd
         for i in range(nr + nb):
             j[i, 3 + k] = (f[i] - f0[i]) / step
     return j
+
+
+@njit(cache=True)
+def ransac_best(points: np.ndarray, tri: np.ndarray, threshold: float
+                ) -> tuple[int, np.ndarray]:
+    """The index and the inliers (distance under ``threshold``, m) of the hypothesis with the
+    most of them (the first of equal counts) among the planes through the point triples
+    ``tri`` (H, 3); degenerate triples are skipped. `align.plane.ransac`'s scoring, term by
+    term in its order: np.cross, einsum's (x0 y0 + x2 y2) + x1 y1 for the norms and offsets,
+    the distance matrix's fused sums (`_fma`). Index -1 when every triple is degenerate."""
+    n_pts = points.shape[0]
+    best, best_count = -1, -1
+    bn0 = bn1 = bn2 = bd = 0.0
+    for h in range(tri.shape[0]):
+        i0, i1, i2 = tri[h, 0], tri[h, 1], tri[h, 2]
+        a0 = points[i1, 0] - points[i0, 0]
+        a1 = points[i1, 1] - points[i0, 1]
+        a2 = points[i1, 2] - points[i0, 2]
+        b0 = points[i2, 0] - points[i0, 0]
+        b1 = points[i2, 1] - points[i0, 1]
+        b2 = points[i2, 2] - points[i0, 2]
+        c0 = a1 * b2 - a2 * b1
+        c1 = a2 * b0 - a0 * b2
+        c2 = a0 * b1 - a1 * b0
+        norm = math.sqrt((c0 * c0 + c2 * c2) + c1 * c1)
+        if not norm > 1e-9:
+            continue
+        c0, c1, c2 = c0 / norm, c1 / norm, c2 / norm
+        d = (c0 * points[i0, 0] + c2 * points[i0, 2]) + c1 * points[i0, 1]
+        count = 0
+        for i in range(n_pts):
+            r = _fma(c2, points[i, 2], _fma(c1, points[i, 1], c0 * points[i, 0])) - d
+            if abs(r) < threshold:
+                count += 1
+        if count > best_count:
+            best, best_count = h, count
+            bn0, bn1, bn2, bd = c0, c1, c2, d
+    out = np.zeros(n_pts, dtype=np.bool_)
+    if best >= 0:
+        for i in range(n_pts):
+            r = _fma(bn2, points[i, 2], _fma(bn1, points[i, 1], bn0 * points[i, 0])) - bd
+            out[i] = abs(r) < threshold
+    return best, out
+
+
+def ransac(points: np.ndarray, threshold: float, rng: np.random.Generator,
+           iterations: int = 200) -> tuple[np.ndarray, float, np.ndarray]:
+    """`align.plane.ransac` (paper III-A: hypotheses from 3 random points, the most inliers
+    wins, refit by orthogonal least squares on them), the same draws from ``rng`` and the same
+    (n, d, inlier mask), with the hypotheses scored by `ransac_best`. ``threshold``, m."""
+    from align.plane import fit_lsq
+
+    n_pts = len(points)
+    if n_pts < 3:
+        raise ValueError("a plane needs at least 3 points")
+    tri = rng.integers(0, n_pts, size=(iterations, 3))
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    best, inl = ransac_best(pts, tri, float(threshold))
+    if best < 0:  # plane.ransac's np.argmax of no hypothesis
+        raise ValueError("attempt to get argmax of an empty sequence")
+    n, d = fit_lsq(points[inl])
+    return n, d, np.abs(points @ n - d) < threshold
+

@@ -212,7 +212,7 @@ PLANE_HYPOTHESES = 60
 def planar_part(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Which of a cluster's returns (N, 3) lie on its main plane (RANSAC, `FLAT_BAND`): a board
     linked to its stand behind it, or to the floor in front of a tilted board, is split off."""
-    from align.plane import ransac
+    from align.kernels import ransac  # plane.ransac's, scored in one compiled loop
 
     if len(points) < 3:
         return np.zeros(len(points), dtype=bool)

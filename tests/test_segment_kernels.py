@@ -291,3 +291,30 @@ def test_best_roll_is_the_argmin_of_left_out_on_awkward_point_sets():
         got = best_roll(p @ r0.T, p @ r2.T, p, r0, r2, board.width + 2 * grow,
                         board.height + 2 * grow)
         assert got == (b, int(left[b]), float(tx[b]), float(tz[b])), case
+
+
+def test_ransac_gives_plane_ransacs_plane_on_real_clusters(real_scans):
+    """`kernels.ransac` against `plane.ransac` on every real cluster of three returns or more,
+    the same generator state: the same normal, distance and inliers (bit for bit on this
+    machine's BLAS; at worst a point within 1e-15 m of the band's edge could differ)."""
+    from align import kernels, plane
+
+    compared = 0
+    for scan, board, hints in real_scans:
+        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+                                     min(board.width, board.height))
+        for lab in np.flatnonzero(st["count"] >= 3):
+            pts = scan.xyz[labels == lab]
+            for seed in (0, 1):
+                n0, d0, in0 = plane.ransac(pts, segment.FLAT_BAND, np.random.default_rng(seed),
+                                           segment.PLANE_HYPOTHESES)
+                n1, d1, in1 = kernels.ransac(pts, segment.FLAT_BAND,
+                                             np.random.default_rng(seed),
+                                             segment.PLANE_HYPOTHESES)
+                np.testing.assert_array_equal(in1, in0)
+                np.testing.assert_array_equal(n1, n0)
+                assert d1 == d0
+                compared += 1
+    assert compared > 100
+    with pytest.raises(ValueError):
+        kernels.ransac(np.zeros((5, 3)), 0.04, np.random.default_rng(0), 10)
