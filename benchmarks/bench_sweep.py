@@ -20,11 +20,16 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
+
+# this checkout's code, not whatever the environment installed (an editable install of another
+# worktree would be measured instead)
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from scenarios import plans
 from scenarios.bench import SimBench
