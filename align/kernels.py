@@ -370,7 +370,9 @@ def near_rays(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarr
         ring = ring_of_laser[laser_id[i]]
         if ring < ring_lo or ring > ring_hi:
             continue
-        rel = (azimuth[i] - centre + np.pi) % two_pi - np.pi
+        v = azimuth[i] - centre + np.pi
+        # x % 2 pi is x itself on [0, 2 pi): the slow floating-point remainder only outside
+        rel = (v if 0.0 <= v < two_pi else v % two_pi) - np.pi
         if abs(rel) <= span:
             out[k] = i
             k += 1
