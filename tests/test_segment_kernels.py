@@ -318,3 +318,20 @@ def test_ransac_gives_plane_ransacs_plane_on_real_clusters(real_scans):
     assert compared > 100
     with pytest.raises(ValueError):
         kernels.ransac(np.zeros((5, 3)), 0.04, np.random.default_rng(0), 10)
+
+
+def test_the_warm_up_compiles_every_estimator_kernel():
+    """`scenarios.warmup` (run by make setup) leaves no kernel of `align.kernels` for a
+    command to compile: each one the estimator calls has its signature after it. (The helpers
+    with a leading underscore are compiled into their callers.)"""
+    from numba.core.registry import CPUDispatcher
+
+    from align import kernels
+    from scenarios.warmup import warm_up
+
+    warm_up()
+    public = {name: f for name, f in vars(kernels).items()
+              if isinstance(f, CPUDispatcher) and not name.startswith("_")}
+    assert {"grid_clusters", "best_roll", "near_rays", "ransac_best", "fit_residuals",
+            "fit_jacobian"} <= set(public)
+    assert [name for name, f in public.items() if not f.signatures] == []
