@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 
-from align import plane
+from align import kernels, plane
 from align.board import BoardSpec
 from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
@@ -139,7 +139,8 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
     if len(pts) < 10:
         return PoseEstimate.failed(Status.NO_BOARD, "paper", reason="too few board returns")
     rng = np.random.default_rng(hints.seed)
-    n, d, inl = plane.ransac(pts, RANSAC_THRESHOLD, rng, RANSAC_ITERATIONS)
+    # `plane.ransac`, its hypotheses scored in one compiled loop (the same plane)
+    n, d, inl = kernels.ransac(pts, RANSAC_THRESHOLD, rng, RANSAC_ITERATIONS)
     # the ROI is the board: its rings are consecutive, and the stand's base (a face 5 cm in
     # front of the board, within the RANSAC band) lights up a ring below a gap; keep the
     # consecutive block of rings with the most inliers

@@ -533,58 +533,50 @@ class _Model:
         out[2] += s * vz
         return out
 
+    def _fit_arrays(self) -> tuple:
+        """The arrays and constants `align.kernels.fit_residuals` reads, in its order after
+        (theta, rot)."""
+        return (*self._range, float(self.offset), float(self.sigma_r), *self._ubh, *self._ubm,
+                self._usign, self._usd, self._uvert, self.board.width / 2,
+                self.board.height / 2, float(self.board.thickness))
+
     def residuals(self, theta: np.ndarray) -> np.ndarray:
-        """Whitened residuals: ranges of the interior hits, then the used brackets."""
+        """Whitened residuals: ranges of the interior hits, then the used brackets.
+
+        A bracket's residual is its edge's position minus the middle of its hit's and miss's
+        points on the board, over its sigma; the plate's side face puts the edge further out
+        for a ray heading inwards that passes the front edge by less than thickness x (its
+        lateral over forward direction): it still hits the board. One compiled pass over the
+        rays (`align.kernels.fit_residuals`; the numpy version's two dozen calls cost 10x)."""
+        from align.kernels import fit_residuals
+
+        theta = np.asarray(theta, dtype=np.float64)
         rot = rotation(theta[3], theta[4], theta[5])
-        o_r, u_r, d_r = self._range
-        lam = -(o_r @ rot[1] + theta[1]) / (u_r @ rot[1])
-        rr = (d_r - self.offset - lam) / self.sigma_r
-        xh, zh, dh = _coords(rot, theta, *self._ubh)
-        xm, zm, _ = _coords(rot, theta, *self._ubm)
-        sgn = self._usign
-        mid_x = 0.5 * (xh + xm)
-        mid_z = 0.5 * (zh + zm)
-        # the plate's side face: a ray heading inwards (against the edge's outward side) that
-        # passes the front edge by less than thickness x (its lateral over forward direction)
-        # still hits the board, so that edge sits that much further out for it
-        t = self.board.thickness
-        ext_x = t * np.maximum(0.0, -sgn * dh[:, 0] / dh[:, 1])
-        ext_z = t * np.maximum(0.0, -sgn * dh[:, 2] / dh[:, 1])
-        e = np.where(self._uvert, sgn * (self.board.width / 2 + ext_x) - mid_x,
-                     sgn * (self.board.height / 2 + ext_z) - mid_z)
-        re = e / self._usd
-        return np.concatenate((rr, re))
+        return fit_residuals(theta, rot, *self._fit_arrays())
 
     def jacobian(self, theta: np.ndarray, f0: np.ndarray) -> np.ndarray:
         """d residuals / d theta: translations analytically, rotations by forward differences.
 
         X = o.r0 + t_x + lam u.r0, Z = o.r2 + t_z + lam u.r2, lam = -(o.r1 + t_y) / u.r1 (r_k
         the rows of R): t_x and t_z move X and Z one for one; t_y moves lam by -1 / u.r1.
+        Compiled (`align.kernels.fit_jacobian`): the differences without a residual vector
+        allocated per rotation.
         """
-        rot = rotation(theta[3], theta[4], theta[5])
-        vert = self._uvert
-        j = np.empty((len(f0), 6))
-        u_r = self._range[1]
-        nr = len(u_r)
-        j[:nr, 0] = 0.0
-        j[:nr, 1] = (1.0 / (u_r @ rot[1])) / self.sigma_r  # -(d lam / d t_y) / sigma
-        j[:nr, 2] = 0.0
-        sd = self._usd
+        from align.kernels import fit_jacobian
 
-        def d_dty(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            dlam = -1.0 / (u @ rot[1])
-            return dlam * (u @ rot[0]), dlam * (u @ rot[2])
-
-        xh_t, zh_t = d_dty(self._ubh[1])
-        xm_t, zm_t = d_dty(self._ubm[1])
-        j[nr:, 0] = np.where(vert, -1.0, 0.0) / sd
-        j[nr:, 2] = np.where(vert, 0.0, -1.0) / sd
-        j[nr:, 1] = -0.5 * np.where(vert, xh_t + xm_t, zh_t + zm_t) / sd
-        for i in range(3, 6):
+        theta = np.asarray(theta, dtype=np.float64)
+        rots = np.empty((4, 3, 3))
+        rots[0] = rotation(theta[3], theta[4], theta[5])
+        for k in range(3):
             t = theta.copy()
-            t[i] += 1e-7
-            j[:, i] = (self.residuals(t) - f0) / 1e-7
-        return j
+            t[3 + k] += JACOBIAN_STEP
+            rots[1 + k] = rotation(t[3], t[4], t[5])
+        return fit_jacobian(theta, rots, np.asarray(f0, dtype=np.float64), *self._fit_arrays(),
+                            JACOBIAN_STEP)
+
+
+#: The forward difference of the rotations in `_Model.jacobian`, rad.
+JACOBIAN_STEP = 1e-7
 
 
 def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30

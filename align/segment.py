@@ -90,122 +90,35 @@ def _grid(scan: Scan) -> tuple[int, int] | None:
     return k0, m
 
 
-def _union_find(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
-    """Connected components of a small graph (n nodes, edges a-b): (count, label per node).
-
-    Minimum-label propagation with pointer jumping, vectorised: each node ends with the
-    smallest node of its component; labels number the components in that order.
-    """
-    if len(a) > 20000:
-        g = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
-        return connected_components(g, directed=False)
-    lab = np.arange(n)
-    while True:
-        new = lab.copy()
-        np.minimum.at(new, a, lab[b])
-        np.minimum.at(new, b, lab[a])
-        new = new[new]
-        if np.array_equal(new, lab):
-            break
-        lab = new
-    _, lab = np.unique(lab, return_inverse=True)
-    return int(lab.max()) + 1 if n else 0, lab
-
-
 def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagonal: float,
                  short_side: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Cluster labels on the firing grid, and count, mean distance and rings per cluster.
 
-    Runs along each laser's ring first (consecutive firings closer than the threshold), then
-    runs joined across adjacent rings of the same firing sequence (and each ring's wrap-around)
-    by connected components over the (small) graph of runs. Everything works on (sequences, lasers)
-    views of the scan's arrays: a full rotation takes about 2 ms.
+    Runs along each laser's ring first (consecutive firings closer than the threshold; across
+    firings without a return (a dark patch of the board that drops out: a chessboard's black
+    squares) when nothing else returned in between, the ranges agree within the threshold and
+    the gap is under `BRIDGE` of the board's smaller side), then runs joined across adjacent
+    rings of the same firing sequence (and each ring's wrap-around) by a union-find over the
+    runs; a run longer than `LONG_RUN` board diagonals (the floor's ring, a wall) joins nothing,
+    or the board, its stand and the floor ring at the stand's foot chain into one cluster. One
+    compiled pass (`align.kernels.grid_clusters`): about 0.5 ms for a full rotation.
     """
+    from align.kernels import grid_clusters
+
     k0, m = grid
-    nl = scan.lasers.n_lasers
-    sl = slice(k0, k0 + nl * m)
-    x, y, z = (a[sl].reshape(m, nl) for a in (scan.x, scan.y, scan.z))
-    dist, az, okg = (a[sl].reshape(m, nl) for a in (scan.distance, scan.azimuth, ok))
-    thr = np.maximum(CLUSTER_RADIUS_PER_M * dist, CLUSTER_RADIUS_MIN)
-    thr *= thr
-    ring_scale = ring_radius_scale(scan) ** 2
-
-    def close(sa, sb, x=x, y=y, z=z, thr=thr, okg=okg, scale=1.0) -> np.ndarray:
-        d2 = x[sa] - x[sb]
-        d2 *= d2
-        t = y[sa] - y[sb]
-        t *= t
-        d2 += t
-        t = z[sa] - z[sb]
-        t *= t
-        d2 += t
-        c = d2 < scale * np.minimum(thr[sa], thr[sb])
-        c &= okg[sa]
-        c &= okg[sb]
-        return c
-
-    # along each ring: each return and the laser's next return. Neighbouring firings join when
-    # closer than the threshold; across firings without a return (a dark patch of the board
-    # that drops out: a chessboard's black squares) when nothing else returned in between, the
-    # ranges agree within the threshold and the gap is under `BRIDGE` of the board's smaller
-    # side (a lost firing is not a gap in the surface). Laser-major order: a laser's firings
-    # are contiguous.
-    okf = okg.T.ravel()
-    pos = np.flatnonzero(okf)
-    n_run_max = len(pos)
-    if n_run_max == 0:
+    if not np.any(ok[k0:k0 + scan.lasers.n_lasers * m]):
         return np.full(len(scan), -1, dtype=np.int64), {
             k: np.zeros(0) for k in ("count", "distance", "rings")}
-    xf, yf, zf, df = (a.T.ravel()[pos] for a in (x, y, z, dist))
-    thr_f = thr.T.ravel()[pos]
-    a, b = pos[:-1], pos[1:]
-    d2 = (xf[1:] - xf[:-1]) ** 2 + (yf[1:] - yf[:-1]) ** 2 + (zf[1:] - zf[:-1]) ** 2
-    t2 = np.minimum(thr_f[1:], thr_f[:-1])
-    returned = np.cumsum(dist.T.ravel() > 0)  # returns of any kind up to each firing
-    empty_between = returned[b - 1] - returned[a] == 0
-    bridge2 = max(t2.max(initial=0.0), (BRIDGE * short_side) ** 2)
-    link = (a // m == b // m) & np.where(
-        b - a == 1, d2 < t2,
-        empty_between & ((df[1:] - df[:-1]) ** 2 < t2) & (d2 < np.maximum(t2, bridge2)))
-    start_flag = np.concatenate(([True], ~link))  # per return: does it start a run?
-    run_of = np.cumsum(start_flag) - 1  # run id of each return
-    n_run = int(run_of[-1]) + 1
-    starts = pos[start_flag]
-    ends = pos[np.concatenate((~link, [True]))]
-    run = np.full(nl * m, -1, dtype=np.int64)
-    run[pos] = run_of
-    run = run.reshape(nl, m)  # run id of each firing (laser, sequence); -1 without a return
-    # adjacent rings = the lasers of consecutive elevations: column pairs (la, lb)
-    laser_of_ring = scan.lasers.laser_of_ring
-    la, lb = laser_of_ring[:-1], laser_of_ring[1:]
-    # columns in ring order once (one gather per array), then ring neighbours are slices
-    lr = laser_of_ring.astype(np.intp)
-    lv = close(np.s_[:, :-1], np.s_[:, 1:], x[:, lr], y[:, lr], z[:, lr], thr[:, lr],
-               okg[:, lr], scale=ring_scale)  # (m, nl - 1)
-    ra_l, rb_l = [run[la].T[lv]], [run[lb].T[lv]]
-    daz_w = np.abs((az[0] - az[-1] + np.pi) % (2 * np.pi) - np.pi)
-    wrap = close(np.s_[-1], np.s_[0]) & (daz_w < MAX_AZIMUTH_GAP)
-    ra_l.append(run[:, -1][wrap])
-    rb_l.append(run[:, 0][wrap])
-    ra, rb = np.concatenate(ra_l), np.concatenate(rb_l)
-    sums = (np.bincount(run_of, minlength=n_run).astype(np.float64),
-            np.bincount(run_of, df, minlength=n_run))
-    # a run longer than the board (the floor's ring, a wall) joins nothing: otherwise the board,
-    # its stand and the floor ring at the stand's foot chain into one cluster
-    laser_s, seq_s = np.divmod(starts, m)
-    span = (az[ends % m, ends // m] - az[seq_s, laser_s]) % (2 * np.pi)
-    long_run = span * sums[1] / np.maximum(sums[0], 1) > LONG_RUN * board_diagonal
-    keep = ~(long_run[ra] | long_run[rb])
-    n_comp, comp = _union_find(n_run, ra[keep], rb[keep])
-    cnt = np.bincount(comp, sums[0], n_comp)
-    ring_hit = np.zeros((n_comp, nl), dtype=bool)
-    ring_hit[comp, scan.lasers.ring_of_laser[laser_s]] = True
-    stats = {"count": cnt, "distance": np.bincount(comp, sums[1], n_comp) / np.maximum(cnt, 1),
-             "rings": ring_hit.sum(axis=1)}
-    labels = np.full(len(scan), -1, dtype=np.int64)  # -1: no cluster (or outside the grid)
-    comp_x = np.append(comp, -1)  # run -1 (and firings without a return): label -1
-    labels[sl].reshape(m, nl)[...] = comp_x[np.where(okg, run.T, -1)]
-    return labels, stats
+    f64 = np.float64
+    labels, count, distance, rings = grid_clusters(
+        np.asarray(scan.x, f64), np.asarray(scan.y, f64), np.asarray(scan.z, f64),
+        np.asarray(scan.distance, f64), np.asarray(scan.azimuth, f64),
+        np.asarray(ok, np.bool_), k0, m, scan.lasers.n_lasers,
+        np.asarray(scan.lasers.laser_of_ring, np.int64),
+        np.asarray(scan.lasers.ring_of_laser, np.int64), CLUSTER_RADIUS_PER_M,
+        CLUSTER_RADIUS_MIN, ring_radius_scale(scan) ** 2, float(MAX_AZIMUTH_GAP),
+        (BRIDGE * short_side) ** 2, LONG_RUN * board_diagonal)
+    return labels, {"count": count, "distance": distance, "rings": rings}
 
 
 def _edges_sorted(scan: Scan, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -299,7 +212,7 @@ PLANE_HYPOTHESES = 60
 def planar_part(points: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Which of a cluster's returns (N, 3) lie on its main plane (RANSAC, `FLAT_BAND`): a board
     linked to its stand behind it, or to the floor in front of a tilted board, is split off."""
-    from align.plane import ransac
+    from align.kernels import ransac  # plane.ransac's, scored in one compiled loop
 
     if len(points) < 3:
         return np.zeros(len(points), dtype=bool)
@@ -317,34 +230,46 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     a larger surface that the clustering cut out: a door in a wall). Rays without a return, or
     with one in front, count for none: a dark patch, an occluder."""
     from align.feasible import _rows
+    from align.kernels import best_roll, near_rays
     from align.plane import fit_lsq
-    from align.roll_search import COARSE_STEP, TOLERANCE, _left_out, _subsample
+    from align.roll_search import COARSE_STEP, TOLERANCE, _subsample
 
     points = scan.xyz[sel]
     if len(points) < 3:
-        return 0.0, 0.0
+        return 0.0, 0.0, 0.0
     n, d = fit_lsq(points)
     p = _subsample(points - (points @ n - d)[:, None] * n, 300)
     rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
     grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
-    left, tx, tz = _left_out(p, n, board, rolls, grow)
-    best = int(np.argmin(left))
-    held = float(1.0 - left[best] / (2 * len(p)))
-    # the rays around the cluster (its rings, its azimuths and a board's width more)
-    ring = scan.ring
-    az0 = float(np.angle(np.mean(np.exp(1j * scan.azimuth[sel]))))
-    rel = _unwrap(scan.azimuth, az0)
-    span = np.abs(_unwrap(scan.azimuth[sel], az0)).max() + board.diagonal / max(d, 0.5)
-    near = np.flatnonzero((np.abs(rel) <= span) & (ring >= ring[sel].min())
-                          & (ring <= ring[sel].max()))
-    sub = scan.select(near)  # the rays of the few rings near the cluster, not the scan's
-    u, o = sub.directions(), sub.origins()
+    # `roll_search._left_out` and its argmin, sorting only the rolls that can be the best
+    r0s, r2s = _rows(rolls, n)
+    best, left_best, tx_best, tz_best = best_roll(
+        p @ r0s.T, p @ r2s.T, p, r0s, r2s, board.width + 2 * grow, board.height + 2 * grow)
+    held = float(1.0 - left_best / (2 * len(p)))
+    # the rays around the cluster (its rings, its azimuths and a board's width more), found in
+    # one pass over the scan's azimuths and lasers
+    az = scan.azimuth
+    az0 = float(np.angle(np.mean(np.exp(1j * az[sel]))))
+    span = float(np.abs(_unwrap(az[sel], az0)).max() + board.diagonal / max(d, 0.5))
+    ring_of_laser = np.asarray(scan.lasers.ring_of_laser, np.int64)
+    ring_sel = ring_of_laser[scan.laser_id[sel]]
+    near = near_rays(az, scan.laser_id, ring_of_laser, az0, span, int(ring_sel.min()),
+                     int(ring_sel.max()))
+    # their rays, as `Scan.directions` and `Scan.origins` make them (the same operations)
+    lid = scan.laser_id[near]
+    el = scan.lasers.elevation[lid]
+    az_near = az[near]
+    ce = np.cos(el)
+    u = np.column_stack((ce * np.sin(az_near), ce * np.cos(az_near), np.sin(el)))
+    o = np.zeros((len(near), 3))
+    if scan.vertical_offsets_applied:
+        o[:, 2] = scan.lasers.vertical_offset[lid]
     un = u @ n
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = (d - o @ n) / un
     q = o + lam[:, None] * u
     r0, r2 = _rows(rolls[best:best + 1], n)
-    x, z = q @ r0[0] + tx[best], q @ r2[0] + tz[best]
+    x, z = q @ r0[0] + tx_best, q @ r2[0] + tz_best
     inside = (lam > 0) & (np.abs(x) < board.width / 2 - FILL_MARGIN) & (
         np.abs(z) < board.height / 2 - FILL_MARGIN)
     dist = scan.distance[near]

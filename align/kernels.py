@@ -1,0 +1,545 @@
+"""Compiled kernels of the segmentation (numba, ``cache=True``; `scenarios.warmup` compiles them
+ahead).
+
+`grid_clusters` is `align.segment`'s clustering on the firing grid in one pass over the scan's
+arrays, where the numpy version took two dozen passes and a vectorised union-find (3.7 ms of a
+scan's 8 ms segmentation; docs/align.md, "Where the time goes"). It gives the same partition,
+the same label numbering and bit for bit the same statistics: every sum runs in the order
+`np.bincount` runs it, every comparison is the same expression on the same floats (numba does
+not contract or reorder floating-point arithmetic without ``fastmath``).
+tests/test_segment_kernels.py checks it against the numpy reference on real scans.
+
+`ransac` is `align.plane.ransac` with its hypotheses scored in one loop (no (hypotheses x
+points) distance matrix): the same random draws, and on a machine whose BLAS fuses multiply and
+add as OpenBLAS's Haswell kernels do, the very same distances (`_fma`), so the same plane.
+`fit_residuals` and `fit_jacobian` are `align.rays._Model`'s residuals and Jacobian, one pass
+over the rays each (to rounding: numpy's matrix-vector products fuse differently).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, types
+from numba.extending import intrinsic
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a * b + c rounded once (LLVM's fma): what a BLAS matrix product's FMA kernels compute
+    per term, so that a compiled loop reproduces their sums bit for bit."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return sig, codegen
+
+
+@njit(cache=True)
+def _find(parent: np.ndarray, i: int) -> int:
+    """Root of ``i``, halving the path on the way (the roots are the smallest nodes)."""
+    while parent[i] != i:
+        parent[i] = parent[parent[i]]
+        i = parent[i]
+    return i
+
+
+@njit(cache=True)
+def _union(parent: np.ndarray, a: int, b: int) -> None:
+    """Join the sets of ``a`` and ``b`` under the smaller root: each root stays its set's
+    smallest node, so numbering the roots in node order numbers the components as
+    `align.segment._union_find` (and scipy's connected components) do."""
+    ra = _find(parent, a)
+    rb = _find(parent, b)
+    if ra < rb:
+        parent[rb] = ra
+    elif rb < ra:
+        parent[ra] = rb
+
+
+@njit(cache=True)
+def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
+                  az: np.ndarray, ok: np.ndarray, k0: int, m: int, nl: int,
+                  laser_of_ring: np.ndarray, ring_of_laser: np.ndarray, radius_per_m: float,
+                  radius_min: float, ring_scale: float, max_azimuth_gap: float,
+                  bridge_min2: float, long_length: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Clusters of the returns ``ok`` of a scan in firing order: (label per firing, count,
+    mean distance and rings per cluster).
+
+    The firings k0 .. k0 + nl * m form an (m sequences, nl lasers) grid (`segment._grid`).
+    Returns join along a laser's ring into runs: consecutive firings closer than the
+    range-proportional threshold (``radius_per_m`` times the range, at least ``radius_min``),
+    or across firings without any return when the ranges agree within it and the gap is
+    under sqrt(max(the largest threshold of consecutive returns, ``bridge_min2``)). Runs join
+    across adjacent rings of a sequence (threshold times ``ring_scale``, squared) and across
+    the rotation's wrap (azimuth step under ``max_azimuth_gap``), unless either run is longer
+    than ``long_length`` (span times mean range, m). Labels number the components by their
+    first run in laser-major order; -1 for firings without a return in ``ok`` and outside the
+    grid. Squared thresholds throughout, m^2.
+    """
+    n = x.shape[0]
+    nf = nl * m
+    # per grid firing, laser-major (f = laser * m + sequence): its scan index and threshold
+    thr = np.empty(nf)
+    okf = np.zeros(nf, dtype=np.bool_)
+    for s in range(m):
+        for lz in range(nl):
+            i = k0 + s * nl + lz
+            f = lz * m + s
+            t = radius_per_m * dist[i]
+            if t < radius_min:
+                t = radius_min
+            thr[f] = t * t
+            okf[f] = ok[i]
+    # the bridge's reach: the largest threshold of consecutive returns (all lasers together)
+    t2_max = 0.0
+    prev = -1
+    for f in range(nf):
+        if okf[f]:
+            if prev >= 0:
+                ta, tb = thr[prev], thr[f]
+                t2 = tb if tb < ta else ta
+                if t2 > t2_max:
+                    t2_max = t2
+            prev = f
+    bridge2 = t2_max if t2_max > bridge_min2 else bridge_min2
+    # runs along each ring
+    run = np.full(nf, -1, dtype=np.int64)
+    run_count = np.zeros(nf)
+    run_dsum = np.zeros(nf)
+    run_start = np.zeros(nf, dtype=np.int64)
+    run_end = np.zeros(nf, dtype=np.int64)
+    n_run = 0
+    prev = -1
+    last_return = -1  # the last firing before f with a return of any kind (in ok or not)
+    for f in range(nf):
+        lz = f // m
+        i = k0 + (f - lz * m) * nl + lz
+        if okf[f]:
+            link = False
+            if prev >= 0 and prev // m == lz:
+                ip = k0 + (prev - lz * m) * nl + lz
+                dx = x[i] - x[ip]
+                dy = y[i] - y[ip]
+                dz = z[i] - z[ip]
+                d2 = dx * dx + dy * dy + dz * dz
+                ta, tb = thr[prev], thr[f]
+                t2 = tb if tb < ta else ta
+                if f - prev == 1:
+                    link = d2 < t2
+                elif last_return <= prev:
+                    dd = dist[i] - dist[ip]
+                    reach = t2 if t2 > bridge2 else bridge2
+                    link = dd * dd < t2 and d2 < reach
+            if not link:
+                run_start[n_run] = f
+                n_run += 1
+            r = n_run - 1
+            run[f] = r
+            run_count[r] += 1.0
+            run_dsum[r] += dist[i]
+            run_end[r] = f
+            prev = f
+        if dist[i] > 0:
+            last_return = f
+    # a run longer than the board joins nothing (the floor's ring, a wall)
+    two_pi = 2 * np.pi
+    long_run = np.zeros(n_run, dtype=np.bool_)
+    for r in range(n_run):
+        fs, fe = run_start[r], run_end[r]
+        ls, le = fs // m, fe // m
+        span = (az[k0 + (fe - le * m) * nl + le] - az[k0 + (fs - ls * m) * nl + ls]) % two_pi
+        cnt = run_count[r] if run_count[r] > 1.0 else 1.0
+        long_run[r] = span * run_dsum[r] / cnt > long_length
+    parent = np.arange(n_run)
+    # adjacent rings of each sequence
+    for s in range(m):
+        for k in range(nl - 1):
+            la, lb = laser_of_ring[k], laser_of_ring[k + 1]
+            fa, fb = la * m + s, lb * m + s
+            if not (okf[fa] and okf[fb]):
+                continue
+            ra, rb = run[fa], run[fb]
+            if long_run[ra] or long_run[rb]:
+                continue
+            ia, ib = k0 + s * nl + la, k0 + s * nl + lb
+            dx = x[ia] - x[ib]
+            dy = y[ia] - y[ib]
+            dz = z[ia] - z[ib]
+            d2 = dx * dx + dy * dy + dz * dz
+            ta, tb = thr[fa], thr[fb]
+            if d2 < ring_scale * (tb if tb < ta else ta):
+                _union(parent, ra, rb)
+    # each ring's wrap-around: the last sequence to the first
+    for lz in range(nl):
+        fa, fb = lz * m + m - 1, lz * m
+        if not (okf[fa] and okf[fb]):
+            continue
+        ra, rb = run[fa], run[fb]
+        if long_run[ra] or long_run[rb]:
+            continue
+        ia, ib = k0 + (m - 1) * nl + lz, k0 + lz
+        daz = abs((az[ib] - az[ia] + np.pi) % two_pi - np.pi)
+        if not daz < max_azimuth_gap:
+            continue
+        dx = x[ia] - x[ib]
+        dy = y[ia] - y[ib]
+        dz = z[ia] - z[ib]
+        d2 = dx * dx + dy * dy + dz * dz
+        ta, tb = thr[fa], thr[fb]
+        if d2 < (tb if tb < ta else ta):
+            _union(parent, ra, rb)
+    # components numbered by their smallest run; statistics summed over runs in run order
+    comp = np.empty(n_run, dtype=np.int64)
+    n_comp = 0
+    for r in range(n_run):
+        root = _find(parent, r)
+        if root == r:
+            comp[r] = n_comp
+            n_comp += 1
+        else:
+            comp[r] = comp[root]
+    count = np.zeros(n_comp)
+    dsum = np.zeros(n_comp)
+    ring_hit = np.zeros((n_comp, nl), dtype=np.bool_)
+    for r in range(n_run):
+        c = comp[r]
+        count[c] += run_count[r]
+        dsum[c] += run_dsum[r]
+        ring_hit[c, ring_of_laser[run_start[r] // m]] = True
+    distance = np.empty(n_comp)
+    rings = np.zeros(n_comp, dtype=np.int64)
+    for c in range(n_comp):
+        distance[c] = dsum[c] / (count[c] if count[c] > 1.0 else 1.0)
+        for k in range(nl):
+            if ring_hit[c, k]:
+                rings[c] += 1
+    labels = np.full(n, -1, dtype=np.int64)
+    for f in range(nf):
+        if run[f] >= 0:
+            lz = f // m
+            labels[k0 + (f - lz * m) * nl + lz] = comp[run[f]]
+    return labels, count, distance, rings
+
+
+
+@njit(cache=True)
+def _slide_sorted(xs: np.ndarray, length: float) -> tuple[int, float]:
+    """`align.roll_search._slide` of one sorted row: the most points a window of ``length``
+    holds and the shift that centres the window on them (the first such window)."""
+    n = xs.shape[0]
+    j = 0
+    best, lo, hi = 0, 0.0, 0.0
+    for i in range(n):
+        if j < i:
+            j = i
+        while j + 1 < n and xs[j + 1] <= xs[i] + length:
+            j += 1
+        if j - i + 1 > best:
+            best, lo, hi = j - i + 1, xs[i], xs[j]
+    return best, -0.5 * (lo + hi)
+
+
+@njit(cache=True)
+def _count_within(xs: np.ndarray, length: float) -> int:
+    """The most points of the sorted row ``xs`` a window of ``length`` holds."""
+    n = xs.shape[0]
+    j = 0
+    best = 0
+    for i in range(n):
+        if j < i:
+            j = i
+        while j + 1 < n and xs[j + 1] <= xs[i] + length:
+            j += 1
+        if j - i + 1 > best:
+            best = j - i + 1
+    return best
+
+
+#: Rolls between the anchors of `best_roll`, whose bounds spare the sorts of the rolls
+#: between them.
+ANCHOR_EVERY = 6
+#: Slack on `best_roll`'s bound for rounding, m and relative.
+_BOUND_SLACK = 1e-9
+
+
+@njit(cache=True)
+def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray,
+              r2: np.ndarray, len_x: float, len_z: float) -> tuple[int, int, float, float]:
+    """The roll at which a W x H box leaves out the fewest of a cluster's points:
+    `align.roll_search._left_out` over the rolls (columns of ``px`` = points @ r0.T and ``pz``
+    = points @ r2.T, (n, K)) followed by its argmin, without sorting every column.
+
+    Returns (index of the best roll, points left out there, the box's shifts t_x, t_z there),
+    exactly what `_left_out` and `np.argmin` give (the first of equal minima). How: every
+    `ANCHOR_EVERY`-th roll (an anchor) is evaluated. The points a window holds at a roll b lie,
+    at an anchor a, within the window grown by the points' diameter times how far the rows
+    turn between a and b; so that grown window's count at a bounds from below what b leaves
+    out, and each roll takes the larger bound of the two anchors either side. Only the rolls
+    whose bound can beat the least count found (or tie with it at an earlier roll) are then
+    evaluated, most promising first: a board's cluster sorts about 50 of the 2 x 180 columns
+    (the flat bottom of its curve of rolls), not all.
+    """
+    n, k = px.shape
+    # radius of the points about their mean: their diameter is at most twice it
+    c0 = c1 = c2 = 0.0
+    for i in range(n):
+        c0 += points[i, 0]
+        c1 += points[i, 1]
+        c2 += points[i, 2]
+    c0, c1, c2 = c0 / n, c1 / n, c2 / n
+    rad = 0.0
+    for i in range(n):
+        d = math.sqrt((points[i, 0] - c0) ** 2 + (points[i, 1] - c1) ** 2
+                      + (points[i, 2] - c2) ** 2)
+        rad = max(rad, d)
+    diam = 2.0 * rad * (1.0 + _BOUND_SLACK) + _BOUND_SLACK
+    left = np.full(k, -1, dtype=np.int64)  # exact counts left out; -1: not evaluated
+    tx = np.zeros(k)
+    tz = np.zeros(k)
+    lower = np.zeros(k, dtype=np.int64)  # lower bounds of the counts left out
+    xs = np.empty(n)
+    zs = np.empty(n)
+    least, first = 2 * n + 1, k  # the least count left out so far, and its first roll
+    grow = diam * (1.0 + _BOUND_SLACK)
+    for a in range(0, k, ANCHOR_EVERY):
+        for i in range(n):
+            xs[i] = px[i, a]
+            zs[i] = pz[i, a]
+        xs.sort()
+        zs.sort()
+        cx, sx_ = _slide_sorted(xs, len_x)
+        cz, sz_ = _slide_sorted(zs, len_z)
+        left[a] = lower[a] = 2 * n - cx - cz
+        tx[a], tz[a] = sx_, sz_
+        if left[a] < least:
+            least, first = left[a], a
+        # one bound for every roll b less than a block away on either side: the window grown
+        # by the most the rows turn between a and any of them (each roll takes the larger of
+        # its two anchors' bounds)
+        turn_x = turn_z = 0.0
+        for b in range(max(0, a - ANCHOR_EVERY + 1), min(k, a + ANCHOR_EVERY)):
+            sx = sz = 0.0
+            for j in range(3):
+                sx += (r0[b, j] - r0[a, j]) ** 2
+                sz += (r2[b, j] - r2[a, j]) ** 2
+            turn_x = max(turn_x, math.sqrt(sx))
+            turn_z = max(turn_z, math.sqrt(sz))
+        gx = _count_within(xs, len_x + grow * turn_x + _BOUND_SLACK)
+        gz = _count_within(zs, len_z + grow * turn_z + _BOUND_SLACK)
+        for b in range(max(0, a - ANCHOR_EVERY + 1), min(k, a + ANCHOR_EVERY)):
+            if b != a:
+                lower[b] = max(lower[b], 2 * n - gx - gz)
+    # the other rolls, most promising first, while their bound can still beat the least (or
+    # tie with it at an earlier roll: np.argmin's is the first of equal minima)
+    for b in np.argsort(lower, kind="mergesort"):
+        if lower[b] > least:
+            break
+        if left[b] >= 0 or (lower[b] == least and b > first):
+            continue
+        for i in range(n):
+            xs[i] = px[i, b]
+            zs[i] = pz[i, b]
+        xs.sort()
+        zs.sort()
+        cx, sx_ = _slide_sorted(xs, len_x)
+        cz, sz_ = _slide_sorted(zs, len_z)
+        left[b] = 2 * n - cx - cz
+        tx[b], tz[b] = sx_, sz_
+        if left[b] < least or (left[b] == least and b < first):
+            least, first = left[b], b
+    if first < k:
+        return first, least, tx[first], tz[first]
+    return 0, left[0], tx[0], tz[0]  # not reached: the least is an evaluated roll's
+
+
+@njit(cache=True)
+def near_rays(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarray,
+              centre: float, span: float, ring_lo: int, ring_hi: int) -> np.ndarray:
+    """Indices of the firings within ``span`` (rad) of azimuth ``centre`` on rings ``ring_lo``
+    .. ``ring_hi``: `align.segment.rectangle_fit`'s rays around a cluster, in one pass over
+    the scan (the same wrap as `segment._unwrap`, element by element)."""
+    n = azimuth.shape[0]
+    out = np.empty(n, dtype=np.int64)
+    k = 0
+    two_pi = 2 * np.pi
+    for i in range(n):
+        ring = ring_of_laser[laser_id[i]]
+        if ring < ring_lo or ring > ring_hi:
+            continue
+        v = azimuth[i] - centre + np.pi
+        # x % 2 pi is x itself on [0, 2 pi): the slow floating-point remainder only outside
+        rel = (v if 0.0 <= v < two_pi else v % two_pi) - np.pi
+        if abs(rel) <= span:
+            out[k] = i
+            k += 1
+    return out[:k]
+
+
+@njit(cache=True)
+def _fit_residuals(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
+                   d_r: np.ndarray, offset: float, sigma_r: float, oh: np.ndarray,
+                   uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
+                   sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
+                   out: np.ndarray) -> None:
+    """`align.rays._Model.residuals` into ``out``: the whitened range residuals of the
+    interior hits (rays o_r + lam u_r, measured ranges d_r, m), then the used brackets' (hit
+    rays oh, uh and miss rays om, um; the edge's side ``sgn``, sigma ``sd`` (m), whether it is
+    a side edge ``vert``). ``rot``: R of ``theta``. The same expressions as the numpy version,
+    ray by ray (no temporaries)."""
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    t0, t1, t2 = theta[0], theta[1], theta[2]
+    nr = o_r.shape[0]
+    for i in range(nr):
+        lam = -(o_r[i, 0] * r10 + o_r[i, 1] * r11 + o_r[i, 2] * r12 + t1) / (
+            u_r[i, 0] * r10 + u_r[i, 1] * r11 + u_r[i, 2] * r12)
+        out[i] = (d_r[i] - offset - lam) / sigma_r
+    for i in range(oh.shape[0]):
+        # both rays in {O}: X, Z where each meets the board plane Y = 0
+        dh0 = uh[i, 0] * rot[0, 0] + uh[i, 1] * rot[0, 1] + uh[i, 2] * rot[0, 2]
+        dh1 = uh[i, 0] * r10 + uh[i, 1] * r11 + uh[i, 2] * r12
+        dh2 = uh[i, 0] * rot[2, 0] + uh[i, 1] * rot[2, 1] + uh[i, 2] * rot[2, 2]
+        oh0 = oh[i, 0] * rot[0, 0] + oh[i, 1] * rot[0, 1] + oh[i, 2] * rot[0, 2] + t0
+        oh1 = oh[i, 0] * r10 + oh[i, 1] * r11 + oh[i, 2] * r12 + t1
+        oh2 = oh[i, 0] * rot[2, 0] + oh[i, 1] * rot[2, 1] + oh[i, 2] * rot[2, 2] + t2
+        lh = -oh1 / dh1
+        dm0 = um[i, 0] * rot[0, 0] + um[i, 1] * rot[0, 1] + um[i, 2] * rot[0, 2]
+        dm1 = um[i, 0] * r10 + um[i, 1] * r11 + um[i, 2] * r12
+        dm2 = um[i, 0] * rot[2, 0] + um[i, 1] * rot[2, 1] + um[i, 2] * rot[2, 2]
+        om0 = om[i, 0] * rot[0, 0] + om[i, 1] * rot[0, 1] + om[i, 2] * rot[0, 2] + t0
+        om1 = om[i, 0] * r10 + om[i, 1] * r11 + om[i, 2] * r12 + t1
+        om2 = om[i, 0] * rot[2, 0] + om[i, 1] * rot[2, 1] + om[i, 2] * rot[2, 2] + t2
+        lm = -om1 / dm1
+        s = sgn[i]
+        # the plate's side face widens the edge for a ray heading inwards past it
+        if vert[i]:
+            ext = thick * max(0.0, -s * dh0 / dh1)
+            e = s * (w2 + ext) - 0.5 * ((oh0 + lh * dh0) + (om0 + lm * dm0))
+        else:
+            ext = thick * max(0.0, -s * dh2 / dh1)
+            e = s * (h2 + ext) - 0.5 * ((oh2 + lh * dh2) + (om2 + lm * dm2))
+        out[nr + i] = e / sd[i]
+
+
+@njit(cache=True)
+def fit_residuals(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
+                  d_r: np.ndarray, offset: float, sigma_r: float, oh: np.ndarray,
+                  uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
+                  sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float
+                  ) -> np.ndarray:
+    """`_fit_residuals` as a new array (range residuals first, then the brackets')."""
+    out = np.empty(o_r.shape[0] + oh.shape[0])
+    _fit_residuals(theta, rot, o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn, sd, vert,
+                   w2, h2, thick, out)
+    return out
+
+
+@njit(cache=True)
+def fit_jacobian(theta: np.ndarray, rots: np.ndarray, f0: np.ndarray, o_r: np.ndarray,
+                 u_r: np.ndarray, d_r: np.ndarray, offset: float, sigma_r: float,
+                 oh: np.ndarray, uh: np.ndarray, om: np.ndarray, um: np.ndarray,
+                 sgn: np.ndarray, sd: np.ndarray, vert: np.ndarray, w2: float, h2: float,
+                 thick: float, step: float) -> np.ndarray:
+    """`align.rays._Model.jacobian`: d residuals / d theta at ``theta`` (residuals ``f0``),
+    the translations analytically, the rotations by forward differences of ``step`` (rad).
+    ``rots`` (4, 3, 3): R at theta, then with roll, tilt, yaw each moved by ``step``."""
+    nr = o_r.shape[0]
+    nb = oh.shape[0]
+    j = np.empty((nr + nb, 6))
+    r0, r1, r2 = rots[0, 0], rots[0, 1], rots[0, 2]
+    for i in range(nr):
+        j[i, 0] = 0.0
+        j[i, 1] = (1.0 / (u_r[i, 0] * r1[0] + u_r[i, 1] * r1[1] + u_r[i, 2] * r1[2])) / sigma_r
+        j[i, 2] = 0.0
+    for i in range(nb):
+        # t_x, t_z move X, Z one for one; t_y moves each ray's lam by -1 / u.r1
+        dlh = -1.0 / (uh[i, 0] * r1[0] + uh[i, 1] * r1[1] + uh[i, 2] * r1[2])
+        dlm = -1.0 / (um[i, 0] * r1[0] + um[i, 1] * r1[1] + um[i, 2] * r1[2])
+        if vert[i]:
+            j[nr + i, 0] = -1.0 / sd[i]
+            j[nr + i, 2] = 0.0 / sd[i]
+            xh_t = dlh * (uh[i, 0] * r0[0] + uh[i, 1] * r0[1] + uh[i, 2] * r0[2])
+            xm_t = dlm * (um[i, 0] * r0[0] + um[i, 1] * r0[1] + um[i, 2] * r0[2])
+            j[nr + i, 1] = -0.5 * (xh_t + xm_t) / sd[i]
+        else:
+            j[nr + i, 0] = 0.0 / sd[i]
+            j[nr + i, 2] = -1.0 / sd[i]
+            zh_t = dlh * (uh[i, 0] * r2[0] + uh[i, 1] * r2[1] + uh[i, 2] * r2[2])
+            zm_t = dlm * (um[i, 0] * r2[0] + um[i, 1] * r2[1] + um[i, 2] * r2[2])
+            j[nr + i, 1] = -0.5 * (zh_t + zm_t) / sd[i]
+    f = np.empty(nr + nb)
+    t = theta.copy()
+    for k in range(3):
+        t[:] = theta
+        t[3 + k] += step
+        _fit_residuals(t, rots[1 + k], o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn,
+                       sd, vert, w2, h2, thick, f)
+        for i in range(nr + nb):
+            j[i, 3 + k] = (f[i] - f0[i]) / step
+    return j
+
+
+@njit(cache=True)
+def ransac_best(points: np.ndarray, tri: np.ndarray, threshold: float
+                ) -> tuple[int, np.ndarray]:
+    """The index and the inliers (distance under ``threshold``, m) of the hypothesis with the
+    most of them (the first of equal counts) among the planes through the point triples
+    ``tri`` (H, 3); degenerate triples are skipped. `align.plane.ransac`'s scoring, term by
+    term in its order: np.cross, einsum's (x0 y0 + x2 y2) + x1 y1 for the norms and offsets,
+    the distance matrix's fused sums (`_fma`). Index -1 when every triple is degenerate."""
+    n_pts = points.shape[0]
+    best, best_count = -1, -1
+    bn0 = bn1 = bn2 = bd = 0.0
+    for h in range(tri.shape[0]):
+        i0, i1, i2 = tri[h, 0], tri[h, 1], tri[h, 2]
+        a0 = points[i1, 0] - points[i0, 0]
+        a1 = points[i1, 1] - points[i0, 1]
+        a2 = points[i1, 2] - points[i0, 2]
+        b0 = points[i2, 0] - points[i0, 0]
+        b1 = points[i2, 1] - points[i0, 1]
+        b2 = points[i2, 2] - points[i0, 2]
+        c0 = a1 * b2 - a2 * b1
+        c1 = a2 * b0 - a0 * b2
+        c2 = a0 * b1 - a1 * b0
+        norm = math.sqrt((c0 * c0 + c2 * c2) + c1 * c1)
+        if not norm > 1e-9:
+            continue
+        c0, c1, c2 = c0 / norm, c1 / norm, c2 / norm
+        d = (c0 * points[i0, 0] + c2 * points[i0, 2]) + c1 * points[i0, 1]
+        count = 0
+        for i in range(n_pts):
+            r = _fma(c2, points[i, 2], _fma(c1, points[i, 1], c0 * points[i, 0])) - d
+            if abs(r) < threshold:
+                count += 1
+        if count > best_count:
+            best, best_count = h, count
+            bn0, bn1, bn2, bd = c0, c1, c2, d
+    out = np.zeros(n_pts, dtype=np.bool_)
+    if best >= 0:
+        for i in range(n_pts):
+            r = _fma(bn2, points[i, 2], _fma(bn1, points[i, 1], bn0 * points[i, 0])) - bd
+            out[i] = abs(r) < threshold
+    return best, out
+
+
+def ransac(points: np.ndarray, threshold: float, rng: np.random.Generator,
+           iterations: int = 200) -> tuple[np.ndarray, float, np.ndarray]:
+    """`align.plane.ransac` (paper III-A: hypotheses from 3 random points, the most inliers
+    wins, refit by orthogonal least squares on them), the same draws from ``rng`` and the same
+    (n, d, inlier mask), with the hypotheses scored by `ransac_best`. ``threshold``, m."""
+    from align.plane import fit_lsq
+
+    n_pts = len(points)
+    if n_pts < 3:
+        raise ValueError("a plane needs at least 3 points")
+    tri = rng.integers(0, n_pts, size=(iterations, 3))
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    best, inl = ransac_best(pts, tri, float(threshold))
+    if best < 0:  # plane.ransac's np.argmax of no hypothesis
+        raise ValueError("attempt to get argmax of an empty sequence")
+    n, d = fit_lsq(points[inl])
+    return n, d, np.abs(points @ n - d) < threshold
+

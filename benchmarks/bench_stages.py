@@ -1,0 +1,133 @@
+"""Where an estimate's CPU time goes, per stage: the default (rays) estimate and the paper's method.
+
+    .venv/bin/python benchmarks/bench_stages.py [--scans 5] [--seed 0]
+
+The scans are the paper's yaw sweep on the twin as `benchmarks/bench_sweep.py` takes them (21
+references, -10..+10 deg, ``--scans`` each, the twin's seed; no calibration). Every scan is
+estimated by both methods, one process, one BLAS thread; each stage's CPU time
+(`time.process_time`) is summed per scan around its function (a stage called inside itself, or
+inside another call of itself, counts once), and the table prints the median over the scans
+per stage, how often it ran per scan, and the totals beside issue 20's goals (10 ms for the
+default estimate, 2 ms for the paper's method) and their ratios. Medians of the stages do not
+add up to the median total. The wrappers cost a few microseconds per call.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import functools
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from align import api, label_posterior, plane, rays, roll_search, segment
+from scenarios import plans
+from scenarios.bench import SimBench
+from scenarios.runner import align_call, visit
+
+#: Issue 20's goals, CPU ms per scan.
+GOALS_MS = {"rays": 10.0, "paper": 2.0}
+#: (module, function, stage) timed; a function imported by name into another module is
+#: wrapped there too.
+STAGES = (
+    ((segment, api), "find_board", "segmentation (`segment.find_board`)"),
+    ((segment,), "cluster", "- clustering on the firing grid (`segment.cluster`)"),
+    ((segment,), "rectangle_fit", "- the candidates' rectangle fit (`segment.rectangle_fit`)"),
+    ((segment,), "planar_part", "- the candidates' RANSAC planes (`segment.planar_part`)"),
+    ((roll_search,), "search", "roll search (`roll_search.search`)"),
+    ((plane,), "fit_rays", "plane: ML along the rays (`plane.fit_rays`)"),
+    ((rays,), "_fit", "joint least-squares fit (`rays._fit`)"),
+    ((rays,), "_gauss_newton", "- its Levenberg-Marquardt (`rays._gauss_newton`)"),
+    ((label_posterior, rays), "label_posterior", "hit/miss posterior (`label_posterior`)"),
+)
+
+
+class Timer:
+    """CPU seconds and calls per stage for the current scan."""
+
+    def __init__(self) -> None:
+        self.cpu: dict[str, float] = {}
+        self.calls: dict[str, int] = {}
+        self._inside: set[str] = set()
+
+    def wrap(self, f: Callable, stage: str) -> Callable:
+        @functools.wraps(f)
+        def timed(*args, **kwargs):
+            if stage in self._inside:  # recursion or a second name for the same stage
+                return f(*args, **kwargs)
+            self._inside.add(stage)
+            c0 = time.process_time()
+            try:
+                return f(*args, **kwargs)
+            finally:
+                self.cpu[stage] = self.cpu.get(stage, 0.0) + time.process_time() - c0
+                self.calls[stage] = self.calls.get(stage, 0) + 1
+                self._inside.discard(stage)
+
+        return timed
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scans", type=int, default=5, help="scans per reference")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    warnings.simplefilter("ignore", RuntimeWarning)
+    plan = plans.yaw_sweep(scans=args.scans)
+    bench = SimBench(seed=args.seed)
+    bench.home()
+    scans = []
+    for i, ref in enumerate(plan.references):  # as the runner takes them
+        visit(bench, ref)
+        bench.prepare(i, 0)
+        scans.extend(bench.scans(args.scans))
+    timer = Timer()
+    for mods, name, stage in STAGES:
+        for mod in mods:
+            setattr(mod, name, timer.wrap(getattr(mod, name), stage))
+    methods = {"rays": align_call(None), "paper": align_call("paper")}
+    for f in methods.values():
+        f(scans[0])  # the kernels loaded (or compiled) before the clock runs
+    print(f"bench_stages: {len(scans)} scans of the yaw sweep (seed {args.seed}), CPU ms per "
+          f"scan (median over the scans), one process, load average {os.getloadavg()[0]:.1f}")
+    for method, f in methods.items():
+        per: dict[str, list[float]] = {}
+        calls: dict[str, list[int]] = {}
+        for scan in scans:
+            timer.cpu.clear()
+            timer.calls.clear()
+            c0 = time.process_time()
+            f(scan)
+            total = time.process_time() - c0
+            for _, _, stage in STAGES:
+                per.setdefault(stage, []).append(timer.cpu.get(stage, 0.0))
+                calls.setdefault(stage, []).append(timer.calls.get(stage, 0))
+            per.setdefault("total", []).append(total)
+        goal = GOALS_MS[method]
+        med = 1e3 * float(np.median(per["total"]))
+        print(f"\n{method}: total {med:.1f} ms per scan, goal <= {goal:g} ms, ratio "
+              f"{med / goal:.2f}")
+        print("| stage | ms per scan | calls per scan |")
+        print("|---|---|---|")
+        for _, _, stage in STAGES:
+            if max(calls[stage]) == 0:
+                continue
+            print(f"| {stage} | {1e3 * float(np.median(per[stage])):.2f} | "
+                  f"{float(np.mean(calls[stage])):.1f} |")
+        print(f"| total | {med:.2f} | |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,337 @@
+"""The compiled segmentation kernels (`align.kernels`) against plain numpy references, on real
+scans: the same clusters, the same label numbers, the same statistics bit for bit (so the same
+board chosen: `find_board` sees the clustering through nothing else).
+
+The references are the numpy versions the kernels replaced (docs/align.md, "Where the time
+goes"), kept here so that a change to either side shows as a difference.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+import align
+from align import segment
+from align.board import BoardSpec
+from align.segment import (
+    BRIDGE,
+    CLUSTER_RADIUS_MIN,
+    CLUSTER_RADIUS_PER_M,
+    FILL_MARGIN,
+    FLAT_BAND,
+    LONG_RUN,
+    MAX_AZIMUTH_GAP,
+    SURROUND,
+    _unwrap,
+    ring_radius_scale,
+)
+from tests.conftest import DATA_DIR
+from twin.core.scan import Scan
+from twin.lidar.capture import open_pcap, read_capture
+from twin.lidar.pcd import read_pcd_scans
+
+ACFR_BOARD = align.BoardSpec(0.61, 0.85, thickness=0.0)
+
+
+def union_find_reference(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of a small graph (n nodes, edges a-b): (count, label per node).
+
+    Minimum-label propagation with pointer jumping, vectorised: each node ends with the
+    smallest node of its component; labels number the components in that order.
+    """
+    if len(a) > 20000:
+        g = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
+        return connected_components(g, directed=False)
+    lab = np.arange(n)
+    while True:
+        new = lab.copy()
+        np.minimum.at(new, a, lab[b])
+        np.minimum.at(new, b, lab[a])
+        new = new[new]
+        if np.array_equal(new, lab):
+            break
+        lab = new
+    _, lab = np.unique(lab, return_inverse=True)
+    return int(lab.max()) + 1 if n else 0, lab
+
+
+def labels_grid_reference(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagonal: float,
+                 short_side: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """`segment._labels_grid` as numpy passes (the version before the compiled kernel)."""
+    k0, m = grid
+    nl = scan.lasers.n_lasers
+    sl = slice(k0, k0 + nl * m)
+    x, y, z = (a[sl].reshape(m, nl) for a in (scan.x, scan.y, scan.z))
+    dist, az, okg = (a[sl].reshape(m, nl) for a in (scan.distance, scan.azimuth, ok))
+    thr = np.maximum(CLUSTER_RADIUS_PER_M * dist, CLUSTER_RADIUS_MIN)
+    thr *= thr
+    ring_scale = ring_radius_scale(scan) ** 2
+
+    def close(sa, sb, x=x, y=y, z=z, thr=thr, okg=okg, scale=1.0) -> np.ndarray:
+        d2 = x[sa] - x[sb]
+        d2 *= d2
+        t = y[sa] - y[sb]
+        t *= t
+        d2 += t
+        t = z[sa] - z[sb]
+        t *= t
+        d2 += t
+        c = d2 < scale * np.minimum(thr[sa], thr[sb])
+        c &= okg[sa]
+        c &= okg[sb]
+        return c
+
+    # along each ring: each return and the laser's next return. Neighbouring firings join when
+    # closer than the threshold; across firings without a return (a dark patch of the board
+    # that drops out: a chessboard's black squares) when nothing else returned in between, the
+    # ranges agree within the threshold and the gap is under `BRIDGE` of the board's smaller
+    # side (a lost firing is not a gap in the surface). Laser-major order: a laser's firings
+    # are contiguous.
+    okf = okg.T.ravel()
+    pos = np.flatnonzero(okf)
+    n_run_max = len(pos)
+    if n_run_max == 0:
+        return np.full(len(scan), -1, dtype=np.int64), {
+            k: np.zeros(0) for k in ("count", "distance", "rings")}
+    xf, yf, zf, df = (a.T.ravel()[pos] for a in (x, y, z, dist))
+    thr_f = thr.T.ravel()[pos]
+    a, b = pos[:-1], pos[1:]
+    d2 = (xf[1:] - xf[:-1]) ** 2 + (yf[1:] - yf[:-1]) ** 2 + (zf[1:] - zf[:-1]) ** 2
+    t2 = np.minimum(thr_f[1:], thr_f[:-1])
+    returned = np.cumsum(dist.T.ravel() > 0)  # returns of any kind up to each firing
+    empty_between = returned[b - 1] - returned[a] == 0
+    bridge2 = max(t2.max(initial=0.0), (BRIDGE * short_side) ** 2)
+    link = (a // m == b // m) & np.where(
+        b - a == 1, d2 < t2,
+        empty_between & ((df[1:] - df[:-1]) ** 2 < t2) & (d2 < np.maximum(t2, bridge2)))
+    start_flag = np.concatenate(([True], ~link))  # per return: does it start a run?
+    run_of = np.cumsum(start_flag) - 1  # run id of each return
+    n_run = int(run_of[-1]) + 1
+    starts = pos[start_flag]
+    ends = pos[np.concatenate((~link, [True]))]
+    run = np.full(nl * m, -1, dtype=np.int64)
+    run[pos] = run_of
+    run = run.reshape(nl, m)  # run id of each firing (laser, sequence); -1 without a return
+    # adjacent rings = the lasers of consecutive elevations: column pairs (la, lb)
+    laser_of_ring = scan.lasers.laser_of_ring
+    la, lb = laser_of_ring[:-1], laser_of_ring[1:]
+    # columns in ring order once (one gather per array), then ring neighbours are slices
+    lr = laser_of_ring.astype(np.intp)
+    lv = close(np.s_[:, :-1], np.s_[:, 1:], x[:, lr], y[:, lr], z[:, lr], thr[:, lr],
+               okg[:, lr], scale=ring_scale)  # (m, nl - 1)
+    ra_l, rb_l = [run[la].T[lv]], [run[lb].T[lv]]
+    daz_w = np.abs((az[0] - az[-1] + np.pi) % (2 * np.pi) - np.pi)
+    wrap = close(np.s_[-1], np.s_[0]) & (daz_w < MAX_AZIMUTH_GAP)
+    ra_l.append(run[:, -1][wrap])
+    rb_l.append(run[:, 0][wrap])
+    ra, rb = np.concatenate(ra_l), np.concatenate(rb_l)
+    sums = (np.bincount(run_of, minlength=n_run).astype(np.float64),
+            np.bincount(run_of, df, minlength=n_run))
+    # a run longer than the board (the floor's ring, a wall) joins nothing: otherwise the board,
+    # its stand and the floor ring at the stand's foot chain into one cluster
+    laser_s, seq_s = np.divmod(starts, m)
+    span = (az[ends % m, ends // m] - az[seq_s, laser_s]) % (2 * np.pi)
+    long_run = span * sums[1] / np.maximum(sums[0], 1) > LONG_RUN * board_diagonal
+    keep = ~(long_run[ra] | long_run[rb])
+    n_comp, comp = union_find_reference(n_run, ra[keep], rb[keep])
+    cnt = np.bincount(comp, sums[0], n_comp)
+    ring_hit = np.zeros((n_comp, nl), dtype=bool)
+    ring_hit[comp, scan.lasers.ring_of_laser[laser_s]] = True
+    stats = {"count": cnt, "distance": np.bincount(comp, sums[1], n_comp) / np.maximum(cnt, 1),
+             "rings": ring_hit.sum(axis=1)}
+    labels = np.full(len(scan), -1, dtype=np.int64)  # -1: no cluster (or outside the grid)
+    comp_x = np.append(comp, -1)  # run -1 (and firings without a return): label -1
+    labels[sl].reshape(m, nl)[...] = comp_x[np.where(okg, run.T, -1)]
+    return labels, stats
+
+
+@pytest.fixture(scope="module")
+def real_scans() -> list[tuple[Scan, align.BoardSpec, align.Hints]]:
+    """The five ACFR chessboard scans (a VLP-16 in a lab, a board held up) and the sample
+    capture's rotations (a VLP-16 in a street, no board), with the board each is searched for."""
+    acfr = [(read_pcd_scans(p)[0], ACFR_BOARD, align.Hints(expected_distance=1.8))
+            for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    street = [(s, align.BoardSpec(), align.Hints()) for s in read_capture(
+        open_pcap(DATA_DIR / "vlp16-strongest-10hz.pcap"), cut_azimuth=None).scans]
+    assert len(acfr) == 5 and street
+    return acfr + street
+
+
+def _search_mask(scan: Scan, board: align.BoardSpec, hints: align.Hints) -> np.ndarray:
+    """The returns `segment.find_board` clusters."""
+    m = scan.valid & (scan.distance >= hints.min_distance)
+    if hints.expected_distance is not None:
+        m &= np.abs(scan.distance - hints.expected_distance) <= board.diagonal + 0.5
+    return m
+
+
+def test_grid_clusters_match_the_numpy_reference_on_real_scans(real_scans):
+    """Labels and statistics of the compiled clustering equal the numpy passes' exactly, on
+    every real scan, for the search region find_board uses and for every return."""
+    compared = 0
+    for scan, board, hints in real_scans:
+        grid = segment._grid(scan)
+        assert grid is not None  # both captures are on the sensor's firing grid
+        short = min(board.width, board.height)
+        for ok in (_search_mask(scan, board, hints), scan.valid):
+            want_labels, want = labels_grid_reference(scan, grid, ok, board.diagonal, short)
+            got_labels, got = segment._labels_grid(scan, grid, ok, board.diagonal, short)
+            np.testing.assert_array_equal(got_labels, want_labels)
+            for key in ("count", "distance", "rings"):
+                assert got[key].dtype == want[key].dtype, key
+                np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+            compared += int(want["count"].size)
+    assert compared > 100  # the scans had clusters to compare
+
+
+
+def rectangle_fit_reference(scan: Scan, sel: np.ndarray, board: BoardSpec
+                  ) -> tuple[float, float, float]:
+    """`segment.rectangle_fit` before its compiled parts (`best_roll`, `near_rays`)."""
+    from align.feasible import _rows
+    from align.plane import fit_lsq
+    from align.roll_search import COARSE_STEP, TOLERANCE, _left_out, _subsample
+
+    points = scan.xyz[sel]
+    if len(points) < 3:
+        return 0.0, 0.0, 0.0
+    n, d = fit_lsq(points)
+    p = _subsample(points - (points @ n - d)[:, None] * n, 300)
+    rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
+    grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
+    left, tx, tz = _left_out(p, n, board, rolls, grow)
+    best = int(np.argmin(left))
+    held = float(1.0 - left[best] / (2 * len(p)))
+    # the rays around the cluster (its rings, its azimuths and a board's width more)
+    ring = scan.ring
+    az0 = float(np.angle(np.mean(np.exp(1j * scan.azimuth[sel]))))
+    rel = _unwrap(scan.azimuth, az0)
+    span = np.abs(_unwrap(scan.azimuth[sel], az0)).max() + board.diagonal / max(d, 0.5)
+    near = np.flatnonzero((np.abs(rel) <= span) & (ring >= ring[sel].min())
+                          & (ring <= ring[sel].max()))
+    sub = scan.select(near)  # the rays of the few rings near the cluster, not the scan's
+    u, o = sub.directions(), sub.origins()
+    un = u @ n
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = (d - o @ n) / un
+    q = o + lam[:, None] * u
+    r0, r2 = _rows(rolls[best:best + 1], n)
+    x, z = q @ r0[0] + tx[best], q @ r2[0] + tz[best]
+    inside = (lam > 0) & (np.abs(x) < board.width / 2 - FILL_MARGIN) & (
+        np.abs(z) < board.height / 2 - FILL_MARGIN)
+    dist = scan.distance[near]
+    ret = (lam > 0) & (dist > 0)
+    on_plane = ret & (np.abs(dist - lam) <= FLAT_BAND)
+    n_on, n_behind = int(np.sum(inside & on_plane)), int(np.sum(inside & ret & (dist - lam
+                                                                              > FLAT_BAND)))
+    fill = n_on / (n_on + n_behind) if n_on + n_behind else 0.0
+    beyond = np.maximum(np.abs(x) - board.width / 2, np.abs(z) - board.height / 2)
+    band = ret & (beyond > SURROUND[0]) & (beyond < SURROUND[1])
+    free = 1.0 - float(np.sum(band & on_plane)) / max(int(band.sum()), 1)
+    return held, fill, free
+
+
+def test_rectangle_fit_matches_the_numpy_reference_on_real_clusters(real_scans):
+    """held, fill and free of every real cluster the board search weighs (each candidate's
+    planes) equal the numpy reference's exactly."""
+    weighed = 0
+    for scan, board, hints in real_scans:
+        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+                                     min(board.width, board.height))
+        rng = np.random.default_rng(0)
+        for lab in np.flatnonzero((st["count"] >= 20) & (st["rings"] >= 2)):
+            rest = np.flatnonzero(labels == lab)
+            for _ in range(segment.PLANES_PER_CLUSTER):
+                if len(rest) < 3:
+                    break
+                on = segment.planar_part(scan.xyz[rest], rng)
+                sel, rest = rest[on], rest[~on]
+                if len(sel) < 3:
+                    continue
+                assert segment.rectangle_fit(scan, sel, board) == rectangle_fit_reference(
+                    scan, sel, board)
+                weighed += 1
+    assert weighed > 50
+
+
+def test_best_roll_is_the_argmin_of_left_out_on_awkward_point_sets():
+    """`best_roll` against `roll_search._left_out` and `np.argmin` where its bound is put to
+    the test: points on a coarse lattice (many equal counts across rolls: the first of equal
+    minima), strays far off the plane, a handful of points, clusters much larger than the box."""
+    from align.feasible import _rows
+    from align.kernels import best_roll
+    from align.roll_search import COARSE_STEP, TOLERANCE, _left_out
+
+    board = align.BoardSpec()
+    rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
+    grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
+    rng = np.random.default_rng(20)
+    for case in range(200):
+        n = rng.normal(size=3)
+        n[1] = abs(n[1]) + 2.0
+        n /= np.linalg.norm(n)
+        e1 = np.cross(n, [0.0, 0.0, 1.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        size = rng.uniform(0.2, 2.5, 2)
+        uv = rng.uniform(-0.5, 0.5, (int(rng.integers(3, 300)), 2)) * size
+        if case % 3 == 0:
+            uv = np.round(uv / 0.05) * 0.05
+        c, s = np.cos(rng.uniform(0, np.pi)), np.sin(rng.uniform(0, np.pi))
+        uv = uv @ np.array([[c, s], [-s, c]])
+        p = rng.uniform(0.5, 20.0) * n + uv[:, :1] * e1 + uv[:, 1:] * e2
+        if case % 2:
+            p[:3] += rng.normal(size=(min(3, len(p)), 3))
+        left, tx, tz = _left_out(p, n, board, rolls, grow)
+        b = int(np.argmin(left))
+        r0, r2 = _rows(rolls, n)
+        got = best_roll(p @ r0.T, p @ r2.T, p, r0, r2, board.width + 2 * grow,
+                        board.height + 2 * grow)
+        assert got == (b, int(left[b]), float(tx[b]), float(tz[b])), case
+
+
+def test_ransac_gives_plane_ransacs_plane_on_real_clusters(real_scans):
+    """`kernels.ransac` against `plane.ransac` on every real cluster of three returns or more,
+    the same generator state: the same normal, distance and inliers (bit for bit on this
+    machine's BLAS; at worst a point within 1e-15 m of the band's edge could differ)."""
+    from align import kernels, plane
+
+    compared = 0
+    for scan, board, hints in real_scans:
+        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+                                     min(board.width, board.height))
+        for lab in np.flatnonzero(st["count"] >= 3):
+            pts = scan.xyz[labels == lab]
+            for seed in (0, 1):
+                n0, d0, in0 = plane.ransac(pts, segment.FLAT_BAND, np.random.default_rng(seed),
+                                           segment.PLANE_HYPOTHESES)
+                n1, d1, in1 = kernels.ransac(pts, segment.FLAT_BAND,
+                                             np.random.default_rng(seed),
+                                             segment.PLANE_HYPOTHESES)
+                np.testing.assert_array_equal(in1, in0)
+                np.testing.assert_array_equal(n1, n0)
+                assert d1 == d0
+                compared += 1
+    assert compared > 100
+    with pytest.raises(ValueError):
+        kernels.ransac(np.zeros((5, 3)), 0.04, np.random.default_rng(0), 10)
+
+
+def test_the_warm_up_compiles_every_estimator_kernel():
+    """`scenarios.warmup` (run by make setup) leaves no kernel of `align.kernels` for a
+    command to compile: each one the estimator calls has its signature after it. (The helpers
+    with a leading underscore are compiled into their callers.)"""
+    from numba.core.registry import CPUDispatcher
+
+    from align import kernels
+    from scenarios.warmup import warm_up
+
+    warm_up()
+    public = {name: f for name, f in vars(kernels).items()
+              if isinstance(f, CPUDispatcher) and not name.startswith("_")}
+    assert {"grid_clusters", "best_roll", "near_rays", "ransac_best", "fit_residuals",
+            "fit_jacobian"} <= set(public)
+    assert [name for name, f in public.items() if not f.signatures] == []
