@@ -155,7 +155,9 @@ _WRITER = textwrap.dedent("""
     from scenarios import plans
     from scenarios.store import Store, ScanResult
     from twin.core.pose import Pose
-    s = Store.create(sys.argv[1], plans.yaw_sweep(scans=1000))
+    # more scans per reference than it can write before the kill (over 1,000 in 0.5 s on a
+    # quiet machine): a row past the plan is a damaged store, which the open refuses
+    s = Store.create(sys.argv[1], plans.yaw_sweep(scans=1_000_000))
     print("ready", flush=True)
     k = 0
     while True:
