@@ -52,3 +52,24 @@ def test_a_board_sized_face_behind_and_beside_the_board_is_not_the_board():
         seg = find_board(s, align.BoardSpec(), SHARP)
         chosen = [seg.board, *seg.alternatives][est.diagnostics.get("board_candidate", 0)]
         assert abs(float(np.mean(s.distance[chosen])) - board_range) < 0.06
+
+
+def test_a_stand_post_just_behind_a_grazed_edge_is_not_the_board():
+    # a random scene's (bench_align --scenes, pose 28): the stand's post 4 cm behind the
+    # board's face, each of its returns within the noise of the plane, below a bottom edge that
+    # a ring grazes. A laser that meets only the post has a handful of returns, too few to be
+    # tested from each end as a group behind the plane; left as hits, the fit moved the bottom
+    # edge onto the post (roll off by 13 deg, partial_board)
+    from twin.sim.params import random_scene
+
+    base = BenchParams(mount_roll=0.022768, mount_tilt=0.009979, mount_yaw=0.003385)
+    params = random_scene(np.random.default_rng(1475316411), base, max_holders=0)
+    sim = BenchSim(params, seed=45136754, noise=EmulationConfig(laser_offset_sigma=0.0))
+    sim.move_to(x_m=0.0200, yaw_rad=np.deg2rad(4.8538))
+    scans = [sim.scan() for _ in range(5)]
+    truth = scans[0].meta["truth_pose"]
+    for s in scans:
+        est = align.estimate(s, hints=SHARP)
+        assert est.success, est.diagnostics.get("reason")
+        e, sd = pose_errors(est, truth)
+        assert abs(e[3]) < max(4 * sd[3], np.deg2rad(0.5)), (np.rad2deg(e[3]), np.rad2deg(sd[3]))
