@@ -1012,15 +1012,13 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         model = _build_model(model.rays, lab, theta, board, sigma_r, hints.edge_blur, like=model)
         theta, j, conv, it, _ = _staged_fit(model, theta, ds)
         iters += it
-    unexplained = post is None and dropped > 0
-    if unexplained:
-        # leaving them out did not make the labels agree: they were not (only) strays. Either
-        # the board's own labels, violated by a least-squares pose in a wrong basin (a ring
-        # grazing an edge: each round moved the fit further, 2 deg of roll on a random scene),
-        # or something beside an edge within the noise of the plane (a holder: the fit then
-        # turns by degrees with a sigma of tenths). No pose explains them: the first fit is
-        # reported, as not explaining the board (partial_board below)
+    if post is None and dropped:
+        # leaving them out did not make the labels agree: they were not strays but the
+        # board's own labels that a least-squares pose in a wrong basin violates (a ring
+        # grazing an edge); each round moved it further (2 deg of roll, seen on a random
+        # scene), so the first fit stands
         theta, j, conv, model, cov, cov_ls = first
+        dropped = 0
         if offset_model is not None:
             offset_model.centre = model.offset
             offset_model.centre_std = float(np.sqrt(cov_ls[6, 6])) if len(cov_ls) > 6 else 0.0
@@ -1085,7 +1083,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     diag["edges_seen"] = "".join("lrbt"[i] for i in range(4) if seen[i])
     if (not all(seen) or int(np.sum(k > 0)) < MIN_BRACKETS
             or occluded > 0.03 * n_inside or inside_miss > 0.03 * n_inside
-            or outside_hits > 0.03 * n_hit or diag["chi2_per_dof"] > 3.0 or unexplained
+            or outside_hits > 0.03 * n_hit or diag["chi2_per_dof"] > 3.0
             or model.use_range.sum() < 0.5 * n_hit):
         # the known rectangle does not explain what was seen: part of the board is hidden,
         # dark or outside the field of view (or something board-like is not the board)
@@ -1097,9 +1095,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                           + f"{int(np.sum(k > 0))} edge brackets (left/right/bottom/top "
                           f"{n_left}/{n_right}/{n_bottom}/{n_top}), {occluded} rays blocked in "
                           f"front, {inside_miss} misses inside, {outside_hits} hits outside, "
-                          f"chi2/dof {diag['chi2_per_dof']:.1f}"
-                          + (f"; no pose explains the labels, {dropped} of them left out or "
-                             "not" if unexplained else ""))
+                          f"chi2/dof {diag['chi2_per_dof']:.1f}")
     elif not conv:
         status = Status.NOT_CONVERGED
     used = {"board": rays.gidx[model.use_range],
