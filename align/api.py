@@ -67,8 +67,9 @@ def estimate(
         first = ok[0]
         ref = segs[first]
         for k, alt in enumerate(ref.alternatives if res.status == Status.PARTIAL_BOARD else ()):
-            g = Segmentation(Status.OK, alt, ref.n_clusters,
-                             float(np.mean(scan_list[first].distance[alt])), ref.rings)
+            s0 = scan_list[first]
+            g = Segmentation(Status.OK, alt, ref.n_clusters, float(np.mean(s0.distance[alt])),
+                             len(np.unique(s0.lasers.ring_of_laser[s0.laser_id[alt]])))
             alt_segs = _segment_static(scan_list[first:], board, hints, g)
             use = [i for i, a in enumerate(alt_segs) if a.status == Status.OK]
             res_alt = estimate_rays([scan_list[first + i] for i in use],
