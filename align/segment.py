@@ -61,6 +61,9 @@ class Segmentation:
     distance: float = float("nan")  # mean range of the chosen cluster, m
     rings: int = 0
     reason: str = ""
+    #: the next most board-like candidates' returns, best first: what an estimator that finds
+    #: the choice is not the board (the known rectangle does not explain its rays) tries next
+    alternatives: tuple[np.ndarray, ...] = ()
 
 
 def _unwrap(azimuth: np.ndarray, centre: float) -> np.ndarray:
@@ -275,15 +278,27 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     dist = scan.distance[near]
     ret = (lam > 0) & (dist > 0)
     on_plane = ret & (np.abs(dist - lam) <= FLAT_BAND)
-    n_on, n_behind = int(np.sum(inside & on_plane)), int(np.sum(inside & ret & (dist - lam
-                                                                              > FLAT_BAND)))
-    fill = n_on / (n_on + n_behind) if n_on + n_behind else 0.0
+    # a return off the plane inside the rectangle, behind it or in front, is a ray the
+    # candidate does not explain: a box whose visible part holds a board-sized rectangle only
+    # where the rest of that rectangle would be hidden by the board in front, or by the floor
+    n_on, n_off = int(np.sum(inside & on_plane)), int(np.sum(inside & ret & ~on_plane))
+    fill = n_on / (n_on + n_off) if n_on + n_off else 0.0
     beyond = np.maximum(np.abs(x) - board.width / 2, np.abs(z) - board.height / 2)
     band = ret & (beyond > SURROUND[0]) & (beyond < SURROUND[1])
     free = 1.0 - float(np.sum(band & on_plane)) / max(int(band.sum()), 1)
     return held, fill, free
 
 
+#: A plane is looked at as the board when its RMS extent is between these many board
+#: diagonals: a post is smaller, a wall or the floor larger. Up to 2: a board whose plane also
+#: holds a tenth of its count from a face just behind it, beside an edge (a box 2-4 cm back,
+#: within `FLAT_BAND`), reaches 1.8 (seen on random scenes) and must still be weighed by how
+#: much of it the rectangle holds (`rectangle_fit`), not dropped.
+MIN_EXTENT, MAX_EXTENT = 0.5, 2.0
+#: Other board-like candidates kept beside the choice (`Segmentation.alternatives`) when they
+#: score at least this fraction of it, at most `MAX_ALTERNATIVES` of them.
+ALTERNATIVE_SCORE = 0.25
+MAX_ALTERNATIVES = 2
 #: A cluster is a candidate with at least this fraction of the returns the board would give.
 MIN_FRACTION = 0.25
 #: Planes tried per cluster (board, floor, stand or wall behind it).
@@ -318,7 +333,7 @@ def _board_score(scan: Scan, sel: np.ndarray, board: BoardSpec, expect: float
         c = c - c.sum() / len(c)
         var += float((c * c).sum()) / len(c)
     extent = math.sqrt(12 * var)  # a rectangle's diagonal
-    if not 0.5 * board.diagonal < extent < 1.6 * board.diagonal:
+    if not MIN_EXTENT * board.diagonal < extent < MAX_EXTENT * board.diagonal:
         return None
     # the board fits its rectangle: a cabinet, a wall's piece or a person of the same size and
     # range does not (seen in the real ACFR scans: both outscored the board on count and
@@ -404,9 +419,13 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     far = cand & (dist > hints.max_distance)
     n_lab = int(np.count_nonzero(st["count"]))
     if np.any(near):
-        lab = int(np.flatnonzero(near)[np.argmax(score[near])])
+        order = np.flatnonzero(near)[np.argsort(-score[near], kind="stable")]
+        lab = int(order[0])
         sel = members[lab]
-        return Segmentation(Status.OK, sel, n_lab, float(dist[lab]), _rings(scan, sel))
+        alt = tuple(members[int(o)] for o in order[1:1 + MAX_ALTERNATIVES]
+                    if score[o] >= ALTERNATIVE_SCORE * score[lab])
+        return Segmentation(Status.OK, sel, n_lab, float(dist[lab]), _rings(scan, sel),
+                            alternatives=alt)
     if np.any(far):
         lab = int(np.flatnonzero(far)[np.argmax(score[far])])
         sel = members[lab]

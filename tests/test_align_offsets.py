@@ -124,6 +124,18 @@ def test_per_laser_offsets_uncalibrated_are_in_tilts_sigma():
     assert np.mean(z_n) > 3 * np.mean(z_m)  # taken as none, tilt's sigma does not cover it
 
 
+def test_random_scenes_put_nothing_in_front_of_the_board():
+    # a turned box's corner reaches further along Y than its half size: every corner of every
+    # piece of clutter stands behind the board's face (an occluder in front is another test)
+    by = BenchParams().board_position[1]
+    for seed in range(200):
+        for box in random_scene(np.random.default_rng(seed)).clutter:
+            c, s = np.cos(box.yaw), np.sin(box.yaw)
+            ys = [box.pos[1] + a * box.size[0] * s + b * box.size[1] * c
+                  for a in (-1, 1) for b in (-1, 1)]
+            assert min(ys) > by + 0.019, (seed, box)
+
+
 def test_random_scenes_are_seeded_named_and_scanned():
     a = random_scene(np.random.default_rng(3))
     assert a == random_scene(np.random.default_rng(3)) != random_scene(np.random.default_rng(4))

@@ -341,12 +341,16 @@ def random_scene(rng: np.random.Generator, base: BenchParams | None = None,
     bx, by, _ = base.board_position
     for _ in range(int(rng.integers(0, 7))):
         size = rng.uniform(0.05, 0.4, 3)
+        yaw = float(rng.uniform(-np.pi, np.pi))
+        # how far the turned box reaches along Y_W from its centre: its half size along Y
+        # alone would let a turned box's corner stand up to 0.15 m in front of the board's
+        # face, between the LiDAR and the board (an occluder: another test)
+        reach = abs(size[0] * np.sin(yaw)) + abs(size[1] * np.cos(yaw))
         # behind the board's plane (between it and the wall) or beside it, on the floor
-        y = by + size[1] + rng.uniform(0.02, max(wall - 2 * size[1], 0.05))
+        y = by + reach + rng.uniform(0.02, max(wall - 2 * reach, 0.05))
         x = bx + rng.uniform(-2.0, 2.0)
         clutter.append(SceneBox((float(x), float(y), float(size[2])), tuple(float(v) for v in size),
-                                yaw=float(rng.uniform(-np.pi, np.pi)),
-                                reflectivity=float(rng.uniform(0.05, 0.9))))
+                                yaw=yaw, reflectivity=float(rng.uniform(0.05, 0.9))))
     refl = dict(base.reflectivity_overrides)
     refl.update({"wall": float(rng.uniform(0.05, 0.9)), "floor": float(rng.uniform(0.05, 0.6)),
                  "stand_base": float(rng.uniform(0.05, 0.9)),
