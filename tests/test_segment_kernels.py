@@ -225,9 +225,9 @@ def rectangle_fit_reference(scan: Scan, sel: np.ndarray, board: BoardSpec
     dist = scan.distance[near]
     ret = (lam > 0) & (dist > 0)
     on_plane = ret & (np.abs(dist - lam) <= FLAT_BAND)
-    n_on, n_behind = int(np.sum(inside & on_plane)), int(np.sum(inside & ret & (dist - lam
-                                                                              > FLAT_BAND)))
-    fill = n_on / (n_on + n_behind) if n_on + n_behind else 0.0
+    # a return off the plane inside the rectangle, behind it or in front, is unexplained
+    n_on, n_off = int(np.sum(inside & on_plane)), int(np.sum(inside & ret & ~on_plane))
+    fill = n_on / (n_on + n_off) if n_on + n_off else 0.0
     beyond = np.maximum(np.abs(x) - board.width / 2, np.abs(z) - board.height / 2)
     band = ret & (beyond > SURROUND[0]) & (beyond < SURROUND[1])
     free = 1.0 - float(np.sum(band & on_plane)) / max(int(band.sum()), 1)
