@@ -26,7 +26,9 @@ the posterior's covariance of (roll, x, z) given the plane (averaged over the no
 d pose / d (roll, x, z) at a fixed plane. With a common range offset b as a nuisance, C is the
 joint profile's instead (`_joint_profile`): the labels' evidence on a grid over b and a 3-point
 rule over the one direction of the plane the least-squares fit says they couple with b (the
-board's width ties distance to yaw), the ranges' conditional in the rest.
+board's width ties distance to yaw), the ranges' conditional in the rest; with per-laser offsets
+as well, a tensor of 3-point rules over every direction of the plane given b (they widen it in
+tilt, where the labels hold it better than the ranges).
 """
 
 from __future__ import annotations

@@ -952,8 +952,8 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
             offset_model = OffsetModel(b_hat, c_gb, c_bb)
             if hints.laser_offset_sigma > 0:
                 # the plane given b from the ranges' noise alone, about the same plane: the
-                # hit/miss posterior profiles the direction the per-laser offsets widen it in
-                # (the labels hold tilt there better than the ranges)
+                # hit/miss posterior profiles the directions the per-laser offsets widen it in
+                # too (the labels hold tilt there better than the ranges)
                 c_n = plane.fit_rays_offsets(r_all[keep], o_all[keep], u_all[keep],
                                              ring_all[keep], n, d, sigma_r, prior, 0.0, 1)
                 offset_model.c_noise = c_n[2] - np.outer(c_n[4], c_n[4]) / c_n[5]
