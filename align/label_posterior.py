@@ -26,7 +26,9 @@ the posterior's covariance of (roll, x, z) given the plane (averaged over the no
 d pose / d (roll, x, z) at a fixed plane. With a common range offset b as a nuisance, C is the
 joint profile's instead (`_joint_profile`): the labels' evidence on a grid over b and a 3-point
 rule over the one direction of the plane the least-squares fit says they couple with b (the
-board's width ties distance to yaw), the ranges' conditional in the rest.
+board's width ties distance to yaw), the ranges' conditional in the rest; with per-laser offsets
+as well, a tensor of 3-point rules over every direction of the plane given b (they widen it in
+tilt, where the labels hold it better than the ranges).
 """
 
 from __future__ import annotations
@@ -71,8 +73,11 @@ class OffsetModel:
     ``c_bb``; ``centre``, ``centre_std``: b and its sigma from a fit that saw the board's size
     (the least squares), where to look; ``slope``: that fit's d pose / d b (its covariance's
     regression, (6,)), the direction in which the labels trade the offset against the plane's
-    other directions (None: not known). `label_posterior` fills in ``mean`` and ``std``: b's
-    posterior given the ranges and the labels."""
+    other directions (None: not known); ``c_noise``: with per-laser offsets as random effects,
+    the ranges' covariance of g given b from their noise alone (the per-laser offsets left
+    out), which says in what direction those offsets widen the plane (None: none modelled).
+    `label_posterior` fills in ``mean`` and ``std``: b's posterior given the ranges and the
+    labels."""
 
     b_hat: float
     c_gb: np.ndarray
@@ -80,6 +85,7 @@ class OffsetModel:
     centre: float = 0.0
     centre_std: float = 0.0
     slope: np.ndarray | None = None
+    c_noise: np.ndarray | None = None
     mean: float | None = None
     std: float | None = None
 
@@ -210,7 +216,8 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
         v = offset.c_gb / offset.c_bb
         c_cond = c_plane - np.outer(offset.c_gb, offset.c_gb) / offset.c_bb
         w = _coupled_direction(offset, theta, n0, d0, v, c_cond)
-        profile = _joint_profile(offset, v, w, c_cond,
+        axes = ([w] if w is not None else []) + _laser_directions(offset, c_cond, w)
+        profile = _joint_profile(offset, v, axes, c_cond,
                                  lambda g: wide.in_plane(*moved(g), board, rolls, roll_prior))
     if profile is not None:
         centre, coarse, c_band = profile
@@ -268,10 +275,11 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
         if c_band is None:
             return _moments(nodes, c_plane)
         # with an offset the labels' information is the joint profile's (exact in the plane's
-        # two directions it couples, the offset's line and w); the plane's third direction is
-        # the ranges' given b. A quadratic fitted to the labels' log evidence over the rule's
-        # nodes instead (as without an offset) sees a band of flat evidence with cliffs: it put
-        # 2.3 mm of sigma on an offset known to 0.7 mm, and roll's sigma twice its error
+        # directions it profiles: the offset's line, w and, with per-laser offsets, the way
+        # they widen the plane); the rest is the ranges' given b. A quadratic fitted to the
+        # labels' log evidence over the rule's nodes instead (as without an offset) sees a
+        # band of flat evidence with cliffs: it put 2.3 mm of sigma on an offset known to
+        # 0.7 mm, and roll's sigma twice its error
         mean, cov = _moments(nodes, c_band, given=True)
         _offset_posterior(offset, nodes, c_plane, c_band)
         return mean, cov
@@ -322,64 +330,107 @@ def _coupled_direction(offset: OffsetModel, theta: np.ndarray, n0: np.ndarray, d
     return y / math.sqrt(m2)
 
 
-def _joint_profile(offset: OffsetModel, v: np.ndarray, w: np.ndarray | None,
+def _laser_directions(offset: OffsetModel, c_cond: np.ndarray, w: np.ndarray | None
+                      ) -> list[np.ndarray]:
+    """The plane's directions independent of ``w`` under the ranges' conditional ``c_cond``
+    (the plane given b, per-laser offsets included), each one sigma of it, the one in which the
+    per-laser offsets widen the plane most over the ranges' noise alone (``offset.c_noise``)
+    first. Offsets that differ ring to ring lean the plane across the rings (tilt, with
+    distance): the labels hold it there (the board's known height, its side edges across the
+    rings) better than the ranges; left at the ranges' conditional, tilt's sigma was 1.3-1.5
+    times its error. Empty: no per-laser offsets modelled."""
+    if offset.c_noise is None:
+        return []
+    chol = np.linalg.cholesky(c_cond)
+    # in the standardised plane (c_cond = I): the noise's share, the offsets' the rest
+    a = np.linalg.solve(chol, np.linalg.solve(chol, offset.c_noise).T)
+    basis = np.eye(3)
+    if w is not None:
+        om = np.linalg.solve(chol, w)  # unit: w is one sigma of c_cond
+        basis = np.linalg.svd(om[None, :])[2][1:].T  # orthonormal, orthogonal to om
+    share = basis.T @ (np.eye(3) - 0.5 * (a + a.T)) @ basis
+    vecs = np.linalg.eigh(share)[1]
+    return [chol @ (basis @ vecs[:, i]) for i in range(vecs.shape[1] - 1, -1, -1)]
+
+
+def _joint_profile(offset: OffsetModel, v: np.ndarray, axes: list[np.ndarray],
                    c_cond: np.ndarray, in_plane
                    ) -> tuple[np.ndarray, feasible.InPlanePosterior, np.ndarray] | None:
-    """The labels' evidence over the offset b jointly with the plane's direction ``w`` it
-    trades against (`_coupled_direction`): the plane g = v (b - b_hat) + s w, s the ranges'
-    standard normal along w (given b, independent of it), integrated over s by a 3-point
-    Gauss-Hermite rule and over b by `_offset_profile` at each s. The band found along the one
-    line s = 0 is conditional on s and too narrow where the labels couple b with w (yaw and
+    """The labels' evidence over the offset b jointly with the plane's directions ``axes``
+    they hold beyond the ranges: the one b trades against (w, `_coupled_direction`) and, with
+    per-laser offsets, the rest (`_laser_directions`). The plane is
+    g = v (b - b_hat) + sum_k s_k a_k, each s_k the ranges' standard normal along a_k (given b,
+    independent of it and of each other), integrated over the s_k by a tensor of 3-point
+    Gauss-Hermite rules and over b by `_offset_profile` at each node. The band found along the
+    one line s = 0 is conditional on s and too narrow where the labels couple b with w (yaw and
     distance in the board's width: fused, b's chi2 was 3.5 against it). ``c_cond``: the
-    ranges' covariance of g given b (w is one sigma of it). Returns the plane at the posterior
-    mean, the most probable node's coarse in-plane posterior and the plane's posterior
-    covariance (3, 3), or None where no plane explains the labels."""
-    if w is None:
-        levels, spacing = [(0.0, 0.0)], 0.0
-    else:
-        x, wt = np.polynomial.hermite_e.hermegauss(3)
-        levels, spacing = list(zip(x, np.log(wt / wt.sum()), strict=True)), float(x[1] - x[0])
-    floor = 0.0
+    ranges' covariance of g given b (each a_k is one sigma of it). Returns the plane at the
+    posterior mean, the most probable node's coarse in-plane posterior and the plane's
+    posterior covariance (3, 3), or None where no plane explains the labels."""
+    x, wt = np.polynomial.hermite_e.hermegauss(3)
+    rule = list(zip(x, np.log(wt / wt.sum()), strict=True))
+    levels = [rule for _ in axes]
+    spacing = [float(x[1] - x[0]) for _ in axes]
+    floor = [0.0 for _ in axes]
+    profiles: dict[tuple[float, ...], tuple | None] = {}
     for _ in range(1 + COUPLED_REFINE):
         found = []
-        for s, log_ws in levels:
-            prof = _offset_profile(offset, v, in_plane, s * w if w is not None else np.zeros(3))
+        for node in itertools.product(*levels):
+            key = tuple(float(s) for s, _ in node)
+            if key not in profiles:
+                g0 = np.zeros(3)
+                for s, a in zip(key, axes, strict=True):
+                    g0 = g0 + s * a
+                profiles[key] = _offset_profile(offset, v, in_plane, g0)
+            prof = profiles[key]
             if prof is not None:
-                found.append((s, log_ws + prof[0], *prof[1:]))
+                found.append((key, sum(lw for _, lw in node) + prof[0], *prof[1:]))
         if not found:
             return None
-        if w is None or len(found) >= COUPLED_MIN:
+        narrow = [k for k in range(len(axes)) if len({f[0][k] for f in found}) < COUPLED_MIN]
+        if not narrow:
             break
-        # the labels allow a band in s narrower than the levels' spacing (a near miss of the
+        # the labels allow a band in s_k narrower than the levels' spacing (a near miss of the
         # board's width: one level left a sliver of 0.06 mm in b, and yaw 3.7 sigma off): a
         # uniform grid over it instead, the ranges' density times the spacing the weights,
-        # the spacing's resolution a floor of s's variance
-        lo = min(f[0] for f in found) - spacing
-        hi = max(f[0] for f in found) + spacing
-        grid = np.linspace(lo, hi, COUPLED_POINTS + 2)[1:-1]
-        spacing = float(grid[1] - grid[0])
-        levels = [(float(g), -0.5 * g**2 + math.log(spacing)) for g in grid]
-        floor = spacing**2 / 12
-    s_l = np.array([f[0] for f in found])
+        # the spacing's resolution a floor of s_k's variance
+        for k in narrow:
+            lo = min(f[0][k] for f in found) - spacing[k]
+            hi = max(f[0][k] for f in found) + spacing[k]
+            grid = np.linspace(lo, hi, COUPLED_POINTS + 2)[1:-1]
+            spacing[k] = float(grid[1] - grid[0])
+            levels[k] = [(float(g), -0.5 * g**2 + math.log(spacing[k])) for g in grid]
+            floor[k] = spacing[k]**2 / 12
+    # one contiguous array per axis (the sums below as without the per-laser axis)
+    s_l = [np.array([f[0][k] for f in found]) for k in range(len(axes))]
     log_p = np.array([f[1] for f in found])
     p = np.exp(log_p - log_p.max())
     p /= p.sum()
     m_b = np.array([f[2] for f in found])
     v_b = np.array([f[3] for f in found])
-    mean_b, mean_s = float(p @ m_b), float(p @ s_l)
+    mean_b = float(p @ m_b)
+    mean_s = [float(p @ s_l[k]) for k in range(len(axes))]
     var_b = float(p @ (v_b + m_b**2) - mean_b**2)
-    cov_bs = float(p @ (s_l * m_b) - mean_b * mean_s)
-    ridge = v + (w * cov_bs / var_b if w is not None else 0.0)
-    centre = v * (mean_b - offset.b_hat) + (mean_s * w if w is not None else 0.0)
+    cov_bs = [float(p @ (s_l[k] * m_b) - mean_b * mean_s[k]) for k in range(len(axes))]
+    ridge, centre = v, v * (mean_b - offset.b_hat)
+    for k, a in enumerate(axes):
+        ridge = ridge + a * cov_bs[k] / var_b
+        centre = centre + mean_s[k] * a
     best = found[int(np.argmax(log_p + np.log([f[5] for f in found])))][4]
     # the plane's covariance by the law of total variance over b: between offsets, b's
     # marginal variance along the way the plane's mean moves with it (the ridge: distance and
-    # yaw together, as the board's width allows); given b, the profile's spread along w and
-    # the ranges' conditional in the direction independent of w
+    # yaw together, as the board's width allows); given b, the profile's covariance of the
+    # s_k in place of the ranges' (unit, independent), and the ranges' conditional in the
+    # directions independent of the axes
     c_band = c_cond + var_b * np.outer(ridge, ridge)
-    if w is not None:
-        var_s = float(p @ s_l**2 - mean_s**2) + floor
-        c_band += (var_s - cov_bs**2 / var_b - 1.0) * np.outer(w, w)
+    for k, j in itertools.product(range(len(axes)), repeat=2):
+        c_sk = float(p @ (s_l[k] * s_l[j]) - mean_s[k] * mean_s[j])
+        if k == j:
+            c_sk += floor[k]
+        c_sk -= cov_bs[k] * cov_bs[j] / var_b
+        if k == j:
+            c_sk -= 1.0  # the ranges' unit variance along a_k, in c_cond, replaced
+        c_band += c_sk * np.outer(axes[k], axes[j])
     return centre, best, c_band
 
 

@@ -950,6 +950,13 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         offset_start = (b_hat, hints.range_offset_prior)
         if hints.range_offset_prior is not None:
             offset_model = OffsetModel(b_hat, c_gb, c_bb)
+            if hints.laser_offset_sigma > 0:
+                # the plane given b from the ranges' noise alone, about the same plane: the
+                # hit/miss posterior profiles the directions the per-laser offsets widen it in
+                # too (the labels hold tilt there better than the ranges)
+                c_n = plane.fit_rays_offsets(r_all[keep], o_all[keep], u_all[keep],
+                                             ring_all[keep], n, d, sigma_r, prior, 0.0, 1)
+                offset_model.c_noise = c_n[2] - np.outer(c_n[4], c_n[4]) / c_n[5]
     t_plane = time.perf_counter()
 
     # start poses: the plane at the rolls where the board's returns fit the rectangle, found

@@ -11,7 +11,13 @@ import pytest
 from align import plane
 from align.board import BoardSpec
 from align.geometry import board_coordinates, plane_of_pose
-from align.label_posterior import LabelledRays, gauss_hermite, label_posterior
+from align.label_posterior import (
+    LabelledRays,
+    OffsetModel,
+    _laser_directions,
+    gauss_hermite,
+    label_posterior,
+)
 
 BOARD = BoardSpec()
 #: The ranges' plane uncertainty of a single scan (tilt, yaw about 0.1 deg; distance 1.6 mm).
@@ -131,3 +137,26 @@ def test_gauss_hermite_rule_integrates_a_gaussians_moments():
     np.testing.assert_allclose(w @ nodes, centre, atol=1e-15)
     dev = nodes - centre
     np.testing.assert_allclose((w[:, None] * dev).T @ dev, cov, atol=1e-15)
+
+
+def test_per_laser_directions_span_the_plane_given_the_offset_beside_w():
+    # with per-laser offsets the joint profile runs over the whole plane given b: w and two
+    # directions independent of it under the ranges' conditional, one sigma each, the one the
+    # offsets widen most first (here tilt: the noise alone holds it 10 times better)
+    c_noise = np.diag([1e-7, 1e-7, 1e-6])
+    lean = np.array([0.2, 1.0, 0.1]) * 1e-3
+    c_cond = c_noise + np.outer(lean, lean) + np.diag([1e-9, 0.0, 1e-9])
+    w = np.array([3e-4, 0.0, 1e-3])
+    w /= np.sqrt(w @ np.linalg.solve(c_cond, w))
+    offset = OffsetModel(0.0, np.zeros(3), 1e-6, c_noise=c_noise)
+    axes = _laser_directions(offset, c_cond, w)
+    assert len(axes) == 2
+    basis = np.column_stack([w, *axes])
+    # independent and one sigma each: together they are c_cond
+    np.testing.assert_allclose(basis @ basis.T, c_cond, rtol=1e-9, atol=1e-15)
+    share = [1.0 - a @ np.linalg.solve(c_cond, c_noise) @ np.linalg.solve(c_cond, a)
+             for a in axes]
+    assert share[0] > 0.5 > share[1]
+    assert abs(axes[0][1]) > 3 * abs(axes[0][0])  # mostly the lean: tilt
+    # without per-laser offsets nothing more is profiled
+    assert _laser_directions(OffsetModel(0.0, np.zeros(3), 1e-6), c_cond, w) == []
