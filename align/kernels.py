@@ -267,6 +267,21 @@ _BOUND_SLACK = 1e-9
 
 
 @njit(cache=True)
+def _roll_count(px: np.ndarray, pz: np.ndarray, b: int, xs: np.ndarray, zs: np.ndarray,
+                len_x: float, len_z: float) -> tuple[int, float, float]:
+    """The count left out of the best window at roll ``b`` and its shifts: column ``b`` of the
+    points' coordinates sorted into the buffers ``xs``, ``zs`` and slid along."""
+    for i in range(len(xs)):
+        xs[i] = px[i, b]
+        zs[i] = pz[i, b]
+    xs.sort()
+    zs.sort()
+    cx, sx_ = _slide_sorted(xs, len_x)
+    cz, sz_ = _slide_sorted(zs, len_z)
+    return 2 * len(xs) - cx - cz, sx_, sz_
+
+
+@njit(cache=True)
 def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray,
               r2: np.ndarray, len_x: float, len_z: float) -> tuple[int, int, float, float]:
     """The roll at which a W x H box leaves out the fewest of a cluster's points:
@@ -306,15 +321,8 @@ def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray
     least, first = 2 * n + 1, k  # the least count left out so far, and its first roll
     grow = diam * (1.0 + _BOUND_SLACK)
     for a in range(0, k, ANCHOR_EVERY):
-        for i in range(n):
-            xs[i] = px[i, a]
-            zs[i] = pz[i, a]
-        xs.sort()
-        zs.sort()
-        cx, sx_ = _slide_sorted(xs, len_x)
-        cz, sz_ = _slide_sorted(zs, len_z)
-        left[a] = lower[a] = 2 * n - cx - cz
-        tx[a], tz[a] = sx_, sz_
+        left[a], tx[a], tz[a] = _roll_count(px, pz, a, xs, zs, len_x, len_z)
+        lower[a] = left[a]
         if left[a] < least:
             least, first = left[a], a
         # one bound for every roll b less than a block away on either side: the window grown
@@ -340,15 +348,7 @@ def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray
             break
         if left[b] >= 0 or (lower[b] == least and b > first):
             continue
-        for i in range(n):
-            xs[i] = px[i, b]
-            zs[i] = pz[i, b]
-        xs.sort()
-        zs.sort()
-        cx, sx_ = _slide_sorted(xs, len_x)
-        cz, sz_ = _slide_sorted(zs, len_z)
-        left[b] = 2 * n - cx - cz
-        tx[b], tz[b] = sx_, sz_
+        left[b], tx[b], tz[b] = _roll_count(px, pz, b, xs, zs, len_x, len_z)
         if left[b] < least or (left[b] == least and b < first):
             least, first = left[b], b
     if first < k:

@@ -68,21 +68,26 @@ def test_a_30_mm_offset_is_recovered_and_does_not_move_the_pose():
         assert max(abs(e0[5]) / sd0[5], abs(e0[0]) / sd0[0]) > 2
 
 
+def _offset_chi2(rng: np.random.Generator, units: int, scans: int, axes: list[int]
+                 ) -> np.ndarray:
+    """Mean squared z of the pose's ``axes`` and of the offset, over ``units`` twin units each
+    with its own common offset uniform within +-5 mm (the prior saying so), ``scans`` fused."""
+    hints = align.Hints(**SHARP, range_offset_prior=(0.0, 0.005 / np.sqrt(3.0)))
+    z2 = []
+    for _ in range(units):
+        group, sim = _scans(rng, scans, range_bias_spread=0.005)
+        est = align.estimate(group, hints=hints)
+        assert est.success, est.diagnostics.get("reason")
+        e, sd = pose_errors(est, group[0].meta["truth_pose"])
+        db = est.diagnostics["range_offset_m"] - sim.emulator.range_bias
+        z2.append(np.append((e / sd)[axes], db / est.diagnostics["range_offset_std_m"]) ** 2)
+    return np.mean(z2, axis=0)
+
+
 def test_offset_sigmas_are_honest_over_many_units():
     # chi-square of every reported sigma (pose and offset), units drawn uniform within +-5 mm,
     # the prior saying so; 14 poses x 5 scans fused: a loose band for that sample
-    rng = np.random.default_rng(22)
-    hints = align.Hints(**SHARP, range_offset_prior=(0.0, 0.005 / np.sqrt(3.0)))
-    z2 = []
-    for _ in range(14):
-        scans, sim = _scans(rng, 5, range_bias_spread=0.005)
-        est = align.estimate(scans, hints=hints)
-        assert est.success, est.diagnostics.get("reason")
-        e, sd = pose_errors(est, scans[0].meta["truth_pose"])
-        db = est.diagnostics["range_offset_m"] - sim.emulator.range_bias
-        z2.append(np.append((e / sd)[[0, 1, 3, 4, 5]], db / est.diagnostics["range_offset_std_m"])
-                  ** 2)
-    chi2 = np.mean(z2, axis=0)
+    chi2 = _offset_chi2(np.random.default_rng(22), 14, 5, [0, 1, 3, 4, 5])
     assert np.all((chi2 > 0.3) & (chi2 < 2.2)), chi2
 
 
@@ -92,18 +97,7 @@ def test_offset_sigmas_are_honest_over_40_units_fused_10():
     # profile (yaw chi2 1.6-1.8, x 1.5-1.7, roll 0.7): 40 units uniform within +-5 mm, the
     # prior saying so, 10 scans fused. One axis's chi2 over 40 units has a sd of about 0.22
     # (0.11 pooled over yaw and x, the axes the offset trades against)
-    rng = np.random.default_rng(24)
-    hints = align.Hints(**SHARP, range_offset_prior=(0.0, 0.005 / np.sqrt(3.0)))
-    z2 = []
-    for _ in range(40):
-        scans, sim = _scans(rng, 10, range_bias_spread=0.005)
-        est = align.estimate(scans, hints=hints)
-        assert est.success, est.diagnostics.get("reason")
-        e, sd = pose_errors(est, scans[0].meta["truth_pose"])
-        db = est.diagnostics["range_offset_m"] - sim.emulator.range_bias
-        z2.append(np.append((e / sd)[[4, 3, 5, 0]], db / est.diagnostics["range_offset_std_m"])
-                  ** 2)
-    chi2 = np.mean(z2, axis=0)  # tilt, roll, yaw, x, offset
+    chi2 = _offset_chi2(np.random.default_rng(24), 40, 10, [4, 3, 5, 0])  # tilt roll yaw x b
     assert np.all((chi2 > 0.6) & (chi2 < 1.5)), chi2
     assert 0.75 < np.mean(chi2[2:4]) < 1.3, chi2
 
