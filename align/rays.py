@@ -370,16 +370,6 @@ def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
     return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
 
 
-def _coords(rot: np.ndarray, theta: np.ndarray, o: np.ndarray, u: np.ndarray
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Board coordinates X, Z of rays (origins o, directions u in {L}) and their directions in
-    {O}, for the rotation ``rot`` of pose ``theta``."""
-    d = u @ rot.T
-    oo = o @ rot.T + theta[:3]
-    lam = -oo[:, 1] / d[:, 1]
-    return oo[:, 0] + lam * d[:, 0], oo[:, 2] + lam * d[:, 2], d
-
-
 class _Model:
     """Whitened residuals of the joint fit for a pose theta."""
 

@@ -24,14 +24,24 @@ from twin.sim.bench import BenchSim
 ACFR_BOARD = align.BoardSpec(0.61, 0.85, thickness=0.0)
 
 
+def _coords(rot: np.ndarray, theta: np.ndarray, o: np.ndarray, u: np.ndarray
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Board coordinates X, Z of rays (origins o, directions u in {L}) and their directions in
+    {O}, for the rotation ``rot`` of pose ``theta`` (the numpy version's helper)."""
+    d = u @ rot.T
+    oo = o @ rot.T + theta[:3]
+    lam = -oo[:, 1] / d[:, 1]
+    return oo[:, 0] + lam * d[:, 0], oo[:, 2] + lam * d[:, 2], d
+
+
 def residuals_reference(model: rays_mod._Model, theta: np.ndarray) -> np.ndarray:
     """`_Model.residuals` as numpy calls (before the kernel)."""
     rot = rotation(theta[3], theta[4], theta[5])
     o_r, u_r, d_r = model._range
     lam = -(o_r @ rot[1] + theta[1]) / (u_r @ rot[1])
     rr = (d_r - model.offset - lam) / model.sigma_r
-    xh, zh, dh = rays_mod._coords(rot, theta, *model._ubh)
-    xm, zm, _ = rays_mod._coords(rot, theta, *model._ubm)
+    xh, zh, dh = _coords(rot, theta, *model._ubh)
+    xm, zm, _ = _coords(rot, theta, *model._ubm)
     sgn = model._usign
     mid_x = 0.5 * (xh + xm)
     mid_z = 0.5 * (zh + zm)
