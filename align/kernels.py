@@ -267,38 +267,134 @@ _BOUND_SLACK = 1e-9
 
 
 @njit(cache=True)
-def _roll_count(px: np.ndarray, pz: np.ndarray, b: int, xs: np.ndarray, zs: np.ndarray,
+def _project(points: np.ndarray, rows: np.ndarray, b: int, j: int) -> float:
+    """points[j] @ rows[b]: numpy's (points @ rows.T)[j, b] where the BLAS fuses its
+    multiply-adds as OpenBLAS's Haswell kernels do (`_fma`, as `ransac_best`'s distances)."""
+    return _fma(rows[b, 2], points[j, 2], _fma(rows[b, 1], points[j, 1],
+                                               rows[b, 0] * points[j, 0]))
+
+
+@njit(cache=True)
+def _sort_from(points: np.ndarray, rows: np.ndarray, b: int, order: np.ndarray,
+               out: np.ndarray) -> None:
+    """The points' coordinates along ``rows[b]`` sorted ascending into ``out``, starting from
+    the permutation ``order`` (left holding the sorted order): an insertion sort, whose cost
+    is the count of pairs ``order`` has the wrong way round. A neighbouring roll's order has
+    about one per point, where a quicksort of 300 values costs four times more. The same
+    values in the same order as np.sort (the points are finite: returns)."""
+    n = order.shape[0]
+    for i in range(n):
+        out[i] = _project(points, rows, b, order[i])
+    for i in range(1, n):
+        v = out[i]
+        o = order[i]
+        j = i - 1
+        while j >= 0 and out[j] > v:
+            out[j + 1] = out[j]
+            order[j + 1] = order[j]
+            j -= 1
+        out[j + 1] = v
+        order[j + 1] = o
+
+
+@njit(cache=True)
+def _roll_count(points: np.ndarray, r0: np.ndarray, r2: np.ndarray, b: int, src: int,
+                ord_x: np.ndarray, ord_z: np.ndarray, xs: np.ndarray, zs: np.ndarray,
                 len_x: float, len_z: float) -> tuple[int, float, float]:
-    """The count left out of the best window at roll ``b`` and its shifts: column ``b`` of the
-    points' coordinates sorted into the buffers ``xs``, ``zs`` and slid along."""
-    for i in range(len(xs)):
-        xs[i] = px[i, b]
-        zs[i] = pz[i, b]
-    xs.sort()
-    zs.sort()
+    """The count left out of the best window at roll ``b`` and its shifts: the points'
+    coordinates along rows ``b`` of ``r0``, ``r2`` sorted into the buffers ``xs``, ``zs``
+    (from the sorted orders of the evaluated roll ``src``, rows of ``ord_x``, ``ord_z``; row
+    ``b`` gets roll b's) and slid along."""
+    if src != b:
+        ord_x[b] = ord_x[src]
+        ord_z[b] = ord_z[src]
+    _sort_from(points, r0, b, ord_x[b], xs)
+    _sort_from(points, r2, b, ord_z[b], zs)
     cx, sx_ = _slide_sorted(xs, len_x)
     cz, sz_ = _slide_sorted(zs, len_z)
     return 2 * len(xs) - cx - cz, sx_, sz_
 
 
 @njit(cache=True)
-def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray,
-              r2: np.ndarray, len_x: float, len_z: float) -> tuple[int, int, float, float]:
+def _nearest_evaluated(left: np.ndarray, b: int) -> int:
+    """The evaluated roll (``left`` >= 0) nearest ``b``, the lower of two as near; -1 when
+    none is."""
+    k = left.shape[0]
+    for step in range(1, k):
+        if b - step >= 0 and left[b - step] >= 0:
+            return b - step
+        if b + step < k and left[b + step] >= 0:
+            return b + step
+    return -1
+
+
+#: Bins per window length in `_most_within`'s histograms, at `best_roll`'s anchors and at
+#: a roll itself before it is sorted: a bound is at most (bins + 5) / bins of the window long.
+ANCHOR_BINS = 64
+ROLL_BINS = 256
+
+
+@njit(cache=True)
+def _most_within(points: np.ndarray, rows: np.ndarray, a: int, length: float, bins: int,
+                 xs: np.ndarray, hist: np.ndarray) -> int:
+    """An upper bound, without sorting, on the most of the points' coordinates along
+    ``rows[a]`` (into ``xs``) that a window of ``length`` holds: the largest count in as many
+    consecutive bins of a histogram as any such window can reach. Bins of ``length`` /
+    ``bins``: a window meets at most ``bins`` + 2 of them, and a coordinate's bin
+    may be one off by rounding either way (+ 2), one spare. Spread over more bins than
+    ``hist`` has (a stray far off), the exact count of a sorted copy."""
+    n = points.shape[0]
+    lo = math.inf
+    hi = -math.inf
+    for i in range(n):
+        v = _project(points, rows, a, i)
+        xs[i] = v
+        lo = min(lo, v)
+        hi = max(hi, v)
+    w = length / bins
+    span = bins + 5
+    if hi - lo <= (span - 5) * w:
+        return n  # one window holds them all
+    if not hi - lo < (hist.shape[0] - 1) * w:
+        return _count_within(np.sort(xs), length)
+    nb = int((hi - lo) / w) + 1
+    hist[:nb] = 0
+    for i in range(n):
+        hist[min(int((xs[i] - lo) / w), nb - 1)] += 1
+    if nb <= span:
+        return n
+    run = 0
+    for j in range(span):
+        run += hist[j]
+    most = run
+    for j in range(span, nb):
+        run += hist[j] - hist[j - span]
+        most = max(most, run)
+    return most
+
+
+@njit(cache=True)
+def best_roll(points: np.ndarray, r0: np.ndarray, r2: np.ndarray, len_x: float,
+              len_z: float) -> tuple[int, int, float, float]:
     """The roll at which a W x H box leaves out the fewest of a cluster's points:
-    `align.roll_search._left_out` over the rolls (columns of ``px`` = points @ r0.T and ``pz``
-    = points @ r2.T, (n, K)) followed by its argmin, without sorting every column.
+    `align.roll_search._left_out` over the rolls (rows of ``r0``, ``r2``, (K, 3); the points'
+    coordinates points @ r0.T and points @ r2.T, `_project`) followed by its argmin, without
+    projecting and sorting the points at every roll.
 
     Returns (index of the best roll, points left out there, the box's shifts t_x, t_z there),
-    exactly what `_left_out` and `np.argmin` give (the first of equal minima). How: every
-    `ANCHOR_EVERY`-th roll (an anchor) is evaluated. The points a window holds at a roll b lie,
-    at an anchor a, within the window grown by the points' diameter times how far the rows
-    turn between a and b; so that grown window's count at a bounds from below what b leaves
-    out, and each roll takes the larger bound of the two anchors either side. Only the rolls
-    whose bound can beat the least count found (or tie with it at an earlier roll) are then
-    evaluated, most promising first: a board's cluster sorts about 50 of the 2 x 180 columns
-    (the flat bottom of its curve of rolls), not all.
+    exactly what `_left_out` and `np.argmin` give (the first of equal minima). How: at every
+    `ANCHOR_EVERY`-th roll (an anchor) the points a window holds are bounded from above
+    without sorting (`_most_within`). The points a window holds at a roll b lie, at an anchor
+    a, within the window grown by the points' diameter times how far the rows turn between a
+    and b; so that grown window's bound at a bounds from below what b leaves out, and each
+    roll takes the larger bound of the two anchors either side. Only the rolls whose bound
+    can beat the least count found (or tie with it at an earlier roll) are then evaluated,
+    most promising first: a board's cluster sorts a few dozen of the 2 x 180 columns (the flat
+    bottom of its curve of rolls), not all. Each column is sorted from the order of the
+    nearest roll already sorted (`_sort_from`): the rows turn a few degrees between them, and
+    few points change places.
     """
-    n, k = px.shape
+    n, k = points.shape[0], r0.shape[0]
     # radius of the points about their mean: their diameter is at most twice it
     c0 = c1 = c2 = 0.0
     for i in range(n):
@@ -318,13 +414,12 @@ def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray
     lower = np.zeros(k, dtype=np.int64)  # lower bounds of the counts left out
     xs = np.empty(n)
     zs = np.empty(n)
-    least, first = 2 * n + 1, k  # the least count left out so far, and its first roll
+    hist = np.empty(max(n, 4 * ROLL_BINS), dtype=np.int64)
+    # each evaluated roll's sorted orders of the points (rows written when evaluated)
+    ord_x = np.empty((k, n), dtype=np.int64)
+    ord_z = np.empty((k, n), dtype=np.int64)
     grow = diam * (1.0 + _BOUND_SLACK)
     for a in range(0, k, ANCHOR_EVERY):
-        left[a], tx[a], tz[a] = _roll_count(px, pz, a, xs, zs, len_x, len_z)
-        lower[a] = left[a]
-        if left[a] < least:
-            least, first = left[a], a
         # one bound for every roll b less than a block away on either side: the window grown
         # by the most the rows turn between a and any of them (each roll takes the larger of
         # its two anchors' bounds)
@@ -336,24 +431,38 @@ def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray
                 sz += (r2[b, j] - r2[a, j]) ** 2
             turn_x = max(turn_x, math.sqrt(sx))
             turn_z = max(turn_z, math.sqrt(sz))
-        gx = _count_within(xs, len_x + grow * turn_x + _BOUND_SLACK)
-        gz = _count_within(zs, len_z + grow * turn_z + _BOUND_SLACK)
+        gx = _most_within(points, r0, a, len_x + grow * turn_x + _BOUND_SLACK, ANCHOR_BINS,
+                          xs, hist)
+        gz = _most_within(points, r2, a, len_z + grow * turn_z + _BOUND_SLACK, ANCHOR_BINS,
+                          zs, hist)
         for b in range(max(0, a - ANCHOR_EVERY + 1), min(k, a + ANCHOR_EVERY)):
-            if b != a:
-                lower[b] = max(lower[b], 2 * n - gx - gz)
-    # the other rolls, most promising first, while their bound can still beat the least (or
-    # tie with it at an earlier roll: np.argmin's is the first of equal minima)
+            lower[b] = max(lower[b], 2 * n - gx - gz)
+    # the rolls, most promising first, while their bound can still beat the least (or tie
+    # with it at an earlier roll: np.argmin's is the first of equal minima)
+    least, first = 2 * n + 1, k  # the least count left out so far, and its first roll
     for b in np.argsort(lower, kind="mergesort"):
         if lower[b] > least:
             break
-        if left[b] >= 0 or (lower[b] == least and b > first):
+        if lower[b] == least and b > first:
             continue
-        left[b], tx[b], tz[b] = _roll_count(px, pz, b, xs, zs, len_x, len_z)
+        # the roll's own bound (finer, no turn) spares most of the sorts the anchors' allow
+        own = 2 * n - _most_within(points, r0, b, len_x + _BOUND_SLACK, ROLL_BINS, xs, hist) \
+            - _most_within(points, r2, b, len_z + _BOUND_SLACK, ROLL_BINS, zs, hist)
+        if own > least or (own == least and b > first):
+            continue
+        src = _nearest_evaluated(left, b)
+        if src < 0:  # the first: a full sort
+            for i in range(n):
+                xs[i] = _project(points, r0, b, i)
+                zs[i] = _project(points, r2, b, i)
+            ord_x[b] = np.argsort(xs)
+            ord_z[b] = np.argsort(zs)
+            src = b
+        left[b], tx[b], tz[b] = _roll_count(points, r0, r2, b, src, ord_x, ord_z, xs, zs,
+                                            len_x, len_z)
         if left[b] < least or (left[b] == least and b < first):
             least, first = left[b], b
-    if first < k:
-        return first, least, tx[first], tz[first]
-    return 0, left[0], tx[0], tz[0]  # not reached: the least is an evaluated roll's
+    return first, least, tx[first], tz[first]
 
 
 @njit(cache=True)

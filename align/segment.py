@@ -247,7 +247,7 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     # `roll_search._left_out` and its argmin, sorting only the rolls that can be the best
     r0s, r2s = _rows(rolls, n)
     best, left_best, tx_best, tz_best = best_roll(
-        p @ r0s.T, p @ r2s.T, p, r0s, r2s, board.width + 2 * grow, board.height + 2 * grow)
+        p, r0s, r2s, board.width + 2 * grow, board.height + 2 * grow)
     held = float(1.0 - left_best / (2 * len(p)))
     # the rays around the cluster (its rings, its azimuths and a board's width more), found in
     # one pass over the scan's azimuths and lasers
