@@ -233,11 +233,11 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     a larger surface that the clustering cut out: a door in a wall). Rays without a return, or
     with one in front, count for none: a dark patch, an occluder."""
     from align.feasible import _rows
-    from align.kernels import best_roll, near_rays
+    from align.kernels import best_roll, rectangle_rays
     from align.plane import fit_lsq
     from align.roll_search import COARSE_STEP, TOLERANCE, _subsample
 
-    points = scan.xyz[sel]
+    points = np.column_stack((scan.x[sel], scan.y[sel], scan.z[sel]))  # not all of Scan.xyz
     if len(points) < 3:
         return 0.0, 0.0, 0.0
     n, d = fit_lsq(points)
@@ -249,43 +249,23 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     best, left_best, tx_best, tz_best = best_roll(
         p, r0s, r2s, board.width + 2 * grow, board.height + 2 * grow)
     held = float(1.0 - left_best / (2 * len(p)))
-    # the rays around the cluster (its rings, its azimuths and a board's width more), found in
-    # one pass over the scan's azimuths and lasers
-    az = scan.azimuth
-    az0 = float(np.angle(np.mean(np.exp(1j * az[sel]))))
-    span = float(np.abs(_unwrap(az[sel], az0)).max() + board.diagonal / max(d, 0.5))
-    ring_of_laser = np.asarray(scan.lasers.ring_of_laser, np.int64)
-    ring_sel = ring_of_laser[scan.laser_id[sel]]
-    near = near_rays(az, scan.laser_id, ring_of_laser, az0, span, int(ring_sel.min()),
-                     int(ring_sel.max()))
-    # their rays, as `Scan.directions` and `Scan.origins` make them (the same operations)
-    lid = scan.laser_id[near]
-    el = scan.lasers.elevation[lid]
-    az_near = az[near]
-    ce = np.cos(el)
-    u = np.column_stack((ce * np.sin(az_near), ce * np.cos(az_near), np.sin(el)))
-    o = np.zeros((len(near), 3))
-    if scan.vertical_offsets_applied:
-        o[:, 2] = scan.lasers.vertical_offset[lid]
-    un = u @ n
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (d - o @ n) / un
-    q = o + lam[:, None] * u
+    # the rays around the cluster (its rings, its azimuths and a board's width more), met with
+    # its plane and counted in one pass over the scan's azimuths and lasers
+    az0 = float(np.angle(np.mean(np.exp(1j * scan.azimuth[sel]))))
+    lasers = scan.lasers
+    offset_z = lasers.vertical_offset if scan.vertical_offsets_applied else np.zeros(
+        lasers.n_lasers)
     r0, r2 = _rows(rolls[best:best + 1], n)
-    x, z = q @ r0[0] + tx_best, q @ r2[0] + tz_best
-    inside = (lam > 0) & (np.abs(x) < board.width / 2 - FILL_MARGIN) & (
-        np.abs(z) < board.height / 2 - FILL_MARGIN)
-    dist = scan.distance[near]
-    ret = (lam > 0) & (dist > 0)
-    on_plane = ret & (np.abs(dist - lam) <= FLAT_BAND)
+    n_on, n_off, n_band, n_band_on = rectangle_rays(
+        scan.azimuth, scan.laser_id, scan.distance, lasers.elevation, offset_z,
+        lasers.ring_of_laser, sel, az0, board.diagonal / max(d, 0.5), n, d, r0[0], r2[0],
+        tx_best, tz_best, board.width / 2, board.height / 2, FILL_MARGIN, FLAT_BAND,
+        SURROUND[0], SURROUND[1])
     # a return off the plane inside the rectangle, behind it or in front, is a ray the
     # candidate does not explain: a box whose visible part holds a board-sized rectangle only
     # where the rest of that rectangle would be hidden by the board in front, or by the floor
-    n_on, n_off = int(np.sum(inside & on_plane)), int(np.sum(inside & ret & ~on_plane))
     fill = n_on / (n_on + n_off) if n_on + n_off else 0.0
-    beyond = np.maximum(np.abs(x) - board.width / 2, np.abs(z) - board.height / 2)
-    band = ret & (beyond > SURROUND[0]) & (beyond < SURROUND[1])
-    free = 1.0 - float(np.sum(band & on_plane)) / max(int(band.sum()), 1)
+    free = 1.0 - float(n_band_on) / max(n_band, 1)
     return held, fill, free
 
 

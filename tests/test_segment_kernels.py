@@ -190,7 +190,7 @@ def test_grid_clusters_match_the_numpy_reference_on_real_scans(real_scans):
 
 def rectangle_fit_reference(scan: Scan, sel: np.ndarray, board: BoardSpec
                   ) -> tuple[float, float, float]:
-    """`segment.rectangle_fit` before its compiled parts (`best_roll`, `near_rays`)."""
+    """`segment.rectangle_fit` before its compiled parts (`best_roll`, `rectangle_rays`)."""
     from align.feasible import _rows
     from align.plane import fit_lsq
     from align.roll_search import COARSE_STEP, TOLERANCE, _left_out, _subsample
@@ -334,6 +334,6 @@ def test_the_warm_up_compiles_every_estimator_kernel():
     warm_up()
     public = {name: f for name, f in vars(kernels).items()
               if isinstance(f, CPUDispatcher) and not name.startswith("_")}
-    assert {"grid_clusters", "best_roll", "near_rays", "ransac_best", "fit_residuals",
+    assert {"grid_clusters", "best_roll", "rectangle_rays", "ransac_best", "fit_residuals",
             "fit_jacobian"} <= set(public)
     assert [name for name, f in public.items() if not f.signatures] == []
