@@ -380,7 +380,7 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
         for _ in range(PLANES_PER_CLUSTER):
             if len(rest) < 3 or len(rest) < MIN_FRACTION * expect[lab]:
                 break  # what is left cannot be the board
-            on = planar_part(scan.xyz[rest], rng)
+            on = planar_part(np.column_stack((scan.x[rest], scan.y[rest], scan.z[rest])), rng)
             sel, rest = rest[on], rest[~on]
             found = _board_score(scan, sel, board, float(expect[lab]))
             if found is not None and (best is None or found > best[0]):
