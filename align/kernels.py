@@ -651,24 +651,27 @@ def fit_jacobian(theta: np.ndarray, rots: np.ndarray, f0: np.ndarray, o_r: np.nd
 
 
 @njit(cache=True)
-def ransac_best(points: np.ndarray, tri: np.ndarray, threshold: float
+def ransac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
                 ) -> tuple[int, np.ndarray]:
     """The index and the inliers (distance under ``threshold``, m) of the hypothesis with the
     most of them (the first of equal counts) among the planes through the point triples
-    ``tri`` (H, 3); degenerate triples are skipped. `align.plane.ransac`'s scoring, term by
-    term in its order: np.cross, einsum's (x0 y0 + x2 y2) + x1 y1 for the norms and offsets,
-    the distance matrix's fused sums (`_fma`). Index -1 when every triple is degenerate."""
-    n_pts = points.shape[0]
+    ``tri`` (H, 3) of the points ``xyz`` (3, N: rows x, y, z, so that the loop over the
+    points runs on contiguous rows, four at a time); degenerate triples are skipped.
+    `align.plane.ransac`'s scoring, term by term in its order: np.cross, einsum's (x0 y0 + x2
+    y2) + x1 y1 for the norms and offsets, the distance matrix's fused sums (`_fma`). Index -1
+    when every triple is degenerate."""
+    px, py, pz = xyz[0], xyz[1], xyz[2]
+    n_pts = px.shape[0]
     best, best_count = -1, -1
     bn0 = bn1 = bn2 = bd = 0.0
     for h in range(tri.shape[0]):
         i0, i1, i2 = tri[h, 0], tri[h, 1], tri[h, 2]
-        a0 = points[i1, 0] - points[i0, 0]
-        a1 = points[i1, 1] - points[i0, 1]
-        a2 = points[i1, 2] - points[i0, 2]
-        b0 = points[i2, 0] - points[i0, 0]
-        b1 = points[i2, 1] - points[i0, 1]
-        b2 = points[i2, 2] - points[i0, 2]
+        a0 = px[i1] - px[i0]
+        a1 = py[i1] - py[i0]
+        a2 = pz[i1] - pz[i0]
+        b0 = px[i2] - px[i0]
+        b1 = py[i2] - py[i0]
+        b2 = pz[i2] - pz[i0]
         c0 = a1 * b2 - a2 * b1
         c1 = a2 * b0 - a0 * b2
         c2 = a0 * b1 - a1 * b0
@@ -676,21 +679,29 @@ def ransac_best(points: np.ndarray, tri: np.ndarray, threshold: float
         if not norm > 1e-9:
             continue
         c0, c1, c2 = c0 / norm, c1 / norm, c2 / norm
-        d = (c0 * points[i0, 0] + c2 * points[i0, 2]) + c1 * points[i0, 1]
+        d = (c0 * px[i0] + c2 * pz[i0]) + c1 * py[i0]
         count = 0
-        for i in range(n_pts):
-            r = _fma(c2, points[i, 2], _fma(c1, points[i, 1], c0 * points[i, 0])) - d
-            if abs(r) < threshold:
-                count += 1
+        for i in range(n_pts):  # branch-free, so that it vectorises
+            count += abs(_fma(c2, pz[i], _fma(c1, py[i], c0 * px[i])) - d) < threshold
         if count > best_count:
             best, best_count = h, count
             bn0, bn1, bn2, bd = c0, c1, c2, d
     out = np.zeros(n_pts, dtype=np.bool_)
     if best >= 0:
         for i in range(n_pts):
-            r = _fma(bn2, points[i, 2], _fma(bn1, points[i, 1], bn0 * points[i, 0])) - bd
-            out[i] = abs(r) < threshold
+            out[i] = abs(_fma(bn2, pz[i], _fma(bn1, py[i], bn0 * px[i])) - bd) < threshold
     return best, out
+
+
+@njit(cache=True)
+def plane_band(xyz: np.ndarray, n: np.ndarray, d: float, threshold: float) -> np.ndarray:
+    """np.abs(points @ n - d) < threshold for the points ``xyz`` (3, N: rows x, y, z), the
+    product as numpy's BLAS computes it (`_gemv3`)."""
+    px, py, pz = xyz[0], xyz[1], xyz[2]
+    out = np.empty(px.shape[0], dtype=np.bool_)
+    for i in range(px.shape[0]):
+        out[i] = abs(_gemv3(px[i], py[i], pz[i], n[0], n[1], n[2]) - d) < threshold
+    return out
 
 
 def ransac(points: np.ndarray, threshold: float, rng: np.random.Generator,
@@ -704,10 +715,9 @@ def ransac(points: np.ndarray, threshold: float, rng: np.random.Generator,
     if n_pts < 3:
         raise ValueError("a plane needs at least 3 points")
     tri = rng.integers(0, n_pts, size=(iterations, 3))
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    best, inl = ransac_best(pts, tri, float(threshold))
+    xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64).T)
+    best, inl = ransac_best(xyz, tri, float(threshold))
     if best < 0:  # plane.ransac's np.argmax of no hypothesis
         raise ValueError("attempt to get argmax of an empty sequence")
     n, d = fit_lsq(points[inl])
-    return n, d, np.abs(points @ n - d) < threshold
-
+    return n, d, plane_band(xyz, n, float(d), float(threshold))

@@ -334,6 +334,6 @@ def test_the_warm_up_compiles_every_estimator_kernel():
     warm_up()
     public = {name: f for name, f in vars(kernels).items()
               if isinstance(f, CPUDispatcher) and not name.startswith("_")}
-    assert {"grid_clusters", "best_roll", "rectangle_rays", "ransac_best", "fit_residuals",
-            "fit_jacobian"} <= set(public)
+    assert {"grid_clusters", "best_roll", "rectangle_rays", "ransac_best", "plane_band",
+            "fit_residuals", "fit_jacobian"} <= set(public)
     assert [name for name, f in public.items() if not f.signatures] == []
