@@ -115,36 +115,40 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
     n_run = 0
     prev = -1
     last_return = -1  # the last firing before f with a return of any kind (in ok or not)
-    for f in range(nf):
-        lz = f // m
-        i = k0 + (f - lz * m) * nl + lz
-        if okf[f]:
-            link = False
-            if prev >= 0 and prev // m == lz:
-                ip = k0 + (prev - lz * m) * nl + lz
-                dx = x[i] - x[ip]
-                dy = y[i] - y[ip]
-                dz = z[i] - z[ip]
-                d2 = dx * dx + dy * dy + dz * dz
-                ta, tb = thr[prev], thr[f]
-                t2 = tb if tb < ta else ta
-                if f - prev == 1:
-                    link = d2 < t2
-                elif last_return <= prev:
-                    dd = dist[i] - dist[ip]
-                    reach = t2 if t2 > bridge2 else bridge2
-                    link = dd * dd < t2 and d2 < reach
-            if not link:
-                run_start[n_run] = f
-                n_run += 1
-            r = n_run - 1
-            run[f] = r
-            run_count[r] += 1.0
-            run_dsum[r] += dist[i]
-            run_end[r] = f
-            prev = f
-        if dist[i] > 0:
-            last_return = f
+    prev_lz = -1  # the laser of prev
+    # f = lz * m + s, in that order (nested loops: no integer division per firing)
+    for lz in range(nl):
+        for s in range(m):
+            f = lz * m + s
+            i = k0 + s * nl + lz
+            if okf[f]:
+                link = False
+                if prev >= 0 and prev_lz == lz:
+                    ip = k0 + (prev - lz * m) * nl + lz
+                    dx = x[i] - x[ip]
+                    dy = y[i] - y[ip]
+                    dz = z[i] - z[ip]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    ta, tb = thr[prev], thr[f]
+                    t2 = tb if tb < ta else ta
+                    if f - prev == 1:
+                        link = d2 < t2
+                    elif last_return <= prev:
+                        dd = dist[i] - dist[ip]
+                        reach = t2 if t2 > bridge2 else bridge2
+                        link = dd * dd < t2 and d2 < reach
+                if not link:
+                    run_start[n_run] = f
+                    n_run += 1
+                r = n_run - 1
+                run[f] = r
+                run_count[r] += 1.0
+                run_dsum[r] += dist[i]
+                run_end[r] = f
+                prev = f
+                prev_lz = lz
+            if dist[i] > 0:
+                last_return = f
     # a run longer than the board joins nothing (the floor's ring, a wall)
     two_pi = 2 * np.pi
     long_run = np.zeros(n_run, dtype=np.bool_)
@@ -218,10 +222,11 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
             if ring_hit[c, k]:
                 rings[c] += 1
     labels = np.full(n, -1, dtype=np.int64)
-    for f in range(nf):
-        if run[f] >= 0:
-            lz = f // m
-            labels[k0 + (f - lz * m) * nl + lz] = comp[run[f]]
+    for lz in range(nl):
+        for s in range(m):
+            r = run[lz * m + s]
+            if r >= 0:
+                labels[k0 + s * nl + lz] = comp[r]
     return labels, count, distance, rings
 
 
