@@ -726,3 +726,74 @@ def ransac(points: np.ndarray, threshold: float, rng: np.random.Generator,
         raise ValueError("attempt to get argmax of an empty sequence")
     n, d = fit_lsq(points[inl])
     return n, d, plane_band(xyz, n, float(d), float(threshold))
+
+
+@njit(cache=True)
+def in_ring_block(rings: np.ndarray, counted: np.ndarray) -> np.ndarray:
+    """Which of the returns on ``rings`` lie on the `align.segment.consecutive_ring_block` of
+    the rings of those ``counted``: np.isin(rings, consecutive_ring_block(rings[counted])),
+    in one pass and a loop over the rings (the same integer counts, the same threshold, the
+    first of equally large blocks)."""
+    top = -1
+    for k in range(rings.shape[0]):
+        if counted[k]:
+            top = max(top, int(rings[k]))
+    per_ring = np.zeros(top + 1, dtype=np.int64)
+    for k in range(rings.shape[0]):
+        if counted[k]:
+            per_ring[rings[k]] += 1
+    most = 0
+    for r in range(top + 1):
+        most = max(most, per_ring[r])
+    limit = 0.25 * most
+    best_lo, best_hi, best_sum = 0, -1, -1  # the block best_lo .. best_hi, none yet
+    lo, total = -1, 0
+    for r in range(top + 2):
+        if r <= top and per_ring[r] >= limit:
+            if lo < 0:
+                lo, total = r, 0
+            total += per_ring[r]
+        elif lo >= 0:
+            if total > best_sum:
+                best_lo, best_hi, best_sum = lo, r - 1, total
+            lo = -1
+    out = np.empty(rings.shape[0], dtype=np.bool_)
+    for k in range(rings.shape[0]):
+        out[k] = best_lo <= rings[k] <= best_hi
+    return out
+
+
+@njit(cache=True)
+def corner_points(points: np.ndarray, n: np.ndarray, d: float, h: np.ndarray, v: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """`align.paper.feature_points` after its plane axes ``h``, ``v``: the points (N, 3)
+    projected onto the plane ``n``, ``d``, and per corner of their bounding rectangle along
+    h, v (top-left, top-right, bottom-left, bottom-right) the projected point nearest it
+    (the first of equally near). Returns (those four projected points (4, 3), their indices).
+    numpy's operations element by element (the matrix-vector products as `_gemv3`)."""
+    k = points.shape[0]
+    proj = np.empty((k, 3))
+    u = np.empty(k)
+    w = np.empty(k)
+    for i in range(k):
+        r = _gemv3(points[i, 0], points[i, 1], points[i, 2], n[0], n[1], n[2]) - d
+        for j in range(3):
+            proj[i, j] = points[i, j] - r * n[j]
+        u[i] = _gemv3(proj[i, 0], proj[i, 1], proj[i, 2], h[0], h[1], h[2])
+        w[i] = _gemv3(proj[i, 0], proj[i, 1], proj[i, 2], v[0], v[1], v[2])
+    u_lo, u_hi, w_lo, w_hi = u.min(), u.max(), w.min(), w.max()
+    cu = (u_lo, u_hi, u_lo, u_hi)
+    cw = (w_hi, w_hi, w_lo, w_lo)
+    idx = np.zeros(4, dtype=np.int64)
+    feat = np.empty((4, 3))
+    for c in range(4):
+        best = math.inf
+        for i in range(k):
+            du = u[i] - cu[c]
+            dw = w[i] - cw[c]
+            e = du * du + dw * dw
+            if e < best:
+                best = e
+                idx[c] = i
+        feat[c] = proj[idx[c]]
+    return feat, idx

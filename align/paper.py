@@ -34,7 +34,7 @@ from align import kernels, plane
 from align.board import BoardSpec
 from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
-from align.segment import consecutive_ring_block, on_board_rings
+from align.segment import on_board_rings
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 
@@ -58,14 +58,12 @@ def feature_points(points: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndar
     """The four feature beam points (paper III-B): projected points closest to the corners.
 
     Returns the projected points (4, 3) in the paper's corner order (TL, TR, BL, BR) and their
-    indices into ``points``.
+    indices into ``points``. Compiled (`align.kernels.corner_points`: the projection, the
+    bounding rectangle and the four nearest points in one pass, numpy's operations).
     """
-    proj = points - np.outer(points @ n - d, n)
     h, v = plane_axes(n)
-    u, w = proj @ h, proj @ v
-    corners_uv = [(u.min(), w.max()), (u.max(), w.max()), (u.min(), w.min()), (u.max(), w.min())]
-    idx = np.array([int(np.argmin((u - cu) ** 2 + (w - cw) ** 2)) for cu, cw in corners_uv])
-    return proj[idx], idx
+    return kernels.corner_points(np.ascontiguousarray(points, dtype=np.float64),
+                                 np.asarray(n, dtype=np.float64), float(d), h, v)
 
 
 def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
@@ -145,7 +143,7 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
     # front of the board, within the RANSAC band) lights up a ring below a gap; keep the
     # consecutive block of rings with the most inliers
     ring = scan.lasers.ring_of_laser[scan.laser_id[pts_idx]]  # (Scan.ring maps every firing)
-    inl &= np.isin(ring, consecutive_ring_block(ring[inl]))
+    inl &= kernels.in_ring_block(ring, inl)  # `segment.consecutive_ring_block` of the inliers
     rings = np.unique(ring[inl])
     if len(rings) < 3:
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=len(rings),

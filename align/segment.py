@@ -421,8 +421,10 @@ def on_board_rings(scan: Scan, idx: np.ndarray) -> np.ndarray:
     deg), which also reaches a stand's face a ring or two below the board, coplanar within
     the plane fit's band: methods that fit a plane to every return (the paper's, ICP) must
     leave it out first or it tilts their plane by tenths of a degree."""
+    from align.kernels import in_ring_block  # np.isin(ring, consecutive_ring_block(ring))
+
     ring = scan.lasers.ring_of_laser[scan.laser_id[idx]]  # (Scan.ring maps every firing)
-    return idx[np.isin(ring, consecutive_ring_block(ring))]
+    return idx[in_ring_block(ring, np.ones(len(ring), dtype=np.bool_))]
 
 
 def consecutive_ring_block(rings: np.ndarray) -> list[int]:

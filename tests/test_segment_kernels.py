@@ -335,5 +335,61 @@ def test_the_warm_up_compiles_every_estimator_kernel():
     public = {name: f for name, f in vars(kernels).items()
               if isinstance(f, CPUDispatcher) and not name.startswith("_")}
     assert {"grid_clusters", "best_roll", "rectangle_rays", "ransac_best", "plane_band",
-            "fit_residuals", "fit_jacobian"} <= set(public)
+            "in_ring_block", "corner_points", "fit_residuals", "fit_jacobian"} <= set(public)
     assert [name for name, f in public.items() if not f.signatures] == []
+
+
+def test_in_ring_block_is_isin_of_the_consecutive_ring_block():
+    """`kernels.in_ring_block` against np.isin of `segment.consecutive_ring_block` (the board's
+    rings for `on_board_rings` and the paper's method): random ring lists with gaps, ties
+    between blocks, nothing counted, and the real clusters' rings."""
+    from align.kernels import in_ring_block
+
+    rng = np.random.default_rng(21)
+    cases = []
+    for _ in range(300):
+        k = int(rng.integers(0, 60))
+        rings = rng.choice(rng.permutation(16)[:int(rng.integers(1, 17))], size=k).astype(
+            np.uint8)
+        cases.append((rings, rng.random(k) < rng.uniform(0.3, 1.0)))
+    cases.append((np.array([0, 0, 2, 2, 5], dtype=np.uint8), np.ones(5, dtype=bool)))  # a tie
+    cases.append((np.array([3, 4], dtype=np.uint8), np.zeros(2, dtype=bool)))
+    for rings, counted in cases:
+        want = np.isin(rings, segment.consecutive_ring_block(rings[counted]))
+        np.testing.assert_array_equal(in_ring_block(rings, counted), want)
+
+
+def feature_points_reference(points: np.ndarray, n: np.ndarray, d: float
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """`paper.feature_points` as numpy calls (the version before `kernels.corner_points`)."""
+    from align.paper import plane_axes
+
+    proj = points - np.outer(points @ n - d, n)
+    h, v = plane_axes(n)
+    u, w = proj @ h, proj @ v
+    corners_uv = [(u.min(), w.max()), (u.max(), w.max()), (u.min(), w.min()), (u.max(), w.min())]
+    idx = np.array([int(np.argmin((u - cu) ** 2 + (w - cw) ** 2)) for cu, cw in corners_uv])
+    return proj[idx], idx
+
+
+def test_corner_points_match_the_numpy_reference_on_real_clusters(real_scans):
+    """The paper's feature points from the compiled pass equal the numpy version's bit for bit
+    (the same points, the same projections) on every real cluster's main plane, and on a few
+    of its points."""
+    from align import kernels
+    from align.paper import feature_points
+
+    compared = 0
+    for scan, board, hints in real_scans:
+        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+                                     min(board.width, board.height))
+        for lab in np.flatnonzero(st["count"] >= 10):
+            pts = scan.xyz[labels == lab]
+            n, d, inl = kernels.ransac(pts, 0.03, np.random.default_rng(0), 50)
+            for sub in (pts[inl], pts[inl][:4], pts[::3]):
+                want_p, want_i = feature_points_reference(sub, n, d)
+                got_p, got_i = feature_points(sub, n, d)
+                np.testing.assert_array_equal(got_i, want_i)
+                np.testing.assert_array_equal(got_p, want_p)
+                compared += 1
+    assert compared > 100
