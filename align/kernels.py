@@ -797,3 +797,50 @@ def corner_points(points: np.ndarray, n: np.ndarray, d: float, h: np.ndarray, v:
                 idx[c] = i
         feat[c] = proj[idx[c]]
     return feat, idx
+
+
+@njit(cache=True)
+def _rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
+    """`align.geometry.rotation`, the same expressions."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    ct, st = math.cos(tilt), math.sin(tilt)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    syst, cyst = sy * st, cy * st
+    r = np.empty((3, 3))
+    r[0, 0], r[0, 1], r[0, 2] = cy * cr - syst * sr, -sy * ct, cy * sr + syst * cr
+    r[1, 0], r[1, 1], r[1, 2] = sy * cr + cyst * sr, cy * ct, sy * sr - cyst * cr
+    r[2, 0], r[2, 1], r[2, 2] = -ct * sr, st, ct * cr
+    return r
+
+
+@njit(cache=True)
+def corner_residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
+    """`align.paper._residuals`: (p_o - (p_l @ R.T + t)).ravel() for beta = (x, y, z, roll,
+    tilt, yaw), the matrix product as numpy's BLAS sums it (fused, x term first)."""
+    r = _rotation(beta[3], beta[4], beta[5])
+    k = p_l.shape[0]
+    out = np.empty(3 * k)
+    for i in range(k):
+        for j in range(3):
+            m = _fma(r[j, 2], p_l[i, 2], _fma(r[j, 1], p_l[i, 1], r[j, 0] * p_l[i, 0]))
+            out[3 * i + j] = p_o[i, j] - (m + beta[j])
+    return out
+
+
+@njit(cache=True)
+def corner_jacobian(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
+    """`align.paper._jacobian`: -I per point for the translation (its zeros -0.0, as np.tile
+    of -np.eye), forward differences of 1e-7 rad for the angles."""
+    k = p_l.shape[0]
+    j = np.empty((3 * k, 6))
+    for i in range(3 * k):
+        for c in range(3):
+            j[i, c] = -1.0 if i % 3 == c else -0.0
+    f0 = corner_residuals(beta, p_l, p_o)
+    for c in range(3, 6):
+        b = beta.copy()
+        b[c] += 1e-7
+        f = corner_residuals(b, p_l, p_o)
+        for i in range(3 * k):
+            j[i, c] = (f[i] - f0[i]) / 1e-7
+    return j

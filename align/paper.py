@@ -32,7 +32,6 @@ import numpy as np
 
 from align import kernels, plane
 from align.board import BoardSpec
-from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
 from align.segment import on_board_rings
 from twin.core.pose import Pose
@@ -83,19 +82,15 @@ def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
 
 
 def _residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
-    r = rotation(beta[3], beta[4], beta[5])
-    return (p_o - (p_l @ r.T + beta[:3])).ravel()
+    """The corners' residuals p_o - (R p_l + t), flattened (`align.kernels.corner_residuals`:
+    the numpy expression's values, without its dozen calls' overhead)."""
+    return kernels.corner_residuals(np.asarray(beta, dtype=np.float64), p_l, p_o)
 
 
 def _jacobian(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
-    j = np.empty((p_l.size, 6))
-    j[:, :3] = np.tile(-np.eye(3), (len(p_l), 1))
-    f0 = _residuals(beta, p_l, p_o)
-    for k in range(3, 6):
-        b = beta.copy()
-        b[k] += 1e-7
-        j[:, k] = (_residuals(b, p_l, p_o) - f0) / 1e-7
-    return j
+    """d `_residuals` / d beta: -I for the translation, forward differences of 1e-7 rad for
+    the angles (`align.kernels.corner_jacobian`)."""
+    return kernels.corner_jacobian(np.asarray(beta, dtype=np.float64), p_l, p_o)
 
 
 def levenberg_marquardt(

@@ -335,7 +335,8 @@ def test_the_warm_up_compiles_every_estimator_kernel():
     public = {name: f for name, f in vars(kernels).items()
               if isinstance(f, CPUDispatcher) and not name.startswith("_")}
     assert {"grid_clusters", "best_roll", "rectangle_rays", "ransac_best", "plane_band",
-            "in_ring_block", "corner_points", "fit_residuals", "fit_jacobian"} <= set(public)
+            "in_ring_block", "corner_points", "corner_residuals", "corner_jacobian",
+            "fit_residuals", "fit_jacobian"} <= set(public)
     assert [name for name, f in public.items() if not f.signatures] == []
 
 
@@ -393,3 +394,37 @@ def test_corner_points_match_the_numpy_reference_on_real_clusters(real_scans):
                 np.testing.assert_array_equal(got_p, want_p)
                 compared += 1
     assert compared > 100
+
+
+def test_corner_residuals_and_jacobian_match_numpy():
+    """The paper's corner residuals and their Jacobian (`kernels.corner_residuals`,
+    `corner_jacobian`) equal the numpy expressions they replaced, bit for bit, at random poses
+    and corner sets (as the Levenberg-Marquardt of `paper.levenberg_marquardt` meets them)."""
+    from align.geometry import rotation
+    from align.kernels import corner_jacobian, corner_residuals
+
+    def residuals(beta, p_l, p_o):
+        r = rotation(beta[3], beta[4], beta[5])
+        return (p_o - (p_l @ r.T + beta[:3])).ravel()
+
+    def jacobian(beta, p_l, p_o):
+        j = np.empty((p_l.size, 6))
+        j[:, :3] = np.tile(-np.eye(3), (len(p_l), 1))
+        f0 = residuals(beta, p_l, p_o)
+        for k in range(3, 6):
+            b = beta.copy()
+            b[k] += 1e-7
+            j[:, k] = (residuals(b, p_l, p_o) - f0) / 1e-7
+        return j
+
+    rng = np.random.default_rng(22)
+    p_o = align.BoardSpec().corners()
+    for _ in range(300):
+        beta = np.concatenate((rng.normal(0, 1, 3), rng.normal(0, 0.2, 3)))
+        p_l = rng.normal(0, 1, (4, 3)) + np.array([0.0, 2.5, 0.0])
+        np.testing.assert_array_equal(corner_residuals(beta, p_l, p_o),
+                                      residuals(beta, p_l, p_o))
+        want = jacobian(beta, p_l, p_o)
+        got = corner_jacobian(beta, p_l, p_o)
+        np.testing.assert_array_equal(got, want)
+        assert np.array_equal(np.signbit(got), np.signbit(want))
