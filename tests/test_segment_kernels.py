@@ -428,3 +428,21 @@ def test_corner_residuals_and_jacobian_match_numpy():
         got = corner_jacobian(beta, p_l, p_o)
         np.testing.assert_array_equal(got, want)
         assert np.array_equal(np.signbit(got), np.signbit(want))
+
+
+def test_rel_azimuth_is_unwrap_bit_for_bit():
+    """The compiled pass's relative azimuth (`kernels._rel_azimuth`, its remainder's shortcuts)
+    against `segment._unwrap`, on random azimuths and centres and at the shortcuts' edges."""
+    from align.kernels import _rel_azimuth
+
+    rng = np.random.default_rng(23)
+    two_pi = 2 * np.pi
+    edges = np.array([0.0, two_pi, 2 * two_pi, -two_pi]) - np.pi
+    az = np.concatenate((rng.uniform(-10, 20, 3000), rng.uniform(0, two_pi, 3000),
+                         np.nextafter(edges, np.inf), np.nextafter(edges, -np.inf), edges))
+    for centre in (*rng.uniform(-np.pi, np.pi, 5), 0.0, np.pi, -np.pi):
+        want = _unwrap(az, centre)
+        taken = np.zeros(1, dtype=np.int64)
+        got = np.array([_rel_azimuth(a, centre, taken) for a in az])
+        assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
+        assert 0 < taken[0] < len(az) // 2  # the remainder only outside the shortcuts
