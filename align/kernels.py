@@ -868,3 +868,34 @@ def corner_jacobian(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.nd
         for i in range(3 * k):
             j[i, c] = (f[i] - f0[i]) / 1e-7
     return j
+
+
+@njit(cache=True)
+def cluster_members(labels: np.ndarray, cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The firings of the candidate clusters (``cand`` per label; label -1: none), grouped by
+    label in increasing order and in scan order within each: (firings, bounds), the k-th
+    candidate's firings firings[bounds[k]:bounds[k + 1]]. A counting sort in two passes:
+    `align.segment.find_board`'s stable argsort of the labels and its searchsorted, without
+    the whole-scan gathers."""
+    n_lab = cand.shape[0]
+    slot = np.full(n_lab, -1, dtype=np.int64)  # label -> its rank among the candidates
+    n_cand = 0
+    for lab in range(n_lab):
+        if cand[lab]:
+            slot[lab] = n_cand
+            n_cand += 1
+    bounds = np.zeros(n_cand + 1, dtype=np.int64)
+    for i in range(labels.shape[0]):
+        lab = labels[i]
+        if lab >= 0 and slot[lab] >= 0:
+            bounds[slot[lab] + 1] += 1
+    for k in range(n_cand):
+        bounds[k + 1] += bounds[k]
+    fill = bounds[:-1].copy()
+    firings = np.empty(bounds[n_cand], dtype=np.int64)
+    for i in range(labels.shape[0]):
+        lab = labels[i]
+        if lab >= 0 and slot[lab] >= 0:
+            firings[fill[slot[lab]]] = i
+            fill[slot[lab]] += 1
+    return firings, bounds

@@ -338,6 +338,8 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     returns (`planar_part`). A board-like candidate beyond ``hints.max_distance`` gives
     ``board_too_far``.
     """
+    from align.kernels import cluster_members
+
     empty = np.zeros(0, dtype=np.int64)
     valid = scan.valid
     if len(scan) == 0 or not np.any(valid):
@@ -362,12 +364,9 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     score = np.zeros(len(dist))
     # the rest of the paper's criteria for the few clusters left: size and reflectivity
     ids = np.flatnonzero(cand)
-    is_cand = np.zeros(len(dist) + 1, dtype=bool)
-    is_cand[ids + 1] = True  # labels start at -1
-    idx = np.flatnonzero(is_cand[labels + 1])
-    idx = idx[np.argsort(labels[idx], kind="stable")]
-    bounds = np.searchsorted(labels[idx], np.append(ids, len(dist)))
-    members = {}  # candidate label -> its firings, in scan order (the sort is stable)
+    # the candidates' firings, label by label
+    idx, bounds = cluster_members(np.asarray(labels, dtype=np.int64), cand)
+    members = {}  # candidate label -> its firings, in scan order
     rng = np.random.default_rng(hints.seed)
     for k, lab in enumerate(ids):
         # The cluster's planes, largest first (RANSAC, then again on what is left): the

@@ -336,7 +336,7 @@ def test_the_warm_up_compiles_every_estimator_kernel():
               if isinstance(f, CPUDispatcher) and not name.startswith("_")}
     assert {"grid_clusters", "best_roll", "rectangle_rays", "ransac_best", "plane_band",
             "in_ring_block", "corner_points", "corner_residuals", "corner_jacobian",
-            "fit_residuals", "fit_jacobian"} <= set(public)
+            "cluster_members", "fit_residuals", "fit_jacobian"} <= set(public)
     assert [name for name, f in public.items() if not f.signatures] == []
 
 
@@ -446,3 +446,24 @@ def test_rel_azimuth_is_unwrap_bit_for_bit():
         got = np.array([_rel_azimuth(a, centre, taken) for a in az])
         assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
         assert 0 < taken[0] < len(az) // 2  # the remainder only outside the shortcuts
+
+
+def test_cluster_members_match_the_stable_argsort_on_real_scans(real_scans):
+    """`kernels.cluster_members` against the numpy grouping `find_board` used (a stable argsort
+    of the candidates' labels and a searchsorted), for the board search's candidates and for
+    every cluster of each real scan."""
+    from align.kernels import cluster_members
+
+    for scan, board, hints in real_scans:
+        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+                                     min(board.width, board.height))
+        for cand in (st["count"] >= 20, st["count"] > 0, np.zeros(len(st["count"]), bool)):
+            ids = np.flatnonzero(cand)
+            is_cand = np.zeros(len(cand) + 1, dtype=bool)
+            is_cand[ids + 1] = True
+            want = np.flatnonzero(is_cand[labels + 1])
+            want = want[np.argsort(labels[want], kind="stable")]
+            want_bounds = np.searchsorted(labels[want], np.append(ids, len(cand)))
+            got, got_bounds = cluster_members(labels, cand)
+            np.testing.assert_array_equal(got, want)
+            np.testing.assert_array_equal(got_bounds, want_bounds)
