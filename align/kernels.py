@@ -899,3 +899,15 @@ def cluster_members(labels: np.ndarray, cand: np.ndarray) -> tuple[np.ndarray, n
             firings[fill[slot[lab]]] = i
             fill[slot[lab]] += 1
     return firings, bounds
+
+
+@njit(cache=True)
+def in_firing_order(laser_id: np.ndarray, k0: int, m: int, nl: int) -> bool:
+    """Whether firings k0 .. k0 + nl * m list lasers 0 .. nl - 1 in every sequence
+    (`align.segment._grid`'s check, without the (m, nl) comparison array)."""
+    for s in range(m):
+        base = k0 + s * nl
+        for lz in range(nl):
+            if laser_id[base + lz] != lz:
+                return False
+    return True

@@ -79,6 +79,8 @@ def _grid(scan: Scan) -> tuple[int, int] | None:
     out); firings first .. first + L * sequences then form a (sequences, L lasers) grid of
     views, and the organised cloud needs neither sorting nor gathering.
     """
+    from align.kernels import in_firing_order
+
     n = len(scan)
     nl = scan.lasers.n_lasers
     if n < 2 * nl:
@@ -87,8 +89,7 @@ def _grid(scan: Scan) -> tuple[int, int] | None:
     if scan.laser_id[k0] != 0:
         return None
     m = (n - k0) // nl
-    lid = scan.laser_id[k0:k0 + nl * m].reshape(m, nl)
-    if not np.array_equal(lid, np.broadcast_to(np.arange(nl, dtype=lid.dtype), lid.shape)):
+    if not in_firing_order(scan.laser_id, k0, m, nl):
         return None
     return k0, m
 

@@ -336,7 +336,7 @@ def test_the_warm_up_compiles_every_estimator_kernel():
               if isinstance(f, CPUDispatcher) and not name.startswith("_")}
     assert {"grid_clusters", "best_roll", "rectangle_rays", "ransac_best", "plane_band",
             "in_ring_block", "corner_points", "corner_residuals", "corner_jacobian",
-            "cluster_members", "fit_residuals", "fit_jacobian"} <= set(public)
+            "cluster_members", "in_firing_order", "fit_residuals", "fit_jacobian"} <= set(public)
     assert [name for name, f in public.items() if not f.signatures] == []
 
 
@@ -467,3 +467,25 @@ def test_cluster_members_match_the_stable_argsort_on_real_scans(real_scans):
             got, got_bounds = cluster_members(labels, cand)
             np.testing.assert_array_equal(got, want)
             np.testing.assert_array_equal(got_bounds, want_bounds)
+
+
+def test_in_firing_order_is_the_grids_comparison(real_scans):
+    """`kernels.in_firing_order` against the (sequences, lasers) comparison with np.arange it
+    replaced, on the real scans as they are and with a firing dropped or two lasers swapped."""
+    from align.kernels import in_firing_order
+
+    rng = np.random.default_rng(24)
+    for scan, _, _ in real_scans:
+        nl = scan.lasers.n_lasers
+        ids = [scan.laser_id, np.delete(scan.laser_id, int(rng.integers(nl, len(scan))))]
+        swapped = scan.laser_id.copy()
+        k = int(rng.integers(0, len(scan) - 1))
+        swapped[[k, k + 1]] = swapped[[k + 1, k]]
+        ids.append(swapped)
+        for lid in ids:
+            k0 = int(np.argmax(lid[:nl] == 0))
+            m = (len(lid) - k0) // nl
+            grid = lid[k0:k0 + nl * m].reshape(m, nl)
+            want = np.array_equal(grid, np.broadcast_to(np.arange(nl, dtype=lid.dtype),
+                                                        grid.shape))
+            assert in_firing_order(lid, k0, m, nl) == want
