@@ -115,36 +115,40 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
     n_run = 0
     prev = -1
     last_return = -1  # the last firing before f with a return of any kind (in ok or not)
-    for f in range(nf):
-        lz = f // m
-        i = k0 + (f - lz * m) * nl + lz
-        if okf[f]:
-            link = False
-            if prev >= 0 and prev // m == lz:
-                ip = k0 + (prev - lz * m) * nl + lz
-                dx = x[i] - x[ip]
-                dy = y[i] - y[ip]
-                dz = z[i] - z[ip]
-                d2 = dx * dx + dy * dy + dz * dz
-                ta, tb = thr[prev], thr[f]
-                t2 = tb if tb < ta else ta
-                if f - prev == 1:
-                    link = d2 < t2
-                elif last_return <= prev:
-                    dd = dist[i] - dist[ip]
-                    reach = t2 if t2 > bridge2 else bridge2
-                    link = dd * dd < t2 and d2 < reach
-            if not link:
-                run_start[n_run] = f
-                n_run += 1
-            r = n_run - 1
-            run[f] = r
-            run_count[r] += 1.0
-            run_dsum[r] += dist[i]
-            run_end[r] = f
-            prev = f
-        if dist[i] > 0:
-            last_return = f
+    prev_lz = -1  # the laser of prev
+    # f = lz * m + s, in that order (nested loops: no integer division per firing)
+    for lz in range(nl):
+        for s in range(m):
+            f = lz * m + s
+            i = k0 + s * nl + lz
+            if okf[f]:
+                link = False
+                if prev >= 0 and prev_lz == lz:
+                    ip = k0 + (prev - lz * m) * nl + lz
+                    dx = x[i] - x[ip]
+                    dy = y[i] - y[ip]
+                    dz = z[i] - z[ip]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    ta, tb = thr[prev], thr[f]
+                    t2 = tb if tb < ta else ta
+                    if f - prev == 1:
+                        link = d2 < t2
+                    elif last_return <= prev:
+                        dd = dist[i] - dist[ip]
+                        reach = t2 if t2 > bridge2 else bridge2
+                        link = dd * dd < t2 and d2 < reach
+                if not link:
+                    run_start[n_run] = f
+                    n_run += 1
+                r = n_run - 1
+                run[f] = r
+                run_count[r] += 1.0
+                run_dsum[r] += dist[i]
+                run_end[r] = f
+                prev = f
+                prev_lz = lz
+            if dist[i] > 0:
+                last_return = f
     # a run longer than the board joins nothing (the floor's ring, a wall)
     two_pi = 2 * np.pi
     long_run = np.zeros(n_run, dtype=np.bool_)
@@ -218,10 +222,11 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
             if ring_hit[c, k]:
                 rings[c] += 1
     labels = np.full(n, -1, dtype=np.int64)
-    for f in range(nf):
-        if run[f] >= 0:
-            lz = f // m
-            labels[k0 + (f - lz * m) * nl + lz] = comp[run[f]]
+    for lz in range(nl):
+        for s in range(m):
+            r = run[lz * m + s]
+            if r >= 0:
+                labels[k0 + s * nl + lz] = comp[r]
     return labels, count, distance, rings
 
 
@@ -267,38 +272,134 @@ _BOUND_SLACK = 1e-9
 
 
 @njit(cache=True)
-def _roll_count(px: np.ndarray, pz: np.ndarray, b: int, xs: np.ndarray, zs: np.ndarray,
+def _project(points: np.ndarray, rows: np.ndarray, b: int, j: int) -> float:
+    """points[j] @ rows[b]: numpy's (points @ rows.T)[j, b] where the BLAS fuses its
+    multiply-adds as OpenBLAS's Haswell kernels do (`_fma`, as `ransac_best`'s distances)."""
+    return _fma(rows[b, 2], points[j, 2], _fma(rows[b, 1], points[j, 1],
+                                               rows[b, 0] * points[j, 0]))
+
+
+@njit(cache=True)
+def _sort_from(points: np.ndarray, rows: np.ndarray, b: int, order: np.ndarray,
+               out: np.ndarray) -> None:
+    """The points' coordinates along ``rows[b]`` sorted ascending into ``out``, starting from
+    the permutation ``order`` (left holding the sorted order): an insertion sort, whose cost
+    is the count of pairs ``order`` has the wrong way round. A neighbouring roll's order has
+    about one per point, where a quicksort of 300 values costs four times more. The same
+    values in the same order as np.sort (the points are finite: returns)."""
+    n = order.shape[0]
+    for i in range(n):
+        out[i] = _project(points, rows, b, order[i])
+    for i in range(1, n):
+        v = out[i]
+        o = order[i]
+        j = i - 1
+        while j >= 0 and out[j] > v:
+            out[j + 1] = out[j]
+            order[j + 1] = order[j]
+            j -= 1
+        out[j + 1] = v
+        order[j + 1] = o
+
+
+@njit(cache=True)
+def _roll_count(points: np.ndarray, r0: np.ndarray, r2: np.ndarray, b: int, src: int,
+                ord_x: np.ndarray, ord_z: np.ndarray, xs: np.ndarray, zs: np.ndarray,
                 len_x: float, len_z: float) -> tuple[int, float, float]:
-    """The count left out of the best window at roll ``b`` and its shifts: column ``b`` of the
-    points' coordinates sorted into the buffers ``xs``, ``zs`` and slid along."""
-    for i in range(len(xs)):
-        xs[i] = px[i, b]
-        zs[i] = pz[i, b]
-    xs.sort()
-    zs.sort()
+    """The count left out of the best window at roll ``b`` and its shifts: the points'
+    coordinates along rows ``b`` of ``r0``, ``r2`` sorted into the buffers ``xs``, ``zs``
+    (from the sorted orders of the evaluated roll ``src``, rows of ``ord_x``, ``ord_z``; row
+    ``b`` gets roll b's) and slid along."""
+    if src != b:
+        ord_x[b] = ord_x[src]
+        ord_z[b] = ord_z[src]
+    _sort_from(points, r0, b, ord_x[b], xs)
+    _sort_from(points, r2, b, ord_z[b], zs)
     cx, sx_ = _slide_sorted(xs, len_x)
     cz, sz_ = _slide_sorted(zs, len_z)
     return 2 * len(xs) - cx - cz, sx_, sz_
 
 
 @njit(cache=True)
-def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray,
-              r2: np.ndarray, len_x: float, len_z: float) -> tuple[int, int, float, float]:
+def _nearest_evaluated(left: np.ndarray, b: int) -> int:
+    """The evaluated roll (``left`` >= 0) nearest ``b``, the lower of two as near; -1 when
+    none is."""
+    k = left.shape[0]
+    for step in range(1, k):
+        if b - step >= 0 and left[b - step] >= 0:
+            return b - step
+        if b + step < k and left[b + step] >= 0:
+            return b + step
+    return -1
+
+
+#: Bins per window length in `_most_within`'s histograms, at `best_roll`'s anchors and at
+#: a roll itself before it is sorted: a bound is at most (bins + 5) / bins of the window long.
+ANCHOR_BINS = 64
+ROLL_BINS = 256
+
+
+@njit(cache=True)
+def _most_within(points: np.ndarray, rows: np.ndarray, a: int, length: float, bins: int,
+                 xs: np.ndarray, hist: np.ndarray) -> int:
+    """An upper bound, without sorting, on the most of the points' coordinates along
+    ``rows[a]`` (into ``xs``) that a window of ``length`` holds: the largest count in as many
+    consecutive bins of a histogram as any such window can reach. Bins of ``length`` /
+    ``bins``: a window meets at most ``bins`` + 2 of them, and a coordinate's bin
+    may be one off by rounding either way (+ 2), one spare. Spread over more bins than
+    ``hist`` has (a stray far off), the exact count of a sorted copy."""
+    n = points.shape[0]
+    lo = math.inf
+    hi = -math.inf
+    for i in range(n):
+        v = _project(points, rows, a, i)
+        xs[i] = v
+        lo = min(lo, v)
+        hi = max(hi, v)
+    w = length / bins
+    span = bins + 5
+    if hi - lo <= (span - 5) * w:
+        return n  # one window holds them all
+    if not hi - lo < (hist.shape[0] - 1) * w:
+        return _count_within(np.sort(xs), length)
+    nb = int((hi - lo) / w) + 1
+    hist[:nb] = 0
+    for i in range(n):
+        hist[min(int((xs[i] - lo) / w), nb - 1)] += 1
+    if nb <= span:
+        return n
+    run = 0
+    for j in range(span):
+        run += hist[j]
+    most = run
+    for j in range(span, nb):
+        run += hist[j] - hist[j - span]
+        most = max(most, run)
+    return most
+
+
+@njit(cache=True)
+def best_roll(points: np.ndarray, r0: np.ndarray, r2: np.ndarray, len_x: float,
+              len_z: float) -> tuple[int, int, float, float]:
     """The roll at which a W x H box leaves out the fewest of a cluster's points:
-    `align.roll_search._left_out` over the rolls (columns of ``px`` = points @ r0.T and ``pz``
-    = points @ r2.T, (n, K)) followed by its argmin, without sorting every column.
+    `align.roll_search._left_out` over the rolls (rows of ``r0``, ``r2``, (K, 3); the points'
+    coordinates points @ r0.T and points @ r2.T, `_project`) followed by its argmin, without
+    projecting and sorting the points at every roll.
 
     Returns (index of the best roll, points left out there, the box's shifts t_x, t_z there),
-    exactly what `_left_out` and `np.argmin` give (the first of equal minima). How: every
-    `ANCHOR_EVERY`-th roll (an anchor) is evaluated. The points a window holds at a roll b lie,
-    at an anchor a, within the window grown by the points' diameter times how far the rows
-    turn between a and b; so that grown window's count at a bounds from below what b leaves
-    out, and each roll takes the larger bound of the two anchors either side. Only the rolls
-    whose bound can beat the least count found (or tie with it at an earlier roll) are then
-    evaluated, most promising first: a board's cluster sorts about 50 of the 2 x 180 columns
-    (the flat bottom of its curve of rolls), not all.
+    exactly what `_left_out` and `np.argmin` give (the first of equal minima). How: at every
+    `ANCHOR_EVERY`-th roll (an anchor) the points a window holds are bounded from above
+    without sorting (`_most_within`). The points a window holds at a roll b lie, at an anchor
+    a, within the window grown by the points' diameter times how far the rows turn between a
+    and b; so that grown window's bound at a bounds from below what b leaves out, and each
+    roll takes the larger bound of the two anchors either side. Only the rolls whose bound
+    can beat the least count found (or tie with it at an earlier roll) are then evaluated,
+    most promising first: a board's cluster sorts a few dozen of the 2 x 180 columns (the flat
+    bottom of its curve of rolls), not all. Each column is sorted from the order of the
+    nearest roll already sorted (`_sort_from`): the rows turn a few degrees between them, and
+    few points change places.
     """
-    n, k = px.shape
+    n, k = points.shape[0], r0.shape[0]
     # radius of the points about their mean: their diameter is at most twice it
     c0 = c1 = c2 = 0.0
     for i in range(n):
@@ -318,13 +419,12 @@ def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray
     lower = np.zeros(k, dtype=np.int64)  # lower bounds of the counts left out
     xs = np.empty(n)
     zs = np.empty(n)
-    least, first = 2 * n + 1, k  # the least count left out so far, and its first roll
+    hist = np.empty(max(n, 4 * ROLL_BINS), dtype=np.int64)
+    # each evaluated roll's sorted orders of the points (rows written when evaluated)
+    ord_x = np.empty((k, n), dtype=np.int64)
+    ord_z = np.empty((k, n), dtype=np.int64)
     grow = diam * (1.0 + _BOUND_SLACK)
     for a in range(0, k, ANCHOR_EVERY):
-        left[a], tx[a], tz[a] = _roll_count(px, pz, a, xs, zs, len_x, len_z)
-        lower[a] = left[a]
-        if left[a] < least:
-            least, first = left[a], a
         # one bound for every roll b less than a block away on either side: the window grown
         # by the most the rows turn between a and any of them (each roll takes the larger of
         # its two anchors' bounds)
@@ -336,47 +436,144 @@ def best_roll(px: np.ndarray, pz: np.ndarray, points: np.ndarray, r0: np.ndarray
                 sz += (r2[b, j] - r2[a, j]) ** 2
             turn_x = max(turn_x, math.sqrt(sx))
             turn_z = max(turn_z, math.sqrt(sz))
-        gx = _count_within(xs, len_x + grow * turn_x + _BOUND_SLACK)
-        gz = _count_within(zs, len_z + grow * turn_z + _BOUND_SLACK)
+        gx = _most_within(points, r0, a, len_x + grow * turn_x + _BOUND_SLACK, ANCHOR_BINS,
+                          xs, hist)
+        gz = _most_within(points, r2, a, len_z + grow * turn_z + _BOUND_SLACK, ANCHOR_BINS,
+                          zs, hist)
         for b in range(max(0, a - ANCHOR_EVERY + 1), min(k, a + ANCHOR_EVERY)):
-            if b != a:
-                lower[b] = max(lower[b], 2 * n - gx - gz)
-    # the other rolls, most promising first, while their bound can still beat the least (or
-    # tie with it at an earlier roll: np.argmin's is the first of equal minima)
+            lower[b] = max(lower[b], 2 * n - gx - gz)
+    # the rolls, most promising first, while their bound can still beat the least (or tie
+    # with it at an earlier roll: np.argmin's is the first of equal minima)
+    least, first = 2 * n + 1, k  # the least count left out so far, and its first roll
     for b in np.argsort(lower, kind="mergesort"):
         if lower[b] > least:
             break
-        if left[b] >= 0 or (lower[b] == least and b > first):
+        if lower[b] == least and b > first:
             continue
-        left[b], tx[b], tz[b] = _roll_count(px, pz, b, xs, zs, len_x, len_z)
+        # the roll's own bound (finer, no turn) spares most of the sorts the anchors' allow
+        own = 2 * n - _most_within(points, r0, b, len_x + _BOUND_SLACK, ROLL_BINS, xs, hist) \
+            - _most_within(points, r2, b, len_z + _BOUND_SLACK, ROLL_BINS, zs, hist)
+        if own > least or (own == least and b > first):
+            continue
+        src = _nearest_evaluated(left, b)
+        if src < 0:  # the first: a full sort
+            for i in range(n):
+                xs[i] = _project(points, r0, b, i)
+                zs[i] = _project(points, r2, b, i)
+            ord_x[b] = np.argsort(xs)
+            ord_z[b] = np.argsort(zs)
+            src = b
+        left[b], tx[b], tz[b] = _roll_count(points, r0, r2, b, src, ord_x, ord_z, xs, zs,
+                                            len_x, len_z)
         if left[b] < least or (left[b] == least and b < first):
             least, first = left[b], b
-    if first < k:
-        return first, least, tx[first], tz[first]
-    return 0, left[0], tx[0], tz[0]  # not reached: the least is an evaluated roll's
+    return first, least, tx[first], tz[first]
 
 
 @njit(cache=True)
-def near_rays(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarray,
-              centre: float, span: float, ring_lo: int, ring_hi: int) -> np.ndarray:
-    """Indices of the firings within ``span`` (rad) of azimuth ``centre`` on rings ``ring_lo``
-    .. ``ring_hi``: `align.segment.rectangle_fit`'s rays around a cluster, in one pass over
-    the scan (the same wrap as `segment._unwrap`, element by element)."""
-    n = azimuth.shape[0]
-    out = np.empty(n, dtype=np.int64)
-    k = 0
+def _remainder(v: float, two_pi: float, taken: np.ndarray) -> float:
+    """v % 2 pi, counting itself in ``taken[0]``: the store keeps the compiler from computing
+    the slow remainder for every firing and selecting (4x the cost of the whole pass)."""
+    taken[0] += 1
+    return v % two_pi
+
+
+@njit(cache=True)
+def _rel_azimuth(azimuth: float, centre: float, taken: np.ndarray) -> float:
+    """`segment._unwrap` of one azimuth, rad: the same operations and result, the slow
+    floating-point remainder x % 2 pi (`_remainder`, counted in ``taken``) only for x outside
+    (-2 pi, 4 pi). Inside it the remainder is x itself on [0, 2 pi); x - 2 pi on [2 pi, 4 pi),
+    exact there (Sterbenz) as fmod is; and on (-2 pi, 0), where fmod gives x, the remainder's
+    own correction x + 2 pi."""
     two_pi = 2 * np.pi
-    for i in range(n):
+    v = azimuth - centre + np.pi
+    if 0.0 <= v < two_pi:
+        m = v
+    elif two_pi <= v < 2 * two_pi:
+        m = v - two_pi
+    elif -two_pi < v < 0.0:
+        m = v + two_pi
+    else:
+        m = _remainder(v, two_pi, taken)
+    return m - np.pi
+
+
+@njit(cache=True)
+def _gemv3(a0: float, a1: float, a2: float, x0: float, x1: float, x2: float) -> float:
+    """One row of numpy's (N, 3) @ (3,) as OpenBLAS's Haswell dgemv computes it (the middle
+    term first, then the others fused: checked bit for bit against numpy on real scans)."""
+    return _fma(a2, x2, _fma(a0, x0, a1 * x1))
+
+
+@njit(cache=True, error_model="numpy")
+def rectangle_rays(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarray,
+                   elevation: np.ndarray, offset_z: np.ndarray, ring_of_laser: np.ndarray,
+                   sel: np.ndarray, centre: float, reach: float, n: np.ndarray, d: float,
+                   r0: np.ndarray, r2: np.ndarray, t_x: float, t_z: float, half_w: float,
+                   half_h: float, margin: float, band: float, surround_lo: float,
+                   surround_hi: float) -> tuple[int, int, int, int]:
+    """`align.segment.rectangle_fit`'s count of the rays around a cluster (the firings
+    ``sel``) in one pass over the scan, without gathering them: (on the plane inside the
+    rectangle, off it inside, in the surround band, on the plane in the band).
+
+    The rays around: on the cluster's rings, within ``reach`` (rad) of the cluster's widest
+    azimuth from ``centre``. Each ray as `Scan.directions` and `Scan.origins` make it (origin
+    ``offset_z`` of its laser along Z, 0 where the offsets are not applied), met with the plane
+    ``n``, ``d`` at lam; its point in the rectangle's frame (rows ``r0``, ``r2`` of the
+    rotation, shifts ``t_x``, ``t_z``). Inside: lam > 0 and within half the rectangle less
+    ``margin``; a return is on the plane within ``band`` of lam; the surround is ``surround_lo``
+    .. ``surround_hi`` outside the rectangle. The same floating-point operations as the numpy
+    version, element by element (numpy's matrix-vector products as `_gemv3`; a ray parallel to
+    the plane gives inf or nan as numpy's division does)."""
+    taken = np.zeros(1, dtype=np.int64)
+    ring_lo, ring_hi = 1 << 30, -1
+    widest = 0.0
+    for j in range(sel.shape[0]):
+        i = sel[j]
         ring = ring_of_laser[laser_id[i]]
-        if ring < ring_lo or ring > ring_hi:
+        ring_lo = min(ring_lo, ring)
+        ring_hi = max(ring_hi, ring)
+        widest = max(widest, abs(_rel_azimuth(azimuth[i], centre, taken)))
+    span = widest + reach
+    in_w, in_h = half_w - margin, half_h - margin
+    n0, n1, n2 = n[0], n[1], n[2]
+    n_on = n_off = n_band = n_band_on = 0
+    # each laser's cos and sin of its elevation once (the same values per ray)
+    cos_el, sin_el = np.cos(elevation), np.sin(elevation)
+    for i in range(azimuth.shape[0]):
+        lid = laser_id[i]
+        ring = ring_of_laser[lid]
+        # a ray without a return counts for none: its geometry is skipped
+        if ring < ring_lo or ring > ring_hi or not distance[i] > 0:
             continue
-        v = azimuth[i] - centre + np.pi
-        # x % 2 pi is x itself on [0, 2 pi): the slow floating-point remainder only outside
-        rel = (v if 0.0 <= v < two_pi else v % two_pi) - np.pi
-        if abs(rel) <= span:
-            out[k] = i
-            k += 1
-    return out[:k]
+        if not abs(_rel_azimuth(azimuth[i], centre, taken)) <= span:
+            continue
+        ce = cos_el[lid]
+        u0 = ce * np.sin(azimuth[i])
+        u1 = ce * np.cos(azimuth[i])
+        u2 = sin_el[lid]
+        o2 = offset_z[lid]
+        lam = (d - _gemv3(0.0, 0.0, o2, n0, n1, n2)) / _gemv3(u0, u1, u2, n0, n1, n2)
+        q0 = 0.0 + lam * u0
+        q1 = 0.0 + lam * u1
+        q2 = o2 + lam * u2
+        x = _gemv3(q0, q1, q2, r0[0], r0[1], r0[2]) + t_x
+        z = _gemv3(q0, q1, q2, r2[0], r2[1], r2[2]) + t_z
+        if not lam > 0:
+            continue  # behind the sensor (or nan): neither inside nor in the band
+        on_plane = abs(distance[i] - lam) <= band
+        if abs(x) < in_w and abs(z) < in_h:
+            if on_plane:
+                n_on += 1
+            else:
+                n_off += 1
+        bx, bz = abs(x) - half_w, abs(z) - half_h
+        beyond = bx if bx > bz or bx != bx else bz  # np.maximum: nan if either is
+        if beyond > surround_lo and beyond < surround_hi:
+            n_band += 1
+            if on_plane:
+                n_band_on += 1
+    return n_on, n_off, n_band, n_band_on
 
 
 @njit(cache=True)
@@ -483,24 +680,27 @@ def fit_jacobian(theta: np.ndarray, rots: np.ndarray, f0: np.ndarray, o_r: np.nd
 
 
 @njit(cache=True)
-def ransac_best(points: np.ndarray, tri: np.ndarray, threshold: float
+def ransac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
                 ) -> tuple[int, np.ndarray]:
     """The index and the inliers (distance under ``threshold``, m) of the hypothesis with the
     most of them (the first of equal counts) among the planes through the point triples
-    ``tri`` (H, 3); degenerate triples are skipped. `align.plane.ransac`'s scoring, term by
-    term in its order: np.cross, einsum's (x0 y0 + x2 y2) + x1 y1 for the norms and offsets,
-    the distance matrix's fused sums (`_fma`). Index -1 when every triple is degenerate."""
-    n_pts = points.shape[0]
+    ``tri`` (H, 3) of the points ``xyz`` (3, N: rows x, y, z, so that the loop over the
+    points runs on contiguous rows, four at a time); degenerate triples are skipped.
+    `align.plane.ransac`'s scoring, term by term in its order: np.cross, einsum's (x0 y0 + x2
+    y2) + x1 y1 for the norms and offsets, the distance matrix's fused sums (`_fma`). Index -1
+    when every triple is degenerate."""
+    px, py, pz = xyz[0], xyz[1], xyz[2]
+    n_pts = px.shape[0]
     best, best_count = -1, -1
     bn0 = bn1 = bn2 = bd = 0.0
     for h in range(tri.shape[0]):
         i0, i1, i2 = tri[h, 0], tri[h, 1], tri[h, 2]
-        a0 = points[i1, 0] - points[i0, 0]
-        a1 = points[i1, 1] - points[i0, 1]
-        a2 = points[i1, 2] - points[i0, 2]
-        b0 = points[i2, 0] - points[i0, 0]
-        b1 = points[i2, 1] - points[i0, 1]
-        b2 = points[i2, 2] - points[i0, 2]
+        a0 = px[i1] - px[i0]
+        a1 = py[i1] - py[i0]
+        a2 = pz[i1] - pz[i0]
+        b0 = px[i2] - px[i0]
+        b1 = py[i2] - py[i0]
+        b2 = pz[i2] - pz[i0]
         c0 = a1 * b2 - a2 * b1
         c1 = a2 * b0 - a0 * b2
         c2 = a0 * b1 - a1 * b0
@@ -508,21 +708,29 @@ def ransac_best(points: np.ndarray, tri: np.ndarray, threshold: float
         if not norm > 1e-9:
             continue
         c0, c1, c2 = c0 / norm, c1 / norm, c2 / norm
-        d = (c0 * points[i0, 0] + c2 * points[i0, 2]) + c1 * points[i0, 1]
+        d = (c0 * px[i0] + c2 * pz[i0]) + c1 * py[i0]
         count = 0
-        for i in range(n_pts):
-            r = _fma(c2, points[i, 2], _fma(c1, points[i, 1], c0 * points[i, 0])) - d
-            if abs(r) < threshold:
-                count += 1
+        for i in range(n_pts):  # branch-free, so that it vectorises
+            count += abs(_fma(c2, pz[i], _fma(c1, py[i], c0 * px[i])) - d) < threshold
         if count > best_count:
             best, best_count = h, count
             bn0, bn1, bn2, bd = c0, c1, c2, d
     out = np.zeros(n_pts, dtype=np.bool_)
     if best >= 0:
         for i in range(n_pts):
-            r = _fma(bn2, points[i, 2], _fma(bn1, points[i, 1], bn0 * points[i, 0])) - bd
-            out[i] = abs(r) < threshold
+            out[i] = abs(_fma(bn2, pz[i], _fma(bn1, py[i], bn0 * px[i])) - bd) < threshold
     return best, out
+
+
+@njit(cache=True)
+def plane_band(xyz: np.ndarray, n: np.ndarray, d: float, threshold: float) -> np.ndarray:
+    """np.abs(points @ n - d) < threshold for the points ``xyz`` (3, N: rows x, y, z), the
+    product as numpy's BLAS computes it (`_gemv3`)."""
+    px, py, pz = xyz[0], xyz[1], xyz[2]
+    out = np.empty(px.shape[0], dtype=np.bool_)
+    for i in range(px.shape[0]):
+        out[i] = abs(_gemv3(px[i], py[i], pz[i], n[0], n[1], n[2]) - d) < threshold
+    return out
 
 
 def ransac(points: np.ndarray, threshold: float, rng: np.random.Generator,
@@ -536,10 +744,170 @@ def ransac(points: np.ndarray, threshold: float, rng: np.random.Generator,
     if n_pts < 3:
         raise ValueError("a plane needs at least 3 points")
     tri = rng.integers(0, n_pts, size=(iterations, 3))
-    pts = np.ascontiguousarray(points, dtype=np.float64)
-    best, inl = ransac_best(pts, tri, float(threshold))
+    xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64).T)
+    best, inl = ransac_best(xyz, tri, float(threshold))
     if best < 0:  # plane.ransac's np.argmax of no hypothesis
         raise ValueError("attempt to get argmax of an empty sequence")
     n, d = fit_lsq(points[inl])
-    return n, d, np.abs(points @ n - d) < threshold
+    return n, d, plane_band(xyz, n, float(d), float(threshold))
 
+
+@njit(cache=True)
+def in_ring_block(rings: np.ndarray, counted: np.ndarray) -> np.ndarray:
+    """Which of the returns on ``rings`` lie on the `align.segment.consecutive_ring_block` of
+    the rings of those ``counted``: np.isin(rings, consecutive_ring_block(rings[counted])),
+    in one pass and a loop over the rings (the same integer counts, the same threshold, the
+    first of equally large blocks)."""
+    top = -1
+    for k in range(rings.shape[0]):
+        if counted[k]:
+            top = max(top, int(rings[k]))
+    per_ring = np.zeros(top + 1, dtype=np.int64)
+    for k in range(rings.shape[0]):
+        if counted[k]:
+            per_ring[rings[k]] += 1
+    most = 0
+    for r in range(top + 1):
+        most = max(most, per_ring[r])
+    limit = 0.25 * most
+    best_lo, best_hi, best_sum = 0, -1, -1  # the block best_lo .. best_hi, none yet
+    lo, total = -1, 0
+    for r in range(top + 2):
+        if r <= top and per_ring[r] >= limit:
+            if lo < 0:
+                lo, total = r, 0
+            total += per_ring[r]
+        elif lo >= 0:
+            if total > best_sum:
+                best_lo, best_hi, best_sum = lo, r - 1, total
+            lo = -1
+    out = np.empty(rings.shape[0], dtype=np.bool_)
+    for k in range(rings.shape[0]):
+        out[k] = best_lo <= rings[k] <= best_hi
+    return out
+
+
+@njit(cache=True)
+def corner_points(points: np.ndarray, n: np.ndarray, d: float, h: np.ndarray, v: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """`align.paper.feature_points` after its plane axes ``h``, ``v``: the points (N, 3)
+    projected onto the plane ``n``, ``d``, and per corner of their bounding rectangle along
+    h, v (top-left, top-right, bottom-left, bottom-right) the projected point nearest it
+    (the first of equally near). Returns (those four projected points (4, 3), their indices).
+    numpy's operations element by element (the matrix-vector products as `_gemv3`)."""
+    k = points.shape[0]
+    proj = np.empty((k, 3))
+    u = np.empty(k)
+    w = np.empty(k)
+    for i in range(k):
+        r = _gemv3(points[i, 0], points[i, 1], points[i, 2], n[0], n[1], n[2]) - d
+        for j in range(3):
+            proj[i, j] = points[i, j] - r * n[j]
+        u[i] = _gemv3(proj[i, 0], proj[i, 1], proj[i, 2], h[0], h[1], h[2])
+        w[i] = _gemv3(proj[i, 0], proj[i, 1], proj[i, 2], v[0], v[1], v[2])
+    u_lo, u_hi, w_lo, w_hi = u.min(), u.max(), w.min(), w.max()
+    cu = (u_lo, u_hi, u_lo, u_hi)
+    cw = (w_hi, w_hi, w_lo, w_lo)
+    idx = np.zeros(4, dtype=np.int64)
+    feat = np.empty((4, 3))
+    for c in range(4):
+        best = math.inf
+        for i in range(k):
+            du = u[i] - cu[c]
+            dw = w[i] - cw[c]
+            e = du * du + dw * dw
+            if e < best:
+                best = e
+                idx[c] = i
+        feat[c] = proj[idx[c]]
+    return feat, idx
+
+
+@njit(cache=True)
+def _rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
+    """`align.geometry.rotation`, the same expressions."""
+    cr, sr = math.cos(roll), math.sin(roll)
+    ct, st = math.cos(tilt), math.sin(tilt)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    syst, cyst = sy * st, cy * st
+    r = np.empty((3, 3))
+    r[0, 0], r[0, 1], r[0, 2] = cy * cr - syst * sr, -sy * ct, cy * sr + syst * cr
+    r[1, 0], r[1, 1], r[1, 2] = sy * cr + cyst * sr, cy * ct, sy * sr - cyst * cr
+    r[2, 0], r[2, 1], r[2, 2] = -ct * sr, st, ct * cr
+    return r
+
+
+@njit(cache=True)
+def corner_residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
+    """`align.paper._residuals`: (p_o - (p_l @ R.T + t)).ravel() for beta = (x, y, z, roll,
+    tilt, yaw), the matrix product as numpy's BLAS sums it (fused, x term first)."""
+    r = _rotation(beta[3], beta[4], beta[5])
+    k = p_l.shape[0]
+    out = np.empty(3 * k)
+    for i in range(k):
+        for j in range(3):
+            m = _fma(r[j, 2], p_l[i, 2], _fma(r[j, 1], p_l[i, 1], r[j, 0] * p_l[i, 0]))
+            out[3 * i + j] = p_o[i, j] - (m + beta[j])
+    return out
+
+
+@njit(cache=True)
+def corner_jacobian(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
+    """`align.paper._jacobian`: -I per point for the translation (its zeros -0.0, as np.tile
+    of -np.eye), forward differences of 1e-7 rad for the angles."""
+    k = p_l.shape[0]
+    j = np.empty((3 * k, 6))
+    for i in range(3 * k):
+        for c in range(3):
+            j[i, c] = -1.0 if i % 3 == c else -0.0
+    f0 = corner_residuals(beta, p_l, p_o)
+    for c in range(3, 6):
+        b = beta.copy()
+        b[c] += 1e-7
+        f = corner_residuals(b, p_l, p_o)
+        for i in range(3 * k):
+            j[i, c] = (f[i] - f0[i]) / 1e-7
+    return j
+
+
+@njit(cache=True)
+def cluster_members(labels: np.ndarray, cand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The firings of the candidate clusters (``cand`` per label; label -1: none), grouped by
+    label in increasing order and in scan order within each: (firings, bounds), the k-th
+    candidate's firings firings[bounds[k]:bounds[k + 1]]. A counting sort in two passes:
+    `align.segment.find_board`'s stable argsort of the labels and its searchsorted, without
+    the whole-scan gathers."""
+    n_lab = cand.shape[0]
+    slot = np.full(n_lab, -1, dtype=np.int64)  # label -> its rank among the candidates
+    n_cand = 0
+    for lab in range(n_lab):
+        if cand[lab]:
+            slot[lab] = n_cand
+            n_cand += 1
+    bounds = np.zeros(n_cand + 1, dtype=np.int64)
+    for i in range(labels.shape[0]):
+        lab = labels[i]
+        if lab >= 0 and slot[lab] >= 0:
+            bounds[slot[lab] + 1] += 1
+    for k in range(n_cand):
+        bounds[k + 1] += bounds[k]
+    fill = bounds[:-1].copy()
+    firings = np.empty(bounds[n_cand], dtype=np.int64)
+    for i in range(labels.shape[0]):
+        lab = labels[i]
+        if lab >= 0 and slot[lab] >= 0:
+            firings[fill[slot[lab]]] = i
+            fill[slot[lab]] += 1
+    return firings, bounds
+
+
+@njit(cache=True)
+def in_firing_order(laser_id: np.ndarray, k0: int, m: int, nl: int) -> bool:
+    """Whether firings k0 .. k0 + nl * m list lasers 0 .. nl - 1 in every sequence
+    (`align.segment._grid`'s check, without the (m, nl) comparison array)."""
+    for s in range(m):
+        base = k0 + s * nl
+        for lz in range(nl):
+            if laser_id[base + lz] != lz:
+                return False
+    return True

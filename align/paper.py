@@ -32,9 +32,8 @@ import numpy as np
 
 from align import kernels, plane
 from align.board import BoardSpec
-from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
-from align.segment import consecutive_ring_block, on_board_rings
+from align.segment import on_board_rings
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 
@@ -58,14 +57,12 @@ def feature_points(points: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndar
     """The four feature beam points (paper III-B): projected points closest to the corners.
 
     Returns the projected points (4, 3) in the paper's corner order (TL, TR, BL, BR) and their
-    indices into ``points``.
+    indices into ``points``. Compiled (`align.kernels.corner_points`: the projection, the
+    bounding rectangle and the four nearest points in one pass, numpy's operations).
     """
-    proj = points - np.outer(points @ n - d, n)
     h, v = plane_axes(n)
-    u, w = proj @ h, proj @ v
-    corners_uv = [(u.min(), w.max()), (u.max(), w.max()), (u.min(), w.min()), (u.max(), w.min())]
-    idx = np.array([int(np.argmin((u - cu) ** 2 + (w - cw) ** 2)) for cu, cw in corners_uv])
-    return proj[idx], idx
+    return kernels.corner_points(np.ascontiguousarray(points, dtype=np.float64),
+                                 np.asarray(n, dtype=np.float64), float(d), h, v)
 
 
 def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
@@ -85,19 +82,15 @@ def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
 
 
 def _residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
-    r = rotation(beta[3], beta[4], beta[5])
-    return (p_o - (p_l @ r.T + beta[:3])).ravel()
+    """The corners' residuals p_o - (R p_l + t), flattened (`align.kernels.corner_residuals`:
+    the numpy expression's values, without its dozen calls' overhead)."""
+    return kernels.corner_residuals(np.asarray(beta, dtype=np.float64), p_l, p_o)
 
 
 def _jacobian(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
-    j = np.empty((p_l.size, 6))
-    j[:, :3] = np.tile(-np.eye(3), (len(p_l), 1))
-    f0 = _residuals(beta, p_l, p_o)
-    for k in range(3, 6):
-        b = beta.copy()
-        b[k] += 1e-7
-        j[:, k] = (_residuals(b, p_l, p_o) - f0) / 1e-7
-    return j
+    """d `_residuals` / d beta: -I for the translation, forward differences of 1e-7 rad for
+    the angles (`align.kernels.corner_jacobian`)."""
+    return kernels.corner_jacobian(np.asarray(beta, dtype=np.float64), p_l, p_o)
 
 
 def levenberg_marquardt(
@@ -145,7 +138,7 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
     # front of the board, within the RANSAC band) lights up a ring below a gap; keep the
     # consecutive block of rings with the most inliers
     ring = scan.lasers.ring_of_laser[scan.laser_id[pts_idx]]  # (Scan.ring maps every firing)
-    inl &= np.isin(ring, consecutive_ring_block(ring[inl]))
+    inl &= kernels.in_ring_block(ring, inl)  # `segment.consecutive_ring_block` of the inliers
     rings = np.unique(ring[inl])
     if len(rings) < 3:
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=len(rings),

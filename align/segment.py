@@ -79,6 +79,8 @@ def _grid(scan: Scan) -> tuple[int, int] | None:
     out); firings first .. first + L * sequences then form a (sequences, L lasers) grid of
     views, and the organised cloud needs neither sorting nor gathering.
     """
+    from align.kernels import in_firing_order
+
     n = len(scan)
     nl = scan.lasers.n_lasers
     if n < 2 * nl:
@@ -87,8 +89,7 @@ def _grid(scan: Scan) -> tuple[int, int] | None:
     if scan.laser_id[k0] != 0:
         return None
     m = (n - k0) // nl
-    lid = scan.laser_id[k0:k0 + nl * m].reshape(m, nl)
-    if not np.array_equal(lid, np.broadcast_to(np.arange(nl, dtype=lid.dtype), lid.shape)):
+    if not in_firing_order(scan.laser_id, k0, m, nl):
         return None
     return k0, m
 
@@ -233,11 +234,11 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     a larger surface that the clustering cut out: a door in a wall). Rays without a return, or
     with one in front, count for none: a dark patch, an occluder."""
     from align.feasible import _rows
-    from align.kernels import best_roll, near_rays
+    from align.kernels import best_roll, rectangle_rays
     from align.plane import fit_lsq
     from align.roll_search import COARSE_STEP, TOLERANCE, _subsample
 
-    points = scan.xyz[sel]
+    points = np.column_stack((scan.x[sel], scan.y[sel], scan.z[sel]))  # not all of Scan.xyz
     if len(points) < 3:
         return 0.0, 0.0, 0.0
     n, d = fit_lsq(points)
@@ -247,45 +248,25 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     # `roll_search._left_out` and its argmin, sorting only the rolls that can be the best
     r0s, r2s = _rows(rolls, n)
     best, left_best, tx_best, tz_best = best_roll(
-        p @ r0s.T, p @ r2s.T, p, r0s, r2s, board.width + 2 * grow, board.height + 2 * grow)
+        p, r0s, r2s, board.width + 2 * grow, board.height + 2 * grow)
     held = float(1.0 - left_best / (2 * len(p)))
-    # the rays around the cluster (its rings, its azimuths and a board's width more), found in
-    # one pass over the scan's azimuths and lasers
-    az = scan.azimuth
-    az0 = float(np.angle(np.mean(np.exp(1j * az[sel]))))
-    span = float(np.abs(_unwrap(az[sel], az0)).max() + board.diagonal / max(d, 0.5))
-    ring_of_laser = np.asarray(scan.lasers.ring_of_laser, np.int64)
-    ring_sel = ring_of_laser[scan.laser_id[sel]]
-    near = near_rays(az, scan.laser_id, ring_of_laser, az0, span, int(ring_sel.min()),
-                     int(ring_sel.max()))
-    # their rays, as `Scan.directions` and `Scan.origins` make them (the same operations)
-    lid = scan.laser_id[near]
-    el = scan.lasers.elevation[lid]
-    az_near = az[near]
-    ce = np.cos(el)
-    u = np.column_stack((ce * np.sin(az_near), ce * np.cos(az_near), np.sin(el)))
-    o = np.zeros((len(near), 3))
-    if scan.vertical_offsets_applied:
-        o[:, 2] = scan.lasers.vertical_offset[lid]
-    un = u @ n
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lam = (d - o @ n) / un
-    q = o + lam[:, None] * u
+    # the rays around the cluster (its rings, its azimuths and a board's width more), met with
+    # its plane and counted in one pass over the scan's azimuths and lasers
+    az0 = float(np.angle(np.mean(np.exp(1j * scan.azimuth[sel]))))
+    lasers = scan.lasers
+    offset_z = lasers.vertical_offset if scan.vertical_offsets_applied else np.zeros(
+        lasers.n_lasers)
     r0, r2 = _rows(rolls[best:best + 1], n)
-    x, z = q @ r0[0] + tx_best, q @ r2[0] + tz_best
-    inside = (lam > 0) & (np.abs(x) < board.width / 2 - FILL_MARGIN) & (
-        np.abs(z) < board.height / 2 - FILL_MARGIN)
-    dist = scan.distance[near]
-    ret = (lam > 0) & (dist > 0)
-    on_plane = ret & (np.abs(dist - lam) <= FLAT_BAND)
+    n_on, n_off, n_band, n_band_on = rectangle_rays(
+        scan.azimuth, scan.laser_id, scan.distance, lasers.elevation, offset_z,
+        lasers.ring_of_laser, sel, az0, board.diagonal / max(d, 0.5), n, d, r0[0], r2[0],
+        tx_best, tz_best, board.width / 2, board.height / 2, FILL_MARGIN, FLAT_BAND,
+        SURROUND[0], SURROUND[1])
     # a return off the plane inside the rectangle, behind it or in front, is a ray the
     # candidate does not explain: a box whose visible part holds a board-sized rectangle only
     # where the rest of that rectangle would be hidden by the board in front, or by the floor
-    n_on, n_off = int(np.sum(inside & on_plane)), int(np.sum(inside & ret & ~on_plane))
     fill = n_on / (n_on + n_off) if n_on + n_off else 0.0
-    beyond = np.maximum(np.abs(x) - board.width / 2, np.abs(z) - board.height / 2)
-    band = ret & (beyond > SURROUND[0]) & (beyond < SURROUND[1])
-    free = 1.0 - float(np.sum(band & on_plane)) / max(int(band.sum()), 1)
+    free = 1.0 - float(n_band_on) / max(n_band, 1)
     return held, fill, free
 
 
@@ -358,6 +339,8 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     returns (`planar_part`). A board-like candidate beyond ``hints.max_distance`` gives
     ``board_too_far``.
     """
+    from align.kernels import cluster_members
+
     empty = np.zeros(0, dtype=np.int64)
     valid = scan.valid
     if len(scan) == 0 or not np.any(valid):
@@ -382,12 +365,9 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     score = np.zeros(len(dist))
     # the rest of the paper's criteria for the few clusters left: size and reflectivity
     ids = np.flatnonzero(cand)
-    is_cand = np.zeros(len(dist) + 1, dtype=bool)
-    is_cand[ids + 1] = True  # labels start at -1
-    idx = np.flatnonzero(is_cand[labels + 1])
-    idx = idx[np.argsort(labels[idx], kind="stable")]
-    bounds = np.searchsorted(labels[idx], np.append(ids, len(dist)))
-    members = {}  # candidate label -> its firings, in scan order (the sort is stable)
+    # the candidates' firings, label by label
+    idx, bounds = cluster_members(np.asarray(labels, dtype=np.int64), cand)
+    members = {}  # candidate label -> its firings, in scan order
     rng = np.random.default_rng(hints.seed)
     for k, lab in enumerate(ids):
         # The cluster's planes, largest first (RANSAC, then again on what is left): the
@@ -400,7 +380,7 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
         for _ in range(PLANES_PER_CLUSTER):
             if len(rest) < 3 or len(rest) < MIN_FRACTION * expect[lab]:
                 break  # what is left cannot be the board
-            on = planar_part(scan.xyz[rest], rng)
+            on = planar_part(np.column_stack((scan.x[rest], scan.y[rest], scan.z[rest])), rng)
             sel, rest = rest[on], rest[~on]
             found = _board_score(scan, sel, board, float(expect[lab]))
             if found is not None and (best is None or found > best[0]):
@@ -441,8 +421,10 @@ def on_board_rings(scan: Scan, idx: np.ndarray) -> np.ndarray:
     deg), which also reaches a stand's face a ring or two below the board, coplanar within
     the plane fit's band: methods that fit a plane to every return (the paper's, ICP) must
     leave it out first or it tilts their plane by tenths of a degree."""
+    from align.kernels import in_ring_block  # np.isin(ring, consecutive_ring_block(ring))
+
     ring = scan.lasers.ring_of_laser[scan.laser_id[idx]]  # (Scan.ring maps every firing)
-    return idx[np.isin(ring, consecutive_ring_block(ring))]
+    return idx[in_ring_block(ring, np.ones(len(ring), dtype=np.bool_))]
 
 
 def consecutive_ring_block(rings: np.ndarray) -> list[int]:

@@ -190,7 +190,7 @@ def test_grid_clusters_match_the_numpy_reference_on_real_scans(real_scans):
 
 def rectangle_fit_reference(scan: Scan, sel: np.ndarray, board: BoardSpec
                   ) -> tuple[float, float, float]:
-    """`segment.rectangle_fit` before its compiled parts (`best_roll`, `near_rays`)."""
+    """`segment.rectangle_fit` before its compiled parts (`best_roll`, `rectangle_rays`)."""
     from align.feasible import _rows
     from align.plane import fit_lsq
     from align.roll_search import COARSE_STEP, TOLERANCE, _left_out, _subsample
@@ -260,7 +260,8 @@ def test_rectangle_fit_matches_the_numpy_reference_on_real_clusters(real_scans):
 def test_best_roll_is_the_argmin_of_left_out_on_awkward_point_sets():
     """`best_roll` against `roll_search._left_out` and `np.argmin` where its bound is put to
     the test: points on a coarse lattice (many equal counts across rolls: the first of equal
-    minima), strays far off the plane, a handful of points, clusters much larger than the box."""
+    minima), strays far off the plane or far along it, a handful of points, clusters much
+    larger than the box."""
     from align.feasible import _rows
     from align.kernels import best_roll
     from align.roll_search import COARSE_STEP, TOLERANCE, _left_out
@@ -285,11 +286,12 @@ def test_best_roll_is_the_argmin_of_left_out_on_awkward_point_sets():
         p = rng.uniform(0.5, 20.0) * n + uv[:, :1] * e1 + uv[:, 1:] * e2
         if case % 2:
             p[:3] += rng.normal(size=(min(3, len(p)), 3))
+        if case % 5 == 4:  # a stray far off: the histogram bounds' exact fallback
+            p[-1] += 30.0 * e1
         left, tx, tz = _left_out(p, n, board, rolls, grow)
         b = int(np.argmin(left))
         r0, r2 = _rows(rolls, n)
-        got = best_roll(p @ r0.T, p @ r2.T, p, r0, r2, board.width + 2 * grow,
-                        board.height + 2 * grow)
+        got = best_roll(p, r0, r2, board.width + 2 * grow, board.height + 2 * grow)
         assert got == (b, int(left[b]), float(tx[b]), float(tz[b])), case
 
 
@@ -332,6 +334,158 @@ def test_the_warm_up_compiles_every_estimator_kernel():
     warm_up()
     public = {name: f for name, f in vars(kernels).items()
               if isinstance(f, CPUDispatcher) and not name.startswith("_")}
-    assert {"grid_clusters", "best_roll", "near_rays", "ransac_best", "fit_residuals",
-            "fit_jacobian"} <= set(public)
+    assert {"grid_clusters", "best_roll", "rectangle_rays", "ransac_best", "plane_band",
+            "in_ring_block", "corner_points", "corner_residuals", "corner_jacobian",
+            "cluster_members", "in_firing_order", "fit_residuals", "fit_jacobian"} <= set(public)
     assert [name for name, f in public.items() if not f.signatures] == []
+
+
+def test_in_ring_block_is_isin_of_the_consecutive_ring_block():
+    """`kernels.in_ring_block` against np.isin of `segment.consecutive_ring_block` (the board's
+    rings for `on_board_rings` and the paper's method): random ring lists with gaps, ties
+    between blocks, nothing counted, and the real clusters' rings."""
+    from align.kernels import in_ring_block
+
+    rng = np.random.default_rng(21)
+    cases = []
+    for _ in range(300):
+        k = int(rng.integers(0, 60))
+        rings = rng.choice(rng.permutation(16)[:int(rng.integers(1, 17))], size=k).astype(
+            np.uint8)
+        cases.append((rings, rng.random(k) < rng.uniform(0.3, 1.0)))
+    cases.append((np.array([0, 0, 2, 2, 5], dtype=np.uint8), np.ones(5, dtype=bool)))  # a tie
+    cases.append((np.array([3, 4], dtype=np.uint8), np.zeros(2, dtype=bool)))
+    for rings, counted in cases:
+        want = np.isin(rings, segment.consecutive_ring_block(rings[counted]))
+        np.testing.assert_array_equal(in_ring_block(rings, counted), want)
+
+
+def feature_points_reference(points: np.ndarray, n: np.ndarray, d: float
+                             ) -> tuple[np.ndarray, np.ndarray]:
+    """`paper.feature_points` as numpy calls (the version before `kernels.corner_points`)."""
+    from align.paper import plane_axes
+
+    proj = points - np.outer(points @ n - d, n)
+    h, v = plane_axes(n)
+    u, w = proj @ h, proj @ v
+    corners_uv = [(u.min(), w.max()), (u.max(), w.max()), (u.min(), w.min()), (u.max(), w.min())]
+    idx = np.array([int(np.argmin((u - cu) ** 2 + (w - cw) ** 2)) for cu, cw in corners_uv])
+    return proj[idx], idx
+
+
+def test_corner_points_match_the_numpy_reference_on_real_clusters(real_scans):
+    """The paper's feature points from the compiled pass equal the numpy version's bit for bit
+    (the same points, the same projections) on every real cluster's main plane, and on a few
+    of its points."""
+    from align import kernels
+    from align.paper import feature_points
+
+    compared = 0
+    for scan, board, hints in real_scans:
+        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+                                     min(board.width, board.height))
+        for lab in np.flatnonzero(st["count"] >= 10):
+            pts = scan.xyz[labels == lab]
+            n, d, inl = kernels.ransac(pts, 0.03, np.random.default_rng(0), 50)
+            for sub in (pts[inl], pts[inl][:4], pts[::3]):
+                want_p, want_i = feature_points_reference(sub, n, d)
+                got_p, got_i = feature_points(sub, n, d)
+                np.testing.assert_array_equal(got_i, want_i)
+                np.testing.assert_array_equal(got_p, want_p)
+                compared += 1
+    assert compared > 100
+
+
+def test_corner_residuals_and_jacobian_match_numpy():
+    """The paper's corner residuals and their Jacobian (`kernels.corner_residuals`,
+    `corner_jacobian`) equal the numpy expressions they replaced, bit for bit, at random poses
+    and corner sets (as the Levenberg-Marquardt of `paper.levenberg_marquardt` meets them)."""
+    from align.geometry import rotation
+    from align.kernels import corner_jacobian, corner_residuals
+
+    def residuals(beta, p_l, p_o):
+        r = rotation(beta[3], beta[4], beta[5])
+        return (p_o - (p_l @ r.T + beta[:3])).ravel()
+
+    def jacobian(beta, p_l, p_o):
+        j = np.empty((p_l.size, 6))
+        j[:, :3] = np.tile(-np.eye(3), (len(p_l), 1))
+        f0 = residuals(beta, p_l, p_o)
+        for k in range(3, 6):
+            b = beta.copy()
+            b[k] += 1e-7
+            j[:, k] = (residuals(b, p_l, p_o) - f0) / 1e-7
+        return j
+
+    rng = np.random.default_rng(22)
+    p_o = align.BoardSpec().corners()
+    for _ in range(300):
+        beta = np.concatenate((rng.normal(0, 1, 3), rng.normal(0, 0.2, 3)))
+        p_l = rng.normal(0, 1, (4, 3)) + np.array([0.0, 2.5, 0.0])
+        np.testing.assert_array_equal(corner_residuals(beta, p_l, p_o),
+                                      residuals(beta, p_l, p_o))
+        want = jacobian(beta, p_l, p_o)
+        got = corner_jacobian(beta, p_l, p_o)
+        np.testing.assert_array_equal(got, want)
+        assert np.array_equal(np.signbit(got), np.signbit(want))
+
+
+def test_rel_azimuth_is_unwrap_bit_for_bit():
+    """The compiled pass's relative azimuth (`kernels._rel_azimuth`, its remainder's shortcuts)
+    against `segment._unwrap`, on random azimuths and centres and at the shortcuts' edges."""
+    from align.kernels import _rel_azimuth
+
+    rng = np.random.default_rng(23)
+    two_pi = 2 * np.pi
+    edges = np.array([0.0, two_pi, 2 * two_pi, -two_pi]) - np.pi
+    az = np.concatenate((rng.uniform(-10, 20, 3000), rng.uniform(0, two_pi, 3000),
+                         np.nextafter(edges, np.inf), np.nextafter(edges, -np.inf), edges))
+    for centre in (*rng.uniform(-np.pi, np.pi, 5), 0.0, np.pi, -np.pi):
+        want = _unwrap(az, centre)
+        taken = np.zeros(1, dtype=np.int64)
+        got = np.array([_rel_azimuth(a, centre, taken) for a in az])
+        assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
+        assert 0 < taken[0] < len(az) // 2  # the remainder only outside the shortcuts
+
+
+def test_cluster_members_match_the_stable_argsort_on_real_scans(real_scans):
+    """`kernels.cluster_members` against the numpy grouping `find_board` used (a stable argsort
+    of the candidates' labels and a searchsorted), for the board search's candidates and for
+    every cluster of each real scan."""
+    from align.kernels import cluster_members
+
+    for scan, board, hints in real_scans:
+        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+                                     min(board.width, board.height))
+        for cand in (st["count"] >= 20, st["count"] > 0, np.zeros(len(st["count"]), bool)):
+            ids = np.flatnonzero(cand)
+            is_cand = np.zeros(len(cand) + 1, dtype=bool)
+            is_cand[ids + 1] = True
+            want = np.flatnonzero(is_cand[labels + 1])
+            want = want[np.argsort(labels[want], kind="stable")]
+            want_bounds = np.searchsorted(labels[want], np.append(ids, len(cand)))
+            got, got_bounds = cluster_members(labels, cand)
+            np.testing.assert_array_equal(got, want)
+            np.testing.assert_array_equal(got_bounds, want_bounds)
+
+
+def test_in_firing_order_is_the_grids_comparison(real_scans):
+    """`kernels.in_firing_order` against the (sequences, lasers) comparison with np.arange it
+    replaced, on the real scans as they are and with a firing dropped or two lasers swapped."""
+    from align.kernels import in_firing_order
+
+    rng = np.random.default_rng(24)
+    for scan, _, _ in real_scans:
+        nl = scan.lasers.n_lasers
+        ids = [scan.laser_id, np.delete(scan.laser_id, int(rng.integers(nl, len(scan))))]
+        swapped = scan.laser_id.copy()
+        k = int(rng.integers(0, len(scan) - 1))
+        swapped[[k, k + 1]] = swapped[[k + 1, k]]
+        ids.append(swapped)
+        for lid in ids:
+            k0 = int(np.argmax(lid[:nl] == 0))
+            m = (len(lid) - k0) // nl
+            grid = lid[k0:k0 + nl * m].reshape(m, nl)
+            want = np.array_equal(grid, np.broadcast_to(np.arange(nl, dtype=lid.dtype),
+                                                        grid.shape))
+            assert in_firing_order(lid, k0, m, nl) == want
