@@ -33,6 +33,7 @@ tilt, where the labels hold it better than the ranges).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass
@@ -40,7 +41,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from align import feasible, plane, symmetry
+from align import feasible, plane, posterior_kernels, symmetry
 from align.board import BoardSpec
 from align.geometry import board_coordinates, lidar_up, plane_of_pose, pose_from_plane
 
@@ -131,20 +132,49 @@ class LabelledRays:
         return self.select(binding(board, x, z, self.label, 0.02 + 0.08 * abs(vx) + arm,
                                    0.02 + 0.08 * abs(vz) + arm))
 
+    @functools.cached_property
+    def _split(self) -> tuple[np.ndarray, ...]:
+        """The hits' origins, directions and widenings, then the misses': contiguous float64,
+        `align.posterior_kernels.plane_posteriors`' arguments (split once, not per plane)."""
+        hit, miss = self.label == 1, self.label == 0
+        return tuple(np.ascontiguousarray(a[mask], dtype=np.float64) for mask in (hit, miss)
+                     for a in (self.origin, self.direction, self.ext))
+
+    def posteriors(self, normals: np.ndarray, ds: np.ndarray, board: BoardSpec,
+                   rolls: np.ndarray, roll_prior: tuple[float, float] | None = None
+                   ) -> list[tuple[feasible.InPlanePosterior, np.ndarray] | None]:
+        """`in_plane` for each plane normals[i] . p = ds[i] ((P, 3), (P,)) in one compiled call,
+        each with the pose (6,) of its posterior's mean (`_pose`); None where no roll on the
+        grid is consistent with the labels."""
+        weight = np.empty(0)
+        if roll_prior is not None:
+            p = symmetry.period(board)
+            dev = (rolls - roll_prior[0] + p / 2) % p - p / 2
+            weight = np.exp(-0.5 * (dev / roll_prior[1]) ** 2)
+        rows = posterior_kernels.plane_posteriors(
+            *self._split, np.ascontiguousarray(normals, dtype=np.float64),
+            np.ascontiguousarray(ds, dtype=np.float64),
+            np.ascontiguousarray(rolls, dtype=np.float64), weight, board.width / 2,
+            board.height / 2)
+        return [_unpack(row) if row[posterior_kernels.OK] else None for row in rows]
+
     def in_plane(self, n: np.ndarray, d: float, board: BoardSpec, rolls: np.ndarray,
                  roll_prior: tuple[float, float] | None = None
                  ) -> feasible.InPlanePosterior | None:
         """`align.feasible.in_plane_posterior` for the plane n . p = d, with the roll prior
         (mean, 1-sigma, rad; compared modulo the board's symmetry) if given."""
-        lam = (d - self.origin @ n) / (self.direction @ n)
-        points = self.origin + lam[:, None] * self.direction
-        weight = None
-        if roll_prior is not None:
-            p = symmetry.period(board)
-            dev = (rolls - roll_prior[0] + p / 2) % p - p / 2
-            weight = np.exp(-0.5 * (dev / roll_prior[1]) ** 2)
-        return feasible.in_plane_posterior(n, points, self.label, self.ext, board.width,
-                                           board.height, rolls, weight)
+        found = self.posteriors(np.asarray(n)[None, :], np.array([d]), board, rolls, roll_prior)[0]
+        return None if found is None else found[0]
+
+
+def _unpack(row: np.ndarray) -> tuple[feasible.InPlanePosterior, np.ndarray]:
+    """One row of `align.posterior_kernels.plane_posteriors`: the posterior and its pose."""
+    k = posterior_kernels
+    post = feasible.InPlanePosterior(row[k.MEAN:k.MEAN + 3].copy(),
+                                     row[k.COV:k.COV + 9].reshape(3, 3).copy(),
+                                     float(row[k.EVIDENCE]),
+                                     (float(row[k.SUPPORT]), float(row[k.SUPPORT + 1])))
+    return post, row[k.POSE:k.POSE + 6].copy()
 
 
 def binding(board: BoardSpec, x: np.ndarray, z: np.ndarray, lab: np.ndarray, mx: float,
@@ -243,26 +273,41 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     ref = _pose(n, d, coarse.mean)
     subsets: dict[float, LabelledRays] = {}
 
-    def posterior(g: np.ndarray, log_q: float, index: int) -> _Node | None:
-        n, d = moved(g)
+    def binding_for(rolls: np.ndarray) -> LabelledRays:
+        # the labels that can bind over a grid's reach from the reference (cached per reach)
+        reach = float(np.max(np.abs(rolls - ref[3])))
+        if reach not in subsets:
+            subsets[reach] = rays.near(board, ref, reach)
+        return subsets[reach]
+
+    def widened(found: tuple[feasible.InPlanePosterior, np.ndarray] | None, n: np.ndarray,
+                d: float) -> tuple[feasible.InPlanePosterior, np.ndarray] | None:
+        # a plane's posterior on `base` again on wider grids while its rolls run off the end
         rolls = base
-        for _ in range(GRID_TRIES):
-            reach = float(np.max(np.abs(rolls - ref[3])))
-            if reach not in subsets:
-                subsets[reach] = rays.near(board, ref, reach)
-            post = subsets[reach].in_plane(n, d, board, rolls, roll_prior)
-            if post is None:
+        for _ in range(GRID_TRIES - 1):
+            if found is None:
                 return None
-            low, high = post.support[0] <= rolls[0], post.support[1] >= rolls[-1]
+            low, high = found[0].support[0] <= rolls[0], found[0].support[1] >= rolls[-1]
             if not (low or high):
                 break
             span = rolls[-1] - rolls[0]
             rolls = np.linspace(rolls[0] - low * span, rolls[-1] + high * span, FINE_ROLLS)
-        return _Node(g, log_q, index, _pose(n, d, post.mean), post)
+            found = binding_for(rolls).posteriors(n[None, :], np.array([d]), board, rolls,
+                                                  roll_prior)[0]
+        return found
 
     def evaluate(planes: np.ndarray, log_q: np.ndarray) -> list[_Node]:
-        return [node for i, (g, q) in enumerate(zip(planes, log_q, strict=True))
-                if (node := posterior(g, q, i)) is not None]
+        # every plane on `base` in one call; the few that run off it one by one
+        normals = n0 + planes[:, :1] * e1 + planes[:, 1:2] * e2
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        ds = d0 + planes[:, 2]
+        nodes = []
+        first = binding_for(base).posteriors(normals, ds, board, base, roll_prior)
+        for i, found in enumerate(first):
+            found = widened(found, normals[i], float(ds[i]))
+            if found is not None:
+                nodes.append(_Node(planes[i], log_q[i], i, found[1], found[0]))
+        return nodes
 
     # 3. the integral over the plane: the rule about the centre. Where the labels allow a band
     # of planes narrower than the rule's spacing (too few of its nodes, or all on one level of
