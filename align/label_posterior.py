@@ -41,7 +41,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from align import feasible, plane, posterior_kernels, symmetry
+from align import feasible, plane, symmetry
 from align.board import BoardSpec
 from align.geometry import board_coordinates, lidar_up, plane_of_pose, pose_from_plane
 
@@ -135,7 +135,7 @@ class LabelledRays:
     @functools.cached_property
     def _split(self) -> tuple[np.ndarray, ...]:
         """The hits' origins, directions and widenings, then the misses': contiguous float64,
-        `align.posterior_kernels.plane_posteriors`' arguments (split once, not per plane)."""
+        `align.feasible.plane_posteriors`' arguments (split once, not per plane)."""
         hit, miss = self.label == 1, self.label == 0
         return tuple(np.ascontiguousarray(a[mask], dtype=np.float64) for mask in (hit, miss)
                      for a in (self.origin, self.direction, self.ext))
@@ -151,12 +151,12 @@ class LabelledRays:
             p = symmetry.period(board)
             dev = (rolls - roll_prior[0] + p / 2) % p - p / 2
             weight = np.exp(-0.5 * (dev / roll_prior[1]) ** 2)
-        rows = posterior_kernels.plane_posteriors(
+        rows = feasible.plane_posteriors(
             *self._split, np.ascontiguousarray(normals, dtype=np.float64),
             np.ascontiguousarray(ds, dtype=np.float64),
             np.ascontiguousarray(rolls, dtype=np.float64), weight, board.width / 2,
             board.height / 2)
-        return [_unpack(row) if row[posterior_kernels.OK] else None for row in rows]
+        return [_unpack(row) if row[feasible.OK] else None for row in rows]
 
     def in_plane(self, n: np.ndarray, d: float, board: BoardSpec, rolls: np.ndarray,
                  roll_prior: tuple[float, float] | None = None
@@ -168,8 +168,8 @@ class LabelledRays:
 
 
 def _unpack(row: np.ndarray) -> tuple[feasible.InPlanePosterior, np.ndarray]:
-    """One row of `align.posterior_kernels.plane_posteriors`: the posterior and its pose."""
-    k = posterior_kernels
+    """One row of `align.feasible.plane_posteriors`: the posterior and its pose."""
+    k = feasible
     post = feasible.InPlanePosterior(row[k.MEAN:k.MEAN + 3].copy(),
                                      row[k.COV:k.COV + 9].reshape(3, 3).copy(),
                                      float(row[k.EVIDENCE]),

@@ -1,4 +1,4 @@
-"""The hit/miss posterior's compiled kernel (`align.posterior_kernels.plane_posteriors`) against
+"""The hit/miss posterior's compiled kernel (`align.feasible.plane_posteriors`) against
 the numpy version it replaced (`align.feasible.in_plane_posterior` per plane, then
 `align.label_posterior._pose` of its mean), on synthetic VLP-16 scans whose labels are exact:
 many planes about the true one in one call, with the plate's side face widening the edges, a
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from align import feasible, plane, posterior_kernels
+from align import feasible, plane
 from align.board import BoardSpec
 from align.geometry import board_coordinates, plane_of_pose
 from align.label_posterior import LabelledRays, _pose
@@ -73,20 +73,20 @@ def test_plane_posteriors_match_the_numpy_version(seed, dist, prior):
     rolls = theta[3] + np.deg2rad(np.linspace(-0.6, 0.6, 121))
     weight = (np.exp(-0.5 * ((rolls - theta[3]) / np.deg2rad(0.2)) ** 2) if prior
               else np.empty(0))
-    rows = posterior_kernels.plane_posteriors(*rays._split, normals, ds, rolls, weight,
+    rows = feasible.plane_posteriors(*rays._split, normals, ds, rolls, weight,
                                               BOARD.width / 2, BOARD.height / 2)
-    assert rows.shape == (len(ds), posterior_kernels.WIDTH)
+    assert rows.shape == (len(ds), feasible.WIDTH)
     found = 0
     for row, n, d in zip(rows, normals, ds, strict=True):
         ref = _reference(rays, n, float(d), rolls, weight if prior else None)
         if ref is None:
-            assert row[posterior_kernels.OK] == 0.0
+            assert row[feasible.OK] == 0.0
             continue
         found += 1
         scale = np.maximum(np.abs(ref), 1e-6)  # covariances' entries of 1e-8: absolute
         np.testing.assert_allclose(row, ref, rtol=1e-10, atol=1e-12 * scale.max())
     assert found >= 8, found  # most planes near the true one are consistent
-    assert rows[-1, posterior_kernels.OK] == 0.0
+    assert rows[-1, feasible.OK] == 0.0
 
 
 def test_in_plane_is_the_kernels_single_plane():
