@@ -412,7 +412,7 @@ def _joint_profile(offset: OffsetModel, v: np.ndarray, axes: list[np.ndarray],
     ranges' covariance of g given b (each a_k is one sigma of it). Returns the plane at the
     posterior mean, the most probable node's coarse in-plane posterior and the plane's
     posterior covariance (3, 3), or None where no plane explains the labels."""
-    x, wt = np.polynomial.hermite_e.hermegauss(3)
+    x, wt = _hermite(3)
     rule = list(zip(x, np.log(wt / wt.sum()), strict=True))
     levels = [rule for _ in axes]
     spacing = [float(x[1] - x[0]) for _ in axes]
@@ -580,11 +580,29 @@ def gauss_hermite(centre: np.ndarray, cov: np.ndarray, order: int
                   ) -> tuple[np.ndarray, np.ndarray]:
     """The tensor Gauss-Hermite rule for N(centre, cov) in 3-D: nodes (order^3, 3) and the
     logs of their weights (which sum to 1)."""
-    x, w = np.polynomial.hermite_e.hermegauss(order)
+    grid, log_q = _standard_rule(order)
+    return centre + grid @ np.linalg.cholesky(cov).T, log_q.copy()
+
+
+@functools.cache
+def _standard_rule(order: int) -> tuple[np.ndarray, np.ndarray]:
+    """`gauss_hermite`'s rule for N(0, I): nodes (order^3, 3) and log weights, read-only
+    (computed once: the nodes' recurrence and the outer sums cost more than the rest of a rule)."""
+    x, w = _hermite(order)
     grid = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1).reshape(-1, 3)
     log_w = np.log(w / w.sum())
     log_q = np.add.outer(np.add.outer(log_w, log_w), log_w).ravel()
-    return centre + grid @ np.linalg.cholesky(cov).T, log_q
+    grid.flags.writeable = log_q.flags.writeable = False
+    return grid, log_q
+
+
+@functools.cache
+def _hermite(order: int) -> tuple[np.ndarray, np.ndarray]:
+    """The probabilists' Gauss-Hermite nodes and weights (`numpy.polynomial.hermite_e`), read-only
+    and computed once."""
+    x, w = np.polynomial.hermite_e.hermegauss(order)
+    x.flags.writeable = w.flags.writeable = False
+    return x, w
 
 
 def _weights(nodes: list[_Node]) -> np.ndarray:
