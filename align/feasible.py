@@ -91,17 +91,36 @@ def label_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
             a0, a1, c0, c1 = boxes[k]
             if not (a1 > a0 and c1 > c0) or np.isinf(a1 - a0) or np.isinf(c1 - c0):
                 continue
-            # the misses' boxes that overlap it
+            # the misses' boxes that overlap it. Those that cover it across its whole height
+            # or width from one side only shrink it (`_box_minus_boxes`' first step), here at
+            # once: the box they leave does not depend on the order they are applied in, and
+            # the later ones are tested against the smaller box
             nb = 0
             for i in range(nm):
                 x = g_p[i, 0] * r0[k, 0] + g_p[i, 1] * r0[k, 1] + g_p[i, 2] * r0[k, 2]
                 z = g_p[i, 0] * r2[k, 0] + g_p[i, 1] * r2[k, 1] + g_p[i, 2] * r2[k, 2]
                 x0, x1 = g_lim[i, 0] - x, g_lim[i, 1] - x
                 z0, z1 = g_lim[i, 2] - z, g_lim[i, 3] - z
-                if x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1:
+                if not (x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1):
+                    continue
+                if z0 <= c0 and z1 >= c1 and (x0 <= a0 or x1 >= a1):
+                    if x0 <= a0:
+                        a0 = x1
+                    if x1 >= a1:
+                        a1 = x0
+                elif x0 <= a0 and x1 >= a1 and (z0 <= c0 or z1 >= c1):
+                    if z0 <= c0:
+                        c0 = z1
+                    if z1 >= c1:
+                        c1 = z0
+                else:
                     bx0[nb], bx1[nb], bz0[nb], bz1[nb] = x0, x1, z0, z1
                     nb += 1
-            _box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs, out[k])
+                    continue
+                if not (a1 > a0 and c1 > c0):
+                    break  # nothing consistent at this roll
+            if a1 > a0 and c1 > c0:
+                _box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs, out[k])
     return out
 
 
