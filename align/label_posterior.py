@@ -169,12 +169,11 @@ class LabelledRays:
 
 def _unpack(row: np.ndarray) -> tuple[feasible.InPlanePosterior, np.ndarray]:
     """One row of `align.feasible.plane_posteriors`: the posterior and its pose."""
-    k = feasible
-    post = feasible.InPlanePosterior(row[k.MEAN:k.MEAN + 3].copy(),
-                                     row[k.COV:k.COV + 9].reshape(3, 3).copy(),
-                                     float(row[k.EVIDENCE]),
-                                     (float(row[k.SUPPORT]), float(row[k.SUPPORT + 1])))
-    return post, row[k.POSE:k.POSE + 6].copy()
+    k, own = feasible, row.copy()  # one copy; the posterior and the pose are views of it
+    post = feasible.InPlanePosterior(own[k.MEAN:k.MEAN + 3], own[k.COV:k.COV + 9].reshape(3, 3),
+                                     float(own[k.EVIDENCE]),
+                                     (float(own[k.SUPPORT]), float(own[k.SUPPORT + 1])))
+    return post, own[k.POSE:k.POSE + 6]
 
 
 def binding(board: BoardSpec, x: np.ndarray, z: np.ndarray, lab: np.ndarray, mx: float,
@@ -561,8 +560,10 @@ def _log_density_ratio(g: np.ndarray, c_inv: np.ndarray, m: np.ndarray, scale: f
 def _spans(nodes: list[_Node]) -> bool:
     """Whether the rule's nodes the labels allowed lie on two levels or more of every direction
     of its grid (else the J = d pose / d g fit and the band's extent are not determined)."""
-    levels = np.unravel_index([nd.index for nd in nodes], (QUADRATURE_ORDER,) * 3)
-    return all(len(np.unique(k)) >= 2 for k in levels)
+    q = QUADRATURE_ORDER
+    index = [nd.index for nd in nodes]
+    # the grid's C order: level index // q^2 of the first direction, ... index % q of the last
+    return all(len({i // q**a % q for i in index}) >= 2 for a in (2, 1, 0))
 
 
 class _Node(NamedTuple):
