@@ -145,12 +145,9 @@ class LabelledRays:
                    ) -> list[tuple[feasible.InPlanePosterior, np.ndarray] | None]:
         """`in_plane` for each plane normals[i] . p = ds[i] ((P, 3), (P,)) in one compiled call,
         each with the pose (6,) of its posterior's mean (`_pose`); None where no roll on the
-        grid is consistent with the labels."""
-        weight = np.empty(0)
-        if roll_prior is not None:
-            p = symmetry.period(board)
-            dev = (rolls - roll_prior[0] + p / 2) % p - p / 2
-            weight = np.exp(-0.5 * (dev / roll_prior[1]) ** 2)
+        grid is consistent with the labels. Each label's likelihood is
+        `align.feasible.label_moments`' (1 on the positions its box allows, else 0)."""
+        weight = roll_weight(board, rolls, roll_prior)
         rows = feasible.plane_posteriors(
             *self._split, np.ascontiguousarray(normals, dtype=np.float64),
             np.ascontiguousarray(ds, dtype=np.float64),
@@ -165,6 +162,18 @@ class LabelledRays:
         (mean, 1-sigma, rad; compared modulo the board's symmetry) if given."""
         found = self.posteriors(np.asarray(n)[None, :], np.array([d]), board, rolls, roll_prior)[0]
         return None if found is None else found[0]
+
+
+def roll_weight(board: BoardSpec, rolls: np.ndarray, roll_prior: tuple[float, float] | None
+                ) -> np.ndarray:
+    """The roll prior's density over ``rolls`` (mean, 1-sigma, rad; compared modulo the
+    board's symmetry), unnormalised; empty for none (flat), as `feasible.plane_posteriors`
+    takes it."""
+    if roll_prior is None:
+        return np.empty(0)
+    p = symmetry.period(board)
+    dev = (rolls - roll_prior[0] + p / 2) % p - p / 2
+    return np.exp(-0.5 * (dev / roll_prior[1]) ** 2)
 
 
 def _unpack(row: np.ndarray) -> tuple[feasible.InPlanePosterior, np.ndarray]:
