@@ -56,7 +56,7 @@ def label_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     labels left out of a block cannot change any of its rolls' sets.
     """
     n_k = r0.shape[0]
-    n_m = p_miss.shape[0]
+    n_h, n_m = p_hit.shape[0], p_miss.shape[0]
     out = np.zeros((n_k, 6))
     boxes = np.empty((n_k, 4))
     bx0, bx1, bz0, bz1 = np.empty(n_m), np.empty(n_m), np.empty(n_m), np.empty(n_m)
@@ -64,33 +64,89 @@ def label_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     xs = np.empty(2 * n_m + 2)
     # distances from a point near the board bound how far each coordinate moves with the roll
     centre = np.zeros(3)
-    for i in range(p_hit.shape[0]):
-        centre += p_hit[i] / p_hit.shape[0]
+    for i in range(n_h):
+        for j in range(3):  # elementwise: an array expression here allocated per hit
+            centre[j] += p_hit[i, j] / n_h
+    # per ray, once: its edges' constants and its point relative to the centre
+    lim_h, lim_m = _limits(ext_hit, w2, h2), _limits(ext_miss, w2, h2)
+    q_h, q_m = _relative(p_hit, centre), _relative(p_miss, centre)
+    keep_h, keep_m = np.empty(n_h, dtype=np.int64), np.empty(n_m, dtype=np.int64)
+    g_p, g_lim = np.empty((n_m, 3)), np.empty((n_m, 4))  # a block's misses, contiguous
     for k_lo in range(0, n_k, ROLL_BLOCK):
         k_hi = min(k_lo + ROLL_BLOCK, n_k)
         kc = (k_lo + k_hi - 1) // 2
         dx, dz = _row_spread(r0, k_lo, k_hi, kc), _row_spread(r2, k_lo, k_hi, kc)
-        hits = _binding_hits(p_hit, ext_hit, centre, r0[kc], r2[kc], dx, dz, w2, h2)
+        nh = _binding_hits(q_h, lim_h, r0[kc], r2[kc], dx, dz, keep_h)
         for k in range(k_lo, k_hi):
-            _hit_box(p_hit, ext_hit, hits, r0[k], r2[k], w2, h2, boxes[k])
-        misses = _binding_misses(p_miss, ext_miss, centre, r0[k_lo:k_hi], r2[k_lo:k_hi],
-                                 kc - k_lo, dx, dz, w2, h2, boxes[k_lo:k_hi])
+            _hit_box(p_hit, lim_h, keep_h[:nh], r0[k], r2[k], boxes[k])
+        nm = _binding_misses(q_m, lim_m, centre, r0[k_lo:k_hi], r2[k_lo:k_hi], kc - k_lo,
+                             dx, dz, boxes[k_lo:k_hi], keep_m)
+        for j in range(nm):
+            i = keep_m[j]
+            for c in range(3):
+                g_p[j, c] = p_miss[i, c]
+            for c in range(4):
+                g_lim[j, c] = lim_m[i, c]
         for k in range(k_lo, k_hi):
             a0, a1, c0, c1 = boxes[k]
             if not (a1 > a0 and c1 > c0) or np.isinf(a1 - a0) or np.isinf(c1 - c0):
                 continue
-            # the misses' boxes that overlap it
+            # the misses' boxes that overlap it. Those that cover it across its whole height
+            # or width from one side only shrink it (`_box_minus_boxes`' first step), here at
+            # once: the box they leave does not depend on the order they are applied in, and
+            # the later ones are tested against the smaller box
             nb = 0
-            for i in misses:
-                x = p_miss[i, 0] * r0[k, 0] + p_miss[i, 1] * r0[k, 1] + p_miss[i, 2] * r0[k, 2]
-                z = p_miss[i, 0] * r2[k, 0] + p_miss[i, 1] * r2[k, 1] + p_miss[i, 2] * r2[k, 2]
-                x0, x1 = -w2 - ext_miss[i, 0] - x, w2 + ext_miss[i, 1] - x
-                z0, z1 = -h2 - ext_miss[i, 2] - z, h2 + ext_miss[i, 3] - z
-                if x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1:
+            for i in range(nm):
+                x = g_p[i, 0] * r0[k, 0] + g_p[i, 1] * r0[k, 1] + g_p[i, 2] * r0[k, 2]
+                z = g_p[i, 0] * r2[k, 0] + g_p[i, 1] * r2[k, 1] + g_p[i, 2] * r2[k, 2]
+                x0, x1 = g_lim[i, 0] - x, g_lim[i, 1] - x
+                z0, z1 = g_lim[i, 2] - z, g_lim[i, 3] - z
+                if not (x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1):
+                    continue
+                if z0 <= c0 and z1 >= c1 and (x0 <= a0 or x1 >= a1):
+                    if x0 <= a0:
+                        a0 = x1
+                    if x1 >= a1:
+                        a1 = x0
+                elif x0 <= a0 and x1 >= a1 and (z0 <= c0 or z1 >= c1):
+                    if z0 <= c0:
+                        c0 = z1
+                    if z1 >= c1:
+                        c1 = z0
+                else:
                     bx0[nb], bx1[nb], bz0[nb], bz1[nb] = x0, x1, z0, z1
                     nb += 1
-            _box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs, out[k])
+                    continue
+                if not (a1 > a0 and c1 > c0):
+                    break  # nothing consistent at this roll
+            if a1 > a0 and c1 > c0:
+                _box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs, out[k])
     return out
+
+
+@njit(cache=True)
+def _limits(ext: np.ndarray, w2: float, h2: float) -> np.ndarray:
+    """Each ray's box edges before its coordinate is subtracted, (M, 4): -w2 - e_l, w2 + e_r,
+    -h2 - e_b, h2 + e_t (a box's edge, e.g. -w2 - e_l - X, is then the same float as when
+    written out: the same operations in the same order)."""
+    lim = np.empty((ext.shape[0], 4))
+    for i in range(ext.shape[0]):
+        lim[i, 0] = -w2 - ext[i, 0]
+        lim[i, 1] = w2 + ext[i, 1]
+        lim[i, 2] = -h2 - ext[i, 2]
+        lim[i, 3] = h2 + ext[i, 3]
+    return lim
+
+
+@njit(cache=True)
+def _relative(p: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The points relative to ``c`` and their 1-norms, (M, 4)."""
+    q = np.empty((p.shape[0], 4))
+    for i in range(p.shape[0]):
+        q0, q1, q2 = p[i, 0] - c[0], p[i, 1] - c[1], p[i, 2] - c[2]
+        q[i, 0], q[i, 1], q[i, 2] = q0, q1, q2
+        q[i, 3] = abs(q0) + abs(q1) + abs(q2)
+    return q
 
 
 @njit(cache=True)
@@ -106,87 +162,80 @@ def _row_spread(r: np.ndarray, k_lo: int, k_hi: int, kc: int) -> float:
 
 
 @njit(cache=True)
-def _binding_hits(p: np.ndarray, ext: np.ndarray, c: np.ndarray, rx: np.ndarray,
-                  rz: np.ndarray, dx: float, dz: float, w2: float, h2: float) -> np.ndarray:
+def _binding_hits(q: np.ndarray, lim: np.ndarray, rx: np.ndarray, rz: np.ndarray, dx: float,
+                  dz: float, keep: np.ndarray) -> int:
     """The hits that can set a side of the hits' box at some roll of a block (centre rows
-    ``rx``, ``rz``; spreads ``dx``, ``dz``, `_row_spread`): each side is a maximum (or minimum)
-    over the hits, and a hit whose best case stays below another's worst case never is it.
-    Coordinates are taken relative to the point ``c`` (its own coordinate is common to every
-    hit at a roll, so it cancels in the comparison) and move by |p - c|_1 times the spread."""
-    n = p.shape[0]
-    val = np.empty((n, 4))
-    rad = np.empty((n, 2))
-    worst = np.full(4, -np.inf)  # the best lower bound of each side's maximum
+    ``rx``, ``rz``; spreads ``dx``, ``dz``, `_row_spread`), into ``keep``; returns how many.
+    Each side is a maximum (or minimum) over the hits, and a hit whose best case stays below
+    another's worst case never is it. Coordinates are taken relative to a common point (``q``,
+    `_relative`: its own coordinate is common to every hit at a roll, so it cancels in the
+    comparison) and move by |p - c|_1 times the spread. ``lim``: `_limits`."""
+    n = q.shape[0]
+    # the best lower bound of each side's maximum: a0 = max(-w2 - e_l - X),
+    # -a1 = max(-w2 - e_r + X), c0 = max(-h2 - e_b - Z), -c1 = max(-h2 - e_t + Z)
+    b0 = b1 = b2 = b3 = -np.inf
     for i in range(n):
-        q0, q1, q2 = p[i, 0] - c[0], p[i, 1] - c[1], p[i, 2] - c[2]
-        x = q0 * rx[0] + q1 * rx[1] + q2 * rx[2]
-        z = q0 * rz[0] + q1 * rz[1] + q2 * rz[2]
-        norm = abs(q0) + abs(q1) + abs(q2)
-        rad[i, 0] = norm * dx + BOUND_SLACK
-        rad[i, 1] = norm * dz + BOUND_SLACK
-        # every side as a maximum: a0 = max(-w2 - e_l - X), -a1 = max(-w2 - e_r + X), ...
-        val[i, 0] = -w2 - ext[i, 0] - x
-        val[i, 1] = -w2 - ext[i, 1] + x
-        val[i, 2] = -h2 - ext[i, 2] - z
-        val[i, 3] = -h2 - ext[i, 3] + z
-        for s in range(4):
-            worst[s] = max(worst[s], val[i, s] - rad[i, s // 2])
-    keep = np.empty(n, dtype=np.int64)
+        x = q[i, 0] * rx[0] + q[i, 1] * rx[1] + q[i, 2] * rx[2]
+        z = q[i, 0] * rz[0] + q[i, 1] * rz[1] + q[i, 2] * rz[2]
+        ax, az = q[i, 3] * dx + BOUND_SLACK, q[i, 3] * dz + BOUND_SLACK
+        b0 = max(b0, (lim[i, 0] - x) - ax)
+        b1 = max(b1, (x - lim[i, 1]) - ax)
+        b2 = max(b2, (lim[i, 2] - z) - az)
+        b3 = max(b3, (z - lim[i, 3]) - az)
     m = 0
     for i in range(n):
-        for s in range(4):
-            if val[i, s] + rad[i, s // 2] >= worst[s]:
-                keep[m] = i
-                m += 1
-                break
-    return keep[:m]
+        x = q[i, 0] * rx[0] + q[i, 1] * rx[1] + q[i, 2] * rx[2]
+        z = q[i, 0] * rz[0] + q[i, 1] * rz[1] + q[i, 2] * rz[2]
+        ax, az = q[i, 3] * dx + BOUND_SLACK, q[i, 3] * dz + BOUND_SLACK
+        if ((lim[i, 0] - x) + ax >= b0 or (x - lim[i, 1]) + ax >= b1
+                or (lim[i, 2] - z) + az >= b2 or (z - lim[i, 3]) + az >= b3):
+            keep[m] = i
+            m += 1
+    return m
 
 
 @njit(cache=True)
-def _hit_box(p: np.ndarray, ext: np.ndarray, hits: np.ndarray, r0: np.ndarray, r2: np.ndarray,
-             w2: float, h2: float, out: np.ndarray) -> None:
+def _hit_box(p: np.ndarray, lim: np.ndarray, hits: np.ndarray, r0: np.ndarray,
+             r2: np.ndarray, out: np.ndarray) -> None:
     """The hits' box at one roll, the intersection of theirs, into ``out``: a0, a1, c0, c1
-    (in place: an allocation per roll cost more than the loop)."""
+    (in place: an allocation per roll cost more than the loop). ``lim``: `_limits`."""
     a0, a1, c0, c1 = -np.inf, np.inf, -np.inf, np.inf
     for i in hits:
         x = p[i, 0] * r0[0] + p[i, 1] * r0[1] + p[i, 2] * r0[2]
         z = p[i, 0] * r2[0] + p[i, 1] * r2[1] + p[i, 2] * r2[2]
-        a0 = max(a0, -w2 - ext[i, 0] - x)
-        a1 = min(a1, w2 + ext[i, 1] - x)
-        c0 = max(c0, -h2 - ext[i, 2] - z)
-        c1 = min(c1, h2 + ext[i, 3] - z)
+        a0 = max(a0, lim[i, 0] - x)
+        a1 = min(a1, lim[i, 1] - x)
+        c0 = max(c0, lim[i, 2] - z)
+        c1 = min(c1, lim[i, 3] - z)
     out[0], out[1], out[2], out[3] = a0, a1, c0, c1
 
 
 @njit(cache=True)
-def _binding_misses(p: np.ndarray, ext: np.ndarray, c: np.ndarray, r0: np.ndarray,
-                    r2: np.ndarray, kc: int, dx: float, dz: float, w2: float, h2: float,
-                    boxes: np.ndarray) -> np.ndarray:
+def _binding_misses(q: np.ndarray, lim: np.ndarray, c: np.ndarray, r0: np.ndarray,
+                    r2: np.ndarray, kc: int, dx: float, dz: float, boxes: np.ndarray,
+                    keep: np.ndarray) -> int:
     """The misses whose box can overlap the hits' box at some roll of a block (``r0``, ``r2``:
     its rows, ``kc`` its centre; ``boxes``: the hits' box at each of its rolls), in their
-    order: the others overlap none of them. Both boxes are taken relative to the point ``c``'s
-    coordinates at each roll: a miss's then moves by |p - c|_1 times the spread (``dx``,
-    ``dz``, `_row_spread`) from where it is at the centre roll."""
+    order, into ``keep``; returns how many: the others overlap none of them. Both boxes are
+    taken relative to the point ``c``'s coordinates at each roll (``q``: the misses relative
+    to it, `_relative`): a miss's then moves by |p - c|_1 times the spread (``dx``, ``dz``,
+    `_row_spread`) from where it is at the centre roll. ``lim``: `_limits`."""
     lo_x, hi_x, lo_z, hi_z = np.inf, -np.inf, np.inf, -np.inf
     for k in range(boxes.shape[0]):
         cx = c[0] * r0[k, 0] + c[1] * r0[k, 1] + c[2] * r0[k, 2]
         cz = c[0] * r2[k, 0] + c[1] * r2[k, 1] + c[2] * r2[k, 2]
         lo_x, hi_x = min(lo_x, boxes[k, 0] + cx), max(hi_x, boxes[k, 1] + cx)
         lo_z, hi_z = min(lo_z, boxes[k, 2] + cz), max(hi_z, boxes[k, 3] + cz)
-    n = p.shape[0]
-    keep = np.empty(n, dtype=np.int64)
     m = 0
-    for i in range(n):
-        q0, q1, q2 = p[i, 0] - c[0], p[i, 1] - c[1], p[i, 2] - c[2]
-        x = q0 * r0[kc, 0] + q1 * r0[kc, 1] + q2 * r0[kc, 2]
-        z = q0 * r2[kc, 0] + q1 * r2[kc, 1] + q2 * r2[kc, 2]
-        norm = abs(q0) + abs(q1) + abs(q2)
-        ax, az = norm * dx + BOUND_SLACK, norm * dz + BOUND_SLACK
-        if (w2 + ext[i, 1] - x + ax > lo_x and -w2 - ext[i, 0] - x - ax < hi_x
-                and h2 + ext[i, 3] - z + az > lo_z and -h2 - ext[i, 2] - z - az < hi_z):
+    for i in range(q.shape[0]):
+        x = q[i, 0] * r0[kc, 0] + q[i, 1] * r0[kc, 1] + q[i, 2] * r0[kc, 2]
+        z = q[i, 0] * r2[kc, 0] + q[i, 1] * r2[kc, 1] + q[i, 2] * r2[kc, 2]
+        ax, az = q[i, 3] * dx + BOUND_SLACK, q[i, 3] * dz + BOUND_SLACK
+        if ((lim[i, 1] - x) + ax > lo_x and (lim[i, 0] - x) - ax < hi_x
+                and (lim[i, 3] - z) + az > lo_z and (lim[i, 2] - z) - az < hi_z):
             keep[m] = i
             m += 1
-    return keep[:m]
+    return m
 
 
 @njit(cache=True)
@@ -278,6 +327,125 @@ def _sort_pairs(key: np.ndarray, other: np.ndarray) -> None:
             j -= 1
         key[j + 1] = k
         other[j + 1] = v
+
+
+# The in-plane posterior for many planes in one compiled call (`plane_posteriors`): a rule's 27
+# planes used to cost a dozen numpy calls each on arrays of a few hundred rays and ~100 rolls, two
+# thirds of the hit/miss posterior's 8.7 ms per scan in call overhead (docs/align.md, "Where the
+# time goes"). It lives beside `label_moments`, which it calls: numba's cache of a function is
+# invalidated only by edits of its own module, so a kernel elsewhere would keep a stale copy.
+# It matches `in_plane_posterior` (the numpy version, the reference) to rounding: its sums run
+# in loop order where numpy sums pairwise or in BLAS's order (tests/test_posterior_kernels.py).
+
+#: Columns of `plane_posteriors`' rows: consistent (1.0) or not (0.0), the mean (roll, t_x,
+#: t_z), the covariance (3 x 3, C order), the evidence, the support's first and last roll, and
+#: the pose of the mean (x, y, z, roll, tilt, yaw).
+OK, MEAN, COV, EVIDENCE, SUPPORT, POSE = 0, 1, 4, 13, 14, 16
+WIDTH = 22
+
+
+@njit(cache=True)
+def plane_posteriors(hit_o: np.ndarray, hit_u: np.ndarray, hit_ext: np.ndarray,
+                     miss_o: np.ndarray, miss_u: np.ndarray, miss_ext: np.ndarray,
+                     normals: np.ndarray, ds: np.ndarray, rolls: np.ndarray,
+                     weight: np.ndarray, w2: float, h2: float) -> np.ndarray:
+    """The in-plane posterior of (roll, t_x, t_z) for each plane n . p = d (``normals`` (P, 3)
+    unit, ``ds`` (P,), m) on the grid ``rolls`` (evenly spaced, rad), from the hits' and the
+    misses' rays (origins ``*_o``, unit directions ``*_u`` (M, 3) in {L}, side-face widenings
+    ``*_ext`` (M, 4), m) and the board's half-sizes ``w2``, ``h2``, m. ``weight``: the prior
+    density over ``rolls`` (empty: flat). Returns (P, `WIDTH`): one row per plane, laid out as
+    the column constants say; a row with OK 0 has no roll on the grid consistent with the
+    labels (the rest of it unset)."""
+    n_p = normals.shape[0]
+    out = np.zeros((n_p, WIDTH))
+    for p in range(n_p):
+        n = normals[p]
+        ph = _points(hit_o, hit_u, n, ds[p])
+        pm = _points(miss_o, miss_u, n, ds[p])
+        r0, r2 = _rows_kernel(rolls, n)
+        mom = label_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
+        if weight.shape[0] > 0:
+            for k in range(mom.shape[0]):
+                for j in range(6):
+                    mom[k, j] *= weight[k]
+        if _summary(mom, rolls, out[p]):
+            _pose_of_mean(n, ds[p], out[p])
+    return out
+
+
+@njit(cache=True)
+def _points(o: np.ndarray, u: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
+    """Where the rays (origins ``o``, directions ``u``) meet the plane n . p = d."""
+    m = o.shape[0]
+    p = np.empty((m, 3))
+    for i in range(m):
+        on = o[i, 0] * n[0] + o[i, 1] * n[1] + o[i, 2] * n[2]
+        un = u[i, 0] * n[0] + u[i, 1] * n[1] + u[i, 2] * n[2]
+        lam = (d - on) / un
+        for j in range(3):
+            p[i, j] = o[i, j] + lam * u[i, j]
+    return p
+
+
+@njit(cache=True)
+def _summary(mom: np.ndarray, rolls: np.ndarray, row: np.ndarray) -> bool:
+    """The posterior's moments from the per-roll area and moments ``mom`` (K, 6) into ``row``
+    (`align.feasible.in_plane_posterior`'s sums over the grid: uniform steps, the step
+    cancels). False, ``row`` left as it is: no roll consistent."""
+    n_k = rolls.shape[0]
+    total = 0.0
+    s = np.zeros(8)  # a r, a r^2, then the sums of t_x r, t_z r and of the five moments
+    first, last = -1, -1
+    for k in range(n_k):
+        a, r = mom[k, 0], rolls[k]
+        total += a
+        s[0] += a * r
+        s[1] += a * r * r
+        s[2] += mom[k, 1] * r
+        s[3] += mom[k, 2] * r
+        if a > 0:
+            if first < 0:
+                first = k
+            last = k
+    if not total > 0:  # the areas are finite (label_moments skips unbounded boxes)
+        return False
+    m = np.zeros(5)  # sums of t_x, t_z, t_x^2, t_z^2, t_x t_z
+    for k in range(n_k):
+        for j in range(5):
+            m[j] += mom[k, 1 + j]
+    e_r, e_x, e_z = s[0] / total, m[0] / total, m[1] / total
+    second = np.empty((3, 3))
+    second[0, 0] = s[1] / total
+    second[0, 1] = second[1, 0] = s[2] / total
+    second[0, 2] = second[2, 0] = s[3] / total
+    second[1, 1], second[2, 2] = m[2] / total, m[3] / total
+    second[1, 2] = second[2, 1] = m[4] / total
+    mean = (e_r, e_x, e_z)
+    row[OK] = 1.0
+    for i in range(3):
+        row[MEAN + i] = mean[i]
+        for j in range(3):
+            row[COV + 3 * i + j] = second[i, j] - mean[i] * mean[j]
+    step = rolls[1] - rolls[0] if n_k > 1 else 1.0
+    row[EVIDENCE] = total * step
+    row[SUPPORT], row[SUPPORT + 1] = rolls[first], rolls[last]  # total > 0: some a > 0
+    return True
+
+
+@njit(cache=True)
+def _pose_of_mean(n: np.ndarray, d: float, row: np.ndarray) -> None:
+    """The pose of the posterior's mean in ``row`` for the plane n . p = d: roll and the plane
+    give tilt and yaw (`align.geometry.pose_from_plane`), x and z are the mean's t_x, t_z."""
+    roll = row[MEAN]
+    cr, sr = np.cos(roll), np.sin(roll)
+    m0 = cr * n[0] + sr * n[2]
+    m2 = -sr * n[0] + cr * n[2]
+    row[POSE] = row[MEAN + 1]
+    row[POSE + 1] = -d
+    row[POSE + 2] = row[MEAN + 2]
+    row[POSE + 3] = roll
+    row[POSE + 4] = np.arctan2(-m2, n[1])
+    row[POSE + 5] = np.arcsin(min(max(m0, -1.0), 1.0))
 
 
 @dataclass

@@ -33,6 +33,7 @@ tilt, where the labels hold it better than the ranges).
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass
@@ -131,20 +132,57 @@ class LabelledRays:
         return self.select(binding(board, x, z, self.label, 0.02 + 0.08 * abs(vx) + arm,
                                    0.02 + 0.08 * abs(vz) + arm))
 
+    @functools.cached_property
+    def _split(self) -> tuple[np.ndarray, ...]:
+        """The hits' origins, directions and widenings, then the misses': contiguous float64,
+        `align.feasible.plane_posteriors`' arguments (split once, not per plane)."""
+        hit, miss = self.label == 1, self.label == 0
+        return tuple(np.ascontiguousarray(a[mask], dtype=np.float64) for mask in (hit, miss)
+                     for a in (self.origin, self.direction, self.ext))
+
+    def posteriors(self, normals: np.ndarray, ds: np.ndarray, board: BoardSpec,
+                   rolls: np.ndarray, roll_prior: tuple[float, float] | None = None
+                   ) -> list[tuple[feasible.InPlanePosterior, np.ndarray] | None]:
+        """`in_plane` for each plane normals[i] . p = ds[i] ((P, 3), (P,)) in one compiled call,
+        each with the pose (6,) of its posterior's mean (`_pose`); None where no roll on the
+        grid is consistent with the labels. Each label's likelihood is
+        `align.feasible.label_moments`' (1 on the positions its box allows, else 0)."""
+        weight = roll_weight(board, rolls, roll_prior)
+        rows = feasible.plane_posteriors(
+            *self._split, np.ascontiguousarray(normals, dtype=np.float64),
+            np.ascontiguousarray(ds, dtype=np.float64),
+            np.ascontiguousarray(rolls, dtype=np.float64), weight, board.width / 2,
+            board.height / 2)
+        return [_unpack(row) if row[feasible.OK] else None for row in rows]
+
     def in_plane(self, n: np.ndarray, d: float, board: BoardSpec, rolls: np.ndarray,
                  roll_prior: tuple[float, float] | None = None
                  ) -> feasible.InPlanePosterior | None:
         """`align.feasible.in_plane_posterior` for the plane n . p = d, with the roll prior
         (mean, 1-sigma, rad; compared modulo the board's symmetry) if given."""
-        lam = (d - self.origin @ n) / (self.direction @ n)
-        points = self.origin + lam[:, None] * self.direction
-        weight = None
-        if roll_prior is not None:
-            p = symmetry.period(board)
-            dev = (rolls - roll_prior[0] + p / 2) % p - p / 2
-            weight = np.exp(-0.5 * (dev / roll_prior[1]) ** 2)
-        return feasible.in_plane_posterior(n, points, self.label, self.ext, board.width,
-                                           board.height, rolls, weight)
+        found = self.posteriors(np.asarray(n)[None, :], np.array([d]), board, rolls, roll_prior)[0]
+        return None if found is None else found[0]
+
+
+def roll_weight(board: BoardSpec, rolls: np.ndarray, roll_prior: tuple[float, float] | None
+                ) -> np.ndarray:
+    """The roll prior's density over ``rolls`` (mean, 1-sigma, rad; compared modulo the
+    board's symmetry), unnormalised; empty for none (flat), as `feasible.plane_posteriors`
+    takes it."""
+    if roll_prior is None:
+        return np.empty(0)
+    p = symmetry.period(board)
+    dev = (rolls - roll_prior[0] + p / 2) % p - p / 2
+    return np.exp(-0.5 * (dev / roll_prior[1]) ** 2)
+
+
+def _unpack(row: np.ndarray) -> tuple[feasible.InPlanePosterior, np.ndarray]:
+    """One row of `align.feasible.plane_posteriors`: the posterior and its pose."""
+    k, own = feasible, row.copy()  # one copy; the posterior and the pose are views of it
+    post = feasible.InPlanePosterior(own[k.MEAN:k.MEAN + 3], own[k.COV:k.COV + 9].reshape(3, 3),
+                                     float(own[k.EVIDENCE]),
+                                     (float(own[k.SUPPORT]), float(own[k.SUPPORT + 1])))
+    return post, own[k.POSE:k.POSE + 6]
 
 
 def binding(board: BoardSpec, x: np.ndarray, z: np.ndarray, lab: np.ndarray, mx: float,
@@ -243,26 +281,41 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     ref = _pose(n, d, coarse.mean)
     subsets: dict[float, LabelledRays] = {}
 
-    def posterior(g: np.ndarray, log_q: float, index: int) -> _Node | None:
-        n, d = moved(g)
+    def binding_for(rolls: np.ndarray) -> LabelledRays:
+        # the labels that can bind over a grid's reach from the reference (cached per reach)
+        reach = float(np.max(np.abs(rolls - ref[3])))
+        if reach not in subsets:
+            subsets[reach] = rays.near(board, ref, reach)
+        return subsets[reach]
+
+    def widened(found: tuple[feasible.InPlanePosterior, np.ndarray] | None, n: np.ndarray,
+                d: float) -> tuple[feasible.InPlanePosterior, np.ndarray] | None:
+        # a plane's posterior on `base` again on wider grids while its rolls run off the end
         rolls = base
-        for _ in range(GRID_TRIES):
-            reach = float(np.max(np.abs(rolls - ref[3])))
-            if reach not in subsets:
-                subsets[reach] = rays.near(board, ref, reach)
-            post = subsets[reach].in_plane(n, d, board, rolls, roll_prior)
-            if post is None:
+        for _ in range(GRID_TRIES - 1):
+            if found is None:
                 return None
-            low, high = post.support[0] <= rolls[0], post.support[1] >= rolls[-1]
+            low, high = found[0].support[0] <= rolls[0], found[0].support[1] >= rolls[-1]
             if not (low or high):
                 break
             span = rolls[-1] - rolls[0]
             rolls = np.linspace(rolls[0] - low * span, rolls[-1] + high * span, FINE_ROLLS)
-        return _Node(g, log_q, index, _pose(n, d, post.mean), post)
+            found = binding_for(rolls).posteriors(n[None, :], np.array([d]), board, rolls,
+                                                  roll_prior)[0]
+        return found
 
     def evaluate(planes: np.ndarray, log_q: np.ndarray) -> list[_Node]:
-        return [node for i, (g, q) in enumerate(zip(planes, log_q, strict=True))
-                if (node := posterior(g, q, i)) is not None]
+        # every plane on `base` in one call; the few that run off it one by one
+        normals = n0 + planes[:, :1] * e1 + planes[:, 1:2] * e2
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        ds = d0 + planes[:, 2]
+        nodes = []
+        first = binding_for(base).posteriors(normals, ds, board, base, roll_prior)
+        for i, found in enumerate(first):
+            found = widened(found, normals[i], float(ds[i]))
+            if found is not None:
+                nodes.append(_Node(planes[i], log_q[i], i, found[1], found[0]))
+        return nodes
 
     # 3. the integral over the plane: the rule about the centre. Where the labels allow a band
     # of planes narrower than the rule's spacing (too few of its nodes, or all on one level of
@@ -367,7 +420,7 @@ def _joint_profile(offset: OffsetModel, v: np.ndarray, axes: list[np.ndarray],
     ranges' covariance of g given b (each a_k is one sigma of it). Returns the plane at the
     posterior mean, the most probable node's coarse in-plane posterior and the plane's
     posterior covariance (3, 3), or None where no plane explains the labels."""
-    x, wt = np.polynomial.hermite_e.hermegauss(3)
+    x, wt = _hermite(3)
     rule = list(zip(x, np.log(wt / wt.sum()), strict=True))
     levels = [rule for _ in axes]
     spacing = [float(x[1] - x[0]) for _ in axes]
@@ -516,8 +569,10 @@ def _log_density_ratio(g: np.ndarray, c_inv: np.ndarray, m: np.ndarray, scale: f
 def _spans(nodes: list[_Node]) -> bool:
     """Whether the rule's nodes the labels allowed lie on two levels or more of every direction
     of its grid (else the J = d pose / d g fit and the band's extent are not determined)."""
-    levels = np.unravel_index([nd.index for nd in nodes], (QUADRATURE_ORDER,) * 3)
-    return all(len(np.unique(k)) >= 2 for k in levels)
+    q = QUADRATURE_ORDER
+    index = [nd.index for nd in nodes]
+    # the grid's C order: level index // q^2 of the first direction, ... index % q of the last
+    return all(len({i // q**a % q for i in index}) >= 2 for a in (2, 1, 0))
 
 
 class _Node(NamedTuple):
@@ -535,11 +590,29 @@ def gauss_hermite(centre: np.ndarray, cov: np.ndarray, order: int
                   ) -> tuple[np.ndarray, np.ndarray]:
     """The tensor Gauss-Hermite rule for N(centre, cov) in 3-D: nodes (order^3, 3) and the
     logs of their weights (which sum to 1)."""
-    x, w = np.polynomial.hermite_e.hermegauss(order)
+    grid, log_q = _standard_rule(order)
+    return centre + grid @ np.linalg.cholesky(cov).T, log_q.copy()
+
+
+@functools.cache
+def _standard_rule(order: int) -> tuple[np.ndarray, np.ndarray]:
+    """`gauss_hermite`'s rule for N(0, I): nodes (order^3, 3) and log weights, read-only
+    (computed once: the nodes' recurrence and the outer sums cost more than the rest of a rule)."""
+    x, w = _hermite(order)
     grid = np.stack(np.meshgrid(x, x, x, indexing="ij"), axis=-1).reshape(-1, 3)
     log_w = np.log(w / w.sum())
     log_q = np.add.outer(np.add.outer(log_w, log_w), log_w).ravel()
-    return centre + grid @ np.linalg.cholesky(cov).T, log_q
+    grid.flags.writeable = log_q.flags.writeable = False
+    return grid, log_q
+
+
+@functools.cache
+def _hermite(order: int) -> tuple[np.ndarray, np.ndarray]:
+    """The probabilists' Gauss-Hermite nodes and weights (`numpy.polynomial.hermite_e`), read-only
+    and computed once."""
+    x, w = np.polynomial.hermite_e.hermegauss(order)
+    x.flags.writeable = w.flags.writeable = False
+    return x, w
 
 
 def _weights(nodes: list[_Node]) -> np.ndarray:
