@@ -67,3 +67,147 @@ def window_sweep(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndar
         count[c] = best
         shift[c] = -0.5 * (lo + hi)
     return count, shift
+
+
+@njit(cache=True)
+def _sign(v: float) -> float:
+    """np.sign of one float."""
+    if v > 0:
+        return 1.0
+    if v < 0:
+        return -1.0
+    return v  # 0 (or nan)
+
+
+@njit(cache=True)
+def _inside(c: float, v: float, half: float) -> tuple[float, float]:
+    """The shifts s with |c + s v| < half, as an interval (empty where none)."""
+    if abs(v) < 1e-12:
+        if abs(c) < half:
+            return -np.inf, np.inf
+        return np.inf, -np.inf
+    a, b = (-half - c) / v, (half - c) / v
+    return min(a, b), max(a, b)
+
+
+@njit(cache=True)
+def _count_inside(x: np.ndarray, z: np.ndarray, idx: np.ndarray, ds: np.ndarray, vx: float,
+                  vz: float, half_x: float, half_z: float, sign: int, counts: np.ndarray
+                  ) -> None:
+    """Add ``sign`` to ``counts[i]`` for every ray of ``idx`` inside the ``half_x`` x ``half_z``
+    rectangle when shifted by ``ds[i]`` along (vx, vz): each ray's interval of shifts, counted
+    by where it starts and ends in the sorted ``ds`` (open at both ends)."""
+    n = ds.shape[0]
+    diff = np.zeros(n + 1, dtype=np.int64)
+    for r in idx:
+        lo1, hi1 = _inside(x[r], vx, half_x)
+        lo2, hi2 = _inside(z[r], vz, half_z)
+        lo, hi = max(lo1, lo2), min(hi1, hi2)
+        a = np.searchsorted(ds, lo, side="right")
+        b = max(np.searchsorted(ds, hi, side="left"), a)
+        diff[a] += 1
+        diff[b] -= 1
+    run = 0
+    for i in range(n):
+        run += diff[i]
+        counts[i] += sign * run
+
+
+@njit(cache=True, error_model="numpy")
+def profile_cost(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray,
+                 bh: np.ndarray, bm: np.ndarray, ds: np.ndarray, vx: float, vz: float,
+                 w2: float, h2: float, tol: float, blur_side: float, blur_top: float
+                 ) -> np.ndarray:
+    """`align.rays._Model.profile`: for each shift ``ds`` (m, ascending) of the rectangle along
+    (vx, vz), 1e6 x the labels violated (hits of ``hit`` outside the rectangle grown by ``tol``,
+    misses of ``miss`` inside it shrunk by ``tol``) plus the squared whitened residuals of the
+    brackets (hit rays ``bh``, miss rays ``bm``), each bracket's edge reassigned per shift as
+    `_Model._edges` assigns it (no corner guard). ``x``, ``z``: every ray's board coordinates;
+    ``blur_side``, ``blur_top``: the blur across the side and the top/bottom edges, m. Numpy's
+    error model: a bracket along an edge divides by zero as numpy did (z_at infinite)."""
+    n = ds.shape[0]
+    viol = np.zeros(n, dtype=np.int64)
+    viol[:] = hit.shape[0]
+    _count_inside(x, z, hit, ds, vx, vz, w2 + tol, h2 + tol, -1, viol)
+    _count_inside(x, z, miss, ds, vx, vz, w2 + -tol, h2 + -tol, 1, viol)
+    cost = np.zeros(n)
+    for i in range(bh.shape[0]):
+        x_h, z_h, x_m, z_m = x[bh[i]], z[bh[i]], x[bm[i]], z[bm[i]]
+        for j in range(n):
+            xh, xm = x_h + ds[j] * vx, x_m + ds[j] * vx
+            zh, zm = z_h + ds[j] * vz, z_m + ds[j] * vz
+            dx, dz = xm - xh, zm - zh
+            if dx == 0 and dz == 0:
+                continue  # no edge
+            z_at = abs(zh + (_sign(dx) * w2 - xh) * dz / dx)
+            if not np.isfinite(z_at):
+                z_at = np.inf
+            if z_at <= h2:
+                width, blur = dx, blur_side
+                e = _sign(xm) * w2 - 0.5 * (xh + xm)
+            else:
+                width, blur = dz, blur_top
+                e = _sign(zm) * h2 - 0.5 * (zh + zm)
+            sd = np.sqrt(width * width / 12 + blur * blur)
+            q = e / sd
+            cost[j] += q * q
+    out = np.empty(n)
+    for j in range(n):
+        out[j] = 1e6 * viol[j] + cost[j]
+    return out
+
+
+@njit(cache=True)
+def edge_brackets(order: np.ndarray, ls: np.ndarray, az: np.ndarray, lb: np.ndarray,
+                  link: np.ndarray, trans: np.ndarray, first_hit: np.ndarray,
+                  last_hit: np.ndarray, zone: float) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._brackets`' walk over the transitions: ``order`` sorts the rays by laser and
+    azimuth (``ls``, ``az``, labels ``lb`` in that order), ``link`` says which neighbours in it
+    bracket (same laser, no gap, both labelled), ``trans`` where a linked pair changes label,
+    ``first_hit``, ``last_hit`` each laser's span on the board (positions in the order).
+    Transitions closer than ``zone`` (rad) on a linked run form one zone, reduced to the step
+    that misclassifies the fewest rays (ties widen it). Returns the rays (indices into
+    ``order``'s rays) on the hit and on the miss side of each bracket."""
+    hits = np.empty(len(trans), dtype=np.int64)
+    misses = np.empty(len(trans), dtype=np.int64)
+    k = 0
+    i = 0
+    while i < len(trans):
+        j = i
+        while j + 1 < len(trans) and az[trans[j + 1]] - az[trans[j]] < zone:
+            linked = True
+            for t in range(trans[j], trans[j + 1] + 1):
+                if not link[t]:
+                    linked = False
+                    break
+            if not linked:
+                break
+            j += 1
+        a, b = trans[i], trans[j] + 1  # the zone spans sorted rays a..b
+        left, right = lb[a], lb[b]
+        i = j + 1
+        if left == right:
+            continue  # in and out again: no net crossing
+        f, g = first_hit[ls[a]], last_hit[ls[a]]
+        if not (a < f <= b or a <= g < b):
+            continue  # inside the board's span on this laser: not its edge
+        # split after position s: labels wrong left of it plus labels wrong right of it
+        wrong_right = 0
+        for t in range(a + 1, b + 1):
+            wrong_right += lb[t] != right
+        wrong_left = 0
+        best, p, q = 1 << 62, 0, 0
+        for s in range(b - a):
+            wrong_left += lb[a + s] != left
+            err = wrong_left + wrong_right
+            if err < best:
+                best, p, q = err, a + s, a + s + 1
+            elif err == best:
+                q = a + s + 1
+            wrong_right -= lb[a + s + 1] != right
+        if left == 1:
+            hits[k], misses[k] = order[p], order[q]
+        else:
+            hits[k], misses[k] = order[q], order[p]
+        k += 1
+    return hits[:k], misses[:k]

@@ -41,6 +41,7 @@ import numpy as np
 
 from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
+from align.fit_kernels import edge_brackets, profile_cost
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
 from align.label_posterior import LabelledRays, OffsetModel, label_posterior
 from align.result import Hints, PoseEstimate, Status
@@ -285,33 +286,8 @@ def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     link = (ls[1:] == ls[:-1]) & (np.diff(az) < MAX_GAP) & (lb[1:] >= 0) & (lb[:-1] >= 0)
     trans = np.flatnonzero(link & (lb[1:] != lb[:-1]))
     first_hit, last_hit = _board_spans(ls, az, lb)
-    hits, misses = [], []
-    i = 0
-    while i < len(trans):
-        # grow a zone of transitions that follow each other closely on the same laser
-        j = i
-        while (j + 1 < len(trans) and np.all(link[trans[j]:trans[j + 1] + 1])
-               and az[trans[j + 1]] - az[trans[j]] < ZONE_AZIMUTH):
-            j += 1
-        a, b = trans[i], trans[j] + 1  # zone spans sorted rays a..b
-        left, right = lb[a], lb[b]
-        i = j + 1
-        if left == right:
-            continue  # in and out again: no net crossing (a grazing ring, a flicker)
-        f, g = first_hit[ls[a]], last_hit[ls[a]]
-        if not (a < f <= b or a <= g < b):
-            continue  # inside the board's span on this laser: not its edge
-        z = lb[a:b + 1]
-        # split after position s: errors = wrong labels left of it + wrong labels right of it
-        wrong_left = np.cumsum(z != left)[:-1]
-        wrong_right = np.cumsum((z != right)[::-1])[::-1][1:]
-        err = wrong_left + wrong_right
-        best = np.flatnonzero(err == err.min())
-        p, q = a + best[0], a + best[-1] + 1  # the bracket: rays p and q
-        h, m = (p, q) if left == 1 else (q, p)
-        hits.append(order[h])
-        misses.append(order[m])
-    return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
+    # the walk over the zones, compiled (`align.fit_kernels.edge_brackets`)
+    return edge_brackets(order, ls, az, lb, link, trans, first_hit, last_hit, ZONE_AZIMUTH)
 
 
 def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
@@ -481,46 +457,14 @@ class _Model:
         The shift moves every board coordinate by the same amount and leaves the ranges alone,
         so the profile is cheap. The cost counts hits outside the rectangle and misses inside it
         (more than ``tol`` from its edge), then adds the brackets' squared residuals with their
-        edges reassigned for each shift.
+        edges reassigned for each shift: one compiled pass (`align.fit_kernels.profile_cost`;
+        the numpy version's (brackets x shifts) temporaries cost 10x).
         """
         x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
         vx, vz = lidar_up(theta)
-        w2, h2 = self.board.width / 2, self.board.height / 2
-        hit, miss = self.lab == HIT, self.lab == MISS
-        n = len(ds)
-
-        def count_in(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-            """For each shift, how many intervals (lo, hi) contain it (interval counting)."""
-            a = np.searchsorted(ds, lo, side="right")
-            b = np.searchsorted(ds, hi, side="left")
-            c = np.bincount(a, minlength=n + 1) - np.bincount(np.maximum(b, a), minlength=n + 1)
-            return np.cumsum(c)[:n]
-
-        def inside(c: np.ndarray, v: float, half: float) -> tuple[np.ndarray, np.ndarray]:
-            """The shifts s with |c + s v| < half, as intervals (empty where none)."""
-            if abs(v) < 1e-12:
-                full = np.abs(c) < half
-                return np.where(full, -np.inf, np.inf), np.where(full, np.inf, -np.inf)
-            a, b = (-half - c) / v, (half - c) / v
-            return np.minimum(a, b), np.maximum(a, b)
-
-        def both(xs, zs, grow):
-            lo1, hi1 = inside(xs, vx, w2 + grow)
-            lo2, hi2 = inside(zs, vz, h2 + grow)
-            return np.maximum(lo1, lo2), np.minimum(hi1, hi2)
-
-        # a hit violates outside the rectangle grown by tol; a miss inside it shrunk by tol
-        lo, hi = both(x[hit], z[hit], tol)
-        viol = np.count_nonzero(hit) - count_in(lo, hi)
-        lo, hi = both(x[miss], z[miss], -tol)
-        viol = viol + count_in(lo, hi)
-        sh = ds[None, :]
-        xh, xm = x[self.bh][:, None] + sh * vx, x[self.bm][:, None] + sh * vx
-        zh, zm = z[self.bh][:, None] + sh * vz, z[self.bm][:, None] + sh * vz
-        kind, sign, sd = self._edges(xh, zh, xm, zm)
-        e = np.where(kind == 1, sign * w2 - 0.5 * (xh + xm), sign * h2 - 0.5 * (zh + zm))
-        cost = np.sum(np.where(kind > 0, (e / sd) ** 2, 0.0), axis=0)
-        return 1e6 * viol + cost
+        return profile_cost(x, z, np.flatnonzero(self.lab == HIT), np.flatnonzero(self.lab == MISS),
+                            self.bh, self.bm, np.asarray(ds, dtype=np.float64), vx, vz,
+                            self.board.width / 2, self.board.height / 2, tol, *self.blur_edges)
 
     def shift(self, theta: np.ndarray, ds: np.ndarray) -> np.ndarray:
         """``theta`` moved to the cheapest shift of `profile` over ``ds``."""

@@ -1,14 +1,131 @@
 """The pose fit's compiled kernels (`align.fit_kernels`) against the numpy versions they
-replaced: the same numbers bit for bit (they only compare, count and copy numpy's floats)."""
+replaced: the same numbers bit for bit (they only compare, count and copy numpy's floats), on
+the joint fit's models of real scans (the five ACFR chessboard captures) and a twin scan."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+import align
+from align import rays as rays_mod
 from align import roll_search
 from align.board import BoardSpec
 from align.feasible import _rows
 from align.fit_kernels import window_sweep
+from align.geometry import board_coordinates, lidar_up
+from tests.conftest import DATA_DIR
+from tests.test_rays_kernels import ACFR_BOARD, _model
+from twin.lidar.pcd import read_pcd_scans
+from twin.sim.bench import BenchSim
+
+
+@pytest.fixture(scope="module")
+def models() -> list[tuple[rays_mod._Model, np.ndarray]]:
+    hints = align.Hints(expected_distance=1.8)
+    out = [_model(read_pcd_scans(p)[0], ACFR_BOARD, hints)
+           for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    out.append(_model(BenchSim(seed=3).scan(), align.BoardSpec(), align.Hints()))
+    return out
+
+
+def profile_reference(model: rays_mod._Model, theta: np.ndarray, ds: np.ndarray,
+                      tol: float = 3e-3) -> np.ndarray:
+    """`_Model.profile` as numpy calls (before the kernel)."""
+    x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
+    vx, vz = lidar_up(theta)
+    w2, h2 = model.board.width / 2, model.board.height / 2
+    hit, miss = model.lab == rays_mod.HIT, model.lab == rays_mod.MISS
+    n = len(ds)
+
+    def count_in(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        a = np.searchsorted(ds, lo, side="right")
+        b = np.searchsorted(ds, hi, side="left")
+        c = np.bincount(a, minlength=n + 1) - np.bincount(np.maximum(b, a), minlength=n + 1)
+        return np.cumsum(c)[:n]
+
+    def inside(c: np.ndarray, v: float, half: float) -> tuple[np.ndarray, np.ndarray]:
+        if abs(v) < 1e-12:
+            full = np.abs(c) < half
+            return np.where(full, -np.inf, np.inf), np.where(full, np.inf, -np.inf)
+        a, b = (-half - c) / v, (half - c) / v
+        return np.minimum(a, b), np.maximum(a, b)
+
+    def both(xs, zs, grow):
+        lo1, hi1 = inside(xs, vx, w2 + grow)
+        lo2, hi2 = inside(zs, vz, h2 + grow)
+        return np.maximum(lo1, lo2), np.minimum(hi1, hi2)
+
+    lo, hi = both(x[hit], z[hit], tol)
+    viol = np.count_nonzero(hit) - count_in(lo, hi)
+    lo, hi = both(x[miss], z[miss], -tol)
+    viol = viol + count_in(lo, hi)
+    sh = ds[None, :]
+    xh, xm = x[model.bh][:, None] + sh * vx, x[model.bm][:, None] + sh * vx
+    zh, zm = z[model.bh][:, None] + sh * vz, z[model.bm][:, None] + sh * vz
+    kind, sign, sd = model._edges(xh, zh, xm, zm)
+    e = np.where(kind == 1, sign * w2 - 0.5 * (xh + xm), sign * h2 - 0.5 * (zh + zm))
+    cost = np.sum(np.where(kind > 0, (e / sd) ** 2, 0.0), axis=0)
+    return 1e6 * viol + cost
+
+
+def brackets_reference(rays: rays_mod._Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`rays._brackets` with its walk over the transitions in python (before the kernel)."""
+    order = np.lexsort((rays.azimuth, rays.laser))
+    order = order[lab[order] != rays_mod.DROPOUT]
+    ls, az, lb = rays.laser[order], rays.azimuth[order], lab[order]
+    link = ((ls[1:] == ls[:-1]) & (np.diff(az) < rays_mod.MAX_GAP) & (lb[1:] >= 0)
+            & (lb[:-1] >= 0))
+    trans = np.flatnonzero(link & (lb[1:] != lb[:-1]))
+    first_hit, last_hit = rays_mod._board_spans(ls, az, lb)
+    hits, misses = [], []
+    i = 0
+    while i < len(trans):
+        j = i
+        while (j + 1 < len(trans) and np.all(link[trans[j]:trans[j + 1] + 1])
+               and az[trans[j + 1]] - az[trans[j]] < rays_mod.ZONE_AZIMUTH):
+            j += 1
+        a, b = trans[i], trans[j] + 1
+        left, right = lb[a], lb[b]
+        i = j + 1
+        if left == right:
+            continue
+        f, g = first_hit[ls[a]], last_hit[ls[a]]
+        if not (a < f <= b or a <= g < b):
+            continue
+        z = lb[a:b + 1]
+        err = np.cumsum(z != left)[:-1] + np.cumsum((z != right)[::-1])[::-1][1:]
+        best = np.flatnonzero(err == err.min())
+        p, q = a + best[0], a + best[-1] + 1
+        h, m = (p, q) if left == 1 else (q, p)
+        hits.append(order[h])
+        misses.append(order[m])
+    return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
+
+
+def test_profile_matches_numpy_on_real_scans(models):
+    rng = np.random.default_rng(11)
+    for model, theta in models:
+        ds = np.arange(-0.08, 0.0805, 1e-3)
+        for k in range(4):
+            t = theta + (rng.normal(size=6) * [5e-3, 5e-3, 5e-3, 1e-2, 1e-2, 1e-2] if k else 0)
+            for tol in (3e-3, 0.0):
+                np.testing.assert_array_equal(model.profile(t, ds, tol),
+                                              profile_reference(model, t, ds, tol))
+
+
+def test_brackets_match_numpy_on_real_scans(models):
+    rng = np.random.default_rng(5)
+    for model, _ in models:
+        lab = model.lab.copy()
+        for k in range(3):
+            if k:  # flicker: labels flipped at random make zones of mixed returns
+                flip = rng.random(len(lab)) < 0.05 * k
+                lab = np.where(flip & (lab >= 0), 1 - lab, lab).astype(lab.dtype)
+            got, want = rays_mod._brackets(model.rays, lab), brackets_reference(model.rays, lab)
+            assert len(got[0]) > 0
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
 
 
 def window_fit_reference(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
