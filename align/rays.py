@@ -102,13 +102,20 @@ def _unwrap(az: np.ndarray, c: float) -> np.ndarray:
 def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
                 board: BoardSpec) -> _Rays:
     """Every fired ray (hit or not) near the board's rectangle, from all scans."""
+    return _candidates_at(scans, segs, theta, board)[0]
+
+
+def _candidates_at(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
+                   board: BoardSpec) -> tuple[_Rays, tuple[np.ndarray, ...], float]:
+    """`_candidates`, with their board coordinates (X, Z, lam) at ``theta`` and the rings'
+    spacing on the board there (`_ring_spacing`, m): the fit's next steps need both at the
+    same pose. A ray's coordinates do not depend on which others are computed with it."""
     cat = _candidate_pool(scans, segs, board)
-    rays = _Rays(*cat)
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
-    spacing = float(np.max(np.diff(np.sort(scans[0].lasers.elevation))))
-    win = max(WINDOW, WINDOW_RINGS * _ring_spacing(theta, spacing))
+    x, z, lam = board_coordinates(theta, cat[0], cat[1])
+    spacing = _ring_spacing(theta, float(np.max(np.diff(np.sort(scans[0].lasers.elevation)))))
+    win = max(WINDOW, WINDOW_RINGS * spacing)
     keep = (lam > 0) & (np.abs(x) < board.width / 2 + win) & (np.abs(z) < board.height / 2 + win)
-    return _Rays(*(a[keep] for a in cat))
+    return _Rays(*(a[keep] for a in cat)), (x[keep], z[keep], lam[keep]), spacing
 
 
 #: The last `_candidate_pool`: weak references to its scans and segmentations, its board and
@@ -371,7 +378,18 @@ class _Model:
         #: is fitted with the pose (`_gauss_newton`); None: held at ``offset``.
         self.offset = 0.0
         self.offset_prior: tuple[float, float] | None = None
+        #: The last pose's board coordinates of all rays (`coords`): its bytes and (X, Z, lam).
+        self._coords: tuple[bytes, tuple[np.ndarray, ...]] | None = None
         self._cache_edges()
+
+    def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`board_coordinates` of all the model's rays at ``theta``; the last pose's are kept:
+        a fit classifies, assigns and profiles at the same pose several times. Read only."""
+        theta = np.asarray(theta, dtype=np.float64)
+        key = theta.tobytes()
+        if self._coords is None or self._coords[0] != key:
+            self._coords = (key, board_coordinates(theta, self.rays.origin, self.rays.direction))
+        return self._coords[1]
 
     def _cache_edges(self) -> None:
         """The used brackets' rays, signs and sigmas, contiguous (the fit only reads these)."""
@@ -384,7 +402,7 @@ class _Model:
     def assign(self, theta: np.ndarray) -> None:
         """Which hits feed the range residuals: those safely inside the rectangle."""
         w2, h2 = self.board.width / 2, self.board.height / 2
-        x, z, lam = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        x, z, lam = self.coords(theta)
         inside = (np.abs(x) < w2 - EDGE_MARGIN) & (np.abs(z) < h2 - EDGE_MARGIN)
         res = self.rays.distance - self.offset - lam
         self.use_range = (self.lab == 1) & inside & (np.abs(res) < 4 * self.sigma_r)
@@ -403,7 +421,7 @@ class _Model:
         left out. Assignments stay fixed during a fit: switching them inside Gauss-Newton
         makes the cost jump and traps the fit in wrong basins.
         """
-        x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        x, z, _ = self.coords(theta)
         self.set_blur(theta)
         xh, zh, xm, zm = x[self.bh], z[self.bh], x[self.bm], z[self.bm]
         kind, sign, sd = self._edges(xh, zh, xm, zm, guard)
@@ -447,7 +465,7 @@ class _Model:
 
     def _width(self, theta: np.ndarray) -> np.ndarray:
         """Each bracket's extent across its edge (m) at pose theta."""
-        x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        x, z, _ = self.coords(theta)
         return np.where(self.edge_kind == 1, x[self.bm] - x[self.bh], z[self.bm] - z[self.bh])
 
     def profile(self, theta: np.ndarray, ds: np.ndarray, tol: float = 3e-3) -> np.ndarray:
@@ -460,7 +478,7 @@ class _Model:
         edges reassigned for each shift: one compiled pass (`align.fit_kernels.profile_cost`;
         the numpy version's (brackets x shifts) temporaries cost 10x).
         """
-        x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        x, z, _ = self.coords(theta)
         vx, vz = lidar_up(theta)
         return profile_cost(x, z, np.flatnonzero(self.lab == HIT), np.flatnonzero(self.lab == MISS),
                             self.bh, self.bm, np.asarray(ds, dtype=np.float64), vx, vz,
@@ -682,16 +700,21 @@ def _violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.nd
 
 def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
                  sigma_r: float, blur: float, like: _Model | None = None,
-                 offset: tuple[float, tuple[float, float] | None] = (0.0, None)) -> _Model:
+                 offset: tuple[float, tuple[float, float] | None] = (0.0, None),
+                 coords: tuple[np.ndarray, ...] | None = None) -> _Model:
     """Brackets along the rings and between rings at the board's centre column, as a model.
-    Its range offset and the offset's prior: ``like``'s (a model rebuilt), else ``offset``."""
-    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+    Its range offset and the offset's prior: ``like``'s (a model rebuilt), else ``offset``.
+    ``coords``: the rays' board coordinates at ``theta`` if the caller has them."""
+    if coords is None:
+        coords = board_coordinates(theta, rays.origin, rays.direction)
+    x, z, _ = coords
     vx, vz = lidar_up(theta)
     bh, bm = _brackets(rays, lab)
     vh, vm = _vertical_brackets(rays, lab, np.abs(vz * x - vx * z))
     model = _Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
                    sigma_r, blur)
     model.offset, model.offset_prior = (like.offset, like.offset_prior) if like else offset
+    model._coords = (np.asarray(theta, dtype=np.float64).tobytes(), coords)
     return model
 
 
@@ -757,27 +780,28 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     the brackets; profile again; fix the bracket assignments leaving out those at corners, fit;
     reassign tighter, refit (`_staged_fit`).
     """
-    rays = _candidates(scans, segs, theta, board)
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
-    lab = _labels(rays, lam + offset[0], sigma_r)  # the range expected, offset included
+    rays, coords, spacing = _candidates_at(scans, segs, theta, board)
+    lab = _labels(rays, coords[2] + offset[0], sigma_r)  # the range expected, offset included
     rings_hit = np.unique(rays.ring[lab == HIT])
     if len(rings_hit) < 3:
         return None
     # the profile and the stray margin grow with the rings' spacing on the board: the start
     # can be off by half of it (a far board, one tilted away)
-    spacing = _ring_spacing(theta, float(np.max(np.diff(np.sort(scans[0].lasers.elevation)))))
     reach = max(float(ds[-1]), PROFILE_SPACINGS * spacing)
     ds = np.arange(-reach, reach + 0.5e-3, 1e-3)
     stray_margin = max(STRAY, STRAY_SPACINGS * spacing)
-    model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, offset=offset)
+    model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, offset=offset,
+                         coords=coords)
     theta = model.shift(theta, ds)
-    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+    coords = model.coords(theta)
+    x, z = coords[0], coords[1]
     stray = (lab == HIT) & ((np.abs(x) > board.width / 2 + stray_margin) |
                             (np.abs(z) > board.height / 2 + stray_margin))
     if np.any(stray):
         lab = lab.copy()
         lab[stray] = UNKNOWN
-        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, like=model)
+        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, like=model,
+                             coords=coords)
         theta = model.shift(theta, ds)
     theta, j, conv, iters, chi2 = _staged_fit(model, theta, ds)
     for _ in range(2):
@@ -826,7 +850,7 @@ def _pose_per_plane(theta: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
 def _contradicted(model: _Model, theta: np.ndarray, margin: float = 0.01) -> int:
     """How many hits lie outside the rectangle at ``theta`` and misses inside it, by more than
     ``margin`` (m)."""
-    x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
+    x, z, _ = model.coords(theta)
     w2, h2 = model.board.width / 2, model.board.height / 2
     out = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
     deep = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
@@ -985,7 +1009,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     t_fit = time.perf_counter()
 
     # what was seen: every edge, nothing in front of the board
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    x, z, lam = model.coords(theta)
     k, sgn = model.edge_kind, model.edge_sign
     n_left = int(np.sum((k == 1) & (sgn < 0)))
     n_right = int(np.sum((k == 1) & (sgn > 0)))
