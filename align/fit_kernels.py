@@ -211,3 +211,76 @@ def edge_brackets(order: np.ndarray, ls: np.ndarray, az: np.ndarray, lb: np.ndar
             hits[k], misses[k] = order[q], order[p]
         k += 1
     return hits[:k], misses[:k]
+
+
+#: `inverse_diagonal` trusts its Cholesky inverse while the matrix's condition number is
+#: provably below this (numpy's pinv drops singular values below 1e-15 of the largest: far
+#: beyond it, the two agree to rounding).
+WELL_CONDITIONED = 1e12
+
+
+@njit(cache=True)
+def inverse_diagonal(a: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The diagonal of the inverse of the symmetric positive definite ``a`` (n, n), by
+    Cholesky, and whether ``a`` is well conditioned enough for it to be pinv's: its condition
+    number is at most trace(a) trace(a^-1) (the largest eigenvalue is below the trace, the
+    smallest above one over the inverse's trace), checked against `WELL_CONDITIONED`. False
+    also where the factorisation fails (a singular or indefinite matrix)."""
+    n = a.shape[0]
+    low = np.zeros((n, n))
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s -= low[j, k] * low[j, k]
+        if not s > 0.0:
+            return np.zeros(n), False
+        low[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            t = a[i, j]
+            for k in range(j):
+                t -= low[i, k] * low[j, k]
+            low[i, j] = t / low[j, j]
+    # L^-1 column by column; (a^-1)_ii = sum_k (L^-1)_ki^2 since a^-1 = L^-T L^-1
+    inv = np.zeros((n, n))
+    for c in range(n):
+        for i in range(c, n):
+            t = 1.0 if i == c else 0.0
+            for k in range(c, i):
+                t -= low[i, k] * inv[k, c]
+            inv[i, c] = t / low[i, i]
+    diag = np.zeros(n)
+    trace, trace_inv = 0.0, 0.0
+    for i in range(n):
+        for k in range(n):
+            diag[i] += inv[k, i] * inv[k, i]
+        trace += a[i, i]
+        trace_inv += diag[i]
+    return diag, trace * trace_inv < WELL_CONDITIONED
+
+
+@njit(cache=True)
+def rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
+    """`align.geometry.rotation`: the same expressions (and the same libm cos and sin), so the
+    same matrix bit for bit."""
+    cr, sr = np.cos(roll), np.sin(roll)
+    ct, st = np.cos(tilt), np.sin(tilt)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    syst, cyst = sy * st, cy * st
+    r = np.empty((3, 3))
+    r[0, 0], r[0, 1], r[0, 2] = cy * cr - syst * sr, -sy * ct, cy * sr + syst * cr
+    r[1, 0], r[1, 1], r[1, 2] = sy * cr + cyst * sr, cy * ct, sy * sr - cyst * cr
+    r[2, 0], r[2, 1], r[2, 2] = -ct * sr, st, ct * cr
+    return r
+
+
+@njit(cache=True)
+def jacobian_rotations(theta: np.ndarray, step: float) -> np.ndarray:
+    """R at ``theta`` and with its roll, tilt and yaw each moved by ``step`` (rad), (4, 3, 3):
+    what `align.kernels.fit_jacobian` differences."""
+    rots = np.empty((4, 3, 3))
+    rots[0] = rotation(theta[3], theta[4], theta[5])
+    for k in range(3):
+        t = theta.copy()
+        t[3 + k] += step
+        rots[1 + k] = rotation(t[3], t[4], t[5])
+    return rots

@@ -167,3 +167,39 @@ def test_window_sweep_matches_sorting_every_roll():
         got, want = window_sweep(c, 1.0), window_fit_reference(c, 1.0)
         np.testing.assert_array_equal(got[0], want[0])
         np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_rotation_kernel_is_geometry_rotation_bit_for_bit():
+    from align.fit_kernels import jacobian_rotations
+    from align.fit_kernels import rotation as rotation_kernel
+    from align.geometry import rotation
+
+    rng = np.random.default_rng(2)
+    for _ in range(2000):
+        t = rng.uniform(-4.0, 4.0, 3) * rng.choice([1e-6, 1e-2, 1.0])
+        np.testing.assert_array_equal(rotation_kernel(*t), rotation(*t))
+    theta = np.array([0.1, -2.6, 0.05, 0.02, -0.01, 0.2])
+    rots = jacobian_rotations(theta, 1e-7)
+    for k in range(3):
+        t = theta.copy()
+        t[3 + k] += 1e-7
+        np.testing.assert_array_equal(rots[1 + k], rotation(t[3], t[4], t[5]))
+
+
+def test_inverse_diagonal_is_pinvs_where_well_conditioned(models):
+    from align.fit_kernels import inverse_diagonal
+
+    for model, theta in models:
+        f = model.residuals(theta)
+        j = model.jacobian(theta, f)
+        a = j.T @ j
+        diag, ok = inverse_diagonal(a)
+        assert ok
+        np.testing.assert_allclose(diag, np.diag(np.linalg.pinv(a)), rtol=1e-12, atol=0)
+        # a parameter no residual sees: singular, left to pinv (rays._inverse_diagonal)
+        a0 = a.copy()
+        a0[0, :] = a0[:, 0] = 0.0
+        assert not inverse_diagonal(a0)[1]
+        np.testing.assert_array_equal(rays_mod._inverse_diagonal(a0), np.diag(np.linalg.pinv(a0)))
+    # nearly singular (condition 1e14): not trusted either
+    assert not inverse_diagonal(np.diag([1.0, 1e-14]))[1]
