@@ -284,3 +284,29 @@ def jacobian_rotations(theta: np.ndarray, step: float) -> np.ndarray:
         t[3 + k] += step
         rots[1 + k] = rotation(t[3], t[4], t[5])
     return rots
+
+
+@njit(cache=True)
+def behind_runs(order: np.ndarray, starts: np.ndarray, res: np.ndarray, run: int, reach: int,
+                least: float, threshold: float, out: np.ndarray) -> None:
+    """`align.rays._behind_ends` on the long groups: ``order`` lists the hits by scan, laser and
+    azimuth, ``starts`` where each group (a laser in a scan) of at least 3 ``run`` hits begins
+    and ends (``starts[2 g]``, ``starts[2 g + 1]``). From each end of a group, the longest run
+    of at most min(``reach``, size // 3) hits, at least ``run`` long, whose mean range residual
+    ``res`` exceeds ``least`` (m) and whose mean times sqrt(its length) exceeds ``threshold``
+    (m) is marked in ``out``. The running means as numpy's cumsum and divide form them."""
+    for g in range(starts.shape[0] // 2):
+        a, b = starts[2 * g], starts[2 * g + 1]
+        n = b - a
+        r = min(reach, n // 3)
+        for end in range(2):
+            total = 0.0
+            last = -1
+            for m in range(1, r + 1):
+                i = order[a + m - 1] if end == 0 else order[b - m]
+                total += res[i]
+                mean = total / m
+                if m >= run and mean > least and mean * np.sqrt(m) > threshold:
+                    last = m
+            for m in range(1, last + 1):
+                out[order[a + m - 1] if end == 0 else order[b - m]] = True

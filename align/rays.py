@@ -41,7 +41,13 @@ import numpy as np
 
 from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
-from align.fit_kernels import edge_brackets, inverse_diagonal, jacobian_rotations, profile_cost
+from align.fit_kernels import (
+    behind_runs,
+    edge_brackets,
+    inverse_diagonal,
+    jacobian_rotations,
+    profile_cost,
+)
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
 from align.label_posterior import LabelledRays, OffsetModel, label_posterior
 from align.result import Hints, PoseEstimate, Status
@@ -240,27 +246,21 @@ def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float) 
         return out
     order = hit[np.lexsort((rays.azimuth[hit], rays.laser[hit], rays.scan[hit]))]
     key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
-    cuts = np.flatnonzero(key[1:] != key[:-1]) + 1
-    for grp in np.split(order, cuts):
-        n = len(grp)
-        if n < BEHIND_RUN:
-            continue
-        if n < 3 * BEHIND_RUN:
-            # too few to test from each end: a laser that meets only a stand's post or a
-            # holder below or above the board (a few returns 4 cm behind, each within the
-            # noise) is tested whole; left as hits, they pull a grazed edge onto the post
-            mean = float(res[grp].mean())
-            if mean > BEHIND_MIN and mean * math.sqrt(n) > BEHIND_SIGMAS * sigma_r:
-                out[grp] = True
-            continue
-        reach = min(BEHIND_REACH, n // 3)
-        for seq in (grp[:reach], grp[::-1][:reach]):
-            m = np.arange(1, len(seq) + 1)
-            mean = np.cumsum(res[seq]) / m
-            ok = (m >= BEHIND_RUN) & (mean > BEHIND_MIN) & \
-                (mean * np.sqrt(m) > BEHIND_SIGMAS * sigma_r)
-            if np.any(ok):
-                out[seq[:int(np.flatnonzero(ok)[-1]) + 1]] = True
+    bounds = np.concatenate(([0], np.flatnonzero(key[1:] != key[:-1]) + 1, [len(order)]))
+    size = np.diff(bounds)
+    for g in np.flatnonzero((size >= BEHIND_RUN) & (size < 3 * BEHIND_RUN)):
+        # too few to test from each end: a laser that meets only a stand's post or a holder
+        # below or above the board (a few returns 4 cm behind, each within the noise) is
+        # tested whole; left as hits, they pull a grazed edge onto the post
+        grp = order[bounds[g]:bounds[g + 1]]
+        mean = float(res[grp].mean())
+        if mean > BEHIND_MIN and mean * math.sqrt(len(grp)) > BEHIND_SIGMAS * sigma_r:
+            out[grp] = True
+    # the others from each end, compiled (`align.fit_kernels.behind_runs`)
+    long = np.flatnonzero(size >= 3 * BEHIND_RUN)
+    behind_runs(order, np.column_stack((bounds[long], bounds[long + 1])).ravel(),
+                np.asarray(res, dtype=np.float64), BEHIND_RUN, BEHIND_REACH, BEHIND_MIN,
+                BEHIND_SIGMAS * sigma_r, out)
     return out
 
 

@@ -203,3 +203,65 @@ def test_inverse_diagonal_is_pinvs_where_well_conditioned(models):
         np.testing.assert_array_equal(rays_mod._inverse_diagonal(a0), np.diag(np.linalg.pinv(a0)))
     # nearly singular (condition 1e14): not trusted either
     assert not inverse_diagonal(np.diag([1.0, 1e-14]))[1]
+
+
+def behind_ends_reference(rays: rays_mod._Rays, lab: np.ndarray, res: np.ndarray,
+                          sigma_r: float) -> np.ndarray:
+    """`rays._behind_ends` with its loop over the lasers in python (before the kernel)."""
+    import math
+
+    out = np.zeros(len(lab), dtype=bool)
+    hit = np.flatnonzero(lab == rays_mod.HIT)
+    order = hit[np.lexsort((rays.azimuth[hit], rays.laser[hit], rays.scan[hit]))]
+    key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
+    run, sig, least = rays_mod.BEHIND_RUN, rays_mod.BEHIND_SIGMAS, rays_mod.BEHIND_MIN
+    for grp in np.split(order, np.flatnonzero(key[1:] != key[:-1]) + 1):
+        n = len(grp)
+        if n < run:
+            continue
+        if n < 3 * run:
+            mean = float(res[grp].mean())
+            if mean > least and mean * math.sqrt(n) > sig * sigma_r:
+                out[grp] = True
+            continue
+        reach = min(rays_mod.BEHIND_REACH, n // 3)
+        for seq in (grp[:reach], grp[::-1][:reach]):
+            m = np.arange(1, len(seq) + 1)
+            mean = np.cumsum(res[seq]) / m
+            ok = (m >= run) & (mean > least) & (mean * np.sqrt(m) > sig * sigma_r)
+            if np.any(ok):
+                out[seq[:int(np.flatnonzero(ok)[-1]) + 1]] = True
+    return out
+
+
+def test_behind_ends_match_numpy_on_real_scans(models):
+    rng = np.random.default_rng(9)
+    sigma_r = 0.01
+    for model, _ in models:
+        rays, lab = model.rays, model.lab
+        marked = 0
+        for k in range(4):
+            res = rng.normal(0.0, sigma_r, len(lab))
+            # things just behind the board: a laser's first or last hits, or a short laser
+            # whole, 2-5 cm behind
+            hit = np.flatnonzero(lab == rays_mod.HIT)
+            order = hit[np.lexsort((rays.azimuth[hit], rays.laser[hit], rays.scan[hit]))]
+            key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
+            for grp in np.split(order, np.flatnonzero(key[1:] != key[:-1]) + 1):
+                if rng.random() < 0.5:
+                    w = int(rng.integers(1, 12))
+                    part = grp[:w] if rng.random() < 0.5 else grp[-w:]
+                    res[part] += rng.uniform(0.02, 0.05)
+            if k == 3:
+                # short groups, tested whole: each laser keeps its first 3-8 hits only, some of
+                # them all behind
+                lab = lab.copy()
+                for grp in np.split(order, np.flatnonzero(key[1:] != key[:-1]) + 1):
+                    keep = int(rng.integers(3, 9))
+                    lab[grp[keep:]] = rays_mod.MISS
+                    if rng.random() < 0.5:
+                        res[grp[:keep]] += 0.03
+            got = rays_mod._behind_ends(rays, lab, res, sigma_r)
+            np.testing.assert_array_equal(got, behind_ends_reference(rays, lab, res, sigma_r))
+            marked += int(got.sum())
+        assert marked > 0
