@@ -310,3 +310,40 @@ def behind_runs(order: np.ndarray, starts: np.ndarray, res: np.ndarray, run: int
                     last = m
             for m in range(1, last + 1):
                 out[order[a + m - 1] if end == 0 else order[b - m]] = True
+
+
+@njit(cache=True)
+def column_brackets(ring: np.ndarray, lab: np.ndarray, off: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._vertical_brackets`: per ring the labelled ray (``lab`` >= 0) nearest the
+    board's central column (least ``off``, the first of equal ones, as np.argmin); above the
+    highest ring that hits, a ring that misses there brackets the edge above with it, and
+    likewise below the lowest. Returns (hit rays, miss rays): the top's pair first."""
+    hits = np.zeros(2, dtype=np.int64)
+    misses = np.zeros(2, dtype=np.int64)
+    if ring.shape[0] == 0:
+        return hits[:0], misses[:0]
+    n_r = int(ring.max()) + 1
+    col = np.full(n_r + 1, -1, dtype=np.int64)  # one more: the ring above the highest
+    for i in range(ring.shape[0]):
+        if lab[i] < 0:
+            continue
+        r = ring[i]
+        c = col[r]
+        if c < 0 or off[i] < off[c] or (off[i] != off[i] and off[c] == off[c]):
+            col[r] = i  # np.argmin: the first nan wins, else the first least
+    top, bottom = -1, n_r
+    for r in range(n_r):
+        if col[r] >= 0 and lab[col[r]] == 1:
+            top = max(top, r)
+            bottom = min(bottom, r)
+    k = 0
+    if top < 0:
+        return hits[:0], misses[:0]
+    if col[top + 1] >= 0 and lab[col[top + 1]] == 0:
+        hits[k], misses[k] = col[top], col[top + 1]
+        k += 1
+    if bottom >= 1 and col[bottom - 1] >= 0 and lab[col[bottom - 1]] == 0:
+        hits[k], misses[k] = col[bottom], col[bottom - 1]
+        k += 1
+    return hits[:k], misses[:k]

@@ -43,6 +43,7 @@ from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
 from align.fit_kernels import (
     behind_runs,
+    column_brackets,
     edge_brackets,
     inverse_diagonal,
     jacobian_rotations,
@@ -333,24 +334,7 @@ def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
     below it (and likewise down). One bracket per edge for all scans: the rings sit at the same
     heights in every scan.
     """
-    rings = np.unique(rays.ring)
-    col = {}
-    for r in rings:
-        m = np.flatnonzero((rays.ring == r) & (lab >= 0))
-        if len(m):
-            col[int(r)] = int(m[np.argmin(off[m])])
-    hit_rings = [r for r in col if lab[col[r]] == 1]
-    hits, misses = [], []
-    if not hit_rings:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    top, bottom = max(hit_rings), min(hit_rings)
-    if top + 1 in col and lab[col[top + 1]] == 0:
-        hits.append(col[top])
-        misses.append(col[top + 1])
-    if bottom - 1 in col and lab[col[bottom - 1]] == 0:
-        hits.append(col[bottom])
-        misses.append(col[bottom - 1])
-    return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
+    return column_brackets(rays.ring, lab, off)  # compiled: a dozen masks per ring in numpy
 
 
 class _Model:

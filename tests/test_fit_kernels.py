@@ -265,3 +265,50 @@ def test_behind_ends_match_numpy_on_real_scans(models):
             np.testing.assert_array_equal(got, behind_ends_reference(rays, lab, res, sigma_r))
             marked += int(got.sum())
         assert marked > 0
+
+
+def vertical_brackets_reference(rays: rays_mod._Rays, lab: np.ndarray, off: np.ndarray
+                                ) -> tuple[np.ndarray, np.ndarray]:
+    """`rays._vertical_brackets` with its dictionary of rings (before the kernel)."""
+    col = {}
+    for r in np.unique(rays.ring):
+        m = np.flatnonzero((rays.ring == r) & (lab >= 0))
+        if len(m):
+            col[int(r)] = int(m[np.argmin(off[m])])
+    hit_rings = [r for r in col if lab[col[r]] == 1]
+    hits, misses = [], []
+    if not hit_rings:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    top, bottom = max(hit_rings), min(hit_rings)
+    if top + 1 in col and lab[col[top + 1]] == 0:
+        hits.append(col[top])
+        misses.append(col[top + 1])
+    if bottom - 1 in col and lab[col[bottom - 1]] == 0:
+        hits.append(col[bottom])
+        misses.append(col[bottom - 1])
+    return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
+
+
+def test_vertical_brackets_match_numpy_on_real_scans(models):
+    rng = np.random.default_rng(4)
+    found = 0
+    for model, theta in models:
+        rays = model.rays
+        x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+        vx, vz = lidar_up(theta)
+        off = np.abs(vz * x - vx * z)
+        for k in range(6):
+            lab = model.lab.copy()
+            if k:  # rings dropped (unknown), ties of the offsets, labels flipped
+                lab[np.isin(rays.ring, rng.choice(np.unique(rays.ring), k))] = rays_mod.UNKNOWN
+                off = np.round(off, 2) if k == 2 else off
+                lab = np.where(rng.random(len(lab)) < 0.05 * k, 1 - lab, lab).astype(lab.dtype)
+            got = rays_mod._vertical_brackets(rays, lab, off)
+            want = vertical_brackets_reference(rays, lab, off)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+            found += len(got[0])
+    assert found > 0
+    empty = rays_mod._vertical_brackets(rays, np.full(len(rays.ring), rays_mod.MISS,
+                                                      dtype=np.int8), off)
+    assert len(empty[0]) == 0 and empty[0].dtype == np.int64
