@@ -347,3 +347,27 @@ def column_brackets(ring: np.ndarray, lab: np.ndarray, off: np.ndarray
         hits[k], misses[k] = col[bottom], col[bottom - 1]
         k += 1
     return hits[:k], misses[:k]
+
+
+@njit(cache=True)
+def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarray,
+                   centre: float, lo: float, hi: float, ring_lo: int, ring_hi: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The firings of rings ``ring_lo`` .. ``ring_hi`` whose azimuth relative to ``centre``
+    (wrapped into [-pi, pi) as `align.rays._unwrap` wraps it, element by element) lies in
+    [``lo``, ``hi``] (rad): their indices and relative azimuths, in one pass over the scan."""
+    n = azimuth.shape[0]
+    idx = np.empty(n, dtype=np.int64)
+    rel = np.empty(n)
+    k = 0
+    two_pi = 2 * np.pi
+    for i in range(n):
+        ring = ring_of_laser[laser_id[i]]
+        if ring < ring_lo or ring > ring_hi:
+            continue
+        r = (azimuth[i] - centre + np.pi) % two_pi - np.pi
+        if r >= lo and r <= hi:
+            idx[k] = i
+            rel[k] = r
+            k += 1
+    return idx[:k], rel[:k]

@@ -48,6 +48,7 @@ from align.fit_kernels import (
     inverse_diagonal,
     jacobian_rotations,
     profile_cost,
+    window_firings,
 )
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
 from align.label_posterior import LabelledRays, OffsetModel, label_posterior
@@ -155,16 +156,13 @@ def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpe
         lo, hi = rel_b.min() - margin, rel_b.max() + margin
         ring_of_laser = s.lasers.ring_of_laser
         rings = ring_of_laser[s.laser_id[g.board]]
-        # the lasers of the board's rings and one more on each side (a table, not Scan.ring)
-        near_ring = np.arange(s.lasers.n_lasers)
-        near_ring = (near_ring >= int(rings.min()) - 1) & (near_ring <= int(rings.max()) + 1)
-        idx = np.flatnonzero(near_ring[ring_of_laser][s.laser_id])
-        rel = _unwrap(s.azimuth[idx], c)
-        win = (rel >= lo) & (rel <= hi)
-        idx = idx[win]
+        # the board's rings and one more on each side, within the window: one compiled pass
+        # over the scan (the numpy version's masks over every firing cost 0.3 ms a scan)
+        idx, rel = window_firings(s.azimuth, s.laser_id, ring_of_laser, c, float(lo),
+                                  float(hi), int(rings.min()) - 1, int(rings.max()) + 1)
         sub = s.select(idx)
         parts.append((sub.origins(), sub.directions(), sub.distance, sub.laser_id,
-                      rel[win] + c, sub.ring, idx + offset, np.full(len(idx), len(parts))))
+                      rel + c, sub.ring, idx + offset, np.full(len(idx), len(parts))))
         offset += len(s)
     cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
     _last_pool = ([weakref.ref(s) for s in scans], [weakref.ref(g) for g in segs], board, cat)

@@ -312,3 +312,26 @@ def test_vertical_brackets_match_numpy_on_real_scans(models):
     empty = rays_mod._vertical_brackets(rays, np.full(len(rays.ring), rays_mod.MISS,
                                                       dtype=np.int8), off)
     assert len(empty[0]) == 0 and empty[0].dtype == np.int64
+
+
+def test_window_firings_match_numpy_on_real_scans():
+    from align.fit_kernels import window_firings
+
+    scans = [read_pcd_scans(p)[0] for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    scans.append(BenchSim(seed=3).scan())
+    rng = np.random.default_rng(8)
+    for s in scans:
+        ring_of_laser = s.lasers.ring_of_laser
+        for c in (0.0, np.pi - 1e-3, -np.pi, 2.0, float(rng.uniform(-np.pi, np.pi))):
+            lo, hi = sorted(rng.uniform(-np.pi, np.pi, 2))
+            r_lo = int(rng.integers(-1, 8))
+            r_hi = r_lo + int(rng.integers(0, 9))
+            near = np.arange(s.lasers.n_lasers)
+            near = (near >= r_lo) & (near <= r_hi)
+            want = np.flatnonzero(near[ring_of_laser][s.laser_id])
+            rel = rays_mod._unwrap(s.azimuth[want], c)
+            win = (rel >= lo) & (rel <= hi)
+            idx, got_rel = window_firings(s.azimuth, s.laser_id, ring_of_laser, c, lo, hi,
+                                          r_lo, r_hi)
+            np.testing.assert_array_equal(idx, want[win])
+            np.testing.assert_array_equal(got_rel, rel[win])
