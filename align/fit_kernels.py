@@ -365,7 +365,9 @@ def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.
         ring = ring_of_laser[laser_id[i]]
         if ring < ring_lo or ring > ring_hi:
             continue
-        r = (azimuth[i] - centre + np.pi) % two_pi - np.pi
+        v = azimuth[i] - centre + np.pi
+        # v % 2 pi is v itself on [0, 2 pi): the slow floating-point remainder only outside
+        r = (v if 0.0 <= v < two_pi else v % two_pi) - np.pi
         if r >= lo and r <= hi:
             idx[k] = i
             rel[k] = r
