@@ -71,12 +71,12 @@ def window_sweep(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndar
 
 @njit(cache=True)
 def _sign(v: float) -> float:
-    """np.sign of one float."""
+    """np.sign of one float (0 for either zero, nan for nan)."""
     if v > 0:
         return 1.0
     if v < 0:
         return -1.0
-    return v  # 0 (or nan)
+    return 0.0 if v == 0 else v
 
 
 @njit(cache=True)
@@ -373,3 +373,42 @@ def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.
             rel[k] = r
             k += 1
     return idx[:k], rel[:k]
+
+
+@njit(cache=True, error_model="numpy")
+def classify_edges(x: np.ndarray, z: np.ndarray, bh: np.ndarray, bm: np.ndarray, w2: float,
+                   h2: float, guard: float, blur_side: float, blur_top: float,
+                   crossings: bool, grazing: float, excluded: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`align.rays._Model.classify`'s edges: per bracket (hit ray ``bh``, miss ray ``bm``; board
+    coordinates ``x``, ``z``) the edge kind (1 side, 2 top or bottom, 0 left out: within
+    ``guard`` of a corner, no extent, ``excluded``, or without ``crossings`` one crossing its
+    edge at a grazing angle, across it less than ``grazing`` x along it), the edge's side
+    (that of the miss) and the bracket's sigma sqrt(width^2 / 12 + blur^2), m, as
+    `_Model._edges` computes them. Numpy's error model: z_at of a bracket along x is inf."""
+    nb = bh.shape[0]
+    kind = np.zeros(nb, dtype=np.int8)
+    sign = np.zeros(nb)
+    sd = np.zeros(nb)
+    for i in range(nb):
+        xh, zh, xm, zm = x[bh[i]], z[bh[i]], x[bm[i]], z[bm[i]]
+        dx, dz = xm - xh, zm - zh
+        z_at = abs(zh + (_sign(dx) * w2 - xh) * dz / dx)
+        if not np.isfinite(z_at):
+            z_at = np.inf
+        vert = z_at <= h2
+        k = 1 if vert else 2
+        if abs(z_at - h2) < guard or (dx == 0 and dz == 0):
+            k = 0
+        if vert:
+            sign[i], width, blur = _sign(xm), dx, blur_side
+        else:
+            sign[i], width, blur = _sign(zm), dz, blur_top
+        sd[i] = np.sqrt(width * width / 12 + blur * blur)
+        if not crossings and k > 0:
+            across = abs(dx if k == 1 else dz)
+            along = abs(dz if k == 1 else dx)
+            if across < grazing * along:
+                k = 0
+        kind[i] = 0 if excluded[i] else k
+    return kind, sign, sd

@@ -43,6 +43,7 @@ from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
 from align.fit_kernels import (
     behind_runs,
+    classify_edges,
     column_brackets,
     edge_brackets,
     inverse_diagonal,
@@ -405,17 +406,12 @@ class _Model:
         """
         x, z, _ = self.coords(theta)
         self.set_blur(theta)
-        xh, zh, xm, zm = x[self.bh], z[self.bh], x[self.bm], z[self.bm]
-        kind, sign, sd = self._edges(xh, zh, xm, zm, guard)
-        if not crossings:
-            # leave out rings that cross an edge at a grazing angle (a level board's top or
-            # bottom edge): such a bracket is sharp across its edge, and wrong if matched to
-            # the wrong edge
-            across = np.abs(np.where(kind == 1, xm - xh, zm - zh))
-            along = np.abs(np.where(kind == 1, zm - zh, xm - xh))
-            kind = np.where((kind > 0) & (across < GRAZING * along), 0, kind).astype(np.int8)
-        kind = np.where(self.excluded, 0, kind).astype(np.int8)
-        self.edge_kind, self.edge_sign, self.edge_sd = kind, sign, sd
+        # `_edges` for the brackets, compiled; without crossings, rings that cross an edge at
+        # a grazing angle (a level board's top or bottom edge) are left out: such a bracket is
+        # sharp across its edge, and wrong if matched to the wrong edge
+        self.edge_kind, self.edge_sign, self.edge_sd = classify_edges(
+            x, z, self.bh, self.bm, self.board.width / 2, self.board.height / 2, guard,
+            *self.blur_edges, crossings, GRAZING, self.excluded)
         self._cache_edges()
 
     def set_blur(self, theta: np.ndarray) -> None:

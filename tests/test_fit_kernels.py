@@ -335,3 +335,36 @@ def test_window_firings_match_numpy_on_real_scans():
                                           r_lo, r_hi)
             np.testing.assert_array_equal(idx, want[win])
             np.testing.assert_array_equal(got_rel, rel[win])
+
+
+def classify_reference(model: rays_mod._Model, theta: np.ndarray, guard: float,
+                       crossings: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_Model.classify`'s kinds, signs and sigmas as numpy calls (before the kernel)."""
+    x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
+    model.set_blur(theta)
+    xh, zh, xm, zm = x[model.bh], z[model.bh], x[model.bm], z[model.bm]
+    kind, sign, sd = model._edges(xh, zh, xm, zm, guard)
+    if not crossings:
+        across = np.abs(np.where(kind == 1, xm - xh, zm - zh))
+        along = np.abs(np.where(kind == 1, zm - zh, xm - xh))
+        kind = np.where((kind > 0) & (across < rays_mod.GRAZING * along), 0, kind).astype(np.int8)
+    return np.where(model.excluded, 0, kind).astype(np.int8), sign, sd
+
+
+def test_classify_matches_numpy_on_real_scans(models):
+    rng = np.random.default_rng(6)
+    for model, theta in models:
+        kept = model.excluded.copy()
+        for k in range(4):
+            t = theta + (rng.normal(size=6) * [5e-3, 5e-3, 5e-3, 1e-2, 1e-2, 1e-2] if k else 0)
+            model.excluded = rng.random(len(model.bh)) < 0.1 * k
+            for guard, crossings in ((0.005, False), (0.002, True), (0.05, False)):
+                want = classify_reference(model, t, guard, crossings)
+                model.classify(t, guard, crossings)
+                assert model.edge_kind.dtype == np.int8
+                for got, ref in zip((model.edge_kind, model.edge_sign, model.edge_sd), want,
+                                    strict=True):
+                    np.testing.assert_array_equal(got, ref)
+        model.excluded = kept
+        model.classify(theta, 0.002, True)
+        model.assign(theta)
