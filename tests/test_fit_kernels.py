@@ -156,11 +156,15 @@ def test_window_sweep_matches_sorting_every_roll():
         pts, normal = _board_points(rng, n)
         rolls = np.arange(-np.pi / 2, np.pi / 2, step)
         r0, r2 = _rows(rolls, normal)
-        for coords, length in ((pts @ r0.T, board.width + 0.02),
-                               (pts @ r2.T, board.height + 0.02)):
-            got, want = window_sweep(coords, length), window_fit_reference(coords, length)
-            np.testing.assert_array_equal(got[0], want[0])
-            np.testing.assert_array_equal(got[1], want[1])
+        whole = 0
+        for p in (pts, pts[3:]):  # with strays, and without: rolls the window holds whole
+            for coords, length in ((p @ r0.T, board.width + 0.02),
+                                   (p @ r2.T, board.height + 0.02)):
+                got, want = window_sweep(coords, length), window_fit_reference(coords, length)
+                np.testing.assert_array_equal(got[0], want[0])
+                np.testing.assert_array_equal(got[1], want[1])
+                whole += int(np.sum(got[0] == len(p)))
+        assert whole > 0
     # ties, a single point, none
     coords = np.repeat(np.array([[0.0, 1.0, 1.0, 2.0]]).T, 3, axis=1)
     for c in (coords, coords[:1], coords[:0]):
