@@ -41,6 +41,16 @@ import numpy as np
 
 from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
+from align.fit_kernels import (
+    behind_runs,
+    classify_edges,
+    column_brackets,
+    edge_brackets,
+    inverse_diagonal,
+    jacobian_rotations,
+    profile_cost,
+    window_firings,
+)
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
 from align.label_posterior import LabelledRays, OffsetModel, label_posterior
 from align.result import Hints, PoseEstimate, Status
@@ -101,13 +111,20 @@ def _unwrap(az: np.ndarray, c: float) -> np.ndarray:
 def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
                 board: BoardSpec) -> _Rays:
     """Every fired ray (hit or not) near the board's rectangle, from all scans."""
+    return _candidates_at(scans, segs, theta, board)[0]
+
+
+def _candidates_at(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
+                   board: BoardSpec) -> tuple[_Rays, tuple[np.ndarray, ...], float]:
+    """`_candidates`, with their board coordinates (X, Z, lam) at ``theta`` and the rings'
+    spacing on the board there (`_ring_spacing`, m): the fit's next steps need both at the
+    same pose. A ray's coordinates do not depend on which others are computed with it."""
     cat = _candidate_pool(scans, segs, board)
-    rays = _Rays(*cat)
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
-    spacing = float(np.max(np.diff(np.sort(scans[0].lasers.elevation))))
-    win = max(WINDOW, WINDOW_RINGS * _ring_spacing(theta, spacing))
+    x, z, lam = board_coordinates(theta, cat[0], cat[1])
+    spacing = _ring_spacing(theta, float(np.max(np.diff(np.sort(scans[0].lasers.elevation)))))
+    win = max(WINDOW, WINDOW_RINGS * spacing)
     keep = (lam > 0) & (np.abs(x) < board.width / 2 + win) & (np.abs(z) < board.height / 2 + win)
-    return _Rays(*(a[keep] for a in cat))
+    return _Rays(*(a[keep] for a in cat)), (x[keep], z[keep], lam[keep]), spacing
 
 
 #: The last `_candidate_pool`: weak references to its scans and segmentations, its board and
@@ -140,16 +157,13 @@ def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpe
         lo, hi = rel_b.min() - margin, rel_b.max() + margin
         ring_of_laser = s.lasers.ring_of_laser
         rings = ring_of_laser[s.laser_id[g.board]]
-        # the lasers of the board's rings and one more on each side (a table, not Scan.ring)
-        near_ring = np.arange(s.lasers.n_lasers)
-        near_ring = (near_ring >= int(rings.min()) - 1) & (near_ring <= int(rings.max()) + 1)
-        idx = np.flatnonzero(near_ring[ring_of_laser][s.laser_id])
-        rel = _unwrap(s.azimuth[idx], c)
-        win = (rel >= lo) & (rel <= hi)
-        idx = idx[win]
+        # the board's rings and one more on each side, within the window: one compiled pass
+        # over the scan (the numpy version's masks over every firing cost 0.3 ms a scan)
+        idx, rel = window_firings(s.azimuth, s.laser_id, ring_of_laser, c, float(lo),
+                                  float(hi), int(rings.min()) - 1, int(rings.max()) + 1)
         sub = s.select(idx)
         parts.append((sub.origins(), sub.directions(), sub.distance, sub.laser_id,
-                      rel[win] + c, sub.ring, idx + offset, np.full(len(idx), len(parts))))
+                      rel + c, sub.ring, idx + offset, np.full(len(idx), len(parts))))
         offset += len(s)
     cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
     _last_pool = ([weakref.ref(s) for s in scans], [weakref.ref(g) for g in segs], board, cat)
@@ -232,27 +246,21 @@ def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float) 
         return out
     order = hit[np.lexsort((rays.azimuth[hit], rays.laser[hit], rays.scan[hit]))]
     key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
-    cuts = np.flatnonzero(key[1:] != key[:-1]) + 1
-    for grp in np.split(order, cuts):
-        n = len(grp)
-        if n < BEHIND_RUN:
-            continue
-        if n < 3 * BEHIND_RUN:
-            # too few to test from each end: a laser that meets only a stand's post or a
-            # holder below or above the board (a few returns 4 cm behind, each within the
-            # noise) is tested whole; left as hits, they pull a grazed edge onto the post
-            mean = float(res[grp].mean())
-            if mean > BEHIND_MIN and mean * math.sqrt(n) > BEHIND_SIGMAS * sigma_r:
-                out[grp] = True
-            continue
-        reach = min(BEHIND_REACH, n // 3)
-        for seq in (grp[:reach], grp[::-1][:reach]):
-            m = np.arange(1, len(seq) + 1)
-            mean = np.cumsum(res[seq]) / m
-            ok = (m >= BEHIND_RUN) & (mean > BEHIND_MIN) & \
-                (mean * np.sqrt(m) > BEHIND_SIGMAS * sigma_r)
-            if np.any(ok):
-                out[seq[:int(np.flatnonzero(ok)[-1]) + 1]] = True
+    bounds = np.concatenate(([0], np.flatnonzero(key[1:] != key[:-1]) + 1, [len(order)]))
+    size = np.diff(bounds)
+    for g in np.flatnonzero((size >= BEHIND_RUN) & (size < 3 * BEHIND_RUN)):
+        # too few to test from each end: a laser that meets only a stand's post or a holder
+        # below or above the board (a few returns 4 cm behind, each within the noise) is
+        # tested whole; left as hits, they pull a grazed edge onto the post
+        grp = order[bounds[g]:bounds[g + 1]]
+        mean = float(res[grp].mean())
+        if mean > BEHIND_MIN and mean * math.sqrt(len(grp)) > BEHIND_SIGMAS * sigma_r:
+            out[grp] = True
+    # the others from each end, compiled (`align.fit_kernels.behind_runs`)
+    long = np.flatnonzero(size >= 3 * BEHIND_RUN)
+    behind_runs(order, np.column_stack((bounds[long], bounds[long + 1])).ravel(),
+                np.asarray(res, dtype=np.float64), BEHIND_RUN, BEHIND_REACH, BEHIND_MIN,
+                BEHIND_SIGMAS * sigma_r, out)
     return out
 
 
@@ -285,33 +293,8 @@ def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     link = (ls[1:] == ls[:-1]) & (np.diff(az) < MAX_GAP) & (lb[1:] >= 0) & (lb[:-1] >= 0)
     trans = np.flatnonzero(link & (lb[1:] != lb[:-1]))
     first_hit, last_hit = _board_spans(ls, az, lb)
-    hits, misses = [], []
-    i = 0
-    while i < len(trans):
-        # grow a zone of transitions that follow each other closely on the same laser
-        j = i
-        while (j + 1 < len(trans) and np.all(link[trans[j]:trans[j + 1] + 1])
-               and az[trans[j + 1]] - az[trans[j]] < ZONE_AZIMUTH):
-            j += 1
-        a, b = trans[i], trans[j] + 1  # zone spans sorted rays a..b
-        left, right = lb[a], lb[b]
-        i = j + 1
-        if left == right:
-            continue  # in and out again: no net crossing (a grazing ring, a flicker)
-        f, g = first_hit[ls[a]], last_hit[ls[a]]
-        if not (a < f <= b or a <= g < b):
-            continue  # inside the board's span on this laser: not its edge
-        z = lb[a:b + 1]
-        # split after position s: errors = wrong labels left of it + wrong labels right of it
-        wrong_left = np.cumsum(z != left)[:-1]
-        wrong_right = np.cumsum((z != right)[::-1])[::-1][1:]
-        err = wrong_left + wrong_right
-        best = np.flatnonzero(err == err.min())
-        p, q = a + best[0], a + best[-1] + 1  # the bracket: rays p and q
-        h, m = (p, q) if left == 1 else (q, p)
-        hits.append(order[h])
-        misses.append(order[m])
-    return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
+    # the walk over the zones, compiled (`align.fit_kernels.edge_brackets`)
+    return edge_brackets(order, ls, az, lb, link, trans, first_hit, last_hit, ZONE_AZIMUTH)
 
 
 def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
@@ -350,24 +333,7 @@ def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
     below it (and likewise down). One bracket per edge for all scans: the rings sit at the same
     heights in every scan.
     """
-    rings = np.unique(rays.ring)
-    col = {}
-    for r in rings:
-        m = np.flatnonzero((rays.ring == r) & (lab >= 0))
-        if len(m):
-            col[int(r)] = int(m[np.argmin(off[m])])
-    hit_rings = [r for r in col if lab[col[r]] == 1]
-    hits, misses = [], []
-    if not hit_rings:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    top, bottom = max(hit_rings), min(hit_rings)
-    if top + 1 in col and lab[col[top + 1]] == 0:
-        hits.append(col[top])
-        misses.append(col[top + 1])
-    if bottom - 1 in col and lab[col[bottom - 1]] == 0:
-        hits.append(col[bottom])
-        misses.append(col[bottom - 1])
-    return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
+    return column_brackets(rays.ring, lab, off)  # compiled: a dozen masks per ring in numpy
 
 
 class _Model:
@@ -395,7 +361,18 @@ class _Model:
         #: is fitted with the pose (`_gauss_newton`); None: held at ``offset``.
         self.offset = 0.0
         self.offset_prior: tuple[float, float] | None = None
+        #: The last pose's board coordinates of all rays (`coords`): its bytes and (X, Z, lam).
+        self._coords: tuple[bytes, tuple[np.ndarray, ...]] | None = None
         self._cache_edges()
+
+    def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`board_coordinates` of all the model's rays at ``theta``; the last pose's are kept:
+        a fit classifies, assigns and profiles at the same pose several times. Read only."""
+        theta = np.asarray(theta, dtype=np.float64)
+        key = theta.tobytes()
+        if self._coords is None or self._coords[0] != key:
+            self._coords = (key, board_coordinates(theta, self.rays.origin, self.rays.direction))
+        return self._coords[1]
 
     def _cache_edges(self) -> None:
         """The used brackets' rays, signs and sigmas, contiguous (the fit only reads these)."""
@@ -408,7 +385,7 @@ class _Model:
     def assign(self, theta: np.ndarray) -> None:
         """Which hits feed the range residuals: those safely inside the rectangle."""
         w2, h2 = self.board.width / 2, self.board.height / 2
-        x, z, lam = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        x, z, lam = self.coords(theta)
         inside = (np.abs(x) < w2 - EDGE_MARGIN) & (np.abs(z) < h2 - EDGE_MARGIN)
         res = self.rays.distance - self.offset - lam
         self.use_range = (self.lab == 1) & inside & (np.abs(res) < 4 * self.sigma_r)
@@ -427,19 +404,14 @@ class _Model:
         left out. Assignments stay fixed during a fit: switching them inside Gauss-Newton
         makes the cost jump and traps the fit in wrong basins.
         """
-        x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        x, z, _ = self.coords(theta)
         self.set_blur(theta)
-        xh, zh, xm, zm = x[self.bh], z[self.bh], x[self.bm], z[self.bm]
-        kind, sign, sd = self._edges(xh, zh, xm, zm, guard)
-        if not crossings:
-            # leave out rings that cross an edge at a grazing angle (a level board's top or
-            # bottom edge): such a bracket is sharp across its edge, and wrong if matched to
-            # the wrong edge
-            across = np.abs(np.where(kind == 1, xm - xh, zm - zh))
-            along = np.abs(np.where(kind == 1, zm - zh, xm - xh))
-            kind = np.where((kind > 0) & (across < GRAZING * along), 0, kind).astype(np.int8)
-        kind = np.where(self.excluded, 0, kind).astype(np.int8)
-        self.edge_kind, self.edge_sign, self.edge_sd = kind, sign, sd
+        # `_edges` for the brackets, compiled; without crossings, rings that cross an edge at
+        # a grazing angle (a level board's top or bottom edge) are left out: such a bracket is
+        # sharp across its edge, and wrong if matched to the wrong edge
+        self.edge_kind, self.edge_sign, self.edge_sd = classify_edges(
+            x, z, self.bh, self.bm, self.board.width / 2, self.board.height / 2, guard,
+            *self.blur_edges, crossings, GRAZING, self.excluded)
         self._cache_edges()
 
     def set_blur(self, theta: np.ndarray) -> None:
@@ -471,7 +443,7 @@ class _Model:
 
     def _width(self, theta: np.ndarray) -> np.ndarray:
         """Each bracket's extent across its edge (m) at pose theta."""
-        x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        x, z, _ = self.coords(theta)
         return np.where(self.edge_kind == 1, x[self.bm] - x[self.bh], z[self.bm] - z[self.bh])
 
     def profile(self, theta: np.ndarray, ds: np.ndarray, tol: float = 3e-3) -> np.ndarray:
@@ -481,46 +453,14 @@ class _Model:
         The shift moves every board coordinate by the same amount and leaves the ranges alone,
         so the profile is cheap. The cost counts hits outside the rectangle and misses inside it
         (more than ``tol`` from its edge), then adds the brackets' squared residuals with their
-        edges reassigned for each shift.
+        edges reassigned for each shift: one compiled pass (`align.fit_kernels.profile_cost`;
+        the numpy version's (brackets x shifts) temporaries cost 10x).
         """
-        x, z, _ = board_coordinates(theta, self.rays.origin, self.rays.direction)
+        x, z, _ = self.coords(theta)
         vx, vz = lidar_up(theta)
-        w2, h2 = self.board.width / 2, self.board.height / 2
-        hit, miss = self.lab == HIT, self.lab == MISS
-        n = len(ds)
-
-        def count_in(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-            """For each shift, how many intervals (lo, hi) contain it (interval counting)."""
-            a = np.searchsorted(ds, lo, side="right")
-            b = np.searchsorted(ds, hi, side="left")
-            c = np.bincount(a, minlength=n + 1) - np.bincount(np.maximum(b, a), minlength=n + 1)
-            return np.cumsum(c)[:n]
-
-        def inside(c: np.ndarray, v: float, half: float) -> tuple[np.ndarray, np.ndarray]:
-            """The shifts s with |c + s v| < half, as intervals (empty where none)."""
-            if abs(v) < 1e-12:
-                full = np.abs(c) < half
-                return np.where(full, -np.inf, np.inf), np.where(full, np.inf, -np.inf)
-            a, b = (-half - c) / v, (half - c) / v
-            return np.minimum(a, b), np.maximum(a, b)
-
-        def both(xs, zs, grow):
-            lo1, hi1 = inside(xs, vx, w2 + grow)
-            lo2, hi2 = inside(zs, vz, h2 + grow)
-            return np.maximum(lo1, lo2), np.minimum(hi1, hi2)
-
-        # a hit violates outside the rectangle grown by tol; a miss inside it shrunk by tol
-        lo, hi = both(x[hit], z[hit], tol)
-        viol = np.count_nonzero(hit) - count_in(lo, hi)
-        lo, hi = both(x[miss], z[miss], -tol)
-        viol = viol + count_in(lo, hi)
-        sh = ds[None, :]
-        xh, xm = x[self.bh][:, None] + sh * vx, x[self.bm][:, None] + sh * vx
-        zh, zm = z[self.bh][:, None] + sh * vz, z[self.bm][:, None] + sh * vz
-        kind, sign, sd = self._edges(xh, zh, xm, zm)
-        e = np.where(kind == 1, sign * w2 - 0.5 * (xh + xm), sign * h2 - 0.5 * (zh + zm))
-        cost = np.sum(np.where(kind > 0, (e / sd) ** 2, 0.0), axis=0)
-        return 1e6 * viol + cost
+        return profile_cost(x, z, np.flatnonzero(self.lab == HIT), np.flatnonzero(self.lab == MISS),
+                            self.bh, self.bm, np.asarray(ds, dtype=np.float64), vx, vz,
+                            self.board.width / 2, self.board.height / 2, tol, *self.blur_edges)
 
     def shift(self, theta: np.ndarray, ds: np.ndarray) -> np.ndarray:
         """``theta`` moved to the cheapest shift of `profile` over ``ds``."""
@@ -563,12 +503,7 @@ class _Model:
         from align.kernels import fit_jacobian
 
         theta = np.asarray(theta, dtype=np.float64)
-        rots = np.empty((4, 3, 3))
-        rots[0] = rotation(theta[3], theta[4], theta[5])
-        for k in range(3):
-            t = theta.copy()
-            t[3 + k] += JACOBIAN_STEP
-            rots[1 + k] = rotation(t[3], t[4], t[5])
+        rots = jacobian_rotations(theta, JACOBIAN_STEP)
         return fit_jacobian(theta, rots, np.asarray(f0, dtype=np.float64), *self._fit_arrays(),
                             JACOBIAN_STEP)
 
@@ -620,7 +555,7 @@ def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
     for it in range(1, max_iter + 1):
         a = j.T @ j
         g = j.T @ f
-        sd = np.sqrt(np.clip(np.diag(np.linalg.pinv(a)), 1e-18, None))
+        sd = np.sqrt(np.clip(_inverse_diagonal(a), 1e-18, None))
         while True:
             step = np.linalg.solve(a + lam * np.diag(np.diag(a)) + 1e-12 * np.eye(n_p), -g)
             f_new = res(p + step)
@@ -641,6 +576,14 @@ def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
     if fit_b:
         model.offset = float(p[6])
     return p[:6], j, converged, it
+
+
+def _inverse_diagonal(a: np.ndarray) -> np.ndarray:
+    """The diagonal of pinv(a) for the normal matrix ``a``: by Cholesky where ``a`` is well
+    conditioned (`align.fit_kernels.inverse_diagonal`; pinv's SVD cost 0.5 ms a scan), the
+    same to rounding; pinv's own where it is not (a parameter no residual sees: pinv's 0)."""
+    diag, ok = inverse_diagonal(a)
+    return diag if ok else np.diag(np.linalg.pinv(a))
 
 
 #: A bracket whose whitened residual exceeds this is a gross error (`_gross_brackets`).
@@ -738,16 +681,21 @@ def _violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.nd
 
 def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
                  sigma_r: float, blur: float, like: _Model | None = None,
-                 offset: tuple[float, tuple[float, float] | None] = (0.0, None)) -> _Model:
+                 offset: tuple[float, tuple[float, float] | None] = (0.0, None),
+                 coords: tuple[np.ndarray, ...] | None = None) -> _Model:
     """Brackets along the rings and between rings at the board's centre column, as a model.
-    Its range offset and the offset's prior: ``like``'s (a model rebuilt), else ``offset``."""
-    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+    Its range offset and the offset's prior: ``like``'s (a model rebuilt), else ``offset``.
+    ``coords``: the rays' board coordinates at ``theta`` if the caller has them."""
+    if coords is None:
+        coords = board_coordinates(theta, rays.origin, rays.direction)
+    x, z, _ = coords
     vx, vz = lidar_up(theta)
     bh, bm = _brackets(rays, lab)
     vh, vm = _vertical_brackets(rays, lab, np.abs(vz * x - vx * z))
     model = _Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
                    sigma_r, blur)
     model.offset, model.offset_prior = (like.offset, like.offset_prior) if like else offset
+    model._coords = (np.asarray(theta, dtype=np.float64).tobytes(), coords)
     return model
 
 
@@ -813,27 +761,28 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     the brackets; profile again; fix the bracket assignments leaving out those at corners, fit;
     reassign tighter, refit (`_staged_fit`).
     """
-    rays = _candidates(scans, segs, theta, board)
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
-    lab = _labels(rays, lam + offset[0], sigma_r)  # the range expected, offset included
+    rays, coords, spacing = _candidates_at(scans, segs, theta, board)
+    lab = _labels(rays, coords[2] + offset[0], sigma_r)  # the range expected, offset included
     rings_hit = np.unique(rays.ring[lab == HIT])
     if len(rings_hit) < 3:
         return None
     # the profile and the stray margin grow with the rings' spacing on the board: the start
     # can be off by half of it (a far board, one tilted away)
-    spacing = _ring_spacing(theta, float(np.max(np.diff(np.sort(scans[0].lasers.elevation)))))
     reach = max(float(ds[-1]), PROFILE_SPACINGS * spacing)
     ds = np.arange(-reach, reach + 0.5e-3, 1e-3)
     stray_margin = max(STRAY, STRAY_SPACINGS * spacing)
-    model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, offset=offset)
+    model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, offset=offset,
+                         coords=coords)
     theta = model.shift(theta, ds)
-    x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+    coords = model.coords(theta)
+    x, z = coords[0], coords[1]
     stray = (lab == HIT) & ((np.abs(x) > board.width / 2 + stray_margin) |
                             (np.abs(z) > board.height / 2 + stray_margin))
     if np.any(stray):
         lab = lab.copy()
         lab[stray] = UNKNOWN
-        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, like=model)
+        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, like=model,
+                             coords=coords)
         theta = model.shift(theta, ds)
     theta, j, conv, iters, chi2 = _staged_fit(model, theta, ds)
     for _ in range(2):
@@ -882,7 +831,7 @@ def _pose_per_plane(theta: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
 def _contradicted(model: _Model, theta: np.ndarray, margin: float = 0.01) -> int:
     """How many hits lie outside the rectangle at ``theta`` and misses inside it, by more than
     ``margin`` (m)."""
-    x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
+    x, z, _ = model.coords(theta)
     w2, h2 = model.board.width / 2, model.board.height / 2
     out = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
     deep = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
@@ -1041,7 +990,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     t_fit = time.perf_counter()
 
     # what was seen: every edge, nothing in front of the board
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    x, z, lam = model.coords(theta)
     k, sgn = model.edge_kind, model.edge_sign
     n_left = int(np.sum((k == 1) & (sgn < 0)))
     n_right = int(np.sum((k == 1) & (sgn > 0)))

@@ -1,0 +1,423 @@
+"""Compiled kernels of the pose fit (numba, ``cache=True``; `scenarios.warmup` compiles them
+ahead): the roll search's sliding windows and the joint fit's bookkeeping.
+
+Each replaces a numpy version whose cost was python overhead or sorting, not arithmetic. They
+take the floats numpy computed (board coordinates, range residuals) and do on them only
+comparisons, counts and the same elementwise operations in the same order (numba neither
+contracts nor reorders floating-point arithmetic without ``fastmath``), so they give bit for
+bit what the numpy versions gave. tests/test_fit_kernels.py checks each against its numpy
+reference.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def _insertion_sort(xs: np.ndarray, order: np.ndarray) -> None:
+    """Sort ``xs`` ascending in place, permuting ``order`` with it: linear in the length plus
+    the pairs out of order, which are few in a row already nearly sorted."""
+    for i in range(1, xs.shape[0]):
+        v, o = xs[i], order[i]
+        j = i - 1
+        while j >= 0 and xs[j] > v:
+            xs[j + 1] = xs[j]
+            order[j + 1] = order[j]
+            j -= 1
+        xs[j + 1] = v
+        order[j + 1] = o
+
+
+@njit(cache=True)
+def window_sweep(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """`align.roll_search._window_fit`: for each column of ``coords`` (n, K), the most points a
+    window of ``length`` holds and the shift that centres it on them (minus the middle of the
+    first such window's points).
+
+    The columns are the points' coordinates along a rectangle's axis at consecutive rolls:
+    each is sorted starting from the previous column's order, which a small turn hardly changes
+    (an insertion sort then costs little more than a copy; sorting every column afresh and
+    sliding after cost twice as much). The sorted values are the same whatever sorted them,
+    so the counts and shifts are those of sorting each column anew. A column the window holds
+    whole is not sorted at all."""
+    n, k = coords.shape
+    count = np.zeros(k, dtype=np.int64)
+    shift = np.zeros(k)
+    if n == 0 or k == 0:
+        shift[:] = -0.0  # -(0 + 0) / 2: an empty window's middle, as the numpy version's
+        return count, shift
+    rows = np.ascontiguousarray(coords.T)  # each roll's coordinates together: gathered fast
+    order = np.argsort(rows[0])
+    xs = np.empty(n)
+    for c in range(k):
+        row = rows[c]
+        lo, hi = row[0], row[0]
+        for i in range(1, n):
+            lo, hi = min(lo, row[i]), max(hi, row[i])
+        if hi <= lo + length:
+            # the window holds them all (most rolls of a fine pass): the slide would start at
+            # the least and reach the greatest, no sort needed
+            count[c], shift[c] = n, -0.5 * (lo + hi)
+            continue
+        for i in range(n):
+            xs[i] = row[order[i]]
+        _insertion_sort(xs, order)
+        j = 0
+        best, lo, hi = 0, 0.0, 0.0
+        for i in range(n):
+            if j < i:
+                j = i
+            while j + 1 < n and xs[j + 1] <= xs[i] + length:
+                j += 1
+            if j - i + 1 > best:
+                best, lo, hi = j - i + 1, xs[i], xs[j]
+        count[c] = best
+        shift[c] = -0.5 * (lo + hi)
+    return count, shift
+
+
+@njit(cache=True)
+def _sign(v: float) -> float:
+    """np.sign of one float (0 for either zero, nan for nan)."""
+    if v > 0:
+        return 1.0
+    if v < 0:
+        return -1.0
+    return 0.0 if v == 0 else v
+
+
+@njit(cache=True)
+def _inside(c: float, v: float, half: float) -> tuple[float, float]:
+    """The shifts s with |c + s v| < half, as an interval (empty where none)."""
+    if abs(v) < 1e-12:
+        if abs(c) < half:
+            return -np.inf, np.inf
+        return np.inf, -np.inf
+    a, b = (-half - c) / v, (half - c) / v
+    return min(a, b), max(a, b)
+
+
+@njit(cache=True)
+def _count_inside(x: np.ndarray, z: np.ndarray, idx: np.ndarray, ds: np.ndarray, vx: float,
+                  vz: float, half_x: float, half_z: float, sign: int, counts: np.ndarray
+                  ) -> None:
+    """Add ``sign`` to ``counts[i]`` for every ray of ``idx`` inside the ``half_x`` x ``half_z``
+    rectangle when shifted by ``ds[i]`` along (vx, vz): each ray's interval of shifts, counted
+    by where it starts and ends in the sorted ``ds`` (open at both ends)."""
+    n = ds.shape[0]
+    diff = np.zeros(n + 1, dtype=np.int64)
+    for r in idx:
+        lo1, hi1 = _inside(x[r], vx, half_x)
+        lo2, hi2 = _inside(z[r], vz, half_z)
+        lo, hi = max(lo1, lo2), min(hi1, hi2)
+        a = np.searchsorted(ds, lo, side="right")
+        b = max(np.searchsorted(ds, hi, side="left"), a)
+        diff[a] += 1
+        diff[b] -= 1
+    run = 0
+    for i in range(n):
+        run += diff[i]
+        counts[i] += sign * run
+
+
+@njit(cache=True, error_model="numpy")
+def profile_cost(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray,
+                 bh: np.ndarray, bm: np.ndarray, ds: np.ndarray, vx: float, vz: float,
+                 w2: float, h2: float, tol: float, blur_side: float, blur_top: float
+                 ) -> np.ndarray:
+    """`align.rays._Model.profile`: for each shift ``ds`` (m, ascending) of the rectangle along
+    (vx, vz), 1e6 x the labels violated (hits of ``hit`` outside the rectangle grown by ``tol``,
+    misses of ``miss`` inside it shrunk by ``tol``) plus the squared whitened residuals of the
+    brackets (hit rays ``bh``, miss rays ``bm``), each bracket's edge reassigned per shift as
+    `_Model._edges` assigns it (no corner guard). ``x``, ``z``: every ray's board coordinates;
+    ``blur_side``, ``blur_top``: the blur across the side and the top/bottom edges, m. Numpy's
+    error model: a bracket along an edge divides by zero as numpy did (z_at infinite)."""
+    n = ds.shape[0]
+    viol = np.zeros(n, dtype=np.int64)
+    viol[:] = hit.shape[0]
+    _count_inside(x, z, hit, ds, vx, vz, w2 + tol, h2 + tol, -1, viol)
+    _count_inside(x, z, miss, ds, vx, vz, w2 + -tol, h2 + -tol, 1, viol)
+    cost = np.zeros(n)
+    for i in range(bh.shape[0]):
+        x_h, z_h, x_m, z_m = x[bh[i]], z[bh[i]], x[bm[i]], z[bm[i]]
+        for j in range(n):
+            xh, xm = x_h + ds[j] * vx, x_m + ds[j] * vx
+            zh, zm = z_h + ds[j] * vz, z_m + ds[j] * vz
+            dx, dz = xm - xh, zm - zh
+            if dx == 0 and dz == 0:
+                continue  # no edge
+            z_at = abs(zh + (_sign(dx) * w2 - xh) * dz / dx)
+            if not np.isfinite(z_at):
+                z_at = np.inf
+            if z_at <= h2:
+                width, blur = dx, blur_side
+                e = _sign(xm) * w2 - 0.5 * (xh + xm)
+            else:
+                width, blur = dz, blur_top
+                e = _sign(zm) * h2 - 0.5 * (zh + zm)
+            sd = np.sqrt(width * width / 12 + blur * blur)
+            q = e / sd
+            cost[j] += q * q
+    out = np.empty(n)
+    for j in range(n):
+        out[j] = 1e6 * viol[j] + cost[j]
+    return out
+
+
+@njit(cache=True)
+def edge_brackets(order: np.ndarray, ls: np.ndarray, az: np.ndarray, lb: np.ndarray,
+                  link: np.ndarray, trans: np.ndarray, first_hit: np.ndarray,
+                  last_hit: np.ndarray, zone: float) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._brackets`' walk over the transitions: ``order`` sorts the rays by laser and
+    azimuth (``ls``, ``az``, labels ``lb`` in that order), ``link`` says which neighbours in it
+    bracket (same laser, no gap, both labelled), ``trans`` where a linked pair changes label,
+    ``first_hit``, ``last_hit`` each laser's span on the board (positions in the order).
+    Transitions closer than ``zone`` (rad) on a linked run form one zone, reduced to the step
+    that misclassifies the fewest rays (ties widen it). Returns the rays (indices into
+    ``order``'s rays) on the hit and on the miss side of each bracket."""
+    hits = np.empty(len(trans), dtype=np.int64)
+    misses = np.empty(len(trans), dtype=np.int64)
+    k = 0
+    i = 0
+    while i < len(trans):
+        j = i
+        while j + 1 < len(trans) and az[trans[j + 1]] - az[trans[j]] < zone:
+            linked = True
+            for t in range(trans[j], trans[j + 1] + 1):
+                if not link[t]:
+                    linked = False
+                    break
+            if not linked:
+                break
+            j += 1
+        a, b = trans[i], trans[j] + 1  # the zone spans sorted rays a..b
+        left, right = lb[a], lb[b]
+        i = j + 1
+        if left == right:
+            continue  # in and out again: no net crossing
+        f, g = first_hit[ls[a]], last_hit[ls[a]]
+        if not (a < f <= b or a <= g < b):
+            continue  # inside the board's span on this laser: not its edge
+        # split after position s: labels wrong left of it plus labels wrong right of it
+        wrong_right = 0
+        for t in range(a + 1, b + 1):
+            wrong_right += lb[t] != right
+        wrong_left = 0
+        best, p, q = 1 << 62, 0, 0
+        for s in range(b - a):
+            wrong_left += lb[a + s] != left
+            err = wrong_left + wrong_right
+            if err < best:
+                best, p, q = err, a + s, a + s + 1
+            elif err == best:
+                q = a + s + 1
+            wrong_right -= lb[a + s + 1] != right
+        if left == 1:
+            hits[k], misses[k] = order[p], order[q]
+        else:
+            hits[k], misses[k] = order[q], order[p]
+        k += 1
+    return hits[:k], misses[:k]
+
+
+#: `inverse_diagonal` trusts its Cholesky inverse while the matrix's condition number is
+#: provably below this (numpy's pinv drops singular values below 1e-15 of the largest: far
+#: beyond it, the two agree to rounding).
+WELL_CONDITIONED = 1e12
+
+
+@njit(cache=True)
+def inverse_diagonal(a: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The diagonal of the inverse of the symmetric positive definite ``a`` (n, n), by
+    Cholesky, and whether ``a`` is well conditioned enough for it to be pinv's: its condition
+    number is at most trace(a) trace(a^-1) (the largest eigenvalue is below the trace, the
+    smallest above one over the inverse's trace), checked against `WELL_CONDITIONED`. False
+    also where the factorisation fails (a singular or indefinite matrix)."""
+    n = a.shape[0]
+    low = np.zeros((n, n))
+    for j in range(n):
+        s = a[j, j]
+        for k in range(j):
+            s -= low[j, k] * low[j, k]
+        if not s > 0.0:
+            return np.zeros(n), False
+        low[j, j] = np.sqrt(s)
+        for i in range(j + 1, n):
+            t = a[i, j]
+            for k in range(j):
+                t -= low[i, k] * low[j, k]
+            low[i, j] = t / low[j, j]
+    # L^-1 column by column; (a^-1)_ii = sum_k (L^-1)_ki^2 since a^-1 = L^-T L^-1
+    inv = np.zeros((n, n))
+    for c in range(n):
+        for i in range(c, n):
+            t = 1.0 if i == c else 0.0
+            for k in range(c, i):
+                t -= low[i, k] * inv[k, c]
+            inv[i, c] = t / low[i, i]
+    diag = np.zeros(n)
+    trace, trace_inv = 0.0, 0.0
+    for i in range(n):
+        for k in range(n):
+            diag[i] += inv[k, i] * inv[k, i]
+        trace += a[i, i]
+        trace_inv += diag[i]
+    return diag, trace * trace_inv < WELL_CONDITIONED
+
+
+@njit(cache=True)
+def rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
+    """`align.geometry.rotation`: the same expressions (and the same libm cos and sin), so the
+    same matrix bit for bit."""
+    cr, sr = np.cos(roll), np.sin(roll)
+    ct, st = np.cos(tilt), np.sin(tilt)
+    cy, sy = np.cos(yaw), np.sin(yaw)
+    syst, cyst = sy * st, cy * st
+    r = np.empty((3, 3))
+    r[0, 0], r[0, 1], r[0, 2] = cy * cr - syst * sr, -sy * ct, cy * sr + syst * cr
+    r[1, 0], r[1, 1], r[1, 2] = sy * cr + cyst * sr, cy * ct, sy * sr - cyst * cr
+    r[2, 0], r[2, 1], r[2, 2] = -ct * sr, st, ct * cr
+    return r
+
+
+@njit(cache=True)
+def jacobian_rotations(theta: np.ndarray, step: float) -> np.ndarray:
+    """R at ``theta`` and with its roll, tilt and yaw each moved by ``step`` (rad), (4, 3, 3):
+    what `align.kernels.fit_jacobian` differences."""
+    rots = np.empty((4, 3, 3))
+    rots[0] = rotation(theta[3], theta[4], theta[5])
+    for k in range(3):
+        t = theta.copy()
+        t[3 + k] += step
+        rots[1 + k] = rotation(t[3], t[4], t[5])
+    return rots
+
+
+@njit(cache=True)
+def behind_runs(order: np.ndarray, starts: np.ndarray, res: np.ndarray, run: int, reach: int,
+                least: float, threshold: float, out: np.ndarray) -> None:
+    """`align.rays._behind_ends` on the long groups: ``order`` lists the hits by scan, laser and
+    azimuth, ``starts`` where each group (a laser in a scan) of at least 3 ``run`` hits begins
+    and ends (``starts[2 g]``, ``starts[2 g + 1]``). From each end of a group, the longest run
+    of at most min(``reach``, size // 3) hits, at least ``run`` long, whose mean range residual
+    ``res`` exceeds ``least`` (m) and whose mean times sqrt(its length) exceeds ``threshold``
+    (m) is marked in ``out``. The running means as numpy's cumsum and divide form them."""
+    for g in range(starts.shape[0] // 2):
+        a, b = starts[2 * g], starts[2 * g + 1]
+        n = b - a
+        r = min(reach, n // 3)
+        for end in range(2):
+            total = 0.0
+            last = -1
+            for m in range(1, r + 1):
+                i = order[a + m - 1] if end == 0 else order[b - m]
+                total += res[i]
+                mean = total / m
+                if m >= run and mean > least and mean * np.sqrt(m) > threshold:
+                    last = m
+            for m in range(1, last + 1):
+                out[order[a + m - 1] if end == 0 else order[b - m]] = True
+
+
+@njit(cache=True)
+def column_brackets(ring: np.ndarray, lab: np.ndarray, off: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._vertical_brackets`: per ring the labelled ray (``lab`` >= 0) nearest the
+    board's central column (least ``off``, the first of equal ones, as np.argmin); above the
+    highest ring that hits, a ring that misses there brackets the edge above with it, and
+    likewise below the lowest. Returns (hit rays, miss rays): the top's pair first."""
+    hits = np.zeros(2, dtype=np.int64)
+    misses = np.zeros(2, dtype=np.int64)
+    if ring.shape[0] == 0:
+        return hits[:0], misses[:0]
+    n_r = int(ring.max()) + 1
+    col = np.full(n_r + 1, -1, dtype=np.int64)  # one more: the ring above the highest
+    for i in range(ring.shape[0]):
+        if lab[i] < 0:
+            continue
+        r = ring[i]
+        c = col[r]
+        if c < 0 or off[i] < off[c] or (off[i] != off[i] and off[c] == off[c]):
+            col[r] = i  # np.argmin: the first nan wins, else the first least
+    top, bottom = -1, n_r
+    for r in range(n_r):
+        if col[r] >= 0 and lab[col[r]] == 1:
+            top = max(top, r)
+            bottom = min(bottom, r)
+    k = 0
+    if top < 0:
+        return hits[:0], misses[:0]
+    if col[top + 1] >= 0 and lab[col[top + 1]] == 0:
+        hits[k], misses[k] = col[top], col[top + 1]
+        k += 1
+    if bottom >= 1 and col[bottom - 1] >= 0 and lab[col[bottom - 1]] == 0:
+        hits[k], misses[k] = col[bottom], col[bottom - 1]
+        k += 1
+    return hits[:k], misses[:k]
+
+
+@njit(cache=True)
+def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarray,
+                   centre: float, lo: float, hi: float, ring_lo: int, ring_hi: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The firings of rings ``ring_lo`` .. ``ring_hi`` whose azimuth relative to ``centre``
+    (wrapped into [-pi, pi) as `align.rays._unwrap` wraps it, element by element) lies in
+    [``lo``, ``hi``] (rad): their indices and relative azimuths, in one pass over the scan."""
+    n = azimuth.shape[0]
+    idx = np.empty(n, dtype=np.int64)
+    rel = np.empty(n)
+    k = 0
+    two_pi = 2 * np.pi
+    for i in range(n):
+        ring = ring_of_laser[laser_id[i]]
+        if ring < ring_lo or ring > ring_hi:
+            continue
+        v = azimuth[i] - centre + np.pi
+        # v % 2 pi is v itself on [0, 2 pi): the slow floating-point remainder only outside
+        r = (v if 0.0 <= v < two_pi else v % two_pi) - np.pi
+        if r >= lo and r <= hi:
+            idx[k] = i
+            rel[k] = r
+            k += 1
+    return idx[:k], rel[:k]
+
+
+@njit(cache=True, error_model="numpy")
+def classify_edges(x: np.ndarray, z: np.ndarray, bh: np.ndarray, bm: np.ndarray, w2: float,
+                   h2: float, guard: float, blur_side: float, blur_top: float,
+                   crossings: bool, grazing: float, excluded: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`align.rays._Model.classify`'s edges: per bracket (hit ray ``bh``, miss ray ``bm``; board
+    coordinates ``x``, ``z``) the edge kind (1 side, 2 top or bottom, 0 left out: within
+    ``guard`` of a corner, no extent, ``excluded``, or without ``crossings`` one crossing its
+    edge at a grazing angle, across it less than ``grazing`` x along it), the edge's side
+    (that of the miss) and the bracket's sigma sqrt(width^2 / 12 + blur^2), m, as
+    `_Model._edges` computes them. Numpy's error model: z_at of a bracket along x is inf."""
+    nb = bh.shape[0]
+    kind = np.zeros(nb, dtype=np.int8)
+    sign = np.zeros(nb)
+    sd = np.zeros(nb)
+    for i in range(nb):
+        xh, zh, xm, zm = x[bh[i]], z[bh[i]], x[bm[i]], z[bm[i]]
+        dx, dz = xm - xh, zm - zh
+        z_at = abs(zh + (_sign(dx) * w2 - xh) * dz / dx)
+        if not np.isfinite(z_at):
+            z_at = np.inf
+        vert = z_at <= h2
+        k = 1 if vert else 2
+        if abs(z_at - h2) < guard or (dx == 0 and dz == 0):
+            k = 0
+        if vert:
+            sign[i], width, blur = _sign(xm), dx, blur_side
+        else:
+            sign[i], width, blur = _sign(zm), dz, blur_top
+        sd[i] = np.sqrt(width * width / 12 + blur * blur)
+        if not crossings and k > 0:
+            across = abs(dx if k == 1 else dz)
+            along = abs(dz if k == 1 else dx)
+            if across < grazing * along:
+                k = 0
+        kind[i] = 0 if excluded[i] else k
+    return kind, sign, sd

@@ -1,0 +1,374 @@
+"""The pose fit's compiled kernels (`align.fit_kernels`) against the numpy versions they
+replaced: the same numbers bit for bit (they only compare, count and copy numpy's floats), on
+the joint fit's models of real scans (the five ACFR chessboard captures) and a twin scan."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import align
+from align import rays as rays_mod
+from align import roll_search
+from align.board import BoardSpec
+from align.feasible import _rows
+from align.fit_kernels import window_sweep
+from align.geometry import board_coordinates, lidar_up
+from tests.conftest import DATA_DIR
+from tests.test_rays_kernels import ACFR_BOARD, _model
+from twin.lidar.pcd import read_pcd_scans
+from twin.sim.bench import BenchSim
+
+
+@pytest.fixture(scope="module")
+def models() -> list[tuple[rays_mod._Model, np.ndarray]]:
+    hints = align.Hints(expected_distance=1.8)
+    out = [_model(read_pcd_scans(p)[0], ACFR_BOARD, hints)
+           for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    out.append(_model(BenchSim(seed=3).scan(), align.BoardSpec(), align.Hints()))
+    return out
+
+
+def profile_reference(model: rays_mod._Model, theta: np.ndarray, ds: np.ndarray,
+                      tol: float = 3e-3) -> np.ndarray:
+    """`_Model.profile` as numpy calls (before the kernel)."""
+    x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
+    vx, vz = lidar_up(theta)
+    w2, h2 = model.board.width / 2, model.board.height / 2
+    hit, miss = model.lab == rays_mod.HIT, model.lab == rays_mod.MISS
+    n = len(ds)
+
+    def count_in(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        a = np.searchsorted(ds, lo, side="right")
+        b = np.searchsorted(ds, hi, side="left")
+        c = np.bincount(a, minlength=n + 1) - np.bincount(np.maximum(b, a), minlength=n + 1)
+        return np.cumsum(c)[:n]
+
+    def inside(c: np.ndarray, v: float, half: float) -> tuple[np.ndarray, np.ndarray]:
+        if abs(v) < 1e-12:
+            full = np.abs(c) < half
+            return np.where(full, -np.inf, np.inf), np.where(full, np.inf, -np.inf)
+        a, b = (-half - c) / v, (half - c) / v
+        return np.minimum(a, b), np.maximum(a, b)
+
+    def both(xs, zs, grow):
+        lo1, hi1 = inside(xs, vx, w2 + grow)
+        lo2, hi2 = inside(zs, vz, h2 + grow)
+        return np.maximum(lo1, lo2), np.minimum(hi1, hi2)
+
+    lo, hi = both(x[hit], z[hit], tol)
+    viol = np.count_nonzero(hit) - count_in(lo, hi)
+    lo, hi = both(x[miss], z[miss], -tol)
+    viol = viol + count_in(lo, hi)
+    sh = ds[None, :]
+    xh, xm = x[model.bh][:, None] + sh * vx, x[model.bm][:, None] + sh * vx
+    zh, zm = z[model.bh][:, None] + sh * vz, z[model.bm][:, None] + sh * vz
+    kind, sign, sd = model._edges(xh, zh, xm, zm)
+    e = np.where(kind == 1, sign * w2 - 0.5 * (xh + xm), sign * h2 - 0.5 * (zh + zm))
+    cost = np.sum(np.where(kind > 0, (e / sd) ** 2, 0.0), axis=0)
+    return 1e6 * viol + cost
+
+
+def brackets_reference(rays: rays_mod._Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`rays._brackets` with its walk over the transitions in python (before the kernel)."""
+    order = np.lexsort((rays.azimuth, rays.laser))
+    order = order[lab[order] != rays_mod.DROPOUT]
+    ls, az, lb = rays.laser[order], rays.azimuth[order], lab[order]
+    link = ((ls[1:] == ls[:-1]) & (np.diff(az) < rays_mod.MAX_GAP) & (lb[1:] >= 0)
+            & (lb[:-1] >= 0))
+    trans = np.flatnonzero(link & (lb[1:] != lb[:-1]))
+    first_hit, last_hit = rays_mod._board_spans(ls, az, lb)
+    hits, misses = [], []
+    i = 0
+    while i < len(trans):
+        j = i
+        while (j + 1 < len(trans) and np.all(link[trans[j]:trans[j + 1] + 1])
+               and az[trans[j + 1]] - az[trans[j]] < rays_mod.ZONE_AZIMUTH):
+            j += 1
+        a, b = trans[i], trans[j] + 1
+        left, right = lb[a], lb[b]
+        i = j + 1
+        if left == right:
+            continue
+        f, g = first_hit[ls[a]], last_hit[ls[a]]
+        if not (a < f <= b or a <= g < b):
+            continue
+        z = lb[a:b + 1]
+        err = np.cumsum(z != left)[:-1] + np.cumsum((z != right)[::-1])[::-1][1:]
+        best = np.flatnonzero(err == err.min())
+        p, q = a + best[0], a + best[-1] + 1
+        h, m = (p, q) if left == 1 else (q, p)
+        hits.append(order[h])
+        misses.append(order[m])
+    return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
+
+
+def test_profile_matches_numpy_on_real_scans(models):
+    rng = np.random.default_rng(11)
+    for model, theta in models:
+        ds = np.arange(-0.08, 0.0805, 1e-3)
+        for k in range(4):
+            t = theta + (rng.normal(size=6) * [5e-3, 5e-3, 5e-3, 1e-2, 1e-2, 1e-2] if k else 0)
+            for tol in (3e-3, 0.0):
+                np.testing.assert_array_equal(model.profile(t, ds, tol),
+                                              profile_reference(model, t, ds, tol))
+
+
+def test_brackets_match_numpy_on_real_scans(models):
+    rng = np.random.default_rng(5)
+    for model, _ in models:
+        lab = model.lab.copy()
+        for k in range(3):
+            if k:  # flicker: labels flipped at random make zones of mixed returns
+                flip = rng.random(len(lab)) < 0.05 * k
+                lab = np.where(flip & (lab >= 0), 1 - lab, lab).astype(lab.dtype)
+            got, want = rays_mod._brackets(model.rays, lab), brackets_reference(model.rays, lab)
+            assert len(got[0]) > 0
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+
+
+def window_fit_reference(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """`roll_search._window_fit` before the kernel: every column sorted afresh, then slid."""
+    rows = np.ascontiguousarray(coords.T)
+    rows.sort(axis=1)
+    return roll_search._slide(rows, length)
+
+
+def _board_points(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Returns on a 0.6 x 0.45 m board 2.6 m ahead, on a few rings, with a few strays."""
+    normal = np.array([0.1, 0.99, -0.05])
+    normal /= np.linalg.norm(normal)
+    e1 = np.cross(normal, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    u = rng.uniform(-0.3, 0.3, n)
+    v = rng.choice(np.linspace(-0.2, 0.2, 6), n) + rng.normal(0, 1e-3, n)
+    pts = 2.6 * normal + u[:, None] * e1 + v[:, None] * e2
+    pts[:3] += 0.2  # strays
+    return pts, normal
+
+
+def test_window_sweep_matches_sorting_every_roll():
+    rng = np.random.default_rng(3)
+    board = BoardSpec()
+    for n, step in ((150, np.deg2rad(1.0)), (1000, np.deg2rad(0.1)), (7, np.deg2rad(5.0))):
+        pts, normal = _board_points(rng, n)
+        rolls = np.arange(-np.pi / 2, np.pi / 2, step)
+        r0, r2 = _rows(rolls, normal)
+        whole = 0
+        for p in (pts, pts[3:]):  # with strays, and without: rolls the window holds whole
+            for coords, length in ((p @ r0.T, board.width + 0.02),
+                                   (p @ r2.T, board.height + 0.02)):
+                got, want = window_sweep(coords, length), window_fit_reference(coords, length)
+                np.testing.assert_array_equal(got[0], want[0])
+                np.testing.assert_array_equal(got[1], want[1])
+                whole += int(np.sum(got[0] == len(p)))
+        assert whole > 0
+    # ties, a single point, none
+    coords = np.repeat(np.array([[0.0, 1.0, 1.0, 2.0]]).T, 3, axis=1)
+    for c in (coords, coords[:1], coords[:0]):
+        got, want = window_sweep(c, 1.0), window_fit_reference(c, 1.0)
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_rotation_kernel_is_geometry_rotation_bit_for_bit():
+    from align.fit_kernels import jacobian_rotations
+    from align.fit_kernels import rotation as rotation_kernel
+    from align.geometry import rotation
+
+    rng = np.random.default_rng(2)
+    for _ in range(2000):
+        t = rng.uniform(-4.0, 4.0, 3) * rng.choice([1e-6, 1e-2, 1.0])
+        np.testing.assert_array_equal(rotation_kernel(*t), rotation(*t))
+    theta = np.array([0.1, -2.6, 0.05, 0.02, -0.01, 0.2])
+    rots = jacobian_rotations(theta, 1e-7)
+    for k in range(3):
+        t = theta.copy()
+        t[3 + k] += 1e-7
+        np.testing.assert_array_equal(rots[1 + k], rotation(t[3], t[4], t[5]))
+
+
+def test_inverse_diagonal_is_pinvs_where_well_conditioned(models):
+    from align.fit_kernels import inverse_diagonal
+
+    for model, theta in models:
+        f = model.residuals(theta)
+        j = model.jacobian(theta, f)
+        a = j.T @ j
+        diag, ok = inverse_diagonal(a)
+        assert ok
+        np.testing.assert_allclose(diag, np.diag(np.linalg.pinv(a)), rtol=1e-12, atol=0)
+        # a parameter no residual sees: singular, left to pinv (rays._inverse_diagonal)
+        a0 = a.copy()
+        a0[0, :] = a0[:, 0] = 0.0
+        assert not inverse_diagonal(a0)[1]
+        np.testing.assert_array_equal(rays_mod._inverse_diagonal(a0), np.diag(np.linalg.pinv(a0)))
+    # nearly singular (condition 1e14): not trusted either
+    assert not inverse_diagonal(np.diag([1.0, 1e-14]))[1]
+
+
+def behind_ends_reference(rays: rays_mod._Rays, lab: np.ndarray, res: np.ndarray,
+                          sigma_r: float) -> np.ndarray:
+    """`rays._behind_ends` with its loop over the lasers in python (before the kernel)."""
+    import math
+
+    out = np.zeros(len(lab), dtype=bool)
+    hit = np.flatnonzero(lab == rays_mod.HIT)
+    order = hit[np.lexsort((rays.azimuth[hit], rays.laser[hit], rays.scan[hit]))]
+    key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
+    run, sig, least = rays_mod.BEHIND_RUN, rays_mod.BEHIND_SIGMAS, rays_mod.BEHIND_MIN
+    for grp in np.split(order, np.flatnonzero(key[1:] != key[:-1]) + 1):
+        n = len(grp)
+        if n < run:
+            continue
+        if n < 3 * run:
+            mean = float(res[grp].mean())
+            if mean > least and mean * math.sqrt(n) > sig * sigma_r:
+                out[grp] = True
+            continue
+        reach = min(rays_mod.BEHIND_REACH, n // 3)
+        for seq in (grp[:reach], grp[::-1][:reach]):
+            m = np.arange(1, len(seq) + 1)
+            mean = np.cumsum(res[seq]) / m
+            ok = (m >= run) & (mean > least) & (mean * np.sqrt(m) > sig * sigma_r)
+            if np.any(ok):
+                out[seq[:int(np.flatnonzero(ok)[-1]) + 1]] = True
+    return out
+
+
+def test_behind_ends_match_numpy_on_real_scans(models):
+    rng = np.random.default_rng(9)
+    sigma_r = 0.01
+    for model, _ in models:
+        rays, lab = model.rays, model.lab
+        marked = 0
+        for k in range(4):
+            res = rng.normal(0.0, sigma_r, len(lab))
+            # things just behind the board: a laser's first or last hits, or a short laser
+            # whole, 2-5 cm behind
+            hit = np.flatnonzero(lab == rays_mod.HIT)
+            order = hit[np.lexsort((rays.azimuth[hit], rays.laser[hit], rays.scan[hit]))]
+            key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
+            for grp in np.split(order, np.flatnonzero(key[1:] != key[:-1]) + 1):
+                if rng.random() < 0.5:
+                    w = int(rng.integers(1, 12))
+                    part = grp[:w] if rng.random() < 0.5 else grp[-w:]
+                    res[part] += rng.uniform(0.02, 0.05)
+            if k == 3:
+                # short groups, tested whole: each laser keeps its first 3-8 hits only, some of
+                # them all behind
+                lab = lab.copy()
+                for grp in np.split(order, np.flatnonzero(key[1:] != key[:-1]) + 1):
+                    keep = int(rng.integers(3, 9))
+                    lab[grp[keep:]] = rays_mod.MISS
+                    if rng.random() < 0.5:
+                        res[grp[:keep]] += 0.03
+            got = rays_mod._behind_ends(rays, lab, res, sigma_r)
+            np.testing.assert_array_equal(got, behind_ends_reference(rays, lab, res, sigma_r))
+            marked += int(got.sum())
+        assert marked > 0
+
+
+def vertical_brackets_reference(rays: rays_mod._Rays, lab: np.ndarray, off: np.ndarray
+                                ) -> tuple[np.ndarray, np.ndarray]:
+    """`rays._vertical_brackets` with its dictionary of rings (before the kernel)."""
+    col = {}
+    for r in np.unique(rays.ring):
+        m = np.flatnonzero((rays.ring == r) & (lab >= 0))
+        if len(m):
+            col[int(r)] = int(m[np.argmin(off[m])])
+    hit_rings = [r for r in col if lab[col[r]] == 1]
+    hits, misses = [], []
+    if not hit_rings:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    top, bottom = max(hit_rings), min(hit_rings)
+    if top + 1 in col and lab[col[top + 1]] == 0:
+        hits.append(col[top])
+        misses.append(col[top + 1])
+    if bottom - 1 in col and lab[col[bottom - 1]] == 0:
+        hits.append(col[bottom])
+        misses.append(col[bottom - 1])
+    return np.array(hits, dtype=np.int64), np.array(misses, dtype=np.int64)
+
+
+def test_vertical_brackets_match_numpy_on_real_scans(models):
+    rng = np.random.default_rng(4)
+    found = 0
+    for model, theta in models:
+        rays = model.rays
+        x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
+        vx, vz = lidar_up(theta)
+        off = np.abs(vz * x - vx * z)
+        for k in range(6):
+            lab = model.lab.copy()
+            if k:  # rings dropped (unknown), ties of the offsets, labels flipped
+                lab[np.isin(rays.ring, rng.choice(np.unique(rays.ring), k))] = rays_mod.UNKNOWN
+                off = np.round(off, 2) if k == 2 else off
+                lab = np.where(rng.random(len(lab)) < 0.05 * k, 1 - lab, lab).astype(lab.dtype)
+            got = rays_mod._vertical_brackets(rays, lab, off)
+            want = vertical_brackets_reference(rays, lab, off)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_array_equal(got[1], want[1])
+            found += len(got[0])
+    assert found > 0
+    empty = rays_mod._vertical_brackets(rays, np.full(len(rays.ring), rays_mod.MISS,
+                                                      dtype=np.int8), off)
+    assert len(empty[0]) == 0 and empty[0].dtype == np.int64
+
+
+def test_window_firings_match_numpy_on_real_scans():
+    from align.fit_kernels import window_firings
+
+    scans = [read_pcd_scans(p)[0] for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    scans.append(BenchSim(seed=3).scan())
+    rng = np.random.default_rng(8)
+    for s in scans:
+        ring_of_laser = s.lasers.ring_of_laser
+        for c in (0.0, np.pi - 1e-3, -np.pi, 2.0, float(rng.uniform(-np.pi, np.pi))):
+            lo, hi = sorted(rng.uniform(-np.pi, np.pi, 2))
+            r_lo = int(rng.integers(-1, 8))
+            r_hi = r_lo + int(rng.integers(0, 9))
+            near = np.arange(s.lasers.n_lasers)
+            near = (near >= r_lo) & (near <= r_hi)
+            want = np.flatnonzero(near[ring_of_laser][s.laser_id])
+            rel = rays_mod._unwrap(s.azimuth[want], c)
+            win = (rel >= lo) & (rel <= hi)
+            idx, got_rel = window_firings(s.azimuth, s.laser_id, ring_of_laser, c, lo, hi,
+                                          r_lo, r_hi)
+            np.testing.assert_array_equal(idx, want[win])
+            np.testing.assert_array_equal(got_rel, rel[win])
+
+
+def classify_reference(model: rays_mod._Model, theta: np.ndarray, guard: float,
+                       crossings: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`_Model.classify`'s kinds, signs and sigmas as numpy calls (before the kernel)."""
+    x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
+    model.set_blur(theta)
+    xh, zh, xm, zm = x[model.bh], z[model.bh], x[model.bm], z[model.bm]
+    kind, sign, sd = model._edges(xh, zh, xm, zm, guard)
+    if not crossings:
+        across = np.abs(np.where(kind == 1, xm - xh, zm - zh))
+        along = np.abs(np.where(kind == 1, zm - zh, xm - xh))
+        kind = np.where((kind > 0) & (across < rays_mod.GRAZING * along), 0, kind).astype(np.int8)
+    return np.where(model.excluded, 0, kind).astype(np.int8), sign, sd
+
+
+def test_classify_matches_numpy_on_real_scans(models):
+    rng = np.random.default_rng(6)
+    for model, theta in models:
+        kept = model.excluded.copy()
+        for k in range(4):
+            t = theta + (rng.normal(size=6) * [5e-3, 5e-3, 5e-3, 1e-2, 1e-2, 1e-2] if k else 0)
+            model.excluded = rng.random(len(model.bh)) < 0.1 * k
+            for guard, crossings in ((0.005, False), (0.002, True), (0.05, False)):
+                want = classify_reference(model, t, guard, crossings)
+                model.classify(t, guard, crossings)
+                assert model.edge_kind.dtype == np.int8
+                for got, ref in zip((model.edge_kind, model.edge_sign, model.edge_sd), want,
+                                    strict=True):
+                    np.testing.assert_array_equal(got, ref)
+        model.excluded = kept
+        model.classify(theta, 0.002, True)
+        model.assign(theta)
