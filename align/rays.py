@@ -682,13 +682,16 @@ def _staged_fit(model: _Model, theta: np.ndarray, ds: np.ndarray
     return theta, j, conv, iters, float(f @ f / max(len(f) - 6, 1))
 
 
-def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
-                ) -> tuple[LabelledRays, np.ndarray]:
+def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float],
+                intensity: np.ndarray | None = None,
+                partial: tuple[float, float] = (0.0, 0.0)) -> tuple[LabelledRays, np.ndarray]:
     """The rays that carry edge information, for `align.label_posterior`. Misses well inside
     and hits well outside the rectangle at ``theta`` are left out (dropouts, strays). A hit may
     lie up to ``tolerance`` (rad seen from the LiDAR: across the side edges, across the top and
-    bottom edges) outside the rectangle and a miss as far inside it (`Hints.edge_tolerance`).
-    Also returns the rays' indices in the model's."""
+    bottom edges) outside the rectangle and a miss as far inside it (`Hints.edge_tolerance`);
+    a hit whose ``intensity`` (per model ray) says only part of the beam met the board, up to
+    ``partial`` (`Hints.partial_edge_tolerance`, `_partial_hits`). Also returns the rays'
+    indices in the model's."""
     rays, board = model.rays, model.board
     x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
     lab = model.lab
@@ -708,11 +711,36 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     # ellipse with half-axes (side, top/bottom tolerance) along the LiDAR's horizontal and up
     # directions, in the edge's normal direction (a level board: the tolerances as given)
     vx, vz = lidar_up(theta)
-    t_h, t_v = tolerance
+    t_h, t_v = np.full(len(lab), tolerance[0]), np.full(len(lab), tolerance[1])
+    if intensity is not None:
+        part = _partial_hits(model.lab, intensity, inner)[use]
+        # a sharp beam (a tolerance of 0) has no partial returns: a dim hit there is a dark
+        # patch of the board, on it
+        t_h[part] = max(tolerance[0], partial[0]) if tolerance[0] > 0 else 0.0
+        t_v[part] = max(tolerance[1], partial[1]) if tolerance[1] > 0 else 0.0
     per_x, per_z = np.hypot(t_h * vz, t_v * vx), np.hypot(t_h * vx, t_v * vz)
-    per_edge = np.array([per_x, per_x, per_z, per_z])  # left, right, bottom, top
+    per_edge = np.column_stack((per_x, per_x, per_z, per_z))  # left, right, bottom, top
     ext += (lam[use] * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
     return LabelledRays(rays.origin[use], u, lab, ext), np.flatnonzero(use)
+
+
+#: A hit is a partial return (the beam only partly on the board) below this fraction of the
+#: board's own intensity: a beam whose centre lies outside the edge has less than half of its
+#: energy on the board (a symmetric spot), one whose centre is on it at least half.
+PARTIAL_INTENSITY = 0.5
+
+
+def _partial_hits(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """The hits dimmer than `PARTIAL_INTENSITY` of the median of the hits well inside the
+    rectangle (``inner``): a divergent beam straddling an edge returns the board at the board's
+    range, along the beam's centre, when the board's part of the spot outshines a dark or far
+    background, so its centre may lie up to half the beam's width outside the edge; a return
+    of the whole spot is as bright as the board's inner ones. None partial without inner hits
+    to compare with."""
+    ref = intensity[(lab == HIT) & inner]
+    if len(ref) == 0:
+        return np.zeros(len(lab), dtype=bool)
+    return (lab == HIT) & (intensity < PARTIAL_INTENSITY * float(np.median(ref)))
 
 
 #: Labels the pose of the least-squares fit violates by more than this (m) may be strays (the
@@ -978,10 +1006,12 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # dropout at an edge), the labels the least-squares pose violates are left out (unknown),
     # the fit redone without them and the posterior tried again
     dropped = 0
+    intensity = np.concatenate([s.intensity for s in scans])  # indexed as the rays' gidx
     for _ in range(STRAY_ROUNDS):
         cov_ls = np.linalg.pinv(j.T @ j)  # 7 x 7 when the offset is fitted: pose, offset
         cov = cov_ls[:6, :6]
-        labelled, idx = _ray_points(model, theta, hints.edge_tolerance)
+        labelled, idx = _ray_points(model, theta, hints.edge_tolerance,
+                                    intensity[model.rays.gidx], hints.partial_edge_tolerance)
         if offset_model is not None:
             offset_model.centre = model.offset
             offset_model.centre_std = float(np.sqrt(cov_ls[6, 6])) if len(cov_ls) > 6 else 0.0
