@@ -699,29 +699,28 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     inner = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
     outer = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
     use = ((lab == 1) & ~outer) | ((lab == 0) & ~inner)
-    u = rays.direction[use]
+    u = rays.direction
     # the plate's side faces, seen by rays heading inwards past an edge (as `_Model.residuals`)
     rot = rotation(theta[3], theta[4], theta[5])
     dn = u @ rot.T
     ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
     ext = board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
                                                              -ratio_z)))
-    lab = lab[use]
     # the tolerance across each edge as the beam's footprint allows it: the support of the
     # ellipse with half-axes (side, top/bottom tolerance) along the LiDAR's horizontal and up
     # directions, in the edge's normal direction (a level board: the tolerances as given)
     vx, vz = lidar_up(theta)
     t_h, t_v = np.full(len(lab), tolerance[0]), np.full(len(lab), tolerance[1])
     if intensity is not None:
-        part = _partial_hits(model.lab, intensity, inner)[use]
+        part = _partial_hits(lab, intensity, inner)
         # a sharp beam (a tolerance of 0) has no partial returns: a dim hit there is a dark
         # patch of the board, on it
         t_h[part] = max(tolerance[0], partial[0]) if tolerance[0] > 0 else 0.0
         t_v[part] = max(tolerance[1], partial[1]) if tolerance[1] > 0 else 0.0
     per_x, per_z = np.hypot(t_h * vz, t_v * vx), np.hypot(t_h * vx, t_v * vz)
     per_edge = np.column_stack((per_x, per_x, per_z, per_z))  # left, right, bottom, top
-    ext += (lam[use] * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
-    return LabelledRays(rays.origin[use], u, lab, ext), np.flatnonzero(use)
+    ext += (lam * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
+    return LabelledRays(rays.origin[use], u[use], lab[use], ext[use]), np.flatnonzero(use)
 
 
 #: A hit is a partial return (the beam only partly on the board) below this fraction of the
@@ -1006,12 +1005,14 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # dropout at an edge), the labels the least-squares pose violates are left out (unknown),
     # the fit redone without them and the posterior tried again
     dropped = 0
+    # dim hits (partial returns) are held to the edge tolerance while the labels agree: their
+    # wider tolerance only where they empty the posterior (before a dark or far background);
+    # before a bright one they lie at the edge, the sharpest labels a fused scan has
     intensity = np.concatenate([s.intensity for s in scans])  # indexed as the rays' gidx
+    relaxed = False
     for _ in range(STRAY_ROUNDS):
         cov_ls = np.linalg.pinv(j.T @ j)  # 7 x 7 when the offset is fitted: pose, offset
         cov = cov_ls[:6, :6]
-        labelled, idx = _ray_points(model, theta, hints.edge_tolerance,
-                                    intensity[model.rays.gidx], hints.partial_edge_tolerance)
         if offset_model is not None:
             offset_model.centre = model.offset
             offset_model.centre_std = float(np.sqrt(cov_ls[6, 6])) if len(cov_ls) > 6 else 0.0
@@ -1019,8 +1020,14 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
             # size) hold it: the direction the labels trade distance against yaw and x
             offset_model.slope = (cov_ls[:6, 6] / cov_ls[6, 6] if len(cov_ls) > 6
                                   and cov_ls[6, 6] > 0 else None)
-        post = label_posterior(labelled, board, theta, float(np.sqrt(max(cov[3, 3], 0.0))),
-                               ml_plane, len(scans), rng, hints.roll_prior, offset_model)
+        for partial in ((0.0, 0.0), hints.partial_edge_tolerance)[relaxed:]:
+            labelled, idx = _ray_points(model, theta, hints.edge_tolerance,
+                                        intensity[model.rays.gidx], partial)
+            post = label_posterior(labelled, board, theta, float(np.sqrt(max(cov[3, 3], 0.0))),
+                                   ml_plane, len(scans), rng, hints.roll_prior, offset_model)
+            if post is not None:
+                break
+            relaxed = True
         if post is not None:
             break
         if not dropped:
