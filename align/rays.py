@@ -720,7 +720,68 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     per_x, per_z = np.hypot(t_h * vz, t_v * vx), np.hypot(t_h * vx, t_v * vz)
     per_edge = np.column_stack((per_x, per_x, per_z, per_z))  # left, right, bottom, top
     ext += (lam * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
+    use &= ~_overhanging(x, z, lab, rays.laser, ext, board)
     return LabelledRays(rays.origin[use], u[use], lab[use], ext[use]), np.flatnonzero(use)
+
+
+#: A laser's hits may span the board's width by this much more (m) before one end is taken to
+#: overhang: the plane's distance error scales the span (5 mm: 0.6 % of the 0.9 m board).
+SPAN_SLACK = 0.005
+#: A laser's end is at a side edge when it lies within this of it (m) at the fit's pose: what
+#: a few degrees of roll move it over the board's height.
+EDGE_REACH = 0.05
+
+
+def _overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
+                 ext: np.ndarray, board: BoardSpec) -> np.ndarray:
+    """Hits at one end of a laser's run across the board farther from its other end than the
+    board is wide: a holder or clamp beside a side edge, flush with the board's plane within
+    the range noise, whose hits extend that one laser's run (the board is convex and of known
+    width: the hits of one laser between both side edges span at most its width, each hit's
+    allowance ``ext`` outside an edge granted). The end that overhangs is the one farther off
+    the line of the other lasers' ends at that side; its hits beyond that line are returned
+    (to be left out of the labels: a rectangle turned to take them in is what the fit found,
+    degrees off; the line lies within an azimuth step inside the edge, so at most the laser's
+    last hit on the board goes with them). Every pose's span is the same to first order, the
+    fit's roll error included."""
+    w2, h2 = board.width / 2, board.height / 2
+    out = np.zeros(len(lab), dtype=bool)
+    hit = (lab == HIT) & (np.abs(z) < h2) & (np.abs(x) < w2 + feasible.OUTLIER_MARGIN)
+    x_l, x_r = x + ext[:, 0], x - ext[:, 1]  # each hit as far in as its allowance lets it lie
+    ids = np.unique(laser[hit])
+    ends = np.zeros((len(ids), 4))  # per laser: left end x, its z, right end x, its z
+    for i, k in enumerate(ids):
+        m = np.flatnonzero(hit & (laser == k))
+        il, ir = m[np.argmin(x_l[m])], m[np.argmax(x_r[m])]
+        ends[i] = x_l[il], z[il], x_r[ir], z[ir]
+    span = ends[:, 2] - ends[:, 0]
+    long = span > board.width + SPAN_SLACK
+    if len(ids) < 3 or not np.any(long):
+        return out
+    ref_l = ~long & (ends[:, 0] < -w2 + EDGE_REACH)
+    ref_r = ~long & (ends[:, 2] > w2 - EDGE_REACH)
+    for i in np.flatnonzero(long):
+        off_l = _line_at(ends[ref_l, 1], ends[ref_l, 0], ends[i, 1]) - ends[i, 0]
+        off_r = ends[i, 2] - _line_at(ends[ref_r, 3], ends[ref_r, 2], ends[i, 3])
+        if np.isnan(off_l) and np.isnan(off_r):
+            continue  # no other laser reaches either edge: nothing to tell the ends apart
+        m = hit & (laser == ids[i])
+        if np.isnan(off_l) or off_r >= off_l:
+            out |= m & (x_r > ends[i, 2] - off_r)
+        else:
+            out |= m & (x_l < ends[i, 0] + off_l)
+    return out
+
+
+def _line_at(z: np.ndarray, x: np.ndarray, z0: float) -> float:
+    """The line x(z) through the points (z, x) (least squares; their mean for one) at ``z0``,
+    or NaN for none."""
+    if len(z) == 0:
+        return math.nan
+    if len(z) == 1 or np.ptp(z) < 1e-6:
+        return float(np.mean(x))
+    b, a = np.polyfit(z, x, 1)
+    return float(a + b * z0)
 
 
 #: A hit is a partial return (the beam only partly on the board) below this fraction of the
