@@ -1066,11 +1066,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # dropout at an edge), the labels the least-squares pose violates are left out (unknown),
     # the fit redone without them and the posterior tried again
     dropped = 0
-    # dim hits (partial returns) are held to the edge tolerance while the labels agree: their
-    # wider tolerance only where they empty the posterior (before a dark or far background);
-    # before a bright one they lie at the edge, the sharpest labels a fused scan has
     intensity = np.concatenate([s.intensity for s in scans])  # indexed as the rays' gidx
-    relaxed = False
     for _ in range(STRAY_ROUNDS):
         cov_ls = np.linalg.pinv(j.T @ j)  # 7 x 7 when the offset is fitted: pose, offset
         cov = cov_ls[:6, :6]
@@ -1081,14 +1077,10 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
             # size) hold it: the direction the labels trade distance against yaw and x
             offset_model.slope = (cov_ls[:6, 6] / cov_ls[6, 6] if len(cov_ls) > 6
                                   and cov_ls[6, 6] > 0 else None)
-        for partial in ((0.0, 0.0), hints.partial_edge_tolerance)[relaxed:]:
-            labelled, idx = _ray_points(model, theta, hints.edge_tolerance,
-                                        intensity[model.rays.gidx], partial)
-            post = label_posterior(labelled, board, theta, float(np.sqrt(max(cov[3, 3], 0.0))),
-                                   ml_plane, len(scans), rng, hints.roll_prior, offset_model)
-            if post is not None:
-                break
-            relaxed = True
+        labelled, idx = _ray_points(model, theta, hints.edge_tolerance,
+                                    intensity[model.rays.gidx], hints.partial_edge_tolerance)
+        post = label_posterior(labelled, board, theta, float(np.sqrt(max(cov[3, 3], 0.0))),
+                               ml_plane, len(scans), rng, hints.roll_prior, offset_model)
         if post is not None:
             break
         if not dropped:

@@ -55,12 +55,14 @@ def test_partial_returns_beyond_a_side_edge_keep_the_hit_miss_posterior():
         est = align.estimate(s)  # the default hints: the VLP-16's divergent beam
         assert est.success, est.diagnostics.get("reason")
         # taken as hits the rectangle cannot hold at the default side tolerance, they emptied
-        # the posterior in 3 of the 5 scans (roll 0.55 deg RMS, the bound 0.29; 0.32 now, two
-        # scans' labels agreeing at that tolerance, each 3 sigma off)
+        # the posterior in 3 of the 5 scans and pulled it 3 sigma off in the other two (roll
+        # 0.55 deg RMS, the bound 0.29)
         assert est.diagnostics["label_posterior"]
-        err.append(pose_errors(est, truth)[0][3])
+        e, sd = pose_errors(est, truth)
+        assert abs(e[3]) < 2.5 * sd[3], (np.rad2deg(e[3]), np.rad2deg(sd[3]))
+        err.append(e[3])
     assert beyond >= 5
-    assert np.rad2deg(np.sqrt(np.mean(np.square(err)))) < 0.4
+    assert np.rad2deg(np.sqrt(np.mean(np.square(err)))) < 0.3
 
 
 def test_a_holder_flush_with_the_board_beside_a_side_edge_does_not_turn_roll():
