@@ -625,13 +625,16 @@ def _staged_fit(model: _Model, theta: np.ndarray, ds: np.ndarray
     return theta, j, conv, iters, float(f @ f / max(len(f) - 6, 1))
 
 
-def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
-                ) -> tuple[LabelledRays, np.ndarray]:
+def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float],
+                intensity: np.ndarray | None = None,
+                partial: tuple[float, float] = (0.0, 0.0)) -> tuple[LabelledRays, np.ndarray]:
     """The rays that carry edge information, for `align.label_posterior`. Misses well inside
     and hits well outside the rectangle at ``theta`` are left out (dropouts, strays). A hit may
     lie up to ``tolerance`` (rad seen from the LiDAR: across the side edges, across the top and
-    bottom edges) outside the rectangle and a miss as far inside it (`Hints.edge_tolerance`).
-    Also returns the rays' indices in the model's."""
+    bottom edges) outside the rectangle and a miss as far inside it (`Hints.edge_tolerance`);
+    a hit whose ``intensity`` (per model ray) says only part of the beam met the board, up to
+    ``partial`` (`Hints.partial_edge_tolerance`, `_partial_hits`). Also returns the rays'
+    indices in the model's."""
     rays, board = model.rays, model.board
     x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
     lab = model.lab
@@ -639,23 +642,108 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     inner = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
     outer = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
     use = ((lab == 1) & ~outer) | ((lab == 0) & ~inner)
-    u = rays.direction[use]
+    u = rays.direction
     # the plate's side faces, seen by rays heading inwards past an edge (as `_Model.residuals`)
     rot = rotation(theta[3], theta[4], theta[5])
     dn = u @ rot.T
     ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
     ext = board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
                                                              -ratio_z)))
-    lab = lab[use]
     # the tolerance across each edge as the beam's footprint allows it: the support of the
     # ellipse with half-axes (side, top/bottom tolerance) along the LiDAR's horizontal and up
     # directions, in the edge's normal direction (a level board: the tolerances as given)
     vx, vz = lidar_up(theta)
-    t_h, t_v = tolerance
+    t_h, t_v = np.full(len(lab), tolerance[0]), np.full(len(lab), tolerance[1])
+    if intensity is not None:
+        part = _partial_hits(lab, intensity, inner)
+        # a sharp beam (a tolerance of 0) has no partial returns: a dim hit there is a dark
+        # patch of the board, on it
+        t_h[part] = max(tolerance[0], partial[0]) if tolerance[0] > 0 else 0.0
+        t_v[part] = max(tolerance[1], partial[1]) if tolerance[1] > 0 else 0.0
     per_x, per_z = np.hypot(t_h * vz, t_v * vx), np.hypot(t_h * vx, t_v * vz)
-    per_edge = np.array([per_x, per_x, per_z, per_z])  # left, right, bottom, top
-    ext += (lam[use] * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
-    return LabelledRays(rays.origin[use], u, lab, ext), np.flatnonzero(use)
+    per_edge = np.column_stack((per_x, per_x, per_z, per_z))  # left, right, bottom, top
+    ext += (lam * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
+    use &= ~_overhanging(x, z, lab, rays.laser, ext, board)
+    return LabelledRays(rays.origin[use], u[use], lab[use], ext[use]), np.flatnonzero(use)
+
+
+#: A laser's hits may span the board's width by this much more (m) before one end is taken to
+#: overhang: the plane's distance error scales the span (5 mm: 0.6 % of the 0.9 m board).
+SPAN_SLACK = 0.005
+#: A laser's end is at a side edge when it lies within this of it (m) at the fit's pose: what
+#: a few degrees of roll move it over the board's height.
+EDGE_REACH = 0.05
+
+
+def _overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
+                 ext: np.ndarray, board: BoardSpec) -> np.ndarray:
+    """Hits at one end of a laser's run across the board farther from its other end than the
+    board is wide: a holder or clamp beside a side edge, flush with the board's plane within
+    the range noise, whose hits extend that one laser's run (the board is convex and of known
+    width: the hits of one laser between both side edges span at most its width, each hit's
+    allowance ``ext`` outside an edge granted). The end that overhangs is the one farther off
+    the line of the other lasers' ends at that side; its hits beyond that line are returned
+    (to be left out of the labels: a rectangle turned to take them in is what the fit found,
+    degrees off; the line lies within an azimuth step inside the edge, so at most the laser's
+    last hit on the board goes with them). Every pose's span is the same to first order, the
+    fit's roll error included."""
+    w2, h2 = board.width / 2, board.height / 2
+    out = np.zeros(len(lab), dtype=bool)
+    hit = (lab == HIT) & (np.abs(z) < h2) & (np.abs(x) < w2 + feasible.OUTLIER_MARGIN)
+    x_l, x_r = x + ext[:, 0], x - ext[:, 1]  # each hit as far in as its allowance lets it lie
+    ids = np.unique(laser[hit])
+    ends = np.zeros((len(ids), 4))  # per laser: left end x, its z, right end x, its z
+    for i, k in enumerate(ids):
+        m = np.flatnonzero(hit & (laser == k))
+        il, ir = m[np.argmin(x_l[m])], m[np.argmax(x_r[m])]
+        ends[i] = x_l[il], z[il], x_r[ir], z[ir]
+    span = ends[:, 2] - ends[:, 0]
+    long = span > board.width + SPAN_SLACK
+    if len(ids) < 3 or not np.any(long):
+        return out
+    ref_l = ~long & (ends[:, 0] < -w2 + EDGE_REACH)
+    ref_r = ~long & (ends[:, 2] > w2 - EDGE_REACH)
+    for i in np.flatnonzero(long):
+        off_l = _line_at(ends[ref_l, 1], ends[ref_l, 0], ends[i, 1]) - ends[i, 0]
+        off_r = ends[i, 2] - _line_at(ends[ref_r, 3], ends[ref_r, 2], ends[i, 3])
+        if np.isnan(off_l) and np.isnan(off_r):
+            continue  # no other laser reaches either edge: nothing to tell the ends apart
+        m = hit & (laser == ids[i])
+        if np.isnan(off_l) or off_r >= off_l:
+            out |= m & (x_r > ends[i, 2] - off_r)
+        else:
+            out |= m & (x_l < ends[i, 0] + off_l)
+    return out
+
+
+def _line_at(z: np.ndarray, x: np.ndarray, z0: float) -> float:
+    """The line x(z) through the points (z, x) (least squares; their mean for one) at ``z0``,
+    or NaN for none."""
+    if len(z) == 0:
+        return math.nan
+    if len(z) == 1 or np.ptp(z) < 1e-6:
+        return float(np.mean(x))
+    b, a = np.polyfit(z, x, 1)
+    return float(a + b * z0)
+
+
+#: A hit is a partial return (the beam only partly on the board) below this fraction of the
+#: board's own intensity: a beam whose centre lies outside the edge has less than half of its
+#: energy on the board (a symmetric spot), one whose centre is on it at least half.
+PARTIAL_INTENSITY = 0.5
+
+
+def _partial_hits(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """The hits dimmer than `PARTIAL_INTENSITY` of the median of the hits well inside the
+    rectangle (``inner``): a divergent beam straddling an edge returns the board at the board's
+    range, along the beam's centre, when the board's part of the spot outshines a dark or far
+    background, so its centre may lie up to half the beam's width outside the edge; a return
+    of the whole spot is as bright as the board's inner ones. None partial without inner hits
+    to compare with."""
+    ref = intensity[(lab == HIT) & inner]
+    if len(ref) == 0:
+        return np.zeros(len(lab), dtype=bool)
+    return (lab == HIT) & (intensity < PARTIAL_INTENSITY * float(np.median(ref)))
 
 
 #: Labels the pose of the least-squares fit violates by more than this (m) may be strays (the
@@ -927,10 +1015,10 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # dropout at an edge), the labels the least-squares pose violates are left out (unknown),
     # the fit redone without them and the posterior tried again
     dropped = 0
+    intensity = np.concatenate([s.intensity for s in scans])  # indexed as the rays' gidx
     for _ in range(STRAY_ROUNDS):
         cov_ls = np.linalg.pinv(j.T @ j)  # 7 x 7 when the offset is fitted: pose, offset
         cov = cov_ls[:6, :6]
-        labelled, idx = _ray_points(model, theta, hints.edge_tolerance)
         if offset_model is not None:
             offset_model.centre = model.offset
             offset_model.centre_std = float(np.sqrt(cov_ls[6, 6])) if len(cov_ls) > 6 else 0.0
@@ -938,6 +1026,8 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
             # size) hold it: the direction the labels trade distance against yaw and x
             offset_model.slope = (cov_ls[:6, 6] / cov_ls[6, 6] if len(cov_ls) > 6
                                   and cov_ls[6, 6] > 0 else None)
+        labelled, idx = _ray_points(model, theta, hints.edge_tolerance,
+                                    intensity[model.rays.gidx], hints.partial_edge_tolerance)
         post = label_posterior(labelled, board, theta, float(np.sqrt(max(cov[3, 3], 0.0))),
                                ml_plane, len(scans), rng, hints.roll_prior, offset_model)
         if post is not None:

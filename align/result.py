@@ -50,6 +50,18 @@ class Hints:
     #: the edge; 0.5 mrad is the most its beam allows there (a third of the divergence). (0, 0)
     #: for a sharp beam (a twin without beam divergence).
     edge_tolerance: tuple[float, float] = (0.08e-3, 0.5e-3)
+    #: How far outside an edge a hit may lie whose intensity is below half the board's (only
+    #: part of the beam met the board), rad, across the side edges and across the top and
+    #: bottom edges: the beam's half-divergence (the VLP-16's 3 x 1.5 mrad beam). Before a dark
+    #: or far background a beam straddling the edge returns the board's part of its spot, at
+    #: the board's range and along the beam's centre: the twin's, up to its side sub-ray's
+    #: 1 mrad outside a side edge (a constant tolerance that wide would loosen every label).
+    #: A spot's board part outweighs a background returning less per beam than the board, its
+    #: centre just beyond the edge: a real (Gaussian) beam's bleeds about 0.7 mrad there even
+    #: before the bench's wall; the twin's five-point beam, only before a background below 0.18
+    #: of the board's energy. Not applied where `edge_tolerance` is 0 (a sharp beam has no
+    #: partial returns).
+    partial_edge_tolerance: tuple[float, float] = (1.5e-3, 0.75e-3)
     #: Prior on the LiDAR's roll in the board frame, (mean, 1-sigma), rad, or None: the board's
     #: in-plane rotation is then found over the whole range (-90, 90] deg. A board hung turned
     #: by a about its normal (clockwise as the LiDAR sees it) puts a level LiDAR's roll at -a.
