@@ -5,14 +5,14 @@
 The whole pipeline of `aimbench sweep yaw --bench sim`: 21 references (-10..+10 deg), `--scans`
 scans each (the paper: 100, so 2,100 scans), every scan emulated by the twin (MuJoCo ray casts,
 the paper's noise model), estimated by `align`, and committed to a run store on disk (SQLite,
-WAL, fsync per scan), in one process as the command runs it. Moves cost no wall time on the
-simulated bench (simulated trapezoids). Printed: total wall time, scans per second and its ratio
-to the VLP-16's 10 scans/s (the rate the real bench could at best take them at 600 rpm, before
-its stage moves), the same per CPU second of this process (independent of other load on the
-machine), and where the time goes per scan (emulation, estimation, store; CPU and wall), each
-beside issue 20's goal and its ratio to it. The paper's method is timed on the same scans too
-(each scan estimated by it as well, outside the sweep's figures) against the issue's 2 ms,
-so that both estimates' CPU per scan stand side by side in one run. With fewer
+WAL, fsynced commits of a few scans each), in one process as the command runs it. Moves cost
+no wall time on the simulated bench (simulated trapezoids). Printed: total wall time, scans per
+second and its ratio to the VLP-16's 10 scans/s (the rate the real bench could at best take them
+at 600 rpm, before its stage moves), the same per CPU second of this process (independent of
+other load on the machine), and where the time goes per scan (emulation, estimation, store; CPU
+and wall), each beside issue 20's goal and its ratio to it. The paper's method is timed on the
+same scans too (each scan estimated by it as well, outside the sweep's figures) against the
+issue's 2 ms, so that both estimates' CPU per scan stand side by side in one run. With fewer
 ``--scans`` the wall time of the full protocol is extrapolated and marked so.
 """
 
@@ -24,7 +24,7 @@ import sys
 import tempfile
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 # this checkout's code, not whatever the environment installed (an editable install of another
@@ -48,29 +48,34 @@ GOAL_SWEEP_S = 20.0
 
 
 class TimedBench(SimBench):
-    """SimBench that accounts the wall time of its scans (the emulation)."""
+    """SimBench that accounts the wall and CPU time of its scans (the emulation): the sweep's
+    own scans, each drawn from (seed, reference, scan)."""
 
     emulation_s = 0.0
     emulation_cpu_s = 0.0
 
     def scans(self, n: int) -> Iterator[Scan]:
-        for _ in range(n):
+        it = super().scans(n)
+        while True:
             t0, c0 = time.perf_counter(), time.process_time()
-            scan = self.sim.scan()
+            scan = next(it, None)
             self.emulation_s += time.perf_counter() - t0
             self.emulation_cpu_s += time.process_time() - c0
+            if scan is None:
+                return
             yield scan
 
 
 class TimedStore(Store):
-    """Store that accounts the wall and CPU time of committing the scans."""
+    """Store that accounts the wall and CPU time of committing the scans (the runner commits a
+    few per transaction: `scenarios.runner._OrderedCommits`)."""
 
     commit_s = 0.0
     commit_cpu_s = 0.0
 
-    def add_scan(self, result: ScanResult) -> None:
+    def add_scans(self, results: Sequence[ScanResult]) -> None:
         t0, c0 = time.perf_counter(), time.process_time()
-        super().add_scan(result)
+        super().add_scans(results)
         self.commit_s += time.perf_counter() - t0
         self.commit_cpu_s += time.process_time() - c0
 
