@@ -1,11 +1,13 @@
 """Run a plan on a bench into a store: move, scan, estimate, commit, one scan at a time.
 
-The loop commits every scan's result in its own transaction before taking the next, so:
+The loop commits the scans' results in scan order, a few per transaction (what arrived in the
+last `_OrderedCommits.FLUSH_S`: every commit is fsynced), and all of them before it stops, so:
 
-- a crash (SIGKILL, power cut) loses at most the scan in flight, and ``--resume`` continues from
-  the store: references already done are skipped, a reference half done takes only its missing
-  scans (numbered after the stored ones), and ``UNIQUE(reference, scan)`` in the store makes a
-  duplicate impossible;
+- a crash (SIGKILL, power cut) loses at most the scans of that last fraction of a second, which
+  the store never had, and ``--resume`` continues from the store: references already done are
+  skipped, a reference half done takes only its missing scans (numbered after the stored ones,
+  which are always 0 .. m - 1), and ``UNIQUE(reference, scan)`` in the store makes a duplicate
+  impossible; on the simulated bench the scans taken again are the very same (seeded);
 - Ctrl-C (SIGINT) or SIGTERM sets a flag checked between scans: the run stops cleanly with every
   finished scan committed, is marked ``interrupted``, and the bench is closed. A second Ctrl-C
   stops at once (still safe: a transaction is atomic).
@@ -17,7 +19,11 @@ scan) and why, and raise `RunFailed` with one clear line.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -32,7 +38,7 @@ from scenarios.bench import Bench, BenchError, TravelError
 from scenarios.config import MAX_CONSECUTIVE_FAILURES
 from scenarios.plans import Plan, Reference, references_beyond
 from scenarios.progress import Bar, is_terminal
-from scenarios.store import ScanResult, Store
+from scenarios.store import ScanResult, Store, StoreError
 from scenarios.truth import scan_truth
 from twin.core.errors import AimbenchError
 from twin.core.pose import Pose, StagePose
@@ -419,6 +425,9 @@ class Runner:
                     where: dict) -> bool:
         """Take and store `n` scans numbered from `first`; True if stopped by a signal."""
         watch = _FailureWatch(self.max_consecutive_failures)
+        # A few scans per transaction (`_OrderedCommits`): all committed before this returns,
+        # stopped, failed or done.
+        commits = _OrderedCommits(self.store, [(i, first, n)], lambda r: None)
         k = first
         where["scan"] = k
         scans = self.bench.scans(n)
@@ -434,7 +443,7 @@ class Runner:
                     stage = self.bench.position()
                 except BenchError:
                     stage = None
-                self.store.add_scan(scan_result(i, k, scan, est, stage, t_scan, t_est))
+                commits.add(scan_result(i, k, scan, est, stage, t_scan, t_est))
                 self.progress.scan(est)
                 watch.add(est.success, est.status, est.diagnostics)
                 k += 1
@@ -446,6 +455,7 @@ class Runner:
             close = getattr(scans, "close", None)
             if close is not None:
                 close()
+            commits.flush()
         return False
 
 
@@ -512,10 +522,31 @@ def _no_board(consecutive: int, status: str, diagnostics: dict) -> BenchError:
 #: A worker process's bench, estimator and plan, kept between its references (key: the run's
 #: setup as JSON): building the twin once per process, not once per reference.
 _worker_bench: dict[str, tuple[Any, Estimator, Plan]] = {}
+#: Whether this worker process has registered `_exit_at_once`.
+_worker_exit = {"registered": False}
+
+
+def _exit_at_once() -> None:
+    """A sweep worker's end (an `atexit` handler, the last registered, so the first run):
+    its streams flushed, then `os._exit` without the interpreter's teardown.
+
+    Why: that teardown (freeing MuJoCo's model, numba's and LLVM's code, every module) takes
+    0.6 s of a worker that has scanned, and the pool waits for its workers to exit before the
+    sweep's report can begin. Nothing of the worker's needs it: its results are all sent
+    (multiprocessing flushed its queue before the interpreter began to exit), it has no file
+    open and made no temporary file; the handlers it skips set numba's and llvmlite's
+    at-shutdown flags and flush `logging` (done here). A pool worker that gets this far ends
+    with status 0 in any case (a crash or a kill never runs `atexit`)."""
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(0)
 
 
 def _worker_setup(setup: dict) -> tuple[Any, Estimator, Plan]:
     import json
+    import multiprocessing
     import warnings
 
     from scenarios import station as stations
@@ -523,6 +554,10 @@ def _worker_setup(setup: dict) -> tuple[Any, Estimator, Plan]:
 
     key = json.dumps(setup, sort_keys=True, default=str)
     if key not in _worker_bench:
+        if not _worker_exit["registered"] and multiprocessing.parent_process() is not None:
+            # a worker process of the pool (never the process that runs the sweep), once
+            atexit.register(_exit_at_once)
+            _worker_exit["registered"] = True
         warnings.simplefilter("ignore", RuntimeWarning)  # the twin's NaN masks
         _worker_bench.clear()
         station = setup["station"]
@@ -566,16 +601,104 @@ def _sim_reference(setup: dict, i: int, first: int, n: int) -> Any:
         return ("error", i, k, f"{type(exc).__name__}: {exc}")
 
 
+class _OrderedCommits:
+    """The workers' results, committed in scan order per reference, several per transaction.
+
+    In order: a reference's stored scans are always 0 .. m - 1 with no hole, whatever the
+    workers' timing, even when one reference's scans are taken by two workers at once
+    (`_deal`); so an interrupted run stores a prefix of every reference and a resume takes
+    the rest (`Runner._pending`). A result that arrives before its predecessors waits for
+    them in memory; stopped before they come, it is dropped, never committed, and the resume
+    takes it again: the same result, every scan being drawn from (seed, reference, scan).
+
+    Several per transaction: every commit is fsynced (`scenarios.store`), milliseconds of a
+    busy disk each, while two workers deliver a scan every few milliseconds. A result waits at
+    most `FLUSH_S` (or `BATCH` results) for its commit; a kill meanwhile loses only results
+    the store never had, which the resume takes again.
+    """
+
+    #: Longest a committable result waits for its transaction, s.
+    FLUSH_S = 0.2
+    #: Most results waiting for one transaction.
+    BATCH = 64
+
+    def __init__(self, store: Store, todo: list[tuple[int, int, int]],
+                 on_commit: Callable[[ScanResult], None]) -> None:
+        self.store = store
+        self.on_commit = on_commit
+        #: Per reference: the next scan to commit, the end of its pending range, and the
+        #: results that came before their predecessors.
+        self.next = {i: first for i, first, _ in todo}
+        self.end = {i: first + n for i, first, n in todo}
+        self.waiting: dict[int, dict[int, ScanResult]] = {i: {} for i, _, _ in todo}
+        self.ready: list[ScanResult] = []
+        self.last = time.monotonic()
+
+    def add(self, r: ScanResult) -> None:
+        i, k = r.reference, r.scan
+        if i not in self.next or not self.next[i] <= k < self.end[i] or k in self.waiting[i]:
+            raise StoreError(f"scan {k} of reference {i} arrived twice or was never asked for")
+        waiting = self.waiting[i]
+        waiting[k] = r
+        while self.next[i] in waiting:
+            self.ready.append(waiting.pop(self.next[i]))
+            self.next[i] += 1
+        if len(self.ready) >= self.BATCH or time.monotonic() - self.last >= self.FLUSH_S:
+            self.flush()
+
+    def flush(self, check: bool = True) -> None:
+        """Commit the results that are next in their reference's order (one transaction);
+        then hand each to ``on_commit`` (``check``: may raise, e.g. the board not in view)."""
+        if self.ready:
+            self.store.add_scans(self.ready)
+            batch, self.ready = self.ready, []
+            if check:
+                for r in batch:
+                    self.on_commit(r)
+        self.last = time.monotonic()
+
+    def received(self, i: int, first: int, n: int) -> int:
+        """How many of scans `first` .. `first` + `n` - 1 of reference `i` arrived (a task's
+        scans arrive in order: these are its first ones)."""
+        return sum(1 for k in range(first, first + n)
+                   if k < self.next[i] or k in self.waiting[i])
+
+
+#: `_deal`: the chunks a reference of the run's last references is cut into.
+TAIL_CHUNKS = 4
+
+
+def _deal(todo: list[tuple[int, int, int]], jobs: int) -> list[tuple[int, int, int]]:
+    """The tasks (reference, first scan, scans) of `todo` for `jobs` workers, in the order they
+    are dealt: whole references, but the last `jobs` references in `TAIL_CHUNKS` chunks each.
+
+    Why: the workers take the next task as they come free, so they end together within the
+    last task they took; with whole references that is up to a reference's scans on one core
+    while the other idles (21 references on 2 workers: 11 against 10), with chunks a quarter of
+    one. Only the tail is cut: each task costs a visit of its reference (a move, a first scan
+    without the pose's caches). Which worker takes a scan changes nothing in it (`SimBench`)."""
+    if jobs <= 1 or not todo:
+        return list(todo)
+    head, tail = todo[:-jobs], todo[-jobs:]
+    tasks = list(head)
+    for i, first, n in tail:
+        size = -(-n // TAIL_CHUNKS)
+        tasks += [(i, a, min(size, first + n - a)) for a in range(first, first + n, size)]
+    return tasks
+
+
 class ParallelSimRunner(Runner):
     """`Runner` on `jobs` SimBench worker processes (the simulated bench only), through the
     project's one parallel path, `scenarios.study.engines.LocalEngine` (as ``aimbench study``).
 
-    Each reference is a task, dealt in reference order to the next free worker; every scan is
-    drawn from (seed, reference, scan) alone (`SimBench`), so a run is the same whatever
-    `jobs`. The store is written by this process only, one transaction per scan as always;
-    Ctrl-C stops every worker between scans and everything finished is kept. A worker that dies
-    (SIGKILL, out of memory) costs nothing but time: its reference runs again on a new worker,
-    from the first scan the store does not have.
+    Each reference is a task (the last `jobs` references are cut into chunks so that the
+    workers end together: `_deal`), dealt in reference order to the next free worker; every
+    scan is drawn from (seed, reference, scan) alone (`SimBench`), so a run is the same
+    whatever `jobs`. The store is written by this process only, in scan order per reference,
+    a few scans per transaction (`_OrderedCommits`); Ctrl-C stops every worker between scans
+    and everything committable is committed. A worker that dies (SIGKILL, out of memory)
+    costs nothing but time: its task runs again on a new worker, from the first of its scans
+    that did not arrive.
     """
 
     def __init__(self, plan: Plan, bench: Bench, store: Store, *, seed: int = 0,
@@ -590,7 +713,7 @@ class ParallelSimRunner(Runner):
         self.calibration = calibration
         #: The run's `scenarios.station.Station` (None: the paper's), for the workers' twins.
         self.station = station
-        #: The engine of the last `run` (its ``retries``: references run again after a lost
+        #: The engine of the last `run` (its ``retries``: tasks run again after a lost
         #: worker; ``workers``: its processes' ids).
         self.engine: Any = None
 
@@ -608,44 +731,72 @@ class ParallelSimRunner(Runner):
         setup = {"plan": self.plan.to_dict(), "seed": self.seed, "ideal": self.ideal,
                  "method": self.method, "calibration": self.calibration,
                  "station": self.station.to_dict() if self.station is not None else None}
+        tasks = _deal(todo, self.jobs)
+        left = {i: 0 for i, _, _ in todo}  # tasks not yet done per reference
+        for i, _, _ in tasks:
+            left[i] += 1
+        stored = {i: self.plan.scans - n for i, _, n in todo}  # before this session
+        started: set[int] = set()
         watches: dict[int, _FailureWatch] = {}
 
-        def on_message(_key: int, msg: tuple) -> None:
+        def on_commit(r: ScanResult) -> None:
+            where.update(reference=r.reference, scan=r.scan)
+            self.progress.scan(Estimate(r.status, r.success, r.pose), r.reference)
+            watches.setdefault(r.reference, _FailureWatch(self.max_consecutive_failures)
+                               ).add(r.success, r.status, r.diagnostics)
+
+        commits = _OrderedCommits(self.store, todo, on_commit)
+
+        def on_message(_key: tuple[int, int], msg: tuple) -> None:
             kind = msg[0]
             if kind == "start":
-                _, i, stage, first = msg
-                self.store.start_reference(i, stage)
-                self.progress.start_reference(i, first)
-                watches[i] = _FailureWatch(self.max_consecutive_failures)
+                _, i, stage, _first = msg
+                if i not in started:  # a reference's first task to begin
+                    started.add(i)
+                    self.store.start_reference(i, stage)
+                    self.progress.start_reference(i, stored[i])
             elif kind == "scan":
-                r: ScanResult = msg[1]
-                where.update(reference=r.reference, scan=r.scan)
-                self.store.add_scan(r)
-                self.progress.scan(Estimate(r.status, r.success, r.pose), r.reference)
-                watches.setdefault(r.reference, _FailureWatch(self.max_consecutive_failures)
-                                   ).add(r.success, r.status, r.diagnostics)
+                commits.add(msg[1])
 
-        def on_result(i: int, result: Any) -> None:
+        def on_result(key: tuple[int, int], result: Any) -> None:
+            i = key[0]
             if result == "done":
-                self.store.finish_reference(i, "done")
-                self.progress.end_reference(i)
+                left[i] -= 1
+                commits.flush()
+                if left[i] == 0:
+                    self.store.finish_reference(i, "done")
+                    self.progress.end_reference(i)
             elif isinstance(result, tuple) and result[0] == "error":
+                commits.flush()  # every scan before the failure is kept
                 where.update(reference=result[1], scan=result[2])
                 raise BenchError(result[3])
 
-        def retry(i: int, args: tuple) -> tuple | None:
-            """A lost worker's reference: only the scans the store does not have."""
-            done = self.store.done_scans(i)
-            if len(done) >= self.plan.scans:
-                self.store.finish_reference(i, "done")
+        def retry(key: tuple[int, int], args: tuple) -> tuple | None:
+            """A lost worker's task: only those of its scans that did not arrive."""
+            _, i, first, n = args
+            got = commits.received(i, first, n)
+            if got >= n:
+                left[i] -= 1
+                commits.flush()
+                if left[i] == 0:
+                    self.store.finish_reference(i, "done")
                 return None
-            return (setup, i, (max(done) + 1) if done else 0, self.plan.scans - len(done))
+            return (setup, i, first + got, n - got)
 
-        def on_lost(i: int) -> None:
-            self.store.log(f"a worker process died at reference {i}; it runs again", "warning",
-                           reference=i)
+        def on_lost(key: tuple[int, int]) -> None:
+            self.store.log(f"a worker process died at reference {key[0]}; it runs again",
+                           "warning", reference=key[0])
 
         self.engine = LocalEngine(self.jobs)
-        return self.engine.run(_sim_reference, [(i, (setup, i, first, n)) for i, first, n in todo],
-                               on_result, on_message, should_stop=lambda: self._stopping(flag),
-                               retry=retry, on_lost=on_lost)
+        try:
+            stopped = self.engine.run(
+                _sim_reference, [((i, first), (setup, i, first, n)) for i, first, n in tasks],
+                on_result, on_message, should_stop=lambda: self._stopping(flag), retry=retry,
+                on_lost=on_lost)
+        except BaseException:
+            # What arrived in order before the failure or the second Ctrl-C is kept.
+            with contextlib.suppress(Exception):
+                commits.flush(check=False)
+            raise
+        commits.flush()
+        return stopped

@@ -29,7 +29,7 @@ import math
 import os
 import sqlite3
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -628,14 +628,34 @@ class Store:
         Raises `StoreError` if (reference, scan) is already stored: the runner never asks for a
         scan it has, so a duplicate is a bug to see, not to paper over.
         """
-        row = result.row()
-        cols = ", ".join(row)
-        marks = ", ".join("?" for _ in row)
+        self.add_scans([result])
+
+    def add_scans(self, results: Sequence[ScanResult]) -> None:
+        """Commit several scans' results in one transaction: all of them or, on any error,
+        none (a duplicate (reference, scan) raises `StoreError` as `add_scan` does).
+
+        Why: every commit is fsynced (``synchronous=FULL``), some milliseconds of a busy disk
+        each; the parallel sweep's scans arrive faster than that from its workers, so it
+        commits what has arrived together. A kill before the commit loses only results the
+        store never had, which a resume takes again (the same scans: they are seeded)."""
+        if not results:
+            return
+        rows = [r.row() for r in results]
+        cols = ", ".join(rows[0])
+        marks = ", ".join("?" for _ in rows[0])
         try:
             with self._tx() as conn:
-                conn.execute(f"INSERT INTO scan ({cols}) VALUES ({marks})", tuple(row.values()))
+                conn.executemany(f"INSERT INTO scan ({cols}) VALUES ({marks})",
+                                 [tuple(row.values()) for row in rows])
         except sqlite3.IntegrityError as exc:
-            raise StoreError(f"scan {result.scan} of reference {result.reference} is already "
+            seen = set(map(tuple, self.conn.execute("SELECT reference, scan FROM scan")))
+            dup = results[0]
+            for r in results:  # the first already stored, or twice in this batch
+                if (r.reference, r.scan) in seen:
+                    dup = r
+                    break
+                seen.add((r.reference, r.scan))
+            raise StoreError(f"scan {dup.scan} of reference {dup.reference} is already "
                              f"stored ({exc})") from None
 
     def done_scans(self, reference: int) -> list[int]:

@@ -13,8 +13,17 @@ import pytest
 from scenarios import plans
 from scenarios.bench import Bench, SimBench, TravelError
 from scenarios.plans import Plan, Reference
-from scenarios.runner import Estimate, Progress, RunFailed, Runner, make_estimator
-from scenarios.store import Store
+from scenarios.runner import (
+    Estimate,
+    Progress,
+    RunFailed,
+    Runner,
+    _deal,
+    _OrderedCommits,
+    make_estimator,
+    scan_result,
+)
+from scenarios.store import Store, StoreError
 from twin.core.pose import StagePose
 
 #: The paper's method is the estimator every checkout has; the scenarios do not depend on which.
@@ -239,3 +248,52 @@ def test_parallel_sim_runner_fails_where_the_board_is_not_in_view(tmp_path: Path
     rows = [r for r in store.iter_scans() if r["reference"] == failed]
     assert len(rows) >= 3 and not any(r["success"] for r in rows)
     store.close()
+
+
+def test_the_last_references_are_dealt_in_chunks_that_cover_them_once():
+    todo = [(i, 0, 100) for i in range(21)]
+    tasks = _deal(todo, 2)
+    assert tasks[:19] == todo[:19]
+    assert tasks[19:] == [(r, a, 25) for r in (19, 20) for a in (0, 25, 50, 75)]
+    # A resumed reference (scans 37..99) and a short one: every scan once, in order.
+    todo = [(0, 0, 10), (1, 37, 63), (2, 0, 3)]
+    tasks = _deal(todo, 2)
+    for i, first, n in todo:
+        ks = [k for r, a, m in tasks if r == i for k in range(a, a + m)]
+        assert ks == list(range(first, first + n))
+    assert _deal(todo, 1) == todo
+
+
+def test_results_are_committed_in_scan_order_whatever_order_they_arrive(tmp_path: Path):
+    plan = _plan(scans=6, yaws=(0.0, 1.0))
+    bench = SimBench(seed=2)
+    bench.prepare(0, 0)
+    scan = next(bench.scans(1))
+    est = Estimate("ok", True, None)
+
+    def result(i: int, k: int):
+        return scan_result(i, k, scan, est, None, 0.0, 0.0)
+
+    committed = []
+    with Store.create(tmp_path / "run", plan) as store:
+        commits = _OrderedCommits(store, [(0, 0, 6), (1, 2, 4)], committed.append)
+        commits.FLUSH_S = 3600.0  # commit when asked, not by the clock
+        for i, k in ((0, 3), (0, 4), (1, 2), (0, 0), (0, 1)):
+            commits.add(result(i, k))
+        assert store.scan_count() == 0  # not yet flushed
+        commits.flush()
+        # (0, 3) and (0, 4) wait for (0, 2): the store never has a hole.
+        assert [(r.reference, r.scan) for r in committed] == [(1, 2), (0, 0), (0, 1)]
+        assert store.done_scans(0) == [0, 1] and store.done_scans(1) == [2]
+        assert commits.received(0, 3, 3) == 2 and commits.received(0, 0, 3) == 2
+        commits.add(result(0, 2))
+        commits.flush()
+        assert store.done_scans(0) == [0, 1, 2, 3, 4]
+        for i, k in ((0, 4), (1, 1), (1, 6)):  # twice, before its range, beyond it
+            with pytest.raises(StoreError, match=f"scan {k} of reference {i} arrived twice"):
+                commits.add(result(i, k))
+        # A full batch commits by itself.
+        commits.BATCH = 2
+        commits.add(result(1, 3))
+        commits.add(result(1, 4))
+        assert store.done_scans(1) == [2, 3, 4]

@@ -85,6 +85,20 @@ def test_one_row_per_reference_and_scan(tmp_path: Path):
                            "VALUES (0, 0, 'ok', 1)")
 
 
+def test_many_scans_in_one_transaction_all_or_none(tmp_path: Path):
+    with Store.create(tmp_path, plans.yaw_sweep(scans=4)) as s:
+        s.add_scans([_result(0, 0), _result(0, 1, ok=False), _result(1, 0)])
+        assert s.done_scans(0) == [0, 1] and s.done_scans(1) == [0]
+        # One duplicate, already stored or twice in the batch: nothing of the batch is kept.
+        with pytest.raises(StoreError, match="scan 1 of reference 0 is already stored"):
+            s.add_scans([_result(0, 2), _result(0, 1)])
+        with pytest.raises(StoreError, match="scan 3 of reference 0 is already stored"):
+            s.add_scans([_result(0, 3), _result(0, 3)])
+        assert s.done_scans(0) == [0, 1] and s.scan_count() == 3
+        s.add_scans([])
+        assert [r["success"] for r in s.iter_scans()] == [1, 0, 1]
+
+
 def test_statuses_failure_and_events(tmp_path: Path):
     with Store.create(tmp_path, plans.yaw_sweep(scans=1)) as s:
         s.set_status("running")
