@@ -270,7 +270,8 @@ def inverse_diagonal(a: np.ndarray) -> tuple[np.ndarray, bool]:
 @njit(cache=True)
 def rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
     """`align.geometry.rotation`: the same expressions (and the same libm cos and sin), so the
-    same matrix bit for bit."""
+    same matrix bit for bit. `align.kernels._rotation` is its copy there (numba's cache checks
+    only a kernel's own file)."""
     cr, sr = np.cos(roll), np.sin(roll)
     ct, st = np.cos(tilt), np.sin(tilt)
     cy, sy = np.cos(yaw), np.sin(yaw)

@@ -825,7 +825,9 @@ def corner_points(points: np.ndarray, n: np.ndarray, d: float, h: np.ndarray, v:
 
 @njit(cache=True)
 def _rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
-    """`align.geometry.rotation`, the same expressions."""
+    """`align.geometry.rotation`, the same expressions. A copy of `align.fit_kernels.rotation`
+    on purpose: numba's cache checks only a kernel's own file, so a kernel calling across
+    files would keep a stale copy after the other file changed."""
     cr, sr = math.cos(roll), math.sin(roll)
     ct, st = math.cos(tilt), math.sin(tilt)
     cy, sy = math.cos(yaw), math.sin(yaw)
