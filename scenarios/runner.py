@@ -64,6 +64,31 @@ def _record_failure(store: Store, plan: Plan, where: dict[str, int | None],
 
 
 @dataclass
+class PipelineCPU:
+    """CPU time (s) a run spent inside its scans' emulation (or acquisition) and their
+    estimates, in whichever process took them: what is not here is the runner's and the
+    store's overhead (benchmarks/bench_sweep.py)."""
+
+    scans: int = 0
+    acquire_s: float = 0.0
+    estimate_s: float = 0.0
+    #: Worker processes' CPU up to the end of their warm-up (`_sim_warm`: the interpreter,
+    #: imports, the twin, the kernels' first calls): a run's fixed cost, not a scan's.
+    startup_s: float = 0.0
+
+    def add(self, acquire_s: float, estimate_s: float) -> None:
+        self.scans += 1
+        self.acquire_s += acquire_s
+        self.estimate_s += estimate_s
+
+    def merge(self, other: PipelineCPU) -> None:
+        self.scans += other.scans
+        self.acquire_s += other.acquire_s
+        self.estimate_s += other.estimate_s
+        self.startup_s += other.startup_s
+
+
+@dataclass
 class Estimate:
     """What the runner keeps of an estimator's answer for one scan (SI units)."""
 
@@ -311,6 +336,8 @@ class Runner:
         self.max_consecutive_failures = max_consecutive_failures
         self.move_timeout_s = move_timeout_s
         self.stop = False
+        #: CPU of this run's scans and estimates (in the workers, for a parallel run).
+        self.cpu = PipelineCPU()
 
     def request_stop(self) -> None:
         """Stop after the scan in flight (what Ctrl-C does); safe from another thread."""
@@ -432,13 +459,15 @@ class Runner:
         where["scan"] = k
         scans = self.bench.scans(n)
         try:
-            t0 = time.monotonic()
+            t0, c0 = time.monotonic(), time.process_time()
             for scan in scans:
                 t_scan = time.monotonic() - t0
+                c_scan = time.process_time() - c0
                 self._checking(scan)
-                t1 = time.monotonic()
+                t1, c1 = time.monotonic(), time.process_time()
                 est = self.estimator(scan)
                 t_est = time.monotonic() - t1
+                self.cpu.add(c_scan, time.process_time() - c1)
                 try:
                     stage = self.bench.position()
                 except BenchError:
@@ -450,7 +479,7 @@ class Runner:
                 where["scan"] = k
                 if self._stopping(flag):
                     return True
-                t0 = time.monotonic()
+                t0, c0 = time.monotonic(), time.process_time()
         finally:
             close = getattr(scans, "close", None)
             if close is not None:
@@ -522,6 +551,14 @@ def _no_board(consecutive: int, status: str, diagnostics: dict) -> BenchError:
 #: A worker process's bench, estimator and plan, kept between its references (key: the run's
 #: setup as JSON): building the twin once per process, not once per reference.
 _worker_bench: dict[str, tuple[Any, Estimator, Plan]] = {}
+#: A worker process's twin (key: `_twin_key`), built by its warm-up (`_sim_warm`) or its first
+#: task, whichever comes first.
+_worker_twin: dict[str, Any] = {}
+#: This worker's CPU at the end of its warm-up, s, until its first task reports it.
+_worker_started: dict[str, float] = {}
+#: The `SimBench.prepare` reference of a worker's warm-up scan: no plan's (the warm-up changes
+#: no scan of a run: each is drawn from (seed, reference, scan) alone).
+WARM_UP_REFERENCE = 2_000_000
 #: Whether this worker process has registered `_exit_at_once`.
 _worker_exit = {"registered": False}
 
@@ -544,30 +581,81 @@ def _exit_at_once() -> None:
     os._exit(0)
 
 
-def _worker_setup(setup: dict) -> tuple[Any, Estimator, Plan]:
+def _twin_key(setup: dict) -> str:
+    """What a worker's twin depends on (a run's setup, or a warm-up's): its seed, whether it is
+    ideal, and its station."""
     import json
+
+    return json.dumps({k: setup.get(k) for k in ("seed", "ideal", "station")}, sort_keys=True,
+                      default=str)
+
+
+def _worker_twin_for(setup: dict) -> Any:
+    """This worker's SimBench for `setup` (built and homed once per process)."""
     import multiprocessing
     import warnings
 
     from scenarios import station as stations
     from scenarios.bench import SimBench
 
-    key = json.dumps(setup, sort_keys=True, default=str)
-    if key not in _worker_bench:
+    key = _twin_key(setup)
+    if key not in _worker_twin:
         if not _worker_exit["registered"] and multiprocessing.parent_process() is not None:
             # a worker process of the pool (never the process that runs the sweep), once
             atexit.register(_exit_at_once)
             _worker_exit["registered"] = True
         warnings.simplefilter("ignore", RuntimeWarning)  # the twin's NaN masks
-        _worker_bench.clear()
+        _worker_twin.clear()
         station = setup["station"]
         st = stations.from_dict(station, "the run's station") if station else None
         bench = SimBench(seed=setup["seed"], ideal=setup["ideal"], station=st)
+        bench.home()
+        _worker_twin[key] = bench
+    return _worker_twin[key]
+
+
+def _worker_setup(setup: dict) -> tuple[Any, Estimator, Plan]:
+    import json
+
+    key = json.dumps(setup, sort_keys=True, default=str)
+    if key not in _worker_bench:
+        bench = _worker_twin_for(setup)
+        _worker_bench.clear()
+        st = bench.station
         estimator = make_estimator(setup["method"], st.board_spec() if st else None,
                                    setup["calibration"])
-        bench.home()
         _worker_bench[key] = (bench, estimator, Plan.from_dict(setup["plan"]))
     return _worker_bench[key]
+
+
+def _sim_warm(twin: dict, method: str | None) -> None:
+    """A sweep worker's head start, as it starts (`LocalEngine`'s warm-up): its twin built and
+    homed, and the numba kernels of the emulation and of `method`'s estimate loaded from their
+    cache (the first call of each in a process: about a second), by one scan of a reference
+    outside every plan, estimated without calibration. It runs while the sweep's own process
+    is still busy (the demo's calibration, the store, its own twin for the plan's travel)."""
+    bench = _worker_twin_for(twin)
+    st = bench.station
+    bench.prepare(WARM_UP_REFERENCE, 0)
+    scan = next(bench.scans(1))
+    make_estimator(method, st.board_spec() if st else None)(scan)
+    _worker_started["cpu_s"] = time.process_time()
+
+
+def sim_twin(seed: int, ideal: bool, station: Any) -> dict:
+    """The part of a parallel sweep's worker setup its twin depends on (`_twin_key`)."""
+    return {"seed": seed, "ideal": ideal,
+            "station": station.to_dict() if station is not None else None}
+
+
+def sim_engine(jobs: int, seed: int = 0, ideal: bool = False, station: Any = None,
+               method: str | None = None) -> Any:
+    """A `LocalEngine` for `ParallelSimRunner` whose workers are started now, each warming up
+    its twin and its kernels (`_sim_warm`) while the caller goes on: give it to the runner
+    (``engine=``) of the run with the same seed, ideal, station and method, or `close` it."""
+    from scenarios.study.engines import LocalEngine
+
+    return LocalEngine(jobs, warm=(_sim_warm, (sim_twin(seed, ideal, station), method))).start()
 
 
 def _sim_reference(setup: dict, i: int, first: int, n: int) -> Any:
@@ -578,27 +666,32 @@ def _sim_reference(setup: dict, i: int, first: int, n: int) -> Any:
     from scenarios.study.engines import emit, stopping
 
     k = None
+    cpu = PipelineCPU()
     try:
         bench, estimator, plan = _worker_setup(setup)
         emit(("start", i, visit(bench, plan.references[i]), first))
         bench.prepare(i, first)
         k = first
-        t0 = time.monotonic()
+        t0, c0 = time.monotonic(), time.process_time()
         for scan in bench.scans(n):
             t_scan = time.monotonic() - t0
-            t1 = time.monotonic()
+            t1, c1 = time.monotonic(), time.process_time()
             est = estimator(scan)
             t_est = time.monotonic() - t1
+            cpu.add(c1 - c0, time.process_time() - c1)
             emit(("scan", scan_result(i, k, scan, est, bench.position(), t_scan, t_est)))
             k += 1
             if stopping():
                 return "stopped"
-            t0 = time.monotonic()
+            t0, c0 = time.monotonic(), time.process_time()
         return "done"
     except AimbenchError as exc:
         return ("error", i, k, str(exc))
     except Exception as exc:  # a bug in a worker must reach the user, not hang the run
         return ("error", i, k, f"{type(exc).__name__}: {exc}")
+    finally:
+        cpu.startup_s = _worker_started.pop("cpu_s", 0.0)
+        emit(("cpu", cpu))
 
 
 class _OrderedCommits:
@@ -706,7 +799,7 @@ class ParallelSimRunner(Runner):
                  calibration: dict | None = None, jobs: int = 2,
                  progress: Progress | None = None,
                  max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES,
-                 station: Any = None) -> None:
+                 station: Any = None, engine: Any = None) -> None:
         super().__init__(plan, bench, store, estimator=lambda scan: None,  # type: ignore[arg-type]
                          progress=progress, max_consecutive_failures=max_consecutive_failures)
         self.seed, self.ideal, self.method, self.jobs = seed, ideal, method, max(1, int(jobs))
@@ -714,8 +807,9 @@ class ParallelSimRunner(Runner):
         #: The run's `scenarios.station.Station` (None: the paper's), for the workers' twins.
         self.station = station
         #: The engine of the last `run` (its ``retries``: tasks run again after a lost
-        #: worker; ``workers``: its processes' ids).
-        self.engine: Any = None
+        #: worker; ``workers``: its processes' ids); given (`sim_engine`), its workers may
+        #: already be started.
+        self.engine: Any = engine
 
     stop_message = ("stopping after the scans in flight (results so far are saved; --resume "
                     "continues; Ctrl-C again to stop at once)")
@@ -723,14 +817,19 @@ class ParallelSimRunner(Runner):
     def _how(self) -> str:
         return f" on {self.jobs} worker processes"
 
+    def _release(self) -> None:
+        super()._release()
+        if self.engine is not None:  # workers started ahead that no run took (a failure)
+            self.engine.close()
+
     def _execute(self, todo: list[tuple[int, int, int]], flag: _StopFlag, where: dict) -> bool:
         """Deal `todo` to the workers and store what they send; True if stopped by a signal."""
         from scenarios.study.engines import LocalEngine
 
         self.bench.close()  # travel and info only: the workers have their own twins
-        setup = {"plan": self.plan.to_dict(), "seed": self.seed, "ideal": self.ideal,
-                 "method": self.method, "calibration": self.calibration,
-                 "station": self.station.to_dict() if self.station is not None else None}
+        setup = {"plan": self.plan.to_dict(), "method": self.method,
+                 "calibration": self.calibration,
+                 **sim_twin(self.seed, self.ideal, self.station)}
         tasks = _deal(todo, self.jobs)
         left = {i: 0 for i, _, _ in todo}  # tasks not yet done per reference
         for i, _, _ in tasks:
@@ -757,6 +856,8 @@ class ParallelSimRunner(Runner):
                     self.progress.start_reference(i, stored[i])
             elif kind == "scan":
                 commits.add(msg[1])
+            elif kind == "cpu":
+                self.cpu.merge(msg[1])
 
         def on_result(key: tuple[int, int], result: Any) -> None:
             i = key[0]
@@ -787,7 +888,8 @@ class ParallelSimRunner(Runner):
             self.store.log(f"a worker process died at reference {key[0]}; it runs again",
                            "warning", reference=key[0])
 
-        self.engine = LocalEngine(self.jobs)
+        if self.engine is None:
+            self.engine = LocalEngine(self.jobs)
         try:
             stopped = self.engine.run(
                 _sim_reference, [((i, first), (setup, i, first, n)) for i, first, n in tasks],

@@ -27,6 +27,7 @@ from scenarios.bench import SimBench
 from scenarios.commands.sweep import add_tolerance_arguments, execute, tolerances
 from scenarios.config import RunConfig
 from scenarios.progress import Bar
+from scenarios.runner import sim_engine
 from scenarios.store import STORE_NAME, Store
 
 #: Scans per reference in the demo: the paper's 100 (2,100 scans). The pipeline costs about 60 ms
@@ -57,27 +58,43 @@ def run(args: argparse.Namespace) -> int:
         print(f"aimbench demo: the paper's yaw sweep, -10..+10 deg in 1 deg steps, "
               f"{args.scans} scans per reference ({note}), on the simulated bench, seed "
               f"{args.seed}", file=sys.stderr)
-    cal = None
-    if not resume and not args.no_calibration:
-        # The same seed is the same twin sensor as the sweep's (SimBench draws it from the seed).
-        total = len(calibrate.DEFAULT_YAWS_DEG) * calibrate.DEFAULT_SCANS
-        with SimBench(seed=args.seed) as bench, Bar(total, "calibrate", "scans",
-                                                    enabled=not args.no_progress) as bar:
-            cal = calibrate.on_bench(bench,
-                                     progress=lambda done, _total: bar.update(done - bar.done))
-        out.mkdir(parents=True, exist_ok=True)
-        laser_calibration.save(cal, out / CALIBRATION_NAME)
-        print(f"aimbench demo: calibrated {int((cal.returns > 0).sum())} lasers' range offsets "
-              f"at stage yaw {list(calibrate.DEFAULT_YAWS_DEG)} deg -> "
-              f"{out / CALIBRATION_NAME}", file=sys.stderr)
-    config = RunConfig(scenario="yaw", bench="sim", method=args.method, seed=args.seed,
-                       scans=args.scans, argv=tuple(sys.argv[1:]), demo=True, jobs=args.jobs,
-                       calibration=cal.to_dict() if cal is not None else None)
+    config = RunConfig(scenario="yaw", bench="sim", method=args.method or align.DEFAULT_METHOD,
+                       seed=args.seed, scans=args.scans, argv=tuple(sys.argv[1:]), demo=True,
+                       jobs=args.jobs)
+    # The sweep's workers start now: their start-up (imports, twin, compiled kernels, a few
+    # seconds of CPU each) overlaps the calibration, which does not need them.
+    engine = (sim_engine(config.jobs, config.seed, config.ideal, config.station, config.method)
+              if not resume and config.jobs > 1 else None)
+    try:
+        if not resume and not args.no_calibration:
+            cal = calibrate_sensor(args, out)
+            config = config.with_(calibration=cal.to_dict())
+    except BaseException:
+        if engine is not None:
+            engine.close()
+        raise
     rc = execute(None if resume else plan, config, out, resume,
-                 progress=not args.no_progress, report=True, tol=tolerances(args))
+                 progress=not args.no_progress, report=True, tol=tolerances(args), engine=engine)
     # The demo's job is the run and its report; a FAIL verdict is its result, not a failure of
     # `make demo` (`aimbench sweep` and `aimbench report` exit 1 on FAIL, for CI gates).
     return 0 if rc == 1 else rc
+
+
+def calibrate_sensor(args: argparse.Namespace, out: Path) -> laser_calibration.LaserCalibration:
+    """The bench's routine before the sweep: the twin sensor's per-laser range offsets from
+    scans of the board at the calibration's stage yaws, saved to `out`/calibration.json."""
+    # The same seed is the same twin sensor as the sweep's (SimBench draws it from the seed).
+    total = len(calibrate.DEFAULT_YAWS_DEG) * calibrate.DEFAULT_SCANS
+    with SimBench(seed=args.seed) as bench, Bar(total, "calibrate", "scans",
+                                                enabled=not args.no_progress) as bar:
+        cal = calibrate.on_bench(bench,
+                                 progress=lambda done, _total: bar.update(done - bar.done))
+    out.mkdir(parents=True, exist_ok=True)
+    laser_calibration.save(cal, out / CALIBRATION_NAME)
+    print(f"aimbench demo: calibrated {int((cal.returns > 0).sum())} lasers' range offsets "
+          f"at stage yaw {list(calibrate.DEFAULT_YAWS_DEG)} deg -> "
+          f"{out / CALIBRATION_NAME}", file=sys.stderr)
+    return cal
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:

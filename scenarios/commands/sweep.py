@@ -22,6 +22,7 @@ import argparse
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import align
 from scenarios import calibrate, cliargs, plans
@@ -35,6 +36,7 @@ from scenarios.runner import (
     Progress,
     Runner,
     make_estimator,
+    sim_engine,
 )
 from scenarios.store import Store
 from twin.core.errors import AimbenchError
@@ -89,11 +91,14 @@ def tolerances(args: argparse.Namespace) -> Tolerances:
 
 def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
             progress: bool = True, report: bool = True, tol: Tolerances | None = None,
-            stream=None, rerun: Callable | None = None) -> int:
+            stream=None, rerun: Callable | None = None, engine: Any = None) -> int:
     """Create (or resume) the run in `out`, run it, write the report; the exit code.
 
     rerun: ``rerun(plan, bench_info, station) -> RerunSession | None`` (``--rerun``): the run is
     also logged to rerun through an instrumented bench and estimator (one process only).
+    engine: the workers of a parallel run on the simulated bench, started ahead by the caller
+    (`scenarios.runner.sim_engine`, for this configuration); else they start here, as soon as
+    the store is open. Closed here, used or not.
 
     0: completed and passed (or completed when the report is off); 1: completed but the verdict
     failed; 130: interrupted (resumable). A failure raises (the CLI prints one line) after the
@@ -127,6 +132,11 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
         store = Store.create(out, plan, config=config.as_dict(), versions=versions())
     bench = None
     try:
+        if engine is None and config.bench == "sim" and config.jobs > 1:
+            # Started now, their start-up (imports, twin, compiled kernels) overlaps this
+            # process's own (the estimator, its twin for the travel, the store's records).
+            engine = sim_engine(config.jobs, config.seed, config.ideal, config.station,
+                                config.method)
         try:
             board = config.station.board_spec()
             estimator = make_estimator(config.method, board, config.calibration)
@@ -149,13 +159,16 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
             if jobs > 1:
                 stream.write("rerun: logging needs one process; running with --jobs 1\n")
                 jobs = 1
+                if engine is not None:
+                    engine.close()
             bench, estimator = session.instrument(bench, config.method, config.calibration,
                                                   board=board)
         if jobs > 1:
             runner: Runner = ParallelSimRunner(
                 plan, bench, store, seed=config.seed, ideal=config.ideal,
                 method=config.method, calibration=config.calibration, jobs=jobs,
-                progress=prog, max_consecutive_failures=max_fail, station=config.station)
+                progress=prog, max_consecutive_failures=max_fail, station=config.station,
+                engine=engine)
         else:
             runner = Runner(plan, bench, store, estimator, progress=prog,
                             max_consecutive_failures=max_fail, check_scans=check)
@@ -182,6 +195,8 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
             write(store, tol)
         raise
     finally:
+        if engine is not None:
+            engine.close()
         if bench is not None:
             bench.close()
         store.close()

@@ -84,12 +84,26 @@ def stopping() -> bool:
     return _stop is not None and _stop.is_set()
 
 
-def _init_local(messages: Any, stop: Any) -> None:
+Warm = tuple[Callable, tuple]
+
+
+def _init_local(messages: Any, stop: Any, warm: Warm | None = None) -> None:
     global _messages, _stop
     # The caller decides when to stop (its own SIGINT handler sets `stop`).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ.update(WORKER_ENV)
     _messages, _stop = messages, stop
+    if warm is not None:
+        fn, args = warm
+        # Only a head start: what fails here fails again in the worker's first task, which
+        # reports it as that task's error (an initializer's exception would break the pool).
+        with contextlib.suppress(Exception):
+            fn(*args)
+
+
+def _started() -> int:
+    """The task that makes the pool spawn a worker (`LocalEngine.start`)."""
+    return os.getpid()
 
 
 _END = "__aimbench_task_end__"
@@ -120,33 +134,69 @@ def _run_ray(fn: Callable, args: tuple) -> tuple[list, Any]:
 
 class LocalEngine:
     """Tasks on `jobs` worker processes of this machine (spawned, never forked: MuJoCo and
-    threads), at most `jobs` in flight, dealt in the order given."""
+    threads), at most `jobs` in flight, dealt in the order given.
+
+    warm: ``(fn, args)`` every worker runs as it starts, before its first task (a module-level
+    function: e.g. build its twin and load its compiled kernels); `start` spawns the workers
+    ahead of `run`, so that this start-up overlaps what the caller does meanwhile.
+    """
 
     name = "local"
 
-    def __init__(self, jobs: int = 1) -> None:
+    def __init__(self, jobs: int = 1, warm: Warm | None = None) -> None:
         self.jobs = max(1, int(jobs))
+        self.warm = warm
         self.retries = 0  # tasks run again after a lost worker (for the caller's log)
         self.workers: list[int] = []
+        #: `start`'s context, queue, stop event and pool, until `run` takes them.
+        self._early: tuple[Any, Any, Any, cf.ProcessPoolExecutor] | None = None
 
     def describe(self) -> str:
         return f"{self.jobs} local worker process{'es' if self.jobs > 1 else ''}"
 
+    def start(self) -> LocalEngine:
+        """Spawn the workers now (each runs `warm`), for the next `run` to use."""
+        if self._early is None:
+            ctx = mp.get_context("spawn")
+            messages, stop = ctx.Queue(), ctx.Event()
+            pool = self._pool(ctx, messages, stop)
+            with _sigint_ignored():  # workers are spawned here: they inherit SIG_IGN
+                # One task per worker: the pool spawns a process per task while none is idle.
+                for _ in range(self.jobs):
+                    pool.submit(_started)
+            self.workers = [p.pid for p in (pool._processes or {}).values()]
+            self._early = (ctx, messages, stop, pool)
+        return self
+
     def close(self) -> None:
-        pass
+        """Stop the workers `start` spawned if no `run` took them."""
+        if self._early is not None:
+            self._early[2].set()
+            self._early[3].shutdown(wait=True, cancel_futures=True)
+            self._early = None
+
+    def _pool(self, ctx: Any, messages: Any, stop: Any) -> cf.ProcessPoolExecutor:
+        return cf.ProcessPoolExecutor(self.jobs, mp_context=ctx, initializer=_init_local,
+                                      initargs=(messages, stop, self.warm))
 
     def run(self, fn: Callable, tasks: Sequence[Task], on_result: OnResult,
             on_message: OnMessage | None = None, should_stop: Callable[[], bool] = lambda: False,
             retry: Retry | None = None, on_lost: Callable[[Hashable], None] | None = None
             ) -> bool:
         """Run every task; True if stopped by `should_stop` before all were done."""
-        ctx = mp.get_context("spawn")
-        messages, stop = ctx.Queue(), ctx.Event()
+        if self._early is not None:
+            ctx, messages, stop, pool = self._early
+            self._early = None
+        else:
+            ctx = mp.get_context("spawn")
+            messages, stop = ctx.Queue(), ctx.Event()
+            pool = None
         todo = list(tasks)
         tries: dict[Hashable, int] = {}
         while True:
             lost, rest = self._run_pool(ctx, messages, stop, fn, todo, on_result, on_message,
-                                        should_stop)
+                                        should_stop, pool)
+            pool = None  # a pool that lost a worker is gone: the next attempt makes its own
             if not lost or stop.is_set():
                 return stop.is_set()
             todo = []
@@ -165,16 +215,16 @@ class LocalEngine:
 
     def _run_pool(self, ctx: Any, messages: Any, stop: Any, fn: Callable, todo: list[Task],
                   on_result: OnResult, on_message: OnMessage | None,
-                  should_stop: Callable[[], bool]) -> tuple[list[Task], list[Task]]:
-        """Run `todo` on one pool; the tasks it lost to a dead worker (the pool is then gone)
-        and those it had not started."""
+                  should_stop: Callable[[], bool], pool: cf.ProcessPoolExecutor | None = None
+                  ) -> tuple[list[Task], list[Task]]:
+        """Run `todo` on one pool (`pool`, or a new one); the tasks it lost to a dead worker
+        (the pool is then gone) and those it had not started."""
         pending = list(reversed(todo))
         running: dict[cf.Future, Task] = {}
         finished: dict[Hashable, Any] = {}  # results waiting for their end marker
         ended: set[Hashable] = set()
         lost: list[Task] = []
-        pool = cf.ProcessPoolExecutor(self.jobs, mp_context=ctx, initializer=_init_local,
-                                      initargs=(messages, stop))
+        pool = pool if pool is not None else self._pool(ctx, messages, stop)
 
         def deliver(block: bool) -> None:
             self._drain(messages, on_message, ended, block)
