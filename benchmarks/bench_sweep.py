@@ -1,19 +1,26 @@
-"""Wall time of the paper's yaw sweep on SimBench, and scans per second against the sensor's 10/s.
+"""Wall and CPU time of the paper's yaw sweep on SimBench, as `aimbench sweep yaw --jobs 2` runs it.
 
-    .venv/bin/python benchmarks/bench_sweep.py [--scans 100] [--method NAME] [--seed 0]
+    .venv/bin/python benchmarks/bench_sweep.py [--scans 100] [--jobs 2] [--method NAME] [--seed 0]
 
-The whole pipeline of `aimbench sweep yaw --bench sim`: 21 references (-10..+10 deg), `--scans`
-scans each (the paper: 100, so 2,100 scans), every scan emulated by the twin (MuJoCo ray casts,
-the paper's noise model), estimated by `align`, and committed to a run store on disk (SQLite,
-WAL, fsynced commits of a few scans each), in one process as the command runs it. Moves cost
-no wall time on the simulated bench (simulated trapezoids). Printed: total wall time, scans per
-second and its ratio to the VLP-16's 10 scans/s (the rate the real bench could at best take them
-at 600 rpm, before its stage moves), the same per CPU second of this process (independent of
-other load on the machine), and where the time goes per scan (emulation, estimation, store; CPU
-and wall), each beside issue 20's goal and its ratio to it. The paper's method is timed on the
-same scans too (each scan estimated by it as well, outside the sweep's figures) against the
-issue's 2 ms, so that both estimates' CPU per scan stand side by side in one run. With fewer
-``--scans`` the wall time of the full protocol is extrapolated and marked so.
+The whole pipeline of `aimbench sweep yaw --bench sim --jobs 2` (the demo's sweep, without its
+calibration and report): 21 references (-10..+10 deg), `--scans` scans each (the paper: 100, so
+2,100 scans), every scan emulated by the twin (MuJoCo ray casts, the paper's noise model) and
+estimated by `align` in `--jobs` worker processes (started as the run opens, warming up their
+twins and kernels while this process opens the store and its own twin), and committed to a
+run store on disk (SQLite, WAL, fsynced commits of a few scans each) by this process. Moves
+cost no wall time on the simulated bench (simulated trapezoids). ``--jobs 1`` runs it in this
+one process (`aimbench sweep`'s default).
+
+Printed side by side: the sweep's wall time and its CPU time (this process and its workers),
+beside issue 20's anchor, 20 s of wall time for 21 x 100 on 2 cores (scaled to the scans run),
+and the ratio; the CPU per scan inside the emulation and the estimate (measured in the
+workers), and the rest: the store's and the runner's overhead per scan (the run's CPU minus
+that, minus the workers' start-up) as a share of a scan's CPU (goal <= 10 %), and the run's
+fixed start-up. The machine is shared, so wall time depends on the load: the CPU figures do
+not, and the quiet-machine wall time is computed from them (the fixed start-up on one core,
+the scans' CPU spread over `--jobs` cores) beside the parallel efficiency measured here. The
+paper's method is timed too, in this process after the sweep on a few scans of each reference,
+against the issue's 2 ms.
 """
 
 from __future__ import annotations
@@ -24,7 +31,6 @@ import sys
 import tempfile
 import time
 import warnings
-from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 # this checkout's code, not whatever the environment installed (an editable install of another
@@ -33,159 +39,138 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from scenarios import plans
 from scenarios.bench import SimBench
-from scenarios.runner import Estimate, Runner, make_estimator
-from scenarios.store import ScanResult, Store
-from twin.core.scan import Scan
+from scenarios.runner import ParallelSimRunner, PipelineCPU, Runner, make_estimator, sim_engine
+from scenarios.store import Store
+from scenarios.study.engines import wall_and_cpu
 
 SENSOR_SCANS_PER_S = 10.0  # VLP-16 at its default 600 rpm
-#: Issue 20's goals: the estimate's CPU per scan, ms; store and runner as a share of a scan's
-#: time; the paper's 21 x 100 sweep in wall seconds on two cores.
+#: Issue 20's goals: the estimate's CPU per scan, ms; the paper's method's, ms; store and runner
+#: as a share of a scan's CPU; the paper's 21 x 100 sweep in wall seconds on two cores.
 GOAL_ESTIMATE_MS = 10.0
-#: ... and the paper's method's, ms.
 GOAL_PAPER_MS = 2.0
 GOAL_OVERHEAD = 0.10
 GOAL_SWEEP_S = 20.0
-#: The `SimBench.prepare` reference of the set-up's warm-up scan: no plan's.
-WARM_UP_REFERENCE = 2_000_000
+GOAL_CORES = 2
+#: Scans per reference the paper's method is timed on after the sweep.
+PAPER_SCANS = 3
 
 
-class TimedBench(SimBench):
-    """SimBench that accounts the wall and CPU time of its scans (the emulation): the sweep's
-    own scans, each drawn from (seed, reference, scan)."""
+def run_sweep(plan: plans.Plan, folder: Path, jobs: int, method: str | None,
+              seed: int) -> tuple[float, float, float, PipelineCPU, int, int]:
+    """The sweep as the command runs it; (wall s, CPU s, this process's set-up CPU s, the
+    pipeline's CPU, scans stored, scans with a pose)."""
+    t0, c0 = wall_and_cpu()
+    # As `aimbench sweep` does: the workers first, so that their start-up overlaps the rest.
+    engine = sim_engine(jobs, seed, method=method) if jobs > 1 else None
+    bench = SimBench(seed=seed)
+    store = Store.create(folder, plan, {"bench": "sim", "method": method, "jobs": jobs},
+                         bench.info())
+    # A sweep would stop on a reference with no pose at all; the timing must not.
+    if engine is not None:
+        runner: Runner = ParallelSimRunner(plan, bench, store, seed=seed, method=method,
+                                           jobs=jobs, max_consecutive_failures=10**9,
+                                           engine=engine)
+    else:
+        runner = Runner(plan, bench, store, make_estimator(method),
+                        max_consecutive_failures=10**9)
+    setup_cpu = wall_and_cpu()[1] - c0
+    status = runner.run()
+    t1, c1 = wall_and_cpu()  # the workers have exited: their CPU is counted
+    assert status == "completed", status
+    n = store.scan_count()
+    ok = int(store.conn.execute("SELECT SUM(success) FROM scan").fetchone()[0] or 0)
+    store.close()
+    return t1 - t0, c1 - c0, setup_cpu, runner.cpu, n, ok
 
-    emulation_s = 0.0
-    emulation_cpu_s = 0.0
 
-    def scans(self, n: int) -> Iterator[Scan]:
-        it = super().scans(n)
-        while True:
-            t0, c0 = time.perf_counter(), time.process_time()
-            scan = next(it, None)
-            self.emulation_s += time.perf_counter() - t0
-            self.emulation_cpu_s += time.process_time() - c0
-            if scan is None:
-                return
-            yield scan
-
-
-class TimedStore(Store):
-    """Store that accounts the wall and CPU time of committing the scans (the runner commits a
-    few per transaction: `scenarios.runner._OrderedCommits`)."""
-
-    commit_s = 0.0
-    commit_cpu_s = 0.0
-
-    def add_scans(self, results: Sequence[ScanResult]) -> None:
-        t0, c0 = time.perf_counter(), time.process_time()
-        super().add_scans(results)
-        self.commit_s += time.perf_counter() - t0
-        self.commit_cpu_s += time.process_time() - c0
+def paper_ms(plan: plans.Plan, seed: int) -> float:
+    """CPU per scan of the paper's method, ms, on the first scans of every reference."""
+    bench, paper = SimBench(seed=seed), make_estimator("paper")
+    spent, n = 0.0, 0
+    for i, ref in enumerate(plan.references):
+        bench.move_to(x_m=ref.x_m, yaw_rad=ref.yaw_rad)
+        bench.prepare(i, 0)
+        for k, scan in enumerate(bench.scans(PAPER_SCANS)):
+            c0 = time.process_time()
+            paper(scan)
+            if i or k:  # the first call loads the method's kernels: no scan's cost
+                spent += time.process_time() - c0
+                n += 1
+    bench.close()
+    return 1e3 * spent / max(n, 1)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", type=int, default=plans.PAPER_SCANS,
                     help="scans per reference (the paper: 100)")
+    ap.add_argument("--jobs", type=int, default=GOAL_CORES,
+                    help=f"worker processes (default {GOAL_CORES}, the demo's; 1: in process)")
     ap.add_argument("--method", default=None, help="estimation method (default: align's)")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)  # the twin's NaN masks, not our figures
 
+    import align
+
+    method = args.method or align.DEFAULT_METHOD
     plan = plans.yaw_sweep(scans=args.scans)
-    estimate = make_estimator(args.method)
-    paper = make_estimator("paper")
-    est_time = [0.0, 0.0]  # wall, CPU
-    paper_time = [0.0, 0.0]  # the paper's method on the same scans: left out of the sweep's
-
-    def timed_estimate(scan: Scan) -> Estimate:
-        t0, c0 = time.perf_counter(), time.process_time()
-        out = estimate(scan)
-        t1, c1 = time.perf_counter(), time.process_time()
-        est_time[0] += t1 - t0
-        est_time[1] += c1 - c0
-        paper(scan)
-        paper_time[0] += time.perf_counter() - t1
-        paper_time[1] += time.process_time() - c1
-        return out
-
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="aimbench-bench-") as tmp:
-        t_start = time.perf_counter()
-        cpu_start = time.process_time()
-        bench = TimedBench(seed=args.seed)
-        store = TimedStore.create(Path(tmp) / "run", plan,
-                                  {"bench": "sim", "method": args.method}, bench.info())
-        # The twin's and the store's set-up once per run, not per scan: the MuJoCo model, and
-        # the numba kernels, which a process loads from their cache at their first call (about
-        # 0.5 s for the emulation's: 2.4 ms a scan of 21 x 10, had the first scan paid it). One
-        # scan of a reference outside the plan, estimated by both methods, loads them; it
-        # changes no scan of the sweep (each is drawn from (seed, reference, scan) alone).
-        bench.prepare(WARM_UP_REFERENCE, 0)
-        warm = next(SimBench.scans(bench, 1))
-        estimate(warm)
-        paper(warm)
-        setup, setup_cpu = time.perf_counter() - t_start, time.process_time() - cpu_start
-        # A sweep would stop on a reference with no pose at all; the timing must not.
-        runner = Runner(plan, bench, store, timed_estimate, max_consecutive_failures=10**9)
-        status = runner.run()
-        # the sweep's own time: without the paper's method's second estimate of every scan
-        wall = time.perf_counter() - t_start - paper_time[0]
-        cpu = time.process_time() - cpu_start - paper_time[1]
-        n = store.scan_count()
-        ok = int(store.conn.execute("SELECT SUM(success) FROM scan").fetchone()[0] or 0)
-        store.close()
-    assert status == "completed", status
-    rate = n / wall
-    emu, est = bench.emulation_s / n, est_time[0] / n
-    emu_cpu, est_cpu = bench.emulation_cpu_s / n, est_time[1] / n
-    paper_cpu, paper_wall = paper_time[1] / n, paper_time[0] / n
-    commit, commit_cpu = store.commit_s / n, store.commit_cpu_s / n
-    # the runner: the loop's time outside the emulation, the estimate and the commits
-    other = (wall - setup) / n - emu - est - commit
-    other_cpu = (cpu - setup_cpu) / n - emu_cpu - est_cpu - commit_cpu
-    scan_wall = (wall - setup) / n
-    scan_cpu = (cpu - setup_cpu) / n
+        wall, cpu, setup_cpu, pipe, n, ok = run_sweep(plan, Path(tmp) / "run", args.jobs,
+                                                      method, args.seed)
+    load_after = os.getloadavg()[0]
+    paper = paper_ms(plan, args.seed)
+
     full = plans.yaw_sweep().total_scans
+    anchor = GOAL_SWEEP_S * n / full
+    emu_ms, est_ms = 1e3 * pipe.acquire_s / n, 1e3 * pipe.estimate_s / n
+    scan_ms = emu_ms + est_ms
+    fixed = pipe.startup_s + setup_cpu  # the run's start-up: workers' and this process's
+    overhead_ms = 1e3 * (cpu - fixed - pipe.acquire_s - pipe.estimate_s) / n
+    whole_ms = 1e3 * (cpu - pipe.acquire_s - pipe.estimate_s) / n
+    cores = min(args.jobs, os.cpu_count() or 1)
+    efficiency = cpu / (cores * wall)
+    # On idle cores at full efficiency: the run's CPU (start-up and scans) spread over them.
+    quiet = cpu / cores
+    quiet_full = (fixed + (cpu - fixed) / n * full) / cores
     rows = [
         ("references x scans", f"{len(plan)} x {args.scans} = {n}", "paper: 21 x 100 = 2100",
          f"{n / full:.2f}"),
-        ("wall time, s", f"{wall:.1f}", "", ""),
-        # CPU time does not depend on what else the machine runs: the figure to compare.
-        ("CPU time of this process, s", f"{cpu:.1f}", "", ""),
+        (f"sweep wall time, s ({args.jobs} worker{'s' * (args.jobs > 1)})", f"{wall:.1f}",
+         f"goal: <= {anchor:.3g} s ({GOAL_SWEEP_S:g} s x {n}/{full})", f"{wall / anchor:.2f}"),
+        ("sweep CPU time (this process and workers), s", f"{cpu:.1f}",
+         f"{GOAL_CORES} cores x {anchor:.3g} s = {GOAL_CORES * anchor:.3g} s",
+         f"{cpu / (GOAL_CORES * anchor):.2f}"),
+        ("parallel efficiency (CPU / (cores x wall))", f"{efficiency:.0%}",
+         f"{cores} cores, load {load_before:.1f} -> {load_after:.1f}", ""),
+        ("wall time on idle cores from CPU (CPU / cores), s", f"{quiet:.1f}",
+         f"goal: <= {anchor:.3g} s", f"{quiet / anchor:.2f}"),
     ]
     if n != full:
-        rows.append(("wall time of 21 x 100, s (extrapolated)", f"{wall / n * full:.0f}",
-                     "", ""))
-    # two worker processes on two idle cores at best halve the CPU time (`sweep --jobs 2`)
-    two = cpu / n * full / 2
+        rows.append(("21 x 100 on idle cores from CPU, s (extrapolated)", f"{quiet_full:.1f}",
+                     f"goal: <= {GOAL_SWEEP_S:g} s", f"{quiet_full / GOAL_SWEEP_S:.2f}"))
     rows += [
-        ("21 x 100 on 2 cores from CPU time, s", f"{two:.0f}", f"goal: <= {GOAL_SWEEP_S:g} s",
-         f"{two / GOAL_SWEEP_S:.2f}"),
-        ("scans per second (wall)", f"{rate:.1f}", f"sensor: {SENSOR_SCANS_PER_S:g}/s",
-         f"{rate / SENSOR_SCANS_PER_S:.2f}x"),
         ("scans per CPU second", f"{n / cpu:.1f}", f"sensor: {SENSOR_SCANS_PER_S:g}/s",
          f"{n / cpu / SENSOR_SCANS_PER_S:.2f}x"),
-        ("emulation per scan, ms (CPU / wall)", f"{1e3 * emu_cpu:.1f} / {1e3 * emu:.1f}",
-         "sensor: 100 ms/rotation", f"{100.0 / (1e3 * emu_cpu):.2f}x real time"),
-        (f"estimate per scan ({args.method or 'default'}), ms (CPU / wall)",
-         f"{1e3 * est_cpu:.1f} / {1e3 * est:.1f}", f"goal: <= {GOAL_ESTIMATE_MS:g} ms CPU",
-         f"{1e3 * est_cpu / GOAL_ESTIMATE_MS:.2f}"),
-        ("paper's method on the same scans, ms (CPU / wall)",
-         f"{1e3 * paper_cpu:.1f} / {1e3 * paper_wall:.1f}", f"goal: <= {GOAL_PAPER_MS:g} ms CPU",
-         f"{1e3 * paper_cpu / GOAL_PAPER_MS:.2f}"),
-        ("store commit per scan, ms (CPU / wall)",
-         f"{1e3 * commit_cpu:.2f} / {1e3 * commit:.2f}", "", ""),
-        ("runner per scan, ms (CPU / wall)", f"{1e3 * other_cpu:.2f} / {1e3 * other:.2f}", "",
-         ""),
-        ("store and runner per scan, share", f"{(commit_cpu + other_cpu) / (scan_cpu):.1%} CPU",
-         f"goal: <= {GOAL_OVERHEAD:.0%} of a scan", f"{(commit + other) / scan_wall:.1%} wall"),
-        ("set-up (twin, store, kernels' first calls), s (CPU / wall)",
-         f"{setup_cpu:.1f} / {setup:.1f}", "", ""),
+        ("emulation per scan, ms CPU", f"{emu_ms:.1f}", "sensor: 100 ms/rotation",
+         f"{100.0 / emu_ms:.2f}x real time"),
+        (f"estimate per scan ({method}), ms CPU", f"{est_ms:.1f}",
+         f"goal: <= {GOAL_ESTIMATE_MS:g} ms", f"{est_ms / GOAL_ESTIMATE_MS:.2f}"),
+        (f"paper's method on {PAPER_SCANS} scans per reference, ms CPU", f"{paper:.1f}",
+         f"goal: <= {GOAL_PAPER_MS:g} ms", f"{paper / GOAL_PAPER_MS:.2f}"),
+        ("store and runner per scan, ms CPU", f"{overhead_ms:.2f}",
+         f"goal: <= {GOAL_OVERHEAD:.0%} of a scan's {scan_ms:.1f} ms",
+         f"{overhead_ms / scan_ms:.1%}"),
+        ("... with the start-up spread over the scans, ms CPU", f"{whole_ms:.2f}", "",
+         f"{whole_ms / scan_ms:.1%}"),
+        ("start-up, s CPU (workers' / this process's)",
+         f"{pipe.startup_s:.1f} / {setup_cpu:.1f}", "", ""),
         ("scans with a pose", f"{ok} / {n}", "", f"{ok / n:.0%}"),
     ]
     w = [max(len(r[i]) for r in rows) for i in range(4)]
-    load = os.getloadavg()[0]
-    print(f"bench_sweep: the paper's yaw sweep on SimBench, one process, {os.cpu_count()} CPU "
-          f"cores, load average {load:.1f} at the end, seed {args.seed}")
+    print(f"bench_sweep: the paper's yaw sweep on SimBench, {args.jobs} worker "
+          f"process{'es' * (args.jobs > 1)}, {os.cpu_count()} CPU cores, seed {args.seed}")
     print(f"| {'figure':<{w[0]}} | {'value':>{w[1]}} | {'anchor':<{w[2]}} | {'ratio':>{w[3]}} |")
     print(f"|{'-' * (w[0] + 2)}|{'-' * (w[1] + 2)}|{'-' * (w[2] + 2)}|{'-' * (w[3] + 2)}|")
     for r in rows:
