@@ -65,28 +65,33 @@ def run(args: argparse.Namespace) -> int:
     # seconds of CPU each) overlaps the calibration, which does not need them.
     engine = (sim_engine(config.jobs, config.seed, config.ideal, config.station, config.method)
               if not resume and config.jobs > 1 else None)
+    bench = None
     try:
         if not resume and not args.no_calibration:
-            cal = calibrate_sensor(args, out)
+            # The sweep's own twin (SimBench draws the sensor from the seed): the calibration
+            # is of the sensor the sweep scans, and the sweep takes the bench over.
+            bench = SimBench(seed=config.seed, ideal=config.ideal, station=config.station)
+            cal = calibrate_sensor(bench, args.no_progress, out)
             config = config.with_(calibration=cal.to_dict())
-    except BaseException:
+        rc = execute(None if resume else plan, config, out, resume,
+                     progress=not args.no_progress, report=True, tol=tolerances(args),
+                     engine=engine, bench=bench)
+    finally:  # execute closes both; not if it failed before it began
         if engine is not None:
             engine.close()
-        raise
-    rc = execute(None if resume else plan, config, out, resume,
-                 progress=not args.no_progress, report=True, tol=tolerances(args), engine=engine)
+        if bench is not None:
+            bench.close()
     # The demo's job is the run and its report; a FAIL verdict is its result, not a failure of
     # `make demo` (`aimbench sweep` and `aimbench report` exit 1 on FAIL, for CI gates).
     return 0 if rc == 1 else rc
 
 
-def calibrate_sensor(args: argparse.Namespace, out: Path) -> laser_calibration.LaserCalibration:
+def calibrate_sensor(bench: SimBench, no_progress: bool, out: Path
+                     ) -> laser_calibration.LaserCalibration:
     """The bench's routine before the sweep: the twin sensor's per-laser range offsets from
     scans of the board at the calibration's stage yaws, saved to `out`/calibration.json."""
-    # The same seed is the same twin sensor as the sweep's (SimBench draws it from the seed).
     total = len(calibrate.DEFAULT_YAWS_DEG) * calibrate.DEFAULT_SCANS
-    with SimBench(seed=args.seed) as bench, Bar(total, "calibrate", "scans",
-                                                enabled=not args.no_progress) as bar:
+    with Bar(total, "calibrate", "scans", enabled=not no_progress) as bar:
         cal = calibrate.on_bench(bench,
                                  progress=lambda done, _total: bar.update(done - bar.done))
     out.mkdir(parents=True, exist_ok=True)

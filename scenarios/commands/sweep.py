@@ -91,7 +91,8 @@ def tolerances(args: argparse.Namespace) -> Tolerances:
 
 def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
             progress: bool = True, report: bool = True, tol: Tolerances | None = None,
-            stream=None, rerun: Callable | None = None, engine: Any = None) -> int:
+            stream=None, rerun: Callable | None = None, engine: Any = None,
+            bench: Any = None) -> int:
     """Create (or resume) the run in `out`, run it, write the report; the exit code.
 
     rerun: ``rerun(plan, bench_info, station) -> RerunSession | None`` (``--rerun``): the run is
@@ -99,6 +100,8 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
     engine: the workers of a parallel run on the simulated bench, started ahead by the caller
     (`scenarios.runner.sim_engine`, for this configuration); else they start here, as soon as
     the store is open. Closed here, used or not.
+    bench: the bench of this configuration, already open (the demo's, after its calibration:
+    building a twin costs half a second); else it is opened here. Closed here.
 
     0: completed and passed (or completed when the report is off); 1: completed but the verdict
     failed; 130: interrupted (resumable). A failure raises (the CLI prints one line) after the
@@ -130,7 +133,6 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
             # Stored by name, so the run says what it used even if the default changes.
             config = config.with_(method=align.DEFAULT_METHOD)
         store = Store.create(out, plan, config=config.as_dict(), versions=versions())
-    bench = None
     try:
         if engine is None and config.bench == "sim" and config.jobs > 1:
             # Started now, their start-up (imports, twin, compiled kernels) overlaps this
@@ -140,7 +142,7 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
         try:
             board = config.station.board_spec()
             estimator = make_estimator(config.method, board, config.calibration)
-            bench = open_bench(config)
+            bench = bench if bench is not None else open_bench(config)
         except AimbenchError as exc:
             store.set_status("failed", f"opening the {config.bench} bench: {exc}")
             raise
