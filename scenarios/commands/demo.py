@@ -8,9 +8,10 @@ with the paper-form table and the error plots. ``--no-calibration`` skips the fi
 sensor's offsets then bias tilt by about half a degree: the report shows it).
 
 The paper takes 100 scans per reference (2,100 scans); so does the demo
-(`DEMO_SCANS`), on 2 worker processes, which keeps it near a minute on a 2-core machine; it says
-how many it takes. ``--scans N`` takes fewer (or more). Run it again and it reuses a finished
-run (or resumes an interrupted one); ``--fresh`` starts over.
+(`DEMO_SCANS`), on 2 worker processes, which keeps it under a minute on a 2-core machine; it
+says how many it takes. The workers start before the calibration, so that their start-up
+(imports, the twin, the compiled kernels) overlaps it. ``--scans N`` takes fewer (or more). Run
+it again and it reuses a finished run (or resumes an interrupted one); ``--fresh`` starts over.
 """
 
 from __future__ import annotations
@@ -30,9 +31,10 @@ from scenarios.progress import Bar
 from scenarios.runner import sim_engine
 from scenarios.store import STORE_NAME, Store
 
-#: Scans per reference in the demo: the paper's 100 (2,100 scans). The pipeline costs about 60 ms
-#: of CPU per scan (benchmarks/bench_sweep.py: 16.9 scans per CPU second), so on 2 worker
-#: processes it takes about 75 s on an idle 2-core machine (measured: 37.5 s for 50 scans).
+#: Scans per reference in the demo: the paper's 100 (2,100 scans). The whole demo costs about
+#: 67 s of CPU (some 30 ms a scan, benchmarks/bench_sweep.py, and 6-7 s of start-up,
+#: calibration and report), so on 2 worker processes it takes about 40 s of wall time on a
+#: 2-core machine that nothing else loads (measured: 40.7 s at a load average of 1.3).
 DEMO_SCANS = 100
 CALIBRATION_NAME = "calibration.json"
 
