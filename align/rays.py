@@ -46,8 +46,8 @@ from align.fit_kernels import (
     classify_edges,
     column_brackets,
     edge_brackets,
-    inverse_diagonal,
     jacobian_rotations,
+    lm_fit,
     profile_cost,
     window_firings,
 )
@@ -523,67 +523,18 @@ def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
     more residual): the ranges alone cannot tell it from the distance, the brackets (the
     board's known size) can. The Jacobian returned then has seven columns.
     """
-    converged = False
-    it = 0
-    lam = 1e-6
     model.assign(theta)
     fit_b = model.offset_prior is not None
-    n_p = 7 if fit_b else 6
-
-    def res(p: np.ndarray) -> np.ndarray:
-        if not fit_b:
-            return model.residuals(p)
-        model.offset = float(p[6])
-        b0, sb = model.offset_prior
-        f = model.residuals(p[:6])
-        return np.concatenate((f, [(p[6] - b0) / sb]))
-
-    def jac(p: np.ndarray, f: np.ndarray) -> np.ndarray:
-        if not fit_b:
-            return model.jacobian(p, f)
-        model.offset = float(p[6])
-        j = np.zeros((len(f), 7))
-        j[:-1, :6] = model.jacobian(p[:6], f[:-1])
-        j[:len(model._range[0]), 6] = -1.0 / model.sigma_r
-        j[-1, 6] = 1.0 / model.offset_prior[1]
-        return j
-
-    p = np.append(theta, model.offset) if fit_b else theta
-    f = res(p)
-    cost = f @ f
-    j = jac(p, f)
-    for it in range(1, max_iter + 1):
-        a = j.T @ j
-        g = j.T @ f
-        sd = np.sqrt(np.clip(_inverse_diagonal(a), 1e-18, None))
-        while True:
-            step = np.linalg.solve(a + lam * np.diag(np.diag(a)) + 1e-12 * np.eye(n_p), -g)
-            f_new = res(p + step)
-            c_new = f_new @ f_new
-            if c_new <= cost * (1 + 1e-12):
-                break
-            lam *= 10
-            if lam > 1e8:
-                if fit_b:
-                    model.offset = float(p[6])
-                return p[:6], j, bool(np.all(np.abs(step) < 1e-2 * sd)), it
-        p, f, cost = p + step, f_new, c_new
-        lam = max(lam / 10, 1e-9)
-        j = jac(p, f)
-        if np.all(np.abs(step) < 1e-2 * sd + 1e-10):
-            converged = True
-            break
+    b0, sb = model.offset_prior if fit_b else (0.0, 1.0)
+    o_r, u_r, d_r, offset, sigma_r, *edges = model._fit_arrays()
+    # the whole loop compiled (`align.fit_kernels.lm_fit`): a dozen numpy calls per step cost
+    # twice the arithmetic
+    p, j, converged, it = lm_fit(np.asarray(theta, dtype=np.float64), fit_b, offset,
+                                 float(b0), float(sb), o_r, u_r, d_r, sigma_r, *edges,
+                                 JACOBIAN_STEP, max_iter)
     if fit_b:
         model.offset = float(p[6])
-    return p[:6], j, converged, it
-
-
-def _inverse_diagonal(a: np.ndarray) -> np.ndarray:
-    """The diagonal of pinv(a) for the normal matrix ``a``: by Cholesky where ``a`` is well
-    conditioned (`align.fit_kernels.inverse_diagonal`; pinv's SVD cost 0.5 ms a scan), the
-    same to rounding; pinv's own where it is not (a parameter no residual sees: pinv's 0)."""
-    diag, ok = inverse_diagonal(a)
-    return diag if ok else np.diag(np.linalg.pinv(a))
+    return p[:6], j, bool(converged), int(it)
 
 
 #: A bracket whose whitened residual exceeds this is a gross error (`_gross_brackets`).

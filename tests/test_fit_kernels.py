@@ -203,8 +203,7 @@ def test_inverse_diagonal_is_pinvs_where_well_conditioned(models):
         # a parameter no residual sees: singular, left to pinv (rays._inverse_diagonal)
         a0 = a.copy()
         a0[0, :] = a0[:, 0] = 0.0
-        assert not inverse_diagonal(a0)[1]
-        np.testing.assert_array_equal(rays_mod._inverse_diagonal(a0), np.diag(np.linalg.pinv(a0)))
+        assert not inverse_diagonal(a0)[1]  # `lm_fit` then takes pinv's
     # nearly singular (condition 1e14): not trusted either
     assert not inverse_diagonal(np.diag([1.0, 1e-14]))[1]
 
@@ -372,3 +371,109 @@ def test_classify_matches_numpy_on_real_scans(models):
         model.excluded = kept
         model.classify(theta, 0.002, True)
         model.assign(theta)
+
+
+def test_residual_copies_are_kernels_bit_for_bit(models):
+    """`fit_kernels`' copies of the residuals and Jacobian (`lm_fit` calls them) are
+    `align.kernels`' own, bit for bit, at the estimate and off it, with a range offset."""
+    from align.fit_kernels import _jacobian_into, _residuals_into, rotation
+
+    for model, theta in models:
+        for dt in (np.zeros(6), np.array([3e-3, -5e-3, 2e-3, 1e-2, -4e-3, 6e-3])):
+            t = theta + dt
+            model.offset = 0.02
+            f = model.residuals(t)
+            o_r, u_r, d_r, offset, sigma_r, *edges = model._fit_arrays()
+            got = np.empty(len(f))
+            _residuals_into(t, rotation(t[3], t[4], t[5]), o_r, u_r, d_r, offset, sigma_r,
+                            *edges, got)
+            np.testing.assert_array_equal(got, f)
+            j = np.zeros((len(f), 6))
+            _jacobian_into(t, f, o_r, u_r, d_r, offset, sigma_r, *edges,
+                           rays_mod.JACOBIAN_STEP, j, np.empty(len(f)))
+            np.testing.assert_array_equal(j, model.jacobian(t, f))
+            model.offset = 0.0
+
+
+def gauss_newton_reference(model: rays_mod._Model, theta: np.ndarray, max_iter: int = 30
+                           ) -> tuple[np.ndarray, np.ndarray, bool, int]:
+    """`rays._gauss_newton` as a python loop of numpy calls (before `lm_fit`)."""
+    from align.fit_kernels import inverse_diagonal
+
+    converged = False
+    it = 0
+    lam = 1e-6
+    model.assign(theta)
+    fit_b = model.offset_prior is not None
+    n_p = 7 if fit_b else 6
+
+    def res(p: np.ndarray) -> np.ndarray:
+        if not fit_b:
+            return model.residuals(p)
+        model.offset = float(p[6])
+        b0, sb = model.offset_prior
+        return np.concatenate((model.residuals(p[:6]), [(p[6] - b0) / sb]))
+
+    def jac(p: np.ndarray, f: np.ndarray) -> np.ndarray:
+        if not fit_b:
+            return model.jacobian(p, f)
+        model.offset = float(p[6])
+        j = np.zeros((len(f), 7))
+        j[:-1, :6] = model.jacobian(p[:6], f[:-1])
+        j[:len(model._range[0]), 6] = -1.0 / model.sigma_r
+        j[-1, 6] = 1.0 / model.offset_prior[1]
+        return j
+
+    def inv_diag(a: np.ndarray) -> np.ndarray:
+        diag, ok = inverse_diagonal(a)
+        return diag if ok else np.diag(np.linalg.pinv(a))
+
+    p = np.append(theta, model.offset) if fit_b else theta
+    f = res(p)
+    cost = f @ f
+    j = jac(p, f)
+    for it in range(1, max_iter + 1):
+        a = j.T @ j
+        g = j.T @ f
+        sd = np.sqrt(np.clip(inv_diag(a), 1e-18, None))
+        while True:
+            step = np.linalg.solve(a + lam * np.diag(np.diag(a)) + 1e-12 * np.eye(n_p), -g)
+            f_new = res(p + step)
+            c_new = f_new @ f_new
+            if c_new <= cost * (1 + 1e-12):
+                break
+            lam *= 10
+            if lam > 1e8:
+                if fit_b:
+                    model.offset = float(p[6])
+                return p[:6], j, bool(np.all(np.abs(step) < 1e-2 * sd)), it
+        p, f, cost = p + step, f_new, c_new
+        lam = max(lam / 10, 1e-9)
+        j = jac(p, f)
+        if np.all(np.abs(step) < 1e-2 * sd + 1e-10):
+            converged = True
+            break
+    if fit_b:
+        model.offset = float(p[6])
+    return p[:6], j, converged, it
+
+
+@pytest.mark.parametrize("prior", [None, (0.01, 0.02)])
+def test_lm_fit_matches_the_python_loop(models, prior):
+    """`lm_fit` (`rays._gauss_newton`) takes the python loop's steps: the same iterations and
+    convergence, the pose, offset and Jacobian to rounding (its normal equations are summed in
+    another order than BLAS's), from the estimate and from starts moved off it."""
+    for model, theta in models:
+        for dt in (np.zeros(6), np.array([4e-3, -6e-3, 3e-3, 1.5e-2, -5e-3, 8e-3])):
+            start = theta + dt
+            results = []
+            for fit in (gauss_newton_reference, rays_mod._gauss_newton):
+                model.offset, model.offset_prior = 0.0, prior
+                results.append((*fit(model, start.copy()), model.offset))
+            (p0, j0, c0, i0, b0), (p1, j1, c1, i1, b1) = results
+            assert (c1, i1) == (c0, i0)
+            np.testing.assert_allclose(p1, p0, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(b1, b0, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(j1, j0, rtol=1e-6, atol=1e-6 * np.abs(j0).max())
+            model.offset, model.offset_prior = 0.0, None
+
