@@ -623,3 +623,63 @@ def lm_fit(theta: np.ndarray, fit_b: bool, offset: float, b0: float, sb: float,
             return p, j, True, it
     return p, j, False, it
 
+
+@njit(cache=True)
+def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`align.plane.tangent_basis`: e1 = n x e_z (n x e_x for a vertical n), e2 = n x e1."""
+    e1 = np.array([n[1], -n[0], 0.0])
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.array([0.0, n[2], -n[1]])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.array([n[1] * e1[2] - n[2] * e1[1], n[2] * e1[0] - n[0] * e1[2],
+                   n[0] * e1[1] - n[1] * e1[0]])
+    return e1, e2
+
+
+@njit(cache=True)
+def _dot3(a: np.ndarray, i: int, v: np.ndarray) -> float:
+    """Row ``i`` of ``a`` (N, 3) dotted with the 3-vector ``v``."""
+    return a[i, 0] * v[0] + a[i, 1] * v[1] + a[i, 2] * v[2]
+
+
+@njit(cache=True)
+def ray_plane_fit(ranges: np.ndarray, origins: np.ndarray, dirs: np.ndarray, n0: np.ndarray,
+                  d0: float, iterations: int, tol: float, sigma_floor: float
+                  ) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """`align.plane.fit_rays`, whole: Gauss-Newton on the range residuals along the rays, the
+    steps by least squares (LAPACK's gelsd with numpy's default rcond, as np.linalg.lstsq),
+    the covariance from the last iterate's Jacobian, the plane flipped to d >= 0. The products
+    with n, e1, e2 summed per ray rather than by BLAS: equal to rounding. One call instead of
+    two dozen numpy calls per iteration (their overhead was most of the fit's time)."""
+    m = ranges.shape[0]
+    n = n0 / np.linalg.norm(n0)
+    d = d0
+    j = np.empty((m, 3))
+    res = np.empty(m)
+    rcond = np.finfo(np.float64).eps * max(m, 3)
+    for _ in range(iterations):
+        e1, e2 = _tangent_basis(n)
+        for i in range(m):
+            un = _dot3(dirs, i, n)
+            pred = (d - _dot3(origins, i, n)) / un
+            res[i] = ranges[i] - pred
+            j[i, 0] = -(_dot3(origins, i, e1) + pred * _dot3(dirs, i, e1)) / un
+            j[i, 1] = -(_dot3(origins, i, e2) + pred * _dot3(dirs, i, e2)) / un
+            j[i, 2] = 1.0 / un
+        step = np.linalg.lstsq(j, res, rcond)[0]
+        n = n + step[0] * e1 + step[1] * e2
+        n /= np.linalg.norm(n)
+        d += step[2]
+        if np.max(np.abs(step)) < tol:
+            break
+    ss = 0.0
+    for i in range(m):
+        r = ranges[i] - (d - _dot3(origins, i, n)) / _dot3(dirs, i, n)
+        ss += r * r
+    sigma = max(np.sqrt(ss / max(m - 3, 1)), sigma_floor)
+    cov = sigma**2 * np.linalg.pinv(j.T @ j)
+    if d < 0:  # facing away from the LiDAR: alpha (e1 flips with n) and d change sign
+        n, d = -n, -d
+        flip = np.array([-1.0, 1.0, -1.0])
+        cov = cov * np.outer(flip, flip)
+    return n, d, cov, sigma

@@ -477,3 +477,56 @@ def test_lm_fit_matches_the_python_loop(models, prior):
             np.testing.assert_allclose(j1, j0, rtol=1e-6, atol=1e-6 * np.abs(j0).max())
             model.offset, model.offset_prior = 0.0, None
 
+
+def fit_rays_reference(ranges: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
+                       n0: np.ndarray, d0: float, iterations: int = 8, tol: float = 1e-9,
+                       sigma_floor: float = 0.0) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """`plane.fit_rays` as numpy calls (before `ray_plane_fit`)."""
+    from align.plane import predicted_range, tangent_basis
+
+    n, d = n0 / np.linalg.norm(n0), float(d0)
+    for _ in range(iterations):
+        e1, e2 = tangent_basis(n)
+        un = dirs @ n
+        pred = (d - origins @ n) / un
+        res = ranges - pred
+        j = np.empty((len(ranges), 3))
+        j[:, 0] = -(origins @ e1 + pred * (dirs @ e1)) / un
+        j[:, 1] = -(origins @ e2 + pred * (dirs @ e2)) / un
+        j[:, 2] = 1.0 / un
+        step, *_ = np.linalg.lstsq(j, res, rcond=None)
+        n = n + step[0] * e1 + step[1] * e2
+        n /= np.linalg.norm(n)
+        d += step[2]
+        if np.max(np.abs(step)) < tol:
+            break
+    res = ranges - predicted_range(n, d, origins, dirs)
+    sigma = max(float(np.sqrt(res @ res / max(len(ranges) - 3, 1))), sigma_floor)
+    cov = sigma**2 * np.linalg.pinv(j.T @ j)
+    if d < 0:
+        n, d = -n, -d
+        flip = np.array([-1.0, 1.0, -1.0])
+        cov = cov * np.outer(flip, flip)
+    return n, d, cov, sigma
+
+
+def test_ray_plane_fit_matches_numpy_on_real_scans(models):
+    """`plane.fit_rays` (`fit_kernels.ray_plane_fit`) against its numpy loop on the models'
+    interior hits, from the estimate's plane and from one tilted off it, and a start facing
+    away (the flip): the plane and sigma to rounding, the covariance to 1e-9 of itself."""
+    from align import plane
+    from align.geometry import plane_of_pose
+
+    for model, theta in models:
+        use = model.use_range
+        r, o, u = model.rays.distance[use], model.rays.origin[use], model.rays.direction[use]
+        n, d = plane_of_pose(theta)
+        for n0, d0, floor in ((n, d, 0.0), (n + np.array([0.03, -0.02, 0.01]), d + 0.05, 0.0),
+                              (-n, -d, 0.02)):
+            got, want = plane.fit_rays(r, o, u, n0, d0, sigma_floor=floor), fit_rays_reference(
+                r, o, u, n0, d0, sigma_floor=floor)
+            np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-12)
+            assert abs(got[1] - want[1]) < 1e-12
+            scale = np.abs(want[2]).max()
+            np.testing.assert_allclose(got[2], want[2], rtol=1e-9, atol=1e-9 * scale)
+            assert abs(got[3] - want[3]) < 1e-12 * max(want[3], 1e-3)
