@@ -683,3 +683,87 @@ def ray_plane_fit(ranges: np.ndarray, origins: np.ndarray, dirs: np.ndarray, n0:
         flip = np.array([-1.0, 1.0, -1.0])
         cov = cov * np.outer(flip, flip)
     return n, d, cov, sigma
+
+
+@njit(cache=True)
+def between_hits(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, hit: np.ndarray
+                 ) -> np.ndarray:
+    """`align.rays._between_hits`: the rays with a hit (``hit``) of the same laser in the same
+    scan on either side of them, ``order`` listing the rays by scan, laser and azimuth. One
+    walk over each group (the numpy version's cumsums, bincount and gathers cost 5x)."""
+    n = order.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    a = 0
+    while a < n:
+        key = np.int64(scan[order[a]]) * 256 + laser[order[a]]
+        b, total = a, 0
+        while b < n and np.int64(scan[order[b]]) * 256 + laser[order[b]] == key:
+            total += 1 if hit[order[b]] else 0
+            b += 1
+        before = 0
+        for p in range(a, b):
+            i = order[p]
+            h = 1 if hit[i] else 0
+            out[i] = before >= 1 and total - before - h >= 1
+            before += h
+        a = b
+    return out
+
+
+@njit(cache=True)
+def board_spans(ls: np.ndarray, az: np.ndarray, hit: np.ndarray, zone: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._board_spans`: per laser the first and last position (in the rays sorted by
+    laser ``ls`` and azimuth ``az``) of its longest run of hits (``hit``), a run ending where
+    the next hit is another laser's or more than ``zone`` (rad) away; of equally long runs the
+    last (as the numpy version's stable sort by size writes it last). -1 without hits."""
+    n_l = ls.max() + 1 if ls.shape[0] else 0
+    first = np.full(n_l, -1, dtype=np.int64)
+    last = np.full(n_l, -1, dtype=np.int64)
+    best = np.zeros(n_l, dtype=np.int64)
+    start, size, prev = -1, 0, -1
+    for p in range(ls.shape[0] + 1):
+        if p < ls.shape[0] and not hit[p]:
+            continue
+        if prev >= 0 and (p == ls.shape[0] or ls[p] != ls[prev] or az[p] - az[prev] > zone):
+            k = ls[prev]
+            if size >= best[k]:  # a run closes: the longest so far (ties: the later)
+                best[k], first[k], last[k] = size, start, prev
+            size = 0
+        if p == ls.shape[0]:
+            break
+        if size == 0:
+            start = p
+        size += 1
+        prev = p
+    return first, last
+
+
+@njit(cache=True)
+def range_rays(x: np.ndarray, z: np.ndarray, lam: np.ndarray, origin: np.ndarray,
+               direction: np.ndarray, distance: np.ndarray, hit: np.ndarray, offset: float,
+               w_in: float, h_in: float, limit: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`align.rays._Model.assign`: the hits (``hit``) with |x| < ``w_in`` and |z| < ``h_in``
+    whose range residual distance - offset - lam is below ``limit`` (m) in size; the mask and
+    their origins, directions and ranges, contiguous. One pass (the numpy version's masks and
+    three gathers cost 4x)."""
+    n = x.shape[0]
+    use = np.zeros(n, dtype=np.bool_)
+    count = 0
+    for i in range(n):
+        if hit[i] and abs(x[i]) < w_in and abs(z[i]) < h_in and abs(
+                distance[i] - offset - lam[i]) < limit:
+            use[i] = True
+            count += 1
+    o = np.empty((count, 3))
+    u = np.empty((count, 3))
+    d = np.empty(count)
+    k = 0
+    for i in range(n):
+        if use[i]:
+            o[k] = origin[i]
+            u[k] = direction[i]
+            d[k] = distance[i]
+            k += 1
+    return use, o, u, d

@@ -43,12 +43,15 @@ from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
 from align.fit_kernels import (
     behind_runs,
+    between_hits,
+    board_spans,
     classify_edges,
     column_brackets,
     edge_brackets,
     jacobian_rotations,
     lm_fit,
     profile_cost,
+    range_rays,
     window_firings,
 )
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
@@ -212,8 +215,10 @@ def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     # in front: something before the board; just behind (beyond the noise, within the label
     # tolerance): the board's noise or a thing close behind it (a stand's clamp): unknown
     lab[ret & ((res < -near) | ((res > near) & (res <= LABEL_TOLERANCE)))] = UNKNOWN
-    lab[_behind_ends(rays, lab, res, sigma_r)] = UNKNOWN
-    inner = _between_hits(rays, lab) & ~ret
+    # one sort for both: the rays by scan, laser and azimuth (the hits' order is its subset)
+    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    lab[_behind_ends(rays, lab, res, sigma_r, order)] = UNKNOWN
+    inner = _between_hits(rays, lab, order) & ~ret
     hits = int(np.count_nonzero(lab == HIT))
     if np.count_nonzero(inner) >= max(MIN_DROPOUTS, DROPOUT_FRACTION * hits):
         lab[~ret] = DROPOUT
@@ -231,7 +236,8 @@ BEHIND_REACH = 40
 BEHIND_RUN = 3
 
 
-def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float) -> np.ndarray:
+def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
+                 order: np.ndarray | None = None) -> np.ndarray:
     """The hits at either end of a laser's run on the board (per scan, by azimuth) that lie
     behind the plane as a group: a mask over the rays.
 
@@ -239,12 +245,14 @@ def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float) 
     tolerance of the plane, each return alone within the noise; as hits it would move that
     laser's edge outwards by its width. Together its returns are clearly behind: the longest
     run from an end whose mean residual is `BEHIND_SIGMAS` standard errors and `BEHIND_MIN`
-    behind is not the board."""
+    behind is not the board. ``order``: all rays by scan, laser and azimuth, if the caller has
+    it (the hits in that order are the hits sorted alike: the sort is stable)."""
     out = np.zeros(len(lab), dtype=bool)
-    hit = np.flatnonzero(lab == HIT)
-    if not len(hit):
+    if order is None:
+        order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    order = order[lab[order] == HIT]
+    if not len(order):
         return out
-    order = hit[np.lexsort((rays.azimuth[hit], rays.laser[hit], rays.scan[hit]))]
     key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
     bounds = np.concatenate(([0], np.flatnonzero(key[1:] != key[:-1]) + 1, [len(order)]))
     size = np.diff(bounds)
@@ -264,19 +272,14 @@ def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float) 
     return out
 
 
-def _between_hits(rays: _Rays, lab: np.ndarray) -> np.ndarray:
-    """Rays that lie between two hits of the same laser in the same scan (by azimuth)."""
-    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
-    key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
-    group = np.concatenate(([0], np.cumsum(key[1:] != key[:-1])))
-    is_hit = (lab[order] == HIT).astype(np.int64)
-    cum = np.cumsum(is_hit)
-    first = np.concatenate(([0], np.flatnonzero(key[1:] != key[:-1]) + 1))
-    before = cum - is_hit - (cum[first] - is_hit[first])[group]  # hits before, in the group
-    total = np.bincount(group, is_hit)[group]
-    out = np.zeros(len(lab), dtype=bool)
-    out[order] = (before >= 1) & (total - before - is_hit >= 1)
-    return out
+def _between_hits(rays: _Rays, lab: np.ndarray, order: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """Rays that lie between two hits of the same laser in the same scan (by azimuth).
+    ``order``: the rays by scan, laser and azimuth, if the caller has it. Compiled
+    (`align.fit_kernels.between_hits`)."""
+    if order is None:
+        order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    return between_hits(order, rays.scan, rays.laser, lab == HIT)
 
 
 def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -303,23 +306,7 @@ def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
     its longest run of hits, a run ending where the next hit is more than `ZONE_AZIMUTH` away:
     the board's span on that laser, not a stray beside it (a stand's part within the label
     tolerance of the plane, on the same ring). -1 for a laser without hits."""
-    n_l = int(ls.max()) + 1 if len(ls) else 0
-    first, last = np.full(n_l, -1), np.full(n_l, -1)
-    pos = np.flatnonzero(lb == HIT)
-    if not len(pos):
-        return first, last
-    new_run = np.concatenate(([True], (ls[pos[1:]] != ls[pos[:-1]])
-                              | (az[pos[1:]] - az[pos[:-1]] > ZONE_AZIMUTH)))
-    run = np.cumsum(new_run) - 1
-    size = np.bincount(run)
-    starts = pos[new_run]
-    ends = pos[np.concatenate((new_run[1:], [True]))]
-    best = np.full(n_l, -1)
-    for r in np.argsort(size, kind="stable"):  # the largest run of each laser written last
-        best[ls[starts[r]]] = r
-    have = best >= 0
-    first[have], last[have] = starts[best[have]], ends[best[have]]
-    return first, last
+    return board_spans(ls, az, lb == HIT, ZONE_AZIMUTH)  # compiled: a sort of the runs in numpy
 
 
 def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
@@ -386,13 +373,12 @@ class _Model:
         """Which hits feed the range residuals: those safely inside the rectangle."""
         w2, h2 = self.board.width / 2, self.board.height / 2
         x, z, lam = self.coords(theta)
-        inside = (np.abs(x) < w2 - EDGE_MARGIN) & (np.abs(z) < h2 - EDGE_MARGIN)
-        res = self.rays.distance - self.offset - lam
-        self.use_range = (self.lab == 1) & inside & (np.abs(res) < 4 * self.sigma_r)
-        # the fit only ever looks at these rays: keep them contiguous
         r = self.rays
-        self._range = (r.origin[self.use_range], r.direction[self.use_range],
-                       r.distance[self.use_range])
+        # the fit only ever looks at these rays: kept contiguous (`align.fit_kernels.range_rays`)
+        self.use_range, *rng = range_rays(x, z, lam, r.origin, r.direction, r.distance,
+                                          self.lab == 1, float(self.offset), w2 - EDGE_MARGIN,
+                                          h2 - EDGE_MARGIN, 4 * self.sigma_r)
+        self._range = tuple(rng)
 
     def classify(self, theta: np.ndarray, guard: float, crossings: bool = True) -> None:
         """Fix which edge each bracket measures, for pose ``theta``; drop the ambiguous ones.

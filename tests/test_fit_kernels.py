@@ -77,7 +77,7 @@ def brackets_reference(rays: rays_mod._Rays, lab: np.ndarray) -> tuple[np.ndarra
     link = ((ls[1:] == ls[:-1]) & (np.diff(az) < rays_mod.MAX_GAP) & (lb[1:] >= 0)
             & (lb[:-1] >= 0))
     trans = np.flatnonzero(link & (lb[1:] != lb[:-1]))
-    first_hit, last_hit = rays_mod._board_spans(ls, az, lb)
+    first_hit, last_hit = board_spans_reference(ls, az, lb)
     hits, misses = [], []
     i = 0
     while i < len(trans):
@@ -530,3 +530,116 @@ def test_ray_plane_fit_matches_numpy_on_real_scans(models):
             scale = np.abs(want[2]).max()
             np.testing.assert_allclose(got[2], want[2], rtol=1e-9, atol=1e-9 * scale)
             assert abs(got[3] - want[3]) < 1e-12 * max(want[3], 1e-3)
+
+
+def between_hits_reference(rays: rays_mod._Rays, lab: np.ndarray) -> np.ndarray:
+    """`rays._between_hits` as numpy cumsums over the sorted rays (before the kernel)."""
+    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
+    group = np.concatenate(([0], np.cumsum(key[1:] != key[:-1])))
+    is_hit = (lab[order] == rays_mod.HIT).astype(np.int64)
+    cum = np.cumsum(is_hit)
+    first = np.concatenate(([0], np.flatnonzero(key[1:] != key[:-1]) + 1))
+    before = cum - is_hit - (cum[first] - is_hit[first])[group]
+    total = np.bincount(group, is_hit)[group]
+    out = np.zeros(len(lab), dtype=bool)
+    out[order] = (before >= 1) & (total - before - is_hit >= 1)
+    return out
+
+
+def test_between_hits_match_numpy_on_real_scans(models):
+    """`rays._between_hits` (`fit_kernels.between_hits`) against its numpy version, on the
+    models' labels and on labels with random hits dropped (dropout-like gaps) and added."""
+    rng = np.random.default_rng(11)
+    for model, _ in models:
+        rays = model.rays
+        for k in range(3):
+            lab = model.lab.copy()
+            if k == 1:
+                lab[(lab == rays_mod.HIT) & (rng.random(len(lab)) < 0.2)] = rays_mod.MISS
+            if k == 2:
+                lab[rng.random(len(lab)) < 0.1] = rays_mod.HIT
+            want = between_hits_reference(rays, lab)
+            np.testing.assert_array_equal(rays_mod._between_hits(rays, lab), want)
+            order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+            np.testing.assert_array_equal(rays_mod._between_hits(rays, lab, order), want)
+            assert want.any()
+    empty = rays_mod._Rays(*(a[:0] for a in vars(models[0][0].rays).values()))
+    assert len(rays_mod._between_hits(empty, np.zeros(0, dtype=np.int8))) == 0
+
+
+def board_spans_reference(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """`rays._board_spans` as numpy runs sorted by size (before the kernel)."""
+    n_l = int(ls.max()) + 1 if len(ls) else 0
+    first, last = np.full(n_l, -1), np.full(n_l, -1)
+    pos = np.flatnonzero(lb == rays_mod.HIT)
+    if not len(pos):
+        return first, last
+    new_run = np.concatenate(([True], (ls[pos[1:]] != ls[pos[:-1]])
+                              | (az[pos[1:]] - az[pos[:-1]] > rays_mod.ZONE_AZIMUTH)))
+    run = np.cumsum(new_run) - 1
+    size = np.bincount(run)
+    starts = pos[new_run]
+    ends = pos[np.concatenate((new_run[1:], [True]))]
+    best = np.full(n_l, -1)
+    for r in np.argsort(size, kind="stable"):
+        best[ls[starts[r]]] = r
+    have = best >= 0
+    first[have], last[have] = starts[best[have]], ends[best[have]]
+    return first, last
+
+
+def test_board_spans_match_numpy_on_real_scans(models):
+    """`rays._board_spans` (`fit_kernels.board_spans`) against its numpy version: the models'
+    labels, with hits dropped at random (runs split, ties of equal runs), and none."""
+    rng = np.random.default_rng(12)
+    for model, _ in models:
+        rays = model.rays
+        order = np.lexsort((rays.azimuth, rays.laser))
+        for k in range(4):
+            lab = model.lab.copy()
+            if k == 1:
+                lab[(lab == rays_mod.HIT) & (rng.random(len(lab)) < 0.3)] = rays_mod.MISS
+            if k == 2:
+                lab[rng.random(len(lab)) < 0.5] = rays_mod.HIT
+            if k == 3:
+                lab[:] = rays_mod.MISS
+            ls, az, lb = rays.laser[order], rays.azimuth[order], lab[order]
+            got, want = rays_mod._board_spans(ls, az, lb), board_spans_reference(ls, az, lb)
+            for g, w in zip(got, want, strict=True):
+                np.testing.assert_array_equal(g, w)
+        # equal runs on one laser: the later wins
+        ls = np.zeros(7, dtype=rays.laser.dtype)
+        az = np.array([0.0, 0.001, 0.1, 0.101, 0.2, 0.201, 0.3])
+        lb = np.array([1, 1, 0, 1, 1, 0, 1], dtype=np.int8)
+        for g, w in zip(rays_mod._board_spans(ls, az, lb), board_spans_reference(ls, az, lb),
+                        strict=True):
+            np.testing.assert_array_equal(g, w)
+
+
+def assign_reference(model: rays_mod._Model, theta: np.ndarray) -> tuple[np.ndarray, ...]:
+    """`_Model.assign`'s mask and rays as numpy masks and gathers (before the kernel)."""
+    w2, h2 = model.board.width / 2, model.board.height / 2
+    x, z, lam = board_coordinates(theta, model.rays.origin, model.rays.direction)
+    inside = (np.abs(x) < w2 - rays_mod.EDGE_MARGIN) & (np.abs(z) < h2 - rays_mod.EDGE_MARGIN)
+    res = model.rays.distance - model.offset - lam
+    use = (model.lab == 1) & inside & (np.abs(res) < 4 * model.sigma_r)
+    r = model.rays
+    return use, r.origin[use], r.direction[use], r.distance[use]
+
+
+def test_assign_matches_numpy_on_real_scans(models):
+    """`_Model.assign` (`fit_kernels.range_rays`) against its numpy version, at the estimate and
+    off it, with a range offset."""
+    for model, theta in models:
+        for dt, offset in ((np.zeros(6), 0.0), (np.array([0.01, 0.004, -0.01, 0.02, 0, 0]), 0.01)):
+            model.offset = offset
+            model.assign(theta + dt)
+            want = assign_reference(model, theta + dt)
+            np.testing.assert_array_equal(model.use_range, want[0])
+            for g, w in zip(model._range, want[1:], strict=True):
+                np.testing.assert_array_equal(g, w)
+            assert want[0].any()
+        model.offset = 0.0
+        model.assign(theta)
