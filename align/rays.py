@@ -350,6 +350,9 @@ class _Model:
         self.offset_prior: tuple[float, float] | None = None
         #: The last pose's board coordinates of all rays (`coords`): its bytes and (X, Z, lam).
         self._coords: tuple[bytes, tuple[np.ndarray, ...]] | None = None
+        #: The rays' products with the last rotation's rows (`_shifted_coords`): the bytes of
+        #: (t_y, roll, tilt, yaw) and (o.r0, lam u.r0, o.r2, lam u.r2, lam).
+        self._products: tuple[bytes, tuple[np.ndarray, ...]] | None = None
         self._cache_edges()
 
     def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -358,8 +361,26 @@ class _Model:
         theta = np.asarray(theta, dtype=np.float64)
         key = theta.tobytes()
         if self._coords is None or self._coords[0] != key:
-            self._coords = (key, board_coordinates(theta, self.rays.origin, self.rays.direction))
+            self._coords = (key, self._shifted_coords(theta))
         return self._coords[1]
+
+    def _shifted_coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`board_coordinates` at ``theta``, its expressions term by term (so the same bits),
+        reusing the products with the rotation rows where only the in-plane position moved
+        since the last pose (a profile's shift, every other new pose of a fit): X = (o.r0 +
+        t_x) + lam u.r0 and Z alike, lam depending on t_y and the rotation alone."""
+        rkey = theta[[1, 3, 4, 5]].tobytes()
+        if self._products is None or self._products[0] != rkey:
+            o, u = self.rays.origin, self.rays.direction
+            r = rotation(theta[3], theta[4], theta[5])
+            oy = o @ r[1] + theta[1]
+            dy = u @ r[1]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lam = -oy / dy
+            self._products = (rkey, (o @ r[0], lam * (u @ r[0]), o @ r[2], lam * (u @ r[2]),
+                                     lam))
+        ox, ux, oz, uz, lam = self._products[1]
+        return ox + theta[0] + ux, oz + theta[2] + uz, lam
 
     def _cache_edges(self) -> None:
         """The used brackets' rays, signs and sigmas, contiguous (the fit only reads these)."""

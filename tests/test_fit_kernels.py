@@ -643,3 +643,24 @@ def test_assign_matches_numpy_on_real_scans(models):
             assert want[0].any()
         model.offset = 0.0
         model.assign(theta)
+
+
+def test_model_coords_are_board_coordinates_bit_for_bit(models):
+    """`_Model.coords` reuses the rotation's products for a pose moved in the plane only: the
+    same bits as `board_coordinates` there, after a new rotation, and after a new t_y."""
+    for model, theta in models:
+        model._coords = model._products = None
+        vx, vz = lidar_up(theta)
+        poses = [theta]
+        for s in (0.004, -0.013, 0.0):
+            t = theta.copy()
+            t[0] += s * vx
+            t[2] += s * vz
+            poses.append(t)
+        poses += [theta + np.array([0, 0, 0, 1e-3, 0, 0]), theta + np.array([0, 2e-3, 0, 0, 0, 0]),
+                  theta + np.array([5e-3, 0, -4e-3, 0, 0, 0]), theta]
+        for t in poses:
+            got = model.coords(t)
+            for g, w in zip(got, board_coordinates(t, model.rays.origin, model.rays.direction),
+                            strict=True):
+                np.testing.assert_array_equal(g, w)
