@@ -47,11 +47,13 @@ from align.fit_kernels import (
     board_spans,
     classify_edges,
     column_brackets,
+    contradicted,
     edge_brackets,
     jacobian_rotations,
     lm_fit,
     profile_cost,
     range_rays,
+    used_edges,
     window_firings,
 )
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
@@ -353,6 +355,8 @@ class _Model:
         #: The rays' products with the last rotation's rows (`_shifted_coords`): the bytes of
         #: (t_y, roll, tilt, yaw) and (o.r0, lam u.r0, o.r2, lam u.r2, lam).
         self._products: tuple[bytes, tuple[np.ndarray, ...]] | None = None
+        # the labels stay as built: their hits and misses, for every profile
+        self._hits, self._misses = np.flatnonzero(lab == HIT), np.flatnonzero(lab == MISS)
         self._cache_edges()
 
     def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -384,11 +388,9 @@ class _Model:
 
     def _cache_edges(self) -> None:
         """The used brackets' rays, signs and sigmas, contiguous (the fit only reads these)."""
-        use = self.edge_kind > 0
-        self._ubh = (self._bh[0][use], self._bh[1][use])
-        self._ubm = (self._bm[0][use], self._bm[1][use])
-        self._usign, self._usd = self.edge_sign[use], self.edge_sd[use]
-        self._uvert = (self.edge_kind == 1)[use]
+        oh, uh, om, um, self._usign, self._usd, self._uvert = used_edges(
+            self.edge_kind, *self._bh, *self._bm, self.edge_sign, self.edge_sd)  # compiled
+        self._ubh, self._ubm = (oh, uh), (om, um)
 
     def assign(self, theta: np.ndarray) -> None:
         """Which hits feed the range residuals: those safely inside the rectangle."""
@@ -465,7 +467,7 @@ class _Model:
         """
         x, z, _ = self.coords(theta)
         vx, vz = lidar_up(theta)
-        return profile_cost(x, z, np.flatnonzero(self.lab == HIT), np.flatnonzero(self.lab == MISS),
+        return profile_cost(x, z, self._hits, self._misses,
                             self.bh, self.bm, np.asarray(ds, dtype=np.float64), vx, vz,
                             self.board.width / 2, self.board.height / 2, tol, *self.blur_edges)
 
@@ -878,10 +880,9 @@ def _contradicted(model: _Model, theta: np.ndarray, margin: float = 0.01) -> int
     """How many hits lie outside the rectangle at ``theta`` and misses inside it, by more than
     ``margin`` (m)."""
     x, z, _ = model.coords(theta)
-    w2, h2 = model.board.width / 2, model.board.height / 2
-    out = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
-    deep = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
-    return int(np.sum((model.lab == HIT) & out) + np.sum((model.lab == MISS) & deep))
+    # compiled (`align.fit_kernels.contradicted`): four masks over the rays in numpy
+    return int(contradicted(x, z, model.lab, HIT, MISS, model.board.width / 2,
+                            model.board.height / 2, margin))
 
 
 def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,

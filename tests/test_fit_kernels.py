@@ -664,3 +664,32 @@ def test_model_coords_are_board_coordinates_bit_for_bit(models):
             for g, w in zip(got, board_coordinates(t, model.rays.origin, model.rays.direction),
                             strict=True):
                 np.testing.assert_array_equal(g, w)
+
+
+def test_used_edges_and_contradicted_match_numpy_on_real_scans(models):
+    """`_Model._cache_edges` (`fit_kernels.used_edges`) and `rays._contradicted`
+    (`fit_kernels.contradicted`) against their numpy versions, for both corner guards and with
+    and without the grazing crossings, at the estimate and off it."""
+    for model, theta in models:
+        for guard, crossings, dt in ((0.005, False, 0.0), (0.002, True, 0.0),
+                                     (0.002, True, 0.02)):
+            t = theta + np.array([dt, 0, -dt, dt, 0, 0])
+            model.classify(t, guard, crossings)
+            use = model.edge_kind > 0
+            assert use.any()
+            want = (model._bh[0][use], model._bh[1][use], model._bm[0][use], model._bm[1][use],
+                    model.edge_sign[use], model.edge_sd[use], (model.edge_kind == 1)[use])
+            got = (*model._ubh, *model._ubm, model._usign, model._usd, model._uvert)
+            for g, w in zip(got, want, strict=True):
+                assert g.dtype == w.dtype
+                np.testing.assert_array_equal(g, w)
+            for margin in (0.0, 0.01, 0.05):
+                x, z, _ = board_coordinates(t, model.rays.origin, model.rays.direction)
+                w2, h2 = model.board.width / 2, model.board.height / 2
+                out = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
+                deep = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
+                lab = model.lab
+                count = int(np.sum((lab == rays_mod.HIT) & out)
+                            + np.sum((lab == rays_mod.MISS) & deep))
+                assert rays_mod._contradicted(model, t, margin) == count
+        model.classify(theta, 0.002, True)
