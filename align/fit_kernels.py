@@ -297,29 +297,80 @@ def jacobian_rotations(theta: np.ndarray, step: float) -> np.ndarray:
 
 
 @njit(cache=True)
-def behind_runs(order: np.ndarray, starts: np.ndarray, res: np.ndarray, run: int, reach: int,
+def _behind_run(order: np.ndarray, a: int, b: int, res: np.ndarray, run: int, reach: int,
                 least: float, threshold: float, out: np.ndarray) -> None:
-    """`align.rays._behind_ends` on the long groups: ``order`` lists the hits by scan, laser and
-    azimuth, ``starts`` where each group (a laser in a scan) of at least 3 ``run`` hits begins
-    and ends (``starts[2 g]``, ``starts[2 g + 1]``). From each end of a group, the longest run
-    of at most min(``reach``, size // 3) hits, at least ``run`` long, whose mean range residual
+    """One long group ``order[a:b]`` of `behind_groups`: from each end, the longest run of at
+    most min(``reach``, size // 3) hits, at least ``run`` long, whose mean range residual
     ``res`` exceeds ``least`` (m) and whose mean times sqrt(its length) exceeds ``threshold``
     (m) is marked in ``out``. The running means as numpy's cumsum and divide form them."""
-    for g in range(starts.shape[0] // 2):
-        a, b = starts[2 * g], starts[2 * g + 1]
-        n = b - a
-        r = min(reach, n // 3)
-        for end in range(2):
-            total = 0.0
-            last = -1
-            for m in range(1, r + 1):
-                i = order[a + m - 1] if end == 0 else order[b - m]
-                total += res[i]
-                mean = total / m
-                if m >= run and mean > least and mean * np.sqrt(m) > threshold:
-                    last = m
-            for m in range(1, last + 1):
-                out[order[a + m - 1] if end == 0 else order[b - m]] = True
+    n = b - a
+    r = min(reach, n // 3)
+    for end in range(2):
+        total = 0.0
+        last = -1
+        for m in range(1, r + 1):
+            i = order[a + m - 1] if end == 0 else order[b - m]
+            total += res[i]
+            mean = total / m
+            if m >= run and mean > least and mean * np.sqrt(m) > threshold:
+                last = m
+        for m in range(1, last + 1):
+            out[order[a + m - 1] if end == 0 else order[b - m]] = True
+
+
+@njit(cache=True)
+def _numpy_mean(res: np.ndarray, idx: np.ndarray) -> float:
+    """np.mean(res[idx]) bit for bit, for up to 128 values: numpy's pairwise sum adds fewer
+    than 8 values in order from 0, up to 128 in 8 running sums combined as a tree."""
+    n = idx.shape[0]
+    if n > 128:
+        raise ValueError("_numpy_mean: more than 128 values")
+    if n < 8:
+        total = 0.0
+        for k in range(n):
+            total += res[idx[k]]
+        return total / n
+    acc = np.empty(8)
+    for k in range(8):
+        acc[k] = res[idx[k]]
+    k = 8
+    while k < n - n % 8:
+        for q in range(8):
+            acc[q] += res[idx[k + q]]
+        k += 8
+    total = ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]))
+    while k < n:
+        total += res[idx[k]]
+        k += 1
+    return total / n
+
+
+@njit(cache=True)
+def behind_groups(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, res: np.ndarray,
+                  run: int, reach: int, least: float, threshold: float) -> np.ndarray:
+    """`align.rays._behind_ends` after its sort: ``order`` lists the hits by scan, laser and
+    azimuth; each group (a laser in a scan) of at least ``run`` and fewer than 3 ``run`` hits
+    is marked whole where its mean range residual ``res`` (numpy's mean) exceeds ``least``
+    (m) and times sqrt(its size) exceeds ``threshold`` (m); a longer one from each end
+    (`_behind_run`). A mask over ``res``. One walk (the numpy version's group bounds and
+    python loop over the short groups cost 3x)."""
+    out = np.zeros(res.shape[0], dtype=np.bool_)
+    n = order.shape[0]
+    a = 0
+    while a < n:
+        key = np.int64(scan[order[a]]) * 256 + laser[order[a]]
+        b = a + 1
+        while b < n and np.int64(scan[order[b]]) * 256 + laser[order[b]] == key:
+            b += 1
+        size = b - a
+        if run <= size < 3 * run:
+            mean = _numpy_mean(res, order[a:b])
+            if mean > least and mean * np.sqrt(size) > threshold:
+                out[order[a:b]] = True
+        elif size >= 3 * run:
+            _behind_run(order, a, b, res, run, reach, least, threshold, out)
+        a = b
+    return out
 
 
 @njit(cache=True)

@@ -42,7 +42,7 @@ import numpy as np
 from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
 from align.fit_kernels import (
-    behind_runs,
+    behind_groups,
     between_hits,
     board_spans,
     classify_edges,
@@ -249,29 +249,15 @@ def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
     run from an end whose mean residual is `BEHIND_SIGMAS` standard errors and `BEHIND_MIN`
     behind is not the board. ``order``: all rays by scan, laser and azimuth, if the caller has
     it (the hits in that order are the hits sorted alike: the sort is stable)."""
-    out = np.zeros(len(lab), dtype=bool)
     if order is None:
         order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
     order = order[lab[order] == HIT]
-    if not len(order):
-        return out
-    key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
-    bounds = np.concatenate(([0], np.flatnonzero(key[1:] != key[:-1]) + 1, [len(order)]))
-    size = np.diff(bounds)
-    for g in np.flatnonzero((size >= BEHIND_RUN) & (size < 3 * BEHIND_RUN)):
-        # too few to test from each end: a laser that meets only a stand's post or a holder
-        # below or above the board (a few returns 4 cm behind, each within the noise) is
-        # tested whole; left as hits, they pull a grazed edge onto the post
-        grp = order[bounds[g]:bounds[g + 1]]
-        mean = float(res[grp].mean())
-        if mean > BEHIND_MIN and mean * math.sqrt(len(grp)) > BEHIND_SIGMAS * sigma_r:
-            out[grp] = True
-    # the others from each end, compiled (`align.fit_kernels.behind_runs`)
-    long = np.flatnonzero(size >= 3 * BEHIND_RUN)
-    behind_runs(order, np.column_stack((bounds[long], bounds[long + 1])).ravel(),
-                np.asarray(res, dtype=np.float64), BEHIND_RUN, BEHIND_REACH, BEHIND_MIN,
-                BEHIND_SIGMAS * sigma_r, out)
-    return out
+    # groups too few to test from each end are tested whole: a laser that meets only a
+    # stand's post or a holder below or above the board (a few returns 4 cm behind, each
+    # within the noise); left as hits, they pull a grazed edge onto the post. The others from
+    # each end. Compiled (`align.fit_kernels.behind_groups`).
+    return behind_groups(order, rays.scan, rays.laser, np.asarray(res, dtype=np.float64),
+                         BEHIND_RUN, BEHIND_REACH, BEHIND_MIN, BEHIND_SIGMAS * sigma_r)
 
 
 def _between_hits(rays: _Rays, lab: np.ndarray, order: np.ndarray | None = None

@@ -693,3 +693,16 @@ def test_used_edges_and_contradicted_match_numpy_on_real_scans(models):
                             + np.sum((lab == rays_mod.MISS) & deep))
                 assert rays_mod._contradicted(model, t, margin) == count
         model.classify(theta, 0.002, True)
+
+
+def test_numpy_mean_is_np_mean_bit_for_bit():
+    """`fit_kernels._numpy_mean` (the short groups' mean in `behind_groups`) is np.mean of the
+    gathered values bit for bit, for every size up to 128."""
+    from align.fit_kernels import _numpy_mean
+
+    rng = np.random.default_rng(13)
+    res = rng.normal(0.0, 0.01, 400) + rng.choice([0.0, 0.03], 400)
+    for n in range(1, 129):
+        for _ in range(20):
+            idx = rng.choice(len(res), n, replace=False)
+            assert _numpy_mean(res, idx) == float(res[idx].mean())
