@@ -1,12 +1,14 @@
 """Compiled kernels of the pose fit (numba, ``cache=True``; `scenarios.warmup` compiles them
-ahead): the roll search's sliding windows and the joint fit's bookkeeping.
+ahead): the roll search's sliding windows and the joint fit's bookkeeping and loops.
 
-Each replaces a numpy version whose cost was python overhead or sorting, not arithmetic. They
+Each replaces a numpy version whose cost was python overhead or sorting, not arithmetic. Most
 take the floats numpy computed (board coordinates, range residuals) and do on them only
 comparisons, counts and the same elementwise operations in the same order (numba neither
 contracts nor reorders floating-point arithmetic without ``fastmath``), so they give bit for
-bit what the numpy versions gave. tests/test_fit_kernels.py checks each against its numpy
-reference.
+bit what the numpy versions gave. Two are whole iterative fits, `lm_fit` (the joint
+Levenberg-Marquardt) and `ray_plane_fit` (`align.plane.fit_rays`): they sum products per ray
+where numpy called BLAS, so they agree with the numpy loops to rounding only.
+tests/test_fit_kernels.py checks each against its numpy reference.
 """
 
 from __future__ import annotations
