@@ -1,12 +1,14 @@
 """Compiled kernels of the pose fit (numba, ``cache=True``; `scenarios.warmup` compiles them
-ahead): the roll search's sliding windows and the joint fit's bookkeeping.
+ahead): the roll search's sliding windows and the joint fit's bookkeeping and loops.
 
-Each replaces a numpy version whose cost was python overhead or sorting, not arithmetic. They
+Each replaces a numpy version whose cost was python overhead or sorting, not arithmetic. Most
 take the floats numpy computed (board coordinates, range residuals) and do on them only
 comparisons, counts and the same elementwise operations in the same order (numba neither
 contracts nor reorders floating-point arithmetic without ``fastmath``), so they give bit for
-bit what the numpy versions gave. tests/test_fit_kernels.py checks each against its numpy
-reference.
+bit what the numpy versions gave. Two are whole iterative fits, `lm_fit` (the joint
+Levenberg-Marquardt) and `ray_plane_fit` (`align.plane.fit_rays`): they sum products per ray
+where numpy called BLAS, so they agree with the numpy loops to rounding only.
+tests/test_fit_kernels.py checks each against its numpy reference.
 """
 
 from __future__ import annotations
@@ -297,29 +299,80 @@ def jacobian_rotations(theta: np.ndarray, step: float) -> np.ndarray:
 
 
 @njit(cache=True)
-def behind_runs(order: np.ndarray, starts: np.ndarray, res: np.ndarray, run: int, reach: int,
+def _behind_run(order: np.ndarray, a: int, b: int, res: np.ndarray, run: int, reach: int,
                 least: float, threshold: float, out: np.ndarray) -> None:
-    """`align.rays._behind_ends` on the long groups: ``order`` lists the hits by scan, laser and
-    azimuth, ``starts`` where each group (a laser in a scan) of at least 3 ``run`` hits begins
-    and ends (``starts[2 g]``, ``starts[2 g + 1]``). From each end of a group, the longest run
-    of at most min(``reach``, size // 3) hits, at least ``run`` long, whose mean range residual
+    """One long group ``order[a:b]`` of `behind_groups`: from each end, the longest run of at
+    most min(``reach``, size // 3) hits, at least ``run`` long, whose mean range residual
     ``res`` exceeds ``least`` (m) and whose mean times sqrt(its length) exceeds ``threshold``
     (m) is marked in ``out``. The running means as numpy's cumsum and divide form them."""
-    for g in range(starts.shape[0] // 2):
-        a, b = starts[2 * g], starts[2 * g + 1]
-        n = b - a
-        r = min(reach, n // 3)
-        for end in range(2):
-            total = 0.0
-            last = -1
-            for m in range(1, r + 1):
-                i = order[a + m - 1] if end == 0 else order[b - m]
-                total += res[i]
-                mean = total / m
-                if m >= run and mean > least and mean * np.sqrt(m) > threshold:
-                    last = m
-            for m in range(1, last + 1):
-                out[order[a + m - 1] if end == 0 else order[b - m]] = True
+    n = b - a
+    r = min(reach, n // 3)
+    for end in range(2):
+        total = 0.0
+        last = -1
+        for m in range(1, r + 1):
+            i = order[a + m - 1] if end == 0 else order[b - m]
+            total += res[i]
+            mean = total / m
+            if m >= run and mean > least and mean * np.sqrt(m) > threshold:
+                last = m
+        for m in range(1, last + 1):
+            out[order[a + m - 1] if end == 0 else order[b - m]] = True
+
+
+@njit(cache=True)
+def _numpy_mean(res: np.ndarray, idx: np.ndarray) -> float:
+    """np.mean(res[idx]) bit for bit, for up to 128 values: numpy's pairwise sum adds fewer
+    than 8 values in order from 0, up to 128 in 8 running sums combined as a tree."""
+    n = idx.shape[0]
+    if n > 128:
+        raise ValueError("_numpy_mean: more than 128 values")
+    if n < 8:
+        total = 0.0
+        for k in range(n):
+            total += res[idx[k]]
+        return total / n
+    acc = np.empty(8)
+    for k in range(8):
+        acc[k] = res[idx[k]]
+    k = 8
+    while k < n - n % 8:
+        for q in range(8):
+            acc[q] += res[idx[k + q]]
+        k += 8
+    total = ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7]))
+    while k < n:
+        total += res[idx[k]]
+        k += 1
+    return total / n
+
+
+@njit(cache=True)
+def behind_groups(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, res: np.ndarray,
+                  run: int, reach: int, least: float, threshold: float) -> np.ndarray:
+    """`align.rays._behind_ends` after its sort: ``order`` lists the hits by scan, laser and
+    azimuth; each group (a laser in a scan) of at least ``run`` and fewer than 3 ``run`` hits
+    is marked whole where its mean range residual ``res`` (numpy's mean) exceeds ``least``
+    (m) and times sqrt(its size) exceeds ``threshold`` (m); a longer one from each end
+    (`_behind_run`). A mask over ``res``. One walk (the numpy version's group bounds and
+    python loop over the short groups cost 3x)."""
+    out = np.zeros(res.shape[0], dtype=np.bool_)
+    n = order.shape[0]
+    a = 0
+    while a < n:
+        key = np.int64(scan[order[a]]) * 256 + laser[order[a]]
+        b = a + 1
+        while b < n and np.int64(scan[order[b]]) * 256 + laser[order[b]] == key:
+            b += 1
+        size = b - a
+        if run <= size < 3 * run:
+            mean = _numpy_mean(res, order[a:b])
+            if mean > least and mean * np.sqrt(size) > threshold:
+                out[order[a:b]] = True
+        elif size >= 3 * run:
+            _behind_run(order, a, b, res, run, reach, least, threshold, out)
+        a = b
+    return out
 
 
 @njit(cache=True)
@@ -422,3 +475,385 @@ def classify_edges(x: np.ndarray, z: np.ndarray, bh: np.ndarray, bm: np.ndarray,
                 k = 0
         kind[i] = 0 if excluded[i] else k
     return kind, sign, sd
+
+
+@njit(cache=True)
+def _residuals_into(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
+                    d_r: np.ndarray, offset: float, sigma_r: float, oh: np.ndarray,
+                    uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
+                    sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
+                    out: np.ndarray) -> None:
+    """`align.kernels._fit_residuals` (`align.rays._Model.residuals` into ``out``), the same
+    expressions. A copy on purpose, as `rotation` is: numba's cache checks only a kernel's own
+    file, and `lm_fit` calls it (tests/test_fit_kernels.py holds the two equal bit for bit)."""
+    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
+    t0, t1, t2 = theta[0], theta[1], theta[2]
+    nr = o_r.shape[0]
+    for i in range(nr):
+        lam = -(o_r[i, 0] * r10 + o_r[i, 1] * r11 + o_r[i, 2] * r12 + t1) / (
+            u_r[i, 0] * r10 + u_r[i, 1] * r11 + u_r[i, 2] * r12)
+        out[i] = (d_r[i] - offset - lam) / sigma_r
+    for i in range(oh.shape[0]):
+        dh0 = uh[i, 0] * rot[0, 0] + uh[i, 1] * rot[0, 1] + uh[i, 2] * rot[0, 2]
+        dh1 = uh[i, 0] * r10 + uh[i, 1] * r11 + uh[i, 2] * r12
+        dh2 = uh[i, 0] * rot[2, 0] + uh[i, 1] * rot[2, 1] + uh[i, 2] * rot[2, 2]
+        oh0 = oh[i, 0] * rot[0, 0] + oh[i, 1] * rot[0, 1] + oh[i, 2] * rot[0, 2] + t0
+        oh1 = oh[i, 0] * r10 + oh[i, 1] * r11 + oh[i, 2] * r12 + t1
+        oh2 = oh[i, 0] * rot[2, 0] + oh[i, 1] * rot[2, 1] + oh[i, 2] * rot[2, 2] + t2
+        lh = -oh1 / dh1
+        dm0 = um[i, 0] * rot[0, 0] + um[i, 1] * rot[0, 1] + um[i, 2] * rot[0, 2]
+        dm1 = um[i, 0] * r10 + um[i, 1] * r11 + um[i, 2] * r12
+        dm2 = um[i, 0] * rot[2, 0] + um[i, 1] * rot[2, 1] + um[i, 2] * rot[2, 2]
+        om0 = om[i, 0] * rot[0, 0] + om[i, 1] * rot[0, 1] + om[i, 2] * rot[0, 2] + t0
+        om1 = om[i, 0] * r10 + om[i, 1] * r11 + om[i, 2] * r12 + t1
+        om2 = om[i, 0] * rot[2, 0] + om[i, 1] * rot[2, 1] + om[i, 2] * rot[2, 2] + t2
+        lm = -om1 / dm1
+        s = sgn[i]
+        if vert[i]:
+            ext = thick * max(0.0, -s * dh0 / dh1)
+            e = s * (w2 + ext) - 0.5 * ((oh0 + lh * dh0) + (om0 + lm * dm0))
+        else:
+            ext = thick * max(0.0, -s * dh2 / dh1)
+            e = s * (h2 + ext) - 0.5 * ((oh2 + lh * dh2) + (om2 + lm * dm2))
+        out[nr + i] = e / sd[i]
+
+
+@njit(cache=True)
+def _jacobian_into(theta: np.ndarray, f0: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
+                   d_r: np.ndarray, offset: float, sigma_r: float, oh: np.ndarray,
+                   uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
+                   sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
+                   step: float, j: np.ndarray, f: np.ndarray) -> None:
+    """`align.kernels.fit_jacobian` (d residuals / d theta at ``theta``, residuals ``f0``) into
+    the first six columns of ``j``, the same expressions; ``f``: scratch of the residuals'
+    length. A copy for the reason `_residuals_into` gives."""
+    rots = jacobian_rotations(theta, step)
+    nr = o_r.shape[0]
+    nb = oh.shape[0]
+    r0, r1, r2 = rots[0, 0], rots[0, 1], rots[0, 2]
+    for i in range(nr):
+        j[i, 0] = 0.0
+        j[i, 1] = (1.0 / (u_r[i, 0] * r1[0] + u_r[i, 1] * r1[1] + u_r[i, 2] * r1[2])) / sigma_r
+        j[i, 2] = 0.0
+    for i in range(nb):
+        dlh = -1.0 / (uh[i, 0] * r1[0] + uh[i, 1] * r1[1] + uh[i, 2] * r1[2])
+        dlm = -1.0 / (um[i, 0] * r1[0] + um[i, 1] * r1[1] + um[i, 2] * r1[2])
+        if vert[i]:
+            j[nr + i, 0] = -1.0 / sd[i]
+            j[nr + i, 2] = 0.0 / sd[i]
+            xh_t = dlh * (uh[i, 0] * r0[0] + uh[i, 1] * r0[1] + uh[i, 2] * r0[2])
+            xm_t = dlm * (um[i, 0] * r0[0] + um[i, 1] * r0[1] + um[i, 2] * r0[2])
+            j[nr + i, 1] = -0.5 * (xh_t + xm_t) / sd[i]
+        else:
+            j[nr + i, 0] = 0.0 / sd[i]
+            j[nr + i, 2] = -1.0 / sd[i]
+            zh_t = dlh * (uh[i, 0] * r2[0] + uh[i, 1] * r2[1] + uh[i, 2] * r2[2])
+            zm_t = dlm * (um[i, 0] * r2[0] + um[i, 1] * r2[1] + um[i, 2] * r2[2])
+            j[nr + i, 1] = -0.5 * (zh_t + zm_t) / sd[i]
+    t = theta.copy()
+    for k in range(3):
+        t[:] = theta
+        t[3 + k] += step
+        _residuals_into(t, rots[1 + k], o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn,
+                        sd, vert, w2, h2, thick, f)
+        for i in range(nr + nb):
+            j[i, 3 + k] = (f[i] - f0[i]) / step
+
+
+@njit(cache=True)
+def _lm_residuals(p: np.ndarray, fit_b: bool, offset: float, b0: float, sb: float,
+                  o_r: np.ndarray, u_r: np.ndarray, d_r: np.ndarray, sigma_r: float,
+                  oh: np.ndarray, uh: np.ndarray, om: np.ndarray, um: np.ndarray,
+                  sgn: np.ndarray, sd: np.ndarray, vert: np.ndarray, w2: float, h2: float,
+                  thick: float) -> np.ndarray:
+    """`align.rays._gauss_newton`'s residuals at ``p``: the model's, and with the offset fitted
+    (``fit_b``: p[6] the offset) its prior's (p[6] - b0) / sb last; else at ``offset``."""
+    n = o_r.shape[0] + oh.shape[0]
+    f = np.empty(n + 1 if fit_b else n)
+    t = p[:6].copy()
+    off = p[6] if fit_b else offset
+    _residuals_into(t, rotation(t[3], t[4], t[5]), o_r, u_r, d_r, off, sigma_r, oh, uh, om,
+                    um, sgn, sd, vert, w2, h2, thick, f)
+    if fit_b:
+        f[n] = (p[6] - b0) / sb
+    return f
+
+
+@njit(cache=True)
+def _lm_jacobian(p: np.ndarray, f: np.ndarray, fit_b: bool, offset: float, sb: float,
+                 o_r: np.ndarray, u_r: np.ndarray, d_r: np.ndarray, sigma_r: float,
+                 oh: np.ndarray, uh: np.ndarray, om: np.ndarray, um: np.ndarray,
+                 sgn: np.ndarray, sd: np.ndarray, vert: np.ndarray, w2: float, h2: float,
+                 thick: float, step: float) -> np.ndarray:
+    """`align.rays._gauss_newton`'s Jacobian at ``p`` (residuals ``f``): six columns, and with
+    the offset fitted a seventh (-1 / sigma_r for the ranges, 1 / sb for its prior)."""
+    n = o_r.shape[0] + oh.shape[0]
+    n_p = 7 if fit_b else 6
+    j = np.zeros((f.shape[0], n_p))
+    off = p[6] if fit_b else offset
+    _jacobian_into(p[:6].copy(), f, o_r, u_r, d_r, off, sigma_r, oh, uh, om, um, sgn, sd,
+                   vert, w2, h2, thick, step, j, np.empty(n))
+    if fit_b:
+        for i in range(o_r.shape[0]):
+            j[i, 6] = -1.0 / sigma_r
+        j[n, 6] = 1.0 / sb
+    return j
+
+
+@njit(cache=True)
+def _normal_equations(j: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """J^T J and J^T f, summed row by row (both symmetric halves from one product)."""
+    n_p = j.shape[1]
+    a = np.zeros((n_p, n_p))
+    g = np.zeros(n_p)
+    for i in range(j.shape[0]):
+        for r in range(n_p):
+            jr = j[i, r]
+            g[r] += jr * f[i]
+            for c in range(r + 1):
+                a[r, c] += jr * j[i, c]
+    for r in range(n_p):
+        for c in range(r):
+            a[c, r] = a[r, c]
+    return a, g
+
+
+@njit(cache=True)
+def _small_steps(step: np.ndarray, sd: np.ndarray, slack: float) -> bool:
+    """Every |step| below a hundredth of its parameter's sigma plus ``slack``."""
+    return bool(np.all(np.abs(step) < 1e-2 * sd + slack))
+
+
+@njit(cache=True)
+def lm_fit(theta: np.ndarray, fit_b: bool, offset: float, b0: float, sb: float,
+           o_r: np.ndarray, u_r: np.ndarray, d_r: np.ndarray, sigma_r: float, oh: np.ndarray,
+           uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray, sd: np.ndarray,
+           vert: np.ndarray, w2: float, h2: float, thick: float, step: float, max_iter: int
+           ) -> tuple[np.ndarray, np.ndarray, bool, int]:
+    """`align.rays._gauss_newton`'s Levenberg-Marquardt loop, whole: returns (p, J, converged,
+    iterations), p the six pose parameters and with ``fit_b`` the offset seventh (its prior
+    (b0, sb)); else the offset is held at ``offset``. The arrays are `_Model._fit_arrays`'.
+    The same steps as the python loop; the normal equations summed here rather than by BLAS,
+    so the numbers agree to rounding (1e-12), not bit for bit. One call instead of a dozen
+    numpy calls per step: the python overhead was two thirds of the loop's time."""
+    n_p = 7 if fit_b else 6
+    p = np.empty(n_p)
+    p[:6] = theta
+    if fit_b:
+        p[6] = offset
+    lam = 1e-6
+    f = _lm_residuals(p, fit_b, offset, b0, sb, o_r, u_r, d_r, sigma_r, oh, uh, om, um, sgn,
+                      sd, vert, w2, h2, thick)
+    cost = f @ f
+    j = _lm_jacobian(p, f, fit_b, offset, sb, o_r, u_r, d_r, sigma_r, oh, uh, om, um, sgn, sd,
+                     vert, w2, h2, thick, step)
+    it = 0
+    for it in range(1, max_iter + 1):
+        a, g = _normal_equations(j, f)
+        diag, ok = inverse_diagonal(a)
+        if not ok:
+            diag = np.diag(np.linalg.pinv(a))
+        psd = np.sqrt(np.maximum(diag, 1e-18))
+        while True:
+            m = a.copy()
+            for k in range(n_p):
+                m[k, k] = (a[k, k] + lam * a[k, k]) + 1e-12
+            dp = np.linalg.solve(m, -g)
+            trial = p + dp
+            f_new = _lm_residuals(trial, fit_b, offset, b0, sb, o_r, u_r, d_r, sigma_r, oh, uh,
+                                  om, um, sgn, sd, vert, w2, h2, thick)
+            c_new = f_new @ f_new
+            if c_new <= cost * (1 + 1e-12):
+                break
+            lam *= 10
+            if lam > 1e8:
+                return p, j, _small_steps(dp, psd, 0.0), it
+        p, f, cost = trial, f_new, c_new
+        lam = max(lam / 10, 1e-9)
+        j = _lm_jacobian(p, f, fit_b, offset, sb, o_r, u_r, d_r, sigma_r, oh, uh, om, um, sgn,
+                         sd, vert, w2, h2, thick, step)
+        if _small_steps(dp, psd, 1e-10):
+            return p, j, True, it
+    return p, j, False, it
+
+
+@njit(cache=True)
+def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`align.plane.tangent_basis`: e1 = n x e_z (n x e_x for a vertical n), e2 = n x e1."""
+    e1 = np.array([n[1], -n[0], 0.0])
+    if np.linalg.norm(e1) < 1e-6:
+        e1 = np.array([0.0, n[2], -n[1]])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.array([n[1] * e1[2] - n[2] * e1[1], n[2] * e1[0] - n[0] * e1[2],
+                   n[0] * e1[1] - n[1] * e1[0]])
+    return e1, e2
+
+
+@njit(cache=True)
+def _dot3(a: np.ndarray, i: int, v: np.ndarray) -> float:
+    """Row ``i`` of ``a`` (N, 3) dotted with the 3-vector ``v``."""
+    return a[i, 0] * v[0] + a[i, 1] * v[1] + a[i, 2] * v[2]
+
+
+@njit(cache=True)
+def ray_plane_fit(ranges: np.ndarray, origins: np.ndarray, dirs: np.ndarray, n0: np.ndarray,
+                  d0: float, iterations: int, tol: float, sigma_floor: float
+                  ) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """`align.plane.fit_rays`, whole: Gauss-Newton on the range residuals along the rays, the
+    steps by least squares (LAPACK's gelsd with numpy's default rcond, as np.linalg.lstsq),
+    the covariance from the last iterate's Jacobian, the plane flipped to d >= 0. The products
+    with n, e1, e2 summed per ray rather than by BLAS: equal to rounding. One call instead of
+    two dozen numpy calls per iteration (their overhead was most of the fit's time)."""
+    m = ranges.shape[0]
+    n = n0 / np.linalg.norm(n0)
+    d = d0
+    j = np.empty((m, 3))
+    res = np.empty(m)
+    rcond = np.finfo(np.float64).eps * max(m, 3)
+    for _ in range(iterations):
+        e1, e2 = _tangent_basis(n)
+        for i in range(m):
+            un = _dot3(dirs, i, n)
+            pred = (d - _dot3(origins, i, n)) / un
+            res[i] = ranges[i] - pred
+            j[i, 0] = -(_dot3(origins, i, e1) + pred * _dot3(dirs, i, e1)) / un
+            j[i, 1] = -(_dot3(origins, i, e2) + pred * _dot3(dirs, i, e2)) / un
+            j[i, 2] = 1.0 / un
+        step = np.linalg.lstsq(j, res, rcond)[0]
+        n = n + step[0] * e1 + step[1] * e2
+        n /= np.linalg.norm(n)
+        d += step[2]
+        if np.max(np.abs(step)) < tol:
+            break
+    ss = 0.0
+    for i in range(m):
+        r = ranges[i] - (d - _dot3(origins, i, n)) / _dot3(dirs, i, n)
+        ss += r * r
+    sigma = max(np.sqrt(ss / max(m - 3, 1)), sigma_floor)
+    cov = sigma**2 * np.linalg.pinv(j.T @ j)
+    if d < 0:  # facing away from the LiDAR: alpha (e1 flips with n) and d change sign
+        n, d = -n, -d
+        flip = np.array([-1.0, 1.0, -1.0])
+        cov = cov * np.outer(flip, flip)
+    return n, d, cov, sigma
+
+
+@njit(cache=True)
+def between_hits(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, hit: np.ndarray
+                 ) -> np.ndarray:
+    """`align.rays._between_hits`: the rays with a hit (``hit``) of the same laser in the same
+    scan on either side of them, ``order`` listing the rays by scan, laser and azimuth. One
+    walk over each group (the numpy version's cumsums, bincount and gathers cost 5x)."""
+    n = order.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    a = 0
+    while a < n:
+        key = np.int64(scan[order[a]]) * 256 + laser[order[a]]
+        b, total = a, 0
+        while b < n and np.int64(scan[order[b]]) * 256 + laser[order[b]] == key:
+            total += 1 if hit[order[b]] else 0
+            b += 1
+        before = 0
+        for p in range(a, b):
+            i = order[p]
+            h = 1 if hit[i] else 0
+            out[i] = before >= 1 and total - before - h >= 1
+            before += h
+        a = b
+    return out
+
+
+@njit(cache=True)
+def board_spans(ls: np.ndarray, az: np.ndarray, hit: np.ndarray, zone: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._board_spans`: per laser the first and last position (in the rays sorted by
+    laser ``ls`` and azimuth ``az``) of its longest run of hits (``hit``), a run ending where
+    the next hit is another laser's or more than ``zone`` (rad) away; of equally long runs the
+    last (as the numpy version's stable sort by size writes it last). -1 without hits."""
+    n_l = ls.max() + 1 if ls.shape[0] else 0
+    first = np.full(n_l, -1, dtype=np.int64)
+    last = np.full(n_l, -1, dtype=np.int64)
+    best = np.zeros(n_l, dtype=np.int64)
+    start, size, prev = -1, 0, -1
+    for p in range(ls.shape[0] + 1):
+        if p < ls.shape[0] and not hit[p]:
+            continue
+        if prev >= 0 and (p == ls.shape[0] or ls[p] != ls[prev] or az[p] - az[prev] > zone):
+            k = ls[prev]
+            if size >= best[k]:  # a run closes: the longest so far (ties: the later)
+                best[k], first[k], last[k] = size, start, prev
+            size = 0
+        if p == ls.shape[0]:
+            break
+        if size == 0:
+            start = p
+        size += 1
+        prev = p
+    return first, last
+
+
+@njit(cache=True)
+def range_rays(x: np.ndarray, z: np.ndarray, lam: np.ndarray, origin: np.ndarray,
+               direction: np.ndarray, distance: np.ndarray, hit: np.ndarray, offset: float,
+               w_in: float, h_in: float, limit: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`align.rays._Model.assign`: the hits (``hit``) with |x| < ``w_in`` and |z| < ``h_in``
+    whose range residual distance - offset - lam is below ``limit`` (m) in size; the mask and
+    their origins, directions and ranges, contiguous. One pass (the numpy version's masks and
+    three gathers cost 4x)."""
+    n = x.shape[0]
+    use = np.zeros(n, dtype=np.bool_)
+    count = 0
+    for i in range(n):
+        if hit[i] and abs(x[i]) < w_in and abs(z[i]) < h_in and abs(
+                distance[i] - offset - lam[i]) < limit:
+            use[i] = True
+            count += 1
+    o = np.empty((count, 3))
+    u = np.empty((count, 3))
+    d = np.empty(count)
+    k = 0
+    for i in range(n):
+        if use[i]:
+            o[k] = origin[i]
+            u[k] = direction[i]
+            d[k] = distance[i]
+            k += 1
+    return use, o, u, d
+
+
+@njit(cache=True)
+def used_edges(kind: np.ndarray, oh: np.ndarray, uh: np.ndarray, om: np.ndarray,
+               um: np.ndarray, sign: np.ndarray, sd: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                          np.ndarray, np.ndarray]:
+    """`align.rays._Model._cache_edges`: the brackets of ``kind`` > 0, their hit rays (``oh``,
+    ``uh``), miss rays (``om``, ``um``), signs, sigmas and whether each is a side edge (kind 1),
+    contiguous, in one pass (seven numpy gathers cost 5x)."""
+    n = 0
+    for i in range(kind.shape[0]):
+        if kind[i] > 0:
+            n += 1
+    a, b, c, d = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+    s, e, v = np.empty(n), np.empty(n), np.empty(n, dtype=np.bool_)
+    k = 0
+    for i in range(kind.shape[0]):
+        if kind[i] > 0:
+            a[k], b[k], c[k], d[k] = oh[i], uh[i], om[i], um[i]
+            s[k], e[k], v[k] = sign[i], sd[i], kind[i] == 1
+            k += 1
+    return a, b, c, d, s, e, v
+
+
+@njit(cache=True)
+def contradicted(x: np.ndarray, z: np.ndarray, lab: np.ndarray, hit: int, miss: int,
+                 w2: float, h2: float, margin: float) -> int:
+    """`align.rays._contradicted`: the hits (label ``hit``) outside the rectangle of half sizes
+    ``w2``, ``h2`` grown by ``margin`` (m), and the misses (``miss``) inside it shrunk by it."""
+    n = 0
+    for i in range(x.shape[0]):
+        ax, az = abs(x[i]), abs(z[i])
+        outside = ax > w2 + margin or az > h2 + margin
+        deep = ax < w2 - margin and az < h2 - margin
+        n += (lab[i] == hit and outside) or (lab[i] == miss and deep)
+    return n

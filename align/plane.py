@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from align.fit_kernels import ray_plane_fit
+
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a x b for two 3-vectors (np.cross's overhead dominates at this size)."""
@@ -100,33 +102,14 @@ def fit_rays(
     n + alpha e1 + beta e2 of n (e1, e2 = `tangent_basis` (n)) and for d, scaled by the residual
     variance sigma^2 (m^2) estimated from the fit, at least ``sigma_floor``^2.
     """
-    n, d = n0 / np.linalg.norm(n0), float(d0)
-    for _ in range(iterations):
-        e1, e2 = tangent_basis(n)  # n' = n + a e1 + b e2 (then renormalised)
-        un = dirs @ n
-        pred = (d - origins @ n) / un
-        res = ranges - pred
-        # d pred / d n . e = -(o.e) / un - (d - o.n)(u.e) / un^2 = -(o.e + pred u.e) / un
-        j = np.empty((len(ranges), 3))
-        j[:, 0] = -(origins @ e1 + pred * (dirs @ e1)) / un
-        j[:, 1] = -(origins @ e2 + pred * (dirs @ e2)) / un
-        j[:, 2] = 1.0 / un
-        step, *_ = np.linalg.lstsq(j, res, rcond=None)
-        n = n + step[0] * e1 + step[1] * e2
-        n /= np.linalg.norm(n)
-        d += step[2]
-        if np.max(np.abs(step)) < tol:
-            break
-    pred = predicted_range(n, d, origins, dirs)
-    res = ranges - pred
-    dof = max(len(ranges) - 3, 1)
-    sigma = max(float(np.sqrt(res @ res / dof)), sigma_floor)
-    cov = sigma**2 * np.linalg.pinv(j.T @ j)
-    if d < 0:  # flipped to face away from the LiDAR: alpha (e1 flips with n) and d change sign
-        n, d = -n, -d
-        flip = np.array([-1.0, 1.0, -1.0])
-        cov = cov * np.outer(flip, flip)
-    return n, d, cov, sigma
+    # the Gauss-Newton loop compiled (`align.fit_kernels.ray_plane_fit`): at a few hundred
+    # rays, numpy's per-call overhead was most of its time
+    n, d, cov, sigma = ray_plane_fit(
+        np.ascontiguousarray(ranges, dtype=np.float64),
+        np.ascontiguousarray(origins, dtype=np.float64),
+        np.ascontiguousarray(dirs, dtype=np.float64), np.asarray(n0, dtype=np.float64),
+        float(d0), max(int(iterations), 1), float(tol), float(sigma_floor))
+    return n, float(d), cov, float(sigma)
 
 
 def _design(ranges: np.ndarray, origins: np.ndarray, dirs: np.ndarray, n: np.ndarray, d: float

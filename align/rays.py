@@ -42,13 +42,18 @@ import numpy as np
 from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
 from align.fit_kernels import (
-    behind_runs,
+    behind_groups,
+    between_hits,
+    board_spans,
     classify_edges,
     column_brackets,
+    contradicted,
     edge_brackets,
-    inverse_diagonal,
     jacobian_rotations,
+    lm_fit,
     profile_cost,
+    range_rays,
+    used_edges,
     window_firings,
 )
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
@@ -212,8 +217,10 @@ def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     # in front: something before the board; just behind (beyond the noise, within the label
     # tolerance): the board's noise or a thing close behind it (a stand's clamp): unknown
     lab[ret & ((res < -near) | ((res > near) & (res <= LABEL_TOLERANCE)))] = UNKNOWN
-    lab[_behind_ends(rays, lab, res, sigma_r)] = UNKNOWN
-    inner = _between_hits(rays, lab) & ~ret
+    # one sort for both: the rays by scan, laser and azimuth (the hits' order is its subset)
+    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    lab[_behind_ends(rays, lab, res, sigma_r, order)] = UNKNOWN
+    inner = _between_hits(rays, lab, order) & ~ret
     hits = int(np.count_nonzero(lab == HIT))
     if np.count_nonzero(inner) >= max(MIN_DROPOUTS, DROPOUT_FRACTION * hits):
         lab[~ret] = DROPOUT
@@ -231,7 +238,8 @@ BEHIND_REACH = 40
 BEHIND_RUN = 3
 
 
-def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float) -> np.ndarray:
+def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
+                 order: np.ndarray | None = None) -> np.ndarray:
     """The hits at either end of a laser's run on the board (per scan, by azimuth) that lie
     behind the plane as a group: a mask over the rays.
 
@@ -239,44 +247,27 @@ def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float) 
     tolerance of the plane, each return alone within the noise; as hits it would move that
     laser's edge outwards by its width. Together its returns are clearly behind: the longest
     run from an end whose mean residual is `BEHIND_SIGMAS` standard errors and `BEHIND_MIN`
-    behind is not the board."""
-    out = np.zeros(len(lab), dtype=bool)
-    hit = np.flatnonzero(lab == HIT)
-    if not len(hit):
-        return out
-    order = hit[np.lexsort((rays.azimuth[hit], rays.laser[hit], rays.scan[hit]))]
-    key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
-    bounds = np.concatenate(([0], np.flatnonzero(key[1:] != key[:-1]) + 1, [len(order)]))
-    size = np.diff(bounds)
-    for g in np.flatnonzero((size >= BEHIND_RUN) & (size < 3 * BEHIND_RUN)):
-        # too few to test from each end: a laser that meets only a stand's post or a holder
-        # below or above the board (a few returns 4 cm behind, each within the noise) is
-        # tested whole; left as hits, they pull a grazed edge onto the post
-        grp = order[bounds[g]:bounds[g + 1]]
-        mean = float(res[grp].mean())
-        if mean > BEHIND_MIN and mean * math.sqrt(len(grp)) > BEHIND_SIGMAS * sigma_r:
-            out[grp] = True
-    # the others from each end, compiled (`align.fit_kernels.behind_runs`)
-    long = np.flatnonzero(size >= 3 * BEHIND_RUN)
-    behind_runs(order, np.column_stack((bounds[long], bounds[long + 1])).ravel(),
-                np.asarray(res, dtype=np.float64), BEHIND_RUN, BEHIND_REACH, BEHIND_MIN,
-                BEHIND_SIGMAS * sigma_r, out)
-    return out
+    behind is not the board. ``order``: all rays by scan, laser and azimuth, if the caller has
+    it (the hits in that order are the hits sorted alike: the sort is stable)."""
+    if order is None:
+        order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    order = order[lab[order] == HIT]
+    # groups too few to test from each end are tested whole: a laser that meets only a
+    # stand's post or a holder below or above the board (a few returns 4 cm behind, each
+    # within the noise); left as hits, they pull a grazed edge onto the post. The others from
+    # each end. Compiled (`align.fit_kernels.behind_groups`).
+    return behind_groups(order, rays.scan, rays.laser, np.asarray(res, dtype=np.float64),
+                         BEHIND_RUN, BEHIND_REACH, BEHIND_MIN, BEHIND_SIGMAS * sigma_r)
 
 
-def _between_hits(rays: _Rays, lab: np.ndarray) -> np.ndarray:
-    """Rays that lie between two hits of the same laser in the same scan (by azimuth)."""
-    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
-    key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
-    group = np.concatenate(([0], np.cumsum(key[1:] != key[:-1])))
-    is_hit = (lab[order] == HIT).astype(np.int64)
-    cum = np.cumsum(is_hit)
-    first = np.concatenate(([0], np.flatnonzero(key[1:] != key[:-1]) + 1))
-    before = cum - is_hit - (cum[first] - is_hit[first])[group]  # hits before, in the group
-    total = np.bincount(group, is_hit)[group]
-    out = np.zeros(len(lab), dtype=bool)
-    out[order] = (before >= 1) & (total - before - is_hit >= 1)
-    return out
+def _between_hits(rays: _Rays, lab: np.ndarray, order: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """Rays that lie between two hits of the same laser in the same scan (by azimuth).
+    ``order``: the rays by scan, laser and azimuth, if the caller has it. Compiled
+    (`align.fit_kernels.between_hits`)."""
+    if order is None:
+        order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    return between_hits(order, rays.scan, rays.laser, lab == HIT)
 
 
 def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -303,23 +294,7 @@ def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
     its longest run of hits, a run ending where the next hit is more than `ZONE_AZIMUTH` away:
     the board's span on that laser, not a stray beside it (a stand's part within the label
     tolerance of the plane, on the same ring). -1 for a laser without hits."""
-    n_l = int(ls.max()) + 1 if len(ls) else 0
-    first, last = np.full(n_l, -1), np.full(n_l, -1)
-    pos = np.flatnonzero(lb == HIT)
-    if not len(pos):
-        return first, last
-    new_run = np.concatenate(([True], (ls[pos[1:]] != ls[pos[:-1]])
-                              | (az[pos[1:]] - az[pos[:-1]] > ZONE_AZIMUTH)))
-    run = np.cumsum(new_run) - 1
-    size = np.bincount(run)
-    starts = pos[new_run]
-    ends = pos[np.concatenate((new_run[1:], [True]))]
-    best = np.full(n_l, -1)
-    for r in np.argsort(size, kind="stable"):  # the largest run of each laser written last
-        best[ls[starts[r]]] = r
-    have = best >= 0
-    first[have], last[have] = starts[best[have]], ends[best[have]]
-    return first, last
+    return board_spans(ls, az, lb == HIT, ZONE_AZIMUTH)  # compiled: a sort of the runs in numpy
 
 
 def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
@@ -363,6 +338,11 @@ class _Model:
         self.offset_prior: tuple[float, float] | None = None
         #: The last pose's board coordinates of all rays (`coords`): its bytes and (X, Z, lam).
         self._coords: tuple[bytes, tuple[np.ndarray, ...]] | None = None
+        #: The rays' products with the last rotation's rows (`_shifted_coords`): the bytes of
+        #: (t_y, roll, tilt, yaw) and (o.r0, lam u.r0, o.r2, lam u.r2, lam).
+        self._products: tuple[bytes, tuple[np.ndarray, ...]] | None = None
+        # the labels stay as built: their hits and misses, for every profile
+        self._hits, self._misses = np.flatnonzero(lab == HIT), np.flatnonzero(lab == MISS)
         self._cache_edges()
 
     def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -371,28 +351,43 @@ class _Model:
         theta = np.asarray(theta, dtype=np.float64)
         key = theta.tobytes()
         if self._coords is None or self._coords[0] != key:
-            self._coords = (key, board_coordinates(theta, self.rays.origin, self.rays.direction))
+            self._coords = (key, self._shifted_coords(theta))
         return self._coords[1]
+
+    def _shifted_coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`board_coordinates` at ``theta``, its expressions term by term (so the same bits),
+        reusing the products with the rotation rows where only the in-plane position moved
+        since the last pose (a profile's shift, every other new pose of a fit): X = (o.r0 +
+        t_x) + lam u.r0 and Z alike, lam depending on t_y and the rotation alone."""
+        rkey = theta[[1, 3, 4, 5]].tobytes()
+        if self._products is None or self._products[0] != rkey:
+            o, u = self.rays.origin, self.rays.direction
+            r = rotation(theta[3], theta[4], theta[5])
+            oy = o @ r[1] + theta[1]
+            dy = u @ r[1]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                lam = -oy / dy
+            self._products = (rkey, (o @ r[0], lam * (u @ r[0]), o @ r[2], lam * (u @ r[2]),
+                                     lam))
+        ox, ux, oz, uz, lam = self._products[1]
+        return ox + theta[0] + ux, oz + theta[2] + uz, lam
 
     def _cache_edges(self) -> None:
         """The used brackets' rays, signs and sigmas, contiguous (the fit only reads these)."""
-        use = self.edge_kind > 0
-        self._ubh = (self._bh[0][use], self._bh[1][use])
-        self._ubm = (self._bm[0][use], self._bm[1][use])
-        self._usign, self._usd = self.edge_sign[use], self.edge_sd[use]
-        self._uvert = (self.edge_kind == 1)[use]
+        oh, uh, om, um, self._usign, self._usd, self._uvert = used_edges(
+            self.edge_kind, *self._bh, *self._bm, self.edge_sign, self.edge_sd)  # compiled
+        self._ubh, self._ubm = (oh, uh), (om, um)
 
     def assign(self, theta: np.ndarray) -> None:
         """Which hits feed the range residuals: those safely inside the rectangle."""
         w2, h2 = self.board.width / 2, self.board.height / 2
         x, z, lam = self.coords(theta)
-        inside = (np.abs(x) < w2 - EDGE_MARGIN) & (np.abs(z) < h2 - EDGE_MARGIN)
-        res = self.rays.distance - self.offset - lam
-        self.use_range = (self.lab == 1) & inside & (np.abs(res) < 4 * self.sigma_r)
-        # the fit only ever looks at these rays: keep them contiguous
         r = self.rays
-        self._range = (r.origin[self.use_range], r.direction[self.use_range],
-                       r.distance[self.use_range])
+        # the fit only ever looks at these rays: kept contiguous (`align.fit_kernels.range_rays`)
+        self.use_range, *rng = range_rays(x, z, lam, r.origin, r.direction, r.distance,
+                                          self.lab == 1, float(self.offset), w2 - EDGE_MARGIN,
+                                          h2 - EDGE_MARGIN, 4 * self.sigma_r)
+        self._range = tuple(rng)
 
     def classify(self, theta: np.ndarray, guard: float, crossings: bool = True) -> None:
         """Fix which edge each bracket measures, for pose ``theta``; drop the ambiguous ones.
@@ -458,7 +453,7 @@ class _Model:
         """
         x, z, _ = self.coords(theta)
         vx, vz = lidar_up(theta)
-        return profile_cost(x, z, np.flatnonzero(self.lab == HIT), np.flatnonzero(self.lab == MISS),
+        return profile_cost(x, z, self._hits, self._misses,
                             self.bh, self.bm, np.asarray(ds, dtype=np.float64), vx, vz,
                             self.board.width / 2, self.board.height / 2, tol, *self.blur_edges)
 
@@ -523,67 +518,18 @@ def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
     more residual): the ranges alone cannot tell it from the distance, the brackets (the
     board's known size) can. The Jacobian returned then has seven columns.
     """
-    converged = False
-    it = 0
-    lam = 1e-6
     model.assign(theta)
     fit_b = model.offset_prior is not None
-    n_p = 7 if fit_b else 6
-
-    def res(p: np.ndarray) -> np.ndarray:
-        if not fit_b:
-            return model.residuals(p)
-        model.offset = float(p[6])
-        b0, sb = model.offset_prior
-        f = model.residuals(p[:6])
-        return np.concatenate((f, [(p[6] - b0) / sb]))
-
-    def jac(p: np.ndarray, f: np.ndarray) -> np.ndarray:
-        if not fit_b:
-            return model.jacobian(p, f)
-        model.offset = float(p[6])
-        j = np.zeros((len(f), 7))
-        j[:-1, :6] = model.jacobian(p[:6], f[:-1])
-        j[:len(model._range[0]), 6] = -1.0 / model.sigma_r
-        j[-1, 6] = 1.0 / model.offset_prior[1]
-        return j
-
-    p = np.append(theta, model.offset) if fit_b else theta
-    f = res(p)
-    cost = f @ f
-    j = jac(p, f)
-    for it in range(1, max_iter + 1):
-        a = j.T @ j
-        g = j.T @ f
-        sd = np.sqrt(np.clip(_inverse_diagonal(a), 1e-18, None))
-        while True:
-            step = np.linalg.solve(a + lam * np.diag(np.diag(a)) + 1e-12 * np.eye(n_p), -g)
-            f_new = res(p + step)
-            c_new = f_new @ f_new
-            if c_new <= cost * (1 + 1e-12):
-                break
-            lam *= 10
-            if lam > 1e8:
-                if fit_b:
-                    model.offset = float(p[6])
-                return p[:6], j, bool(np.all(np.abs(step) < 1e-2 * sd)), it
-        p, f, cost = p + step, f_new, c_new
-        lam = max(lam / 10, 1e-9)
-        j = jac(p, f)
-        if np.all(np.abs(step) < 1e-2 * sd + 1e-10):
-            converged = True
-            break
+    b0, sb = model.offset_prior if fit_b else (0.0, 1.0)
+    o_r, u_r, d_r, offset, sigma_r, *edges = model._fit_arrays()
+    # the whole loop compiled (`align.fit_kernels.lm_fit`): a dozen numpy calls per step cost
+    # twice the arithmetic
+    p, j, converged, it = lm_fit(np.asarray(theta, dtype=np.float64), fit_b, offset,
+                                 float(b0), float(sb), o_r, u_r, d_r, sigma_r, *edges,
+                                 JACOBIAN_STEP, max_iter)
     if fit_b:
         model.offset = float(p[6])
-    return p[:6], j, converged, it
-
-
-def _inverse_diagonal(a: np.ndarray) -> np.ndarray:
-    """The diagonal of pinv(a) for the normal matrix ``a``: by Cholesky where ``a`` is well
-    conditioned (`align.fit_kernels.inverse_diagonal`; pinv's SVD cost 0.5 ms a scan), the
-    same to rounding; pinv's own where it is not (a parameter no residual sees: pinv's 0)."""
-    diag, ok = inverse_diagonal(a)
-    return diag if ok else np.diag(np.linalg.pinv(a))
+    return p[:6], j, bool(converged), int(it)
 
 
 #: A bracket whose whitened residual exceeds this is a gross error (`_gross_brackets`).
@@ -920,10 +866,9 @@ def _contradicted(model: _Model, theta: np.ndarray, margin: float = 0.01) -> int
     """How many hits lie outside the rectangle at ``theta`` and misses inside it, by more than
     ``margin`` (m)."""
     x, z, _ = model.coords(theta)
-    w2, h2 = model.board.width / 2, model.board.height / 2
-    out = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
-    deep = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
-    return int(np.sum((model.lab == HIT) & out) + np.sum((model.lab == MISS) & deep))
+    # compiled (`align.fit_kernels.contradicted`): four masks over the rays in numpy
+    return int(contradicted(x, z, model.lab, HIT, MISS, model.board.width / 2,
+                            model.board.height / 2, margin))
 
 
 def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,

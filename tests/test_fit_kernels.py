@@ -77,7 +77,7 @@ def brackets_reference(rays: rays_mod._Rays, lab: np.ndarray) -> tuple[np.ndarra
     link = ((ls[1:] == ls[:-1]) & (np.diff(az) < rays_mod.MAX_GAP) & (lb[1:] >= 0)
             & (lb[:-1] >= 0))
     trans = np.flatnonzero(link & (lb[1:] != lb[:-1]))
-    first_hit, last_hit = rays_mod._board_spans(ls, az, lb)
+    first_hit, last_hit = board_spans_reference(ls, az, lb)
     hits, misses = [], []
     i = 0
     while i < len(trans):
@@ -203,8 +203,7 @@ def test_inverse_diagonal_is_pinvs_where_well_conditioned(models):
         # a parameter no residual sees: singular, left to pinv (rays._inverse_diagonal)
         a0 = a.copy()
         a0[0, :] = a0[:, 0] = 0.0
-        assert not inverse_diagonal(a0)[1]
-        np.testing.assert_array_equal(rays_mod._inverse_diagonal(a0), np.diag(np.linalg.pinv(a0)))
+        assert not inverse_diagonal(a0)[1]  # `lm_fit` then takes pinv's
     # nearly singular (condition 1e14): not trusted either
     assert not inverse_diagonal(np.diag([1.0, 1e-14]))[1]
 
@@ -372,3 +371,338 @@ def test_classify_matches_numpy_on_real_scans(models):
         model.excluded = kept
         model.classify(theta, 0.002, True)
         model.assign(theta)
+
+
+def test_residual_copies_are_kernels_bit_for_bit(models):
+    """`fit_kernels`' copies of the residuals and Jacobian (`lm_fit` calls them) are
+    `align.kernels`' own, bit for bit, at the estimate and off it, with a range offset."""
+    from align.fit_kernels import _jacobian_into, _residuals_into, rotation
+
+    for model, theta in models:
+        for dt in (np.zeros(6), np.array([3e-3, -5e-3, 2e-3, 1e-2, -4e-3, 6e-3])):
+            t = theta + dt
+            model.offset = 0.02
+            f = model.residuals(t)
+            o_r, u_r, d_r, offset, sigma_r, *edges = model._fit_arrays()
+            got = np.empty(len(f))
+            _residuals_into(t, rotation(t[3], t[4], t[5]), o_r, u_r, d_r, offset, sigma_r,
+                            *edges, got)
+            np.testing.assert_array_equal(got, f)
+            j = np.zeros((len(f), 6))
+            _jacobian_into(t, f, o_r, u_r, d_r, offset, sigma_r, *edges,
+                           rays_mod.JACOBIAN_STEP, j, np.empty(len(f)))
+            np.testing.assert_array_equal(j, model.jacobian(t, f))
+            model.offset = 0.0
+
+
+def gauss_newton_reference(model: rays_mod._Model, theta: np.ndarray, max_iter: int = 30
+                           ) -> tuple[np.ndarray, np.ndarray, bool, int]:
+    """`rays._gauss_newton` as a python loop of numpy calls (before `lm_fit`)."""
+    from align.fit_kernels import inverse_diagonal
+
+    converged = False
+    it = 0
+    lam = 1e-6
+    model.assign(theta)
+    fit_b = model.offset_prior is not None
+    n_p = 7 if fit_b else 6
+
+    def res(p: np.ndarray) -> np.ndarray:
+        if not fit_b:
+            return model.residuals(p)
+        model.offset = float(p[6])
+        b0, sb = model.offset_prior
+        return np.concatenate((model.residuals(p[:6]), [(p[6] - b0) / sb]))
+
+    def jac(p: np.ndarray, f: np.ndarray) -> np.ndarray:
+        if not fit_b:
+            return model.jacobian(p, f)
+        model.offset = float(p[6])
+        j = np.zeros((len(f), 7))
+        j[:-1, :6] = model.jacobian(p[:6], f[:-1])
+        j[:len(model._range[0]), 6] = -1.0 / model.sigma_r
+        j[-1, 6] = 1.0 / model.offset_prior[1]
+        return j
+
+    def inv_diag(a: np.ndarray) -> np.ndarray:
+        diag, ok = inverse_diagonal(a)
+        return diag if ok else np.diag(np.linalg.pinv(a))
+
+    p = np.append(theta, model.offset) if fit_b else theta
+    f = res(p)
+    cost = f @ f
+    j = jac(p, f)
+    for it in range(1, max_iter + 1):
+        a = j.T @ j
+        g = j.T @ f
+        sd = np.sqrt(np.clip(inv_diag(a), 1e-18, None))
+        while True:
+            step = np.linalg.solve(a + lam * np.diag(np.diag(a)) + 1e-12 * np.eye(n_p), -g)
+            f_new = res(p + step)
+            c_new = f_new @ f_new
+            if c_new <= cost * (1 + 1e-12):
+                break
+            lam *= 10
+            if lam > 1e8:
+                if fit_b:
+                    model.offset = float(p[6])
+                return p[:6], j, bool(np.all(np.abs(step) < 1e-2 * sd)), it
+        p, f, cost = p + step, f_new, c_new
+        lam = max(lam / 10, 1e-9)
+        j = jac(p, f)
+        if np.all(np.abs(step) < 1e-2 * sd + 1e-10):
+            converged = True
+            break
+    if fit_b:
+        model.offset = float(p[6])
+    return p[:6], j, converged, it
+
+
+@pytest.mark.parametrize("prior", [None, (0.01, 0.02)])
+def test_lm_fit_matches_the_python_loop(models, prior):
+    """`lm_fit` (`rays._gauss_newton`) takes the python loop's steps: the same iterations and
+    convergence, the pose, offset and Jacobian to rounding (its normal equations are summed in
+    another order than BLAS's), from the estimate and from starts moved off it."""
+    for model, theta in models:
+        for dt in (np.zeros(6), np.array([4e-3, -6e-3, 3e-3, 1.5e-2, -5e-3, 8e-3])):
+            start = theta + dt
+            results = []
+            for fit in (gauss_newton_reference, rays_mod._gauss_newton):
+                model.offset, model.offset_prior = 0.0, prior
+                results.append((*fit(model, start.copy()), model.offset))
+            (p0, j0, c0, i0, b0), (p1, j1, c1, i1, b1) = results
+            assert (c1, i1) == (c0, i0)
+            np.testing.assert_allclose(p1, p0, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(b1, b0, rtol=0, atol=1e-9)
+            np.testing.assert_allclose(j1, j0, rtol=1e-6, atol=1e-6 * np.abs(j0).max())
+            model.offset, model.offset_prior = 0.0, None
+
+
+def fit_rays_reference(ranges: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
+                       n0: np.ndarray, d0: float, iterations: int = 8, tol: float = 1e-9,
+                       sigma_floor: float = 0.0) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """`plane.fit_rays` as numpy calls (before `ray_plane_fit`)."""
+    from align.plane import predicted_range, tangent_basis
+
+    n, d = n0 / np.linalg.norm(n0), float(d0)
+    for _ in range(iterations):
+        e1, e2 = tangent_basis(n)
+        un = dirs @ n
+        pred = (d - origins @ n) / un
+        res = ranges - pred
+        j = np.empty((len(ranges), 3))
+        j[:, 0] = -(origins @ e1 + pred * (dirs @ e1)) / un
+        j[:, 1] = -(origins @ e2 + pred * (dirs @ e2)) / un
+        j[:, 2] = 1.0 / un
+        step, *_ = np.linalg.lstsq(j, res, rcond=None)
+        n = n + step[0] * e1 + step[1] * e2
+        n /= np.linalg.norm(n)
+        d += step[2]
+        if np.max(np.abs(step)) < tol:
+            break
+    res = ranges - predicted_range(n, d, origins, dirs)
+    sigma = max(float(np.sqrt(res @ res / max(len(ranges) - 3, 1))), sigma_floor)
+    cov = sigma**2 * np.linalg.pinv(j.T @ j)
+    if d < 0:
+        n, d = -n, -d
+        flip = np.array([-1.0, 1.0, -1.0])
+        cov = cov * np.outer(flip, flip)
+    return n, d, cov, sigma
+
+
+def test_ray_plane_fit_matches_numpy_on_real_scans(models):
+    """`plane.fit_rays` (`fit_kernels.ray_plane_fit`) against its numpy loop on the models'
+    interior hits, from the estimate's plane and from one tilted off it, and a start facing
+    away (the flip): the plane and sigma to rounding, the covariance to 1e-9 of itself."""
+    from align import plane
+    from align.geometry import plane_of_pose
+
+    for model, theta in models:
+        use = model.use_range
+        r, o, u = model.rays.distance[use], model.rays.origin[use], model.rays.direction[use]
+        n, d = plane_of_pose(theta)
+        for n0, d0, floor in ((n, d, 0.0), (n + np.array([0.03, -0.02, 0.01]), d + 0.05, 0.0),
+                              (-n, -d, 0.02)):
+            got, want = plane.fit_rays(r, o, u, n0, d0, sigma_floor=floor), fit_rays_reference(
+                r, o, u, n0, d0, sigma_floor=floor)
+            np.testing.assert_allclose(got[0], want[0], rtol=0, atol=1e-12)
+            assert abs(got[1] - want[1]) < 1e-12
+            scale = np.abs(want[2]).max()
+            np.testing.assert_allclose(got[2], want[2], rtol=1e-9, atol=1e-9 * scale)
+            assert abs(got[3] - want[3]) < 1e-12 * max(want[3], 1e-3)
+
+
+def between_hits_reference(rays: rays_mod._Rays, lab: np.ndarray) -> np.ndarray:
+    """`rays._between_hits` as numpy cumsums over the sorted rays (before the kernel)."""
+    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    key = rays.scan[order].astype(np.int64) * 256 + rays.laser[order]
+    group = np.concatenate(([0], np.cumsum(key[1:] != key[:-1])))
+    is_hit = (lab[order] == rays_mod.HIT).astype(np.int64)
+    cum = np.cumsum(is_hit)
+    first = np.concatenate(([0], np.flatnonzero(key[1:] != key[:-1]) + 1))
+    before = cum - is_hit - (cum[first] - is_hit[first])[group]
+    total = np.bincount(group, is_hit)[group]
+    out = np.zeros(len(lab), dtype=bool)
+    out[order] = (before >= 1) & (total - before - is_hit >= 1)
+    return out
+
+
+def test_between_hits_match_numpy_on_real_scans(models):
+    """`rays._between_hits` (`fit_kernels.between_hits`) against its numpy version, on the
+    models' labels and on labels with random hits dropped (dropout-like gaps) and added."""
+    rng = np.random.default_rng(11)
+    for model, _ in models:
+        rays = model.rays
+        for k in range(3):
+            lab = model.lab.copy()
+            if k == 1:
+                lab[(lab == rays_mod.HIT) & (rng.random(len(lab)) < 0.2)] = rays_mod.MISS
+            if k == 2:
+                lab[rng.random(len(lab)) < 0.1] = rays_mod.HIT
+            want = between_hits_reference(rays, lab)
+            np.testing.assert_array_equal(rays_mod._between_hits(rays, lab), want)
+            order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+            np.testing.assert_array_equal(rays_mod._between_hits(rays, lab, order), want)
+            assert want.any()
+    empty = rays_mod._Rays(*(a[:0] for a in vars(models[0][0].rays).values()))
+    assert len(rays_mod._between_hits(empty, np.zeros(0, dtype=np.int8))) == 0
+
+
+def board_spans_reference(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray]:
+    """`rays._board_spans` as numpy runs sorted by size (before the kernel)."""
+    n_l = int(ls.max()) + 1 if len(ls) else 0
+    first, last = np.full(n_l, -1), np.full(n_l, -1)
+    pos = np.flatnonzero(lb == rays_mod.HIT)
+    if not len(pos):
+        return first, last
+    new_run = np.concatenate(([True], (ls[pos[1:]] != ls[pos[:-1]])
+                              | (az[pos[1:]] - az[pos[:-1]] > rays_mod.ZONE_AZIMUTH)))
+    run = np.cumsum(new_run) - 1
+    size = np.bincount(run)
+    starts = pos[new_run]
+    ends = pos[np.concatenate((new_run[1:], [True]))]
+    best = np.full(n_l, -1)
+    for r in np.argsort(size, kind="stable"):
+        best[ls[starts[r]]] = r
+    have = best >= 0
+    first[have], last[have] = starts[best[have]], ends[best[have]]
+    return first, last
+
+
+def test_board_spans_match_numpy_on_real_scans(models):
+    """`rays._board_spans` (`fit_kernels.board_spans`) against its numpy version: the models'
+    labels, with hits dropped at random (runs split, ties of equal runs), and none."""
+    rng = np.random.default_rng(12)
+    for model, _ in models:
+        rays = model.rays
+        order = np.lexsort((rays.azimuth, rays.laser))
+        for k in range(4):
+            lab = model.lab.copy()
+            if k == 1:
+                lab[(lab == rays_mod.HIT) & (rng.random(len(lab)) < 0.3)] = rays_mod.MISS
+            if k == 2:
+                lab[rng.random(len(lab)) < 0.5] = rays_mod.HIT
+            if k == 3:
+                lab[:] = rays_mod.MISS
+            ls, az, lb = rays.laser[order], rays.azimuth[order], lab[order]
+            got, want = rays_mod._board_spans(ls, az, lb), board_spans_reference(ls, az, lb)
+            for g, w in zip(got, want, strict=True):
+                np.testing.assert_array_equal(g, w)
+        # equal runs on one laser: the later wins
+        ls = np.zeros(7, dtype=rays.laser.dtype)
+        az = np.array([0.0, 0.001, 0.1, 0.101, 0.2, 0.201, 0.3])
+        lb = np.array([1, 1, 0, 1, 1, 0, 1], dtype=np.int8)
+        for g, w in zip(rays_mod._board_spans(ls, az, lb), board_spans_reference(ls, az, lb),
+                        strict=True):
+            np.testing.assert_array_equal(g, w)
+
+
+def assign_reference(model: rays_mod._Model, theta: np.ndarray) -> tuple[np.ndarray, ...]:
+    """`_Model.assign`'s mask and rays as numpy masks and gathers (before the kernel)."""
+    w2, h2 = model.board.width / 2, model.board.height / 2
+    x, z, lam = board_coordinates(theta, model.rays.origin, model.rays.direction)
+    inside = (np.abs(x) < w2 - rays_mod.EDGE_MARGIN) & (np.abs(z) < h2 - rays_mod.EDGE_MARGIN)
+    res = model.rays.distance - model.offset - lam
+    use = (model.lab == 1) & inside & (np.abs(res) < 4 * model.sigma_r)
+    r = model.rays
+    return use, r.origin[use], r.direction[use], r.distance[use]
+
+
+def test_assign_matches_numpy_on_real_scans(models):
+    """`_Model.assign` (`fit_kernels.range_rays`) against its numpy version, at the estimate and
+    off it, with a range offset."""
+    for model, theta in models:
+        for dt, offset in ((np.zeros(6), 0.0), (np.array([0.01, 0.004, -0.01, 0.02, 0, 0]), 0.01)):
+            model.offset = offset
+            model.assign(theta + dt)
+            want = assign_reference(model, theta + dt)
+            np.testing.assert_array_equal(model.use_range, want[0])
+            for g, w in zip(model._range, want[1:], strict=True):
+                np.testing.assert_array_equal(g, w)
+            assert want[0].any()
+        model.offset = 0.0
+        model.assign(theta)
+
+
+def test_model_coords_are_board_coordinates_bit_for_bit(models):
+    """`_Model.coords` reuses the rotation's products for a pose moved in the plane only: the
+    same bits as `board_coordinates` there, after a new rotation, and after a new t_y."""
+    for model, theta in models:
+        model._coords = model._products = None
+        vx, vz = lidar_up(theta)
+        poses = [theta]
+        for s in (0.004, -0.013, 0.0):
+            t = theta.copy()
+            t[0] += s * vx
+            t[2] += s * vz
+            poses.append(t)
+        poses += [theta + np.array([0, 0, 0, 1e-3, 0, 0]), theta + np.array([0, 2e-3, 0, 0, 0, 0]),
+                  theta + np.array([5e-3, 0, -4e-3, 0, 0, 0]), theta]
+        for t in poses:
+            got = model.coords(t)
+            for g, w in zip(got, board_coordinates(t, model.rays.origin, model.rays.direction),
+                            strict=True):
+                np.testing.assert_array_equal(g, w)
+
+
+def test_used_edges_and_contradicted_match_numpy_on_real_scans(models):
+    """`_Model._cache_edges` (`fit_kernels.used_edges`) and `rays._contradicted`
+    (`fit_kernels.contradicted`) against their numpy versions, for both corner guards and with
+    and without the grazing crossings, at the estimate and off it."""
+    for model, theta in models:
+        for guard, crossings, dt in ((0.005, False, 0.0), (0.002, True, 0.0),
+                                     (0.002, True, 0.02)):
+            t = theta + np.array([dt, 0, -dt, dt, 0, 0])
+            model.classify(t, guard, crossings)
+            use = model.edge_kind > 0
+            assert use.any()
+            want = (model._bh[0][use], model._bh[1][use], model._bm[0][use], model._bm[1][use],
+                    model.edge_sign[use], model.edge_sd[use], (model.edge_kind == 1)[use])
+            got = (*model._ubh, *model._ubm, model._usign, model._usd, model._uvert)
+            for g, w in zip(got, want, strict=True):
+                assert g.dtype == w.dtype
+                np.testing.assert_array_equal(g, w)
+            for margin in (0.0, 0.01, 0.05):
+                x, z, _ = board_coordinates(t, model.rays.origin, model.rays.direction)
+                w2, h2 = model.board.width / 2, model.board.height / 2
+                out = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
+                deep = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
+                lab = model.lab
+                count = int(np.sum((lab == rays_mod.HIT) & out)
+                            + np.sum((lab == rays_mod.MISS) & deep))
+                assert rays_mod._contradicted(model, t, margin) == count
+        model.classify(theta, 0.002, True)
+
+
+def test_numpy_mean_is_np_mean_bit_for_bit():
+    """`fit_kernels._numpy_mean` (the short groups' mean in `behind_groups`) is np.mean of the
+    gathered values bit for bit, for every size up to 128."""
+    from align.fit_kernels import _numpy_mean
+
+    rng = np.random.default_rng(13)
+    res = rng.normal(0.0, 0.01, 400) + rng.choice([0.0, 0.03], 400)
+    for n in range(1, 129):
+        for _ in range(20):
+            idx = rng.choice(len(res), n, replace=False)
+            assert _numpy_mean(res, idx) == float(res[idx].mean())
