@@ -40,7 +40,7 @@ from align.board import BoardSpec
 from align.geometry import board_coordinates
 from twin.core import vlp16
 from twin.core.pose import Pose
-from twin.core.scan import Scan, points_from_polar
+from twin.core.scan import Scan
 
 FORMAT = "aimbench.laser_calibration"
 VERSION = 2
@@ -178,11 +178,10 @@ def apply(scan: Scan, cal: LaserCalibration) -> Scan:
     off = np.nan_to_num(cal.range_offset, nan=0.0)[scan.laser_id]
     ret = scan.distance > 0
     dist = np.where(ret, np.maximum(scan.distance - off, 0.0), 0.0)
-    x, y, z = points_from_polar(dist, scan.azimuth, scan.laser_id,
-                                vertical_offsets=scan.vertical_offsets_applied,
-                                lasers=scan.lasers)
     d_el = np.nan_to_num(cal.elevation_offset, nan=0.0)[scan.laser_id]
-    if np.any(d_el != 0):
+    if not np.any(d_el != 0):
+        x, y, z = _along_rays(scan, dist, ret)
+    else:
         w = scan.lasers.elevation[scan.laser_id] + d_el
         rc = dist * np.cos(w)
         x, y = rc * np.sin(scan.azimuth), rc * np.cos(scan.azimuth)
@@ -191,6 +190,19 @@ def apply(scan: Scan, cal: LaserCalibration) -> Scan:
     meta = dict(scan.meta)
     meta["laser_calibration"] = cal.sensor_id or cal.source.get("name") or "applied"
     return replace(scan, distance=dist, x=x, y=y, z=z, meta=meta)
+
+
+def _along_rays(scan: Scan, dist: np.ndarray, ret: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x, y, z of the returns moved along their own rays to the ranges ``dist``, m: each
+    point's offset from its laser's origin scaled by the new range over the old. The same
+    points as `points_from_polar` of the new ranges (to a few 1e-16 m), without its
+    trigonometry per firing, which was 2 ms of the 2.5 a scan's correction took: the demo
+    corrects every scan of its sweep. Firings without a return stay at 0."""
+    scale = np.divide(dist, scan.distance, out=np.zeros_like(dist), where=ret)
+    lift = np.where(ret & scan.vertical_offsets_applied,
+                    scan.lasers.vertical_offset[scan.laser_id], 0.0)
+    return scan.x * scale, scan.y * scale, (scan.z - lift) * scale + lift
 
 
 def _directions(azimuth: np.ndarray, elevation: np.ndarray) -> np.ndarray:
