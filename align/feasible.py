@@ -358,11 +358,13 @@ def plane_posteriors(hit_o: np.ndarray, hit_u: np.ndarray, hit_ext: np.ndarray,
     labels (the rest of it unset)."""
     n_p = normals.shape[0]
     out = np.zeros((n_p, WIDTH))
+    # the planes share the grid: its cosines and sines once, not per plane
+    cr, sr = np.cos(rolls), np.sin(rolls)
     for p in range(n_p):
         n = normals[p]
         ph = _points(hit_o, hit_u, n, ds[p])
         pm = _points(miss_o, miss_u, n, ds[p])
-        r0, r2 = _rows_kernel(rolls, n)
+        r0, r2 = _rows_of(cr, sr, n)
         mom = label_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
         if weight.shape[0] > 0:
             for k in range(mom.shape[0]):
@@ -468,10 +470,18 @@ def _rows(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _rows_kernel(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`_rows` in one loop: the same operations in the same order as numpy's elementwise
     ones (two dozen numpy calls on ~100 rolls cost 5x more in call overhead than the maths)."""
-    k = rolls.shape[0]
+    return _rows_of(np.cos(rolls), np.sin(rolls), n)
+
+
+@njit(cache=True)
+def _rows_of(cos_r: np.ndarray, sin_r: np.ndarray, n: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """`_rows_kernel` from the rolls' cosines and sines (elementwise, the same floats as the
+    scalar calls): many planes on one grid compute them once."""
+    k = cos_r.shape[0]
     r0, r2 = np.empty((k, 3)), np.empty((k, 3))
     for i in range(k):
-        cr, sr = np.cos(rolls[i]), np.sin(rolls[i])
+        cr, sr = cos_r[i], sin_r[i]
         m0 = cr * n[0] + sr * n[2]
         m2 = -sr * n[0] + cr * n[2]
         sy = min(max(m0, -1.0), 1.0)

@@ -104,3 +104,23 @@ def test_in_plane_is_the_kernels_single_plane():
         assert one.evidence == post.evidence and one.support == post.support
         np.testing.assert_allclose(pose, _pose(n, float(d), post.mean), rtol=1e-12,
                                    atol=1e-15)
+
+
+def test_rows_from_the_grids_trig_match_roll_by_roll_and_the_rotation():
+    # plane_posteriors builds each plane's rows from the grid's cosines and sines computed
+    # once: the same floats as computing them roll by roll (a grid of one roll), and the rows
+    # of the rotation `align.geometry.pose_from_plane` gives, to rounding
+    from align.geometry import pose_from_plane, rotation
+
+    rng = np.random.default_rng(3)
+    rolls = np.sort(rng.uniform(-np.pi / 2, np.pi / 2, 101))
+    n = np.array([0.05, 0.99, -0.08])
+    n /= np.linalg.norm(n)
+    r0, r2 = feasible._rows_of(np.cos(rolls), np.sin(rolls), n)
+    for k, roll in enumerate(rolls):
+        a0, a2 = feasible._rows_kernel(rolls[k:k + 1], n)
+        np.testing.assert_array_equal(r0[k], a0[0])
+        np.testing.assert_array_equal(r2[k], a2[0])
+        rot = rotation(*pose_from_plane(n, 2.0, roll)[3:])
+        np.testing.assert_allclose(r0[k], rot[0], atol=1e-12)
+        np.testing.assert_allclose(r2[k], rot[2], atol=1e-12)
