@@ -913,3 +913,23 @@ def in_firing_order(laser_id: np.ndarray, k0: int, m: int, nl: int) -> bool:
             if laser_id[base + lz] != lz:
                 return False
     return True
+
+
+@njit(cache=True, error_model="numpy")  # no points: nan, as numpy's mean
+def centre(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(points.mean(axis=0), points - that mean) for points (N, 3), m: numpy's mean over the
+    rows of a C-ordered array sums each column row by row and divides by N (no pairwise
+    summation along a strided axis), as this loop does, so the same values bit for bit."""
+    n = points.shape[0]
+    s0 = s1 = s2 = 0.0
+    for i in range(n):
+        s0 += points[i, 0]
+        s1 += points[i, 1]
+        s2 += points[i, 2]
+    c = np.empty(3)
+    c[0], c[1], c[2] = s0 / n, s1 / n, s2 / n
+    out = np.empty((n, 3))
+    for i in range(n):
+        for j in range(3):
+            out[i, j] = points[i, j] - c[j]
+    return c, out

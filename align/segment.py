@@ -242,7 +242,10 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     if len(points) < 3:
         return 0.0, 0.0, 0.0
     n, d = fit_lsq(points)
-    p = _subsample(points - (points @ n - d)[:, None] * n, 300)
+    # the points projected onto the plane, subsampled: the rows kept first (each row's
+    # projection does not depend on the others, so the same values for a third of the work)
+    p = _subsample(points, 300)
+    p = p - (p @ n - d)[:, None] * n
     rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
     grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
     # `roll_search._left_out` and its argmin, sorting only the rolls that can be the best
