@@ -318,10 +318,9 @@ def _board_score(scan: Scan, sel: np.ndarray, board: BoardSpec, expect: float
     weighted by `rectangle_fit`), or None when their extent is not the board's."""
     if len(sel) < 3:
         return None
-    var = 0.0  # total variance, as np.var per coordinate (without its overhead)
-    for c in (scan.x[sel], scan.y[sel], scan.z[sel]):
-        c = c - c.sum() / len(c)
-        var += float((c * c).sum()) / len(c)
+    from align.kernels import total_variance  # as np.var per coordinate, summed
+
+    var = total_variance(scan.x, scan.y, scan.z, np.asarray(sel, dtype=np.int64))
     extent = math.sqrt(12 * var)  # a rectangle's diagonal
     if not MIN_EXTENT * board.diagonal < extent < MAX_EXTENT * board.diagonal:
         return None

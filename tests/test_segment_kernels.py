@@ -506,3 +506,22 @@ def test_centre_is_numpys_mean_and_difference_on_real_clusters(real_scans):
             c, out = centre(p)
             np.testing.assert_array_equal(c, p.mean(axis=0))
             np.testing.assert_array_equal(out, p - p.mean(axis=0))
+
+
+def test_total_variance_is_the_numpy_sums_bit_for_bit(real_scans):
+    """`kernels.total_variance` against the numpy expression `segment._board_score` used (per
+    coordinate c = c - c.sum() / N, then (c * c).sum() / N, summed): numpy's pairwise sums
+    reproduced for every length from a few returns to a whole scan (blocks of 8, of 128 and
+    the halving above), on the real scans' coordinates."""
+    from align.kernels import total_variance
+
+    rng = np.random.default_rng(5)
+    for scan, _, _ in real_scans[:3]:
+        valid = np.flatnonzero(scan.valid)
+        for n in (*range(1, 140), 255, 256, 257, 586, 1000, 4097, len(valid)):
+            sel = np.sort(rng.choice(valid, min(n, len(valid)), replace=False))
+            want = 0.0
+            for c in (scan.x[sel], scan.y[sel], scan.z[sel]):
+                c = c - c.sum() / len(c)
+                want += float((c * c).sum()) / len(c)
+            assert total_variance(scan.x, scan.y, scan.z, sel) == want, n
