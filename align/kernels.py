@@ -913,3 +913,111 @@ def in_firing_order(laser_id: np.ndarray, k0: int, m: int, nl: int) -> bool:
             if laser_id[base + lz] != lz:
                 return False
     return True
+
+
+@njit(cache=True, error_model="numpy")  # no points: nan, as numpy's mean
+def centre(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(points.mean(axis=0), points - that mean) for points (N, 3), m: numpy's mean over the
+    rows of a C-ordered array sums each column row by row and divides by N (no pairwise
+    summation along a strided axis), as this loop does, so the same values bit for bit."""
+    n = points.shape[0]
+    s0 = s1 = s2 = 0.0
+    for i in range(n):
+        s0 += points[i, 0]
+        s1 += points[i, 1]
+        s2 += points[i, 2]
+    c = np.empty(3)
+    c[0], c[1], c[2] = s0 / n, s1 / n, s2 / n
+    out = np.empty((n, 3))
+    for i in range(n):
+        for j in range(3):
+            out[i, j] = points[i, j] - c[j]
+    return c, out
+
+
+#: numpy's pairwise summation: blocks up to this many values are summed in 8 running sums.
+_PW_BLOCKSIZE = 128
+
+
+@njit(cache=True)
+def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """numpy's pairwise_sum of a[lo:lo + n] for n up to `_PW_BLOCKSIZE`: fewer than 8 values
+    in a row, more in 8 interleaved sums combined as a tree, then the rest in a row."""
+    if n < 8:
+        res = 0.0
+        for i in range(lo, lo + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - n % 8:
+        b = lo + i
+        r0 += a[b]
+        r1 += a[b + 1]
+        r2 += a[b + 2]
+        r3 += a[b + 3]
+        r4 += a[b + 4]
+        r5 += a[b + 5]
+        r6 += a[b + 6]
+        r7 += a[b + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+@njit(cache=True)
+def _pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
+    """a[lo:lo + n].sum() as numpy sums a contiguous float64 array (its pairwise_sum: blocks
+    of up to `_PW_BLOCKSIZE` by `_block_sum`, longer runs split in two at a multiple of 8 and
+    the halves' sums added, left + right), so the same value bit for bit. Iterative, with its
+    own stack: numba's cache does not reload a recursive kernel safely."""
+    los = np.empty(64, dtype=np.int64)  # depth log2(n / 128): 64 is never reached
+    ns = np.empty(64, dtype=np.int64)
+    split = np.zeros(64, dtype=np.bool_)
+    vals = np.empty(64)
+    top, nv = 0, 0
+    los[0], ns[0] = lo, n
+    while top >= 0:
+        m = ns[top]
+        if m <= _PW_BLOCKSIZE:
+            vals[nv] = _block_sum(a, los[top], m)
+            nv += 1
+            top -= 1
+        elif split[top]:  # both halves summed: left + right
+            vals[nv - 2] = vals[nv - 2] + vals[nv - 1]
+            nv -= 1
+            split[top] = False
+            top -= 1
+        else:
+            split[top] = True
+            m2 = m // 2
+            m2 -= m2 % 8
+            base = los[top]
+            # the right half below the left on the stack: the left is summed first
+            los[top + 1], ns[top + 1], split[top + 1] = base + m2, m - m2, False
+            los[top + 2], ns[top + 2], split[top + 2] = base, m2, False
+            top += 2
+    return vals[0]
+
+
+@njit(cache=True)
+def total_variance(x: np.ndarray, y: np.ndarray, z: np.ndarray, sel: np.ndarray) -> float:
+    """The sum over x, y, z of (c - c.sum() / N) ** 2 summed over N, for c each coordinate of
+    the returns ``sel`` (`segment._board_score`'s total variance, m^2): numpy's sums
+    (`_pairwise_sum`) over the same temporaries, without building six of them."""
+    k = sel.shape[0]
+    c = np.empty(k)
+    var = 0.0
+    for coord in (x, y, z):
+        for j in range(k):
+            c[j] = coord[sel[j]]
+        mean = _pairwise_sum(c, 0, k) / k
+        for j in range(k):
+            d = c[j] - mean
+            c[j] = d * d
+        var += _pairwise_sum(c, 0, k) / k
+    return var

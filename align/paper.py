@@ -67,8 +67,10 @@ def feature_points(points: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndar
 
 def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
     """The rigid transform minimising sum ||p_o - (R p_l + t)||^2, as (x, y, z, roll, tilt, yaw)."""
-    cl, co = p_l.mean(axis=0), p_o.mean(axis=0)
-    u, _, vt = np.linalg.svd((p_l - cl).T @ (p_o - co))
+    # the means and centred points as numpy's mean and difference, in one compiled pass each
+    cl, p_lc = kernels.centre(np.ascontiguousarray(p_l, dtype=np.float64))
+    co, p_oc = kernels.centre(np.ascontiguousarray(p_o, dtype=np.float64))
+    u, _, vt = np.linalg.svd(p_lc.T @ p_oc)
     d = np.sign(np.linalg.det(vt.T @ u.T))
     r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
     t = co - r @ cl
@@ -139,21 +141,22 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
     # consecutive block of rings with the most inliers
     ring = scan.lasers.ring_of_laser[scan.laser_id[pts_idx]]  # (Scan.ring maps every firing)
     inl &= kernels.in_ring_block(ring, inl)  # `segment.consecutive_ring_block` of the inliers
-    rings = np.unique(ring[inl])
-    if len(rings) < 3:
-        return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=len(rings),
+    n_rings = int(np.count_nonzero(np.bincount(ring[inl])))  # len(np.unique), no sort
+    if n_rings < 3:
+        return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=n_rings,
                                    reason="the board spans fewer than 3 rings")
     feat, fi = feature_points(pts[inl], n, d)
     # start: the closed-form minimiser of the same cost (absolute orientation, Kabsch); LM
     # then only confirms it, in a step or two, instead of walking there from a nominal pose
-    beta0 = _kabsch(feat, board.corners())
-    beta, j, conv, iters = levenberg_marquardt(feat, board.corners(), beta0)
-    f = _residuals(beta, feat, board.corners())
+    corners = board.corners()
+    beta0 = _kabsch(feat, corners)
+    beta, j, conv, iters = levenberg_marquardt(feat, corners, beta0)
+    f = _residuals(beta, feat, corners)
     dof = f.size - 6
     s2 = float(f @ f) / dof
     cov = s2 * np.linalg.pinv(j.T @ j)
     used_features = pts_idx[np.flatnonzero(inl)[fi]]
-    diag = {"rings": len(rings), "board_points": int(inl.sum()), "iterations": iters,
+    diag = {"rings": n_rings, "board_points": int(inl.sum()), "iterations": iters,
             "corner_rms_m": float(np.sqrt(np.mean(f**2))), "plane_d_m": d}
     status = Status.OK if conv else Status.NOT_CONVERGED
     return PoseEstimate(status=status, method="paper", pose=Pose.from_array(beta), covariance=cov,

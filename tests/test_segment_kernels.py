@@ -489,3 +489,39 @@ def test_in_firing_order_is_the_grids_comparison(real_scans):
             want = np.array_equal(grid, np.broadcast_to(np.arange(nl, dtype=lid.dtype),
                                                         grid.shape))
             assert in_firing_order(lid, k0, m, nl) == want
+
+
+def test_centre_is_numpys_mean_and_difference_on_real_clusters(real_scans):
+    """`kernels.centre` (the mean and the centred points of `plane.fit_lsq`) against
+    points.mean(axis=0) and points - mean, bit for bit, on runs of returns of every length
+    from 1 to a few thousand."""
+    from align.kernels import centre
+
+    rng = np.random.default_rng(3)
+    for scan, _, _ in real_scans:
+        xyz = scan.xyz[scan.valid]
+        for n in (1, 2, 3, 7, 64, 299, 586, 1000, 4001):
+            i0 = int(rng.integers(0, max(len(xyz) - n, 1)))
+            p = np.ascontiguousarray(xyz[i0:i0 + n])
+            c, out = centre(p)
+            np.testing.assert_array_equal(c, p.mean(axis=0))
+            np.testing.assert_array_equal(out, p - p.mean(axis=0))
+
+
+def test_total_variance_is_the_numpy_sums_bit_for_bit(real_scans):
+    """`kernels.total_variance` against the numpy expression `segment._board_score` used (per
+    coordinate c = c - c.sum() / N, then (c * c).sum() / N, summed): numpy's pairwise sums
+    reproduced for every length from a few returns to a whole scan (blocks of 8, of 128 and
+    the halving above), on the real scans' coordinates."""
+    from align.kernels import total_variance
+
+    rng = np.random.default_rng(5)
+    for scan, _, _ in real_scans[:3]:
+        valid = np.flatnonzero(scan.valid)
+        for n in (*range(1, 140), 255, 256, 257, 586, 1000, 4097, len(valid)):
+            sel = np.sort(rng.choice(valid, min(n, len(valid)), replace=False))
+            want = 0.0
+            for c in (scan.x[sel], scan.y[sel], scan.z[sel]):
+                c = c - c.sum() / len(c)
+                want += float((c * c).sum()) / len(c)
+            assert total_variance(scan.x, scan.y, scan.z, sel) == want, n
