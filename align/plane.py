@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from align.fit_kernels import ray_plane_fit
-from align.kernels import centre, lsq_plane
+from align.kernels import lsq_plane
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -52,14 +52,11 @@ def fit_lsq(points: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def _fit_lsq_svd(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """`fit_lsq` by the SVD of the centred points."""
-    if points.dtype == np.float64 and points.ndim == 2 and points.flags.c_contiguous:
-        c, centred = centre(points)  # one compiled pass: mean(axis=0)'s overhead is 3x the sum
-    else:
-        c = points.mean(axis=0)
-        centred = points - c
+    """`fit_lsq` by the SVD of the centred points (only for input `lsq_plane` does not take:
+    too few or non-finite points, where numpy's error names the problem)."""
+    c = points.mean(axis=0)
     # smallest right singular vector of the centred points: the normal
-    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    _, _, vt = np.linalg.svd(points - c, full_matrices=False)
     n = vt[2]
     return _orient(n, float(n @ c))
 
