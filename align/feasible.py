@@ -39,11 +39,91 @@ ROLL_BLOCK = 16
 BOUND_SLACK = 1e-9
 
 
+#: How far the rows of R over a roll grid may be from turning rigidly in one plane (unit,
+#: orthogonal, r2 = r0 x n for one n) before `binding_labels` leaves no label out.
+ROW_TOLERANCE = 1e-12
+#: An edge's difference between two rays turns with the roll as rho cos(phi - alpha) (rho: the
+#: rays' distance in the plane): between two rolls whose rows are D apart it dips below the
+#: chord by at most rho asin(D / 2)^2 / 2, less than `SAG` rho D^2 for D <= 1.
+SAG = 0.14
+#: Slots of `binding_labels`' edges: at the grid's first and last roll.
+FIRST, LAST = 0, 1
+
+
+@njit(cache=True)
+def binding_labels(p_hit: np.ndarray, p_miss: np.ndarray, lim_h: np.ndarray,
+                   lim_m: np.ndarray, r0: np.ndarray, r2: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The hits and misses (indices, in their order) that can change the consistent set at some
+    roll of the grid ``r0``, ``r2``; the others cannot (``lim_*``: `_limits`).
+
+    Of a few hundred labels a few dozen can bind anywhere on the grid: each side of the hits'
+    box is the largest (or least) of the hits' edges, and the misses that cut into it are those
+    nearest the board. Judged from every ray's edges at the grid's two ends (`_keep_hits`,
+    `_keep_misses`): an edge's difference between two rays is a sinusoid in the roll, within
+    `_sag` of its chord, so a comparison that holds at both ends with that margin holds at every
+    roll between. A grid whose rows do not turn rigidly (`_rigid_rows`) keeps every label."""
+    n_k, n_h, n_m = r0.shape[0], p_hit.shape[0], p_miss.shape[0]
+    if n_h == 0 or n_k == 0:
+        return np.arange(n_h), np.arange(n_m)
+    hc, mc = np.empty((2, n_h), dtype=np.int64), np.empty((2, n_m), dtype=np.int64)
+    hv, mv = np.empty((2, 2, n_h, 4)), np.empty((2, 2, n_m, 4))
+    qh, qm = np.empty(n_h), np.empty(n_m)
+    champ, th, sure = np.empty((4, 2), dtype=np.int64), np.empty((4, 4, 2)), np.empty(
+        n_m, dtype=np.int64)
+    _radii(p_hit, p_miss, qh, qm)
+    for i in range(n_h):
+        hc[0, i] = i
+    for i in range(n_m):
+        mc[0, i] = i
+    last = n_k - 1
+    _edges_at(p_hit, lim_h, hc, 0, n_h, r0, r2, 0, hv, FIRST)
+    _edges_at(p_miss, lim_m, mc, 0, n_m, r0, r2, 0, mv, FIRST)
+    _edges_at(p_hit, lim_h, hc, 0, n_h, r0, r2, last, hv, LAST)
+    _edges_at(p_miss, lim_m, mc, 0, n_m, r0, r2, last, mv, LAST)
+    sag = _sag(r0, r2, 0, last) if _rigid_rows(r0, r2) else np.inf
+    nh = _keep_hits(hc, hv, 0, FIRST, LAST, n_h, qh, sag, champ, th)
+    nm = _keep_misses(mc, mv, 0, FIRST, LAST, n_m, qm, sag, th, sure)
+    return hc[1, :nh].copy(), mc[1, :nm].copy()
+
+
 @njit(cache=True)
 def label_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                   ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float
                   ) -> np.ndarray:
     """Area and moments of the positions (t_x, t_z) consistent with every label, per roll.
+
+    ``p_hit``, ``p_miss`` (M, 3): the hits' and misses' points on the plane, {L}; ``ext_*``
+    (M, 4): each ray's widening of the left, right, bottom and top edge (the side face), m;
+    ``r0``, ``r2`` (K, 3): rows 0 and 2 of R at each roll (board coordinates X = p . r0 + t_x,
+    Z = p . r2 + t_z). A hit puts (t_x, t_z) in its box [-w2 - e_l - X, w2 + e_r - X] x
+    [-h2 - e_b - Z, h2 + e_t - Z]; a miss puts it outside its own. Returns (K, 6): area and the
+    integrals of t_x, t_z, t_x^2, t_z^2, t_x t_z over the consistent set (m^2 ... m^4).
+
+    First the labels that can bind anywhere on the grid (`binding_labels`, a few dozen of some
+    500), then `_block_moments` on those: exact, the same floats as from every label.
+    """
+    hits, misses = binding_labels(p_hit, p_miss, _limits(ext_hit, w2, h2),
+                                  _limits(ext_miss, w2, h2), r0, r2)
+    return _block_moments(_rows_at(p_hit, hits), _rows_at(p_miss, misses),
+                          _rows_at(ext_hit, hits), _rows_at(ext_miss, misses), r0, r2, w2, h2)
+
+
+@njit(cache=True)
+def _rows_at(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """The rows ``idx`` of ``a``, contiguous."""
+    out = np.empty((idx.shape[0], a.shape[1]))
+    for t in range(idx.shape[0]):
+        for c in range(a.shape[1]):
+            out[t, c] = a[idx[t], c]
+    return out
+
+
+@njit(cache=True)
+def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
+                  ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float
+                  ) -> np.ndarray:
+    """`label_moments` on labels that may include ones that never bind (the blocks' filter).
 
     ``p_hit``, ``p_miss`` (M, 3): the hits' and misses' points on the plane, {L}; ``ext_*``
     (M, 4): each ray's widening of the left, right, bottom and top edge (the side face), m;
@@ -136,6 +216,205 @@ def _limits(ext: np.ndarray, w2: float, h2: float) -> np.ndarray:
         lim[i, 2] = -h2 - ext[i, 2]
         lim[i, 3] = h2 + ext[i, 3]
     return lim
+
+
+@njit(cache=True)
+def _radii(p_hit: np.ndarray, p_miss: np.ndarray, qh: np.ndarray, qm: np.ndarray) -> None:
+    """Each ray's distance from the hits' mean into ``qh``, ``qm``, m: two rays' points are at
+    most the sum of theirs apart (`_sag`'s rho)."""
+    n_h = p_hit.shape[0]
+    c0 = c1 = c2 = 0.0
+    for i in range(n_h):
+        c0 += p_hit[i, 0] / n_h
+        c1 += p_hit[i, 1] / n_h
+        c2 += p_hit[i, 2] / n_h
+    for i in range(n_h):
+        qh[i] = np.sqrt((p_hit[i, 0] - c0) ** 2 + (p_hit[i, 1] - c1) ** 2
+                        + (p_hit[i, 2] - c2) ** 2)
+    for i in range(p_miss.shape[0]):
+        qm[i] = np.sqrt((p_miss[i, 0] - c0) ** 2 + (p_miss[i, 1] - c1) ** 2
+                        + (p_miss[i, 2] - c2) ** 2)
+
+
+@njit(cache=True)
+def _rigid_rows(r0: np.ndarray, r2: np.ndarray) -> bool:
+    """Whether the rows of R over the grid turn rigidly and one way in one plane, as `_sag`
+    assumes: each r0 and r2 unit and orthogonal to each other and to the first roll's r1
+    (r2 x r0) with r2 = r0 x r1, to `ROW_TOLERANCE`, and the angle from the first roll's r0
+    strictly monotone within 60 deg. They do mathematically (R's row r1 is the plane's normal
+    at every roll); this makes sure of it before any label is left out."""
+    u0, u1, u2 = r0[0, 0], r0[0, 1], r0[0, 2]
+    w0, w1, w2 = r2[0, 0], r2[0, 1], r2[0, 2]
+    n0, n1, n2 = w1 * u2 - w2 * u1, w2 * u0 - w0 * u2, w0 * u1 - w1 * u0
+    tol = ROW_TOLERANCE
+    prev, way = 0.0, 0.0
+    for k in range(r0.shape[0]):
+        x0, x1, x2 = r0[k, 0], r0[k, 1], r0[k, 2]
+        z0, z1, z2 = r2[k, 0], r2[k, 1], r2[k, 2]
+        if (abs(x0 * x0 + x1 * x1 + x2 * x2 - 1.0) > tol
+                or abs(z0 * z0 + z1 * z1 + z2 * z2 - 1.0) > tol
+                or abs(x0 * z0 + x1 * z1 + x2 * z2) > tol
+                or abs(x0 * n0 + x1 * n1 + x2 * n2) > tol
+                or abs(z0 - (x1 * n2 - x2 * n1)) > tol or abs(z1 - (x2 * n0 - x0 * n2)) > tol
+                or abs(z2 - (x0 * n1 - x1 * n0)) > tol):
+            return False
+        if x0 * u0 + x1 * u1 + x2 * u2 < 0.5:
+            return False
+        s = x0 * w0 + x1 * w1 + x2 * w2  # sin of the angle from the first roll
+        if k == 1:
+            way = 1.0 if s > prev else -1.0
+        if k >= 1 and (s - prev) * way <= 10.0 * tol:
+            return False
+        prev = s
+    return True
+
+
+@njit(cache=True)
+def _sag(r0: np.ndarray, r2: np.ndarray, a: int, b: int) -> float:
+    """How far below its chord an edge's difference between two rays can dip between rolls
+    ``a`` and ``b`` of a rigid grid (`_rigid_rows`), per m of the rays' distance: `SAG` D^2,
+    D the rows' change; infinite (no bound) past D = 1."""
+    d0 = (r0[b, 0] - r0[a, 0]) ** 2 + (r0[b, 1] - r0[a, 1]) ** 2 + (r0[b, 2] - r0[a, 2]) ** 2
+    d2 = (r2[b, 0] - r2[a, 0]) ** 2 + (r2[b, 1] - r2[a, 1]) ** 2 + (r2[b, 2] - r2[a, 2]) ** 2
+    dsq = max(d0, d2)
+    return SAG * dsq if dsq <= 1.0 else np.inf
+
+
+@njit(cache=True)
+def _edges_at(p: np.ndarray, lim: np.ndarray, idx: np.ndarray, d: int, n: int,
+              r0: np.ndarray, r2: np.ndarray, k: int, out: np.ndarray, slot: int) -> None:
+    """The box edges (x0, x1, z0, z1) of the rays ``idx[d, :n]`` at roll ``k`` into
+    ``out[d, slot, :n]``: lim - X and lim - Z, X and Z summed in the order the boxes always
+    were."""
+    a0, a1, a2 = r0[k, 0], r0[k, 1], r0[k, 2]
+    b0, b1, b2 = r2[k, 0], r2[k, 1], r2[k, 2]
+    for t in range(n):
+        i = idx[d, t]
+        x = p[i, 0] * a0 + p[i, 1] * a1 + p[i, 2] * a2
+        z = p[i, 0] * b0 + p[i, 1] * b1 + p[i, 2] * b2
+        out[d, slot, t, 0] = lim[i, 0] - x
+        out[d, slot, t, 1] = lim[i, 1] - x
+        out[d, slot, t, 2] = lim[i, 2] - z
+        out[d, slot, t, 3] = lim[i, 3] - z
+
+
+@njit(cache=True)
+def _keep_hits(idx: np.ndarray, v: np.ndarray, d: int, s_lo: int, s_hi: int, n: int,
+               q: np.ndarray, sag: float, champ: np.ndarray, th: np.ndarray) -> int:
+    """The hits ``idx[d, :n]`` (edges ``v[d, s_lo]``, ``v[d, s_hi]`` at a segment's first and
+    last roll) that can set a side of the hits' box at some roll of it, with their edges, into
+    ``idx[d + 1]``, ``v[d + 1, FIRST]``, ``v[d + 1, LAST]``; returns how many. ``champ``
+    (4, 2): set to each side's best hit (largest lower edge, least upper edge) at either end,
+    positions in ``idx[d]``; ``th[:, :2]``: their thresholds, what another ray's edge (sg v: sg 1
+    for the lower sides 0 and 2, -1 for the upper) plus its own dip (radius times ``sag``) must
+    stay below at both ends to stay behind them: the same test up to rounding far below
+    `BOUND_SLACK`.
+
+    A hit whose edge stays behind that of either end's best by more than the chord's dip
+    (`_sag` times their radii ``q``, plus `BOUND_SLACK`) at both ends stays behind it at every
+    roll between: it never sets that side."""
+    for s in range(4):
+        ja = jb = 0
+        for t in range(1, n):
+            if s % 2 == 0:
+                if v[d, s_lo, t, s] > v[d, s_lo, ja, s]:
+                    ja = t
+                if v[d, s_hi, t, s] > v[d, s_hi, jb, s]:
+                    jb = t
+            else:
+                if v[d, s_lo, t, s] < v[d, s_lo, ja, s]:
+                    ja = t
+                if v[d, s_hi, t, s] < v[d, s_hi, jb, s]:
+                    jb = t
+        champ[s, 0], champ[s, 1] = ja, jb
+        sg = 1.0 if s % 2 == 0 else -1.0
+        for e in range(2):  # what another hit's edge must stay below at both ends
+            j = champ[s, e]
+            dip = q[idx[d, j]] * sag + BOUND_SLACK
+            th[s, e, 0] = sg * v[d, s_lo, j, s] - dip
+            th[s, e, 1] = sg * v[d, s_hi, j, s] - dip
+    m = 0
+    for t in range(n):
+        qs = q[idx[d, t]] * sag
+        binds = False
+        for s in range(4):
+            sg = 1.0 if s % 2 == 0 else -1.0  # lower edges: a maximum; upper: a minimum
+            u, w = sg * v[d, s_lo, t, s] + qs, sg * v[d, s_hi, t, s] + qs
+            binds |= not ((u < th[s, 0, 0]) & (w < th[s, 0, 1])
+                          | (u < th[s, 1, 0]) & (w < th[s, 1, 1]))
+        if binds:
+            idx[d + 1, m] = idx[d, t]  # to level d + 1, with its edges at the half's ends
+            for c in range(4):
+                v[d + 1, FIRST, m, c] = v[d, s_lo, t, c]
+                v[d + 1, LAST, m, c] = v[d, s_hi, t, c]
+            m += 1
+    return m
+
+
+@njit(cache=True)
+def _keep_misses(idx: np.ndarray, v: np.ndarray, d: int, s_lo: int, s_hi: int, n: int,
+                 q: np.ndarray, sag: float, th: np.ndarray, sure: np.ndarray) -> int:
+    """The misses ``idx[d, :n]`` (edges ``v[d, s_lo]``, ``v[d, s_hi]`` at a segment's ends)
+    that can overlap the consistent box at some roll of it, with their edges, into level
+    d + 1 as `_keep_hits` does; returns how many. ``th``: the hits' champions' thresholds as
+    `_keep_hits` left them, then the cutters'; ``sure``: scratch.
+
+    Every comparison is of two rays' edges at both ends, with `_sag`'s margin as in
+    `_keep_hits`, so it holds at every roll between. A miss whose box lies beyond a side of the
+    hits' box (beyond a hit's edge there) overlaps no box it is cut to. A miss that covers the
+    hits' box across its height (width) and past one side at every roll (a cutter: beside the
+    board, or above it) cuts that side back to its own edge or empties the box, whatever the
+    order; so a miss beyond the deepest cutter's edge at both ends is left out too, and the
+    deepest cutters are kept (the consistent box is then cut at least to them)."""
+    for t in range(n):  # which of the hits' box's sides each miss's box surely reaches past
+        qs = q[idx[d, t]] * sag
+        bits = 0
+        for s in range(4):
+            sg = 1.0 if s % 2 == 0 else -1.0
+            u, w = sg * v[d, s_lo, t, s] + qs, sg * v[d, s_hi, t, s] + qs
+            if ((u < th[s, 0, 0]) & (w < th[s, 0, 1])) | ((u < th[s, 1, 0]) & (w < th[s, 1, 1])):
+                bits |= 1 << s
+        sure[t] = bits
+    for s in range(4):  # side s's deepest cutters at either end: their edge s ^ 1 cuts it
+        need, c, sg = 15 & ~(1 << (s ^ 1)), s ^ 1, (1.0 if s % 2 == 0 else -1.0)
+        ja = jb = -1
+        for t in range(n):
+            if sure[t] & need != need:
+                continue
+            if s % 2 == 0:
+                if ja < 0 or v[d, s_lo, t, c] > v[d, s_lo, ja, c]:
+                    ja = t
+                if jb < 0 or v[d, s_hi, t, c] > v[d, s_hi, jb, c]:
+                    jb = t
+            else:
+                if ja < 0 or v[d, s_lo, t, c] < v[d, s_lo, ja, c]:
+                    ja = t
+                if jb < 0 or v[d, s_hi, t, c] < v[d, s_hi, jb, c]:
+                    jb = t
+        for e, j in enumerate((ja, jb)):
+            if j < 0:
+                th[s, 2 + e, 0] = th[s, 2 + e, 1] = -np.inf  # no cutter: nothing below it
+            else:
+                dip = q[idx[d, j]] * sag + BOUND_SLACK
+                th[s, 2 + e, 0] = sg * v[d, s_lo, j, c] - dip
+                th[s, 2 + e, 1] = sg * v[d, s_hi, j, c] - dip
+                sure[j] |= 16  # kept: the others' cut is proved against it
+    m = 0
+    for t in range(n):
+        qs = q[idx[d, t]] * sag
+        beyond = False
+        for s in range(4):
+            sg, c = (1.0 if s % 2 == 0 else -1.0), s ^ 1
+            u, w = sg * v[d, s_lo, t, c] + qs, sg * v[d, s_hi, t, c] + qs
+            for e in range(4):
+                beyond |= (u < th[s, e, 0]) & (w < th[s, e, 1])
+        if not beyond or sure[t] & 16:
+            idx[d + 1, m] = idx[d, t]  # to level d + 1, with its edges at the half's ends
+            for c in range(4):
+                v[d + 1, FIRST, m, c] = v[d, s_lo, t, c]
+                v[d + 1, LAST, m, c] = v[d, s_hi, t, c]
+            m += 1
+    return m
 
 
 @njit(cache=True)

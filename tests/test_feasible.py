@@ -126,3 +126,20 @@ def test_label_moments_over_a_roll_grid_match_roll_by_roll():
                      for k in range(len(rolls))])
     assert np.count_nonzero(grid[:, 0]) > 10  # some rolls are consistent
     np.testing.assert_array_equal(grid, one)
+
+
+def test_binding_labels_keep_every_label_when_the_rows_do_not_turn_rigidly():
+    # binding_labels' bound holds for rows of R that rotate in one plane; rows that do not (a
+    # grid whose r2 is not r0 x n) must leave no label out
+    rng = np.random.default_rng(4)
+    p_hit, p_miss, e_hit, e_miss = _edge_rays(rng)
+    rolls = np.deg2rad(np.linspace(-1.0, 1.0, 41))
+    r0, r2 = feasible._rows(rolls, np.array([0.0, 1.0, 0.0]))
+    lim_h, lim_m = feasible._limits(e_hit, W2, H2), feasible._limits(e_miss, W2, H2)
+    hits, misses = feasible.binding_labels(p_hit, p_miss, lim_h, lim_m, r0, r2)
+    assert len(hits) < len(p_hit) and len(misses) < len(p_miss)  # rigid: some left out
+    bent = r2.copy()
+    bent[20] += 1e-6  # no longer unit, nor r0 x n
+    hits, misses = feasible.binding_labels(p_hit, p_miss, lim_h, lim_m, r0, bent)
+    np.testing.assert_array_equal(hits, np.arange(len(p_hit)))
+    np.testing.assert_array_equal(misses, np.arange(len(p_miss)))

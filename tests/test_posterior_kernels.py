@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from numba import njit
 
 from align import feasible, plane
 from align.board import BoardSpec
@@ -124,3 +125,87 @@ def test_rows_from_the_grids_trig_match_roll_by_roll_and_the_rotation():
         rot = rotation(*pose_from_plane(n, 2.0, roll)[3:])
         np.testing.assert_allclose(r0[k], rot[0], atol=1e-12)
         np.testing.assert_allclose(r2[k], rot[2], atol=1e-12)
+
+
+@njit(cache=True)
+def _moments_every_label(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2):
+    """`feasible.label_moments` by its definition: every hit and every miss at every roll, in
+    their order, no label left out (the reference for the kernels that leave labels out)."""
+    n_k, n_h, n_m = r0.shape[0], p_hit.shape[0], p_miss.shape[0]
+    out = np.zeros((n_k, 6))
+    lim_h, lim_m = feasible._limits(ext_hit, w2, h2), feasible._limits(ext_miss, w2, h2)
+    bx0, bx1, bz0, bz1 = np.empty(n_m), np.empty(n_m), np.empty(n_m), np.empty(n_m)
+    iz0, iz1, xs = np.empty(n_m), np.empty(n_m), np.empty(2 * n_m + 2)
+    for k in range(n_k):
+        a0, a1, c0, c1 = -np.inf, np.inf, -np.inf, np.inf
+        for i in range(n_h):
+            x = p_hit[i, 0] * r0[k, 0] + p_hit[i, 1] * r0[k, 1] + p_hit[i, 2] * r0[k, 2]
+            z = p_hit[i, 0] * r2[k, 0] + p_hit[i, 1] * r2[k, 1] + p_hit[i, 2] * r2[k, 2]
+            a0, a1 = max(a0, lim_h[i, 0] - x), min(a1, lim_h[i, 1] - x)
+            c0, c1 = max(c0, lim_h[i, 2] - z), min(c1, lim_h[i, 3] - z)
+        if not (a1 > a0 and c1 > c0) or np.isinf(a1 - a0) or np.isinf(c1 - c0):
+            continue
+        nb = 0
+        for i in range(n_m):  # every overlapping miss's box, cut out by _box_minus_boxes
+            x = p_miss[i, 0] * r0[k, 0] + p_miss[i, 1] * r0[k, 1] + p_miss[i, 2] * r0[k, 2]
+            z = p_miss[i, 0] * r2[k, 0] + p_miss[i, 1] * r2[k, 1] + p_miss[i, 2] * r2[k, 2]
+            x0, x1, z0, z1 = lim_m[i, 0] - x, lim_m[i, 1] - x, lim_m[i, 2] - z, lim_m[i, 3] - z
+            if x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1:
+                bx0[nb], bx1[nb], bz0[nb], bz1[nb] = x0, x1, z0, z1
+                nb += 1
+        feasible._box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs,
+                                  out[k])
+    return out
+
+
+@pytest.fixture(scope="module")
+def twin_batches():
+    """`feasible.plane_posteriors`' real inputs: the default estimate of twin scans (the
+    paper's yaw sweep's bench, divergence and mixed returns on, as the demo has them) at three
+    stage yaws, every batch of planes it asks for, captured around the real kernel."""
+    from align.api import estimate
+    from scenarios import plans
+    from scenarios.bench import SimBench
+    from scenarios.runner import visit
+
+    plan = plans.yaw_sweep(scans=2)
+    bench = SimBench(seed=0)
+    bench.home()
+    batches = []
+    kernel = feasible.plane_posteriors
+
+    def capture(*args):
+        batches.append(args)
+        return kernel(*args)
+
+    feasible.plane_posteriors = capture
+    try:
+        for i in (0, 10, 20):  # -10, 0 and +10 deg
+            visit(bench, plan.references[i])
+            bench.prepare(i, 0)
+            for scan in bench.scans(2):
+                estimate(scan)
+    finally:
+        feasible.plane_posteriors = kernel
+    assert len(batches) >= 6
+    return batches
+
+
+def test_label_moments_equal_every_label_on_twin_scans(twin_batches):
+    # label_moments leaves out the labels that cannot bind (on the whole grid, then per block
+    # of rolls): on every plane the estimate asked about, the same floats, bit for bit, as
+    # every hit and miss at every roll
+    planes = 0
+    for (hit_o, hit_u, hit_ext, miss_o, miss_u, miss_ext, normals, ds, rolls, _, w2,
+         h2) in twin_batches:
+        for n, d in zip(normals, ds, strict=True):
+            ph, pm = feasible._points(hit_o, hit_u, n, d), feasible._points(miss_o, miss_u, n, d)
+            r0, r2 = feasible._rows_of(np.cos(rolls), np.sin(rolls), n)
+            got = feasible.label_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
+            ref = _moments_every_label(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
+            np.testing.assert_array_equal(got, ref)
+            planes += 1
+            hits, misses = feasible.binding_labels(ph, pm, feasible._limits(hit_ext, w2, h2),
+                                                   feasible._limits(miss_ext, w2, h2), r0, r2)
+            assert len(hits) < len(ph) and len(misses) < len(pm)  # some are left out
+    assert planes >= 60, planes
