@@ -16,6 +16,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from align.kernels import _project
+
 
 @njit(cache=True)
 def _insertion_sort(xs: np.ndarray, order: np.ndarray) -> None:
@@ -32,51 +34,178 @@ def _insertion_sort(xs: np.ndarray, order: np.ndarray) -> None:
         order[j + 1] = o
 
 
+#: `window_sweep` sorts only a column's tails while they hold at most this fraction of its
+#: points; a column with more (a roll far from the board's, in a coarse pass) is sorted whole.
+TAIL_FRACTION = 0.25
+
+
+@njit(cache=True)
+def _slide_sorted_column(xs: np.ndarray, length: float) -> tuple[int, float]:
+    """The sliding window over one sorted column: the most points a window of ``length``
+    holds and minus the middle of the first such window's points (`align.roll_search._slide`
+    of one row)."""
+    n = xs.shape[0]
+    j = 0
+    best, lo, hi = 0, 0.0, 0.0
+    for i in range(n):
+        if j < i:
+            j = i
+        while j + 1 < n and xs[j + 1] <= xs[i] + length:
+            j += 1
+        if j - i + 1 > best:
+            best, lo, hi = j - i + 1, xs[i], xs[j]
+    return best, -0.5 * (lo + hi)
+
+
+@njit(cache=True)
+def _slide_tails(left: np.ndarray, right: np.ndarray, n: int, first_in: float,
+                 last_in: float, top: float, length: float) -> tuple[int, float]:
+    """`_slide_sorted_column` of a column of ``n`` points from its sorted tails alone.
+
+    With lo, hi the column's least and greatest values: ``left`` (sorted) holds the values x
+    whose window [x, x + length] misses hi, ``right`` (sorted) those beyond lo + length. Every
+    other point lies in every window that starts at a point, so only the tails decide: a window
+    starting at the i-th of ``left`` (the i-th of the sorted column: the left tail is a prefix)
+    holds all n - len(right) points not in ``right``, the points of ``right`` it reaches, less
+    the i before it; one starting past the left tail reaches hi, and the first such (at
+    ``first_in``, the least value not in ``left``) holds the most of them. ``last_in``: the
+    greatest value not in ``right``, where a window ends that reaches none of ``right``. The
+    same comparisons of the same floats as the slide over the whole sorted column, so the
+    same count and the same first window's ends."""
+    nl, nr = left.shape[0], right.shape[0]
+    best, lo, hi = 0, 0.0, 0.0
+    p = 0  # points of ``right`` the window reaches
+    for i in range(nl):
+        end = left[i] + length
+        while p < nr and right[p] <= end:
+            p += 1
+        held = n - nr + p - i
+        if held > best:
+            best, lo, hi = held, left[i], (right[p - 1] if p > 0 else last_in)
+    if n - nl > best:
+        best, lo, hi = n - nl, first_in, top
+    return best, -0.5 * (lo + hi)
+
+
+@njit(cache=True)
+def _column_fit(row: np.ndarray, lo: float, hi: float, length: float, order: np.ndarray,
+                xs: np.ndarray, left: np.ndarray, right: np.ndarray, sorted_once: bool
+                ) -> tuple[int, float, bool]:
+    """The most points of one column ``row`` a window of ``length`` holds, minus the middle of
+    the first such window's points (`window_sweep`'s per column), and whether it was sorted
+    whole. ``lo``, ``hi``: the column's least and greatest values.
+
+    ``order``: the sorted order of the last column sorted whole (valid if ``sorted_once``),
+    updated when this one is; ``xs``, ``left``, ``right``: scratch of the column's length."""
+    n = row.shape[0]
+    if hi <= lo + length:
+        # the window holds them all (most rolls of a fine pass): the slide would start at the
+        # least and reach the greatest, no sort needed
+        return n, -0.5 * (lo + hi), False
+    # the tails, by the slide's own comparisons: a start whose window misses hi, a value past
+    # the window that starts at lo; given up on once they are too many to be worth it
+    most_tail = int(TAIL_FRACTION * n)
+    reach = lo + length
+    nl = nr = 0
+    first_in, last_in = hi, lo
+    for i in range(n):
+        v = row[i]
+        if hi <= v + length:
+            first_in = min(first_in, v)
+        else:
+            left[nl] = v
+            nl += 1
+        if v <= reach:
+            last_in = max(last_in, v)
+        else:
+            right[nr] = v
+            nr += 1
+        if nl + nr > most_tail:
+            break
+    if nl + nr <= most_tail:
+        best, mid = _slide_tails(np.sort(left[:nl]), np.sort(right[:nr]), n, first_in,
+                                 last_in, hi, length)
+        return best, mid, False
+    if not sorted_once:
+        order[:] = np.argsort(row)
+    for i in range(n):
+        xs[i] = row[order[i]]
+    _insertion_sort(xs, order)
+    best, mid = _slide_sorted_column(xs, length)
+    return best, mid, True
+
+
 @njit(cache=True)
 def window_sweep(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
     """`align.roll_search._window_fit`: for each column of ``coords`` (n, K), the most points a
     window of ``length`` holds and the shift that centres it on them (minus the middle of the
     first such window's points).
 
-    The columns are the points' coordinates along a rectangle's axis at consecutive rolls:
-    each is sorted starting from the previous column's order, which a small turn hardly changes
-    (an insertion sort then costs little more than a copy; sorting every column afresh and
-    sliding after cost twice as much). The sorted values are the same whatever sorted them,
-    so the counts and shifts are those of sorting each column anew. A column the window holds
-    whole is not sorted at all."""
-    n, k = coords.shape
+    The columns are the points' coordinates along a rectangle's axis at consecutive rolls. Near
+    the board's roll the points' extent is barely more than the window: every window that
+    starts at a point holds the middle of them, and only the few in the two tails (within
+    ``length`` of neither end) decide the count (`_slide_tails`), so only those are sorted. A
+    column whose tails hold more than `TAIL_FRACTION` of it is sorted whole, starting from the
+    previous such column's order, which a small turn hardly changes (an insertion sort then
+    costs little more than a copy). The sorted values are the same whatever sorted them and
+    the window's count and ends are values, so the counts and shifts are those of sorting each
+    column anew. A column the window holds whole is not sorted at all."""
+    return window_sweep_rows(np.ascontiguousarray(coords.T), length)
+
+
+@njit(cache=True)
+def window_sweep_rows(rows: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """`window_sweep` of the columns given as the rows of ``rows`` (K, n)."""
+    k, n = rows.shape
     count = np.zeros(k, dtype=np.int64)
     shift = np.zeros(k)
     if n == 0 or k == 0:
         shift[:] = -0.0  # -(0 + 0) / 2: an empty window's middle, as the numpy version's
         return count, shift
-    rows = np.ascontiguousarray(coords.T)  # each roll's coordinates together: gathered fast
-    order = np.argsort(rows[0])
-    xs = np.empty(n)
+    order = np.empty(n, dtype=np.int64)
+    xs, left, right = np.empty(n), np.empty(n), np.empty(n)
+    sorted_once = False
     for c in range(k):
         row = rows[c]
         lo, hi = row[0], row[0]
         for i in range(1, n):
             lo, hi = min(lo, row[i]), max(hi, row[i])
-        if hi <= lo + length:
-            # the window holds them all (most rolls of a fine pass): the slide would start at
-            # the least and reach the greatest, no sort needed
-            count[c], shift[c] = n, -0.5 * (lo + hi)
-            continue
-        for i in range(n):
-            xs[i] = row[order[i]]
-        _insertion_sort(xs, order)
-        j = 0
-        best, lo, hi = 0, 0.0, 0.0
-        for i in range(n):
-            if j < i:
-                j = i
-            while j + 1 < n and xs[j + 1] <= xs[i] + length:
-                j += 1
-            if j - i + 1 > best:
-                best, lo, hi = j - i + 1, xs[i], xs[j]
-        count[c] = best
-        shift[c] = -0.5 * (lo + hi)
+        best, mid, whole = _column_fit(row, lo, hi, length, order, xs, left, right,
+                                       sorted_once)
+        count[c], shift[c] = best, mid
+        sorted_once = sorted_once or whole
+    return count, shift
+
+
+@njit(cache=True)
+def window_sweep_projected(points: np.ndarray, axes: np.ndarray, length: float
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """`window_sweep` of ``points @ axes.T`` ((n, 3) points, (K, 3) axes: the coordinates
+    along a rectangle's axis at K rolls) without the product and its transpose: each roll's
+    coordinates are computed into one contiguous row as OpenBLAS's kernels compute them
+    (`align.kernels._project`, bit for bit). Gathering a roll's column out of the (n, K)
+    product cost as much as all the sliding."""
+    n, k = points.shape[0], axes.shape[0]
+    count = np.zeros(k, dtype=np.int64)
+    shift = np.zeros(k)
+    if n == 0 or k == 0:
+        shift[:] = -0.0  # -(0 + 0) / 2: an empty window's middle, as the numpy version's
+        return count, shift
+    row = np.empty(n)
+    order = np.empty(n, dtype=np.int64)
+    xs, left, right = np.empty(n), np.empty(n), np.empty(n)
+    sorted_once = False
+    for c in range(k):
+        # the roll's coordinates and their extent in one pass
+        lo, hi = np.inf, -np.inf
+        for j in range(n):
+            v = _project(points, axes, c, j)
+            row[j] = v
+            lo, hi = min(lo, v), max(hi, v)
+        best, mid, whole = _column_fit(row, lo, hi, length, order, xs, left, right,
+                                       sorted_once)
+        count[c], shift[c] = best, mid
+        sorted_once = sorted_once or whole
     return count, shift
 
 

@@ -24,7 +24,7 @@ from numba import njit
 
 from align.board import BoardSpec
 from align.feasible import _rows
-from align.fit_kernels import window_sweep
+from align.fit_kernels import window_sweep, window_sweep_projected
 
 #: Roll grid steps, rad: a coarse pass over the whole range, then a fine one about the coarse
 #: pass's best rolls. The interval of rolls that fit is a degree or more wide for a board seen
@@ -94,8 +94,11 @@ def _left_out(points: np.ndarray, n: np.ndarray, board: BoardSpec, rolls: np.nda
               tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per roll: how many returns a W x H box (grown by ``tol``) leaves out, and its shift."""
     r0, r2 = _rows(rolls, n)
-    cx, tx = _window_fit(points @ r0.T, board.width + 2 * tol)
-    cz, tz = _window_fit(points @ r2.T, board.height + 2 * tol)
+    # `_window_fit` of points @ r0.T and points @ r2.T, the products computed roll by roll
+    # inside the sweep (the same floats), not gathered column by column out of (n, K) arrays
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    cx, tx = window_sweep_projected(p, np.ascontiguousarray(r0), float(board.width + 2 * tol))
+    cz, tz = window_sweep_projected(p, np.ascontiguousarray(r2), float(board.height + 2 * tol))
     return 2 * len(points) - cx - cz, tx, tz
 
 

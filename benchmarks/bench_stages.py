@@ -48,6 +48,7 @@ STAGES = (
     ((roll_search,), "search", "roll search (`roll_search.search`)"),
     ((plane,), "fit_rays", "plane: ML along the rays (`plane.fit_rays`)"),
     ((rays,), "_fit", "joint least-squares fit (`rays._fit`)"),
+    ((rays,), "_candidates_at", "- its candidate rays at a pose (`rays._candidates_at`)"),
     ((rays,), "_gauss_newton", "- its Levenberg-Marquardt (`rays._gauss_newton`)"),
     ((label_posterior, rays), "label_posterior", "hit/miss posterior (`label_posterior`)"),
 )

@@ -1,0 +1,79 @@
+"""The roll search's sweep (`align.fit_kernels.window_sweep_projected`: tails sorted alone,
+each roll projected into a row) against the numpy reference it replaced (the (n, K) product
+points @ axes.T, every column sorted afresh and slid), on the search's own inputs from real
+scans: the twin's and the recorded VLP-16's."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import align
+from align import roll_search
+from align.board import BoardSpec
+from align.feasible import _rows
+from align.fit_kernels import window_sweep_projected
+from tests.conftest import DATA_DIR
+from tests.test_fit_kernels import window_fit_reference
+from tests.test_rays_kernels import ACFR_BOARD
+from twin.lidar.pcd import read_pcd_scans
+from twin.sim.bench import BenchSim
+
+
+@pytest.fixture(scope="module")
+def searches(request) -> list[tuple[tuple, dict]]:
+    """The arguments of every `roll_search.search` call of estimates of real scans."""
+    calls: list[tuple[tuple, dict]] = []
+    real = roll_search.search
+
+    def recorded(*args, **kwargs):
+        calls.append((args, kwargs))
+        return real(*args, **kwargs)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(roll_search, "search", recorded)
+    try:
+        for seed in range(4):
+            align.estimate(BenchSim(seed=seed).scan(), board=BoardSpec(), hints=align.Hints())
+        for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))[:2]:
+            align.estimate(read_pcd_scans(p)[0], board=ACFR_BOARD,
+                           hints=align.Hints(expected_distance=1.8))
+    finally:
+        mp.undo()
+    assert len(calls) >= 4
+    return calls
+
+
+def left_out_reference(points: np.ndarray, n: np.ndarray, board: BoardSpec, rolls: np.ndarray,
+                       tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`roll_search._left_out` before the sweep projected the points itself."""
+    r0, r2 = _rows(rolls, n)
+    cx, tx = window_fit_reference(points @ r0.T, board.width + 2 * tol)
+    cz, tz = window_fit_reference(points @ r2.T, board.height + 2 * tol)
+    return 2 * len(points) - cx - cz, tx, tz
+
+
+def test_projected_sweep_is_the_sorted_slide_bit_for_bit(searches):
+    tails = 0
+    for args, _ in searches:
+        points, n, board = args[0], args[1], args[2]
+        for k, step in ((roll_search.COARSE_POINTS, roll_search.COARSE_STEP),
+                        (roll_search.FINE_POINTS, roll_search.FINE_STEP)):
+            p = np.ascontiguousarray(roll_search._subsample(points, k))
+            rolls = np.arange(-np.pi / 2, np.pi / 2, step)
+            for axes, length in zip(_rows(rolls, n), (board.width + 0.02, board.height + 0.02),
+                                    strict=True):
+                got = window_sweep_projected(p, np.ascontiguousarray(axes), length)
+                want = window_fit_reference(p @ axes.T, length)
+                np.testing.assert_array_equal(got[0], want[0])
+                np.testing.assert_array_equal(got[1], want[1])
+                tails += int(np.sum((got[0] < len(p)) & (got[0] > 0.75 * len(p))))
+    assert tails > 0  # columns the tails decided, not only whole ones
+
+
+def test_search_starts_are_those_of_the_numpy_reference(searches, monkeypatch):
+    got = [roll_search.search(*a, **k) for a, k in searches]
+    monkeypatch.setattr(roll_search, "_left_out", left_out_reference)
+    want = [roll_search.search(*a, **k) for a, k in searches]
+    assert got == want
+    assert all(len(s) > 0 for s in got)
