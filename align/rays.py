@@ -260,6 +260,74 @@ def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
                          BEHIND_RUN, BEHIND_REACH, BEHIND_MIN, BEHIND_SIGMAS * sigma_r)
 
 
+#: A laser's run of hits that starts and ends on the same straight edge rides along it within
+#: the ring's sag over the run (a ring is a cone's trace on the plane, nearly straight: a
+#: 0.1 m run of the VLP-16's lowest ring at 2.5 m bends by 0.06 mm). A ring's height against an
+#: edge is as good as random over its spacing on the board (90 mm there), so a run that needs
+#: the edge within less than this of the ring (m) is the board by a chance of about 1 in 1000,
+#: and a holder or bracket just behind the edge (a few cm of hits on a ring that passes the
+#: board) by far the likelier (`_grazing_runs`).
+GRAZE_SAG = 1e-4
+#: A short run this near a corner (beyond its own length, m) may end on the two edges that meet
+#: there: a ring crossing the corner, not grazing.
+CORNER_REACH = 0.05
+
+
+def _grazing_runs(rays: _Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
+                  expected: np.ndarray, board: BoardSpec, order: np.ndarray) -> np.ndarray:
+    """The hits of runs (consecutive hits of one laser in one scan, by azimuth, a miss on
+    either side) that only a ring riding an edge within `GRAZE_SAG` could put on the board: a
+    mask over the rays.
+
+    The board is convex, so a ring's run on it ends where the ring crosses its boundary. A run
+    shorter than the board's smaller side (the ring cannot cross between opposite edges) and
+    away from every corner (nor between adjacent ones) starts and ends on the same edge: the
+    edge then lies between each end hit and the miss beyond it, and the whole run within the
+    ring's sag from it. The sag over the run (the run's largest distance, in the plane, from
+    the chord between the two misses) says how close that is. A thing just behind an edge (a
+    clamp, a bracket, a stand's part reaching past it) returns within the range noise of the
+    plane on a ring that misses the board by millimetres: taken as hits, a few cm of them are
+    a grazing ring, and a fit rolls the rectangle by degrees to ride its edge along them.
+    ``coords``: the rays' board coordinates (X, Z, lam) at the start pose, a pose good to a
+    few cm for the corners; ``expected``: each ray's range to the plane (the offset in it);
+    ``order``: the rays by scan, laser and azimuth."""
+    x, z = coords[0][order], coords[1][order]
+    lb, az = lab[order], rays.azimuth[order]
+    same = (rays.laser[order][1:] == rays.laser[order][:-1]) & (
+        rays.scan[order][1:] == rays.scan[order][:-1]) & (np.diff(az) < MAX_GAP)
+    hit = lb == HIT
+    # what ends a run: a miss, or a return behind the plane (the same thing behind, further
+    # back); not a return in front (it may hide the board going on) nor a dropout
+    behind = (rays.distance[order] > 0) & (rays.distance[order] > expected[order])
+    beside = (lb == MISS) | ((lb == UNKNOWN) & behind)
+    # runs of hits linked along a laser: their first and last positions in ``order``
+    starts = np.flatnonzero(hit & ~np.concatenate(([False], same & hit[:-1])))
+    ends = np.flatnonzero(hit & ~np.concatenate((same & hit[1:], [False])))
+    out = np.zeros(len(lab), dtype=bool)
+    w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
+    corners = np.array([(-w2, -h2), (w2, -h2), (-w2, h2), (w2, h2)])
+    for a, b in zip(starts, ends, strict=True):
+        if a == 0 or b == len(lb) - 1 or not (same[a - 1] and same[b]):
+            continue  # a run at the end of what was looked at: its ends are not seen
+        if not (beside[a - 1] and beside[b + 1]):
+            continue  # something in front beside it, or a dropout: not its end
+        span = math.hypot(x[b + 1] - x[a - 1], z[b + 1] - z[a - 1])
+        if span >= min(board.width, board.height):
+            continue
+        xs, zs = x[a:b + 1], z[a:b + 1]
+        if np.all((np.abs(xs) < w2 - margin) & (np.abs(zs) < h2 - margin)):
+            continue  # deep inside: the board's own run between dropped returns
+        reach = np.min(np.hypot(xs[:, None] - corners[:, 0], zs[:, None] - corners[:, 1]))
+        if reach < span + CORNER_REACH:
+            continue
+        # the run's distance from the chord between the misses beside it
+        cx, cz = x[b + 1] - x[a - 1], z[b + 1] - z[a - 1]
+        sag = np.max(np.abs((xs - x[a - 1]) * cz - (zs - z[a - 1]) * cx)) / span
+        if sag < GRAZE_SAG:
+            out[order[a:b + 1]] = True
+    return out
+
+
 def _between_hits(rays: _Rays, lab: np.ndarray, order: np.ndarray | None = None
                   ) -> np.ndarray:
     """Rays that lie between two hits of the same laser in the same scan (by azimuth).
@@ -589,12 +657,7 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     outer = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
     use = ((lab == 1) & ~outer) | ((lab == 0) & ~inner)
     u = rays.direction
-    # the plate's side faces, seen by rays heading inwards past an edge (as `_Model.residuals`)
-    rot = rotation(theta[3], theta[4], theta[5])
-    dn = u @ rot.T
-    ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
-    ext = board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
-                                                             -ratio_z)))
+    ext = _side_faces(u, theta, board)
     # the tolerance across each edge as the beam's footprint allows it: the support of the
     # ellipse with half-axes (side, top/bottom tolerance) along the LiDAR's horizontal and up
     # directions, in the edge's normal direction (a level board: the tolerances as given)
@@ -611,6 +674,17 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     ext += (lam * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
     use &= ~_overhanging(x, z, lab, rays.laser, ext, board)
     return LabelledRays(rays.origin[use], u[use], lab[use], ext[use]), np.flatnonzero(use)
+
+
+def _side_faces(u: np.ndarray, theta: np.ndarray, board: BoardSpec) -> np.ndarray:
+    """(M, 4) how far past the left, right, bottom and top edge (m) the rays with directions
+    ``u`` still hit the plate at ``theta``: its side faces, seen by rays heading inwards past
+    an edge (as `_Model.residuals`)."""
+    rot = rotation(theta[3], theta[4], theta[5])
+    dn = u @ rot.T
+    ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
+    return board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
+                                                              -ratio_z)))
 
 
 #: A laser's hits may span the board's width by this much more (m) before one end is taken to
@@ -796,7 +870,16 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     reassign tighter, refit (`_staged_fit`).
     """
     rays, coords, spacing = _candidates_at(scans, segs, theta, board)
-    lab = _labels(rays, coords[2] + offset[0], sigma_r)  # the range expected, offset included
+    expected = coords[2] + offset[0]  # the range expected, offset included
+    lab = _labels(rays, expected, sigma_r)
+    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    lab[_grazing_runs(rays, lab, coords, expected, board, order)] = UNKNOWN
+    # a laser's run lengthened past the board's width by a holder beside a side edge: its
+    # end left out before the brackets are drawn (a rectangle turned to reach it, as a fit from
+    # there finds it, locks onto grazing crossings degrees off). Judged again by the hit/miss
+    # posterior's labels at the fitted pose (`_ray_points`).
+    lab[_overhanging(coords[0], coords[1], lab, rays.laser,
+                     _side_faces(rays.direction, theta, board), board)] = UNKNOWN
     rings_hit = np.unique(rays.ring[lab == HIT])
     if len(rings_hit) < 3:
         return None
