@@ -50,7 +50,6 @@ from align.fit_kernels import (
     column_brackets,
     contradicted,
     edge_brackets,
-    jacobian_rotations,
     lm_fit,
     profile_cost,
     range_rays,
@@ -606,15 +605,15 @@ class _Model:
 
         X = o.r0 + t_x + lam u.r0, Z = o.r2 + t_z + lam u.r2, lam = -(o.r1 + t_y) / u.r1 (r_k
         the rows of R): t_x and t_z move X and Z one for one; t_y moves lam by -1 / u.r1.
-        Compiled (`align.kernels.fit_jacobian`): the differences without a residual vector
-        allocated per rotation.
+        The fit's own (`align.fit_kernels._jacobian_into`, which `lm_fit` calls in its loop).
         """
-        from align.kernels import fit_jacobian
+        from align.fit_kernels import _jacobian_into
 
-        theta = np.asarray(theta, dtype=np.float64)
-        rots = jacobian_rotations(theta, JACOBIAN_STEP)
-        return fit_jacobian(theta, rots, np.asarray(f0, dtype=np.float64), *self._fit_arrays(),
-                            JACOBIAN_STEP)
+        f0 = np.asarray(f0, dtype=np.float64)
+        j = np.zeros((len(f0), 6))
+        _jacobian_into(np.asarray(theta, dtype=np.float64), f0, *self._fit_arrays(),
+                       JACOBIAN_STEP, j, np.empty(len(f0)))
+        return j
 
 
 #: The forward difference of the rotations in `_Model.jacobian`, rad.
