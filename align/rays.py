@@ -310,14 +310,15 @@ def _grazing_runs(rays: _Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
     out = np.zeros(len(lab), dtype=bool)
     w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
     corners = np.array([(-w2, -h2), (w2, -h2), (-w2, h2), (w2, h2)])
-    for a, b in zip(starts, ends, strict=True):
-        if a == 0 or b == len(lb) - 1 or not (same[a - 1] and same[b]):
-            continue  # a run at the end of what was looked at: its ends are not seen
-        if not (beside[a - 1] and beside[b + 1]):
-            continue  # something in front beside it, or a dropout: not its end
-        span = math.hypot(x[b + 1] - x[a - 1], z[b + 1] - z[a - 1])
-        if span >= min(board.width, board.height):
-            continue
+    # the runs whose ends are seen (not at the end of what was looked at), each beside a miss
+    # or a return behind, shorter than the board's smaller side: the few looked at closer
+    n = len(lb)
+    seen = (starts > 0) & (ends < n - 1)
+    starts, ends = starts[seen], ends[seen]
+    ok = same[starts - 1] & same[ends] & beside[starts - 1] & beside[ends + 1]
+    spans = np.hypot(x[ends + 1] - x[starts - 1], z[ends + 1] - z[starts - 1])
+    ok &= spans < min(board.width, board.height)
+    for a, b, span in zip(starts[ok], ends[ok], spans[ok], strict=True):
         xs, zs = x[a:b + 1], z[a:b + 1]
         if np.all((np.abs(xs) < w2 - margin) & (np.abs(zs) < h2 - margin)):
             continue  # deep inside: the board's own run between dropped returns
@@ -356,7 +357,10 @@ def _bright_ends(rays: _Rays, lab: np.ndarray, intensity: np.ndarray, inner: np.
     if len(ref) < BRIGHT_REFERENCE:
         return out
     hits = order[lab[order] == HIT]
-    odd = intensity[hits] > BRIGHT_RATIO * float(np.quantile(ref, 0.99))
+    k = int(0.99 * (len(ref) - 1))
+    odd = intensity[hits] > BRIGHT_RATIO * float(np.partition(ref, k)[k])
+    if not np.any(odd):
+        return out
     key = rays.scan[hits].astype(np.int64) * 256 + rays.laser[hits]
     bounds = np.flatnonzero(np.diff(np.concatenate(([-1], key, [-1]))))
     for a, b in itertools.pairwise(bounds):
@@ -741,7 +745,7 @@ EDGE_REACH = 0.05
 
 
 def _overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
-                 ext: np.ndarray, board: BoardSpec) -> np.ndarray:
+                 ext: np.ndarray, board: BoardSpec, sides: _Sides | None = None) -> np.ndarray:
     """Hits at one end of a laser's run beyond the board's side edge: a holder or clamp beside
     it, flush with the board's plane within the range noise, whose hits extend that one
     laser's run. Returned to be left out of the labels: a rectangle turned to take them in is
@@ -757,9 +761,11 @@ def _overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarra
     still tells: the hits of one laser between both side edges span at most its width (each
     hit's allowance ``ext`` outside an edge granted), and of a laser that spans more, the end
     farther off the line of the other lasers' ends at that side overhangs. Both tests hold at
-    any pose near the board's to first order, a fit's roll error included."""
+    any pose near the board's to first order, a fit's roll error included. ``sides``:
+    `_Sides.of` these, if the caller has it."""
     out = np.zeros(len(lab), dtype=bool)
-    sides = _Sides.of(x, z, lab, laser, ext, board)
+    if sides is None:
+        sides = _Sides.of(x, z, lab, laser, ext, board)
     if sides is None:
         return out
     ids, ends, hit, x_l, x_r = sides.ids, sides.ends, sides.hit, sides.x_l, sides.x_r
@@ -819,15 +825,19 @@ class _Sides:
         w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
         hit = (lab == HIT) & (np.abs(z) < h2 + margin) & (np.abs(x) < w2 + margin)
         x_l, x_r = x + ext[:, 0], x - ext[:, 1]
-        ids = np.unique(laser[hit])
-        if len(ids) < 3:
+        idx = np.flatnonzero(hit)
+        # per laser its leftmost hit (the first of equal ones, as argmin) and its rightmost
+        by_l = idx[np.lexsort((x_l[idx], laser[idx]))]
+        by_r = idx[np.lexsort((-x_r[idx], laser[idx]))]
+        first = np.flatnonzero(np.diff(np.concatenate(([-1], laser[by_l]))))
+        if len(first) < 3:
             return None
-        ends = np.zeros((len(ids), 4))
-        for i, k in enumerate(ids):
-            m = np.flatnonzero(hit & (laser == k))
-            il, ir = m[np.argmin(x_l[m])], m[np.argmax(x_r[m])]
-            ends[i] = x_l[il], z[il], x_r[ir], z[ir]
-        step = _hit_step(x[hit], laser[hit])
+        il, ir = by_l[first], by_r[first]
+        ids = laser[il]
+        ends = np.column_stack((x_l[il], z[il], x_r[ir], z[ir]))
+        # the azimuth step on the board: the median spacing of a laser's consecutive hits
+        dx = np.abs(np.diff(x[by_l]))[np.diff(laser[by_l]) == 0]
+        step = float(np.partition(dx, len(dx) // 2)[len(dx) // 2]) if len(dx) else 0.0
         tol = 0.5 * step + OVERHANG_SLACK
         return cls(ids, ends, hit, x_l, x_r, tol, _side_lines(ends, w2, tol, step + tol))
 
@@ -873,7 +883,8 @@ def _side_lines(ends: np.ndarray, w2: float, tol: float, inward: float
         if n_r < SIDE_ENDS or int(np.count_nonzero(keep)) - n_r < SIDE_ENDS or \
                 int(np.count_nonzero(keep)) < LINE_ENDS:
             return None
-        coef = np.linalg.lstsq(a[keep], xs[keep], rcond=None)[0]
+        ak = a[keep]
+        coef = np.linalg.solve(ak.T @ ak, ak.T @ xs[keep])  # three unknowns: normal equations
         beyond = (xs - a @ coef) * out_sign
         excess = np.where(keep, np.maximum(np.maximum(beyond - tol, -beyond - inward), 0.0),
                           0.0)
@@ -881,14 +892,6 @@ def _side_lines(ends: np.ndarray, w2: float, tol: float, inward: float
         if excess[worst] <= 0.0:
             return float(coef[0]), float(coef[1]), float(coef[2])
         keep[worst] = False
-
-
-def _hit_step(x: np.ndarray, laser: np.ndarray) -> float:
-    """The median spacing of consecutive hits along a laser (m): the azimuth step on the board."""
-    order = np.lexsort((x, laser))
-    dx = np.diff(x[order])
-    same = np.diff(laser[order]) == 0
-    return float(np.median(dx[same])) if np.any(same) else 0.0
 
 
 def _line_at(z: np.ndarray, x: np.ndarray, z0: float) -> float:
@@ -1039,8 +1042,11 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     lab[_bright_ends(rays, lab, intensity, inner, order)] = UNKNOWN
     ext = _side_faces(rays.direction, theta, board)
     sides = _Sides.of(coords[0], coords[1], lab, rays.laser, ext, board)
-    lab[_grazing_runs(rays, lab, coords, expected, board, order, sides)] = UNKNOWN
-    lab[_overhanging(coords[0], coords[1], lab, rays.laser, ext, board)] = UNKNOWN
+    grazing = _grazing_runs(rays, lab, coords, expected, board, order, sides)
+    if np.any(grazing):
+        lab[grazing] = UNKNOWN
+        sides = None  # its lasers' ends may have changed
+    lab[_overhanging(coords[0], coords[1], lab, rays.laser, ext, board, sides)] = UNKNOWN
     rings_hit = np.unique(rays.ring[lab == HIT])
     if len(rings_hit) < 3:
         return None
