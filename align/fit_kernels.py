@@ -417,7 +417,7 @@ def rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
 @njit(cache=True)
 def jacobian_rotations(theta: np.ndarray, step: float) -> np.ndarray:
     """R at ``theta`` and with its roll, tilt and yaw each moved by ``step`` (rad), (4, 3, 3):
-    what `align.kernels.fit_jacobian` differences."""
+    what `_jacobian_into` differences."""
     rots = np.empty((4, 3, 3))
     rots[0] = rotation(theta[3], theta[4], theta[5])
     for k in range(3):
@@ -653,9 +653,9 @@ def _jacobian_into(theta: np.ndarray, f0: np.ndarray, o_r: np.ndarray, u_r: np.n
                    uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
                    sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
                    step: float, j: np.ndarray, f: np.ndarray) -> None:
-    """`align.kernels.fit_jacobian` (d residuals / d theta at ``theta``, residuals ``f0``) into
-    the first six columns of ``j``, the same expressions; ``f``: scratch of the residuals'
-    length. A copy for the reason `_residuals_into` gives."""
+    """`align.rays._Model.jacobian`: d residuals / d theta at ``theta`` (residuals ``f0``) into
+    the first six columns of ``j``, the translations analytically, the rotations by forward
+    differences of ``step`` (rad); ``f``: scratch of the residuals' length."""
     rots = jacobian_rotations(theta, step)
     nr = o_r.shape[0]
     nb = oh.shape[0]

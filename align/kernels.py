@@ -12,8 +12,9 @@ tests/test_segment_kernels.py checks it against the numpy reference on real scan
 `ransac` is `align.plane.ransac` with its hypotheses scored in one loop (no (hypotheses x
 points) distance matrix): the same random draws, and on a machine whose BLAS fuses multiply and
 add as OpenBLAS's Haswell kernels do, the very same distances (`_fma`), so the same plane.
-`fit_residuals` and `fit_jacobian` are `align.rays._Model`'s residuals and Jacobian, one pass
-over the rays each (to rounding: numpy's matrix-vector products fuse differently).
+`fit_residuals` is `align.rays._Model`'s residuals, one pass over the rays (to rounding: numpy's
+matrix-vector products fuse differently); its Jacobian is `align.fit_kernels._jacobian_into`,
+the one the fit's loop calls.
 """
 
 from __future__ import annotations
@@ -632,51 +633,6 @@ def fit_residuals(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.n
     _fit_residuals(theta, rot, o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn, sd, vert,
                    w2, h2, thick, out)
     return out
-
-
-@njit(cache=True)
-def fit_jacobian(theta: np.ndarray, rots: np.ndarray, f0: np.ndarray, o_r: np.ndarray,
-                 u_r: np.ndarray, d_r: np.ndarray, offset: float, sigma_r: float,
-                 oh: np.ndarray, uh: np.ndarray, om: np.ndarray, um: np.ndarray,
-                 sgn: np.ndarray, sd: np.ndarray, vert: np.ndarray, w2: float, h2: float,
-                 thick: float, step: float) -> np.ndarray:
-    """`align.rays._Model.jacobian`: d residuals / d theta at ``theta`` (residuals ``f0``),
-    the translations analytically, the rotations by forward differences of ``step`` (rad).
-    ``rots`` (4, 3, 3): R at theta, then with roll, tilt, yaw each moved by ``step``."""
-    nr = o_r.shape[0]
-    nb = oh.shape[0]
-    j = np.empty((nr + nb, 6))
-    r0, r1, r2 = rots[0, 0], rots[0, 1], rots[0, 2]
-    for i in range(nr):
-        j[i, 0] = 0.0
-        j[i, 1] = (1.0 / (u_r[i, 0] * r1[0] + u_r[i, 1] * r1[1] + u_r[i, 2] * r1[2])) / sigma_r
-        j[i, 2] = 0.0
-    for i in range(nb):
-        # t_x, t_z move X, Z one for one; t_y moves each ray's lam by -1 / u.r1
-        dlh = -1.0 / (uh[i, 0] * r1[0] + uh[i, 1] * r1[1] + uh[i, 2] * r1[2])
-        dlm = -1.0 / (um[i, 0] * r1[0] + um[i, 1] * r1[1] + um[i, 2] * r1[2])
-        if vert[i]:
-            j[nr + i, 0] = -1.0 / sd[i]
-            j[nr + i, 2] = 0.0 / sd[i]
-            xh_t = dlh * (uh[i, 0] * r0[0] + uh[i, 1] * r0[1] + uh[i, 2] * r0[2])
-            xm_t = dlm * (um[i, 0] * r0[0] + um[i, 1] * r0[1] + um[i, 2] * r0[2])
-            j[nr + i, 1] = -0.5 * (xh_t + xm_t) / sd[i]
-        else:
-            j[nr + i, 0] = 0.0 / sd[i]
-            j[nr + i, 2] = -1.0 / sd[i]
-            zh_t = dlh * (uh[i, 0] * r2[0] + uh[i, 1] * r2[1] + uh[i, 2] * r2[2])
-            zm_t = dlm * (um[i, 0] * r2[0] + um[i, 1] * r2[1] + um[i, 2] * r2[2])
-            j[nr + i, 1] = -0.5 * (zh_t + zm_t) / sd[i]
-    f = np.empty(nr + nb)
-    t = theta.copy()
-    for k in range(3):
-        t[:] = theta
-        t[3 + k] += step
-        _fit_residuals(t, rots[1 + k], o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn,
-                       sd, vert, w2, h2, thick, f)
-        for i in range(nr + nb):
-            j[i, 3 + k] = (f[i] - f0[i]) / step
-    return j
 
 
 @njit(cache=True)

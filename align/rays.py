@@ -32,6 +32,7 @@ What a single flat board tells a LiDAR of a few rings (docs/align.md has the ana
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 import weakref
@@ -49,7 +50,6 @@ from align.fit_kernels import (
     column_brackets,
     contradicted,
     edge_brackets,
-    jacobian_rotations,
     lm_fit,
     profile_cost,
     range_rays,
@@ -258,6 +258,123 @@ def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
     # each end. Compiled (`align.fit_kernels.behind_groups`).
     return behind_groups(order, rays.scan, rays.laser, np.asarray(res, dtype=np.float64),
                          BEHIND_RUN, BEHIND_REACH, BEHIND_MIN, BEHIND_SIGMAS * sigma_r)
+
+
+#: A laser's run of hits that starts and ends on the same straight edge rides along it within
+#: the ring's sag over the run (a ring is a cone's trace on the plane, nearly straight: a
+#: 0.1 m run of the VLP-16's lowest ring at 2.5 m bends by 0.06 mm). A ring's height against an
+#: edge is as good as random over its spacing on the board (90 mm there), so a run that needs
+#: the edge within less than this of the ring (m) is the board by a chance of about 1 in 1000,
+#: and a holder or bracket just behind the edge (a few cm of hits on a ring that passes the
+#: board) by far the likelier (`_grazing_runs`).
+GRAZE_SAG = 1e-4
+#: A short run this near a corner (beyond its own length, m) may end on the two edges that meet
+#: there: a ring crossing the corner, not grazing.
+CORNER_REACH = 0.05
+
+
+def _grazing_runs(rays: _Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
+                  expected: np.ndarray, board: BoardSpec, order: np.ndarray,
+                  sides: _Sides | None = None) -> np.ndarray:
+    """The hits of runs (consecutive hits of one laser in one scan, by azimuth, a miss on
+    either side) that only a ring riding an edge within `GRAZE_SAG` could put on the board: a
+    mask over the rays.
+
+    The board is convex, so a ring's run on it ends where the ring crosses its boundary. A run
+    shorter than the board's smaller side (the ring cannot cross between opposite edges) and
+    away from every corner (nor between adjacent ones) starts and ends on the same edge: the
+    edge then lies between each end hit and the miss beyond it, and the whole run within the
+    ring's sag from it. The sag over the run (the run's largest distance, in the plane, from
+    the chord between the two misses) says how close that is. A thing just behind an edge (a
+    clamp, a bracket, a stand's part reaching past it) returns within the range noise of the
+    plane on a ring that misses the board by millimetres: taken as hits, a few cm of them are
+    a grazing ring, and a fit rolls the rectangle by degrees to ride its edge along them.
+    ``coords``: the rays' board coordinates (X, Z, lam) at the start pose, a pose good to a
+    few cm for the corners; ``expected``: each ray's range to the plane (the offset in it);
+    ``order``: the rays by scan, laser and azimuth. ``sides``: the side edges as the other
+    lasers' ends show them (`_Sides`), if they do: a run at a corner then ends at one of them,
+    which holds at any pose; without them, a run within `CORNER_REACH` beyond its length of
+    a corner of the rectangle at this pose is taken to cross it."""
+    x, z = coords[0][order], coords[1][order]
+    lb, az = lab[order], rays.azimuth[order]
+    same = (rays.laser[order][1:] == rays.laser[order][:-1]) & (
+        rays.scan[order][1:] == rays.scan[order][:-1]) & (np.diff(az) < MAX_GAP)
+    hit = lb == HIT
+    # what ends a run: a miss, or a return behind the plane (the same thing behind, further
+    # back); not a return in front (it may hide the board going on) nor a dropout
+    behind = (rays.distance[order] > 0) & (rays.distance[order] > expected[order])
+    beside = (lb == MISS) | ((lb == UNKNOWN) & behind)
+    # runs of hits linked along a laser: their first and last positions in ``order``
+    starts = np.flatnonzero(hit & ~np.concatenate(([False], same & hit[:-1])))
+    ends = np.flatnonzero(hit & ~np.concatenate((same & hit[1:], [False])))
+    out = np.zeros(len(lab), dtype=bool)
+    w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
+    corners = np.array([(-w2, -h2), (w2, -h2), (-w2, h2), (w2, h2)])
+    # the runs whose ends are seen (not at the end of what was looked at), each beside a miss
+    # or a return behind, shorter than the board's smaller side: the few looked at closer
+    n = len(lb)
+    seen = (starts > 0) & (ends < n - 1)
+    starts, ends = starts[seen], ends[seen]
+    ok = same[starts - 1] & same[ends] & beside[starts - 1] & beside[ends + 1]
+    spans = np.hypot(x[ends + 1] - x[starts - 1], z[ends + 1] - z[starts - 1])
+    ok &= spans < min(board.width, board.height)
+    for a, b, span in zip(starts[ok], ends[ok], spans[ok], strict=True):
+        xs, zs = x[a:b + 1], z[a:b + 1]
+        if np.all((np.abs(xs) < w2 - margin) & (np.abs(zs) < h2 - margin)):
+            continue  # deep inside: the board's own run between dropped returns
+        if sides is not None and sides.lines is not None:
+            if sides.reaches(xs, zs):
+                continue  # it ends at a side edge: a ring crossing a corner
+        elif np.min(np.hypot(xs[:, None] - corners[:, 0], zs[:, None] - corners[:, 1])) < \
+                span + CORNER_REACH:
+            continue
+        # the run's distance from the chord between the misses beside it
+        cx, cz = x[b + 1] - x[a - 1], z[b + 1] - z[a - 1]
+        sag = np.max(np.abs((xs - x[a - 1]) * cz - (zs - z[a - 1]) * cx)) / span
+        if sag < GRAZE_SAG:
+            out[order[a:b + 1]] = True
+    return out
+
+
+#: A hit at a laser's end brighter than this many times the board's brightest inner hits (their
+#: 99th percentile) is not the board's: a holder of another material beside the edge, flush
+#: with the plane within the range noise (`_bright_ends`). A board's own edge returns no
+#: brighter than its face: a beam partly on it returns less. (Not so for dimmer: a partial
+#: return, the plate's side face met at a grazing angle, are the board's and dim.)
+BRIGHT_RATIO = 1.15
+#: ... judged only against this many inner hits or more.
+BRIGHT_REFERENCE = 20
+
+
+def _bright_ends(rays: _Rays, lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray,
+                 order: np.ndarray) -> np.ndarray:
+    """The hits at either end of a laser's run (per scan, by azimuth) brighter than
+    `BRIGHT_RATIO` times the 99th percentile of the ``inner`` hits' ``intensity``, from the
+    end inwards while they are: a mask over the rays. ``order``: the rays by scan, laser and
+    azimuth. A patterned board's bright squares are among its inner hits, so they pass."""
+    out = np.zeros(len(lab), dtype=bool)
+    ref = intensity[(lab == HIT) & inner]
+    if len(ref) < BRIGHT_REFERENCE:
+        return out
+    hits = order[lab[order] == HIT]
+    k = int(0.99 * (len(ref) - 1))
+    odd = intensity[hits] > BRIGHT_RATIO * float(np.partition(ref, k)[k])
+    if not np.any(odd):
+        return out
+    key = rays.scan[hits].astype(np.int64) * 256 + rays.laser[hits]
+    bounds = np.flatnonzero(np.diff(np.concatenate(([-1], key, [-1]))))
+    for a, b in itertools.pairwise(bounds):
+        if not (odd[a] or odd[b - 1]):
+            continue
+        i = a
+        while i < b and odd[i]:
+            i += 1
+        j = b
+        while j > i and odd[j - 1]:
+            j -= 1
+        out[hits[a:i]] = True
+        out[hits[j:b]] = True
+    return out
 
 
 def _between_hits(rays: _Rays, lab: np.ndarray, order: np.ndarray | None = None
@@ -492,15 +609,15 @@ class _Model:
 
         X = o.r0 + t_x + lam u.r0, Z = o.r2 + t_z + lam u.r2, lam = -(o.r1 + t_y) / u.r1 (r_k
         the rows of R): t_x and t_z move X and Z one for one; t_y moves lam by -1 / u.r1.
-        Compiled (`align.kernels.fit_jacobian`): the differences without a residual vector
-        allocated per rotation.
+        The fit's own (`align.fit_kernels._jacobian_into`, which `lm_fit` calls in its loop).
         """
-        from align.kernels import fit_jacobian
+        from align.fit_kernels import _jacobian_into
 
-        theta = np.asarray(theta, dtype=np.float64)
-        rots = jacobian_rotations(theta, JACOBIAN_STEP)
-        return fit_jacobian(theta, rots, np.asarray(f0, dtype=np.float64), *self._fit_arrays(),
-                            JACOBIAN_STEP)
+        f0 = np.asarray(f0, dtype=np.float64)
+        j = np.zeros((len(f0), 6))
+        _jacobian_into(np.asarray(theta, dtype=np.float64), f0, *self._fit_arrays(),
+                       JACOBIAN_STEP, j, np.empty(len(f0)))
+        return j
 
 
 #: The forward difference of the rotations in `_Model.jacobian`, rad.
@@ -589,12 +706,7 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     outer = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
     use = ((lab == 1) & ~outer) | ((lab == 0) & ~inner)
     u = rays.direction
-    # the plate's side faces, seen by rays heading inwards past an edge (as `_Model.residuals`)
-    rot = rotation(theta[3], theta[4], theta[5])
-    dn = u @ rot.T
-    ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
-    ext = board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
-                                                             -ratio_z)))
+    ext = _side_faces(u, theta, board)
     # the tolerance across each edge as the beam's footprint allows it: the support of the
     # ellipse with half-axes (side, top/bottom tolerance) along the LiDAR's horizontal and up
     # directions, in the edge's normal direction (a level board: the tolerances as given)
@@ -613,6 +725,17 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     return LabelledRays(rays.origin[use], u[use], lab[use], ext[use]), np.flatnonzero(use)
 
 
+def _side_faces(u: np.ndarray, theta: np.ndarray, board: BoardSpec) -> np.ndarray:
+    """(M, 4) how far past the left, right, bottom and top edge (m) the rays with directions
+    ``u`` still hit the plate at ``theta``: its side faces, seen by rays heading inwards past
+    an edge (as `_Model.residuals`)."""
+    rot = rotation(theta[3], theta[4], theta[5])
+    dn = u @ rot.T
+    ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
+    return board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
+                                                              -ratio_z)))
+
+
 #: A laser's hits may span the board's width by this much more (m) before one end is taken to
 #: overhang: the plane's distance error scales the span (5 mm: 0.6 % of the 0.9 m board).
 SPAN_SLACK = 0.005
@@ -622,31 +745,43 @@ EDGE_REACH = 0.05
 
 
 def _overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
-                 ext: np.ndarray, board: BoardSpec) -> np.ndarray:
-    """Hits at one end of a laser's run across the board farther from its other end than the
-    board is wide: a holder or clamp beside a side edge, flush with the board's plane within
-    the range noise, whose hits extend that one laser's run (the board is convex and of known
-    width: the hits of one laser between both side edges span at most its width, each hit's
-    allowance ``ext`` outside an edge granted). The end that overhangs is the one farther off
-    the line of the other lasers' ends at that side; its hits beyond that line are returned
-    (to be left out of the labels: a rectangle turned to take them in is what the fit found,
-    degrees off; the line lies within an azimuth step inside the edge, so at most the laser's
-    last hit on the board goes with them). Every pose's span is the same to first order, the
-    fit's roll error included."""
-    w2, h2 = board.width / 2, board.height / 2
+                 ext: np.ndarray, board: BoardSpec, sides: _Sides | None = None) -> np.ndarray:
+    """Hits at one end of a laser's run beyond the board's side edge: a holder or clamp beside
+    it, flush with the board's plane within the range noise, whose hits extend that one
+    laser's run. Returned to be left out of the labels: a rectangle turned to take them in is
+    what a fit finds, degrees off.
+
+    The side edges are straight, parallel lines, and every laser that reaches one ends within
+    an azimuth step inside it. Their ends at both sides give the two lines (`_side_lines`,
+    robust: an end beyond them is a holder's, one well inside them a ring leaving through the
+    top or bottom edge near a corner). Of a laser whose end lies beyond its side's line by
+    more than half a step and `OVERHANG_SLACK`, the hits beyond the line are returned (the
+    line lies within a step inside the edge, so at most the laser's last hit on the board goes
+    with them). Where too few lasers reach the sides for the lines, the board's known width
+    still tells: the hits of one laser between both side edges span at most its width (each
+    hit's allowance ``ext`` outside an edge granted), and of a laser that spans more, the end
+    farther off the line of the other lasers' ends at that side overhangs. Both tests hold at
+    any pose near the board's to first order, a fit's roll error included. ``sides``:
+    `_Sides.of` these, if the caller has it."""
     out = np.zeros(len(lab), dtype=bool)
-    hit = (lab == HIT) & (np.abs(z) < h2) & (np.abs(x) < w2 + feasible.OUTLIER_MARGIN)
-    x_l, x_r = x + ext[:, 0], x - ext[:, 1]  # each hit as far in as its allowance lets it lie
-    ids = np.unique(laser[hit])
-    ends = np.zeros((len(ids), 4))  # per laser: left end x, its z, right end x, its z
-    for i, k in enumerate(ids):
-        m = np.flatnonzero(hit & (laser == k))
-        il, ir = m[np.argmin(x_l[m])], m[np.argmax(x_r[m])]
-        ends[i] = x_l[il], z[il], x_r[ir], z[ir]
-    span = ends[:, 2] - ends[:, 0]
-    long = span > board.width + SPAN_SLACK
-    if len(ids) < 3 or not np.any(long):
+    if sides is None:
+        sides = _Sides.of(x, z, lab, laser, ext, board)
+    if sides is None:
         return out
+    ids, ends, hit, x_l, x_r = sides.ids, sides.ends, sides.hit, sides.x_l, sides.x_r
+    long = ends[:, 2] - ends[:, 0] > board.width + SPAN_SLACK
+    if sides.lines is not None:
+        a_l, a_r, b = sides.lines
+        off_l = a_l + b * ends[:, 1] - ends[:, 0]  # > 0: beyond the line
+        off_r = ends[:, 2] - a_r - b * ends[:, 3]
+        for i in np.flatnonzero(long | (np.maximum(off_l, off_r) > sides.tol)):
+            m = hit & (laser == ids[i])
+            if off_r[i] >= off_l[i]:
+                out |= m & (x_r > a_r + b * z)
+            else:
+                out |= m & (x_l < a_l + b * z)
+        return out
+    w2 = board.width / 2
     ref_l = ~long & (ends[:, 0] < -w2 + EDGE_REACH)
     ref_r = ~long & (ends[:, 2] > w2 - EDGE_REACH)
     for i in np.flatnonzero(long):
@@ -660,6 +795,103 @@ def _overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarra
         else:
             out |= m & (x_l < ends[i, 0] + off_l)
     return out
+
+
+@dataclass
+class _Sides:
+    """The lasers' ends at the board's side edges at a pose, and the edges they show.
+
+    ``ids``: the lasers with hits on the board (or just beyond its top or bottom edge: a fit a
+    few cm off across the rings); ``ends`` (K, 4): per laser, its left end's x and z and its
+    right end's (m), each hit as far in as its side-face allowance lets it lie (``x_l``,
+    ``x_r``: every ray's); ``hit``: the hits taken; ``tol``: how far off the lines a board's
+    own end may lie (m: within a step inside its edge, within half a step of the lines
+    through them all, and `OVERHANG_SLACK`); ``lines``: (a_l, a_r, b), the side edges as x =
+    a + b z (`_side_lines`), or None when too few lasers reach them."""
+
+    ids: np.ndarray
+    ends: np.ndarray
+    hit: np.ndarray
+    x_l: np.ndarray
+    x_r: np.ndarray
+    tol: float
+    lines: tuple[float, float, float] | None
+
+    @classmethod
+    def of(cls, x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
+           ext: np.ndarray, board: BoardSpec) -> _Sides | None:
+        """From the rays' board coordinates ``x``, ``z``, labels, lasers and side-face
+        allowances ``ext`` (`_side_faces`); None with fewer than 3 lasers on the board."""
+        w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
+        hit = (lab == HIT) & (np.abs(z) < h2 + margin) & (np.abs(x) < w2 + margin)
+        x_l, x_r = x + ext[:, 0], x - ext[:, 1]
+        idx = np.flatnonzero(hit)
+        # per laser its leftmost hit (the first of equal ones, as argmin) and its rightmost
+        by_l = idx[np.lexsort((x_l[idx], laser[idx]))]
+        by_r = idx[np.lexsort((-x_r[idx], laser[idx]))]
+        first = np.flatnonzero(np.diff(np.concatenate(([-1], laser[by_l]))))
+        if len(first) < 3:
+            return None
+        il, ir = by_l[first], by_r[first]
+        ids = laser[il]
+        ends = np.column_stack((x_l[il], z[il], x_r[ir], z[ir]))
+        # the azimuth step on the board: the median spacing of a laser's consecutive hits
+        dx = np.abs(np.diff(x[by_l]))[np.diff(laser[by_l]) == 0]
+        step = float(np.partition(dx, len(dx) // 2)[len(dx) // 2]) if len(dx) else 0.0
+        tol = 0.5 * step + OVERHANG_SLACK
+        return cls(ids, ends, hit, x_l, x_r, tol, _side_lines(ends, w2, tol, step + tol))
+
+    def reaches(self, xs: np.ndarray, zs: np.ndarray) -> bool:
+        """Whether the points (``xs``, ``zs``, m) reach a side edge: lie within twice `tol` inside
+        a side line or beyond it."""
+        a_l, a_r, b = self.lines
+        return bool(np.any(xs < a_l + b * zs + 2 * self.tol) or
+                    np.any(xs > a_r + b * zs - 2 * self.tol))
+
+
+#: A laser's end lies beyond the side lines by more than half the step between its hits and
+#: this (m: the lines' error through a handful of ends, the plane's) when something beside the
+#: edge lengthens its run. Leaving out a board's own last hit costs little; keeping a holder's
+#: hit outside the edge empties the hit/miss posterior.
+OVERHANG_SLACK = 0.003
+#: The side lines need this many lasers' ends at each side, and this many in all (three
+#: unknowns: an offset per side and the common slope).
+SIDE_ENDS, LINE_ENDS = 2, 5
+
+
+def _side_lines(ends: np.ndarray, w2: float, tol: float, inward: float
+                ) -> tuple[float, float, float] | None:
+    """The board's side edges as seen by the lasers' ends, x = a_l + b z and x = a_r + b z (one
+    slope: the edges are parallel), or None when too few lasers reach them. ``ends`` (K, 4):
+    per laser the left end's x and z and the right end's, m. The ends within `EDGE_REACH` of a
+    side take part; the one farthest out of its band is dropped while some lie more than
+    ``tol`` beyond the lines (a holder's) or ``inward`` inside them (m: a ring leaving through
+    the top or bottom edge near a corner, a laser's last return missing) and enough are left.
+    The band is wider inwards: an end kept there pulls the lines in, so that more of the
+    board's own ends count as beyond them, which costs their last hit; a holder's end kept
+    pulls them out, which hides it."""
+    left = np.flatnonzero(ends[:, 0] < -w2 + EDGE_REACH)
+    right = np.flatnonzero(ends[:, 2] > w2 - EDGE_REACH)
+    xs = np.concatenate((ends[left, 0], ends[right, 2]))
+    zs = np.concatenate((ends[left, 1], ends[right, 3]))
+    side = np.concatenate((np.zeros(len(left)), np.ones(len(right))))
+    out_sign = 2.0 * side - 1.0  # residual x - line times this: > 0 beyond the edge
+    keep = np.ones(len(xs), dtype=bool)
+    a = np.column_stack((1.0 - side, side, zs))
+    while True:
+        n_r = int(np.count_nonzero(keep & (side == 1)))
+        if n_r < SIDE_ENDS or int(np.count_nonzero(keep)) - n_r < SIDE_ENDS or \
+                int(np.count_nonzero(keep)) < LINE_ENDS:
+            return None
+        ak = a[keep]
+        coef = np.linalg.solve(ak.T @ ak, ak.T @ xs[keep])  # three unknowns: normal equations
+        beyond = (xs - a @ coef) * out_sign
+        excess = np.where(keep, np.maximum(np.maximum(beyond - tol, -beyond - inward), 0.0),
+                          0.0)
+        worst = int(np.argmax(excess))
+        if excess[worst] <= 0.0:
+            return float(coef[0]), float(coef[1]), float(coef[2])
+        keep[worst] = False
 
 
 def _line_at(z: np.ndarray, x: np.ndarray, z0: float) -> float:
@@ -796,7 +1028,25 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     reassign tighter, refit (`_staged_fit`).
     """
     rays, coords, spacing = _candidates_at(scans, segs, theta, board)
-    lab = _labels(rays, coords[2] + offset[0], sigma_r)  # the range expected, offset included
+    expected = coords[2] + offset[0]  # the range expected, offset included
+    lab = _labels(rays, expected, sigma_r)
+    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    # things just behind the board beside its edges, within the range noise of its plane: a
+    # few cm of hits on a ring that passes the board, and rings lengthened past a side edge.
+    # Left out before the brackets are drawn (a rectangle turned to reach them, as a fit from
+    # there finds it, locks onto grazing crossings degrees off); judged again by the hit/miss
+    # posterior's labels at the fitted pose (`_ray_points`)
+    w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
+    inner = (np.abs(coords[0]) < w2 - margin) & (np.abs(coords[1]) < h2 - margin)
+    intensity = np.concatenate([s.intensity for s in scans])[rays.gidx]
+    lab[_bright_ends(rays, lab, intensity, inner, order)] = UNKNOWN
+    ext = _side_faces(rays.direction, theta, board)
+    sides = _Sides.of(coords[0], coords[1], lab, rays.laser, ext, board)
+    grazing = _grazing_runs(rays, lab, coords, expected, board, order, sides)
+    if np.any(grazing):
+        lab[grazing] = UNKNOWN
+        sides = None  # its lasers' ends may have changed
+    lab[_overhanging(coords[0], coords[1], lab, rays.laser, ext, board, sides)] = UNKNOWN
     rings_hit = np.unique(rays.ring[lab == HIT])
     if len(rings_hit) < 3:
         return None
@@ -871,6 +1121,35 @@ def _contradicted(model: _Model, theta: np.ndarray, margin: float = 0.01) -> int
                             model.board.height / 2, margin))
 
 
+def _starts(o: np.ndarray, u: np.ndarray, keep: np.ndarray, first: int, n: np.ndarray,
+            d: float, board: BoardSpec, hints: Hints) -> tuple[list[roll_search.RollStart], int]:
+    """The roll search's starts on the first scan's returns among ``keep`` (rays ``o``, ``u``;
+    the first scan's are the first ``first``) met with the plane n . p = d, over the whole
+    symmetry range (or the prior's), and how many returns it looked at."""
+    sel = keep.copy()
+    sel[first:] = False  # the first scan's returns are enough to find the roll
+    o_k, u_k = o[sel], u[sel]
+    lam_k = (d - o_k @ n) / (u_k @ n)
+    starts = roll_search.search(o_k + lam_k[:, None] * u_k, n, board, *_roll_window(board, hints),
+                                period=symmetry.period(board))
+    return starts, min(int(np.count_nonzero(sel)), roll_search.FINE_POINTS)
+
+
+#: More than this fraction of the returns left out by the best start's rectangle: something
+#: else shares the board's plane (`_held`).
+SPILL = 0.05
+
+
+def _held(o: np.ndarray, u: np.ndarray, n: np.ndarray, d: float, start: roll_search.RollStart,
+          board: BoardSpec) -> np.ndarray:
+    """The rays ``o``, ``u`` that meet the plane n . p = d within `STRAY` of the rectangle at
+    the roll search's ``start``."""
+    theta = pose_from_plane(n, d, start.roll)
+    theta[0], theta[2] = start.t_x, start.t_z
+    x, z, _ = board_coordinates(theta, o, u)
+    return (np.abs(x) < board.width / 2 + STRAY) & (np.abs(z) < board.height / 2 + STRAY)
+
+
 def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                   hints: Hints) -> PoseEstimate:
     """Joint estimate from one or more scans of a static pose (their board clusters found)."""
@@ -883,7 +1162,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     pts = [np.column_stack((s.x[i], s.y[i], s.z[i])) for s, i in
            zip(scans, board_idx, strict=True)]
     # robust start: RANSAC on the first scan's cluster
-    n, d, _ = plane.ransac(pts[0], 0.04, rng, 100)
+    n, d, _ = plane.ransac(pts[0], 0.04, rng, 100, truncated=True)
     # ML plane along the rays, all scans' returns within the RANSAC band
     o_l, u_l, r_l, k_l = [], [], [], []
     for s, i, p in zip(scans, board_idx, pts, strict=True):
@@ -905,6 +1184,19 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     keep &= np.isin(ring_all, consecutive_ring_block(ring_all[keep]))
     n, d, c_plane, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d,
                                           sigma_floor=RANGE_SIGMA_FLOOR)
+    # start poses: the plane at the rolls where the board's returns fit the rectangle, each
+    # centred on the returns. A flat thing a few cm behind the board beside or below it (a
+    # box, a cabinet's side, the stand's face) joins its cluster and turns the plane by
+    # degrees to pass between both; the rectangle the search finds then leaves it out, and
+    # the plane is fitted again to what that rectangle holds
+    starts, looked_at = _starts(o_all, u_all, keep, len(o_l[0]), n, d, board, hints)
+    if starts and starts[0].left_out > SPILL * looked_at:
+        keep &= _held(o_all, u_all, n, d, starts[0], board)
+        n, d, _, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d)
+        keep &= np.abs(r_all - plane.predicted_range(n, d, o_all, u_all)) < TRIM * sigma
+        n, d, c_plane, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d,
+                                              sigma_floor=RANGE_SIGMA_FLOOR)
+        starts = None
     # the range noise: the user's, or the residuals' (a trimmed sample's understate it: undone
     # for Gaussian noise); the plane's covariance scaled to it
     sigma_r = hints.range_sigma or sigma / math.sqrt(TRIMMED_VARIANCE)
@@ -931,14 +1223,9 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                 offset_model.c_noise = c_n[2] - np.outer(c_n[4], c_n[4]) / c_n[5]
     t_plane = time.perf_counter()
 
-    # start poses: the plane at the rolls where the board's returns fit the rectangle, found
-    # over the whole symmetry range (or the prior's), each centred on the returns
-    first = keep.copy()
-    first[len(o_l[0]):] = False  # the first scan's returns are enough to find the roll
-    o_k, u_k = o_all[first], u_all[first]
-    lam_k = (d - o_k @ n) / (u_k @ n)
-    starts = roll_search.search(o_k + lam_k[:, None] * u_k, n, board, *_roll_window(board, hints),
-                                period=symmetry.period(board))
+    if starts is None or offset_start[1] is not None or hints.laser_offset_sigma > 0:
+        # the plane moved since (refitted without a neighbour, or with the ranges' offsets)
+        starts = _starts(o_all, u_all, keep, len(o_l[0]), n, d, board, hints)[0]
     ds = np.arange(-0.06, 0.0605, 0.001)
     best = None
     for st in starts:
