@@ -123,14 +123,8 @@ def _rows_at(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
 def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                   ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float
                   ) -> np.ndarray:
-    """`label_moments` on labels that may include ones that never bind (the blocks' filter).
-
-    ``p_hit``, ``p_miss`` (M, 3): the hits' and misses' points on the plane, {L}; ``ext_*``
-    (M, 4): each ray's widening of the left, right, bottom and top edge (the side face), m;
-    ``r0``, ``r2`` (K, 3): rows 0 and 2 of R at each roll (board coordinates X = p . r0 + t_x,
-    Z = p . r2 + t_z). A hit puts (t_x, t_z) in its box [-w2 - e_l - X, w2 + e_r - X] x
-    [-h2 - e_b - Z, h2 + e_t - Z]; a miss puts it outside its own. Returns (K, 6): area and the
-    integrals of t_x, t_z, t_x^2, t_z^2, t_x t_z over the consistent set (m^2 ... m^4).
+    """`label_moments` (its arguments and result) on labels that may include ones that never
+    bind (the blocks' filter).
 
     The rolls go in blocks of `ROLL_BLOCK` (`_binding_hits`, `_binding_misses`): exact, the
     labels left out of a block cannot change any of its rolls' sets.
