@@ -1135,6 +1135,21 @@ def _starts(o: np.ndarray, u: np.ndarray, keep: np.ndarray, first: int, n: np.nd
     return starts, min(int(np.count_nonzero(sel)), roll_search.FINE_POINTS)
 
 
+def _start_at(o: np.ndarray, u: np.ndarray, keep: np.ndarray, first: int, n: np.ndarray,
+              d: float, board: BoardSpec, roll: float) -> roll_search.RollStart:
+    """The roll search's start at the one ``roll`` (rad), on the returns `_starts` takes."""
+    sel = keep.copy()
+    sel[first:] = False
+    o_k, u_k = o[sel], u[sel]
+    lam_k = (d - o_k @ n) / (u_k @ n)
+    left, tx, tz = roll_search._left_out(o_k + lam_k[:, None] * u_k, n, board,
+                                         np.array([roll]), roll_search.TOLERANCE)
+    return roll_search.RollStart(roll, float(tx[0]), float(tz[0]), int(left[0]))
+
+
+#: A best fit contradicting more labels than this (by 1 cm, `_contradicted`) is tried again from
+#: the mount's nominal roll.
+RETRY_VIOLATIONS = 10
 #: More than this fraction of the returns left out by the best start's rectangle: something
 #: else shares the board's plane (`_held`).
 SPILL = 0.05
@@ -1236,6 +1251,18 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         # to leave its brackets out says little), then the lower chi2
         if fit is not None and (best is None or (fit.violations, fit.chi2) <
                                 (best.violations, best.chi2)):
+            best = fit
+    level = hints.roll_prior[0] if hints.roll_prior is not None else 0.0
+    if best is not None and best.violations > RETRY_VIOLATIONS and all(
+            abs(st.roll - level) > roll_search.FINE_REACH for st in starts):
+        # every start's fit contradicts many labels: the search's rectangle may have turned to
+        # hold something beside the board (a bright box flush with an edge a few cm behind it,
+        # 20 deg): the fit from the mount's nominal roll as well
+        st = _start_at(o_all, u_all, keep, len(o_l[0]), n, d, board, level)
+        theta = pose_from_plane(n, d, st.roll)
+        theta[0], theta[2] = st.t_x, st.t_z
+        fit = _fit(scans, segs, theta, board, sigma_r, hints, ds, offset_start)
+        if fit is not None and (fit.violations, fit.chi2) < (best.violations, best.chi2):
             best = fit
     if best is None:
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "rays", rings=0,
