@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from align.kernels import _project
+from align.kernels import _fma
 
 
 @njit(cache=True)
@@ -178,12 +178,22 @@ def window_sweep_rows(rows: np.ndarray, length: float) -> tuple[np.ndarray, np.n
 
 
 @njit(cache=True)
+def _project(points: np.ndarray, rows: np.ndarray, b: int, j: int) -> float:
+    """points[j] @ rows[b] as OpenBLAS's FMA kernels compute it: `align.kernels._project`, the
+    same expression. A copy on purpose: numba's cache checks only a kernel's own file, so a
+    kernel calling across files would keep a stale copy after the other file changed (`_fma`
+    is an intrinsic, emitted inline, and has no cache of its own)."""
+    return _fma(rows[b, 2], points[j, 2], _fma(rows[b, 1], points[j, 1],
+                                               rows[b, 0] * points[j, 0]))
+
+
+@njit(cache=True)
 def window_sweep_projected(points: np.ndarray, axes: np.ndarray, length: float
                            ) -> tuple[np.ndarray, np.ndarray]:
     """`window_sweep` of ``points @ axes.T`` ((n, 3) points, (K, 3) axes: the coordinates
     along a rectangle's axis at K rolls) without the product and its transpose: each roll's
     coordinates are computed into one contiguous row as OpenBLAS's kernels compute them
-    (`align.kernels._project`, bit for bit). Gathering a roll's column out of the (n, K)
+    (`_project`, bit for bit). Gathering a roll's column out of the (n, K)
     product cost as much as all the sliding."""
     n, k = points.shape[0], axes.shape[0]
     count = np.zeros(k, dtype=np.int64)
