@@ -334,6 +334,40 @@ def _board_score(scan: Scan, sel: np.ndarray, board: BoardSpec, expect: float
         1.0 + float(np.mean(scan.intensity[sel])) / 255.0)
 
 
+def _weigh(scan: Scan, board: BoardSpec, rng: np.random.Generator, labels: np.ndarray,
+           idx: np.ndarray, lo: np.ndarray, hi: np.ndarray, expect: np.ndarray,
+           cand: np.ndarray, score: np.ndarray, dist: np.ndarray, frac: np.ndarray,
+           members: dict[int, np.ndarray]) -> None:
+    """Score the candidate clusters ``labels`` (their firings ``idx[lo[k]:hi[k]]``) by their
+    most board-like plane, in place: ``score``, ``dist`` and ``frac`` of each become its
+    plane's, ``members`` its plane's firings; a candidate without a board-like plane is
+    dropped from ``cand``."""
+    for lab, a, b in zip(labels, lo, hi, strict=True):
+        # The cluster's planes, largest first (RANSAC, then again on what is left): the
+        # board's returns, not its stand's or the floor's. A sensor whose lasers reach the
+        # floor in front of the board (the HDL-32E's, down to -30 deg) joins the floor to the
+        # board through the stand, and the floor is then the largest plane: the best
+        # board-like plane of the cluster stands for it.
+        best: tuple[float, np.ndarray] | None = None
+        rest = idx[a:b]
+        for _ in range(PLANES_PER_CLUSTER):
+            if len(rest) < 3 or len(rest) < MIN_FRACTION * expect[lab]:
+                break  # what is left cannot be the board
+            on = planar_part(np.column_stack((scan.x[rest], scan.y[rest], scan.z[rest])), rng)
+            sel, rest = rest[on], rest[~on]
+            found = _board_score(scan, sel, board, float(expect[lab]))
+            if found is not None and (best is None or found > best[0]):
+                best = (found, sel)
+        if best is None:
+            cand[lab] = False
+            members[int(lab)] = np.zeros(0, dtype=np.int64)
+            continue
+        score[lab], sel = best
+        members[int(lab)] = sel
+        dist[lab] = float(np.mean(scan.distance[sel]))
+        frac[lab] = len(sel) / expect[lab]
+
+
 def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     """Cluster the scan and pick the board's cluster (paper III-A).
 
@@ -379,35 +413,23 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     ids = np.flatnonzero(cand)
     # the candidates' firings, label by label
     idx, bounds = cluster_members(np.asarray(labels, dtype=np.int64), cand)
-    members = {}  # candidate label -> its firings, in scan order
+    members: dict[int, np.ndarray] = {}  # candidate label -> its firings, in scan order
     rng = np.random.default_rng(hints.seed)
-    for k, lab in enumerate(ids):
-        # The cluster's planes, largest first (RANSAC, then again on what is left): the
-        # board's returns, not its stand's or the floor's. A sensor whose lasers reach the
-        # floor in front of the board (the HDL-32E's, down to -30 deg) joins the floor to the
-        # board through the stand, and the floor is then the largest plane: the best
-        # board-like plane of the cluster stands for it.
-        best: tuple[float, np.ndarray] | None = None
-        rest = idx[bounds[k]:bounds[k + 1]]
-        for _ in range(PLANES_PER_CLUSTER):
-            if len(rest) < 3 or len(rest) < MIN_FRACTION * expect[lab]:
-                break  # what is left cannot be the board
-            on = planar_part(np.column_stack((scan.x[rest], scan.y[rest], scan.z[rest])), rng)
-            sel, rest = rest[on], rest[~on]
-            found = _board_score(scan, sel, board, float(expect[lab]))
-            if found is not None and (best is None or found > best[0]):
-                best = (found, sel)
-        if best is None:
-            cand[lab] = False
-            members[int(lab)] = empty
-            continue
-        score[lab], sel = best
-        members[int(lab)] = sel
-        dist[lab] = float(np.mean(scan.distance[sel]))
-        frac[lab] = len(sel) / expect[lab]
+    # a candidate on one ring can only be a board too far (the floor's long runs, a cluster
+    # each, are most of them): those are weighed only when no candidate on two rings or more
+    # is near enough. The others are weighed first, in label order, and their planes'
+    # hypotheses are drawn first (about 0.2 ms a scan saved: the floor's two runs' planes)
+    near_able = st["rings"][ids] >= 2
+    _weigh(scan, board, rng, ids[near_able], idx, bounds[:-1][near_able],
+           bounds[1:][near_able], expect, cand, score, dist, frac, members)
+    near = cand & (st["rings"] >= 2) & (dist <= hints.max_distance)
+    if not np.any(near) and not np.all(near_able):
+        _weigh(scan, board, rng, ids[~near_able], idx, bounds[:-1][~near_able],
+               bounds[1:][~near_able], expect, cand, score, dist, frac, members)
+    else:
+        cand[ids[~near_able]] = False  # not weighed: never chosen
     if hints.expected_distance is not None:
         score = score / (1.0 + np.abs(dist - hints.expected_distance))
-    near = cand & (st["rings"] >= 2) & (dist <= hints.max_distance)
     far = cand & (dist > hints.max_distance)
     n_lab = int(np.count_nonzero(st["count"]))
     if np.any(near):
