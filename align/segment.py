@@ -440,6 +440,7 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     _planes(scan, board, rng, ids[near_able], idx, bounds[:-1][near_able],
             bounds[1:][near_able], expect, planes)
     _weigh(scan, board, planes, expect, cand, score, dist, frac, members)
+    # the near set, final: the one-ring candidates weighed below can never join it
     near = cand & (st["rings"] >= 2) & (dist <= hints.max_distance)
     if not np.any(near) and not np.all(near_able):
         # every candidate weighed again together, so that the scores compare (one weighed
