@@ -662,7 +662,7 @@ def plane_posteriors(hit_o: np.ndarray, hit_u: np.ndarray, hit_ext: np.ndarray,
 
 #: A hit whose odds of coming from something off the board are below this is a hard
 #: constraint (`soft_moments`): each soft hit doubles the sum's cost, and the set without a
-#: hit this unlikely enters it at a tenth of its area or less (at 2.8 range sigmas,
+#: hit this unlikely enters the sum at a tenth of its weight or less (2.8 range sigmas,
 #: `align.rays._clutter_odds`).
 MIN_ODDS = 0.1
 #: At most this many soft hits per plane, those with the largest odds (the others hard): a
