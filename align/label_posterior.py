@@ -110,16 +110,18 @@ COUPLED_REFINE = 2
 class LabelledRays:
     """The rays that carry edge information: origins and unit directions (M, 3) in {L}, labels
     (1 hit, 0 miss) and the plate's side face's widening of the left, right, bottom and top edge
-    for each ray (M, 4), m."""
+    for each ray (M, 4), m. ``odds`` (M,): for a hit, how much likelier its return is off the
+    board than on it (`align.feasible.soft_moments`; None or 0: a hard constraint)."""
 
     origin: np.ndarray
     direction: np.ndarray
     label: np.ndarray
     ext: np.ndarray
+    odds: np.ndarray | None = None
 
     def select(self, mask: np.ndarray) -> LabelledRays:
         return LabelledRays(self.origin[mask], self.direction[mask], self.label[mask],
-                            self.ext[mask])
+                            self.ext[mask], None if self.odds is None else self.odds[mask])
 
     def near(self, board: BoardSpec, ref: np.ndarray, reach: float) -> LabelledRays:
         """The labels that can bind for rectangles whose roll, x and z differ from the pose
@@ -140,19 +142,27 @@ class LabelledRays:
         return tuple(np.ascontiguousarray(a[mask], dtype=np.float64) for mask in (hit, miss)
                      for a in (self.origin, self.direction, self.ext))
 
+    @functools.cached_property
+    def _hit_odds(self) -> np.ndarray:
+        """The hits' odds, contiguous float64; empty when every label is hard."""
+        if self.odds is None:
+            return np.empty(0)
+        return np.ascontiguousarray(self.odds[self.label == 1], dtype=np.float64)
+
     def posteriors(self, normals: np.ndarray, ds: np.ndarray, board: BoardSpec,
                    rolls: np.ndarray, roll_prior: tuple[float, float] | None = None
                    ) -> list[tuple[feasible.InPlanePosterior, np.ndarray] | None]:
         """`in_plane` for each plane normals[i] . p = ds[i] ((P, 3), (P,)) in one compiled call,
         each with the pose (6,) of its posterior's mean (`_pose`); None where no roll on the
         grid is consistent with the labels. Each label's likelihood is
-        `align.feasible.label_moments`' (1 on the positions its box allows, else 0)."""
+        `align.feasible.label_moments`' (1 on the positions its box allows, else 0; a soft
+        hit's ``odds`` off it, `align.feasible.soft_moments`)."""
         weight = roll_weight(board, rolls, roll_prior)
         rows = feasible.plane_posteriors(
             *self._split, np.ascontiguousarray(normals, dtype=np.float64),
             np.ascontiguousarray(ds, dtype=np.float64),
             np.ascontiguousarray(rolls, dtype=np.float64), weight, board.width / 2,
-            board.height / 2)
+            board.height / 2, self._hit_odds)
         return [_unpack(row) if row[feasible.OK] else None for row in rows]
 
     def in_plane(self, n: np.ndarray, d: float, board: BoardSpec, rolls: np.ndarray,

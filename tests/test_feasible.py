@@ -143,3 +143,89 @@ def test_binding_labels_keep_every_label_when_the_rows_do_not_turn_rigidly():
     hits, misses = feasible.binding_labels(p_hit, p_miss, lim_h, lim_m, r0, bent)
     np.testing.assert_array_equal(hits, np.arange(len(p_hit)))
     np.testing.assert_array_equal(misses, np.arange(len(p_miss)))
+
+
+def _soft_raster(p_hit, p_miss, odds, n=1200):
+    """`_raster`'s integrals (area and the five moments, unnormalised) at roll 0 with each
+    hit's likelihood 1 on the board and ``odds`` off it (0: a hard constraint): every cell of
+    a raster over the box the hard hits allow weighted by the product of the soft hits'."""
+    hard = odds == 0
+    lo_x, hi_x = np.max(-W2 - p_hit[hard, 0]), np.min(W2 - p_hit[hard, 0])
+    lo_z, hi_z = np.max(-H2 - p_hit[hard, 2]), np.min(H2 - p_hit[hard, 2])
+    u = (np.arange(n) + 0.5) / n
+    tx, tz = np.meshgrid(lo_x + u * (hi_x - lo_x), lo_z + u * (hi_z - lo_z), indexing="ij")
+    w = np.ones_like(tx)
+    for p in p_miss:
+        w[(np.abs(p[0] + tx) < W2) & (np.abs(p[2] + tz) < H2)] = 0.0
+    for p, k in zip(p_hit[~hard], odds[~hard], strict=True):
+        w[~((np.abs(p[0] + tx) <= W2) & (np.abs(p[2] + tz) <= H2))] *= min(k, 1.0)
+    cell = (hi_x - lo_x) * (hi_z - lo_z) / n**2
+    return cell * np.array([w.sum(), (w * tx).sum(), (w * tz).sum(), (w * tx**2).sum(),
+                            (w * tz**2).sum(), (w * tx * tz).sum()])
+
+
+def test_soft_hits_weigh_the_sets_without_them_as_a_raster_does():
+    # two returns beside the right edge that may be a holder's: one cutting the board's
+    # consistent positions in half, as likely off the board as on it (odds capped at 1), one
+    # cutting less at odds 0.3 (it binds only once the first is off); one more below
+    # `MIN_ODDS` stays a hard constraint. The exact sum over which of them are the board's must
+    # match a raster of the product of their likelihoods
+    rng = np.random.default_rng(3)
+    p_hit, p_miss, e_hit, e_miss = _edge_rays(rng)
+    zero_h, zero_m = np.zeros_like(e_hit), np.zeros_like(e_miss)
+    _, mx, _, vx, _, _ = _raster(p_hit, p_miss, zero_h, zero_m)
+    half = np.sqrt(3 * vx)  # the consistent t_x: about mx +- half
+    extra = np.array([[W2 - mx, 0.0, 0.05], [W2 - mx - 0.5 * half, 0.0, -0.1]])
+    p_hit = np.vstack((p_hit, extra))
+    odds = np.zeros(len(p_hit))
+    odds[-2:] = 4.0, 0.3
+    odds[0] = 0.5 * feasible.MIN_ODDS
+    zero_h = np.zeros((len(p_hit), 4))
+    r0, r2 = np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
+    soft = feasible._soft_hits(odds)
+    assert list(soft) == [len(p_hit) - 2, len(p_hit) - 1]
+    got = feasible.soft_moments(p_hit, p_miss, zero_h, zero_m, r0, r2, W2, H2, odds, soft)[0]
+    want = _soft_raster(p_hit, p_miss, np.where(odds < feasible.MIN_ODDS, 0.0, odds))
+    assert got[0] == pytest.approx(want[0], rel=0.005)
+    np.testing.assert_allclose(got[1:3] / got[0], want[1:3] / want[0], atol=5e-5)
+    np.testing.assert_allclose(got[3:] / got[0], want[3:] / want[0], rtol=0.01, atol=1e-8)
+    # as hard labels they hold the board in the left half of its positions; as soft ones
+    # the mean is pulled back towards the middle, and the set is wider
+    hard = feasible.label_moments(p_hit, p_miss, zero_h, zero_m, r0, r2, W2, H2)[0]
+    assert hard[1] / hard[0] < mx - 0.3 * half
+    assert hard[1] / hard[0] + 0.1 * half < got[1] / got[0] < mx
+    assert got[3] / got[0] - (got[1] / got[0]) ** 2 > 1.5 * (hard[3] / hard[0]
+                                                            - (hard[1] / hard[0]) ** 2)
+
+
+def test_soft_hits_make_no_posterior_where_the_labels_allow_none():
+    # a hit 12 mm past the right edge empties the set; its softness does not refill it (the
+    # caller's stray rounds handle labels that contradict each other)
+    rng = np.random.default_rng(3)
+    p_hit, p_miss, _, _ = _edge_rays(rng)
+    _, mx, _, _, _, _ = _raster(p_hit, p_miss, np.zeros((len(p_hit), 4)),
+                                np.zeros((len(p_miss), 4)))
+    p_hit = np.vstack((p_hit, [[W2 - mx + 0.012, 0.0, 0.05]]))
+    odds = np.zeros(len(p_hit))
+    odds[-1] = 1.0
+    r0, r2 = np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
+    args = (p_hit, p_miss, np.zeros((len(p_hit), 4)), np.zeros((len(p_miss), 4)), r0, r2, W2,
+            H2)
+    assert feasible.label_moments(*args)[0, 0] == 0.0
+    assert feasible.soft_moments(*args, odds, feasible._soft_hits(odds))[0, 0] == 0.0
+
+
+def test_soft_moments_without_soft_hits_are_the_hard_ones():
+    rng = np.random.default_rng(8)
+    p_hit, p_miss, e_hit, e_miss = _edge_rays(rng)
+    rolls = np.deg2rad(np.linspace(-1.0, 1.0, 41))
+    r0, r2 = feasible._rows(rolls, np.array([0.0, 1.0, 0.0]))
+    odds = np.full(len(p_hit), 0.5 * feasible.MIN_ODDS)
+    odds[:3] = 0.5  # soft, but deep inside the board: they bind nowhere on the grid
+    inner = (np.abs(p_hit[:, 0]) < 0.2) & (np.abs(p_hit[:, 2]) < 0.1)
+    p_hit = np.vstack((p_hit[inner][:3], p_hit[~inner]))
+    e_hit = np.vstack((e_hit[inner][:3], e_hit[~inner]))
+    args = (p_hit, p_miss, e_hit, e_miss, r0, r2, W2, H2)
+    np.testing.assert_array_equal(
+        feasible.soft_moments(*args, odds, feasible._soft_hits(odds)),
+        feasible.label_moments(*args))

@@ -75,7 +75,7 @@ def test_plane_posteriors_match_the_numpy_version(seed, dist, prior):
     weight = (np.exp(-0.5 * ((rolls - theta[3]) / np.deg2rad(0.2)) ** 2) if prior
               else np.empty(0))
     rows = feasible.plane_posteriors(*rays._split, normals, ds, rolls, weight,
-                                              BOARD.width / 2, BOARD.height / 2)
+                                     BOARD.width / 2, BOARD.height / 2, np.empty(0))
     assert rows.shape == (len(ds), feasible.WIDTH)
     found = 0
     for row, n, d in zip(rows, normals, ds, strict=True):
@@ -197,7 +197,7 @@ def test_label_moments_equal_every_label_on_twin_scans(twin_batches):
     # every hit and miss at every roll
     planes = 0
     for (hit_o, hit_u, hit_ext, miss_o, miss_u, miss_ext, normals, ds, rolls, _, w2,
-         h2) in twin_batches:
+         h2, _) in twin_batches:
         for n, d in zip(normals, ds, strict=True):
             ph, pm = feasible._points(hit_o, hit_u, n, d), feasible._points(miss_o, miss_u, n, d)
             r0, r2 = feasible._rows_of(np.cos(rolls), np.sin(rolls), n)
