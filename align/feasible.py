@@ -109,10 +109,20 @@ def label_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     First the labels that can bind anywhere on the grid (`binding_labels`, a few dozen of some
     500), then `_block_moments` on those: exact, the same floats as from every label.
     """
+    return _moments_binding(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2)[0]
+
+
+@njit(cache=True)
+def _moments_binding(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
+                     ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """`label_moments`, and the hits that can bind on the grid (`binding_labels`' indices),
+    which `soft_moments` reuses."""
     hits, misses = binding_labels(p_hit, p_miss, _limits(ext_hit, w2, h2),
                                   _limits(ext_miss, w2, h2), r0, r2)
     return _block_moments(_rows_at(p_hit, hits), _rows_at(p_miss, misses),
-                          _rows_at(ext_hit, hits), _rows_at(ext_miss, misses), r0, r2, w2, h2)
+                          _rows_at(ext_hit, hits), _rows_at(ext_miss, misses), r0, r2, w2,
+                          h2), hits
 
 
 @njit(cache=True)
@@ -729,17 +739,15 @@ def soft_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     A hit taken as certain pins the posterior: one return 50 mm behind the plane (3.4 sigma)
     and 5 mm past an edge turned roll by 0.9 deg at a reported 0.13 deg; as a soft label its
     weight is that of the set without it against the set with it."""
-    lim_m = _limits(ext_miss, w2, h2)
-    hits, misses = binding_labels(p_hit, p_miss, _limits(ext_hit, w2, h2), lim_m, r0, r2)
-    out = _block_moments(_rows_at(p_hit, hits), _rows_at(p_miss, misses),
-                         _rows_at(ext_hit, hits), _rows_at(ext_miss, misses), r0, r2, w2, h2)
+    out, hits = _moments_binding(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2)
     if not np.any(out[:, 0] > 0):
         # no position holds every label: the soft hits widen a posterior, they do not make
         # one (the caller's stray rounds refit the pose without the labels it violates). A
         # box beside the board on every ring (divergent beam): the set without one soft hit
         # held a rectangle turned 1.6 deg, at a sigma of 0.06
         return out
-    chosen = _binding_soft(p_hit, p_miss, ext_hit, lim_m, r0, r2, w2, h2, soft, hits)
+    chosen = _binding_soft(p_hit, p_miss, ext_hit, _limits(ext_miss, w2, h2), r0, r2, w2, h2,
+                           soft, hits)
     s = chosen.shape[0]
     if s == 0:
         return out

@@ -198,6 +198,11 @@ DROPOUT_FRACTION = 0.01
 MIN_DROPOUTS = 3
 
 
+def _hit_band(sigma_r: float) -> float:
+    """How far from the plane (along the ray, either way) a return is a hit, m."""
+    return min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
+
+
 def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     """`HIT`, `MISS` (no return or far behind), `UNKNOWN` (something in front, or just behind:
     `FRONT_SIGMAS` of the range noise ``sigma_r``, m) for each ray, and
@@ -212,7 +217,7 @@ def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     lab = np.zeros(len(lam), dtype=np.int8)
     ret = rays.distance > 0
     res = rays.distance - lam
-    near = min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
+    near = _hit_band(sigma_r)
     lab[ret & (np.abs(res) <= near)] = HIT
     # in front: something before the board; just behind (beyond the noise, within the label
     # tolerance): the board's noise or a thing close behind it (a stand's clamp): unknown
@@ -722,9 +727,9 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     per_edge = np.column_stack((per_x, per_x, per_z, per_z))  # left, right, bottom, top
     ext += (lam * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
     use &= ~_overhanging(x, z, lab, rays.laser, ext, board)
-    odds = _clutter_odds(rays.distance - model.offset - lam, model.sigma_r) * (lab == HIT)
-    return (LabelledRays(rays.origin[use], u[use], lab[use], ext[use], odds[use]),
-            np.flatnonzero(use))
+    odds = _clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r)
+    return (LabelledRays(rays.origin[use], u[use], lab[use], ext[use],
+                         odds * (lab[use] == HIT)), np.flatnonzero(use))
 
 
 #: The chance that a ray passing just beyond the board's edge meets something within the hit
@@ -740,7 +745,7 @@ def _clutter_odds(res: np.ndarray, sigma_r: float) -> np.ndarray:
     (uniform over the hit band, `CLUTTER_CHANCE`) than from the board (Gaussian, ``sigma_r``),
     for `align.feasible.soft_moments`: 0.1 at 2.8 sigma, 0.4 at 3.3 sigma, 0.8 at the band's
     3.5 sigma."""
-    near = min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
+    near = _hit_band(sigma_r)
     scale = CLUTTER_CHANCE * math.sqrt(2 * math.pi) * sigma_r / (2 * near)
     return scale * np.exp(np.minimum(0.5 * (res / sigma_r) ** 2, 50.0))
 
@@ -1369,7 +1374,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     seen = _edges_seen(x, z, lab, board)
     inside = (np.abs(x) < w2) & (np.abs(z) < h2)
     # blocked: a return in front of the board where the board is (not a stray left out)
-    front = min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
+    front = _hit_band(sigma_r)
     occluded = int(np.sum(inside & (rays.distance > 0) & (rays.distance - b - lam < -front)))
     dropouts = int(np.sum(inside & (lab == DROPOUT)))
     inside_miss = int(np.sum(inside & (np.abs(x) < w2 - 0.02) & (np.abs(z) < h2 - 0.02) &
