@@ -10,7 +10,7 @@ import numpy as np
 
 from align.board import BoardSpec
 from align.result import Hints, PoseEstimate, Status
-from align.segment import Segmentation, find_board
+from align.segment import Segmentation, find_board, plane_candidates
 from twin.core.scan import Scan
 
 #: The methods `estimate` knows, best first.
@@ -62,11 +62,15 @@ def estimate(
 
         res = estimate_rays([scan_list[i] for i in ok], [segs[i] for i in ok], board, hints)
         # the choice's rays are not the board's rectangle (returns in front of it where it
-        # would be, no edge seen): the board search's score is a cheap likeness, the labels
-        # of every ray against the known rectangle are the test. The next candidates, as
-        # board-like or nearly, are tried; the first the rectangle explains is the board
-        if res.status == Status.PARTIAL_BOARD:
+        # would be, no edge seen, fewer rings than a board has): the board search's score is a
+        # cheap likeness, the labels of every ray against the known rectangle are the test.
+        # The next candidates, as board-like or nearly, are tried; the first the rectangle
+        # explains is the board
+        if res.status in (Status.PARTIAL_BOARD, Status.TOO_FEW_RINGS):
             res = _other_candidates(scan_list, ok[0], segs[ok[0]], board, hints, res)
+    if method == "rays" and not ok and res.status == Status.NO_BOARD:
+        # no cluster looked like the board: it may be cut apart among clusters that do not
+        res = _other_candidates(scan_list, 0, None, board, hints, res)
     res.diagnostics.setdefault("scans", len(scan_list))
     res.diagnostics.setdefault("scans_used", len(ok))
     res.timings["segment"] = t_seg - t0
@@ -77,36 +81,50 @@ def estimate(
 #: Board searches redone, each without the returns of every candidate tried before, when none
 #: of a search's candidates is the board's rectangle.
 RESEARCHES = 2
+#: Then at most this many candidates of the plane-first search (`segment.plane_candidates`).
+PLANE_CANDIDATES = 4
 
 
-def _other_candidates(scans: list[Scan], first: int, ref: Segmentation, board: BoardSpec,
-                      hints: Hints, res: PoseEstimate) -> PoseEstimate:
+def _other_candidates(scans: list[Scan], first: int, ref: Segmentation | None,
+                      board: BoardSpec, hints: Hints, res: PoseEstimate) -> PoseEstimate:
     """The first of the board search's other candidates whose rays the known rectangle
     explains, or ``res`` (the first choice's failure). The search's runners-up come first; then
     the search is redone on the first usable scan without the returns of every candidate tried,
     up to `RESEARCHES` times: the board's cluster can score below a box's face behind it
     (its main plane taking in returns of its stand or of a box beside it: a fifth of its returns
-    off the rectangle) and then not be among the runners-up at all."""
+    off the rectangle) and then not be among the runners-up at all. Last, the board is searched
+    plane first (`segment.plane_candidates`). ``ref``: the search's first choice on scan
+    ``first``; None when the search found none (then only the plane-first search is made)."""
     from align.rays import estimate_rays
 
     s0 = scans[first]
-    tried = [ref.board]
-    grown = _regrown(s0, ref.board, hints)
-    queue = ([] if grown is None else [grown]) + list(ref.alternatives)
+    tried = [] if ref is None else [ref.board]
+    grown = None if ref is None else _regrown(s0, ref.board, hints)
+    queue = ([] if grown is None else [grown]) + ([] if ref is None else list(ref.alternatives))
+    n_clusters = 0 if ref is None else ref.n_clusters
     k = 0
-    for search in range(RESEARCHES + 1):
+
+    def attempt(alt: np.ndarray) -> PoseEstimate | None:
+        """The estimate with the returns ``alt`` of the first usable scan as the board's,
+        if the known rectangle explains its rays."""
+        nonlocal k
+        tried.append(alt)
+        k += 1
+        g = Segmentation(Status.OK, alt, n_clusters, float(np.mean(s0.distance[alt])),
+                         len(np.unique(s0.lasers.ring_of_laser[s0.laser_id[alt]])))
+        alt_segs = _segment_static(scans[first:], board, hints, g)
+        use = [i for i, a in enumerate(alt_segs) if a.status == Status.OK]
+        res_alt = estimate_rays([scans[first + i] for i in use], [alt_segs[i] for i in use],
+                                board, hints)
+        if not res_alt.success:
+            return None
+        res_alt.diagnostics["board_candidate"] = k  # 0: the search's first choice
+        return res_alt
+
+    for search in range(0 if ref is None else RESEARCHES + 1):
         while queue:
-            alt = queue.pop(0)
-            tried.append(alt)
-            k += 1
-            g = Segmentation(Status.OK, alt, ref.n_clusters, float(np.mean(s0.distance[alt])),
-                             len(np.unique(s0.lasers.ring_of_laser[s0.laser_id[alt]])))
-            alt_segs = _segment_static(scans[first:], board, hints, g)
-            use = [i for i, a in enumerate(alt_segs) if a.status == Status.OK]
-            res_alt = estimate_rays([scans[first + i] for i in use], [alt_segs[i] for i in use],
-                                    board, hints)
-            if res_alt.success:
-                res_alt.diagnostics["board_candidate"] = k  # 0: the search's first choice
+            res_alt = attempt(queue.pop(0))
+            if res_alt is not None:
                 return res_alt
         if search == RESEARCHES:
             break
@@ -118,6 +136,12 @@ def _other_candidates(scans: list[Scan], first: int, ref: Segmentation, board: B
         if g.status != Status.OK:
             break
         queue = [g.board, *g.alternatives]
+    # the clustering cut the board apart (its rings running on onto things just behind it) or
+    # buried it in a plane that holds more: the board found plane first, from any piece of it
+    for alt in plane_candidates(s0, board, hints, tried)[:PLANE_CANDIDATES]:
+        res_alt = attempt(alt)
+        if res_alt is not None:
+            return res_alt
     return res
 
 
