@@ -1190,6 +1190,56 @@ def _held(o: np.ndarray, u: np.ndarray, n: np.ndarray, d: float, start: roll_sea
     return (np.abs(x) < board.width / 2 + STRAY) & (np.abs(z) < board.height / 2 + STRAY)
 
 
+def _range_plane(r: np.ndarray, o: np.ndarray, u: np.ndarray, ring: np.ndarray,
+                 n: np.ndarray, d: float, c_plane: np.ndarray, sigma: float, sigma_r: float,
+                 hints: Hints) -> tuple[np.ndarray, float, tuple, OffsetModel | None,
+                                        tuple[float, tuple[float, float] | None]]:
+    """The plane the ranges give, as the hit/miss posterior integrates over it, from the
+    board's returns (ranges ``r`` along rays ``o``, ``u``, on rings ``ring``) and their ML
+    plane (n, d, its covariance ``c_plane`` at the residuals' ``sigma``): (n, d, the plane's
+    (n, d, covariance) at the range noise ``sigma_r``, the common offset's model or None, the
+    offset's start for the least-squares fit)."""
+    ml_plane = (n, d, c_plane * (sigma_r / sigma) ** 2)
+    offset_model, offset_start = None, (0.0, None)
+    if hints.range_offset_prior is not None or hints.laser_offset_sigma > 0:
+        # the ranges' offsets as nuisance parameters: the plane's covariance carries them, and
+        # the joint Gaussian of plane and common offset lets the labels (which see the board's
+        # known size, not the ranges) update the offset
+        prior = hints.range_offset_prior or (0.0, OFFSET_KNOWN)
+        n, d, c_gg, b_hat, c_gb, c_bb = plane.fit_rays_offsets(
+            r, o, u, ring, n, d, sigma_r, prior, hints.laser_offset_sigma)
+        ml_plane = (n, d, c_gg)
+        offset_start = (b_hat, hints.range_offset_prior)
+        if hints.range_offset_prior is not None:
+            offset_model = OffsetModel(b_hat, c_gb, c_bb)
+            if hints.laser_offset_sigma > 0:
+                # the plane given b from the ranges' noise alone, about the same plane: the
+                # hit/miss posterior profiles the directions the per-laser offsets widen it in
+                # too (the labels hold tilt there better than the ranges)
+                c_n = plane.fit_rays_offsets(r, o, u, ring, n, d, sigma_r, prior, 0.0, 1)
+                offset_model.c_noise = c_n[2] - np.outer(c_n[4], c_n[4]) / c_n[5]
+    return n, d, ml_plane, offset_model, offset_start
+
+
+#: A return is inside the fitted rectangle (`_inside_returns`) by more than this, m: half the
+#: VLP-16's beam footprint at 2.5 m and more (a mixed return's range is part background's),
+#: and about the fit's uncertainty across a side edge. Not the fit's uncertainty across the
+#: top and bottom edges (1-3 cm for one scan): the rings lie 9 cm apart there, and a margin
+#: that wide leaves out a whole ring near an edge, and with it the plane's tilt (measured: the
+#: roll, which the plane carries, 5 % further from its bound on random scenes).
+INSIDE_MARGIN = 0.005
+
+
+def _inside_returns(rays: _Rays, theta: np.ndarray, offset: float, board: BoardSpec
+                    ) -> np.ndarray:
+    """Which ``rays`` return from the plane of ``theta`` (within `LABEL_TOLERANCE` of it, the
+    range ``offset`` removed) inside its rectangle by `INSIDE_MARGIN`."""
+    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    return ((rays.distance > 0) & (np.abs(rays.distance - offset - lam) < LABEL_TOLERANCE)
+            & (np.abs(x) < board.width / 2 - INSIDE_MARGIN)
+            & (np.abs(z) < board.height / 2 - INSIDE_MARGIN))
+
+
 def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                   hints: Hints) -> PoseEstimate:
     """Joint estimate from one or more scans of a static pose (their board clusters found)."""
@@ -1240,27 +1290,9 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # the range noise: the user's, or the residuals' (a trimmed sample's understate it: undone
     # for Gaussian noise); the plane's covariance scaled to it
     sigma_r = hints.range_sigma or sigma / math.sqrt(TRIMMED_VARIANCE)
-    ml_plane = (n, d, c_plane * (sigma_r / sigma) ** 2)
-    offset_model, offset_start = None, (0.0, None)
-    if hints.range_offset_prior is not None or hints.laser_offset_sigma > 0:
-        # the ranges' offsets as nuisance parameters: the plane's covariance carries them, and
-        # the joint Gaussian of plane and common offset lets the labels (which see the board's
-        # known size, not the ranges) update the offset
-        prior = hints.range_offset_prior or (0.0, OFFSET_KNOWN)
-        n, d, c_gg, b_hat, c_gb, c_bb = plane.fit_rays_offsets(
-            r_all[keep], o_all[keep], u_all[keep], ring_all[keep], n, d, sigma_r, prior,
-            hints.laser_offset_sigma)
-        ml_plane = (n, d, c_gg)
-        offset_start = (b_hat, hints.range_offset_prior)
-        if hints.range_offset_prior is not None:
-            offset_model = OffsetModel(b_hat, c_gb, c_bb)
-            if hints.laser_offset_sigma > 0:
-                # the plane given b from the ranges' noise alone, about the same plane: the
-                # hit/miss posterior profiles the directions the per-laser offsets widen it in
-                # too (the labels hold tilt there better than the ranges)
-                c_n = plane.fit_rays_offsets(r_all[keep], o_all[keep], u_all[keep],
-                                             ring_all[keep], n, d, sigma_r, prior, 0.0, 1)
-                offset_model.c_noise = c_n[2] - np.outer(c_n[4], c_n[4]) / c_n[5]
+    n, d, ml_plane, offset_model, offset_start = _range_plane(
+        r_all[keep], o_all[keep], u_all[keep], ring_all[keep], n, d, c_plane, sigma, sigma_r,
+        hints)
     t_plane = time.perf_counter()
 
     if starts is None or offset_start[1] is not None or hints.laser_offset_sigma > 0:
@@ -1294,6 +1326,25 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                                    reason="the board spans fewer than 3 rings; 3 needed")
     theta, j, conv, iters, model = best.theta, best.j, best.conv, best.iters, best.model
     rings_hit = best.rings
+    # the plane the posterior integrates over, again: from every return inside the fitted
+    # rectangle, none beyond it. The cluster's returns were cut by a band about a first plane,
+    # which keeps the noise that leans towards that plane (on random scenes the truth was 4-7
+    # of the plane's sigmas off in some scans; tilt, yaw and x chi2 1.3); and a box's face or
+    # a holder a few cm behind the board beside an edge, within the band on the board's rings,
+    # is in the cluster and leans the plane. (A rectangle that holds less than half the
+    # cluster's returns is not the board's: the checks below say so, on the first plane)
+    held = _inside_returns(model.rays, theta, model.offset, board)
+    if np.count_nonzero(held) >= 0.5 * np.count_nonzero(keep):
+        rays_ = model.rays
+        r_all, o_all, u_all = rays_.distance[held], rays_.origin[held], rays_.direction[held]
+        ring_all = rays_.ring[held]
+        n, d, _, sigma = plane.fit_rays(r_all, o_all, u_all, n, d)
+        keep = np.abs(r_all - plane.predicted_range(n, d, o_all, u_all)) < TRIM * sigma
+        n, d, c_plane, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d,
+                                              sigma_floor=RANGE_SIGMA_FLOOR)
+        n, d, ml_plane, offset_model, _ = _range_plane(
+            r_all[keep], o_all[keep], u_all[keep], ring_all[keep], n, d, c_plane, sigma,
+            sigma_r, hints)
     # the hit/miss posterior. Where a few labels make it empty (returns near the board's plane
     # from something beside it: the stand's base at a corner of a rolled board, a hand; a
     # dropout at an edge), the labels the least-squares pose violates are left out (unknown),
