@@ -645,9 +645,9 @@ def _seeds(scan: Scan, board: BoardSpec, hints: Hints, m: np.ndarray
     pairs = []
     for i, (ra, lo_a, hi_a, fa) in enumerate(runs):
         for rb, lo_b, hi_b, fb in runs[i + 1:]:
-            # overlapping spans, each unwrapped about the other's start
-            if abs(ra - rb) == 1 and _unwrap(np.array([lo_b - lo_a]), 0.0)[0] < hi_a - lo_a and \
-                    _unwrap(np.array([lo_a - lo_b]), 0.0)[0] < hi_b - lo_b:
+            # adjacent rings, overlapping spans (each start within the other's span)
+            if abs(ra - rb) == 1 and (lo_b - lo_a + math.pi) % (2 * math.pi) - math.pi < \
+                    hi_a - lo_a and (lo_a - lo_b + math.pi) % (2 * math.pi) - math.pi < hi_b - lo_b:
                 pairs.append((np.concatenate((fa, fb)), len(fa)))
     pairs.sort(key=lambda p: -len(p[0]))
     return seeds + [(f, PAIR_PLANES, split) for f, split in pairs]
