@@ -54,6 +54,11 @@ GRID_TRIES = 3
 #: about the planes the last one's labels allowed.
 QUADRATURE_ORDER = 3
 RULE_REFINEMENTS = 3
+#: A rule whose nodes' weighted mean lies more than this many of its standard deviations from
+#: its centre along one of its directions is placed again about that mean, at most `RECENTRES`
+#: times (the 3-point rule's outer nodes are 1.7 of them out).
+OFF_CENTRE = 1.0
+RECENTRES = 2
 #: Fewer planes than this consistent with the labels: importance sampling instead of the rule;
 #: fewer after all its batches: no posterior (the caller's least-squares pose stands).
 MIN_PLANES = 8
@@ -348,11 +353,20 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
         return mean, cov
 
     m, scale = centre, 1.0
-    for _ in range(RULE_REFINEMENTS):
+    recentred = 0
+    for _ in range(RULE_REFINEMENTS + RECENTRES):
         planes, log_q = gauss_hermite(m, scale**2 * c_q, QUADRATURE_ORDER)
         nodes = evaluate(planes, log_q + _log_density_ratio(planes, c_inv, m, scale, q_inv))
         if len(nodes) >= MIN_PLANES and _spans(nodes):
-            return done(nodes)
+            # a rule whose weight sits at one side (the labels' evidence still rising at its
+            # outer nodes) measures the band's slope, not its extent: its quadratic gave a
+            # sigma a sixth of the error (per-laser offsets, tilt 8 sigma off). Again about
+            # the weighted mean, as wide
+            shift = _off_centre(nodes, m, scale**2 * c_q)
+            if shift is None or recentred == RECENTRES:
+                return done(nodes)
+            m, recentred = shift, recentred + 1
+            continue
         if not nodes:
             break
         m = _weights(nodes) @ np.array([nd.g for nd in nodes])
@@ -574,6 +588,15 @@ def _log_density_ratio(g: np.ndarray, c_inv: np.ndarray, m: np.ndarray, scale: f
     q_inv = c_inv if q_inv is None else q_inv
     return (-0.5 * np.einsum("ij,jk,ik->i", g, c_inv, g)
             + 0.5 * np.einsum("ij,jk,ik->i", dev, q_inv, dev) / scale**2)
+
+
+def _off_centre(nodes: list[_Node], centre: np.ndarray, cov: np.ndarray) -> np.ndarray | None:
+    """The nodes' weighted mean plane when it lies more than `OFF_CENTRE` of the rule's
+    standard deviations (``cov``) from its ``centre`` along some direction of the rule, else
+    None."""
+    g = _weights(nodes) @ np.array([nd.g for nd in nodes])
+    t = np.linalg.solve(np.linalg.cholesky(cov), g - centre)
+    return g if np.max(np.abs(t)) > OFF_CENTRE else None
 
 
 def _spans(nodes: list[_Node]) -> bool:
