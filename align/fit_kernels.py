@@ -249,12 +249,19 @@ def _count_inside(x: np.ndarray, z: np.ndarray, idx: np.ndarray, ds: np.ndarray,
     by where it starts and ends in the sorted ``ds`` (open at both ends)."""
     n = ds.shape[0]
     diff = np.zeros(n + 1, dtype=np.int64)
+    if n == 0:
+        return
+    first, last = ds[0], ds[n - 1]
     for r in idx:
         lo1, hi1 = _inside(x[r], vx, half_x)
         lo2, hi2 = _inside(z[r], vz, half_z)
         lo, hi = max(lo1, lo2), min(hi1, hi2)
-        a = np.searchsorted(ds, lo, side="right")
-        b = max(np.searchsorted(ds, hi, side="left"), a)
+        if lo >= hi:
+            continue  # an empty interval: it starts and ends at the same place (b = a)
+        # the binary searches only where the interval ends among the shifts (most rays are
+        # inside at every shift, or outside at every one)
+        a = 0 if lo < first else np.searchsorted(ds, lo, side="right")
+        b = n if hi > last else max(np.searchsorted(ds, hi, side="left"), a)
         diff[a] += 1
         diff[b] -= 1
     run = 0
@@ -276,35 +283,97 @@ def profile_cost(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray
     ``blur_side``, ``blur_top``: the blur across the side and the top/bottom edges, m. Numpy's
     error model: a bracket along an edge divides by zero as numpy did (z_at infinite)."""
     n = ds.shape[0]
-    viol = np.zeros(n, dtype=np.int64)
+    viol = _violations(x, z, hit, miss, ds, vx, vz, w2, h2, tol)
+    out = np.empty(n)
+    for j in range(n):
+        out[j] = 1e6 * viol[j] + _bracket_cost(x, z, bh, bm, ds[j], vx, vz, w2, h2,
+                                               blur_side, blur_top)
+    return out
+
+
+@njit(cache=True)
+def _violations(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray,
+                ds: np.ndarray, vx: float, vz: float, w2: float, h2: float, tol: float
+                ) -> np.ndarray:
+    """`profile_cost`'s labels violated at each shift: hits outside the rectangle grown by
+    ``tol``, misses inside it shrunk by ``tol``."""
+    viol = np.zeros(ds.shape[0], dtype=np.int64)
     viol[:] = hit.shape[0]
     _count_inside(x, z, hit, ds, vx, vz, w2 + tol, h2 + tol, -1, viol)
     _count_inside(x, z, miss, ds, vx, vz, w2 + -tol, h2 + -tol, 1, viol)
-    cost = np.zeros(n)
+    return viol
+
+
+@njit(cache=True, error_model="numpy")
+def _bracket_cost(x: np.ndarray, z: np.ndarray, bh: np.ndarray, bm: np.ndarray, s: float,
+                  vx: float, vz: float, w2: float, h2: float, blur_side: float,
+                  blur_top: float) -> float:
+    """`profile_cost`'s squared whitened bracket residuals at the one shift ``s``, summed over
+    the brackets in their order."""
+    cost = 0.0
     for i in range(bh.shape[0]):
-        x_h, z_h, x_m, z_m = x[bh[i]], z[bh[i]], x[bm[i]], z[bm[i]]
-        for j in range(n):
-            xh, xm = x_h + ds[j] * vx, x_m + ds[j] * vx
-            zh, zm = z_h + ds[j] * vz, z_m + ds[j] * vz
-            dx, dz = xm - xh, zm - zh
-            if dx == 0 and dz == 0:
-                continue  # no edge
-            z_at = abs(zh + (_sign(dx) * w2 - xh) * dz / dx)
-            if not np.isfinite(z_at):
-                z_at = np.inf
-            if z_at <= h2:
-                width, blur = dx, blur_side
-                e = _sign(xm) * w2 - 0.5 * (xh + xm)
-            else:
-                width, blur = dz, blur_top
-                e = _sign(zm) * h2 - 0.5 * (zh + zm)
-            sd = np.sqrt(width * width / 12 + blur * blur)
-            q = e / sd
-            cost[j] += q * q
-    out = np.empty(n)
+        xh, xm = x[bh[i]] + s * vx, x[bm[i]] + s * vx
+        zh, zm = z[bh[i]] + s * vz, z[bm[i]] + s * vz
+        dx, dz = xm - xh, zm - zh
+        if dx == 0 and dz == 0:
+            continue  # no edge
+        z_at = abs(zh + (_sign(dx) * w2 - xh) * dz / dx)
+        if not np.isfinite(z_at):
+            z_at = np.inf
+        if z_at <= h2:
+            width, blur = dx, blur_side
+            e = _sign(xm) * w2 - 0.5 * (xh + xm)
+        else:
+            width, blur = dz, blur_top
+            e = _sign(zm) * h2 - 0.5 * (zh + zm)
+        sd = np.sqrt(width * width / 12 + blur * blur)
+        q = e / sd
+        cost += q * q
+    return cost
+
+
+@njit(cache=True)
+def profile_best(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray,
+                 bh: np.ndarray, bm: np.ndarray, ds: np.ndarray, vx: float, vz: float,
+                 w2: float, h2: float, tol: float, blur_side: float, blur_top: float) -> int:
+    """np.argmin of `profile_cost` (its arguments), the brackets' cost computed only at the
+    shifts that can hold the least: a shift's cost is 1e6 x its violations plus a sum of
+    squares, never below 1e6 x its violations (rounding is monotone), so once the shifts
+    with the fewest violations are costed, a shift whose violations alone exceed the least
+    cost found cannot be it. The same floats at the shifts costed, the same first minimum
+    (`align.rays._Model.shift` reads only where the minimum lies; the brackets cost ~40 x
+    121 divisions and square roots per profile, most of them at shifts with more
+    violations)."""
+    n = ds.shape[0]
+    if n == 0:
+        raise ValueError("attempt to get argmin of an empty sequence")
+    viol = _violations(x, z, hit, miss, ds, vx, vz, w2, h2, tol)
+    finite = np.isfinite(vx) and np.isfinite(vz) and np.isfinite(blur_side) and np.isfinite(
+        blur_top)
+    for i in range(bh.shape[0]):
+        finite = finite and np.isfinite(x[bh[i]]) and np.isfinite(z[bh[i]]) and np.isfinite(
+            x[bm[i]]) and np.isfinite(z[bm[i]])
     for j in range(n):
-        out[j] = 1e6 * viol[j] + cost[j]
-    return out
+        finite = finite and np.isfinite(ds[j])
+    if not finite:
+        # a cost may be nan (np.argmin's first nan): every shift costed, as np.argmin sees them
+        return int(np.argmin(profile_cost(x, z, hit, miss, bh, bm, ds, vx, vz, w2, h2, tol,
+                                          blur_side, blur_top)))
+    first = 0  # the first shift with the fewest violations: its cost bounds the least
+    for j in range(1, n):
+        if viol[j] < viol[first]:
+            first = j
+    bound = 1e6 * viol[first] + _bracket_cost(x, z, bh, bm, ds[first], vx, vz, w2, h2,
+                                              blur_side, blur_top)
+    best, where = np.inf, -1
+    for j in range(n):  # in order, every shift whose cost can still reach the least so far
+        if 1e6 * viol[j] > min(bound, best):
+            continue
+        c = bound if j == first else 1e6 * viol[j] + _bracket_cost(
+            x, z, bh, bm, ds[j], vx, vz, w2, h2, blur_side, blur_top)
+        if where < 0 or c < best:
+            best, where = c, j
+    return where
 
 
 @njit(cache=True)

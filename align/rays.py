@@ -51,6 +51,7 @@ from align.fit_kernels import (
     contradicted,
     edge_brackets,
     lm_fit,
+    profile_best,
     profile_cost,
     range_rays,
     used_edges,
@@ -433,6 +434,11 @@ def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
     return column_brackets(rays.ring, lab, off)  # compiled: a dozen masks per ring in numpy
 
 
+#: How far outside the rectangle a hit (inside it a miss) violates its label in the profile
+#: across the rings (`_Model.profile`), m.
+PROFILE_TOL = 3e-3
+
+
 class _Model:
     """Whitened residuals of the joint fit for a pose theta."""
 
@@ -563,7 +569,7 @@ class _Model:
         x, z, _ = self.coords(theta)
         return np.where(self.edge_kind == 1, x[self.bm] - x[self.bh], z[self.bm] - z[self.bh])
 
-    def profile(self, theta: np.ndarray, ds: np.ndarray, tol: float = 3e-3) -> np.ndarray:
+    def profile(self, theta: np.ndarray, ds: np.ndarray, tol: float = PROFILE_TOL) -> np.ndarray:
         """A cost for the pose shifted by each of ``ds`` (m) along the LiDAR's up direction in
         the plane (`lidar_up`: z for a level board): label violations first.
 
@@ -580,9 +586,14 @@ class _Model:
                             self.board.width / 2, self.board.height / 2, tol, *self.blur_edges)
 
     def shift(self, theta: np.ndarray, ds: np.ndarray) -> np.ndarray:
-        """``theta`` moved to the cheapest shift of `profile` over ``ds``."""
-        s = float(ds[np.argmin(self.profile(theta, ds))])
+        """``theta`` moved to the cheapest shift of `profile` over ``ds`` (its first minimum,
+        `align.fit_kernels.profile_best`: the brackets costed only where they can decide)."""
+        x, z, _ = self.coords(theta)
         vx, vz = lidar_up(theta)
+        s = float(ds[profile_best(x, z, self._hits, self._misses, self.bh, self.bm,
+                                  np.asarray(ds, dtype=np.float64), vx, vz,
+                                  self.board.width / 2, self.board.height / 2, PROFILE_TOL,
+                                  *self.blur_edges)])
         out = theta.copy()
         out[0] += s * vx
         out[2] += s * vz

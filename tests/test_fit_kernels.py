@@ -114,6 +114,51 @@ def test_profile_matches_numpy_on_real_scans(models):
                                               profile_reference(model, t, ds, tol))
 
 
+def test_profile_best_is_the_profiles_first_minimum(models):
+    """`profile_best` (the brackets costed only where they can decide) against np.argmin of
+    the whole profile: poses off by up to a few cm and degrees, the profile's own tolerance
+    and none, sharp and blurred edges (bracket costs far above the 1e6 of a violation),
+    shifts with ties and a coarse grid."""
+    from align.fit_kernels import _violations, profile_best, profile_cost
+
+    rng = np.random.default_rng(23)
+    for model, theta in models:
+        w2, h2 = model.board.width / 2, model.board.height / 2
+        for k in range(12):
+            t = theta + (rng.normal(size=6) * [2e-2, 5e-3, 2e-2, 3e-2, 1e-2, 1e-2] if k else 0)
+            x, z, _ = model.coords(t)
+            vx, vz = lidar_up(t)
+            for ds in (np.arange(-0.08, 0.0805, 1e-3), np.arange(-0.06, 0.061, 0.02),
+                       np.zeros(5)):
+                for tol, blur in ((3e-3, model.blur_edges), (0.0, (0.0, 0.0)),
+                                  (3e-3, (1e-5, 2e-5))):
+                    args = (x, z, model._hits, model._misses, model.bh, model.bm, ds, vx, vz,
+                            w2, h2, tol, *blur)
+                    assert profile_best(*args) == int(np.argmin(profile_cost(*args)))
+    # synthetic: brackets a micrometre wide, whose cost at a wrong shift outweighs many
+    # violations, so that the least cost lies at a shift with more of them; and exact ties
+    wins_elsewhere = 0
+    for k in range(300):
+        n = 200
+        x, z = rng.uniform(-0.6, 0.6, n), rng.uniform(-0.4, 0.4, n)
+        hits = np.flatnonzero(rng.random(n) < 0.5)
+        misses = np.setdiff1d(np.arange(n), hits)
+        nb = int(rng.integers(0, 6))
+        bh, bm = rng.choice(n, nb), rng.choice(n, nb)
+        x[bm] = x[bh] + rng.choice([1e-6, 1e-3, 0.0], nb)
+        z[bm] = z[bh] + rng.choice([1e-6, 0.0], nb)
+        ds = np.round(np.arange(-0.06, 0.0605, 0.005), 3) if k % 2 else np.arange(-0.06, 0.061,
+                                                                                  0.001)
+        args = (x, z, hits, misses, bh, bm, ds, 0.1 * rng.normal(), 1.0, 0.45, 0.27,
+                3e-3, 1e-7 * (k % 3), 1e-7)
+        cost = profile_cost(*args)
+        want = int(np.argmin(cost))
+        viol = _violations(*args[:4], *args[6:12])
+        wins_elsewhere += viol[want] > viol.min()
+        assert profile_best(*args) == want
+    assert wins_elsewhere > 0  # the case the bound exists for was met
+
+
 def test_brackets_match_numpy_on_real_scans(models):
     rng = np.random.default_rng(5)
     for model, _ in models:
