@@ -60,7 +60,8 @@ from align.fit_kernels import (
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
 from align.label_posterior import LabelledRays, OffsetModel, label_posterior
 from align.result import Hints, PoseEstimate, Status
-from align.segment import Segmentation, consecutive_ring_block, on_board_rings
+from align.kernels import in_ring_block
+from align.segment import Segmentation, on_board_rings
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 
@@ -167,13 +168,34 @@ def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpe
         # over the scan (the numpy version's masks over every firing cost 0.3 ms a scan)
         idx, rel = window_firings(s.azimuth, s.laser_id, ring_of_laser, c, float(lo),
                                   float(hi), int(rings.min()) - 1, int(rings.max()) + 1)
-        sub = s.select(idx)
-        parts.append((sub.origins(), sub.directions(), sub.distance, sub.laser_id,
-                      rel + c, sub.ring, idx + offset, np.full(len(idx), len(parts))))
+        lid = s.laser_id[idx]
+        parts.append((*_rays_of(s, idx, lid), s.distance[idx], lid, rel + c,
+                      ring_of_laser[lid], idx + offset, np.full(len(idx), len(parts))))
         offset += len(s)
     cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
     _last_pool = ([weakref.ref(s) for s in scans], [weakref.ref(g) for g in segs], board, cat)
     return cat
+
+
+def _rays_of(scan: Scan, idx: np.ndarray, lid: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """``scan.select(idx).origins()`` and ``.directions()`` without the other seven arrays'
+    gathers: the same floats (each laser's elevation's cosine and sine taken from its table's
+    once: an elementwise function gives the same value wherever its argument sits). ``lid``:
+    ``scan.laser_id[idx]``, if the caller has it."""
+    lasers = scan.lasers
+    if lid is None:
+        lid = scan.laser_id[idx]
+    az = scan.azimuth[idx]
+    ce = np.cos(lasers.elevation)[lid]
+    u = np.empty((len(lid), 3))
+    u[:, 0] = ce * np.sin(az)
+    u[:, 1] = ce * np.cos(az)
+    u[:, 2] = np.sin(lasers.elevation)[lid]
+    o = np.zeros((len(lid), 3))
+    if scan.vertical_offsets_applied:
+        o[:, 2] = lasers.vertical_offset[lid]
+    return o, u
 
 
 def _ring_spacing(theta: np.ndarray, spacing: float) -> float:
@@ -1267,12 +1289,13 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # ML plane along the rays, all scans' returns within the RANSAC band
     o_l, u_l, r_l, k_l = [], [], [], []
     for s, i, p in zip(scans, board_idx, pts, strict=True):
-        near = np.abs(p @ n - d) < 0.05
-        sub = s.select(i[near])
-        o_l.append(sub.origins())
-        u_l.append(sub.directions())
-        r_l.append(sub.distance)
-        k_l.append(sub.ring)
+        near = i[np.abs(p @ n - d) < 0.05]
+        lid = s.laser_id[near]
+        o, u = _rays_of(s, near, lid)
+        o_l.append(o)
+        u_l.append(u)
+        r_l.append(s.distance[near])
+        k_l.append(s.lasers.ring_of_laser[lid])
     o_all, u_all, r_all = np.concatenate(o_l), np.concatenate(u_l), np.concatenate(r_l)
     ring_all = np.concatenate(k_l)
     n, d, _, sigma = plane.fit_rays(r_all, o_all, u_all, n, d)
@@ -1282,7 +1305,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # 5 cm in front of the board) sit on other rings: keep rings with a quarter of the most
     # and the board's rings are consecutive: keep the consecutive block with the most returns
     # (the stand's base, a parallel face 5 cm in front, lights up a ring or two below a gap)
-    keep &= np.isin(ring_all, consecutive_ring_block(ring_all[keep]))
+    keep &= in_ring_block(ring_all, keep)  # np.isin(ring, segment.consecutive_ring_block(...))
     n, d, c_plane, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d,
                                           sigma_floor=RANGE_SIGMA_FLOOR)
     # start poses: the plane at the rolls where the board's returns fit the rectangle, each
@@ -1363,8 +1386,11 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     dropped = 0
     intensity = np.concatenate([s.intensity for s in scans])  # indexed as the rays' gidx
     for _ in range(STRAY_ROUNDS):
-        cov_ls = np.linalg.pinv(j.T @ j)  # 7 x 7 when the offset is fitted: pose, offset
-        cov = cov_ls[:6, :6]
+        # the least-squares covariance (7 x 7 when the offset is fitted: pose, offset) where
+        # the posterior reads it (fused scans' roll reach, the offset's centre) or where it
+        # stands instead of the posterior (below)
+        cov_ls = (np.linalg.pinv(j.T @ j) if len(scans) > 1 or offset_model is not None
+                  else None)
         if offset_model is not None:
             offset_model.centre = model.offset
             offset_model.centre_std = float(np.sqrt(cov_ls[6, 6])) if len(cov_ls) > 6 else 0.0
@@ -1374,10 +1400,15 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                                   and cov_ls[6, 6] > 0 else None)
         labelled, idx = _ray_points(model, theta, hints.edge_tolerance,
                                     intensity[model.rays.gidx], hints.partial_edge_tolerance)
-        post = label_posterior(labelled, board, theta, float(np.sqrt(max(cov[3, 3], 0.0))),
-                               ml_plane, len(scans), rng, hints.roll_prior, offset_model)
+        # a single scan's posterior searches a fixed reach of roll: no roll sigma needed
+        sd_roll = (float(np.sqrt(max(cov_ls[3, 3], 0.0))) if cov_ls is not None else math.nan)
+        post = label_posterior(labelled, board, theta, sd_roll, ml_plane, len(scans), rng,
+                               hints.roll_prior, offset_model)
         if post is not None:
             break
+        if cov_ls is None:
+            cov_ls = np.linalg.pinv(j.T @ j)
+        cov = cov_ls[:6, :6]
         if not dropped:
             first = (theta, j, conv, model, cov, cov_ls)
         bad = idx[_violation(labelled, board, theta) > STRAY_VIOLATION]
