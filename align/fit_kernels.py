@@ -621,6 +621,47 @@ def column_brackets(ring: np.ndarray, lab: np.ndarray, off: np.ndarray
 
 
 @njit(cache=True)
+def _gemv3(a0: float, a1: float, a2: float, x0: float, x1: float, x2: float) -> float:
+    """One row of numpy's (N, 3) @ (3,) as OpenBLAS computes it: `align.kernels._gemv3`, the
+    same expression; a copy on purpose (numba's cache checks only a kernel's own file)."""
+    return _fma(a2, x2, _fma(a0, x0, a1 * x1))
+
+
+@njit(cache=True, error_model="numpy")
+def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x: float,
+                t_y: float, t_z: float, half_w: float, half_h: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`align.rays._candidates_at`'s selection in one pass: each ray's board coordinates as
+    `align.geometry.board_coordinates` computes them at the pose with rotation ``rot`` and
+    translation (t_x, t_y, t_z) (numpy's matrix-vector products as `_gemv3`, its division
+    and sums in its order: the same floats), and the rays in front of the sensor (lam > 0)
+    within ``half_w``, ``half_h`` of the board's centre (m). Returns their indices, X, Z and
+    lam."""
+    m = origin.shape[0]
+    idx = np.empty(m, dtype=np.int64)
+    xs, zs, ls = np.empty(m), np.empty(m), np.empty(m)
+    a0, a1, a2 = rot[0, 0], rot[0, 1], rot[0, 2]
+    b0, b1, b2 = rot[1, 0], rot[1, 1], rot[1, 2]
+    c0, c1, c2 = rot[2, 0], rot[2, 1], rot[2, 2]
+    k = 0
+    for i in range(m):
+        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        u0, u1, u2 = direction[i, 0], direction[i, 1], direction[i, 2]
+        lam = -(_gemv3(o0, o1, o2, b0, b1, b2) + t_y) / _gemv3(u0, u1, u2, b0, b1, b2)
+        if not lam > 0:
+            continue
+        x = (_gemv3(o0, o1, o2, a0, a1, a2) + t_x) + lam * _gemv3(u0, u1, u2, a0, a1, a2)
+        if not abs(x) < half_w:
+            continue
+        z = (_gemv3(o0, o1, o2, c0, c1, c2) + t_z) + lam * _gemv3(u0, u1, u2, c0, c1, c2)
+        if not abs(z) < half_h:
+            continue
+        idx[k], xs[k], zs[k], ls[k] = i, x, z, lam
+        k += 1
+    return idx[:k], xs[:k], zs[:k], ls[:k]
+
+
+@njit(cache=True)
 def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarray,
                    centre: float, lo: float, hi: float, ring_lo: int, ring_hi: int
                    ) -> tuple[np.ndarray, np.ndarray]:

@@ -385,6 +385,35 @@ def test_window_firings_match_numpy_on_real_scans():
             np.testing.assert_array_equal(got_rel, rel[win])
 
 
+def test_window_rays_are_board_coordinates_bit_for_bit():
+    """`window_rays` against `board_coordinates` and numpy's mask over every fired ray of real
+    and twin scans (origins with and without vertical offsets), at poses about the board's
+    and far from it."""
+    from align.fit_kernels import window_rays
+    from align.geometry import rotation
+
+    scans = [read_pcd_scans(p)[0] for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    scans.append(BenchSim(seed=3).scan())
+    rng = np.random.default_rng(9)
+    kept = 0
+    for s in scans:
+        o, u = s.origins(), s.directions()
+        for k in range(6):
+            theta = np.array([0.0, -2.5, 0.0, 0.0, 0.0, 0.0]) + rng.normal(size=6) * [
+                0.1, 0.5, 0.1, 0.3, 0.1, 1.0]
+            half_w, half_h = 0.45 + 0.1 * k, 0.27 + 0.1 * k
+            x, z, lam = board_coordinates(theta, o, u)
+            want = np.flatnonzero((lam > 0) & (np.abs(x) < half_w) & (np.abs(z) < half_h))
+            idx, gx, gz, glam = window_rays(o, u, rotation(*theta[3:]), *theta[:3], half_w,
+                                            half_h)
+            np.testing.assert_array_equal(idx, want)
+            np.testing.assert_array_equal(gx, x[want])
+            np.testing.assert_array_equal(gz, z[want])
+            np.testing.assert_array_equal(glam, lam[want])
+            kept += len(want)
+    assert kept > 10_000
+
+
 def classify_reference(model: rays_mod._Model, theta: np.ndarray, guard: float,
                        crossings: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`_Model.classify`'s kinds, signs and sigmas as numpy calls (before the kernel)."""
