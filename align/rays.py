@@ -50,6 +50,7 @@ from align.fit_kernels import (
     column_brackets,
     contradicted,
     edge_brackets,
+    laser_ends,
     lm_fit,
     profile_best,
     profile_cost,
@@ -886,21 +887,15 @@ class _Sides:
         """From the rays' board coordinates ``x``, ``z``, labels, lasers and side-face
         allowances ``ext`` (`_side_faces`); None with fewer than 3 lasers on the board."""
         w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
-        hit = (lab == HIT) & (np.abs(z) < h2 + margin) & (np.abs(x) < w2 + margin)
-        x_l, x_r = x + ext[:, 0], x - ext[:, 1]
-        idx = np.flatnonzero(hit)
-        # per laser its leftmost hit (the first of equal ones, as argmin) and its rightmost
-        by_l = idx[np.lexsort((x_l[idx], laser[idx]))]
-        by_r = idx[np.lexsort((-x_r[idx], laser[idx]))]
-        first = np.flatnonzero(np.diff(np.concatenate(([-1], laser[by_l]))))
-        if len(first) < 3:
+        # the hits, per laser its leftmost hit (the first of equal ones, as argmin) and its
+        # rightmost, and the azimuth step on the board (the median spacing of a laser's
+        # consecutive hits): compiled (`align.fit_kernels.laser_ends`; two lexsorts and a
+        # dozen masks and diffs in numpy)
+        hit, x_l, x_r, il, _, ends, step = laser_ends(x, z, lab, laser, ext, HIT, w2 + margin,
+                                                      h2 + margin)
+        if len(il) < 3:
             return None
-        il, ir = by_l[first], by_r[first]
         ids = laser[il]
-        ends = np.column_stack((x_l[il], z[il], x_r[ir], z[ir]))
-        # the azimuth step on the board: the median spacing of a laser's consecutive hits
-        dx = np.abs(np.diff(x[by_l]))[np.diff(laser[by_l]) == 0]
-        step = float(np.partition(dx, len(dx) // 2)[len(dx) // 2]) if len(dx) else 0.0
         tol = 0.5 * step + OVERHANG_SLACK
         return cls(ids, ends, hit, x_l, x_r, tol, _side_lines(ends, w2, tol, step + tol))
 

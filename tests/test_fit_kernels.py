@@ -777,3 +777,75 @@ def test_numpy_mean_is_np_mean_bit_for_bit():
         for _ in range(20):
             idx = rng.choice(len(res), n, replace=False)
             assert _numpy_mean(res, idx) == float(res[idx].mean())
+
+
+def sides_reference(x, z, lab, laser, ext, board):
+    """`rays._Sides.of`'s ends as numpy calls (before `laser_ends`): hit, x_l, x_r, the
+    lasers' leftmost and rightmost hits, their ends and the median step; None below 3
+    lasers."""
+    w2, h2, margin = board.width / 2, board.height / 2, rays_mod.feasible.OUTLIER_MARGIN
+    hit = (lab == rays_mod.HIT) & (np.abs(z) < h2 + margin) & (np.abs(x) < w2 + margin)
+    x_l, x_r = x + ext[:, 0], x - ext[:, 1]
+    idx = np.flatnonzero(hit)
+    by_l = idx[np.lexsort((x_l[idx], laser[idx]))]
+    by_r = idx[np.lexsort((-x_r[idx], laser[idx]))]
+    first = np.flatnonzero(np.diff(np.concatenate(([-1], laser[by_l]))))
+    if len(first) < 3:
+        return None
+    il, ir = by_l[first], by_r[first]
+    ends = np.column_stack((x_l[il], z[il], x_r[ir], z[ir]))
+    dx = np.abs(np.diff(x[by_l]))[np.diff(laser[by_l]) == 0]
+    step = float(np.partition(dx, len(dx) // 2)[len(dx) // 2]) if len(dx) else 0.0
+    return hit, x_l, x_r, il, ir, ends, step
+
+
+def test_laser_ends_match_numpy_on_real_scans(models):
+    """`laser_ends` (`rays._Sides.of`) against the lexsorts and diffs it replaced: the fit's
+    poses and others a few cm and degrees off, the side faces of a 3 mm plate and of none,
+    labels flipped at random, and ties (x quantised to 5 mm)."""
+    from align.fit_kernels import laser_ends
+
+    rng = np.random.default_rng(31)
+    compared = 0
+    for model, theta in models:
+        board = model.board
+        for k in range(8):
+            t = theta + (rng.normal(size=6) * [2e-2, 5e-3, 2e-2, 3e-2, 1e-2, 1e-2] if k else 0)
+            x, z, _ = model.coords(t)
+            if k % 4 == 3:
+                x = np.round(x / 0.005) * 0.005
+            lab = model.lab.copy()
+            if k % 2:
+                flip = rng.random(len(lab)) < 0.1
+                lab = np.where(flip & (lab >= 0), 1 - lab, lab).astype(lab.dtype)
+            ext = rays_mod._side_faces(model.rays.direction, t, replace_thickness(board, k))
+            want = sides_reference(x, z, lab, model.rays.laser, ext, board)
+            w2, h2, margin = board.width / 2, board.height / 2, rays_mod.feasible.OUTLIER_MARGIN
+            got = laser_ends(x, z, lab, model.rays.laser, ext, rays_mod.HIT, w2 + margin,
+                             h2 + margin)
+            if want is None:
+                assert len(got[3]) < 3
+                continue
+            for g, w in zip(got, want, strict=True):
+                np.testing.assert_array_equal(g, w)
+            compared += 1
+    assert compared > 30
+
+
+def replace_thickness(board: BoardSpec, k: int) -> BoardSpec:
+    """``board`` with a 3 mm plate for even ``k``, none for odd."""
+    return BoardSpec(board.width, board.height, thickness=0.003 if k % 2 == 0 else 0.0)
+
+
+def test_kth_smallest_is_np_partitions():
+    """`_kth_smallest` (`laser_ends`' median step) against np.partition: random, rounded
+    (ties), constant, sorted and reversed values, one to two thousand of them."""
+    from align.fit_kernels import _kth_smallest
+
+    rng = np.random.default_rng(4)
+    for trial in range(3000):
+        n = int(rng.integers(1, 60)) if trial % 2 else int(rng.integers(1, 2000))
+        a = [rng.random(n), np.round(rng.random(n), 1), np.zeros(n), np.sort(rng.random(n)),
+             np.sort(rng.random(n))[::-1].copy()][trial % 5]
+        k = int(rng.integers(0, n))
+        assert _kth_smallest(a.copy(), k) == np.partition(a, k)[k]
