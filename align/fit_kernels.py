@@ -661,6 +661,41 @@ def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x:
     return idx[:k], xs[:k], zs[:k], ls[:k]
 
 
+@njit(cache=True, error_model="numpy")
+def binding_rays(origin: np.ndarray, direction: np.ndarray, label: np.ndarray,
+                 rot: np.ndarray, t_x: float, t_y: float, t_z: float, w2: float, h2: float,
+                 mx: float, mz: float) -> tuple[np.ndarray, np.ndarray]:
+    """`align.label_posterior.binding` of the rays' board coordinates at the pose with
+    rotation ``rot`` and translation (t_x, t_y, t_z) (`align.geometry.board_coordinates`'
+    floats, as `window_rays` computes them), in one pass: the hits (label 1) not deeper than
+    (``mx``, ``mz``) inside the ``w2`` x ``h2`` half-rectangle and the misses (label 0) not
+    farther outside, as two index arrays in the rays' order (m)."""
+    m = origin.shape[0]
+    hits, misses = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
+    nh = nm = 0
+    a0, a1, a2 = rot[0, 0], rot[0, 1], rot[0, 2]
+    b0, b1, b2 = rot[1, 0], rot[1, 1], rot[1, 2]
+    c0, c1, c2 = rot[2, 0], rot[2, 1], rot[2, 2]
+    in_w, in_h, out_w, out_h = w2 - mx, h2 - mz, w2 + mx, h2 + mz
+    for i in range(m):
+        lab = label[i]
+        if lab != 1 and lab != 0:
+            continue
+        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        u0, u1, u2 = direction[i, 0], direction[i, 1], direction[i, 2]
+        lam = -(_gemv3(o0, o1, o2, b0, b1, b2) + t_y) / _gemv3(u0, u1, u2, b0, b1, b2)
+        x = (_gemv3(o0, o1, o2, a0, a1, a2) + t_x) + lam * _gemv3(u0, u1, u2, a0, a1, a2)
+        z = (_gemv3(o0, o1, o2, c0, c1, c2) + t_z) + lam * _gemv3(u0, u1, u2, c0, c1, c2)
+        if lab == 1:
+            if not (abs(x) < in_w and abs(z) < in_h):
+                hits[nh] = i
+                nh += 1
+        elif not (abs(x) > out_w or abs(z) > out_h):
+            misses[nm] = i
+            nm += 1
+    return hits[:nh], misses[:nm]
+
+
 @njit(cache=True)
 def _merge_runs(idx: np.ndarray, key: np.ndarray) -> None:
     """Sort ``idx`` by ``key[idx]`` in place, stably (equal keys keep their order): a
