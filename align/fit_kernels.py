@@ -661,6 +661,61 @@ def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x:
     return idx[:k], xs[:k], zs[:k], ls[:k]
 
 
+@njit(cache=True)
+def hit_runs(order: np.ndarray, lab: np.ndarray, laser: np.ndarray, scan: np.ndarray,
+             azimuth: np.ndarray, distance: np.ndarray, expected: np.ndarray, max_gap: float,
+             hit: int, miss: int, unknown: int) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._grazing_runs`' runs of hits, in one pass over the rays in ``order`` (by
+    scan, laser and azimuth): runs of consecutive hits (``lab`` ``hit``) of one laser in one
+    scan, neighbours no more than ``max_gap`` (rad) apart in azimuth, each with a neighbour
+    on both sides (not at the end of what was looked at) that is linked to it the same way
+    and is a miss or a return behind the plane (``distance`` beyond ``expected``; label
+    ``unknown``). Returns their first and last positions in ``order``: the numpy version's
+    masks and diffs, the same comparisons on the same floats."""
+    n = order.shape[0]
+    starts, ends = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    k = 0
+    i = 0
+    while i < n:
+        if lab[order[i]] != hit:
+            i += 1
+            continue
+        a = i  # a run starts here: extend it while linked to the next hit
+        while i + 1 < n and lab[order[i + 1]] == hit and _linked(order, laser, scan, azimuth,
+                                                                 i, max_gap):
+            i += 1
+        b = i
+        i += 1
+        if a == 0 or b == n - 1:
+            continue
+        if not (_linked(order, laser, scan, azimuth, a - 1, max_gap)
+                and _linked(order, laser, scan, azimuth, b, max_gap)):
+            continue
+        if _beside(order[a - 1], lab, distance, expected, miss, unknown) and _beside(
+                order[b + 1], lab, distance, expected, miss, unknown):
+            starts[k], ends[k] = a, b
+            k += 1
+    return starts[:k], ends[:k]
+
+
+@njit(cache=True)
+def _linked(order: np.ndarray, laser: np.ndarray, scan: np.ndarray, azimuth: np.ndarray,
+            i: int, max_gap: float) -> bool:
+    """Whether the rays at positions i and i + 1 of ``order`` are neighbours along a ring:
+    the same laser, the same scan, less than ``max_gap`` apart (`_grazing_runs`' same)."""
+    p, q = order[i], order[i + 1]
+    return laser[q] == laser[p] and scan[q] == scan[p] and azimuth[q] - azimuth[p] < max_gap
+
+
+@njit(cache=True)
+def _beside(r: int, lab: np.ndarray, distance: np.ndarray, expected: np.ndarray, miss: int,
+            unknown: int) -> bool:
+    """Whether ray ``r`` ends a run of hits: a miss, or a return behind the plane."""
+    if lab[r] == miss:
+        return True
+    return lab[r] == unknown and distance[r] > 0 and distance[r] > expected[r]
+
+
 @njit(cache=True, error_model="numpy")
 def binding_rays(origin: np.ndarray, direction: np.ndarray, label: np.ndarray,
                  rot: np.ndarray, t_x: float, t_y: float, t_z: float, w2: float, h2: float,

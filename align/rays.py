@@ -50,6 +50,7 @@ from align.fit_kernels import (
     column_brackets,
     contradicted,
     edge_brackets,
+    hit_runs,
     laser_ends,
     lm_fit,
     profile_best,
@@ -329,29 +330,22 @@ def _grazing_runs(rays: _Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
     lasers' ends show them (`_Sides`), if they do: a run at a corner then ends at one of them,
     which holds at any pose; without them, a run within `CORNER_REACH` beyond its length of
     a corner of the rectangle at this pose is taken to cross it."""
-    x, z = coords[0][order], coords[1][order]
-    lb, az = lab[order], rays.azimuth[order]
-    same = (rays.laser[order][1:] == rays.laser[order][:-1]) & (
-        rays.scan[order][1:] == rays.scan[order][:-1]) & (np.diff(az) < MAX_GAP)
-    hit = lb == HIT
-    # what ends a run: a miss, or a return behind the plane (the same thing behind, further
-    # back); not a return in front (it may hide the board going on) nor a dropout
-    behind = (rays.distance[order] > 0) & (rays.distance[order] > expected[order])
-    beside = (lb == MISS) | ((lb == UNKNOWN) & behind)
-    # runs of hits linked along a laser: their first and last positions in ``order``
-    starts = np.flatnonzero(hit & ~np.concatenate(([False], same & hit[:-1])))
-    ends = np.flatnonzero(hit & ~np.concatenate((same & hit[1:], [False])))
+    # runs of hits linked along a laser (the same laser and scan, no gap), their first and
+    # last positions in ``order``, whose ends are seen (not at the end of what was looked
+    # at), each beside a miss or a return behind the plane (the same thing behind, further
+    # back; not a return in front, which may hide the board going on, nor a dropout):
+    # compiled (`align.fit_kernels.hit_runs`; two dozen masks and diffs in numpy)
+    starts, ends = hit_runs(order, lab, rays.laser, rays.scan, rays.azimuth, rays.distance,
+                            expected, MAX_GAP, HIT, MISS, UNKNOWN)
     out = np.zeros(len(lab), dtype=bool)
+    if len(starts) == 0:
+        return out
+    x, z = coords[0][order], coords[1][order]
     w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
     corners = np.array([(-w2, -h2), (w2, -h2), (-w2, h2), (w2, h2)])
-    # the runs whose ends are seen (not at the end of what was looked at), each beside a miss
-    # or a return behind, shorter than the board's smaller side: the few looked at closer
-    n = len(lb)
-    seen = (starts > 0) & (ends < n - 1)
-    starts, ends = starts[seen], ends[seen]
-    ok = same[starts - 1] & same[ends] & beside[starts - 1] & beside[ends + 1]
+    # those shorter than the board's smaller side: the few looked at closer
     spans = np.hypot(x[ends + 1] - x[starts - 1], z[ends + 1] - z[starts - 1])
-    ok &= spans < min(board.width, board.height)
+    ok = spans < min(board.width, board.height)
     for a, b, span in zip(starts[ok], ends[ok], spans[ok], strict=True):
         xs, zs = x[a:b + 1], z[a:b + 1]
         if np.all((np.abs(xs) < w2 - margin) & (np.abs(zs) < h2 - margin)):

@@ -849,3 +849,73 @@ def test_kth_smallest_is_np_partitions():
              np.sort(rng.random(n))[::-1].copy()][trial % 5]
         k = int(rng.integers(0, n))
         assert _kth_smallest(a.copy(), k) == np.partition(a, k)[k]
+
+
+def grazing_reference(rays, lab, coords, expected, board, order, sides=None):
+    """`rays._grazing_runs` as numpy calls (before `hit_runs`)."""
+    HIT, MISS, UNKNOWN = rays_mod.HIT, rays_mod.MISS, rays_mod.UNKNOWN
+    x, z = coords[0][order], coords[1][order]
+    lb, az = lab[order], rays.azimuth[order]
+    same = (rays.laser[order][1:] == rays.laser[order][:-1]) & (
+        rays.scan[order][1:] == rays.scan[order][:-1]) & (np.diff(az) < rays_mod.MAX_GAP)
+    hit = lb == HIT
+    behind = (rays.distance[order] > 0) & (rays.distance[order] > expected[order])
+    beside = (lb == MISS) | ((lb == UNKNOWN) & behind)
+    starts = np.flatnonzero(hit & ~np.concatenate(([False], same & hit[:-1])))
+    ends = np.flatnonzero(hit & ~np.concatenate((same & hit[1:], [False])))
+    out = np.zeros(len(lab), dtype=bool)
+    w2, h2, margin = board.width / 2, board.height / 2, rays_mod.feasible.OUTLIER_MARGIN
+    corners = np.array([(-w2, -h2), (w2, -h2), (-w2, h2), (w2, h2)])
+    n = len(lb)
+    seen = (starts > 0) & (ends < n - 1)
+    starts, ends = starts[seen], ends[seen]
+    ok = same[starts - 1] & same[ends] & beside[starts - 1] & beside[ends + 1]
+    spans = np.hypot(x[ends + 1] - x[starts - 1], z[ends + 1] - z[starts - 1])
+    ok &= spans < min(board.width, board.height)
+    for a, b, span in zip(starts[ok], ends[ok], spans[ok], strict=True):
+        xs, zs = x[a:b + 1], z[a:b + 1]
+        if np.all((np.abs(xs) < w2 - margin) & (np.abs(zs) < h2 - margin)):
+            continue
+        if sides is not None and sides.lines is not None:
+            if sides.reaches(xs, zs):
+                continue
+        elif np.min(np.hypot(xs[:, None] - corners[:, 0], zs[:, None] - corners[:, 1])) < \
+                span + rays_mod.CORNER_REACH:
+            continue
+        cx, cz = x[b + 1] - x[a - 1], z[b + 1] - z[a - 1]
+        sag = np.max(np.abs((xs - x[a - 1]) * cz - (zs - z[a - 1]) * cx)) / span
+        if sag < rays_mod.GRAZE_SAG:
+            out[order[a:b + 1]] = True
+    return out
+
+
+def test_grazing_runs_match_numpy_on_real_scans(models):
+    """`rays._grazing_runs` (its runs compiled: `hit_runs`) against the numpy version: the
+    models' labels, and labels flipped at random (short runs of hits beside misses and
+    returns behind, some grazing), with and without the side lines, at poses off the fit's."""
+    from align.fit_kernels import hit_runs
+
+    rng = np.random.default_rng(17)
+    runs = flagged = 0
+    for model, theta in models:
+        rays, board = model.rays, model.board
+        order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+        for k in range(10):
+            t = theta + (rng.normal(size=6) * [1e-2, 5e-3, 1e-2, 2e-2, 5e-3, 5e-3] if k else 0)
+            coords = board_coordinates(t, rays.origin, rays.direction)
+            lab = model.lab.copy()
+            if k % 2:
+                flip = rng.random(len(lab)) < 0.08 * (k % 4)
+                lab = np.where(flip, rng.choice([-1, 0, 1], len(lab)), lab).astype(lab.dtype)
+            expected = coords[2] + (0.02 if k % 3 == 0 else 0.0)
+            ext = rays_mod._side_faces(rays.direction, t, board)
+            for sides in (None, rays_mod._Sides.of(coords[0], coords[1], lab, rays.laser, ext,
+                                                   board)):
+                got = rays_mod._grazing_runs(rays, lab, coords, expected, board, order, sides)
+                want = grazing_reference(rays, lab, coords, expected, board, order, sides)
+                np.testing.assert_array_equal(got, want)
+                flagged += int(np.any(want))
+            runs += len(hit_runs(order, lab, rays.laser, rays.scan, rays.azimuth,
+                                 rays.distance, expected, rays_mod.MAX_GAP, rays_mod.HIT,
+                                 rays_mod.MISS, rays_mod.UNKNOWN)[0])
+    assert runs > 200 and flagged > 0, (runs, flagged)
