@@ -662,6 +662,40 @@ def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x:
 
 
 @njit(cache=True)
+def _np_max0(v: float) -> float:
+    """np.maximum(0.0, v): 0 where v <= 0, else v (nan stays nan)."""
+    return 0.0 if v <= 0.0 else v
+
+
+@njit(cache=True, error_model="numpy")
+def side_faces(u: np.ndarray, rot: np.ndarray, thickness: float) -> np.ndarray:
+    """`align.rays._side_faces`: (M, 4) how far past the left, right, bottom and top edge the
+    rays with directions ``u`` (M, 3) still hit a plate of ``thickness`` (m) at the rotation
+    ``rot``, in one pass. u @ rot.T as OpenBLAS's matrix product computes it for two rows or
+    more (the `_project` order of `window_sweep_projected`; a single row numpy sends to its
+    matrix-vector kernel, whose order is `_gemv3`), then numpy's elementwise operations in
+    its order: the same floats."""
+    m = u.shape[0]
+    out = np.empty((m, 4))
+    for i in range(m):
+        u0, u1, u2 = u[i, 0], u[i, 1], u[i, 2]
+        if m == 1:
+            d0 = _gemv3(u0, u1, u2, rot[0, 0], rot[0, 1], rot[0, 2])
+            d1 = _gemv3(u0, u1, u2, rot[1, 0], rot[1, 1], rot[1, 2])
+            d2 = _gemv3(u0, u1, u2, rot[2, 0], rot[2, 1], rot[2, 2])
+        else:
+            d0 = _fma(rot[0, 2], u2, _fma(rot[0, 1], u1, rot[0, 0] * u0))
+            d1 = _fma(rot[1, 2], u2, _fma(rot[1, 1], u1, rot[1, 0] * u0))
+            d2 = _fma(rot[2, 2], u2, _fma(rot[2, 1], u1, rot[2, 0] * u0))
+        rx, rz = d0 / d1, d2 / d1
+        out[i, 0] = thickness * _np_max0(rx)
+        out[i, 1] = thickness * _np_max0(-rx)
+        out[i, 2] = thickness * _np_max0(rz)
+        out[i, 3] = thickness * _np_max0(-rz)
+    return out
+
+
+@njit(cache=True)
 def hit_runs(order: np.ndarray, lab: np.ndarray, laser: np.ndarray, scan: np.ndarray,
              azimuth: np.ndarray, distance: np.ndarray, expected: np.ndarray, max_gap: float,
              hit: int, miss: int, unknown: int) -> tuple[np.ndarray, np.ndarray]:

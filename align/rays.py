@@ -56,6 +56,7 @@ from align.fit_kernels import (
     profile_best,
     profile_cost,
     range_rays,
+    side_faces,
     used_edges,
     window_firings,
     window_rays,
@@ -787,11 +788,10 @@ def _side_faces(u: np.ndarray, theta: np.ndarray, board: BoardSpec) -> np.ndarra
     """(M, 4) how far past the left, right, bottom and top edge (m) the rays with directions
     ``u`` still hit the plate at ``theta``: its side faces, seen by rays heading inwards past
     an edge (as `_Model.residuals`)."""
-    rot = rotation(theta[3], theta[4], theta[5])
-    dn = u @ rot.T
-    ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
-    return board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
-                                                              -ratio_z)))
+    # compiled (`align.fit_kernels.side_faces`: the same floats as u @ rot.T, the ratios,
+    # np.maximum and the product)
+    return side_faces(np.ascontiguousarray(u, dtype=np.float64),
+                      rotation(theta[3], theta[4], theta[5]), float(board.thickness))
 
 
 #: A laser's hits may span the board's width by this much more (m) before one end is taken to

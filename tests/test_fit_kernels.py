@@ -919,3 +919,36 @@ def test_grazing_runs_match_numpy_on_real_scans(models):
                                  rays.distance, expected, rays_mod.MAX_GAP, rays_mod.HIT,
                                  rays_mod.MISS, rays_mod.UNKNOWN)[0])
     assert runs > 200 and flagged > 0, (runs, flagged)
+
+
+def test_side_faces_match_numpy_on_real_scans():
+    """`side_faces` (`rays._side_faces`) against u @ rot.T and numpy's elementwise steps, bit
+    for bit: every fired ray of real and twin scans, any number of them (one row takes
+    numpy's matrix-vector kernel), at poses about the board's; rays along the plane (a
+    division by zero) as numpy gives them."""
+    from align.fit_kernels import side_faces
+    from align.geometry import rotation
+
+    def reference(u, theta, thickness):
+        rot = rotation(theta[3], theta[4], theta[5])
+        dn = u @ rot.T
+        ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
+        return thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
+                                                            -ratio_z)))
+
+    scans = [read_pcd_scans(p)[0] for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    scans.append(BenchSim(seed=3).scan())
+    rng = np.random.default_rng(13)
+    for s in scans:
+        u_all = s.directions()
+        for k in range(12):
+            theta = rng.normal(size=6) * [0.1, 0.5, 0.1, 0.3, 0.1, 1.0]
+            m = [len(u_all), 1, 2, 3, 5, 17, 64][k % 7]
+            u = u_all if m == len(u_all) else u_all[rng.choice(len(u_all), m)]
+            if k == 11:  # rays along the plane (no rotation): divisions by zero
+                theta[3:] = 0.0
+                u = u.copy()
+                u[0], u[1] = (1.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                want = reference(u, theta, 0.003)
+            np.testing.assert_array_equal(side_faces(u, rotation(*theta[3:]), 0.003), want)
