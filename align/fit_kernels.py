@@ -662,6 +662,58 @@ def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x:
 
 
 @njit(cache=True)
+def side_ends(ends: np.ndarray, w2: float, reach: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """`align.rays._side_lines`' ends at the side edges: of the lasers' ends (K, 4: left x, z,
+    right x, z), the left ones within ``reach`` of -``w2`` then the right ones within it of
+    ``w2``: their x, the sign that makes a residual x - line positive beyond the edge, and
+    the design (1 - side, side, z) (rows, C order), and how many are right ones; the same
+    floats as the numpy version's concatenations."""
+    k = ends.shape[0]
+    n_l = n_r = 0
+    for i in range(k):
+        n_l += ends[i, 0] < -w2 + reach
+        n_r += ends[i, 2] > w2 - reach
+    n = n_l + n_r
+    xs, sign, a = np.empty(n), np.empty(n), np.empty((n, 3))
+    t = 0
+    for side in range(2):
+        for i in range(k):
+            if side == 0 and ends[i, 0] < -w2 + reach:
+                xs[t], a[t, 2] = ends[i, 0], ends[i, 1]
+            elif side == 1 and ends[i, 2] > w2 - reach:
+                xs[t], a[t, 2] = ends[i, 2], ends[i, 3]
+            else:
+                continue
+            a[t, 0], a[t, 1] = 1.0 - side, float(side)
+            sign[t] = 2.0 * side - 1.0
+            t += 1
+    return xs, sign, a, n_r
+
+
+@njit(cache=True)
+def line_excess(xs: np.ndarray, a: np.ndarray, coef: np.ndarray, sign: np.ndarray,
+                keep: np.ndarray, tol: float, inward: float) -> tuple[int, float]:
+    """`align.rays._side_lines`' worst end for the lines ``coef``: np.argmax of the kept ends'
+    excess (beyond the lines by more than ``tol``, or inside them by more than ``inward``; 0
+    for the others and those within), with the excess. numpy's floats (a @ coef as
+    `_gemv3`, its elementwise maxima) and np.argmax's first maximum (a nan first)."""
+    worst, top = -1, 0.0
+    for i in range(xs.shape[0]):
+        beyond = (xs[i] - _gemv3(a[i, 0], a[i, 1], a[i, 2], coef[0], coef[1], coef[2])) * sign[i]
+        e = 0.0
+        if keep[i]:
+            m = beyond - tol
+            b = -beyond - inward
+            if not (m >= b or m != m):
+                m = b
+            e = m if (m >= 0.0 or m != m) else 0.0
+        if worst < 0 or (top == top and (e > top or e != e)):
+            worst, top = i, e
+    return worst, top
+
+
+@njit(cache=True)
 def _np_max0(v: float) -> float:
     """np.maximum(0.0, v): 0 where v <= 0, else v (nan stays nan)."""
     return 0.0 if v <= 0.0 else v

@@ -52,10 +52,12 @@ from align.fit_kernels import (
     edge_brackets,
     hit_runs,
     laser_ends,
+    line_excess,
     lm_fit,
     profile_best,
     profile_cost,
     range_rays,
+    side_ends,
     side_faces,
     used_edges,
     window_firings,
@@ -922,28 +924,24 @@ def _side_lines(ends: np.ndarray, w2: float, tol: float, inward: float
     The band is wider inwards: an end kept there pulls the lines in, so that more of the
     board's own ends count as beyond them, which costs their last hit; a holder's end kept
     pulls them out, which hides it."""
-    left = np.flatnonzero(ends[:, 0] < -w2 + EDGE_REACH)
-    right = np.flatnonzero(ends[:, 2] > w2 - EDGE_REACH)
-    xs = np.concatenate((ends[left, 0], ends[right, 2]))
-    zs = np.concatenate((ends[left, 1], ends[right, 3]))
-    side = np.concatenate((np.zeros(len(left)), np.ones(len(right))))
-    out_sign = 2.0 * side - 1.0  # residual x - line times this: > 0 beyond the edge
+    # the ends near each side (left ones first), x = line + residual, and the design of
+    # (a_l, a_r, b): compiled (`align.fit_kernels.side_ends`), as the worst end each round
+    # (`line_excess`); the normal equations and their solution numpy's, as they were
+    xs, out_sign, a, n_r = side_ends(ends, w2, EDGE_REACH)
     keep = np.ones(len(xs), dtype=bool)
-    a = np.column_stack((1.0 - side, side, zs))
+    n_kept = len(xs)
+    side = a[:, 1]
     while True:
-        n_r = int(np.count_nonzero(keep & (side == 1)))
-        if n_r < SIDE_ENDS or int(np.count_nonzero(keep)) - n_r < SIDE_ENDS or \
-                int(np.count_nonzero(keep)) < LINE_ENDS:
+        if n_r < SIDE_ENDS or n_kept - n_r < SIDE_ENDS or n_kept < LINE_ENDS:
             return None
         ak = a[keep]
         coef = np.linalg.solve(ak.T @ ak, ak.T @ xs[keep])  # three unknowns: normal equations
-        beyond = (xs - a @ coef) * out_sign
-        excess = np.where(keep, np.maximum(np.maximum(beyond - tol, -beyond - inward), 0.0),
-                          0.0)
-        worst = int(np.argmax(excess))
-        if excess[worst] <= 0.0:
+        worst, excess = line_excess(xs, a, coef, out_sign, keep, tol, inward)
+        if excess <= 0.0:
             return float(coef[0]), float(coef[1]), float(coef[2])
         keep[worst] = False
+        n_kept -= 1
+        n_r -= int(side[worst] == 1)
 
 
 def _line_at(z: np.ndarray, x: np.ndarray, z0: float) -> float:

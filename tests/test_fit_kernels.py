@@ -952,3 +952,56 @@ def test_side_faces_match_numpy_on_real_scans():
             with np.errstate(divide="ignore", invalid="ignore"):
                 want = reference(u, theta, 0.003)
             np.testing.assert_array_equal(side_faces(u, rotation(*theta[3:]), 0.003), want)
+
+
+def side_lines_reference(ends, w2, tol, inward):
+    """`rays._side_lines` as numpy calls (before `side_ends`, `line_excess`)."""
+    reach, side_ends_min, line_ends_min = (rays_mod.EDGE_REACH, rays_mod.SIDE_ENDS,
+                                           rays_mod.LINE_ENDS)
+    left = np.flatnonzero(ends[:, 0] < -w2 + reach)
+    right = np.flatnonzero(ends[:, 2] > w2 - reach)
+    xs = np.concatenate((ends[left, 0], ends[right, 2]))
+    zs = np.concatenate((ends[left, 1], ends[right, 3]))
+    side = np.concatenate((np.zeros(len(left)), np.ones(len(right))))
+    out_sign = 2.0 * side - 1.0
+    keep = np.ones(len(xs), dtype=bool)
+    a = np.column_stack((1.0 - side, side, zs))
+    while True:
+        n_r = int(np.count_nonzero(keep & (side == 1)))
+        if n_r < side_ends_min or int(np.count_nonzero(keep)) - n_r < side_ends_min or \
+                int(np.count_nonzero(keep)) < line_ends_min:
+            return None
+        ak = a[keep]
+        coef = np.linalg.solve(ak.T @ ak, ak.T @ xs[keep])
+        beyond = (xs - a @ coef) * out_sign
+        excess = np.where(keep, np.maximum(np.maximum(beyond - tol, -beyond - inward), 0.0),
+                          0.0)
+        worst = int(np.argmax(excess))
+        if excess[worst] <= 0.0:
+            return float(coef[0]), float(coef[1]), float(coef[2])
+        keep[worst] = False
+
+
+def test_side_lines_match_numpy():
+    """`rays._side_lines` (compiled around numpy's normal equations) against the numpy
+    version, bit for bit: lasers' ends of a rolled board with noise, holders' ends beyond a
+    side, rings leaving through the top or bottom (ends well inside), too few ends."""
+    rng = np.random.default_rng(21)
+    w2 = 0.45
+    found = dropped = 0
+    for _ in range(3000):
+        n = int(rng.integers(2, 16))
+        z = np.sort(rng.uniform(-0.27, 0.27, n))
+        slope = rng.normal() * 0.05
+        ends = np.column_stack((-w2 + slope * z + rng.normal(size=n) * 0.004, z,
+                                w2 + slope * z + rng.normal(size=n) * 0.004, z))
+        for _ in range(int(rng.integers(0, 3))):  # a holder beyond, or a ring leaving early
+            i, c = int(rng.integers(n)), int(rng.choice([0, 2]))
+            ends[i, c] += (1 if c == 2 else -1) * rng.choice([0.01, 0.03, -0.02, -0.06])
+        tol, inward = 0.006 + 0.002 * rng.random(), 0.015 + 0.01 * rng.random()
+        want = side_lines_reference(ends, w2, tol, inward)
+        got = rays_mod._side_lines(ends, w2, tol, inward)
+        assert got == want
+        found += want is not None
+        dropped += want is not None and want != side_lines_reference(ends, w2, 1.0, 1.0)
+    assert found > 1000 and dropped > 100, (found, dropped)
