@@ -661,6 +661,42 @@ def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x:
     return idx[:k], xs[:k], zs[:k], ls[:k]
 
 
+@njit(cache=True, error_model="numpy")
+def ray_products(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_y: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`align.rays._Model._shifted_coords`' products of the rays with the rotation's rows:
+    o.r0, lam u.r0, o.r2, lam u.r2 and lam = -(o.r1 + t_y) / u.r1, in one pass (numpy's
+    matrix-vector products as `_gemv3`, its elementwise steps in its order: the same
+    floats)."""
+    m = origin.shape[0]
+    ox, ux, oz, uz, lam = np.empty(m), np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    a0, a1, a2 = rot[0, 0], rot[0, 1], rot[0, 2]
+    b0, b1, b2 = rot[1, 0], rot[1, 1], rot[1, 2]
+    c0, c1, c2 = rot[2, 0], rot[2, 1], rot[2, 2]
+    for i in range(m):
+        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        u0, u1, u2 = direction[i, 0], direction[i, 1], direction[i, 2]
+        la = -(_gemv3(o0, o1, o2, b0, b1, b2) + t_y) / _gemv3(u0, u1, u2, b0, b1, b2)
+        lam[i] = la
+        ox[i] = _gemv3(o0, o1, o2, a0, a1, a2)
+        ux[i] = la * _gemv3(u0, u1, u2, a0, a1, a2)
+        oz[i] = _gemv3(o0, o1, o2, c0, c1, c2)
+        uz[i] = la * _gemv3(u0, u1, u2, c0, c1, c2)
+    return ox, ux, oz, uz, lam
+
+
+@njit(cache=True)
+def shifted_coords(ox: np.ndarray, ux: np.ndarray, oz: np.ndarray, uz: np.ndarray,
+                   t_x: float, t_z: float) -> tuple[np.ndarray, np.ndarray]:
+    """X = (o.r0 + t_x) + lam u.r0 and Z alike from `ray_products`' (numpy's order)."""
+    m = ox.shape[0]
+    x, z = np.empty(m), np.empty(m)
+    for i in range(m):
+        x[i] = (ox[i] + t_x) + ux[i]
+        z[i] = (oz[i] + t_z) + uz[i]
+    return x, z
+
+
 @njit(cache=True)
 def side_ends(ends: np.ndarray, w2: float, reach: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:

@@ -57,6 +57,8 @@ from align.fit_kernels import (
     profile_best,
     profile_cost,
     range_rays,
+    ray_products,
+    shifted_coords,
     side_ends,
     side_faces,
     used_edges,
@@ -514,16 +516,13 @@ class _Model:
         t_x) + lam u.r0 and Z alike, lam depending on t_y and the rotation alone."""
         rkey = theta[[1, 3, 4, 5]].tobytes()
         if self._products is None or self._products[0] != rkey:
-            o, u = self.rays.origin, self.rays.direction
-            r = rotation(theta[3], theta[4], theta[5])
-            oy = o @ r[1] + theta[1]
-            dy = u @ r[1]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                lam = -oy / dy
-            self._products = (rkey, (o @ r[0], lam * (u @ r[0]), o @ r[2], lam * (u @ r[2]),
-                                     lam))
+            # compiled (`align.fit_kernels.ray_products`: the same floats as the matrix-vector
+            # products and the elementwise steps)
+            self._products = (rkey, ray_products(self.rays.origin, self.rays.direction,
+                                                 rotation(theta[3], theta[4], theta[5]),
+                                                 float(theta[1])))
         ox, ux, oz, uz, lam = self._products[1]
-        return ox + theta[0] + ux, oz + theta[2] + uz, lam
+        return (*shifted_coords(ox, ux, oz, uz, float(theta[0]), float(theta[2])), lam)
 
     def _cache_edges(self) -> None:
         """The used brackets' rays, signs and sigmas, contiguous (the fit only reads these)."""
