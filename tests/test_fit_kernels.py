@@ -1005,3 +1005,21 @@ def test_side_lines_match_numpy():
         found += want is not None
         dropped += want is not None and want != side_lines_reference(ends, w2, 1.0, 1.0)
     assert found > 1000 and dropped > 100, (found, dropped)
+
+
+def test_lidar_up_is_the_rotations_column_bit_for_bit():
+    """`geometry.lidar_up` (R's entries without the 3 x 3 array) against its definition from
+    `geometry.rotation`: the same floats, including a LiDAR looking along the plane."""
+    import math
+
+    from align.geometry import rotation
+
+    rng = np.random.default_rng(3)
+    for k in range(20000):
+        theta = rng.normal(size=6) * (3.0 if k % 2 else 0.05)
+        if k % 7 == 0:
+            theta[4] = np.pi / 2
+        r = rotation(theta[3], theta[4], theta[5])
+        nv = math.hypot(r[0, 2], r[2, 2])
+        want = (0.0, 1.0) if nv < 1e-9 else (float(r[0, 2] / nv), float(r[2, 2] / nv))
+        assert lidar_up(theta) == want
