@@ -1023,3 +1023,34 @@ def test_lidar_up_is_the_rotations_column_bit_for_bit():
         nv = math.hypot(r[0, 2], r[2, 2])
         want = (0.0, 1.0) if nv < 1e-9 else (float(r[0, 2] / nv), float(r[2, 2] / nv))
         assert lidar_up(theta) == want
+
+
+def test_normal_equations_in_registers_are_the_loops():
+    """`_normal_equations` of six columns (its sums in registers) against the loop over the
+    array it replaced: the same floats, the products added in the same order."""
+    from numba import njit
+
+    from align.fit_kernels import _normal_equations
+
+    @njit
+    def loop(j, f):
+        n_p = j.shape[1]
+        a, g = np.zeros((n_p, n_p)), np.zeros(n_p)
+        for i in range(j.shape[0]):
+            for r in range(n_p):
+                jr = j[i, r]
+                g[r] += jr * f[i]
+                for c in range(r + 1):
+                    a[r, c] += jr * j[i, c]
+        for r in range(n_p):
+            for c in range(r):
+                a[c, r] = a[r, c]
+        return a, g
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 7, 555):
+        for cols in (6, 7):
+            j = rng.normal(size=(n, cols)) * rng.lognormal(size=cols) * 1e3
+            f = rng.normal(size=n)
+            for got, want in zip(_normal_equations(j, f), loop(j, f), strict=True):
+                np.testing.assert_array_equal(got, want)
