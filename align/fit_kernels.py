@@ -1010,6 +1010,42 @@ def _kth_smallest(a: np.ndarray, k: int) -> float:
 
 
 @njit(cache=True)
+def window_pool(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarray,
+                ring_of_laser: np.ndarray, cos_el: np.ndarray, sin_el: np.ndarray,
+                offset_z: np.ndarray, centre: float, lo: float, hi: float, ring_lo: int,
+                ring_hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                       np.ndarray, np.ndarray, np.ndarray]:
+    """`window_firings` and the selected rays as `align.rays._candidate_pool` takes them, in
+    one pass: their indices, origins (``offset_z`` of their laser along Z: the laser table's
+    vertical offsets, zeros where a scan's are not applied) and unit directions (as
+    `Scan.directions`: ``cos_el``, ``sin_el`` the laser table's elevations' cosines and
+    sines, the azimuth's taken here: numba's and numpy's sine and cosine are the C
+    library's, the same floats), ranges, lasers, azimuths (``centre`` plus the relative one,
+    numpy's sum) and rings."""
+    idx, rel = window_firings(azimuth, laser_id, ring_of_laser, centre, lo, hi, ring_lo,
+                              ring_hi)
+    k = idx.shape[0]
+    origin, direction = np.zeros((k, 3)), np.empty((k, 3))
+    dist, az = np.empty(k), np.empty(k)
+    laser = np.empty(k, dtype=laser_id.dtype)
+    ring = np.empty(k, dtype=ring_of_laser.dtype)
+    for t in range(k):
+        i = idx[t]
+        lid = laser_id[i]
+        a = azimuth[i]
+        ce = cos_el[lid]
+        direction[t, 0] = ce * np.sin(a)
+        direction[t, 1] = ce * np.cos(a)
+        direction[t, 2] = sin_el[lid]
+        origin[t, 2] = offset_z[lid]
+        dist[t] = distance[i]
+        laser[t] = lid
+        az[t] = rel[t] + centre
+        ring[t] = ring_of_laser[lid]
+    return idx, origin, direction, dist, laser, az, ring
+
+
+@njit(cache=True)
 def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarray,
                    centre: float, lo: float, hi: float, ring_lo: int, ring_hi: int
                    ) -> tuple[np.ndarray, np.ndarray]:

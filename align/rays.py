@@ -62,7 +62,7 @@ from align.fit_kernels import (
     side_ends,
     side_faces,
     used_edges,
-    window_firings,
+    window_pool,
     window_rays,
 )
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
@@ -174,15 +174,19 @@ def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpe
         # looked at
         margin = board.diagonal / max(float(np.median(s.distance[g.board])), 0.5)
         lo, hi = rel_b.min() - margin, rel_b.max() + margin
-        ring_of_laser = s.lasers.ring_of_laser
-        rings = ring_of_laser[s.laser_id[g.board]]
-        # the board's rings and one more on each side, within the window: one compiled pass
-        # over the scan (the numpy version's masks over every firing cost 0.3 ms a scan)
-        idx, rel = window_firings(s.azimuth, s.laser_id, ring_of_laser, c, float(lo),
-                                  float(hi), int(rings.min()) - 1, int(rings.max()) + 1)
-        lid = s.laser_id[idx]
-        parts.append((*_rays_of(s, idx, lid), s.distance[idx], lid, rel + c,
-                      ring_of_laser[lid], idx + offset, np.full(len(idx), len(parts))))
+        lasers = s.lasers
+        rings = lasers.ring_of_laser[s.laser_id[g.board]]
+        # the board's rings and one more on each side, within the window, and their rays: one
+        # compiled pass over the scan (`align.fit_kernels.window_pool`, the floats of
+        # `Scan.origins`, `Scan.directions`; the numpy version's masks over every firing cost
+        # 0.3 ms a scan, its gathers and directions 0.1 ms)
+        offset_z = (np.array(lasers.vertical_offset, dtype=np.float64)  # writable, as zeros:
+                    if s.vertical_offsets_applied else np.zeros(lasers.n_lasers))  # one type
+        idx, *rays_in = window_pool(s.azimuth, s.laser_id, s.distance, lasers.ring_of_laser,
+                                    np.cos(lasers.elevation), np.sin(lasers.elevation),
+                                    offset_z, c, float(lo), float(hi), int(rings.min()) - 1,
+                                    int(rings.max()) + 1)
+        parts.append((*rays_in, idx + offset, np.full(len(idx), len(parts))))
         offset += len(s)
     cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
     _last_pool = ([weakref.ref(s) for s in scans], [weakref.ref(g) for g in segs], board, cat)

@@ -1054,3 +1054,37 @@ def test_normal_equations_in_registers_are_the_loops():
             f = rng.normal(size=n)
             for got, want in zip(_normal_equations(j, f), loop(j, f), strict=True):
                 np.testing.assert_array_equal(got, want)
+
+
+def test_window_pool_is_the_scans_selected_rays():
+    """`window_pool` (`rays._candidate_pool`) against `window_firings` and `Scan.select`'s
+    origins, directions, ranges, lasers and rings, bit for bit, on real and twin scans, with
+    and without the lasers' vertical offsets applied (the sine and cosine of the azimuth are
+    numba's: the C library's, as numpy's)."""
+    from dataclasses import replace
+
+    from align.fit_kernels import window_firings, window_pool
+
+    scans = [read_pcd_scans(p)[0] for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    scans.append(BenchSim(seed=3).scan())
+    scans += [replace(s, vertical_offsets_applied=False) for s in scans[-2:]]
+    rng = np.random.default_rng(19)
+    for s in scans:
+        lasers = s.lasers
+        offset_z = (np.array(lasers.vertical_offset) if s.vertical_offsets_applied
+                    else np.zeros(lasers.n_lasers))
+        for c in (0.0, np.pi - 1e-3, float(rng.uniform(-np.pi, np.pi))):
+            lo, hi = sorted(rng.uniform(-np.pi, np.pi, 2))
+            r_lo = int(rng.integers(-1, 8))
+            r_hi = r_lo + int(rng.integers(0, 9))
+            idx, rel = window_firings(s.azimuth, s.laser_id, lasers.ring_of_laser, c, lo, hi,
+                                      r_lo, r_hi)
+            sub = s.select(idx)
+            want = (idx, sub.origins(), sub.directions(), sub.distance, sub.laser_id, rel + c,
+                    sub.ring)
+            got = window_pool(s.azimuth, s.laser_id, s.distance, lasers.ring_of_laser,
+                              np.cos(lasers.elevation), np.sin(lasers.elevation), offset_z, c,
+                              lo, hi, r_lo, r_hi)
+            for g, w in zip(got, want, strict=True):
+                np.testing.assert_array_equal(g, w)
+                assert g.dtype == w.dtype
