@@ -432,6 +432,43 @@ def edge_brackets(order: np.ndarray, ls: np.ndarray, az: np.ndarray, lb: np.ndar
     return hits[:k], misses[:k]
 
 
+@njit(cache=True)
+def laser_brackets(order: np.ndarray, laser: np.ndarray, azimuth: np.ndarray,
+                   lab: np.ndarray, dropout: int, hit: int, max_gap: float, zone: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._brackets` from the rays' ``order`` by laser and azimuth on: the dropouts
+    (label ``dropout``) left out, the links (same laser, less than ``max_gap`` rad apart,
+    both labelled: labels >= 0) and the transitions between them, the board's span per laser
+    (`board_spans`, hits labelled ``hit``) and the walk over the zones (`edge_brackets`): the
+    numpy version's masks, diffs and gathers in two passes, the same comparisons."""
+    n = 0
+    for i in range(order.shape[0]):
+        n += lab[order[i]] != dropout
+    kept = np.empty(n, dtype=np.int64)
+    t = 0
+    for i in range(order.shape[0]):
+        if lab[order[i]] != dropout:
+            kept[t] = order[i]
+            t += 1
+    ls, az, lb = np.empty(n, dtype=laser.dtype), np.empty(n), np.empty(n, dtype=lab.dtype)
+    is_hit = np.empty(n, dtype=np.bool_)
+    for t in range(n):
+        r = kept[t]
+        ls[t], az[t], lb[t] = laser[r], azimuth[r], lab[r]
+        is_hit[t] = lab[r] == hit
+    link = np.zeros(max(n - 1, 0), dtype=np.bool_)
+    trans = np.empty(max(n - 1, 0), dtype=np.int64)
+    nt = 0
+    for t in range(n - 1):
+        link[t] = (ls[t + 1] == ls[t] and az[t + 1] - az[t] < max_gap and lb[t + 1] >= 0
+                   and lb[t] >= 0)
+        if link[t] and lb[t + 1] != lb[t]:
+            trans[nt] = t
+            nt += 1
+    first_hit, last_hit = board_spans(ls, az, is_hit, zone)
+    return edge_brackets(kept, ls, az, lb, link, trans[:nt], first_hit, last_hit, zone)
+
+
 #: `inverse_diagonal` trusts its Cholesky inverse while the matrix's condition number is
 #: provably below this (numpy's pinv drops singular values below 1e-15 of the largest: far
 #: beyond it, the two agree to rounding).

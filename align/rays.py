@@ -49,8 +49,8 @@ from align.fit_kernels import (
     classify_edges,
     column_brackets,
     contradicted,
-    edge_brackets,
     hit_runs,
+    laser_brackets,
     laser_ends,
     line_excess,
     lm_fit,
@@ -432,14 +432,10 @@ def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     square that ranged wrong). Dropouts are skipped: a bracket spans them (the edge lies
     anywhere between the hit and the miss).
     """
-    order = np.lexsort((rays.azimuth, rays.laser))
-    order = order[lab[order] != DROPOUT]
-    ls, az, lb = rays.laser[order], rays.azimuth[order], lab[order]
-    link = (ls[1:] == ls[:-1]) & (np.diff(az) < MAX_GAP) & (lb[1:] >= 0) & (lb[:-1] >= 0)
-    trans = np.flatnonzero(link & (lb[1:] != lb[:-1]))
-    first_hit, last_hit = _board_spans(ls, az, lb)
-    # the walk over the zones, compiled (`align.fit_kernels.edge_brackets`)
-    return edge_brackets(order, ls, az, lb, link, trans, first_hit, last_hit, ZONE_AZIMUTH)
+    # the links and transitions along each laser, its span on the board (`_board_spans`) and
+    # the walk over the zones, compiled (`align.fit_kernels.laser_brackets`, `edge_brackets`)
+    return laser_brackets(np.lexsort((rays.azimuth, rays.laser)), rays.laser, rays.azimuth,
+                          lab, DROPOUT, HIT, MAX_GAP, ZONE_AZIMUTH)
 
 
 def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray

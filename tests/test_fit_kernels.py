@@ -163,10 +163,14 @@ def test_brackets_match_numpy_on_real_scans(models):
     rng = np.random.default_rng(5)
     for model, _ in models:
         lab = model.lab.copy()
-        for k in range(3):
-            if k:  # flicker: labels flipped at random make zones of mixed returns
+        for k in range(5):
+            if k in (1, 2):  # flicker: labels flipped at random make zones of mixed returns
                 flip = rng.random(len(lab)) < 0.05 * k
                 lab = np.where(flip & (lab >= 0), 1 - lab, lab).astype(lab.dtype)
+            if k >= 3:  # dropouts (skipped) and unknowns (unlinked) among them
+                odd = rng.random(len(lab)) < 0.04
+                lab = np.where(odd, rays_mod.DROPOUT if k == 3 else rays_mod.UNKNOWN,
+                               lab).astype(lab.dtype)
             got, want = rays_mod._brackets(model.rays, lab), brackets_reference(model.rays, lab)
             assert len(got[0]) > 0
             np.testing.assert_array_equal(got[0], want[0])
