@@ -959,6 +959,29 @@ def _merge_runs(idx: np.ndarray, key: np.ndarray) -> None:
 
 
 @njit(cache=True)
+def pool_rows(keep: np.ndarray, origin: np.ndarray, direction: np.ndarray,
+              distance: np.ndarray, laser: np.ndarray, azimuth: np.ndarray, ring: np.ndarray,
+              gidx: np.ndarray, scan: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                         np.ndarray, np.ndarray, np.ndarray]:
+    """The rows ``keep`` of the candidate pool's arrays (`align.rays._Rays`' fields, in its
+    order), in one call: eight numpy gathers cost four times as much."""
+    k = keep.shape[0]
+    o, u = np.empty((k, 3)), np.empty((k, 3))
+    d, az = np.empty(k), np.empty(k)
+    ls, rg = np.empty(k, dtype=laser.dtype), np.empty(k, dtype=ring.dtype)
+    gi, sc = np.empty(k, dtype=gidx.dtype), np.empty(k, dtype=scan.dtype)
+    for t in range(k):
+        i = keep[t]
+        for c in range(3):
+            o[t, c] = origin[i, c]
+            u[t, c] = direction[i, c]
+        d[t], az[t], ls[t], rg[t], gi[t], sc[t] = (distance[i], azimuth[i], laser[i], ring[i],
+                                                   gidx[i], scan[i])
+    return o, u, d, ls, az, rg, gi, sc
+
+
+@njit(cache=True)
 def laser_ends(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
                ext: np.ndarray, hit_label: int, reach_x: float, reach_z: float
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,

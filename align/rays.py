@@ -54,6 +54,7 @@ from align.fit_kernels import (
     laser_ends,
     line_excess,
     lm_fit,
+    pool_rows,
     profile_best,
     profile_cost,
     range_rays,
@@ -143,7 +144,7 @@ def _candidates_at(scans: list[Scan], segs: list[Segmentation], theta: np.ndarra
     keep, x, z, lam = window_rays(cat[0], cat[1], rotation(theta[3], theta[4], theta[5]),
                                   float(theta[0]), float(theta[1]), float(theta[2]),
                                   board.width / 2 + win, board.height / 2 + win)
-    return _Rays(*(a[keep] for a in cat)), (x, z, lam), spacing
+    return _Rays(*pool_rows(keep, *cat)), (x, z, lam), spacing
 
 
 #: The last `_candidate_pool`: weak references to its scans and segmentations, its board and

@@ -1092,3 +1092,19 @@ def test_window_pool_is_the_scans_selected_rays():
             for g, w in zip(got, want, strict=True):
                 np.testing.assert_array_equal(g, w)
                 assert g.dtype == w.dtype
+
+
+def test_pool_rows_are_numpys_gathers(models):
+    """`pool_rows` (`rays._candidates_at`'s rows of the pool) against numpy's fancy indexing
+    of each field, values and dtypes."""
+    from align.fit_kernels import pool_rows
+
+    rng = np.random.default_rng(29)
+    for model, _ in models:
+        r = model.rays
+        fields = (r.origin, r.direction, r.distance, r.laser, r.azimuth, r.ring, r.gidx, r.scan)
+        for size in (0, 1, len(r.distance) // 2):
+            keep = np.sort(rng.choice(len(r.distance), size, replace=False))
+            for got, a in zip(pool_rows(keep, *fields), fields, strict=True):
+                np.testing.assert_array_equal(got, a[keep])
+                assert got.dtype == a.dtype
