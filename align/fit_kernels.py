@@ -206,17 +206,74 @@ def window_sweep_projected(points: np.ndarray, axes: np.ndarray, length: float
     xs, left, right = np.empty(n), np.empty(n), np.empty(n)
     sorted_once = False
     for c in range(k):
-        # the roll's coordinates and their extent in one pass
-        lo, hi = np.inf, -np.inf
-        for j in range(n):
-            v = _project(points, axes, c, j)
-            row[j] = v
-            lo, hi = min(lo, v), max(hi, v)
-        best, mid, whole = _column_fit(row, lo, hi, length, order, xs, left, right,
-                                       sorted_once)
+        best, mid, whole = _projected_column(points, axes, c, length, row, order, xs, left,
+                                             right, sorted_once)
         count[c], shift[c] = best, mid
         sorted_once = sorted_once or whole
     return count, shift
+
+
+@njit(cache=True)
+def _projected_column(points: np.ndarray, axes: np.ndarray, c: int, length: float,
+                      row: np.ndarray, order: np.ndarray, xs: np.ndarray, left: np.ndarray,
+                      right: np.ndarray, sorted_once: bool) -> tuple[int, float, bool]:
+    """`window_sweep_projected`'s column ``c``: the roll's coordinates and their extent in one
+    pass, then `_column_fit` (the scratch arrays and the sort state as it takes them)."""
+    n = points.shape[0]
+    lo, hi = np.inf, -np.inf
+    for j in range(n):
+        v = _project(points, axes, c, j)
+        row[j] = v
+        lo, hi = min(lo, v), max(hi, v)
+    return _column_fit(row, lo, hi, length, order, xs, left, right, sorted_once)
+
+
+@njit(cache=True)
+def window_sweep_pair(points: np.ndarray, axes_a: np.ndarray, axes_b: np.ndarray,
+                      len_a: float, len_b: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`window_sweep_projected` along both of a rectangle's axes at K rolls (``axes_a``,
+    ``axes_b`` (K, 3), windows ``len_a``, ``len_b``), for `align.roll_search._left_out`: the
+    counts and shifts along the first axis at every roll, and along the second only where
+    the roll can leave out within one of the fewest points, 2n - count_a - count_b, of any
+    roll: a window holds at most n, so a roll leaves out at least n - count_a, and one that
+    leaves out more than one beyond the fewest found so far is not counted along the second
+    axis (its count there -1). The first counted is the roll with the most along the first
+    axis, then the rest in order (the sorts of consecutive rolls start from the last one's
+    order). Returns the counts and shifts along each axis and whether each roll was counted
+    along the second. Counted rolls get the same numbers as `window_sweep_projected` gives
+    them; the least points left out, and every roll within one of it, are among them."""
+    n, k = points.shape[0], axes_a.shape[0]
+    ca, ta = window_sweep_projected(points, axes_a, len_a)
+    counted = np.ones(k, dtype=np.bool_)
+    if n == 0 or k == 0:
+        cb, tb = window_sweep_projected(points, axes_b, len_b)
+        return ca, ta, cb, tb, counted
+    cb = np.full(k, -1, dtype=np.int64)
+    tb = np.zeros(k)
+    row = np.empty(n)
+    order = np.empty(n, dtype=np.int64)
+    xs, left, right = np.empty(n), np.empty(n), np.empty(n)
+    first = 0
+    for c in range(1, k):
+        if ca[c] > ca[first]:
+            first = c
+    best, mid, sorted_once = _projected_column(points, axes_b, first, len_b, row, order, xs,
+                                               left, right, False)
+    cb[first], tb[first] = best, mid
+    least = 2 * n - ca[first] - best
+    for c in range(k):
+        if c == first:
+            continue
+        if n - ca[c] > least + 1:
+            counted[c] = False  # leaves out more than one beyond the fewest found
+            continue
+        best, mid, whole = _projected_column(points, axes_b, c, len_b, row, order, xs, left,
+                                             right, sorted_once)
+        cb[c], tb[c] = best, mid
+        sorted_once = sorted_once or whole
+        least = min(least, 2 * n - ca[c] - best)
+    return ca, ta, cb, tb, counted
 
 
 @njit(cache=True)
