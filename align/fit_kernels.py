@@ -1163,6 +1163,25 @@ def window_pool(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarray,
 
 
 @njit(cache=True)
+def _wrapped(v: float, two_pi: float) -> float:
+    """v % two_pi as Python and numpy take it (fmod, then the divisor added to a negative
+    remainder; a zero's sign aside, which the callers' - pi that follows removes, as it did
+    for the fast path they had), without the slow floating-point remainder where the result
+    is known: v itself
+    on [0, 2 pi); v - 2 pi on [2 pi, 4 pi) (fmod's exact remainder, the difference exact by
+    Sterbenz's lemma); v + 2 pi on (-2 pi, 0) (fmod gives v, to which 2 pi is added). A scan's
+    azimuths relative to a board's centre fall in one of these: the remainder took most of
+    `window_firings`' time where half the scan lay past 2 pi."""
+    if 0.0 <= v < two_pi:
+        return v
+    if two_pi <= v < two_pi + two_pi:
+        return v - two_pi
+    if -two_pi < v < 0.0:
+        return v + two_pi
+    return v % two_pi
+
+
+@njit(cache=True)
 def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarray,
                    centre: float, lo: float, hi: float, ring_lo: int, ring_hi: int
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -1178,9 +1197,7 @@ def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.
         ring = ring_of_laser[laser_id[i]]
         if ring < ring_lo or ring > ring_hi:
             continue
-        v = azimuth[i] - centre + np.pi
-        # v % 2 pi is v itself on [0, 2 pi): the slow floating-point remainder only outside
-        r = (v if 0.0 <= v < two_pi else v % two_pi) - np.pi
+        r = _wrapped(azimuth[i] - centre + np.pi, two_pi) - np.pi
         if r >= lo and r <= hi:
             idx[k] = i
             rel[k] = r
