@@ -1039,6 +1039,52 @@ def pool_rows(keep: np.ndarray, origin: np.ndarray, direction: np.ndarray,
 
 
 @njit(cache=True)
+def edge_labels(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
+                intensity: np.ndarray, ext: np.ndarray, hit: int, miss: int, w2: float,
+                h2: float, margin: float, partial_ratio: float, per_full: np.ndarray,
+                per_part: np.ndarray) -> np.ndarray:
+    """`align.rays._ray_points`' labels in one pass: the hits not well outside the rectangle
+    and the misses not well inside it (``margin``, m; at the rays' board coordinates ``x``,
+    ``z``), and each ray's side-face allowance ``ext`` (M, 4) widened in place by its
+    tolerance across the left, right, bottom and top edge at its range ``lam``, outwards for
+    a hit, inwards for a miss: ``per_part`` (across the sides, across the top and bottom;
+    `Hints.partial_edge_tolerance`) for a partial hit, dimmer than ``partial_ratio`` of the
+    median ``intensity`` of the hits well inside (`_partial_hits`; none with an empty
+    ``intensity`` or no such hits), ``per_full`` for the others. The numpy version's floats
+    (np.median's middle value, or the mean of the middle two; the same sums and products)."""
+    n = x.shape[0]
+    inner = np.empty(n, dtype=np.bool_)
+    use = np.empty(n, dtype=np.bool_)
+    n_ref = 0
+    for i in range(n):
+        inner[i] = abs(x[i]) < w2 - margin and abs(z[i]) < h2 - margin
+        outer = abs(x[i]) > w2 + margin or abs(z[i]) > h2 + margin
+        use[i] = (lab[i] == hit and not outer) or (lab[i] == miss and not inner[i])
+        n_ref += lab[i] == hit and inner[i]
+    limit = -np.inf  # a partial hit is dimmer than this: none without a reference
+    if intensity.shape[0] == n and n_ref > 0:
+        ref = np.empty(n_ref)
+        t = 0
+        for i in range(n):
+            if lab[i] == hit and inner[i]:
+                ref[t] = intensity[i]
+                t += 1
+        half = n_ref // 2
+        upper = _kth_smallest(ref.copy(), half)
+        median = upper if n_ref % 2 else (_kth_smallest(ref, half - 1) + upper) / 2.0
+        limit = partial_ratio * median
+    for i in range(n):
+        part = intensity.shape[0] == n and lab[i] == hit and intensity[i] < limit
+        px, pz = (per_part[0], per_part[1]) if part else (per_full[0], per_full[1])
+        f = lam[i] * (1.0 if lab[i] == hit else -1.0)
+        ext[i, 0] += f * px
+        ext[i, 1] += f * px
+        ext[i, 2] += f * pz
+        ext[i, 3] += f * pz
+    return use
+
+
+@njit(cache=True)
 def laser_ends(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
                ext: np.ndarray, hit_label: int, reach_x: float, reach_z: float
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,

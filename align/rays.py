@@ -49,6 +49,7 @@ from align.fit_kernels import (
     classify_edges,
     column_brackets,
     contradicted,
+    edge_labels,
     hit_runs,
     laser_brackets,
     laser_ends,
@@ -740,33 +741,35 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     ``partial`` (`Hints.partial_edge_tolerance`, `_partial_hits`). Also returns the rays'
     indices in the model's."""
     rays, board = model.rays, model.board
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    x, z, lam = model.coords(theta)  # board_coordinates' floats (the fit's pose: often kept)
     lab = model.lab
-    w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
-    inner = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
-    outer = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
-    use = ((lab == 1) & ~outer) | ((lab == 0) & ~inner)
     u = rays.direction
     ext = _side_faces(u, theta, board)
     # the tolerance across each edge as the beam's footprint allows it: the support of the
     # ellipse with half-axes (side, top/bottom tolerance) along the LiDAR's horizontal and up
-    # directions, in the edge's normal direction (a level board: the tolerances as given)
+    # directions, in the edge's normal direction (a level board: the tolerances as given);
+    # for partial hits (`_partial_hits`) the partial tolerance, but a sharp beam (a
+    # tolerance of 0) has no partial returns: a dim hit there is a dark patch of the board,
+    # on it
     vx, vz = lidar_up(theta)
-    t_h, t_v = np.full(len(lab), tolerance[0]), np.full(len(lab), tolerance[1])
-    if intensity is not None:
-        part = _partial_hits(lab, intensity, inner)
-        # a sharp beam (a tolerance of 0) has no partial returns: a dim hit there is a dark
-        # patch of the board, on it
-        t_h[part] = max(tolerance[0], partial[0]) if tolerance[0] > 0 else 0.0
-        t_v[part] = max(tolerance[1], partial[1]) if tolerance[1] > 0 else 0.0
-    per_x, per_z = np.hypot(t_h * vz, t_v * vx), np.hypot(t_h * vx, t_v * vz)
-    per_edge = np.column_stack((per_x, per_x, per_z, per_z))  # left, right, bottom, top
-    ext += (lam * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
+    t_part = (max(tolerance[0], partial[0]) if tolerance[0] > 0 else 0.0,
+              max(tolerance[1], partial[1]) if tolerance[1] > 0 else 0.0)
+    per = [np.array([np.hypot(np.float64(t_h) * vz, np.float64(t_v) * vx),
+                     np.hypot(np.float64(t_h) * vx, np.float64(t_v) * vz)])
+           for t_h, t_v in (tolerance, t_part)]  # (across the sides, the top and bottom)
+    # the labels kept (misses well inside and hits well outside left out) and the widened
+    # allowances, compiled (`align.fit_kernels.edge_labels`; a dozen numpy passes)
+    w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
+    use = edge_labels(x, z, lam, lab, _NO_INTENSITY if intensity is None else intensity, ext,
+                      HIT, MISS, w2, h2, margin, PARTIAL_INTENSITY, per[0], per[1])
     use &= ~_overhanging(x, z, lab, rays.laser, ext, board)
     odds = _clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r)
     return (LabelledRays(rays.origin[use], u[use], lab[use], ext[use],
                          odds * (lab[use] == HIT)), np.flatnonzero(use))
 
+
+#: `_ray_points` without intensities (`edge_labels`' argument, of the intensities' type).
+_NO_INTENSITY = np.empty(0, dtype=np.uint8)
 
 #: The chance that a ray passing just beyond the board's edge meets something within the hit
 #: band (`FRONT_SIGMAS`) of its plane: a holder, a clamp, a box close behind the board. Rare:
@@ -967,7 +970,7 @@ def _partial_hits(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray) -> 
     range, along the beam's centre, when the board's part of the spot outshines a dark or far
     background, so its centre may lie up to half the beam's width outside the edge; a return
     of the whole spot is as bright as the board's inner ones. None partial without inner hits
-    to compare with."""
+    to compare with. (The definition: `_ray_points` takes them in `edge_labels`' pass.)"""
     ref = intensity[(lab == HIT) & inner]
     if len(ref) == 0:
         return np.zeros(len(lab), dtype=bool)

@@ -1132,3 +1132,62 @@ def test_the_warm_up_compiles_the_fits_and_the_posteriors_kernels():
     missing = [f"{mod.__name__}.{name}" for mod, names in called.items() for name in names
                if not getattr(mod, name).signatures]
     assert missing == []
+
+
+def ray_points_reference(model, theta, tolerance, intensity=None, partial=(0.0, 0.0)):
+    """`rays._ray_points` as numpy calls (before `edge_labels`)."""
+    rays, board = model.rays, model.board
+    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    lab = model.lab
+    w2, h2, margin = board.width / 2, board.height / 2, rays_mod.feasible.OUTLIER_MARGIN
+    inner = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
+    outer = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
+    use = ((lab == 1) & ~outer) | ((lab == 0) & ~inner)
+    u = rays.direction
+    ext = rays_mod._side_faces(u, theta, board)
+    vx, vz = lidar_up(theta)
+    t_h, t_v = np.full(len(lab), tolerance[0]), np.full(len(lab), tolerance[1])
+    if intensity is not None:
+        part = rays_mod._partial_hits(lab, intensity, inner)
+        t_h[part] = max(tolerance[0], partial[0]) if tolerance[0] > 0 else 0.0
+        t_v[part] = max(tolerance[1], partial[1]) if tolerance[1] > 0 else 0.0
+    per_x, per_z = np.hypot(t_h * vz, t_v * vx), np.hypot(t_h * vx, t_v * vz)
+    per_edge = np.column_stack((per_x, per_x, per_z, per_z))
+    ext += (lam * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
+    use &= ~rays_mod._overhanging(x, z, lab, rays.laser, ext, board)
+    odds = rays_mod._clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r)
+    return (rays_mod.LabelledRays(rays.origin[use], u[use], lab[use], ext[use],
+                                  odds * (lab[use] == rays_mod.HIT)), np.flatnonzero(use))
+
+
+def test_ray_points_match_numpy_on_real_scans(models):
+    """`rays._ray_points` (its labels and allowances compiled: `edge_labels`) against the
+    numpy version, bit for bit: sharp and divergent tolerances, partial tolerances, random
+    intensities (dim hits, an even and an odd number of reference hits: np.median's mean of
+    the middle two) and none, at the fit's pose and off it."""
+    rng = np.random.default_rng(37)
+    partials, parities = 0, set()
+    for model, theta in models:
+        n = len(model.lab)
+        for k in range(8):
+            t = theta + (rng.normal(size=6) * [5e-3, 2e-3, 5e-3, 5e-3, 2e-3, 2e-3] if k else 0)
+            tolerance = ((0.0, 0.0), (8e-5, 5e-4), (0.0, 5e-4), (3e-4, 0.0))[k % 4]
+            partial = (1e-3, 1.5e-3) if k % 3 else (0.0, 0.0)
+            intensity = None if k == 5 else rng.integers(0, 256 if k % 2 else 60, n).astype(
+                np.uint8)
+            if intensity is not None and k == 6:  # an odd number of reference hits
+                intensity[:] = 40
+            got = rays_mod._ray_points(model, t, tolerance, intensity, partial)
+            want = ray_points_reference(model, t, tolerance, intensity, partial)
+            for a, b in zip((got[0].origin, got[0].direction, got[0].label, got[0].ext,
+                             got[0].odds, got[1]),
+                            (want[0].origin, want[0].direction, want[0].label, want[0].ext,
+                             want[0].odds, want[1]), strict=True):
+                np.testing.assert_array_equal(a, b)
+            if intensity is not None:
+                x, z, _ = board_coordinates(t, model.rays.origin, model.rays.direction)
+                inner = (np.abs(x) < model.board.width / 2 - 0.03) & (
+                    np.abs(z) < model.board.height / 2 - 0.03)
+                partials += int(np.any(rays_mod._partial_hits(model.lab, intensity, inner)))
+                parities.add(int(np.count_nonzero((model.lab == rays_mod.HIT) & inner)) % 2)
+    assert partials > 10 and parities == {0, 1}
