@@ -1085,6 +1085,51 @@ def edge_labels(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
 
 
 @njit(cache=True)
+def range_labels(distance: np.ndarray, lam: np.ndarray, near: float, tolerance: float,
+                 hit: int, unknown: int) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._labels`' first labels by range, in one pass: each ray's residual
+    distance - lam and its label (int8): ``hit`` for a return within ``near`` of the plane,
+    ``unknown`` for one farther in front or behind it but within ``tolerance``, 0 (a miss)
+    otherwise; the numpy version's comparisons of the same floats."""
+    n = distance.shape[0]
+    lab = np.zeros(n, dtype=np.int8)
+    res = np.empty(n)
+    for i in range(n):
+        r = distance[i] - lam[i]
+        res[i] = r
+        if distance[i] > 0:
+            if abs(r) <= near:
+                lab[i] = hit
+            elif r < -near or (r > near and r <= tolerance):
+                lab[i] = unknown
+    return lab, res
+
+
+@njit(cache=True)
+def bright_limit(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray, hit: int,
+                 ratio: float, least: int, quantile: float) -> tuple[float, bool]:
+    """`align.rays._bright_ends`' threshold: ``ratio`` times the ``quantile`` of the inner
+    hits' ``intensity`` (np.partition's value at int(quantile (n - 1))), and whether any hit
+    is brighter; inf and False with fewer than ``least`` inner hits."""
+    n = 0
+    for i in range(lab.shape[0]):
+        n += lab[i] == hit and inner[i]
+    if n < least:
+        return np.inf, False
+    ref = np.empty(n)
+    t = 0
+    for i in range(lab.shape[0]):
+        if lab[i] == hit and inner[i]:
+            ref[t] = intensity[i]
+            t += 1
+    limit = ratio * _kth_smallest(ref, int(quantile * (n - 1)))
+    for i in range(lab.shape[0]):
+        if lab[i] == hit and intensity[i] > limit:
+            return limit, True
+    return limit, False
+
+
+@njit(cache=True)
 def laser_ends(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
                ext: np.ndarray, hit_label: int, reach_x: float, reach_z: float
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,

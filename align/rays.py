@@ -46,6 +46,7 @@ from align.fit_kernels import (
     behind_groups,
     between_hits,
     board_spans,
+    bright_limit,
     classify_edges,
     column_brackets,
     contradicted,
@@ -58,6 +59,7 @@ from align.fit_kernels import (
     pool_rows,
     profile_best,
     profile_cost,
+    range_labels,
     range_rays,
     ray_products,
     shifted_coords,
@@ -255,14 +257,18 @@ def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     out. A board that returns everywhere keeps them as misses (they bound it where nothing
     stands behind it).
     """
-    lab = np.zeros(len(lam), dtype=np.int8)
+    return _labels_ordered(rays, lam, sigma_r)[0]
+
+
+def _labels_ordered(rays: _Rays, lam: np.ndarray, sigma_r: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """`_labels`, and the rays' order by scan, laser and azimuth it sorted them in."""
+    # a hit within the hit band of the plane; in front: something before the board; just
+    # behind (beyond the noise, within the label tolerance): the board's noise or a thing
+    # close behind it (a stand's clamp): unknown. Compiled (`align.fit_kernels.range_labels`)
+    lab, res = range_labels(rays.distance, lam, _hit_band(sigma_r), LABEL_TOLERANCE, HIT,
+                            UNKNOWN)
     ret = rays.distance > 0
-    res = rays.distance - lam
-    near = _hit_band(sigma_r)
-    lab[ret & (np.abs(res) <= near)] = HIT
-    # in front: something before the board; just behind (beyond the noise, within the label
-    # tolerance): the board's noise or a thing close behind it (a stand's clamp): unknown
-    lab[ret & ((res < -near) | ((res > near) & (res <= LABEL_TOLERANCE)))] = UNKNOWN
     # one sort for both: the rays by scan, laser and azimuth (the hits' order is its subset)
     order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
     lab[_behind_ends(rays, lab, res, sigma_r, order)] = UNKNOWN
@@ -270,7 +276,7 @@ def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     hits = int(np.count_nonzero(lab == HIT))
     if np.count_nonzero(inner) >= max(MIN_DROPOUTS, DROPOUT_FRACTION * hits):
         lab[~ret] = DROPOUT
-    return lab
+    return lab, order
 
 
 #: A laser's outermost hits are something just behind the board beside its edge (a holder, a
@@ -392,14 +398,14 @@ def _bright_ends(rays: _Rays, lab: np.ndarray, intensity: np.ndarray, inner: np.
     end inwards while they are: a mask over the rays. ``order``: the rays by scan, laser and
     azimuth. A patterned board's bright squares are among its inner hits, so they pass."""
     out = np.zeros(len(lab), dtype=bool)
-    ref = intensity[(lab == HIT) & inner]
-    if len(ref) < BRIGHT_REFERENCE:
+    # the threshold and whether any hit passes it, compiled (`align.fit_kernels.
+    # bright_limit`: np.partition's 99th percentile); the ends only where one does
+    limit, any_odd = bright_limit(lab, intensity, inner, HIT, BRIGHT_RATIO, BRIGHT_REFERENCE,
+                                  0.99)
+    if not any_odd:
         return out
     hits = order[lab[order] == HIT]
-    k = int(0.99 * (len(ref) - 1))
-    odd = intensity[hits] > BRIGHT_RATIO * float(np.partition(ref, k)[k])
-    if not np.any(odd):
-        return out
+    odd = intensity[hits] > limit
     key = rays.scan[hits].astype(np.int64) * 256 + rays.laser[hits]
     bounds = np.flatnonzero(np.diff(np.concatenate(([-1], key, [-1]))))
     for a, b in itertools.pairwise(bounds):
@@ -1082,8 +1088,7 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     """
     rays, coords, spacing = _candidates_at(scans, segs, theta, board)
     expected = coords[2] + offset[0]  # the range expected, offset included
-    lab = _labels(rays, expected, sigma_r)
-    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    lab, order = _labels_ordered(rays, expected, sigma_r)  # order: by scan, laser, azimuth
     # things just behind the board beside its edges, within the range noise of its plane: a
     # few cm of hits on a ring that passes the board, and rings lengthened past a side edge.
     # Left out before the brackets are drawn (a rectangle turned to reach them, as a fit from

@@ -1191,3 +1191,78 @@ def test_ray_points_match_numpy_on_real_scans(models):
                 partials += int(np.any(rays_mod._partial_hits(model.lab, intensity, inner)))
                 parities.add(int(np.count_nonzero((model.lab == rays_mod.HIT) & inner)) % 2)
     assert partials > 10 and parities == {0, 1}
+
+
+def labels_reference(rays, lam, sigma_r):
+    """`rays._labels` as numpy calls (before `range_labels`)."""
+    lab = np.zeros(len(lam), dtype=np.int8)
+    ret = rays.distance > 0
+    res = rays.distance - lam
+    near = rays_mod._hit_band(sigma_r)
+    lab[ret & (np.abs(res) <= near)] = rays_mod.HIT
+    lab[ret & ((res < -near) | ((res > near) & (res <= rays_mod.LABEL_TOLERANCE)))] = \
+        rays_mod.UNKNOWN
+    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    lab[rays_mod._behind_ends(rays, lab, res, sigma_r, order)] = rays_mod.UNKNOWN
+    inner = rays_mod._between_hits(rays, lab, order) & ~ret
+    hits = int(np.count_nonzero(lab == rays_mod.HIT))
+    if np.count_nonzero(inner) >= max(rays_mod.MIN_DROPOUTS, rays_mod.DROPOUT_FRACTION * hits):
+        lab[~ret] = rays_mod.DROPOUT
+    return lab
+
+
+def bright_ends_reference(rays, lab, intensity, inner, order):
+    """`rays._bright_ends` as numpy calls (before `bright_limit`)."""
+    import itertools
+
+    out = np.zeros(len(lab), dtype=bool)
+    ref = intensity[(lab == rays_mod.HIT) & inner]
+    if len(ref) < rays_mod.BRIGHT_REFERENCE:
+        return out
+    hits = order[lab[order] == rays_mod.HIT]
+    k = int(0.99 * (len(ref) - 1))
+    odd = intensity[hits] > rays_mod.BRIGHT_RATIO * float(np.partition(ref, k)[k])
+    if not np.any(odd):
+        return out
+    key = rays.scan[hits].astype(np.int64) * 256 + rays.laser[hits]
+    bounds = np.flatnonzero(np.diff(np.concatenate(([-1], key, [-1]))))
+    for a, b in itertools.pairwise(bounds):
+        if not (odd[a] or odd[b - 1]):
+            continue
+        i = a
+        while i < b and odd[i]:
+            i += 1
+        j = b
+        while j > i and odd[j - 1]:
+            j -= 1
+        out[hits[a:i]] = True
+        out[hits[j:b]] = True
+    return out
+
+
+def test_labels_and_bright_ends_match_numpy_on_real_scans(models):
+    """`rays._labels` (`range_labels`) and `rays._bright_ends` (`bright_limit`) against the
+    numpy versions: ranges off the plane by up to the label tolerance and more, several range
+    sigmas, intensities with bright holders at the ends of the rings and without."""
+    rng = np.random.default_rng(41)
+    bright = 0
+    for model, theta in models:
+        rays = model.rays
+        _, _, lam = board_coordinates(theta, rays.origin, rays.direction)
+        for k in range(6):
+            lam_k = lam + rng.normal(size=len(lam)) * (0.02 if k % 2 else 0.002)
+            sigma_r = (0.003, 0.014, 0.03)[k % 3]
+            lab = rays_mod._labels(rays, lam_k, sigma_r)
+            np.testing.assert_array_equal(lab, labels_reference(rays, lam_k, sigma_r))
+            order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+            intensity = rng.integers(20, 60, len(lab)).astype(np.uint8)
+            if k % 2:  # a bright holder at a ring's ends, and a few bright returns
+                hits = order[lab[order] == rays_mod.HIT]
+                intensity[hits[:2]] = intensity[hits[-1]] = 250
+                intensity[rng.random(len(lab)) < 0.004] = 250
+            inner = rng.random(len(lab)) < 0.7
+            got = rays_mod._bright_ends(rays, lab, intensity, inner, order)
+            np.testing.assert_array_equal(got, bright_ends_reference(rays, lab, intensity,
+                                                                     inner, order))
+            bright += int(np.any(got))
+    assert bright > 0
