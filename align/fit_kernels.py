@@ -297,6 +297,11 @@ def _inside(c: float, v: float, half: float) -> tuple[float, float]:
     return min(a, b), max(a, b)
 
 
+#: `_count_inside`'s margin for the rays it counts without their intervals, m: far beyond the
+#: rounding of a division (1e-16 relative) for any shift or ray within metres.
+COUNT_SLACK = 1e-9
+
+
 @njit(cache=True)
 def _count_inside(x: np.ndarray, z: np.ndarray, idx: np.ndarray, ds: np.ndarray, vx: float,
                   vz: float, half_x: float, half_z: float, sign: int, counts: np.ndarray
@@ -309,7 +314,20 @@ def _count_inside(x: np.ndarray, z: np.ndarray, idx: np.ndarray, ds: np.ndarray,
     if n == 0:
         return
     first, last = ds[0], ds[n - 1]
+    # how far any shift moves a ray along each axis: a ray inside (outside) the rectangle by
+    # more than that, with `COUNT_SLACK` for the divisions' rounding, is inside at every shift
+    # (at none): the intervals _inside would give begin before and end after every shift (or
+    # leave them all out), so the same counts without them
+    reach = max(abs(first), abs(last))
+    mx, mz = abs(vx) * reach + COUNT_SLACK, abs(vz) * reach + COUNT_SLACK
     for r in idx:
+        ax, az = abs(x[r]), abs(z[r])
+        if ax + mx < half_x and az + mz < half_z:
+            diff[0] += 1
+            diff[n] -= 1
+            continue
+        if ax - mx > half_x or az - mz > half_z:
+            continue
         lo1, hi1 = _inside(x[r], vx, half_x)
         lo2, hi2 = _inside(z[r], vz, half_z)
         lo, hi = max(lo1, lo2), min(hi1, hi2)
