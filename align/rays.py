@@ -1263,11 +1263,13 @@ def _range_plane(r: np.ndarray, o: np.ndarray, u: np.ndarray, ring: np.ndarray,
 INSIDE_MARGIN = 0.005
 
 
-def _inside_returns(rays: _Rays, theta: np.ndarray, offset: float, board: BoardSpec
-                    ) -> np.ndarray:
+def _inside_returns(rays: _Rays, theta: np.ndarray, offset: float, board: BoardSpec,
+                    coords: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
     """Which ``rays`` return from the plane of ``theta`` (within `LABEL_TOLERANCE` of it, the
-    range ``offset`` removed) inside its rectangle by `INSIDE_MARGIN`."""
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    range ``offset`` removed) inside its rectangle by `INSIDE_MARGIN`. ``coords``: the rays'
+    board coordinates at ``theta`` if the caller has them."""
+    x, z, lam = (board_coordinates(theta, rays.origin, rays.direction) if coords is None
+                 else coords)
     return ((rays.distance > 0) & (np.abs(rays.distance - offset - lam) < LABEL_TOLERANCE)
             & (np.abs(x) < board.width / 2 - INSIDE_MARGIN)
             & (np.abs(z) < board.height / 2 - INSIDE_MARGIN))
@@ -1367,7 +1369,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # a holder a few cm behind the board beside an edge, within the band on the board's rings,
     # is in the cluster and leans the plane. (A rectangle that holds less than half the
     # cluster's returns is not the board's: the checks below say so, on the first plane)
-    held = _inside_returns(model.rays, theta, model.offset, board)
+    held = _inside_returns(model.rays, theta, model.offset, board, model.coords(theta))
     if np.count_nonzero(held) >= 0.5 * np.count_nonzero(keep):
         rays_ = model.rays
         r_all, o_all, u_all = rays_.distance[held], rays_.origin[held], rays_.direction[held]
