@@ -1148,6 +1148,38 @@ def bright_limit(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray, hit:
 
 
 @njit(cache=True)
+def seen_counts(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
+                distance: np.ndarray, offset: float, front: float, w2: float, h2: float,
+                window: float, deep: float, hit: int, miss: int, dropout: int
+                ) -> tuple[np.ndarray, int, int, int, int, int]:
+    """`align.rays.estimate_rays`' account of what was seen, in one pass over the rays at the
+    estimate (board coordinates ``x``, ``z``, ranges to the plane ``lam``): whether a miss lies
+    beyond each edge (left, right, bottom, top) within ``window`` alongside it (`_edges_seen`),
+    and the rays inside the rectangle, those of them whose return lies in front of the plane
+    by more than ``front`` (the range ``offset`` removed), the dropouts inside, the misses
+    inside by ``deep`` and the hits outside by ``deep``: the numpy version's comparisons."""
+    seen = np.zeros(4, dtype=np.bool_)
+    inside = occluded = dropouts = inside_miss = outside_hits = 0
+    for i in range(x.shape[0]):
+        xi, zi, li = x[i], z[i], lab[i]
+        if li == miss:
+            if abs(zi) <= h2:
+                seen[0] |= -xi > w2 and -xi < w2 + window
+                seen[1] |= xi > w2 and xi < w2 + window
+            if abs(xi) <= w2:
+                seen[2] |= -zi > h2 and -zi < h2 + window
+                seen[3] |= zi > h2 and zi < h2 + window
+        if abs(xi) < w2 and abs(zi) < h2:
+            inside += 1
+            occluded += distance[i] > 0 and distance[i] - offset - lam[i] < -front
+            dropouts += li == dropout
+            inside_miss += abs(xi) < w2 - deep and abs(zi) < h2 - deep and li == miss
+        if li == hit and (abs(xi) > w2 + deep or abs(zi) > h2 + deep):
+            outside_hits += 1
+    return seen, inside, occluded, dropouts, inside_miss, outside_hits
+
+
+@njit(cache=True)
 def laser_ends(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
                ext: np.ndarray, hit_label: int, reach_x: float, reach_z: float
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,

@@ -62,6 +62,7 @@ from align.fit_kernels import (
     range_labels,
     range_rays,
     ray_products,
+    seen_counts,
     shifted_coords,
     side_ends,
     side_faces,
@@ -1466,14 +1467,13 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     n_top = int(np.sum((k == 2) & (sgn > 0)))
     n_bottom = int(np.sum((k == 2) & (sgn < 0)))
     w2, h2 = board.width / 2, board.height / 2
-    seen = _edges_seen(x, z, lab, board)
-    inside = (np.abs(x) < w2) & (np.abs(z) < h2)
-    # blocked: a return in front of the board where the board is (not a stray left out)
-    front = _hit_band(sigma_r)
-    occluded = int(np.sum(inside & (rays.distance > 0) & (rays.distance - b - lam < -front)))
-    dropouts = int(np.sum(inside & (lab == DROPOUT)))
-    inside_miss = int(np.sum(inside & (np.abs(x) < w2 - 0.02) & (np.abs(z) < h2 - 0.02) &
-                             (lab == MISS)))
+    # every edge seen (`_edges_seen`), the rays inside the rectangle, those blocked (a return
+    # in front of the board where the board is: not a stray left out), the dropouts and misses
+    # inside and the hits outside: one compiled pass (`align.fit_kernels.seen_counts`)
+    seen, n_inside, occluded, dropouts, inside_miss, outside_hits = seen_counts(
+        x, z, lam, lab, rays.distance, float(b), _hit_band(sigma_r), w2, h2, WINDOW, 0.02,
+        HIT, MISS, DROPOUT)
+    seen = tuple(bool(v) for v in seen)
     diag = {
         "rings": len(rings_hit), "rays": len(lab), "hits": int(hit.sum()),
         "range_residuals": int(model.use_range.sum()), "brackets": int(np.sum(k > 0)),
@@ -1485,11 +1485,9 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         "range_sigma_m": sigma_r, "iterations": iters, **offset_diag,
         "chi2_per_dof": float(np.sum(model.residuals(theta) ** 2) / max(len(j) - 6, 1)),
     }
-    outside_hits = int(np.sum((lab == HIT) & ((np.abs(x) > w2 + 0.02) |
-                                              (np.abs(z) > h2 + 0.02))))
     diag["outside_hits"] = outside_hits
     status = Status.OK
-    n_inside = max(int(np.sum(inside)), 1)
+    n_inside = max(n_inside, 1)
     n_hit = max(int(hit.sum()), 1)
     diag["edges_seen"] = "".join("lrbt"[i] for i in range(4) if seen[i])
     if (not all(seen) or int(np.sum(k > 0)) < MIN_BRACKETS

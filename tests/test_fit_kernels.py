@@ -1266,3 +1266,38 @@ def test_labels_and_bright_ends_match_numpy_on_real_scans(models):
                                                                      inner, order))
             bright += int(np.any(got))
     assert bright > 0
+
+
+def test_seen_counts_match_numpy_on_real_scans(models):
+    """`seen_counts` (the estimate's account of what was seen) against `rays._edges_seen` and
+    numpy's masks: the models' labels, with misses, dropouts and returns in front put in at
+    random, at poses off the fit's (edges unseen, rays blocked)."""
+    from align.fit_kernels import seen_counts
+
+    rng = np.random.default_rng(43)
+    for model, theta in models:
+        rays, board = model.rays, model.board
+        w2, h2 = board.width / 2, board.height / 2
+        for k in range(8):
+            t = theta + (rng.normal(size=6) * [3e-2, 1e-2, 3e-2, 3e-2, 1e-2, 1e-2] if k else 0)
+            x, z, lam = board_coordinates(t, rays.origin, rays.direction)
+            lab = model.lab.copy()
+            if k % 2:
+                lab = np.where(rng.random(len(lab)) < 0.05, rng.choice(
+                    [rays_mod.MISS, rays_mod.DROPOUT, rays_mod.HIT], len(lab)), lab).astype(
+                    lab.dtype)
+            distance = rays.distance - (0.2 if k % 3 == 0 else 0.0) * (rng.random(len(lab))
+                                                                        < 0.1)
+            b, front = 0.003 * k, 0.04
+            inside = (np.abs(x) < w2) & (np.abs(z) < h2)
+            want = (rays_mod._edges_seen(x, z, lab, board), int(np.sum(inside)),
+                    int(np.sum(inside & (distance > 0) & (distance - b - lam < -front))),
+                    int(np.sum(inside & (lab == rays_mod.DROPOUT))),
+                    int(np.sum(inside & (np.abs(x) < w2 - 0.02) & (np.abs(z) < h2 - 0.02)
+                               & (lab == rays_mod.MISS))),
+                    int(np.sum((lab == rays_mod.HIT) & ((np.abs(x) > w2 + 0.02)
+                                                        | (np.abs(z) > h2 + 0.02)))))
+            got = seen_counts(x, z, lam, lab, distance, b, front, w2, h2, rays_mod.WINDOW,
+                              0.02, rays_mod.HIT, rays_mod.MISS, rays_mod.DROPOUT)
+            assert tuple(bool(v) for v in got[0]) == want[0]
+            assert got[1:] == want[1:]
