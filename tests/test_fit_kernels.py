@@ -1125,7 +1125,8 @@ def test_the_warm_up_compiles_the_fits_and_the_posteriors_kernels():
                       "ray_products", "shifted_coords", "profile_best", "window_sweep_pair",
                       "lm_fit", "ray_plane_fit", "behind_groups", "between_hits",
                       "column_brackets", "classify_edges", "range_rays", "used_edges",
-                      "contradicted"),
+                      "contradicted", "edge_labels", "range_labels", "bright_limit",
+                      "seen_counts"),
         feasible: ("plane_posteriors",),
         kernels: ("msac_best", "in_ring_block", "lsq_plane", "fit_residuals"),
     }
