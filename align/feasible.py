@@ -122,7 +122,7 @@ def _moments_binding(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                                   _limits(ext_miss, w2, h2), r0, r2)
     return _block_moments(_rows_at(p_hit, hits), _rows_at(p_miss, misses),
                           _rows_at(ext_hit, hits), _rows_at(ext_miss, misses), r0, r2, w2,
-                          h2), hits
+                          h2, _NO_BOXES, _NO_MOMENTS)[0], hits
 
 
 @njit(cache=True)
@@ -135,20 +135,33 @@ def _rows_at(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
     return out
 
 
+#: `_block_moments` without a base set: no roll's moments taken from elsewhere.
+_NO_BOXES, _NO_MOMENTS = np.empty((0, 4)), np.empty((0, 6))
+
+
 @njit(cache=True)
 def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
-                  ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float
-                  ) -> np.ndarray:
+                   ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float,
+                   base_boxes: np.ndarray, base_out: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """`label_moments` (its arguments and result) on labels that may include ones that never
-    bind (the blocks' filter).
+    bind (the blocks' filter), and the hits' box at each roll (K, 4).
 
     The rolls go in blocks of `ROLL_BLOCK` (`_binding_hits`, `_binding_misses`): exact, the
     labels left out of a block cannot change any of its rolls' sets.
+
+    ``base_boxes``, ``base_out`` (or empty): the boxes and moments of a set of labels with the
+    same misses and these hits and more (`soft_moments`' set with every soft hit). At a roll
+    where the hits' box is the base's, float for float, the consistent set is too (the misses
+    that overlap a box and the order they cut it in depend on the box alone, and the labels a
+    filter leaves out overlap none of it), so its moments are the base's, taken as they are.
     """
     n_k = r0.shape[0]
     n_h, n_m = p_hit.shape[0], p_miss.shape[0]
     out = np.zeros((n_k, 6))
     boxes = np.empty((n_k, 4))
+    reuse = base_boxes.shape[0] == n_k
+    same = np.zeros(n_k, dtype=np.bool_)
     bx0, bx1, bz0, bz1 = np.empty(n_m), np.empty(n_m), np.empty(n_m), np.empty(n_m)
     iz0, iz1 = np.empty(n_m), np.empty(n_m)
     xs = np.empty(2 * n_m + 2)
@@ -169,6 +182,18 @@ def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
         nh = _binding_hits(q_h, lim_h, r0[kc], r2[kc], dx, dz, keep_h)
         for k in range(k_lo, k_hi):
             _hit_box(p_hit, lim_h, keep_h[:nh], r0[k], r2[k], boxes[k])
+        if reuse:
+            all_same = True
+            for k in range(k_lo, k_hi):
+                same[k] = (boxes[k, 0] == base_boxes[k, 0] and boxes[k, 1] == base_boxes[k, 1]
+                           and boxes[k, 2] == base_boxes[k, 2]
+                           and boxes[k, 3] == base_boxes[k, 3])
+                if same[k]:
+                    for c in range(6):
+                        out[k, c] = base_out[k, c]
+                all_same = all_same and same[k]
+            if all_same:
+                continue
         nm = _binding_misses(q_m, lim_m, centre, r0[k_lo:k_hi], r2[k_lo:k_hi], kc - k_lo,
                              dx, dz, boxes[k_lo:k_hi], keep_m)
         for j in range(nm):
@@ -178,6 +203,8 @@ def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
             for c in range(4):
                 g_lim[j, c] = lim_m[i, c]
         for k in range(k_lo, k_hi):
+            if same[k]:
+                continue  # the base's moments, taken above
             a0, a1, c0, c1 = boxes[k]
             if not (a1 > a0 and c1 > c0) or np.isinf(a1 - a0) or np.isinf(c1 - c0):
                 continue
@@ -211,7 +238,7 @@ def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                     break  # nothing consistent at this roll
             if a1 > a0 and c1 > c0:
                 _box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs, out[k])
-    return out
+    return out, boxes
 
 
 @njit(cache=True)
@@ -694,9 +721,13 @@ def _binding_soft(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     """The soft hits (of ``soft``, by decreasing odds) that can bind on the grid, at most
     `MAX_SOFT`: one at a time, each judged without the ones before it (a hit 6 mm past an
     edge binds nowhere while one 12 mm past it is held, and may once that one is not).
-    ``hits``: `binding_labels`' hits of every label; ``lim_m``: the misses' `_limits`."""
+    ``hits``: `binding_labels`' hits of every label; ``lim_m``: the misses' `_limits`.
+    Also returns the hits (indices) and misses that can bind without the first one chosen
+    (`binding_labels` of that set, which judged the second; empty with none chosen): the set
+    `soft_moments` weighs first without it."""
     chosen = np.empty(MAX_SOFT, dtype=np.int64)
     keep = np.ones(p_hit.shape[0], dtype=np.bool_)
+    first_h, first_m = np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     s = 0
     while s < MAX_SOFT:
         binds = np.zeros(p_hit.shape[0], dtype=np.bool_)
@@ -704,9 +735,12 @@ def _binding_soft(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
             binds[hits] = True
         else:
             rows = np.flatnonzero(keep)
-            kept, _ = binding_labels(_rows_at(p_hit, rows), p_miss,
-                                     _limits(_rows_at(ext_hit, rows), w2, h2), lim_m, r0, r2)
+            kept, kept_m = binding_labels(_rows_at(p_hit, rows), p_miss,
+                                          _limits(_rows_at(ext_hit, rows), w2, h2), lim_m,
+                                          r0, r2)
             binds[rows[kept]] = True
+            if s == 1:
+                first_h, first_m = rows[kept], kept_m
         found = -1
         for i in soft:
             if binds[i]:
@@ -717,7 +751,7 @@ def _binding_soft(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
         chosen[s] = found
         keep[found] = False
         s += 1
-    return chosen[:s]
+    return chosen[:s], first_h, first_m
 
 
 @njit(cache=True)
@@ -739,15 +773,19 @@ def soft_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     A hit taken as certain pins the posterior: one return 50 mm behind the plane (3.4 sigma)
     and 5 mm past an edge turned roll by 0.9 deg at a reported 0.13 deg; as a soft label its
     weight is that of the set without it against the set with it."""
-    out, hits = _moments_binding(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2)
+    lim_m = _limits(ext_miss, w2, h2)
+    hits, misses = binding_labels(p_hit, p_miss, _limits(ext_hit, w2, h2), lim_m, r0, r2)
+    out, boxes = _block_moments(_rows_at(p_hit, hits), _rows_at(p_miss, misses),
+                                _rows_at(ext_hit, hits), _rows_at(ext_miss, misses), r0, r2,
+                                w2, h2, _NO_BOXES, _NO_MOMENTS)
     if not np.any(out[:, 0] > 0):
         # no position holds every label: the soft hits widen a posterior, they do not make
         # one (the caller's stray rounds refit the pose without the labels it violates). A
         # box beside the board on every ring (divergent beam): the set without one soft hit
         # held a rectangle turned 1.6 deg, at a sigma of 0.06
         return out
-    chosen = _binding_soft(p_hit, p_miss, ext_hit, _limits(ext_miss, w2, h2), r0, r2, w2, h2,
-                           soft, hits)
+    chosen, first_h, first_m = _binding_soft(p_hit, p_miss, ext_hit, lim_m, r0, r2, w2, h2,
+                                             soft, hits)
     s = chosen.shape[0]
     if s == 0:
         return out
@@ -765,9 +803,20 @@ def soft_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
         if mask == 0:
             mom = out
         else:
-            rows = np.flatnonzero(keep)
-            mom = label_moments(_rows_at(p_hit, rows), p_miss, _rows_at(ext_hit, rows),
-                                ext_miss, r0, r2, w2, h2)
+            # `label_moments` of the hits kept: the labels that can bind among them (for the
+            # first soft hit off, `_binding_soft` found them already), then the blocks,
+            # each roll whose hits' box is the whole set's taking that set's moments
+            if mask == 1:
+                h_idx, m_idx = first_h, first_m
+            else:
+                rows = np.flatnonzero(keep)
+                kept, m_idx = binding_labels(_rows_at(p_hit, rows), p_miss,
+                                             _limits(_rows_at(ext_hit, rows), w2, h2), lim_m,
+                                             r0, r2)
+                h_idx = rows[kept]
+            mom = _block_moments(_rows_at(p_hit, h_idx), _rows_at(p_miss, m_idx),
+                                 _rows_at(ext_hit, h_idx), _rows_at(ext_miss, m_idx), r0, r2,
+                                 w2, h2, boxes, out)[0]
         total += w * mom
     return total
 

@@ -206,17 +206,74 @@ def window_sweep_projected(points: np.ndarray, axes: np.ndarray, length: float
     xs, left, right = np.empty(n), np.empty(n), np.empty(n)
     sorted_once = False
     for c in range(k):
-        # the roll's coordinates and their extent in one pass
-        lo, hi = np.inf, -np.inf
-        for j in range(n):
-            v = _project(points, axes, c, j)
-            row[j] = v
-            lo, hi = min(lo, v), max(hi, v)
-        best, mid, whole = _column_fit(row, lo, hi, length, order, xs, left, right,
-                                       sorted_once)
+        best, mid, whole = _projected_column(points, axes, c, length, row, order, xs, left,
+                                             right, sorted_once)
         count[c], shift[c] = best, mid
         sorted_once = sorted_once or whole
     return count, shift
+
+
+@njit(cache=True)
+def _projected_column(points: np.ndarray, axes: np.ndarray, c: int, length: float,
+                      row: np.ndarray, order: np.ndarray, xs: np.ndarray, left: np.ndarray,
+                      right: np.ndarray, sorted_once: bool) -> tuple[int, float, bool]:
+    """`window_sweep_projected`'s column ``c``: the roll's coordinates and their extent in one
+    pass, then `_column_fit` (the scratch arrays and the sort state as it takes them)."""
+    n = points.shape[0]
+    lo, hi = np.inf, -np.inf
+    for j in range(n):
+        v = _project(points, axes, c, j)
+        row[j] = v
+        lo, hi = min(lo, v), max(hi, v)
+    return _column_fit(row, lo, hi, length, order, xs, left, right, sorted_once)
+
+
+@njit(cache=True)
+def window_sweep_pair(points: np.ndarray, axes_a: np.ndarray, axes_b: np.ndarray,
+                      len_a: float, len_b: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`window_sweep_projected` along both of a rectangle's axes at K rolls (``axes_a``,
+    ``axes_b`` (K, 3), windows ``len_a``, ``len_b``), for `align.roll_search._left_out`: the
+    counts and shifts along the first axis at every roll, and along the second only where
+    the roll can leave out within one of the fewest points, 2n - count_a - count_b, of any
+    roll: a window holds at most n, so a roll leaves out at least n - count_a, and one that
+    leaves out more than one beyond the fewest found so far is not counted along the second
+    axis (its count there -1). The first counted is the roll with the most along the first
+    axis, then the rest in order (the sorts of consecutive rolls start from the last one's
+    order). Returns the counts and shifts along each axis and whether each roll was counted
+    along the second. Counted rolls get the same numbers as `window_sweep_projected` gives
+    them; the least points left out, and every roll within one of it, are among them."""
+    n, k = points.shape[0], axes_a.shape[0]
+    ca, ta = window_sweep_projected(points, axes_a, len_a)
+    counted = np.ones(k, dtype=np.bool_)
+    if n == 0 or k == 0:
+        cb, tb = window_sweep_projected(points, axes_b, len_b)
+        return ca, ta, cb, tb, counted
+    cb = np.full(k, -1, dtype=np.int64)
+    tb = np.zeros(k)
+    row = np.empty(n)
+    order = np.empty(n, dtype=np.int64)
+    xs, left, right = np.empty(n), np.empty(n), np.empty(n)
+    first = 0
+    for c in range(1, k):
+        if ca[c] > ca[first]:
+            first = c
+    best, mid, sorted_once = _projected_column(points, axes_b, first, len_b, row, order, xs,
+                                               left, right, False)
+    cb[first], tb[first] = best, mid
+    least = 2 * n - ca[first] - best
+    for c in range(k):
+        if c == first:
+            continue
+        if n - ca[c] > least + 1:
+            counted[c] = False  # leaves out more than one beyond the fewest found
+            continue
+        best, mid, whole = _projected_column(points, axes_b, c, len_b, row, order, xs, left,
+                                             right, sorted_once)
+        cb[c], tb[c] = best, mid
+        sorted_once = sorted_once or whole
+        least = min(least, 2 * n - ca[c] - best)
+    return ca, ta, cb, tb, counted
 
 
 @njit(cache=True)
@@ -240,6 +297,11 @@ def _inside(c: float, v: float, half: float) -> tuple[float, float]:
     return min(a, b), max(a, b)
 
 
+#: `_count_inside`'s margin for the rays it counts without their intervals, m: far beyond the
+#: rounding of a division (1e-16 relative) for any shift or ray within metres.
+COUNT_SLACK = 1e-9
+
+
 @njit(cache=True)
 def _count_inside(x: np.ndarray, z: np.ndarray, idx: np.ndarray, ds: np.ndarray, vx: float,
                   vz: float, half_x: float, half_z: float, sign: int, counts: np.ndarray
@@ -249,12 +311,32 @@ def _count_inside(x: np.ndarray, z: np.ndarray, idx: np.ndarray, ds: np.ndarray,
     by where it starts and ends in the sorted ``ds`` (open at both ends)."""
     n = ds.shape[0]
     diff = np.zeros(n + 1, dtype=np.int64)
+    if n == 0:
+        return
+    first, last = ds[0], ds[n - 1]
+    # how far any shift moves a ray along each axis: a ray inside (outside) the rectangle by
+    # more than that, with `COUNT_SLACK` for the divisions' rounding, is inside at every shift
+    # (at none): the intervals _inside would give begin before and end after every shift (or
+    # leave them all out), so the same counts without them
+    reach = max(abs(first), abs(last))
+    mx, mz = abs(vx) * reach + COUNT_SLACK, abs(vz) * reach + COUNT_SLACK
     for r in idx:
+        ax, az = abs(x[r]), abs(z[r])
+        if ax + mx < half_x and az + mz < half_z:
+            diff[0] += 1
+            diff[n] -= 1
+            continue
+        if ax - mx > half_x or az - mz > half_z:
+            continue
         lo1, hi1 = _inside(x[r], vx, half_x)
         lo2, hi2 = _inside(z[r], vz, half_z)
         lo, hi = max(lo1, lo2), min(hi1, hi2)
-        a = np.searchsorted(ds, lo, side="right")
-        b = max(np.searchsorted(ds, hi, side="left"), a)
+        if lo >= hi:
+            continue  # an empty interval: it starts and ends at the same place (b = a)
+        # the binary searches only where the interval ends among the shifts (most rays are
+        # inside at every shift, or outside at every one)
+        a = 0 if lo < first else np.searchsorted(ds, lo, side="right")
+        b = n if hi > last else max(np.searchsorted(ds, hi, side="left"), a)
         diff[a] += 1
         diff[b] -= 1
     run = 0
@@ -276,35 +358,97 @@ def profile_cost(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray
     ``blur_side``, ``blur_top``: the blur across the side and the top/bottom edges, m. Numpy's
     error model: a bracket along an edge divides by zero as numpy did (z_at infinite)."""
     n = ds.shape[0]
-    viol = np.zeros(n, dtype=np.int64)
+    viol = _violations(x, z, hit, miss, ds, vx, vz, w2, h2, tol)
+    out = np.empty(n)
+    for j in range(n):
+        out[j] = 1e6 * viol[j] + _bracket_cost(x, z, bh, bm, ds[j], vx, vz, w2, h2,
+                                               blur_side, blur_top)
+    return out
+
+
+@njit(cache=True)
+def _violations(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray,
+                ds: np.ndarray, vx: float, vz: float, w2: float, h2: float, tol: float
+                ) -> np.ndarray:
+    """`profile_cost`'s labels violated at each shift: hits outside the rectangle grown by
+    ``tol``, misses inside it shrunk by ``tol``."""
+    viol = np.zeros(ds.shape[0], dtype=np.int64)
     viol[:] = hit.shape[0]
     _count_inside(x, z, hit, ds, vx, vz, w2 + tol, h2 + tol, -1, viol)
     _count_inside(x, z, miss, ds, vx, vz, w2 + -tol, h2 + -tol, 1, viol)
-    cost = np.zeros(n)
+    return viol
+
+
+@njit(cache=True, error_model="numpy")
+def _bracket_cost(x: np.ndarray, z: np.ndarray, bh: np.ndarray, bm: np.ndarray, s: float,
+                  vx: float, vz: float, w2: float, h2: float, blur_side: float,
+                  blur_top: float) -> float:
+    """`profile_cost`'s squared whitened bracket residuals at the one shift ``s``, summed over
+    the brackets in their order."""
+    cost = 0.0
     for i in range(bh.shape[0]):
-        x_h, z_h, x_m, z_m = x[bh[i]], z[bh[i]], x[bm[i]], z[bm[i]]
-        for j in range(n):
-            xh, xm = x_h + ds[j] * vx, x_m + ds[j] * vx
-            zh, zm = z_h + ds[j] * vz, z_m + ds[j] * vz
-            dx, dz = xm - xh, zm - zh
-            if dx == 0 and dz == 0:
-                continue  # no edge
-            z_at = abs(zh + (_sign(dx) * w2 - xh) * dz / dx)
-            if not np.isfinite(z_at):
-                z_at = np.inf
-            if z_at <= h2:
-                width, blur = dx, blur_side
-                e = _sign(xm) * w2 - 0.5 * (xh + xm)
-            else:
-                width, blur = dz, blur_top
-                e = _sign(zm) * h2 - 0.5 * (zh + zm)
-            sd = np.sqrt(width * width / 12 + blur * blur)
-            q = e / sd
-            cost[j] += q * q
-    out = np.empty(n)
+        xh, xm = x[bh[i]] + s * vx, x[bm[i]] + s * vx
+        zh, zm = z[bh[i]] + s * vz, z[bm[i]] + s * vz
+        dx, dz = xm - xh, zm - zh
+        if dx == 0 and dz == 0:
+            continue  # no edge
+        z_at = abs(zh + (_sign(dx) * w2 - xh) * dz / dx)
+        if not np.isfinite(z_at):
+            z_at = np.inf
+        if z_at <= h2:
+            width, blur = dx, blur_side
+            e = _sign(xm) * w2 - 0.5 * (xh + xm)
+        else:
+            width, blur = dz, blur_top
+            e = _sign(zm) * h2 - 0.5 * (zh + zm)
+        sd = np.sqrt(width * width / 12 + blur * blur)
+        q = e / sd
+        cost += q * q
+    return cost
+
+
+@njit(cache=True)
+def profile_best(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray,
+                 bh: np.ndarray, bm: np.ndarray, ds: np.ndarray, vx: float, vz: float,
+                 w2: float, h2: float, tol: float, blur_side: float, blur_top: float) -> int:
+    """np.argmin of `profile_cost` (its arguments), the brackets' cost computed only at the
+    shifts that can hold the least: a shift's cost is 1e6 x its violations plus a sum of
+    squares, never below 1e6 x its violations (rounding is monotone), so once the shifts
+    with the fewest violations are costed, a shift whose violations alone exceed the least
+    cost found cannot be it. The same floats at the shifts costed, the same first minimum
+    (`align.rays._Model.shift` reads only where the minimum lies; the brackets cost ~40 x
+    121 divisions and square roots per profile, most of them at shifts with more
+    violations)."""
+    n = ds.shape[0]
+    if n == 0:
+        raise ValueError("attempt to get argmin of an empty sequence")
+    viol = _violations(x, z, hit, miss, ds, vx, vz, w2, h2, tol)
+    finite = np.isfinite(vx) and np.isfinite(vz) and np.isfinite(blur_side) and np.isfinite(
+        blur_top)
+    for i in range(bh.shape[0]):
+        finite = finite and np.isfinite(x[bh[i]]) and np.isfinite(z[bh[i]]) and np.isfinite(
+            x[bm[i]]) and np.isfinite(z[bm[i]])
     for j in range(n):
-        out[j] = 1e6 * viol[j] + cost[j]
-    return out
+        finite = finite and np.isfinite(ds[j])
+    if not finite:
+        # a cost may be nan (np.argmin's first nan): every shift costed, as np.argmin sees them
+        return int(np.argmin(profile_cost(x, z, hit, miss, bh, bm, ds, vx, vz, w2, h2, tol,
+                                          blur_side, blur_top)))
+    first = 0  # the first shift with the fewest violations: its cost bounds the least
+    for j in range(1, n):
+        if viol[j] < viol[first]:
+            first = j
+    bound = 1e6 * viol[first] + _bracket_cost(x, z, bh, bm, ds[first], vx, vz, w2, h2,
+                                              blur_side, blur_top)
+    best, where = np.inf, -1
+    for j in range(n):  # in order, every shift whose cost can still reach the least so far
+        if 1e6 * viol[j] > min(bound, best):
+            continue
+        c = bound if j == first else 1e6 * viol[j] + _bracket_cost(
+            x, z, bh, bm, ds[j], vx, vz, w2, h2, blur_side, blur_top)
+        if where < 0 or c < best:
+            best, where = c, j
+    return where
 
 
 @njit(cache=True)
@@ -361,6 +505,43 @@ def edge_brackets(order: np.ndarray, ls: np.ndarray, az: np.ndarray, lb: np.ndar
             hits[k], misses[k] = order[q], order[p]
         k += 1
     return hits[:k], misses[:k]
+
+
+@njit(cache=True)
+def laser_brackets(order: np.ndarray, laser: np.ndarray, azimuth: np.ndarray,
+                   lab: np.ndarray, dropout: int, hit: int, max_gap: float, zone: float
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._brackets` from the rays' ``order`` by laser and azimuth on: the dropouts
+    (label ``dropout``) left out, the links (same laser, less than ``max_gap`` rad apart,
+    both labelled: labels >= 0) and the transitions between them, the board's span per laser
+    (`board_spans`, hits labelled ``hit``) and the walk over the zones (`edge_brackets`): the
+    numpy version's masks, diffs and gathers in two passes, the same comparisons."""
+    n = 0
+    for i in range(order.shape[0]):
+        n += lab[order[i]] != dropout
+    kept = np.empty(n, dtype=np.int64)
+    t = 0
+    for i in range(order.shape[0]):
+        if lab[order[i]] != dropout:
+            kept[t] = order[i]
+            t += 1
+    ls, az, lb = np.empty(n, dtype=laser.dtype), np.empty(n), np.empty(n, dtype=lab.dtype)
+    is_hit = np.empty(n, dtype=np.bool_)
+    for t in range(n):
+        r = kept[t]
+        ls[t], az[t], lb[t] = laser[r], azimuth[r], lab[r]
+        is_hit[t] = lab[r] == hit
+    link = np.zeros(max(n - 1, 0), dtype=np.bool_)
+    trans = np.empty(max(n - 1, 0), dtype=np.int64)
+    nt = 0
+    for t in range(n - 1):
+        link[t] = (ls[t + 1] == ls[t] and az[t + 1] - az[t] < max_gap and lb[t + 1] >= 0
+                   and lb[t] >= 0)
+        if link[t] and lb[t + 1] != lb[t]:
+            trans[nt] = t
+            nt += 1
+    first_hit, last_hit = board_spans(ls, az, is_hit, zone)
+    return edge_brackets(kept, ls, az, lb, link, trans[:nt], first_hit, last_hit, zone)
 
 
 #: `inverse_diagonal` trusts its Cholesky inverse while the matrix's condition number is
@@ -552,6 +733,596 @@ def column_brackets(ring: np.ndarray, lab: np.ndarray, off: np.ndarray
 
 
 @njit(cache=True)
+def _gemv3(a0: float, a1: float, a2: float, x0: float, x1: float, x2: float) -> float:
+    """One row of numpy's (N, 3) @ (3,) as OpenBLAS computes it: `align.kernels._gemv3`, the
+    same expression; a copy on purpose (numba's cache checks only a kernel's own file)."""
+    return _fma(a2, x2, _fma(a0, x0, a1 * x1))
+
+
+@njit(cache=True, error_model="numpy")
+def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x: float,
+                t_y: float, t_z: float, half_w: float, half_h: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`align.rays._candidates_at`'s selection in one pass: each ray's board coordinates as
+    `align.geometry.board_coordinates` computes them at the pose with rotation ``rot`` and
+    translation (t_x, t_y, t_z) (numpy's matrix-vector products as `_gemv3`, its division
+    and sums in its order: the same floats), and the rays in front of the sensor (lam > 0)
+    within ``half_w``, ``half_h`` of the board's centre (m). Returns their indices, X, Z and
+    lam."""
+    m = origin.shape[0]
+    idx = np.empty(m, dtype=np.int64)
+    xs, zs, ls = np.empty(m), np.empty(m), np.empty(m)
+    a0, a1, a2 = rot[0, 0], rot[0, 1], rot[0, 2]
+    b0, b1, b2 = rot[1, 0], rot[1, 1], rot[1, 2]
+    c0, c1, c2 = rot[2, 0], rot[2, 1], rot[2, 2]
+    k = 0
+    for i in range(m):
+        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        u0, u1, u2 = direction[i, 0], direction[i, 1], direction[i, 2]
+        lam = -(_gemv3(o0, o1, o2, b0, b1, b2) + t_y) / _gemv3(u0, u1, u2, b0, b1, b2)
+        if not lam > 0:
+            continue
+        x = (_gemv3(o0, o1, o2, a0, a1, a2) + t_x) + lam * _gemv3(u0, u1, u2, a0, a1, a2)
+        if not abs(x) < half_w:
+            continue
+        z = (_gemv3(o0, o1, o2, c0, c1, c2) + t_z) + lam * _gemv3(u0, u1, u2, c0, c1, c2)
+        if not abs(z) < half_h:
+            continue
+        idx[k], xs[k], zs[k], ls[k] = i, x, z, lam
+        k += 1
+    return idx[:k], xs[:k], zs[:k], ls[:k]
+
+
+@njit(cache=True, error_model="numpy")
+def ray_products(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_y: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`align.rays._Model._shifted_coords`' products of the rays with the rotation's rows:
+    o.r0, lam u.r0, o.r2, lam u.r2 and lam = -(o.r1 + t_y) / u.r1, in one pass (numpy's
+    matrix-vector products as `_gemv3`, its elementwise steps in its order: the same
+    floats)."""
+    m = origin.shape[0]
+    ox, ux, oz, uz, lam = np.empty(m), np.empty(m), np.empty(m), np.empty(m), np.empty(m)
+    a0, a1, a2 = rot[0, 0], rot[0, 1], rot[0, 2]
+    b0, b1, b2 = rot[1, 0], rot[1, 1], rot[1, 2]
+    c0, c1, c2 = rot[2, 0], rot[2, 1], rot[2, 2]
+    for i in range(m):
+        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        u0, u1, u2 = direction[i, 0], direction[i, 1], direction[i, 2]
+        la = -(_gemv3(o0, o1, o2, b0, b1, b2) + t_y) / _gemv3(u0, u1, u2, b0, b1, b2)
+        lam[i] = la
+        ox[i] = _gemv3(o0, o1, o2, a0, a1, a2)
+        ux[i] = la * _gemv3(u0, u1, u2, a0, a1, a2)
+        oz[i] = _gemv3(o0, o1, o2, c0, c1, c2)
+        uz[i] = la * _gemv3(u0, u1, u2, c0, c1, c2)
+    return ox, ux, oz, uz, lam
+
+
+@njit(cache=True)
+def shifted_coords(ox: np.ndarray, ux: np.ndarray, oz: np.ndarray, uz: np.ndarray,
+                   t_x: float, t_z: float) -> tuple[np.ndarray, np.ndarray]:
+    """X = (o.r0 + t_x) + lam u.r0 and Z alike from `ray_products`' (numpy's order)."""
+    m = ox.shape[0]
+    x, z = np.empty(m), np.empty(m)
+    for i in range(m):
+        x[i] = (ox[i] + t_x) + ux[i]
+        z[i] = (oz[i] + t_z) + uz[i]
+    return x, z
+
+
+@njit(cache=True)
+def side_ends(ends: np.ndarray, w2: float, reach: float
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """`align.rays._side_lines`' ends at the side edges: of the lasers' ends (K, 4: left x, z,
+    right x, z), the left ones within ``reach`` of -``w2`` then the right ones within it of
+    ``w2``: their x, the sign that makes a residual x - line positive beyond the edge, and
+    the design (1 - side, side, z) (rows, C order), and how many are right ones; the same
+    floats as the numpy version's concatenations."""
+    k = ends.shape[0]
+    n_l = n_r = 0
+    for i in range(k):
+        n_l += ends[i, 0] < -w2 + reach
+        n_r += ends[i, 2] > w2 - reach
+    n = n_l + n_r
+    xs, sign, a = np.empty(n), np.empty(n), np.empty((n, 3))
+    t = 0
+    for side in range(2):
+        for i in range(k):
+            if side == 0 and ends[i, 0] < -w2 + reach:
+                xs[t], a[t, 2] = ends[i, 0], ends[i, 1]
+            elif side == 1 and ends[i, 2] > w2 - reach:
+                xs[t], a[t, 2] = ends[i, 2], ends[i, 3]
+            else:
+                continue
+            a[t, 0], a[t, 1] = 1.0 - side, float(side)
+            sign[t] = 2.0 * side - 1.0
+            t += 1
+    return xs, sign, a, n_r
+
+
+@njit(cache=True)
+def line_excess(xs: np.ndarray, a: np.ndarray, coef: np.ndarray, sign: np.ndarray,
+                keep: np.ndarray, tol: float, inward: float) -> tuple[int, float]:
+    """`align.rays._side_lines`' worst end for the lines ``coef``: np.argmax of the kept ends'
+    excess (beyond the lines by more than ``tol``, or inside them by more than ``inward``; 0
+    for the others and those within), with the excess. numpy's floats (a @ coef as
+    `_gemv3`, its elementwise maxima) and np.argmax's first maximum (a nan first)."""
+    worst, top = -1, 0.0
+    for i in range(xs.shape[0]):
+        beyond = (xs[i] - _gemv3(a[i, 0], a[i, 1], a[i, 2], coef[0], coef[1], coef[2])) * sign[i]
+        e = 0.0
+        if keep[i]:
+            m = beyond - tol
+            b = -beyond - inward
+            if not (m >= b or m != m):
+                m = b
+            e = m if (m >= 0.0 or m != m) else 0.0
+        if worst < 0 or (top == top and (e > top or e != e)):
+            worst, top = i, e
+    return worst, top
+
+
+@njit(cache=True)
+def _np_max0(v: float) -> float:
+    """np.maximum(0.0, v): 0 where v <= 0, else v (nan stays nan)."""
+    return 0.0 if v <= 0.0 else v
+
+
+@njit(cache=True, error_model="numpy")
+def side_faces(u: np.ndarray, rot: np.ndarray, thickness: float) -> np.ndarray:
+    """`align.rays._side_faces`: (M, 4) how far past the left, right, bottom and top edge the
+    rays with directions ``u`` (M, 3) still hit a plate of ``thickness`` (m) at the rotation
+    ``rot``, in one pass. u @ rot.T as OpenBLAS's matrix product computes it for two rows or
+    more (the `_project` order of `window_sweep_projected`; a single row numpy sends to its
+    matrix-vector kernel, whose order is `_gemv3`), then numpy's elementwise operations in
+    its order: the same floats."""
+    m = u.shape[0]
+    out = np.empty((m, 4))
+    for i in range(m):
+        u0, u1, u2 = u[i, 0], u[i, 1], u[i, 2]
+        if m == 1:
+            d0 = _gemv3(u0, u1, u2, rot[0, 0], rot[0, 1], rot[0, 2])
+            d1 = _gemv3(u0, u1, u2, rot[1, 0], rot[1, 1], rot[1, 2])
+            d2 = _gemv3(u0, u1, u2, rot[2, 0], rot[2, 1], rot[2, 2])
+        else:
+            d0 = _fma(rot[0, 2], u2, _fma(rot[0, 1], u1, rot[0, 0] * u0))
+            d1 = _fma(rot[1, 2], u2, _fma(rot[1, 1], u1, rot[1, 0] * u0))
+            d2 = _fma(rot[2, 2], u2, _fma(rot[2, 1], u1, rot[2, 0] * u0))
+        rx, rz = d0 / d1, d2 / d1
+        out[i, 0] = thickness * _np_max0(rx)
+        out[i, 1] = thickness * _np_max0(-rx)
+        out[i, 2] = thickness * _np_max0(rz)
+        out[i, 3] = thickness * _np_max0(-rz)
+    return out
+
+
+@njit(cache=True)
+def hit_runs(order: np.ndarray, lab: np.ndarray, laser: np.ndarray, scan: np.ndarray,
+             azimuth: np.ndarray, distance: np.ndarray, expected: np.ndarray, max_gap: float,
+             hit: int, miss: int, unknown: int) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._grazing_runs`' runs of hits, in one pass over the rays in ``order`` (by
+    scan, laser and azimuth): runs of consecutive hits (``lab`` ``hit``) of one laser in one
+    scan, neighbours no more than ``max_gap`` (rad) apart in azimuth, each with a neighbour
+    on both sides (not at the end of what was looked at) that is linked to it the same way
+    and is a miss or a return behind the plane (``distance`` beyond ``expected``; label
+    ``unknown``). Returns their first and last positions in ``order``: the numpy version's
+    masks and diffs, the same comparisons on the same floats."""
+    n = order.shape[0]
+    starts, ends = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+    k = 0
+    i = 0
+    while i < n:
+        if lab[order[i]] != hit:
+            i += 1
+            continue
+        a = i  # a run starts here: extend it while linked to the next hit
+        while i + 1 < n and lab[order[i + 1]] == hit and _linked(order, laser, scan, azimuth,
+                                                                 i, max_gap):
+            i += 1
+        b = i
+        i += 1
+        if a == 0 or b == n - 1:
+            continue
+        if not (_linked(order, laser, scan, azimuth, a - 1, max_gap)
+                and _linked(order, laser, scan, azimuth, b, max_gap)):
+            continue
+        if _beside(order[a - 1], lab, distance, expected, miss, unknown) and _beside(
+                order[b + 1], lab, distance, expected, miss, unknown):
+            starts[k], ends[k] = a, b
+            k += 1
+    return starts[:k], ends[:k]
+
+
+@njit(cache=True)
+def _linked(order: np.ndarray, laser: np.ndarray, scan: np.ndarray, azimuth: np.ndarray,
+            i: int, max_gap: float) -> bool:
+    """Whether the rays at positions i and i + 1 of ``order`` are neighbours along a ring:
+    the same laser, the same scan, less than ``max_gap`` apart (`_grazing_runs`' same)."""
+    p, q = order[i], order[i + 1]
+    return laser[q] == laser[p] and scan[q] == scan[p] and azimuth[q] - azimuth[p] < max_gap
+
+
+@njit(cache=True)
+def _beside(r: int, lab: np.ndarray, distance: np.ndarray, expected: np.ndarray, miss: int,
+            unknown: int) -> bool:
+    """Whether ray ``r`` ends a run of hits: a miss, or a return behind the plane."""
+    if lab[r] == miss:
+        return True
+    return lab[r] == unknown and distance[r] > 0 and distance[r] > expected[r]
+
+
+@njit(cache=True, error_model="numpy")
+def binding_rays(origin: np.ndarray, direction: np.ndarray, label: np.ndarray,
+                 rot: np.ndarray, t_x: float, t_y: float, t_z: float, w2: float, h2: float,
+                 mx: float, mz: float) -> tuple[np.ndarray, np.ndarray]:
+    """`align.label_posterior.binding` of the rays' board coordinates at the pose with
+    rotation ``rot`` and translation (t_x, t_y, t_z) (`align.geometry.board_coordinates`'
+    floats, as `window_rays` computes them), in one pass: the hits (label 1) not deeper than
+    (``mx``, ``mz``) inside the ``w2`` x ``h2`` half-rectangle and the misses (label 0) not
+    farther outside, as two index arrays in the rays' order (m)."""
+    m = origin.shape[0]
+    hits, misses = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
+    nh = nm = 0
+    a0, a1, a2 = rot[0, 0], rot[0, 1], rot[0, 2]
+    b0, b1, b2 = rot[1, 0], rot[1, 1], rot[1, 2]
+    c0, c1, c2 = rot[2, 0], rot[2, 1], rot[2, 2]
+    in_w, in_h, out_w, out_h = w2 - mx, h2 - mz, w2 + mx, h2 + mz
+    for i in range(m):
+        lab = label[i]
+        if lab != 1 and lab != 0:
+            continue
+        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        u0, u1, u2 = direction[i, 0], direction[i, 1], direction[i, 2]
+        lam = -(_gemv3(o0, o1, o2, b0, b1, b2) + t_y) / _gemv3(u0, u1, u2, b0, b1, b2)
+        x = (_gemv3(o0, o1, o2, a0, a1, a2) + t_x) + lam * _gemv3(u0, u1, u2, a0, a1, a2)
+        z = (_gemv3(o0, o1, o2, c0, c1, c2) + t_z) + lam * _gemv3(u0, u1, u2, c0, c1, c2)
+        if lab == 1:
+            if not (abs(x) < in_w and abs(z) < in_h):
+                hits[nh] = i
+                nh += 1
+        elif not (abs(x) > out_w or abs(z) > out_h):
+            misses[nm] = i
+            nm += 1
+    return hits[:nh], misses[:nm]
+
+
+@njit(cache=True)
+def _merge_runs(idx: np.ndarray, key: np.ndarray) -> None:
+    """Sort ``idx`` by ``key[idx]`` in place, stably (equal keys keep their order): a
+    natural merge sort, linear in a sequence of a few ascending runs (a ring's rays in
+    azimuth order: one run, or two where the window wraps past azimuth 0)."""
+    n = idx.shape[0]
+    bounds = np.empty(n + 1, dtype=np.int64)
+    nb = 1
+    bounds[0] = 0
+    for t in range(1, n):
+        if key[idx[t]] < key[idx[t - 1]]:
+            bounds[nb] = t
+            nb += 1
+    bounds[nb] = n
+    nb += 1
+    buf = np.empty(n, dtype=np.int64)
+    while nb > 2:  # merge neighbouring runs pairwise
+        m = 1
+        for r in range(0, nb - 1, 2):
+            lo, mid = bounds[r], bounds[r + 1]
+            hi = bounds[r + 2] if r + 2 < nb else mid
+            i, j, t = lo, mid, lo
+            while i < mid and j < hi:
+                if key[idx[j]] < key[idx[i]]:
+                    buf[t] = idx[j]
+                    j += 1
+                else:
+                    buf[t] = idx[i]
+                    i += 1
+                t += 1
+            while i < mid:
+                buf[t] = idx[i]
+                i += 1
+                t += 1
+            while j < hi:
+                buf[t] = idx[j]
+                j += 1
+                t += 1
+            for t in range(lo, hi):
+                idx[t] = buf[t]
+            bounds[m] = hi
+            m += 1
+        nb = m
+        if bounds[nb - 1] != n:
+            bounds[nb] = n
+            nb += 1
+
+
+@njit(cache=True)
+def pool_rows(keep: np.ndarray, origin: np.ndarray, direction: np.ndarray,
+              distance: np.ndarray, laser: np.ndarray, azimuth: np.ndarray, ring: np.ndarray,
+              gidx: np.ndarray, scan: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                         np.ndarray, np.ndarray, np.ndarray]:
+    """The rows ``keep`` of the candidate pool's arrays (`align.rays._Rays`' fields, in its
+    order), in one call: eight numpy gathers cost four times as much."""
+    k = keep.shape[0]
+    o, u = np.empty((k, 3)), np.empty((k, 3))
+    d, az = np.empty(k), np.empty(k)
+    ls, rg = np.empty(k, dtype=laser.dtype), np.empty(k, dtype=ring.dtype)
+    gi, sc = np.empty(k, dtype=gidx.dtype), np.empty(k, dtype=scan.dtype)
+    for t in range(k):
+        i = keep[t]
+        for c in range(3):
+            o[t, c] = origin[i, c]
+            u[t, c] = direction[i, c]
+        d[t], az[t], ls[t], rg[t], gi[t], sc[t] = (distance[i], azimuth[i], laser[i], ring[i],
+                                                   gidx[i], scan[i])
+    return o, u, d, ls, az, rg, gi, sc
+
+
+@njit(cache=True)
+def edge_labels(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
+                intensity: np.ndarray, ext: np.ndarray, hit: int, miss: int, w2: float,
+                h2: float, margin: float, partial_ratio: float, per_full: np.ndarray,
+                per_part: np.ndarray) -> np.ndarray:
+    """`align.rays._ray_points`' labels in one pass: the hits not well outside the rectangle
+    and the misses not well inside it (``margin``, m; at the rays' board coordinates ``x``,
+    ``z``), and each ray's side-face allowance ``ext`` (M, 4) widened in place by its
+    tolerance across the left, right, bottom and top edge at its range ``lam``, outwards for
+    a hit, inwards for a miss: ``per_part`` (across the sides, across the top and bottom;
+    `Hints.partial_edge_tolerance`) for a partial hit, dimmer than ``partial_ratio`` of the
+    median ``intensity`` of the hits well inside (`_partial_hits`; none with an empty
+    ``intensity`` or no such hits), ``per_full`` for the others. The numpy version's floats
+    (np.median's middle value, or the mean of the middle two; the same sums and products)."""
+    n = x.shape[0]
+    inner = np.empty(n, dtype=np.bool_)
+    use = np.empty(n, dtype=np.bool_)
+    n_ref = 0
+    for i in range(n):
+        inner[i] = abs(x[i]) < w2 - margin and abs(z[i]) < h2 - margin
+        outer = abs(x[i]) > w2 + margin or abs(z[i]) > h2 + margin
+        use[i] = (lab[i] == hit and not outer) or (lab[i] == miss and not inner[i])
+        n_ref += lab[i] == hit and inner[i]
+    limit = -np.inf  # a partial hit is dimmer than this: none without a reference
+    if intensity.shape[0] == n and n_ref > 0:
+        ref = np.empty(n_ref)
+        t = 0
+        for i in range(n):
+            if lab[i] == hit and inner[i]:
+                ref[t] = intensity[i]
+                t += 1
+        half = n_ref // 2
+        upper = _kth_smallest(ref.copy(), half)
+        median = upper if n_ref % 2 else (_kth_smallest(ref, half - 1) + upper) / 2.0
+        limit = partial_ratio * median
+    for i in range(n):
+        part = intensity.shape[0] == n and lab[i] == hit and intensity[i] < limit
+        px, pz = (per_part[0], per_part[1]) if part else (per_full[0], per_full[1])
+        f = lam[i] * (1.0 if lab[i] == hit else -1.0)
+        ext[i, 0] += f * px
+        ext[i, 1] += f * px
+        ext[i, 2] += f * pz
+        ext[i, 3] += f * pz
+    return use
+
+
+@njit(cache=True)
+def range_labels(distance: np.ndarray, lam: np.ndarray, near: float, tolerance: float,
+                 hit: int, unknown: int) -> tuple[np.ndarray, np.ndarray]:
+    """`align.rays._labels`' first labels by range, in one pass: each ray's residual
+    distance - lam and its label (int8): ``hit`` for a return within ``near`` of the plane,
+    ``unknown`` for one farther in front or behind it but within ``tolerance``, 0 (a miss)
+    otherwise; the numpy version's comparisons of the same floats."""
+    n = distance.shape[0]
+    lab = np.zeros(n, dtype=np.int8)
+    res = np.empty(n)
+    for i in range(n):
+        r = distance[i] - lam[i]
+        res[i] = r
+        if distance[i] > 0:
+            if abs(r) <= near:
+                lab[i] = hit
+            elif r < -near or (r > near and r <= tolerance):
+                lab[i] = unknown
+    return lab, res
+
+
+@njit(cache=True)
+def bright_limit(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray, hit: int,
+                 ratio: float, least: int, quantile: float) -> tuple[float, bool]:
+    """`align.rays._bright_ends`' threshold: ``ratio`` times the ``quantile`` of the inner
+    hits' ``intensity`` (np.partition's value at int(quantile (n - 1))), and whether any hit
+    is brighter; inf and False with fewer than ``least`` inner hits."""
+    n = 0
+    for i in range(lab.shape[0]):
+        n += lab[i] == hit and inner[i]
+    if n < least:
+        return np.inf, False
+    ref = np.empty(n)
+    t = 0
+    for i in range(lab.shape[0]):
+        if lab[i] == hit and inner[i]:
+            ref[t] = intensity[i]
+            t += 1
+    limit = ratio * _kth_smallest(ref, int(quantile * (n - 1)))
+    for i in range(lab.shape[0]):
+        if lab[i] == hit and intensity[i] > limit:
+            return limit, True
+    return limit, False
+
+
+@njit(cache=True)
+def seen_counts(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
+                distance: np.ndarray, offset: float, front: float, w2: float, h2: float,
+                window: float, deep: float, hit: int, miss: int, dropout: int
+                ) -> tuple[np.ndarray, int, int, int, int, int]:
+    """`align.rays.estimate_rays`' account of what was seen, in one pass over the rays at the
+    estimate (board coordinates ``x``, ``z``, ranges to the plane ``lam``): whether a miss lies
+    beyond each edge (left, right, bottom, top) within ``window`` alongside it (`_edges_seen`),
+    and the rays inside the rectangle, those of them whose return lies in front of the plane
+    by more than ``front`` (the range ``offset`` removed), the dropouts inside, the misses
+    inside by ``deep`` and the hits outside by ``deep``: the numpy version's comparisons."""
+    seen = np.zeros(4, dtype=np.bool_)
+    inside = occluded = dropouts = inside_miss = outside_hits = 0
+    for i in range(x.shape[0]):
+        xi, zi, li = x[i], z[i], lab[i]
+        if li == miss:
+            if abs(zi) <= h2:
+                seen[0] |= -xi > w2 and -xi < w2 + window
+                seen[1] |= xi > w2 and xi < w2 + window
+            if abs(xi) <= w2:
+                seen[2] |= -zi > h2 and -zi < h2 + window
+                seen[3] |= zi > h2 and zi < h2 + window
+        if abs(xi) < w2 and abs(zi) < h2:
+            inside += 1
+            occluded += distance[i] > 0 and distance[i] - offset - lam[i] < -front
+            dropouts += li == dropout
+            inside_miss += abs(xi) < w2 - deep and abs(zi) < h2 - deep and li == miss
+        if li == hit and (abs(xi) > w2 + deep or abs(zi) > h2 + deep):
+            outside_hits += 1
+    return seen, inside, occluded, dropouts, inside_miss, outside_hits
+
+
+@njit(cache=True)
+def laser_ends(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
+               ext: np.ndarray, hit_label: int, reach_x: float, reach_z: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                          np.ndarray, float]:
+    """`align.rays._Sides.of`'s lasers' ends in one pass and a sort per laser: the hits taken
+    (label ``hit_label``, |x| < ``reach_x``, |z| < ``reach_z``), every ray's x_l = x + e_l and
+    x_r = x - e_r, and per laser with such hits (ascending) its leftmost hit by x_l and its
+    rightmost by x_r (the first of equal ones, as the stable lexsorts), their indices and
+    ends (x_l, z, x_r, z), and the median step: the middle value of |x| differences of a
+    laser's consecutive hits sorted by x_l (0 with none). Returns (hit, x_l, x_r, left,
+    right, ends, step). The same floats as the numpy version (the same elementwise sums;
+    the rest are comparisons, and np.partition's middle value is the sorted one's)."""
+    n = x.shape[0]
+    hit = np.empty(n, dtype=np.bool_)
+    x_l, x_r = np.empty(n), np.empty(n)
+    count = np.zeros(256, dtype=np.int64)
+    for i in range(n):
+        x_l[i] = x[i] + ext[i, 0]
+        x_r[i] = x[i] - ext[i, 1]
+        hit[i] = lab[i] == hit_label and abs(z[i]) < reach_z and abs(x[i]) < reach_x
+        if hit[i]:
+            count[laser[i]] += 1
+    start = np.zeros(257, dtype=np.int64)
+    k = 0
+    for v in range(256):
+        start[v + 1] = start[v] + count[v]
+        k += count[v] > 0
+    members = np.empty(start[256], dtype=np.int64)  # the hits by laser, each in index order
+    fill = start[:256].copy()
+    for i in range(n):
+        if hit[i]:
+            members[fill[laser[i]]] = i
+            fill[laser[i]] += 1
+    left, right = np.empty(k, dtype=np.int64), np.empty(k, dtype=np.int64)
+    ends = np.empty((k, 4))
+    steps = np.empty(max(start[256] - k, 0))
+    q = s = 0
+    for v in range(256):
+        a, b = start[v], start[v + 1]
+        if b == a:
+            continue
+        group = members[a:b]
+        ir = group[0]
+        for t in range(1, b - a):
+            if x_r[group[t]] > x_r[ir]:
+                ir = group[t]
+        by_l = group.copy()
+        _merge_runs(by_l, x_l)  # by x_l, ties in index order
+        il = by_l[0]
+        for t in range(1, b - a):
+            steps[s] = abs(x[by_l[t]] - x[by_l[t - 1]])
+            s += 1
+        left[q], right[q] = il, ir
+        ends[q, 0], ends[q, 1], ends[q, 2], ends[q, 3] = x_l[il], z[il], x_r[ir], z[ir]
+        q += 1
+    step = _kth_smallest(steps[:s], s // 2) if s > 0 else 0.0
+    return hit, x_l, x_r, left, right, ends, step
+
+
+@njit(cache=True)
+def _kth_smallest(a: np.ndarray, k: int) -> float:
+    """np.partition(a, k)[k] for finite ``a`` (reordered in place): quickselect, the middle
+    of three as pivot (numba's np.partition took 8 us for 600 values)."""
+    lo, hi = 0, a.shape[0] - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        x, y, w = a[lo], a[mid], a[hi]
+        pivot = max(min(x, y), min(max(x, y), w))
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while a[j] > pivot:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            return a[k]
+    return a[k]
+
+
+@njit(cache=True)
+def window_pool(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarray,
+                ring_of_laser: np.ndarray, cos_el: np.ndarray, sin_el: np.ndarray,
+                offset_z: np.ndarray, centre: float, lo: float, hi: float, ring_lo: int,
+                ring_hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                       np.ndarray, np.ndarray, np.ndarray]:
+    """`window_firings` and the selected rays as `align.rays._candidate_pool` takes them, in
+    one pass: their indices, origins (``offset_z`` of their laser along Z: the laser table's
+    vertical offsets, zeros where a scan's are not applied) and unit directions (as
+    `Scan.directions`: ``cos_el``, ``sin_el`` the laser table's elevations' cosines and
+    sines, the azimuth's taken here: numba's and numpy's sine and cosine are the C
+    library's, the same floats), ranges, lasers, azimuths (``centre`` plus the relative one,
+    numpy's sum) and rings."""
+    idx, rel = window_firings(azimuth, laser_id, ring_of_laser, centre, lo, hi, ring_lo,
+                              ring_hi)
+    k = idx.shape[0]
+    origin, direction = np.zeros((k, 3)), np.empty((k, 3))
+    dist, az = np.empty(k), np.empty(k)
+    laser = np.empty(k, dtype=laser_id.dtype)
+    ring = np.empty(k, dtype=ring_of_laser.dtype)
+    for t in range(k):
+        i = idx[t]
+        lid = laser_id[i]
+        a = azimuth[i]
+        ce = cos_el[lid]
+        direction[t, 0] = ce * np.sin(a)
+        direction[t, 1] = ce * np.cos(a)
+        direction[t, 2] = sin_el[lid]
+        origin[t, 2] = offset_z[lid]
+        dist[t] = distance[i]
+        laser[t] = lid
+        az[t] = rel[t] + centre
+        ring[t] = ring_of_laser[lid]
+    return idx, origin, direction, dist, laser, az, ring
+
+
+@njit(cache=True)
+def _wrapped(v: float, two_pi: float) -> float:
+    """v % two_pi as Python and numpy take it (fmod, then the divisor added to a negative
+    remainder; a zero's sign aside, which the callers' - pi that follows removes, as it did
+    for the fast path they had), without the slow floating-point remainder where the result
+    is known: v itself
+    on [0, 2 pi); v - 2 pi on [2 pi, 4 pi) (fmod's exact remainder, the difference exact by
+    Sterbenz's lemma); v + 2 pi on (-2 pi, 0) (fmod gives v, to which 2 pi is added). A scan's
+    azimuths relative to a board's centre fall in one of these: the remainder took most of
+    `window_firings`' time where half the scan lay past 2 pi."""
+    if 0.0 <= v < two_pi:
+        return v
+    if two_pi <= v < two_pi + two_pi:
+        return v - two_pi
+    if -two_pi < v < 0.0:
+        return v + two_pi
+    return v % two_pi
+
+
+@njit(cache=True)
 def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.ndarray,
                    centre: float, lo: float, hi: float, ring_lo: int, ring_hi: int
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -567,9 +1338,7 @@ def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.
         ring = ring_of_laser[laser_id[i]]
         if ring < ring_lo or ring > ring_hi:
             continue
-        v = azimuth[i] - centre + np.pi
-        # v % 2 pi is v itself on [0, 2 pi): the slow floating-point remainder only outside
-        r = (v if 0.0 <= v < two_pi else v % two_pi) - np.pi
+        r = _wrapped(azimuth[i] - centre + np.pi, two_pi) - np.pi
         if r >= lo and r <= hi:
             idx[k] = i
             rel[k] = r
@@ -743,6 +1512,8 @@ def _lm_jacobian(p: np.ndarray, f: np.ndarray, fit_b: bool, offset: float, sb: f
 def _normal_equations(j: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """J^T J and J^T f, summed row by row (both symmetric halves from one product)."""
     n_p = j.shape[1]
+    if n_p == 6:
+        return _normal_equations_6(j, f)
     a = np.zeros((n_p, n_p))
     g = np.zeros(n_p)
     for i in range(j.shape[0]):
@@ -754,6 +1525,57 @@ def _normal_equations(j: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndar
     for r in range(n_p):
         for c in range(r):
             a[c, r] = a[r, c]
+    return a, g
+
+
+@njit(cache=True)
+def _normal_equations_6(j: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`_normal_equations` of six columns with its 27 sums in registers (in the array, each
+    sum waited on a load and a store per row: 2x slower): the same products added in the
+    same order, so the same floats."""
+    a00 = a10 = a11 = a20 = a21 = a22 = a30 = a31 = a32 = a33 = 0.0
+    a40 = a41 = a42 = a43 = a44 = a50 = a51 = a52 = a53 = a54 = a55 = 0.0
+    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+    for i in range(j.shape[0]):
+        j0, j1, j2, j3, j4, j5 = j[i, 0], j[i, 1], j[i, 2], j[i, 3], j[i, 4], j[i, 5]
+        fi = f[i]
+        g0 += j0 * fi
+        a00 += j0 * j0
+        g1 += j1 * fi
+        a10 += j1 * j0
+        a11 += j1 * j1
+        g2 += j2 * fi
+        a20 += j2 * j0
+        a21 += j2 * j1
+        a22 += j2 * j2
+        g3 += j3 * fi
+        a30 += j3 * j0
+        a31 += j3 * j1
+        a32 += j3 * j2
+        a33 += j3 * j3
+        g4 += j4 * fi
+        a40 += j4 * j0
+        a41 += j4 * j1
+        a42 += j4 * j2
+        a43 += j4 * j3
+        a44 += j4 * j4
+        g5 += j5 * fi
+        a50 += j5 * j0
+        a51 += j5 * j1
+        a52 += j5 * j2
+        a53 += j5 * j3
+        a54 += j5 * j4
+        a55 += j5 * j5
+    lower = (a00, a10, a11, a20, a21, a22, a30, a31, a32, a33, a40, a41, a42, a43, a44, a50,
+             a51, a52, a53, a54, a55)
+    a = np.empty((6, 6))
+    t = 0
+    for r in range(6):
+        for c in range(r + 1):
+            a[r, c] = a[c, r] = lower[t]
+            t += 1
+    g = np.empty(6)
+    g[0], g[1], g[2], g[3], g[4], g[5] = g0, g1, g2, g3, g4, g5
     return a, g
 
 

@@ -65,9 +65,14 @@ def pose_from_plane(n: np.ndarray, d: float, roll: float = 0.0) -> np.ndarray:
 def lidar_up(theta: np.ndarray) -> tuple[float, float]:
     """The LiDAR's up axis Z_L seen in the board's plane, a unit (X_O, Z_O) direction: across
     its rings, the direction along which a position on the board is known least well."""
-    r = rotation(theta[3], theta[4], theta[5])
-    nv = math.hypot(r[0, 2], r[2, 2])
-    return (0.0, 1.0) if nv < 1e-9 else (float(r[0, 2] / nv), float(r[2, 2] / nv))
+    # R's entries (0, 2) and (2, 2) as `rotation` computes them (the same expressions), without
+    # the 3 x 3 array: called some 20 times per estimate
+    cr, sr = math.cos(theta[3]), math.sin(theta[3])
+    ct, st = math.cos(theta[4]), math.sin(theta[4])
+    cy, sy = math.cos(theta[5]), math.sin(theta[5])
+    r02, r22 = cy * sr + (sy * st) * cr, ct * cr
+    nv = math.hypot(r02, r22)
+    return (0.0, 1.0) if nv < 1e-9 else (r02 / nv, r22 / nv)
 
 
 def in_plane_rotation(theta: np.ndarray) -> float:

@@ -678,6 +678,86 @@ def ransac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
     return best, out
 
 
+#: The relative rounding error of a sum of n non-negative terms in any order, per term (2^-53
+#: with room to spare): two sums of the same terms in different orders differ by at most
+#: twice this times n times their size.
+SUM_ROUNDING = 1.2e-16
+
+
+@njit(cache=True)
+def msac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
+              ) -> tuple[int, bool, np.ndarray]:
+    """`align.plane.ransac`'s truncated choice (MSAC): the index of the hypothesis (a plane
+    through a point triple of ``tri`` (H, 3); degenerate ones skipped, as `ransac_best`)
+    with the least sum of squared distances capped at ``threshold`` (m) over the points
+    ``xyz`` (3, N), whether that choice is certain, and its inliers (distance under the
+    threshold). The distances are numpy's floats (`ransac_best`'s), but their sum runs in
+    loop order where numpy's einsum sums in its own: the choice is certain when every other
+    hypothesis' sum exceeds the least by more than either order's rounding can move them
+    (`SUM_ROUNDING`), so that numpy's np.argmin picks it too; the caller decides the rest
+    as numpy does. Index -1 when every triple is degenerate."""
+    px, py, pz = xyz[0], xyz[1], xyz[2]
+    n_pts, n_h = px.shape[0], tri.shape[0]
+    sums = np.full(n_h, np.inf)
+    planes = np.empty((n_h, 4))
+    valid = np.zeros(n_h, dtype=np.bool_)
+    sq = np.empty(n_pts)
+    best = -1
+    for h in range(n_h):
+        i0, i1, i2 = tri[h, 0], tri[h, 1], tri[h, 2]
+        a0 = px[i1] - px[i0]
+        a1 = py[i1] - py[i0]
+        a2 = pz[i1] - pz[i0]
+        b0 = px[i2] - px[i0]
+        b1 = py[i2] - py[i0]
+        b2 = pz[i2] - pz[i0]
+        c0 = a1 * b2 - a2 * b1
+        c1 = a2 * b0 - a0 * b2
+        c2 = a0 * b1 - a1 * b0
+        norm = math.sqrt((c0 * c0 + c2 * c2) + c1 * c1)
+        if not norm > 1e-9:
+            continue
+        c0, c1, c2 = c0 / norm, c1 / norm, c2 / norm
+        d = (c0 * px[i0] + c2 * pz[i0]) + c1 * py[i0]
+        # the capped squares first (a loop without a running sum vectorises), then their sum
+        # in eight running sums (one would wait on each addition)
+        for i in range(n_pts):
+            v = min(abs(_fma(c2, pz[i], _fma(c1, py[i], c0 * px[i])) - d), threshold)
+            sq[i] = v * v
+        s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
+        octs = n_pts - n_pts % 8
+        for i in range(0, octs, 8):
+            s0 += sq[i]
+            s1 += sq[i + 1]
+            s2 += sq[i + 2]
+            s3 += sq[i + 3]
+            s4 += sq[i + 4]
+            s5 += sq[i + 5]
+            s6 += sq[i + 6]
+            s7 += sq[i + 7]
+        for i in range(octs, n_pts):
+            s0 += sq[i]
+        s = ((s0 + s1) + (s2 + s3)) + ((s4 + s5) + (s6 + s7))
+        sums[h], valid[h] = s, True
+        planes[h, 0], planes[h, 1], planes[h, 2], planes[h, 3] = c0, c1, c2, d
+        if best < 0 or s < sums[best]:
+            best = h
+    out = np.zeros(n_pts, dtype=np.bool_)
+    if best < 0:
+        return best, True, out
+    tol = 2.0 * (n_pts + 2) * SUM_ROUNDING
+    certain = True
+    for h in range(n_h):
+        if valid[h] and h != best and not sums[h] - sums[best] > tol * (sums[h] + sums[best]):
+            certain = False
+    if not np.isfinite(sums[best]):
+        certain = False
+    c0, c1, c2, d = planes[best, 0], planes[best, 1], planes[best, 2], planes[best, 3]
+    for i in range(n_pts):
+        out[i] = abs(_fma(c2, pz[i], _fma(c1, py[i], c0 * px[i])) - d) < threshold
+    return best, certain, out
+
+
 @njit(cache=True)
 def plane_band(xyz: np.ndarray, n: np.ndarray, d: float, threshold: float) -> np.ndarray:
     """np.abs(points @ n - d) < threshold for the points ``xyz`` (3, N: rows x, y, z), the

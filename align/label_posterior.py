@@ -43,7 +43,8 @@ import numpy as np
 
 from align import feasible, plane, symmetry
 from align.board import BoardSpec
-from align.geometry import board_coordinates, lidar_up, plane_of_pose, pose_from_plane
+from align.fit_kernels import binding_rays
+from align.geometry import lidar_up, plane_of_pose, pose_from_plane, rotation
 
 #: Rolls of each in-plane posterior's grid over the consistent ones.
 FINE_ROLLS = 121
@@ -133,11 +134,23 @@ class LabelledRays:
         ``ref``'s by at most ``reach`` rad and about 20 mm (100 mm across the rings, the
         LiDAR's up direction on the board: a ring spacing): a point as far from the plane's
         origin as the board's corners (plus 0.2 m) moves that far x the roll change."""
-        x, z, _ = board_coordinates(ref, self.origin, self.direction)
         vx, vz = lidar_up(ref)
         arm = (0.5 * board.diagonal + 0.2) * reach
-        return self.select(binding(board, x, z, self.label, 0.02 + 0.08 * abs(vx) + arm,
-                                   0.02 + 0.08 * abs(vz) + arm))
+        # `binding` of the rays' board coordinates, compiled (`align.fit_kernels.
+        # binding_rays`: the same floats and tests), its hits and misses apart: the subset's
+        # split for the posterior's kernel taken from them, not from masks over it
+        hits, misses = binding_rays(self.origin, self.direction, self.label,
+                                    rotation(ref[3], ref[4], ref[5]), float(ref[0]),
+                                    float(ref[1]), float(ref[2]), board.width / 2,
+                                    board.height / 2, 0.02 + 0.08 * abs(vx) + arm,
+                                    0.02 + 0.08 * abs(vz) + arm)
+        out = self.select(np.sort(np.concatenate((hits, misses))))
+        # `_split`'s value, as cached_property stores it (the instance's dict: the class is
+        # frozen): the same arrays as the subset's masks would give
+        out.__dict__["_split"] = tuple(
+            np.ascontiguousarray(a[rows], dtype=np.float64) for rows in (hits, misses)
+            for a in (self.origin, self.direction, self.ext))
+        return out
 
     @functools.cached_property
     def _split(self) -> tuple[np.ndarray, ...]:
@@ -681,6 +694,12 @@ def _moments(nodes: list[_Node], c_plane: np.ndarray, given: bool = False
     return mean, j_g @ c_post @ j_g.T + k @ within @ k.T
 
 
+#: np.triu_indices(3), once (18 us a call); read-only.
+_TRIU = np.triu_indices(3)
+for _a in _TRIU:
+    _a.flags.writeable = False
+
+
 def _plane_posterior_cov(g: np.ndarray, log_ev: np.ndarray, c_plane: np.ndarray
                          ) -> np.ndarray:
     """The plane's covariance given the ranges and the labels: the labels' log evidence fitted
@@ -688,7 +707,7 @@ def _plane_posterior_cov(g: np.ndarray, log_ev: np.ndarray, c_plane: np.ndarray
     precision (never below it). The ranges' covariance where the fit is not determined."""
     chol = np.linalg.cholesky(c_plane)
     xi = np.linalg.solve(chol, (g - g.mean(axis=0)).T).T
-    i, j = np.triu_indices(3)
+    i, j = _TRIU
     design = np.column_stack((np.ones(len(xi)), xi, xi[:, i] * xi[:, j]))
     if len(xi) < 2 * design.shape[1] or np.linalg.matrix_rank(design) < design.shape[1]:
         return c_plane

@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from align.fit_kernels import ray_plane_fit
-from align.kernels import lsq_plane
+from align.kernels import lsq_plane, msac_best
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -82,6 +82,22 @@ def ransac(
     if n_pts < 3:
         raise ValueError("a plane needs at least 3 points")
     tri = rng.integers(0, n_pts, size=(iterations, 3))
+    if truncated:
+        # the hypotheses scored in one compiled loop (`align.kernels.msac_best`: numpy's
+        # distances, no (hypotheses x points) matrix); where its sums' order could change
+        # which is least (two hypotheses within rounding of each other), numpy decides
+        xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64).T)
+        best, certain, inl = msac_best(xyz, tri, float(threshold))
+        if certain and best >= 0:
+            n, d = fit_lsq(points[inl])
+            inl = np.abs(points @ n - d) < threshold
+            return n, d, inl
+    return _ransac_scored(points, tri, threshold, truncated)
+
+
+def _ransac_scored(points: np.ndarray, tri: np.ndarray, threshold: float, truncated: bool
+                   ) -> tuple[np.ndarray, float, np.ndarray]:
+    """`ransac` from its point triples ``tri`` (H, 3) on: every hypothesis scored at once."""
     p0, p1, p2 = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
     normals = np.cross(p1 - p0, p2 - p0)
     norm = np.sqrt(np.einsum("ij,ij->i", normals, normals))

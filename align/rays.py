@@ -46,20 +46,35 @@ from align.fit_kernels import (
     behind_groups,
     between_hits,
     board_spans,
+    bright_limit,
     classify_edges,
     column_brackets,
     contradicted,
-    edge_brackets,
+    edge_labels,
+    hit_runs,
+    laser_brackets,
+    laser_ends,
+    line_excess,
     lm_fit,
+    pool_rows,
+    profile_best,
     profile_cost,
+    range_labels,
     range_rays,
+    ray_products,
+    seen_counts,
+    shifted_coords,
+    side_ends,
+    side_faces,
     used_edges,
-    window_firings,
+    window_pool,
+    window_rays,
 )
 from align.geometry import board_coordinates, in_plane_rotation, lidar_up, pose_from_plane, rotation
+from align.kernels import in_ring_block
 from align.label_posterior import LabelledRays, OffsetModel, label_posterior
 from align.result import Hints, PoseEstimate, Status
-from align.segment import Segmentation, consecutive_ring_block, on_board_rings
+from align.segment import Segmentation, on_board_rings
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 
@@ -125,11 +140,15 @@ def _candidates_at(scans: list[Scan], segs: list[Segmentation], theta: np.ndarra
     spacing on the board there (`_ring_spacing`, m): the fit's next steps need both at the
     same pose. A ray's coordinates do not depend on which others are computed with it."""
     cat = _candidate_pool(scans, segs, board)
-    x, z, lam = board_coordinates(theta, cat[0], cat[1])
     spacing = _ring_spacing(theta, float(np.max(np.diff(np.sort(scans[0].lasers.elevation)))))
     win = max(WINDOW, WINDOW_RINGS * spacing)
-    keep = (lam > 0) & (np.abs(x) < board.width / 2 + win) & (np.abs(z) < board.height / 2 + win)
-    return _Rays(*(a[keep] for a in cat)), (x[keep], z[keep], lam[keep]), spacing
+    # `board_coordinates` of the pool and the rays within the window, in one compiled pass
+    # (the same floats): numpy's products, masks and gathers over the pool's few thousand
+    # rays, for the thousand kept, cost four times as much
+    keep, x, z, lam = window_rays(cat[0], cat[1], rotation(theta[3], theta[4], theta[5]),
+                                  float(theta[0]), float(theta[1]), float(theta[2]),
+                                  board.width / 2 + win, board.height / 2 + win)
+    return _Rays(*pool_rows(keep, *cat)), (x, z, lam), spacing
 
 
 #: The last `_candidate_pool`: weak references to its scans and segmentations, its board and
@@ -160,19 +179,44 @@ def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpe
         # looked at
         margin = board.diagonal / max(float(np.median(s.distance[g.board])), 0.5)
         lo, hi = rel_b.min() - margin, rel_b.max() + margin
-        ring_of_laser = s.lasers.ring_of_laser
-        rings = ring_of_laser[s.laser_id[g.board]]
-        # the board's rings and one more on each side, within the window: one compiled pass
-        # over the scan (the numpy version's masks over every firing cost 0.3 ms a scan)
-        idx, rel = window_firings(s.azimuth, s.laser_id, ring_of_laser, c, float(lo),
-                                  float(hi), int(rings.min()) - 1, int(rings.max()) + 1)
-        sub = s.select(idx)
-        parts.append((sub.origins(), sub.directions(), sub.distance, sub.laser_id,
-                      rel + c, sub.ring, idx + offset, np.full(len(idx), len(parts))))
+        lasers = s.lasers
+        rings = lasers.ring_of_laser[s.laser_id[g.board]]
+        # the board's rings and one more on each side, within the window, and their rays: one
+        # compiled pass over the scan (`align.fit_kernels.window_pool`, the floats of
+        # `Scan.origins`, `Scan.directions`; the numpy version's masks over every firing cost
+        # 0.3 ms a scan, its gathers and directions 0.1 ms)
+        offset_z = (np.array(lasers.vertical_offset, dtype=np.float64)  # writable, as zeros:
+                    if s.vertical_offsets_applied else np.zeros(lasers.n_lasers))  # one type
+        idx, *rays_in = window_pool(s.azimuth, s.laser_id, s.distance, lasers.ring_of_laser,
+                                    np.cos(lasers.elevation), np.sin(lasers.elevation),
+                                    offset_z, c, float(lo), float(hi), int(rings.min()) - 1,
+                                    int(rings.max()) + 1)
+        parts.append((*rays_in, idx + offset, np.full(len(idx), len(parts))))
         offset += len(s)
     cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
     _last_pool = ([weakref.ref(s) for s in scans], [weakref.ref(g) for g in segs], board, cat)
     return cat
+
+
+def _rays_of(scan: Scan, idx: np.ndarray, lid: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """``scan.select(idx).origins()`` and ``.directions()`` without the other seven arrays'
+    gathers: the same floats (each laser's elevation's cosine and sine taken from its table's
+    once: an elementwise function gives the same value wherever its argument sits). ``lid``:
+    ``scan.laser_id[idx]``, if the caller has it."""
+    lasers = scan.lasers
+    if lid is None:
+        lid = scan.laser_id[idx]
+    az = scan.azimuth[idx]
+    ce = np.cos(lasers.elevation)[lid]
+    u = np.empty((len(lid), 3))
+    u[:, 0] = ce * np.sin(az)
+    u[:, 1] = ce * np.cos(az)
+    u[:, 2] = np.sin(lasers.elevation)[lid]
+    o = np.zeros((len(lid), 3))
+    if scan.vertical_offsets_applied:
+        o[:, 2] = lasers.vertical_offset[lid]
+    return o, u
 
 
 def _ring_spacing(theta: np.ndarray, spacing: float) -> float:
@@ -214,14 +258,18 @@ def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     out. A board that returns everywhere keeps them as misses (they bound it where nothing
     stands behind it).
     """
-    lab = np.zeros(len(lam), dtype=np.int8)
+    return _labels_ordered(rays, lam, sigma_r)[0]
+
+
+def _labels_ordered(rays: _Rays, lam: np.ndarray, sigma_r: float
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """`_labels`, and the rays' order by scan, laser and azimuth it sorted them in."""
+    # a hit within the hit band of the plane; in front: something before the board; just
+    # behind (beyond the noise, within the label tolerance): the board's noise or a thing
+    # close behind it (a stand's clamp): unknown. Compiled (`align.fit_kernels.range_labels`)
+    lab, res = range_labels(rays.distance, lam, _hit_band(sigma_r), LABEL_TOLERANCE, HIT,
+                            UNKNOWN)
     ret = rays.distance > 0
-    res = rays.distance - lam
-    near = _hit_band(sigma_r)
-    lab[ret & (np.abs(res) <= near)] = HIT
-    # in front: something before the board; just behind (beyond the noise, within the label
-    # tolerance): the board's noise or a thing close behind it (a stand's clamp): unknown
-    lab[ret & ((res < -near) | ((res > near) & (res <= LABEL_TOLERANCE)))] = UNKNOWN
     # one sort for both: the rays by scan, laser and azimuth (the hits' order is its subset)
     order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
     lab[_behind_ends(rays, lab, res, sigma_r, order)] = UNKNOWN
@@ -229,7 +277,7 @@ def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     hits = int(np.count_nonzero(lab == HIT))
     if np.count_nonzero(inner) >= max(MIN_DROPOUTS, DROPOUT_FRACTION * hits):
         lab[~ret] = DROPOUT
-    return lab
+    return lab, order
 
 
 #: A laser's outermost hits are something just behind the board beside its edge (a holder, a
@@ -300,29 +348,22 @@ def _grazing_runs(rays: _Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
     lasers' ends show them (`_Sides`), if they do: a run at a corner then ends at one of them,
     which holds at any pose; without them, a run within `CORNER_REACH` beyond its length of
     a corner of the rectangle at this pose is taken to cross it."""
-    x, z = coords[0][order], coords[1][order]
-    lb, az = lab[order], rays.azimuth[order]
-    same = (rays.laser[order][1:] == rays.laser[order][:-1]) & (
-        rays.scan[order][1:] == rays.scan[order][:-1]) & (np.diff(az) < MAX_GAP)
-    hit = lb == HIT
-    # what ends a run: a miss, or a return behind the plane (the same thing behind, further
-    # back); not a return in front (it may hide the board going on) nor a dropout
-    behind = (rays.distance[order] > 0) & (rays.distance[order] > expected[order])
-    beside = (lb == MISS) | ((lb == UNKNOWN) & behind)
-    # runs of hits linked along a laser: their first and last positions in ``order``
-    starts = np.flatnonzero(hit & ~np.concatenate(([False], same & hit[:-1])))
-    ends = np.flatnonzero(hit & ~np.concatenate((same & hit[1:], [False])))
+    # runs of hits linked along a laser (the same laser and scan, no gap), their first and
+    # last positions in ``order``, whose ends are seen (not at the end of what was looked
+    # at), each beside a miss or a return behind the plane (the same thing behind, further
+    # back; not a return in front, which may hide the board going on, nor a dropout):
+    # compiled (`align.fit_kernels.hit_runs`; two dozen masks and diffs in numpy)
+    starts, ends = hit_runs(order, lab, rays.laser, rays.scan, rays.azimuth, rays.distance,
+                            expected, MAX_GAP, HIT, MISS, UNKNOWN)
     out = np.zeros(len(lab), dtype=bool)
+    if len(starts) == 0:
+        return out
+    x, z = coords[0][order], coords[1][order]
     w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
     corners = np.array([(-w2, -h2), (w2, -h2), (-w2, h2), (w2, h2)])
-    # the runs whose ends are seen (not at the end of what was looked at), each beside a miss
-    # or a return behind, shorter than the board's smaller side: the few looked at closer
-    n = len(lb)
-    seen = (starts > 0) & (ends < n - 1)
-    starts, ends = starts[seen], ends[seen]
-    ok = same[starts - 1] & same[ends] & beside[starts - 1] & beside[ends + 1]
+    # those shorter than the board's smaller side: the few looked at closer
     spans = np.hypot(x[ends + 1] - x[starts - 1], z[ends + 1] - z[starts - 1])
-    ok &= spans < min(board.width, board.height)
+    ok = spans < min(board.width, board.height)
     for a, b, span in zip(starts[ok], ends[ok], spans[ok], strict=True):
         xs, zs = x[a:b + 1], z[a:b + 1]
         if np.all((np.abs(xs) < w2 - margin) & (np.abs(zs) < h2 - margin)):
@@ -358,14 +399,14 @@ def _bright_ends(rays: _Rays, lab: np.ndarray, intensity: np.ndarray, inner: np.
     end inwards while they are: a mask over the rays. ``order``: the rays by scan, laser and
     azimuth. A patterned board's bright squares are among its inner hits, so they pass."""
     out = np.zeros(len(lab), dtype=bool)
-    ref = intensity[(lab == HIT) & inner]
-    if len(ref) < BRIGHT_REFERENCE:
+    # the threshold and whether any hit passes it, compiled (`align.fit_kernels.
+    # bright_limit`: np.partition's 99th percentile); the ends only where one does
+    limit, any_odd = bright_limit(lab, intensity, inner, HIT, BRIGHT_RATIO, BRIGHT_REFERENCE,
+                                  0.99)
+    if not any_odd:
         return out
     hits = order[lab[order] == HIT]
-    k = int(0.99 * (len(ref) - 1))
-    odd = intensity[hits] > BRIGHT_RATIO * float(np.partition(ref, k)[k])
-    if not np.any(odd):
-        return out
+    odd = intensity[hits] > limit
     key = rays.scan[hits].astype(np.int64) * 256 + rays.laser[hits]
     bounds = np.flatnonzero(np.diff(np.concatenate(([-1], key, [-1]))))
     for a, b in itertools.pairwise(bounds):
@@ -400,14 +441,10 @@ def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     square that ranged wrong). Dropouts are skipped: a bracket spans them (the edge lies
     anywhere between the hit and the miss).
     """
-    order = np.lexsort((rays.azimuth, rays.laser))
-    order = order[lab[order] != DROPOUT]
-    ls, az, lb = rays.laser[order], rays.azimuth[order], lab[order]
-    link = (ls[1:] == ls[:-1]) & (np.diff(az) < MAX_GAP) & (lb[1:] >= 0) & (lb[:-1] >= 0)
-    trans = np.flatnonzero(link & (lb[1:] != lb[:-1]))
-    first_hit, last_hit = _board_spans(ls, az, lb)
-    # the walk over the zones, compiled (`align.fit_kernels.edge_brackets`)
-    return edge_brackets(order, ls, az, lb, link, trans, first_hit, last_hit, ZONE_AZIMUTH)
+    # the links and transitions along each laser, its span on the board (`_board_spans`) and
+    # the walk over the zones, compiled (`align.fit_kernels.laser_brackets`, `edge_brackets`)
+    return laser_brackets(np.lexsort((rays.azimuth, rays.laser)), rays.laser, rays.azimuth,
+                          lab, DROPOUT, HIT, MAX_GAP, ZONE_AZIMUTH)
 
 
 def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
@@ -431,6 +468,11 @@ def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
     heights in every scan.
     """
     return column_brackets(rays.ring, lab, off)  # compiled: a dozen masks per ring in numpy
+
+
+#: How far outside the rectangle a hit (inside it a miss) violates its label in the profile
+#: across the rings (`_Model.profile`), m.
+PROFILE_TOL = 3e-3
 
 
 class _Model:
@@ -483,16 +525,13 @@ class _Model:
         t_x) + lam u.r0 and Z alike, lam depending on t_y and the rotation alone."""
         rkey = theta[[1, 3, 4, 5]].tobytes()
         if self._products is None or self._products[0] != rkey:
-            o, u = self.rays.origin, self.rays.direction
-            r = rotation(theta[3], theta[4], theta[5])
-            oy = o @ r[1] + theta[1]
-            dy = u @ r[1]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                lam = -oy / dy
-            self._products = (rkey, (o @ r[0], lam * (u @ r[0]), o @ r[2], lam * (u @ r[2]),
-                                     lam))
+            # compiled (`align.fit_kernels.ray_products`: the same floats as the matrix-vector
+            # products and the elementwise steps)
+            self._products = (rkey, ray_products(self.rays.origin, self.rays.direction,
+                                                 rotation(theta[3], theta[4], theta[5]),
+                                                 float(theta[1])))
         ox, ux, oz, uz, lam = self._products[1]
-        return ox + theta[0] + ux, oz + theta[2] + uz, lam
+        return (*shifted_coords(ox, ux, oz, uz, float(theta[0]), float(theta[2])), lam)
 
     def _cache_edges(self) -> None:
         """The used brackets' rays, signs and sigmas, contiguous (the fit only reads these)."""
@@ -563,7 +602,7 @@ class _Model:
         x, z, _ = self.coords(theta)
         return np.where(self.edge_kind == 1, x[self.bm] - x[self.bh], z[self.bm] - z[self.bh])
 
-    def profile(self, theta: np.ndarray, ds: np.ndarray, tol: float = 3e-3) -> np.ndarray:
+    def profile(self, theta: np.ndarray, ds: np.ndarray, tol: float = PROFILE_TOL) -> np.ndarray:
         """A cost for the pose shifted by each of ``ds`` (m) along the LiDAR's up direction in
         the plane (`lidar_up`: z for a level board): label violations first.
 
@@ -580,9 +619,14 @@ class _Model:
                             self.board.width / 2, self.board.height / 2, tol, *self.blur_edges)
 
     def shift(self, theta: np.ndarray, ds: np.ndarray) -> np.ndarray:
-        """``theta`` moved to the cheapest shift of `profile` over ``ds``."""
-        s = float(ds[np.argmin(self.profile(theta, ds))])
+        """``theta`` moved to the cheapest shift of `profile` over ``ds`` (its first minimum,
+        `align.fit_kernels.profile_best`: the brackets costed only where they can decide)."""
+        x, z, _ = self.coords(theta)
         vx, vz = lidar_up(theta)
+        s = float(ds[profile_best(x, z, self._hits, self._misses, self.bh, self.bm,
+                                  np.asarray(ds, dtype=np.float64), vx, vz,
+                                  self.board.width / 2, self.board.height / 2, PROFILE_TOL,
+                                  *self.blur_edges)])
         out = theta.copy()
         out[0] += s * vx
         out[2] += s * vz
@@ -704,33 +748,35 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     ``partial`` (`Hints.partial_edge_tolerance`, `_partial_hits`). Also returns the rays'
     indices in the model's."""
     rays, board = model.rays, model.board
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    x, z, lam = model.coords(theta)  # board_coordinates' floats (the fit's pose: often kept)
     lab = model.lab
-    w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
-    inner = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
-    outer = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
-    use = ((lab == 1) & ~outer) | ((lab == 0) & ~inner)
     u = rays.direction
     ext = _side_faces(u, theta, board)
     # the tolerance across each edge as the beam's footprint allows it: the support of the
     # ellipse with half-axes (side, top/bottom tolerance) along the LiDAR's horizontal and up
-    # directions, in the edge's normal direction (a level board: the tolerances as given)
+    # directions, in the edge's normal direction (a level board: the tolerances as given);
+    # for partial hits (`_partial_hits`) the partial tolerance, but a sharp beam (a
+    # tolerance of 0) has no partial returns: a dim hit there is a dark patch of the board,
+    # on it
     vx, vz = lidar_up(theta)
-    t_h, t_v = np.full(len(lab), tolerance[0]), np.full(len(lab), tolerance[1])
-    if intensity is not None:
-        part = _partial_hits(lab, intensity, inner)
-        # a sharp beam (a tolerance of 0) has no partial returns: a dim hit there is a dark
-        # patch of the board, on it
-        t_h[part] = max(tolerance[0], partial[0]) if tolerance[0] > 0 else 0.0
-        t_v[part] = max(tolerance[1], partial[1]) if tolerance[1] > 0 else 0.0
-    per_x, per_z = np.hypot(t_h * vz, t_v * vx), np.hypot(t_h * vx, t_v * vz)
-    per_edge = np.column_stack((per_x, per_x, per_z, per_z))  # left, right, bottom, top
-    ext += (lam * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
+    t_part = (max(tolerance[0], partial[0]) if tolerance[0] > 0 else 0.0,
+              max(tolerance[1], partial[1]) if tolerance[1] > 0 else 0.0)
+    per = [np.array([np.hypot(np.float64(t_h) * vz, np.float64(t_v) * vx),
+                     np.hypot(np.float64(t_h) * vx, np.float64(t_v) * vz)])
+           for t_h, t_v in (tolerance, t_part)]  # (across the sides, the top and bottom)
+    # the labels kept (misses well inside and hits well outside left out) and the widened
+    # allowances, compiled (`align.fit_kernels.edge_labels`; a dozen numpy passes)
+    w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
+    use = edge_labels(x, z, lam, lab, _NO_INTENSITY if intensity is None else intensity, ext,
+                      HIT, MISS, w2, h2, margin, PARTIAL_INTENSITY, per[0], per[1])
     use &= ~_overhanging(x, z, lab, rays.laser, ext, board)
     odds = _clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r)
     return (LabelledRays(rays.origin[use], u[use], lab[use], ext[use],
                          odds * (lab[use] == HIT)), np.flatnonzero(use))
 
+
+#: `_ray_points` without intensities (`edge_labels`' argument, of the intensities' type).
+_NO_INTENSITY = np.empty(0, dtype=np.uint8)
 
 #: The chance that a ray passing just beyond the board's edge meets something within the hit
 #: band (`FRONT_SIGMAS`) of its plane: a holder, a clamp, a box close behind the board. Rare:
@@ -754,11 +800,10 @@ def _side_faces(u: np.ndarray, theta: np.ndarray, board: BoardSpec) -> np.ndarra
     """(M, 4) how far past the left, right, bottom and top edge (m) the rays with directions
     ``u`` still hit the plate at ``theta``: its side faces, seen by rays heading inwards past
     an edge (as `_Model.residuals`)."""
-    rot = rotation(theta[3], theta[4], theta[5])
-    dn = u @ rot.T
-    ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
-    return board.thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
-                                                              -ratio_z)))
+    # compiled (`align.fit_kernels.side_faces`: the same floats as u @ rot.T, the ratios,
+    # np.maximum and the product)
+    return side_faces(np.ascontiguousarray(u, dtype=np.float64),
+                      rotation(theta[3], theta[4], theta[5]), float(board.thickness))
 
 
 #: A laser's hits may span the board's width by this much more (m) before one end is taken to
@@ -848,21 +893,15 @@ class _Sides:
         """From the rays' board coordinates ``x``, ``z``, labels, lasers and side-face
         allowances ``ext`` (`_side_faces`); None with fewer than 3 lasers on the board."""
         w2, h2, margin = board.width / 2, board.height / 2, feasible.OUTLIER_MARGIN
-        hit = (lab == HIT) & (np.abs(z) < h2 + margin) & (np.abs(x) < w2 + margin)
-        x_l, x_r = x + ext[:, 0], x - ext[:, 1]
-        idx = np.flatnonzero(hit)
-        # per laser its leftmost hit (the first of equal ones, as argmin) and its rightmost
-        by_l = idx[np.lexsort((x_l[idx], laser[idx]))]
-        by_r = idx[np.lexsort((-x_r[idx], laser[idx]))]
-        first = np.flatnonzero(np.diff(np.concatenate(([-1], laser[by_l]))))
-        if len(first) < 3:
+        # the hits, per laser its leftmost hit (the first of equal ones, as argmin) and its
+        # rightmost, and the azimuth step on the board (the median spacing of a laser's
+        # consecutive hits): compiled (`align.fit_kernels.laser_ends`; two lexsorts and a
+        # dozen masks and diffs in numpy)
+        hit, x_l, x_r, il, _, ends, step = laser_ends(x, z, lab, laser, ext, HIT, w2 + margin,
+                                                      h2 + margin)
+        if len(il) < 3:
             return None
-        il, ir = by_l[first], by_r[first]
         ids = laser[il]
-        ends = np.column_stack((x_l[il], z[il], x_r[ir], z[ir]))
-        # the azimuth step on the board: the median spacing of a laser's consecutive hits
-        dx = np.abs(np.diff(x[by_l]))[np.diff(laser[by_l]) == 0]
-        step = float(np.partition(dx, len(dx) // 2)[len(dx) // 2]) if len(dx) else 0.0
         tol = 0.5 * step + OVERHANG_SLACK
         return cls(ids, ends, hit, x_l, x_r, tol, _side_lines(ends, w2, tol, step + tol))
 
@@ -895,28 +934,24 @@ def _side_lines(ends: np.ndarray, w2: float, tol: float, inward: float
     The band is wider inwards: an end kept there pulls the lines in, so that more of the
     board's own ends count as beyond them, which costs their last hit; a holder's end kept
     pulls them out, which hides it."""
-    left = np.flatnonzero(ends[:, 0] < -w2 + EDGE_REACH)
-    right = np.flatnonzero(ends[:, 2] > w2 - EDGE_REACH)
-    xs = np.concatenate((ends[left, 0], ends[right, 2]))
-    zs = np.concatenate((ends[left, 1], ends[right, 3]))
-    side = np.concatenate((np.zeros(len(left)), np.ones(len(right))))
-    out_sign = 2.0 * side - 1.0  # residual x - line times this: > 0 beyond the edge
+    # the ends near each side (left ones first), x = line + residual, and the design of
+    # (a_l, a_r, b): compiled (`align.fit_kernels.side_ends`), as the worst end each round
+    # (`line_excess`); the normal equations and their solution numpy's, as they were
+    xs, out_sign, a, n_r = side_ends(ends, w2, EDGE_REACH)
     keep = np.ones(len(xs), dtype=bool)
-    a = np.column_stack((1.0 - side, side, zs))
+    n_kept = len(xs)
+    side = a[:, 1]
     while True:
-        n_r = int(np.count_nonzero(keep & (side == 1)))
-        if n_r < SIDE_ENDS or int(np.count_nonzero(keep)) - n_r < SIDE_ENDS or \
-                int(np.count_nonzero(keep)) < LINE_ENDS:
+        if n_r < SIDE_ENDS or n_kept - n_r < SIDE_ENDS or n_kept < LINE_ENDS:
             return None
         ak = a[keep]
         coef = np.linalg.solve(ak.T @ ak, ak.T @ xs[keep])  # three unknowns: normal equations
-        beyond = (xs - a @ coef) * out_sign
-        excess = np.where(keep, np.maximum(np.maximum(beyond - tol, -beyond - inward), 0.0),
-                          0.0)
-        worst = int(np.argmax(excess))
-        if excess[worst] <= 0.0:
+        worst, excess = line_excess(xs, a, coef, out_sign, keep, tol, inward)
+        if excess <= 0.0:
             return float(coef[0]), float(coef[1]), float(coef[2])
         keep[worst] = False
+        n_kept -= 1
+        n_r -= int(side[worst] == 1)
 
 
 def _line_at(z: np.ndarray, x: np.ndarray, z0: float) -> float:
@@ -942,7 +977,7 @@ def _partial_hits(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray) -> 
     range, along the beam's centre, when the board's part of the spot outshines a dark or far
     background, so its centre may lie up to half the beam's width outside the edge; a return
     of the whole spot is as bright as the board's inner ones. None partial without inner hits
-    to compare with."""
+    to compare with. (The definition: `_ray_points` takes them in `edge_labels`' pass.)"""
     ref = intensity[(lab == HIT) & inner]
     if len(ref) == 0:
         return np.zeros(len(lab), dtype=bool)
@@ -1054,8 +1089,7 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     """
     rays, coords, spacing = _candidates_at(scans, segs, theta, board)
     expected = coords[2] + offset[0]  # the range expected, offset included
-    lab = _labels(rays, expected, sigma_r)
-    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    lab, order = _labels_ordered(rays, expected, sigma_r)  # order: by scan, laser, azimuth
     # things just behind the board beside its edges, within the range noise of its plane: a
     # few cm of hits on a ring that passes the board, and rings lengthened past a side edge.
     # Left out before the brackets are drawn (a rectangle turned to reach them, as a fit from
@@ -1230,11 +1264,13 @@ def _range_plane(r: np.ndarray, o: np.ndarray, u: np.ndarray, ring: np.ndarray,
 INSIDE_MARGIN = 0.005
 
 
-def _inside_returns(rays: _Rays, theta: np.ndarray, offset: float, board: BoardSpec
-                    ) -> np.ndarray:
+def _inside_returns(rays: _Rays, theta: np.ndarray, offset: float, board: BoardSpec,
+                    coords: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
     """Which ``rays`` return from the plane of ``theta`` (within `LABEL_TOLERANCE` of it, the
-    range ``offset`` removed) inside its rectangle by `INSIDE_MARGIN`."""
-    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    range ``offset`` removed) inside its rectangle by `INSIDE_MARGIN`. ``coords``: the rays'
+    board coordinates at ``theta`` if the caller has them."""
+    x, z, lam = (board_coordinates(theta, rays.origin, rays.direction) if coords is None
+                 else coords)
     return ((rays.distance > 0) & (np.abs(rays.distance - offset - lam) < LABEL_TOLERANCE)
             & (np.abs(x) < board.width / 2 - INSIDE_MARGIN)
             & (np.abs(z) < board.height / 2 - INSIDE_MARGIN))
@@ -1256,12 +1292,13 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # ML plane along the rays, all scans' returns within the RANSAC band
     o_l, u_l, r_l, k_l = [], [], [], []
     for s, i, p in zip(scans, board_idx, pts, strict=True):
-        near = np.abs(p @ n - d) < 0.05
-        sub = s.select(i[near])
-        o_l.append(sub.origins())
-        u_l.append(sub.directions())
-        r_l.append(sub.distance)
-        k_l.append(sub.ring)
+        near = i[np.abs(p @ n - d) < 0.05]
+        lid = s.laser_id[near]
+        o, u = _rays_of(s, near, lid)
+        o_l.append(o)
+        u_l.append(u)
+        r_l.append(s.distance[near])
+        k_l.append(s.lasers.ring_of_laser[lid])
     o_all, u_all, r_all = np.concatenate(o_l), np.concatenate(u_l), np.concatenate(r_l)
     ring_all = np.concatenate(k_l)
     n, d, _, sigma = plane.fit_rays(r_all, o_all, u_all, n, d)
@@ -1271,7 +1308,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # 5 cm in front of the board) sit on other rings: keep rings with a quarter of the most
     # and the board's rings are consecutive: keep the consecutive block with the most returns
     # (the stand's base, a parallel face 5 cm in front, lights up a ring or two below a gap)
-    keep &= np.isin(ring_all, consecutive_ring_block(ring_all[keep]))
+    keep &= in_ring_block(ring_all, keep)  # np.isin(ring, segment.consecutive_ring_block(...))
     n, d, c_plane, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d,
                                           sigma_floor=RANGE_SIGMA_FLOOR)
     # start poses: the plane at the rolls where the board's returns fit the rectangle, each
@@ -1333,7 +1370,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # a holder a few cm behind the board beside an edge, within the band on the board's rings,
     # is in the cluster and leans the plane. (A rectangle that holds less than half the
     # cluster's returns is not the board's: the checks below say so, on the first plane)
-    held = _inside_returns(model.rays, theta, model.offset, board)
+    held = _inside_returns(model.rays, theta, model.offset, board, model.coords(theta))
     if np.count_nonzero(held) >= 0.5 * np.count_nonzero(keep):
         rays_ = model.rays
         r_all, o_all, u_all = rays_.distance[held], rays_.origin[held], rays_.direction[held]
@@ -1352,8 +1389,11 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     dropped = 0
     intensity = np.concatenate([s.intensity for s in scans])  # indexed as the rays' gidx
     for _ in range(STRAY_ROUNDS):
-        cov_ls = np.linalg.pinv(j.T @ j)  # 7 x 7 when the offset is fitted: pose, offset
-        cov = cov_ls[:6, :6]
+        # the least-squares covariance (7 x 7 when the offset is fitted: pose, offset) where
+        # the posterior reads it (fused scans' roll reach, the offset's centre) or where it
+        # stands instead of the posterior (below)
+        cov_ls = (np.linalg.pinv(j.T @ j) if len(scans) > 1 or offset_model is not None
+                  else None)
         if offset_model is not None:
             offset_model.centre = model.offset
             offset_model.centre_std = float(np.sqrt(cov_ls[6, 6])) if len(cov_ls) > 6 else 0.0
@@ -1363,10 +1403,15 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                                   and cov_ls[6, 6] > 0 else None)
         labelled, idx = _ray_points(model, theta, hints.edge_tolerance,
                                     intensity[model.rays.gidx], hints.partial_edge_tolerance)
-        post = label_posterior(labelled, board, theta, float(np.sqrt(max(cov[3, 3], 0.0))),
-                               ml_plane, len(scans), rng, hints.roll_prior, offset_model)
+        # a single scan's posterior searches a fixed reach of roll: no roll sigma needed
+        sd_roll = (float(np.sqrt(max(cov_ls[3, 3], 0.0))) if cov_ls is not None else math.nan)
+        post = label_posterior(labelled, board, theta, sd_roll, ml_plane, len(scans), rng,
+                               hints.roll_prior, offset_model)
         if post is not None:
             break
+        if cov_ls is None:
+            cov_ls = np.linalg.pinv(j.T @ j)
+        cov = cov_ls[:6, :6]
         if not dropped:
             first = (theta, j, conv, model, cov, cov_ls)
         bad = idx[_violation(labelled, board, theta) > STRAY_VIOLATION]
@@ -1422,14 +1467,13 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     n_top = int(np.sum((k == 2) & (sgn > 0)))
     n_bottom = int(np.sum((k == 2) & (sgn < 0)))
     w2, h2 = board.width / 2, board.height / 2
-    seen = _edges_seen(x, z, lab, board)
-    inside = (np.abs(x) < w2) & (np.abs(z) < h2)
-    # blocked: a return in front of the board where the board is (not a stray left out)
-    front = _hit_band(sigma_r)
-    occluded = int(np.sum(inside & (rays.distance > 0) & (rays.distance - b - lam < -front)))
-    dropouts = int(np.sum(inside & (lab == DROPOUT)))
-    inside_miss = int(np.sum(inside & (np.abs(x) < w2 - 0.02) & (np.abs(z) < h2 - 0.02) &
-                             (lab == MISS)))
+    # every edge seen (`_edges_seen`), the rays inside the rectangle, those blocked (a return
+    # in front of the board where the board is: not a stray left out), the dropouts and misses
+    # inside and the hits outside: one compiled pass (`align.fit_kernels.seen_counts`)
+    seen, n_inside, occluded, dropouts, inside_miss, outside_hits = seen_counts(
+        x, z, lam, lab, rays.distance, float(b), _hit_band(sigma_r), w2, h2, WINDOW, 0.02,
+        HIT, MISS, DROPOUT)
+    seen = tuple(bool(v) for v in seen)
     diag = {
         "rings": len(rings_hit), "rays": len(lab), "hits": int(hit.sum()),
         "range_residuals": int(model.use_range.sum()), "brackets": int(np.sum(k > 0)),
@@ -1441,11 +1485,9 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
         "range_sigma_m": sigma_r, "iterations": iters, **offset_diag,
         "chi2_per_dof": float(np.sum(model.residuals(theta) ** 2) / max(len(j) - 6, 1)),
     }
-    outside_hits = int(np.sum((lab == HIT) & ((np.abs(x) > w2 + 0.02) |
-                                              (np.abs(z) > h2 + 0.02))))
     diag["outside_hits"] = outside_hits
     status = Status.OK
-    n_inside = max(int(np.sum(inside)), 1)
+    n_inside = max(n_inside, 1)
     n_hit = max(int(hit.sum()), 1)
     diag["edges_seen"] = "".join("lrbt"[i] for i in range(4) if seen[i])
     if (not all(seen) or int(np.sum(k > 0)) < MIN_BRACKETS

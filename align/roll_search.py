@@ -24,7 +24,7 @@ from numba import njit
 
 from align.board import BoardSpec
 from align.feasible import _rows
-from align.fit_kernels import window_sweep, window_sweep_projected
+from align.fit_kernels import window_sweep, window_sweep_pair
 
 #: Roll grid steps, rad: a coarse pass over the whole range, then a fine one about the coarse
 #: pass's best rolls. The interval of rolls that fit is a degree or more wide for a board seen
@@ -91,15 +91,29 @@ def _subsample(points: np.ndarray, k: int) -> np.ndarray:
 
 
 def _left_out(points: np.ndarray, n: np.ndarray, board: BoardSpec, rolls: np.ndarray,
-              tol: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per roll: how many returns a W x H box (grown by ``tol``) leaves out, and its shift."""
+              tol: float, z_first: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per roll: how many returns a W x H box (grown by ``tol``) leaves out, and its shift.
+
+    Exact at every roll within one of the fewest left out (all that `search` reads: its
+    intervals, and the starts' counts and shifts); a roll that leaves out more gets a bound
+    below its count and above the fewest plus one (what the window along one axis leaves
+    out, the other axis then not swept there: `window_sweep_pair`) and a shift of 0 along
+    the other axis. ``z_first``: sweep across the rings first (cheaper where most rolls
+    leave out many along z and few along x: the coarse pass), else along them."""
     r0, r2 = _rows(rolls, n)
     # `_window_fit` of points @ r0.T and points @ r2.T, the products computed roll by roll
     # inside the sweep (the same floats), not gathered column by column out of (n, K) arrays
     p = np.ascontiguousarray(points, dtype=np.float64)
-    cx, tx = window_sweep_projected(p, np.ascontiguousarray(r0), float(board.width + 2 * tol))
-    cz, tz = window_sweep_projected(p, np.ascontiguousarray(r2), float(board.height + 2 * tol))
-    return 2 * len(points) - cx - cz, tx, tz
+    ax, az = np.ascontiguousarray(r0), np.ascontiguousarray(r2)
+    lx, lz = float(board.width + 2 * tol), float(board.height + 2 * tol)
+    if z_first:
+        cz, tz, cx, tx, counted = window_sweep_pair(p, az, ax, lz, lx)
+        first = cz
+    else:
+        cx, tx, cz, tz, counted = window_sweep_pair(p, ax, az, lx, lz)
+        first = cx
+    m = len(points)
+    return np.where(counted, 2 * m - cx - cz, m - first), tx, tz
 
 
 def _runs(good: np.ndarray) -> list[tuple[int, int]]:
@@ -125,7 +139,7 @@ def search(points: np.ndarray, n: np.ndarray, board: BoardSpec, lo: float, hi: f
     rolls = np.arange(lo - pad, hi + pad + 0.5 * COARSE_STEP, COARSE_STEP)
     coarse = _subsample(points, COARSE_POINTS)
     grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
-    left, _, _ = _left_out(coarse, n, board, rolls, grow)
+    left, _, _ = _left_out(coarse, n, board, rolls, grow, z_first=True)
     fine = _subsample(points, FINE_POINTS)
     starts: list[RollStart] = []
     for a, b in _runs(left <= left.min() + 1):

@@ -31,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from align import api, label_posterior, plane, rays, roll_search, segment
+from align import api, feasible, label_posterior, plane, rays, roll_search, segment
 from scenarios import plans
 from scenarios.bench import SimBench
 from scenarios.runner import align_call, visit
@@ -51,6 +51,8 @@ STAGES = (
     ((rays,), "_candidates_at", "- its candidate rays at a pose (`rays._candidates_at`)"),
     ((rays,), "_gauss_newton", "- its Levenberg-Marquardt (`rays._gauss_newton`)"),
     ((label_posterior, rays), "label_posterior", "hit/miss posterior (`label_posterior`)"),
+    ((feasible,), "plane_posteriors",
+     "- its compiled in-plane posteriors (`feasible.plane_posteriors`)"),
 )
 
 

@@ -114,14 +114,63 @@ def test_profile_matches_numpy_on_real_scans(models):
                                               profile_reference(model, t, ds, tol))
 
 
+def test_profile_best_is_the_profiles_first_minimum(models):
+    """`profile_best` (the brackets costed only where they can decide) against np.argmin of
+    the whole profile: poses off by up to a few cm and degrees, the profile's own tolerance
+    and none, sharp and blurred edges (bracket costs far above the 1e6 of a violation),
+    shifts with ties and a coarse grid."""
+    from align.fit_kernels import _violations, profile_best, profile_cost
+
+    rng = np.random.default_rng(23)
+    for model, theta in models:
+        w2, h2 = model.board.width / 2, model.board.height / 2
+        for k in range(12):
+            t = theta + (rng.normal(size=6) * [2e-2, 5e-3, 2e-2, 3e-2, 1e-2, 1e-2] if k else 0)
+            x, z, _ = model.coords(t)
+            vx, vz = lidar_up(t)
+            for ds in (np.arange(-0.08, 0.0805, 1e-3), np.arange(-0.06, 0.061, 0.02),
+                       np.zeros(5)):
+                for tol, blur in ((3e-3, model.blur_edges), (0.0, (0.0, 0.0)),
+                                  (3e-3, (1e-5, 2e-5))):
+                    args = (x, z, model._hits, model._misses, model.bh, model.bm, ds, vx, vz,
+                            w2, h2, tol, *blur)
+                    assert profile_best(*args) == int(np.argmin(profile_cost(*args)))
+    # synthetic: brackets a micrometre wide, whose cost at a wrong shift outweighs many
+    # violations, so that the least cost lies at a shift with more of them; and exact ties
+    wins_elsewhere = 0
+    for k in range(300):
+        n = 200
+        x, z = rng.uniform(-0.6, 0.6, n), rng.uniform(-0.4, 0.4, n)
+        hits = np.flatnonzero(rng.random(n) < 0.5)
+        misses = np.setdiff1d(np.arange(n), hits)
+        nb = int(rng.integers(0, 6))
+        bh, bm = rng.choice(n, nb), rng.choice(n, nb)
+        x[bm] = x[bh] + rng.choice([1e-6, 1e-3, 0.0], nb)
+        z[bm] = z[bh] + rng.choice([1e-6, 0.0], nb)
+        ds = np.round(np.arange(-0.06, 0.0605, 0.005), 3) if k % 2 else np.arange(-0.06, 0.061,
+                                                                                  0.001)
+        args = (x, z, hits, misses, bh, bm, ds, 0.1 * rng.normal(), 1.0, 0.45, 0.27,
+                3e-3, 1e-7 * (k % 3), 1e-7)
+        cost = profile_cost(*args)
+        want = int(np.argmin(cost))
+        viol = _violations(*args[:4], *args[6:12])
+        wins_elsewhere += viol[want] > viol.min()
+        assert profile_best(*args) == want
+    assert wins_elsewhere > 0  # the case the bound exists for was met
+
+
 def test_brackets_match_numpy_on_real_scans(models):
     rng = np.random.default_rng(5)
     for model, _ in models:
         lab = model.lab.copy()
-        for k in range(3):
-            if k:  # flicker: labels flipped at random make zones of mixed returns
+        for k in range(5):
+            if k in (1, 2):  # flicker: labels flipped at random make zones of mixed returns
                 flip = rng.random(len(lab)) < 0.05 * k
                 lab = np.where(flip & (lab >= 0), 1 - lab, lab).astype(lab.dtype)
+            if k >= 3:  # dropouts (skipped) and unknowns (unlinked) among them
+                odd = rng.random(len(lab)) < 0.04
+                lab = np.where(odd, rays_mod.DROPOUT if k == 3 else rays_mod.UNKNOWN,
+                               lab).astype(lab.dtype)
             got, want = rays_mod._brackets(model.rays, lab), brackets_reference(model.rays, lab)
             assert len(got[0]) > 0
             np.testing.assert_array_equal(got[0], want[0])
@@ -338,6 +387,35 @@ def test_window_firings_match_numpy_on_real_scans():
                                           r_lo, r_hi)
             np.testing.assert_array_equal(idx, want[win])
             np.testing.assert_array_equal(got_rel, rel[win])
+
+
+def test_window_rays_are_board_coordinates_bit_for_bit():
+    """`window_rays` against `board_coordinates` and numpy's mask over every fired ray of real
+    and twin scans (origins with and without vertical offsets), at poses about the board's
+    and far from it."""
+    from align.fit_kernels import window_rays
+    from align.geometry import rotation
+
+    scans = [read_pcd_scans(p)[0] for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    scans.append(BenchSim(seed=3).scan())
+    rng = np.random.default_rng(9)
+    kept = 0
+    for s in scans:
+        o, u = s.origins(), s.directions()
+        for k in range(6):
+            theta = np.array([0.0, -2.5, 0.0, 0.0, 0.0, 0.0]) + rng.normal(size=6) * [
+                0.1, 0.5, 0.1, 0.3, 0.1, 1.0]
+            half_w, half_h = 0.45 + 0.1 * k, 0.27 + 0.1 * k
+            x, z, lam = board_coordinates(theta, o, u)
+            want = np.flatnonzero((lam > 0) & (np.abs(x) < half_w) & (np.abs(z) < half_h))
+            idx, gx, gz, glam = window_rays(o, u, rotation(*theta[3:]), *theta[:3], half_w,
+                                            half_h)
+            np.testing.assert_array_equal(idx, want)
+            np.testing.assert_array_equal(gx, x[want])
+            np.testing.assert_array_equal(gz, z[want])
+            np.testing.assert_array_equal(glam, lam[want])
+            kept += len(want)
+    assert kept > 10_000
 
 
 def classify_reference(model: rays_mod._Model, theta: np.ndarray, guard: float,
@@ -703,3 +781,524 @@ def test_numpy_mean_is_np_mean_bit_for_bit():
         for _ in range(20):
             idx = rng.choice(len(res), n, replace=False)
             assert _numpy_mean(res, idx) == float(res[idx].mean())
+
+
+def sides_reference(x, z, lab, laser, ext, board):
+    """`rays._Sides.of`'s ends as numpy calls (before `laser_ends`): hit, x_l, x_r, the
+    lasers' leftmost and rightmost hits, their ends and the median step; None below 3
+    lasers."""
+    w2, h2, margin = board.width / 2, board.height / 2, rays_mod.feasible.OUTLIER_MARGIN
+    hit = (lab == rays_mod.HIT) & (np.abs(z) < h2 + margin) & (np.abs(x) < w2 + margin)
+    x_l, x_r = x + ext[:, 0], x - ext[:, 1]
+    idx = np.flatnonzero(hit)
+    by_l = idx[np.lexsort((x_l[idx], laser[idx]))]
+    by_r = idx[np.lexsort((-x_r[idx], laser[idx]))]
+    first = np.flatnonzero(np.diff(np.concatenate(([-1], laser[by_l]))))
+    if len(first) < 3:
+        return None
+    il, ir = by_l[first], by_r[first]
+    ends = np.column_stack((x_l[il], z[il], x_r[ir], z[ir]))
+    dx = np.abs(np.diff(x[by_l]))[np.diff(laser[by_l]) == 0]
+    step = float(np.partition(dx, len(dx) // 2)[len(dx) // 2]) if len(dx) else 0.0
+    return hit, x_l, x_r, il, ir, ends, step
+
+
+def test_laser_ends_match_numpy_on_real_scans(models):
+    """`laser_ends` (`rays._Sides.of`) against the lexsorts and diffs it replaced: the fit's
+    poses and others a few cm and degrees off, the side faces of a 3 mm plate and of none,
+    labels flipped at random, and ties (x quantised to 5 mm)."""
+    from align.fit_kernels import laser_ends
+
+    rng = np.random.default_rng(31)
+    compared = 0
+    for model, theta in models:
+        board = model.board
+        for k in range(8):
+            t = theta + (rng.normal(size=6) * [2e-2, 5e-3, 2e-2, 3e-2, 1e-2, 1e-2] if k else 0)
+            x, z, _ = model.coords(t)
+            if k % 4 == 3:
+                x = np.round(x / 0.005) * 0.005
+            lab = model.lab.copy()
+            if k % 2:
+                flip = rng.random(len(lab)) < 0.1
+                lab = np.where(flip & (lab >= 0), 1 - lab, lab).astype(lab.dtype)
+            ext = rays_mod._side_faces(model.rays.direction, t, replace_thickness(board, k))
+            want = sides_reference(x, z, lab, model.rays.laser, ext, board)
+            w2, h2, margin = board.width / 2, board.height / 2, rays_mod.feasible.OUTLIER_MARGIN
+            got = laser_ends(x, z, lab, model.rays.laser, ext, rays_mod.HIT, w2 + margin,
+                             h2 + margin)
+            if want is None:
+                assert len(got[3]) < 3
+                continue
+            for g, w in zip(got, want, strict=True):
+                np.testing.assert_array_equal(g, w)
+            compared += 1
+    assert compared > 30
+
+
+def replace_thickness(board: BoardSpec, k: int) -> BoardSpec:
+    """``board`` with a 3 mm plate for even ``k``, none for odd."""
+    return BoardSpec(board.width, board.height, thickness=0.003 if k % 2 == 0 else 0.0)
+
+
+def test_kth_smallest_is_np_partitions():
+    """`_kth_smallest` (`laser_ends`' median step) against np.partition: random, rounded
+    (ties), constant, sorted and reversed values, one to two thousand of them."""
+    from align.fit_kernels import _kth_smallest
+
+    rng = np.random.default_rng(4)
+    for trial in range(3000):
+        n = int(rng.integers(1, 60)) if trial % 2 else int(rng.integers(1, 2000))
+        a = [rng.random(n), np.round(rng.random(n), 1), np.zeros(n), np.sort(rng.random(n)),
+             np.sort(rng.random(n))[::-1].copy()][trial % 5]
+        k = int(rng.integers(0, n))
+        assert _kth_smallest(a.copy(), k) == np.partition(a, k)[k]
+
+
+def grazing_reference(rays, lab, coords, expected, board, order, sides=None):
+    """`rays._grazing_runs` as numpy calls (before `hit_runs`)."""
+    HIT, MISS, UNKNOWN = rays_mod.HIT, rays_mod.MISS, rays_mod.UNKNOWN
+    x, z = coords[0][order], coords[1][order]
+    lb, az = lab[order], rays.azimuth[order]
+    same = (rays.laser[order][1:] == rays.laser[order][:-1]) & (
+        rays.scan[order][1:] == rays.scan[order][:-1]) & (np.diff(az) < rays_mod.MAX_GAP)
+    hit = lb == HIT
+    behind = (rays.distance[order] > 0) & (rays.distance[order] > expected[order])
+    beside = (lb == MISS) | ((lb == UNKNOWN) & behind)
+    starts = np.flatnonzero(hit & ~np.concatenate(([False], same & hit[:-1])))
+    ends = np.flatnonzero(hit & ~np.concatenate((same & hit[1:], [False])))
+    out = np.zeros(len(lab), dtype=bool)
+    w2, h2, margin = board.width / 2, board.height / 2, rays_mod.feasible.OUTLIER_MARGIN
+    corners = np.array([(-w2, -h2), (w2, -h2), (-w2, h2), (w2, h2)])
+    n = len(lb)
+    seen = (starts > 0) & (ends < n - 1)
+    starts, ends = starts[seen], ends[seen]
+    ok = same[starts - 1] & same[ends] & beside[starts - 1] & beside[ends + 1]
+    spans = np.hypot(x[ends + 1] - x[starts - 1], z[ends + 1] - z[starts - 1])
+    ok &= spans < min(board.width, board.height)
+    for a, b, span in zip(starts[ok], ends[ok], spans[ok], strict=True):
+        xs, zs = x[a:b + 1], z[a:b + 1]
+        if np.all((np.abs(xs) < w2 - margin) & (np.abs(zs) < h2 - margin)):
+            continue
+        if sides is not None and sides.lines is not None:
+            if sides.reaches(xs, zs):
+                continue
+        elif np.min(np.hypot(xs[:, None] - corners[:, 0], zs[:, None] - corners[:, 1])) < \
+                span + rays_mod.CORNER_REACH:
+            continue
+        cx, cz = x[b + 1] - x[a - 1], z[b + 1] - z[a - 1]
+        sag = np.max(np.abs((xs - x[a - 1]) * cz - (zs - z[a - 1]) * cx)) / span
+        if sag < rays_mod.GRAZE_SAG:
+            out[order[a:b + 1]] = True
+    return out
+
+
+def test_grazing_runs_match_numpy_on_real_scans(models):
+    """`rays._grazing_runs` (its runs compiled: `hit_runs`) against the numpy version: the
+    models' labels, and labels flipped at random (short runs of hits beside misses and
+    returns behind, some grazing), with and without the side lines, at poses off the fit's."""
+    from align.fit_kernels import hit_runs
+
+    rng = np.random.default_rng(17)
+    runs = flagged = 0
+    for model, theta in models:
+        rays, board = model.rays, model.board
+        order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+        for k in range(10):
+            t = theta + (rng.normal(size=6) * [1e-2, 5e-3, 1e-2, 2e-2, 5e-3, 5e-3] if k else 0)
+            coords = board_coordinates(t, rays.origin, rays.direction)
+            lab = model.lab.copy()
+            if k % 2:
+                flip = rng.random(len(lab)) < 0.08 * (k % 4)
+                lab = np.where(flip, rng.choice([-1, 0, 1], len(lab)), lab).astype(lab.dtype)
+            expected = coords[2] + (0.02 if k % 3 == 0 else 0.0)
+            ext = rays_mod._side_faces(rays.direction, t, board)
+            for sides in (None, rays_mod._Sides.of(coords[0], coords[1], lab, rays.laser, ext,
+                                                   board)):
+                got = rays_mod._grazing_runs(rays, lab, coords, expected, board, order, sides)
+                want = grazing_reference(rays, lab, coords, expected, board, order, sides)
+                np.testing.assert_array_equal(got, want)
+                flagged += int(np.any(want))
+            runs += len(hit_runs(order, lab, rays.laser, rays.scan, rays.azimuth,
+                                 rays.distance, expected, rays_mod.MAX_GAP, rays_mod.HIT,
+                                 rays_mod.MISS, rays_mod.UNKNOWN)[0])
+    assert runs > 200 and flagged > 0, (runs, flagged)
+
+
+def test_side_faces_match_numpy_on_real_scans():
+    """`side_faces` (`rays._side_faces`) against u @ rot.T and numpy's elementwise steps, bit
+    for bit: every fired ray of real and twin scans, any number of them (one row takes
+    numpy's matrix-vector kernel), at poses about the board's; rays along the plane (a
+    division by zero) as numpy gives them."""
+    from align.fit_kernels import side_faces
+    from align.geometry import rotation
+
+    def reference(u, theta, thickness):
+        rot = rotation(theta[3], theta[4], theta[5])
+        dn = u @ rot.T
+        ratio_x, ratio_z = dn[:, 0] / dn[:, 1], dn[:, 2] / dn[:, 1]
+        return thickness * np.maximum(0.0, np.column_stack((ratio_x, -ratio_x, ratio_z,
+                                                            -ratio_z)))
+
+    scans = [read_pcd_scans(p)[0] for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    scans.append(BenchSim(seed=3).scan())
+    rng = np.random.default_rng(13)
+    for s in scans:
+        u_all = s.directions()
+        for k in range(12):
+            theta = rng.normal(size=6) * [0.1, 0.5, 0.1, 0.3, 0.1, 1.0]
+            m = [len(u_all), 1, 2, 3, 5, 17, 64][k % 7]
+            u = u_all if m == len(u_all) else u_all[rng.choice(len(u_all), m)]
+            if k == 11:  # rays along the plane (no rotation): divisions by zero
+                theta[3:] = 0.0
+                u = u.copy()
+                u[0], u[1] = (1.0, 0.0, 0.0), (0.0, 0.0, 0.0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                want = reference(u, theta, 0.003)
+            np.testing.assert_array_equal(side_faces(u, rotation(*theta[3:]), 0.003), want)
+
+
+def side_lines_reference(ends, w2, tol, inward):
+    """`rays._side_lines` as numpy calls (before `side_ends`, `line_excess`)."""
+    reach, side_ends_min, line_ends_min = (rays_mod.EDGE_REACH, rays_mod.SIDE_ENDS,
+                                           rays_mod.LINE_ENDS)
+    left = np.flatnonzero(ends[:, 0] < -w2 + reach)
+    right = np.flatnonzero(ends[:, 2] > w2 - reach)
+    xs = np.concatenate((ends[left, 0], ends[right, 2]))
+    zs = np.concatenate((ends[left, 1], ends[right, 3]))
+    side = np.concatenate((np.zeros(len(left)), np.ones(len(right))))
+    out_sign = 2.0 * side - 1.0
+    keep = np.ones(len(xs), dtype=bool)
+    a = np.column_stack((1.0 - side, side, zs))
+    while True:
+        n_r = int(np.count_nonzero(keep & (side == 1)))
+        if n_r < side_ends_min or int(np.count_nonzero(keep)) - n_r < side_ends_min or \
+                int(np.count_nonzero(keep)) < line_ends_min:
+            return None
+        ak = a[keep]
+        coef = np.linalg.solve(ak.T @ ak, ak.T @ xs[keep])
+        beyond = (xs - a @ coef) * out_sign
+        excess = np.where(keep, np.maximum(np.maximum(beyond - tol, -beyond - inward), 0.0),
+                          0.0)
+        worst = int(np.argmax(excess))
+        if excess[worst] <= 0.0:
+            return float(coef[0]), float(coef[1]), float(coef[2])
+        keep[worst] = False
+
+
+def test_side_lines_match_numpy():
+    """`rays._side_lines` (compiled around numpy's normal equations) against the numpy
+    version, bit for bit: lasers' ends of a rolled board with noise, holders' ends beyond a
+    side, rings leaving through the top or bottom (ends well inside), too few ends."""
+    rng = np.random.default_rng(21)
+    w2 = 0.45
+    found = dropped = 0
+    for _ in range(3000):
+        n = int(rng.integers(2, 16))
+        z = np.sort(rng.uniform(-0.27, 0.27, n))
+        slope = rng.normal() * 0.05
+        ends = np.column_stack((-w2 + slope * z + rng.normal(size=n) * 0.004, z,
+                                w2 + slope * z + rng.normal(size=n) * 0.004, z))
+        for _ in range(int(rng.integers(0, 3))):  # a holder beyond, or a ring leaving early
+            i, c = int(rng.integers(n)), int(rng.choice([0, 2]))
+            ends[i, c] += (1 if c == 2 else -1) * rng.choice([0.01, 0.03, -0.02, -0.06])
+        tol, inward = 0.006 + 0.002 * rng.random(), 0.015 + 0.01 * rng.random()
+        want = side_lines_reference(ends, w2, tol, inward)
+        got = rays_mod._side_lines(ends, w2, tol, inward)
+        assert got == want
+        found += want is not None
+        dropped += want is not None and want != side_lines_reference(ends, w2, 1.0, 1.0)
+    assert found > 1000 and dropped > 100, (found, dropped)
+
+
+def test_lidar_up_is_the_rotations_column_bit_for_bit():
+    """`geometry.lidar_up` (R's entries without the 3 x 3 array) against its definition from
+    `geometry.rotation`: the same floats, including a LiDAR looking along the plane."""
+    import math
+
+    from align.geometry import rotation
+
+    rng = np.random.default_rng(3)
+    for k in range(20000):
+        theta = rng.normal(size=6) * (3.0 if k % 2 else 0.05)
+        if k % 7 == 0:
+            theta[4] = np.pi / 2
+        r = rotation(theta[3], theta[4], theta[5])
+        nv = math.hypot(r[0, 2], r[2, 2])
+        want = (0.0, 1.0) if nv < 1e-9 else (float(r[0, 2] / nv), float(r[2, 2] / nv))
+        assert lidar_up(theta) == want
+
+
+def test_normal_equations_in_registers_are_the_loops():
+    """`_normal_equations` of six columns (its sums in registers) against the loop over the
+    array it replaced: the same floats, the products added in the same order."""
+    from numba import njit
+
+    from align.fit_kernels import _normal_equations
+
+    @njit
+    def loop(j, f):
+        n_p = j.shape[1]
+        a, g = np.zeros((n_p, n_p)), np.zeros(n_p)
+        for i in range(j.shape[0]):
+            for r in range(n_p):
+                jr = j[i, r]
+                g[r] += jr * f[i]
+                for c in range(r + 1):
+                    a[r, c] += jr * j[i, c]
+        for r in range(n_p):
+            for c in range(r):
+                a[c, r] = a[r, c]
+        return a, g
+
+    rng = np.random.default_rng(5)
+    for n in (0, 1, 7, 555):
+        for cols in (6, 7):
+            j = rng.normal(size=(n, cols)) * rng.lognormal(size=cols) * 1e3
+            f = rng.normal(size=n)
+            for got, want in zip(_normal_equations(j, f), loop(j, f), strict=True):
+                np.testing.assert_array_equal(got, want)
+
+
+def test_window_pool_is_the_scans_selected_rays():
+    """`window_pool` (`rays._candidate_pool`) against `window_firings` and `Scan.select`'s
+    origins, directions, ranges, lasers and rings, bit for bit, on real and twin scans, with
+    and without the lasers' vertical offsets applied (the sine and cosine of the azimuth are
+    numba's: the C library's, as numpy's)."""
+    from dataclasses import replace
+
+    from align.fit_kernels import window_firings, window_pool
+
+    scans = [read_pcd_scans(p)[0] for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    scans.append(BenchSim(seed=3).scan())
+    scans += [replace(s, vertical_offsets_applied=False) for s in scans[-2:]]
+    rng = np.random.default_rng(19)
+    for s in scans:
+        lasers = s.lasers
+        offset_z = (np.array(lasers.vertical_offset) if s.vertical_offsets_applied
+                    else np.zeros(lasers.n_lasers))
+        for c in (0.0, np.pi - 1e-3, float(rng.uniform(-np.pi, np.pi))):
+            lo, hi = sorted(rng.uniform(-np.pi, np.pi, 2))
+            r_lo = int(rng.integers(-1, 8))
+            r_hi = r_lo + int(rng.integers(0, 9))
+            idx, rel = window_firings(s.azimuth, s.laser_id, lasers.ring_of_laser, c, lo, hi,
+                                      r_lo, r_hi)
+            sub = s.select(idx)
+            want = (idx, sub.origins(), sub.directions(), sub.distance, sub.laser_id, rel + c,
+                    sub.ring)
+            got = window_pool(s.azimuth, s.laser_id, s.distance, lasers.ring_of_laser,
+                              np.cos(lasers.elevation), np.sin(lasers.elevation), offset_z, c,
+                              lo, hi, r_lo, r_hi)
+            for g, w in zip(got, want, strict=True):
+                np.testing.assert_array_equal(g, w)
+                assert g.dtype == w.dtype
+
+
+def test_pool_rows_are_numpys_gathers(models):
+    """`pool_rows` (`rays._candidates_at`'s rows of the pool) against numpy's fancy indexing
+    of each field, values and dtypes."""
+    from align.fit_kernels import pool_rows
+
+    rng = np.random.default_rng(29)
+    for model, _ in models:
+        r = model.rays
+        fields = (r.origin, r.direction, r.distance, r.laser, r.azimuth, r.ring, r.gidx, r.scan)
+        for size in (0, 1, len(r.distance) // 2):
+            keep = np.sort(rng.choice(len(r.distance), size, replace=False))
+            for got, a in zip(pool_rows(keep, *fields), fields, strict=True):
+                np.testing.assert_array_equal(got, a[keep])
+                assert got.dtype == a.dtype
+
+
+def test_the_warm_up_compiles_the_fits_and_the_posteriors_kernels():
+    """`scenarios.warmup` (run by make setup) leaves none of the kernels the default
+    estimate calls in `align.fit_kernels`, `align.feasible` and `align.kernels` (the rays'
+    RANSAC) for a command to compile. (The others are compiled into these, or serve the
+    tests' numpy references.)"""
+    from align import feasible, fit_kernels, kernels
+    from scenarios.warmup import warm_up
+
+    warm_up()
+    called = {
+        fit_kernels: ("window_pool", "window_rays", "pool_rows", "laser_ends", "side_faces",
+                      "side_ends", "line_excess", "hit_runs", "laser_brackets", "binding_rays",
+                      "ray_products", "shifted_coords", "profile_best", "window_sweep_pair",
+                      "lm_fit", "ray_plane_fit", "behind_groups", "between_hits",
+                      "column_brackets", "classify_edges", "range_rays", "used_edges",
+                      "contradicted", "edge_labels", "range_labels", "bright_limit",
+                      "seen_counts"),
+        feasible: ("plane_posteriors",),
+        kernels: ("msac_best", "in_ring_block", "lsq_plane", "fit_residuals"),
+    }
+    missing = [f"{mod.__name__}.{name}" for mod, names in called.items() for name in names
+               if not getattr(mod, name).signatures]
+    assert missing == []
+
+
+def ray_points_reference(model, theta, tolerance, intensity=None, partial=(0.0, 0.0)):
+    """`rays._ray_points` as numpy calls (before `edge_labels`)."""
+    rays, board = model.rays, model.board
+    x, z, lam = board_coordinates(theta, rays.origin, rays.direction)
+    lab = model.lab
+    w2, h2, margin = board.width / 2, board.height / 2, rays_mod.feasible.OUTLIER_MARGIN
+    inner = (np.abs(x) < w2 - margin) & (np.abs(z) < h2 - margin)
+    outer = (np.abs(x) > w2 + margin) | (np.abs(z) > h2 + margin)
+    use = ((lab == 1) & ~outer) | ((lab == 0) & ~inner)
+    u = rays.direction
+    ext = rays_mod._side_faces(u, theta, board)
+    vx, vz = lidar_up(theta)
+    t_h, t_v = np.full(len(lab), tolerance[0]), np.full(len(lab), tolerance[1])
+    if intensity is not None:
+        part = rays_mod._partial_hits(lab, intensity, inner)
+        t_h[part] = max(tolerance[0], partial[0]) if tolerance[0] > 0 else 0.0
+        t_v[part] = max(tolerance[1], partial[1]) if tolerance[1] > 0 else 0.0
+    per_x, per_z = np.hypot(t_h * vz, t_v * vx), np.hypot(t_h * vx, t_v * vz)
+    per_edge = np.column_stack((per_x, per_x, per_z, per_z))
+    ext += (lam * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
+    use &= ~rays_mod._overhanging(x, z, lab, rays.laser, ext, board)
+    odds = rays_mod._clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r)
+    return (rays_mod.LabelledRays(rays.origin[use], u[use], lab[use], ext[use],
+                                  odds * (lab[use] == rays_mod.HIT)), np.flatnonzero(use))
+
+
+def test_ray_points_match_numpy_on_real_scans(models):
+    """`rays._ray_points` (its labels and allowances compiled: `edge_labels`) against the
+    numpy version, bit for bit: sharp and divergent tolerances, partial tolerances, random
+    intensities (dim hits, an even and an odd number of reference hits: np.median's mean of
+    the middle two) and none, at the fit's pose and off it."""
+    rng = np.random.default_rng(37)
+    partials, parities = 0, set()
+    for model, theta in models:
+        n = len(model.lab)
+        for k in range(8):
+            t = theta + (rng.normal(size=6) * [5e-3, 2e-3, 5e-3, 5e-3, 2e-3, 2e-3] if k else 0)
+            tolerance = ((0.0, 0.0), (8e-5, 5e-4), (0.0, 5e-4), (3e-4, 0.0))[k % 4]
+            partial = (1e-3, 1.5e-3) if k % 3 else (0.0, 0.0)
+            intensity = None if k == 5 else rng.integers(0, 256 if k % 2 else 60, n).astype(
+                np.uint8)
+            if intensity is not None and k == 6:  # an odd number of reference hits
+                intensity[:] = 40
+            got = rays_mod._ray_points(model, t, tolerance, intensity, partial)
+            want = ray_points_reference(model, t, tolerance, intensity, partial)
+            for a, b in zip((got[0].origin, got[0].direction, got[0].label, got[0].ext,
+                             got[0].odds, got[1]),
+                            (want[0].origin, want[0].direction, want[0].label, want[0].ext,
+                             want[0].odds, want[1]), strict=True):
+                np.testing.assert_array_equal(a, b)
+            if intensity is not None:
+                x, z, _ = board_coordinates(t, model.rays.origin, model.rays.direction)
+                inner = (np.abs(x) < model.board.width / 2 - 0.03) & (
+                    np.abs(z) < model.board.height / 2 - 0.03)
+                partials += int(np.any(rays_mod._partial_hits(model.lab, intensity, inner)))
+                parities.add(int(np.count_nonzero((model.lab == rays_mod.HIT) & inner)) % 2)
+    assert partials > 10 and parities == {0, 1}
+
+
+def labels_reference(rays, lam, sigma_r):
+    """`rays._labels` as numpy calls (before `range_labels`)."""
+    lab = np.zeros(len(lam), dtype=np.int8)
+    ret = rays.distance > 0
+    res = rays.distance - lam
+    near = rays_mod._hit_band(sigma_r)
+    lab[ret & (np.abs(res) <= near)] = rays_mod.HIT
+    lab[ret & ((res < -near) | ((res > near) & (res <= rays_mod.LABEL_TOLERANCE)))] = \
+        rays_mod.UNKNOWN
+    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    lab[rays_mod._behind_ends(rays, lab, res, sigma_r, order)] = rays_mod.UNKNOWN
+    inner = rays_mod._between_hits(rays, lab, order) & ~ret
+    hits = int(np.count_nonzero(lab == rays_mod.HIT))
+    if np.count_nonzero(inner) >= max(rays_mod.MIN_DROPOUTS, rays_mod.DROPOUT_FRACTION * hits):
+        lab[~ret] = rays_mod.DROPOUT
+    return lab
+
+
+def bright_ends_reference(rays, lab, intensity, inner, order):
+    """`rays._bright_ends` as numpy calls (before `bright_limit`)."""
+    import itertools
+
+    out = np.zeros(len(lab), dtype=bool)
+    ref = intensity[(lab == rays_mod.HIT) & inner]
+    if len(ref) < rays_mod.BRIGHT_REFERENCE:
+        return out
+    hits = order[lab[order] == rays_mod.HIT]
+    k = int(0.99 * (len(ref) - 1))
+    odd = intensity[hits] > rays_mod.BRIGHT_RATIO * float(np.partition(ref, k)[k])
+    if not np.any(odd):
+        return out
+    key = rays.scan[hits].astype(np.int64) * 256 + rays.laser[hits]
+    bounds = np.flatnonzero(np.diff(np.concatenate(([-1], key, [-1]))))
+    for a, b in itertools.pairwise(bounds):
+        if not (odd[a] or odd[b - 1]):
+            continue
+        i = a
+        while i < b and odd[i]:
+            i += 1
+        j = b
+        while j > i and odd[j - 1]:
+            j -= 1
+        out[hits[a:i]] = True
+        out[hits[j:b]] = True
+    return out
+
+
+def test_labels_and_bright_ends_match_numpy_on_real_scans(models):
+    """`rays._labels` (`range_labels`) and `rays._bright_ends` (`bright_limit`) against the
+    numpy versions: ranges off the plane by up to the label tolerance and more, several range
+    sigmas, intensities with bright holders at the ends of the rings and without."""
+    rng = np.random.default_rng(41)
+    bright = 0
+    for model, theta in models:
+        rays = model.rays
+        _, _, lam = board_coordinates(theta, rays.origin, rays.direction)
+        for k in range(6):
+            lam_k = lam + rng.normal(size=len(lam)) * (0.02 if k % 2 else 0.002)
+            sigma_r = (0.003, 0.014, 0.03)[k % 3]
+            lab = rays_mod._labels(rays, lam_k, sigma_r)
+            np.testing.assert_array_equal(lab, labels_reference(rays, lam_k, sigma_r))
+            order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+            intensity = rng.integers(20, 60, len(lab)).astype(np.uint8)
+            if k % 2:  # a bright holder at a ring's ends, and a few bright returns
+                hits = order[lab[order] == rays_mod.HIT]
+                intensity[hits[:2]] = intensity[hits[-1]] = 250
+                intensity[rng.random(len(lab)) < 0.004] = 250
+            inner = rng.random(len(lab)) < 0.7
+            got = rays_mod._bright_ends(rays, lab, intensity, inner, order)
+            np.testing.assert_array_equal(got, bright_ends_reference(rays, lab, intensity,
+                                                                     inner, order))
+            bright += int(np.any(got))
+    assert bright > 0
+
+
+def test_seen_counts_match_numpy_on_real_scans(models):
+    """`seen_counts` (the estimate's account of what was seen) against `rays._edges_seen` and
+    numpy's masks: the models' labels, with misses, dropouts and returns in front put in at
+    random, at poses off the fit's (edges unseen, rays blocked)."""
+    from align.fit_kernels import seen_counts
+
+    rng = np.random.default_rng(43)
+    for model, theta in models:
+        rays, board = model.rays, model.board
+        w2, h2 = board.width / 2, board.height / 2
+        for k in range(8):
+            t = theta + (rng.normal(size=6) * [3e-2, 1e-2, 3e-2, 3e-2, 1e-2, 1e-2] if k else 0)
+            x, z, lam = board_coordinates(t, rays.origin, rays.direction)
+            lab = model.lab.copy()
+            if k % 2:
+                lab = np.where(rng.random(len(lab)) < 0.05, rng.choice(
+                    [rays_mod.MISS, rays_mod.DROPOUT, rays_mod.HIT], len(lab)), lab).astype(
+                    lab.dtype)
+            distance = rays.distance - (0.2 if k % 3 == 0 else 0.0) * (rng.random(len(lab))
+                                                                        < 0.1)
+            b, front = 0.003 * k, 0.04
+            inside = (np.abs(x) < w2) & (np.abs(z) < h2)
+            want = (rays_mod._edges_seen(x, z, lab, board), int(np.sum(inside)),
+                    int(np.sum(inside & (distance > 0) & (distance - b - lam < -front))),
+                    int(np.sum(inside & (lab == rays_mod.DROPOUT))),
+                    int(np.sum(inside & (np.abs(x) < w2 - 0.02) & (np.abs(z) < h2 - 0.02)
+                               & (lab == rays_mod.MISS))),
+                    int(np.sum((lab == rays_mod.HIT) & ((np.abs(x) > w2 + 0.02)
+                                                        | (np.abs(z) > h2 + 0.02)))))
+            got = seen_counts(x, z, lam, lab, distance, b, front, w2, h2, rays_mod.WINDOW,
+                              0.02, rays_mod.HIT, rays_mod.MISS, rays_mod.DROPOUT)
+            assert tuple(bool(v) for v in got[0]) == want[0]
+            assert got[1:] == want[1:]

@@ -160,3 +160,40 @@ def test_per_laser_directions_span_the_plane_given_the_offset_beside_w():
     assert abs(axes[0][1]) > 3 * abs(axes[0][0])  # mostly the lean: tilt
     # without per-laser offsets nothing more is profiled
     assert _laser_directions(OffsetModel(0.0, np.zeros(3), 1e-6), c_cond, w) == []
+
+
+def test_near_is_the_binding_masks_subset_and_split():
+    """`LabelledRays.near` (compiled: `fit_kernels.binding_rays`) against its numpy version:
+    board coordinates, `binding`'s masks, `select`, and the subset's own split into hits and
+    misses, bit for bit, at poses about the labels' and off them, for reaches up to 4 deg;
+    rays with origins off the centre (a laser's vertical offset)."""
+    from align.geometry import lidar_up
+    from align.label_posterior import binding
+
+    rng = np.random.default_rng(12)
+    for k in range(40):
+        theta = _pose(rng)
+        rays = _scan(rng, theta)
+        if k % 2:
+            o = rays.origin.copy()
+            o[:, 2] = rng.choice([-0.0254, 0.0, 0.0127], len(o))
+            rays = LabelledRays(o, rays.direction, rays.label, rays.ext + 1e-3 * rng.random(
+                rays.ext.shape), rng.random(len(o)))
+        ref = theta + rng.normal(size=6) * [0.01, 0.003, 0.01, 0.01, 0.003, 0.003]
+        reach = float(rng.uniform(0.0, np.deg2rad(4.0)))
+        got = rays.near(BOARD, ref, reach)
+        x, z, _ = board_coordinates(ref, rays.origin, rays.direction)
+        vx, vz = lidar_up(ref)
+        arm = (0.5 * BOARD.diagonal + 0.2) * reach
+        want = rays.select(binding(BOARD, x, z, rays.label, 0.02 + 0.08 * abs(vx) + arm,
+                                   0.02 + 0.08 * abs(vz) + arm))
+        assert 0 < len(want.label) < len(rays.label)
+        for a, b in zip((got.origin, got.direction, got.label, got.ext, got.odds),
+                        (want.origin, want.direction, want.label, want.ext, want.odds),
+                        strict=True):
+            np.testing.assert_array_equal(a, b)
+        split = [np.ascontiguousarray(a[m], dtype=np.float64)
+                 for m in (want.label == 1, want.label == 0)
+                 for a in (want.origin, want.direction, want.ext)]
+        for a, b in zip(got._split, split, strict=True):
+            np.testing.assert_array_equal(a, b)

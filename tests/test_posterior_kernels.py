@@ -209,3 +209,63 @@ def test_label_moments_equal_every_label_on_twin_scans(twin_batches):
                                                    feasible._limits(miss_ext, w2, h2), r0, r2)
             assert len(hits) < len(ph) and len(misses) < len(pm)  # some are left out
     assert planes >= 60, planes
+
+
+def _soft_every_label(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2, odds, soft):
+    """`feasible.soft_moments` by its definition: the soft hits it weighs, then the sum over
+    which of them are off the board of their weights times every label's moments without
+    them (`_moments_every_label`), in its order."""
+    full = _moments_every_label(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2)
+    if not np.any(full[:, 0] > 0):
+        return full
+    hits, _ = feasible.binding_labels(p_hit, p_miss, feasible._limits(ext_hit, w2, h2),
+                                      feasible._limits(ext_miss, w2, h2), r0, r2)
+    chosen = feasible._binding_soft(p_hit, p_miss, ext_hit, feasible._limits(ext_miss, w2, h2),
+                                    r0, r2, w2, h2, soft, hits)[0]
+    if len(chosen) == 0:
+        return full
+    kappa = np.minimum(odds[chosen], 1.0)
+    total = np.zeros_like(full)
+    for mask in range(1 << len(chosen)):
+        w, keep = 1.0, np.ones(len(p_hit), dtype=bool)
+        for t in range(len(chosen)):
+            off = (mask >> t) & 1
+            w *= kappa[t] if off else 1.0 - kappa[t]
+            keep[chosen[t]] = not off
+        if w == 0.0:
+            continue
+        total += w * (full if mask == 0 else _moments_every_label(
+            p_hit[keep], p_miss, ext_hit[keep], ext_miss, r0, r2, w2, h2))
+    return total
+
+
+def test_soft_moments_equal_their_sum_over_every_label(twin_batches):
+    # soft_moments reuses the binding labels its choice of soft hits found and, at the rolls
+    # where a subset's hits' box is the whole set's, the whole set's moments: the same floats
+    # as the sum over subsets of every label's moments. The estimate's own odds, and odds of
+    # 0.5 on a few random hits (more subsets weighed, at rolls where they bind and where not)
+    rng = np.random.default_rng(2)
+    weighed = 0
+    for (hit_o, hit_u, hit_ext, miss_o, miss_u, miss_ext, normals, ds, rolls, _, w2,
+         h2, odds) in twin_batches:
+        for variant in range(2):
+            if variant:
+                odds = np.zeros(len(hit_o))
+                odds[rng.choice(len(hit_o), min(6, len(hit_o)), replace=False)] = 0.5
+            if len(odds) == 0:
+                continue
+            soft = feasible._soft_hits(odds)
+            for n, d in list(zip(normals, ds, strict=True))[::4]:
+                ph = feasible._points(hit_o, hit_u, n, d)
+                pm = feasible._points(miss_o, miss_u, n, d)
+                r0, r2 = feasible._rows_of(np.cos(rolls), np.sin(rolls), n)
+                got = feasible.soft_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2, odds,
+                                            soft)
+                ref = _soft_every_label(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2, odds, soft)
+                np.testing.assert_array_equal(got, ref)
+                hits, _ = feasible.binding_labels(ph, pm, feasible._limits(hit_ext, w2, h2),
+                                                  feasible._limits(miss_ext, w2, h2), r0, r2)
+                weighed += len(feasible._binding_soft(ph, pm, hit_ext,
+                                                      feasible._limits(miss_ext, w2, h2), r0,
+                                                      r2, w2, h2, soft, hits)[0]) > 0
+    assert weighed >= 10, weighed

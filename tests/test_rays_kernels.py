@@ -128,3 +128,41 @@ def test_compiled_residuals_and_jacobian_match_numpy_on_real_scans(models):
                 tol = (1e-12 if c < 3 else 1e-7) * col
                 np.testing.assert_allclose(jg[:, c], jw[:, c], rtol=0, atol=tol, err_msg=c)
         model.offset = 0.0
+
+
+def test_msac_ransac_is_numpys_scoring():
+    """`plane.ransac(truncated=True)` (the rays' start plane), scored by `kernels.msac_best`,
+    against numpy's scoring of the same draws (`plane._ransac_scored`): the same plane and
+    inliers on point sets of real and twin scans (a board's returns and its surround, which
+    hold hypotheses of near-equal cost), every choice certain or left to numpy. And two
+    identical hypotheses (a triple drawn twice): not certain, so numpy's first minimum."""
+    from align import kernels, plane
+
+    scans = [read_pcd_scans(p)[0] for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
+    sim = BenchSim(seed=3)
+    scans += [sim.scan() for _ in range(2)]
+    compared = certain = 0
+    for s in scans:
+        m = s.distance > 0
+        pts_all = np.column_stack((s.x[m], s.y[m], s.z[m]))
+        near = pts_all[np.linalg.norm(pts_all, axis=1) < 3.5]
+        for seed in range(4):
+            rng = np.random.default_rng(seed)
+            pts = near[rng.choice(len(near), min(600, len(near)), replace=False)]
+            for threshold in (0.04, 0.01):
+                tri = np.random.default_rng(seed + 10).integers(0, len(pts), size=(100, 3))
+                want = plane._ransac_scored(pts, tri, threshold, True)
+                got = plane.ransac(pts, threshold, np.random.default_rng(seed + 10), 100,
+                                   truncated=True)
+                np.testing.assert_array_equal(got[0], want[0])
+                assert got[1] == want[1]
+                np.testing.assert_array_equal(got[2], want[2])
+                compared += 1
+                certain += kernels.msac_best(np.ascontiguousarray(pts.T), tri, threshold)[1]
+    assert compared >= 50
+    assert certain >= 0.9 * compared  # the compiled choice, not numpy's, was tested
+    tri = np.array([[0, 1, 2], [3, 4, 5], [0, 1, 2]])
+    pts = np.random.default_rng(1).normal(size=(50, 3))
+    best, certain, _ = kernels.msac_best(np.ascontiguousarray(pts.T), tri, 0.04)
+    if best in (0, 2):
+        assert not certain
