@@ -569,25 +569,245 @@ def scatter_cast(ray_index: np.ndarray, dist_c: np.ndarray, gid_c: np.ndarray,
     return None
 
 
+# --------------------------------------------------------------------------------------------
+# MuJoCo's ray functions (src/engine/engine_ray.c), the same operations in the same order
+# --------------------------------------------------------------------------------------------
+# What `mujoco.mj_multiRay` answers for one ray and one geom, reproduced from engine_ray.c
+# (read at google-deepmind/mujoco 3.12.0+, the newest source at hand; the installed MuJoCo is
+# 4.0.1 and tests/test_raykernel_solids.py checks every function here against it, bit for
+# bit). C's evaluation order is kept expression by expression (a*b + c*d + e*f is
+# ((a*b) + (c*d)) + (e*f) in both; numba, like MuJoCo's build, fuses no multiply-add and
+# reorders nothing), helpers as their engine_util_blas.c / engine_util_spatial.c definitions
+# (mju_normalize3, mju_mulMatVec3, mju_cross), comparisons as written (NaN falls through them
+# as it does in C: a direction parallel to a face divides by zero into inf and nan, MuJoCo's
+# own checks then reject it). Each function returns the distance (-1: no hit) and the world
+# normal (0 without a hit), as mj_multiRay gives them.
+#: Geom kinds (`solid_cast`'s ``g_kind``), MuJoCo's mjtGeom types the kernels answer;
+#: KIND_MUJOCO is any other (a height field, an SDF: none in the shipped scenes), left to
+#: mj_multiRay. `twin.sim.emulation.geom_kinds` maps a model's types.
+KIND_MUJOCO, KIND_BOX, KIND_SPHERE, KIND_CAPSULE, KIND_ELLIPSOID, KIND_CYLINDER, KIND_MESH = (
+    0, 1, 2, 3, 4, 5, 6)
+#: mjMAXTREEDEPTH (mjmodel.h): the deepest mesh BVH MuJoCo traverses (the stack's size).
+MJ_MAX_TREE_DEPTH = 50
+
+
 @njit(inline="always", error_model="numpy")
-def _ray_box(o: np.ndarray, v: np.ndarray, pos: np.ndarray, mat: np.ndarray, size: np.ndarray
-             ) -> tuple[float, int, float]:
-    """MuJoCo's ``ray_box`` (engine_ray.c), the same operations in the same order: the ray
-    from world ``o`` along ``v`` mapped into the box's frame (``mat`` row-major, the
-    transpose applied as mju_mulMatTVec3 does), each face's plane solved where the direction's
-    component exceeds mjMINVAL, a solution >= 0 kept when it lies inside the face (<= the
-    half-sizes), the smallest kept. Returns (distance or -1, axis, side)."""
-    d0 = o[0] - pos[0]
-    d1 = o[1] - pos[1]
-    d2 = o[2] - pos[2]
+def _ray_quad(a: float, b: float, c: float) -> tuple[float, float, float]:
+    """engine_ray.c ``ray_quad``: the real roots x0 <= x1 of a x^2 + 2 b x + c = 0 (both -1
+    when there are none or a < mjMINVAL) and the smallest non-negative of them (-1: none).
+    Returns (smallest, x0, x1)."""
+    det = b * b - a * c
+    if det < 0.0 or a < MJMINVAL:
+        return -1.0, -1.0, -1.0
+    det = math.sqrt(det)
+    x0 = (-b - det) / a
+    x1 = (-b + det) / a
+    if x0 >= 0.0:
+        return x0, x0, x1
+    if x1 >= 0.0:
+        return x1, x0, x1
+    return -1.0, x0, x1
+
+
+@njit(inline="always", error_model="numpy")
+def _normalize3(x: float, y: float, z: float) -> tuple[float, float, float]:
+    """engine_util_blas.c ``mju_normalize3``: (1, 0, 0) below mjMINVAL, else times 1 / norm."""
+    norm = math.sqrt(x * x + y * y + z * z)
+    if norm < MJMINVAL:
+        return 1.0, 0.0, 0.0
+    inv = 1.0 / norm
+    return x * inv, y * inv, z * inv
+
+
+@njit(inline="always", error_model="numpy")
+def _mat_vec3(m: tuple, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """engine_util_blas.c ``mju_mulMatVec3``: ``m`` (9,) row-major times (x, y, z)."""
+    return (m[0] * x + m[1] * y + m[2] * z, m[3] * x + m[4] * y + m[5] * z,
+            m[6] * x + m[7] * y + m[8] * z)
+
+
+@njit(inline="always", error_model="numpy")
+def _ray_map(pos: tuple, mat: tuple, p0: float, p1: float, p2: float, v0: float,
+             v1: float, v2: float) -> tuple[float, float, float, float, float, float]:
+    """engine_ray.c ``ray_map``: the ray (point p, direction v) in the frame of a geom at
+    ``pos`` with orientation ``mat`` (9,): mat^T (p - pos), mat^T v."""
+    d0 = p0 - pos[0]
+    d1 = p1 - pos[1]
+    d2 = p2 - pos[2]
+    return (mat[0] * d0 + mat[3] * d1 + mat[6] * d2, mat[1] * d0 + mat[4] * d1 + mat[7] * d2,
+            mat[2] * d0 + mat[5] * d1 + mat[8] * d2, mat[0] * v0 + mat[3] * v1 + mat[6] * v2,
+            mat[1] * v0 + mat[4] * v1 + mat[7] * v2, mat[2] * v0 + mat[5] * v1 + mat[8] * v2)
+
+
+@njit(inline="always", error_model="numpy")
+def _ray_sphere(pos: tuple, dist_sqr: float, p0: float, p1: float, p2: float, v0: float,
+                v1: float, v2: float) -> float:
+    """engine_ray.c ``ray_sphere`` without its normal: the sphere of squared radius
+    ``dist_sqr`` at ``pos`` (also the bounding-sphere test of the capsule, cylinder and
+    box)."""
+    d0 = p0 - pos[0]
+    d1 = p1 - pos[1]
+    d2 = p2 - pos[2]
+    a = v0 * v0 + v1 * v1 + v2 * v2
+    b = v0 * d0 + v1 * d1 + v2 * d2
+    c = d0 * d0 + d1 * d1 + d2 * d2 - dist_sqr
+    x, _, _ = _ray_quad(a, b, c)
+    return x
+
+
+@njit(inline="always", error_model="numpy")
+def _bounding_sphere(pos: tuple, dist_sqr: float, p0: float, p1: float, p2: float, v0: float,
+                     v1: float, v2: float) -> bool:
+    """Whether `_ray_sphere` >= 0, as the capsule's, cylinder's and box's bounding-sphere
+    tests ask, without its divisions: the same a, b, c and det, then ray_quad keeps a root
+    iff det >= 0, a >= mjMINVAL (both false for nan, as ray_quad's rejections are) and the
+    larger root (-b + sqrt(det)) / a >= 0, i.e. sqrt(det) >= b (a > 0; a difference of
+    doubles is >= 0 iff the first is >= the second), always true for b <= 0. (A quotient of
+    a negative numerator rounding to -0, which C's >= 0 would keep, needs |-b + sqrt(det)|
+    below 1e-308: not a ray.) The box test is two thirds of a ray's cost in the lab; this
+    keeps the sqrt only for rays heading away from the centre."""
+    d0 = p0 - pos[0]
+    d1 = p1 - pos[1]
+    d2 = p2 - pos[2]
+    a = v0 * v0 + v1 * v1 + v2 * v2
+    b = v0 * d0 + v1 * d1 + v2 * d2
+    c = d0 * d0 + d1 * d1 + d2 * d2 - dist_sqr
+    det = b * b - a * c
+    return (det >= 0.0) and (a >= MJMINVAL) and (b <= 0.0 or math.sqrt(det) >= b)
+
+
+@njit(inline="always", error_model="numpy")
+def _sphere(pos: tuple, size: tuple, p0: float, p1: float, p2: float,
+            v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
+    """mju_rayGeom's sphere: ``ray_sphere`` with radius^2 = size[0] * size[0] and its normal
+    (the hit point p + x v minus the centre, normalised)."""
+    x = _ray_sphere(pos, size[0] * size[0], p0, p1, p2, v0, v1, v2)
+    if x < 0.0:
+        return x, 0.0, 0.0, 0.0
+    n0, n1, n2 = _normalize3(p0 + x * v0 - pos[0], p1 + x * v1 - pos[1], p2 + x * v2 - pos[2])
+    return x, n0, n1, n2
+
+
+@njit(inline="always", error_model="numpy")
+def _capsule(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
+             v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
+    """engine_ray.c ``ray_capsule``: bounding sphere (radius + half-length), then the round
+    side between the flat ends and the two half-sphere caps, the nearest non-negative."""
+    ssz = size[0] + size[1]
+    if not _bounding_sphere(pos, ssz * ssz, p0, p1, p2, v0, v1, v2):
+        return -1.0, 0.0, 0.0, 0.0
+    lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(pos, mat, p0, p1, p2, v0, v1, v2)
+    x = -1.0
+    kind = 0  # -1: bottom cap, 0: round side, 1: top cap
+    a = lv0 * lv0 + lv1 * lv1
+    b = lv0 * lp0 + lv1 * lp1
+    c = lp0 * lp0 + lp1 * lp1 - size[0] * size[0]
+    sol, _, _ = _ray_quad(a, b, c)
+    if sol >= 0.0 and abs(lp2 + sol * lv2) <= size[1] and (x < 0.0 or sol < x):
+        x = sol
+        kind = 0
+    # top cap: the sphere at z = +half-length, its upper half
+    ld2 = lp2 - size[1]
+    a = lv0 * lv0 + lv1 * lv1 + lv2 * lv2
+    b = lv0 * lp0 + lv1 * lp1 + lv2 * ld2
+    c = lp0 * lp0 + lp1 * lp1 + ld2 * ld2 - size[0] * size[0]
+    _, x0, x1 = _ray_quad(a, b, c)
+    if x0 >= 0.0 and lp2 + x0 * lv2 >= size[1] and (x < 0.0 or x0 < x):
+        x = x0
+        kind = 1
+    if x1 >= 0.0 and lp2 + x1 * lv2 >= size[1] and (x < 0.0 or x1 < x):
+        x = x1
+        kind = 1
+    # bottom cap
+    ld2 = lp2 + size[1]
+    b = lv0 * lp0 + lv1 * lp1 + lv2 * ld2
+    c = lp0 * lp0 + lp1 * lp1 + ld2 * ld2 - size[0] * size[0]
+    _, x0, x1 = _ray_quad(a, b, c)
+    if x0 >= 0.0 and lp2 + x0 * lv2 <= -size[1] and (x < 0.0 or x0 < x):
+        x = x0
+        kind = -1
+    if x1 >= 0.0 and lp2 + x1 * lv2 <= -size[1] and (x < 0.0 or x1 < x):
+        x = x1
+        kind = -1
+    if x < 0.0:
+        return x, 0.0, 0.0, 0.0
+    n2 = 0.0 if kind == 0 else lp2 + lv2 * x - size[1] * kind
+    n0, n1, n2 = _normalize3(lp0 + lv0 * x, lp1 + lv1 * x, n2)
+    n0, n1, n2 = _mat_vec3(mat, n0, n1, n2)
+    return x, n0, n1, n2
+
+
+@njit(inline="always", error_model="numpy")
+def _ellipsoid(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
+               v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
+    """engine_ray.c ``ray_ellipsoid``: the quadric (x lv + lp)' diag(1 / size^2) (...) = 1
+    in the geom's frame; the normal is its gradient at the hit."""
+    lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(pos, mat, p0, p1, p2, v0, v1, v2)
+    s0 = 1 / (size[0] * size[0])
+    s1 = 1 / (size[1] * size[1])
+    s2 = 1 / (size[2] * size[2])
+    a = s0 * lv0 * lv0 + s1 * lv1 * lv1 + s2 * lv2 * lv2
+    b = s0 * lv0 * lp0 + s1 * lv1 * lp1 + s2 * lv2 * lp2
+    c = s0 * lp0 * lp0 + s1 * lp1 * lp1 + s2 * lp2 * lp2 - 1
+    x, _, _ = _ray_quad(a, b, c)
+    if x < 0.0:
+        return x, 0.0, 0.0, 0.0
+    n0, n1, n2 = _normalize3(s0 * (lp0 + x * lv0), s1 * (lp1 + x * lv1), s2 * (lp2 + x * lv2))
+    n0, n1, n2 = _mat_vec3(mat, n0, n1, n2)
+    return x, n0, n1, n2
+
+
+@njit(inline="always", error_model="numpy")
+def _cylinder(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
+              v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
+    """engine_ray.c ``ray_cylinder``: bounding sphere (radius^2 + half-length^2), the two
+    flat discs (where the direction's axial component exceeds mjMINVAL), the round side
+    between them; the nearest non-negative."""
+    ssz = size[0] * size[0] + size[1] * size[1]
+    if not _bounding_sphere(pos, ssz, p0, p1, p2, v0, v1, v2):
+        return -1.0, 0.0, 0.0, 0.0
+    lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(pos, mat, p0, p1, p2, v0, v1, v2)
+    x = -1.0
+    kind = 0  # -1: bottom, 0: round side, 1: top
+    if abs(lv2) > MJMINVAL:
+        for side in (-1, 1):
+            sol = (side * size[1] - lp2) / lv2
+            if sol >= 0.0:
+                p0 = lp0 + sol * lv0
+                p1 = lp1 + sol * lv1
+                if p0 * p0 + p1 * p1 <= size[0] * size[0] and (x < 0.0 or sol < x):
+                    x = sol
+                    kind = side
+    a = lv0 * lv0 + lv1 * lv1
+    b = lv0 * lp0 + lv1 * lp1
+    c = lp0 * lp0 + lp1 * lp1 - size[0] * size[0]
+    sol, _, _ = _ray_quad(a, b, c)
+    if sol >= 0.0 and abs(lp2 + sol * lv2) <= size[1] and (x < 0.0 or sol < x):
+        x = sol
+        kind = 0
+    if x < 0.0:
+        return x, 0.0, 0.0, 0.0
+    if kind == 0:
+        n0, n1, n2 = _normalize3(lp0 + lv0 * x, lp1 + lv1 * x, 0.0)
+    else:
+        n0, n1, n2 = 0.0, 0.0, float(kind)
+    n0, n1, n2 = _mat_vec3(mat, n0, n1, n2)
+    return x, n0, n1, n2
+
+
+@njit(inline="always", error_model="numpy")
+def _box_faces(lp0: float, lp1: float, lp2: float, lv0: float, lv1: float, lv2: float,
+               s0: float, s1: float, s2: float) -> tuple[float, int, float]:
+    """The faces of engine_ray.c ``ray_box`` in the box's frame (half-sizes s): each face's
+    plane solved where the direction's component exceeds mjMINVAL, a solution >= 0 kept when
+    it lies inside the face (<= the half-sizes), the smallest kept (the first on a tie).
+    Returns (distance or -1, axis, side)."""
     x = -1.0
     ax = -1
     sd = 0.0
-    lp = (mat[0] * d0 + mat[3] * d1 + mat[6] * d2, mat[1] * d0 + mat[4] * d1 + mat[7] * d2,
-          mat[2] * d0 + mat[5] * d1 + mat[8] * d2)
-    lv = (mat[0] * v[0] + mat[3] * v[1] + mat[6] * v[2],
-          mat[1] * v[0] + mat[4] * v[1] + mat[7] * v[2],
-          mat[2] * v[0] + mat[5] * v[1] + mat[8] * v[2])
+    lp = (lp0, lp1, lp2)
+    lv = (lv0, lv1, lv2)
+    size = (s0, s1, s2)
     for i in range(3):
         if abs(lv[i]) > MJMINVAL:
             j = 1 if i == 0 else 0
@@ -603,71 +823,363 @@ def _ray_box(o: np.ndarray, v: np.ndarray, pos: np.ndarray, mat: np.ndarray, siz
     return x, ax, sd
 
 
+@njit(inline="always", error_model="numpy")
+def _box(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
+         v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
+    """engine_ray.c ``ray_box``: bounding sphere (the half-diagonal), then `_box_faces`; the
+    normal is the face's axis times its side, rotated into the world."""
+    ssz = size[0] * size[0] + size[1] * size[1] + size[2] * size[2]
+    if not _bounding_sphere(pos, ssz, p0, p1, p2, v0, v1, v2):
+        return -1.0, 0.0, 0.0, 0.0
+    lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(pos, mat, p0, p1, p2, v0, v1, v2)
+    x, ax, sd = _box_faces(lp0, lp1, lp2, lv0, lv1, lv2, size[0], size[1], size[2])
+    if x < 0.0:
+        return x, 0.0, 0.0, 0.0
+    n0, n1, n2 = _mat_vec3(mat, sd if ax == 0 else 0.0, sd if ax == 1 else 0.0,
+                           sd if ax == 2 else 0.0)
+    return x, n0, n1, n2
+
+
+@njit(inline="always", error_model="numpy")
+def _triangle(v00: float, v01: float, v02: float, v10: float, v11: float, v12: float,
+              v20: float, v21: float, v22: float, lp0: float, lp1: float, lp2: float,
+              lv0: float, lv1: float, lv2: float, b00: float, b01: float, b02: float,
+              b10: float, b11: float, b12: float) -> tuple[float, float, float, float]:
+    """engine_ray.c ``ray_triangle`` with its normal: the triangle of vertices v0, v1, v2,
+    the ray (``lp``, ``lv``) and the basis (``b0``, ``b1``) of the plane normal to it: the
+    vertices projected on that plane must surround the ray (barycentric t0, t1 >= 0, t0 + t1
+    <= 1), then the ray meets the triangle's plane. Returns (distance, possibly negative;
+    -1: none; the normal (v0 - v2) x (v1 - v2), not yet normalised: `_cast_geom` normalises the
+    nearest triangle's only, as MuJoCo's normalised copy of it is the same value)."""
+    d0, d1, d2 = v00 - lp0, v01 - lp1, v02 - lp2
+    p00 = b00 * d0 + b01 * d1 + b02 * d2
+    p01 = b10 * d0 + b11 * d1 + b12 * d2
+    d0, d1, d2 = v10 - lp0, v11 - lp1, v12 - lp2
+    p10 = b00 * d0 + b01 * d1 + b02 * d2
+    p11 = b10 * d0 + b11 * d1 + b12 * d2
+    d0, d1, d2 = v20 - lp0, v21 - lp1, v22 - lp2
+    p20 = b00 * d0 + b01 * d1 + b02 * d2
+    p21 = b10 * d0 + b11 * d1 + b12 * d2
+    if ((p00 > 0 and p10 > 0 and p20 > 0) or (p00 < 0 and p10 < 0 and p20 < 0)
+            or (p01 > 0 and p11 > 0 and p21 > 0) or (p01 < 0 and p11 < 0 and p21 < 0)):
+        return -1.0, 0.0, 0.0, 0.0
+    a0 = p00 - p20
+    a1 = p10 - p20
+    a2 = p01 - p21
+    a3 = p11 - p21
+    r0 = -p20
+    r1 = -p21
+    det = a0 * a3 - a1 * a2
+    if abs(det) < MJMINVAL:
+        return -1.0, 0.0, 0.0, 0.0
+    t0 = (a3 * r0 - a1 * r1) / det
+    t1 = (-a2 * r0 + a0 * r1) / det
+    if t0 < 0 or t1 < 0 or t0 + t1 > 1:
+        return -1.0, 0.0, 0.0, 0.0
+    e00, e01, e02 = v00 - v20, v01 - v21, v02 - v22
+    e10, e11, e12 = v10 - v20, v11 - v21, v12 - v22
+    n0 = e01 * e12 - e02 * e11  # mju_cross
+    n1 = e02 * e10 - e00 * e12
+    n2 = e00 * e11 - e01 * e10
+    denom = lv0 * n0 + lv1 * n1 + lv2 * n2
+    if abs(denom) < MJMINVAL:
+        return -1.0, 0.0, 0.0, 0.0
+    x = -((lp0 - v20) * n0 + (lp1 - v21) * n1 + (lp2 - v22) * n2) / denom
+    return x, n0, n1, n2
+
+
+@njit(inline="always", error_model="numpy")
+def _slab(aabb: np.ndarray, node: int, lp0: float, lp1: float, lp2: float, inv0: float,
+          inv1: float, inv2: float) -> bool:
+    """engine_ray.c ``mju_raySlab``: the ray (in the mesh's frame: origin lp, 1 / direction
+    inv, which MuJoCo computes again for every node: the same values) against BVH node
+    ``node``'s box ``aabb[node]`` (centre, half-sizes), Ericson's slabs (inf, and nan where a
+    slab's side passes through the origin, compared as C compares them); a hit when the entry
+    is strictly before the exit."""
+    t1 = (aabb[node, 0] - aabb[node, 3] - lp0) * inv0
+    t2 = (aabb[node, 0] + aabb[node, 3] - lp0) * inv0
+    tmin = 0.0
+    tmax = np.inf
+    minval = t1 if t1 < t2 else t2
+    maxval = t2 if t1 < t2 else t1
+    tmin = tmin if tmin > minval else minval
+    tmax = tmax if tmax < maxval else maxval
+    t1 = (aabb[node, 1] - aabb[node, 4] - lp1) * inv1
+    t2 = (aabb[node, 1] + aabb[node, 4] - lp1) * inv1
+    minval = t1 if t1 < t2 else t2
+    maxval = t2 if t1 < t2 else t1
+    tmin = tmin if tmin > minval else minval
+    tmax = tmax if tmax < maxval else maxval
+    t1 = (aabb[node, 2] - aabb[node, 5] - lp2) * inv2
+    t2 = (aabb[node, 2] + aabb[node, 5] - lp2) * inv2
+    minval = t1 if t1 < t2 else t2
+    maxval = t2 if t1 < t2 else t1
+    tmin = tmin if tmin > minval else minval
+    tmax = tmax if tmax < maxval else maxval
+    return tmin < tmax
+
+
+@njit(inline="always", error_model="numpy")
+def _nearer(x: float, g: int, d_best: float, g_best: int) -> bool:
+    """Whether hit ``x`` on geom ``g`` replaces a ray's best so far (``d_best`` on
+    ``g_best``; -1: none): nearer, or as near on a lower geom id: mj_ray's rule (geoms in id
+    order, strict <) whatever the order the hits come in; -1 is no hit. (Scalars: an inlined
+    helper that writes the arrays it is handed costs a loop a reference count per call.)"""
+    return x >= 0.0 and (g_best < 0 or x < d_best or (x == d_best and g < g_best))
+
+
+@njit(inline="always", error_model="numpy")
+def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
+               size: np.ndarray, o0: float, o1: float, o2: float, dirs: np.ndarray,
+               todo: np.ndarray, n_todo: int, bvh_adr: np.ndarray, bvh_aabb: np.ndarray,
+               bvh_child: np.ndarray, bvh_nodeid: np.ndarray, face_adr: np.ndarray,
+               vert_adr: np.ndarray, face: np.ndarray, vert: np.ndarray, stack: np.ndarray,
+               dist: np.ndarray, gid: np.ndarray, nrm: np.ndarray) -> None:
+    """Geom ``g`` of ``kind`` (world ``pos``, ``mat`` (9,), ``size``; mesh ``mid``) against
+    the rays ``todo[:n_todo]`` from o along ``dirs[q]``, as mj_multiRay dispatches
+    (mju_rayGeom; mj_rayMesh for a mesh), each hit kept by `_nearer`. The tables of a mesh are
+    MjModel's (`mesh_bvhadr`, `bvh_aabb`, `bvh_child`, `bvh_nodeid`, `mesh_faceadr`,
+    `mesh_vertadr`, `mesh_face`, `mesh_vert`); ``stack``: int64 scratch of at least
+    `MJ_MAX_TREE_DEPTH`.
+
+    Why one geom and many rays a call, and the mesh's walk written out here: numba gives
+    every array handed to an inlined function that holds a loop a reference count (atomic
+    operations) per call, about 100 ns; once per geom that is nothing, once per ray it was
+    more than the ray itself. The geom's pose and size as tuples, whose arithmetic LLVM
+    hoists out of the loops."""
+    tp = (pos[0], pos[1], pos[2])
+    tm = (mat[0], mat[1], mat[2], mat[3], mat[4], mat[5], mat[6], mat[7], mat[8])
+    ts = (size[0], size[1], size[2])
+    if kind == KIND_MESH:
+        adr = bvh_adr[mid]
+        f_adr = face_adr[mid]
+        v_adr = vert_adr[mid]
+        for t in range(n_todo):
+            q = todo[t]
+            v0, v1, v2 = dirs[q, 0], dirs[q, 1], dirs[q, 2]
+            # mj_rayMesh: the geom's box (ray_box with the geom's size) first
+            x, _, _, _ = _box(tp, tm, ts, o0, o1, o2, v0, v1, v2)
+            if x < 0.0:
+                continue
+            # mju_rayTree: the ray in the mesh's frame, the basis (b0, b1) of the plane
+            # normal to it, then the tree depth first as MuJoCo walks it (a stack: the
+            # second child is visited first), `_slab` on each node and `_triangle` on each
+            # leaf's face (float32 vertices as doubles); the nearest non-negative, the first
+            # found on a tie
+            lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(tp, tm, o0, o1, o2, v0, v1, v2)
+            b00, b01, b02 = 1.0, 1.0, 1.0
+            if abs(lv0) >= abs(lv1) and abs(lv0) >= abs(lv2):
+                b00 = 0.0
+            elif abs(lv1) >= abs(lv2):
+                b01 = 0.0
+            else:
+                b02 = 0.0
+            scl = -(lv0 * b00 + lv1 * b01 + lv2 * b02) / (lv0 * lv0 + lv1 * lv1 + lv2 * lv2)
+            b10, b11, b12 = _normalize3(b00 + scl * lv0, b01 + scl * lv1, b02 + scl * lv2)
+            b00, b01, b02 = _normalize3(b11 * lv2 - b12 * lv1, b12 * lv0 - b10 * lv2,
+                                        b10 * lv1 - b11 * lv0)
+            inv0 = 1.0 / lv0
+            inv1 = 1.0 / lv1
+            inv2 = 1.0 / lv2
+            x = -1.0
+            n0 = n1 = n2 = 0.0
+            stack[0] = 0
+            n_stack = 1
+            while n_stack:
+                n_stack -= 1
+                node = adr + stack[n_stack]
+                if not _slab(bvh_aabb, node, lp0, lp1, lp2, inv0, inv1, inv2):
+                    continue
+                f = bvh_nodeid[node]
+                if f != -1:
+                    f += f_adr
+                    i0 = face[f, 0] + v_adr
+                    i1 = face[f, 1] + v_adr
+                    i2 = face[f, 2] + v_adr
+                    sol, t0, t1, t2 = _triangle(
+                        np.float64(vert[i0, 0]), np.float64(vert[i0, 1]),
+                        np.float64(vert[i0, 2]), np.float64(vert[i1, 0]),
+                        np.float64(vert[i1, 1]), np.float64(vert[i1, 2]),
+                        np.float64(vert[i2, 0]), np.float64(vert[i2, 1]),
+                        np.float64(vert[i2, 2]), lp0, lp1, lp2, lv0, lv1, lv2, b00, b01,
+                        b02, b10, b11, b12)
+                    if sol >= 0.0 and (x < 0.0 or sol < x):
+                        x = sol
+                        n0, n1, n2 = t0, t1, t2
+                    continue
+                c = bvh_child[node, 0]
+                if c != -1:
+                    stack[n_stack] = c
+                    n_stack += 1
+                c = bvh_child[node, 1]
+                if c != -1:
+                    stack[n_stack] = c
+                    n_stack += 1
+            if _nearer(x, g, dist[q], gid[q]):
+                n0, n1, n2 = _normalize3(n0, n1, n2)
+                dist[q] = x
+                gid[q] = g
+                nrm[q, 0], nrm[q, 1], nrm[q, 2] = _mat_vec3(tm, n0, n1, n2)
+        return
+    for t in range(n_todo):
+        q = todo[t]
+        v0, v1, v2 = dirs[q, 0], dirs[q, 1], dirs[q, 2]
+        if kind == KIND_BOX:
+            x, n0, n1, n2 = _box(tp, tm, ts, o0, o1, o2, v0, v1, v2)
+        elif kind == KIND_SPHERE:
+            x, n0, n1, n2 = _sphere(tp, ts, o0, o1, o2, v0, v1, v2)
+        elif kind == KIND_CAPSULE:
+            x, n0, n1, n2 = _capsule(tp, tm, ts, o0, o1, o2, v0, v1, v2)
+        elif kind == KIND_CYLINDER:
+            x, n0, n1, n2 = _cylinder(tp, tm, ts, o0, o1, o2, v0, v1, v2)
+        elif kind == KIND_ELLIPSOID:
+            x, n0, n1, n2 = _ellipsoid(tp, tm, ts, o0, o1, o2, v0, v1, v2)
+        else:
+            x, n0, n1, n2 = -1.0, 0.0, 0.0, 0.0
+        if _nearer(x, g, dist[q], gid[q]):
+            dist[q] = x
+            gid[q] = g
+            nrm[q, 0] = n0
+            nrm[q, 1] = n1
+            nrm[q, 2] = n2
+
+
 @njit(cache=True, error_model="numpy")
-def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: np.ndarray,
-               iv_row: np.ndarray, iv_geom: np.ndarray, iv_centre: np.ndarray,
-               iv_half: np.ndarray, d_first: np.ndarray, spread: float, base: np.ndarray,
-               is_box: np.ndarray, g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray,
-               plane_ids: np.ndarray, pl_k: np.ndarray, pl_ranges: np.ndarray,
-               pl_n_ranges: np.ndarray, origins: np.ndarray, row_laser: np.ndarray
+def cast_solids(pnt: np.ndarray, dirs: np.ndarray, geoms: np.ndarray, g_kind: np.ndarray,
+                g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray, meshes: tuple
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays from ``pnt`` (3,) along ``dirs`` (n, 3) against the solids ``geoms`` (by geom id:
+    kind ``g_kind``, world pose ``g_pos`` (G, 3), ``g_mat`` (G, 9), size ``g_size`` (G, 3);
+    ``meshes`` as `solid_cast`'s), as mj_multiRay has it: the nearest hit, the lowest geom
+    id on a tie. Returns (distance, -1: none; geom id, -1; world normal (n, 3)). What the
+    tests hold against MuJoCo: `solid_cast` runs the same `_cast_geom`."""
+    g_mesh, bvh_adr, bvh_aabb, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert = meshes
+    n = dirs.shape[0]
+    dist = np.full(n, -1.0)
+    gid = np.full(n, -1, dtype=np.int32)
+    nrm = np.zeros((n, 3))
+    stack = np.empty(2 * MJ_MAX_TREE_DEPTH, dtype=np.int64)
+    todo = np.arange(n)
+    for g in geoms:
+        _cast_geom(g_kind[g], g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], pnt[0], pnt[1],
+                   pnt[2], dirs, todo, n, bvh_adr, bvh_aabb, bvh_child, bvh_nodeid, face_adr,
+                   vert_adr, face, vert, stack, dist, gid, nrm)
+    return dist, gid, nrm
+
+
+#: `solid_cast`'s flags per candidate ray (uint8 bits).
+#: MuJoCo must still cast it: a whole row's ray (against every geom), or one that may meet a
+#: geom of `KIND_MUJOCO` (against those alone: `merge_nearest`).
+FLAG_MUJOCO = 1
+#: A sub-ray (not a beam's centre) that may meet a curved geom or a mesh, not tested against
+#: them yet: `subray_cast` tests it where its beam's neighbourhood asks for it.
+FLAG_DEFERRED = 2
+#: The ray is a beam's centre (its row is ``laser * n_k``; every ray without divergence).
+FLAG_CENTRE = 4
+
+
+@njit(inline="always", error_model="numpy")
+def _solids_pass(stage: int, select: np.ndarray, ray_index: np.ndarray, dirs: np.ndarray,
+                 n_seq: int, n_k: int, full_rows: np.ndarray, iv_row: np.ndarray,
+                 iv_geom: np.ndarray, iv_centre: np.ndarray, iv_half: np.ndarray,
+                 d_first: np.ndarray, spread: float, base: np.ndarray, g_kind: np.ndarray,
+                 g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray, meshes: tuple,
+                 origins: np.ndarray, row_laser: np.ndarray, dist: np.ndarray,
+                 gid: np.ndarray, nrm: np.ndarray, flags: np.ndarray) -> None:
+    """The solids of each candidate ray, by its culling intervals (`solid_cast`). Stage 0:
+    every box; the curved geoms and meshes of the beams' centres (rows ``laser * n_k``),
+    the sub-rays' flagged `FLAG_DEFERRED`; the geoms of `KIND_MUJOCO` flagged `FLAG_MUJOCO`.
+    Stage 1: the curved geoms and meshes of the rays ``select`` names (`subray_cast`). Hits
+    go into ``dist``/``gid``/``nrm`` (`_cast_geom`)."""
+    g_mesh, bvh_adr, bvh_aabb, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert = meshes
+    b_u = unwrap(base)
+    n_turns = math.ceil((b_u[n_seq - 1] - b_u[0]) * _INV_TWO_PI) + 2
+    ranges = np.empty((n_turns, 2), dtype=np.int64)
+    stack = np.empty(2 * MJ_MAX_TREE_DEPTH, dtype=np.int64)
+    todo = np.empty(ray_index.shape[0], dtype=np.int64)
+    for i in range(iv_row.shape[0]):
+        r = iv_row[i]
+        if full_rows[r]:
+            continue  # (MuJoCo casts the whole row against every geom)
+        g = iv_geom[i]
+        kind = g_kind[g]
+        curved = kind != KIND_BOX and kind != KIND_MUJOCO
+        if stage == 1 and not curved:
+            continue
+        later = curved and r % n_k != 0
+        n_r = _column_ranges(b_u, iv_centre[i] - d_first[r], iv_half[i] + spread, ranges)
+        n_todo = 0
+        for jr in range(n_r):
+            lo = np.searchsorted(ray_index, r * n_seq + ranges[jr, 0])
+            hi = np.searchsorted(ray_index, r * n_seq + ranges[jr, 1])
+            for q in range(lo, hi):
+                if stage == 0:
+                    if kind == KIND_MUJOCO:
+                        flags[q] |= FLAG_MUJOCO
+                        continue
+                    if later:
+                        flags[q] |= FLAG_DEFERRED
+                        continue
+                elif not select[q]:
+                    continue
+                todo[n_todo] = q
+                n_todo += 1
+        if n_todo:
+            lsr = row_laser[r]
+            _cast_geom(kind, g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], origins[lsr, 0],
+                       origins[lsr, 1], origins[lsr, 2], dirs, todo, n_todo, bvh_adr,
+                       bvh_aabb, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert, stack,
+                       dist, gid, nrm)
+
+
+@njit(cache=True, error_model="numpy")
+def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, n_k: int,
+               full_rows: np.ndarray, iv_row: np.ndarray, iv_geom: np.ndarray,
+               iv_centre: np.ndarray, iv_half: np.ndarray, d_first: np.ndarray,
+               spread: float, base: np.ndarray, g_kind: np.ndarray, g_pos: np.ndarray,
+               g_mat: np.ndarray, g_size: np.ndarray, meshes: tuple, plane_ids: np.ndarray,
+               pl_k: np.ndarray, pl_ranges: np.ndarray, pl_n_ranges: np.ndarray,
+               origins: np.ndarray, row_laser: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """MuJoCo's answer for the culled rays that can only meet boxes and planes, computed here;
-    the mask of those MuJoCo must still cast.
+    """mj_multiRay's answer for the culled rays, computed here with MuJoCo's own ray
+    functions (the section above), and what is left of it for later.
 
     ``ray_index``/``dirs``: the rays that may meet a solid (`grid_candidates`: ascending
-    ``r * n_seq + s``); the intervals (row ``iv_row``, geom id ``iv_geom``, azimuth
-    ``iv_centre`` +- ``iv_half``, `twin.sim.emulation.LidarEmulator._pose_intervals`) become
-    the same column ranges as there (`_column_ranges`, widened by ``spread``), so each ray
-    learns which solids it may meet. A ray of a ``full_rows`` row, or one that may meet a
-    geom other than a box (``is_box`` by geom id), is left to MuJoCo. For the others the hit
-    is MuJoCo's: `_ray_box` on each of its boxes and `ray_plane` on every plane
-    (``plane_ids``, where `plane_rows`' ``pl_k``, ``pl_ranges``, ``pl_n_ranges`` let it be
-    met), the nearest, the lowest geom id on a tie (mj_ray's strict <), with the
-    face's world normal (the box's axis times the side; the plane's z axis) as mj_multiRay
-    gives it. World poses ``g_pos`` (G, 3), ``g_mat`` (G, 9), half-sizes ``g_size`` (G, 3);
-    the rows' origins ``origins[row_laser[r]]``.
+    ``r * n_seq + s``; rows ``laser * n_k + k``, k = 0 the beam's centre); the intervals (row
+    ``iv_row``, geom id ``iv_geom``, azimuth ``iv_centre`` +- ``iv_half``,
+    `twin.sim.emulation.LidarEmulator._pose_intervals`) become the same column ranges as
+    there (`_column_ranges`, widened by ``spread``), so each ray learns which solids it may
+    meet, and only those are tested: mj_multiRay tests every geom of the scene against each
+    ray. Every ray but a ``full_rows`` row's gets its boxes (`_solids_pass`) and every plane
+    (``plane_ids``, by `ray_plane` where `plane_rows`' ``pl_k``, ``pl_ranges``,
+    ``pl_n_ranges`` let it be met); a beam's centre its curved geoms and meshes too; the
+    nearest, the lowest geom id on a tie (mj_ray's strict <), with the world normal as
+    mj_multiRay gives it. Geoms by id: kind ``g_kind`` (`KIND_*`), world pose ``g_pos``
+    (G, 3), ``g_mat`` (G, 9), size ``g_size`` (G, 3), ``meshes`` (`_mesh`); the rows'
+    origins ``origins[row_laser[r]]``.
 
-    Returns (distance, -1: none; geom id, -1; normal (n, 3); needs MuJoCo (n,) bool), in
-    mj_multiRay's raw form (`_cast_hit` applies the cutoff). A ray that needs MuJoCo for a
-    curved geom still gets its boxes' and planes' nearest hit (MuJoCo then casts it against the
-    curved geoms only: `merge_nearest`); a whole row's rays get nothing.
+    Returns (distance, -1: none; geom id, -1; normal (n, 3); flags (n,) uint8: `FLAG_*`), in
+    mj_multiRay's raw form (`_cast_hit` applies the cutoff). A ray flagged `FLAG_MUJOCO`
+    keeps what it got here (MuJoCo then casts it against the geoms of `KIND_MUJOCO` only:
+    `merge_nearest`; a whole row's rays get nothing); one flagged `FLAG_DEFERRED` gets its
+    curved geoms and meshes from `subray_cast`.
     """
     n = ray_index.shape[0]
     dist = np.full(n, -1.0)
     gid = np.full(n, -1, dtype=np.int32)
     nrm = np.zeros((n, 3))
-    mj = np.zeros(n, dtype=np.bool_)
+    flags = np.zeros(n, dtype=np.uint8)
     if n == 0:
-        return dist, gid, nrm, mj
+        return dist, gid, nrm, flags
     for q in range(n):
-        if full_rows[ray_index[q] // n_seq]:
-            mj[q] = True
-    b_u = unwrap(base)
-    n_turns = math.ceil((b_u[n_seq - 1] - b_u[0]) * _INV_TWO_PI) + 2
-    ranges = np.empty((n_turns, 2), dtype=np.int64)
-    for i in range(iv_row.shape[0]):
-        r = iv_row[i]
-        g = iv_geom[i]
-        n_r = _column_ranges(b_u, iv_centre[i] - d_first[r], iv_half[i] + spread, ranges)
-        o = origins[row_laser[r]]
-        box = is_box[g]
-        for jr in range(n_r):
-            lo = np.searchsorted(ray_index, r * n_seq + ranges[jr, 0])
-            hi = np.searchsorted(ray_index, r * n_seq + ranges[jr, 1])
-            for q in range(lo, hi):
-                if not box:
-                    mj[q] = True
-                    continue
-                if full_rows[r]:
-                    continue  # (MuJoCo casts the whole row against every geom)
-                x, ax, sd = _ray_box(o, dirs[q], g_pos[g], g_mat[g], g_size[g])
-                if x >= 0.0 and (gid[q] < 0 or x < dist[q] or (x == dist[q] and g < gid[q])):
-                    dist[q] = x
-                    gid[q] = g
-                    for e in range(3):
-                        nrm[q, e] = g_mat[g, 3 * e + ax] * sd
+        r = ray_index[q] // n_seq
+        f = FLAG_CENTRE if r % n_k == 0 else 0
+        flags[q] = f | FLAG_MUJOCO if full_rows[r] else f
+    _solids_pass(0, flags, ray_index, dirs, n_seq, n_k, full_rows, iv_row, iv_geom, iv_centre,
+                 iv_half, d_first, spread, base, g_kind, g_pos, g_mat, g_size, meshes, origins,
+                 row_laser, dist, gid, nrm, flags)
     # The planes, as `ray_planes` has MuJoCo's rule, for every ray but whole rows' (a ray
-    # left to MuJoCo for a curved geom keeps its boxes' and planes' hit: `merge_nearest`); only
+    # left to MuJoCo or for later keeps its boxes' and planes' hit: `merge_nearest`); only
     # where `plane_rows` says the plane can be met at all (its live rows and their column
     # ranges: elsewhere MuJoCo's rule is a miss). The origin in each plane's frame once per
     # laser, as MuJoCo maps it.
@@ -707,7 +1219,7 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: n
                         nrm[q, 0] = m[2]
                         nrm[q, 1] = m[5]
                         nrm[q, 2] = m[8]
-    return dist, gid, nrm, mj
+    return dist, gid, nrm, flags
 
 
 @njit(cache=True, error_model="numpy")
@@ -731,41 +1243,92 @@ def merge_nearest(q: np.ndarray, dist: np.ndarray, gid: np.ndarray, nrm: np.ndar
 # --------------------------------------------------------------------------------------------
 # Divergence: sub-rays only where the beam's footprint leaves a face (adaptive)
 # --------------------------------------------------------------------------------------------
-@njit(cache=True, error_model="numpy")
-def subray_needs(sub_index: np.ndarray, n_k: int, n_seq: int, gid: np.ndarray,
-                 curved: np.ndarray, full_rows: np.ndarray) -> np.ndarray:
-    """Which sub-rays that may meet a curved geom or a mesh MuJoCo must still cast; for the
-    others the boxes' and planes' hit `solid_cast` found stands. Returns the mask (n,).
+@njit(inline="always", error_model="numpy")
+def _subray_needed(ray: int, n_k: int, n_seq: int, gid: np.ndarray, curved: np.ndarray,
+                   full_rows: np.ndarray) -> bool:
+    """Whether sub-ray ``ray`` (row-major ``r * n_seq + s``, row ``laser * n_k + k``, k >= 1)
+    must meet the curved geoms and meshes it may meet, or its boxes' and planes' hit stands.
 
-    Sub-ray j is ray ``sub_index[j]`` (row-major ``r * n_seq + s``, row ``laser * n_k + k``,
-    k >= 1); ``gid`` (row-major, every row) holds the beams' centres' final geoms (MuJoCo's
-    over every geom where a curved one was near). A sub-ray is left to the boxes and planes
-    when its centre hit a geom that is not ``curved`` (by geom id) and the same laser's
-    neighbouring firings (one sequence before and after: 3.5 mrad apart at 600 rpm, the
-    sub-rays 1 mrad from the centre) hit that geom too: no curved geom's silhouette then
-    crosses the beam's neighbourhood, unless it is narrower than the firings' spacing or
-    crosses between the sub-ray and its centre only vertically (a few beams in 10^4 in the
-    lab; tests/test_emulation.py). Everything else goes to MuJoCo, and so does every ray of
-    a ``full_rows`` row (the kernel left those to it whole).
+    ``gid`` (row-major, every row) holds the beams' centres' final geoms. A sub-ray is left to
+    the boxes and planes when its centre hit a geom that is not ``curved`` (by geom id) and
+    the same laser's neighbouring firings (one sequence before and after: 3.5 mrad apart at
+    600 rpm, the sub-rays 1 mrad from the centre) hit that geom too: no curved geom's
+    silhouette then crosses the beam's neighbourhood, unless it is narrower than the firings'
+    spacing or crosses between the sub-ray and its centre only vertically (a few beams in
+    10^4 in the lab; tests/test_emulation.py). Every ray of a ``full_rows`` row is needed
+    (MuJoCo casts those whole)."""
+    r = ray // n_seq
+    if full_rows[r]:
+        return True
+    s = ray - r * n_seq
+    c_row = (r // n_k) * n_k * n_seq
+    g0 = gid[c_row + s]
+    if g0 < 0 or curved[g0]:
+        return True
+    if s > 0 and gid[c_row + s - 1] != g0:
+        return True
+    return s + 1 < n_seq and gid[c_row + s + 1] != g0
+
+
+@njit(cache=True, error_model="numpy")
+def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, dist_a: np.ndarray,
+                gid_a: np.ndarray, nrm_a: np.ndarray, flags: np.ndarray, n_seq: int, n_k: int,
+                full_rows: np.ndarray, iv_row: np.ndarray, iv_geom: np.ndarray,
+                iv_centre: np.ndarray, iv_half: np.ndarray, d_first: np.ndarray,
+                spread: float, base: np.ndarray, g_kind: np.ndarray, g_pos: np.ndarray,
+                g_mat: np.ndarray, g_size: np.ndarray, meshes: tuple, origins: np.ndarray,
+                row_laser: np.ndarray, curved: np.ndarray, weight: np.ndarray, cutoff: float,
+                dist: np.ndarray, cos_inc: np.ndarray, gid: np.ndarray) -> np.ndarray:
+    """Divergence, adaptive: the candidates' hits (`solid_cast`'s ``dist_a``, ``gid_a``,
+    ``nrm_a``, ``flags``; the centres' `FLAG_MUJOCO` part already merged by the caller) into
+    `grid_rays`' row-major ``dist``, ``cos_inc``, ``gid`` (`_cast_hit`, ``weight`` by geom),
+    with the sub-rays' curved geoms and meshes only where the beam needs them.
+
+    1. The beams' centres and the rays with nothing left to do (no flag but `FLAG_CENTRE`).
+    2. Each flagged sub-ray: `_subray_needed` (which reads the centres' final geoms, and the
+       ``curved`` geoms by id) says whether its curved geoms and meshes count; if they do,
+       they are tested now (`_solids_pass`, stage 1: ``dist_a``... updated in place).
+    3. The flagged sub-rays, but those that need MuJoCo too (`FLAG_MUJOCO` and needed).
+
+    Returns the indices (into the candidates) of the sub-rays of 3., for the caller: MuJoCo,
+    then `scatter_cast`. The rest of the arguments as `solid_cast`'s.
     """
-    n = sub_index.shape[0]
-    need = np.ones(n, dtype=np.bool_)
-    for j in range(n):
-        ray = sub_index[j]
-        r = ray // n_seq
-        if full_rows[r]:
+    n = ray_index.shape[0]
+    for q in range(n):
+        f = flags[q]
+        if f == 0 or f & FLAG_CENTRE:
+            j = ray_index[q]
+            dist[j], cos_inc[j], gid[j] = _cast_hit(dist_a[q], gid_a[q], nrm_a, dirs, q,
+                                                    weight, cutoff)
+    select = np.zeros(n, dtype=np.bool_)
+    to_mujoco = np.zeros(n, dtype=np.bool_)
+    n_mj = 0
+    for q in range(n):
+        f = flags[q]
+        if f == 0 or f & FLAG_CENTRE:
             continue
-        s = ray - r * n_seq
-        c_row = (r // n_k) * n_k * n_seq
-        g0 = gid[c_row + s]
-        if g0 < 0 or curved[g0]:
+        if _subray_needed(ray_index[q], n_k, n_seq, gid, curved, full_rows):
+            select[q] = (f & FLAG_DEFERRED) != 0
+            if f & FLAG_MUJOCO:
+                to_mujoco[q] = True
+                n_mj += 1
+    _solids_pass(1, select, ray_index, dirs, n_seq, n_k, full_rows, iv_row, iv_geom,
+                 iv_centre, iv_half, d_first, spread, base, g_kind, g_pos, g_mat, g_size,
+                 meshes, origins, row_laser, dist_a, gid_a, nrm_a, flags)
+    mj_q = np.empty(n_mj, dtype=np.int64)
+    k = 0
+    for q in range(n):
+        f = flags[q]
+        if f == 0 or f & FLAG_CENTRE:
             continue
-        if s > 0 and gid[c_row + s - 1] != g0:
+        if to_mujoco[q]:
+            mj_q[k] = q
+            k += 1
             continue
-        if s + 1 < n_seq and gid[c_row + s + 1] != g0:
-            continue
-        need[j] = False
-    return need
+        j = ray_index[q]
+        dist[j], cos_inc[j], gid[j] = _cast_hit(dist_a[q], gid_a[q], nrm_a, dirs, q, weight,
+                                                cutoff)
+    return mj_q
 
 
 @njit(cache=True, error_model="numpy")
