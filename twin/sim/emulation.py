@@ -734,7 +734,7 @@ class LidarEmulator:
             # (the sub-ray pass reads the intervals: every row whole, none per geom)
             self._intervals = (np.ones(n_rows, dtype=np.bool_), np.zeros(0, dtype=np.int64),
                                np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
-            idx, dirs, rows, bounds = raykernel.grid_candidates(
+            idx, dirs, rows, bounds, *self._interval_rays = raykernel.grid_candidates(
                 base, np.ones(n_rows, dtype=np.bool_), np.zeros(0, dtype=np.int64),
                 np.zeros(0), np.zeros(0), d_first, spread, azimuth, row_laser, row_dh, cw, sw,
                 rotation)
@@ -818,11 +818,11 @@ class LidarEmulator:
             self._cast_mujoco(c_q, idx, dirs, n_seq, origins, row_laser, d_a, g_a, n_a)
         # Everything into the grid's arrays; the sub-rays near a curved geom or a mesh get
         # those where their beam's neighbourhood shows one, else their boxes' and planes' hit.
-        full, row, geom, centre, half = self._intervals
-        s_q = raykernel.subray_cast(idx, dirs, d_a, g_a, n_a, flags, n_seq, k, full, row, geom,
-                                    centre, half, d_first, spread, base, *self._solid_tables(),
-                                    origins, row_laser, self._curved(), self._unit_weights,
-                                    caster.cutoff, dist, cos_inc, gid)
+        full, row, geom, _, _ = self._intervals
+        s_q = raykernel.subray_cast(idx, dirs, rows, bounds, d_a, g_a, n_a, flags, n_seq, k,
+                                    full, row, geom, *self._interval_rays,
+                                    *self._solid_tables(), origins, row_laser, self._curved(),
+                                    self._unit_weights, caster.cutoff, dist, cos_inc, gid)
         if len(s_q):  # the sub-rays MuJoCo must still cast (none in the shipped scenes)
             self._cast_mujoco(s_q, idx, dirs, n_seq, origins, row_laser, d_a, g_a, n_a)
             raykernel.scatter_cast(idx[s_q], d_a[s_q], g_a[s_q], n_a[s_q],
@@ -878,9 +878,9 @@ class LidarEmulator:
         if len(idx) == 0:
             return (np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
                     np.zeros(0, dtype=np.uint8))
-        full, row, geom, centre, half = self._intervals
-        d, g, nv, flags = raykernel.solid_cast(idx, dirs, len(base), n_k, full, row, geom,
-                                               centre, half, d_first, spread, base,
+        full, row, geom, _, _ = self._intervals
+        d, g, nv, flags = raykernel.solid_cast(idx, dirs, rows, bounds, len(base), n_k, full,
+                                               row, geom, *self._interval_rays,
                                                *self._solid_tables(), caster.plane_ids,
                                                *self._planes, origins, row_laser)
         if mujoco_too:
@@ -1016,17 +1016,24 @@ class LidarEmulator:
         under half-angle alpha holds the directions with cw (sin a cx + cos a cy) + sw cz >=
         cos(alpha), i.e. |a - phi| <= arccos(q): an azimuth interval per (row, geom), cached per
         pose (`_pose_intervals`); the kernel turns them into rays, widened by the spread and
-        1e-9 rad so that the culling can only cast too much, never too little.
+        1e-9 rad so that the culling can only cast too much, never too little. Which of the
+        rays each interval holds is kept for the kernels (``_interval_rays``).
         """
         ids = self.caster.solid_ids
         if len(ids) == 0:
+            self._intervals = (np.zeros(len(cw), dtype=np.bool_), np.zeros(0, dtype=np.int64),
+                               np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
+            self._interval_rays = (np.zeros(1, dtype=np.int64), np.zeros((0, 2), dtype=np.int64))
             return (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=np.int64),
                     np.zeros(1, dtype=np.int64))
         full, row, centre, half, geom = self._pose_intervals(ids, cw[:, None], sw[:, None],
                                                              origins, row_laser, rotation)
         self._intervals = (full, row, geom, centre, half)  # (for `_cast_candidates`)
-        return raykernel.grid_candidates(base, full, row, centre, half, d_first, spread,
-                                         azimuth, row_laser, row_dh, cw, sw, rotation)
+        *cand, iv_start, run_q = raykernel.grid_candidates(base, full, row, centre, half,
+                                                           d_first, spread, azimuth, row_laser,
+                                                           row_dh, cw, sw, rotation)
+        self._interval_rays = (iv_start, run_q)
+        return tuple(cand)
 
     def _pose_intervals(self, ids: np.ndarray, cw: np.ndarray, sw: np.ndarray,
                         origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray

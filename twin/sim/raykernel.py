@@ -452,10 +452,14 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
                     centre: np.ndarray, half: np.ndarray, d_first: np.ndarray, spread: float,
                     azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray,
                     cw: np.ndarray, sw: np.ndarray, rotation: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The rays of a grid that may meet a solid, for MuJoCo: (ray index ``r * S + s`` (n,),
-    world unit direction (n, 3), rows (m,), bounds (m + 1,)): the rays of ``rows[j]`` are
-    ``bounds[j]:bounds[j + 1]``, rows ascending, each row's rays in sequence order.
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                               np.ndarray]:
+    """The rays of a grid that may meet a solid: (ray index ``r * S + s`` (n,), world unit
+    direction (n, 3), rows (m,), bounds (m + 1,): the rays of ``rows[j]`` are
+    ``bounds[j]:bounds[j + 1]``, rows ascending, each row's rays in sequence order; and where
+    each interval's rays are among them: interval i's are the runs ``iv_start[i]`` ..
+    ``iv_start[i + 1]`` of ``run_q`` (runs (n_runs, 2): [first, end) of ray indices), so that
+    `solid_cast` and `subray_cast` need not search for them again).
 
     ``base`` (S,): each sequence's first azimuth (the sensor spins one way, so it unwraps to a
     monotonic sequence). Whole rows ``full_rows`` (R,) bool; azimuth intervals ``centre`` +-
@@ -466,7 +470,9 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
     too much, never too little), one range per turn of the sensor the grid spans; a row's
     ranges are merged before they are expanded, so every ray comes once. Directions: the
     ``rotation`` of {L} applied to (cw sin a, cw cos a, sw) for the ray's azimuth a =
-    ``azimuth[s, laser] + row_dh[r]`` (libm: a few hundred rays).
+    ``azimuth[s, laser] + row_dh[r]`` (libm, about 20 ns a ray: once per laser and sequence
+    for the rows whose ``row_dh`` is 0, a beam's centre and its vertical sub-rays, which
+    share that a).
     """
     n_seq = base.shape[0]
     n_rows = full_rows.shape[0]
@@ -488,13 +494,17 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
             run_hi[n_run] = n_seq
             n_run += 1
     ranges = np.empty((n_turns, 2), dtype=np.int64)
-    for i in range(row.shape[0]):
+    n_iv = row.shape[0]
+    iv_start = np.empty(n_iv + 1, dtype=np.int64)
+    for i in range(n_iv):
+        iv_start[i] = n_run - n_full
         n_ranges = _column_ranges(b_u, centre[i] - d_first[row[i]], half[i] + spread, ranges)
         for j in range(n_ranges):
             run_row[n_run] = row[i]
             run_lo[n_run] = ranges[j, 0]
             run_hi[n_run] = ranges[j, 1]
             n_run += 1
+    iv_start[n_iv] = n_run - n_full
     key = np.empty(n_run, dtype=np.int64)
     for j in range(n_run):
         key[j] = run_row[j] * (n_seq + 1) + run_lo[j]
@@ -503,6 +513,7 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
     m_row = np.empty(n_run, dtype=np.int64)
     m_lo = np.empty(n_run, dtype=np.int64)
     m_hi = np.empty(n_run, dtype=np.int64)
+    merged = np.empty(n_run, dtype=np.int64)  # each run's merged run
     n_m = 0
     total = 0
     for j in range(n_run):
@@ -517,10 +528,17 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
             m_hi[n_m] = run_hi[q]
             total += run_hi[q] - run_lo[q]
             n_m += 1
+        merged[q] = n_m - 1
     ray_index = np.empty(total, dtype=np.int64)
     dirs = np.empty((total, 3))
     rows = np.empty(n_m, dtype=np.int64)
     bounds = np.empty(n_m + 1, dtype=np.int64)
+    m_q = np.empty(n_m, dtype=np.int64)  # each merged run's first ray
+    # sin and cos of a row without an azimuth offset, by sequence, kept for the laser's other
+    # such rows (``mark``: the laser + 1 whose values they are)
+    sin_s = np.empty(n_seq)
+    cos_s = np.empty(n_seq)
+    mark = np.zeros(n_seq, dtype=np.int64)
     n_r = 0
     i = 0
     for j in range(n_m):
@@ -529,18 +547,39 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
             rows[n_r] = r
             bounds[n_r] = i
             n_r += 1
+        m_q[j] = i
         c = cw[r]
         z = sw[r]
+        lsr = row_laser[r]
+        dh = row_dh[r]
         for s in range(m_lo[j], m_hi[j]):
-            a = azimuth[s, row_laser[r]] + row_dh[r]
-            u0 = c * math.sin(a)
-            u1 = c * math.cos(a)
+            a = azimuth[s, lsr] + dh
+            if dh != 0.0:
+                sa = math.sin(a)
+                ca = math.cos(a)
+            elif mark[s] == lsr + 1:
+                sa = sin_s[s]
+                ca = cos_s[s]
+            else:
+                sa = math.sin(a)
+                ca = math.cos(a)
+                sin_s[s] = sa
+                cos_s[s] = ca
+                mark[s] = lsr + 1
+            u0 = c * sa
+            u1 = c * ca
             ray_index[i] = r * n_seq + s
             for e in range(3):
                 dirs[i, e] = rotation[e, 0] * u0 + rotation[e, 1] * u1 + rotation[e, 2] * z
             i += 1
     bounds[n_r] = i
-    return ray_index, dirs, rows[:n_r], bounds[:n_r + 1]
+    # the intervals' runs as ray indices (the full rows' runs, first, belong to no interval)
+    run_q = np.empty((n_run - n_full, 2), dtype=np.int64)
+    for q in range(n_full, n_run):
+        m = merged[q]
+        run_q[q - n_full, 0] = m_q[m] + run_lo[q] - m_lo[m]
+        run_q[q - n_full, 1] = m_q[m] + run_hi[q] - m_lo[m]
+    return ray_index, dirs, rows[:n_r], bounds[:n_r + 1], iv_start, run_q
 
 
 @njit(inline="always", error_model="numpy")
@@ -1067,6 +1106,33 @@ def cast_solids(pnt: np.ndarray, dirs: np.ndarray, geoms: np.ndarray, g_kind: np
     return dist, gid, nrm
 
 
+@njit(inline="always", error_model="numpy")
+def _search(a: np.ndarray, lo: int, hi: int, v: int) -> int:
+    """``lo + np.searchsorted(a[lo:hi], v)`` (side "left") without the view: the candidates'
+    indices of one row are a few hundred of the 54,000 a rotation has, and a search over all
+    of them missed the caches at every step."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if a[mid] < v:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(inline="always", error_model="numpy")
+def _row_spans(rows: np.ndarray, bounds: np.ndarray, n_rows: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Where each row's candidates lie in `grid_candidates`' ray index: [lo[r], hi[r]) (empty
+    for a row without any), from its ``rows`` and ``bounds``."""
+    lo = np.zeros(n_rows, dtype=np.int64)
+    hi = np.zeros(n_rows, dtype=np.int64)
+    for j in range(rows.shape[0]):
+        lo[rows[j]] = bounds[j]
+        hi[rows[j]] = bounds[j + 1]
+    return lo, hi
+
+
 #: `solid_cast`'s flags per candidate ray (uint8 bits).
 #: MuJoCo must still cast it: a whole row's ray (against every geom), or one that may meet a
 #: geom of `KIND_MUJOCO` (against those alone: `merge_nearest`).
@@ -1079,10 +1145,9 @@ FLAG_CENTRE = 4
 
 
 @njit(inline="always", error_model="numpy")
-def _solids_pass(stage: int, select: np.ndarray, ray_index: np.ndarray, dirs: np.ndarray,
-                 n_seq: int, n_k: int, full_rows: np.ndarray, iv_row: np.ndarray,
-                 iv_geom: np.ndarray, iv_centre: np.ndarray, iv_half: np.ndarray,
-                 d_first: np.ndarray, spread: float, base: np.ndarray, g_kind: np.ndarray,
+def _solids_pass(stage: int, select: np.ndarray, dirs: np.ndarray, n_k: int,
+                 full_rows: np.ndarray, iv_row: np.ndarray, iv_geom: np.ndarray,
+                 iv_start: np.ndarray, run_q: np.ndarray, g_kind: np.ndarray,
                  g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray, meshes: tuple,
                  origins: np.ndarray, row_laser: np.ndarray, dist: np.ndarray,
                  gid: np.ndarray, nrm: np.ndarray, flags: np.ndarray) -> None:
@@ -1090,13 +1155,11 @@ def _solids_pass(stage: int, select: np.ndarray, ray_index: np.ndarray, dirs: np
     every box; the curved geoms and meshes of the beams' centres (rows ``laser * n_k``),
     the sub-rays' flagged `FLAG_DEFERRED`; the geoms of `KIND_MUJOCO` flagged `FLAG_MUJOCO`.
     Stage 1: the curved geoms and meshes of the rays ``select`` names (`subray_cast`). Hits
-    go into ``dist``/``gid``/``nrm`` (`_cast_geom`)."""
+    go into ``dist``/``gid``/``nrm`` (`_cast_geom`); interval i's rays are the runs
+    ``iv_start[i]`` .. ``iv_start[i + 1]`` of ``run_q`` (`grid_candidates`)."""
     g_mesh, bvh_adr, bvh_aabb, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert = meshes
-    b_u = unwrap(base)
-    n_turns = math.ceil((b_u[n_seq - 1] - b_u[0]) * _INV_TWO_PI) + 2
-    ranges = np.empty((n_turns, 2), dtype=np.int64)
     stack = np.empty(2 * MJ_MAX_TREE_DEPTH, dtype=np.int64)
-    todo = np.empty(ray_index.shape[0], dtype=np.int64)
+    todo = np.empty(dirs.shape[0], dtype=np.int64)
     for i in range(iv_row.shape[0]):
         r = iv_row[i]
         if full_rows[r]:
@@ -1107,12 +1170,9 @@ def _solids_pass(stage: int, select: np.ndarray, ray_index: np.ndarray, dirs: np
         if stage == 1 and not curved:
             continue
         later = curved and r % n_k != 0
-        n_r = _column_ranges(b_u, iv_centre[i] - d_first[r], iv_half[i] + spread, ranges)
         n_todo = 0
-        for jr in range(n_r):
-            lo = np.searchsorted(ray_index, r * n_seq + ranges[jr, 0])
-            hi = np.searchsorted(ray_index, r * n_seq + ranges[jr, 1])
-            for q in range(lo, hi):
+        for jr in range(iv_start[i], iv_start[i + 1]):
+            for q in range(run_q[jr, 0], run_q[jr, 1]):
                 if stage == 0:
                     if kind == KIND_MUJOCO:
                         flags[q] |= FLAG_MUJOCO
@@ -1133,29 +1193,31 @@ def _solids_pass(stage: int, select: np.ndarray, ray_index: np.ndarray, dirs: np
 
 
 @njit(cache=True, error_model="numpy")
-def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, n_k: int,
-               full_rows: np.ndarray, iv_row: np.ndarray, iv_geom: np.ndarray,
-               iv_centre: np.ndarray, iv_half: np.ndarray, d_first: np.ndarray,
-               spread: float, base: np.ndarray, g_kind: np.ndarray, g_pos: np.ndarray,
-               g_mat: np.ndarray, g_size: np.ndarray, meshes: tuple, plane_ids: np.ndarray,
+def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds: np.ndarray,
+               n_seq: int, n_k: int, full_rows: np.ndarray, iv_row: np.ndarray,
+               iv_geom: np.ndarray, iv_start: np.ndarray, run_q: np.ndarray,
+               g_kind: np.ndarray, g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray,
+               meshes: tuple, plane_ids: np.ndarray,
                pl_k: np.ndarray, pl_ranges: np.ndarray, pl_n_ranges: np.ndarray,
                origins: np.ndarray, row_laser: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """mj_multiRay's answer for the culled rays, computed here with MuJoCo's own ray
     functions (the section above), and what is left of it for later.
 
-    ``ray_index``/``dirs``: the rays that may meet a solid (`grid_candidates`: ascending
-    ``r * n_seq + s``; rows ``laser * n_k + k``, k = 0 the beam's centre); the intervals (row
-    ``iv_row``, geom id ``iv_geom``, azimuth ``iv_centre`` +- ``iv_half``,
-    `twin.sim.emulation.LidarEmulator._pose_intervals`) become the same column ranges as
-    there (`_column_ranges`, widened by ``spread``), so each ray learns which solids it may
-    meet, and only those are tested: mj_multiRay tests every geom of the scene against each
-    ray. Every ray but a ``full_rows`` row's gets its boxes (`_solids_pass`) and every plane
-    (``plane_ids``, by `ray_plane` where `plane_rows`' ``pl_k``, ``pl_ranges``,
-    ``pl_n_ranges`` let it be met); a beam's centre its curved geoms and meshes too; the
+    ``ray_index``/``dirs``/``rows``/``bounds``: the rays that may meet a solid
+    (`grid_candidates`: ascending ``r * n_seq + s``, row ``rows[j]``'s are
+    ``bounds[j]:bounds[j + 1]``; rows ``laser * n_k + k``, k = 0 the beam's centre) and the
+    culling's intervals (row ``iv_row``, geom id ``iv_geom``,
+    `twin.sim.emulation.LidarEmulator._pose_intervals`; their rays ``iv_start``, ``run_q``,
+    as `grid_candidates` found them), so each ray learns which solids it may meet, and only
+    those are tested: mj_multiRay tests every geom of the scene against each ray. Every ray
+    but a ``full_rows`` row's gets its boxes (`_solids_pass`) and every plane (``plane_ids``,
+    by `ray_plane` where `plane_rows`' ``pl_k``, ``pl_ranges``, ``pl_n_ranges`` let it be
+    met: the rows' candidates found by `_search`); a beam's centre its curved geoms and
+    meshes too; the
     nearest, the lowest geom id on a tie (mj_ray's strict <), with the world normal as
     mj_multiRay gives it. Geoms by id: kind ``g_kind`` (`KIND_*`), world pose ``g_pos``
-    (G, 3), ``g_mat`` (G, 9), size ``g_size`` (G, 3), ``meshes`` (`_mesh`); the rows'
+    (G, 3), ``g_mat`` (G, 9), size ``g_size`` (G, 3), ``meshes`` (`_cast_geom`); the rows'
     origins ``origins[row_laser[r]]``.
 
     Returns (distance, -1: none; geom id, -1; normal (n, 3); flags (n,) uint8: `FLAG_*`), in
@@ -1171,13 +1233,15 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, n_k: int,
     flags = np.zeros(n, dtype=np.uint8)
     if n == 0:
         return dist, gid, nrm, flags
-    for q in range(n):
-        r = ray_index[q] // n_seq
+    span_lo, span_hi = _row_spans(rows, bounds, full_rows.shape[0])
+    for j in range(rows.shape[0]):  # (by rows: no integer division per ray)
+        r = rows[j]
         f = FLAG_CENTRE if r % n_k == 0 else 0
-        flags[q] = f | FLAG_MUJOCO if full_rows[r] else f
-    _solids_pass(0, flags, ray_index, dirs, n_seq, n_k, full_rows, iv_row, iv_geom, iv_centre,
-                 iv_half, d_first, spread, base, g_kind, g_pos, g_mat, g_size, meshes, origins,
-                 row_laser, dist, gid, nrm, flags)
+        f = f | FLAG_MUJOCO if full_rows[r] else f
+        for q in range(bounds[j], bounds[j + 1]):
+            flags[q] = f
+    _solids_pass(0, flags, dirs, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
+                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist, gid, nrm, flags)
     # The planes, as `ray_planes` has MuJoCo's rule, for every ray but whole rows' (a ray
     # left to MuJoCo or for later keeps its boxes' and planes' hit: `merge_nearest`); only
     # where `plane_rows` says the plane can be met at all (its live rows and their column
@@ -1202,8 +1266,9 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, n_k: int,
             lsr = row_laser[r]
             lp0, lp1, lp2 = lpl[lsr, 0], lpl[lsr, 1], lpl[lsr, 2]
             for jr in range(pl_n_ranges[p, r]):
-                lo = np.searchsorted(ray_index, r * n_seq + pl_ranges[p, r, jr, 0])
-                hi = np.searchsorted(ray_index, r * n_seq + pl_ranges[p, r, jr, 1])
+                key = r * n_seq
+                lo = _search(ray_index, span_lo[r], span_hi[r], key + pl_ranges[p, r, jr, 0])
+                hi = _search(ray_index, lo, span_hi[r], key + pl_ranges[p, r, jr, 1])
                 for q in range(lo, hi):
                     v0 = dirs[q, 0]
                     v1 = dirs[q, 1]
@@ -1244,10 +1309,10 @@ def merge_nearest(q: np.ndarray, dist: np.ndarray, gid: np.ndarray, nrm: np.ndar
 # Divergence: sub-rays only where the beam's footprint leaves a face (adaptive)
 # --------------------------------------------------------------------------------------------
 @njit(inline="always", error_model="numpy")
-def _subray_needed(ray: int, n_k: int, n_seq: int, gid: np.ndarray, curved: np.ndarray,
+def _subray_needed(r: int, s: int, n_k: int, n_seq: int, gid: np.ndarray, curved: np.ndarray,
                    full_rows: np.ndarray) -> bool:
-    """Whether sub-ray ``ray`` (row-major ``r * n_seq + s``, row ``laser * n_k + k``, k >= 1)
-    must meet the curved geoms and meshes it may meet, or its boxes' and planes' hit stands.
+    """Whether sub-ray s of row r (``laser * n_k + k``, k >= 1) must meet the curved geoms
+    and meshes it may meet, or its boxes' and planes' hit stands.
 
     ``gid`` (row-major, every row) holds the beams' centres' final geoms. A sub-ray is left to
     the boxes and planes when its centre hit a geom that is not ``curved`` (by geom id) and
@@ -1257,11 +1322,9 @@ def _subray_needed(ray: int, n_k: int, n_seq: int, gid: np.ndarray, curved: np.n
     spacing or crosses between the sub-ray and its centre only vertically (a few beams in
     10^4 in the lab; tests/test_emulation.py). Every ray of a ``full_rows`` row is needed
     (MuJoCo casts those whole)."""
-    r = ray // n_seq
     if full_rows[r]:
         return True
-    s = ray - r * n_seq
-    c_row = (r // n_k) * n_k * n_seq
+    c_row = (r - r % n_k) * n_seq
     g0 = gid[c_row + s]
     if g0 < 0 or curved[g0]:
         return True
@@ -1271,12 +1334,12 @@ def _subray_needed(ray: int, n_k: int, n_seq: int, gid: np.ndarray, curved: np.n
 
 
 @njit(cache=True, error_model="numpy")
-def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, dist_a: np.ndarray,
-                gid_a: np.ndarray, nrm_a: np.ndarray, flags: np.ndarray, n_seq: int, n_k: int,
-                full_rows: np.ndarray, iv_row: np.ndarray, iv_geom: np.ndarray,
-                iv_centre: np.ndarray, iv_half: np.ndarray, d_first: np.ndarray,
-                spread: float, base: np.ndarray, g_kind: np.ndarray, g_pos: np.ndarray,
-                g_mat: np.ndarray, g_size: np.ndarray, meshes: tuple, origins: np.ndarray,
+def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds: np.ndarray,
+                dist_a: np.ndarray, gid_a: np.ndarray, nrm_a: np.ndarray, flags: np.ndarray,
+                n_seq: int, n_k: int, full_rows: np.ndarray, iv_row: np.ndarray,
+                iv_geom: np.ndarray, iv_start: np.ndarray, run_q: np.ndarray,
+                g_kind: np.ndarray, g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray,
+                meshes: tuple, origins: np.ndarray,
                 row_laser: np.ndarray, curved: np.ndarray, weight: np.ndarray, cutoff: float,
                 dist: np.ndarray, cos_inc: np.ndarray, gid: np.ndarray) -> np.ndarray:
     """Divergence, adaptive: the candidates' hits (`solid_cast`'s ``dist_a``, ``gid_a``,
@@ -1303,18 +1366,21 @@ def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, dist_a: np.ndarray,
     select = np.zeros(n, dtype=np.bool_)
     to_mujoco = np.zeros(n, dtype=np.bool_)
     n_mj = 0
-    for q in range(n):
-        f = flags[q]
-        if f == 0 or f & FLAG_CENTRE:
+    for jr in range(rows.shape[0]):  # (by rows: no integer division per ray)
+        r = rows[jr]
+        if r % n_k == 0:
             continue
-        if _subray_needed(ray_index[q], n_k, n_seq, gid, curved, full_rows):
-            select[q] = (f & FLAG_DEFERRED) != 0
-            if f & FLAG_MUJOCO:
-                to_mujoco[q] = True
-                n_mj += 1
-    _solids_pass(1, select, ray_index, dirs, n_seq, n_k, full_rows, iv_row, iv_geom,
-                 iv_centre, iv_half, d_first, spread, base, g_kind, g_pos, g_mat, g_size,
-                 meshes, origins, row_laser, dist_a, gid_a, nrm_a, flags)
+        for q in range(bounds[jr], bounds[jr + 1]):
+            f = flags[q]
+            if f == 0:
+                continue
+            if _subray_needed(r, ray_index[q] - r * n_seq, n_k, n_seq, gid, curved, full_rows):
+                select[q] = (f & FLAG_DEFERRED) != 0
+                if f & FLAG_MUJOCO:
+                    to_mujoco[q] = True
+                    n_mj += 1
+    _solids_pass(1, select, dirs, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
+                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist_a, gid_a, nrm_a, flags)
     mj_q = np.empty(n_mj, dtype=np.int64)
     k = 0
     for q in range(n):
