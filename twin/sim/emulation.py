@@ -215,20 +215,24 @@ def geom_kinds(model: mujoco.MjModel) -> np.ndarray:
 
 
 def mesh_tables(model: mujoco.MjModel) -> tuple[np.ndarray, ...]:
-    """What `twin.sim.raykernel`'s mesh ray function reads of the model, with the dtypes its
-    compiled signature has (one signature whether the model has meshes or not): each geom's
-    mesh id (``geom_dataid``), ``mesh_bvhadr``, ``bvh_aabb``, ``bvh_child``, ``bvh_nodeid``,
-    ``mesh_faceadr``, ``mesh_vertadr``, ``mesh_face``, ``mesh_vert`` (float32, as MuJoCo
-    keeps them)."""
+    """What `twin.sim.raykernel`'s mesh ray function (mj_rayMesh) reads of the model, with
+    the dtypes its compiled signature has (one signature whether the model has meshes or
+    not): each geom's mesh id (``geom_dataid``), ``mesh_bvhadr``, the BVH nodes' boxes as
+    corners (min, max) (``bvh_aabb``'s centre -+ half-size, the doubles mju_raySlab forms
+    for every node it visits, formed once here), ``bvh_child``, ``bvh_nodeid``,
+    ``mesh_faceadr``, ``mesh_vertadr``, ``mesh_face``, ``mesh_vert`` as doubles (MuJoCo keeps
+    float32 and converts each vertex it reads: exact, so the same values)."""
     def i32(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
         return np.ascontiguousarray(np.asarray(a, dtype=np.int32).reshape(shape))
 
-    return (i32(model.geom_dataid, (-1,)), i32(model.mesh_bvhadr, (-1,)),
-            np.ascontiguousarray(np.asarray(model.bvh_aabb, dtype=np.float64).reshape(-1, 6)),
+    aabb = np.asarray(model.bvh_aabb, dtype=np.float64).reshape(-1, 6)
+    box = np.ascontiguousarray(np.hstack((aabb[:, :3] - aabb[:, 3:], aabb[:, :3] + aabb[:, 3:])))
+    return (i32(model.geom_dataid, (-1,)), i32(model.mesh_bvhadr, (-1,)), box,
             i32(model.bvh_child, (-1, 2)), i32(model.bvh_nodeid, (-1,)),
             i32(model.mesh_faceadr, (-1,)), i32(model.mesh_vertadr, (-1,)),
             i32(model.mesh_face, (-1, 3)),
-            np.ascontiguousarray(np.asarray(model.mesh_vert, dtype=np.float32).reshape(-1, 3)))
+            np.ascontiguousarray(np.asarray(model.mesh_vert, dtype=np.float32)
+                                 .astype(np.float64).reshape(-1, 3)))
 
 
 class RayCaster:

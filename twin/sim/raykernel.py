@@ -928,29 +928,30 @@ def _triangle(v00: float, v01: float, v02: float, v10: float, v11: float, v12: f
 
 
 @njit(inline="always", error_model="numpy")
-def _slab(aabb: np.ndarray, node: int, lp0: float, lp1: float, lp2: float, inv0: float,
+def _slab(box: np.ndarray, node: int, lp0: float, lp1: float, lp2: float, inv0: float,
           inv1: float, inv2: float) -> bool:
     """engine_ray.c ``mju_raySlab``: the ray (in the mesh's frame: origin lp, 1 / direction
     inv, which MuJoCo computes again for every node: the same values) against BVH node
-    ``node``'s box ``aabb[node]`` (centre, half-sizes), Ericson's slabs (inf, and nan where a
-    slab's side passes through the origin, compared as C compares them); a hit when the entry
-    is strictly before the exit."""
-    t1 = (aabb[node, 0] - aabb[node, 3] - lp0) * inv0
-    t2 = (aabb[node, 0] + aabb[node, 3] - lp0) * inv0
+    ``node``'s box, Ericson's slabs (inf, and nan where a slab's side passes through the
+    origin, compared as C compares them); a hit when the entry is strictly before the exit.
+    ``box[node]``: the corners (min, max) as mju_raySlab forms them from MjModel's bvh_box
+    (centre -+ half-size: `twin.sim.emulation.mesh_tables`, the same doubles)."""
+    t1 = (box[node, 0] - lp0) * inv0
+    t2 = (box[node, 3] - lp0) * inv0
     tmin = 0.0
     tmax = np.inf
     minval = t1 if t1 < t2 else t2
     maxval = t2 if t1 < t2 else t1
     tmin = tmin if tmin > minval else minval
     tmax = tmax if tmax < maxval else maxval
-    t1 = (aabb[node, 1] - aabb[node, 4] - lp1) * inv1
-    t2 = (aabb[node, 1] + aabb[node, 4] - lp1) * inv1
+    t1 = (box[node, 1] - lp1) * inv1
+    t2 = (box[node, 4] - lp1) * inv1
     minval = t1 if t1 < t2 else t2
     maxval = t2 if t1 < t2 else t1
     tmin = tmin if tmin > minval else minval
     tmax = tmax if tmax < maxval else maxval
-    t1 = (aabb[node, 2] - aabb[node, 5] - lp2) * inv2
-    t2 = (aabb[node, 2] + aabb[node, 5] - lp2) * inv2
+    t1 = (box[node, 2] - lp2) * inv2
+    t2 = (box[node, 5] - lp2) * inv2
     minval = t1 if t1 < t2 else t2
     maxval = t2 if t1 < t2 else t1
     tmin = tmin if tmin > minval else minval
@@ -970,15 +971,16 @@ def _nearer(x: float, g: int, d_best: float, g_best: int) -> bool:
 @njit(inline="always", error_model="numpy")
 def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
                size: np.ndarray, o0: float, o1: float, o2: float, dirs: np.ndarray,
-               todo: np.ndarray, n_todo: int, bvh_adr: np.ndarray, bvh_aabb: np.ndarray,
+               todo: np.ndarray, n_todo: int, bvh_adr: np.ndarray, bvh_box: np.ndarray,
                bvh_child: np.ndarray, bvh_nodeid: np.ndarray, face_adr: np.ndarray,
                vert_adr: np.ndarray, face: np.ndarray, vert: np.ndarray, stack: np.ndarray,
                dist: np.ndarray, gid: np.ndarray, nrm: np.ndarray) -> None:
     """Geom ``g`` of ``kind`` (world ``pos``, ``mat`` (9,), ``size``; mesh ``mid``) against
     the rays ``todo[:n_todo]`` from o along ``dirs[q]``, as mj_multiRay dispatches
     (mju_rayGeom; mj_rayMesh for a mesh), each hit kept by `_nearer`. The tables of a mesh are
-    MjModel's (`mesh_bvhadr`, `bvh_aabb`, `bvh_child`, `bvh_nodeid`, `mesh_faceadr`,
-    `mesh_vertadr`, `mesh_face`, `mesh_vert`); ``stack``: int64 scratch of at least
+    MjModel's (`mesh_bvhadr`, `bvh_child`, `bvh_nodeid`, `mesh_faceadr`, `mesh_vertadr`,
+    `mesh_face`; `bvh_aabb` and `mesh_vert` as `twin.sim.emulation.mesh_tables` gives them,
+    the same doubles MuJoCo forms from them); ``stack``: int64 scratch of at least
     `MJ_MAX_TREE_DEPTH`.
 
     Why one geom and many rays a call, and the mesh's walk written out here: numba gives
@@ -996,16 +998,20 @@ def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
         for t in range(n_todo):
             q = todo[t]
             v0, v1, v2 = dirs[q, 0], dirs[q, 1], dirs[q, 2]
-            # mj_rayMesh: the geom's box (ray_box with the geom's size) first
-            x, _, _, _ = _box(tp, tm, ts, o0, o1, o2, v0, v1, v2)
+            # mj_rayMesh: the geom's box (ray_box with the geom's size: `_box` without its
+            # normal) first
+            ssz = ts[0] * ts[0] + ts[1] * ts[1] + ts[2] * ts[2]
+            if not _bounding_sphere(tp, ssz, o0, o1, o2, v0, v1, v2):
+                continue
+            lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(tp, tm, o0, o1, o2, v0, v1, v2)
+            x, _, _ = _box_faces(lp0, lp1, lp2, lv0, lv1, lv2, ts[0], ts[1], ts[2])
             if x < 0.0:
                 continue
-            # mju_rayTree: the ray in the mesh's frame, the basis (b0, b1) of the plane
-            # normal to it, then the tree depth first as MuJoCo walks it (a stack: the
-            # second child is visited first), `_slab` on each node and `_triangle` on each
-            # leaf's face (float32 vertices as doubles); the nearest non-negative, the first
-            # found on a tie
-            lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(tp, tm, o0, o1, o2, v0, v1, v2)
+            # mju_rayTree: the ray in the mesh's frame (the same as ray_box's), the basis
+            # (b0, b1) of the plane normal to it, then the tree depth first as MuJoCo walks
+            # it (a stack: the second child is visited first), `_slab` on each node and
+            # `_triangle` on each leaf's face; the nearest non-negative, the first found on
+            # a tie
             b00, b01, b02 = 1.0, 1.0, 1.0
             if abs(lv0) >= abs(lv1) and abs(lv0) >= abs(lv2):
                 b00 = 0.0
@@ -1027,7 +1033,7 @@ def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
             while n_stack:
                 n_stack -= 1
                 node = adr + stack[n_stack]
-                if not _slab(bvh_aabb, node, lp0, lp1, lp2, inv0, inv1, inv2):
+                if not _slab(bvh_box, node, lp0, lp1, lp2, inv0, inv1, inv2):
                     continue
                 f = bvh_nodeid[node]
                 if f != -1:
@@ -1036,12 +1042,9 @@ def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
                     i1 = face[f, 1] + v_adr
                     i2 = face[f, 2] + v_adr
                     sol, t0, t1, t2 = _triangle(
-                        np.float64(vert[i0, 0]), np.float64(vert[i0, 1]),
-                        np.float64(vert[i0, 2]), np.float64(vert[i1, 0]),
-                        np.float64(vert[i1, 1]), np.float64(vert[i1, 2]),
-                        np.float64(vert[i2, 0]), np.float64(vert[i2, 1]),
-                        np.float64(vert[i2, 2]), lp0, lp1, lp2, lv0, lv1, lv2, b00, b01,
-                        b02, b10, b11, b12)
+                        vert[i0, 0], vert[i0, 1], vert[i0, 2], vert[i1, 0], vert[i1, 1],
+                        vert[i1, 2], vert[i2, 0], vert[i2, 1], vert[i2, 2], lp0, lp1, lp2, lv0,
+                        lv1, lv2, b00, b01, b02, b10, b11, b12)
                     if sol >= 0.0 and (x < 0.0 or sol < x):
                         x = sol
                         n0, n1, n2 = t0, t1, t2
@@ -1092,7 +1095,7 @@ def cast_solids(pnt: np.ndarray, dirs: np.ndarray, geoms: np.ndarray, g_kind: np
     ``meshes`` as `solid_cast`'s), as mj_multiRay has it: the nearest hit, the lowest geom
     id on a tie. Returns (distance, -1: none; geom id, -1; world normal (n, 3)). What the
     tests hold against MuJoCo: `solid_cast` runs the same `_cast_geom`."""
-    g_mesh, bvh_adr, bvh_aabb, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert = meshes
+    g_mesh, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert = meshes
     n = dirs.shape[0]
     dist = np.full(n, -1.0)
     gid = np.full(n, -1, dtype=np.int32)
@@ -1101,7 +1104,7 @@ def cast_solids(pnt: np.ndarray, dirs: np.ndarray, geoms: np.ndarray, g_kind: np
     todo = np.arange(n)
     for g in geoms:
         _cast_geom(g_kind[g], g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], pnt[0], pnt[1],
-                   pnt[2], dirs, todo, n, bvh_adr, bvh_aabb, bvh_child, bvh_nodeid, face_adr,
+                   pnt[2], dirs, todo, n, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr,
                    vert_adr, face, vert, stack, dist, gid, nrm)
     return dist, gid, nrm
 
@@ -1157,7 +1160,7 @@ def _solids_pass(stage: int, select: np.ndarray, dirs: np.ndarray, n_k: int,
     Stage 1: the curved geoms and meshes of the rays ``select`` names (`subray_cast`). Hits
     go into ``dist``/``gid``/``nrm`` (`_cast_geom`); interval i's rays are the runs
     ``iv_start[i]`` .. ``iv_start[i + 1]`` of ``run_q`` (`grid_candidates`)."""
-    g_mesh, bvh_adr, bvh_aabb, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert = meshes
+    g_mesh, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert = meshes
     stack = np.empty(2 * MJ_MAX_TREE_DEPTH, dtype=np.int64)
     todo = np.empty(dirs.shape[0], dtype=np.int64)
     for i in range(iv_row.shape[0]):
@@ -1188,7 +1191,7 @@ def _solids_pass(stage: int, select: np.ndarray, dirs: np.ndarray, n_k: int,
             lsr = row_laser[r]
             _cast_geom(kind, g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], origins[lsr, 0],
                        origins[lsr, 1], origins[lsr, 2], dirs, todo, n_todo, bvh_adr,
-                       bvh_aabb, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert, stack,
+                       bvh_box, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert, stack,
                        dist, gid, nrm)
 
 
