@@ -703,8 +703,8 @@ def _bounding_sphere(pos: tuple, dist_sqr: float, p0: float, p1: float, p2: floa
     larger root (-b + sqrt(det)) / a >= 0, i.e. sqrt(det) >= b (a > 0; a difference of
     doubles is >= 0 iff the first is >= the second), always true for b <= 0. (A quotient of
     a negative numerator rounding to -0, which C's >= 0 would keep, needs |-b + sqrt(det)|
-    below 1e-308: not a ray.) The box test is two thirds of a ray's cost in the lab; this
-    keeps the sqrt only for rays heading away from the centre."""
+    below 1e-308: not a ray.) Without branches (sqrt of max(det, 0), & and | of the
+    comparisons), so that the loops over many rays of one box vectorise."""
     d0 = p0 - pos[0]
     d1 = p1 - pos[1]
     d2 = p2 - pos[2]
@@ -712,7 +712,8 @@ def _bounding_sphere(pos: tuple, dist_sqr: float, p0: float, p1: float, p2: floa
     b = v0 * d0 + v1 * d1 + v2 * d2
     c = d0 * d0 + d1 * d1 + d2 * d2 - dist_sqr
     det = b * b - a * c
-    return (det >= 0.0) and (a >= MJMINVAL) and (b <= 0.0 or math.sqrt(det) >= b)
+    root = math.sqrt(det if det > 0.0 else 0.0)
+    return (det >= 0.0) & (a >= MJMINVAL) & ((b <= 0.0) | (root >= b))
 
 
 @njit(inline="always", error_model="numpy")
@@ -835,30 +836,33 @@ def _cylinder(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: flo
 
 
 @njit(inline="always", error_model="numpy")
+def _box_face(lp_i: float, lv_i: float, lp_j: float, lv_j: float, lp_k: float, lv_k: float,
+              s_i: float, s_j: float, s_k: float, side: float, axis: int, x: float, ax: int,
+              sd: float) -> tuple[float, int, float]:
+    """One face of engine_ray.c ``ray_box`` (axis i, side -1 or 1; j, k the other axes): its
+    plane solved, (side s_i - lp_i) / lv_i, kept where lv_i exceeds mjMINVAL, the solution is
+    >= 0, lies inside the face (<= the half-sizes) and is below the best so far (x, -1:
+    none; its axis and side). Selects, not branches (a division by a direction's 0 gives
+    inf or nan, which the comparisons reject as MuJoCo's check does)."""
+    sol = (side * s_i - lp_i) / lv_i
+    ok = ((abs(lv_i) > MJMINVAL) & (sol >= 0.0) & (abs(lp_j + sol * lv_j) <= s_j)
+          & (abs(lp_k + sol * lv_k) <= s_k) & ((x < 0.0) | (sol < x)))
+    return (sol if ok else x), (axis if ok else ax), (side if ok else sd)
+
+
+@njit(inline="always", error_model="numpy")
 def _box_faces(lp0: float, lp1: float, lp2: float, lv0: float, lv1: float, lv2: float,
                s0: float, s1: float, s2: float) -> tuple[float, int, float]:
-    """The faces of engine_ray.c ``ray_box`` in the box's frame (half-sizes s): each face's
-    plane solved where the direction's component exceeds mjMINVAL, a solution >= 0 kept when
-    it lies inside the face (<= the half-sizes), the smallest kept (the first on a tie).
-    Returns (distance or -1, axis, side)."""
-    x = -1.0
-    ax = -1
-    sd = 0.0
-    lp = (lp0, lp1, lp2)
-    lv = (lv0, lv1, lv2)
-    size = (s0, s1, s2)
-    for i in range(3):
-        if abs(lv[i]) > MJMINVAL:
-            j = 1 if i == 0 else 0
-            k = 1 if i == 2 else 2
-            for side in (-1.0, 1.0):
-                sol = (side * size[i] - lp[i]) / lv[i]
-                inside = (abs(lp[j] + sol * lv[j]) <= size[j]) and (
-                    abs(lp[k] + sol * lv[k]) <= size[k])
-                if sol >= 0.0 and inside and (x < 0.0 or sol < x):
-                    x = sol
-                    ax = i
-                    sd = side
+    """The faces of engine_ray.c ``ray_box`` in the box's frame (half-sizes s), in its order
+    (axes 0, 1, 2, sides -1, 1: the first wins a tie), by `_box_face`. Returns (distance or
+    -1, axis, side)."""
+    x, ax, sd = -1.0, -1, 0.0
+    x, ax, sd = _box_face(lp0, lv0, lp1, lv1, lp2, lv2, s0, s1, s2, -1.0, 0, x, ax, sd)
+    x, ax, sd = _box_face(lp0, lv0, lp1, lv1, lp2, lv2, s0, s1, s2, 1.0, 0, x, ax, sd)
+    x, ax, sd = _box_face(lp1, lv1, lp0, lv0, lp2, lv2, s1, s0, s2, -1.0, 1, x, ax, sd)
+    x, ax, sd = _box_face(lp1, lv1, lp0, lv0, lp2, lv2, s1, s0, s2, 1.0, 1, x, ax, sd)
+    x, ax, sd = _box_face(lp2, lv2, lp0, lv0, lp1, lv1, s2, s0, s1, -1.0, 2, x, ax, sd)
+    x, ax, sd = _box_face(lp2, lv2, lp0, lv0, lp1, lv1, s2, s0, s1, 1.0, 2, x, ax, sd)
     return x, ax, sd
 
 
@@ -866,17 +870,17 @@ def _box_faces(lp0: float, lp1: float, lp2: float, lv0: float, lv1: float, lv2: 
 def _box(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
          v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
     """engine_ray.c ``ray_box``: bounding sphere (the half-diagonal), then `_box_faces`; the
-    normal is the face's axis times its side, rotated into the world."""
+    normal is the face's axis times its side, rotated into the world (mju_mulMatVec3 of
+    that axis vector). Without branches: the boxes' loops vectorise (`_solids_pass`)."""
     ssz = size[0] * size[0] + size[1] * size[1] + size[2] * size[2]
-    if not _bounding_sphere(pos, ssz, p0, p1, p2, v0, v1, v2):
-        return -1.0, 0.0, 0.0, 0.0
+    sphere = _bounding_sphere(pos, ssz, p0, p1, p2, v0, v1, v2)
     lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(pos, mat, p0, p1, p2, v0, v1, v2)
     x, ax, sd = _box_faces(lp0, lp1, lp2, lv0, lv1, lv2, size[0], size[1], size[2])
-    if x < 0.0:
-        return x, 0.0, 0.0, 0.0
+    hit = sphere & (x >= 0.0)
     n0, n1, n2 = _mat_vec3(mat, sd if ax == 0 else 0.0, sd if ax == 1 else 0.0,
                            sd if ax == 2 else 0.0)
-    return x, n0, n1, n2
+    return ((x if hit else -1.0), (n0 if hit else 0.0), (n1 if hit else 0.0),
+            (n2 if hit else 0.0))
 
 
 @njit(inline="always", error_model="numpy")
@@ -965,19 +969,21 @@ def _nearer(x: float, g: int, d_best: float, g_best: int) -> bool:
     ``g_best``; -1: none): nearer, or as near on a lower geom id: mj_ray's rule (geoms in id
     order, strict <) whatever the order the hits come in; -1 is no hit. (Scalars: an inlined
     helper that writes the arrays it is handed costs a loop a reference count per call.)"""
-    return x >= 0.0 and (g_best < 0 or x < d_best or (x == d_best and g < g_best))
+    return (x >= 0.0) & ((g_best < 0) | (x < d_best) | ((x == d_best) & (g < g_best)))
 
 
 @njit(inline="always", error_model="numpy")
 def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
-               size: np.ndarray, o0: float, o1: float, o2: float, dirs: np.ndarray,
+               size: np.ndarray, o0: float, o1: float, o2: float, dirs_t: np.ndarray,
                todo: np.ndarray, n_todo: int, bvh_adr: np.ndarray, bvh_box: np.ndarray,
                bvh_child: np.ndarray, bvh_nodeid: np.ndarray, face_adr: np.ndarray,
                vert_adr: np.ndarray, face: np.ndarray, vert: np.ndarray, stack: np.ndarray,
-               dist: np.ndarray, gid: np.ndarray, nrm: np.ndarray) -> None:
+               dist: np.ndarray, gid: np.ndarray, nrm_t: np.ndarray) -> None:
     """Geom ``g`` of ``kind`` (world ``pos``, ``mat`` (9,), ``size``; mesh ``mid``) against
-    the rays ``todo[:n_todo]`` from o along ``dirs[q]``, as mj_multiRay dispatches
-    (mju_rayGeom; mj_rayMesh for a mesh), each hit kept by `_nearer`. The tables of a mesh are
+    the rays ``todo[:n_todo]`` from o along ``dirs_t[:, q]``, as mj_multiRay dispatches
+    (mju_rayGeom; mj_rayMesh for a mesh), each hit kept by `_nearer` in ``dist``, ``gid``,
+    ``nrm_t[:, q]`` (directions and normals by component: (3, n), or an (n, 3) array's
+    transpose). The tables of a mesh are
     MjModel's (`mesh_bvhadr`, `bvh_child`, `bvh_nodeid`, `mesh_faceadr`, `mesh_vertadr`,
     `mesh_face`; `bvh_aabb` and `mesh_vert` as `twin.sim.emulation.mesh_tables` gives them,
     the same doubles MuJoCo forms from them); ``stack``: int64 scratch of at least
@@ -997,7 +1003,7 @@ def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
         v_adr = vert_adr[mid]
         for t in range(n_todo):
             q = todo[t]
-            v0, v1, v2 = dirs[q, 0], dirs[q, 1], dirs[q, 2]
+            v0, v1, v2 = dirs_t[0, q], dirs_t[1, q], dirs_t[2, q]
             # mj_rayMesh: the geom's box (ray_box with the geom's size: `_box` without its
             # normal) first
             ssz = ts[0] * ts[0] + ts[1] * ts[1] + ts[2] * ts[2]
@@ -1061,11 +1067,11 @@ def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
                 n0, n1, n2 = _normalize3(n0, n1, n2)
                 dist[q] = x
                 gid[q] = g
-                nrm[q, 0], nrm[q, 1], nrm[q, 2] = _mat_vec3(tm, n0, n1, n2)
+                nrm_t[0, q], nrm_t[1, q], nrm_t[2, q] = _mat_vec3(tm, n0, n1, n2)
         return
     for t in range(n_todo):
         q = todo[t]
-        v0, v1, v2 = dirs[q, 0], dirs[q, 1], dirs[q, 2]
+        v0, v1, v2 = dirs_t[0, q], dirs_t[1, q], dirs_t[2, q]
         if kind == KIND_BOX:
             x, n0, n1, n2 = _box(tp, tm, ts, o0, o1, o2, v0, v1, v2)
         elif kind == KIND_SPHERE:
@@ -1081,9 +1087,9 @@ def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
         if _nearer(x, g, dist[q], gid[q]):
             dist[q] = x
             gid[q] = g
-            nrm[q, 0] = n0
-            nrm[q, 1] = n1
-            nrm[q, 2] = n2
+            nrm_t[0, q] = n0
+            nrm_t[1, q] = n1
+            nrm_t[2, q] = n2
 
 
 @njit(cache=True, error_model="numpy")
@@ -1104,8 +1110,8 @@ def cast_solids(pnt: np.ndarray, dirs: np.ndarray, geoms: np.ndarray, g_kind: np
     todo = np.arange(n)
     for g in geoms:
         _cast_geom(g_kind[g], g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], pnt[0], pnt[1],
-                   pnt[2], dirs, todo, n, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr,
-                   vert_adr, face, vert, stack, dist, gid, nrm)
+                   pnt[2], dirs.T, todo, n, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr,
+                   vert_adr, face, vert, stack, dist, gid, nrm.T)
     return dist, gid, nrm
 
 
@@ -1148,21 +1154,27 @@ FLAG_CENTRE = 4
 
 
 @njit(inline="always", error_model="numpy")
-def _solids_pass(stage: int, select: np.ndarray, dirs: np.ndarray, n_k: int,
+def _solids_pass(stage: int, select: np.ndarray, dirs_t: np.ndarray, n_k: int,
                  full_rows: np.ndarray, iv_row: np.ndarray, iv_geom: np.ndarray,
                  iv_start: np.ndarray, run_q: np.ndarray, g_kind: np.ndarray,
                  g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray, meshes: tuple,
                  origins: np.ndarray, row_laser: np.ndarray, dist: np.ndarray,
-                 gid: np.ndarray, nrm: np.ndarray, flags: np.ndarray) -> None:
+                 gid: np.ndarray, nrm_t: np.ndarray, flags: np.ndarray) -> None:
     """The solids of each candidate ray, by its culling intervals (`solid_cast`). Stage 0:
     every box; the curved geoms and meshes of the beams' centres (rows ``laser * n_k``),
     the sub-rays' flagged `FLAG_DEFERRED`; the geoms of `KIND_MUJOCO` flagged `FLAG_MUJOCO`.
     Stage 1: the curved geoms and meshes of the rays ``select`` names (`subray_cast`). Hits
-    go into ``dist``/``gid``/``nrm`` (`_cast_geom`); interval i's rays are the runs
-    ``iv_start[i]`` .. ``iv_start[i + 1]`` of ``run_q`` (`grid_candidates`)."""
+    go into ``dist``/``gid``/``nrm_t`` (`_cast_geom`; directions ``dirs_t`` and normals by
+    component, (3, n)); interval i's rays are the runs ``iv_start[i]`` .. ``iv_start[i + 1]``
+    of ``run_q`` (`grid_candidates`).
+
+    A box's runs (three rays in four of a lab rotation's tests) are one loop each over
+    contiguous rays, `_box` and `_nearer` as selects, the components' rows as views from 0:
+    with ``dirs_t`` and ``nrm_t`` C-ordered (3, n), as `solid_cast` has them, LLVM
+    vectorises it (about 7 ns a test instead of 18)."""
     g_mesh, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert = meshes
     stack = np.empty(2 * MJ_MAX_TREE_DEPTH, dtype=np.int64)
-    todo = np.empty(dirs.shape[0], dtype=np.int64)
+    todo = np.empty(dirs_t.shape[1], dtype=np.int64)
     for i in range(iv_row.shape[0]):
         r = iv_row[i]
         if full_rows[r]:
@@ -1171,6 +1183,29 @@ def _solids_pass(stage: int, select: np.ndarray, dirs: np.ndarray, n_k: int,
         kind = g_kind[g]
         curved = kind != KIND_BOX and kind != KIND_MUJOCO
         if stage == 1 and not curved:
+            continue
+        lsr = row_laser[r]
+        o0, o1, o2 = origins[lsr, 0], origins[lsr, 1], origins[lsr, 2]
+        if kind == KIND_BOX:  # (stage 0)
+            pos, mat, size = g_pos[g], g_mat[g], g_size[g]
+            tp = (pos[0], pos[1], pos[2])
+            tm = (mat[0], mat[1], mat[2], mat[3], mat[4], mat[5], mat[6], mat[7], mat[8])
+            ts = (size[0], size[1], size[2])
+            for jr in range(iv_start[i], iv_start[i + 1]):
+                q0, q1 = run_q[jr, 0], run_q[jr, 1]
+                vx, vy, vz = dirs_t[0, q0:q1], dirs_t[1, q0:q1], dirs_t[2, q0:q1]
+                d_v, g_v = dist[q0:q1], gid[q0:q1]
+                n0_v, n1_v, n2_v = nrm_t[0, q0:q1], nrm_t[1, q0:q1], nrm_t[2, q0:q1]
+                for q in range(q1 - q0):
+                    best, best_g = d_v[q], g_v[q]
+                    b0, b1, b2 = n0_v[q], n1_v[q], n2_v[q]
+                    x, n0, n1, n2 = _box(tp, tm, ts, o0, o1, o2, vx[q], vy[q], vz[q])
+                    take = _nearer(x, g, best, best_g)
+                    d_v[q] = x if take else best
+                    g_v[q] = g if take else best_g
+                    n0_v[q] = n0 if take else b0
+                    n1_v[q] = n1 if take else b1
+                    n2_v[q] = n2 if take else b2
             continue
         later = curved and r % n_k != 0
         n_todo = 0
@@ -1188,11 +1223,9 @@ def _solids_pass(stage: int, select: np.ndarray, dirs: np.ndarray, n_k: int,
                 todo[n_todo] = q
                 n_todo += 1
         if n_todo:
-            lsr = row_laser[r]
-            _cast_geom(kind, g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], origins[lsr, 0],
-                       origins[lsr, 1], origins[lsr, 2], dirs, todo, n_todo, bvh_adr,
-                       bvh_box, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert, stack,
-                       dist, gid, nrm)
+            _cast_geom(kind, g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], o0, o1, o2, dirs_t,
+                       todo, n_todo, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr,
+                       vert_adr, face, vert, stack, dist, gid, nrm_t)
 
 
 @njit(cache=True, error_model="numpy")
@@ -1232,10 +1265,16 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds
     n = ray_index.shape[0]
     dist = np.full(n, -1.0)
     gid = np.full(n, -1, dtype=np.int32)
-    nrm = np.zeros((n, 3))
     flags = np.zeros(n, dtype=np.uint8)
     if n == 0:
-        return dist, gid, nrm, flags
+        return dist, gid, np.zeros((n, 3)), flags
+    # directions and normals by component (3, n): the boxes' and planes' loops vectorise
+    dirs_t = np.empty((3, n))
+    for q in range(n):
+        dirs_t[0, q] = dirs[q, 0]
+        dirs_t[1, q] = dirs[q, 1]
+        dirs_t[2, q] = dirs[q, 2]
+    nrm_t = np.zeros((3, n))
     span_lo, span_hi = _row_spans(rows, bounds, full_rows.shape[0])
     for j in range(rows.shape[0]):  # (by rows: no integer division per ray)
         r = rows[j]
@@ -1243,8 +1282,8 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds
         f = f | FLAG_MUJOCO if full_rows[r] else f
         for q in range(bounds[j], bounds[j + 1]):
             flags[q] = f
-    _solids_pass(0, flags, dirs, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
-                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist, gid, nrm, flags)
+    _solids_pass(0, flags, dirs_t, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
+                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist, gid, nrm_t, flags)
     # The planes, as `ray_planes` has MuJoCo's rule, for every ray but whole rows' (a ray
     # left to MuJoCo or for later keeps its boxes' and planes' hit: `merge_nearest`); only
     # where `plane_rows` says the plane can be met at all (its live rows and their column
@@ -1254,6 +1293,8 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds
     for p in range(plane_ids.shape[0]):
         g = plane_ids[p]
         m = g_mat[g]
+        m0, m1, m2, m3, m4, m5, m6, m7, m8 = m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8]
+        s0, s1 = g_size[g, 0], g_size[g, 1]
         lpl = np.empty((n_l, 3))
         for lsr in range(n_l):
             o = origins[lsr]
@@ -1272,21 +1313,29 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds
                 key = r * n_seq
                 lo = _search(ray_index, span_lo[r], span_hi[r], key + pl_ranges[p, r, jr, 0])
                 hi = _search(ray_index, lo, span_hi[r], key + pl_ranges[p, r, jr, 1])
-                for q in range(lo, hi):
-                    v0 = dirs[q, 0]
-                    v1 = dirs[q, 1]
-                    v2 = dirs[q, 2]
-                    lv0 = m[0] * v0 + m[3] * v1 + m[6] * v2
-                    lv1 = m[1] * v0 + m[4] * v1 + m[7] * v2
-                    lv2 = m[2] * v0 + m[5] * v1 + m[8] * v2
-                    x = ray_plane(lp0, lp1, lp2, lv0, lv1, lv2, g_size[g, 0], g_size[g, 1])
-                    if x >= 0.0 and (gid[q] < 0 or x < dist[q]
-                                     or (x == dist[q] and g < gid[q])):
-                        dist[q] = x
-                        gid[q] = g
-                        nrm[q, 0] = m[2]
-                        nrm[q, 1] = m[5]
-                        nrm[q, 2] = m[8]
+                # (without branches, loads before stores, views from 0: LLVM vectorises it)
+                vx, vy, vz = dirs_t[0, lo:hi], dirs_t[1, lo:hi], dirs_t[2, lo:hi]
+                d_v, g_v = dist[lo:hi], gid[lo:hi]
+                n0_v, n1_v, n2_v = nrm_t[0, lo:hi], nrm_t[1, lo:hi], nrm_t[2, lo:hi]
+                for q in range(hi - lo):
+                    v0, v1, v2 = vx[q], vy[q], vz[q]
+                    best, best_g = d_v[q], g_v[q]
+                    b0, b1, b2 = n0_v[q], n1_v[q], n2_v[q]
+                    lv0 = m0 * v0 + m3 * v1 + m6 * v2
+                    lv1 = m1 * v0 + m4 * v1 + m7 * v2
+                    lv2 = m2 * v0 + m5 * v1 + m8 * v2
+                    x = ray_plane(lp0, lp1, lp2, lv0, lv1, lv2, s0, s1)
+                    take = _nearer(x, g, best, best_g)
+                    d_v[q] = x if take else best
+                    g_v[q] = g if take else best_g
+                    n0_v[q] = m2 if take else b0
+                    n1_v[q] = m5 if take else b1
+                    n2_v[q] = m8 if take else b2
+    nrm = np.empty((n, 3))
+    for q in range(n):
+        nrm[q, 0] = nrm_t[0, q]
+        nrm[q, 1] = nrm_t[1, q]
+        nrm[q, 2] = nrm_t[2, q]
     return dist, gid, nrm, flags
 
 
@@ -1382,8 +1431,9 @@ def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bound
                 if f & FLAG_MUJOCO:
                     to_mujoco[q] = True
                     n_mj += 1
-    _solids_pass(1, select, dirs, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
-                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist_a, gid_a, nrm_a, flags)
+    _solids_pass(1, select, dirs.T, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
+                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist_a, gid_a, nrm_a.T,
+                 flags)
     mj_q = np.empty(n_mj, dtype=np.int64)
     k = 0
     for q in range(n):
