@@ -699,12 +699,14 @@ class LidarEmulator:
 
         The compiled kernels of `twin.sim.raykernel` work on rows (laser, sub-ray) of rays that
         share one origin and one elevation. First the rays that may meet a solid (the culling,
-        exact: `_grid_candidates`) go through `mj_multiRay`. Then, with one ray per firing,
-        one pass (`twin.sim.raykernel.grid_pass`) does the rest block by block: every ray's azimuth
-        sine and cosine and nearest plane (floor, wall) by MuJoCo's ray/plane rule, MuJoCo's
-        results over the planes' for the cast rays, the measurement model (the same as
+        exact: `_grid_candidates`) are answered as mj_multiRay would (`_cast_candidates`:
+        MuJoCo's own ray functions in the kernels). Then, with one ray per firing, one pass
+        (`twin.sim.raykernel.grid_pass`) does the rest block by block: every ray's azimuth
+        sine and cosine and nearest plane (floor, wall) by MuJoCo's ray/plane rule, the solids'
+        hits over the planes' for the culled rays, the measurement model (the same as
         `fire`'s, `_measure_hits`) and the points. With divergence the sub-rays are traced
-        (`twin.sim.raykernel.grid_rays`) and their hits form echoes (`_from_hits`).
+        (`twin.sim.raykernel.grid_rays`) and their hits form echoes (`_fire_grid_adaptive`;
+        `_from_hits` for the brute-force sub-rays).
         """
         cfg = self.config
         n_seq = azimuth.shape[0]

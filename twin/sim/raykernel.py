@@ -9,10 +9,11 @@ firing, everything but MuJoCo is one pass over the grid (`grid_pass`) in blocks 
 `BLOCK_SEQUENCES` sequences, each block's intermediate arrays small enough to stay in the CPU's
 caches: the rays' sines and cosines and their nearest plane, MuJoCo's results for the block's
 cast rays, firing order, the measurement model, the points. The rays that may meet a solid
-(`grid_prepare`, `grid_candidates`) are answered before the pass: those that can meet only
-boxes and planes here (`solid_cast`, MuJoCo's own ray_box and ray_plane), the others by
-`mujoco.mj_multiRay` from Python. With divergence, `subray_needs`, `beam_echoes` and `echoes`
-spend MuJoCo's sub-rays only where a curved geom may cross a beam and form the echoes.
+(`grid_prepare`, `grid_candidates`) are answered before the pass, here, by MuJoCo's own ray
+functions against the few solids each may meet (`solid_cast`; the section "MuJoCo's ray
+functions"); `mujoco.mj_multiRay` is left only a whole row or a geom of a type those do not
+cover. With divergence, `subray_cast`, `beam_echoes` and `echoes` test a sub-ray against the
+curved geoms and meshes only where one may cross its beam, and form the echoes.
 
 Layouts. Rays come in rows: row ``laser * K + k`` for sub-ray ``k`` of ``K`` (1 without
 divergence); a row's rays share one origin (the laser's), one elevation and one azimuth offset,
@@ -21,11 +22,14 @@ whole grid: `grid_rays`) rays are row-major; the returns come out in firing orde
 (``s * 16 + laser``), which is also the order in which they consume random numbers.
 
 What the kernels keep from MuJoCo, exactly (tests/test_emulation.py checks ray for ray against
-brute-force `mj_multiRay`):
+brute-force `mj_multiRay`, tests/test_raykernel_solids.py each ray function against MuJoCo's):
 
 * `ray_plane` is engine_ray.c's ``ray_plane``: front face only (``lvec_z <= -mjMINVAL``),
   distance ``-lpnt_z / lvec_z >= 0``, inside the sized rectangle (a size of 0 is unbounded);
   among several planes the nearest wins, the first (lowest geom id) on a tie, as in ``mj_ray``;
+* the solids are engine_ray.c's ray_sphere, ray_capsule, ray_ellipsoid, ray_cylinder, ray_box
+  and mj_rayMesh (`_cast_geom`), the nearest of all geoms and planes wins, the lowest geom id
+  on a tie (`_nearer`), with the normal mj_multiRay gives;
 * hits beyond the caster's cutoff are no return (as `twin.sim.emulation.RayCaster` treats MuJoCo's).
 
 Float32 transcendentals (Box-Muller's log, sine and cosine; the intensity's r^-exponent) are
@@ -611,16 +615,26 @@ def scatter_cast(ray_index: np.ndarray, dist_c: np.ndarray, gid_c: np.ndarray,
 # --------------------------------------------------------------------------------------------
 # MuJoCo's ray functions (src/engine/engine_ray.c), the same operations in the same order
 # --------------------------------------------------------------------------------------------
-# What `mujoco.mj_multiRay` answers for one ray and one geom, reproduced from engine_ray.c
-# (read at google-deepmind/mujoco 3.12.0+, the newest source at hand; the installed MuJoCo is
-# 4.0.1 and tests/test_raykernel_solids.py checks every function here against it, bit for
-# bit). C's evaluation order is kept expression by expression (a*b + c*d + e*f is
-# ((a*b) + (c*d)) + (e*f) in both; numba, like MuJoCo's build, fuses no multiply-add and
-# reorders nothing), helpers as their engine_util_blas.c / engine_util_spatial.c definitions
-# (mju_normalize3, mju_mulMatVec3, mju_cross), comparisons as written (NaN falls through them
-# as it does in C: a direction parallel to a face divides by zero into inf and nan, MuJoCo's
-# own checks then reject it). Each function returns the distance (-1: no hit) and the world
-# normal (0 without a hit), as mj_multiRay gives them.
+# What `mujoco.mj_multiRay` answers for one ray and one geom, reproduced from
+# src/engine/engine_ray.c (read at google-deepmind/mujoco a7255075, 3.12.0 + 31 commits, the
+# newest source at hand; the installed MuJoCo is 4.0.1, and tests/test_raykernel_solids.py
+# holds every function here to it bit for bit: mju_rayGeom, mj_rayMesh and mj_multiRay on
+# hits, misses, grazing rays, rays from inside and ties). Each function's docstring names the
+# C function it reproduces. C's evaluation order is kept expression by expression (a*b + c*d +
+# e*f is ((a*b) + (c*d)) + (e*f) in both; numba, like MuJoCo's build (-mavx, no FMA), fuses no
+# multiply-add and reorders nothing), the helpers as engine_util_blas.c and
+# engine_util_spatial.c define them (mju_normalize3, mju_mulMatVec3, mju_cross), comparisons
+# as written (NaN falls through them as in C: a direction parallel to a face divides by zero
+# into inf or nan, which MuJoCo's own checks then reject). Each function returns the distance
+# (-1: no hit) and the world normal (0 without a hit), as mj_multiRay gives them.
+#
+# Where the code is not the C line for line, it computes the same values, for speed: the
+# bounding-sphere tests of the capsule, cylinder and box decide as ray_sphere >= 0 does
+# without its divisions (`_bounding_sphere` says why that is the same decision); the box's
+# faces and the nearest-hit rule are selects, not branches (`_box_face`, `_nearer`); a mesh's
+# node corners and float32 vertices are formed once per model (`twin.sim.emulation.
+# mesh_tables`), its triangles' normals normalised only for the nearest (`_triangle`); MuJoCo's
+# marking of the BVH nodes it visits (bvh_active, for its renderer) is left out.
 #: Geom kinds (`solid_cast`'s ``g_kind``), MuJoCo's mjtGeom types the kernels answer;
 #: KIND_MUJOCO is any other (a height field, an SDF: none in the shipped scenes), left to
 #: mj_multiRay. `twin.sim.emulation.geom_kinds` maps a model's types.
