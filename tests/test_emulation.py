@@ -502,8 +502,8 @@ def test_the_kernels_give_mujocos_bits_in_the_lab() -> None:
     idx, dirs, rows, bounds = em._grid_candidates(base, d_first, spread, az, row_laser, row_dh,
                                                   cw, sw, origins, r)
     assert len(idx) > 0.25 * az.size  # the lab: many rays are near some solid
-    d, g, nv, flags = em._cast_candidates(idx, dirs, rows, bounds, origins, row_laser, base,
-                                          d_first, spread)
+    d, g, nv, flags, _ = em._cast_candidates(idx, dirs, rows, bounds, origins, row_laser,
+                                             base, d_first, spread)
     assert not np.any(flags & raykernel.FLAG_MUJOCO)  # the kernels answer every ray
     d_b, g_b, n_b = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
     np.testing.assert_array_equal(g, g_b)

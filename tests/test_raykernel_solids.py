@@ -220,19 +220,20 @@ def test_the_nearest_geom_and_ties_are_mj_multirays(scene) -> None:
 
 
 def test_the_fallback_to_mujoco_gives_the_same_returns() -> None:
-    """A geom the kernels leave to MuJoCo (here the lab's capsules, as a height field would
-    be) goes through mj_multiRay against those geoms alone, merged with the kernels' hits:
-    the returns are the all-kernel returns bit for bit, with divergence (the beams' centres
-    and the adaptive sub-rays) and without."""
+    """Geoms the kernels leave to MuJoCo (here every curved geom and mesh of the lab, as a
+    height field would be) go through mj_multiRay against those geoms alone, merged with the
+    kernels' hits: the returns are the all-kernel returns bit for bit, with divergence (the
+    beams' centres and the adaptive sub-rays) and without."""
     params = BenchParams.from_edge(roll_deg=0.5, tilt_deg=1.0, scene="lab")
     for cfg in (EmulationConfig(), EmulationConfig(divergence=False),
                 EmulationConfig.ideal(quantise=False, divergence=True, return_mode="dual")):
         sims = [BenchSim(params, seed=4, noise=cfg) for _ in range(2)]
         caster = sims[1].caster
         kinds = caster.kinds.copy()
-        capsules = kinds == raykernel.KIND_CAPSULE
-        assert capsules.sum() >= 6
-        kinds[capsules] = raykernel.KIND_MUJOCO
+        curved = np.isin(kinds, [raykernel.KIND_SPHERE, raykernel.KIND_CAPSULE,
+                                 raykernel.KIND_CYLINDER, raykernel.KIND_MESH])
+        assert curved.sum() >= 19
+        kinds[curved] = raykernel.KIND_MUJOCO
         caster.use_kinds(kinds)
         out = []
         for sim in sims:

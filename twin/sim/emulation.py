@@ -749,8 +749,8 @@ class LidarEmulator:
             return self._fire_grid_adaptive(azimuth, planes, idx, dirs, rows, bounds, origins,
                                             k, weights, row_laser, base, d_first, spread)
         if cfg.culling and k == 1:
-            d_c, g_c, n_c, _ = self._cast_candidates(idx, dirs, rows, bounds, origins,
-                                                     row_laser, base, d_first, spread)
+            d_c, g_c, n_c, _, _ = self._cast_candidates(idx, dirs, rows, bounds, origins,
+                                                        row_laser, base, d_first, spread)
         else:
             d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
             self.last_mujoco_rays += len(dirs)
@@ -813,9 +813,9 @@ class LidarEmulator:
         gid = np.empty(n * k, dtype=np.int32)
         raykernel.grid_rays(azimuth, row_laser, self._grid_rows()[3], *planes, caster.cutoff,
                             sa, ca, dist, cos_inc, gid)
-        d_a, g_a, n_a, flags = self._cast_candidates(idx, dirs, rows, bounds, origins,
-                                                     row_laser, base, d_first, spread, k,
-                                                     mujoco_too=False)
+        d_a, g_a, n_a, flags, dirs_t = self._cast_candidates(idx, dirs, rows, bounds, origins,
+                                                             row_laser, base, d_first, spread,
+                                                             k, mujoco_too=False)
         # MuJoCo for the centres the kernels leave to it (whole rows; geoms of no kernel's
         # kind), one call per laser: none in the shipped scenes.
         both = raykernel.FLAG_MUJOCO | raykernel.FLAG_CENTRE
@@ -825,7 +825,8 @@ class LidarEmulator:
         # Everything into the grid's arrays; the sub-rays near a curved geom or a mesh get
         # those where their beam's neighbourhood shows one, else their boxes' and planes' hit.
         full, row, geom, _, _ = self._intervals
-        s_q = raykernel.subray_cast(idx, dirs, rows, bounds, d_a, g_a, n_a, flags, n_seq, k,
+        s_q = raykernel.subray_cast(idx, dirs, dirs_t, rows, bounds, d_a, g_a, n_a, flags,
+                                    n_seq, k,
                                     full, row, geom, *self._interval_rays,
                                     *self._solid_tables(), origins, row_laser, self._curved(),
                                     self._unit_weights, caster.cutoff, dist, cos_inc, gid)
@@ -865,7 +866,7 @@ class LidarEmulator:
                          bounds: np.ndarray, origins: np.ndarray, row_laser: np.ndarray,
                          base: np.ndarray, d_first: np.ndarray, spread: float, n_k: int = 1,
                          mujoco_too: bool = True
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """mj_multiRay's answer (raw: distance, geom id, normal) for the rays that may meet a
         solid (`_grid_candidates`' ``idx``, ``dirs``, ``rows``, ``bounds``; rows ``laser *
         n_k + sub-ray``) from `twin.sim.raykernel.solid_cast` (MuJoCo's own ray functions,
@@ -873,8 +874,8 @@ class LidarEmulator:
         beam's centre, the boxes and planes of a sub-ray (its curved geoms and meshes:
         `raykernel.subray_cast`). Rays the kernels leave to MuJoCo (a whole row; a geom of
         no kernel's kind) go through `mj_multiRay`, one call per row, unless ``mujoco_too``
-        is False (then distance and geom -1, or the kernels' part). Returns the three and
-        `solid_cast`'s flags.
+        is False (then distance and geom -1, or the kernels' part). Returns the three,
+        `solid_cast`'s flags and its directions by component.
 
         Why: mj_multiRay tests every geom of the scene against every ray it is given, and
         every ray costs a Python call's share; the culling's intervals already say which few
@@ -883,17 +884,16 @@ class LidarEmulator:
         caster = self.caster
         if len(idx) == 0:
             return (np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
-                    np.zeros(0, dtype=np.uint8))
+                    np.zeros(0, dtype=np.uint8), np.zeros((3, 0)))
         full, row, geom, _, _ = self._intervals
-        d, g, nv, flags = raykernel.solid_cast(idx, dirs, rows, bounds, len(base), n_k, full,
-                                               row, geom, *self._interval_rays,
-                                               *self._solid_tables(), caster.plane_ids,
-                                               *self._planes, origins, row_laser)
+        d, g, nv, flags, dirs_t = raykernel.solid_cast(
+            idx, dirs, rows, bounds, len(base), n_k, full, row, geom, *self._interval_rays,
+            *self._solid_tables(), caster.plane_ids, *self._planes, origins, row_laser)
         if mujoco_too:
             mj = np.flatnonzero(flags & raykernel.FLAG_MUJOCO)
             if len(mj):
                 self._cast_mujoco(mj, idx, dirs, len(base), origins, row_laser, d, g, nv)
-        return d, g, nv, flags
+        return d, g, nv, flags, dirs_t
 
     def _cast_mujoco(self, q: np.ndarray, idx: np.ndarray, dirs: np.ndarray, n_seq: int,
                      origins: np.ndarray, row_laser: np.ndarray, d: np.ndarray, g: np.ndarray,

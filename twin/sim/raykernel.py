@@ -730,7 +730,7 @@ def _bounding_sphere(pos: tuple, dist_sqr: float, p0: float, p1: float, p2: floa
     return (det >= 0.0) & (a >= MJMINVAL) & ((b <= 0.0) | (root >= b))
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _sphere(pos: tuple, size: tuple, p0: float, p1: float, p2: float,
             v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
     """mju_rayGeom's sphere: ``ray_sphere`` with radius^2 = size[0] * size[0] and its normal
@@ -742,7 +742,7 @@ def _sphere(pos: tuple, size: tuple, p0: float, p1: float, p2: float,
     return x, n0, n1, n2
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _capsule(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
              v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
     """engine_ray.c ``ray_capsule``: bounding sphere (radius + half-length), then the round
@@ -791,7 +791,7 @@ def _capsule(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: floa
     return x, n0, n1, n2
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _ellipsoid(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
                v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
     """engine_ray.c ``ray_ellipsoid``: the quadric (x lv + lp)' diag(1 / size^2) (...) = 1
@@ -811,7 +811,7 @@ def _ellipsoid(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: fl
     return x, n0, n1, n2
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _cylinder(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
               v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
     """engine_ray.c ``ray_cylinder``: bounding sphere (radius^2 + half-length^2), the two
@@ -897,7 +897,7 @@ def _box(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
             (n2 if hit else 0.0))
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _triangle(v00: float, v01: float, v02: float, v10: float, v11: float, v12: float,
               v20: float, v21: float, v22: float, lp0: float, lp1: float, lp2: float,
               lv0: float, lv1: float, lv2: float, b00: float, b01: float, b02: float,
@@ -986,15 +986,15 @@ def _nearer(x: float, g: int, d_best: float, g_best: int) -> bool:
     return (x >= 0.0) & ((g_best < 0) | (x < d_best) | ((x == d_best) & (g < g_best)))
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
                size: np.ndarray, o0: float, o1: float, o2: float, dirs_t: np.ndarray,
-               todo: np.ndarray, n_todo: int, bvh_adr: np.ndarray, bvh_box: np.ndarray,
+               todo: np.ndarray, bvh_adr: np.ndarray, bvh_box: np.ndarray,
                bvh_child: np.ndarray, bvh_nodeid: np.ndarray, face_adr: np.ndarray,
                vert_adr: np.ndarray, face: np.ndarray, vert: np.ndarray, stack: np.ndarray,
                dist: np.ndarray, gid: np.ndarray, nrm_t: np.ndarray) -> None:
     """Geom ``g`` of ``kind`` (world ``pos``, ``mat`` (9,), ``size``; mesh ``mid``) against
-    the rays ``todo[:n_todo]`` from o along ``dirs_t[:, q]``, as mj_multiRay dispatches
+    the rays ``todo`` from o along ``dirs_t[:, q]``, as mj_multiRay dispatches
     (mju_rayGeom; mj_rayMesh for a mesh), each hit kept by `_nearer` in ``dist``, ``gid``,
     ``nrm_t[:, q]`` (directions and normals by component: (3, n), or an (n, 3) array's
     transpose). The tables of a mesh are
@@ -1015,7 +1015,7 @@ def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
         adr = bvh_adr[mid]
         f_adr = face_adr[mid]
         v_adr = vert_adr[mid]
-        for t in range(n_todo):
+        for t in range(todo.shape[0]):
             q = todo[t]
             v0, v1, v2 = dirs_t[0, q], dirs_t[1, q], dirs_t[2, q]
             # mj_rayMesh: the geom's box (ray_box with the geom's size: `_box` without its
@@ -1083,7 +1083,7 @@ def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
                 gid[q] = g
                 nrm_t[0, q], nrm_t[1, q], nrm_t[2, q] = _mat_vec3(tm, n0, n1, n2)
         return
-    for t in range(n_todo):
+    for t in range(todo.shape[0]):
         q = todo[t]
         v0, v1, v2 = dirs_t[0, q], dirs_t[1, q], dirs_t[2, q]
         if kind == KIND_BOX:
@@ -1122,10 +1122,16 @@ def cast_solids(pnt: np.ndarray, dirs: np.ndarray, geoms: np.ndarray, g_kind: np
     nrm = np.zeros((n, 3))
     stack = np.empty(2 * MJ_MAX_TREE_DEPTH, dtype=np.int64)
     todo = np.arange(n)
+    dirs_t = dirs.T.copy()  # (C-ordered, as `solid_cast` has them: one compiled `_cast_geom`)
+    nrm_t = np.zeros((3, n))
     for g in geoms:
         _cast_geom(g_kind[g], g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], pnt[0], pnt[1],
-                   pnt[2], dirs.T, todo, n, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr,
-                   vert_adr, face, vert, stack, dist, gid, nrm.T)
+                   pnt[2], dirs_t, todo, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr,
+                   vert_adr, face, vert, stack, dist, gid, nrm_t)
+    for q in range(n):
+        nrm[q, 0] = nrm_t[0, q]
+        nrm[q, 1] = nrm_t[1, q]
+        nrm[q, 2] = nrm_t[2, q]
     return dist, gid, nrm
 
 
@@ -1167,7 +1173,7 @@ FLAG_DEFERRED = 2
 FLAG_CENTRE = 4
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _solids_pass(stage: int, select: np.ndarray, dirs_t: np.ndarray, n_k: int,
                  full_rows: np.ndarray, iv_row: np.ndarray, iv_geom: np.ndarray,
                  iv_start: np.ndarray, run_q: np.ndarray, g_kind: np.ndarray,
@@ -1238,7 +1244,7 @@ def _solids_pass(stage: int, select: np.ndarray, dirs_t: np.ndarray, n_k: int,
                 n_todo += 1
         if n_todo:
             _cast_geom(kind, g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], o0, o1, o2, dirs_t,
-                       todo, n_todo, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr,
+                       todo[:n_todo], bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr,
                        vert_adr, face, vert, stack, dist, gid, nrm_t)
 
 
@@ -1250,7 +1256,7 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds
                meshes: tuple, plane_ids: np.ndarray,
                pl_k: np.ndarray, pl_ranges: np.ndarray, pl_n_ranges: np.ndarray,
                origins: np.ndarray, row_laser: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """mj_multiRay's answer for the culled rays, computed here with MuJoCo's own ray
     functions (the section above), and what is left of it for later.
 
@@ -1271,7 +1277,8 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds
     origins ``origins[row_laser[r]]``.
 
     Returns (distance, -1: none; geom id, -1; normal (n, 3); flags (n,) uint8: `FLAG_*`), in
-    mj_multiRay's raw form (`_cast_hit` applies the cutoff). A ray flagged `FLAG_MUJOCO`
+    mj_multiRay's raw form (`_cast_hit` applies the cutoff), and the directions by component
+    (3, n) C-ordered, for `subray_cast`. A ray flagged `FLAG_MUJOCO`
     keeps what it got here (MuJoCo then casts it against the geoms of `KIND_MUJOCO` only:
     `merge_nearest`; a whole row's rays get nothing); one flagged `FLAG_DEFERRED` gets its
     curved geoms and meshes from `subray_cast`.
@@ -1281,7 +1288,7 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds
     gid = np.full(n, -1, dtype=np.int32)
     flags = np.zeros(n, dtype=np.uint8)
     if n == 0:
-        return dist, gid, np.zeros((n, 3)), flags
+        return dist, gid, np.zeros((n, 3)), flags, np.zeros((3, n))
     # directions and normals by component (3, n): the boxes' and planes' loops vectorise
     dirs_t = np.empty((3, n))
     for q in range(n):
@@ -1350,7 +1357,7 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds
         nrm[q, 0] = nrm_t[0, q]
         nrm[q, 1] = nrm_t[1, q]
         nrm[q, 2] = nrm_t[2, q]
-    return dist, gid, nrm, flags
+    return dist, gid, nrm, flags, dirs_t
 
 
 @njit(cache=True, error_model="numpy")
@@ -1400,7 +1407,8 @@ def _subray_needed(r: int, s: int, n_k: int, n_seq: int, gid: np.ndarray, curved
 
 
 @njit(cache=True, error_model="numpy")
-def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds: np.ndarray,
+def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, dirs_t: np.ndarray, rows: np.ndarray,
+                bounds: np.ndarray,
                 dist_a: np.ndarray, gid_a: np.ndarray, nrm_a: np.ndarray, flags: np.ndarray,
                 n_seq: int, n_k: int, full_rows: np.ndarray, iv_row: np.ndarray,
                 iv_geom: np.ndarray, iv_start: np.ndarray, run_q: np.ndarray,
@@ -1420,7 +1428,8 @@ def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bound
     3. The flagged sub-rays, but those that need MuJoCo too (`FLAG_MUJOCO` and needed).
 
     Returns the indices (into the candidates) of the sub-rays of 3., for the caller: MuJoCo,
-    then `scatter_cast`. The rest of the arguments as `solid_cast`'s.
+    then `scatter_cast`. ``dirs_t``: the directions by component (`solid_cast`'s); the rest
+    of the arguments as `solid_cast`'s.
     """
     n = ray_index.shape[0]
     for q in range(n):
@@ -1445,9 +1454,19 @@ def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bound
                 if f & FLAG_MUJOCO:
                     to_mujoco[q] = True
                     n_mj += 1
-    _solids_pass(1, select, dirs.T, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
-                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist_a, gid_a, nrm_a.T,
-                 flags)
+    # (directions and normals by component, C-ordered as in `solid_cast`: one compiled
+    # `_cast_geom` serves both kernels; the normals of the hits this stage takes, which are
+    # a curved geom's or a mesh's (a sub-ray's hit so far is a box's or a plane's), go back
+    # into ``nrm_a``)
+    nrm_t = np.zeros((3, n))
+    _solids_pass(1, select, dirs_t, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
+                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist_a, gid_a, nrm_t, flags)
+    for q in range(n):
+        g = gid_a[q]
+        if select[q] and g >= 0 and g_kind[g] != KIND_BOX and g_kind[g] != KIND_MUJOCO:
+            nrm_a[q, 0] = nrm_t[0, q]
+            nrm_a[q, 1] = nrm_t[1, q]
+            nrm_a[q, 2] = nrm_t[2, q]
     mj_q = np.empty(n_mj, dtype=np.int64)
     k = 0
     for q in range(n):
