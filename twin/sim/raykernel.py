@@ -5,10 +5,10 @@ rotation).
 As numpy, every step (the azimuths' sines and cosines, MuJoCo's ray/plane rule for the floor
 and the wall, the culling's index runs, the measurement model on about 16,600 returns) was a
 handful of full-size passes with temporaries and a Python call each. Here, with one ray per
-firing, everything but MuJoCo is one pass over the grid (`grid_pass`) in blocks of
+firing, everything after the solids is one pass over the grid (`grid_pass`) in blocks of
 `BLOCK_SEQUENCES` sequences, each block's intermediate arrays small enough to stay in the CPU's
-caches: the rays' sines and cosines and their nearest plane, MuJoCo's results for the block's
-cast rays, firing order, the measurement model, the points. The rays that may meet a solid
+caches: the rays' sines and cosines and their nearest plane, the solids' hits for the block's
+culled rays, firing order, the measurement model, the points. The rays that may meet a solid
 (`grid_prepare`, `grid_candidates`) are answered before the pass, here, by MuJoCo's own ray
 functions against the few solids each may meet (`solid_cast`; the section "MuJoCo's ray
 functions"); `mujoco.mj_multiRay` is left only a whole row or a geom of a type those do not
