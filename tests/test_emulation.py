@@ -486,10 +486,11 @@ def test_the_kernels_answer_the_lab_as_mujoco_does() -> None:
     assert (brute.distance > 0).mean() > 0.85
 
 
-def test_the_box_kernel_gives_mujocos_bits() -> None:
-    """`raykernel.solid_cast` (MuJoCo's ray_box and ray_plane, the same operations) plus the
-    curved geoms' cast equals mj_multiRay over every geom along the very same directions, bit
-    for bit: distances, geoms and normals (so scans stay byte-identical)."""
+def test_the_kernels_give_mujocos_bits_in_the_lab() -> None:
+    """`raykernel.solid_cast` (MuJoCo's own ray functions: boxes, planes, the person's
+    capsules, the stool's cylinders, the castors' spheres, the meshes) equals mj_multiRay over
+    every geom along the very same directions, bit for bit: distances, geoms and normals (so
+    scans stay byte-identical), with no ray left to MuJoCo."""
     sim = BenchSim(BenchParams(scene="lab"), seed=0, noise=EmulationConfig.ideal())
     em, caster = sim.emulator, sim.caster
     az = _grid(1800, phase=0.7)
@@ -501,10 +502,14 @@ def test_the_box_kernel_gives_mujocos_bits() -> None:
     idx, dirs, rows, bounds = em._grid_candidates(base, d_first, spread, az, row_laser, row_dh,
                                                   cw, sw, origins, r)
     assert len(idx) > 0.25 * az.size  # the lab: many rays are near some solid
-    d, g, nv, mj = em._cast_candidates(idx, dirs, rows, bounds, origins, row_laser, base,
-                                       d_first, spread)
-    assert 0 < mj.mean() < 0.3  # most are answered by the kernel
+    d, g, nv, flags, _ = em._cast_candidates(idx, dirs, rows, bounds, origins, row_laser,
+                                             base, d_first, spread)
+    assert not np.any(flags & raykernel.FLAG_MUJOCO)  # the kernels answer every ray
     d_b, g_b, n_b = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
     np.testing.assert_array_equal(g, g_b)
     np.testing.assert_array_equal(d, d_b)
     np.testing.assert_array_equal(nv[g >= 0], n_b[g_b >= 0])
+    # every kind of the lab's solids is met, so each kernel was held to MuJoCo here
+    kinds = set(caster.kinds[np.unique(g[g >= 0])].tolist())
+    assert {raykernel.KIND_BOX, raykernel.KIND_CAPSULE, raykernel.KIND_CYLINDER,
+            raykernel.KIND_MESH} <= kinds

@@ -10,9 +10,11 @@ Two layers:
   are finished by MuJoCo's own ray/plane rule (same formula, same finite-rectangle rule as
   ``ray_plane`` in MuJoCo's engine_ray.c) instead of a C call per ray. A ray whose direction
   falls inside the bounding sphere (``geom_rbound``) of a non-plane geom, cut down to its
-  bounding box's angular extent, may meet it: if every such geom is a box, the kernels answer
-  it with MuJoCo's own ray_box (the same bits); otherwise `mj_multiRay` casts it against the
-  curved geoms and meshes alone (`RayCaster.multiray_rows(curved=True)`).
+  bounding box's angular extent, may meet it: the kernels answer it with MuJoCo's own ray
+  functions for the geoms it may meet (boxes, spheres, capsules, cylinders, ellipsoids,
+  meshes: `twin.sim.raykernel.solid_cast`, the same bits); `mj_multiRay` still casts a
+  whole row (the sensor inside a geom's bounding sphere) and any geom of another type (a
+  height field, an SDF: against those alone, `RayCaster.multiray_rows(rest=True)`).
   tests/test_emulation.py proves that this culled cast equals brute-force `mj_multiRay` on every
   ray, so it is a speed-up, never an approximation.
 * `VLP16Emulator` turns firings (laser, azimuth, pose) into returns: beam divergence sub-rays with
@@ -54,8 +56,9 @@ PAPER_RANGE_NOISE = 0.014
 
 #: Geom group the emulator casts against (models/common.xml: 0 = reachable surfaces).
 RAY_GEOM_GROUP = 0
-#: The spare geom group `RayCaster`'s copy of the model puts the curved geoms in.
-CURVED_GROUP = 5
+#: The spare geom group `RayCaster`'s copy of the model puts the geoms the kernels leave to
+#: MuJoCo in (`geom_kinds`: height fields, SDFs).
+REST_GROUP = 5
 #: Origins closer than this share one mj_multiRay call (the cast is then made exact again by the
 #: plane correction of `RayCaster.cast`), m.
 ORIGIN_TOLERANCE = 2e-4
@@ -124,12 +127,13 @@ class EmulationConfig:
     vertical_offsets: bool = True
     #: Cull rays that can only meet planes (exact; see the module docstring).
     culling: bool = True
-    #: Which sub-rays a beam's divergence casts through MuJoCo on the grid path (the stages at
-    #: rest): "adaptive" answers the rays that can only meet boxes and planes in the kernels
-    #: (MuJoCo's rules, its bits), casts each beam's centre first and a sub-ray near a curved
-    #: geom only where the beam's neighbourhood shows one (`raykernel.subray_needs`); "all" casts
-    #: every sub-ray that may meet a solid (the brute-force reference). Planes are exact either
-    #: way; tests/test_emulation.py compares the two.
+    #: Which sub-rays of a divergent beam meet which geoms on the grid path (the stages at
+    #: rest): "adaptive" answers every ray in the kernels with MuJoCo's own ray functions (its
+    #: bits), each beam's centre against every solid it may meet, a sub-ray against the curved
+    #: geoms and meshes only where the beam's neighbourhood shows one
+    #: (`raykernel.subray_cast`; elsewhere its boxes and planes); "all" casts every sub-ray
+    #: that may meet a solid through mj_multiRay (the brute-force reference). Planes are exact
+    #: either way; tests/test_emulation.py compares the two.
     subrays: Literal["adaptive", "all"] = "adaptive"
     #: The sensor model emulated (a name of `twin.core.sensors.MODELS`).
     model: str = VLP16.name
@@ -193,6 +197,44 @@ class EmulationConfig:
 # --------------------------------------------------------------------------------------------
 # Ray casting
 # --------------------------------------------------------------------------------------------
+#: MuJoCo's geom types the kernels answer with its own ray functions (`twin.sim.raykernel`).
+_KINDS = {mujoco.mjtGeom.mjGEOM_BOX: raykernel.KIND_BOX,
+          mujoco.mjtGeom.mjGEOM_SPHERE: raykernel.KIND_SPHERE,
+          mujoco.mjtGeom.mjGEOM_CAPSULE: raykernel.KIND_CAPSULE,
+          mujoco.mjtGeom.mjGEOM_ELLIPSOID: raykernel.KIND_ELLIPSOID,
+          mujoco.mjtGeom.mjGEOM_CYLINDER: raykernel.KIND_CYLINDER,
+          mujoco.mjtGeom.mjGEOM_MESH: raykernel.KIND_MESH}
+
+
+def geom_kinds(model: mujoco.MjModel) -> np.ndarray:
+    """Each geom's kind for `twin.sim.raykernel.solid_cast` (G,) int8: what its ray function
+    is; `raykernel.KIND_MUJOCO` (planes, which the kernels take apart, height fields, SDFs)
+    for the others."""
+    return np.array([_KINDS.get(int(t), raykernel.KIND_MUJOCO) for t in model.geom_type],
+                    dtype=np.int8)
+
+
+def mesh_tables(model: mujoco.MjModel) -> tuple[np.ndarray, ...]:
+    """What `twin.sim.raykernel`'s mesh ray function (mj_rayMesh) reads of the model, with
+    the dtypes its compiled signature has (one signature whether the model has meshes or
+    not): each geom's mesh id (``geom_dataid``), ``mesh_bvhadr``, the BVH nodes' boxes as
+    corners (min, max) (``bvh_aabb``'s centre -+ half-size, the doubles mju_raySlab forms
+    for every node it visits, formed once here), ``bvh_child``, ``bvh_nodeid``,
+    ``mesh_faceadr``, ``mesh_vertadr``, ``mesh_face``, ``mesh_vert`` as doubles (MuJoCo keeps
+    float32 and converts each vertex it reads: exact, so the same values)."""
+    def i32(a: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+        return np.ascontiguousarray(np.asarray(a, dtype=np.int32).reshape(shape))
+
+    aabb = np.asarray(model.bvh_aabb, dtype=np.float64).reshape(-1, 6)
+    box = np.ascontiguousarray(np.hstack((aabb[:, :3] - aabb[:, 3:], aabb[:, :3] + aabb[:, 3:])))
+    return (i32(model.geom_dataid, (-1,)), i32(model.mesh_bvhadr, (-1,)), box,
+            i32(model.bvh_child, (-1, 2)), i32(model.bvh_nodeid, (-1,)),
+            i32(model.mesh_faceadr, (-1,)), i32(model.mesh_vertadr, (-1,)),
+            i32(model.mesh_face, (-1, 3)),
+            np.ascontiguousarray(np.asarray(model.mesh_vert, dtype=np.float32)
+                                 .astype(np.float64).reshape(-1, 3)))
+
+
 class RayCaster:
     """MuJoCo rays against the bench's ray-visible geoms, excluding the sensor body."""
 
@@ -208,20 +250,28 @@ class RayCaster:
         is_plane = model.geom_type == mujoco.mjtGeom.mjGEOM_PLANE
         self.plane_ids = np.flatnonzero(visible & is_plane)
         self.solid_ids = np.flatnonzero(visible & ~is_plane)
-        # A copy of the model in which only the ray-visible geoms that are neither planes nor
-        # boxes are in group CURVED_GROUP: `multiray_rows(curved=True)` casts against those
-        # alone (the kernels answer boxes and planes), a few geoms instead of the scene's.
-        # The physics' data serves it (the same geoms in the same places).
-        curved = visible & ~is_plane & (model.geom_type != mujoco.mjtGeom.mjGEOM_BOX)
-        self._curved_model = copy.copy(model)
-        self._curved_model.geom_group[:] = 0
-        self._curved_model.geom_group[curved] = CURVED_GROUP
-        self._curved_groups = np.zeros(6, dtype=np.uint8)
-        self._curved_groups[CURVED_GROUP] = 1
+        self._visible_solid = visible & ~is_plane
+        self._rest_model = copy.copy(model)
+        self._rest_groups = np.zeros(6, dtype=np.uint8)
+        self._rest_groups[REST_GROUP] = 1
+        self.use_kinds(geom_kinds(model))
         # Scratch buffers for mj_multiRay, grown on demand.
         self._gid = np.zeros(0, dtype=np.int32)
         self._dist = np.zeros(0)
         self._nrm = np.zeros(0)
+
+    def use_kinds(self, kinds: np.ndarray) -> None:
+        """Which ray function answers each geom (`geom_kinds`; `raykernel.KIND_MUJOCO`:
+        mj_multiRay). A copy of the model holds the ray-visible solids the kernels leave to
+        MuJoCo alone in group `REST_GROUP`: `multiray_rows(rest=True)` casts against those, a
+        few geoms (none in the shipped scenes) instead of the scene's; the physics' data
+        serves it (the same geoms in the same places). Tests hand MuJoCo geoms the kernels
+        have, to hold the fallback to the kernels' answer."""
+        #: Each geom's `twin.sim.raykernel` kind.
+        self.kinds = np.ascontiguousarray(kinds, dtype=np.int8)
+        self._rest_model.geom_group[:] = 0
+        self._rest_model.geom_group[self._visible_solid & (self.kinds == raykernel.KIND_MUJOCO)
+                                    ] = REST_GROUP
 
     def _buffers(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if len(self._gid) < n:
@@ -253,13 +303,13 @@ class RayCaster:
         return d, g, nrm.reshape(n, 3).copy()
 
     def multiray_rows(self, row_origins: np.ndarray, bounds: np.ndarray, dirs: np.ndarray,
-                      curved: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      rest: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Rays in runs that share an origin: rays ``bounds[j]:bounds[j + 1]`` start at
         ``row_origins[j]``; one mj_multiRay call per run, written straight into the outputs.
         Returns MuJoCo's raw (distance, -1 if none; geom id, -1 if none; normal (n, 3)): unlike
         `multiray`, hits beyond the cutoff are left to the caller
-        (`twin.sim.raykernel.scatter_cast`). ``curved``: against the geoms that are neither
-        planes nor boxes only (`twin.sim.raykernel.merge_nearest` adds the others')."""
+        (`twin.sim.raykernel.scatter_cast`). ``rest``: against the geoms the kernels leave to
+        MuJoCo only (`geom_kinds`; `twin.sim.raykernel.merge_nearest` adds the others')."""
         n = len(dirs)
         gid = np.empty(n, dtype=np.int32)
         dist = np.empty(n)
@@ -268,8 +318,8 @@ class RayCaster:
         nv = nrm.reshape(-1)
         m, d, grp, body, cutoff = (self.model, self.data, self.geomgroup, self.sensor_body_id,
                                    self.cutoff)
-        if curved:
-            m, grp = self._curved_model, self._curved_groups
+        if rest:
+            m, grp = self._rest_model, self._rest_groups
         ray = mujoco.mj_multiRay
         b = bounds.tolist()
         for j, o in enumerate(row_origins):
@@ -649,17 +699,22 @@ class LidarEmulator:
 
         The compiled kernels of `twin.sim.raykernel` work on rows (laser, sub-ray) of rays that
         share one origin and one elevation. First the rays that may meet a solid (the culling,
-        exact: `_grid_candidates`) go through `mj_multiRay`. Then, with one ray per firing,
-        one pass (`twin.sim.raykernel.grid_pass`) does the rest block by block: every ray's azimuth
-        sine and cosine and nearest plane (floor, wall) by MuJoCo's ray/plane rule, MuJoCo's
-        results over the planes' for the cast rays, the measurement model (the same as
+        exact: `_grid_candidates`) are answered as mj_multiRay would (`_cast_candidates`:
+        MuJoCo's own ray functions in the kernels). Then, with one ray per firing, one pass
+        (`twin.sim.raykernel.grid_pass`) does the rest block by block: every ray's azimuth
+        sine and cosine and nearest plane (floor, wall) by MuJoCo's ray/plane rule, the solids'
+        hits over the planes' for the culled rays, the measurement model (the same as
         `fire`'s, `_measure_hits`) and the points. With divergence the sub-rays are traced
-        (`twin.sim.raykernel.grid_rays`) and their hits form echoes (`_from_hits`).
+        (`twin.sim.raykernel.grid_rays`) and their hits form echoes (`_fire_grid_adaptive`;
+        `_from_hits` for the brute-force sub-rays).
         """
         cfg = self.config
         n_seq = azimuth.shape[0]
         n_l = self._n_l
         k, weights, row_laser, row_dh, cw, sw = self._grid_rows()
+        #: Rays mj_multiRay cast in the last call (tests and benchmarks: what the kernels
+        #: left to it).
+        self.last_mujoco_rays = 0
         n_rows = k * n_l
         n = n_seq * n_l
         if n_seq == 0:
@@ -685,7 +740,7 @@ class LidarEmulator:
             # (the sub-ray pass reads the intervals: every row whole, none per geom)
             self._intervals = (np.ones(n_rows, dtype=np.bool_), np.zeros(0, dtype=np.int64),
                                np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
-            idx, dirs, rows, bounds = raykernel.grid_candidates(
+            idx, dirs, rows, bounds, *self._interval_rays = raykernel.grid_candidates(
                 base, np.ones(n_rows, dtype=np.bool_), np.zeros(0, dtype=np.int64),
                 np.zeros(0), np.zeros(0), d_first, spread, azimuth, row_laser, row_dh, cw, sw,
                 rotation)
@@ -694,10 +749,11 @@ class LidarEmulator:
             return self._fire_grid_adaptive(azimuth, planes, idx, dirs, rows, bounds, origins,
                                             k, weights, row_laser, base, d_first, spread)
         if cfg.culling and k == 1:
-            d_c, g_c, n_c, _ = self._cast_candidates(idx, dirs, rows, bounds, origins,
-                                                     row_laser, base, d_first, spread)
+            d_c, g_c, n_c, _, _ = self._cast_candidates(idx, dirs, rows, bounds, origins,
+                                                        row_laser, base, d_first, spread)
         else:
             d_c, g_c, n_c = caster.multiray_rows(origins[row_laser[rows]], bounds, dirs)
+            self.last_mujoco_rays += len(dirs)
         if k == 1:
             words, sigma_r, sigma_i = self._noise_words(n)
             *returns, near, near_energy = raykernel.grid_pass(
@@ -737,12 +793,12 @@ class LidarEmulator:
         the grid's azimuths (`twin.sim.raykernel.grid_prepare`).
 
         1. Every sub-ray's nearest plane (floor, walls), exactly (`raykernel.grid_rays`).
-        2. Every ray that may meet only boxes and planes, exactly as MuJoCo would
-           (`_cast_candidates`: MuJoCo's ray_box, the same bits).
-        3. Of the rest (a curved geom or a mesh may be in the way): the beams' centres through
-           MuJoCo; a sub-ray too unless its centre and the neighbouring firings' hit one geom
-           that is not curved (`raykernel.subray_needs`): then its boxes' and planes' hit
-           stands.
+        2. Every ray that may meet a solid, against its boxes and the planes exactly as MuJoCo
+           would (`_cast_candidates`: MuJoCo's ray functions, the same bits); a beam's centre
+           against its curved geoms and meshes too.
+        3. A sub-ray that may meet a curved geom or a mesh: against those too unless its
+           centre and the neighbouring firings' hit one geom that is not curved
+           (`raykernel.subray_cast`): then its boxes' and planes' hit stands.
         4. The echoes: beams wholly on one geom in the kernel (`raykernel.beam_echoes`), the
            others (mixed and multiple echoes) by the brute-force model's own echo formation
            (compiled: `raykernel.echoes`) and `_measure`; the noise is drawn as `_from_hits`
@@ -757,35 +813,28 @@ class LidarEmulator:
         gid = np.empty(n * k, dtype=np.int32)
         raykernel.grid_rays(azimuth, row_laser, self._grid_rows()[3], *planes, caster.cutoff,
                             sa, ca, dist, cos_inc, gid)
-        d_a, g_a, n_a, mj = self._cast_candidates(idx, dirs, rows, bounds, origins, row_laser,
-                                                  base, d_first, spread, mujoco_too=False)
-        ray_row = idx // n_seq
-        centre = ray_row % k == 0
-        # MuJoCo for the centres the boxes could not answer, one call per laser.
-        c_q = np.flatnonzero(centre & mj)
+        d_a, g_a, n_a, flags, dirs_t = self._cast_candidates(idx, dirs, rows, bounds, origins,
+                                                             row_laser, base, d_first, spread,
+                                                             k, mujoco_too=False)
+        # MuJoCo for the centres the kernels leave to it (whole rows; geoms of no kernel's
+        # kind), one call per laser: none in the shipped scenes.
+        both = raykernel.FLAG_MUJOCO | raykernel.FLAG_CENTRE
+        c_q = np.flatnonzero((flags & both) == both)
         if len(c_q):
-            self._cast_curved(c_q, idx, dirs, n_seq, origins, row_laser, d_a, g_a, n_a)
-        done = ~mj | centre
-        raykernel.scatter_cast(idx[done], d_a[done], g_a[done], n_a[done],
-                               np.ascontiguousarray(dirs[done]), self._unit_weights,
-                               caster.cutoff, dist, cos_inc, gid)
-        s_q = np.flatnonzero(~centre & mj)
-        n_s = 0
-        if len(s_q):
-            need = raykernel.subray_needs(idx[s_q], k, n_seq, gid, self._curved(),
-                                          self._intervals[0])
-            s_q = s_q[need]
-            n_s = len(s_q)
-            if n_s:
-                self._cast_curved(s_q, idx, dirs, n_seq, origins, row_laser, d_a, g_a, n_a)
-        # The sub-rays that may meet a curved geom: MuJoCo's merged hit, or the boxes' and
-        # planes' where their beam's neighbourhood shows none.
-        sub = ~centre & mj
-        raykernel.scatter_cast(idx[sub], d_a[sub], g_a[sub], n_a[sub],
-                               np.ascontiguousarray(dirs[sub]), self._unit_weights,
-                               caster.cutoff, dist, cos_inc, gid)
-        #: Rays MuJoCo cast in the last call (benchmarks: its share).
-        self.last_mujoco_rays = len(c_q) + n_s
+            self._cast_mujoco(c_q, idx, dirs, n_seq, origins, row_laser, d_a, g_a, n_a)
+        # Everything into the grid's arrays; the sub-rays near a curved geom or a mesh get
+        # those where their beam's neighbourhood shows one, else their boxes' and planes' hit.
+        full, row, geom, _, _ = self._intervals
+        s_q = raykernel.subray_cast(idx, dirs, dirs_t, rows, bounds, d_a, g_a, n_a, flags,
+                                    n_seq, k,
+                                    full, row, geom, *self._interval_rays,
+                                    *self._solid_tables(), origins, row_laser, self._curved(),
+                                    self._unit_weights, caster.cutoff, dist, cos_inc, gid)
+        if len(s_q):  # the sub-rays MuJoCo must still cast (none in the shipped scenes)
+            self._cast_mujoco(s_q, idx, dirs, n_seq, origins, row_laser, d_a, g_a, n_a)
+            raykernel.scatter_cast(idx[s_q], d_a[s_q], g_a[s_q], n_a[s_q],
+                                   np.ascontiguousarray(dirs[s_q]), self._unit_weights,
+                                   caster.cutoff, dist, cos_inc, gid)
         kind, r_f, refl_f, energy_f = raykernel.beam_echoes(
             dist, gid, cos_inc, n_seq, n_l, k, weights, self.reflectivity, cfg.echo_separation)
         laser_id = self._laser_ids(n_seq)
@@ -815,61 +864,65 @@ class LidarEmulator:
 
     def _cast_candidates(self, idx: np.ndarray, dirs: np.ndarray, rows: np.ndarray,
                          bounds: np.ndarray, origins: np.ndarray, row_laser: np.ndarray,
-                         base: np.ndarray, d_first: np.ndarray, spread: float,
+                         base: np.ndarray, d_first: np.ndarray, spread: float, n_k: int = 1,
                          mujoco_too: bool = True
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """MuJoCo's answer (raw: distance, geom id, normal) for the rays that may meet a solid
-        (`_grid_candidates`' ``idx``, ``dirs``, ``rows``, ``bounds``): those whose solids are
-        all boxes from `twin.sim.raykernel.solid_cast` (MuJoCo's ray_box and ray_plane, the
-        same operations: the same bits, tests/test_emulation.py), the others (a curved geom,
-        a mesh, a whole row) through `mj_multiRay`, one call per row; with ``mujoco_too``
-        False those are left undone (distance and geom -1). Returns the three and the mask of
-        the rays MuJoCo cast (or must).
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """mj_multiRay's answer (raw: distance, geom id, normal) for the rays that may meet a
+        solid (`_grid_candidates`' ``idx``, ``dirs``, ``rows``, ``bounds``; rows ``laser *
+        n_k + sub-ray``) from `twin.sim.raykernel.solid_cast` (MuJoCo's own ray functions,
+        the same operations: the same bits, tests/test_raykernel_solids.py): every solid of a
+        beam's centre, the boxes and planes of a sub-ray (its curved geoms and meshes:
+        `raykernel.subray_cast`). Rays the kernels leave to MuJoCo (a whole row; a geom of
+        no kernel's kind) go through `mj_multiRay`, one call per row, unless ``mujoco_too``
+        is False (then distance and geom -1, or the kernels' part). Returns the three,
+        `solid_cast`'s flags and its directions by component.
 
-        Why: mj_multiRay tests every geom of the scene against every ray it is given; the
-        culling's intervals already say which few solids a ray may meet, so a scene of many
-        boxes (the lab) costs a handful of box tests per ray instead of a hundred geoms."""
+        Why: mj_multiRay tests every geom of the scene against every ray it is given, and
+        every ray costs a Python call's share; the culling's intervals already say which few
+        solids a ray may meet, so a scene of a hundred geoms (the lab) costs a handful of
+        tests per ray."""
         caster = self.caster
         if len(idx) == 0:
             return (np.zeros(0), np.zeros(0, dtype=np.int32), np.zeros((0, 3)),
-                    np.zeros(0, dtype=np.bool_))
-        full, row, geom, centre, half = self._intervals
-        pos, mat, size, is_box = self._box_tables()
-        d, g, nv, mj = raykernel.solid_cast(idx, dirs, len(base), full, row, geom, centre, half,
-                                            d_first, spread, base, is_box, pos, mat, size,
-                                            caster.plane_ids, *self._planes, origins,
-                                            row_laser)
-        if mujoco_too and mj.any():
-            self._cast_curved(np.flatnonzero(mj), idx, dirs, len(base), origins, row_laser,
-                              d, g, nv)
-        return d, g, nv, mj
+                    np.zeros(0, dtype=np.uint8), np.zeros((3, 0)))
+        full, row, geom, _, _ = self._intervals
+        d, g, nv, flags, dirs_t = raykernel.solid_cast(
+            idx, dirs, rows, bounds, len(base), n_k, full, row, geom, *self._interval_rays,
+            *self._solid_tables(), caster.plane_ids, *self._planes, origins, row_laser)
+        if mujoco_too:
+            mj = np.flatnonzero(flags & raykernel.FLAG_MUJOCO)
+            if len(mj):
+                self._cast_mujoco(mj, idx, dirs, len(base), origins, row_laser, d, g, nv)
+        return d, g, nv, flags, dirs_t
 
-    def _cast_curved(self, q: np.ndarray, idx: np.ndarray, dirs: np.ndarray, n_seq: int,
+    def _cast_mujoco(self, q: np.ndarray, idx: np.ndarray, dirs: np.ndarray, n_seq: int,
                      origins: np.ndarray, row_laser: np.ndarray, d: np.ndarray, g: np.ndarray,
                      nv: np.ndarray) -> None:
         """MuJoCo for the candidates ``q`` that `twin.sim.raykernel.solid_cast` left to it, in
-        place: a whole row's rays against every geom; the others against the curved geoms
-        only, merged with the boxes' and planes' hit the kernel found (the nearer wins). One
-        mj_multiRay call per row (per laser where the rows share its origin)."""
+        place: a whole row's rays against every geom; the others against the geoms of no
+        kernel's kind only, merged with the kernels' hit (the nearer wins). One mj_multiRay
+        call per row (per laser where the rows share its origin)."""
+        self.last_mujoco_rays += len(q)
         full = self._intervals[0]
         caster = self.caster
         rows_q = idx[q] // n_seq
         whole = full[rows_q]
-        for sel, curved in ((whole, False), (~whole, True)):
+        for sel, rest in ((whole, False), (~whole, True)):
             qq = q[sel]
             if not len(qq):
                 continue
             lasers, first = np.unique(row_laser[rows_q[sel]], return_index=True)
             d_m, g_m, n_m = caster.multiray_rows(origins[lasers], np.append(first, len(qq)),
-                                                 np.ascontiguousarray(dirs[qq]), curved=curved)
-            if curved:
+                                                 np.ascontiguousarray(dirs[qq]), rest=rest)
+            if rest:
                 raykernel.merge_nearest(qq, d, g, nv, d_m, g_m, n_m)
             else:
                 d[qq], g[qq], nv[qq] = d_m, g_m, n_m
 
     def _curved(self) -> np.ndarray:
         """Per geom id: ray-visible and neither a plane nor a box (a sphere, capsule,
-        cylinder, ellipsoid or mesh: what the kernels leave to MuJoCo). Cached."""
+        cylinder, ellipsoid or mesh): a geom whose silhouette the adaptive sub-rays look for
+        in a beam's neighbourhood (`twin.sim.raykernel.subray_cast`). Cached."""
         curved = getattr(self, "_curved_cache", None)
         if curved is None:
             model = self.caster.model
@@ -879,16 +932,19 @@ class LidarEmulator:
             self._curved_cache = curved
         return curved
 
-    def _box_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Every geom's world position (G, 3), orientation (G, 9), half-sizes (G, 3) and
-        whether it is a box (G,), for `twin.sim.raykernel.solid_cast`."""
+    def _solid_tables(self) -> tuple:
+        """Every geom's kind (G,) (`geom_kinds`), world position (G, 3), orientation (G, 9)
+        and size (G, 3), and the model's mesh tables (`mesh_tables`), for
+        `twin.sim.raykernel.solid_cast`. The model's part is cached; the poses are the
+        data's, as they stand."""
         model, data = self.caster.model, self.caster.data
-        is_box = getattr(self, "_is_box", None)
-        if is_box is None:
-            is_box = np.ascontiguousarray(model.geom_type == mujoco.mjtGeom.mjGEOM_BOX)
-            self._is_box = is_box
-        return (np.ascontiguousarray(data.geom_xpos), np.ascontiguousarray(data.geom_xmat),
-                np.ascontiguousarray(model.geom_size), is_box)
+        meshes = getattr(self, "_mesh_tables", None)
+        if meshes is None:
+            meshes = mesh_tables(model)
+            self._mesh_tables = meshes
+        return (self.caster.kinds, np.ascontiguousarray(data.geom_xpos),
+                np.ascontiguousarray(data.geom_xmat), np.ascontiguousarray(model.geom_size),
+                meshes)
 
     def _grid_rows(self) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                   np.ndarray]:
@@ -966,17 +1022,24 @@ class LidarEmulator:
         under half-angle alpha holds the directions with cw (sin a cx + cos a cy) + sw cz >=
         cos(alpha), i.e. |a - phi| <= arccos(q): an azimuth interval per (row, geom), cached per
         pose (`_pose_intervals`); the kernel turns them into rays, widened by the spread and
-        1e-9 rad so that the culling can only cast too much, never too little.
+        1e-9 rad so that the culling can only cast too much, never too little. Which of the
+        rays each interval holds is kept for the kernels (``_interval_rays``).
         """
         ids = self.caster.solid_ids
         if len(ids) == 0:
+            self._intervals = (np.zeros(len(cw), dtype=np.bool_), np.zeros(0, dtype=np.int64),
+                               np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0))
+            self._interval_rays = (np.zeros(1, dtype=np.int64), np.zeros((0, 2), dtype=np.int64))
             return (np.zeros(0, dtype=np.int64), np.zeros((0, 3)), np.zeros(0, dtype=np.int64),
                     np.zeros(1, dtype=np.int64))
         full, row, centre, half, geom = self._pose_intervals(ids, cw[:, None], sw[:, None],
                                                              origins, row_laser, rotation)
         self._intervals = (full, row, geom, centre, half)  # (for `_cast_candidates`)
-        return raykernel.grid_candidates(base, full, row, centre, half, d_first, spread,
-                                         azimuth, row_laser, row_dh, cw, sw, rotation)
+        *cand, iv_start, run_q = raykernel.grid_candidates(base, full, row, centre, half,
+                                                           d_first, spread, azimuth, row_laser,
+                                                           row_dh, cw, sw, rotation)
+        self._interval_rays = (iv_start, run_q)
+        return tuple(cand)
 
     def _pose_intervals(self, ids: np.ndarray, cw: np.ndarray, sw: np.ndarray,
                         origins: np.ndarray, row_laser: np.ndarray, rotation: np.ndarray

@@ -5,14 +5,15 @@ rotation).
 As numpy, every step (the azimuths' sines and cosines, MuJoCo's ray/plane rule for the floor
 and the wall, the culling's index runs, the measurement model on about 16,600 returns) was a
 handful of full-size passes with temporaries and a Python call each. Here, with one ray per
-firing, everything but MuJoCo is one pass over the grid (`grid_pass`) in blocks of
+firing, everything after the solids is one pass over the grid (`grid_pass`) in blocks of
 `BLOCK_SEQUENCES` sequences, each block's intermediate arrays small enough to stay in the CPU's
-caches: the rays' sines and cosines and their nearest plane, MuJoCo's results for the block's
-cast rays, firing order, the measurement model, the points. The rays that may meet a solid
-(`grid_prepare`, `grid_candidates`) are answered before the pass: those that can meet only
-boxes and planes here (`solid_cast`, MuJoCo's own ray_box and ray_plane), the others by
-`mujoco.mj_multiRay` from Python. With divergence, `subray_needs`, `beam_echoes` and `echoes`
-spend MuJoCo's sub-rays only where a curved geom may cross a beam and form the echoes.
+caches: the rays' sines and cosines and their nearest plane, the solids' hits for the block's
+culled rays, firing order, the measurement model, the points. The rays that may meet a solid
+(`grid_prepare`, `grid_candidates`) are answered before the pass, here, by MuJoCo's own ray
+functions against the few solids each may meet (`solid_cast`; the section "MuJoCo's ray
+functions"); `mujoco.mj_multiRay` is left only a whole row or a geom of a type those do not
+cover. With divergence, `subray_cast`, `beam_echoes` and `echoes` test a sub-ray against the
+curved geoms and meshes only where one may cross its beam, and form the echoes.
 
 Layouts. Rays come in rows: row ``laser * K + k`` for sub-ray ``k`` of ``K`` (1 without
 divergence); a row's rays share one origin (the laser's), one elevation and one azimuth offset,
@@ -21,11 +22,14 @@ whole grid: `grid_rays`) rays are row-major; the returns come out in firing orde
 (``s * 16 + laser``), which is also the order in which they consume random numbers.
 
 What the kernels keep from MuJoCo, exactly (tests/test_emulation.py checks ray for ray against
-brute-force `mj_multiRay`):
+brute-force `mj_multiRay`, tests/test_raykernel_solids.py each ray function against MuJoCo's):
 
 * `ray_plane` is engine_ray.c's ``ray_plane``: front face only (``lvec_z <= -mjMINVAL``),
   distance ``-lpnt_z / lvec_z >= 0``, inside the sized rectangle (a size of 0 is unbounded);
   among several planes the nearest wins, the first (lowest geom id) on a tie, as in ``mj_ray``;
+* the solids are engine_ray.c's ray_sphere, ray_capsule, ray_ellipsoid, ray_cylinder, ray_box
+  and mj_rayMesh (`_cast_geom`), the nearest of all geoms and planes wins, the lowest geom id
+  on a tie (`_nearer`), with the normal mj_multiRay gives;
 * hits beyond the caster's cutoff are no return (as `twin.sim.emulation.RayCaster` treats MuJoCo's).
 
 Float32 transcendentals (Box-Muller's log, sine and cosine; the intensity's r^-exponent) are
@@ -452,10 +456,14 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
                     centre: np.ndarray, half: np.ndarray, d_first: np.ndarray, spread: float,
                     azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray,
                     cw: np.ndarray, sw: np.ndarray, rotation: np.ndarray
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The rays of a grid that may meet a solid, for MuJoCo: (ray index ``r * S + s`` (n,),
-    world unit direction (n, 3), rows (m,), bounds (m + 1,)): the rays of ``rows[j]`` are
-    ``bounds[j]:bounds[j + 1]``, rows ascending, each row's rays in sequence order.
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                               np.ndarray]:
+    """The rays of a grid that may meet a solid: (ray index ``r * S + s`` (n,), world unit
+    direction (n, 3), rows (m,), bounds (m + 1,): the rays of ``rows[j]`` are
+    ``bounds[j]:bounds[j + 1]``, rows ascending, each row's rays in sequence order; and where
+    each interval's rays are among them: interval i's are the runs ``iv_start[i]`` ..
+    ``iv_start[i + 1]`` of ``run_q`` (runs (n_runs, 2): [first, end) of ray indices), so that
+    `solid_cast` and `subray_cast` need not search for them again).
 
     ``base`` (S,): each sequence's first azimuth (the sensor spins one way, so it unwraps to a
     monotonic sequence). Whole rows ``full_rows`` (R,) bool; azimuth intervals ``centre`` +-
@@ -466,7 +474,9 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
     too much, never too little), one range per turn of the sensor the grid spans; a row's
     ranges are merged before they are expanded, so every ray comes once. Directions: the
     ``rotation`` of {L} applied to (cw sin a, cw cos a, sw) for the ray's azimuth a =
-    ``azimuth[s, laser] + row_dh[r]`` (libm: a few hundred rays).
+    ``azimuth[s, laser] + row_dh[r]`` (libm, about 20 ns a ray: once per laser and sequence
+    for the rows whose ``row_dh`` is 0, a beam's centre and its vertical sub-rays, which
+    share that a).
     """
     n_seq = base.shape[0]
     n_rows = full_rows.shape[0]
@@ -488,13 +498,17 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
             run_hi[n_run] = n_seq
             n_run += 1
     ranges = np.empty((n_turns, 2), dtype=np.int64)
-    for i in range(row.shape[0]):
+    n_iv = row.shape[0]
+    iv_start = np.empty(n_iv + 1, dtype=np.int64)
+    for i in range(n_iv):
+        iv_start[i] = n_run - n_full
         n_ranges = _column_ranges(b_u, centre[i] - d_first[row[i]], half[i] + spread, ranges)
         for j in range(n_ranges):
             run_row[n_run] = row[i]
             run_lo[n_run] = ranges[j, 0]
             run_hi[n_run] = ranges[j, 1]
             n_run += 1
+    iv_start[n_iv] = n_run - n_full
     key = np.empty(n_run, dtype=np.int64)
     for j in range(n_run):
         key[j] = run_row[j] * (n_seq + 1) + run_lo[j]
@@ -503,6 +517,7 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
     m_row = np.empty(n_run, dtype=np.int64)
     m_lo = np.empty(n_run, dtype=np.int64)
     m_hi = np.empty(n_run, dtype=np.int64)
+    merged = np.empty(n_run, dtype=np.int64)  # each run's merged run
     n_m = 0
     total = 0
     for j in range(n_run):
@@ -517,10 +532,17 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
             m_hi[n_m] = run_hi[q]
             total += run_hi[q] - run_lo[q]
             n_m += 1
+        merged[q] = n_m - 1
     ray_index = np.empty(total, dtype=np.int64)
     dirs = np.empty((total, 3))
     rows = np.empty(n_m, dtype=np.int64)
     bounds = np.empty(n_m + 1, dtype=np.int64)
+    m_q = np.empty(n_m, dtype=np.int64)  # each merged run's first ray
+    # sin and cos of a row without an azimuth offset, by sequence, kept for the laser's other
+    # such rows (``mark``: the laser + 1 whose values they are)
+    sin_s = np.empty(n_seq)
+    cos_s = np.empty(n_seq)
+    mark = np.zeros(n_seq, dtype=np.int64)
     n_r = 0
     i = 0
     for j in range(n_m):
@@ -529,18 +551,39 @@ def grid_candidates(base: np.ndarray, full_rows: np.ndarray, row: np.ndarray,
             rows[n_r] = r
             bounds[n_r] = i
             n_r += 1
+        m_q[j] = i
         c = cw[r]
         z = sw[r]
+        lsr = row_laser[r]
+        dh = row_dh[r]
         for s in range(m_lo[j], m_hi[j]):
-            a = azimuth[s, row_laser[r]] + row_dh[r]
-            u0 = c * math.sin(a)
-            u1 = c * math.cos(a)
+            a = azimuth[s, lsr] + dh
+            if dh != 0.0:
+                sa = math.sin(a)
+                ca = math.cos(a)
+            elif mark[s] == lsr + 1:
+                sa = sin_s[s]
+                ca = cos_s[s]
+            else:
+                sa = math.sin(a)
+                ca = math.cos(a)
+                sin_s[s] = sa
+                cos_s[s] = ca
+                mark[s] = lsr + 1
+            u0 = c * sa
+            u1 = c * ca
             ray_index[i] = r * n_seq + s
             for e in range(3):
                 dirs[i, e] = rotation[e, 0] * u0 + rotation[e, 1] * u1 + rotation[e, 2] * z
             i += 1
     bounds[n_r] = i
-    return ray_index, dirs, rows[:n_r], bounds[:n_r + 1]
+    # the intervals' runs as ray indices (the full rows' runs, first, belong to no interval)
+    run_q = np.empty((n_run - n_full, 2), dtype=np.int64)
+    for q in range(n_full, n_run):
+        m = merged[q]
+        run_q[q - n_full, 0] = m_q[m] + run_lo[q] - m_lo[m]
+        run_q[q - n_full, 1] = m_q[m] + run_hi[q] - m_lo[m]
+    return ray_index, dirs, rows[:n_r], bounds[:n_r + 1], iv_start, run_q
 
 
 @njit(inline="always", error_model="numpy")
@@ -569,105 +612,701 @@ def scatter_cast(ray_index: np.ndarray, dist_c: np.ndarray, gid_c: np.ndarray,
     return None
 
 
+# --------------------------------------------------------------------------------------------
+# MuJoCo's ray functions (src/engine/engine_ray.c), the same operations in the same order
+# --------------------------------------------------------------------------------------------
+# What `mujoco.mj_multiRay` answers for one ray and one geom, reproduced from
+# src/engine/engine_ray.c (read at google-deepmind/mujoco a7255075, 3.12.0 + 31 commits, the
+# newest source at hand; the installed MuJoCo is 4.0.1, and tests/test_raykernel_solids.py
+# holds every function here to it bit for bit: mju_rayGeom, mj_rayMesh and mj_multiRay on
+# hits, misses, grazing rays, rays from inside and ties). Each function's docstring names the
+# C function it reproduces. C's evaluation order is kept expression by expression (a*b + c*d +
+# e*f is ((a*b) + (c*d)) + (e*f) in both; numba, like MuJoCo's build (-mavx, no FMA), fuses no
+# multiply-add and reorders nothing), the helpers as engine_util_blas.c and
+# engine_util_spatial.c define them (mju_normalize3, mju_mulMatVec3, mju_cross), comparisons
+# as written (NaN falls through them as in C: a direction parallel to a face divides by zero
+# into inf or nan, which MuJoCo's own checks then reject). Each function returns the distance
+# (-1: no hit) and the world normal (0 without a hit), as mj_multiRay gives them.
+#
+# Where the code is not the C line for line, it computes the same values, for speed: the
+# bounding-sphere tests of the capsule, cylinder and box decide as ray_sphere >= 0 does
+# without its divisions (`_bounding_sphere` says why that is the same decision); the box's
+# faces and the nearest-hit rule are selects, not branches (`_box_face`, `_nearer`); a mesh's
+# node corners and float32 vertices are formed once per model (`twin.sim.emulation.
+# mesh_tables`), its triangles' normals normalised only for the nearest (`_triangle`); MuJoCo's
+# marking of the BVH nodes it visits (bvh_active, for its renderer) is left out.
+#: Geom kinds (`solid_cast`'s ``g_kind``), MuJoCo's mjtGeom types the kernels answer;
+#: KIND_MUJOCO is any other (a height field, an SDF: none in the shipped scenes), left to
+#: mj_multiRay. `twin.sim.emulation.geom_kinds` maps a model's types.
+KIND_MUJOCO, KIND_BOX, KIND_SPHERE, KIND_CAPSULE, KIND_ELLIPSOID, KIND_CYLINDER, KIND_MESH = (
+    0, 1, 2, 3, 4, 5, 6)
+#: mjMAXTREEDEPTH (mjmodel.h): the deepest mesh BVH MuJoCo traverses (the stack's size).
+MJ_MAX_TREE_DEPTH = 50
+
+
 @njit(inline="always", error_model="numpy")
-def _ray_box(o: np.ndarray, v: np.ndarray, pos: np.ndarray, mat: np.ndarray, size: np.ndarray
-             ) -> tuple[float, int, float]:
-    """MuJoCo's ``ray_box`` (engine_ray.c), the same operations in the same order: the ray
-    from world ``o`` along ``v`` mapped into the box's frame (``mat`` row-major, the
-    transpose applied as mju_mulMatTVec3 does), each face's plane solved where the direction's
-    component exceeds mjMINVAL, a solution >= 0 kept when it lies inside the face (<= the
-    half-sizes), the smallest kept. Returns (distance or -1, axis, side)."""
-    d0 = o[0] - pos[0]
-    d1 = o[1] - pos[1]
-    d2 = o[2] - pos[2]
+def _ray_quad(a: float, b: float, c: float) -> tuple[float, float, float]:
+    """engine_ray.c ``ray_quad``: the real roots x0 <= x1 of a x^2 + 2 b x + c = 0 (both -1
+    when there are none or a < mjMINVAL) and the smallest non-negative of them (-1: none).
+    Returns (smallest, x0, x1)."""
+    det = b * b - a * c
+    if det < 0.0 or a < MJMINVAL:
+        return -1.0, -1.0, -1.0
+    det = math.sqrt(det)
+    x0 = (-b - det) / a
+    x1 = (-b + det) / a
+    if x0 >= 0.0:
+        return x0, x0, x1
+    if x1 >= 0.0:
+        return x1, x0, x1
+    return -1.0, x0, x1
+
+
+@njit(inline="always", error_model="numpy")
+def _normalize3(x: float, y: float, z: float) -> tuple[float, float, float]:
+    """engine_util_blas.c ``mju_normalize3``: (1, 0, 0) below mjMINVAL, else times 1 / norm."""
+    norm = math.sqrt(x * x + y * y + z * z)
+    if norm < MJMINVAL:
+        return 1.0, 0.0, 0.0
+    inv = 1.0 / norm
+    return x * inv, y * inv, z * inv
+
+
+@njit(inline="always", error_model="numpy")
+def _mat_vec3(m: tuple, x: float, y: float, z: float) -> tuple[float, float, float]:
+    """engine_util_blas.c ``mju_mulMatVec3``: ``m`` (9,) row-major times (x, y, z)."""
+    return (m[0] * x + m[1] * y + m[2] * z, m[3] * x + m[4] * y + m[5] * z,
+            m[6] * x + m[7] * y + m[8] * z)
+
+
+@njit(inline="always", error_model="numpy")
+def _ray_map(pos: tuple, mat: tuple, p0: float, p1: float, p2: float, v0: float,
+             v1: float, v2: float) -> tuple[float, float, float, float, float, float]:
+    """engine_ray.c ``ray_map``: the ray (point p, direction v) in the frame of a geom at
+    ``pos`` with orientation ``mat`` (9,): mat^T (p - pos), mat^T v."""
+    d0 = p0 - pos[0]
+    d1 = p1 - pos[1]
+    d2 = p2 - pos[2]
+    return (mat[0] * d0 + mat[3] * d1 + mat[6] * d2, mat[1] * d0 + mat[4] * d1 + mat[7] * d2,
+            mat[2] * d0 + mat[5] * d1 + mat[8] * d2, mat[0] * v0 + mat[3] * v1 + mat[6] * v2,
+            mat[1] * v0 + mat[4] * v1 + mat[7] * v2, mat[2] * v0 + mat[5] * v1 + mat[8] * v2)
+
+
+@njit(inline="always", error_model="numpy")
+def _ray_sphere(pos: tuple, dist_sqr: float, p0: float, p1: float, p2: float, v0: float,
+                v1: float, v2: float) -> float:
+    """engine_ray.c ``ray_sphere`` without its normal: the sphere of squared radius
+    ``dist_sqr`` at ``pos`` (also the bounding-sphere test of the capsule, cylinder and
+    box)."""
+    d0 = p0 - pos[0]
+    d1 = p1 - pos[1]
+    d2 = p2 - pos[2]
+    a = v0 * v0 + v1 * v1 + v2 * v2
+    b = v0 * d0 + v1 * d1 + v2 * d2
+    c = d0 * d0 + d1 * d1 + d2 * d2 - dist_sqr
+    x, _, _ = _ray_quad(a, b, c)
+    return x
+
+
+@njit(inline="always", error_model="numpy")
+def _bounding_sphere(pos: tuple, dist_sqr: float, p0: float, p1: float, p2: float, v0: float,
+                     v1: float, v2: float) -> bool:
+    """Whether `_ray_sphere` >= 0, as the capsule's, cylinder's and box's bounding-sphere
+    tests ask, without its divisions: the same a, b, c and det, then ray_quad keeps a root
+    iff det >= 0, a >= mjMINVAL (both false for nan, as ray_quad's rejections are) and the
+    larger root (-b + sqrt(det)) / a >= 0, i.e. sqrt(det) >= b (a > 0; a difference of
+    doubles is >= 0 iff the first is >= the second), always true for b <= 0. (A quotient of
+    a negative numerator rounding to -0, which C's >= 0 would keep, needs |-b + sqrt(det)|
+    below 1e-308: not a ray.) Without branches (sqrt of max(det, 0), & and | of the
+    comparisons), so that the loops over many rays of one box vectorise."""
+    d0 = p0 - pos[0]
+    d1 = p1 - pos[1]
+    d2 = p2 - pos[2]
+    a = v0 * v0 + v1 * v1 + v2 * v2
+    b = v0 * d0 + v1 * d1 + v2 * d2
+    c = d0 * d0 + d1 * d1 + d2 * d2 - dist_sqr
+    det = b * b - a * c
+    root = math.sqrt(det if det > 0.0 else 0.0)
+    return (det >= 0.0) & (a >= MJMINVAL) & ((b <= 0.0) | (root >= b))
+
+
+@njit(error_model="numpy")
+def _sphere(pos: tuple, size: tuple, p0: float, p1: float, p2: float,
+            v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
+    """mju_rayGeom's sphere: ``ray_sphere`` with radius^2 = size[0] * size[0] and its normal
+    (the hit point p + x v minus the centre, normalised)."""
+    x = _ray_sphere(pos, size[0] * size[0], p0, p1, p2, v0, v1, v2)
+    if x < 0.0:
+        return x, 0.0, 0.0, 0.0
+    n0, n1, n2 = _normalize3(p0 + x * v0 - pos[0], p1 + x * v1 - pos[1], p2 + x * v2 - pos[2])
+    return x, n0, n1, n2
+
+
+@njit(error_model="numpy")
+def _capsule(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
+             v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
+    """engine_ray.c ``ray_capsule``: bounding sphere (radius + half-length), then the round
+    side between the flat ends and the two half-sphere caps, the nearest non-negative."""
+    ssz = size[0] + size[1]
+    if not _bounding_sphere(pos, ssz * ssz, p0, p1, p2, v0, v1, v2):
+        return -1.0, 0.0, 0.0, 0.0
+    lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(pos, mat, p0, p1, p2, v0, v1, v2)
     x = -1.0
-    ax = -1
-    sd = 0.0
-    lp = (mat[0] * d0 + mat[3] * d1 + mat[6] * d2, mat[1] * d0 + mat[4] * d1 + mat[7] * d2,
-          mat[2] * d0 + mat[5] * d1 + mat[8] * d2)
-    lv = (mat[0] * v[0] + mat[3] * v[1] + mat[6] * v[2],
-          mat[1] * v[0] + mat[4] * v[1] + mat[7] * v[2],
-          mat[2] * v[0] + mat[5] * v[1] + mat[8] * v[2])
-    for i in range(3):
-        if abs(lv[i]) > MJMINVAL:
-            j = 1 if i == 0 else 0
-            k = 1 if i == 2 else 2
-            for side in (-1.0, 1.0):
-                sol = (side * size[i] - lp[i]) / lv[i]
-                inside = (abs(lp[j] + sol * lv[j]) <= size[j]) and (
-                    abs(lp[k] + sol * lv[k]) <= size[k])
-                if sol >= 0.0 and inside and (x < 0.0 or sol < x):
+    kind = 0  # -1: bottom cap, 0: round side, 1: top cap
+    a = lv0 * lv0 + lv1 * lv1
+    b = lv0 * lp0 + lv1 * lp1
+    c = lp0 * lp0 + lp1 * lp1 - size[0] * size[0]
+    sol, _, _ = _ray_quad(a, b, c)
+    if sol >= 0.0 and abs(lp2 + sol * lv2) <= size[1] and (x < 0.0 or sol < x):
+        x = sol
+        kind = 0
+    # top cap: the sphere at z = +half-length, its upper half
+    ld2 = lp2 - size[1]
+    a = lv0 * lv0 + lv1 * lv1 + lv2 * lv2
+    b = lv0 * lp0 + lv1 * lp1 + lv2 * ld2
+    c = lp0 * lp0 + lp1 * lp1 + ld2 * ld2 - size[0] * size[0]
+    _, x0, x1 = _ray_quad(a, b, c)
+    if x0 >= 0.0 and lp2 + x0 * lv2 >= size[1] and (x < 0.0 or x0 < x):
+        x = x0
+        kind = 1
+    if x1 >= 0.0 and lp2 + x1 * lv2 >= size[1] and (x < 0.0 or x1 < x):
+        x = x1
+        kind = 1
+    # bottom cap
+    ld2 = lp2 + size[1]
+    b = lv0 * lp0 + lv1 * lp1 + lv2 * ld2
+    c = lp0 * lp0 + lp1 * lp1 + ld2 * ld2 - size[0] * size[0]
+    _, x0, x1 = _ray_quad(a, b, c)
+    if x0 >= 0.0 and lp2 + x0 * lv2 <= -size[1] and (x < 0.0 or x0 < x):
+        x = x0
+        kind = -1
+    if x1 >= 0.0 and lp2 + x1 * lv2 <= -size[1] and (x < 0.0 or x1 < x):
+        x = x1
+        kind = -1
+    if x < 0.0:
+        return x, 0.0, 0.0, 0.0
+    n2 = 0.0 if kind == 0 else lp2 + lv2 * x - size[1] * kind
+    n0, n1, n2 = _normalize3(lp0 + lv0 * x, lp1 + lv1 * x, n2)
+    n0, n1, n2 = _mat_vec3(mat, n0, n1, n2)
+    return x, n0, n1, n2
+
+
+@njit(error_model="numpy")
+def _ellipsoid(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
+               v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
+    """engine_ray.c ``ray_ellipsoid``: the quadric (x lv + lp)' diag(1 / size^2) (...) = 1
+    in the geom's frame; the normal is its gradient at the hit."""
+    lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(pos, mat, p0, p1, p2, v0, v1, v2)
+    s0 = 1 / (size[0] * size[0])
+    s1 = 1 / (size[1] * size[1])
+    s2 = 1 / (size[2] * size[2])
+    a = s0 * lv0 * lv0 + s1 * lv1 * lv1 + s2 * lv2 * lv2
+    b = s0 * lv0 * lp0 + s1 * lv1 * lp1 + s2 * lv2 * lp2
+    c = s0 * lp0 * lp0 + s1 * lp1 * lp1 + s2 * lp2 * lp2 - 1
+    x, _, _ = _ray_quad(a, b, c)
+    if x < 0.0:
+        return x, 0.0, 0.0, 0.0
+    n0, n1, n2 = _normalize3(s0 * (lp0 + x * lv0), s1 * (lp1 + x * lv1), s2 * (lp2 + x * lv2))
+    n0, n1, n2 = _mat_vec3(mat, n0, n1, n2)
+    return x, n0, n1, n2
+
+
+@njit(error_model="numpy")
+def _cylinder(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
+              v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
+    """engine_ray.c ``ray_cylinder``: bounding sphere (radius^2 + half-length^2), the two
+    flat discs (where the direction's axial component exceeds mjMINVAL), the round side
+    between them; the nearest non-negative."""
+    ssz = size[0] * size[0] + size[1] * size[1]
+    if not _bounding_sphere(pos, ssz, p0, p1, p2, v0, v1, v2):
+        return -1.0, 0.0, 0.0, 0.0
+    lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(pos, mat, p0, p1, p2, v0, v1, v2)
+    x = -1.0
+    kind = 0  # -1: bottom, 0: round side, 1: top
+    if abs(lv2) > MJMINVAL:
+        for side in (-1, 1):
+            sol = (side * size[1] - lp2) / lv2
+            if sol >= 0.0:
+                p0 = lp0 + sol * lv0
+                p1 = lp1 + sol * lv1
+                if p0 * p0 + p1 * p1 <= size[0] * size[0] and (x < 0.0 or sol < x):
                     x = sol
-                    ax = i
-                    sd = side
+                    kind = side
+    a = lv0 * lv0 + lv1 * lv1
+    b = lv0 * lp0 + lv1 * lp1
+    c = lp0 * lp0 + lp1 * lp1 - size[0] * size[0]
+    sol, _, _ = _ray_quad(a, b, c)
+    if sol >= 0.0 and abs(lp2 + sol * lv2) <= size[1] and (x < 0.0 or sol < x):
+        x = sol
+        kind = 0
+    if x < 0.0:
+        return x, 0.0, 0.0, 0.0
+    if kind == 0:
+        n0, n1, n2 = _normalize3(lp0 + lv0 * x, lp1 + lv1 * x, 0.0)
+    else:
+        n0, n1, n2 = 0.0, 0.0, float(kind)
+    n0, n1, n2 = _mat_vec3(mat, n0, n1, n2)
+    return x, n0, n1, n2
+
+
+@njit(inline="always", error_model="numpy")
+def _box_face(lp_i: float, lv_i: float, lp_j: float, lv_j: float, lp_k: float, lv_k: float,
+              s_i: float, s_j: float, s_k: float, side: float, axis: int, x: float, ax: int,
+              sd: float) -> tuple[float, int, float]:
+    """One face of engine_ray.c ``ray_box`` (axis i, side -1 or 1; j, k the other axes): its
+    plane solved, (side s_i - lp_i) / lv_i, kept where lv_i exceeds mjMINVAL, the solution is
+    >= 0, lies inside the face (<= the half-sizes) and is below the best so far (x, -1:
+    none; its axis and side). Selects, not branches (a division by a direction's 0 gives
+    inf or nan, which the comparisons reject as MuJoCo's check does)."""
+    sol = (side * s_i - lp_i) / lv_i
+    ok = ((abs(lv_i) > MJMINVAL) & (sol >= 0.0) & (abs(lp_j + sol * lv_j) <= s_j)
+          & (abs(lp_k + sol * lv_k) <= s_k) & ((x < 0.0) | (sol < x)))
+    return (sol if ok else x), (axis if ok else ax), (side if ok else sd)
+
+
+@njit(inline="always", error_model="numpy")
+def _box_faces(lp0: float, lp1: float, lp2: float, lv0: float, lv1: float, lv2: float,
+               s0: float, s1: float, s2: float) -> tuple[float, int, float]:
+    """The faces of engine_ray.c ``ray_box`` in the box's frame (half-sizes s), in its order
+    (axes 0, 1, 2, sides -1, 1: the first wins a tie), by `_box_face`. Returns (distance or
+    -1, axis, side)."""
+    x, ax, sd = -1.0, -1, 0.0
+    x, ax, sd = _box_face(lp0, lv0, lp1, lv1, lp2, lv2, s0, s1, s2, -1.0, 0, x, ax, sd)
+    x, ax, sd = _box_face(lp0, lv0, lp1, lv1, lp2, lv2, s0, s1, s2, 1.0, 0, x, ax, sd)
+    x, ax, sd = _box_face(lp1, lv1, lp0, lv0, lp2, lv2, s1, s0, s2, -1.0, 1, x, ax, sd)
+    x, ax, sd = _box_face(lp1, lv1, lp0, lv0, lp2, lv2, s1, s0, s2, 1.0, 1, x, ax, sd)
+    x, ax, sd = _box_face(lp2, lv2, lp0, lv0, lp1, lv1, s2, s0, s1, -1.0, 2, x, ax, sd)
+    x, ax, sd = _box_face(lp2, lv2, lp0, lv0, lp1, lv1, s2, s0, s1, 1.0, 2, x, ax, sd)
     return x, ax, sd
 
 
+@njit(inline="always", error_model="numpy")
+def _box(pos: tuple, mat: tuple, size: tuple, p0: float, p1: float, p2: float,
+         v0: float, v1: float, v2: float) -> tuple[float, float, float, float]:
+    """engine_ray.c ``ray_box``: bounding sphere (the half-diagonal), then `_box_faces`; the
+    normal is the face's axis times its side, rotated into the world (mju_mulMatVec3 of
+    that axis vector). Without branches: the boxes' loops vectorise (`_solids_pass`)."""
+    ssz = size[0] * size[0] + size[1] * size[1] + size[2] * size[2]
+    sphere = _bounding_sphere(pos, ssz, p0, p1, p2, v0, v1, v2)
+    lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(pos, mat, p0, p1, p2, v0, v1, v2)
+    x, ax, sd = _box_faces(lp0, lp1, lp2, lv0, lv1, lv2, size[0], size[1], size[2])
+    hit = sphere & (x >= 0.0)
+    n0, n1, n2 = _mat_vec3(mat, sd if ax == 0 else 0.0, sd if ax == 1 else 0.0,
+                           sd if ax == 2 else 0.0)
+    return ((x if hit else -1.0), (n0 if hit else 0.0), (n1 if hit else 0.0),
+            (n2 if hit else 0.0))
+
+
+@njit(error_model="numpy")
+def _triangle(v00: float, v01: float, v02: float, v10: float, v11: float, v12: float,
+              v20: float, v21: float, v22: float, lp0: float, lp1: float, lp2: float,
+              lv0: float, lv1: float, lv2: float, b00: float, b01: float, b02: float,
+              b10: float, b11: float, b12: float) -> tuple[float, float, float, float]:
+    """engine_ray.c ``ray_triangle`` with its normal: the triangle of vertices v0, v1, v2,
+    the ray (``lp``, ``lv``) and the basis (``b0``, ``b1``) of the plane normal to it: the
+    vertices projected on that plane must surround the ray (barycentric t0, t1 >= 0, t0 + t1
+    <= 1), then the ray meets the triangle's plane. Returns (distance, possibly negative;
+    -1: none; the normal (v0 - v2) x (v1 - v2), not yet normalised: `_cast_geom` normalises the
+    nearest triangle's only, as MuJoCo's normalised copy of it is the same value)."""
+    d0, d1, d2 = v00 - lp0, v01 - lp1, v02 - lp2
+    p00 = b00 * d0 + b01 * d1 + b02 * d2
+    p01 = b10 * d0 + b11 * d1 + b12 * d2
+    d0, d1, d2 = v10 - lp0, v11 - lp1, v12 - lp2
+    p10 = b00 * d0 + b01 * d1 + b02 * d2
+    p11 = b10 * d0 + b11 * d1 + b12 * d2
+    d0, d1, d2 = v20 - lp0, v21 - lp1, v22 - lp2
+    p20 = b00 * d0 + b01 * d1 + b02 * d2
+    p21 = b10 * d0 + b11 * d1 + b12 * d2
+    if ((p00 > 0 and p10 > 0 and p20 > 0) or (p00 < 0 and p10 < 0 and p20 < 0)
+            or (p01 > 0 and p11 > 0 and p21 > 0) or (p01 < 0 and p11 < 0 and p21 < 0)):
+        return -1.0, 0.0, 0.0, 0.0
+    a0 = p00 - p20
+    a1 = p10 - p20
+    a2 = p01 - p21
+    a3 = p11 - p21
+    r0 = -p20
+    r1 = -p21
+    det = a0 * a3 - a1 * a2
+    if abs(det) < MJMINVAL:
+        return -1.0, 0.0, 0.0, 0.0
+    t0 = (a3 * r0 - a1 * r1) / det
+    t1 = (-a2 * r0 + a0 * r1) / det
+    if t0 < 0 or t1 < 0 or t0 + t1 > 1:
+        return -1.0, 0.0, 0.0, 0.0
+    e00, e01, e02 = v00 - v20, v01 - v21, v02 - v22
+    e10, e11, e12 = v10 - v20, v11 - v21, v12 - v22
+    n0 = e01 * e12 - e02 * e11  # mju_cross
+    n1 = e02 * e10 - e00 * e12
+    n2 = e00 * e11 - e01 * e10
+    denom = lv0 * n0 + lv1 * n1 + lv2 * n2
+    if abs(denom) < MJMINVAL:
+        return -1.0, 0.0, 0.0, 0.0
+    x = -((lp0 - v20) * n0 + (lp1 - v21) * n1 + (lp2 - v22) * n2) / denom
+    return x, n0, n1, n2
+
+
+@njit(inline="always", error_model="numpy")
+def _slab(box: np.ndarray, node: int, lp0: float, lp1: float, lp2: float, inv0: float,
+          inv1: float, inv2: float) -> bool:
+    """engine_ray.c ``mju_raySlab``: the ray (in the mesh's frame: origin lp, 1 / direction
+    inv, which MuJoCo computes again for every node: the same values) against BVH node
+    ``node``'s box, Ericson's slabs (inf, and nan where a slab's side passes through the
+    origin, compared as C compares them); a hit when the entry is strictly before the exit.
+    ``box[node]``: the corners (min, max) as mju_raySlab forms them from MjModel's bvh_box
+    (centre -+ half-size: `twin.sim.emulation.mesh_tables`, the same doubles)."""
+    t1 = (box[node, 0] - lp0) * inv0
+    t2 = (box[node, 3] - lp0) * inv0
+    tmin = 0.0
+    tmax = np.inf
+    minval = t1 if t1 < t2 else t2
+    maxval = t2 if t1 < t2 else t1
+    tmin = tmin if tmin > minval else minval
+    tmax = tmax if tmax < maxval else maxval
+    t1 = (box[node, 1] - lp1) * inv1
+    t2 = (box[node, 4] - lp1) * inv1
+    minval = t1 if t1 < t2 else t2
+    maxval = t2 if t1 < t2 else t1
+    tmin = tmin if tmin > minval else minval
+    tmax = tmax if tmax < maxval else maxval
+    t1 = (box[node, 2] - lp2) * inv2
+    t2 = (box[node, 5] - lp2) * inv2
+    minval = t1 if t1 < t2 else t2
+    maxval = t2 if t1 < t2 else t1
+    tmin = tmin if tmin > minval else minval
+    tmax = tmax if tmax < maxval else maxval
+    return tmin < tmax
+
+
+@njit(inline="always", error_model="numpy")
+def _nearer(x: float, g: int, d_best: float, g_best: int) -> bool:
+    """Whether hit ``x`` on geom ``g`` replaces a ray's best so far (``d_best`` on
+    ``g_best``; -1: none): nearer, or as near on a lower geom id: mj_ray's rule (geoms in id
+    order, strict <) whatever the order the hits come in; -1 is no hit. (Scalars: an inlined
+    helper that writes the arrays it is handed costs a loop a reference count per call.)"""
+    return (x >= 0.0) & ((g_best < 0) | (x < d_best) | ((x == d_best) & (g < g_best)))
+
+
+@njit(error_model="numpy")
+def _cast_geom(kind: int, g: int, mid: int, pos: np.ndarray, mat: np.ndarray,
+               size: np.ndarray, o0: float, o1: float, o2: float, dirs_t: np.ndarray,
+               todo: np.ndarray, bvh_adr: np.ndarray, bvh_box: np.ndarray,
+               bvh_child: np.ndarray, bvh_nodeid: np.ndarray, face_adr: np.ndarray,
+               vert_adr: np.ndarray, face: np.ndarray, vert: np.ndarray, stack: np.ndarray,
+               dist: np.ndarray, gid: np.ndarray, nrm_t: np.ndarray) -> None:
+    """Geom ``g`` of ``kind`` (world ``pos``, ``mat`` (9,), ``size``; mesh ``mid``) against
+    the rays ``todo`` from o along ``dirs_t[:, q]``, as mj_multiRay dispatches
+    (mju_rayGeom; mj_rayMesh for a mesh), each hit kept by `_nearer` in ``dist``, ``gid``,
+    ``nrm_t[:, q]`` (directions and normals by component: (3, n), or an (n, 3) array's
+    transpose). The tables of a mesh are
+    MjModel's (`mesh_bvhadr`, `bvh_child`, `bvh_nodeid`, `mesh_faceadr`, `mesh_vertadr`,
+    `mesh_face`; `bvh_aabb` and `mesh_vert` as `twin.sim.emulation.mesh_tables` gives them,
+    the same doubles MuJoCo forms from them); ``stack``: int64 scratch of at least
+    `MJ_MAX_TREE_DEPTH`.
+
+    Why one geom and many rays a call, and the mesh's walk written out here: numba gives
+    every array handed to an inlined function that holds a loop a reference count (atomic
+    operations) per call, about 100 ns; once per geom that is nothing, once per ray it was
+    more than the ray itself. The geom's pose and size as tuples, whose arithmetic LLVM
+    hoists out of the loops."""
+    tp = (pos[0], pos[1], pos[2])
+    tm = (mat[0], mat[1], mat[2], mat[3], mat[4], mat[5], mat[6], mat[7], mat[8])
+    ts = (size[0], size[1], size[2])
+    if kind == KIND_MESH:
+        adr = bvh_adr[mid]
+        f_adr = face_adr[mid]
+        v_adr = vert_adr[mid]
+        for t in range(todo.shape[0]):
+            q = todo[t]
+            v0, v1, v2 = dirs_t[0, q], dirs_t[1, q], dirs_t[2, q]
+            # mj_rayMesh: the geom's box (ray_box with the geom's size: `_box` without its
+            # normal) first
+            ssz = ts[0] * ts[0] + ts[1] * ts[1] + ts[2] * ts[2]
+            if not _bounding_sphere(tp, ssz, o0, o1, o2, v0, v1, v2):
+                continue
+            lp0, lp1, lp2, lv0, lv1, lv2 = _ray_map(tp, tm, o0, o1, o2, v0, v1, v2)
+            x, _, _ = _box_faces(lp0, lp1, lp2, lv0, lv1, lv2, ts[0], ts[1], ts[2])
+            if x < 0.0:
+                continue
+            # mju_rayTree: the ray in the mesh's frame (the same as ray_box's), the basis
+            # (b0, b1) of the plane normal to it, then the tree depth first as MuJoCo walks
+            # it (a stack: the second child is visited first), `_slab` on each node and
+            # `_triangle` on each leaf's face; the nearest non-negative, the first found on
+            # a tie
+            b00, b01, b02 = 1.0, 1.0, 1.0
+            if abs(lv0) >= abs(lv1) and abs(lv0) >= abs(lv2):
+                b00 = 0.0
+            elif abs(lv1) >= abs(lv2):
+                b01 = 0.0
+            else:
+                b02 = 0.0
+            scl = -(lv0 * b00 + lv1 * b01 + lv2 * b02) / (lv0 * lv0 + lv1 * lv1 + lv2 * lv2)
+            b10, b11, b12 = _normalize3(b00 + scl * lv0, b01 + scl * lv1, b02 + scl * lv2)
+            b00, b01, b02 = _normalize3(b11 * lv2 - b12 * lv1, b12 * lv0 - b10 * lv2,
+                                        b10 * lv1 - b11 * lv0)
+            inv0 = 1.0 / lv0
+            inv1 = 1.0 / lv1
+            inv2 = 1.0 / lv2
+            x = -1.0
+            n0 = n1 = n2 = 0.0
+            stack[0] = 0
+            n_stack = 1
+            while n_stack:
+                n_stack -= 1
+                node = adr + stack[n_stack]
+                if not _slab(bvh_box, node, lp0, lp1, lp2, inv0, inv1, inv2):
+                    continue
+                f = bvh_nodeid[node]
+                if f != -1:
+                    f += f_adr
+                    i0 = face[f, 0] + v_adr
+                    i1 = face[f, 1] + v_adr
+                    i2 = face[f, 2] + v_adr
+                    sol, t0, t1, t2 = _triangle(
+                        vert[i0, 0], vert[i0, 1], vert[i0, 2], vert[i1, 0], vert[i1, 1],
+                        vert[i1, 2], vert[i2, 0], vert[i2, 1], vert[i2, 2], lp0, lp1, lp2, lv0,
+                        lv1, lv2, b00, b01, b02, b10, b11, b12)
+                    if sol >= 0.0 and (x < 0.0 or sol < x):
+                        x = sol
+                        n0, n1, n2 = t0, t1, t2
+                    continue
+                c = bvh_child[node, 0]
+                if c != -1:
+                    stack[n_stack] = c
+                    n_stack += 1
+                c = bvh_child[node, 1]
+                if c != -1:
+                    stack[n_stack] = c
+                    n_stack += 1
+            if _nearer(x, g, dist[q], gid[q]):
+                n0, n1, n2 = _normalize3(n0, n1, n2)
+                dist[q] = x
+                gid[q] = g
+                nrm_t[0, q], nrm_t[1, q], nrm_t[2, q] = _mat_vec3(tm, n0, n1, n2)
+        return
+    for t in range(todo.shape[0]):
+        q = todo[t]
+        v0, v1, v2 = dirs_t[0, q], dirs_t[1, q], dirs_t[2, q]
+        if kind == KIND_BOX:
+            x, n0, n1, n2 = _box(tp, tm, ts, o0, o1, o2, v0, v1, v2)
+        elif kind == KIND_SPHERE:
+            x, n0, n1, n2 = _sphere(tp, ts, o0, o1, o2, v0, v1, v2)
+        elif kind == KIND_CAPSULE:
+            x, n0, n1, n2 = _capsule(tp, tm, ts, o0, o1, o2, v0, v1, v2)
+        elif kind == KIND_CYLINDER:
+            x, n0, n1, n2 = _cylinder(tp, tm, ts, o0, o1, o2, v0, v1, v2)
+        elif kind == KIND_ELLIPSOID:
+            x, n0, n1, n2 = _ellipsoid(tp, tm, ts, o0, o1, o2, v0, v1, v2)
+        else:
+            x, n0, n1, n2 = -1.0, 0.0, 0.0, 0.0
+        if _nearer(x, g, dist[q], gid[q]):
+            dist[q] = x
+            gid[q] = g
+            nrm_t[0, q] = n0
+            nrm_t[1, q] = n1
+            nrm_t[2, q] = n2
+
+
 @njit(cache=True, error_model="numpy")
-def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: np.ndarray,
-               iv_row: np.ndarray, iv_geom: np.ndarray, iv_centre: np.ndarray,
-               iv_half: np.ndarray, d_first: np.ndarray, spread: float, base: np.ndarray,
-               is_box: np.ndarray, g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray,
-               plane_ids: np.ndarray, pl_k: np.ndarray, pl_ranges: np.ndarray,
-               pl_n_ranges: np.ndarray, origins: np.ndarray, row_laser: np.ndarray
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """MuJoCo's answer for the culled rays that can only meet boxes and planes, computed here;
-    the mask of those MuJoCo must still cast.
+def cast_solids(pnt: np.ndarray, dirs: np.ndarray, geoms: np.ndarray, g_kind: np.ndarray,
+                g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray, meshes: tuple
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays from ``pnt`` (3,) along ``dirs`` (n, 3) against the solids ``geoms`` (by geom id:
+    kind ``g_kind``, world pose ``g_pos`` (G, 3), ``g_mat`` (G, 9), size ``g_size`` (G, 3);
+    ``meshes`` as `solid_cast`'s), as mj_multiRay has it: the nearest hit, the lowest geom
+    id on a tie. Returns (distance, -1: none; geom id, -1; world normal (n, 3)). What the
+    tests hold against MuJoCo: `solid_cast` runs the same `_cast_geom`."""
+    g_mesh, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert = meshes
+    n = dirs.shape[0]
+    dist = np.full(n, -1.0)
+    gid = np.full(n, -1, dtype=np.int32)
+    nrm = np.zeros((n, 3))
+    stack = np.empty(2 * MJ_MAX_TREE_DEPTH, dtype=np.int64)
+    todo = np.arange(n)
+    dirs_t = dirs.T.copy()  # (C-ordered, as `solid_cast` has them: one compiled `_cast_geom`)
+    nrm_t = np.zeros((3, n))
+    for g in geoms:
+        _cast_geom(g_kind[g], g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], pnt[0], pnt[1],
+                   pnt[2], dirs_t, todo, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr,
+                   vert_adr, face, vert, stack, dist, gid, nrm_t)
+    for q in range(n):
+        nrm[q, 0] = nrm_t[0, q]
+        nrm[q, 1] = nrm_t[1, q]
+        nrm[q, 2] = nrm_t[2, q]
+    return dist, gid, nrm
 
-    ``ray_index``/``dirs``: the rays that may meet a solid (`grid_candidates`: ascending
-    ``r * n_seq + s``); the intervals (row ``iv_row``, geom id ``iv_geom``, azimuth
-    ``iv_centre`` +- ``iv_half``, `twin.sim.emulation.LidarEmulator._pose_intervals`) become
-    the same column ranges as there (`_column_ranges`, widened by ``spread``), so each ray
-    learns which solids it may meet. A ray of a ``full_rows`` row, or one that may meet a
-    geom other than a box (``is_box`` by geom id), is left to MuJoCo. For the others the hit
-    is MuJoCo's: `_ray_box` on each of its boxes and `ray_plane` on every plane
-    (``plane_ids``, where `plane_rows`' ``pl_k``, ``pl_ranges``, ``pl_n_ranges`` let it be
-    met), the nearest, the lowest geom id on a tie (mj_ray's strict <), with the
-    face's world normal (the box's axis times the side; the plane's z axis) as mj_multiRay
-    gives it. World poses ``g_pos`` (G, 3), ``g_mat`` (G, 9), half-sizes ``g_size`` (G, 3);
-    the rows' origins ``origins[row_laser[r]]``.
 
-    Returns (distance, -1: none; geom id, -1; normal (n, 3); needs MuJoCo (n,) bool), in
-    mj_multiRay's raw form (`_cast_hit` applies the cutoff). A ray that needs MuJoCo for a
-    curved geom still gets its boxes' and planes' nearest hit (MuJoCo then casts it against the
-    curved geoms only: `merge_nearest`); a whole row's rays get nothing.
+@njit(inline="always", error_model="numpy")
+def _search(a: np.ndarray, lo: int, hi: int, v: int) -> int:
+    """``lo + np.searchsorted(a[lo:hi], v)`` (side "left") without the view: the candidates'
+    indices of one row are a few hundred of the 54,000 a rotation has, and a search over all
+    of them missed the caches at every step."""
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if a[mid] < v:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(inline="always", error_model="numpy")
+def _row_spans(rows: np.ndarray, bounds: np.ndarray, n_rows: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Where each row's candidates lie in `grid_candidates`' ray index: [lo[r], hi[r]) (empty
+    for a row without any), from its ``rows`` and ``bounds``."""
+    lo = np.zeros(n_rows, dtype=np.int64)
+    hi = np.zeros(n_rows, dtype=np.int64)
+    for j in range(rows.shape[0]):
+        lo[rows[j]] = bounds[j]
+        hi[rows[j]] = bounds[j + 1]
+    return lo, hi
+
+
+#: `solid_cast`'s flags per candidate ray (uint8 bits).
+#: MuJoCo must still cast it: a whole row's ray (against every geom), or one that may meet a
+#: geom of `KIND_MUJOCO` (against those alone: `merge_nearest`).
+FLAG_MUJOCO = 1
+#: A sub-ray (not a beam's centre) that may meet a curved geom or a mesh, not tested against
+#: them yet: `subray_cast` tests it where its beam's neighbourhood asks for it.
+FLAG_DEFERRED = 2
+#: The ray is a beam's centre (its row is ``laser * n_k``; every ray without divergence).
+FLAG_CENTRE = 4
+
+
+@njit(error_model="numpy")
+def _solids_pass(stage: int, select: np.ndarray, dirs_t: np.ndarray, n_k: int,
+                 full_rows: np.ndarray, iv_row: np.ndarray, iv_geom: np.ndarray,
+                 iv_start: np.ndarray, run_q: np.ndarray, g_kind: np.ndarray,
+                 g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray, meshes: tuple,
+                 origins: np.ndarray, row_laser: np.ndarray, dist: np.ndarray,
+                 gid: np.ndarray, nrm_t: np.ndarray, flags: np.ndarray) -> None:
+    """The solids of each candidate ray, by its culling intervals (`solid_cast`). Stage 0:
+    every box; the curved geoms and meshes of the beams' centres (rows ``laser * n_k``),
+    the sub-rays' flagged `FLAG_DEFERRED`; the geoms of `KIND_MUJOCO` flagged `FLAG_MUJOCO`.
+    Stage 1: the curved geoms and meshes of the rays ``select`` names (`subray_cast`). Hits
+    go into ``dist``/``gid``/``nrm_t`` (`_cast_geom`; directions ``dirs_t`` and normals by
+    component, (3, n)); interval i's rays are the runs ``iv_start[i]`` .. ``iv_start[i + 1]``
+    of ``run_q`` (`grid_candidates`).
+
+    A box's runs (three rays in four of a lab rotation's tests) are one loop each over
+    contiguous rays, `_box` and `_nearer` as selects, the components' rows as views from 0:
+    with ``dirs_t`` and ``nrm_t`` C-ordered (3, n), as `solid_cast` has them, LLVM
+    vectorises it (about 7 ns a test instead of 18)."""
+    g_mesh, bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr, vert_adr, face, vert = meshes
+    stack = np.empty(2 * MJ_MAX_TREE_DEPTH, dtype=np.int64)
+    todo = np.empty(dirs_t.shape[1], dtype=np.int64)
+    for i in range(iv_row.shape[0]):
+        r = iv_row[i]
+        if full_rows[r]:
+            continue  # (MuJoCo casts the whole row against every geom)
+        g = iv_geom[i]
+        kind = g_kind[g]
+        curved = kind != KIND_BOX and kind != KIND_MUJOCO
+        if stage == 1 and not curved:
+            continue
+        lsr = row_laser[r]
+        o0, o1, o2 = origins[lsr, 0], origins[lsr, 1], origins[lsr, 2]
+        if kind == KIND_BOX:  # (stage 0)
+            pos, mat, size = g_pos[g], g_mat[g], g_size[g]
+            tp = (pos[0], pos[1], pos[2])
+            tm = (mat[0], mat[1], mat[2], mat[3], mat[4], mat[5], mat[6], mat[7], mat[8])
+            ts = (size[0], size[1], size[2])
+            for jr in range(iv_start[i], iv_start[i + 1]):
+                q0, q1 = run_q[jr, 0], run_q[jr, 1]
+                vx, vy, vz = dirs_t[0, q0:q1], dirs_t[1, q0:q1], dirs_t[2, q0:q1]
+                d_v, g_v = dist[q0:q1], gid[q0:q1]
+                n0_v, n1_v, n2_v = nrm_t[0, q0:q1], nrm_t[1, q0:q1], nrm_t[2, q0:q1]
+                for q in range(q1 - q0):
+                    best, best_g = d_v[q], g_v[q]
+                    b0, b1, b2 = n0_v[q], n1_v[q], n2_v[q]
+                    x, n0, n1, n2 = _box(tp, tm, ts, o0, o1, o2, vx[q], vy[q], vz[q])
+                    take = _nearer(x, g, best, best_g)
+                    d_v[q] = x if take else best
+                    g_v[q] = g if take else best_g
+                    n0_v[q] = n0 if take else b0
+                    n1_v[q] = n1 if take else b1
+                    n2_v[q] = n2 if take else b2
+            continue
+        later = curved and r % n_k != 0
+        n_todo = 0
+        for jr in range(iv_start[i], iv_start[i + 1]):
+            for q in range(run_q[jr, 0], run_q[jr, 1]):
+                if stage == 0:
+                    if kind == KIND_MUJOCO:
+                        flags[q] |= FLAG_MUJOCO
+                        continue
+                    if later:
+                        flags[q] |= FLAG_DEFERRED
+                        continue
+                elif not select[q]:
+                    continue
+                todo[n_todo] = q
+                n_todo += 1
+        if n_todo:
+            _cast_geom(kind, g, g_mesh[g], g_pos[g], g_mat[g], g_size[g], o0, o1, o2, dirs_t,
+                       todo[:n_todo], bvh_adr, bvh_box, bvh_child, bvh_nodeid, face_adr,
+                       vert_adr, face, vert, stack, dist, gid, nrm_t)
+
+
+@njit(cache=True, error_model="numpy")
+def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds: np.ndarray,
+               n_seq: int, n_k: int, full_rows: np.ndarray, iv_row: np.ndarray,
+               iv_geom: np.ndarray, iv_start: np.ndarray, run_q: np.ndarray,
+               g_kind: np.ndarray, g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray,
+               meshes: tuple, plane_ids: np.ndarray,
+               pl_k: np.ndarray, pl_ranges: np.ndarray, pl_n_ranges: np.ndarray,
+               origins: np.ndarray, row_laser: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """mj_multiRay's answer for the culled rays, computed here with MuJoCo's own ray
+    functions (the section above), and what is left of it for later.
+
+    ``ray_index``/``dirs``/``rows``/``bounds``: the rays that may meet a solid
+    (`grid_candidates`: ascending ``r * n_seq + s``, row ``rows[j]``'s are
+    ``bounds[j]:bounds[j + 1]``; rows ``laser * n_k + k``, k = 0 the beam's centre) and the
+    culling's intervals (row ``iv_row``, geom id ``iv_geom``,
+    `twin.sim.emulation.LidarEmulator._pose_intervals`; their rays ``iv_start``, ``run_q``,
+    as `grid_candidates` found them), so each ray learns which solids it may meet, and only
+    those are tested: mj_multiRay tests every geom of the scene against each ray. Every ray
+    but a ``full_rows`` row's gets its boxes (`_solids_pass`) and every plane (``plane_ids``,
+    by `ray_plane` where `plane_rows`' ``pl_k``, ``pl_ranges``, ``pl_n_ranges`` let it be
+    met: the rows' candidates found by `_search`); a beam's centre its curved geoms and
+    meshes too; the
+    nearest, the lowest geom id on a tie (mj_ray's strict <), with the world normal as
+    mj_multiRay gives it. Geoms by id: kind ``g_kind`` (`KIND_*`), world pose ``g_pos``
+    (G, 3), ``g_mat`` (G, 9), size ``g_size`` (G, 3), ``meshes`` (`_cast_geom`); the rows'
+    origins ``origins[row_laser[r]]``.
+
+    Returns (distance, -1: none; geom id, -1; normal (n, 3); flags (n,) uint8: `FLAG_*`), in
+    mj_multiRay's raw form (`_cast_hit` applies the cutoff), and the directions by component
+    (3, n) C-ordered, for `subray_cast`. A ray flagged `FLAG_MUJOCO`
+    keeps what it got here (MuJoCo then casts it against the geoms of `KIND_MUJOCO` only:
+    `merge_nearest`; a whole row's rays get nothing); one flagged `FLAG_DEFERRED` gets its
+    curved geoms and meshes from `subray_cast`.
     """
     n = ray_index.shape[0]
     dist = np.full(n, -1.0)
     gid = np.full(n, -1, dtype=np.int32)
-    nrm = np.zeros((n, 3))
-    mj = np.zeros(n, dtype=np.bool_)
+    flags = np.zeros(n, dtype=np.uint8)
     if n == 0:
-        return dist, gid, nrm, mj
+        return dist, gid, np.zeros((n, 3)), flags, np.zeros((3, n))
+    # directions and normals by component (3, n): the boxes' and planes' loops vectorise
+    dirs_t = np.empty((3, n))
     for q in range(n):
-        if full_rows[ray_index[q] // n_seq]:
-            mj[q] = True
-    b_u = unwrap(base)
-    n_turns = math.ceil((b_u[n_seq - 1] - b_u[0]) * _INV_TWO_PI) + 2
-    ranges = np.empty((n_turns, 2), dtype=np.int64)
-    for i in range(iv_row.shape[0]):
-        r = iv_row[i]
-        g = iv_geom[i]
-        n_r = _column_ranges(b_u, iv_centre[i] - d_first[r], iv_half[i] + spread, ranges)
-        o = origins[row_laser[r]]
-        box = is_box[g]
-        for jr in range(n_r):
-            lo = np.searchsorted(ray_index, r * n_seq + ranges[jr, 0])
-            hi = np.searchsorted(ray_index, r * n_seq + ranges[jr, 1])
-            for q in range(lo, hi):
-                if not box:
-                    mj[q] = True
-                    continue
-                if full_rows[r]:
-                    continue  # (MuJoCo casts the whole row against every geom)
-                x, ax, sd = _ray_box(o, dirs[q], g_pos[g], g_mat[g], g_size[g])
-                if x >= 0.0 and (gid[q] < 0 or x < dist[q] or (x == dist[q] and g < gid[q])):
-                    dist[q] = x
-                    gid[q] = g
-                    for e in range(3):
-                        nrm[q, e] = g_mat[g, 3 * e + ax] * sd
+        dirs_t[0, q] = dirs[q, 0]
+        dirs_t[1, q] = dirs[q, 1]
+        dirs_t[2, q] = dirs[q, 2]
+    nrm_t = np.zeros((3, n))
+    span_lo, span_hi = _row_spans(rows, bounds, full_rows.shape[0])
+    for j in range(rows.shape[0]):  # (by rows: no integer division per ray)
+        r = rows[j]
+        f = FLAG_CENTRE if r % n_k == 0 else 0
+        f = f | FLAG_MUJOCO if full_rows[r] else f
+        for q in range(bounds[j], bounds[j + 1]):
+            flags[q] = f
+    _solids_pass(0, flags, dirs_t, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
+                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist, gid, nrm_t, flags)
     # The planes, as `ray_planes` has MuJoCo's rule, for every ray but whole rows' (a ray
-    # left to MuJoCo for a curved geom keeps its boxes' and planes' hit: `merge_nearest`); only
+    # left to MuJoCo or for later keeps its boxes' and planes' hit: `merge_nearest`); only
     # where `plane_rows` says the plane can be met at all (its live rows and their column
     # ranges: elsewhere MuJoCo's rule is a miss). The origin in each plane's frame once per
     # laser, as MuJoCo maps it.
@@ -675,6 +1314,8 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: n
     for p in range(plane_ids.shape[0]):
         g = plane_ids[p]
         m = g_mat[g]
+        m0, m1, m2, m3, m4, m5, m6, m7, m8 = m[0], m[1], m[2], m[3], m[4], m[5], m[6], m[7], m[8]
+        s0, s1 = g_size[g, 0], g_size[g, 1]
         lpl = np.empty((n_l, 3))
         for lsr in range(n_l):
             o = origins[lsr]
@@ -690,24 +1331,33 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, n_seq: int, full_rows: n
             lsr = row_laser[r]
             lp0, lp1, lp2 = lpl[lsr, 0], lpl[lsr, 1], lpl[lsr, 2]
             for jr in range(pl_n_ranges[p, r]):
-                lo = np.searchsorted(ray_index, r * n_seq + pl_ranges[p, r, jr, 0])
-                hi = np.searchsorted(ray_index, r * n_seq + pl_ranges[p, r, jr, 1])
-                for q in range(lo, hi):
-                    v0 = dirs[q, 0]
-                    v1 = dirs[q, 1]
-                    v2 = dirs[q, 2]
-                    lv0 = m[0] * v0 + m[3] * v1 + m[6] * v2
-                    lv1 = m[1] * v0 + m[4] * v1 + m[7] * v2
-                    lv2 = m[2] * v0 + m[5] * v1 + m[8] * v2
-                    x = ray_plane(lp0, lp1, lp2, lv0, lv1, lv2, g_size[g, 0], g_size[g, 1])
-                    if x >= 0.0 and (gid[q] < 0 or x < dist[q]
-                                     or (x == dist[q] and g < gid[q])):
-                        dist[q] = x
-                        gid[q] = g
-                        nrm[q, 0] = m[2]
-                        nrm[q, 1] = m[5]
-                        nrm[q, 2] = m[8]
-    return dist, gid, nrm, mj
+                key = r * n_seq
+                lo = _search(ray_index, span_lo[r], span_hi[r], key + pl_ranges[p, r, jr, 0])
+                hi = _search(ray_index, lo, span_hi[r], key + pl_ranges[p, r, jr, 1])
+                # (without branches, loads before stores, views from 0: LLVM vectorises it)
+                vx, vy, vz = dirs_t[0, lo:hi], dirs_t[1, lo:hi], dirs_t[2, lo:hi]
+                d_v, g_v = dist[lo:hi], gid[lo:hi]
+                n0_v, n1_v, n2_v = nrm_t[0, lo:hi], nrm_t[1, lo:hi], nrm_t[2, lo:hi]
+                for q in range(hi - lo):
+                    v0, v1, v2 = vx[q], vy[q], vz[q]
+                    best, best_g = d_v[q], g_v[q]
+                    b0, b1, b2 = n0_v[q], n1_v[q], n2_v[q]
+                    lv0 = m0 * v0 + m3 * v1 + m6 * v2
+                    lv1 = m1 * v0 + m4 * v1 + m7 * v2
+                    lv2 = m2 * v0 + m5 * v1 + m8 * v2
+                    x = ray_plane(lp0, lp1, lp2, lv0, lv1, lv2, s0, s1)
+                    take = _nearer(x, g, best, best_g)
+                    d_v[q] = x if take else best
+                    g_v[q] = g if take else best_g
+                    n0_v[q] = m2 if take else b0
+                    n1_v[q] = m5 if take else b1
+                    n2_v[q] = m8 if take else b2
+    nrm = np.empty((n, 3))
+    for q in range(n):
+        nrm[q, 0] = nrm_t[0, q]
+        nrm[q, 1] = nrm_t[1, q]
+        nrm[q, 2] = nrm_t[2, q]
+    return dist, gid, nrm, flags, dirs_t
 
 
 @njit(cache=True, error_model="numpy")
@@ -731,41 +1381,106 @@ def merge_nearest(q: np.ndarray, dist: np.ndarray, gid: np.ndarray, nrm: np.ndar
 # --------------------------------------------------------------------------------------------
 # Divergence: sub-rays only where the beam's footprint leaves a face (adaptive)
 # --------------------------------------------------------------------------------------------
-@njit(cache=True, error_model="numpy")
-def subray_needs(sub_index: np.ndarray, n_k: int, n_seq: int, gid: np.ndarray,
-                 curved: np.ndarray, full_rows: np.ndarray) -> np.ndarray:
-    """Which sub-rays that may meet a curved geom or a mesh MuJoCo must still cast; for the
-    others the boxes' and planes' hit `solid_cast` found stands. Returns the mask (n,).
+@njit(inline="always", error_model="numpy")
+def _subray_needed(r: int, s: int, n_k: int, n_seq: int, gid: np.ndarray, curved: np.ndarray,
+                   full_rows: np.ndarray) -> bool:
+    """Whether sub-ray s of row r (``laser * n_k + k``, k >= 1) must meet the curved geoms
+    and meshes it may meet, or its boxes' and planes' hit stands.
 
-    Sub-ray j is ray ``sub_index[j]`` (row-major ``r * n_seq + s``, row ``laser * n_k + k``,
-    k >= 1); ``gid`` (row-major, every row) holds the beams' centres' final geoms (MuJoCo's
-    over every geom where a curved one was near). A sub-ray is left to the boxes and planes
-    when its centre hit a geom that is not ``curved`` (by geom id) and the same laser's
-    neighbouring firings (one sequence before and after: 3.5 mrad apart at 600 rpm, the
-    sub-rays 1 mrad from the centre) hit that geom too: no curved geom's silhouette then
-    crosses the beam's neighbourhood, unless it is narrower than the firings' spacing or
-    crosses between the sub-ray and its centre only vertically (a few beams in 10^4 in the
-    lab; tests/test_emulation.py). Everything else goes to MuJoCo, and so does every ray of
-    a ``full_rows`` row (the kernel left those to it whole).
+    ``gid`` (row-major, every row) holds the beams' centres' final geoms. A sub-ray is left to
+    the boxes and planes when its centre hit a geom that is not ``curved`` (by geom id) and
+    the same laser's neighbouring firings (one sequence before and after: 3.5 mrad apart at
+    600 rpm, the sub-rays 1 mrad from the centre) hit that geom too: no curved geom's
+    silhouette then crosses the beam's neighbourhood, unless it is narrower than the firings'
+    spacing or crosses between the sub-ray and its centre only vertically (a few beams in
+    10^4 in the lab; tests/test_emulation.py). Every ray of a ``full_rows`` row is needed
+    (MuJoCo casts those whole)."""
+    if full_rows[r]:
+        return True
+    c_row = (r - r % n_k) * n_seq
+    g0 = gid[c_row + s]
+    if g0 < 0 or curved[g0]:
+        return True
+    if s > 0 and gid[c_row + s - 1] != g0:
+        return True
+    return s + 1 < n_seq and gid[c_row + s + 1] != g0
+
+
+@njit(cache=True, error_model="numpy")
+def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, dirs_t: np.ndarray, rows: np.ndarray,
+                bounds: np.ndarray,
+                dist_a: np.ndarray, gid_a: np.ndarray, nrm_a: np.ndarray, flags: np.ndarray,
+                n_seq: int, n_k: int, full_rows: np.ndarray, iv_row: np.ndarray,
+                iv_geom: np.ndarray, iv_start: np.ndarray, run_q: np.ndarray,
+                g_kind: np.ndarray, g_pos: np.ndarray, g_mat: np.ndarray, g_size: np.ndarray,
+                meshes: tuple, origins: np.ndarray,
+                row_laser: np.ndarray, curved: np.ndarray, weight: np.ndarray, cutoff: float,
+                dist: np.ndarray, cos_inc: np.ndarray, gid: np.ndarray) -> np.ndarray:
+    """Divergence, adaptive: the candidates' hits (`solid_cast`'s ``dist_a``, ``gid_a``,
+    ``nrm_a``, ``flags``; the centres' `FLAG_MUJOCO` part already merged by the caller) into
+    `grid_rays`' row-major ``dist``, ``cos_inc``, ``gid`` (`_cast_hit`, ``weight`` by geom),
+    with the sub-rays' curved geoms and meshes only where the beam needs them.
+
+    1. The beams' centres and the rays with nothing left to do (no flag but `FLAG_CENTRE`).
+    2. Each flagged sub-ray: `_subray_needed` (which reads the centres' final geoms, and the
+       ``curved`` geoms by id) says whether its curved geoms and meshes count; if they do,
+       they are tested now (`_solids_pass`, stage 1: ``dist_a``... updated in place).
+    3. The flagged sub-rays, but those that need MuJoCo too (`FLAG_MUJOCO` and needed).
+
+    Returns the indices (into the candidates) of the sub-rays of 3., for the caller: MuJoCo,
+    then `scatter_cast`. ``dirs_t``: the directions by component (`solid_cast`'s); the rest
+    of the arguments as `solid_cast`'s.
     """
-    n = sub_index.shape[0]
-    need = np.ones(n, dtype=np.bool_)
-    for j in range(n):
-        ray = sub_index[j]
-        r = ray // n_seq
-        if full_rows[r]:
+    n = ray_index.shape[0]
+    for q in range(n):
+        f = flags[q]
+        if f == 0 or f & FLAG_CENTRE:
+            j = ray_index[q]
+            dist[j], cos_inc[j], gid[j] = _cast_hit(dist_a[q], gid_a[q], nrm_a, dirs, q,
+                                                    weight, cutoff)
+    select = np.zeros(n, dtype=np.bool_)
+    to_mujoco = np.zeros(n, dtype=np.bool_)
+    n_mj = 0
+    for jr in range(rows.shape[0]):  # (by rows: no integer division per ray)
+        r = rows[jr]
+        if r % n_k == 0:
             continue
-        s = ray - r * n_seq
-        c_row = (r // n_k) * n_k * n_seq
-        g0 = gid[c_row + s]
-        if g0 < 0 or curved[g0]:
+        for q in range(bounds[jr], bounds[jr + 1]):
+            f = flags[q]
+            if f == 0:
+                continue
+            if _subray_needed(r, ray_index[q] - r * n_seq, n_k, n_seq, gid, curved, full_rows):
+                select[q] = (f & FLAG_DEFERRED) != 0
+                if f & FLAG_MUJOCO:
+                    to_mujoco[q] = True
+                    n_mj += 1
+    # (directions and normals by component, C-ordered as in `solid_cast`: one compiled
+    # `_cast_geom` serves both kernels; the normals of the hits this stage takes, which are
+    # a curved geom's or a mesh's (a sub-ray's hit so far is a box's or a plane's), go back
+    # into ``nrm_a``)
+    nrm_t = np.zeros((3, n))
+    _solids_pass(1, select, dirs_t, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
+                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist_a, gid_a, nrm_t, flags)
+    for q in range(n):
+        g = gid_a[q]
+        if select[q] and g >= 0 and g_kind[g] != KIND_BOX and g_kind[g] != KIND_MUJOCO:
+            nrm_a[q, 0] = nrm_t[0, q]
+            nrm_a[q, 1] = nrm_t[1, q]
+            nrm_a[q, 2] = nrm_t[2, q]
+    mj_q = np.empty(n_mj, dtype=np.int64)
+    k = 0
+    for q in range(n):
+        f = flags[q]
+        if f == 0 or f & FLAG_CENTRE:
             continue
-        if s > 0 and gid[c_row + s - 1] != g0:
+        if to_mujoco[q]:
+            mj_q[k] = q
+            k += 1
             continue
-        if s + 1 < n_seq and gid[c_row + s + 1] != g0:
-            continue
-        need[j] = False
-    return need
+        j = ray_index[q]
+        dist[j], cos_inc[j], gid[j] = _cast_hit(dist_a[q], gid_a[q], nrm_a, dirs, q, weight,
+                                                cutoff)
+    return mj_q
 
 
 @njit(cache=True, error_model="numpy")
