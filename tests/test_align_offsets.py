@@ -21,9 +21,13 @@ DATASHEET = 0.030 / np.sqrt(3.0)
 
 
 def _scans(rng: np.random.Generator, n: int, **noise) -> tuple[list, BenchSim]:
+    # the sharp beam the estimator is told (`SHARP`), as bench_align --offsets has it: the
+    # twin's default divergent beam returns from the board up to a footprint beyond its edges,
+    # hits a zero tolerance takes as certain (fused, 1-100 um past an edge pinned the offset's
+    # band 1 mm off at 3.4 sigma)
     params, x, yaw = random_pose(rng)
     sim = BenchSim(params, seed=int(rng.integers(2**31)),
-                   noise=EmulationConfig(laser_offset_sigma=0.0, **noise))
+                   noise=EmulationConfig(laser_offset_sigma=0.0, divergence=False, **noise))
     sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
     return [sim.scan() for _ in range(n)], sim
 
@@ -73,14 +77,17 @@ def _offset_chi2(rng: np.random.Generator, units: int, scans: int, axes: list[in
     """Mean squared z of the pose's ``axes`` and of the offset, over ``units`` twin units each
     with its own common offset uniform within +-5 mm (the prior saying so), ``scans`` fused."""
     hints = align.Hints(**SHARP, range_offset_prior=(0.0, 0.005 / np.sqrt(3.0)))
-    z2 = []
+    z2, failed = [], 0
     for _ in range(units):
         group, sim = _scans(rng, scans, range_bias_spread=0.005)
         est = align.estimate(group, hints=hints)
-        assert est.success, est.diagnostics.get("reason")
+        if not est.success:  # counted: a failed estimate reports no sigma to check
+            failed += 1
+            continue
         e, sd = pose_errors(est, group[0].meta["truth_pose"])
         db = est.diagnostics["range_offset_m"] - sim.emulator.range_bias
         z2.append(np.append((e / sd)[axes], db / est.diagnostics["range_offset_std_m"]) ** 2)
+    assert failed <= 0.01 * units, failed
     return np.mean(z2, axis=0)
 
 
@@ -92,14 +99,16 @@ def test_offset_sigmas_are_honest_over_many_units():
 
 
 @pytest.mark.slow
-def test_offset_sigmas_are_honest_over_40_units_fused_10():
+def test_offset_sigmas_are_honest_over_120_units_fused_10():
     # issue 21's check at a size that tells an honest covariance from the one before the joint
-    # profile (yaw chi2 1.6-1.8, x 1.5-1.7, roll 0.7): 40 units uniform within +-5 mm, the
-    # prior saying so, 10 scans fused. One axis's chi2 over 40 units has a sd of about 0.22
-    # (0.11 pooled over yaw and x, the axes the offset trades against)
-    chi2 = _offset_chi2(np.random.default_rng(24), 40, 10, [4, 3, 5, 0])  # tilt roll yaw x b
-    assert np.all((chi2 > 0.6) & (chi2 < 1.5)), chi2
-    assert 0.75 < np.mean(chi2[2:4]) < 1.3, chi2
+    # profile (yaw chi2 1.6-1.8, x 1.5-1.7, roll 0.7): 120 units uniform within +-5 mm, the
+    # prior saying so, 10 scans fused, the sharp beam. One axis's chi2 over 120 units has a sd
+    # of about 0.13: the bands are 3 of them about 1. (Over 40 units, 0.22, its old bands were
+    # within two; they held while the twin's beam was divergent against the sharp beam the
+    # estimator was told, which moved every figure)
+    chi2 = _offset_chi2(np.random.default_rng(24), 120, 10, [4, 3, 5, 0])  # tilt roll yaw x b
+    assert np.all((chi2 > 0.6) & (chi2 < 1.4)), chi2
+    assert 0.7 < np.mean(chi2[2:4]) < 1.35, chi2
 
 
 def test_per_laser_offsets_uncalibrated_are_in_tilts_sigma():
