@@ -104,14 +104,15 @@ def _other_candidates(scans: list[Scan], first: int, ref: Segmentation | None,
     n_clusters = 0 if ref is None else ref.n_clusters
     k = 0
 
-    def attempt(alt: np.ndarray) -> PoseEstimate | None:
+    def attempt(alt: np.ndarray, by_plane: bool = False) -> PoseEstimate | None:
         """The estimate with the returns ``alt`` of the first usable scan as the board's,
-        if the known rectangle explains its rays."""
+        if the known rectangle explains its rays (``by_plane``: `Segmentation.by_plane`)."""
         nonlocal k
         tried.append(alt)
         k += 1
         g = Segmentation(Status.OK, alt, n_clusters, float(np.mean(s0.distance[alt])),
-                         len(np.unique(s0.lasers.ring_of_laser[s0.laser_id[alt]])))
+                         len(np.unique(s0.lasers.ring_of_laser[s0.laser_id[alt]])),
+                         by_plane=by_plane)
         alt_segs = _segment_static(scans[first:], board, hints, g)
         use = [i for i, a in enumerate(alt_segs) if a.status == Status.OK]
         res_alt = estimate_rays([scans[first + i] for i in use], [alt_segs[i] for i in use],
@@ -139,7 +140,7 @@ def _other_candidates(scans: list[Scan], first: int, ref: Segmentation | None,
     # the clustering cut the board apart (its rings running on onto things just behind it) or
     # buried it in a plane that holds more: the board found plane first, from any piece of it
     for alt in plane_candidates(s0, board, hints, tried)[:PLANE_CANDIDATES]:
-        res_alt = attempt(alt)
+        res_alt = attempt(alt, by_plane=True)
         if res_alt is not None:
             return res_alt
     return res

@@ -1276,6 +1276,40 @@ def _inside_returns(rays: _Rays, theta: np.ndarray, offset: float, board: BoardS
             & (np.abs(z) < board.height / 2 - INSIDE_MARGIN))
 
 
+#: The plane of the returns inside the fitted rectangle replaces the cluster's when the two
+#: differ by more than this (chi-square of 3 degrees of freedom in the rectangle's plane's
+#: covariance: 1 in 20 by chance between independent samples; the nested ones of a cluster
+#: that held only the board differ far less: on 300 scans of the paper's bench the median
+#: 0.15, the largest 5.8; on random scenes 6 % of the scans are above).
+PLANE_MOVED_CHI2 = 7.8
+
+
+def _plane_moved(first: tuple[np.ndarray, float], inside: tuple[np.ndarray, float, np.ndarray]
+                 ) -> bool:
+    """Whether the cluster's plane ``first`` (n, d) lies more than `PLANE_MOVED_CHI2` from the
+    plane ``inside`` (n, d and the covariance of `plane.fit_rays`' (alpha, beta, d))."""
+    n0, d0 = first
+    n1, d1, c1 = inside
+    e1, e2 = plane.tangent_basis(n1)
+    dn = (n0 if n0 @ n1 >= 0 else -n0) - n1
+    g = np.array([dn @ e1, dn @ e2, (d0 if n0 @ n1 >= 0 else -d0) - d1])
+    return float(g @ np.linalg.solve(c1, g)) > PLANE_MOVED_CHI2
+
+
+#: The returns the first ML plane is fitted to lie within this of the start plane, m (3.5
+#: sigma of the VLP-16's 14 mm), or within `START_BAND_SIGMAS` of their own spread where that
+#: is wider: a band of 1.8 sigma (28 mm of noise) kept the noise that leans towards the start
+#: plane, and tilt's chi2 was 2.6 fused.
+START_BAND = 0.05
+START_BAND_SIGMAS = 3.0
+
+
+def _start_band(dev: np.ndarray) -> float:
+    """The band about the start plane, m, from the returns' distances ``dev`` to it (their
+    spread by the median, robust to the stand's and a box's returns in the cluster)."""
+    return max(START_BAND, START_BAND_SIGMAS * 1.4826 * float(np.median(dev)))
+
+
 def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                   hints: Hints) -> PoseEstimate:
     """Joint estimate from one or more scans of a static pose (their board clusters found)."""
@@ -1289,10 +1323,11 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
            zip(scans, board_idx, strict=True)]
     # robust start: RANSAC on the first scan's cluster
     n, d, _ = plane.ransac(pts[0], 0.04, rng, 100, truncated=True)
+    band = _start_band(np.abs(pts[0] @ n - d))
     # ML plane along the rays, all scans' returns within the RANSAC band
     o_l, u_l, r_l, k_l = [], [], [], []
     for s, i, p in zip(scans, board_idx, pts, strict=True):
-        near = i[np.abs(p @ n - d) < 0.05]
+        near = i[np.abs(p @ n - d) < band]
         lid = s.laser_id[near]
         o, u = _rays_of(s, near, lid)
         o_l.append(o)
@@ -1327,6 +1362,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     # the range noise: the user's, or the residuals' (a trimmed sample's understate it: undone
     # for Gaussian noise); the plane's covariance scaled to it
     sigma_r = hints.range_sigma or sigma / math.sqrt(TRIMMED_VARIANCE)
+    first_plane = (n, d)  # the cluster's (before any offset moves it), for `_plane_moved`
     n, d, ml_plane, offset_model, offset_start = _range_plane(
         r_all[keep], o_all[keep], u_all[keep], ring_all[keep], n, d, c_plane, sigma, sigma_r,
         hints)
@@ -1363,25 +1399,32 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
                                    reason="the board spans fewer than 3 rings; 3 needed")
     theta, j, conv, iters, model = best.theta, best.j, best.conv, best.iters, best.model
     rings_hit = best.rings
-    # the plane the posterior integrates over, again: from every return inside the fitted
-    # rectangle, none beyond it. The cluster's returns were cut by a band about a first plane,
-    # which keeps the noise that leans towards that plane (on random scenes the truth was 4-7
-    # of the plane's sigmas off in some scans; tilt, yaw and x chi2 1.3); and a box's face or
-    # a holder a few cm behind the board beside an edge, within the band on the board's rings,
-    # is in the cluster and leans the plane. (A rectangle that holds less than half the
-    # cluster's returns is not the board's: the checks below say so, on the first plane)
+    # the plane checked against every return inside the fitted rectangle, none beyond it. The
+    # cluster's returns were cut by a band about a first plane, which keeps the noise that
+    # leans towards that plane (on random scenes the truth was 4-7 of the plane's sigmas off
+    # in some scans; tilt, yaw and x chi2 1.3); and a box's face or a holder a few cm behind
+    # the board beside an edge, within the band on the board's rings, is in the cluster and
+    # leans the plane. Where the two planes differ by more than chance, or the cluster's
+    # returns were chosen by a band about a plane (`Segmentation.by_plane`: the plane-first
+    # search's), the posterior integrates over the rectangle's; else over the cluster's, as
+    # it was (the posterior is sensitive to its plane at a tenth of a sigma: one scan in 800
+    # on the paper's bench went 2 deg off with the other for no better reason). (A rectangle
+    # that holds less than half the cluster's returns is not the board's: the checks below
+    # say so, on the first plane)
     held = _inside_returns(model.rays, theta, model.offset, board, model.coords(theta))
     if np.count_nonzero(held) >= 0.5 * np.count_nonzero(keep):
         rays_ = model.rays
-        r_all, o_all, u_all = rays_.distance[held], rays_.origin[held], rays_.direction[held]
-        ring_all = rays_.ring[held]
-        n, d, _, sigma = plane.fit_rays(r_all, o_all, u_all, n, d)
-        keep = np.abs(r_all - plane.predicted_range(n, d, o_all, u_all)) < TRIM * sigma
-        n, d, c_plane, sigma = plane.fit_rays(r_all[keep], o_all[keep], u_all[keep], n, d,
-                                              sigma_floor=RANGE_SIGMA_FLOOR)
-        n, d, ml_plane, offset_model, _ = _range_plane(
-            r_all[keep], o_all[keep], u_all[keep], ring_all[keep], n, d, c_plane, sigma,
-            sigma_r, hints)
+        r_in, o_in, u_in = rays_.distance[held], rays_.origin[held], rays_.direction[held]
+        n_in, d_in, _, s_in = plane.fit_rays(r_in, o_in, u_in, n, d)
+        k_in = np.abs(r_in - plane.predicted_range(n_in, d_in, o_in, u_in)) < TRIM * s_in
+        n_in, d_in, c_in, s_in = plane.fit_rays(r_in[k_in], o_in[k_in], u_in[k_in], n_in,
+                                                d_in, sigma_floor=RANGE_SIGMA_FLOOR)
+        if segs[0].by_plane or _plane_moved(first_plane, (n_in, d_in, c_in)):
+            r_all, o_all, u_all, keep = r_in, o_in, u_in, k_in
+            ring_all = rays_.ring[held]
+            n, d, ml_plane, offset_model, _ = _range_plane(
+                r_all[keep], o_all[keep], u_all[keep], ring_all[keep], n_in, d_in, c_in, s_in,
+                sigma_r, hints)
     # the hit/miss posterior. Where a few labels make it empty (returns near the board's plane
     # from something beside it: the stand's base at a corner of a rolled board, a hand; a
     # dropout at an edge), the labels the least-squares pose violates are left out (unknown),

@@ -65,6 +65,9 @@ class Segmentation:
     #: the next most board-like candidates' returns, best first: what an estimator that finds
     #: the choice is not the board (the known rectangle does not explain its rays) tries next
     alternatives: tuple[np.ndarray, ...] = ()
+    #: the returns were chosen by their distance to a plane (`plane_candidates`): their own
+    #: plane leans towards that one (the noise beyond the band is left out)
+    by_plane: bool = False
 
 
 def _unwrap(azimuth: np.ndarray, centre: float) -> np.ndarray:
