@@ -15,13 +15,21 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
-#: 3 references x 8 scans on the simulated bench: long enough to kill mid-way, short to run.
+#: 3 references x 8 scans on the simulated bench (the plan the longer one below extends).
 PLAN = """
 name = "kill test"
 scans = 8
 method = "paper"
 yaw_deg = [-3, 0, 3]
 """
+
+#: 8 references x 8 scans: a kill or a Ctrl-C must land mid-run (the paper's method does the
+#: 24 scans above in about a second: a SIGKILL after the tenth found all 24 stored), on two
+#: workers too, whose first commit may hold a whole reference's scans (a few scans per
+#: transaction) while the other worker is one reference further: 3 references could be done
+#: before the signal arrives.
+LONG_PLAN = PLAN.replace("yaw_deg = [-3, 0, 3]", "yaw_deg = [-6, -4, -2, -1, 1, 2, 4, 6]")
+LONG = [(i, k) for i in range(8) for k in range(8)]
 
 
 def aimbench(*args: str, cwd: Path) -> subprocess.Popen:
@@ -63,7 +71,7 @@ def exactly_once(run: Path) -> list[tuple[int, int]]:
 
 @pytest.mark.slow
 def test_sigkill_mid_sweep_then_resume_gives_exactly_one_result_per_scan(tmp_path: Path):
-    (tmp_path / "plan.toml").write_text(PLAN)
+    (tmp_path / "plan.toml").write_text(LONG_PLAN)
     run = tmp_path / "runs" / "kill"
     proc = aimbench("sweep", "plan.toml", "--out", "runs/kill", "--seed", "4", "--no-report",
                     cwd=tmp_path)
@@ -72,7 +80,7 @@ def test_sigkill_mid_sweep_then_resume_gives_exactly_one_result_per_scan(tmp_pat
     proc.wait(timeout=10)
     assert proc.returncode == -signal.SIGKILL
     killed_at = count(run)
-    assert 10 <= killed_at < 24 and killed_at >= seen
+    assert 10 <= killed_at < len(LONG) and killed_at >= seen
     with sqlite3.connect(run / "run.sqlite") as c:
         # A killed run could not say so: it is still "running"; resume is what tells.
         assert c.execute("SELECT value FROM meta WHERE key='status'").fetchone()[0] == '"running"'
@@ -81,7 +89,7 @@ def test_sigkill_mid_sweep_then_resume_gives_exactly_one_result_per_scan(tmp_pat
     _out, err = resumed.communicate(timeout=120)
     assert resumed.returncode == 0, err
     assert "resumed: " in err and f"{killed_at} scans stored" in err
-    assert exactly_once(run) == [(i, k) for i in range(3) for k in range(8)]
+    assert exactly_once(run) == LONG
     with sqlite3.connect(run / "run.sqlite") as c:
         assert c.execute("SELECT value FROM meta WHERE key='status'").fetchone()[0] == \
             '"completed"'
@@ -90,11 +98,6 @@ def test_sigkill_mid_sweep_then_resume_gives_exactly_one_result_per_scan(tmp_pat
         assert '"seed": 4' in cfg and '"method": "paper"' in cfg
 
 
-#: 8 references x 8 scans: the Ctrl-C must land mid-run on two workers too, whose first
-#: commit may hold a whole reference's scans (a few scans per transaction) while the other
-#: worker is one reference further: 3 references could be done before the signal arrives.
-LONG_PLAN = PLAN.replace("yaw_deg = [-3, 0, 3]", "yaw_deg = [-6, -4, -2, -1, 1, 2, 4, 6]")
-LONG = [(i, k) for i in range(8) for k in range(8)]
 
 
 @pytest.mark.slow
