@@ -62,7 +62,6 @@ def _past_the_hour(t: np.ndarray) -> np.ndarray:
 class Firings:
     """Firings of a time window, in firing order (sequence-major, laser-minor)."""
 
-    sequence: np.ndarray  # (N,) int64 index on the sensor's firing grid
     laser_id: np.ndarray  # (N,) uint8
     time: np.ndarray  # (N,) s, simulation clock
     azimuth: np.ndarray  # (N,) rad in [0, 2 pi)
@@ -410,7 +409,7 @@ class BenchSim:
         while self._rot_start[-1] <= t_end:
             i += 1
             self._ensure_rotations(i)
-        seq, laser, t, azimuth, rotation = raykernel.firing_schedule(
+        laser, t, azimuth, rotation = raykernel.firing_schedule(
             lo, hi, sensor.sequence_period, sensor.firing_offset, np.asarray(self._rot_start),
             np.asarray(self._rot_omega), self.cut_azimuth)
         t_end = float(t[-1])
@@ -422,7 +421,7 @@ class BenchSim:
             pos, rot = self._last_pose
             returns = self.emulator.fire_grid(
                 self._beam_azimuth(azimuth, laser).reshape(-1, sensor.n_lasers), pos, rot)
-            return Firings(seq, laser, t, azimuth, rotation, returns)
+            return Firings(laser, t, azimuth, rotation, returns)
         times, ps, rs = record
         hist = self._pose_history
         if hist is not None:
@@ -438,7 +437,7 @@ class BenchSim:
         pos = np.column_stack([np.interp(tc, times, ps[:, j]) for j in range(3)])
         rot = Slerp(times, Rotation.from_matrix(rs))(tc).as_matrix()
         returns = self.emulator.fire(self._beam_azimuth(azimuth, laser), laser, pos, rot)
-        return Firings(seq, laser, t, azimuth, rotation, returns)
+        return Firings(laser, t, azimuth, rotation, returns)
 
     def _fire_range(self, lo: int, hi: int) -> Firings:
         """`_fire_window` over [lo, hi) in contiguous chunks of about `CHUNK_SEQUENCES` (memory
@@ -463,7 +462,7 @@ class BenchSim:
             ret.x, ret.y, ret.z = (np.concatenate([getattr(p.returns, k) for p in parts], axis=1)
                                    for k in "xyz")
         return Firings(*(np.concatenate([getattr(p, k) for p in parts])
-                         for k in ("sequence", "laser_id", "time", "azimuth", "rotation")),
+                         for k in ("laser_id", "time", "azimuth", "rotation")),
                        returns=ret)
 
     # ---------------------------------------------------------------------------------------

@@ -2052,11 +2052,11 @@ def grid_pass(azimuth: np.ndarray, k: np.ndarray, ranges: np.ndarray, n_ranges: 
 @njit(cache=True, error_model="numpy")
 def firing_schedule(lo: int, hi: int, sequence_period: float, laser_offsets: np.ndarray,
                     starts: np.ndarray, omegas: np.ndarray, cut: float
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every firing of sequences [``lo``, ``hi``) on the sensor's grid, in firing order:
-    (sequence (int64), laser (uint8), time t = sequence x ``sequence_period`` +
+    (laser (uint8), time t = sequence x ``sequence_period`` +
     ``laser_offsets[laser]`` s (each laser's firing time within its sequence), azimuth rad in
-    [0, 2 pi), rotation index (int64)).
+    [0, 2 pi), rotation index (int32)).$
 
     The spin: rotation j passes the ``cut`` azimuth at ``starts[j]`` and turns at
     ``omegas[j]`` rad/s until the next start; a firing at t is in rotation j (the last with
@@ -2067,17 +2067,12 @@ def firing_schedule(lo: int, hi: int, sequence_period: float, laser_offsets: np.
     n_seq = hi - lo
     n_l = laser_offsets.shape[0]
     n = n_seq * n_l
-    seq = np.empty(n, dtype=np.int64)
     laser = np.empty(n, dtype=np.uint8)
     t = np.empty(n)
     az = np.empty(n)
     rot = np.empty(n, dtype=np.int64)
-    seq2 = seq.reshape((n_seq, n_l))
     laser2 = laser.reshape((n_seq, n_l))
     t2 = t.reshape((n_seq, n_l))
-    for s in range(n_seq):
-        for lsr in range(n_l):
-            seq2[s, lsr] = lo + s
     for s in range(n_seq):
         for lsr in range(n_l):
             laser2[s, lsr] = lsr
@@ -2101,4 +2096,4 @@ def firing_schedule(lo: int, hi: int, sequence_period: float, laser_offsets: np.
             az_v[i] = v + _TWO_PI if v < 0.0 else v
         for i in range(b - a):
             rot_v[i] = kk - 1
-    return seq, laser, t, az, rot
+    return laser, t, az, rot
