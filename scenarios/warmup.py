@@ -3,9 +3,11 @@
     .venv/bin/python -m scenarios.warmup
 
 The emulation's kernels (`twin.sim.raykernel`) and the estimator's (`align`) are compiled with
-``cache=True``: the first process that calls them compiles them (12-35 s on the development
-machine) and writes them to numba's cache beside their modules (``__pycache__``), and every
-later process loads them (well under a second). The set-up (tools/setup.sh, ``make setup``)
+``cache=True``: the first process that calls them compiles them and writes them to numba's
+cache beside their modules (``__pycache__``), and every later process loads them (well under a
+second). Compiling them all takes about 200 s of one core on the development machine
+(2026-12-06: the emulation's 75 s, the estimator's 115 s; the estimator's inner loops became
+kernels for issue 20, which is what made it that long). The set-up (tools/setup.sh, ``make setup``)
 runs this module once, so the first ``aimbench simulate`` of a fresh install does not wait.
 It runs the twin the ways the commands do (every effect on, no divergence, ideal, dual and
 last returns, the brute-force sub-rays, a moving scan, packets, the lab scene) and the default
@@ -22,10 +24,13 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Callable
 
 
-def warm_up() -> float:
-    """Run every kernel once (compiling what the cache lacks); returns the CPU time spent, s."""
+def warm_up(say: Callable[[str], None] | None = None) -> float:
+    """Run every kernel once (compiling what the cache lacks); returns the CPU time spent, s.
+    ``say``: called with a line after each of the two parts (the emulation, the estimator),
+    so that a set-up that compiles for minutes shows it is moving."""
     t0 = time.process_time()
     from twin.sim.bench import BenchSim
     from twin.sim.emulation import EmulationConfig
@@ -44,6 +49,9 @@ def warm_up() -> float:
     moving.start_move(x_m=0.001, yaw_rad=math.radians(0.2))
     moving.scan()
     BenchSim(seed=0, model="VLP-32C").packets(1)
+    t_twin = time.process_time()
+    if say is not None:
+        say(f"warm-up: the emulation's kernels ready ({t_twin - t0:.0f} s of CPU)")
     from align.api import estimate
 
     # the default estimate compiles the estimator's kernels (align.feasible, align.roll_search,
@@ -57,11 +65,14 @@ def warm_up() -> float:
     from align.segment import plane_candidates
 
     plane_candidates(scans[0], BoardSpec(), Hints())
+    if say is not None:
+        say(f"warm-up: the estimator's kernels ready ({time.process_time() - t_twin:.0f} s of "
+            f"CPU)")
     return time.process_time() - t0
 
 
 def main() -> int:
-    spent = warm_up()
+    spent = warm_up(say=lambda line: print(line, flush=True))
     print(f"warm-up: the emulation's and the estimator's numba kernels are compiled and cached "
           f"({spent:.1f} s of CPU)")
     return 0

@@ -55,5 +55,5 @@ echo "setup: installing aimbench and its test extras into .venv"
 .venv/bin/python -m pip install -q -e '.[test]'
 # Compile the numba kernels now, into numba's cache (beside their modules), so the first command
 # of a fresh install does not wait for them (scenarios/warmup.py).
-echo "setup: compiling the numba kernels (once, about 30 s)"
+echo "setup: compiling the numba kernels (once: about 3 minutes of one core, 200 s measured)"
 .venv/bin/python -m scenarios.warmup
