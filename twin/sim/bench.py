@@ -20,6 +20,7 @@ the stages moved during the scan). Each firing is cast from the pose of its own 
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,8 +66,17 @@ class Firings:
     laser_id: np.ndarray  # (N,) uint8
     time: np.ndarray  # (N,) s, simulation clock
     azimuth: np.ndarray  # (N,) rad in [0, 2 pi)
-    rotation: np.ndarray  # (N,) int64 rotation index
+    first_rotation: int  # the first rotation `rotation_start` holds
+    #: (K,) int64: the index of rotation ``first_rotation + k``'s first firing in this window (0
+    #: for one that began before it, N for one that begins after it); rotation j's firings
+    #: are one slice (`of_rotation`)
+    rotation_start: np.ndarray
     returns: Returns
+
+    def of_rotation(self, j: int) -> slice:
+        """Rotation ``j``'s firings (one slice: the firings are in time order)."""
+        k = j - self.first_rotation
+        return slice(int(self.rotation_start[k]), int(self.rotation_start[k + 1]))
 
 
 class BenchSim:
@@ -291,9 +301,8 @@ class BenchSim:
         cfg = self.config
         scans = []
         for i in rotations:
-            # Firings are in time order, so a rotation's firings are one slice.
-            lo, hi = np.searchsorted(f.rotation, [i, i + 1])
-            m = slice(int(lo), int(hi))
+            m = f.of_rotation(i)
+            lo, hi = m.start, m.stop
             # Truth from the world poses at the first and last firing of the rotation.
             t_first = float(f.time[lo]) if hi > lo else self._rot_start[i]
             t_last = float(f.time[hi - 1]) if hi > lo else self._rot_start[i]
@@ -409,9 +418,15 @@ class BenchSim:
         while self._rot_start[-1] <= t_end:
             i += 1
             self._ensure_rotations(i)
-        laser, t, azimuth, rotation = raykernel.firing_schedule(
-            lo, hi, sensor.sequence_period, sensor.firing_offset, np.asarray(self._rot_start),
-            np.asarray(self._rot_omega), self.cut_azimuth)
+        # The rotations this window touches: from the last to begin by its first firing to the
+        # first to begin after its end (the schedule grows by one every rotation; passing it
+        # whole made each scan cost more than the one before)
+        j0 = max(0, bisect.bisect_right(self._rot_start, lo * sensor.sequence_period) - 1)
+        j1 = bisect.bisect_right(self._rot_start, t_end) + 1
+        laser, t, azimuth, rotation_start = raykernel.firing_schedule(
+            lo, hi, sensor.sequence_period, sensor.firing_offset,
+            np.array(self._rot_start[j0:j1]), np.array(self._rot_omega[j0:j1]),
+            self.cut_azimuth)
         t_end = float(t[-1])
         record = self._advance(t_end, record=True) if t_end > self.time else None
         if record is None:
@@ -421,7 +436,7 @@ class BenchSim:
             pos, rot = self._last_pose
             returns = self.emulator.fire_grid(
                 self._beam_azimuth(azimuth, laser).reshape(-1, sensor.n_lasers), pos, rot)
-            return Firings(laser, t, azimuth, rotation, returns)
+            return Firings(laser, t, azimuth, j0, rotation_start, returns)
         times, ps, rs = record
         hist = self._pose_history
         if hist is not None:
@@ -437,7 +452,7 @@ class BenchSim:
         pos = np.column_stack([np.interp(tc, times, ps[:, j]) for j in range(3)])
         rot = Slerp(times, Rotation.from_matrix(rs))(tc).as_matrix()
         returns = self.emulator.fire(self._beam_azimuth(azimuth, laser), laser, pos, rot)
-        return Firings(laser, t, azimuth, rotation, returns)
+        return Firings(laser, t, azimuth, j0, rotation_start, returns)
 
     def _fire_range(self, lo: int, hi: int) -> Firings:
         """`_fire_window` over [lo, hi) in contiguous chunks of about `CHUNK_SEQUENCES` (memory
@@ -461,9 +476,17 @@ class BenchSim:
         if all(p.returns.x is not None for p in parts):
             ret.x, ret.y, ret.z = (np.concatenate([getattr(p.returns, k) for p in parts], axis=1)
                                    for k in "xyz")
+        # A rotation's first firing in the whole range: the firings before it in every part
+        # (none of a part that it began before; all of a part that ends before it begins).
+        first = min(p.first_rotation for p in parts)
+        end = max(p.first_rotation + len(p.rotation_start) for p in parts)
+        rotation_start = sum(np.pad(p.rotation_start, (p.first_rotation - first,
+                                                       end - p.first_rotation
+                                                       - len(p.rotation_start)),
+                                    constant_values=(0, len(p.time))) for p in parts)
         return Firings(*(np.concatenate([getattr(p, k) for p in parts])
-                         for k in ("laser_id", "time", "azimuth", "rotation")),
-                       returns=ret)
+                         for k in ("laser_id", "time", "azimuth")), first_rotation=first,
+                       rotation_start=rotation_start, returns=ret)
 
     # ---------------------------------------------------------------------------------------
     # Packets

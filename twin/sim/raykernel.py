@@ -2056,7 +2056,10 @@ def firing_schedule(lo: int, hi: int, sequence_period: float, laser_offsets: np.
     """Every firing of sequences [``lo``, ``hi``) on the sensor's grid, in firing order:
     (laser (uint8), time t = sequence x ``sequence_period`` +
     ``laser_offsets[laser]`` s (each laser's firing time within its sequence), azimuth rad in
-    [0, 2 pi), rotation index (int32)).$
+    [0, 2 pi), where each rotation begins: the index of rotation j's first firing for every
+    j of ``starts`` (int64; the window's length for a rotation that begins after it)). A
+    rotation's firings are one slice of the window (they are in time order): the bounds
+    are written once per rotation, not a rotation index per firing.
 
     The spin: rotation j passes the ``cut`` azimuth at ``starts[j]`` and turns at
     ``omegas[j]`` rad/s until the next start; a firing at t is in rotation j (the last with
@@ -2070,7 +2073,6 @@ def firing_schedule(lo: int, hi: int, sequence_period: float, laser_offsets: np.
     laser = np.empty(n, dtype=np.uint8)
     t = np.empty(n)
     az = np.empty(n)
-    rot = np.empty(n, dtype=np.int64)
     laser2 = laser.reshape((n_seq, n_l))
     t2 = t.reshape((n_seq, n_l))
     for s in range(n_seq):
@@ -2088,12 +2090,10 @@ def firing_schedule(lo: int, hi: int, sequence_period: float, laser_offsets: np.
         j = min(max(kk - 1, 0), n_rot - 1)
         st = starts[j]
         om = omegas[j]
-        t_v, az_v, rot_v = t[a:b], az[a:b], rot[a:b]
+        t_v, az_v = t[a:b], az[a:b]
         for i in range(b - a):
             v = (t_v[i] - st) * om
             v += cut
             v = v - _TWO_PI if v >= _TWO_PI else v
             az_v[i] = v + _TWO_PI if v < 0.0 else v
-        for i in range(b - a):
-            rot_v[i] = kk - 1
-    return laser, t, az, rot
+    return laser, t, az, cuts
