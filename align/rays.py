@@ -43,6 +43,7 @@ import numpy as np
 from align import feasible, plane, roll_search, symmetry
 from align.board import BoardSpec
 from align.fit_kernels import (
+    SIDE_REACH,
     behind_groups,
     between_hits,
     board_spans,
@@ -587,9 +588,14 @@ class _Model:
         with np.errstate(divide="ignore", invalid="ignore"):
             z_at = np.abs(zh + (np.sign(dx) * w2 - xh) * dz / dx)
         z_at = np.where(np.isfinite(z_at), z_at, np.inf)
-        vert = z_at <= h2
+        # `align.fit_kernels.grazes_top_or_bottom`: a ring grazing the top or bottom edge
+        off_side = np.abs(np.abs(0.5 * (xh + xm)) - w2)
+        grazes = (off_side > SIDE_REACH) & (np.abs(np.abs(0.5 * (zh + zm)) - h2)
+                                            < 0.5 * off_side)
+        vert = (z_at <= h2) & ~grazes
         kind = np.where(vert, 1, 2).astype(np.int8)
-        kind = np.where((np.abs(z_at - h2) < guard) | ((dx == 0) & (dz == 0)), 0, kind)
+        kind = np.where(((np.abs(z_at - h2) < guard) & ~grazes) | ((dx == 0) & (dz == 0)), 0,
+                        kind)
         # which side: that of the miss (a ring crossing the top edge runs almost level, so
         # the sign of its tiny height change says nothing)
         sign = np.where(vert, np.sign(xm), np.sign(zm))

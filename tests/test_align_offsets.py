@@ -72,6 +72,27 @@ def test_a_30_mm_offset_is_recovered_and_does_not_move_the_pose():
         assert max(abs(e0[5]) / sd0[5], abs(e0[0]) / sd0[0]) > 2
 
 
+def test_a_ring_grazing_the_top_edge_near_a_corner_holds_the_fits_height():
+    """Traced on `bench_align.py --offsets --poses 160` (pose 120): rolled 0.9 deg and tilted
+    2.6, the board's top ring crosses its top edge 10 cm from a corner. Fused 50 scans of a unit
+    30 mm short, that crossing was left out as a corner at the right height and taken for the
+    side edge from a start 3 cm low (then dropped as gross); nothing else held z, every fit
+    settled 32 mm low with 426 misses inside its rectangle, the posterior found nothing, and
+    the offset came out 12.7 mm off (`align.fit_kernels.grazes_top_or_bottom`)."""
+    params = BenchParams.from_edge(roll_deg=0.9084134270754474, tilt_deg=2.5792125117846156,
+                                   yaw_deg=-0.5305904053419566, lever_arm_mm=(0.0, 0.0, 60.0))
+    sim = BenchSim(params, seed=1038096735, noise=EmulationConfig(
+        laser_offset_sigma=0.0, divergence=False, range_bias=-0.030))
+    sim.move_to(x_m=0.0054805518984158255, yaw_rad=0.0)
+    scans = [sim.scan() for _ in range(50)]
+    est = align.estimate(scans, hints=align.Hints(**SHARP, range_offset_prior=(0.0, DATASHEET)))
+    assert est.success, est.diagnostics.get("reason")
+    assert est.diagnostics["label_posterior"] and est.diagnostics["inside_misses"] == 0
+    assert abs(est.diagnostics["range_offset_m"] + 0.030) < 0.002
+    e, sd = pose_errors(est, scans[0].meta["truth_pose"])
+    assert np.all(np.abs(e[3:]) < np.deg2rad(0.05)) and abs(e[2]) < 0.005, e
+
+
 def _offset_chi2(rng: np.random.Generator, units: int, scans: int, axes: list[int]
                  ) -> np.ndarray:
     """Mean squared z of the pose's ``axes`` and of the offset, over ``units`` twin units each

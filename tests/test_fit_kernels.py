@@ -432,6 +432,32 @@ def classify_reference(model: rays_mod._Model, theta: np.ndarray, guard: float,
     return np.where(model.excluded, 0, kind).astype(np.int8), sign, sd
 
 
+#: (hit x, z; miss x, z) in board coordinates of the paper's board (0.9 x 0.54 m), the edge
+#: `classify_edges` gives the bracket with a 2 mm corner guard, and why.
+CLASSIFY_TABLE = [
+    ((0.445, 0.10, 0.454, 0.10), 1, "a level ring leaving the right edge"),
+    ((-0.445, -0.20, -0.454, -0.20), 1, "a level ring leaving the left edge"),
+    ((0.10, 0.268, 0.10, 0.275), 2, "a ring crossing the top edge steeply"),
+    ((-0.350, 0.2671, -0.3509, 0.26713), 2,
+     "a ring grazing the top edge 10 cm from a corner: its line meets the side edge at the "
+     "corner (pose 120 of bench_align --offsets --poses 160)"),
+    ((-0.350, 0.2351, -0.3509, 0.23513), 2, "the same ring from a start 3 cm low"),
+    ((0.446, 0.2685, 0.452, 0.2685), 0, "at a corner: either edge"),
+]
+
+
+@pytest.mark.parametrize("bracket, kind, why", CLASSIFY_TABLE,
+                         ids=[why.split(":")[0] for _, _, why in CLASSIFY_TABLE])
+def test_classify_edges_table(bracket, kind, why):
+    from align.fit_kernels import classify_edges
+
+    xh, zh, xm, zm = bracket
+    got, sign, sd = classify_edges(np.array([xh, xm]), np.array([zh, zm]), np.array([0]),
+                                   np.array([1]), 0.45, 0.27, 0.002, 0.003, 0.002, True,
+                                   rays_mod.GRAZING, np.zeros(1, dtype=bool))
+    assert got[0] == kind, why
+
+
 def test_classify_matches_numpy_on_real_scans(models):
     rng = np.random.default_rng(6)
     for model, theta in models:
