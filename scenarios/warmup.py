@@ -3,16 +3,16 @@
     .venv/bin/python -m scenarios.warmup
 
 The emulation's kernels (`twin.sim.raykernel`) and the estimator's (`align`) are compiled with
-``cache=True``: the first process that calls them compiles them and writes them to numba's
-cache beside their modules (``__pycache__``), and every later process loads them (well under a
+``cache=True``: the first process that calls them compiles them and writes them to numba's cache
+beside their modules (``__pycache__``), and every later process loads them (well under a
 second). Compiling them all takes about 200 s of one core on the development machine
-(2026-12-06: the emulation's 75 s, the estimator's 115 s; the estimator's inner loops became
-kernels for issue 20, which is what made it that long). The set-up (tools/setup.sh, ``make setup``)
-runs this module once, so the first ``aimbench simulate`` of a fresh install does not wait.
-It runs the twin the ways the commands do (every effect on, no divergence, ideal, dual and
-last returns, the brute-force sub-rays, a moving scan, packets, the lab scene) and the default
-estimate once: each kernel is compiled for the argument types those calls give it, which are
-the types every command gives it (numba compiles per type signature).
+(2026-12-06: the emulation's 75 s, the estimator's 115 s; 83 s in all before the estimator's
+inner loops became kernels). The set-up (tools/setup.sh, ``make setup``) runs this module once,
+so the first ``aimbench simulate`` of a fresh install does not wait. It runs the twin the ways
+the commands do (every effect on, no divergence, ideal, dual and last returns, the brute-force
+sub-rays, a moving scan, packets, the lab scene) and the default estimate once: each kernel is
+compiled for the argument types those calls give it, which are the types every command gives it
+(numba compiles per type signature).
 
 A kernel whose source changed since it was cached compiles again on first use; the command
 then says so on stderr (`twin.sim.raykernel`'s notice), once. It lives in `scenarios/`

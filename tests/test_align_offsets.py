@@ -89,7 +89,7 @@ def test_a_ring_grazing_the_top_edge_near_a_corner_holds_the_fits_height():
     assert est.success, est.diagnostics.get("reason")
     assert est.diagnostics["label_posterior"] and est.diagnostics["inside_misses"] == 0
     assert abs(est.diagnostics["range_offset_m"] + 0.030) < 0.002
-    e, sd = pose_errors(est, scans[0].meta["truth_pose"])
+    e, _ = pose_errors(est, scans[0].meta["truth_pose"])
     assert np.all(np.abs(e[3:]) < np.deg2rad(0.05)) and abs(e[2]) < 0.005, e
 
 

@@ -452,10 +452,13 @@ def test_classify_edges_table(bracket, kind, why):
     from align.fit_kernels import classify_edges
 
     xh, zh, xm, zm = bracket
-    got, sign, sd = classify_edges(np.array([xh, xm]), np.array([zh, zm]), np.array([0]),
-                                   np.array([1]), 0.45, 0.27, 0.002, 0.003, 0.002, True,
-                                   rays_mod.GRAZING, np.zeros(1, dtype=bool))
+    got, sign, _ = classify_edges(np.array([xh, xm]), np.array([zh, zm]), np.array([0]),
+                                  np.array([1]), 0.45, 0.27, 0.002, 0.003, 0.002, True,
+                                  rays_mod.GRAZING, np.zeros(1, dtype=bool))
     assert got[0] == kind, why
+    # the edge's side: that of the miss, across the edge it measures
+    if kind:
+        assert sign[0] == np.sign(xm if kind == 1 else zm), why
 
 
 def test_classify_matches_numpy_on_real_scans(models):
