@@ -122,6 +122,7 @@ class BenchSim:
         self._window_record: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._pose_history: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._truth_cache: tuple[tuple, Pose] | None = None
+        self._edge_cache: tuple[Pose, dict[str, float]] | None = None  # `_edge_of`
         self.scan_count = 0
         # When the spin schedule begins (the first cut pass lies within a rotation after it).
         self._spin_epoch = 0.0
@@ -310,7 +311,7 @@ class BenchSim:
             # At rest (no pose record) the truth is one pose: computed and converted once.
             at_rest = self._window_record is None
             truth_end = truth if at_rest else self._truth_at(t_last)
-            edge = truth.to_edge()
+            edge = self._edge_of(truth)
             edge_end = dict(edge) if at_rest else truth_end.to_edge()
             parts = []
             beam_az = self._beam_azimuth(f.azimuth[m], f.laser_id[m])
@@ -355,6 +356,13 @@ class BenchSim:
             return azimuth
         a = azimuth + offset[laser_id]
         return np.where(a >= TWO_PI, a - TWO_PI, np.where(a < 0.0, a + TWO_PI, a))
+
+    def _edge_of(self, pose: Pose) -> dict[str, float]:
+        """``pose.to_edge()``, a new dict each call; the conversion is kept for the last pose
+        (at rest every scan's truth is the same `Pose` object, `_truth_at`'s cache)."""
+        if self._edge_cache is None or self._edge_cache[0] is not pose:
+            self._edge_cache = (pose, pose.to_edge())
+        return dict(self._edge_cache[1])
 
     def _truth_at(self, t: float) -> Pose:
         """True pose of {L} in {O} at time t within the last window (interpolated)."""
