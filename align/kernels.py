@@ -635,6 +635,29 @@ def fit_residuals(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.n
     return out
 
 
+@njit(inline="always")
+def _triple_plane(px: np.ndarray, py: np.ndarray, pz: np.ndarray, i0: int, i1: int, i2: int
+                  ) -> tuple[bool, float, float, float, float]:
+    """The plane through points ``i0``, ``i1``, ``i2`` as `align.plane.ransac` forms it, term
+    by term (np.cross, einsum's (x0 y0 + x2 y2) + x1 y1 for the norm and the offset): (not
+    degenerate, the unit normal's three components, the offset d). Degenerate: a normal of
+    length 1e-9 or less (the rest is then meaningless)."""
+    a0 = px[i1] - px[i0]
+    a1 = py[i1] - py[i0]
+    a2 = pz[i1] - pz[i0]
+    b0 = px[i2] - px[i0]
+    b1 = py[i2] - py[i0]
+    b2 = pz[i2] - pz[i0]
+    c0 = a1 * b2 - a2 * b1
+    c1 = a2 * b0 - a0 * b2
+    c2 = a0 * b1 - a1 * b0
+    norm = math.sqrt((c0 * c0 + c2 * c2) + c1 * c1)
+    if not norm > 1e-9:
+        return False, 0.0, 0.0, 0.0, 0.0
+    c0, c1, c2 = c0 / norm, c1 / norm, c2 / norm
+    return True, c0, c1, c2, (c0 * px[i0] + c2 * pz[i0]) + c1 * py[i0]
+
+
 @njit(cache=True)
 def ransac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
                 ) -> tuple[int, np.ndarray]:
@@ -650,21 +673,9 @@ def ransac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
     best, best_count = -1, -1
     bn0 = bn1 = bn2 = bd = 0.0
     for h in range(tri.shape[0]):
-        i0, i1, i2 = tri[h, 0], tri[h, 1], tri[h, 2]
-        a0 = px[i1] - px[i0]
-        a1 = py[i1] - py[i0]
-        a2 = pz[i1] - pz[i0]
-        b0 = px[i2] - px[i0]
-        b1 = py[i2] - py[i0]
-        b2 = pz[i2] - pz[i0]
-        c0 = a1 * b2 - a2 * b1
-        c1 = a2 * b0 - a0 * b2
-        c2 = a0 * b1 - a1 * b0
-        norm = math.sqrt((c0 * c0 + c2 * c2) + c1 * c1)
-        if not norm > 1e-9:
+        ok, c0, c1, c2, d = _triple_plane(px, py, pz, tri[h, 0], tri[h, 1], tri[h, 2])
+        if not ok:
             continue
-        c0, c1, c2 = c0 / norm, c1 / norm, c2 / norm
-        d = (c0 * px[i0] + c2 * pz[i0]) + c1 * py[i0]
         count = 0
         for i in range(n_pts):  # branch-free, so that it vectorises
             count += abs(_fma(c2, pz[i], _fma(c1, py[i], c0 * px[i])) - d) < threshold
@@ -704,21 +715,9 @@ def msac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
     sq = np.empty(n_pts)
     best = -1
     for h in range(n_h):
-        i0, i1, i2 = tri[h, 0], tri[h, 1], tri[h, 2]
-        a0 = px[i1] - px[i0]
-        a1 = py[i1] - py[i0]
-        a2 = pz[i1] - pz[i0]
-        b0 = px[i2] - px[i0]
-        b1 = py[i2] - py[i0]
-        b2 = pz[i2] - pz[i0]
-        c0 = a1 * b2 - a2 * b1
-        c1 = a2 * b0 - a0 * b2
-        c2 = a0 * b1 - a1 * b0
-        norm = math.sqrt((c0 * c0 + c2 * c2) + c1 * c1)
-        if not norm > 1e-9:
+        ok, c0, c1, c2, d = _triple_plane(px, py, pz, tri[h, 0], tri[h, 1], tri[h, 2])
+        if not ok:
             continue
-        c0, c1, c2 = c0 / norm, c1 / norm, c2 / norm
-        d = (c0 * px[i0] + c2 * pz[i0]) + c1 * py[i0]
         # the capped squares first (a loop without a running sum vectorises), then their sum
         # in eight running sums (one would wait on each addition)
         for i in range(n_pts):
