@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 
+from align.baselines.paper import estimate_paper
 from align.board import BoardSpec
+from align.rays.pipeline import estimate_rays
 from align.result import Hints, PoseEstimate, Status
-from align.segment import Segmentation, find_board, plane_candidates
+from align.search.candidates import other_candidates
+from align.search.result import Segmentation
+from align.search.static import segment_static
 from twin.core.scan import Scan
 
 #: The methods `estimate` knows, best first.
@@ -41,7 +44,7 @@ def estimate(
                                    reason=f"unknown method {method!r}; use one of {METHODS}")
     if not scan_list:
         return PoseEstimate.failed(Status.EMPTY_SCAN, method, reason="no scan given")
-    segs = _segment_static(scan_list, board, hints)
+    segs = segment_static(scan_list, board, hints)
     t_seg = time.perf_counter()
     ok = [i for i, g in enumerate(segs) if g.status == Status.OK]
     if not ok:
@@ -53,13 +56,11 @@ def estimate(
     elif method == "paper":
         res = _paper(scan_list, segs, ok, board, hints)
     elif method == "icp":
-        from align.icp import estimate_icp
+        from align.baselines.icp import estimate_icp  # loads Open3D (seconds): only when asked
 
         res = _per_scan_mean(
             [estimate_icp(scan_list[i], board, hints, segs[i]) for i in ok], "icp")
     else:
-        from align.rays import estimate_rays
-
         res = estimate_rays([scan_list[i] for i in ok], [segs[i] for i in ok], board, hints)
         # the choice's rays are not the board's rectangle (returns in front of it where it
         # would be, no edge seen, fewer rings than a board has): the board search's score is a
@@ -78,148 +79,23 @@ def estimate(
     return res
 
 
-#: Board searches redone, each without the returns of every candidate tried before, when none
-#: of a search's candidates is the board's rectangle.
-RESEARCHES = 2
-#: Then at most this many candidates of the plane-first search (`segment.plane_candidates`).
-PLANE_CANDIDATES = 4
-
-
 def _other_candidates(scans: list[Scan], first: int, ref: Segmentation | None,
                       board: BoardSpec, hints: Hints, res: PoseEstimate) -> PoseEstimate:
-    """The first of the board search's other candidates whose rays the known rectangle
-    explains, or ``res`` (the first choice's failure). The search's runners-up come first; then
-    the search is redone on the first usable scan without the returns of every candidate tried,
-    up to `RESEARCHES` times: the board's cluster can score below a box's face behind it
-    (its main plane taking in returns of its stand or of a box beside it: a fifth of its returns
-    off the rectangle) and then not be among the runners-up at all. Last, the board is searched
-    plane first (`segment.plane_candidates`). ``ref``: the search's first choice on scan
-    ``first``; None when the search found none (then only the plane-first search is made)."""
-    from align.rays import estimate_rays
-
-    s0 = scans[first]
-    tried = [] if ref is None else [ref.board]
-    grown = None if ref is None else _regrown(s0, ref.board, hints)
-    queue = ([] if grown is None else [grown]) + ([] if ref is None else list(ref.alternatives))
-    n_clusters = 0 if ref is None else ref.n_clusters
-    k = 0
-
-    def attempt(alt: np.ndarray, by_plane: bool = False) -> PoseEstimate | None:
-        """The estimate with the returns ``alt`` of the first usable scan as the board's,
-        if the known rectangle explains its rays (``by_plane``: `Segmentation.by_plane`)."""
-        nonlocal k
-        tried.append(alt)
-        k += 1
-        g = Segmentation(Status.OK, alt, n_clusters, float(np.mean(s0.distance[alt])),
-                         len(np.unique(s0.lasers.ring_of_laser[s0.laser_id[alt]])),
-                         by_plane=by_plane)
-        alt_segs = _segment_static(scans[first:], board, hints, g)
-        use = [i for i, a in enumerate(alt_segs) if a.status == Status.OK]
-        res_alt = estimate_rays([scans[first + i] for i in use], [alt_segs[i] for i in use],
-                                board, hints)
-        if not res_alt.success:
-            return None
-        res_alt.diagnostics["board_candidate"] = k  # 0: the search's first choice
-        return res_alt
-
-    for search in range(0 if ref is None else RESEARCHES + 1):
-        while queue:
-            res_alt = attempt(queue.pop(0))
-            if res_alt is not None:
-                return res_alt
-        if search == RESEARCHES:
-            break
-        # the same scan with the tried candidates' returns taken as none, for the search only
-        # (the estimate labels every ray of the scan itself)
-        distance = s0.distance.copy()
-        distance[np.concatenate(tried)] = 0.0
-        g = find_board(replace(s0, distance=distance), board, hints)
-        if g.status != Status.OK:
-            break
-        queue = [g.board, *g.alternatives]
-    # the clustering cut the board apart (its rings running on onto things just behind it) or
-    # buried it in a plane that holds more: the board found plane first, from any piece of it
-    for alt in plane_candidates(s0, board, hints, tried)[:PLANE_CANDIDATES]:
-        res_alt = attempt(alt, by_plane=True)
-        if res_alt is not None:
-            return res_alt
+    """The retry: the first of the board search's other candidates on scan ``first``
+    (`align.search.candidates`) whose rays the known rectangle explains, or ``res`` (the first
+    choice's failure). The board search's score is a cheap likeness; the labels of every ray
+    against the known rectangle are the test."""
+    for k, g in enumerate(other_candidates(scans[first], ref, board, hints), start=1):
+        segs = segment_static(scans[first:], board, hints, g)
+        use = [i for i, a in enumerate(segs) if a.status == Status.OK]
+        alt = estimate_rays([scans[first + i] for i in use], [segs[i] for i in use], board, hints)
+        if alt.success:
+            alt.diagnostics["board_candidate"] = k  # 0: the search's first choice
+            return alt
     return res
 
 
-#: A cluster regrown onto its neighbouring rings takes their returns within this of its plane,
-#: m: the rays' own band for a hit (3.5 sigma of the 14 mm noise).
-GROW_BAND = 0.05
-
-
-def _regrown(scan: Scan, sel: np.ndarray, hints: Hints) -> np.ndarray | None:
-    """The cluster ``sel`` with the returns of the ring below and the ring above its own that
-    lie within its azimuth span and within `GROW_BAND` of its plane, or None when that adds no
-    ring. The clustering can leave out the board's outermost ring (joined to the stand below
-    it, or split off); the estimate then never looks at the ring beyond it and sees no edge
-    there (partial_board on a random scene: the bottom ring left out in 1 of 5 scans)."""
-    from align import plane
-
-    rng = np.random.default_rng(hints.seed)
-    n, d, _ = plane.ransac(scan.xyz[sel], 0.04, rng, 100)
-    ring = scan.lasers.ring_of_laser[scan.laser_id]
-    lo, hi = int(ring[sel].min()), int(ring[sel].max())
-    az = scan.azimuth[sel]
-    c = float(np.angle(np.mean(np.exp(1j * az))))
-    rel = (az - c + np.pi) % (2 * np.pi) - np.pi
-    rel_s = (scan.azimuth - c + np.pi) % (2 * np.pi) - np.pi
-    near = ((ring == lo - 1) | (ring == hi + 1)) & scan.valid & (rel_s >= rel.min()) & (
-        rel_s <= rel.max()) & (np.abs(scan.xyz @ n - d) < GROW_BAND)
-    if not np.any(near):
-        return None
-    return np.union1d(sel, np.flatnonzero(near))
-
-
-def _segment_static(scans: list[Scan], board: BoardSpec, hints: Hints,
-                    first: Segmentation | None = None) -> list[Segmentation]:
-    """The board's cluster in each of N scans of a static pose.
-
-    Clustering runs until one scan yields the board; in the others the board is where it was:
-    its returns are taken from the same rings, azimuth window (+-0.5 deg) and range band
-    (+-0.1 m), without clustering again (a tenth of the time for a fused estimate).
-    ``first``: the board's returns in the first scan, given (another candidate of its search).
-    """
-    segs: list[Segmentation] = []
-    ref: Segmentation | None = None
-    ref_scan: Scan | None = None
-    for i, s in enumerate(scans):
-        if i == 0 and first is not None:
-            ref, ref_scan = first, s
-            segs.append(first)
-            continue
-        if ref is None:
-            g = find_board(s, board, hints)
-            if g.status == Status.OK:
-                ref, ref_scan = g, s
-            segs.append(g)
-            continue
-        az = ref_scan.azimuth[ref.board]
-        c = float(np.angle(np.mean(np.exp(1j * az))))
-        rel = (az - c + np.pi) % (2 * np.pi) - np.pi
-        rel_s = (s.azimuth - c + np.pi) % (2 * np.pi) - np.pi
-        ring_of_laser = ref_scan.lasers.ring_of_laser
-        rings = np.unique(ring_of_laser[ref_scan.laser_id[ref.board]])
-        # the board's lasers as a table over laser ids (cheaper than Scan.ring and isin)
-        on_board = np.isin(ring_of_laser, rings)
-        dist = ref_scan.distance[ref.board]
-        m = (s.distance > 0) & (rel_s >= rel.min() - np.deg2rad(0.5)) & \
-            (rel_s <= rel.max() + np.deg2rad(0.5)) & on_board[s.laser_id] & \
-            (s.distance >= dist.min() - 0.1) & (s.distance <= dist.max() + 0.1)
-        idx = np.flatnonzero(m)
-        if len(idx) < 0.5 * len(ref.board):
-            segs.append(find_board(s, board, hints))  # the scene changed: look again
-        else:
-            segs.append(Segmentation(Status.OK, idx, ref.n_clusters, float(s.distance[idx].mean()),
-                                     len(rings)))
-    return segs
-
-
 def _paper(scans, segs, ok, board, hints) -> PoseEstimate:
-    from align.paper import estimate_paper
 
     return _per_scan_mean([estimate_paper(scans[i], board, hints, segs[i]) for i in ok], "paper")
 

@@ -41,8 +41,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import align
-from align import plane
 from align.geometry import board_coordinates, plane_of_pose, pose_from_plane
+from align.plane.fit import fit_rays
 from scenarios.study.protocol import pose_errors, random_pose
 from twin.sim.bench import BenchSim
 from twin.sim.emulation import EmulationConfig
@@ -95,7 +95,7 @@ def _true_board_tilt(scans: list, bias: float) -> float:
         o_l.append(o[on])
         u_l.append(u[on])
     n0, d0 = plane_of_pose(truth)
-    n, d, _, _ = plane.fit_rays(np.concatenate(r_l), np.concatenate(o_l), np.concatenate(u_l),
+    n, d, _, _ = fit_rays(np.concatenate(r_l), np.concatenate(o_l), np.concatenate(u_l),
                                 n0, d0)
     return float(np.rad2deg(pose_from_plane(n, d, truth[3])[4] - truth[4]))
 
@@ -256,7 +256,7 @@ def _scene_seed(args: argparse.Namespace, seed: int, cfg: EmulationConfig, hints
     """One seed's random scenes (`scenes`): per estimate its six errors and sigmas (SI), per
     pose the roll bound's variance, and the failures by status."""
     from align.board import BoardSpec
-    from align.bound import Firing, RangeNoise, precision_bound
+    from align.design.bound import Firing, RangeNoise, precision_bound
     from twin.sim.params import random_scene
 
     rng = np.random.default_rng(seed)

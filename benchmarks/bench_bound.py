@@ -50,7 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_align import random_pose
 
 import align
-from align.bound import Firing, RangeNoise, board_to_station, precision_bound
+from align.design.bound import Firing, RangeNoise, board_to_station, precision_bound
 from twin.core import vlp16
 from twin.sim.bench import BenchSim
 from twin.sim.emulation import EmulationConfig

@@ -54,15 +54,15 @@ def warm_up(say: Callable[[str], None] | None = None) -> float:
         say(f"warm-up: the emulation's kernels ready ({t_twin - t0:.0f} s of CPU)")
     from align.api import estimate
 
-    # the default estimate compiles the estimator's kernels (align.feasible, align.roll_search,
-    # the segmentation's align.kernels); the paper's method runs the segmentation alone
+    # the default estimate compiles the estimator's kernels (align.posterior, align.search,
+    # the board search); the paper's method runs the segmentation alone
     estimate(scans[0])
     estimate(scans[0], method="paper")
     # the board search's score (where candidates compete) and the plane-first search (where
     # no candidate is the board) run only on harder scenes than this one: called here
     from align.board import BoardSpec
     from align.result import Hints
-    from align.segment import plane_candidates
+    from align.search.plane_first import plane_candidates
 
     plane_candidates(scans[0], BoardSpec(), Hints())
     if say is not None:

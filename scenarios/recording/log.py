@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from align.plane import fit_lsq
+from align.plane.fit import fit_lsq
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 from twin.sim.params import BOARD_BODY

@@ -40,7 +40,7 @@ FD_STEP = 1e-6
 def bound_available() -> bool:
     """Whether this aimbench has the precision bound (`align.bound`)."""
     try:
-        import align.bound  # noqa: F401
+        import align.design.bound  # noqa: F401
     except ImportError:
         return False
     return True
@@ -167,7 +167,7 @@ class Point:
         this aimbench has no bound)."""
         if not bound_available():
             return [(k, n, [math.nan] * 6, 0.0) for n in self.fused]
-        from align.bound import Firing, RangeNoise, board_to_station, precision_bound
+        from align.design.bound import Firing, RangeNoise, board_to_station, precision_bound
 
         level = board_to_station(truth, self.in_plane)
         firing = Firing(rpm=self.config.rpm, period=vlp16.SEQUENCE_PERIOD)

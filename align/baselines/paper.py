@@ -30,10 +30,12 @@ import math
 
 import numpy as np
 
-from align import kernels, plane
+from align.baselines.kernels import centre, corner_jacobian, corner_points, corner_residuals
 from align.board import BoardSpec
+from align.plane.fit import _cross, ransac
 from align.result import Hints, PoseEstimate, Status
-from align.segment import on_board_rings
+from align.search.cluster_kernels import in_ring_block
+from align.search.rings import on_board_rings
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 
@@ -47,7 +49,7 @@ def plane_axes(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     h /= np.linalg.norm(h)
     if h[0] < 0:  # to the right, like X_O
         h = -h
-    v = plane._cross(n, h)
+    v = _cross(n, h)
     if v[2] < 0:
         v = -v
     return h, v
@@ -61,15 +63,15 @@ def feature_points(points: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndar
     bounding rectangle and the four nearest points in one pass, numpy's operations).
     """
     h, v = plane_axes(n)
-    return kernels.corner_points(np.ascontiguousarray(points, dtype=np.float64),
+    return corner_points(np.ascontiguousarray(points, dtype=np.float64),
                                  np.asarray(n, dtype=np.float64), float(d), h, v)
 
 
 def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
     """The rigid transform minimising sum ||p_o - (R p_l + t)||^2, as (x, y, z, roll, tilt, yaw)."""
     # the means and centred points as numpy's mean and difference, in one compiled pass each
-    cl, p_lc = kernels.centre(np.ascontiguousarray(p_l, dtype=np.float64))
-    co, p_oc = kernels.centre(np.ascontiguousarray(p_o, dtype=np.float64))
+    cl, p_lc = centre(np.ascontiguousarray(p_l, dtype=np.float64))
+    co, p_oc = centre(np.ascontiguousarray(p_o, dtype=np.float64))
     u, _, vt = np.linalg.svd(p_lc.T @ p_oc)
     d = np.sign(np.linalg.det(vt.T @ u.T))
     r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
@@ -86,13 +88,13 @@ def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
 def _residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
     """The corners' residuals p_o - (R p_l + t), flattened (`align.kernels.corner_residuals`:
     the numpy expression's values, without its dozen calls' overhead)."""
-    return kernels.corner_residuals(np.asarray(beta, dtype=np.float64), p_l, p_o)
+    return corner_residuals(np.asarray(beta, dtype=np.float64), p_l, p_o)
 
 
 def _jacobian(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
     """d `_residuals` / d beta: -I for the translation, forward differences of 1e-7 rad for
     the angles (`align.kernels.corner_jacobian`)."""
-    return kernels.corner_jacobian(np.asarray(beta, dtype=np.float64), p_l, p_o)
+    return corner_jacobian(np.asarray(beta, dtype=np.float64), p_l, p_o)
 
 
 def levenberg_marquardt(
@@ -135,12 +137,12 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
         return PoseEstimate.failed(Status.NO_BOARD, "paper", reason="too few board returns")
     rng = np.random.default_rng(hints.seed)
     # `plane.ransac`, its hypotheses scored in one compiled loop (the same plane)
-    n, d, inl = kernels.ransac(pts, RANSAC_THRESHOLD, rng, RANSAC_ITERATIONS)
+    n, d, inl = ransac(pts, RANSAC_THRESHOLD, rng, RANSAC_ITERATIONS)
     # the ROI is the board: its rings are consecutive, and the stand's base (a face 5 cm in
     # front of the board, within the RANSAC band) lights up a ring below a gap; keep the
     # consecutive block of rings with the most inliers
     ring = scan.lasers.ring_of_laser[scan.laser_id[pts_idx]]  # (Scan.ring maps every firing)
-    inl &= kernels.in_ring_block(ring, inl)  # `segment.consecutive_ring_block` of the inliers
+    inl &= in_ring_block(ring, inl)  # `segment.consecutive_ring_block` of the inliers
     n_rings = int(np.count_nonzero(np.bincount(ring[inl])))  # len(np.unique), no sort
     if n_rings < 3:
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=n_rings,

@@ -15,7 +15,8 @@ import open3d as o3d
 from align.board import BoardSpec
 from align.geometry import rotation
 from align.result import Hints, PoseEstimate, Status
-from align.segment import Segmentation, on_board_rings
+from align.search.result import Segmentation
+from align.search.rings import on_board_rings
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 

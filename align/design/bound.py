@@ -75,9 +75,9 @@ from typing import Literal
 
 import numpy as np
 
-from align import bound_labels
 from align.board import BoardSpec
-from align.bound_labels import Crossings, Fixed
+from align.design import bound_labels
+from align.design.bound_labels import Crossings, Fixed
 from align.geometry import rotation
 from twin.core import vlp16
 from twin.core.lasers import LaserTable

@@ -20,11 +20,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from align.board import BoardSpec
-from align.feasible import _rows
-from align.fit_kernels import window_sweep, window_sweep_pair
+from align.floats import _rows
+from align.search.roll_kernels import window_sweep, window_sweep_pair
 
 #: Roll grid steps, rad: a coarse pass over the whole range, then a fine one about the coarse
 #: pass's best rolls. The interval of rolls that fit is a degree or more wide for a board seen
@@ -62,27 +61,6 @@ def _window_fit(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarr
     are consecutive rolls: `align.fit_kernels.window_sweep` sorts each from the last's order
     (`_slide` is the reference it replaced)."""
     return window_sweep(np.ascontiguousarray(coords, dtype=np.float64), float(length))
-
-
-@njit(cache=True)
-def _slide(xs: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
-    """`_window_fit` on rows sorted ascending (K, n): two pointers along each row."""
-    k, n = xs.shape
-    count = np.zeros(k, dtype=np.int64)
-    shift = np.zeros(k)
-    for r in range(k):
-        j = 0
-        best, lo, hi = 0, 0.0, 0.0
-        for i in range(n):
-            if j < i:
-                j = i
-            while j + 1 < n and xs[r, j + 1] <= xs[r, i] + length:
-                j += 1
-            if j - i + 1 > best:
-                best, lo, hi = j - i + 1, xs[r, i], xs[r, j]
-        count[r] = best
-        shift[r] = -0.5 * (lo + hi)
-    return count, shift
 
 
 def _subsample(points: np.ndarray, k: int) -> np.ndarray:

@@ -31,12 +31,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
-#: Labels farther than this inside (misses) or outside (hits) the start pose's rectangle are not
-#: edge information but dropouts or strays, m.
-OUTLIER_MARGIN = 0.03
-
+from align.floats import _gemv3, _rows, _rows_of
+from align.jit import kernel
 
 #: Rolls handled together by `label_moments`: each block first keeps only the labels that can
 #: bind anywhere in it, so the per-roll loops run over a few dozen rays instead of hundreds.
@@ -56,7 +53,7 @@ SAG = 0.14
 FIRST, LAST = 0, 1
 
 
-@njit(cache=True)
+@kernel
 def binding_labels(p_hit: np.ndarray, p_miss: np.ndarray, lim_h: np.ndarray,
                    lim_m: np.ndarray, r0: np.ndarray, r2: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
@@ -93,7 +90,7 @@ def binding_labels(p_hit: np.ndarray, p_miss: np.ndarray, lim_h: np.ndarray,
     return hc[1, :nh].copy(), mc[1, :nm].copy()
 
 
-@njit(cache=True)
+@kernel
 def label_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                   ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float
                   ) -> np.ndarray:
@@ -112,7 +109,7 @@ def label_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     return _moments_binding(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2)[0]
 
 
-@njit(cache=True)
+@kernel
 def _moments_binding(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                      ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -125,7 +122,7 @@ def _moments_binding(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                           h2, _NO_BOXES, _NO_MOMENTS)[0], hits
 
 
-@njit(cache=True)
+@kernel
 def _rows_at(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """The rows ``idx`` of ``a``, contiguous."""
     out = np.empty((idx.shape[0], a.shape[1]))
@@ -139,7 +136,7 @@ def _rows_at(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
 _NO_BOXES, _NO_MOMENTS = np.empty((0, 4)), np.empty((0, 6))
 
 
-@njit(cache=True)
+@kernel
 def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                    ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float,
                    base_boxes: np.ndarray, base_out: np.ndarray
@@ -241,7 +238,7 @@ def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     return out, boxes
 
 
-@njit(cache=True)
+@kernel
 def _limits(ext: np.ndarray, w2: float, h2: float) -> np.ndarray:
     """Each ray's box edges before its coordinate is subtracted, (M, 4): -w2 - e_l, w2 + e_r,
     -h2 - e_b, h2 + e_t (a box's edge, e.g. -w2 - e_l - X, is then the same float as when
@@ -255,7 +252,7 @@ def _limits(ext: np.ndarray, w2: float, h2: float) -> np.ndarray:
     return lim
 
 
-@njit(cache=True)
+@kernel
 def _radii(p_hit: np.ndarray, p_miss: np.ndarray, qh: np.ndarray, qm: np.ndarray) -> None:
     """Each ray's distance from the hits' mean into ``qh``, ``qm``, m: two rays' points are at
     most the sum of theirs apart (`_sag`'s rho)."""
@@ -273,7 +270,7 @@ def _radii(p_hit: np.ndarray, p_miss: np.ndarray, qh: np.ndarray, qm: np.ndarray
                         + (p_miss[i, 2] - c2) ** 2)
 
 
-@njit(cache=True)
+@kernel
 def _rigid_rows(r0: np.ndarray, r2: np.ndarray) -> bool:
     """Whether the rows of R over the grid turn rigidly and one way in one plane, as `_sag`
     assumes: each r0 and r2 unit and orthogonal to each other and to the first roll's r1
@@ -306,7 +303,7 @@ def _rigid_rows(r0: np.ndarray, r2: np.ndarray) -> bool:
     return True
 
 
-@njit(cache=True)
+@kernel
 def _sag(r0: np.ndarray, r2: np.ndarray, a: int, b: int) -> float:
     """How far below its chord an edge's difference between two rays can dip between rolls
     ``a`` and ``b`` of a rigid grid (`_rigid_rows`), per m of the rays' distance: `SAG` D^2,
@@ -317,7 +314,7 @@ def _sag(r0: np.ndarray, r2: np.ndarray, a: int, b: int) -> float:
     return SAG * dsq if dsq <= 1.0 else np.inf
 
 
-@njit(cache=True)
+@kernel
 def _edges_at(p: np.ndarray, lim: np.ndarray, idx: np.ndarray, d: int, n: int,
               r0: np.ndarray, r2: np.ndarray, k: int, out: np.ndarray, slot: int) -> None:
     """The box edges (x0, x1, z0, z1) of the rays ``idx[d, :n]`` at roll ``k`` into
@@ -335,7 +332,7 @@ def _edges_at(p: np.ndarray, lim: np.ndarray, idx: np.ndarray, d: int, n: int,
         out[d, slot, t, 3] = lim[i, 3] - z
 
 
-@njit(cache=True)
+@kernel
 def _keep_hits(idx: np.ndarray, v: np.ndarray, d: int, s_lo: int, s_hi: int, n: int,
                q: np.ndarray, sag: float, champ: np.ndarray, th: np.ndarray) -> int:
     """The hits ``idx[d, :n]`` (edges ``v[d, s_lo]``, ``v[d, s_hi]`` at a segment's first and
@@ -388,7 +385,7 @@ def _keep_hits(idx: np.ndarray, v: np.ndarray, d: int, s_lo: int, s_hi: int, n: 
     return m
 
 
-@njit(cache=True)
+@kernel
 def _keep_misses(idx: np.ndarray, v: np.ndarray, d: int, s_lo: int, s_hi: int, n: int,
                  q: np.ndarray, sag: float, th: np.ndarray, sure: np.ndarray) -> int:
     """The misses ``idx[d, :n]`` (edges ``v[d, s_lo]``, ``v[d, s_hi]`` at a segment's ends)
@@ -454,7 +451,7 @@ def _keep_misses(idx: np.ndarray, v: np.ndarray, d: int, s_lo: int, s_hi: int, n
     return m
 
 
-@njit(cache=True)
+@kernel
 def _relative(p: np.ndarray, c: np.ndarray) -> np.ndarray:
     """The points relative to ``c`` and their 1-norms, (M, 4)."""
     q = np.empty((p.shape[0], 4))
@@ -465,7 +462,7 @@ def _relative(p: np.ndarray, c: np.ndarray) -> np.ndarray:
     return q
 
 
-@njit(cache=True)
+@kernel
 def _row_spread(r: np.ndarray, k_lo: int, k_hi: int, kc: int) -> float:
     """The largest change of any component of the rows ``r[k_lo:k_hi]`` from ``r[kc]``: the
     difference of two points' coordinates, (p - q) . r, moves by at most |p - q|_1 times this
@@ -477,7 +474,7 @@ def _row_spread(r: np.ndarray, k_lo: int, k_hi: int, kc: int) -> float:
     return s
 
 
-@njit(cache=True)
+@kernel
 def _binding_hits(q: np.ndarray, lim: np.ndarray, rx: np.ndarray, rz: np.ndarray, dx: float,
                   dz: float, keep: np.ndarray) -> int:
     """The hits that can set a side of the hits' box at some roll of a block (centre rows
@@ -510,7 +507,7 @@ def _binding_hits(q: np.ndarray, lim: np.ndarray, rx: np.ndarray, rz: np.ndarray
     return m
 
 
-@njit(cache=True)
+@kernel
 def _hit_box(p: np.ndarray, lim: np.ndarray, hits: np.ndarray, r0: np.ndarray,
              r2: np.ndarray, out: np.ndarray) -> None:
     """The hits' box at one roll, the intersection of theirs, into ``out``: a0, a1, c0, c1
@@ -526,7 +523,7 @@ def _hit_box(p: np.ndarray, lim: np.ndarray, hits: np.ndarray, r0: np.ndarray,
     out[0], out[1], out[2], out[3] = a0, a1, c0, c1
 
 
-@njit(cache=True)
+@kernel
 def _binding_misses(q: np.ndarray, lim: np.ndarray, c: np.ndarray, r0: np.ndarray,
                     r2: np.ndarray, kc: int, dx: float, dz: float, boxes: np.ndarray,
                     keep: np.ndarray) -> int:
@@ -554,7 +551,7 @@ def _binding_misses(q: np.ndarray, lim: np.ndarray, c: np.ndarray, r0: np.ndarra
     return m
 
 
-@njit(cache=True)
+@kernel
 def _box_minus_boxes(a0: float, a1: float, c0: float, c1: float, bx0: np.ndarray,
                      bx1: np.ndarray, bz0: np.ndarray, bz1: np.ndarray, nb: int,
                      iz0: np.ndarray, iz1: np.ndarray, xs: np.ndarray, out: np.ndarray) -> None:
@@ -629,7 +626,7 @@ def _box_minus_boxes(a0: float, a1: float, c0: float, c1: float, bx0: np.ndarray
             z = max(z, hi)
 
 
-@njit(cache=True)
+@kernel
 def _sort_pairs(key: np.ndarray, other: np.ndarray) -> None:
     """Sort ``key`` ascending in place by insertion, moving ``other`` with it (may be ``key``
     itself): the arrays hold a handful of values. Pairs with equal keys may end in any order;
@@ -660,7 +657,7 @@ OK, MEAN, COV, EVIDENCE, SUPPORT, POSE = 0, 1, 4, 13, 14, 16
 WIDTH = 22
 
 
-@njit(cache=True)
+@kernel
 def plane_posteriors(hit_o: np.ndarray, hit_u: np.ndarray, hit_ext: np.ndarray,
                      miss_o: np.ndarray, miss_u: np.ndarray, miss_ext: np.ndarray,
                      normals: np.ndarray, ds: np.ndarray, rolls: np.ndarray,
@@ -707,14 +704,14 @@ MIN_ODDS = 0.1
 MAX_SOFT = 2
 
 
-@njit(cache=True)
+@kernel
 def _soft_hits(odds: np.ndarray) -> np.ndarray:
     """The hits (indices) whose odds are at least `MIN_ODDS`, by decreasing odds."""
     idx = np.flatnonzero(odds >= MIN_ODDS)
     return idx[np.argsort(-odds[idx], kind="mergesort")]
 
 
-@njit(cache=True)
+@kernel
 def _binding_soft(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                   lim_m: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float,
                   soft: np.ndarray, hits: np.ndarray) -> np.ndarray:
@@ -754,7 +751,7 @@ def _binding_soft(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     return chosen[:s], first_h, first_m
 
 
-@njit(cache=True)
+@kernel
 def soft_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                  ext_miss: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float,
                  odds: np.ndarray, soft: np.ndarray) -> np.ndarray:
@@ -821,7 +818,7 @@ def soft_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     return total
 
 
-@njit(cache=True)
+@kernel
 def _points(o: np.ndarray, u: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
     """Where the rays (origins ``o``, directions ``u``) meet the plane n . p = d."""
     m = o.shape[0]
@@ -835,7 +832,7 @@ def _points(o: np.ndarray, u: np.ndarray, n: np.ndarray, d: float) -> np.ndarray
     return p
 
 
-@njit(cache=True)
+@kernel
 def _summary(mom: np.ndarray, rolls: np.ndarray, row: np.ndarray) -> bool:
     """The posterior's moments from the per-roll area and moments ``mom`` (K, 6) into ``row``
     (`align.feasible.in_plane_posterior`'s sums over the grid: uniform steps, the step
@@ -880,7 +877,7 @@ def _summary(mom: np.ndarray, rolls: np.ndarray, row: np.ndarray) -> bool:
     return True
 
 
-@njit(cache=True)
+@kernel
 def _pose_of_mean(n: np.ndarray, d: float, row: np.ndarray) -> None:
     """The pose of the posterior's mean in ``row`` for the plane n . p = d: roll and the plane
     give tilt and yaw (`align.geometry.pose_from_plane`), x and z are the mean's t_x, t_z."""
@@ -904,43 +901,6 @@ class InPlanePosterior:
     cov: np.ndarray  # (3, 3)
     evidence: float  # the consistent set's volume, rad m^2 (the labels' marginal likelihood)
     support: tuple[float, float]  # the first and last roll of the grid in the set, rad
-
-
-def _rows(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows r0 and r2 of R for the plane normal n at each roll (R's row r1 is n throughout):
-    `align.geometry.pose_from_plane` then `align.geometry.rotation`, vectorised."""
-    return _rows_kernel(np.asarray(rolls, dtype=np.float64), np.asarray(n, dtype=np.float64))
-
-
-@njit(cache=True)
-def _rows_kernel(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`_rows` in one loop: the same operations in the same order as numpy's elementwise
-    ones (two dozen numpy calls on ~100 rolls cost 5x more in call overhead than the maths)."""
-    return _rows_of(np.cos(rolls), np.sin(rolls), n)
-
-
-@njit(cache=True)
-def _rows_of(cos_r: np.ndarray, sin_r: np.ndarray, n: np.ndarray
-             ) -> tuple[np.ndarray, np.ndarray]:
-    """`_rows_kernel` from the rolls' cosines and sines (elementwise, the same floats as the
-    scalar calls): many planes on one grid compute them once."""
-    k = cos_r.shape[0]
-    r0, r2 = np.empty((k, 3)), np.empty((k, 3))
-    for i in range(k):
-        cr, sr = cos_r[i], sin_r[i]
-        m0 = cr * n[0] + sr * n[2]
-        m2 = -sr * n[0] + cr * n[2]
-        sy = min(max(m0, -1.0), 1.0)
-        cy = np.sqrt(1.0 - sy * sy)
-        tilt = np.arctan2(-m2, n[1])
-        ct, st = np.cos(tilt), np.sin(tilt)
-        r0[i, 0] = cy * cr - sy * st * sr
-        r0[i, 1] = -sy * ct
-        r0[i, 2] = cy * sr + sy * st * cr
-        r2[i, 0] = -ct * sr
-        r2[i, 1] = st
-        r2[i, 2] = ct * cr
-    return r0, r2
 
 
 def in_plane_posterior(n: np.ndarray, points: np.ndarray, labels: np.ndarray,
@@ -982,3 +942,36 @@ def _label_moments(n: np.ndarray, points: np.ndarray, labels: np.ndarray, ext: n
     hit, miss = labels == 1, labels == 0
     return label_moments(points[hit], points[miss], ext[hit], ext[miss], *_rows(rolls, n),
                          width / 2, height / 2)
+@kernel(error_model="numpy")
+def binding_rays(origin: np.ndarray, direction: np.ndarray, label: np.ndarray,
+                 rot: np.ndarray, t_x: float, t_y: float, t_z: float, w2: float, h2: float,
+                 mx: float, mz: float) -> tuple[np.ndarray, np.ndarray]:
+    """`align.label_posterior.binding` of the rays' board coordinates at the pose with
+    rotation ``rot`` and translation (t_x, t_y, t_z) (`align.geometry.board_coordinates`'
+    floats, as `window_rays` computes them), in one pass: the hits (label 1) not deeper than
+    (``mx``, ``mz``) inside the ``w2`` x ``h2`` half-rectangle and the misses (label 0) not
+    farther outside, as two index arrays in the rays' order (m)."""
+    m = origin.shape[0]
+    hits, misses = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
+    nh = nm = 0
+    a0, a1, a2 = rot[0, 0], rot[0, 1], rot[0, 2]
+    b0, b1, b2 = rot[1, 0], rot[1, 1], rot[1, 2]
+    c0, c1, c2 = rot[2, 0], rot[2, 1], rot[2, 2]
+    in_w, in_h, out_w, out_h = w2 - mx, h2 - mz, w2 + mx, h2 + mz
+    for i in range(m):
+        lab = label[i]
+        if lab != 1 and lab != 0:
+            continue
+        o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
+        u0, u1, u2 = direction[i, 0], direction[i, 1], direction[i, 2]
+        lam = -(_gemv3(o0, o1, o2, b0, b1, b2) + t_y) / _gemv3(u0, u1, u2, b0, b1, b2)
+        x = (_gemv3(o0, o1, o2, a0, a1, a2) + t_x) + lam * _gemv3(u0, u1, u2, a0, a1, a2)
+        z = (_gemv3(o0, o1, o2, c0, c1, c2) + t_z) + lam * _gemv3(u0, u1, u2, c0, c1, c2)
+        if lab == 1:
+            if not (abs(x) < in_w and abs(z) < in_h):
+                hits[nh] = i
+                nh += 1
+        elif not (abs(x) > out_w or abs(z) > out_h):
+            misses[nm] = i
+            nm += 1
+    return hits[:nh], misses[:nm]

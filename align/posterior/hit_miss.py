@@ -41,10 +41,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from align import feasible, plane, symmetry
+import align.symmetry as symmetry
 from align.board import BoardSpec
-from align.fit_kernels import binding_rays
 from align.geometry import lidar_up, plane_of_pose, pose_from_plane, rotation
+from align.plane.fit import tangent_basis
+from align.posterior import moments
+from align.posterior.moments import binding_rays
 
 #: Rolls of each in-plane posterior's grid over the consistent ones.
 FINE_ROLLS = 121
@@ -117,7 +119,7 @@ class LabelledRays:
     """The rays that carry edge information: origins and unit directions (M, 3) in {L}, labels
     (1 hit, 0 miss) and the plate's side face's widening of the left, right, bottom and top edge
     for each ray (M, 4), m. ``odds`` (M,): for a hit, how much likelier its return is off the
-    board than on it (`align.feasible.soft_moments`; None or 0: a hard constraint)."""
+    board than on it (`align.moments.soft_moments`; None or 0: a hard constraint)."""
 
     origin: np.ndarray
     direction: np.ndarray
@@ -155,7 +157,7 @@ class LabelledRays:
     @functools.cached_property
     def _split(self) -> tuple[np.ndarray, ...]:
         """The hits' origins, directions and widenings, then the misses': contiguous float64,
-        `align.feasible.plane_posteriors`' arguments (split once, not per plane)."""
+        `align.moments.plane_posteriors`' arguments (split once, not per plane)."""
         hit, miss = self.label == 1, self.label == 0
         return tuple(np.ascontiguousarray(a[mask], dtype=np.float64) for mask in (hit, miss)
                      for a in (self.origin, self.direction, self.ext))
@@ -169,24 +171,24 @@ class LabelledRays:
 
     def posteriors(self, normals: np.ndarray, ds: np.ndarray, board: BoardSpec,
                    rolls: np.ndarray, roll_prior: tuple[float, float] | None = None
-                   ) -> list[tuple[feasible.InPlanePosterior, np.ndarray] | None]:
+                   ) -> list[tuple[moments.InPlanePosterior, np.ndarray] | None]:
         """`in_plane` for each plane normals[i] . p = ds[i] ((P, 3), (P,)) in one compiled call,
         each with the pose (6,) of its posterior's mean (`_pose`); None where no roll on the
         grid is consistent with the labels. Each label's likelihood is
-        `align.feasible.label_moments`' (1 on the positions its box allows, else 0; a soft
-        hit's ``odds`` off it, `align.feasible.soft_moments`)."""
+        `align.moments.label_moments`' (1 on the positions its box allows, else 0; a soft
+        hit's ``odds`` off it, `align.moments.soft_moments`)."""
         weight = roll_weight(board, rolls, roll_prior)
-        rows = feasible.plane_posteriors(
+        rows = moments.plane_posteriors(
             *self._split, np.ascontiguousarray(normals, dtype=np.float64),
             np.ascontiguousarray(ds, dtype=np.float64),
             np.ascontiguousarray(rolls, dtype=np.float64), weight, board.width / 2,
             board.height / 2, self._hit_odds)
-        return [_unpack(row) if row[feasible.OK] else None for row in rows]
+        return [_unpack(row) if row[moments.OK] else None for row in rows]
 
     def in_plane(self, n: np.ndarray, d: float, board: BoardSpec, rolls: np.ndarray,
                  roll_prior: tuple[float, float] | None = None
-                 ) -> feasible.InPlanePosterior | None:
-        """`align.feasible.in_plane_posterior` for the plane n . p = d, with the roll prior
+                 ) -> moments.InPlanePosterior | None:
+        """`align.moments.in_plane_posterior` for the plane n . p = d, with the roll prior
         (mean, 1-sigma, rad; compared modulo the board's symmetry) if given."""
         found = self.posteriors(np.asarray(n)[None, :], np.array([d]), board, rolls, roll_prior)[0]
         return None if found is None else found[0]
@@ -195,7 +197,7 @@ class LabelledRays:
 def roll_weight(board: BoardSpec, rolls: np.ndarray, roll_prior: tuple[float, float] | None
                 ) -> np.ndarray:
     """The roll prior's density over ``rolls`` (mean, 1-sigma, rad; compared modulo the
-    board's symmetry), unnormalised; empty for none (flat), as `feasible.plane_posteriors`
+    board's symmetry), unnormalised; empty for none (flat), as `moments.plane_posteriors`
     takes it."""
     if roll_prior is None:
         return np.empty(0)
@@ -204,10 +206,10 @@ def roll_weight(board: BoardSpec, rolls: np.ndarray, roll_prior: tuple[float, fl
     return np.exp(-0.5 * (dev / roll_prior[1]) ** 2)
 
 
-def _unpack(row: np.ndarray) -> tuple[feasible.InPlanePosterior, np.ndarray]:
-    """One row of `align.feasible.plane_posteriors`: the posterior and its pose."""
-    k, own = feasible, row.copy()  # one copy; the posterior and the pose are views of it
-    post = feasible.InPlanePosterior(own[k.MEAN:k.MEAN + 3], own[k.COV:k.COV + 9].reshape(3, 3),
+def _unpack(row: np.ndarray) -> tuple[moments.InPlanePosterior, np.ndarray]:
+    """One row of `align.moments.plane_posteriors`: the posterior and its pose."""
+    k, own = moments, row.copy()  # one copy; the posterior and the pose are views of it
+    post = moments.InPlanePosterior(own[k.MEAN:k.MEAN + 3], own[k.COV:k.COV + 9].reshape(3, 3),
                                      float(own[k.EVIDENCE]),
                                      (float(own[k.SUPPORT]), float(own[k.SUPPORT + 1])))
     return post, own[k.POSE:k.POSE + 6]
@@ -253,7 +255,7 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     posterior is written into ``offset``.
     """
     n0, d0, c_plane = ml_plane
-    e1, e2 = plane.tangent_basis(n0)
+    e1, e2 = tangent_basis(n0)
 
     def moved(g: np.ndarray) -> tuple[np.ndarray, float]:
         n = n0 + g[0] * e1 + g[1] * e2
@@ -316,8 +318,8 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
             subsets[reach] = rays.near(board, ref, reach)
         return subsets[reach]
 
-    def widened(found: tuple[feasible.InPlanePosterior, np.ndarray] | None, n: np.ndarray,
-                d: float) -> tuple[feasible.InPlanePosterior, np.ndarray] | None:
+    def widened(found: tuple[moments.InPlanePosterior, np.ndarray] | None, n: np.ndarray,
+                d: float) -> tuple[moments.InPlanePosterior, np.ndarray] | None:
         # a plane's posterior on `base` again on wider grids while its rolls run off the end
         rolls = base
         for _ in range(GRID_TRIES - 1):
@@ -404,7 +406,7 @@ def _coupled_direction(offset: OffsetModel, theta: np.ndarray, n0: np.ndarray, d
     fit moves the plane exactly as the ranges do (nothing to couple)."""
     if offset.slope is None or not np.all(np.isfinite(offset.slope)):
         return None
-    e1, e2 = plane.tangent_basis(n0)
+    e1, e2 = tangent_basis(n0)
 
     def g_of(th: np.ndarray) -> np.ndarray:
         # the inverse of label_posterior's moved(g): n ~ n0 + alpha e1 + beta e2, d = d0 + g[2]
@@ -445,7 +447,7 @@ def _laser_directions(offset: OffsetModel, c_cond: np.ndarray, w: np.ndarray | N
 
 def _joint_profile(offset: OffsetModel, v: np.ndarray, axes: list[np.ndarray],
                    c_cond: np.ndarray, in_plane
-                   ) -> tuple[np.ndarray, feasible.InPlanePosterior, np.ndarray] | None:
+                   ) -> tuple[np.ndarray, moments.InPlanePosterior, np.ndarray] | None:
     """The labels' evidence over the offset b jointly with the plane's directions ``axes``
     they hold beyond the ranges: the one b trades against (w, `_coupled_direction`) and, with
     per-laser offsets, the rest (`_laser_directions`). The plane is
@@ -525,7 +527,7 @@ def _joint_profile(offset: OffsetModel, v: np.ndarray, axes: list[np.ndarray],
 
 
 def _offset_profile(offset: OffsetModel, v: np.ndarray, in_plane, g0: np.ndarray
-                    ) -> tuple[float, float, float, feasible.InPlanePosterior, float] | None:
+                    ) -> tuple[float, float, float, moments.InPlanePosterior, float] | None:
     """Where the labels put the offset along one line: the evidence of the planes
     g0 + v (b - b_hat) (the ranges' plane for offset b, moved by ``g0``) times the ranges'
     density of b, on a grid about the least-squares offset, refined about the band it allows.
@@ -536,7 +538,7 @@ def _offset_profile(offset: OffsetModel, v: np.ndarray, in_plane, g0: np.ndarray
     sd_prior = math.sqrt(offset.c_bb)
     sd = float(np.clip(offset.centre_std, 1e-4, sd_prior))
     lo, hi = offset.centre - PROFILE_REACH * sd, offset.centre + PROFILE_REACH * sd
-    tried: dict[float, tuple[float, feasible.InPlanePosterior | None]] = {}
+    tried: dict[float, tuple[float, moments.InPlanePosterior | None]] = {}
     for _ in range(PROFILE_REFINE):
         bs = np.linspace(lo, hi, PROFILE_POINTS)
         for b in bs:
@@ -629,7 +631,7 @@ class _Node(NamedTuple):
     log_q: float
     index: int  # in its rule (the grid's C order) or sampler batch
     pose: np.ndarray
-    post: feasible.InPlanePosterior
+    post: moments.InPlanePosterior
 
 
 def gauss_hermite(centre: np.ndarray, cov: np.ndarray, order: int

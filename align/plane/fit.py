@@ -1,21 +1,11 @@
-"""Plane fits: RANSAC (the paper's), orthogonal least squares, and maximum likelihood along rays.
-
-A plane is (n, d): unit normal n and distance d with n . p = d for points p on it; n is oriented
-so that d >= 0 (pointing away from the sensor at the origin).
-
-Why ML along the rays: a LiDAR's noise is in range, along each ray, not perpendicular to the
-surface. On a board seen obliquely (the paper's bench looks at it from 0.7 m to the side, 15 deg
-off its normal) the orthogonal fit treats the along-ray noise as if it were isotropic and leans the
-plane (about -0.04 deg of yaw). The ML fit minimises the range residuals r_i - (d - n.o_i)/(n.u_i)
-of rays from origin o_i with unit direction u_i: the likelihood of Gaussian range noise.
-"""
+"""Planes of points and of rays: orthogonal least squares, RANSAC and MSAC, and the
+maximum-likelihood plane along the rays (with the ranges' offsets as nuisance parameters)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from align.fit_kernels import ray_plane_fit
-from align.kernels import lsq_plane, msac_best
+from align.plane.kernels import lsq_plane, msac_best, plane_band, ransac_best, ray_plane_fit
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -70,34 +60,38 @@ def ransac(
 ) -> tuple[np.ndarray, float, np.ndarray]:
     """RANSAC plane (paper III-A): hypotheses from 3 random points, the most inliers wins.
 
-    All hypotheses are scored at once (an (iterations, N) distance matrix); the winner is then
-    refit by orthogonal least squares on its inliers, as usual for RANSAC. Returns (n, d, inlier
-    mask). ``threshold`` is the inlier distance, m. ``truncated``: the least sum of squared
-    distances capped at ``threshold`` wins instead (MSAC, Torr and Zisserman 2000): a count
-    cannot tell a board's plane from one tilted by degrees that still holds its returns within
-    the threshold and takes in a stand's behind it besides (a band of 4 cm about a 0.54 m board
-    holds it at 8 deg of tilt); the squared distances can.
+    The winner is refit by orthogonal least squares on its inliers, as usual for RANSAC.
+    Returns (n, d, inlier mask). ``threshold`` is the inlier distance, m. ``truncated``: the
+    least sum of squared distances capped at ``threshold`` wins instead (MSAC, Torr and
+    Zisserman 2000): a count cannot tell a board's plane from one tilted by degrees that still
+    holds its returns within the threshold and takes in a stand's behind it besides (a band of
+    4 cm about a 0.54 m board holds it at 8 deg of tilt); the squared distances can. The
+    hypotheses are scored in one compiled loop (`align.plane.kernels`), the distances as
+    numpy's BLAS computes them.
     """
     n_pts = len(points)
     if n_pts < 3:
         raise ValueError("a plane needs at least 3 points")
     tri = rng.integers(0, n_pts, size=(iterations, 3))
-    if truncated:
-        # the hypotheses scored in one compiled loop (`align.kernels.msac_best`: numpy's
-        # distances, no (hypotheses x points) matrix); where its sums' order could change
-        # which is least (two hypotheses within rounding of each other), numpy decides
-        xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64).T)
-        best, certain, inl = msac_best(xyz, tri, float(threshold))
-        if certain and best >= 0:
-            n, d = fit_lsq(points[inl])
-            inl = np.abs(points @ n - d) < threshold
-            return n, d, inl
-    return _ransac_scored(points, tri, threshold, truncated)
+    xyz = np.ascontiguousarray(np.asarray(points, dtype=np.float64).T)
+    if not truncated:
+        best, inl = ransac_best(xyz, tri, float(threshold))
+        if best < 0:
+            raise ValueError("no RANSAC hypothesis spans a plane (all point triples collinear)")
+        n, d = fit_lsq(points[inl])
+        return n, d, plane_band(xyz, n, float(d), float(threshold))
+    best, certain, inl = msac_best(xyz, tri, float(threshold))
+    if certain and best >= 0:
+        n, d = fit_lsq(points[inl])
+        inl = np.abs(points @ n - d) < threshold
+        return n, d, inl
+    # two hypotheses within rounding of each other: numpy's order of sums decides
+    return _msac_scored(points, tri, threshold)
 
 
-def _ransac_scored(points: np.ndarray, tri: np.ndarray, threshold: float, truncated: bool
-                   ) -> tuple[np.ndarray, float, np.ndarray]:
-    """`ransac` from its point triples ``tri`` (H, 3) on: every hypothesis scored at once."""
+def _msac_scored(points: np.ndarray, tri: np.ndarray, threshold: float
+                 ) -> tuple[np.ndarray, float, np.ndarray]:
+    """MSAC from its point triples ``tri`` (H, 3) on, every hypothesis scored at once."""
     p0, p1, p2 = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
     normals = np.cross(p1 - p0, p2 - p0)
     norm = np.sqrt(np.einsum("ij,ij->i", normals, normals))
@@ -108,11 +102,8 @@ def _ransac_scored(points: np.ndarray, tri: np.ndarray, threshold: float, trunca
     dist = normals @ points.T
     dist -= ds[:, None]
     np.abs(dist, out=dist)
-    if truncated:
-        np.minimum(dist, threshold, out=dist)  # the inliers stay below it
-        best = int(np.argmin(np.einsum("ij,ij->i", dist, dist)))
-    else:
-        best = int(np.argmax(np.count_nonzero(dist < threshold, axis=1)))
+    np.minimum(dist, threshold, out=dist)  # the inliers stay below it
+    best = int(np.argmin(np.einsum("ij,ij->i", dist, dist)))
     inl = dist[best] < threshold
     n, d = fit_lsq(points[inl])
     inl = np.abs(points @ n - d) < threshold

@@ -1,0 +1,1 @@
+"""Station design: the precision bound of a board, sensor and pose (`bound`)."""

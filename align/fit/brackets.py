@@ -1,0 +1,63 @@
+"""Hit/miss brackets: along each laser, where a hit and a miss meet an edge of the board lies
+between them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from align.fit.bracket_kernels import between_hits, board_spans, column_brackets, laser_brackets
+from align.fit.rays import DROPOUT, HIT, _Rays
+
+#: Consecutive transitions closer than this (in azimuth, rad) form one mixed zone.
+ZONE_AZIMUTH = np.deg2rad(0.5)
+
+
+#: Neighbours farther apart than this in azimuth bracket nothing (a dropped firing), rad.
+MAX_GAP = np.deg2rad(0.7)
+
+
+def _between_hits(rays: _Rays, lab: np.ndarray, order: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """Rays that lie between two hits of the same laser in the same scan (by azimuth).
+    ``order``: the rays by scan, laser and azimuth, if the caller has it. Compiled
+    (`align.fit_kernels.between_hits`)."""
+    if order is None:
+        order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
+    return between_hits(order, rays.scan, rays.laser, lab == HIT)
+
+
+def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hit/miss brackets along each laser: pairs (hit-side ray, miss-side ray) of indices.
+
+    Only where a laser enters and leaves the board: the board is convex, so a transition
+    between its first and last hit is not its edge but a dropout or a stray inside it (a black
+    square that ranged wrong). Dropouts are skipped: a bracket spans them (the edge lies
+    anywhere between the hit and the miss).
+    """
+    # the links and transitions along each laser, its span on the board (`_board_spans`) and
+    # the walk over the zones, compiled (`align.fit_kernels.laser_brackets`, `edge_brackets`)
+    return laser_brackets(np.lexsort((rays.azimuth, rays.laser)), rays.laser, rays.azimuth,
+                          lab, DROPOUT, HIT, MAX_GAP, ZONE_AZIMUTH)
+
+
+def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Per laser, the first and last hit (positions in the rays sorted by laser and azimuth) of
+    its longest run of hits, a run ending where the next hit is more than `ZONE_AZIMUTH` away:
+    the board's span on that laser, not a stray beside it (a stand's part within the label
+    tolerance of the plane, on the same ring). -1 for a laser without hits."""
+    return board_spans(ls, az, lb == HIT, ZONE_AZIMUTH)  # compiled: a sort of the runs in numpy
+
+
+def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Ring-to-ring brackets of the edges above and below the board's centre, as the LiDAR sees
+    them (the top and bottom edges of a level board).
+
+    ``off``: each ray's distance from the board's central column, the line through its centre
+    along the LiDAR's up direction. For each ring, the ray nearest that column; going up from
+    the lowest ring that hits, the first ring that misses brackets the edge above with the ring
+    below it (and likewise down). One bracket per edge for all scans: the rings sit at the same
+    heights in every scan.
+    """
+    return column_brackets(rays.ring, lab, off)  # compiled: a dozen masks per ring in numpy

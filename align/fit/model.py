@@ -1,0 +1,259 @@
+"""The joint least-squares model of the pose: whitened range residuals of hits inside the
+rectangle and bracket residuals at its edges, with their assignment to edges."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from align.board import BoardSpec
+from align.fit.bracket_kernels import (
+    SIDE_REACH,
+    classify_edges,
+    profile_best,
+    profile_cost,
+    used_edges,
+)
+from align.fit.brackets import _brackets, _vertical_brackets
+from align.fit.label_kernels import range_rays, ray_products, shifted_coords
+from align.fit.lsq_kernels import _jacobian_into, fit_residuals
+from align.fit.rays import HIT, MISS, _Rays
+from align.geometry import board_coordinates, lidar_up, rotation
+
+#: Range residuals only from hits at least this far inside the rectangle, m (beam footprint
+#: 3 mrad x 2.6 m = 8 mm, half of it plus the azimuth step).
+EDGE_MARGIN = 0.015
+
+
+#: 1-sigma of a top/bottom edge crossing across the ring (the ring's height), m.
+EDGE_BLUR_Z = 2.0e-3
+
+
+#: A bracket whose extent across its edge is below this fraction of its extent along it comes
+#: from a ring crossing the edge at a grazing angle (under 14 deg).
+GRAZING = 0.25
+
+
+#: How far outside the rectangle a hit (inside it a miss) violates its label in the profile
+#: across the rings (`_Model.profile`), m.
+PROFILE_TOL = 3e-3
+
+
+class _Model:
+    """Whitened residuals of the joint fit for a pose theta."""
+
+    def __init__(self, rays: _Rays, lab: np.ndarray, bh: np.ndarray, bm: np.ndarray,
+                 board: BoardSpec, sigma_r: float, blur: float) -> None:
+        self.rays, self.lab, self.board = rays, lab, board
+        self.bh, self.bm = bh, bm
+        self.sigma_r, self.blur = sigma_r, blur
+        # a ring's height on the board is known less well than a position along it: the beam
+        # is 1.5 mrad tall (4 mm at 2.6 m) and the laser's elevation is only nominal
+        self.blur_z = max(blur, EDGE_BLUR_Z)
+        # the blur across the side edges and across the top and bottom edges (`set_blur`)
+        self.blur_edges = (blur, self.blur_z)
+        self.use_range = np.zeros(len(lab), dtype=bool)
+        self._range = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        self._bh = (rays.origin[bh], rays.direction[bh])
+        self._bm = (rays.origin[bm], rays.direction[bm])
+        self.edge_kind = np.zeros(len(bh), dtype=np.int8)  # 0 skip, 1 vertical edge, 2 horizontal
+        self.edge_sign = np.zeros(len(bh))
+        self.edge_sd = np.ones(len(bh))
+        self.excluded = np.zeros(len(bh), dtype=bool)  # left out of every fit (gross errors)
+        #: The common range offset the ranges carry (m), and its prior (mean, 1-sigma) when it
+        #: is fitted with the pose (`_gauss_newton`); None: held at ``offset``.
+        self.offset = 0.0
+        self.offset_prior: tuple[float, float] | None = None
+        #: The last pose's board coordinates of all rays (`coords`): its bytes and (X, Z, lam).
+        self._coords: tuple[bytes, tuple[np.ndarray, ...]] | None = None
+        #: The rays' products with the last rotation's rows (`_shifted_coords`): the bytes of
+        #: (t_y, roll, tilt, yaw) and (o.r0, lam u.r0, o.r2, lam u.r2, lam).
+        self._products: tuple[bytes, tuple[np.ndarray, ...]] | None = None
+        # the labels stay as built: their hits and misses, for every profile
+        self._hits, self._misses = np.flatnonzero(lab == HIT), np.flatnonzero(lab == MISS)
+        self._cache_edges()
+
+    def coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`board_coordinates` of all the model's rays at ``theta``; the last pose's are kept:
+        a fit classifies, assigns and profiles at the same pose several times. Read only."""
+        theta = np.asarray(theta, dtype=np.float64)
+        key = theta.tobytes()
+        if self._coords is None or self._coords[0] != key:
+            self._coords = (key, self._shifted_coords(theta))
+        return self._coords[1]
+
+    def _shifted_coords(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`board_coordinates` at ``theta``, its expressions term by term (so the same bits),
+        reusing the products with the rotation rows where only the in-plane position moved
+        since the last pose (a profile's shift, every other new pose of a fit): X = (o.r0 +
+        t_x) + lam u.r0 and Z alike, lam depending on t_y and the rotation alone."""
+        rkey = theta[[1, 3, 4, 5]].tobytes()
+        if self._products is None or self._products[0] != rkey:
+            # compiled (`align.fit_kernels.ray_products`: the same floats as the matrix-vector
+            # products and the elementwise steps)
+            self._products = (rkey, ray_products(self.rays.origin, self.rays.direction,
+                                                 rotation(theta[3], theta[4], theta[5]),
+                                                 float(theta[1])))
+        ox, ux, oz, uz, lam = self._products[1]
+        return (*shifted_coords(ox, ux, oz, uz, float(theta[0]), float(theta[2])), lam)
+
+    def _cache_edges(self) -> None:
+        """The used brackets' rays, signs and sigmas, contiguous (the fit only reads these)."""
+        oh, uh, om, um, self._usign, self._usd, self._uvert = used_edges(
+            self.edge_kind, *self._bh, *self._bm, self.edge_sign, self.edge_sd)  # compiled
+        self._ubh, self._ubm = (oh, uh), (om, um)
+
+    def assign(self, theta: np.ndarray) -> None:
+        """Which hits feed the range residuals: those safely inside the rectangle."""
+        w2, h2 = self.board.width / 2, self.board.height / 2
+        x, z, lam = self.coords(theta)
+        r = self.rays
+        # the fit only ever looks at these rays: kept contiguous (`align.fit_kernels.range_rays`)
+        self.use_range, *rng = range_rays(x, z, lam, r.origin, r.direction, r.distance,
+                                          self.lab == 1, float(self.offset), w2 - EDGE_MARGIN,
+                                          h2 - EDGE_MARGIN, 4 * self.sigma_r)
+        self._range = tuple(rng)
+
+    def classify(self, theta: np.ndarray, guard: float, crossings: bool = True) -> None:
+        """Fix which edge each bracket measures, for pose ``theta``; drop the ambiguous ones.
+
+        The line through a bracket's hit and miss meets the side edge X = +-W/2 (on the side it
+        heads to) at some height z_at: well within the board's height (by ``guard``, m: the
+        pose's own uncertainty there) the bracket measures that side edge; well beyond it,
+        the top or bottom edge; in between (a bracket at a corner) it could be either and is
+        left out. Assignments stay fixed during a fit: switching them inside Gauss-Newton
+        makes the cost jump and traps the fit in wrong basins.
+        """
+        x, z, _ = self.coords(theta)
+        self.set_blur(theta)
+        # `_edges` for the brackets, compiled; without crossings, rings that cross an edge at
+        # a grazing angle (a level board's top or bottom edge) are left out: such a bracket is
+        # sharp across its edge, and wrong if matched to the wrong edge
+        self.edge_kind, self.edge_sign, self.edge_sd = classify_edges(
+            x, z, self.bh, self.bm, self.board.width / 2, self.board.height / 2, guard,
+            *self.blur_edges, crossings, GRAZING, self.excluded)
+        self._cache_edges()
+
+    def set_blur(self, theta: np.ndarray) -> None:
+        """The blur across each pair of edges at pose ``theta``: along the rings ``blur``,
+        across them (the LiDAR's up direction) ``blur_z``, mixed by the edge's direction."""
+        vx, vz = lidar_up(theta)
+        self.blur_edges = (float(np.hypot(self.blur * vz, self.blur_z * vx)),
+                           float(np.hypot(self.blur * vx, self.blur_z * vz)))
+
+    def _edges(self, xh, zh, xm, zm, guard: float = 0.0):
+        """Edge kind (1 side, 2 top or bottom, 0 left out), sign and sigma (m) of brackets.
+
+        sigma = sqrt(width^2 / 12 + blur^2), width = the bracket's extent across its edge.
+        """
+        w2, h2 = self.board.width / 2, self.board.height / 2
+        dx, dz = xm - xh, zm - zh
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z_at = np.abs(zh + (np.sign(dx) * w2 - xh) * dz / dx)
+        z_at = np.where(np.isfinite(z_at), z_at, np.inf)
+        # `align.fit_kernels.grazes_top_or_bottom`: a ring grazing the top or bottom edge
+        off_side = np.abs(np.abs(0.5 * (xh + xm)) - w2)
+        grazes = (off_side > SIDE_REACH) & (np.abs(np.abs(0.5 * (zh + zm)) - h2)
+                                            < 0.5 * off_side)
+        vert = (z_at <= h2) & ~grazes
+        kind = np.where(vert, 1, 2).astype(np.int8)
+        kind = np.where(((np.abs(z_at - h2) < guard) & ~grazes) | ((dx == 0) & (dz == 0)), 0,
+                        kind)
+        # which side: that of the miss (a ring crossing the top edge runs almost level, so
+        # the sign of its tiny height change says nothing)
+        sign = np.where(vert, np.sign(xm), np.sign(zm))
+        width = np.where(vert, dx, dz)
+        sd = np.sqrt(width**2 / 12 + np.where(vert, *self.blur_edges) ** 2)
+        return kind, sign, sd
+
+    def _width(self, theta: np.ndarray) -> np.ndarray:
+        """Each bracket's extent across its edge (m) at pose theta."""
+        x, z, _ = self.coords(theta)
+        return np.where(self.edge_kind == 1, x[self.bm] - x[self.bh], z[self.bm] - z[self.bh])
+
+    def profile(self, theta: np.ndarray, ds: np.ndarray, tol: float = PROFILE_TOL) -> np.ndarray:
+        """A cost for the pose shifted by each of ``ds`` (m) along the LiDAR's up direction in
+        the plane (`lidar_up`: z for a level board): label violations first.
+
+        The shift moves every board coordinate by the same amount and leaves the ranges alone,
+        so the profile is cheap. The cost counts hits outside the rectangle and misses inside it
+        (more than ``tol`` from its edge), then adds the brackets' squared residuals with their
+        edges reassigned for each shift: one compiled pass (`align.fit_kernels.profile_cost`;
+        the numpy version's (brackets x shifts) temporaries cost 10x).
+        """
+        x, z, _ = self.coords(theta)
+        vx, vz = lidar_up(theta)
+        return profile_cost(x, z, self._hits, self._misses,
+                            self.bh, self.bm, np.asarray(ds, dtype=np.float64), vx, vz,
+                            self.board.width / 2, self.board.height / 2, tol, *self.blur_edges)
+
+    def shift(self, theta: np.ndarray, ds: np.ndarray) -> np.ndarray:
+        """``theta`` moved to the cheapest shift of `profile` over ``ds`` (its first minimum,
+        `align.fit_kernels.profile_best`: the brackets costed only where they can decide)."""
+        x, z, _ = self.coords(theta)
+        vx, vz = lidar_up(theta)
+        s = float(ds[profile_best(x, z, self._hits, self._misses, self.bh, self.bm,
+                                  np.asarray(ds, dtype=np.float64), vx, vz,
+                                  self.board.width / 2, self.board.height / 2, PROFILE_TOL,
+                                  *self.blur_edges)])
+        out = theta.copy()
+        out[0] += s * vx
+        out[2] += s * vz
+        return out
+
+    def _fit_arrays(self) -> tuple:
+        """The arrays and constants `align.kernels.fit_residuals` reads, in its order after
+        (theta, rot)."""
+        return (*self._range, float(self.offset), float(self.sigma_r), *self._ubh, *self._ubm,
+                self._usign, self._usd, self._uvert, self.board.width / 2,
+                self.board.height / 2, float(self.board.thickness))
+
+    def residuals(self, theta: np.ndarray) -> np.ndarray:
+        """Whitened residuals: ranges of the interior hits, then the used brackets.
+
+        A bracket's residual is its edge's position minus the middle of its hit's and miss's
+        points on the board, over its sigma; the plate's side face puts the edge further out
+        for a ray heading inwards that passes the front edge by less than thickness x (its
+        lateral over forward direction): it still hits the board. One compiled pass over the
+        rays (`align.kernels.fit_residuals`; the numpy version's two dozen calls cost 10x)."""
+
+        theta = np.asarray(theta, dtype=np.float64)
+        rot = rotation(theta[3], theta[4], theta[5])
+        return fit_residuals(theta, rot, *self._fit_arrays())
+
+    def jacobian(self, theta: np.ndarray, f0: np.ndarray) -> np.ndarray:
+        """d residuals / d theta: translations analytically, rotations by forward differences.
+
+        X = o.r0 + t_x + lam u.r0, Z = o.r2 + t_z + lam u.r2, lam = -(o.r1 + t_y) / u.r1 (r_k
+        the rows of R): t_x and t_z move X and Z one for one; t_y moves lam by -1 / u.r1.
+        The fit's own (`align.fit_kernels._jacobian_into`, which `lm_fit` calls in its loop).
+        """
+
+        f0 = np.asarray(f0, dtype=np.float64)
+        j = np.zeros((len(f0), 6))
+        _jacobian_into(np.asarray(theta, dtype=np.float64), f0, *self._fit_arrays(),
+                       JACOBIAN_STEP, j, np.empty(len(f0)))
+        return j
+
+
+#: The forward difference of the rotations in `_Model.jacobian`, rad.
+JACOBIAN_STEP = 1e-7
+
+
+def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
+                 sigma_r: float, blur: float, like: _Model | None = None,
+                 offset: tuple[float, tuple[float, float] | None] = (0.0, None),
+                 coords: tuple[np.ndarray, ...] | None = None) -> _Model:
+    """Brackets along the rings and between rings at the board's centre column, as a model.
+    Its range offset and the offset's prior: ``like``'s (a model rebuilt), else ``offset``.
+    ``coords``: the rays' board coordinates at ``theta`` if the caller has them."""
+    if coords is None:
+        coords = board_coordinates(theta, rays.origin, rays.direction)
+    x, z, _ = coords
+    vx, vz = lidar_up(theta)
+    bh, bm = _brackets(rays, lab)
+    vh, vm = _vertical_brackets(rays, lab, np.abs(vz * x - vx * z))
+    model = _Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
+                   sigma_r, blur)
+    model.offset, model.offset_prior = (like.offset, like.offset_prior) if like else offset
+    model._coords = (np.asarray(theta, dtype=np.float64).tobytes(), coords)
+    return model

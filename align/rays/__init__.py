@@ -1,0 +1,1 @@
+"""method="rays": the pipeline (`pipeline.estimate_rays`) and its steps of its own."""

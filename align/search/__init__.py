@@ -1,0 +1,1 @@
+"""Stage 1, the board search: which returns of a scan are the board's."""
