@@ -17,7 +17,7 @@ from align.jit import kernel
 
 
 @intrinsic
-def _fma(typingctx, a, b, c):
+def fma(typingctx, a, b, c):
     """a * b + c rounded once (LLVM's fma): what a BLAS matrix product's FMA kernels compute
     per term, so that a compiled loop reproduces their sums bit for bit."""
     sig = types.float64(types.float64, types.float64, types.float64)
@@ -29,10 +29,10 @@ def _fma(typingctx, a, b, c):
 
 
 @kernel
-def _gemv3(a0: float, a1: float, a2: float, x0: float, x1: float, x2: float) -> float:
+def gemv3(a0: float, a1: float, a2: float, x0: float, x1: float, x2: float) -> float:
     """One row of numpy's (N, 3) @ (3,) as OpenBLAS's Haswell dgemv computes it (the middle
     term first, then the others fused: checked bit for bit against numpy on real scans)."""
-    return _fma(a2, x2, _fma(a0, x0, a1 * x1))
+    return fma(a2, x2, fma(a0, x0, a1 * x1))
 @kernel
 def rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
     """`align.geometry.rotation`: the same expressions (and the same libm cos and sin), so the
@@ -50,23 +50,23 @@ def rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
 
 
 
-def _rows(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def plane_rows(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows r0 and r2 of R for the plane normal n at each roll (R's row r1 is n throughout):
     `align.geometry.pose_from_plane` then `align.geometry.rotation`, vectorised."""
-    return _rows_kernel(np.asarray(rolls, dtype=np.float64), np.asarray(n, dtype=np.float64))
+    return _plane_rows_kernel(np.asarray(rolls, dtype=np.float64), np.asarray(n, dtype=np.float64))
 
 
 @kernel
-def _rows_kernel(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`_rows` in one loop: the same operations in the same order as numpy's elementwise
+def _plane_rows_kernel(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`plane_rows` in one loop: the same operations in the same order as numpy's elementwise
     ones (two dozen numpy calls on ~100 rolls cost 5x more in call overhead than the maths)."""
-    return _rows_of(np.cos(rolls), np.sin(rolls), n)
+    return plane_rows_of(np.cos(rolls), np.sin(rolls), n)
 
 
 @kernel
-def _rows_of(cos_r: np.ndarray, sin_r: np.ndarray, n: np.ndarray
+def plane_rows_of(cos_r: np.ndarray, sin_r: np.ndarray, n: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray]:
-    """`_rows_kernel` from the rolls' cosines and sines (elementwise, the same floats as the
+    """`_plane_rows_kernel` from the rolls' cosines and sines (elementwise, the same floats as the
     scalar calls): many planes on one grid compute them once."""
     k = cos_r.shape[0]
     r0, r2 = np.empty((k, 3)), np.empty((k, 3))

@@ -87,3 +87,8 @@ def in_plane_rotation(theta: np.ndarray) -> float:
 
 def theta_of(pose: Pose) -> np.ndarray:
     return pose.as_array()
+
+
+def unwrap(azimuth: np.ndarray, centre: float) -> np.ndarray:
+    """Azimuth relative to ``centre`` in [-pi, pi), rad."""
+    return (azimuth - centre + np.pi) % (2 * np.pi) - np.pi

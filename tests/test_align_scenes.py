@@ -123,7 +123,7 @@ def test_a_holder_below_the_board_on_a_ring_that_misses_it_is_not_a_grazing_edge
     # them for one and rolled the rectangle by 0.6-2.1 deg to ride them (4 of 5 scans)
     _, scans = _holder_scene((0.04246123, 0.00563728, -0.01343984), 984659277, 1463840930,
                              -0.00907365, 6.677941)
-    from align.rays import HIT, _candidates_at, _grazing_runs, _labels
+    from align.rays import HIT, candidates_at, grazing_runs, _labels
     from align.segment import find_board
 
     board = align.BoardSpec()
@@ -131,10 +131,10 @@ def test_a_holder_below_the_board_on_a_ring_that_misses_it_is_not_a_grazing_edge
     flagged_off, flagged_on = 0, 0
     for s in scans:
         seg = find_board(s, board, align.Hints())
-        rays, coords, _ = _candidates_at([s], [seg], theta, board)
+        rays, coords, _ = candidates_at([s], [seg], theta, board)
         lab = _labels(rays, coords[2], 0.014)
         order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
-        out = _grazing_runs(rays, lab, coords, coords[2], board, order)
+        out = grazing_runs(rays, lab, coords, coords[2], board, order)
         x, z = coords[0], coords[1]
         on = (np.abs(x) < board.width / 2) & (np.abs(z) < board.height / 2)
         assert np.all(lab[out] == HIT)
@@ -180,7 +180,7 @@ def test_a_bright_hit_beside_a_side_edge_does_not_roll_a_confident_estimate():
     # its face 21 mm behind the board's, gives one ring a last hit no side line can tell from
     # the board's; as a hit the posterior held it inside the rectangle and rolled it by 0.8
     # deg at a sigma of 0.12 (7 sigma). It is brighter than any of the board's own
-    from align.rays import _bright_ends, _candidates_at, _labels
+    from align.rays import bright_ends, candidates_at, _labels
     from align.segment import find_board
 
     _, scans = _holder_scene((0.00170699, -0.03560768, -0.00589595), 317153660, 2071925616,
@@ -191,13 +191,13 @@ def test_a_bright_hit_beside_a_side_edge_does_not_roll_a_confident_estimate():
     w2, h2 = board.width / 2, board.height / 2
     seen = 0
     for s in scans:
-        rays, coords, _ = _candidates_at([s], [find_board(s, board, align.Hints())], theta,
+        rays, coords, _ = candidates_at([s], [find_board(s, board, align.Hints())], theta,
                                          board)
         lab = _labels(rays, coords[2], 0.014)
         x, z = coords[0], coords[1]
         inner = (np.abs(x) < w2 - 0.03) & (np.abs(z) < h2 - 0.03)
         order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
-        out = _bright_ends(rays, lab, s.intensity[rays.gidx], inner, order)
+        out = bright_ends(rays, lab, s.intensity[rays.gidx], inner, order)
         assert not np.any(out & (np.abs(x) < w2) & (np.abs(z) < h2))  # none of the board's
         if not np.any(out):
             continue

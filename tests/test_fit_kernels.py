@@ -11,7 +11,7 @@ import align
 from align import rays as rays_mod
 from align import roll_search
 from align.board import BoardSpec
-from align.feasible import _rows
+from align.feasible import plane_rows
 from align.fit_kernels import window_sweep
 from align.geometry import board_coordinates, lidar_up
 from tests.conftest import DATA_DIR
@@ -31,7 +31,7 @@ def models() -> list[tuple[rays_mod._Model, np.ndarray]]:
 
 def profile_reference(model: rays_mod._Model, theta: np.ndarray, ds: np.ndarray,
                       tol: float = 3e-3) -> np.ndarray:
-    """`_Model.profile` as numpy calls (before the kernel)."""
+    """`Model.profile` as numpy calls (before the kernel)."""
     x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
     vx, vz = lidar_up(theta)
     w2, h2 = model.board.width / 2, model.board.height / 2
@@ -204,7 +204,7 @@ def test_window_sweep_matches_sorting_every_roll():
     for n, step in ((150, np.deg2rad(1.0)), (1000, np.deg2rad(0.1)), (7, np.deg2rad(5.0))):
         pts, normal = _board_points(rng, n)
         rolls = np.arange(-np.pi / 2, np.pi / 2, step)
-        r0, r2 = _rows(rolls, normal)
+        r0, r2 = plane_rows(rolls, normal)
         whole = 0
         for p in (pts, pts[3:]):  # with strays, and without: rolls the window holds whole
             for coords, length in ((p @ r0.T, board.width + 0.02),
@@ -420,7 +420,7 @@ def test_window_rays_are_board_coordinates_bit_for_bit():
 
 def classify_reference(model: rays_mod._Model, theta: np.ndarray, guard: float,
                        crossings: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`_Model.classify`'s kinds, signs and sigmas as numpy calls (before the kernel)."""
+    """`Model.classify`'s kinds, signs and sigmas as numpy calls (before the kernel)."""
     x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
     model.set_blur(theta)
     xh, zh, xm, zm = x[model.bh], z[model.bh], x[model.bm], z[model.bm]
@@ -483,7 +483,7 @@ def test_classify_matches_numpy_on_real_scans(models):
 def test_residual_copies_are_kernels_bit_for_bit(models):
     """`fit_kernels`' copy of the residuals (`lm_fit` calls it) is `align.kernels`' own, bit
     for bit, at the estimate and off it, with a range offset. (The Jacobian has one version,
-    `_jacobian_into`, held against numpy's in tests/test_rays_kernels.py.)"""
+    `jacobian_into`, held against numpy's in tests/test_rays_kernels.py.)"""
     from align.fit_kernels import _residuals_into, rotation
 
     for model, theta in models:
@@ -723,7 +723,7 @@ def test_board_spans_match_numpy_on_real_scans(models):
 
 
 def assign_reference(model: rays_mod._Model, theta: np.ndarray) -> tuple[np.ndarray, ...]:
-    """`_Model.assign`'s mask and rays as numpy masks and gathers (before the kernel)."""
+    """`Model.assign`'s mask and rays as numpy masks and gathers (before the kernel)."""
     w2, h2 = model.board.width / 2, model.board.height / 2
     x, z, lam = board_coordinates(theta, model.rays.origin, model.rays.direction)
     inside = (np.abs(x) < w2 - rays_mod.EDGE_MARGIN) & (np.abs(z) < h2 - rays_mod.EDGE_MARGIN)
@@ -734,7 +734,7 @@ def assign_reference(model: rays_mod._Model, theta: np.ndarray) -> tuple[np.ndar
 
 
 def test_assign_matches_numpy_on_real_scans(models):
-    """`_Model.assign` (`fit_kernels.range_rays`) against its numpy version, at the estimate and
+    """`Model.assign` (`fit_kernels.range_rays`) against its numpy version, at the estimate and
     off it, with a range offset."""
     for model, theta in models:
         for dt, offset in ((np.zeros(6), 0.0), (np.array([0.01, 0.004, -0.01, 0.02, 0, 0]), 0.01)):
@@ -750,7 +750,7 @@ def test_assign_matches_numpy_on_real_scans(models):
 
 
 def test_model_coords_are_board_coordinates_bit_for_bit(models):
-    """`_Model.coords` reuses the rotation's products for a pose moved in the plane only: the
+    """`Model.coords` reuses the rotation's products for a pose moved in the plane only: the
     same bits as `board_coordinates` there, after a new rotation, and after a new t_y."""
     for model, theta in models:
         model._coords = model._products = None
@@ -771,7 +771,7 @@ def test_model_coords_are_board_coordinates_bit_for_bit(models):
 
 
 def test_used_edges_and_contradicted_match_numpy_on_real_scans(models):
-    """`_Model._cache_edges` (`fit_kernels.used_edges`) and `rays._contradicted`
+    """`Model._cache_edges` (`fit_kernels.used_edges`) and `rays._contradicted`
     (`fit_kernels.contradicted`) against their numpy versions, for both corner guards and with
     and without the grazing crossings, at the estimate and off it."""
     for model, theta in models:

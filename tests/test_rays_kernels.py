@@ -35,7 +35,7 @@ def _coords(rot: np.ndarray, theta: np.ndarray, o: np.ndarray, u: np.ndarray
 
 
 def residuals_reference(model: rays_mod._Model, theta: np.ndarray) -> np.ndarray:
-    """`_Model.residuals` as numpy calls (before the kernel)."""
+    """`Model.residuals` as numpy calls (before the kernel)."""
     rot = rotation(theta[3], theta[4], theta[5])
     o_r, u_r, d_r = model._range
     lam = -(o_r @ rot[1] + theta[1]) / (u_r @ rot[1])
@@ -55,7 +55,7 @@ def residuals_reference(model: rays_mod._Model, theta: np.ndarray) -> np.ndarray
 
 def jacobian_reference(model: rays_mod._Model, theta: np.ndarray, f0: np.ndarray
                        ) -> np.ndarray:
-    """`_Model.jacobian` as numpy calls (before the kernel)."""
+    """`Model.jacobian` as numpy calls (before the kernel)."""
     rot = rotation(theta[3], theta[4], theta[5])
     vert = model._uvert
     j = np.empty((len(f0), 6))

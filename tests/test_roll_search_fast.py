@@ -11,7 +11,7 @@ import pytest
 import align
 from align import roll_search
 from align.board import BoardSpec
-from align.feasible import _rows
+from align.feasible import plane_rows
 from align.fit_kernels import window_sweep_projected
 from tests.conftest import DATA_DIR
 from tests.test_fit_kernels import window_fit_reference
@@ -49,7 +49,7 @@ def left_out_reference(points: np.ndarray, n: np.ndarray, board: BoardSpec, roll
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`roll_search._left_out` before the sweep projected the points itself (and counted
     every roll along both axes)."""
-    r0, r2 = _rows(rolls, n)
+    r0, r2 = plane_rows(rolls, n)
     cx, tx = window_fit_reference(points @ r0.T, board.width + 2 * tol)
     cz, tz = window_fit_reference(points @ r2.T, board.height + 2 * tol)
     return 2 * len(points) - cx - cz, tx, tz
@@ -63,7 +63,7 @@ def test_projected_sweep_is_the_sorted_slide_bit_for_bit(searches):
                         (roll_search.FINE_POINTS, roll_search.FINE_STEP)):
             p = np.ascontiguousarray(roll_search._subsample(points, k))
             rolls = np.arange(-np.pi / 2, np.pi / 2, step)
-            for axes, length in zip(_rows(rolls, n), (board.width + 0.02, board.height + 0.02),
+            for axes, length in zip(plane_rows(rolls, n), (board.width + 0.02, board.height + 0.02),
                                     strict=True):
                 got = window_sweep_projected(p, np.ascontiguousarray(axes), length)
                 want = window_fit_reference(p @ axes.T, length)
@@ -75,14 +75,14 @@ def test_projected_sweep_is_the_sorted_slide_bit_for_bit(searches):
 
 def test_search_starts_are_those_of_the_numpy_reference(searches, monkeypatch):
     got = [roll_search.search(*a, **k) for a, k in searches]
-    monkeypatch.setattr(roll_search, "_left_out", left_out_reference)
+    monkeypatch.setattr(roll_search, "left_out", left_out_reference)
     want = [roll_search.search(*a, **k) for a, k in searches]
     assert got == want
     assert all(len(s) > 0 for s in got)
 
 
 def test_left_out_is_exact_within_one_of_the_fewest(searches):
-    """`_left_out` (`window_sweep_pair`: the second axis swept only where a roll can leave
+    """`left_out` (`window_sweep_pair`: the second axis swept only where a roll can leave
     out within one of the fewest) against every roll swept along both axes: the same count
     and shifts at every roll within one of the fewest, a count above the fewest plus one at
     every other, either axis first; and rolls were left out of the second sweep."""

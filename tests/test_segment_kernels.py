@@ -25,7 +25,7 @@ from align.segment import (
     LONG_RUN,
     MAX_AZIMUTH_GAP,
     SURROUND,
-    _unwrap,
+    unwrap,
     ring_radius_scale,
 )
 from tests.conftest import DATA_DIR
@@ -160,7 +160,7 @@ def real_scans() -> list[tuple[Scan, align.BoardSpec, align.Hints]]:
     return acfr + street
 
 
-def _search_mask(scan: Scan, board: align.BoardSpec, hints: align.Hints) -> np.ndarray:
+def search_mask(scan: Scan, board: align.BoardSpec, hints: align.Hints) -> np.ndarray:
     """The returns `segment.find_board` clusters."""
     m = scan.valid & (scan.distance >= hints.min_distance)
     if hints.expected_distance is not None:
@@ -176,7 +176,7 @@ def test_grid_clusters_match_the_numpy_reference_on_real_scans(real_scans):
         grid = segment._grid(scan)
         assert grid is not None  # both captures are on the sensor's firing grid
         short = min(board.width, board.height)
-        for ok in (_search_mask(scan, board, hints), scan.valid):
+        for ok in (search_mask(scan, board, hints), scan.valid):
             want_labels, want = labels_grid_reference(scan, grid, ok, board.diagonal, short)
             got_labels, got = segment._labels_grid(scan, grid, ok, board.diagonal, short)
             np.testing.assert_array_equal(got_labels, want_labels)
@@ -191,25 +191,25 @@ def test_grid_clusters_match_the_numpy_reference_on_real_scans(real_scans):
 def rectangle_fit_reference(scan: Scan, sel: np.ndarray, board: BoardSpec
                   ) -> tuple[float, float, float]:
     """`segment.rectangle_fit` before its compiled parts (`best_roll`, `rectangle_rays`)."""
-    from align.feasible import _rows
+    from align.feasible import plane_rows
     from align.plane import fit_lsq
-    from align.roll_search import COARSE_STEP, TOLERANCE, _left_out, _subsample
+    from align.roll_search import COARSE_STEP, TOLERANCE, left_out, subsample
 
     points = scan.xyz[sel]
     if len(points) < 3:
         return 0.0, 0.0, 0.0
     n, d = fit_lsq(points)
-    p = _subsample(points - (points @ n - d)[:, None] * n, 300)
+    p = subsample(points - (points @ n - d)[:, None] * n, 300)
     rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
     grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
-    left, tx, tz = _left_out(p, n, board, rolls, grow)
+    left, tx, tz = left_out(p, n, board, rolls, grow)
     best = int(np.argmin(left))
     held = float(1.0 - left[best] / (2 * len(p)))
     # the rays around the cluster (its rings, its azimuths and a board's width more)
     ring = scan.ring
     az0 = float(np.angle(np.mean(np.exp(1j * scan.azimuth[sel]))))
-    rel = _unwrap(scan.azimuth, az0)
-    span = np.abs(_unwrap(scan.azimuth[sel], az0)).max() + board.diagonal / max(d, 0.5)
+    rel = unwrap(scan.azimuth, az0)
+    span = np.abs(unwrap(scan.azimuth[sel], az0)).max() + board.diagonal / max(d, 0.5)
     near = np.flatnonzero((np.abs(rel) <= span) & (ring >= ring[sel].min())
                           & (ring <= ring[sel].max()))
     sub = scan.select(near)  # the rays of the few rings near the cluster, not the scan's
@@ -218,7 +218,7 @@ def rectangle_fit_reference(scan: Scan, sel: np.ndarray, board: BoardSpec
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = (d - o @ n) / un
     q = o + lam[:, None] * u
-    r0, r2 = _rows(rolls[best:best + 1], n)
+    r0, r2 = plane_rows(rolls[best:best + 1], n)
     x, z = q @ r0[0] + tx[best], q @ r2[0] + tz[best]
     inside = (lam > 0) & (np.abs(x) < board.width / 2 - FILL_MARGIN) & (
         np.abs(z) < board.height / 2 - FILL_MARGIN)
@@ -239,7 +239,7 @@ def test_rectangle_fit_matches_the_numpy_reference_on_real_clusters(real_scans):
     planes) equal the numpy reference's exactly."""
     weighed = 0
     for scan, board, hints in real_scans:
-        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+        labels, st = segment.cluster(scan, search_mask(scan, board, hints), board.diagonal,
                                      min(board.width, board.height))
         rng = np.random.default_rng(0)
         for lab in np.flatnonzero((st["count"] >= 20) & (st["rings"] >= 2)):
@@ -262,9 +262,9 @@ def test_best_roll_is_the_argmin_of_left_out_on_awkward_point_sets():
     the test: points on a coarse lattice (many equal counts across rolls: the first of equal
     minima), strays far off the plane or far along it, a handful of points, clusters much
     larger than the box."""
-    from align.feasible import _rows
+    from align.feasible import plane_rows
     from align.kernels import best_roll
-    from align.roll_search import COARSE_STEP, TOLERANCE, _left_out
+    from align.roll_search import COARSE_STEP, TOLERANCE, left_out
 
     board = align.BoardSpec()
     rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
@@ -288,9 +288,9 @@ def test_best_roll_is_the_argmin_of_left_out_on_awkward_point_sets():
             p[:3] += rng.normal(size=(min(3, len(p)), 3))
         if case % 5 == 4:  # a stray far off: the histogram bounds' exact fallback
             p[-1] += 30.0 * e1
-        left, tx, tz = _left_out(p, n, board, rolls, grow)
+        left, tx, tz = left_out(p, n, board, rolls, grow)
         b = int(np.argmin(left))
-        r0, r2 = _rows(rolls, n)
+        r0, r2 = plane_rows(rolls, n)
         got = best_roll(p, r0, r2, board.width + 2 * grow, board.height + 2 * grow)
         assert got == (b, int(left[b]), float(tx[b]), float(tz[b])), case
 
@@ -303,7 +303,7 @@ def test_ransac_gives_plane_ransacs_plane_on_real_clusters(real_scans):
 
     compared = 0
     for scan, board, hints in real_scans:
-        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+        labels, st = segment.cluster(scan, search_mask(scan, board, hints), board.diagonal,
                                      min(board.width, board.height))
         for lab in np.flatnonzero(st["count"] >= 3):
             pts = scan.xyz[labels == lab]
@@ -382,7 +382,7 @@ def test_corner_points_match_the_numpy_reference_on_real_clusters(real_scans):
 
     compared = 0
     for scan, board, hints in real_scans:
-        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+        labels, st = segment.cluster(scan, search_mask(scan, board, hints), board.diagonal,
                                      min(board.width, board.height))
         for lab in np.flatnonzero(st["count"] >= 10):
             pts = scan.xyz[labels == lab]
@@ -441,7 +441,7 @@ def test_rel_azimuth_is_unwrap_bit_for_bit():
     az = np.concatenate((rng.uniform(-10, 20, 3000), rng.uniform(0, two_pi, 3000),
                          np.nextafter(edges, np.inf), np.nextafter(edges, -np.inf), edges))
     for centre in (*rng.uniform(-np.pi, np.pi, 5), 0.0, np.pi, -np.pi):
-        want = _unwrap(az, centre)
+        want = unwrap(az, centre)
         taken = np.zeros(1, dtype=np.int64)
         got = np.array([_rel_azimuth(a, centre, taken) for a in az])
         assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
@@ -455,7 +455,7 @@ def test_cluster_members_match_the_stable_argsort_on_real_scans(real_scans):
     from align.kernels import cluster_members
 
     for scan, board, hints in real_scans:
-        labels, st = segment.cluster(scan, _search_mask(scan, board, hints), board.diagonal,
+        labels, st = segment.cluster(scan, search_mask(scan, board, hints), board.diagonal,
                                      min(board.width, board.height))
         for cand in (st["count"] >= 20, st["count"] > 0, np.zeros(len(st["count"]), bool)):
             ids = np.flatnonzero(cand)

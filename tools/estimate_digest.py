@@ -35,6 +35,7 @@ def record(out: Path, argv: list[str]) -> None:
     import align
 
     statuses: list[str] = []
+    methods: list[str] = []
     rows: list[np.ndarray] = []
     inner = align.estimate
 
@@ -42,6 +43,7 @@ def record(out: Path, argv: list[str]) -> None:
         est = inner(*args, **kwargs)
         status, values = _row(est)
         statuses.append(status)
+        methods.append(est.method)
         rows.append(values)
         return est
 
@@ -54,7 +56,7 @@ def record(out: Path, argv: list[str]) -> None:
             raise
     finally:
         values = np.array(rows).reshape(-1, 42)
-        np.savez(out, status=np.array(statuses), values=values)
+        np.savez(out, status=np.array(statuses), method=np.array(methods), values=values)
         print(f"digest: {len(rows)} estimates, sha256 {digest(statuses, values)}  -> {out}")
 
 
@@ -70,8 +72,12 @@ def compare(a: Path, b: Path) -> int:
     if len(da["status"]) != len(db["status"]):
         print(f"different counts: {len(da['status'])} vs {len(db['status'])}")
         return 1
+    # Open3D's ICP sums in parallel threads: the same scan estimated twice in one process can
+    # differ by 1e-16 (relative), so its estimates are compared apart
+    method = db["method"] if "method" in db.files else da["method"]
     bad = 0
     worst = 0.0
+    icp = 0
     for i, (sa, sb) in enumerate(zip(da["status"], db["status"], strict=True)):
         va, vb = da["values"][i], db["values"][i]
         same_nan = np.isnan(va) == np.isnan(vb)
@@ -79,12 +85,16 @@ def compare(a: Path, b: Path) -> int:
         scale[scale == 0] = 1.0
         rel = np.where(np.isnan(va) | np.isnan(vb), 0.0, np.abs(va - vb) / scale)
         if sa != sb or not same_nan.all() or rel.max() > 0:
+            if method[i] == "icp" and sa == sb and same_nan.all() and rel.max() < 1e-9:
+                icp += 1
+                continue
             bad += 1
             worst = max(worst, float(rel.max()))
             print(f"estimate {i}: {sa} vs {sb}, largest relative difference {rel.max():.3g}")
     print(f"{a}: {digest(da['status'], da['values'])}")
     print(f"{b}: {digest(db['status'], db['values'])}")
-    print(f"{bad} of {len(da['status'])} estimates differ; largest relative difference {worst:.3g}")
+    print(f"{bad} of {len(da['status'])} estimates differ; largest relative difference {worst:.3g}"
+          f" ({icp} icp estimates within 1e-9, Open3D's own scatter)")
     return 1 if bad else 0
 
 

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from align.floats import _fma, _gemv3, rotation
+from align.floats import fma, gemv3, rotation
 from align.jit import kernel
 
 
@@ -18,17 +18,17 @@ def corner_points(points: np.ndarray, n: np.ndarray, d: float, h: np.ndarray, v:
     projected onto the plane ``n``, ``d``, and per corner of their bounding rectangle along
     h, v (top-left, top-right, bottom-left, bottom-right) the projected point nearest it
     (the first of equally near). Returns (those four projected points (4, 3), their indices).
-    numpy's operations element by element (the matrix-vector products as `_gemv3`)."""
+    numpy's operations element by element (the matrix-vector products as `gemv3`)."""
     k = points.shape[0]
     proj = np.empty((k, 3))
     u = np.empty(k)
     w = np.empty(k)
     for i in range(k):
-        r = _gemv3(points[i, 0], points[i, 1], points[i, 2], n[0], n[1], n[2]) - d
+        r = gemv3(points[i, 0], points[i, 1], points[i, 2], n[0], n[1], n[2]) - d
         for j in range(3):
             proj[i, j] = points[i, j] - r * n[j]
-        u[i] = _gemv3(proj[i, 0], proj[i, 1], proj[i, 2], h[0], h[1], h[2])
-        w[i] = _gemv3(proj[i, 0], proj[i, 1], proj[i, 2], v[0], v[1], v[2])
+        u[i] = gemv3(proj[i, 0], proj[i, 1], proj[i, 2], h[0], h[1], h[2])
+        w[i] = gemv3(proj[i, 0], proj[i, 1], proj[i, 2], v[0], v[1], v[2])
     u_lo, u_hi, w_lo, w_hi = u.min(), u.max(), w.min(), w.max()
     cu = (u_lo, u_hi, u_lo, u_hi)
     cw = (w_hi, w_hi, w_lo, w_lo)
@@ -56,7 +56,7 @@ def corner_residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.n
     out = np.empty(3 * k)
     for i in range(k):
         for j in range(3):
-            m = _fma(r[j, 2], p_l[i, 2], _fma(r[j, 1], p_l[i, 1], r[j, 0] * p_l[i, 0]))
+            m = fma(r[j, 2], p_l[i, 2], fma(r[j, 1], p_l[i, 1], r[j, 0] * p_l[i, 0]))
             out[3 * i + j] = p_o[i, j] - (m + beta[j])
     return out
 

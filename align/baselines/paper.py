@@ -32,7 +32,7 @@ import numpy as np
 
 from align.baselines.kernels import centre, corner_jacobian, corner_points, corner_residuals
 from align.board import BoardSpec
-from align.plane.fit import _cross, ransac
+from align.plane.fit import cross, ransac
 from align.result import Hints, PoseEstimate, Status
 from align.search.cluster_kernels import in_ring_block
 from align.search.rings import on_board_rings
@@ -49,7 +49,7 @@ def plane_axes(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     h /= np.linalg.norm(h)
     if h[0] < 0:  # to the right, like X_O
         h = -h
-    v = _cross(n, h)
+    v = cross(n, h)
     if v[2] < 0:
         v = -v
     return h, v

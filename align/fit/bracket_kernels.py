@@ -88,7 +88,7 @@ def profile_cost(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray
     (vx, vz), 1e6 x the labels violated (hits of ``hit`` outside the rectangle grown by ``tol``,
     misses of ``miss`` inside it shrunk by ``tol``) plus the squared whitened residuals of the
     brackets (hit rays ``bh``, miss rays ``bm``), each bracket's edge reassigned per shift as
-    `_Model._edges` assigns it (no corner guard). ``x``, ``z``: every ray's board coordinates;
+    `Model._edges` assigns it (no corner guard). ``x``, ``z``: every ray's board coordinates;
     ``blur_side``, ``blur_top``: the blur across the side and the top/bottom edges, m. Numpy's
     error model: a bracket along an edge divides by zero as numpy did (z_at infinite)."""
     n = ds.shape[0]
@@ -350,7 +350,7 @@ def classify_edges(x: np.ndarray, z: np.ndarray, bh: np.ndarray, bm: np.ndarray,
     within ``guard`` of a corner, no extent, ``excluded``, or without ``crossings`` one crossing its
     edge at a grazing angle, across it less than ``grazing`` x along it), the edge's side
     (that of the miss) and the bracket's sigma sqrt(width^2 / 12 + blur^2), m, as
-    `_Model._edges` computes them. Numpy's error model: z_at of a bracket along x is inf."""
+    `Model._edges` computes them. Numpy's error model: z_at of a bracket along x is inf."""
     nb = bh.shape[0]
     kind = np.zeros(nb, dtype=np.int8)
     sign = np.zeros(nb)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from align.fit.bracket_kernels import between_hits, board_spans, column_brackets, laser_brackets
-from align.fit.rays import DROPOUT, HIT, _Rays
+from align.fit.rays import DROPOUT, HIT, Rays
 
 #: Consecutive transitions closer than this (in azimuth, rad) form one mixed zone.
 ZONE_AZIMUTH = np.deg2rad(0.5)
@@ -16,7 +16,7 @@ ZONE_AZIMUTH = np.deg2rad(0.5)
 MAX_GAP = np.deg2rad(0.7)
 
 
-def _between_hits(rays: _Rays, lab: np.ndarray, order: np.ndarray | None = None
+def rays_between_hits(rays: Rays, lab: np.ndarray, order: np.ndarray | None = None
                   ) -> np.ndarray:
     """Rays that lie between two hits of the same laser in the same scan (by azimuth).
     ``order``: the rays by scan, laser and azimuth, if the caller has it. Compiled
@@ -26,7 +26,7 @@ def _between_hits(rays: _Rays, lab: np.ndarray, order: np.ndarray | None = None
     return between_hits(order, rays.scan, rays.laser, lab == HIT)
 
 
-def _brackets(rays: _Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def hit_miss_brackets(rays: Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Hit/miss brackets along each laser: pairs (hit-side ray, miss-side ray) of indices.
 
     Only where a laser enters and leaves the board: the board is convex, so a transition
@@ -49,7 +49,7 @@ def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
     return board_spans(ls, az, lb == HIT, ZONE_AZIMUTH)  # compiled: a sort of the runs in numpy
 
 
-def _vertical_brackets(rays: _Rays, lab: np.ndarray, off: np.ndarray
+def vertical_brackets(rays: Rays, lab: np.ndarray, off: np.ndarray
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Ring-to-ring brackets of the edges above and below the board's centre, as the LiDAR sees
     them (the top and bottom edges of a level board).

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from align.floats import _fma, _gemv3
+from align.floats import fma, gemv3
 from align.jit import kernel
 
 
@@ -95,7 +95,7 @@ def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """`align.rays._candidates_at`'s selection in one pass: each ray's board coordinates as
     `align.geometry.board_coordinates` computes them at the pose with rotation ``rot`` and
-    translation (t_x, t_y, t_z) (numpy's matrix-vector products as `_gemv3`, its division
+    translation (t_x, t_y, t_z) (numpy's matrix-vector products as `gemv3`, its division
     and sums in its order: the same floats), and the rays in front of the sensor (lam > 0)
     within ``half_w``, ``half_h`` of the board's centre (m). Returns their indices, X, Z and
     lam."""
@@ -109,13 +109,13 @@ def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x:
     for i in range(m):
         o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
         u0, u1, u2 = direction[i, 0], direction[i, 1], direction[i, 2]
-        lam = -(_gemv3(o0, o1, o2, b0, b1, b2) + t_y) / _gemv3(u0, u1, u2, b0, b1, b2)
+        lam = -(gemv3(o0, o1, o2, b0, b1, b2) + t_y) / gemv3(u0, u1, u2, b0, b1, b2)
         if not lam > 0:
             continue
-        x = (_gemv3(o0, o1, o2, a0, a1, a2) + t_x) + lam * _gemv3(u0, u1, u2, a0, a1, a2)
+        x = (gemv3(o0, o1, o2, a0, a1, a2) + t_x) + lam * gemv3(u0, u1, u2, a0, a1, a2)
         if not abs(x) < half_w:
             continue
-        z = (_gemv3(o0, o1, o2, c0, c1, c2) + t_z) + lam * _gemv3(u0, u1, u2, c0, c1, c2)
+        z = (gemv3(o0, o1, o2, c0, c1, c2) + t_z) + lam * gemv3(u0, u1, u2, c0, c1, c2)
         if not abs(z) < half_h:
             continue
         idx[k], xs[k], zs[k], ls[k] = i, x, z, lam
@@ -128,7 +128,7 @@ def ray_products(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_y
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """`align.rays._Model._shifted_coords`' products of the rays with the rotation's rows:
     o.r0, lam u.r0, o.r2, lam u.r2 and lam = -(o.r1 + t_y) / u.r1, in one pass (numpy's
-    matrix-vector products as `_gemv3`, its elementwise steps in its order: the same
+    matrix-vector products as `gemv3`, its elementwise steps in its order: the same
     floats)."""
     m = origin.shape[0]
     ox, ux, oz, uz, lam = np.empty(m), np.empty(m), np.empty(m), np.empty(m), np.empty(m)
@@ -138,12 +138,12 @@ def ray_products(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_y
     for i in range(m):
         o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
         u0, u1, u2 = direction[i, 0], direction[i, 1], direction[i, 2]
-        la = -(_gemv3(o0, o1, o2, b0, b1, b2) + t_y) / _gemv3(u0, u1, u2, b0, b1, b2)
+        la = -(gemv3(o0, o1, o2, b0, b1, b2) + t_y) / gemv3(u0, u1, u2, b0, b1, b2)
         lam[i] = la
-        ox[i] = _gemv3(o0, o1, o2, a0, a1, a2)
-        ux[i] = la * _gemv3(u0, u1, u2, a0, a1, a2)
-        oz[i] = _gemv3(o0, o1, o2, c0, c1, c2)
-        uz[i] = la * _gemv3(u0, u1, u2, c0, c1, c2)
+        ox[i] = gemv3(o0, o1, o2, a0, a1, a2)
+        ux[i] = la * gemv3(u0, u1, u2, a0, a1, a2)
+        oz[i] = gemv3(o0, o1, o2, c0, c1, c2)
+        uz[i] = la * gemv3(u0, u1, u2, c0, c1, c2)
     return ox, ux, oz, uz, lam
 
 
@@ -195,10 +195,10 @@ def line_excess(xs: np.ndarray, a: np.ndarray, coef: np.ndarray, sign: np.ndarra
     """`align.rays._side_lines`' worst end for the lines ``coef``: np.argmax of the kept ends'
     excess (beyond the lines by more than ``tol``, or inside them by more than ``inward``; 0
     for the others and those within), with the excess. numpy's floats (a @ coef as
-    `_gemv3`, its elementwise maxima) and np.argmax's first maximum (a nan first)."""
+    `gemv3`, its elementwise maxima) and np.argmax's first maximum (a nan first)."""
     worst, top = -1, 0.0
     for i in range(xs.shape[0]):
-        beyond = (xs[i] - _gemv3(a[i, 0], a[i, 1], a[i, 2], coef[0], coef[1], coef[2])) * sign[i]
+        beyond = (xs[i] - gemv3(a[i, 0], a[i, 1], a[i, 2], coef[0], coef[1], coef[2])) * sign[i]
         e = 0.0
         if keep[i]:
             m = beyond - tol
@@ -223,20 +223,20 @@ def side_faces(u: np.ndarray, rot: np.ndarray, thickness: float) -> np.ndarray:
     rays with directions ``u`` (M, 3) still hit a plate of ``thickness`` (m) at the rotation
     ``rot``, in one pass. u @ rot.T as OpenBLAS's matrix product computes it for two rows or
     more (the `_project` order of `window_sweep_projected`; a single row numpy sends to its
-    matrix-vector kernel, whose order is `_gemv3`), then numpy's elementwise operations in
+    matrix-vector kernel, whose order is `gemv3`), then numpy's elementwise operations in
     its order: the same floats."""
     m = u.shape[0]
     out = np.empty((m, 4))
     for i in range(m):
         u0, u1, u2 = u[i, 0], u[i, 1], u[i, 2]
         if m == 1:
-            d0 = _gemv3(u0, u1, u2, rot[0, 0], rot[0, 1], rot[0, 2])
-            d1 = _gemv3(u0, u1, u2, rot[1, 0], rot[1, 1], rot[1, 2])
-            d2 = _gemv3(u0, u1, u2, rot[2, 0], rot[2, 1], rot[2, 2])
+            d0 = gemv3(u0, u1, u2, rot[0, 0], rot[0, 1], rot[0, 2])
+            d1 = gemv3(u0, u1, u2, rot[1, 0], rot[1, 1], rot[1, 2])
+            d2 = gemv3(u0, u1, u2, rot[2, 0], rot[2, 1], rot[2, 2])
         else:
-            d0 = _fma(rot[0, 2], u2, _fma(rot[0, 1], u1, rot[0, 0] * u0))
-            d1 = _fma(rot[1, 2], u2, _fma(rot[1, 1], u1, rot[1, 0] * u0))
-            d2 = _fma(rot[2, 2], u2, _fma(rot[2, 1], u1, rot[2, 0] * u0))
+            d0 = fma(rot[0, 2], u2, fma(rot[0, 1], u1, rot[0, 0] * u0))
+            d1 = fma(rot[1, 2], u2, fma(rot[1, 1], u1, rot[1, 0] * u0))
+            d2 = fma(rot[2, 2], u2, fma(rot[2, 1], u1, rot[2, 0] * u0))
         rx, rz = d0 / d1, d2 / d1
         out[i, 0] = thickness * _np_max0(rx)
         out[i, 1] = thickness * _np_max0(-rx)
@@ -286,7 +286,7 @@ def hit_runs(order: np.ndarray, lab: np.ndarray, laser: np.ndarray, scan: np.nda
 def _linked(order: np.ndarray, laser: np.ndarray, scan: np.ndarray, azimuth: np.ndarray,
             i: int, max_gap: float) -> bool:
     """Whether the rays at positions i and i + 1 of ``order`` are neighbours along a ring:
-    the same laser, the same scan, less than ``max_gap`` apart (`_grazing_runs`' same)."""
+    the same laser, the same scan, less than ``max_gap`` apart (`grazing_runs`' same)."""
     p, q = order[i], order[i + 1]
     return laser[q] == laser[p] and scan[q] == scan[p] and azimuth[q] - azimuth[p] < max_gap
 

@@ -9,10 +9,10 @@ import itertools
 import numpy as np
 
 from align.board import BoardSpec
-from align.fit.brackets import MAX_GAP, _between_hits
+from align.fit.brackets import MAX_GAP, rays_between_hits
 from align.fit.label_kernels import behind_groups, bright_limit, hit_runs, range_labels
-from align.fit.rays import DROPOUT, HIT, MISS, OUTLIER_MARGIN, UNKNOWN, _Rays
-from align.fit.sides import _Sides
+from align.fit.rays import DROPOUT, HIT, MISS, OUTLIER_MARGIN, UNKNOWN, Rays
+from align.fit.sides import Sides
 
 #: A return within this distance of the plane (along the ray) is a hit on the board, m. The
 #: nearest thing behind the paper's board (its stand) is 0.15 m behind it; the noise is 14 mm.
@@ -37,12 +37,12 @@ DROPOUT_FRACTION = 0.01
 MIN_DROPOUTS = 3
 
 
-def _hit_band(sigma_r: float) -> float:
+def hit_band(sigma_r: float) -> float:
     """How far from the plane (along the ray, either way) a return is a hit, m."""
     return min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
 
 
-def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
+def _labels(rays: Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     """`HIT`, `MISS` (no return or far behind), `UNKNOWN` (something in front, or just behind:
     `FRONT_SIGMAS` of the range noise ``sigma_r``, m) for each ray, and
     `DROPOUT` for the rays without a return when the board itself drops returns.
@@ -53,22 +53,22 @@ def _labels(rays: _Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     out. A board that returns everywhere keeps them as misses (they bound it where nothing
     stands behind it).
     """
-    return _labels_ordered(rays, lam, sigma_r)[0]
+    return labels_ordered(rays, lam, sigma_r)[0]
 
 
-def _labels_ordered(rays: _Rays, lam: np.ndarray, sigma_r: float
+def labels_ordered(rays: Rays, lam: np.ndarray, sigma_r: float
                     ) -> tuple[np.ndarray, np.ndarray]:
     """`_labels`, and the rays' order by scan, laser and azimuth it sorted them in."""
     # a hit within the hit band of the plane; in front: something before the board; just
     # behind (beyond the noise, within the label tolerance): the board's noise or a thing
     # close behind it (a stand's clamp): unknown. Compiled (`align.fit_kernels.range_labels`)
-    lab, res = range_labels(rays.distance, lam, _hit_band(sigma_r), LABEL_TOLERANCE, HIT,
+    lab, res = range_labels(rays.distance, lam, hit_band(sigma_r), LABEL_TOLERANCE, HIT,
                             UNKNOWN)
     ret = rays.distance > 0
     # one sort for both: the rays by scan, laser and azimuth (the hits' order is its subset)
     order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
     lab[_behind_ends(rays, lab, res, sigma_r, order)] = UNKNOWN
-    inner = _between_hits(rays, lab, order) & ~ret
+    inner = rays_between_hits(rays, lab, order) & ~ret
     hits = int(np.count_nonzero(lab == HIT))
     if np.count_nonzero(inner) >= max(MIN_DROPOUTS, DROPOUT_FRACTION * hits):
         lab[~ret] = DROPOUT
@@ -92,7 +92,7 @@ BEHIND_REACH = 40
 BEHIND_RUN = 3
 
 
-def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
+def _behind_ends(rays: Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
                  order: np.ndarray | None = None) -> np.ndarray:
     """The hits at either end of a laser's run on the board (per scan, by azimuth) that lie
     behind the plane as a group: a mask over the rays.
@@ -120,7 +120,7 @@ def _behind_ends(rays: _Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
 #: edge is as good as random over its spacing on the board (90 mm there), so a run that needs
 #: the edge within less than this of the ring (m) is the board by a chance of about 1 in 1000,
 #: and a holder or bracket just behind the edge (a few cm of hits on a ring that passes the
-#: board) by far the likelier (`_grazing_runs`).
+#: board) by far the likelier (`grazing_runs`).
 GRAZE_SAG = 1e-4
 
 
@@ -129,9 +129,9 @@ GRAZE_SAG = 1e-4
 CORNER_REACH = 0.05
 
 
-def _grazing_runs(rays: _Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
+def grazing_runs(rays: Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
                   expected: np.ndarray, board: BoardSpec, order: np.ndarray,
-                  sides: _Sides | None = None) -> np.ndarray:
+                  sides: Sides | None = None) -> np.ndarray:
     """The hits of runs (consecutive hits of one laser in one scan, by azimuth, a miss on
     either side) that only a ring riding an edge within `GRAZE_SAG` could put on the board: a
     mask over the rays.
@@ -148,7 +148,7 @@ def _grazing_runs(rays: _Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
     ``coords``: the rays' board coordinates (X, Z, lam) at the start pose, a pose good to a
     few cm for the corners; ``expected``: each ray's range to the plane (the offset in it);
     ``order``: the rays by scan, laser and azimuth. ``sides``: the side edges as the other
-    lasers' ends show them (`_Sides`), if they do: a run at a corner then ends at one of them,
+    lasers' ends show them (`Sides`), if they do: a run at a corner then ends at one of them,
     which holds at any pose; without them, a run within `CORNER_REACH` beyond its length of
     a corner of the rectangle at this pose is taken to cross it."""
     # runs of hits linked along a laser (the same laser and scan, no gap), their first and
@@ -187,7 +187,7 @@ def _grazing_runs(rays: _Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
 
 #: A hit at a laser's end brighter than this many times the board's brightest inner hits (their
 #: 99th percentile) is not the board's: a holder of another material beside the edge, flush
-#: with the plane within the range noise (`_bright_ends`). A board's own edge returns no
+#: with the plane within the range noise (`bright_ends`). A board's own edge returns no
 #: brighter than its face: a beam partly on it returns less. (Not so for dimmer: a partial
 #: return, the plate's side face met at a grazing angle, are the board's and dim.)
 BRIGHT_RATIO = 1.15
@@ -197,7 +197,7 @@ BRIGHT_RATIO = 1.15
 BRIGHT_REFERENCE = 20
 
 
-def _bright_ends(rays: _Rays, lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray,
+def bright_ends(rays: Rays, lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray,
                  order: np.ndarray) -> np.ndarray:
     """The hits at either end of a laser's run (per scan, by azimuth) brighter than
     `BRIGHT_RATIO` times the 99th percentile of the ``inner`` hits' ``intensity``, from the

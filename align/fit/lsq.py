@@ -9,11 +9,11 @@ import numpy as np
 
 from align.board import BoardSpec
 from align.fit.bracket_kernels import contradicted
-from align.fit.labels import _bright_ends, _grazing_runs, _labels_ordered
+from align.fit.labels import bright_ends, grazing_runs, labels_ordered
 from align.fit.lsq_kernels import lm_fit
-from align.fit.model import JACOBIAN_STEP, _build_model, _Model
-from align.fit.rays import HIT, MISS, OUTLIER_MARGIN, UNKNOWN, _candidates_at
-from align.fit.sides import _overhanging, _side_faces, _Sides
+from align.fit.model import JACOBIAN_STEP, Model, build_model
+from align.fit.rays import HIT, MISS, OUTLIER_MARGIN, UNKNOWN, candidates_at
+from align.fit.sides import Sides, overhanging, side_widening
 from align.result import Hints
 from align.search.result import Segmentation
 from twin.core.scan import Scan
@@ -22,7 +22,7 @@ from twin.core.scan import Scan
 STRAY = 0.04
 
 
-def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
+def _gauss_newton(model: Model, theta: np.ndarray, max_iter: int = 30
                   ) -> tuple[np.ndarray, np.ndarray, bool, int]:
     """Levenberg-Marquardt on the whitened residuals.
 
@@ -51,7 +51,7 @@ def _gauss_newton(model: _Model, theta: np.ndarray, max_iter: int = 30
 GROSS = 8.0
 
 
-def _gross_brackets(model: _Model, theta: np.ndarray) -> np.ndarray:
+def _gross_brackets(model: Model, theta: np.ndarray) -> np.ndarray:
     """The brackets (a mask over all of the model's) the fit at ``theta`` misses by more than
     `GROSS` sigma."""
     f = model.residuals(theta)
@@ -60,14 +60,14 @@ def _gross_brackets(model: _Model, theta: np.ndarray) -> np.ndarray:
     return out
 
 
-def _staged_fit(model: _Model, theta: np.ndarray, ds: np.ndarray
+def staged_fit(model: Model, theta: np.ndarray, ds: np.ndarray
                 ) -> tuple[np.ndarray, np.ndarray, bool, int, float]:
     """Fit in stages; returns (theta, J, converged, iterations, chi2 per degree of freedom).
 
     First without the grazing crossings (rings crossing a level board's top or bottom edge):
     roll and x from the edges the rings cross steeply, so that a poor start cannot lock z and
     roll into a wrong pair of crossings; then with them, the bracket assignment redone with a
-    tighter corner guard; a profile across the rings (`_Model.profile`) after each stage, and
+    tighter corner guard; a profile across the rings (`Model.profile`) after each stage, and
     a last fit if that profile moved the rectangle.
     """
     iters = 0
@@ -87,7 +87,7 @@ def _staged_fit(model: _Model, theta: np.ndarray, ds: np.ndarray
 
 
 @dataclass
-class _Fit:
+class Fit:
     """The least-squares fit from one start pose."""
 
     theta: np.ndarray
@@ -95,7 +95,7 @@ class _Fit:
     conv: bool
     iters: int
     chi2: float
-    model: _Model
+    model: Model
     rings: np.ndarray  # the rings with hits
     violations: int  # labels it contradicts by more than 1 cm (`_contradicted`)
 
@@ -108,9 +108,9 @@ PROFILE_SPACINGS = 0.6
 STRAY_SPACINGS = 0.4
 
 
-def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: BoardSpec,
+def fit_from(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: BoardSpec,
          sigma_r: float, hints: Hints, ds: np.ndarray,
-         offset: tuple[float, tuple[float, float] | None] = (0.0, None)) -> _Fit | None:
+         offset: tuple[float, tuple[float, float] | None] = (0.0, None)) -> Fit | None:
     """The joint least-squares fit from the start pose ``theta``; None: fewer than 3 rings hit.
 
     The position across the rings is the weakly known one (rings are 2 deg apart) and a ring
@@ -119,27 +119,27 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     (label violations first); then returns far outside the rectangle are not the board (the
     stand's base is level with the plane a ring or two below it): mark them unknown and rebuild
     the brackets; profile again; fix the bracket assignments leaving out those at corners, fit;
-    reassign tighter, refit (`_staged_fit`).
+    reassign tighter, refit (`staged_fit`).
     """
-    rays, coords, spacing = _candidates_at(scans, segs, theta, board)
+    rays, coords, spacing = candidates_at(scans, segs, theta, board)
     expected = coords[2] + offset[0]  # the range expected, offset included
-    lab, order = _labels_ordered(rays, expected, sigma_r)  # order: by scan, laser, azimuth
+    lab, order = labels_ordered(rays, expected, sigma_r)  # order: by scan, laser, azimuth
     # things just behind the board beside its edges, within the range noise of its plane: a
     # few cm of hits on a ring that passes the board, and rings lengthened past a side edge.
     # Left out before the brackets are drawn (a rectangle turned to reach them, as a fit from
     # there finds it, locks onto grazing crossings degrees off); judged again by the hit/miss
-    # posterior's labels at the fitted pose (`_ray_points`)
+    # posterior's labels at the fitted pose (`ray_points`)
     w2, h2, margin = board.width / 2, board.height / 2, OUTLIER_MARGIN
     inner = (np.abs(coords[0]) < w2 - margin) & (np.abs(coords[1]) < h2 - margin)
     intensity = np.concatenate([s.intensity for s in scans])[rays.gidx]
-    lab[_bright_ends(rays, lab, intensity, inner, order)] = UNKNOWN
-    ext = _side_faces(rays.direction, theta, board)
-    sides = _Sides.of(coords[0], coords[1], lab, rays.laser, ext, board)
-    grazing = _grazing_runs(rays, lab, coords, expected, board, order, sides)
+    lab[bright_ends(rays, lab, intensity, inner, order)] = UNKNOWN
+    ext = side_widening(rays.direction, theta, board)
+    sides = Sides.of(coords[0], coords[1], lab, rays.laser, ext, board)
+    grazing = grazing_runs(rays, lab, coords, expected, board, order, sides)
     if np.any(grazing):
         lab[grazing] = UNKNOWN
         sides = None  # its lasers' ends may have changed
-    lab[_overhanging(coords[0], coords[1], lab, rays.laser, ext, board, sides)] = UNKNOWN
+    lab[overhanging(coords[0], coords[1], lab, rays.laser, ext, board, sides)] = UNKNOWN
     rings_hit = np.unique(rays.ring[lab == HIT])
     if len(rings_hit) < 3:
         return None
@@ -148,7 +148,7 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     reach = max(float(ds[-1]), PROFILE_SPACINGS * spacing)
     ds = np.arange(-reach, reach + 0.5e-3, 1e-3)
     stray_margin = max(STRAY, STRAY_SPACINGS * spacing)
-    model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, offset=offset,
+    model = build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, offset=offset,
                          coords=coords)
     theta = model.shift(theta, ds)
     coords = model.coords(theta)
@@ -158,10 +158,10 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
     if np.any(stray):
         lab = lab.copy()
         lab[stray] = UNKNOWN
-        model = _build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, like=model,
+        model = build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, like=model,
                              coords=coords)
         theta = model.shift(theta, ds)
-    theta, j, conv, iters, chi2 = _staged_fit(model, theta, ds)
+    theta, j, conv, iters, chi2 = staged_fit(model, theta, ds)
     for _ in range(2):
         # a bracket the fit misses by many sigma is not the board's edge: a stray's (a post
         # just behind the board's edge, within the label tolerance of its plane, on a ring
@@ -171,7 +171,7 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
         if not np.any(gross):
             break
         model.excluded |= gross
-        theta, j, conv, it, chi2 = _staged_fit(model, theta, ds)
+        theta, j, conv, it, chi2 = staged_fit(model, theta, ds)
         iters += it
     if chi2 > 1.5:
         # a misfit (roll started too far off and a pair of grazing crossings held it there):
@@ -180,7 +180,7 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
         for droll in np.deg2rad([-2.0, -1.0, 1.0, 2.0]):
             start = theta.copy()
             start[3] += droll
-            cand = _staged_fit(model, start, ds)
+            cand = staged_fit(model, start, ds)
             if cand[4] < chi2:
                 theta, j, conv, it, chi2 = cand
                 iters += it
@@ -188,10 +188,10 @@ def _fit(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: 
         model.offset = kept_offset
         model.classify(theta, 0.002, True)  # the state of the kept fit, for the diagnostics
         model.assign(theta)
-    return _Fit(theta, j, conv, iters, chi2, model, rings_hit, _contradicted(model, theta))
+    return Fit(theta, j, conv, iters, chi2, model, rings_hit, _contradicted(model, theta))
 
 
-def _contradicted(model: _Model, theta: np.ndarray, margin: float = 0.01) -> int:
+def _contradicted(model: Model, theta: np.ndarray, margin: float = 0.01) -> int:
     """How many hits lie outside the rectangle at ``theta`` and misses inside it, by more than
     ``margin`` (m)."""
     x, z, _ = model.coords(theta)

@@ -113,7 +113,7 @@ def inverse_diagonal(a: np.ndarray) -> tuple[np.ndarray, bool]:
 @kernel
 def jacobian_rotations(theta: np.ndarray, step: float) -> np.ndarray:
     """R at ``theta`` and with its roll, tilt and yaw each moved by ``step`` (rad), (4, 3, 3):
-    what `_jacobian_into` differences."""
+    what `jacobian_into` differences."""
     rots = np.empty((4, 3, 3))
     rots[0] = rotation(theta[3], theta[4], theta[5])
     for k in range(3):
@@ -165,7 +165,7 @@ def _residuals_into(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np
 
 
 @kernel
-def _jacobian_into(theta: np.ndarray, f0: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
+def jacobian_into(theta: np.ndarray, f0: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
                    d_r: np.ndarray, offset: float, sigma_r: float, oh: np.ndarray,
                    uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
                    sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
@@ -237,7 +237,7 @@ def _lm_jacobian(p: np.ndarray, f: np.ndarray, fit_b: bool, offset: float, sb: f
     n_p = 7 if fit_b else 6
     j = np.zeros((f.shape[0], n_p))
     off = p[6] if fit_b else offset
-    _jacobian_into(p[:6].copy(), f, o_r, u_r, d_r, off, sigma_r, oh, uh, om, um, sgn, sd,
+    jacobian_into(p[:6].copy(), f, o_r, u_r, d_r, off, sigma_r, oh, uh, om, um, sgn, sd,
                    vert, w2, h2, thick, step, j, np.empty(n))
     if fit_b:
         for i in range(o_r.shape[0]):
@@ -331,7 +331,7 @@ def lm_fit(theta: np.ndarray, fit_b: bool, offset: float, b0: float, sb: float,
            ) -> tuple[np.ndarray, np.ndarray, bool, int]:
     """`align.rays._gauss_newton`'s Levenberg-Marquardt loop, whole: returns (p, J, converged,
     iterations), p the six pose parameters and with ``fit_b`` the offset seventh (its prior
-    (b0, sb)); else the offset is held at ``offset``. The arrays are `_Model._fit_arrays`'.
+    (b0, sb)); else the offset is held at ``offset``. The arrays are `Model._fit_arrays`'.
     The same steps as the python loop; the normal equations summed here rather than by BLAS,
     so the numbers agree to rounding (1e-12), not bit for bit. One call instead of a dozen
     numpy calls per step: the python overhead was two thirds of the loop's time."""

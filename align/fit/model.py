@@ -13,10 +13,10 @@ from align.fit.bracket_kernels import (
     profile_cost,
     used_edges,
 )
-from align.fit.brackets import _brackets, _vertical_brackets
+from align.fit.brackets import hit_miss_brackets, vertical_brackets
 from align.fit.label_kernels import range_rays, ray_products, shifted_coords
-from align.fit.lsq_kernels import _jacobian_into, fit_residuals
-from align.fit.rays import HIT, MISS, _Rays
+from align.fit.lsq_kernels import fit_residuals, jacobian_into
+from align.fit.rays import HIT, MISS, Rays
 from align.geometry import board_coordinates, lidar_up, rotation
 
 #: Range residuals only from hits at least this far inside the rectangle, m (beam footprint
@@ -34,14 +34,14 @@ GRAZING = 0.25
 
 
 #: How far outside the rectangle a hit (inside it a miss) violates its label in the profile
-#: across the rings (`_Model.profile`), m.
+#: across the rings (`Model.profile`), m.
 PROFILE_TOL = 3e-3
 
 
-class _Model:
+class Model:
     """Whitened residuals of the joint fit for a pose theta."""
 
-    def __init__(self, rays: _Rays, lab: np.ndarray, bh: np.ndarray, bm: np.ndarray,
+    def __init__(self, rays: Rays, lab: np.ndarray, bh: np.ndarray, bm: np.ndarray,
                  board: BoardSpec, sigma_r: float, blur: float) -> None:
         self.rays, self.lab, self.board = rays, lab, board
         self.bh, self.bm = bh, bm
@@ -230,19 +230,19 @@ class _Model:
 
         f0 = np.asarray(f0, dtype=np.float64)
         j = np.zeros((len(f0), 6))
-        _jacobian_into(np.asarray(theta, dtype=np.float64), f0, *self._fit_arrays(),
+        jacobian_into(np.asarray(theta, dtype=np.float64), f0, *self._fit_arrays(),
                        JACOBIAN_STEP, j, np.empty(len(f0)))
         return j
 
 
-#: The forward difference of the rotations in `_Model.jacobian`, rad.
+#: The forward difference of the rotations in `Model.jacobian`, rad.
 JACOBIAN_STEP = 1e-7
 
 
-def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
-                 sigma_r: float, blur: float, like: _Model | None = None,
+def build_model(rays: Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
+                 sigma_r: float, blur: float, like: Model | None = None,
                  offset: tuple[float, tuple[float, float] | None] = (0.0, None),
-                 coords: tuple[np.ndarray, ...] | None = None) -> _Model:
+                 coords: tuple[np.ndarray, ...] | None = None) -> Model:
     """Brackets along the rings and between rings at the board's centre column, as a model.
     Its range offset and the offset's prior: ``like``'s (a model rebuilt), else ``offset``.
     ``coords``: the rays' board coordinates at ``theta`` if the caller has them."""
@@ -250,9 +250,9 @@ def _build_model(rays: _Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSp
         coords = board_coordinates(theta, rays.origin, rays.direction)
     x, z, _ = coords
     vx, vz = lidar_up(theta)
-    bh, bm = _brackets(rays, lab)
-    vh, vm = _vertical_brackets(rays, lab, np.abs(vz * x - vx * z))
-    model = _Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
+    bh, bm = hit_miss_brackets(rays, lab)
+    vh, vm = vertical_brackets(rays, lab, np.abs(vz * x - vx * z))
+    model = Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
                    sigma_r, blur)
     model.offset, model.offset_prior = (like.offset, like.offset_prior) if like else offset
     model._coords = (np.asarray(theta, dtype=np.float64).tobytes(), coords)

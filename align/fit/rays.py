@@ -10,7 +10,7 @@ import numpy as np
 
 from align.board import BoardSpec
 from align.fit.label_kernels import pool_rows, window_pool, window_rays
-from align.geometry import rotation
+from align.geometry import rotation, unwrap
 from align.search.result import Segmentation
 from twin.core.scan import Scan
 
@@ -36,7 +36,7 @@ WINDOW_RINGS = 1.2
 
 
 @dataclass
-class _Rays:
+class Rays:
     """The candidate rays of all scans, in one set."""
 
     origin: np.ndarray  # (M, 3) m, {L}
@@ -49,18 +49,15 @@ class _Rays:
     scan: np.ndarray  # which scan
 
 
-def _unwrap(az: np.ndarray, c: float) -> np.ndarray:
-    return (az - c + np.pi) % (2 * np.pi) - np.pi
-
 
 def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
-                board: BoardSpec) -> _Rays:
+                board: BoardSpec) -> Rays:
     """Every fired ray (hit or not) near the board's rectangle, from all scans."""
-    return _candidates_at(scans, segs, theta, board)[0]
+    return candidates_at(scans, segs, theta, board)[0]
 
 
-def _candidates_at(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
-                   board: BoardSpec) -> tuple[_Rays, tuple[np.ndarray, ...], float]:
+def candidates_at(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
+                   board: BoardSpec) -> tuple[Rays, tuple[np.ndarray, ...], float]:
     """`_candidates`, with their board coordinates (X, Z, lam) at ``theta`` and the rings'
     spacing on the board there (`_ring_spacing`, m): the fit's next steps need both at the
     same pose. A ray's coordinates do not depend on which others are computed with it."""
@@ -73,7 +70,7 @@ def _candidates_at(scans: list[Scan], segs: list[Segmentation], theta: np.ndarra
     keep, x, z, lam = window_rays(cat[0], cat[1], rotation(theta[3], theta[4], theta[5]),
                                   float(theta[0]), float(theta[1]), float(theta[2]),
                                   board.width / 2 + win, board.height / 2 + win)
-    return _Rays(*pool_rows(keep, *cat)), (x, z, lam), spacing
+    return Rays(*pool_rows(keep, *cat)), (x, z, lam), spacing
 
 
 #: The last `_candidate_pool`: weak references to its scans and segmentations, its board and
@@ -85,7 +82,7 @@ _last_pool: tuple | None = None
 def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpec
                     ) -> list[np.ndarray]:
     """The fired rays of the board's rings (and one more on each side) within its azimuth
-    window, from all scans, as the arrays of `_Rays`; the same lists of scans and
+    window, from all scans, as the arrays of `Rays`; the same lists of scans and
     segmentations (the same objects, in the same order) reuse the last pool."""
     global _last_pool
     last = _last_pool
@@ -98,7 +95,7 @@ def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpe
     for s, g in zip(scans, segs, strict=True):
         az_b = s.azimuth[g.board]
         c = float(np.angle(np.mean(np.exp(1j * az_b))))
-        rel_b = _unwrap(az_b, c)
+        rel_b = unwrap(az_b, c)
         # wide enough for the whole board even if only part of it returned (a dark patch, an
         # occluder), at any in-plane rotation: the rectangle must not extend where no ray was
         # looked at
@@ -123,7 +120,7 @@ def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpe
     return cat
 
 
-def _rays_of(scan: Scan, idx: np.ndarray, lid: np.ndarray | None = None
+def rays_of(scan: Scan, idx: np.ndarray, lid: np.ndarray | None = None
              ) -> tuple[np.ndarray, np.ndarray]:
     """``scan.select(idx).origins()`` and ``.directions()`` without the other seven arrays'
     gathers: the same floats (each laser's elevation's cosine and sine taken from its table's

@@ -14,10 +14,10 @@ from align.fit.rays import HIT, OUTLIER_MARGIN
 from align.geometry import rotation
 
 
-def _side_faces(u: np.ndarray, theta: np.ndarray, board: BoardSpec) -> np.ndarray:
+def side_widening(u: np.ndarray, theta: np.ndarray, board: BoardSpec) -> np.ndarray:
     """(M, 4) how far past the left, right, bottom and top edge (m) the rays with directions
     ``u`` still hit the plate at ``theta``: its side faces, seen by rays heading inwards past
-    an edge (as `_Model.residuals`)."""
+    an edge (as `Model.residuals`)."""
     # compiled (`align.fit_kernels.side_faces`: the same floats as u @ rot.T, the ratios,
     # np.maximum and the product)
     return side_faces(np.ascontiguousarray(u, dtype=np.float64),
@@ -34,8 +34,8 @@ SPAN_SLACK = 0.005
 EDGE_REACH = 0.05
 
 
-def _overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
-                 ext: np.ndarray, board: BoardSpec, sides: _Sides | None = None) -> np.ndarray:
+def overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
+                 ext: np.ndarray, board: BoardSpec, sides: Sides | None = None) -> np.ndarray:
     """Hits at one end of a laser's run beyond the board's side edge: a holder or clamp beside
     it, flush with the board's plane within the range noise, whose hits extend that one
     laser's run. Returned to be left out of the labels: a rectangle turned to take them in is
@@ -52,10 +52,10 @@ def _overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarra
     hit's allowance ``ext`` outside an edge granted), and of a laser that spans more, the end
     farther off the line of the other lasers' ends at that side overhangs. Both tests hold at
     any pose near the board's to first order, a fit's roll error included. ``sides``:
-    `_Sides.of` these, if the caller has it."""
+    `Sides.of` these, if the caller has it."""
     out = np.zeros(len(lab), dtype=bool)
     if sides is None:
-        sides = _Sides.of(x, z, lab, laser, ext, board)
+        sides = Sides.of(x, z, lab, laser, ext, board)
     if sides is None:
         return out
     ids, ends, hit, x_l, x_r = sides.ids, sides.ends, sides.hit, sides.x_l, sides.x_r
@@ -88,7 +88,7 @@ def _overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarra
 
 
 @dataclass
-class _Sides:
+class Sides:
     """The lasers' ends at the board's side edges at a pose, and the edges they show.
 
     ``ids``: the lasers with hits on the board (or just beyond its top or bottom edge: a fit a
@@ -109,9 +109,9 @@ class _Sides:
 
     @classmethod
     def of(cls, x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
-           ext: np.ndarray, board: BoardSpec) -> _Sides | None:
+           ext: np.ndarray, board: BoardSpec) -> Sides | None:
         """From the rays' board coordinates ``x``, ``z``, labels, lasers and side-face
-        allowances ``ext`` (`_side_faces`); None with fewer than 3 lasers on the board."""
+        allowances ``ext`` (`side_widening`); None with fewer than 3 lasers on the board."""
         w2, h2, margin = board.width / 2, board.height / 2, OUTLIER_MARGIN
         # the hits, per laser its leftmost hit (the first of equal ones, as argmin) and its
         # rightmost, and the azimuth step on the board (the median spacing of a laser's

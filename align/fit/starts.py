@@ -10,7 +10,7 @@ from align.board import BoardSpec
 from align.fit.lsq import STRAY
 from align.geometry import board_coordinates, pose_from_plane
 from align.result import Hints
-from align.search.roll import FINE_POINTS, TOLERANCE, RollStart, _left_out, search
+from align.search.roll import FINE_POINTS, TOLERANCE, RollStart, left_out, search
 
 
 def _roll_window(board: BoardSpec, hints: Hints) -> tuple[float, float]:
@@ -27,7 +27,7 @@ def _roll_window(board: BoardSpec, hints: Hints) -> tuple[float, float]:
 PRIOR_REACH = 4.0
 
 
-def _starts(o: np.ndarray, u: np.ndarray, keep: np.ndarray, first: int, n: np.ndarray,
+def starts_on(o: np.ndarray, u: np.ndarray, keep: np.ndarray, first: int, n: np.ndarray,
             d: float, board: BoardSpec, hints: Hints) -> tuple[list[RollStart], int]:
     """The roll search's starts on the first scan's returns among ``keep`` (rays ``o``, ``u``;
     the first scan's are the first ``first``) met with the plane n . p = d, over the whole
@@ -41,14 +41,14 @@ def _starts(o: np.ndarray, u: np.ndarray, keep: np.ndarray, first: int, n: np.nd
     return starts, min(int(np.count_nonzero(sel)), FINE_POINTS)
 
 
-def _start_at(o: np.ndarray, u: np.ndarray, keep: np.ndarray, first: int, n: np.ndarray,
+def start_at(o: np.ndarray, u: np.ndarray, keep: np.ndarray, first: int, n: np.ndarray,
               d: float, board: BoardSpec, roll: float) -> RollStart:
-    """The roll search's start at the one ``roll`` (rad), on the returns `_starts` takes."""
+    """The roll search's start at the one ``roll`` (rad), on the returns `starts_on` takes."""
     sel = keep.copy()
     sel[first:] = False
     o_k, u_k = o[sel], u[sel]
     lam_k = (d - o_k @ n) / (u_k @ n)
-    left, tx, tz = _left_out(o_k + lam_k[:, None] * u_k, n, board,
+    left, tx, tz = left_out(o_k + lam_k[:, None] * u_k, n, board,
                                          np.array([roll]), TOLERANCE)
     return RollStart(roll, float(tx[0]), float(tz[0]), int(left[0]))
 
@@ -59,11 +59,11 @@ RETRY_VIOLATIONS = 10
 
 
 #: More than this fraction of the returns left out by the best start's rectangle: something
-#: else shares the board's plane (`_held`).
+#: else shares the board's plane (`held_by`).
 SPILL = 0.05
 
 
-def _held(o: np.ndarray, u: np.ndarray, n: np.ndarray, d: float, start: RollStart,
+def held_by(o: np.ndarray, u: np.ndarray, n: np.ndarray, d: float, start: RollStart,
           board: BoardSpec) -> np.ndarray:
     """The rays ``o``, ``u`` that meet the plane n . p = d within `STRAY` of the rectangle at
     the roll search's ``start``."""

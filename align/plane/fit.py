@@ -8,7 +8,7 @@ import numpy as np
 from align.plane.kernels import lsq_plane, msac_best, plane_band, ransac_best, ray_plane_fit
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a x b for two 3-vectors (np.cross's overhead dominates at this size)."""
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
                      a[0] * b[1] - a[1] * b[0]])
@@ -25,7 +25,7 @@ def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if np.linalg.norm(e1) < 1e-6:
         e1 = np.array([0.0, n[2], -n[1]])  # n x e_x
     e1 /= np.linalg.norm(e1)
-    return e1, _cross(n, e1)
+    return e1, cross(n, e1)
 
 
 def fit_lsq(points: np.ndarray) -> tuple[np.ndarray, float]:

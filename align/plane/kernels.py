@@ -9,7 +9,7 @@ import math
 import numpy as np
 from numba import njit
 
-from align.floats import _fma, _gemv3
+from align.floats import fma, gemv3
 from align.jit import kernel
 
 
@@ -44,7 +44,7 @@ def ransac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
     ``tri`` (H, 3) of the points ``xyz`` (3, N: rows x, y, z, so that the loop over the
     points runs on contiguous rows, four at a time); degenerate triples are skipped.
     `align.plane.ransac`'s scoring, term by term in its order: np.cross, einsum's (x0 y0 + x2
-    y2) + x1 y1 for the norms and offsets, the distance matrix's fused sums (`_fma`). Index -1
+    y2) + x1 y1 for the norms and offsets, the distance matrix's fused sums (`fma`). Index -1
     when every triple is degenerate."""
     px, py, pz = xyz[0], xyz[1], xyz[2]
     n_pts = px.shape[0]
@@ -56,14 +56,14 @@ def ransac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
             continue
         count = 0
         for i in range(n_pts):  # branch-free, so that it vectorises
-            count += abs(_fma(c2, pz[i], _fma(c1, py[i], c0 * px[i])) - d) < threshold
+            count += abs(fma(c2, pz[i], fma(c1, py[i], c0 * px[i])) - d) < threshold
         if count > best_count:
             best, best_count = h, count
             bn0, bn1, bn2, bd = c0, c1, c2, d
     out = np.zeros(n_pts, dtype=np.bool_)
     if best >= 0:
         for i in range(n_pts):
-            out[i] = abs(_fma(bn2, pz[i], _fma(bn1, py[i], bn0 * px[i])) - bd) < threshold
+            out[i] = abs(fma(bn2, pz[i], fma(bn1, py[i], bn0 * px[i])) - bd) < threshold
     return best, out
 
 
@@ -99,7 +99,7 @@ def msac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
         # the capped squares first (a loop without a running sum vectorises), then their sum
         # in eight running sums (one would wait on each addition)
         for i in range(n_pts):
-            v = min(abs(_fma(c2, pz[i], _fma(c1, py[i], c0 * px[i])) - d), threshold)
+            v = min(abs(fma(c2, pz[i], fma(c1, py[i], c0 * px[i])) - d), threshold)
             sq[i] = v * v
         s0 = s1 = s2 = s3 = s4 = s5 = s6 = s7 = 0.0
         octs = n_pts - n_pts % 8
@@ -131,18 +131,18 @@ def msac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
         certain = False
     c0, c1, c2, d = planes[best, 0], planes[best, 1], planes[best, 2], planes[best, 3]
     for i in range(n_pts):
-        out[i] = abs(_fma(c2, pz[i], _fma(c1, py[i], c0 * px[i])) - d) < threshold
+        out[i] = abs(fma(c2, pz[i], fma(c1, py[i], c0 * px[i])) - d) < threshold
     return best, certain, out
 
 
 @kernel
 def plane_band(xyz: np.ndarray, n: np.ndarray, d: float, threshold: float) -> np.ndarray:
     """np.abs(points @ n - d) < threshold for the points ``xyz`` (3, N: rows x, y, z), the
-    product as numpy's BLAS computes it (`_gemv3`)."""
+    product as numpy's BLAS computes it (`gemv3`)."""
     px, py, pz = xyz[0], xyz[1], xyz[2]
     out = np.empty(px.shape[0], dtype=np.bool_)
     for i in range(px.shape[0]):
-        out[i] = abs(_gemv3(px[i], py[i], pz[i], n[0], n[1], n[2]) - d) < threshold
+        out[i] = abs(gemv3(px[i], py[i], pz[i], n[0], n[1], n[2]) - d) < threshold
     return out
 
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from align.floats import _gemv3, _rows, _rows_of
+from align.floats import gemv3, plane_rows, plane_rows_of
 from align.jit import kernel
 
 #: Rolls handled together by `label_moments`: each block first keeps only the labels that can
@@ -680,7 +680,7 @@ def plane_posteriors(hit_o: np.ndarray, hit_u: np.ndarray, hit_ext: np.ndarray,
         n = normals[p]
         ph = _points(hit_o, hit_u, n, ds[p])
         pm = _points(miss_o, miss_u, n, ds[p])
-        r0, r2 = _rows_of(cr, sr, n)
+        r0, r2 = plane_rows_of(cr, sr, n)
         if soft.shape[0] == 0:
             mom = label_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
         else:
@@ -940,7 +940,7 @@ def in_plane_posterior(n: np.ndarray, points: np.ndarray, labels: np.ndarray,
 def _label_moments(n: np.ndarray, points: np.ndarray, labels: np.ndarray, ext: np.ndarray,
                    width: float, height: float, rolls: np.ndarray) -> np.ndarray:
     hit, miss = labels == 1, labels == 0
-    return label_moments(points[hit], points[miss], ext[hit], ext[miss], *_rows(rolls, n),
+    return label_moments(points[hit], points[miss], ext[hit], ext[miss], *plane_rows(rolls, n),
                          width / 2, height / 2)
 @kernel(error_model="numpy")
 def binding_rays(origin: np.ndarray, direction: np.ndarray, label: np.ndarray,
@@ -964,9 +964,9 @@ def binding_rays(origin: np.ndarray, direction: np.ndarray, label: np.ndarray,
             continue
         o0, o1, o2 = origin[i, 0], origin[i, 1], origin[i, 2]
         u0, u1, u2 = direction[i, 0], direction[i, 1], direction[i, 2]
-        lam = -(_gemv3(o0, o1, o2, b0, b1, b2) + t_y) / _gemv3(u0, u1, u2, b0, b1, b2)
-        x = (_gemv3(o0, o1, o2, a0, a1, a2) + t_x) + lam * _gemv3(u0, u1, u2, a0, a1, a2)
-        z = (_gemv3(o0, o1, o2, c0, c1, c2) + t_z) + lam * _gemv3(u0, u1, u2, c0, c1, c2)
+        lam = -(gemv3(o0, o1, o2, b0, b1, b2) + t_y) / gemv3(u0, u1, u2, b0, b1, b2)
+        x = (gemv3(o0, o1, o2, a0, a1, a2) + t_x) + lam * gemv3(u0, u1, u2, a0, a1, a2)
+        z = (gemv3(o0, o1, o2, c0, c1, c2) + t_z) + lam * gemv3(u0, u1, u2, c0, c1, c2)
         if lab == 1:
             if not (abs(x) < in_w and abs(z) < in_h):
                 hits[nh] = i

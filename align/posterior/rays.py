@@ -9,16 +9,16 @@ import numpy as np
 
 from align.board import BoardSpec
 from align.fit.label_kernels import edge_labels
-from align.fit.labels import _hit_band
-from align.fit.model import _Model
+from align.fit.labels import hit_band
+from align.fit.model import Model
 from align.fit.rays import HIT, MISS, OUTLIER_MARGIN
-from align.fit.sides import _overhanging, _side_faces
+from align.fit.sides import overhanging, side_widening
 from align.geometry import board_coordinates, lidar_up, pose_from_plane
 from align.plane.fit import tangent_basis
 from align.posterior.hit_miss import LabelledRays
 
 
-def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float],
+def ray_points(model: Model, theta: np.ndarray, tolerance: tuple[float, float],
                 intensity: np.ndarray | None = None,
                 partial: tuple[float, float] = (0.0, 0.0)) -> tuple[LabelledRays, np.ndarray]:
     """The rays that carry edge information, for `align.label_posterior`. Misses well inside
@@ -32,7 +32,7 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     x, z, lam = model.coords(theta)  # board_coordinates' floats (the fit's pose: often kept)
     lab = model.lab
     u = rays.direction
-    ext = _side_faces(u, theta, board)
+    ext = side_widening(u, theta, board)
     # the tolerance across each edge as the beam's footprint allows it: the support of the
     # ellipse with half-axes (side, top/bottom tolerance) along the LiDAR's horizontal and up
     # directions, in the edge's normal direction (a level board: the tolerances as given);
@@ -50,13 +50,13 @@ def _ray_points(model: _Model, theta: np.ndarray, tolerance: tuple[float, float]
     w2, h2, margin = board.width / 2, board.height / 2, OUTLIER_MARGIN
     use = edge_labels(x, z, lam, lab, _NO_INTENSITY if intensity is None else intensity, ext,
                       HIT, MISS, w2, h2, margin, PARTIAL_INTENSITY, per[0], per[1])
-    use &= ~_overhanging(x, z, lab, rays.laser, ext, board)
+    use &= ~overhanging(x, z, lab, rays.laser, ext, board)
     odds = _clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r)
     return (LabelledRays(rays.origin[use], u[use], lab[use], ext[use],
                          odds * (lab[use] == HIT)), np.flatnonzero(use))
 
 
-#: `_ray_points` without intensities (`edge_labels`' argument, of the intensities' type).
+#: `ray_points` without intensities (`edge_labels`' argument, of the intensities' type).
 _NO_INTENSITY = np.empty(0, dtype=np.uint8)
 
 
@@ -73,7 +73,7 @@ def _clutter_odds(res: np.ndarray, sigma_r: float) -> np.ndarray:
     (uniform over the hit band, `CLUTTER_CHANCE`) than from the board (Gaussian, ``sigma_r``),
     for `align.feasible.soft_moments`: 0.1 at 2.8 sigma, 0.4 at 3.3 sigma, 0.8 at the band's
     3.5 sigma."""
-    near = _hit_band(sigma_r)
+    near = hit_band(sigma_r)
     scale = CLUTTER_CHANCE * math.sqrt(2 * math.pi) * sigma_r / (2 * near)
     return scale * np.exp(np.minimum(0.5 * (res / sigma_r) ** 2, 50.0))
 
@@ -90,7 +90,7 @@ def _partial_hits(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray) -> 
     range, along the beam's centre, when the board's part of the spot outshines a dark or far
     background, so its centre may lie up to half the beam's width outside the edge; a return
     of the whole spot is as bright as the board's inner ones. None partial without inner hits
-    to compare with. (The definition: `_ray_points` takes them in `edge_labels`' pass.)"""
+    to compare with. (The definition: `ray_points` takes them in `edge_labels`' pass.)"""
     ref = intensity[(lab == HIT) & inner]
     if len(ref) == 0:
         return np.zeros(len(lab), dtype=bool)
@@ -114,7 +114,7 @@ MAX_STRAY_FRACTION = 0.01
 STRAY_ROUNDS = 3
 
 
-def _violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.ndarray:
+def violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.ndarray:
     """How far each hit lies outside the rectangle at ``theta``, and each miss inside it (m;
     0 where the label holds)."""
     x, z, _ = board_coordinates(theta, rays.origin, rays.direction)
@@ -124,7 +124,7 @@ def _violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.nd
     return np.where(rays.label == HIT, np.maximum(out, 0.0), np.maximum(-out, 0.0))
 
 
-def _pose_per_plane(theta: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
+def pose_per_plane(theta: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
     """d pose / d g (6, 3) at ``theta``: how the pose moves with the plane's small rotations and
     distance g = (alpha, beta, d) about (n, d) (`plane.fit_rays`' parametrisation), its roll and
     in-plane position held."""

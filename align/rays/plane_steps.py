@@ -10,7 +10,7 @@ import numpy as np
 
 from align.board import BoardSpec
 from align.fit.labels import LABEL_TOLERANCE
-from align.fit.rays import _Rays
+from align.fit.rays import Rays
 from align.geometry import board_coordinates
 from align.plane.fit import fit_rays_offsets, tangent_basis
 from align.posterior.hit_miss import OffsetModel
@@ -36,7 +36,7 @@ OFFSET_KNOWN = 1e-6
 RANGE_SIGMA_FLOOR = 1e-3
 
 
-def _range_plane(r: np.ndarray, o: np.ndarray, u: np.ndarray, ring: np.ndarray,
+def range_plane(r: np.ndarray, o: np.ndarray, u: np.ndarray, ring: np.ndarray,
                  n: np.ndarray, d: float, c_plane: np.ndarray, sigma: float, sigma_r: float,
                  hints: Hints) -> tuple[np.ndarray, float, tuple, OffsetModel | None,
                                         tuple[float, tuple[float, float] | None]]:
@@ -67,7 +67,7 @@ def _range_plane(r: np.ndarray, o: np.ndarray, u: np.ndarray, ring: np.ndarray,
     return n, d, ml_plane, offset_model, offset_start
 
 
-#: A return is inside the fitted rectangle (`_inside_returns`) by more than this, m: half the
+#: A return is inside the fitted rectangle (`inside_returns`) by more than this, m: half the
 #: VLP-16's beam footprint at 2.5 m and more (a mixed return's range is part background's),
 #: and about the fit's uncertainty across a side edge. Not the fit's uncertainty across the
 #: top and bottom edges (1-3 cm for one scan): the rings lie 9 cm apart there, and a margin
@@ -76,7 +76,7 @@ def _range_plane(r: np.ndarray, o: np.ndarray, u: np.ndarray, ring: np.ndarray,
 INSIDE_MARGIN = 0.005
 
 
-def _inside_returns(rays: _Rays, theta: np.ndarray, offset: float, board: BoardSpec,
+def inside_returns(rays: Rays, theta: np.ndarray, offset: float, board: BoardSpec,
                     coords: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
     """Which ``rays`` return from the plane of ``theta`` (within `LABEL_TOLERANCE` of it, the
     range ``offset`` removed) inside its rectangle by `INSIDE_MARGIN`. ``coords``: the rays'
@@ -96,7 +96,7 @@ def _inside_returns(rays: _Rays, theta: np.ndarray, offset: float, board: BoardS
 PLANE_MOVED_CHI2 = 7.8
 
 
-def _plane_moved(first: tuple[np.ndarray, float], inside: tuple[np.ndarray, float, np.ndarray]
+def plane_moved(first: tuple[np.ndarray, float], inside: tuple[np.ndarray, float, np.ndarray]
                  ) -> bool:
     """Whether the cluster's plane ``first`` (n, d) lies more than `PLANE_MOVED_CHI2` from the
     plane ``inside`` (n, d and the covariance of `plane.fit_rays`' (alpha, beta, d))."""
@@ -118,7 +118,7 @@ START_BAND = 0.05
 START_BAND_SIGMAS = 3.0
 
 
-def _start_band(dev: np.ndarray) -> float:
+def start_band(dev: np.ndarray) -> float:
     """The band about the start plane, m, from the returns' distances ``dev`` to it (their
     spread by the median, robust to the stand's and a box's returns in the cluster)."""
     return max(START_BAND, START_BAND_SIGMAS * 1.4826 * float(np.median(dev)))

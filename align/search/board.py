@@ -8,13 +8,14 @@ import math
 import numpy as np
 
 from align.board import BoardSpec
-from align.floats import _rows
+from align.floats import plane_rows
+from align.geometry import unwrap
 from align.plane.fit import fit_lsq, ransac
 from align.result import Hints, Status
 from align.search.cluster_kernels import cluster_members, total_variance
-from align.search.clusters import _unwrap, cluster
+from align.search.clusters import cluster
 from align.search.result import Segmentation
-from align.search.roll import COARSE_STEP, TOLERANCE, _subsample
+from align.search.roll import COARSE_STEP, TOLERANCE, subsample
 from align.search.roll_kernels import best_roll, rectangle_rays
 from twin.core.scan import Scan
 
@@ -70,12 +71,12 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     n, d = fit_lsq(points)
     # the points projected onto the plane, subsampled: the rows kept first (each row's
     # projection does not depend on the others, so the same values for a third of the work)
-    p = _subsample(points, 300)
+    p = subsample(points, 300)
     p = p - (p @ n - d)[:, None] * n
     rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
     grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
-    # `_left_out` and its argmin, sorting only the rolls that can be the best
-    r0s, r2s = _rows(rolls, n)
+    # `left_out` and its argmin, sorting only the rolls that can be the best
+    r0s, r2s = plane_rows(rolls, n)
     best, left_best, tx_best, tz_best = best_roll(
         p, r0s, r2s, board.width + 2 * grow, board.height + 2 * grow)
     held = float(1.0 - left_best / (2 * len(p)))
@@ -85,7 +86,7 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     lasers = scan.lasers
     offset_z = lasers.vertical_offset if scan.vertical_offsets_applied else np.zeros(
         lasers.n_lasers)
-    r0, r2 = _rows(rolls[best:best + 1], n)
+    r0, r2 = plane_rows(rolls[best:best + 1], n)
     n_on, n_off, n_band, n_band_on = rectangle_rays(
         scan.azimuth, scan.laser_id, scan.distance, lasers.elevation, offset_z,
         lasers.ring_of_laser, sel, az0, board.diagonal / max(d, 0.5), n, d, r0[0], r2[0],
@@ -140,7 +141,7 @@ def beam_grid(scan: Scan) -> tuple[float, float]:
     return float(min(max(az_step, AZ_STEP_RANGE[0]), AZ_STEP_RANGE[1])), ring_step
 
 
-def _rings(scan: Scan, sel: np.ndarray) -> int:
+def ring_count(scan: Scan, sel: np.ndarray) -> int:
     """How many rings the returns ``sel`` lie on."""
     # len(np.unique(...)) without its sort
     return int(np.count_nonzero(np.bincount(scan.lasers.ring_of_laser[scan.laser_id[sel]])))
@@ -157,7 +158,7 @@ def _board_sized(scan: Scan, sel: np.ndarray, board: BoardSpec) -> bool:
     return MIN_EXTENT * board.diagonal < extent < MAX_EXTENT * board.diagonal
 
 
-def _board_score(scan: Scan, sel: np.ndarray, board: BoardSpec, expect: float) -> float:
+def board_score(scan: Scan, sel: np.ndarray, board: BoardSpec, expect: float) -> float:
     """How board-like one board-sized plane's returns ``sel`` are: the paper's count and
     reflectivity, weighted by `rectangle_fit`."""
     # the board fits its rectangle: a cabinet, a wall's piece or a person of the same size and
@@ -195,7 +196,7 @@ def _planes(scan: Scan, board: BoardSpec, rng: np.random.Generator, labels: np.n
 def _weigh(scan: Scan, board: BoardSpec, planes: dict[int, list[np.ndarray]],
            expect: np.ndarray, cand: np.ndarray, score: np.ndarray, dist: np.ndarray,
            frac: np.ndarray, members: dict[int, np.ndarray]) -> None:
-    """Each candidate cluster of ``planes`` by its most board-like plane (`_board_score`), in
+    """Each candidate cluster of ``planes`` by its most board-like plane (`board_score`), in
     place: ``score``, ``dist`` and ``frac`` become that plane's, ``members`` its firings; a
     candidate without a board-sized plane is dropped from ``cand``. Where only one plane is
     board-sized its score decides nothing (the choice is the best candidate, whatever its
@@ -208,7 +209,7 @@ def _weigh(scan: Scan, board: BoardSpec, planes: dict[int, list[np.ndarray]],
             continue
         best: tuple[float, np.ndarray] | None = None
         for sel in found:
-            value = 1.0 if alone else _board_score(scan, sel, board, float(expect[lab]))
+            value = 1.0 if alone else board_score(scan, sel, board, float(expect[lab]))
             if best is None or value > best[0]:
                 best = (value, sel)
         score[lab], sel = best
@@ -217,7 +218,7 @@ def _weigh(scan: Scan, board: BoardSpec, planes: dict[int, list[np.ndarray]],
         frac[lab] = len(sel) / expect[lab]
 
 
-def _search_mask(scan: Scan, board: BoardSpec, hints: Hints) -> np.ndarray:
+def search_mask(scan: Scan, board: BoardSpec, hints: Hints) -> np.ndarray:
     """The returns the board search looks at: the hints' range, azimuth window and distance."""
     if hints.min_distance > 0:
         m = scan.distance >= hints.min_distance  # a return (distance > 0) is implied
@@ -225,13 +226,13 @@ def _search_mask(scan: Scan, board: BoardSpec, hints: Hints) -> np.ndarray:
         m = scan.valid & (scan.distance >= hints.min_distance)
     if hints.azimuth_window is not None:
         c, hw = hints.azimuth_window
-        m &= np.abs(_unwrap(scan.azimuth, c)) <= hw
+        m &= np.abs(unwrap(scan.azimuth, c)) <= hw
     if hints.expected_distance is not None:
         m &= np.abs(scan.distance - hints.expected_distance) <= board.diagonal + 0.5
     return m
 
 
-def _expected_returns(scan: Scan, board: BoardSpec, dist: np.ndarray | float) -> np.ndarray:
+def expected_returns(scan: Scan, board: BoardSpec, dist: np.ndarray | float) -> np.ndarray:
     """How many returns the board would give at the range ``dist`` (m): its angular size over
     the scan's beam grid (`beam_grid`)."""
     az_step, ring_step = beam_grid(scan)
@@ -256,14 +257,14 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     empty = np.zeros(0, dtype=np.int64)
     if len(scan) == 0:
         return Segmentation(Status.EMPTY_SCAN, empty, reason="no return in the scan")
-    m = _search_mask(scan, board, hints)
+    m = search_mask(scan, board, hints)
     if not np.any(m):  # the whole scan looked at only then (a pass over it saved)
         if not np.any(scan.valid):
             return Segmentation(Status.EMPTY_SCAN, empty, reason="no return in the scan")
         return Segmentation(Status.NO_BOARD, empty, reason="no return in the search region")
     labels, st = cluster(scan, m, board.diagonal, min(board.width, board.height))
     dist = st["distance"]
-    expect = _expected_returns(scan, board, dist)
+    expect = expected_returns(scan, board, dist)
     with np.errstate(divide="ignore", invalid="ignore"):
         frac = st["count"] / expect
     cand = (st["count"] >= 3) & (frac > MIN_FRACTION) & (
@@ -304,12 +305,12 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
         sel = members[lab]
         alt = tuple(members[int(o)] for o in order[1:1 + MAX_ALTERNATIVES]
                     if score[o] >= ALTERNATIVE_SCORE * score[lab])
-        return Segmentation(Status.OK, sel, n_lab, float(dist[lab]), _rings(scan, sel),
+        return Segmentation(Status.OK, sel, n_lab, float(dist[lab]), ring_count(scan, sel),
                             alternatives=alt)
     if np.any(far):
         lab = int(np.flatnonzero(far)[np.argmax(score[far])])
         sel = members[lab]
         return Segmentation(Status.BOARD_TOO_FAR, sel, n_lab, float(dist[lab]),
-                            _rings(scan, sel), reason=f"board-like cluster at "
+                            ring_count(scan, sel), reason=f"board-like cluster at "
                             f"{dist[lab]:.2f} m, beyond {hints.max_distance:.2f} m")
     return Segmentation(Status.NO_BOARD, empty, n_lab, reason="no cluster looks like the board")

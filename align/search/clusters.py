@@ -48,10 +48,6 @@ def ring_radius_scale(scan: Scan) -> float:
     return max(1.0, RING_RADIUS_SPACINGS * spacing / CLUSTER_RADIUS_PER_M)
 
 
-def _unwrap(azimuth: np.ndarray, centre: float) -> np.ndarray:
-    """Azimuth relative to ``centre`` in (-pi, pi], rad."""
-    return (azimuth - centre + np.pi) % (2 * np.pi) - np.pi
-
 
 def _grid(scan: Scan) -> tuple[int, int] | None:
     """(first, sequences) when the scan is in firing order, else None.

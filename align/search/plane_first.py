@@ -10,7 +10,8 @@ from collections.abc import Sequence
 import numpy as np
 
 from align.board import BoardSpec
-from align.floats import _rows
+from align.floats import plane_rows
+from align.geometry import unwrap
 from align.plane.fit import fit_lsq
 from align.result import Hints
 from align.search.board import (
@@ -18,15 +19,15 @@ from align.search.board import (
     MIN_FRACTION,
     PLANE_HYPOTHESES,
     PLANES_PER_CLUSTER,
-    _board_score,
-    _expected_returns,
-    _rings,
-    _search_mask,
+    board_score,
+    expected_returns,
     planar_part,
+    ring_count,
+    search_mask,
 )
 from align.search.cluster_kernels import cluster_members
-from align.search.clusters import _unwrap, cluster
-from align.search.roll import COARSE_STEP, TOLERANCE, _subsample
+from align.search.clusters import cluster
+from align.search.roll import COARSE_STEP, TOLERANCE, subsample
 from align.search.roll_kernels import best_roll
 from twin.core.scan import Scan
 
@@ -68,8 +69,8 @@ def rectangle_held(scan: Scan, sel: np.ndarray, n: np.ndarray, d: float, board: 
     p = points - (points @ n - d)[:, None] * n
     rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
     grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
-    r0s, r2s = _rows(rolls, n)
-    best, _, _, _ = best_roll(_subsample(p, 600), r0s, r2s, board.width + 2 * grow,
+    r0s, r2s = plane_rows(rolls, n)
+    best, _, _, _ = best_roll(subsample(p, 600), r0s, r2s, board.width + 2 * grow,
                               board.height + 2 * grow)
     u, v = p @ r0s[best], p @ r2s[best]
     return sel[_densest_box(u, v, board.width + 2 * HELD_MARGIN, board.height + 2 * HELD_MARGIN)]
@@ -101,7 +102,7 @@ def _densest_box(u: np.ndarray, v: np.ndarray, width: float, height: float) -> n
 
 def plane_candidates(scan: Scan, board: BoardSpec, hints: Hints,
                      exclude: Sequence[np.ndarray] = ()) -> list[np.ndarray]:
-    """The board found plane first, most board-like first (`_board_score`): the search for
+    """The board found plane first, most board-like first (`board_score`): the search for
     when no candidate of `find_board` is the board's rectangle (`align.api`).
 
     The clustering can cut the board apart or bury it. Its rings run on, within the
@@ -120,7 +121,7 @@ def plane_candidates(scan: Scan, board: BoardSpec, hints: Hints,
     grew into is left out of the later ones; a candidate that is one already found or in
     ``exclude`` (nine in ten of the returns of either shared) is left out."""
 
-    m = _search_mask(scan, board, hints)
+    m = search_mask(scan, board, hints)
     if not np.any(m):
         return []
     xyz = np.column_stack((scan.x, scan.y, scan.z))
@@ -142,7 +143,7 @@ def plane_candidates(scan: Scan, board: BoardSpec, hints: Hints,
             else:
                 on = planar_part(xyz[rest], rng)
             piece, rest = rest[on], rest[~on]
-            if len(piece) < 3 or _rings(scan, piece) < 2:
+            if len(piece) < 3 or ring_count(scan, piece) < 2:
                 continue
             n, d = fit_lsq(xyz[piece])
             grown = _grown(scan, xyz, m, piece, n, d, board)
@@ -150,15 +151,15 @@ def plane_candidates(scan: Scan, board: BoardSpec, hints: Hints,
                 continue
             covered[grown] = True
             held = rectangle_held(scan, grown, n, d, board)
-            if len(held) < 3 or _rings(scan, held) < 2 or len(held) < MIN_FRACTION * float(
-                    _expected_returns(scan, board, float(np.mean(scan.distance[held])))):
+            if len(held) < 3 or ring_count(scan, held) < 2 or len(held) < MIN_FRACTION * float(
+                    expected_returns(scan, board, float(np.mean(scan.distance[held])))):
                 continue
             if any(len(np.intersect1d(held, c, assume_unique=True)) > 0.9 * max(len(held), len(c))
                    for c in seen):
                 continue
             found.append(held)
             seen.append(held)
-    score = [_board_score(scan, c, board, float(_expected_returns(
+    score = [board_score(scan, c, board, float(expected_returns(
         scan, board, float(np.mean(scan.distance[c]))))) for c in found]
     return [found[i] for i in np.argsort(-np.array(score), kind="stable")]
 
@@ -172,7 +173,7 @@ def _seeds(scan: Scan, board: BoardSpec, hints: Hints, m: np.ndarray
     cluster holding at least `SEED_FRACTION` of the board's returns at its range."""
 
     labels, st = cluster(scan, m, board.diagonal, min(board.width, board.height))
-    expect = _expected_returns(scan, board, st["distance"])
+    expect = expected_returns(scan, board, st["distance"])
     big = (st["count"] >= np.maximum(3, SEED_FRACTION * expect)) & (
         st["distance"] <= hints.max_distance)
     idx, bounds = cluster_members(np.asarray(labels, dtype=np.int64), big)
@@ -188,7 +189,7 @@ def _seeds(scan: Scan, board: BoardSpec, hints: Hints, m: np.ndarray
             continue
         az = scan.azimuth[f]
         c = float(np.angle(np.mean(np.exp(1j * az))))
-        rel = _unwrap(az, c)
+        rel = unwrap(az, c)
         runs.append((int(scan.lasers.ring_of_laser[scan.laser_id[f[0]]]), c + rel.min(),
                      c + rel.max(), f))
     pairs = []

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from align.board import BoardSpec
-from align.floats import _rows
+from align.floats import plane_rows
 from align.search.roll_kernels import window_sweep, window_sweep_pair
 
 #: Roll grid steps, rad: a coarse pass over the whole range, then a fine one about the coarse
@@ -63,12 +63,12 @@ def _window_fit(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarr
     return window_sweep(np.ascontiguousarray(coords, dtype=np.float64), float(length))
 
 
-def _subsample(points: np.ndarray, k: int) -> np.ndarray:
+def subsample(points: np.ndarray, k: int) -> np.ndarray:
     return points if len(points) <= k else points[np.linspace(0, len(points) - 1, k).astype(
         np.int64)]
 
 
-def _left_out(points: np.ndarray, n: np.ndarray, board: BoardSpec, rolls: np.ndarray,
+def left_out(points: np.ndarray, n: np.ndarray, board: BoardSpec, rolls: np.ndarray,
               tol: float, z_first: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per roll: how many returns a W x H box (grown by ``tol``) leaves out, and its shift.
 
@@ -78,7 +78,7 @@ def _left_out(points: np.ndarray, n: np.ndarray, board: BoardSpec, rolls: np.nda
     out, the other axis then not swept there: `window_sweep_pair`) and a shift of 0 along
     the other axis. ``z_first``: sweep across the rings first (cheaper where most rolls
     leave out many along z and few along x: the coarse pass), else along them."""
-    r0, r2 = _rows(rolls, n)
+    r0, r2 = plane_rows(rolls, n)
     # `_window_fit` of points @ r0.T and points @ r2.T, the products computed roll by roll
     # inside the sweep (the same floats), not gathered column by column out of (n, K) arrays
     p = np.ascontiguousarray(points, dtype=np.float64)
@@ -115,15 +115,15 @@ def search(points: np.ndarray, n: np.ndarray, board: BoardSpec, lo: float, hi: f
     whole = hi - lo >= period - 1e-9
     pad = np.deg2rad(10.0) if whole else 0.0
     rolls = np.arange(lo - pad, hi + pad + 0.5 * COARSE_STEP, COARSE_STEP)
-    coarse = _subsample(points, COARSE_POINTS)
+    coarse = subsample(points, COARSE_POINTS)
     grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)
-    left, _, _ = _left_out(coarse, n, board, rolls, grow, z_first=True)
-    fine = _subsample(points, FINE_POINTS)
+    left, _, _ = left_out(coarse, n, board, rolls, grow, z_first=True)
+    fine = subsample(points, FINE_POINTS)
     starts: list[RollStart] = []
     for a, b in _runs(left <= left.min() + 1):
         grid = np.arange(rolls[a] - FINE_REACH, rolls[b] + FINE_REACH + 0.5 * FINE_STEP,
                          FINE_STEP)
-        out, tx, tz = _left_out(fine, n, board, grid, TOLERANCE)
+        out, tx, tz = left_out(fine, n, board, grid, TOLERANCE)
         for c, e in _runs(out <= out.min() + 1):
             # a wide interval (few rings on the board: its returns fit the rectangle at many
             # rolls) gets starts across it, `SPREAD` apart: the misses decide in the fit

@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 
-from align.floats import _fma, _gemv3
+from align.floats import fma, gemv3
 from align.jit import kernel
 
 
@@ -58,8 +58,8 @@ _BOUND_SLACK = 1e-9
 @kernel
 def _project(points: np.ndarray, rows: np.ndarray, b: int, j: int) -> float:
     """points[j] @ rows[b]: numpy's (points @ rows.T)[j, b] where the BLAS fuses its
-    multiply-adds as OpenBLAS's Haswell kernels do (`_fma`, as `ransac_best`'s distances)."""
-    return _fma(rows[b, 2], points[j, 2], _fma(rows[b, 1], points[j, 1],
+    multiply-adds as OpenBLAS's Haswell kernels do (`fma`, as `ransac_best`'s distances)."""
+    return fma(rows[b, 2], points[j, 2], fma(rows[b, 1], points[j, 1],
                                                rows[b, 0] * points[j, 0]))
 
 
@@ -173,7 +173,7 @@ def best_roll(points: np.ndarray, r0: np.ndarray, r2: np.ndarray, len_x: float,
     projecting and sorting the points at every roll.
 
     Returns (index of the best roll, points left out there, the box's shifts t_x, t_z there),
-    exactly what `_left_out` and `np.argmin` give (the first of equal minima). How: at every
+    exactly what `left_out` and `np.argmin` give (the first of equal minima). How: at every
     `ANCHOR_EVERY`-th roll (an anchor) the points a window holds are bounded from above
     without sorting (`_most_within`). The points a window holds at a roll b lie, at an anchor
     a, within the window grown by the points' diameter times how far the rows turn between a
@@ -302,7 +302,7 @@ def rectangle_rays(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarr
     rotation, shifts ``t_x``, ``t_z``). Inside: lam > 0 and within half the rectangle less
     ``margin``; a return is on the plane within ``band`` of lam; the surround is ``surround_lo``
     .. ``surround_hi`` outside the rectangle. The same floating-point operations as the numpy
-    version, element by element (numpy's matrix-vector products as `_gemv3`; a ray parallel to
+    version, element by element (numpy's matrix-vector products as `gemv3`; a ray parallel to
     the plane gives inf or nan as numpy's division does)."""
     taken = np.zeros(1, dtype=np.int64)
     ring_lo, ring_hi = 1 << 30, -1
@@ -332,12 +332,12 @@ def rectangle_rays(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarr
         u1 = ce * np.cos(azimuth[i])
         u2 = sin_el[lid]
         o2 = offset_z[lid]
-        lam = (d - _gemv3(0.0, 0.0, o2, n0, n1, n2)) / _gemv3(u0, u1, u2, n0, n1, n2)
+        lam = (d - gemv3(0.0, 0.0, o2, n0, n1, n2)) / gemv3(u0, u1, u2, n0, n1, n2)
         q0 = 0.0 + lam * u0
         q1 = 0.0 + lam * u1
         q2 = o2 + lam * u2
-        x = _gemv3(q0, q1, q2, r0[0], r0[1], r0[2]) + t_x
-        z = _gemv3(q0, q1, q2, r2[0], r2[1], r2[2]) + t_z
+        x = gemv3(q0, q1, q2, r0[0], r0[1], r0[2]) + t_x
+        z = gemv3(q0, q1, q2, r2[0], r2[1], r2[2]) + t_z
         if not lam > 0:
             continue  # behind the sensor (or nan): neither inside nor in the band
         on_plane = abs(distance[i] - lam) <= band

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from align.board import BoardSpec
+from align.geometry import unwrap
 from align.plane.fit import ransac
 from align.result import Hints, Status
 from align.search.board import find_board
@@ -38,8 +39,8 @@ def segment_static(scans: list[Scan], board: BoardSpec, hints: Hints,
             continue
         az = ref_scan.azimuth[ref.board]
         c = float(np.angle(np.mean(np.exp(1j * az))))
-        rel = (az - c + np.pi) % (2 * np.pi) - np.pi
-        rel_s = (s.azimuth - c + np.pi) % (2 * np.pi) - np.pi
+        rel = unwrap(az, c)
+        rel_s = unwrap(s.azimuth, c)
         ring_of_laser = ref_scan.lasers.ring_of_laser
         rings = np.unique(ring_of_laser[ref_scan.laser_id[ref.board]])
         # the board's lasers as a table over laser ids (cheaper than Scan.ring and isin)
@@ -77,8 +78,8 @@ def regrown(scan: Scan, sel: np.ndarray, hints: Hints) -> np.ndarray | None:
     lo, hi = int(ring[sel].min()), int(ring[sel].max())
     az = scan.azimuth[sel]
     c = float(np.angle(np.mean(np.exp(1j * az))))
-    rel = (az - c + np.pi) % (2 * np.pi) - np.pi
-    rel_s = (scan.azimuth - c + np.pi) % (2 * np.pi) - np.pi
+    rel = unwrap(az, c)
+    rel_s = unwrap(scan.azimuth, c)
     near = ((ring == lo - 1) | (ring == hi + 1)) & scan.valid & (rel_s >= rel.min()) & (
         rel_s <= rel.max()) & (np.abs(scan.xyz @ n - d) < GROW_BAND)
     if not np.any(near):
