@@ -9,6 +9,7 @@ import numpy as np
 
 from align.baselines.paper import estimate_paper
 from align.board import BoardSpec
+from align.params import DEFAULT_PARAMS, RaysParams
 from align.rays.pipeline import estimate_rays
 from align.result import Hints, PoseEstimate, Status
 from align.search.candidates import other_candidates
@@ -26,6 +27,7 @@ def estimate(
     board: BoardSpec = BoardSpec(),  # noqa: B008 (frozen dataclass: an immutable default)
     method: str = DEFAULT_METHOD,
     hints: Hints | None = None,
+    params: RaysParams | None = None,
 ) -> PoseEstimate:
     """The LiDAR's pose in the board frame {O} from one scan, or from N scans of a static pose.
 
@@ -34,10 +36,12 @@ def estimate(
     the reference paper; N scans: the mean of the N single-scan estimates, as the paper's
     protocol averages them) or "icp" (Open3D point-to-plane ICP against a board model, the
     baseline a user might try). Never raises for bad data: the result's ``status`` says what
-    went wrong and ``diagnostics["reason"]`` why.
+    went wrong and ``diagnostics["reason"]`` why. ``params``: the `rays` method's tuning
+    (`align.params.RaysParams`; None: the defaults every figure was measured with).
     """
     t0 = time.perf_counter()
     hints = hints or Hints()
+    p = params or DEFAULT_PARAMS
     scan_list = [scans] if isinstance(scans, Scan) else list(scans)
     if method not in METHODS:
         return PoseEstimate.failed(Status.UNKNOWN_METHOD, method,
@@ -61,17 +65,17 @@ def estimate(
         res = _per_scan_mean(
             [estimate_icp(scan_list[i], board, hints, segs[i]) for i in ok], "icp")
     else:
-        res = estimate_rays([scan_list[i] for i in ok], [segs[i] for i in ok], board, hints)
+        res = estimate_rays([scan_list[i] for i in ok], [segs[i] for i in ok], board, hints, p=p)
         # the choice's rays are not the board's rectangle (returns in front of it where it
         # would be, no edge seen, fewer rings than a board has): the board search's score is a
         # cheap likeness, the labels of every ray against the known rectangle are the test.
         # The next candidates, as board-like or nearly, are tried; the first the rectangle
         # explains is the board
         if res.status in (Status.PARTIAL_BOARD, Status.TOO_FEW_RINGS):
-            res = _other_candidates(scan_list, ok[0], segs[ok[0]], board, hints, res)
+            res = _other_candidates(scan_list, ok[0], segs[ok[0]], board, hints, res, p=p)
     if method == "rays" and not ok and res.status == Status.NO_BOARD:
         # no cluster looked like the board: it may be cut apart among clusters that do not
-        res = _other_candidates(scan_list, 0, None, board, hints, res)
+        res = _other_candidates(scan_list, 0, None, board, hints, res, p=p)
     res.diagnostics.setdefault("scans", len(scan_list))
     res.diagnostics.setdefault("scans_used", len(ok))
     res.timings["segment"] = t_seg - t0
@@ -80,7 +84,8 @@ def estimate(
 
 
 def _other_candidates(scans: list[Scan], first: int, ref: Segmentation | None,
-                      board: BoardSpec, hints: Hints, res: PoseEstimate) -> PoseEstimate:
+                      board: BoardSpec, hints: Hints, res: PoseEstimate, *, p: RaysParams
+                      ) -> PoseEstimate:
     """The retry: the first of the board search's other candidates on scan ``first``
     (`align.search.candidates`) whose rays the known rectangle explains, or ``res`` (the first
     choice's failure). The board search's score is a cheap likeness; the labels of every ray
@@ -88,7 +93,8 @@ def _other_candidates(scans: list[Scan], first: int, ref: Segmentation | None,
     for k, g in enumerate(other_candidates(scans[first], ref, board, hints), start=1):
         segs = segment_static(scans[first:], board, hints, g)
         use = [i for i, a in enumerate(segs) if a.status == Status.OK]
-        alt = estimate_rays([scans[first + i] for i in use], [segs[i] for i in use], board, hints)
+        alt = estimate_rays([scans[first + i] for i in use], [segs[i] for i in use], board, hints,
+                            p=p)
         if alt.success:
             alt.diagnostics["board_candidate"] = k  # 0: the search's first choice
             return alt

@@ -7,13 +7,7 @@ import numpy as np
 
 from align.fit.bracket_kernels import between_hits, board_spans, column_brackets, laser_brackets
 from align.fit.rays import DROPOUT, HIT, Rays
-
-#: Consecutive transitions closer than this (in azimuth, rad) form one mixed zone.
-ZONE_AZIMUTH = np.deg2rad(0.5)
-
-
-#: Neighbours farther apart than this in azimuth bracket nothing (a dropped firing), rad.
-MAX_GAP = np.deg2rad(0.7)
+from align.params import RaysParams
 
 
 def rays_between_hits(rays: Rays, lab: np.ndarray, order: np.ndarray | None = None
@@ -26,7 +20,8 @@ def rays_between_hits(rays: Rays, lab: np.ndarray, order: np.ndarray | None = No
     return between_hits(order, rays.scan, rays.laser, lab == HIT)
 
 
-def hit_miss_brackets(rays: Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def hit_miss_brackets(rays: Rays, lab: np.ndarray, *, p: RaysParams) -> tuple[np.ndarray,
+                                                                              np.ndarray]:
     """Hit/miss brackets along each laser: pairs (hit-side ray, miss-side ray) of indices.
 
     Only where a laser enters and leaves the board: the board is convex, so a transition
@@ -37,16 +32,16 @@ def hit_miss_brackets(rays: Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarr
     # the links and transitions along each laser, its span on the board (`_board_spans`) and
     # the walk over the zones, compiled (`align.fit_kernels.laser_brackets`, `edge_brackets`)
     return laser_brackets(np.lexsort((rays.azimuth, rays.laser)), rays.laser, rays.azimuth,
-                          lab, DROPOUT, HIT, MAX_GAP, ZONE_AZIMUTH)
+                          lab, DROPOUT, HIT, p.max_gap, p.zone_azimuth)
 
 
-def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
+def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray, *, p: RaysParams
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Per laser, the first and last hit (positions in the rays sorted by laser and azimuth) of
-    its longest run of hits, a run ending where the next hit is more than `ZONE_AZIMUTH` away:
+    its longest run of hits, a run ending where the next hit is more than `p.zone_azimuth` away:
     the board's span on that laser, not a stray beside it (a stand's part within the label
     tolerance of the plane, on the same ring). -1 for a laser without hits."""
-    return board_spans(ls, az, lb == HIT, ZONE_AZIMUTH)  # compiled: a sort of the runs in numpy
+    return board_spans(ls, az, lb == HIT, p.zone_azimuth)  # compiled: a sort of the runs in numpy
 
 
 def vertical_brackets(rays: Rays, lab: np.ndarray, off: np.ndarray

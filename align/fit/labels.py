@@ -9,42 +9,21 @@ import itertools
 import numpy as np
 
 from align.board import BoardSpec
-from align.fit.brackets import MAX_GAP, rays_between_hits
+from align.fit.brackets import rays_between_hits
 from align.fit.label_kernels import behind_groups, bright_limit, hit_runs, range_labels
-from align.fit.rays import DROPOUT, HIT, MISS, OUTLIER_MARGIN, UNKNOWN, Rays
+from align.fit.rays import DROPOUT, HIT, MISS, UNKNOWN, Rays
 from align.fit.sides import Sides
-
-#: A return within this distance of the plane (along the ray) is a hit on the board, m. The
-#: nearest thing behind the paper's board (its stand) is 0.15 m behind it; the noise is 14 mm.
-LABEL_TOLERANCE = 0.07
+from align.params import RaysParams
 
 
-#: A hit is a return within this many range sigmas of the plane (and `LABEL_TOLERANCE`); one
-#: farther in front is something before the board (unknown), one farther behind but within
-#: `LABEL_TOLERANCE` may be a thing close behind it (unknown too): a stand or its clamp near
-#: the board's edge, whose returns would otherwise count as hits beside the board. 3.5 sigma
-#: leaves out 5 in 10,000 of the board's own returns, which as unknowns cost nothing.
-FRONT_SIGMAS = 3.5
-
-
-
-
-#: The board shows dropouts when more of its rays than this (and at least `MIN_DROPOUTS`) return
-#: nothing although the same laser hits the board on both sides of them.
-DROPOUT_FRACTION = 0.01
-
-
-MIN_DROPOUTS = 3
-
-
-def hit_band(sigma_r: float) -> float:
+def hit_band(sigma_r: float, *, p: RaysParams) -> float:
     """How far from the plane (along the ray, either way) a return is a hit, m."""
-    return min(LABEL_TOLERANCE, FRONT_SIGMAS * sigma_r)
+    return min(p.label_tolerance, p.front_sigmas * sigma_r)
 
 
-def _labels(rays: Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
+def _labels(rays: Rays, lam: np.ndarray, sigma_r: float, *, p: RaysParams) -> np.ndarray:
     """`HIT`, `MISS` (no return or far behind), `UNKNOWN` (something in front, or just behind:
-    `FRONT_SIGMAS` of the range noise ``sigma_r``, m) for each ray, and
+    `p.front_sigmas` of the range noise ``sigma_r``, m) for each ray, and
     `DROPOUT` for the rays without a return when the board itself drops returns.
 
     A board is convex, so a laser's rays between two of its hits on the board lie on the board:
@@ -53,54 +32,37 @@ def _labels(rays: Rays, lam: np.ndarray, sigma_r: float) -> np.ndarray:
     out. A board that returns everywhere keeps them as misses (they bound it where nothing
     stands behind it).
     """
-    return labels_ordered(rays, lam, sigma_r)[0]
+    return labels_ordered(rays, lam, sigma_r, p=p)[0]
 
 
-def labels_ordered(rays: Rays, lam: np.ndarray, sigma_r: float
+def labels_ordered(rays: Rays, lam: np.ndarray, sigma_r: float, *, p: RaysParams
                     ) -> tuple[np.ndarray, np.ndarray]:
     """`_labels`, and the rays' order by scan, laser and azimuth it sorted them in."""
     # a hit within the hit band of the plane; in front: something before the board; just
     # behind (beyond the noise, within the label tolerance): the board's noise or a thing
     # close behind it (a stand's clamp): unknown. Compiled (`align.fit_kernels.range_labels`)
-    lab, res = range_labels(rays.distance, lam, hit_band(sigma_r), LABEL_TOLERANCE, HIT,
+    lab, res = range_labels(rays.distance, lam, hit_band(sigma_r, p=p), p.label_tolerance, HIT,
                             UNKNOWN)
     ret = rays.distance > 0
     # one sort for both: the rays by scan, laser and azimuth (the hits' order is its subset)
     order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
-    lab[_behind_ends(rays, lab, res, sigma_r, order)] = UNKNOWN
+    lab[_behind_ends(rays, lab, res, sigma_r, order, p=p)] = UNKNOWN
     inner = rays_between_hits(rays, lab, order) & ~ret
     hits = int(np.count_nonzero(lab == HIT))
-    if np.count_nonzero(inner) >= max(MIN_DROPOUTS, DROPOUT_FRACTION * hits):
+    if np.count_nonzero(inner) >= max(p.min_dropouts, p.dropout_fraction * hits):
         lab[~ret] = DROPOUT
     return lab, order
 
 
-#: A laser's outermost hits are something just behind the board beside its edge (a holder, a
-#: box standing behind it) when their mean range residual is this many standard errors and at
-#: least `BEHIND_MIN` behind the plane (`_behind_ends`). 5 sigma: a board's own ends pass
-#: (about 1 in 1000 scans trims an end it should not, which costs a bracket, not a bias).
-BEHIND_SIGMAS = 5.0
-
-
-BEHIND_MIN = 0.01
-
-
-#: At most this many hits from each end are tested, and at least this many at once.
-BEHIND_REACH = 40
-
-
-BEHIND_RUN = 3
-
-
 def _behind_ends(rays: Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
-                 order: np.ndarray | None = None) -> np.ndarray:
+                 order: np.ndarray | None = None, *, p: RaysParams) -> np.ndarray:
     """The hits at either end of a laser's run on the board (per scan, by azimuth) that lie
     behind the plane as a group: a mask over the rays.
 
     A thing standing a few cm behind the board right beside an edge returns within the label
     tolerance of the plane, each return alone within the noise; as hits it would move that
     laser's edge outwards by its width. Together its returns are clearly behind: the longest
-    run from an end whose mean residual is `BEHIND_SIGMAS` standard errors and `BEHIND_MIN`
+    run from an end whose mean residual is `p.behind_sigmas` standard errors and `p.behind_min`
     behind is not the board. ``order``: all rays by scan, laser and azimuth, if the caller has
     it (the hits in that order are the hits sorted alike: the sort is stable)."""
     if order is None:
@@ -111,29 +73,14 @@ def _behind_ends(rays: Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
     # within the noise); left as hits, they pull a grazed edge onto the post. The others from
     # each end. Compiled (`align.fit_kernels.behind_groups`).
     return behind_groups(order, rays.scan, rays.laser, np.asarray(res, dtype=np.float64),
-                         BEHIND_RUN, BEHIND_REACH, BEHIND_MIN, BEHIND_SIGMAS * sigma_r)
-
-
-#: A laser's run of hits that starts and ends on the same straight edge rides along it within
-#: the ring's sag over the run (a ring is a cone's trace on the plane, nearly straight: a
-#: 0.1 m run of the VLP-16's lowest ring at 2.5 m bends by 0.06 mm). A ring's height against an
-#: edge is as good as random over its spacing on the board (90 mm there), so a run that needs
-#: the edge within less than this of the ring (m) is the board by a chance of about 1 in 1000,
-#: and a holder or bracket just behind the edge (a few cm of hits on a ring that passes the
-#: board) by far the likelier (`grazing_runs`).
-GRAZE_SAG = 1e-4
-
-
-#: A short run this near a corner (beyond its own length, m) may end on the two edges that meet
-#: there: a ring crossing the corner, not grazing.
-CORNER_REACH = 0.05
+                         p.behind_run, p.behind_reach, p.behind_min, p.behind_sigmas * sigma_r)
 
 
 def grazing_runs(rays: Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
                   expected: np.ndarray, board: BoardSpec, order: np.ndarray,
-                  sides: Sides | None = None) -> np.ndarray:
+                  sides: Sides | None = None, *, p: RaysParams) -> np.ndarray:
     """The hits of runs (consecutive hits of one laser in one scan, by azimuth, a miss on
-    either side) that only a ring riding an edge within `GRAZE_SAG` could put on the board: a
+    either side) that only a ring riding an edge within `p.graze_sag` could put on the board: a
     mask over the rays.
 
     The board is convex, so a ring's run on it ends where the ring crosses its boundary. A run
@@ -149,7 +96,7 @@ def grazing_runs(rays: Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
     few cm for the corners; ``expected``: each ray's range to the plane (the offset in it);
     ``order``: the rays by scan, laser and azimuth. ``sides``: the side edges as the other
     lasers' ends show them (`Sides`), if they do: a run at a corner then ends at one of them,
-    which holds at any pose; without them, a run within `CORNER_REACH` beyond its length of
+    which holds at any pose; without them, a run within `p.corner_reach` beyond its length of
     a corner of the rectangle at this pose is taken to cross it."""
     # runs of hits linked along a laser (the same laser and scan, no gap), their first and
     # last positions in ``order``, whose ends are seen (not at the end of what was looked
@@ -157,12 +104,12 @@ def grazing_runs(rays: Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
     # back; not a return in front, which may hide the board going on, nor a dropout):
     # compiled (`align.fit_kernels.hit_runs`; two dozen masks and diffs in numpy)
     starts, ends = hit_runs(order, lab, rays.laser, rays.scan, rays.azimuth, rays.distance,
-                            expected, MAX_GAP, HIT, MISS, UNKNOWN)
+                            expected, p.max_gap, HIT, MISS, UNKNOWN)
     out = np.zeros(len(lab), dtype=bool)
     if len(starts) == 0:
         return out
     x, z = coords[0][order], coords[1][order]
-    w2, h2, margin = board.width / 2, board.height / 2, OUTLIER_MARGIN
+    w2, h2, margin = board.width / 2, board.height / 2, p.outlier_margin
     corners = np.array([(-w2, -h2), (w2, -h2), (-w2, h2), (w2, h2)])
     # those shorter than the board's smaller side: the few looked at closer
     spans = np.hypot(x[ends + 1] - x[starts - 1], z[ends + 1] - z[starts - 1])
@@ -175,38 +122,26 @@ def grazing_runs(rays: Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
             if sides.reaches(xs, zs):
                 continue  # it ends at a side edge: a ring crossing a corner
         elif np.min(np.hypot(xs[:, None] - corners[:, 0], zs[:, None] - corners[:, 1])) < \
-                span + CORNER_REACH:
+                span + p.corner_reach:
             continue
         # the run's distance from the chord between the misses beside it
         cx, cz = x[b + 1] - x[a - 1], z[b + 1] - z[a - 1]
         sag = np.max(np.abs((xs - x[a - 1]) * cz - (zs - z[a - 1]) * cx)) / span
-        if sag < GRAZE_SAG:
+        if sag < p.graze_sag:
             out[order[a:b + 1]] = True
     return out
 
 
-#: A hit at a laser's end brighter than this many times the board's brightest inner hits (their
-#: 99th percentile) is not the board's: a holder of another material beside the edge, flush
-#: with the plane within the range noise (`bright_ends`). A board's own edge returns no
-#: brighter than its face: a beam partly on it returns less. (Not so for dimmer: a partial
-#: return, the plate's side face met at a grazing angle, are the board's and dim.)
-BRIGHT_RATIO = 1.15
-
-
-#: ... judged only against this many inner hits or more.
-BRIGHT_REFERENCE = 20
-
-
 def bright_ends(rays: Rays, lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray,
-                 order: np.ndarray) -> np.ndarray:
+                 order: np.ndarray, *, p: RaysParams) -> np.ndarray:
     """The hits at either end of a laser's run (per scan, by azimuth) brighter than
-    `BRIGHT_RATIO` times the 99th percentile of the ``inner`` hits' ``intensity``, from the
+    `p.bright_ratio` times the 99th percentile of the ``inner`` hits' ``intensity``, from the
     end inwards while they are: a mask over the rays. ``order``: the rays by scan, laser and
     azimuth. A patterned board's bright squares are among its inner hits, so they pass."""
     out = np.zeros(len(lab), dtype=bool)
     # the threshold and whether any hit passes it, compiled (`align.fit_kernels.
     # bright_limit`: np.partition's 99th percentile); the ends only where one does
-    limit, any_odd = bright_limit(lab, intensity, inner, HIT, BRIGHT_RATIO, BRIGHT_REFERENCE,
+    limit, any_odd = bright_limit(lab, intensity, inner, HIT, p.bright_ratio, p.bright_reference,
                                   0.99)
     if not any_odd:
         return out

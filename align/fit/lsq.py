@@ -12,14 +12,12 @@ from align.fit.bracket_kernels import contradicted
 from align.fit.labels import bright_ends, grazing_runs, labels_ordered
 from align.fit.lsq_kernels import lm_fit
 from align.fit.model import JACOBIAN_STEP, Model, build_model
-from align.fit.rays import HIT, MISS, OUTLIER_MARGIN, UNKNOWN, candidates_at
+from align.fit.rays import HIT, MISS, UNKNOWN, candidates_at
 from align.fit.sides import Sides, overhanging, side_widening
+from align.params import RaysParams
 from align.result import Hints
 from align.search.result import Segmentation
 from twin.core.scan import Scan
-
-#: A hit farther than this outside the rectangle (after the z profile) is not the board, m.
-STRAY = 0.04
 
 
 def _gauss_newton(model: Model, theta: np.ndarray, max_iter: int = 30
@@ -47,16 +45,12 @@ def _gauss_newton(model: Model, theta: np.ndarray, max_iter: int = 30
     return p[:6], j, bool(converged), int(it)
 
 
-#: A bracket whose whitened residual exceeds this is a gross error (`_gross_brackets`).
-GROSS = 8.0
-
-
-def _gross_brackets(model: Model, theta: np.ndarray) -> np.ndarray:
+def _gross_brackets(model: Model, theta: np.ndarray, *, p: RaysParams) -> np.ndarray:
     """The brackets (a mask over all of the model's) the fit at ``theta`` misses by more than
-    `GROSS` sigma."""
+    `p.gross` sigma."""
     f = model.residuals(theta)
     out = np.zeros(len(model.bh), dtype=bool)
-    out[np.flatnonzero(model.edge_kind > 0)[np.abs(f[len(model._range[0]):]) > GROSS]] = True
+    out[np.flatnonzero(model.edge_kind > 0)[np.abs(f[len(model._range[0]):]) > p.gross]] = True
     return out
 
 
@@ -100,17 +94,10 @@ class Fit:
     violations: int  # labels it contradicts by more than 1 cm (`_contradicted`)
 
 
-#: The profile across the rings reaches at least this many ring spacings (on the board) either
-#: side, and a hit is a stray at least this many of them outside the start rectangle.
-PROFILE_SPACINGS = 0.6
-
-
-STRAY_SPACINGS = 0.4
-
-
 def fit_from(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: BoardSpec,
          sigma_r: float, hints: Hints, ds: np.ndarray,
-         offset: tuple[float, tuple[float, float] | None] = (0.0, None)) -> Fit | None:
+         offset: tuple[float, tuple[float, float] | None] = (0.0,
+                                                             None), *, p: RaysParams) -> Fit | None:
     """The joint least-squares fit from the start pose ``theta``; None: fewer than 3 rings hit.
 
     The position across the rings is the weakly known one (rings are 2 deg apart) and a ring
@@ -121,35 +108,35 @@ def fit_from(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, boa
     the brackets; profile again; fix the bracket assignments leaving out those at corners, fit;
     reassign tighter, refit (`staged_fit`).
     """
-    rays, coords, spacing = candidates_at(scans, segs, theta, board)
+    rays, coords, spacing = candidates_at(scans, segs, theta, board, p=p)
     expected = coords[2] + offset[0]  # the range expected, offset included
-    lab, order = labels_ordered(rays, expected, sigma_r)  # order: by scan, laser, azimuth
+    lab, order = labels_ordered(rays, expected, sigma_r, p=p)  # order: by scan, laser, azimuth
     # things just behind the board beside its edges, within the range noise of its plane: a
     # few cm of hits on a ring that passes the board, and rings lengthened past a side edge.
     # Left out before the brackets are drawn (a rectangle turned to reach them, as a fit from
     # there finds it, locks onto grazing crossings degrees off); judged again by the hit/miss
     # posterior's labels at the fitted pose (`ray_points`)
-    w2, h2, margin = board.width / 2, board.height / 2, OUTLIER_MARGIN
+    w2, h2, margin = board.width / 2, board.height / 2, p.outlier_margin
     inner = (np.abs(coords[0]) < w2 - margin) & (np.abs(coords[1]) < h2 - margin)
     intensity = np.concatenate([s.intensity for s in scans])[rays.gidx]
-    lab[bright_ends(rays, lab, intensity, inner, order)] = UNKNOWN
+    lab[bright_ends(rays, lab, intensity, inner, order, p=p)] = UNKNOWN
     ext = side_widening(rays.direction, theta, board)
-    sides = Sides.of(coords[0], coords[1], lab, rays.laser, ext, board)
-    grazing = grazing_runs(rays, lab, coords, expected, board, order, sides)
+    sides = Sides.of(coords[0], coords[1], lab, rays.laser, ext, board, p=p)
+    grazing = grazing_runs(rays, lab, coords, expected, board, order, sides, p=p)
     if np.any(grazing):
         lab[grazing] = UNKNOWN
         sides = None  # its lasers' ends may have changed
-    lab[overhanging(coords[0], coords[1], lab, rays.laser, ext, board, sides)] = UNKNOWN
+    lab[overhanging(coords[0], coords[1], lab, rays.laser, ext, board, sides, p=p)] = UNKNOWN
     rings_hit = np.unique(rays.ring[lab == HIT])
     if len(rings_hit) < 3:
         return None
     # the profile and the stray margin grow with the rings' spacing on the board: the start
     # can be off by half of it (a far board, one tilted away)
-    reach = max(float(ds[-1]), PROFILE_SPACINGS * spacing)
+    reach = max(float(ds[-1]), p.profile_spacings * spacing)
     ds = np.arange(-reach, reach + 0.5e-3, 1e-3)
-    stray_margin = max(STRAY, STRAY_SPACINGS * spacing)
+    stray_margin = max(p.stray, p.stray_spacings * spacing)
     model = build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, offset=offset,
-                         coords=coords)
+                         coords=coords, p=p)
     theta = model.shift(theta, ds)
     coords = model.coords(theta)
     x, z = coords[0], coords[1]
@@ -159,7 +146,7 @@ def fit_from(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, boa
         lab = lab.copy()
         lab[stray] = UNKNOWN
         model = build_model(rays, lab, theta, board, sigma_r, hints.edge_blur, like=model,
-                             coords=coords)
+                             coords=coords, p=p)
         theta = model.shift(theta, ds)
     theta, j, conv, iters, chi2 = staged_fit(model, theta, ds)
     for _ in range(2):
@@ -167,7 +154,7 @@ def fit_from(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, boa
         # just behind the board's edge, within the label tolerance of its plane, on a ring
         # that never crosses the board): left out of the fit, which is redone. The labels stay
         # (the hit/miss posterior judges them).
-        gross = _gross_brackets(model, theta)
+        gross = _gross_brackets(model, theta, p=p)
         if not np.any(gross):
             break
         model.excluded |= gross

@@ -18,37 +18,20 @@ from align.fit.label_kernels import range_rays, ray_products, shifted_coords
 from align.fit.lsq_kernels import fit_residuals, jacobian_into
 from align.fit.rays import HIT, MISS, Rays
 from align.geometry import board_coordinates, lidar_up, rotation
-
-#: Range residuals only from hits at least this far inside the rectangle, m (beam footprint
-#: 3 mrad x 2.6 m = 8 mm, half of it plus the azimuth step).
-EDGE_MARGIN = 0.015
-
-
-#: 1-sigma of a top/bottom edge crossing across the ring (the ring's height), m.
-EDGE_BLUR_Z = 2.0e-3
-
-
-#: A bracket whose extent across its edge is below this fraction of its extent along it comes
-#: from a ring crossing the edge at a grazing angle (under 14 deg).
-GRAZING = 0.25
-
-
-#: How far outside the rectangle a hit (inside it a miss) violates its label in the profile
-#: across the rings (`Model.profile`), m.
-PROFILE_TOL = 3e-3
+from align.params import RaysParams
 
 
 class Model:
     """Whitened residuals of the joint fit for a pose theta."""
 
     def __init__(self, rays: Rays, lab: np.ndarray, bh: np.ndarray, bm: np.ndarray,
-                 board: BoardSpec, sigma_r: float, blur: float) -> None:
-        self.rays, self.lab, self.board = rays, lab, board
+                 board: BoardSpec, sigma_r: float, blur: float, p: RaysParams) -> None:
+        self.rays, self.lab, self.board, self.p = rays, lab, board, p
         self.bh, self.bm = bh, bm
         self.sigma_r, self.blur = sigma_r, blur
         # a ring's height on the board is known less well than a position along it: the beam
         # is 1.5 mrad tall (4 mm at 2.6 m) and the laser's elevation is only nominal
-        self.blur_z = max(blur, EDGE_BLUR_Z)
+        self.blur_z = max(blur, self.p.edge_blur_z)
         # the blur across the side edges and across the top and bottom edges (`set_blur`)
         self.blur_edges = (blur, self.blur_z)
         self.use_range = np.zeros(len(lab), dtype=bool)
@@ -109,8 +92,9 @@ class Model:
         r = self.rays
         # the fit only ever looks at these rays: kept contiguous (`align.fit_kernels.range_rays`)
         self.use_range, *rng = range_rays(x, z, lam, r.origin, r.direction, r.distance,
-                                          self.lab == 1, float(self.offset), w2 - EDGE_MARGIN,
-                                          h2 - EDGE_MARGIN, 4 * self.sigma_r)
+                                          self.lab == 1, float(self.offset),
+                                          w2 - self.p.edge_margin,
+                                          h2 - self.p.edge_margin, 4 * self.sigma_r)
         self._range = tuple(rng)
 
     def classify(self, theta: np.ndarray, guard: float, crossings: bool = True) -> None:
@@ -130,7 +114,7 @@ class Model:
         # sharp across its edge, and wrong if matched to the wrong edge
         self.edge_kind, self.edge_sign, self.edge_sd = classify_edges(
             x, z, self.bh, self.bm, self.board.width / 2, self.board.height / 2, guard,
-            *self.blur_edges, crossings, GRAZING, self.excluded)
+            *self.blur_edges, crossings, self.p.grazing, self.excluded)
         self._cache_edges()
 
     def set_blur(self, theta: np.ndarray) -> None:
@@ -170,7 +154,7 @@ class Model:
         x, z, _ = self.coords(theta)
         return np.where(self.edge_kind == 1, x[self.bm] - x[self.bh], z[self.bm] - z[self.bh])
 
-    def profile(self, theta: np.ndarray, ds: np.ndarray, tol: float = PROFILE_TOL) -> np.ndarray:
+    def profile(self, theta: np.ndarray, ds: np.ndarray, tol: float | None = None) -> np.ndarray:
         """A cost for the pose shifted by each of ``ds`` (m) along the LiDAR's up direction in
         the plane (`lidar_up`: z for a level board): label violations first.
 
@@ -184,7 +168,8 @@ class Model:
         vx, vz = lidar_up(theta)
         return profile_cost(x, z, self._hits, self._misses,
                             self.bh, self.bm, np.asarray(ds, dtype=np.float64), vx, vz,
-                            self.board.width / 2, self.board.height / 2, tol, *self.blur_edges)
+                            self.board.width / 2, self.board.height / 2,
+                            self.p.profile_tol if tol is None else tol, *self.blur_edges)
 
     def shift(self, theta: np.ndarray, ds: np.ndarray) -> np.ndarray:
         """``theta`` moved to the cheapest shift of `profile` over ``ds`` (its first minimum,
@@ -193,7 +178,7 @@ class Model:
         vx, vz = lidar_up(theta)
         s = float(ds[profile_best(x, z, self._hits, self._misses, self.bh, self.bm,
                                   np.asarray(ds, dtype=np.float64), vx, vz,
-                                  self.board.width / 2, self.board.height / 2, PROFILE_TOL,
+                                  self.board.width / 2, self.board.height / 2, self.p.profile_tol,
                                   *self.blur_edges)])
         out = theta.copy()
         out[0] += s * vx
@@ -242,7 +227,7 @@ JACOBIAN_STEP = 1e-7
 def build_model(rays: Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec,
                  sigma_r: float, blur: float, like: Model | None = None,
                  offset: tuple[float, tuple[float, float] | None] = (0.0, None),
-                 coords: tuple[np.ndarray, ...] | None = None) -> Model:
+                 coords: tuple[np.ndarray, ...] | None = None, *, p: RaysParams) -> Model:
     """Brackets along the rings and between rings at the board's centre column, as a model.
     Its range offset and the offset's prior: ``like``'s (a model rebuilt), else ``offset``.
     ``coords``: the rays' board coordinates at ``theta`` if the caller has them."""
@@ -250,10 +235,10 @@ def build_model(rays: Rays, lab: np.ndarray, theta: np.ndarray, board: BoardSpec
         coords = board_coordinates(theta, rays.origin, rays.direction)
     x, z, _ = coords
     vx, vz = lidar_up(theta)
-    bh, bm = hit_miss_brackets(rays, lab)
+    bh, bm = hit_miss_brackets(rays, lab, p=p)
     vh, vm = vertical_brackets(rays, lab, np.abs(vz * x - vx * z))
     model = Model(rays, lab, np.concatenate((bh, vh)), np.concatenate((bm, vm)), board,
-                   sigma_r, blur)
+                   sigma_r, blur, p)
     model.offset, model.offset_prior = (like.offset, like.offset_prior) if like else offset
     model._coords = (np.asarray(theta, dtype=np.float64).tobytes(), coords)
     return model

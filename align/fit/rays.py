@@ -11,6 +11,7 @@ import numpy as np
 from align.board import BoardSpec
 from align.fit.label_kernels import pool_rows, window_pool, window_rays
 from align.geometry import rotation, unwrap
+from align.params import RaysParams
 from align.search.result import Segmentation
 from twin.core.scan import Scan
 
@@ -18,21 +19,6 @@ from twin.core.scan import Scan
 #: an occluder), and a dropout (no return where the board's own dropouts show that no return
 #: does not mean no board: a dark square of a printed pattern).
 HIT, MISS, UNKNOWN, DROPOUT = 1, 0, -1, -2
-
-#: Labels farther than this inside (misses) or outside (hits) the start pose's rectangle are not
-#: edge information but dropouts or strays, m.
-OUTLIER_MARGIN = 0.03
-
-
-#: Rays considered: within this of the rectangle's edges (board coordinates), m: one ring
-#: spacing (2 deg at 2.6 m = 91 mm) plus the lean of a rolled ring, not much more (the board's
-#: stand, 5 cm in front of the plane, sits lower) ...
-WINDOW = 0.13
-
-
-#: ... or 1.2 ring spacings at the board's distance where that is more (a far board: the ring
-#: beyond its edge must be looked at).
-WINDOW_RINGS = 1.2
 
 
 @dataclass
@@ -49,21 +35,21 @@ class Rays:
     scan: np.ndarray  # which scan
 
 
-
 def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
-                board: BoardSpec) -> Rays:
+                board: BoardSpec, *, p: RaysParams) -> Rays:
     """Every fired ray (hit or not) near the board's rectangle, from all scans."""
-    return candidates_at(scans, segs, theta, board)[0]
+    return candidates_at(scans, segs, theta, board, p=p)[0]
 
 
 def candidates_at(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
-                   board: BoardSpec) -> tuple[Rays, tuple[np.ndarray, ...], float]:
+                   board: BoardSpec, *, p: RaysParams) -> tuple[Rays, tuple[np.ndarray, ...],
+                                                                float]:
     """`_candidates`, with their board coordinates (X, Z, lam) at ``theta`` and the rings'
     spacing on the board there (`_ring_spacing`, m): the fit's next steps need both at the
     same pose. A ray's coordinates do not depend on which others are computed with it."""
     cat = _candidate_pool(scans, segs, board)
     spacing = _ring_spacing(theta, float(np.max(np.diff(np.sort(scans[0].lasers.elevation)))))
-    win = max(WINDOW, WINDOW_RINGS * spacing)
+    win = max(p.window, p.window_rings * spacing)
     # `board_coordinates` of the pool and the rays within the window, in one compiled pass
     # (the same floats): numpy's products, masks and gathers over the pool's few thousand
     # rays, for the thousand kept, cost four times as much

@@ -10,8 +10,9 @@ import numpy as np
 
 from align.board import BoardSpec
 from align.fit.label_kernels import laser_ends, line_excess, side_ends, side_faces
-from align.fit.rays import HIT, OUTLIER_MARGIN
+from align.fit.rays import HIT
 from align.geometry import rotation
+from align.params import RaysParams
 
 
 def side_widening(u: np.ndarray, theta: np.ndarray, board: BoardSpec) -> np.ndarray:
@@ -24,18 +25,9 @@ def side_widening(u: np.ndarray, theta: np.ndarray, board: BoardSpec) -> np.ndar
                       rotation(theta[3], theta[4], theta[5]), float(board.thickness))
 
 
-#: A laser's hits may span the board's width by this much more (m) before one end is taken to
-#: overhang: the plane's distance error scales the span (5 mm: 0.6 % of the 0.9 m board).
-SPAN_SLACK = 0.005
-
-
-#: A laser's end is at a side edge when it lies within this of it (m) at the fit's pose: what
-#: a few degrees of roll move it over the board's height.
-EDGE_REACH = 0.05
-
-
 def overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
-                 ext: np.ndarray, board: BoardSpec, sides: Sides | None = None) -> np.ndarray:
+                 ext: np.ndarray, board: BoardSpec, sides: Sides | None = None, *,
+                 p: RaysParams) -> np.ndarray:
     """Hits at one end of a laser's run beyond the board's side edge: a holder or clamp beside
     it, flush with the board's plane within the range noise, whose hits extend that one
     laser's run. Returned to be left out of the labels: a rectangle turned to take them in is
@@ -45,7 +37,7 @@ def overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray
     an azimuth step inside it. Their ends at both sides give the two lines (`_side_lines`,
     robust: an end beyond them is a holder's, one well inside them a ring leaving through the
     top or bottom edge near a corner). Of a laser whose end lies beyond its side's line by
-    more than half a step and `OVERHANG_SLACK`, the hits beyond the line are returned (the
+    more than half a step and `p.overhang_slack`, the hits beyond the line are returned (the
     line lies within a step inside the edge, so at most the laser's last hit on the board goes
     with them). Where too few lasers reach the sides for the lines, the board's known width
     still tells: the hits of one laser between both side edges span at most its width (each
@@ -55,11 +47,11 @@ def overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray
     `Sides.of` these, if the caller has it."""
     out = np.zeros(len(lab), dtype=bool)
     if sides is None:
-        sides = Sides.of(x, z, lab, laser, ext, board)
+        sides = Sides.of(x, z, lab, laser, ext, board, p=p)
     if sides is None:
         return out
     ids, ends, hit, x_l, x_r = sides.ids, sides.ends, sides.hit, sides.x_l, sides.x_r
-    long = ends[:, 2] - ends[:, 0] > board.width + SPAN_SLACK
+    long = ends[:, 2] - ends[:, 0] > board.width + p.span_slack
     if sides.lines is not None:
         a_l, a_r, b = sides.lines
         off_l = a_l + b * ends[:, 1] - ends[:, 0]  # > 0: beyond the line
@@ -72,8 +64,8 @@ def overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray
                 out |= m & (x_l < a_l + b * z)
         return out
     w2 = board.width / 2
-    ref_l = ~long & (ends[:, 0] < -w2 + EDGE_REACH)
-    ref_r = ~long & (ends[:, 2] > w2 - EDGE_REACH)
+    ref_l = ~long & (ends[:, 0] < -w2 + p.edge_reach)
+    ref_r = ~long & (ends[:, 2] > w2 - p.edge_reach)
     for i in np.flatnonzero(long):
         off_l = _line_at(ends[ref_l, 1], ends[ref_l, 0], ends[i, 1]) - ends[i, 0]
         off_r = ends[i, 2] - _line_at(ends[ref_r, 3], ends[ref_r, 2], ends[i, 3])
@@ -96,7 +88,8 @@ class Sides:
     right end's (m), each hit as far in as its side-face allowance lets it lie (``x_l``,
     ``x_r``: every ray's); ``hit``: the hits taken; ``tol``: how far off the lines a board's
     own end may lie (m: within a step inside its edge, within half a step of the lines
-    through them all, and `OVERHANG_SLACK`); ``lines``: (a_l, a_r, b), the side edges as x =
+    through them all, and `p.overhang_slack`); ``lines``: (a_l, a_r,
+                                                                    b), the side edges as x =
     a + b z (`_side_lines`), or None when too few lasers reach them."""
 
     ids: np.ndarray
@@ -109,10 +102,10 @@ class Sides:
 
     @classmethod
     def of(cls, x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
-           ext: np.ndarray, board: BoardSpec) -> Sides | None:
+           ext: np.ndarray, board: BoardSpec, *, p: RaysParams) -> Sides | None:
         """From the rays' board coordinates ``x``, ``z``, labels, lasers and side-face
         allowances ``ext`` (`side_widening`); None with fewer than 3 lasers on the board."""
-        w2, h2, margin = board.width / 2, board.height / 2, OUTLIER_MARGIN
+        w2, h2, margin = board.width / 2, board.height / 2, p.outlier_margin
         # the hits, per laser its leftmost hit (the first of equal ones, as argmin) and its
         # rightmost, and the azimuth step on the board (the median spacing of a laser's
         # consecutive hits): compiled (`align.fit_kernels.laser_ends`; two lexsorts and a
@@ -122,8 +115,8 @@ class Sides:
         if len(il) < 3:
             return None
         ids = laser[il]
-        tol = 0.5 * step + OVERHANG_SLACK
-        return cls(ids, ends, hit, x_l, x_r, tol, _side_lines(ends, w2, tol, step + tol))
+        tol = 0.5 * step + p.overhang_slack
+        return cls(ids, ends, hit, x_l, x_r, tol, _side_lines(ends, w2, tol, step + tol, p=p))
 
     def reaches(self, xs: np.ndarray, zs: np.ndarray) -> bool:
         """Whether the points (``xs``, ``zs``, m) reach a side edge: lie within twice `tol` inside
@@ -133,23 +126,11 @@ class Sides:
                     np.any(xs > a_r + b * zs - 2 * self.tol))
 
 
-#: A laser's end lies beyond the side lines by more than half the step between its hits and
-#: this (m: the lines' error through a handful of ends, the plane's) when something beside the
-#: edge lengthens its run. Leaving out a board's own last hit costs little; keeping a holder's
-#: hit outside the edge empties the hit/miss posterior.
-OVERHANG_SLACK = 0.003
-
-
-#: The side lines need this many lasers' ends at each side, and this many in all (three
-#: unknowns: an offset per side and the common slope).
-SIDE_ENDS, LINE_ENDS = 2, 5
-
-
-def _side_lines(ends: np.ndarray, w2: float, tol: float, inward: float
+def _side_lines(ends: np.ndarray, w2: float, tol: float, inward: float, *, p: RaysParams
                 ) -> tuple[float, float, float] | None:
     """The board's side edges as seen by the lasers' ends, x = a_l + b z and x = a_r + b z (one
     slope: the edges are parallel), or None when too few lasers reach them. ``ends`` (K, 4):
-    per laser the left end's x and z and the right end's, m. The ends within `EDGE_REACH` of a
+    per laser the left end's x and z and the right end's, m. The ends within `p.edge_reach` of a
     side take part; the one farthest out of its band is dropped while some lie more than
     ``tol`` beyond the lines (a holder's) or ``inward`` inside them (m: a ring leaving through
     the top or bottom edge near a corner, a laser's last return missing) and enough are left.
@@ -159,12 +140,12 @@ def _side_lines(ends: np.ndarray, w2: float, tol: float, inward: float
     # the ends near each side (left ones first), x = line + residual, and the design of
     # (a_l, a_r, b): compiled (`align.fit_kernels.side_ends`), as the worst end each round
     # (`line_excess`); the normal equations and their solution numpy's, as they were
-    xs, out_sign, a, n_r = side_ends(ends, w2, EDGE_REACH)
+    xs, out_sign, a, n_r = side_ends(ends, w2, p.edge_reach)
     keep = np.ones(len(xs), dtype=bool)
     n_kept = len(xs)
     side = a[:, 1]
     while True:
-        if n_r < SIDE_ENDS or n_kept - n_r < SIDE_ENDS or n_kept < LINE_ENDS:
+        if n_r < p.side_ends or n_kept - n_r < p.side_ends or n_kept < p.line_ends:
             return None
         ak = a[keep]
         coef = np.linalg.solve(ak.T @ ak, ak.T @ xs[keep])  # three unknowns: normal equations

@@ -11,16 +11,18 @@ from align.board import BoardSpec
 from align.fit.label_kernels import edge_labels
 from align.fit.labels import hit_band
 from align.fit.model import Model
-from align.fit.rays import HIT, MISS, OUTLIER_MARGIN
+from align.fit.rays import HIT, MISS
 from align.fit.sides import overhanging, side_widening
 from align.geometry import board_coordinates, lidar_up, pose_from_plane
+from align.params import RaysParams
 from align.plane.fit import tangent_basis
 from align.posterior.hit_miss import LabelledRays
 
 
 def ray_points(model: Model, theta: np.ndarray, tolerance: tuple[float, float],
                 intensity: np.ndarray | None = None,
-                partial: tuple[float, float] = (0.0, 0.0)) -> tuple[LabelledRays, np.ndarray]:
+                partial: tuple[float, float] = (0.0, 0.0), *, p: RaysParams) -> tuple[LabelledRays,
+                                                                                      np.ndarray]:
     """The rays that carry edge information, for `align.label_posterior`. Misses well inside
     and hits well outside the rectangle at ``theta`` are left out (dropouts, strays). A hit may
     lie up to ``tolerance`` (rad seen from the LiDAR: across the side edges, across the top and
@@ -47,11 +49,11 @@ def ray_points(model: Model, theta: np.ndarray, tolerance: tuple[float, float],
            for t_h, t_v in (tolerance, t_part)]  # (across the sides, the top and bottom)
     # the labels kept (misses well inside and hits well outside left out) and the widened
     # allowances, compiled (`align.fit_kernels.edge_labels`; a dozen numpy passes)
-    w2, h2, margin = board.width / 2, board.height / 2, OUTLIER_MARGIN
+    w2, h2, margin = board.width / 2, board.height / 2, p.outlier_margin
     use = edge_labels(x, z, lam, lab, _NO_INTENSITY if intensity is None else intensity, ext,
-                      HIT, MISS, w2, h2, margin, PARTIAL_INTENSITY, per[0], per[1])
-    use &= ~overhanging(x, z, lab, rays.laser, ext, board)
-    odds = _clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r)
+                      HIT, MISS, w2, h2, margin, p.partial_intensity, per[0], per[1])
+    use &= ~overhanging(x, z, lab, rays.laser, ext, board, p=p)
+    odds = _clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r, p=p)
     return (LabelledRays(rays.origin[use], u[use], lab[use], ext[use],
                          odds * (lab[use] == HIT)), np.flatnonzero(use))
 
@@ -60,32 +62,20 @@ def ray_points(model: Model, theta: np.ndarray, tolerance: tuple[float, float],
 _NO_INTENSITY = np.empty(0, dtype=np.uint8)
 
 
-#: The chance that a ray passing just beyond the board's edge meets something within the hit
-#: band (`FRONT_SIGMAS`) of its plane: a holder, a clamp, a box close behind the board. Rare:
-#: 1 in 200. Larger chances (0.01-0.05, measured on random scenes, docs/align.md) also soften
-#: the board's own edge hits at 2-3 sigma, and the posterior loses more there than it gains
-#: from the holders' returns.
-CLUTTER_CHANCE = 0.005
-
-
-def _clutter_odds(res: np.ndarray, sigma_r: float) -> np.ndarray:
+def _clutter_odds(res: np.ndarray, sigma_r: float, *, p: RaysParams) -> np.ndarray:
     """How much likelier a hit with range residual ``res`` (m) is from something off the board
-    (uniform over the hit band, `CLUTTER_CHANCE`) than from the board (Gaussian, ``sigma_r``),
+    (uniform over the hit band, `p.clutter_chance`) than from the board (Gaussian,
+                                                                                  ``sigma_r``),
     for `align.feasible.soft_moments`: 0.1 at 2.8 sigma, 0.4 at 3.3 sigma, 0.8 at the band's
     3.5 sigma."""
-    near = hit_band(sigma_r)
-    scale = CLUTTER_CHANCE * math.sqrt(2 * math.pi) * sigma_r / (2 * near)
+    near = hit_band(sigma_r, p=p)
+    scale = p.clutter_chance * math.sqrt(2 * math.pi) * sigma_r / (2 * near)
     return scale * np.exp(np.minimum(0.5 * (res / sigma_r) ** 2, 50.0))
 
 
-#: A hit is a partial return (the beam only partly on the board) below this fraction of the
-#: board's own intensity: a beam whose centre lies outside the edge has less than half of its
-#: energy on the board (a symmetric spot), one whose centre is on it at least half.
-PARTIAL_INTENSITY = 0.5
-
-
-def _partial_hits(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray) -> np.ndarray:
-    """The hits dimmer than `PARTIAL_INTENSITY` of the median of the hits well inside the
+def _partial_hits(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray, *,
+                  p: RaysParams) -> np.ndarray:
+    """The hits dimmer than `p.partial_intensity` of the median of the hits well inside the
     rectangle (``inner``): a divergent beam straddling an edge returns the board at the board's
     range, along the beam's centre, when the board's part of the spot outshines a dark or far
     background, so its centre may lie up to half the beam's width outside the edge; a return
@@ -94,24 +84,7 @@ def _partial_hits(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray) -> 
     ref = intensity[(lab == HIT) & inner]
     if len(ref) == 0:
         return np.zeros(len(lab), dtype=bool)
-    return (lab == HIT) & (intensity < PARTIAL_INTENSITY * float(np.median(ref)))
-
-
-#: Labels the pose of the least-squares fit violates by more than this (m) may be strays (the
-#: stand beside a rolled board: 2-3 cm; a real scan's edge hits, 3-10 mm outside with a 3 cm range
-#: offset, are not) ...
-STRAY_VIOLATION = 0.01
-
-
-#: ... and at most this many of them (or this fraction of the labels) are dropped, in at most
-#: this many rounds (each refits without the last round's).
-MAX_STRAYS = 16
-
-
-MAX_STRAY_FRACTION = 0.01
-
-
-STRAY_ROUNDS = 3
+    return (lab == HIT) & (intensity < p.partial_intensity * float(np.median(ref)))
 
 
 def violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.ndarray:

@@ -19,25 +19,18 @@ from align.fit.label_kernels import seen_counts
 from align.fit.labels import hit_band
 from align.fit.lsq import Fit, fit_from, staged_fit
 from align.fit.model import Model, build_model
-from align.fit.rays import DROPOUT, HIT, MISS, UNKNOWN, WINDOW, rays_of
-from align.fit.starts import RETRY_VIOLATIONS, SPILL, held_by, start_at, starts_on
+from align.fit.rays import DROPOUT, HIT, MISS, UNKNOWN, rays_of
+from align.fit.starts import held_by, start_at, starts_on
 from align.geometry import in_plane_rotation, pose_from_plane
+from align.params import RaysParams
 from align.plane.fit import fit_rays, fit_rays_offsets, predicted_range, ransac
 from align.posterior.hit_miss import OffsetModel, label_posterior
 from align.posterior.rays import (
-    MAX_STRAY_FRACTION,
-    MAX_STRAYS,
-    STRAY_ROUNDS,
-    STRAY_VIOLATION,
     pose_per_plane,
     ray_points,
     violation,
 )
 from align.rays.plane_steps import (
-    OFFSET_KNOWN,
-    RANGE_SIGMA_FLOOR,
-    TRIM,
-    TRIMMED_VARIANCE,
     inside_returns,
     plane_moved,
     range_plane,
@@ -53,21 +46,21 @@ from twin.core.scan import Scan
 
 
 def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
-                  hints: Hints) -> PoseEstimate:
+                  hints: Hints, *, p: RaysParams) -> PoseEstimate:
     """Joint estimate from one or more scans of a static pose (their board clusters found)."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(hints.seed)
-    plane = board_plane(scans, segs, board, hints, rng)
+    plane = board_plane(scans, segs, board, hints, rng, p=p)
     t_plane = time.perf_counter()
-    starts = roll_starts(plane, board, hints)
-    fit = best_fit(scans, segs, plane, starts, board, hints)
+    starts = roll_starts(plane, board, hints, p=p)
+    fit = best_fit(scans, segs, plane, starts, board, hints, p=p)
     if fit is None:
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "rays", rings=0,
                                    reason="the board spans fewer than 3 rings; 3 needed")
-    plane = plane_inside(plane, fit, segs[0].by_plane, board, hints)
-    solution = hit_miss_posterior(scans, plane, fit, board, hints, rng)
+    plane = plane_inside(plane, fit, segs[0].by_plane, board, hints, p=p)
+    solution = hit_miss_posterior(scans, plane, fit, board, hints, rng, p=p)
     timings = {"plane": t_plane - t0, "fit": time.perf_counter() - t_plane}
-    return outcome(solution, fit, len(starts), plane.sigma_r, board, timings)
+    return outcome(solution, fit, len(starts), plane.sigma_r, board, timings, p=p)
 
 
 @dataclass(frozen=True)
@@ -99,35 +92,36 @@ class Plane:
 
 
 def board_plane(scans: list[Scan], segs: list[Segmentation], board: BoardSpec, hints: Hints,
-                rng: np.random.Generator) -> Plane:
+                rng: np.random.Generator, *, p: RaysParams) -> Plane:
     """Step 1: the ML plane along the rays of the board's returns (`align.plane.fit_rays`), from
     a RANSAC start; with the ranges' offsets as nuisance parameters where the hints say so."""
-    rays, n, d = _board_rays(scans, segs, rng)
+    rays, n, d = _board_rays(scans, segs, rng, p=p)
     o, u, r = rays.origin, rays.direction, rays.distance
-    n, d, c_plane, sigma, keep = _plane_of_rays(rays, n, d)
+    n, d, c_plane, sigma, keep = _plane_of_rays(rays, n, d, p=p)
     # start poses: the plane at the rolls where the board's returns fit the rectangle, each
     # centred on the returns. A flat thing a few cm behind the board beside or below it (a
     # box, a cabinet's side, the stand's face) joins its cluster and turns the plane by
     # degrees to pass between both; the rectangle the search finds then leaves it out, and
     # the plane is fitted again to what that rectangle holds
-    starts, looked_at = starts_on(o, u, keep, rays.first, n, d, board, hints)
-    if starts and starts[0].left_out > SPILL * looked_at:
-        keep = keep & held_by(o, u, n, d, starts[0], board)
+    starts, looked_at = starts_on(o, u, keep, rays.first, n, d, board, hints, p=p)
+    if starts and starts[0].left_out > p.spill * looked_at:
+        keep = keep & held_by(o, u, n, d, starts[0], board, p=p)
         n, d, _, sigma = fit_rays(r[keep], o[keep], u[keep], n, d)
-        keep &= np.abs(r - predicted_range(n, d, o, u)) < TRIM * sigma
+        keep &= np.abs(r - predicted_range(n, d, o, u)) < p.trim * sigma
         n, d, c_plane, sigma = fit_rays(r[keep], o[keep], u[keep], n, d,
-                                        sigma_floor=RANGE_SIGMA_FLOOR)
+                                        sigma_floor=p.range_sigma_floor)
         starts = None
     rays = replace(rays, keep=keep)
     # the range noise: the user's, or the residuals' (a trimmed sample's understate it: undone
     # for Gaussian noise); the plane's covariance scaled to it
-    sigma_r = hints.range_sigma or sigma / math.sqrt(TRIMMED_VARIANCE)
+    sigma_r = hints.range_sigma or sigma / math.sqrt(p.trimmed_variance)
     n1, d1, ml_plane, offset_model, offset_start = range_plane(
-        r[keep], o[keep], u[keep], rays.ring[keep], n, d, c_plane, sigma, sigma_r, hints)
+        r[keep], o[keep], u[keep], rays.ring[keep], n, d, c_plane, sigma, sigma_r, hints, p=p)
     return Plane(n1, d1, rays, sigma_r, ml_plane, offset_model, offset_start, (n, d), starts)
 
 
-def _board_rays(scans: list[Scan], segs: list[Segmentation], rng: np.random.Generator
+def _board_rays(scans: list[Scan], segs: list[Segmentation], rng: np.random.Generator, *,
+                p: RaysParams
                 ) -> tuple[BoardRays, np.ndarray, float]:
     """The rays of the board's returns within a band about a RANSAC plane of the first scan's
     (the band `start_band`), and that plane (n, d)."""
@@ -139,10 +133,10 @@ def _board_rays(scans: list[Scan], segs: list[Segmentation], rng: np.random.Gene
            zip(scans, board_idx, strict=True)]
     # robust start: RANSAC on the first scan's cluster
     n, d, _ = ransac(pts[0], 0.04, rng, 100, truncated=True)
-    band = start_band(np.abs(pts[0] @ n - d))
+    band = start_band(np.abs(pts[0] @ n - d), p=p)
     o_l, u_l, r_l, k_l = [], [], [], []
-    for s, i, p in zip(scans, board_idx, pts, strict=True):
-        near = i[np.abs(p @ n - d) < band]
+    for s, i, pt in zip(scans, board_idx, pts, strict=True):
+        near = i[np.abs(pt @ n - d) < band]
         lid = s.laser_id[near]
         o, u = rays_of(s, near, lid)
         o_l.append(o)
@@ -154,13 +148,13 @@ def _board_rays(scans: list[Scan], segs: list[Segmentation], rng: np.random.Gene
     return rays, n, d
 
 
-def _plane_of_rays(rays: BoardRays, n: np.ndarray, d: float
+def _plane_of_rays(rays: BoardRays, n: np.ndarray, d: float, *, p: RaysParams
                    ) -> tuple[np.ndarray, float, np.ndarray, float, np.ndarray]:
-    """The ML plane along ``rays`` from (n, d): trimmed at `TRIM` sigma, on the consecutive
+    """The ML plane along ``rays`` from (n, d): trimmed at `p.trim` sigma, on the consecutive
     block of rings that holds the most returns; (n, d, covariance, residuals' sigma, kept)."""
     o, u, r = rays.origin, rays.direction, rays.distance
     n, d, _, sigma = fit_rays(r, o, u, n, d)
-    keep = np.abs(r - predicted_range(n, d, o, u)) < TRIM * sigma
+    keep = np.abs(r - predicted_range(n, d, o, u)) < p.trim * sigma
     n, d, _, sigma = fit_rays(r[keep], o[keep], u[keep], n, d)
     # the board's rings hold many returns; the few that leak in from the stand (its base is
     # 5 cm in front of the board) sit on other rings: the board's rings are consecutive: keep
@@ -168,11 +162,11 @@ def _plane_of_rays(rays: BoardRays, n: np.ndarray, d: float
     # front, lights up a ring or two below a gap)
     keep &= in_ring_block(rays.ring, keep)
     n, d, c_plane, sigma = fit_rays(r[keep], o[keep], u[keep], n, d,
-                                    sigma_floor=RANGE_SIGMA_FLOOR)
+                                    sigma_floor=p.range_sigma_floor)
     return n, d, c_plane, sigma, keep
 
 
-def roll_starts(plane: Plane, board: BoardSpec, hints: Hints) -> list[RollStart]:
+def roll_starts(plane: Plane, board: BoardSpec, hints: Hints, *, p: RaysParams) -> list[RollStart]:
     """Step 2: the fit's start poses, the roll search's on the plane (searched again where the
     plane moved since: refitted without a neighbour, or with the ranges' offsets)."""
     if (plane.starts is not None and plane.offset_start[1] is None
@@ -180,7 +174,7 @@ def roll_starts(plane: Plane, board: BoardSpec, hints: Hints) -> list[RollStart]
         return plane.starts
     rays = plane.rays
     return starts_on(rays.origin, rays.direction, rays.keep, rays.first, plane.n, plane.d, board,
-                   hints)[0]
+                   hints, p=p)[0]
 
 
 def _shifts() -> np.ndarray:
@@ -189,7 +183,8 @@ def _shifts() -> np.ndarray:
 
 
 def best_fit(scans: list[Scan], segs: list[Segmentation], plane: Plane,
-             starts: list[RollStart], board: BoardSpec, hints: Hints) -> Fit | None:
+             starts: list[RollStart], board: BoardSpec, hints: Hints, *, p: RaysParams
+             ) -> Fit | None:
     """Step 3: the least-squares fit from each start (`align.fit.lsq.fit_from`); the one that
     contradicts the fewest labels wins (the chi2 of a fit that had to leave its brackets out
     says little), then the lower chi2. None: fewer than 3 rings hit from every start."""
@@ -198,7 +193,7 @@ def best_fit(scans: list[Scan], segs: list[Segmentation], plane: Plane,
         theta = pose_from_plane(plane.n, plane.d, st.roll)
         theta[0], theta[2] = st.t_x, st.t_z
         return fit_from(scans, segs, theta, board, plane.sigma_r, hints, _shifts(),
-                        plane.offset_start)
+                        plane.offset_start, p=p)
 
     def better(fit: Fit | None, best: Fit | None) -> bool:
         return fit is not None and (best is None or (fit.violations, fit.chi2) <
@@ -210,7 +205,7 @@ def best_fit(scans: list[Scan], segs: list[Segmentation], plane: Plane,
         if better(fit, best):
             best = fit
     level = hints.roll_prior[0] if hints.roll_prior is not None else 0.0
-    if best is not None and best.violations > RETRY_VIOLATIONS and all(
+    if best is not None and best.violations > p.retry_violations and all(
             abs(st.roll - level) > FINE_REACH for st in starts):
         # every start's fit contradicts many labels: the search's rectangle may have turned to
         # hold something beside the board (a bright box flush with an edge a few cm behind it,
@@ -223,7 +218,8 @@ def best_fit(scans: list[Scan], segs: list[Segmentation], plane: Plane,
     return best
 
 
-def plane_inside(plane: Plane, fit: Fit, by_plane: bool, board: BoardSpec, hints: Hints
+def plane_inside(plane: Plane, fit: Fit, by_plane: bool, board: BoardSpec, hints: Hints, *,
+                 p: RaysParams
                  ) -> Plane:
     """Step 4: the plane checked against every return inside the fitted rectangle, none beyond
     it; that plane where it differs from the cluster's by more than chance (`plane_moved`) or
@@ -239,21 +235,21 @@ def plane_inside(plane: Plane, fit: Fit, by_plane: bool, board: BoardSpec, hints
     reason). A rectangle that holds less than half the cluster's returns is not the board's:
     the result's checks say so, on the first plane."""
     model, theta = fit.model, fit.theta
-    held = inside_returns(model.rays, theta, model.offset, board, model.coords(theta))
+    held = inside_returns(model.rays, theta, model.offset, board, model.coords(theta), p=p)
     if np.count_nonzero(held) < 0.5 * np.count_nonzero(plane.rays.keep):
         return plane
     rays_ = model.rays
     r_in, o_in, u_in = rays_.distance[held], rays_.origin[held], rays_.direction[held]
     n_in, d_in, _, s_in = fit_rays(r_in, o_in, u_in, plane.n, plane.d)
-    k_in = np.abs(r_in - predicted_range(n_in, d_in, o_in, u_in)) < TRIM * s_in
+    k_in = np.abs(r_in - predicted_range(n_in, d_in, o_in, u_in)) < p.trim * s_in
     n_in, d_in, c_in, s_in = fit_rays(r_in[k_in], o_in[k_in], u_in[k_in], n_in, d_in,
-                                      sigma_floor=RANGE_SIGMA_FLOOR)
-    if not (by_plane or plane_moved(plane.cluster, (n_in, d_in, c_in))):
+                                      sigma_floor=p.range_sigma_floor)
+    if not (by_plane or plane_moved(plane.cluster, (n_in, d_in, c_in), p=p)):
         return plane
     rays = BoardRays(o_in, u_in, r_in, rays_.ring[held], k_in, plane.rays.first)
     n, d, ml_plane, offset_model, _ = range_plane(
         r_in[k_in], o_in[k_in], u_in[k_in], rays.ring[k_in], n_in, d_in, c_in, s_in,
-        plane.sigma_r, hints)
+        plane.sigma_r, hints, p=p)
     return replace(plane, n=n, d=d, rays=rays, ml=ml_plane, offset_model=offset_model)
 
 
@@ -274,14 +270,14 @@ class Solution:
 
 
 def hit_miss_posterior(scans: list[Scan], plane: Plane, fit: Fit, board: BoardSpec,
-                       hints: Hints, rng: np.random.Generator) -> Solution:
+                       hints: Hints, rng: np.random.Generator, *, p: RaysParams) -> Solution:
     """Step 5: the hit/miss posterior (`align.posterior`) about the fit. Where a few labels make
     it empty (returns near the board's plane from something beside it: the stand's base at a
     corner of a rolled board, a hand; a dropout at an edge), the labels the least-squares pose
     violates are left out (unknown), the fit redone without them and the posterior tried
     again (`_stray_rounds`); where none holds, the least-squares fit stands."""
     post, theta, j, conv, model, cov, dropped, iters = _stray_rounds(scans, plane, fit, board,
-                                                                     hints, rng)
+                                                                     hints, rng, p=p)
     offset_model = plane.offset_model
     if post is not None:
         theta, cov = post
@@ -290,7 +286,7 @@ def hit_miss_posterior(scans: list[Scan], plane: Plane, fit: Fit, board: BoardSp
     elif hints.laser_offset_sigma > 0:
         # the least-squares fit's covariance knows the ranges' noise (and the common offset it
         # fits), not the per-laser offsets: their share of the plane's covariance is added
-        prior = hints.range_offset_prior or (0.0, OFFSET_KNOWN)
+        prior = hints.range_offset_prior or (0.0, p.offset_known)
         rays, keep = plane.rays, plane.rays.keep
         c_common = fit_rays_offsets(rays.distance[keep], rays.origin[keep],
                                     rays.direction[keep], rays.ring[keep], plane.n, plane.d,
@@ -310,15 +306,16 @@ def hit_miss_posterior(scans: list[Scan], plane: Plane, fit: Fit, board: BoardSp
 
 
 def _stray_rounds(scans: list[Scan], plane: Plane, fit: Fit, board: BoardSpec, hints: Hints,
-                  rng: np.random.Generator) -> tuple:
+                  rng: np.random.Generator, *, p: RaysParams) -> tuple:
     """The posterior, leaving out the labels the least-squares pose violates for up to
-    `STRAY_ROUNDS` rounds: (posterior or None, theta, j, conv, model, covariance, labels left
+    `p.stray_rounds` rounds: (posterior or None, theta, j, conv, model, covariance,
+                                       labels left
     out, iterations)."""
     theta, j, conv, iters, model = fit.theta, fit.j, fit.conv, fit.iters, fit.model
     offset_model, cov = plane.offset_model, None
     dropped = 0
     intensity = np.concatenate([s.intensity for s in scans])  # indexed as the rays' gidx
-    for _ in range(STRAY_ROUNDS):
+    for _ in range(p.stray_rounds):
         # the least-squares covariance (7 x 7 when the offset is fitted: pose, offset) where
         # the posterior reads it (fused scans' roll reach, the offset's centre) or where it
         # stands instead of the posterior
@@ -326,7 +323,7 @@ def _stray_rounds(scans: list[Scan], plane: Plane, fit: Fit, board: BoardSpec, h
                   else None)
         _centre_offset(offset_model, model, cov_ls, slope=True)
         labelled, idx = ray_points(model, theta, hints.edge_tolerance,
-                                   intensity[model.rays.gidx], hints.partial_edge_tolerance)
+                                   intensity[model.rays.gidx], hints.partial_edge_tolerance, p=p)
         # a single scan's posterior searches a fixed reach of roll: no roll sigma needed
         sd_roll = (float(np.sqrt(max(cov_ls[3, 3], 0.0))) if cov_ls is not None else math.nan)
         post = label_posterior(labelled, board, theta, sd_roll, plane.ml, len(scans), rng,
@@ -338,15 +335,15 @@ def _stray_rounds(scans: list[Scan], plane: Plane, fit: Fit, board: BoardSpec, h
         cov = cov_ls[:6, :6]
         if not dropped:
             first = (theta, j, conv, model, cov, cov_ls)
-        bad = idx[violation(labelled, board, theta) > STRAY_VIOLATION]
-        limit = max(MAX_STRAYS, MAX_STRAY_FRACTION * len(idx))
+        bad = idx[violation(labelled, board, theta) > p.stray_violation]
+        limit = max(p.max_strays, p.max_stray_fraction * len(idx))
         if len(bad) == 0 or dropped + len(bad) > limit:
             break
         dropped += len(bad)
         lab = model.lab.copy()
         lab[bad] = UNKNOWN
         model = build_model(model.rays, lab, theta, board, plane.sigma_r, hints.edge_blur,
-                            like=model)
+                            like=model, p=p)
         theta, j, conv, it, _ = staged_fit(model, theta, _shifts())
         iters += it
     if post is None and dropped:
@@ -375,13 +372,13 @@ def _centre_offset(offset_model: OffsetModel | None, model: Model, cov_ls: np.nd
 
 
 def outcome(sol: Solution, fit: Fit, n_starts: int, sigma_r: float, board: BoardSpec,
-            timings: dict) -> PoseEstimate:
+            timings: dict, *, p: RaysParams) -> PoseEstimate:
     """Step 6: the result: what was seen (every edge, nothing in front of the board) and the
     status it earns; the pose in its canonical form under the board's symmetry."""
     model, theta = sol.model, sol.theta
     rays, lab = model.rays, model.lab
     k = model.edge_kind
-    seen = _seen(sol, sigma_r, board)
+    seen = _seen(sol, sigma_r, board, p=p)
     diag = {
         "rings": len(fit.rings), "rays": len(lab), "hits": int(np.sum(lab == HIT)),
         "range_residuals": int(model.use_range.sum()), "brackets": int(np.sum(k > 0)),
@@ -394,7 +391,7 @@ def outcome(sol: Solution, fit: Fit, n_starts: int, sigma_r: float, board: Board
         "chi2_per_dof": float(np.sum(model.residuals(theta) ** 2) / max(len(sol.j) - 6, 1)),
         "outside_hits": seen.pop("outside_hits"),
     }
-    status, reason = _status(diag, seen, model, sol.conv)
+    status, reason = _status(diag, seen, model, sol.conv, p=p)
     if reason:
         diag["reason"] = reason
     used = {"board": rays.gidx[model.use_range],
@@ -403,7 +400,7 @@ def outcome(sol: Solution, fit: Fit, n_starts: int, sigma_r: float, board: Board
     return PoseEstimate(status, "rays", Pose.from_array(theta), cov, diag, used, timings)
 
 
-def _seen(sol: Solution, sigma_r: float, board: BoardSpec) -> dict:
+def _seen(sol: Solution, sigma_r: float, board: BoardSpec, *, p: RaysParams) -> dict:
     """The brackets per edge and, in one compiled pass (`seen_counts`), every edge seen, the
     rays blocked (a return in front of the board where the board is: not a stray left out),
     the dropouts and misses inside and the hits outside."""
@@ -411,8 +408,8 @@ def _seen(sol: Solution, sigma_r: float, board: BoardSpec) -> dict:
     x, z, lam = model.coords(sol.theta)
     k, sgn = model.edge_kind, model.edge_sign
     seen, n_inside, occluded, dropouts, inside_miss, outside_hits = seen_counts(
-        x, z, lam, model.lab, model.rays.distance, float(sol.offset), hit_band(sigma_r),
-        board.width / 2, board.height / 2, WINDOW, 0.02, HIT, MISS, DROPOUT)
+        x, z, lam, model.lab, model.rays.distance, float(sol.offset), hit_band(sigma_r, p=p),
+        board.width / 2, board.height / 2, p.window, 0.02, HIT, MISS, DROPOUT)
     return {"edges_left": int(np.sum((k == 1) & (sgn < 0))),
             "edges_right": int(np.sum((k == 1) & (sgn > 0))),
             "edges_top": int(np.sum((k == 2) & (sgn > 0))),
@@ -422,7 +419,8 @@ def _seen(sol: Solution, sigma_r: float, board: BoardSpec) -> dict:
             "seen": tuple(bool(v) for v in seen)}
 
 
-def _status(diag: dict, seen: dict, model: Model, conv: bool) -> tuple[Status, str]:
+def _status(diag: dict, seen: dict, model: Model, conv: bool, *, p: RaysParams) -> tuple[Status,
+                                                                                         str]:
     """ok, or partial_board where the known rectangle does not explain what was seen (part of
     the board hidden, dark or outside the field of view, or something board-like that is not
     the board), or not_converged; and the reason."""
@@ -432,7 +430,7 @@ def _status(diag: dict, seen: dict, model: Model, conv: bool) -> tuple[Status, s
     diag["edges_seen"] = "".join("lrbt"[i] for i in range(4) if seen[i])
     occluded, inside_miss = diag["occluded_rays"], diag["inside_misses"]
     outside_hits, brackets = diag["outside_hits"], diag["brackets"]
-    if (not all(seen) or brackets < MIN_BRACKETS
+    if (not all(seen) or brackets < p.min_brackets
             or occluded > 0.03 * n_inside or inside_miss > 0.03 * n_inside
             or outside_hits > 0.03 * n_hit or diag["chi2_per_dof"] > 3.0
             or model.use_range.sum() < 0.5 * n_hit):
@@ -448,14 +446,10 @@ def _status(diag: dict, seen: dict, model: Model, conv: bool) -> tuple[Status, s
     return (Status.NOT_CONVERGED if not conv else Status.OK), ""
 
 
-#: At least this many hit/miss brackets (3 in-plane unknowns: roll, x, z, and one to spare).
-MIN_BRACKETS = 4
-
-
-def _edges_seen(x: np.ndarray, z: np.ndarray, lab: np.ndarray, board: BoardSpec
+def _edges_seen(x: np.ndarray, z: np.ndarray, lab: np.ndarray, board: BoardSpec, *, p: RaysParams
                 ) -> tuple[bool, bool, bool, bool]:
     """Whether the LiDAR looked beyond each edge (left, right, bottom, top) and saw no board
-    there: a miss just outside it (within `WINDOW`), alongside it. An edge beyond the field of
+    there: a miss just outside it (within `p.window`), alongside it. An edge beyond the field of
     view, behind an occluder or on a dark patch that returns nothing has none: the rectangle
     could extend there, so the board is not wholly seen."""
     w2, h2 = board.width / 2, board.height / 2
@@ -464,6 +458,6 @@ def _edges_seen(x: np.ndarray, z: np.ndarray, lab: np.ndarray, board: BoardSpec
     out = []
     for c, half, along, side in ((x, w2, along_x, -1), (x, w2, along_x, 1),
                                  (z, h2, along_z, -1), (z, h2, along_z, 1)):
-        beyond = (side * c > half) & (side * c < half + WINDOW)
+        beyond = (side * c > half) & (side * c < half + p.window)
         out.append(bool(np.any(miss & along & beyond)))
     return tuple(out)
