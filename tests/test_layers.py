@@ -29,6 +29,40 @@ ALLOWED: dict[str, tuple[str, ...]] = {
 }
 PROJECT = ("twin", "align", "scenarios", "models", "bench_fw", "aimbench")
 
+#: Within align: what each part may import of align besides itself (docs/DESIGN.md, "align's
+#: stages"). The stages import one way, plane <- search <- fit <- posterior <- rays <- api: the
+#: board search fits planes, the pose fit starts from a search's candidate, the posterior reads
+#: the fit's model, the rays pipeline runs them all, api dispatches. The baselines (the paper's
+#: method, ICP) use the search and the plane only; the design bound is geometry alone. COMMON are
+#: the shared modules every stage may use; they import no stage. The leaf of float helpers
+#: (floats) imports only the decorator that compiles it (jit), and jit nothing of align.
+ALIGN_COMMON = ("align.board", "align.geometry", "align.result", "align.symmetry",
+                "align.params", "align.floats", "align.jit")
+_PLANE = (*ALIGN_COMMON,)
+_SEARCH = (*_PLANE, "align.plane")
+_FIT = (*_SEARCH, "align.search")
+_POSTERIOR = (*_FIT, "align.fit")
+_RAYS = (*_POSTERIOR, "align.posterior")
+ALIGN_ALLOWED: dict[str, tuple[str, ...]] = {
+    "align.jit": (),
+    "align.floats": ("align.jit",),
+    "align.board": (),
+    "align.geometry": (),
+    "align.result": (),
+    "align.params": (),
+    "align.symmetry": ("align.board", "align.geometry"),
+    "align.calibration": ("align.board", "align.geometry"),
+    "align.plane": _PLANE,
+    "align.search": _SEARCH,
+    "align.fit": _FIT,
+    "align.posterior": _POSTERIOR,
+    "align.rays": _RAYS,
+    "align.baselines": (*ALIGN_COMMON, "align.plane", "align.search"),
+    "align.design": ("align.board", "align.geometry"),
+    "align.api": (*_RAYS, "align.rays", "align.baselines"),
+    "align": ("align.api", "align.board", "align.result"),  # the package's face
+}
+
 #: Third-party libraries that only one place of the project may import.
 CONFINED: dict[str, tuple[str, ...]] = {
     "rerun": ("scenarios.recording",),
@@ -105,6 +139,38 @@ def test_every_layer_imports_only_what_it_may():
                 broken.append(f"{path.relative_to(REPO)}:{line} imports {imported}: {layer} may "
                               f"import only {', '.join(allowed)}")
     assert not broken, "\n".join(broken)
+
+
+def _align_broken(module: str, imports: list[tuple[int, str]]) -> list[str]:
+    """The imports of align module ``module`` that break `ALIGN_ALLOWED`, as (line: why)."""
+    part = _layer(module, ALIGN_ALLOWED)
+    assert part is not None, f"{module}: in no part of ALIGN_ALLOWED; add it there"
+    allowed = (part, *ALIGN_ALLOWED[part])
+    return [f"{line} imports {imported}: {part} may import only "
+            f"{', '.join(allowed) if allowed else 'nothing'} of align"
+            for line, imported in imports
+            if _within(imported, ("align",)) and imported != "align"
+            and not _within(imported, allowed)]
+
+
+def test_align_stages_import_one_way():
+    broken = []
+    for path in sorted((REPO / "align").rglob("*.py")):
+        broken += [f"{path.relative_to(REPO)}:{why}"
+                   for why in _align_broken(_module_of(path), _imports(path))]
+    assert not broken, "\n".join(broken)
+
+
+def test_the_align_rule_catches_a_stage_importing_upward():
+    """The checker itself, on made-up imports: the search importing the fit, the leaf importing
+    the geometry and the design importing the plane are reported; the fit importing the search
+    and the leaf importing jit are not."""
+    assert _align_broken("align.search.board", [(3, "align.fit.model")]) == [
+        "3 imports align.fit.model: align.search may import only align.search, "
+        f"{', '.join(_SEARCH)} of align"]
+    assert len(_align_broken("align.floats", [(1, "align.jit"), (2, "align.geometry")])) == 1
+    assert len(_align_broken("align.design.bound", [(5, "align.plane.fit")])) == 1
+    assert _align_broken("align.fit.lsq", [(4, "align.search.result"), (5, "align.jit")]) == []
 
 
 @pytest.mark.parametrize("library", sorted(CONFINED))
