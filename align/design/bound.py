@@ -344,20 +344,7 @@ def precision_bound(
     if n_par == 7 and math.isfinite(noise.offset_sigma):
         prior[6, 6] = 1.0 / noise.offset_sigma**2
 
-    # every ring sampled densely over the board's azimuths: where it is on the board, where it
-    # crosses an edge
-    lo, hi = _azimuth_window(theta, board, 2 * da)
-    ns = max(math.ceil((hi - lo) / da * SAMPLES_PER_STEP), 8)
-    az = np.broadcast_to(np.linspace(lo, hi, ns + 1), (lasers.n_lasers, ns + 1))
-    lid = np.broadcast_to(np.arange(lasers.n_lasers)[:, None], az.shape)
-    x, z, lam = st.points(lid, az)
-    valid = np.isfinite(lam) & (lam > 0)
-    s = (st.normals[:, 0, None, None] * x + st.normals[:, 1, None, None] * z
-         - st.offsets[:, None, None])
-    t = -st.normals[:, 1, None, None] * x + st.normals[:, 0, None, None] * z
-    s = np.where(valid, s, np.nan)
-    inside = valid & np.all(s <= 0, axis=0)
-
+    s, t, inside, lid, az = _ring_samples(st, theta, board, lasers, da)
     edge, laser, a_cross = _find_crossings(st, s, az)
     counts = tuple(int(np.sum(edge == e)) for e in range(4))
     crossings = _crossing_slabs(st, edge, laser, a_cross, da, n_scans, noise, n_par)
@@ -389,6 +376,25 @@ def precision_bound(
         information_ranges=_marginal(info_o), returns=returns / n_scans, crossings=counts,
         ring_brackets=tuple(EDGE_NAMES[b[0]] for b in intervals), n_scans=n_scans,
         labels=used, diagnostics=diagnostics)
+
+
+def _ring_samples(st: _Station, theta: np.ndarray, board: BoardSpec, lasers: LaserTable,
+                  da: float) -> tuple[np.ndarray, ...]:
+    """Every ring sampled densely over the board's azimuths: where it is on the board, where it
+    crosses an edge. (signed distance to each edge (4, lasers, samples; nan where the ray meets
+    no plane), position along each edge, inside the board, laser ids, azimuths)."""
+    lo, hi = _azimuth_window(theta, board, 2 * da)
+    ns = max(math.ceil((hi - lo) / da * SAMPLES_PER_STEP), 8)
+    az = np.broadcast_to(np.linspace(lo, hi, ns + 1), (lasers.n_lasers, ns + 1))
+    lid = np.broadcast_to(np.arange(lasers.n_lasers)[:, None], az.shape)
+    x, z, lam = st.points(lid, az)
+    valid = np.isfinite(lam) & (lam > 0)
+    s = (st.normals[:, 0, None, None] * x + st.normals[:, 1, None, None] * z
+         - st.offsets[:, None, None])
+    t = -st.normals[:, 1, None, None] * x + st.normals[:, 0, None, None] * z
+    s = np.where(valid, s, np.nan)
+    inside = valid & np.all(s <= 0, axis=0)
+    return s, t, inside, lid, az
 
 
 def _to_station(cov_b: np.ndarray, jac: np.ndarray) -> np.ndarray:

@@ -174,17 +174,7 @@ def expected_covariance(info_other: np.ndarray, crossings: Crossings, fixed: Fix
                            1e-12, 1 - 1e-12))[:, :r_dims]
     r_hat = normal @ root_r.T
     lin = r_hat @ info_other + (mid[:, soft] / slab_var[soft]) @ g[soft]  # info @ centre
-    # whitening per draw: the Gaussian equivalent with each hard slab's variance scaled by its
-    # interval's length in this draw against the expected one
-    expected = np.concatenate((6.0 * crossings.width**2 / ((n_scans + 1) * (n_scans + 2)),
-                               (fixed.hi - fixed.lo) ** 2))
-    var = np.maximum(slab_var * (hi - lo) ** 2 / np.maximum(expected, 1e-300), 1e-300)
-    var = np.where(soft, np.inf, var)
-    info_d = info + np.einsum("ki,dk,kj->dij", g[~soft], 1.0 / var[:, ~soft], g[~soft])
-    sc = 1.0 / np.sqrt(np.einsum("dii->di", info_d))
-    outer = sc[:, :, None] * sc[:, None, :]
-    cov_d = np.linalg.inv(info_d * outer) * outer
-    root = np.linalg.cholesky(0.5 * (cov_d + np.swapaxes(cov_d, 1, 2)))  # p = root y
+    root = _whitening(info, g, soft, slab_var, lo, hi, crossings, fixed, n_scans)  # p = root y
     # in y: energy 1/2 y^T B y - y^T c; hard slabs lo <= h . y <= hi
     big_b = np.swapaxes(root, 1, 2) @ info @ root
     c = np.einsum("dij,di->dj", root, lin)
@@ -217,6 +207,27 @@ def expected_covariance(info_other: np.ndarray, crossings: Crossings, fixed: Fix
             grad += step[:, None] * b_j[j]
         if sweep >= BURN_IN:
             kept.append(y.copy())
+    return _chains_covariance(root, kept, draws), {"draws": draws, "sweeps": sweeps}
+
+
+def _whitening(info: np.ndarray, g: np.ndarray, soft: np.ndarray, slab_var: np.ndarray,
+               lo: np.ndarray, hi: np.ndarray, crossings: Crossings, fixed: Fixed,
+               n_scans: int) -> np.ndarray:
+    """Per draw, the root of the Gaussian equivalent's covariance (p = root y) with each hard
+    slab's variance scaled by its interval's length in this draw against the expected one."""
+    expected = np.concatenate((6.0 * crossings.width**2 / ((n_scans + 1) * (n_scans + 2)),
+                               (fixed.hi - fixed.lo) ** 2))
+    var = np.maximum(slab_var * (hi - lo) ** 2 / np.maximum(expected, 1e-300), 1e-300)
+    var = np.where(soft, np.inf, var)
+    info_d = info + np.einsum("ki,dk,kj->dij", g[~soft], 1.0 / var[:, ~soft], g[~soft])
+    sc = 1.0 / np.sqrt(np.einsum("dii->di", info_d))
+    outer = sc[:, :, None] * sc[:, None, :]
+    cov_d = np.linalg.inv(info_d * outer) * outer
+    return np.linalg.cholesky(0.5 * (cov_d + np.swapaxes(cov_d, 1, 2)))
+
+
+def _chains_covariance(root: np.ndarray, kept: list[np.ndarray], draws: int) -> np.ndarray:
+    """The expected posterior covariance from the Gibbs chains' kept states ``kept`` (in y)."""
     kept = [np.einsum("dij,dj->di", root, yy) for yy in kept]
     pts = np.array(kept)  # (T, D, n)
     dev = pts - pts.mean(axis=0)
@@ -225,9 +236,8 @@ def expected_covariance(info_other: np.ndarray, crossings: Crossings, fixed: Fix
     # the chain's two halves' means (Var(mean) ~ E[(m1 - m2)(m1 - m2)^T] / 4)
     half = len(kept) // 2
     gap = pts[:half].mean(axis=0) - pts[len(kept) - half:].mean(axis=0)
-    cov = (np.einsum("tdi,tdj->ij", dev, dev) / len(kept)
-           + 0.25 * np.einsum("di,dj->ij", gap, gap)) / draws
-    return cov, {"draws": draws, "sweeps": sweeps}
+    return (np.einsum("tdi,tdj->ij", dev, dev) / len(kept)
+            + 0.25 * np.einsum("di,dj->ij", gap, gap)) / draws
 
 
 def _brackets(crossings: Crossings, fixed: Fixed, n_scans: int, laser_phase: np.ndarray | None,

@@ -95,9 +95,9 @@ class Fit:
 
 
 def fit_from(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, board: BoardSpec,
-         sigma_r: float, hints: Hints, ds: np.ndarray,
-         offset: tuple[float, tuple[float, float] | None] = (0.0,
-                                                             None), *, p: RaysParams) -> Fit | None:
+             sigma_r: float, hints: Hints, ds: np.ndarray,
+             offset: tuple[float, tuple[float, float] | None] = (0.0, None), *,
+             p: RaysParams) -> Fit | None:
     """The joint least-squares fit from the start pose ``theta``; None: fewer than 3 rings hit.
 
     The position across the rings is the weakly known one (rings are 2 deg apart) and a ring
@@ -108,28 +108,10 @@ def fit_from(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, boa
     the brackets; profile again; fix the bracket assignments leaving out those at corners, fit;
     reassign tighter, refit (`staged_fit`).
     """
-    rays, coords, spacing = candidates_at(scans, segs, theta, board, p=p)
-    expected = coords[2] + offset[0]  # the range expected, offset included
-    lab, order = labels_ordered(rays, expected, sigma_r, p=p)  # order: by scan, laser, azimuth
-    # things just behind the board beside its edges, within the range noise of its plane: a
-    # few cm of hits on a ring that passes the board, and rings lengthened past a side edge.
-    # Left out before the brackets are drawn (a rectangle turned to reach them, as a fit from
-    # there finds it, locks onto grazing crossings degrees off); judged again by the hit/miss
-    # posterior's labels at the fitted pose (`ray_points`)
-    w2, h2, margin = board.width / 2, board.height / 2, p.outlier_margin
-    inner = (np.abs(coords[0]) < w2 - margin) & (np.abs(coords[1]) < h2 - margin)
-    intensity = np.concatenate([s.intensity for s in scans])[rays.gidx]
-    lab[bright_ends(rays, lab, intensity, inner, order, p=p)] = UNKNOWN
-    ext = side_widening(rays.direction, theta, board)
-    sides = Sides.of(coords[0], coords[1], lab, rays.laser, ext, board, p=p)
-    grazing = grazing_runs(rays, lab, coords, expected, board, order, sides, p=p)
-    if np.any(grazing):
-        lab[grazing] = UNKNOWN
-        sides = None  # its lasers' ends may have changed
-    lab[overhanging(coords[0], coords[1], lab, rays.laser, ext, board, sides, p=p)] = UNKNOWN
-    rings_hit = np.unique(rays.ring[lab == HIT])
-    if len(rings_hit) < 3:
+    found = _start_labels(scans, segs, theta, board, sigma_r, offset, p=p)
+    if found is None:
         return None
+    rays, coords, spacing, lab, rings_hit = found
     # the profile and the stray margin grow with the rings' spacing on the board: the start
     # can be off by half of it (a far board, one tilted away)
     reach = max(float(ds[-1]), p.profile_spacings * spacing)
@@ -161,21 +143,60 @@ def fit_from(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray, boa
         theta, j, conv, it, chi2 = staged_fit(model, theta, ds)
         iters += it
     if chi2 > 1.5:
-        # a misfit (roll started too far off and a pair of grazing crossings held it there):
-        # restart from other rolls and keep the best
-        kept_offset = model.offset
-        for droll in np.deg2rad([-2.0, -1.0, 1.0, 2.0]):
-            start = theta.copy()
-            start[3] += droll
-            cand = staged_fit(model, start, ds)
-            if cand[4] < chi2:
-                theta, j, conv, it, chi2 = cand
-                iters += it
-                kept_offset = model.offset
-        model.offset = kept_offset
-        model.classify(theta, 0.002, True)  # the state of the kept fit, for the diagnostics
-        model.assign(theta)
+        theta, j, conv, iters, chi2 = _other_rolls(model, theta, ds, (theta, j, conv, iters, chi2))
     return Fit(theta, j, conv, iters, chi2, model, rings_hit, _contradicted(model, theta))
+
+
+def _start_labels(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
+                  board: BoardSpec, sigma_r: float,
+                  offset: tuple[float, tuple[float, float] | None], *, p: RaysParams
+                  ) -> tuple | None:
+    """The rays near the board at the start pose ``theta`` and their labels, with the hits
+    that are not the board's taken as unknown: (rays, board coordinates, ring spacing, labels,
+    rings hit), or None: fewer than 3 rings hit."""
+    rays, coords, spacing = candidates_at(scans, segs, theta, board, p=p)
+    expected = coords[2] + offset[0]  # the range expected, offset included
+    lab, order = labels_ordered(rays, expected, sigma_r, p=p)  # order: by scan, laser, azimuth
+    # things just behind the board beside its edges, within the range noise of its plane: a
+    # few cm of hits on a ring that passes the board, and rings lengthened past a side edge.
+    # Left out before the brackets are drawn (a rectangle turned to reach them, as a fit from
+    # there finds it, locks onto grazing crossings degrees off); judged again by the hit/miss
+    # posterior's labels at the fitted pose (`ray_points`)
+    w2, h2, margin = board.width / 2, board.height / 2, p.outlier_margin
+    inner = (np.abs(coords[0]) < w2 - margin) & (np.abs(coords[1]) < h2 - margin)
+    intensity = np.concatenate([s.intensity for s in scans])[rays.gidx]
+    lab[bright_ends(rays, lab, intensity, inner, order, p=p)] = UNKNOWN
+    ext = side_widening(rays.direction, theta, board)
+    sides = Sides.of(coords[0], coords[1], lab, rays.laser, ext, board, p=p)
+    grazing = grazing_runs(rays, lab, coords, expected, board, order, sides, p=p)
+    if np.any(grazing):
+        lab[grazing] = UNKNOWN
+        sides = None  # its lasers' ends may have changed
+    lab[overhanging(coords[0], coords[1], lab, rays.laser, ext, board, sides, p=p)] = UNKNOWN
+    rings_hit = np.unique(rays.ring[lab == HIT])
+    if len(rings_hit) < 3:
+        return None
+    return rays, coords, spacing, lab, rings_hit
+
+
+def _other_rolls(model: Model, theta: np.ndarray, ds: np.ndarray, fit: tuple) -> tuple:
+    """A misfit (roll started too far off and a pair of grazing crossings held it there):
+    restarts from other rolls; the best ``fit`` (theta, j, conv, iterations, chi2) kept, and
+    the model left in its state."""
+    theta, j, conv, iters, chi2 = fit
+    kept_offset = model.offset
+    for droll in np.deg2rad([-2.0, -1.0, 1.0, 2.0]):
+        start = theta.copy()
+        start[3] += droll
+        cand = staged_fit(model, start, ds)
+        if cand[4] < chi2:
+            theta, j, conv, it, chi2 = cand
+            iters += it
+            kept_offset = model.offset
+    model.offset = kept_offset
+    model.classify(theta, 0.002, True)  # the state of the kept fit, for the diagnostics
+    model.assign(theta)
+    return theta, j, conv, iters, chi2
 
 
 def _contradicted(model: Model, theta: np.ndarray, margin: float = 0.01) -> int:

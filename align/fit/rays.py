@@ -35,18 +35,13 @@ class Rays:
     scan: np.ndarray  # which scan
 
 
-def _candidates(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
-                board: BoardSpec, *, p: RaysParams) -> Rays:
-    """Every fired ray (hit or not) near the board's rectangle, from all scans."""
-    return candidates_at(scans, segs, theta, board, p=p)[0]
-
-
 def candidates_at(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray,
-                   board: BoardSpec, *, p: RaysParams) -> tuple[Rays, tuple[np.ndarray, ...],
-                                                                float]:
-    """`_candidates`, with their board coordinates (X, Z, lam) at ``theta`` and the rings'
-    spacing on the board there (`_ring_spacing`, m): the fit's next steps need both at the
-    same pose. A ray's coordinates do not depend on which others are computed with it."""
+                  board: BoardSpec, *, p: RaysParams
+                  ) -> tuple[Rays, tuple[np.ndarray, ...], float]:
+    """Every fired ray (hit or not) near the board's rectangle, from all scans, with their
+    board coordinates (X, Z, lam) at ``theta`` and the rings' spacing on the board there
+    (`_ring_spacing`, m): the fit's next steps need both at the same pose. A ray's coordinates
+    do not depend on which others are computed with it."""
     cat = _candidate_pool(scans, segs, board)
     spacing = _ring_spacing(theta, float(np.max(np.diff(np.sort(scans[0].lasers.elevation)))))
     win = max(p.window, p.window_rings * spacing)

@@ -254,15 +254,46 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     the rule placed on the plane's posterior it gives and the covariance taken from it. Its
     posterior is written into ``offset``.
     """
-    n0, d0, c_plane = ml_plane
-    e1, e2 = tangent_basis(n0)
+    frame = _PlaneFrame.of(ml_plane)
+    found = _consistent_rolls(rays, board, theta, sd_roll, frame, n_scans, rng, roll_prior,
+                              offset)
+    if found is None:
+        return None
+    centre, coarse, c_band, step = found
+    grid = _FineGrid.about(rays, board, frame, centre, coarse, step, roll_prior)
+    return _integrate(grid, frame, centre, c_band, offset, rng)
 
-    def moved(g: np.ndarray) -> tuple[np.ndarray, float]:
-        n = n0 + g[0] * e1 + g[1] * e2
-        return n / np.linalg.norm(n), d0 + g[2]
 
-    # 1. where the rolls consistent with the labels lie: at the ML plane or, when the labels
-    # rule that out, at the nearest distance they allow (then at random planes)
+@dataclass(frozen=True)
+class _PlaneFrame:
+    """The ranges' plane (n0, d0), the covariance of (alpha, beta, d) about it and the tangent
+    basis the small rotations alpha, beta turn its normal along (`fit_rays`')."""
+
+    n0: np.ndarray
+    d0: float
+    c_plane: np.ndarray
+    e1: np.ndarray
+    e2: np.ndarray
+
+    @classmethod
+    def of(cls, ml_plane: tuple[np.ndarray, float, np.ndarray]) -> _PlaneFrame:
+        n0, d0, c_plane = ml_plane
+        return cls(n0, d0, c_plane, *tangent_basis(n0))
+
+    def moved(self, g: np.ndarray) -> tuple[np.ndarray, float]:
+        """The plane (n, d) at g = (alpha, beta, delta d) from (n0, d0)."""
+        n = self.n0 + g[0] * self.e1 + g[1] * self.e2
+        return n / np.linalg.norm(n), self.d0 + g[2]
+
+
+def _consistent_rolls(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_roll: float,
+                      frame: _PlaneFrame, n_scans: int, rng: np.random.Generator,
+                      roll_prior: tuple[float, float] | None, offset: OffsetModel | None
+                      ) -> tuple | None:
+    """Step 1: where the rolls consistent with the labels lie: at the ML plane or, when the
+    labels rule that out, at the nearest distance they allow (then at random planes); with an
+    offset, at the joint profile's centre. (centre g, that plane's coarse posterior, the
+    profile's covariance or None, the roll step) or None."""
     if n_scans == 1:
         half, step = SINGLE_SCAN_HALF, SINGLE_SCAN_STEP
     else:
@@ -270,58 +301,68 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
         step = half / 100
     wide = rays.near(board, theta, half)
     rolls = theta[3] + np.arange(-half, half + 0.5 * step, step)
+    c_plane = frame.c_plane
+    if offset is not None:
+        # the rule's proposal: the plane's posterior from the joint profile of the offset and
+        # the direction it trades against
+        v = offset.c_gb / offset.c_bb
+        c_cond = c_plane - np.outer(offset.c_gb, offset.c_gb) / offset.c_bb
+        w = _coupled_direction(offset, theta, frame.n0, frame.d0, v, c_cond)
+        axes = ([w] if w is not None else []) + _laser_directions(offset, c_cond, w)
+        profile = _joint_profile(
+            offset, v, axes, c_cond,
+            lambda g: wide.in_plane(*frame.moved(g), board, rolls, roll_prior))
+        if profile is not None:
+            centre, coarse, c_band = profile
+            return centre, coarse, c_band, step
     # other distances k sigma away, the normal moved with them as the ranges correlate it
     # (a board seen obliquely: distance and tilt are strongly correlated, and a distance moved
-    # alone would leave the ranges' ellipsoid by far more than k sigma)
+    # alone would leave the ranges' ellipsoid by far more than k sigma); then random planes
     along_d = c_plane[:, 2] / np.sqrt(c_plane[2, 2])
     starts = [k * along_d for k in (0, 1, -1, 2, -2, 3, -3)]
     random = (rng.multivariate_normal(np.zeros(3), c_plane) for _ in range(PLANE_SAMPLES))
-    # the rule's proposal: the ranges' Gaussian, or with an offset the plane's posterior from
-    # the joint profile of the offset and the direction it trades against
-    c_q, c_band = c_plane, None
-    profile = None
-    if offset is not None:
-        v = offset.c_gb / offset.c_bb
-        c_cond = c_plane - np.outer(offset.c_gb, offset.c_gb) / offset.c_bb
-        w = _coupled_direction(offset, theta, n0, d0, v, c_cond)
-        axes = ([w] if w is not None else []) + _laser_directions(offset, c_cond, w)
-        profile = _joint_profile(offset, v, axes, c_cond,
-                                 lambda g: wide.in_plane(*moved(g), board, rolls, roll_prior))
-    if profile is not None:
-        centre, coarse, c_band = profile
-        c_q = c_band
-        n, d = moved(centre)
-    else:
-        # no band found: the ranges' Gaussian as without an offset
-        for centre in itertools.chain(starts, random):
-            n, d = moved(centre)
-            coarse = wide.in_plane(n, d, board, rolls, roll_prior)
-            if coarse is not None:
-                break
-        else:
-            return None
+    for centre in itertools.chain(starts, random):
+        coarse = wide.in_plane(*frame.moved(centre), board, rolls, roll_prior)
+        if coarse is not None:
+            return centre, coarse, None, step
+    return None
 
-    # 2. each plane's posterior on a fine grid over those rolls (a little wider), from the
-    # labels that can bind. Where a plane's consistent rolls run off the grid's end, that plane
-    # again on a grid wider on that side (evidence and moments are integrals: the planes need
-    # not share a grid).
-    lo, hi = coarse.support
-    pad = max(2 * step, 0.25 * (hi - lo))
-    base = np.linspace(lo - pad, hi + pad, FINE_ROLLS)
-    ref = _pose(n, d, coarse.mean)
-    subsets: dict[float, LabelledRays] = {}
 
-    def binding_for(rolls: np.ndarray) -> LabelledRays:
-        # the labels that can bind over a grid's reach from the reference (cached per reach)
-        reach = float(np.max(np.abs(rolls - ref[3])))
-        if reach not in subsets:
-            subsets[reach] = rays.near(board, ref, reach)
-        return subsets[reach]
+class _FineGrid:
+    """Step 2: each plane's posterior on a fine grid over the consistent rolls (a little wider),
+    from the labels that can bind. Where a plane's consistent rolls run off the grid's end,
+    that plane again on a grid wider on that side (evidence and moments are integrals: the
+    planes need not share a grid)."""
 
-    def widened(found: tuple[moments.InPlanePosterior, np.ndarray] | None, n: np.ndarray,
-                d: float) -> tuple[moments.InPlanePosterior, np.ndarray] | None:
-        # a plane's posterior on `base` again on wider grids while its rolls run off the end
-        rolls = base
+    def __init__(self, rays: LabelledRays, board: BoardSpec, frame: _PlaneFrame,
+                 base: np.ndarray, ref: np.ndarray, roll_prior: tuple[float, float] | None):
+        self.rays, self.board, self.frame = rays, board, frame
+        self.base, self.ref, self.roll_prior = base, ref, roll_prior
+        self._subsets: dict[float, LabelledRays] = {}
+
+    @classmethod
+    def about(cls, rays: LabelledRays, board: BoardSpec, frame: _PlaneFrame,
+              centre: np.ndarray, coarse: moments.InPlanePosterior, step: float,
+              roll_prior: tuple[float, float] | None) -> _FineGrid:
+        """The grid about the plane ``centre``'s ``coarse`` posterior (its support padded)."""
+        lo, hi = coarse.support
+        pad = max(2 * step, 0.25 * (hi - lo))
+        base = np.linspace(lo - pad, hi + pad, FINE_ROLLS)
+        return cls(rays, board, frame, base, _pose(*frame.moved(centre), coarse.mean),
+                   roll_prior)
+
+    def binding_for(self, rolls: np.ndarray) -> LabelledRays:
+        """The labels that can bind over a grid's reach from the reference (cached per reach)."""
+        reach = float(np.max(np.abs(rolls - self.ref[3])))
+        if reach not in self._subsets:
+            self._subsets[reach] = self.rays.near(self.board, self.ref, reach)
+        return self._subsets[reach]
+
+    def widened(self, found: tuple[moments.InPlanePosterior, np.ndarray] | None,
+                n: np.ndarray, d: float) -> tuple[moments.InPlanePosterior, np.ndarray] | None:
+        """A plane's posterior on the base grid again on wider grids while its rolls run off
+        the end."""
+        rolls = self.base
         for _ in range(GRID_TRIES - 1):
             if found is None:
                 return None
@@ -330,28 +371,37 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
                 break
             span = rolls[-1] - rolls[0]
             rolls = np.linspace(rolls[0] - low * span, rolls[-1] + high * span, FINE_ROLLS)
-            found = binding_for(rolls).posteriors(n[None, :], np.array([d]), board, rolls,
-                                                  roll_prior)[0]
+            found = self.binding_for(rolls).posteriors(n[None, :], np.array([d]), self.board,
+                                                       rolls, self.roll_prior)[0]
         return found
 
-    def evaluate(planes: np.ndarray, log_q: np.ndarray) -> list[_Node]:
-        # every plane on `base` in one call; the few that run off it one by one
-        normals = n0 + planes[:, :1] * e1 + planes[:, 1:2] * e2
+    def evaluate(self, planes: np.ndarray, log_q: np.ndarray) -> list[_Node]:
+        """Every plane on the base grid in one call; the few that run off it one by one."""
+        f = self.frame
+        normals = f.n0 + planes[:, :1] * f.e1 + planes[:, 1:2] * f.e2
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-        ds = d0 + planes[:, 2]
+        ds = f.d0 + planes[:, 2]
         nodes = []
-        first = binding_for(base).posteriors(normals, ds, board, base, roll_prior)
+        first = self.binding_for(self.base).posteriors(normals, ds, self.board, self.base,
+                                                       self.roll_prior)
         for i, found in enumerate(first):
-            found = widened(found, normals[i], float(ds[i]))
+            found = self.widened(found, normals[i], float(ds[i]))
             if found is not None:
                 nodes.append(_Node(planes[i], log_q[i], i, found[1], found[0]))
         return nodes
 
-    # 3. the integral over the plane: the rule about the centre. Where the labels allow a band
-    # of planes narrower than the rule's spacing (too few of its nodes, or all on one level of
-    # some direction), the rule again about the nodes they allowed, a third as wide; last,
-    # importance sampling in batches. The ranges' density over the rule's or sampler's goes
-    # into each node's weight.
+
+def _integrate(grid: _FineGrid, frame: _PlaneFrame, centre: np.ndarray,
+               c_band: np.ndarray | None, offset: OffsetModel | None,
+               rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray] | None:
+    """Step 3: the integral over the plane: the rule about the centre. Where the labels allow a
+    band of planes narrower than the rule's spacing (too few of its nodes, or all on one level
+    of some direction), the rule again about the nodes they allowed, a third as wide; last,
+    importance sampling in batches. The ranges' density over the rule's or sampler's goes into
+    each node's weight. The rule's proposal is the ranges' Gaussian, or with an offset the
+    plane's posterior from the joint profile (``c_band``)."""
+    c_plane = frame.c_plane
+    c_q = c_plane if c_band is None else c_band
     c_inv, q_inv = np.linalg.inv(c_plane), np.linalg.inv(c_q)
 
     def done(nodes: list[_Node]) -> tuple[np.ndarray, np.ndarray]:
@@ -371,7 +421,7 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     recentred = 0
     for _ in range(RULE_REFINEMENTS + RECENTRES):
         planes, log_q = gauss_hermite(m, scale**2 * c_q, QUADRATURE_ORDER)
-        nodes = evaluate(planes, log_q + _log_density_ratio(planes, c_inv, m, scale, q_inv))
+        nodes = grid.evaluate(planes, log_q + _log_density_ratio(planes, c_inv, m, scale, q_inv))
         if len(nodes) >= MIN_PLANES and _spans(nodes):
             # a rule whose weight sits at one side (the labels' evidence still rising at its
             # outer nodes) measures the band's slope, not its extent: its quadratic gave a
@@ -390,7 +440,7 @@ def label_posterior(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, sd_
     for _ in range(PLANE_BATCHES):
         half_batch = rng.multivariate_normal(np.zeros(3), c_q, PLANE_SAMPLES // 2)
         planes = centre + np.vstack((half_batch, -half_batch))
-        nodes += evaluate(planes, _log_density_ratio(planes, c_inv, centre, 1.0, q_inv))
+        nodes += grid.evaluate(planes, _log_density_ratio(planes, c_inv, centre, 1.0, q_inv))
         if len(nodes) >= MIN_PLANES:
             return done(nodes)
     return None

@@ -179,18 +179,8 @@ def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
         nh = _binding_hits(q_h, lim_h, r0[kc], r2[kc], dx, dz, keep_h)
         for k in range(k_lo, k_hi):
             _hit_box(p_hit, lim_h, keep_h[:nh], r0[k], r2[k], boxes[k])
-        if reuse:
-            all_same = True
-            for k in range(k_lo, k_hi):
-                same[k] = (boxes[k, 0] == base_boxes[k, 0] and boxes[k, 1] == base_boxes[k, 1]
-                           and boxes[k, 2] == base_boxes[k, 2]
-                           and boxes[k, 3] == base_boxes[k, 3])
-                if same[k]:
-                    for c in range(6):
-                        out[k, c] = base_out[k, c]
-                all_same = all_same and same[k]
-            if all_same:
-                continue
+        if reuse and _reused(boxes, base_boxes, base_out, k_lo, k_hi, same, out):
+            continue
         nm = _binding_misses(q_m, lim_m, centre, r0[k_lo:k_hi], r2[k_lo:k_hi], kc - k_lo,
                              dx, dz, boxes[k_lo:k_hi], keep_m)
         for j in range(nm):
@@ -205,37 +195,66 @@ def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
             a0, a1, c0, c1 = boxes[k]
             if not (a1 > a0 and c1 > c0) or np.isinf(a1 - a0) or np.isinf(c1 - c0):
                 continue
-            # the misses' boxes that overlap it. Those that cover it across its whole height
-            # or width from one side only shrink it (`_box_minus_boxes`' first step), here at
-            # once: the box they leave does not depend on the order they are applied in, and
-            # the later ones are tested against the smaller box
-            nb = 0
-            for i in range(nm):
-                x = g_p[i, 0] * r0[k, 0] + g_p[i, 1] * r0[k, 1] + g_p[i, 2] * r0[k, 2]
-                z = g_p[i, 0] * r2[k, 0] + g_p[i, 1] * r2[k, 1] + g_p[i, 2] * r2[k, 2]
-                x0, x1 = g_lim[i, 0] - x, g_lim[i, 1] - x
-                z0, z1 = g_lim[i, 2] - z, g_lim[i, 3] - z
-                if not (x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1):
-                    continue
-                if z0 <= c0 and z1 >= c1 and (x0 <= a0 or x1 >= a1):
-                    if x0 <= a0:
-                        a0 = x1
-                    if x1 >= a1:
-                        a1 = x0
-                elif x0 <= a0 and x1 >= a1 and (z0 <= c0 or z1 >= c1):
-                    if z0 <= c0:
-                        c0 = z1
-                    if z1 >= c1:
-                        c1 = z0
-                else:
-                    bx0[nb], bx1[nb], bz0[nb], bz1[nb] = x0, x1, z0, z1
-                    nb += 1
-                    continue
-                if not (a1 > a0 and c1 > c0):
-                    break  # nothing consistent at this roll
+            a0, a1, c0, c1, nb = _shrunk_box(a0, a1, c0, c1, g_p, g_lim, nm, r0[k], r2[k], bx0,
+                                             bx1, bz0, bz1)
             if a1 > a0 and c1 > c0:
                 _box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs, out[k])
     return out, boxes
+
+
+@kernel
+def _reused(boxes: np.ndarray, base_boxes: np.ndarray, base_out: np.ndarray, k_lo: int,
+            k_hi: int, same: np.ndarray, out: np.ndarray) -> bool:
+    """Marks in ``same`` the block's rolls whose hits' box is the base's, float for float, and
+    takes their moments from ``base_out``; whether the whole block is."""
+    all_same = True
+    for k in range(k_lo, k_hi):
+        same[k] = (boxes[k, 0] == base_boxes[k, 0] and boxes[k, 1] == base_boxes[k, 1]
+                   and boxes[k, 2] == base_boxes[k, 2]
+                   and boxes[k, 3] == base_boxes[k, 3])
+        if same[k]:
+            for c in range(6):
+                out[k, c] = base_out[k, c]
+        all_same = all_same and same[k]
+    return all_same
+
+
+@kernel
+def _shrunk_box(a0: float, a1: float, c0: float, c1: float, g_p: np.ndarray,
+                g_lim: np.ndarray, nm: int, r0k: np.ndarray, r2k: np.ndarray, bx0: np.ndarray,
+                bx1: np.ndarray, bz0: np.ndarray, bz1: np.ndarray
+                ) -> tuple[float, float, float, float, int]:
+    """The hits' box (a0, a1, c0, c1) at one roll (rows ``r0k``, ``r2k``) less the misses'
+    boxes that overlap it, and those boxes (``bx0`` .. ``bz1``, their count last)."""
+    # the misses' boxes that overlap it. Those that cover it across its whole height
+    # or width from one side only shrink it (`_box_minus_boxes`' first step), here at
+    # once: the box they leave does not depend on the order they are applied in, and
+    # the later ones are tested against the smaller box
+    nb = 0
+    for i in range(nm):
+        x = g_p[i, 0] * r0k[0] + g_p[i, 1] * r0k[1] + g_p[i, 2] * r0k[2]
+        z = g_p[i, 0] * r2k[0] + g_p[i, 1] * r2k[1] + g_p[i, 2] * r2k[2]
+        x0, x1 = g_lim[i, 0] - x, g_lim[i, 1] - x
+        z0, z1 = g_lim[i, 2] - z, g_lim[i, 3] - z
+        if not (x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1):
+            continue
+        if z0 <= c0 and z1 >= c1 and (x0 <= a0 or x1 >= a1):
+            if x0 <= a0:
+                a0 = x1
+            if x1 >= a1:
+                a1 = x0
+        elif x0 <= a0 and x1 >= a1 and (z0 <= c0 or z1 >= c1):
+            if z0 <= c0:
+                c0 = z1
+            if z1 >= c1:
+                c1 = z0
+        else:
+            bx0[nb], bx1[nb], bz0[nb], bz1[nb] = x0, x1, z0, z1
+            nb += 1
+            continue
+        if not (a1 > a0 and c1 > c0):
+            break  # nothing consistent at this roll
+    return a0, a1, c0, c1, nb
 
 
 @kernel

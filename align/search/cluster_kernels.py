@@ -53,9 +53,24 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
     first run in laser-major order; -1 for firings without a return in ``ok`` and outside the
     grid. Squared thresholds throughout, m^2.
     """
-    n = x.shape[0]
+    thr, okf = _thresholds(dist, ok, k0, m, nl, radius_per_m, radius_min)
+    bridge2 = _bridge_reach(thr, okf, bridge_min2)
+    run, run_count, run_dsum, run_start, run_end = _ring_runs(x, y, z, dist, thr, okf, k0, m,
+                                                              nl, bridge2)
+    long_run = _long_runs(az, run_count, run_dsum, run_start, run_end, k0, m, nl, long_length)
+    parent = np.arange(len(run_count))
+    _join_rings(parent, x, y, z, thr, okf, run, long_run, k0, m, nl, laser_of_ring, ring_scale)
+    _join_wrap(parent, x, y, z, az, thr, okf, run, long_run, k0, m, nl, max_azimuth_gap)
+    return _components(parent, run, run_count, run_dsum, run_start, x.shape[0], k0, m, nl,
+                       ring_of_laser)
+
+
+@kernel
+def _thresholds(dist: np.ndarray, ok: np.ndarray, k0: int, m: int, nl: int,
+                radius_per_m: float, radius_min: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per grid firing, laser-major (f = laser * m + sequence): its squared threshold and
+    whether it is a return in ``ok``."""
     nf = nl * m
-    # per grid firing, laser-major (f = laser * m + sequence): its scan index and threshold
     thr = np.empty(nf)
     okf = np.zeros(nf, dtype=np.bool_)
     for s in range(m):
@@ -67,10 +82,16 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
                 t = radius_min
             thr[f] = t * t
             okf[f] = ok[i]
-    # the bridge's reach: the largest threshold of consecutive returns (all lasers together)
+    return thr, okf
+
+
+@kernel
+def _bridge_reach(thr: np.ndarray, okf: np.ndarray, bridge_min2: float) -> float:
+    """The bridge's reach: the largest threshold of consecutive returns (all lasers together),
+    at least ``bridge_min2``."""
     t2_max = 0.0
     prev = -1
-    for f in range(nf):
+    for f in range(thr.shape[0]):
         if okf[f]:
             if prev >= 0:
                 ta, tb = thr[prev], thr[f]
@@ -78,8 +99,16 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
                 if t2 > t2_max:
                     t2_max = t2
             prev = f
-    bridge2 = t2_max if t2_max > bridge_min2 else bridge_min2
-    # runs along each ring
+    return t2_max if t2_max > bridge_min2 else bridge_min2
+
+
+@kernel
+def _ring_runs(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
+               thr: np.ndarray, okf: np.ndarray, k0: int, m: int, nl: int, bridge2: float
+               ) -> tuple[np.ndarray, ...]:
+    """Runs along each ring: (run per grid firing or -1, returns, summed range, first and
+    last firing per run; the per-run arrays cut to the runs found)."""
+    nf = nl * m
     run = np.full(nf, -1, dtype=np.int64)
     run_count = np.zeros(nf)
     run_dsum = np.zeros(nf)
@@ -122,8 +151,16 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
                 prev_lz = lz
             if dist[i] > 0:
                 last_return = f
-    # a run longer than the board joins nothing (the floor's ring, a wall)
+    return run, run_count[:n_run], run_dsum[:n_run], run_start[:n_run], run_end[:n_run]
+
+
+@kernel
+def _long_runs(az: np.ndarray, run_count: np.ndarray, run_dsum: np.ndarray,
+               run_start: np.ndarray, run_end: np.ndarray, k0: int, m: int, nl: int,
+               long_length: float) -> np.ndarray:
+    """Which runs are longer than the board (the floor's ring, a wall): they join nothing."""
     two_pi = 2 * np.pi
+    n_run = run_count.shape[0]
     long_run = np.zeros(n_run, dtype=np.bool_)
     for r in range(n_run):
         fs, fe = run_start[r], run_end[r]
@@ -131,8 +168,14 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
         span = (az[k0 + (fe - le * m) * nl + le] - az[k0 + (fs - ls * m) * nl + ls]) % two_pi
         cnt = run_count[r] if run_count[r] > 1.0 else 1.0
         long_run[r] = span * run_dsum[r] / cnt > long_length
-    parent = np.arange(n_run)
-    # adjacent rings of each sequence
+    return long_run
+
+
+@kernel
+def _join_rings(parent: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                thr: np.ndarray, okf: np.ndarray, run: np.ndarray, long_run: np.ndarray,
+                k0: int, m: int, nl: int, laser_of_ring: np.ndarray, ring_scale: float) -> None:
+    """Runs joined across adjacent rings of each sequence."""
     for s in range(m):
         for k in range(nl - 1):
             la, lb = laser_of_ring[k], laser_of_ring[k + 1]
@@ -150,7 +193,14 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
             ta, tb = thr[fa], thr[fb]
             if d2 < ring_scale * (tb if tb < ta else ta):
                 _union(parent, ra, rb)
-    # each ring's wrap-around: the last sequence to the first
+
+
+@kernel
+def _join_wrap(parent: np.ndarray, x: np.ndarray, y: np.ndarray, z: np.ndarray,
+               az: np.ndarray, thr: np.ndarray, okf: np.ndarray, run: np.ndarray,
+               long_run: np.ndarray, k0: int, m: int, nl: int, max_azimuth_gap: float) -> None:
+    """Runs joined across each ring's wrap-around: the last sequence to the first."""
+    two_pi = 2 * np.pi
     for lz in range(nl):
         fa, fb = lz * m + m - 1, lz * m
         if not (okf[fa] and okf[fb]):
@@ -169,7 +219,16 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
         ta, tb = thr[fa], thr[fb]
         if d2 < (tb if tb < ta else ta):
             _union(parent, ra, rb)
-    # components numbered by their smallest run; statistics summed over runs in run order
+
+
+@kernel
+def _components(parent: np.ndarray, run: np.ndarray, run_count: np.ndarray,
+                run_dsum: np.ndarray, run_start: np.ndarray, n: int, k0: int, m: int, nl: int,
+                ring_of_laser: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
+                                                    np.ndarray]:
+    """Components numbered by their smallest run; statistics summed over runs in run order:
+    (label per firing, count, mean distance and rings per cluster)."""
+    n_run = run_count.shape[0]
     comp = np.empty(n_run, dtype=np.int64)
     n_comp = 0
     for r in range(n_run):

@@ -186,19 +186,7 @@ def best_roll(points: np.ndarray, r0: np.ndarray, r2: np.ndarray, len_x: float,
     few points change places.
     """
     n, k = points.shape[0], r0.shape[0]
-    # radius of the points about their mean: their diameter is at most twice it
-    c0 = c1 = c2 = 0.0
-    for i in range(n):
-        c0 += points[i, 0]
-        c1 += points[i, 1]
-        c2 += points[i, 2]
-    c0, c1, c2 = c0 / n, c1 / n, c2 / n
-    rad = 0.0
-    for i in range(n):
-        d = math.sqrt((points[i, 0] - c0) ** 2 + (points[i, 1] - c1) ** 2
-                      + (points[i, 2] - c2) ** 2)
-        rad = max(rad, d)
-    diam = 2.0 * rad * (1.0 + _BOUND_SLACK) + _BOUND_SLACK
+    diam = _diameter_bound(points)
     left = np.full(k, -1, dtype=np.int64)  # exact counts left out; -1: not evaluated
     tx = np.zeros(k)
     tz = np.zeros(k)
@@ -209,25 +197,7 @@ def best_roll(points: np.ndarray, r0: np.ndarray, r2: np.ndarray, len_x: float,
     # each evaluated roll's sorted orders of the points (rows written when evaluated)
     ord_x = np.empty((k, n), dtype=np.int64)
     ord_z = np.empty((k, n), dtype=np.int64)
-    grow = diam * (1.0 + _BOUND_SLACK)
-    for a in range(0, k, ANCHOR_EVERY):
-        # one bound for every roll b less than a block away on either side: the window grown
-        # by the most the rows turn between a and any of them (each roll takes the larger of
-        # its two anchors' bounds)
-        turn_x = turn_z = 0.0
-        for b in range(max(0, a - ANCHOR_EVERY + 1), min(k, a + ANCHOR_EVERY)):
-            sx = sz = 0.0
-            for j in range(3):
-                sx += (r0[b, j] - r0[a, j]) ** 2
-                sz += (r2[b, j] - r2[a, j]) ** 2
-            turn_x = max(turn_x, math.sqrt(sx))
-            turn_z = max(turn_z, math.sqrt(sz))
-        gx = _most_within(points, r0, a, len_x + grow * turn_x + _BOUND_SLACK, ANCHOR_BINS,
-                          xs, hist)
-        gz = _most_within(points, r2, a, len_z + grow * turn_z + _BOUND_SLACK, ANCHOR_BINS,
-                          zs, hist)
-        for b in range(max(0, a - ANCHOR_EVERY + 1), min(k, a + ANCHOR_EVERY)):
-            lower[b] = max(lower[b], 2 * n - gx - gz)
+    _anchor_bounds(points, r0, r2, len_x, len_z, diam, lower, xs, zs, hist)
     # the rolls, most promising first, while their bound can still beat the least (or tie
     # with it at an earlier roll: np.argmin's is the first of equal minima)
     least, first = 2 * n + 1, k  # the least count left out so far, and its first roll
@@ -254,6 +224,55 @@ def best_roll(points: np.ndarray, r0: np.ndarray, r2: np.ndarray, len_x: float,
         if left[b] < least or (left[b] == least and b < first):
             least, first = left[b], b
     return first, least, tx[first], tz[first]
+
+
+@kernel
+def _diameter_bound(points: np.ndarray) -> float:
+    """A bound on the points' diameter: twice their largest distance from their mean, with
+    slack for rounding."""
+    n = points.shape[0]
+    # radius of the points about their mean: their diameter is at most twice it
+    c0 = c1 = c2 = 0.0
+    for i in range(n):
+        c0 += points[i, 0]
+        c1 += points[i, 1]
+        c2 += points[i, 2]
+    c0, c1, c2 = c0 / n, c1 / n, c2 / n
+    rad = 0.0
+    for i in range(n):
+        d = math.sqrt((points[i, 0] - c0) ** 2 + (points[i, 1] - c1) ** 2
+                      + (points[i, 2] - c2) ** 2)
+        rad = max(rad, d)
+    diam = 2.0 * rad * (1.0 + _BOUND_SLACK) + _BOUND_SLACK
+    return diam
+
+
+@kernel
+def _anchor_bounds(points: np.ndarray, r0: np.ndarray, r2: np.ndarray, len_x: float,
+                   len_z: float, diam: float, lower: np.ndarray, xs: np.ndarray, zs: np.ndarray,
+                   hist: np.ndarray) -> None:
+    """Raises ``lower`` (each roll's lower bound of the points left out) to the bound of the
+    anchors either side (every `ANCHOR_EVERY`-th roll)."""
+    n, k = points.shape[0], r0.shape[0]
+    grow = diam * (1.0 + _BOUND_SLACK)
+    for a in range(0, k, ANCHOR_EVERY):
+        # one bound for every roll b less than a block away on either side: the window grown
+        # by the most the rows turn between a and any of them (each roll takes the larger of
+        # its two anchors' bounds)
+        turn_x = turn_z = 0.0
+        for b in range(max(0, a - ANCHOR_EVERY + 1), min(k, a + ANCHOR_EVERY)):
+            sx = sz = 0.0
+            for j in range(3):
+                sx += (r0[b, j] - r0[a, j]) ** 2
+                sz += (r2[b, j] - r2[a, j]) ** 2
+            turn_x = max(turn_x, math.sqrt(sx))
+            turn_z = max(turn_z, math.sqrt(sz))
+        gx = _most_within(points, r0, a, len_x + grow * turn_x + _BOUND_SLACK, ANCHOR_BINS,
+                          xs, hist)
+        gz = _most_within(points, r2, a, len_z + grow * turn_z + _BOUND_SLACK, ANCHOR_BINS,
+                          zs, hist)
+        for b in range(max(0, a - ANCHOR_EVERY + 1), min(k, a + ANCHOR_EVERY)):
+            lower[b] = max(lower[b], 2 * n - gx - gz)
 
 
 @kernel
