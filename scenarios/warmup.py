@@ -54,8 +54,8 @@ def warm_up(say: Callable[[str], None] | None = None) -> float:
         say(f"warm-up: the emulation's kernels ready ({t_twin - t0:.0f} s of CPU)")
     from align.api import estimate
 
-    # the default estimate compiles the estimator's kernels (align.posterior, align.search,
-    # the board search); the paper's method runs the segmentation alone
+    # the default estimate compiles the kernels of every stage of the rays pipeline (align's
+    # search, plane, fit and posterior); the paper's method its own (align.baselines)
     estimate(scans[0])
     estimate(scans[0], method="paper")
     # the board search's score (where candidates compete) and the plane-first search (where
