@@ -286,7 +286,7 @@ def _scene_seed(args: argparse.Namespace, seed: int, cfg: EmulationConfig, hints
 def scenes(args: argparse.Namespace) -> int:
     """Single-scan roll over the sweep range on twins whose wall, stand, clutter (and, with
     ``--holders``, holders at the board's edges) are drawn at random, against the bound of each
-    pose's geometry (`align.bound.precision_bound`, variances averaged over the poses); with
+    pose's geometry (`align.design.bound.precision_bound`, variances averaged over the poses); with
     ``--seeds``, every seed's scenes pooled, each seed's ratio beside. The covariance of every
     axis is checked too (chi2), and how many estimates lie beyond 4 sigma on any of x, roll,
     tilt and yaw (1 in 4,000 for an honest Gaussian)."""

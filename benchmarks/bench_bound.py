@@ -1,4 +1,4 @@
-"""The precision bound (`align.bound`) beside the `rays` estimator's precision on the twin.
+"""The precision bound (`align.design.bound`) beside the `rays` estimator's precision on the twin.
 
     .venv/bin/python benchmarks/bench_bound.py                     # every checked point
     .venv/bin/python benchmarks/bench_bound.py --points paper,diamond --poses 20 --scans 10
@@ -159,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = set(names) - set(POINTS)
     if unknown:
         ap.error(f"unknown points {sorted(unknown)}; choose from {list(POINTS)}")
-    print(f"# align.bound against the `rays` estimator on the twin: {args.poses} poses x "
+    print(f"# align.design.bound against the `rays` estimator on the twin: {args.poses} poses x "
           f"{args.scans} scans per point, sharp beam, 14 mm noise, seed {args.seed}; "
           f"ratio = sim / bound, target within {TARGET:.0%}\n")
     hdr = " ".join(f"{a + ' ' + u:>10}" for a, u in zip(AXES, UNITS, strict=True))

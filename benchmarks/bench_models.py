@@ -17,7 +17,7 @@ standard deviation of the single-scan estimates (fused: RMS error over poses), c
 (error / reported sigma)^2 (1 for an honest sigma). The anchor is the paper's own VLP-16
 simulation precision (its table: 0.15 / 0.20 / 0.10 deg, 4.8 mm); ratio = anchor / figure (> 1:
 better than the paper's VLP-16). The bound column (the information bound per model) is left to
-`align.bound` (another change; not on main when this was written). CPU seconds of this process
+`align.design.bound` (another change; not on main when this was written). CPU seconds of this process
 (`time.process_time`), one BLAS thread.
 """
 
@@ -133,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         ratio = " ".join(f"{r:8.2f}" for r in anchor / v)
         print(f"{model:12} {m:6} {mode:9} {name:10} " + " ".join(f"{x:10.3f}" for x in v)
               + f"  {ratio:>34}  " + " ".join(f"{c:6.2f}" for c in chi2)
-              + f" {failed:6d}  (align.bound)")
+              + f" {failed:6d}  (align.design.bound)")
     return 0
 
 

@@ -4,11 +4,11 @@
     .venv/bin/python benchmarks/bench_roll_bound.py --poses 50 --scans 10
 
 Roll comes only from where rays hit or miss the board. Given the true plane, the `rays` posterior
-(`align.label_posterior`, the exact hit/miss posterior) is what those labels allow: its RMS
+(`align.posterior.hit_miss`, the exact hit/miss posterior) is what those labels allow: its RMS
 over the paper's protocol is the single-scan roll bound for that geometry, measured rather than
 derived. The same scans are estimated twice, once as `align.estimate` does (the ranges' plane,
 integrated out) and once with the truth's plane substituted for the ranges' fit (a patch of
-`align.rays.label_posterior`, restored after). Protocols: the paper's (angles within +-3 deg, x
+`align.rays.pipeline.label_posterior`, restored after). Protocols: the paper's (angles within +-3 deg, x
 within +-30 mm) and the bench's sweep range (stage yaw +-10 deg on top), sharp beam, 14 mm
 noise, seed 2024 (the poses of `bench_align.py`). Prints roll RMS with the estimated and the true
 plane, the issue's bound (0.22 deg, for the base geometry) and the ratios.
@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_align import BOUNDS, random_pose
 
 import align
-import align.rays
+import align.rays.pipeline
 from align.geometry import plane_of_pose
 from twin.sim.bench import BenchSim
 from twin.sim.emulation import EmulationConfig
@@ -47,7 +47,7 @@ def roll_errors(stage_yaw_deg: float, poses: int, scans: int, seed: int
     """Single-scan roll errors (rad) with the estimated and with the true plane, same scans."""
     cfg = EmulationConfig(laser_offset_sigma=0.0, divergence=False)
     rng = np.random.default_rng(seed)
-    posterior = align.rays.label_posterior
+    posterior = align.rays.pipeline.label_posterior
     truth: dict[str, np.ndarray] = {}
 
     def with_true_plane(rays, board, theta, sd_roll, ml_plane, n_scans, rng_):
@@ -63,15 +63,15 @@ def roll_errors(stage_yaw_deg: float, poses: int, scans: int, seed: int
             sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
             for s in [sim.scan() for _ in range(scans)]:
                 truth["pose"] = t = s.meta["truth_pose"].as_array()
-                align.rays.label_posterior = posterior
+                align.rays.pipeline.label_posterior = posterior
                 a = align.estimate(s, hints=SHARP)
-                align.rays.label_posterior = with_true_plane
+                align.rays.pipeline.label_posterior = with_true_plane
                 b = align.estimate(s, hints=SHARP)
                 if a.success and b.success:
                     est.append(a.pose.roll - t[3])
                     known.append(b.pose.roll - t[3])
     finally:
-        align.rays.label_posterior = posterior
+        align.rays.pipeline.label_posterior = posterior
     return np.array(est), np.array(known)
 
 

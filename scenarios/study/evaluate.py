@@ -11,7 +11,7 @@ Per pose: the twin of the point's station (`Station.bench_params`, the mount mis
 takes `protocol.scans` scans; every value of ``scans_fused`` is estimated on consecutive groups
 of that many; each estimate's error against the twin's truth and its reported sigma are kept per
 axis, in the station's frame (`Station.lidar_in_station`: the bench frame of docs/station.md,
-so that a diamond's roll and height are those of a level board's). The bound (`align.bound`,
+so that a diamond's roll and height are those of a level board's). The bound (`align.design.bound`,
 when this aimbench has it) is evaluated at the pose's truth for each ``scans_fused``.
 """
 
@@ -38,7 +38,7 @@ FD_STEP = 1e-6
 
 
 def bound_available() -> bool:
-    """Whether this aimbench has the precision bound (`align.bound`)."""
+    """Whether this aimbench has the precision bound (`align.design.bound`)."""
     try:
         import align.design.bound  # noqa: F401
     except ImportError:
@@ -47,7 +47,7 @@ def bound_available() -> bool:
 
 
 #: Why a study has no bound, when it has none.
-NO_BOUND = ("the precision bound (align.bound) is not in this aimbench yet: the study has the "
+NO_BOUND = ("the precision bound (align.design.bound) is not in this aimbench yet: the study has the "
             "Monte Carlo only; the bound columns are empty")
 
 
