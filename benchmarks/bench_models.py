@@ -17,8 +17,7 @@ standard deviation of the single-scan estimates (fused: RMS error over poses), c
 (error / reported sigma)^2 (1 for an honest sigma). The anchor is the paper's own VLP-16
 simulation precision (its table: 0.15 / 0.20 / 0.10 deg, 4.8 mm); ratio = anchor / figure (> 1:
 better than the paper's VLP-16). The bound column (the information bound per model) is left to
-`align.design.bound` (another change; not on main when this was written). CPU seconds of this process
-(`time.process_time`), one BLAS thread.
+`align.design.bound`. CPU seconds of this process (`time.process_time`), one BLAS thread.
 """
 
 from __future__ import annotations

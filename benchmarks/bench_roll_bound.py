@@ -8,8 +8,8 @@ Roll comes only from where rays hit or miss the board. Given the true plane, the
 over the paper's protocol is the single-scan roll bound for that geometry, measured rather than
 derived. The same scans are estimated twice, once as `align.estimate` does (the ranges' plane,
 integrated out) and once with the truth's plane substituted for the ranges' fit (a patch of
-`align.rays.pipeline.label_posterior`, restored after). Protocols: the paper's (angles within +-3 deg, x
-within +-30 mm) and the bench's sweep range (stage yaw +-10 deg on top), sharp beam, 14 mm
+`align.rays.pipeline.label_posterior`, restored after). Protocols: the paper's (angles within +-3
+deg, x within +-30 mm) and the bench's sweep range (stage yaw +-10 deg on top), sharp beam, 14 mm
 noise, seed 2024 (the poses of `bench_align.py`). Prints roll RMS with the estimated and the true
 plane, the issue's bound (0.22 deg, for the base geometry) and the ratios.
 """

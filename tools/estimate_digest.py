@@ -1,6 +1,7 @@
 """A digest of every estimate a benchmark makes: the check that a refactor changed no result.
 
-    .venv/bin/python tools/estimate_digest.py --out before.npz -- benchmarks/bench_align.py --poses 4
+    .venv/bin/python tools/estimate_digest.py --out before.npz -- \
+        benchmarks/bench_align.py --poses 4
     .venv/bin/python tools/estimate_digest.py --compare before.npz after.npz
 
 Runs the benchmark as ``__main__`` with ``align.estimate`` wrapped so that every call's status,

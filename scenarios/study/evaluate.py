@@ -47,8 +47,8 @@ def bound_available() -> bool:
 
 
 #: Why a study has no bound, when it has none.
-NO_BOUND = ("the precision bound (align.design.bound) is not in this aimbench yet: the study has the "
-            "Monte Carlo only; the bound columns are empty")
+NO_BOUND = ("the precision bound (align.design.bound) is not in this aimbench yet: the study has "
+            "the Monte Carlo only; the bound columns are empty")
 
 
 def evaluate_task(spec_dict: dict, station_dict: dict, values: dict[str, Any], first_pose: int,
