@@ -76,17 +76,16 @@ SINGLE_SCAN_STEP = np.deg2rad(0.02)
 
 @dataclass
 class OffsetModel:
-    """A common range offset b as a nuisance of the plane: the ranges' joint Gaussian of
-    g = (alpha, beta, d) (about the ML plane, `plane.fit_rays_offsets`) and b, given as b's
-    estimate from the ranges ``b_hat``, its covariance with g ``c_gb`` (3,) and variance
-    ``c_bb``; ``centre``, ``centre_std``: b and its sigma from a fit that saw the board's size
-    (the least squares), where to look; ``slope``: that fit's d pose / d b (its covariance's
-    regression, (6,)), the direction in which the labels trade the offset against the plane's
-    other directions (None: not known); ``c_noise``: with per-laser offsets as random effects,
-    the ranges' covariance of g given b from their noise alone (the per-laser offsets left
-    out), which says in what direction those offsets widen the plane (None: none modelled).
-    `label_posterior` fills in ``mean`` and ``std``: b's posterior given the ranges and the
-    labels."""
+    """A common range offset b as a nuisance of the plane: the ranges' joint Gaussian of g = (alpha,
+    beta, d) (about the ML plane, `align.plane.fit.fit_rays_offsets`) and b, given as b's estimate
+    from the ranges ``b_hat``, its covariance with g ``c_gb`` (3,) and variance ``c_bb``;
+    ``centre``, ``centre_std``: b and its sigma from a fit that saw the board's size (the least
+    squares), where to look; ``slope``: that fit's d pose / d b (its covariance's regression, (6,)),
+    the direction in which the labels trade the offset against the plane's other directions (None:
+    not known); ``c_noise``: with per-laser offsets as random effects, the ranges' covariance of g
+    given b from their noise alone (the per-laser offsets left out), which says in what direction
+    those offsets widen the plane (None: none modelled). `label_posterior` fills in ``mean`` and
+    ``std``: b's posterior given the ranges and the labels."""
 
     b_hat: float
     c_gb: np.ndarray
@@ -746,7 +745,7 @@ def _moments(nodes: list[_Node], c_plane: np.ndarray, given: bool = False
     return mean, j_g @ c_post @ j_g.T + k @ within @ k.T
 
 
-#: np.triu_indices(3), once (18 us a call); read-only.
+#: np.triu_indices(3), computed once; read-only.
 _TRIU = np.triu_indices(3)
 for _a in _TRIU:
     _a.flags.writeable = False

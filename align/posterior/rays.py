@@ -98,8 +98,8 @@ def violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.nda
 
 def pose_per_plane(theta: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
     """d pose / d g (6, 3) at ``theta``: how the pose moves with the plane's small rotations and
-    distance g = (alpha, beta, d) about (n, d) (`plane.fit_rays`' parametrisation), its roll and
-    in-plane position held."""
+    distance g = (alpha, beta, d) about (n, d) (`align.plane.fit.fit_rays`' parametrisation), its
+    roll and in-plane position held."""
     e1, e2 = tangent_basis(n)
     h = 1e-6
     base = pose_from_plane(n, d, theta[3])
