@@ -197,8 +197,8 @@ def _along_rays(scan: Scan, dist: np.ndarray, ret: np.ndarray
     """x, y, z of the returns moved along their own rays to the ranges ``dist``, m: each
     point's offset from its laser's origin scaled by the new range over the old. The same
     points as `points_from_polar` of the new ranges (to a few 1e-16 m), without its
-    trigonometry per firing, which was 2 ms of the 2.5 a scan's correction took: the demo
-    corrects every scan of its sweep. Firings without a return stay at 0."""
+    trigonometry per firing (most of a scan's correction, and the demo corrects every scan
+    of its sweep). Firings without a return stay at 0."""
     scale = np.divide(dist, scan.distance, out=np.zeros_like(dist), where=ret)
     lift = np.where(ret & scan.vertical_offsets_applied,
                     scan.lasers.vertical_offset[scan.laser_id], 0.0)

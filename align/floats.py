@@ -1,8 +1,8 @@
 """The leaf every kernel of `align` may call: float helpers shared by the stages.
 
 `fma` rounds a * b + c once, as a BLAS's fused multiply-add kernels do; `gemv3` is one row of
-numpy's (N, 3) @ (3,) as OpenBLAS computes it, so a compiled loop gives numpy's floats bit for
-bit; `rotation` is `align.geometry.rotation` (R = Rz(yaw) Rx(tilt) Ry(roll)); `plane_rows` the
+numpy's (N, 3) @ (3,) as OpenBLAS computes it, so a compiled loop gives the product's floats
+exactly; `rotation` is `align.geometry.rotation` (R = Rz(yaw) Rx(tilt) Ry(roll)); `plane_rows` the
 rows r0 and r2 of R for a plane normal at each roll (its row r1 is the normal). A kernel calls
 kernels of its own module and of this one only (`align.jit` says why).
 """
@@ -19,7 +19,7 @@ from align.jit import kernel
 @intrinsic
 def fma(typingctx, a, b, c):
     """a * b + c rounded once (LLVM's fma): what a BLAS matrix product's FMA kernels compute
-    per term, so that a compiled loop reproduces their sums bit for bit."""
+    per term, so that a compiled loop reproduces their sums exactly."""
     sig = types.float64(types.float64, types.float64, types.float64)
 
     def codegen(context, builder, signature, args):
@@ -31,13 +31,12 @@ def fma(typingctx, a, b, c):
 @kernel
 def gemv3(a0: float, a1: float, a2: float, x0: float, x1: float, x2: float) -> float:
     """One row of numpy's (N, 3) @ (3,) as OpenBLAS's Haswell dgemv computes it (the middle
-    term first, then the others fused: checked bit for bit against numpy on real scans)."""
+    term first, then the others fused: equal to numpy's product on real scans)."""
     return fma(a2, x2, fma(a0, x0, a1 * x1))
 @kernel
 def rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
-    """`align.geometry.rotation`: the same expressions (and the same libm cos and sin), so the
-    same matrix bit for bit. `align.kernels._rotation` is its copy there (numba's cache checks
-    only a kernel's own file)."""
+    """`align.geometry.rotation` for kernels: the same expressions (and the same libm cos and
+    sin), so the same matrix exactly."""
     cr, sr = np.cos(roll), np.sin(roll)
     ct, st = np.cos(tilt), np.sin(tilt)
     cy, sy = np.cos(yaw), np.sin(yaw)
@@ -58,8 +57,9 @@ def plane_rows(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 @kernel
 def _plane_rows_kernel(rolls: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`plane_rows` in one loop: the same operations in the same order as numpy's elementwise
-    ones (two dozen numpy calls on ~100 rolls cost 5x more in call overhead than the maths)."""
+    """`plane_rows` in one loop: `pose_from_plane`'s and `rotation`'s operations in their
+    order, so the same floats (on ~100 rolls, array calls' overhead would outweigh the
+    arithmetic)."""
     return plane_rows_of(np.cos(rolls), np.sin(rolls), n)
 
 

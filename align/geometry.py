@@ -15,7 +15,7 @@ from twin.core.pose import Pose
 
 
 def rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
-    """R = Rz(yaw) Rx(tilt) Ry(roll) (DESIGN.md), multiplied out (a few us; scipy takes ~10x)."""
+    """R = Rz(yaw) Rx(tilt) Ry(roll) (DESIGN.md), multiplied out (no scipy Rotation per call)."""
     cr, sr = math.cos(roll), math.sin(roll)
     ct, st = math.cos(tilt), math.sin(tilt)
     cy, sy = math.cos(yaw), math.sin(yaw)

@@ -14,11 +14,12 @@ from align.jit import kernel
 @kernel
 def corner_points(points: np.ndarray, n: np.ndarray, d: float, h: np.ndarray, v: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """`align.paper.feature_points` after its plane axes ``h``, ``v``: the points (N, 3)
+    """`align.baselines.paper.feature_points` after its plane axes ``h``, ``v``: the points (N, 3)
     projected onto the plane ``n``, ``d``, and per corner of their bounding rectangle along
     h, v (top-left, top-right, bottom-left, bottom-right) the projected point nearest it
     (the first of equally near). Returns (those four projected points (4, 3), their indices).
-    numpy's operations element by element (the matrix-vector products as `gemv3`)."""
+    The numpy expressions' floats, element by element (the matrix-vector products as
+    `gemv3`)."""
     k = points.shape[0]
     proj = np.empty((k, 3))
     u = np.empty(k)
@@ -49,8 +50,8 @@ def corner_points(points: np.ndarray, n: np.ndarray, d: float, h: np.ndarray, v:
 
 @kernel
 def corner_residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
-    """`align.paper._residuals`: (p_o - (p_l @ R.T + t)).ravel() for beta = (x, y, z, roll,
-    tilt, yaw), the matrix product as numpy's BLAS sums it (fused, x term first)."""
+    """`align.baselines.paper._residuals`: (p_o - (p_l @ R.T + t)).ravel() for beta = (x, y, z,
+    roll, tilt, yaw), the matrix product as numpy's BLAS sums it (fused, x term first)."""
     r = rotation(beta[3], beta[4], beta[5])
     k = p_l.shape[0]
     out = np.empty(3 * k)
@@ -63,8 +64,8 @@ def corner_residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.n
 
 @kernel
 def corner_jacobian(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
-    """`align.paper._jacobian`: -I per point for the translation (its zeros -0.0, as np.tile
-    of -np.eye), forward differences of 1e-7 rad for the angles."""
+    """`align.baselines.paper._jacobian`: -I per point for the translation (its zeros -0.0, as
+    np.tile of -np.eye), forward differences of 1e-7 rad for the angles."""
     k = p_l.shape[0]
     j = np.empty((3 * k, 6))
     for i in range(3 * k):
@@ -84,7 +85,7 @@ def corner_jacobian(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.nd
 def centre(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(points.mean(axis=0), points - that mean) for points (N, 3), m: numpy's mean over the
     rows of a C-ordered array sums each column row by row and divides by N (no pairwise
-    summation along a strided axis), as this loop does, so the same values bit for bit."""
+    summation along a strided axis), as this loop does, so the same values exactly."""
     n = points.shape[0]
     s0 = s1 = s2 = 0.0
     for i in range(n):

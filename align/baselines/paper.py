@@ -1,8 +1,8 @@
 """The paper's estimator (Oh, You, Eskandarian, Kim, section III), faithfully, weaknesses included.
 
 1. Region of interest: Euclidean clustering, the board's cluster by mean distance, point count and
-   reflectivity (`align.segment`).
-2. RANSAC plane fit on the cluster (`align.plane.ransac`).
+   reflectivity (`align.search`).
+2. RANSAC plane fit on the cluster (`align.plane.fit.ransac`).
 3. The cluster's inlier returns projected orthogonally onto the plane.
 4. The feature beam points: for each board corner, the projected beam point closest to it.
 5. Levenberg-Marquardt on the six pose parameters minimising the paper's cost
@@ -59,8 +59,8 @@ def feature_points(points: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndar
     """The four feature beam points (paper III-B): projected points closest to the corners.
 
     Returns the projected points (4, 3) in the paper's corner order (TL, TR, BL, BR) and their
-    indices into ``points``. Compiled (`align.kernels.corner_points`: the projection, the
-    bounding rectangle and the four nearest points in one pass, numpy's operations).
+    indices into ``points``. Compiled (`corner_points`: the projection, the bounding
+    rectangle and the four nearest points in one pass, the numpy expressions' floats).
     """
     h, v = plane_axes(n)
     return corner_points(np.ascontiguousarray(points, dtype=np.float64),
@@ -69,7 +69,8 @@ def feature_points(points: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndar
 
 def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
     """The rigid transform minimising sum ||p_o - (R p_l + t)||^2, as (x, y, z, roll, tilt, yaw)."""
-    # the means and centred points as numpy's mean and difference, in one compiled pass each
+    # the means and centred points, np.mean's values and the differences, in one compiled
+    # pass each (`centre`)
     cl, p_lc = centre(np.ascontiguousarray(p_l, dtype=np.float64))
     co, p_oc = centre(np.ascontiguousarray(p_o, dtype=np.float64))
     u, _, vt = np.linalg.svd(p_lc.T @ p_oc)
@@ -86,14 +87,14 @@ def _kabsch(p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
 
 
 def _residuals(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
-    """The corners' residuals p_o - (R p_l + t), flattened (`align.kernels.corner_residuals`:
-    the numpy expression's values, without its dozen calls' overhead)."""
+    """The corners' residuals p_o - (R p_l + t), flattened (`corner_residuals`: the numpy
+    expression's values, in one call)."""
     return corner_residuals(np.asarray(beta, dtype=np.float64), p_l, p_o)
 
 
 def _jacobian(beta: np.ndarray, p_l: np.ndarray, p_o: np.ndarray) -> np.ndarray:
     """d `_residuals` / d beta: -I for the translation, forward differences of 1e-7 rad for
-    the angles (`align.kernels.corner_jacobian`)."""
+    the angles (`corner_jacobian`)."""
     return corner_jacobian(np.asarray(beta, dtype=np.float64), p_l, p_o)
 
 
@@ -136,13 +137,13 @@ def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> 
     if len(pts) < 10:
         return PoseEstimate.failed(Status.NO_BOARD, "paper", reason="too few board returns")
     rng = np.random.default_rng(hints.seed)
-    # `plane.ransac`, its hypotheses scored in one compiled loop (the same plane)
+    # `ransac`, its hypotheses scored in one compiled loop
     n, d, inl = ransac(pts, RANSAC_THRESHOLD, rng, RANSAC_ITERATIONS)
     # the ROI is the board: its rings are consecutive, and the stand's base (a face 5 cm in
     # front of the board, within the RANSAC band) lights up a ring below a gap; keep the
     # consecutive block of rings with the most inliers
     ring = scan.lasers.ring_of_laser[scan.laser_id[pts_idx]]  # (Scan.ring maps every firing)
-    inl &= in_ring_block(ring, inl)  # `segment.consecutive_ring_block` of the inliers
+    inl &= in_ring_block(ring, inl)  # `consecutive_ring_block` of the inliers
     n_rings = int(np.count_nonzero(np.bincount(ring[inl])))  # len(np.unique), no sort
     if n_rings < 3:
         return PoseEstimate.failed(Status.TOO_FEW_RINGS, "paper", rings=n_rings,

@@ -29,7 +29,7 @@ The scans carry two kinds of information, and the bound treats each as it is:
   between the ring just inside and the ring just outside it: one interval, the same in every
   scan; two parallel edges of this kind are intersected exactly (the board's size is known).
 
-**Combining them** (`align.bound_labels`). ``labels="exact"`` (the default): the posterior of
+**Combining them** (`align.design.bound_labels`). ``labels="exact"`` (the default): the posterior of
 the linearised model, the ranges' Gaussian times the slabs' indicator, its covariance averaged
 over the scans' phases and the ranges' error, E[Cov(theta | data)]: the mean squared error of
 the posterior mean, which no estimator beats on average. A Gibbs sampler per draw of the data,

@@ -1,4 +1,4 @@
-"""What the hit/miss labels of a station design carry: the label part of `align.bound`.
+"""What the hit/miss labels of a station design carry: the label part of `align.design.bound`.
 
 The labels, linearised about the pose, are slabs on the parameters p (the pose, and the common
 range offset when it is free): g^T p in [lo, hi] with 0 (the truth) inside. Two kinds:

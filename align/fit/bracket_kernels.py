@@ -84,13 +84,13 @@ def profile_cost(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray
                  bh: np.ndarray, bm: np.ndarray, ds: np.ndarray, vx: float, vz: float,
                  w2: float, h2: float, tol: float, blur_side: float, blur_top: float
                  ) -> np.ndarray:
-    """`align.rays._Model.profile`: for each shift ``ds`` (m, ascending) of the rectangle along
+    """`align.fit.model.Model.profile`: for each shift ``ds`` (m, ascending) of the rectangle along
     (vx, vz), 1e6 x the labels violated (hits of ``hit`` outside the rectangle grown by ``tol``,
     misses of ``miss`` inside it shrunk by ``tol``) plus the squared whitened residuals of the
     brackets (hit rays ``bh``, miss rays ``bm``), each bracket's edge reassigned per shift as
     `Model._edges` assigns it (no corner guard). ``x``, ``z``: every ray's board coordinates;
-    ``blur_side``, ``blur_top``: the blur across the side and the top/bottom edges, m. Numpy's
-    error model: a bracket along an edge divides by zero as numpy did (z_at infinite)."""
+    ``blur_side``, ``blur_top``: the blur across the side and the top/bottom edges, m.
+    numpy's error model: a bracket along an edge divides by zero (z_at infinite), no raise."""
     n = ds.shape[0]
     viol = _violations(x, z, hit, miss, ds, vx, vz, w2, h2, tol)
     out = np.empty(n)
@@ -174,9 +174,8 @@ def profile_best(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray
     squares, never below 1e6 x its violations (rounding is monotone), so once the shifts
     with the fewest violations are costed, a shift whose violations alone exceed the least
     cost found cannot be it. The same floats at the shifts costed, the same first minimum
-    (`align.rays._Model.shift` reads only where the minimum lies; the brackets cost ~40 x
-    121 divisions and square roots per profile, most of them at shifts with more
-    violations)."""
+    (`align.fit.model.Model.shift` reads only where the minimum lies; the brackets' divisions
+    and square roots are most of a profile's work, and most shifts have more violations)."""
     n = ds.shape[0]
     if n == 0:
         raise ValueError("attempt to get argmin of an empty sequence")
@@ -213,12 +212,12 @@ def profile_best(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray
 def edge_brackets(order: np.ndarray, ls: np.ndarray, az: np.ndarray, lb: np.ndarray,
                   link: np.ndarray, trans: np.ndarray, first_hit: np.ndarray,
                   last_hit: np.ndarray, zone: float) -> tuple[np.ndarray, np.ndarray]:
-    """`align.rays._brackets`' walk over the transitions: ``order`` sorts the rays by laser and
-    azimuth (``ls``, ``az``, labels ``lb`` in that order), ``link`` says which neighbours in it
-    bracket (same laser, no gap, both labelled), ``trans`` where a linked pair changes label,
-    ``first_hit``, ``last_hit`` each laser's span on the board (positions in the order).
-    Transitions closer than ``zone`` (rad) on a linked run form one zone, reduced to the step
-    that misclassifies the fewest rays (ties widen it). Returns the rays (indices into
+    """`align.fit.brackets.hit_miss_brackets`' walk over the transitions: ``order`` sorts the rays
+    by laser and azimuth (``ls``, ``az``, labels ``lb`` in that order), ``link`` says which
+    neighbours in it bracket (same laser, no gap, both labelled), ``trans`` where a linked pair
+    changes label, ``first_hit``, ``last_hit`` each laser's span on the board (positions in the
+    order). Transitions closer than ``zone`` (rad) on a linked run form one zone, reduced to the
+    step that misclassifies the fewest rays (ties widen it). Returns the rays (indices into
     ``order``'s rays) on the hit and on the miss side of each bracket."""
     hits = np.empty(len(trans), dtype=np.int64)
     misses = np.empty(len(trans), dtype=np.int64)
@@ -269,11 +268,11 @@ def edge_brackets(order: np.ndarray, ls: np.ndarray, az: np.ndarray, lb: np.ndar
 def laser_brackets(order: np.ndarray, laser: np.ndarray, azimuth: np.ndarray,
                    lab: np.ndarray, dropout: int, hit: int, max_gap: float, zone: float
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """`align.rays._brackets` from the rays' ``order`` by laser and azimuth on: the dropouts
-    (label ``dropout``) left out, the links (same laser, less than ``max_gap`` rad apart,
-    both labelled: labels >= 0) and the transitions between them, the board's span per laser
-    (`board_spans`, hits labelled ``hit``) and the walk over the zones (`edge_brackets`): the
-    numpy version's masks, diffs and gathers in two passes, the same comparisons."""
+    """`align.fit.brackets.hit_miss_brackets` from the rays' ``order`` by laser and azimuth on:
+    the dropouts (label ``dropout``) left out, the links (same laser, less than ``max_gap`` rad
+    apart, both labelled: labels >= 0) and the transitions between them, the board's span per laser
+    (`board_spans`, hits labelled ``hit``) and the walk over the zones (`edge_brackets`), in two
+    passes."""
     n = 0
     for i in range(order.shape[0]):
         n += lab[order[i]] != dropout
@@ -305,7 +304,7 @@ def laser_brackets(order: np.ndarray, laser: np.ndarray, azimuth: np.ndarray,
 @kernel
 def column_brackets(ring: np.ndarray, lab: np.ndarray, off: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """`align.rays._vertical_brackets`: per ring the labelled ray (``lab`` >= 0) nearest the
+    """`align.fit.brackets.vertical_brackets`: per ring the labelled ray (``lab`` >= 0) nearest the
     board's central column (least ``off``, the first of equal ones, as np.argmin); above the
     highest ring that hits, a ring that misses there brackets the edge above with it, and
     likewise below the lowest. Returns (hit rays, miss rays): the top's pair first."""
@@ -344,13 +343,13 @@ def classify_edges(x: np.ndarray, z: np.ndarray, bh: np.ndarray, bm: np.ndarray,
                    h2: float, guard: float, blur_side: float, blur_top: float,
                    crossings: bool, grazing: float, excluded: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`align.rays._Model.classify`'s edges: per bracket (hit ray ``bh``, miss ray ``bm``; board
+    """`align.fit.model.Model.classify`'s edges: per bracket (hit ray ``bh``, miss ray ``bm``; board
     coordinates ``x``, ``z``) the edge kind (1 side, 2 top or bottom: by where the line
     through its hit and miss meets the side edge, and `grazes_top_or_bottom`; 0 left out:
     within ``guard`` of a corner, no extent, ``excluded``, or without ``crossings`` one crossing its
     edge at a grazing angle, across it less than ``grazing`` x along it), the edge's side
     (that of the miss) and the bracket's sigma sqrt(width^2 / 12 + blur^2), m, as
-    `Model._edges` computes them. Numpy's error model: z_at of a bracket along x is inf."""
+    `Model._edges` computes them. numpy's error model: z_at of a bracket along x is inf."""
     nb = bh.shape[0]
     kind = np.zeros(nb, dtype=np.int8)
     sign = np.zeros(nb)
@@ -384,9 +383,9 @@ def classify_edges(x: np.ndarray, z: np.ndarray, bh: np.ndarray, bm: np.ndarray,
 @kernel
 def between_hits(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, hit: np.ndarray
                  ) -> np.ndarray:
-    """`align.rays._between_hits`: the rays with a hit (``hit``) of the same laser in the same
-    scan on either side of them, ``order`` listing the rays by scan, laser and azimuth. One
-    walk over each group (the numpy version's cumsums, bincount and gathers cost 5x)."""
+    """`align.fit.brackets.rays_between_hits`: the rays with a hit (``hit``) of the same laser
+    in the same scan on either side of them, ``order`` listing the rays by scan, laser and
+    azimuth. One walk over each group."""
     n = order.shape[0]
     out = np.zeros(n, dtype=np.bool_)
     a = 0
@@ -409,10 +408,10 @@ def between_hits(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, hit: np
 @kernel
 def board_spans(ls: np.ndarray, az: np.ndarray, hit: np.ndarray, zone: float
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """`align.rays._board_spans`: per laser the first and last position (in the rays sorted by
-    laser ``ls`` and azimuth ``az``) of its longest run of hits (``hit``), a run ending where
-    the next hit is another laser's or more than ``zone`` (rad) away; of equally long runs the
-    last (as the numpy version's stable sort by size writes it last). -1 without hits."""
+    """`align.fit.brackets._board_spans`: per laser the first and last position (in the rays sorted
+    by laser ``ls`` and azimuth ``az``) of its longest run of hits (``hit``), a run ending where the
+    next hit is another laser's or more than ``zone`` (rad) away; of equally long runs the last (as
+    a stable sort by size would put last). -1 without hits."""
     n_l = ls.max() + 1 if ls.shape[0] else 0
     first = np.full(n_l, -1, dtype=np.int64)
     last = np.full(n_l, -1, dtype=np.int64)
@@ -440,9 +439,9 @@ def used_edges(kind: np.ndarray, oh: np.ndarray, uh: np.ndarray, om: np.ndarray,
                um: np.ndarray, sign: np.ndarray, sd: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                           np.ndarray, np.ndarray]:
-    """`align.rays._Model._cache_edges`: the brackets of ``kind`` > 0, their hit rays (``oh``,
-    ``uh``), miss rays (``om``, ``um``), signs, sigmas and whether each is a side edge (kind 1),
-    contiguous, in one pass (seven numpy gathers cost 5x)."""
+    """`align.fit.model.Model._cache_edges`: the brackets of ``kind`` > 0, their hit rays
+    (``oh``, ``uh``), miss rays (``om``, ``um``), signs, sigmas and whether each is a side edge
+    (kind 1), contiguous, in one pass rather than a gather per array."""
     n = 0
     for i in range(kind.shape[0]):
         if kind[i] > 0:
@@ -461,7 +460,7 @@ def used_edges(kind: np.ndarray, oh: np.ndarray, uh: np.ndarray, om: np.ndarray,
 @kernel
 def contradicted(x: np.ndarray, z: np.ndarray, lab: np.ndarray, hit: int, miss: int,
                  w2: float, h2: float, margin: float) -> int:
-    """`align.rays._contradicted`: the hits (label ``hit``) outside the rectangle of half sizes
+    """`align.fit.lsq._contradicted`: the hits (label ``hit``) outside the rectangle of half sizes
     ``w2``, ``h2`` grown by ``margin`` (m), and the misses (``miss``) inside it shrunk by it."""
     n = 0
     for i in range(x.shape[0]):

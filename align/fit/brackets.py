@@ -14,7 +14,7 @@ def rays_between_hits(rays: Rays, lab: np.ndarray, order: np.ndarray | None = No
                   ) -> np.ndarray:
     """Rays that lie between two hits of the same laser in the same scan (by azimuth).
     ``order``: the rays by scan, laser and azimuth, if the caller has it. Compiled
-    (`align.fit_kernels.between_hits`)."""
+    (`between_hits`)."""
     if order is None:
         order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
     return between_hits(order, rays.scan, rays.laser, lab == HIT)
@@ -30,7 +30,7 @@ def hit_miss_brackets(rays: Rays, lab: np.ndarray, *, p: RaysParams) -> tuple[np
     anywhere between the hit and the miss).
     """
     # the links and transitions along each laser, its span on the board (`_board_spans`) and
-    # the walk over the zones, compiled (`align.fit_kernels.laser_brackets`, `edge_brackets`)
+    # the walk over the zones, compiled (`laser_brackets`, `edge_brackets`)
     return laser_brackets(np.lexsort((rays.azimuth, rays.laser)), rays.laser, rays.azimuth,
                           lab, DROPOUT, HIT, p.max_gap, p.zone_azimuth)
 
@@ -41,7 +41,7 @@ def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray, *, p: RaysParam
     its longest run of hits, a run ending where the next hit is more than `p.zone_azimuth` away:
     the board's span on that laser, not a stray beside it (a stand's part within the label
     tolerance of the plane, on the same ring). -1 for a laser without hits."""
-    return board_spans(ls, az, lb == HIT, p.zone_azimuth)  # compiled: a sort of the runs in numpy
+    return board_spans(ls, az, lb == HIT, p.zone_azimuth)  # one pass over the sorted rays
 
 
 def vertical_brackets(rays: Rays, lab: np.ndarray, off: np.ndarray
@@ -55,4 +55,4 @@ def vertical_brackets(rays: Rays, lab: np.ndarray, off: np.ndarray
     below it (and likewise down). One bracket per edge for all scans: the rings sit at the same
     heights in every scan.
     """
-    return column_brackets(rays.ring, lab, off)  # compiled: a dozen masks per ring in numpy
+    return column_brackets(rays.ring, lab, off)  # one pass over the rays, not one per ring

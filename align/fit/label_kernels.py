@@ -18,7 +18,8 @@ def _behind_run(order: np.ndarray, a: int, b: int, res: np.ndarray, run: int, re
     """One long group ``order[a:b]`` of `behind_groups`: from each end, the longest run of at
     most min(``reach``, size // 3) hits, at least ``run`` long, whose mean range residual
     ``res`` exceeds ``least`` (m) and whose mean times sqrt(its length) exceeds ``threshold``
-    (m) is marked in ``out``. The running means as numpy's cumsum and divide form them."""
+    (m) is marked in ``out``. The running means are cumsum / count in numpy's order, so the
+    marks match np.mean's thresholds exactly."""
     n = b - a
     r = min(reach, n // 3)
     for end in range(2):
@@ -36,7 +37,7 @@ def _behind_run(order: np.ndarray, a: int, b: int, res: np.ndarray, run: int, re
 
 @kernel
 def _numpy_mean(res: np.ndarray, idx: np.ndarray) -> float:
-    """np.mean(res[idx]) bit for bit, for up to 128 values: numpy's pairwise sum adds fewer
+    """np.mean(res[idx]) exactly, for up to 128 values: numpy's pairwise sum adds fewer
     than 8 values in order from 0, up to 128 in 8 running sums combined as a tree."""
     n = idx.shape[0]
     if n > 128:
@@ -64,12 +65,11 @@ def _numpy_mean(res: np.ndarray, idx: np.ndarray) -> float:
 @kernel
 def behind_groups(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, res: np.ndarray,
                   run: int, reach: int, least: float, threshold: float) -> np.ndarray:
-    """`align.rays._behind_ends` after its sort: ``order`` lists the hits by scan, laser and
+    """`align.fit.labels._behind_ends` after its sort: ``order`` lists the hits by scan, laser and
     azimuth; each group (a laser in a scan) of at least ``run`` and fewer than 3 ``run`` hits
-    is marked whole where its mean range residual ``res`` (numpy's mean) exceeds ``least``
-    (m) and times sqrt(its size) exceeds ``threshold`` (m); a longer one from each end
-    (`_behind_run`). A mask over ``res``. One walk (the numpy version's group bounds and
-    python loop over the short groups cost 3x)."""
+    is marked whole where its mean range residual ``res`` (np.mean's value, `_numpy_mean`)
+    exceeds ``least`` (m) and times sqrt(its size) exceeds ``threshold`` (m); a longer one
+    from each end (`_behind_run`). A mask over ``res``, in one walk over the groups."""
     out = np.zeros(res.shape[0], dtype=np.bool_)
     n = order.shape[0]
     a = 0
@@ -93,10 +93,10 @@ def behind_groups(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, res: n
 def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x: float,
                 t_y: float, t_z: float, half_w: float, half_h: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """`align.rays._candidates_at`'s selection in one pass: each ray's board coordinates as
-    `align.geometry.board_coordinates` computes them at the pose with rotation ``rot`` and
-    translation (t_x, t_y, t_z) (numpy's matrix-vector products as `gemv3`, its division
-    and sums in its order: the same floats), and the rays in front of the sensor (lam > 0)
+    """`align.fit.rays.candidates_at`'s selection in one pass: each ray's board coordinates
+    as `align.geometry.board_coordinates` computes them at the pose with rotation ``rot`` and
+    translation (t_x, t_y, t_z) (its matrix-vector products as `gemv3`, its division and sums
+    in its order: the same floats), and the rays in front of the sensor (lam > 0)
     within ``half_w``, ``half_h`` of the board's centre (m). Returns their indices, X, Z and
     lam."""
     m = origin.shape[0]
@@ -126,10 +126,10 @@ def window_rays(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_x:
 @kernel(error_model="numpy")
 def ray_products(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_y: float
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """`align.rays._Model._shifted_coords`' products of the rays with the rotation's rows:
-    o.r0, lam u.r0, o.r2, lam u.r2 and lam = -(o.r1 + t_y) / u.r1, in one pass (numpy's
-    matrix-vector products as `gemv3`, its elementwise steps in its order: the same
-    floats)."""
+    """`align.fit.model.Model._shifted_coords`' products of the rays with the rotation's
+    rows: o.r0, lam u.r0, o.r2, lam u.r2 and lam = -(o.r1 + t_y) / u.r1, in one pass (the
+    matrix-vector products as `gemv3`, the elementwise steps in numpy's order: the floats of
+    `align.geometry.board_coordinates`)."""
     m = origin.shape[0]
     ox, ux, oz, uz, lam = np.empty(m), np.empty(m), np.empty(m), np.empty(m), np.empty(m)
     a0, a1, a2 = rot[0, 0], rot[0, 1], rot[0, 2]
@@ -150,7 +150,7 @@ def ray_products(origin: np.ndarray, direction: np.ndarray, rot: np.ndarray, t_y
 @kernel
 def shifted_coords(ox: np.ndarray, ux: np.ndarray, oz: np.ndarray, uz: np.ndarray,
                    t_x: float, t_z: float) -> tuple[np.ndarray, np.ndarray]:
-    """X = (o.r0 + t_x) + lam u.r0 and Z alike from `ray_products`' (numpy's order)."""
+    """X = (o.r0 + t_x) + lam u.r0 and Z alike from `ray_products`' (in that order of sums)."""
     m = ox.shape[0]
     x, z = np.empty(m), np.empty(m)
     for i in range(m):
@@ -162,11 +162,11 @@ def shifted_coords(ox: np.ndarray, ux: np.ndarray, oz: np.ndarray, uz: np.ndarra
 @kernel
 def side_ends(ends: np.ndarray, w2: float, reach: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """`align.rays._side_lines`' ends at the side edges: of the lasers' ends (K, 4: left x, z,
+    """`align.fit.sides._side_lines`' ends at the side edges: of the lasers' ends (K, 4: left x, z,
     right x, z), the left ones within ``reach`` of -``w2`` then the right ones within it of
     ``w2``: their x, the sign that makes a residual x - line positive beyond the edge, and
-    the design (1 - side, side, z) (rows, C order), and how many are right ones; the same
-    floats as the numpy version's concatenations."""
+    the design (1 - side, side, z) (rows, C order), and how many are right ones (copies of
+    the ends' floats: no arithmetic beyond 1 - side)."""
     k = ends.shape[0]
     n_l = n_r = 0
     for i in range(k):
@@ -192,10 +192,10 @@ def side_ends(ends: np.ndarray, w2: float, reach: float
 @kernel
 def line_excess(xs: np.ndarray, a: np.ndarray, coef: np.ndarray, sign: np.ndarray,
                 keep: np.ndarray, tol: float, inward: float) -> tuple[int, float]:
-    """`align.rays._side_lines`' worst end for the lines ``coef``: np.argmax of the kept ends'
-    excess (beyond the lines by more than ``tol``, or inside them by more than ``inward``; 0
-    for the others and those within), with the excess. numpy's floats (a @ coef as
-    `gemv3`, its elementwise maxima) and np.argmax's first maximum (a nan first)."""
+    """`align.fit.sides._side_lines`' worst end for the lines ``coef``: np.argmax of the kept
+    ends' excess (beyond the lines by more than ``tol``, or inside them by more than
+    ``inward``; 0 for the others and those within), with the excess. a @ coef as `gemv3`,
+    np.maximum's elementwise maxima, and np.argmax's first maximum (a nan first)."""
     worst, top = -1, 0.0
     for i in range(xs.shape[0]):
         beyond = (xs[i] - gemv3(a[i, 0], a[i, 1], a[i, 2], coef[0], coef[1], coef[2])) * sign[i]
@@ -219,12 +219,12 @@ def _np_max0(v: float) -> float:
 
 @kernel(error_model="numpy")
 def side_faces(u: np.ndarray, rot: np.ndarray, thickness: float) -> np.ndarray:
-    """`align.rays._side_faces`: (M, 4) how far past the left, right, bottom and top edge the
-    rays with directions ``u`` (M, 3) still hit a plate of ``thickness`` (m) at the rotation
-    ``rot``, in one pass. u @ rot.T as OpenBLAS's matrix product computes it for two rows or
-    more (the `_project` order of `window_sweep_projected`; a single row numpy sends to its
-    matrix-vector kernel, whose order is `gemv3`), then numpy's elementwise operations in
-    its order: the same floats."""
+    """`align.fit.sides.side_widening`: (M, 4) how far past the left, right, bottom and top
+    edge the rays with directions ``u`` (M, 3) still hit a plate of ``thickness`` (m) at the
+    rotation ``rot``, in one pass. u @ rot.T as OpenBLAS's matrix product computes it for two
+    rows or more (the `_project` order of `window_sweep_projected`; a single row goes to
+    BLAS's matrix-vector kernel, whose order is `gemv3`), then the elementwise operations in
+    numpy's order: the floats of the numpy expression."""
     m = u.shape[0]
     out = np.empty((m, 4))
     for i in range(m):
@@ -249,13 +249,12 @@ def side_faces(u: np.ndarray, rot: np.ndarray, thickness: float) -> np.ndarray:
 def hit_runs(order: np.ndarray, lab: np.ndarray, laser: np.ndarray, scan: np.ndarray,
              azimuth: np.ndarray, distance: np.ndarray, expected: np.ndarray, max_gap: float,
              hit: int, miss: int, unknown: int) -> tuple[np.ndarray, np.ndarray]:
-    """`align.rays._grazing_runs`' runs of hits, in one pass over the rays in ``order`` (by
+    """`align.fit.labels.grazing_runs`' runs of hits, in one pass over the rays in ``order`` (by
     scan, laser and azimuth): runs of consecutive hits (``lab`` ``hit``) of one laser in one
     scan, neighbours no more than ``max_gap`` (rad) apart in azimuth, each with a neighbour
     on both sides (not at the end of what was looked at) that is linked to it the same way
     and is a miss or a return behind the plane (``distance`` beyond ``expected``; label
-    ``unknown``). Returns their first and last positions in ``order``: the numpy version's
-    masks and diffs, the same comparisons on the same floats."""
+    ``unknown``). Returns their first and last positions in ``order``."""
     n = order.shape[0]
     starts, ends = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
     k = 0
@@ -354,8 +353,8 @@ def pool_rows(keep: np.ndarray, origin: np.ndarray, direction: np.ndarray,
               gidx: np.ndarray, scan: np.ndarray
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                          np.ndarray, np.ndarray, np.ndarray]:
-    """The rows ``keep`` of the candidate pool's arrays (`align.rays._Rays`' fields, in its
-    order), in one call: eight numpy gathers cost four times as much."""
+    """The rows ``keep`` of the candidate pool's arrays (`align.fit.rays.Rays`' fields, in its
+    order), in one call rather than a gather per array."""
     k = keep.shape[0]
     o, u = np.empty((k, 3)), np.empty((k, 3))
     d, az = np.empty(k), np.empty(k)
@@ -376,15 +375,15 @@ def edge_labels(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
                 intensity: np.ndarray, ext: np.ndarray, hit: int, miss: int, w2: float,
                 h2: float, margin: float, partial_ratio: float, per_full: np.ndarray,
                 per_part: np.ndarray) -> np.ndarray:
-    """`align.rays._ray_points`' labels in one pass: the hits not well outside the rectangle
-    and the misses not well inside it (``margin``, m; at the rays' board coordinates ``x``,
-    ``z``), and each ray's side-face allowance ``ext`` (M, 4) widened in place by its
-    tolerance across the left, right, bottom and top edge at its range ``lam``, outwards for
-    a hit, inwards for a miss: ``per_part`` (across the sides, across the top and bottom;
-    `Hints.partial_edge_tolerance`) for a partial hit, dimmer than ``partial_ratio`` of the
-    median ``intensity`` of the hits well inside (`_partial_hits`; none with an empty
-    ``intensity`` or no such hits), ``per_full`` for the others. The numpy version's floats
-    (np.median's middle value, or the mean of the middle two; the same sums and products)."""
+    """`align.posterior.rays.ray_points`' labels in one pass: the hits not well outside the
+    rectangle and the misses not well inside it (``margin``, m; at the rays' board coordinates
+    ``x``, ``z``), and each ray's side-face allowance ``ext`` (M, 4) widened in place by its
+    tolerance across the left, right, bottom and top edge at its range ``lam``, outwards for a hit,
+    inwards for a miss: ``per_part`` (across the sides, across the top and bottom;
+    `Hints.partial_edge_tolerance`) for a partial hit, dimmer than ``partial_ratio`` of the median
+    ``intensity`` of the hits well inside (`_partial_hits`; none with an empty ``intensity`` or no
+    such hits), ``per_full`` for the others. The median is np.median's (the middle value, or the
+    mean of the middle two)."""
     n = x.shape[0]
     inner = np.empty(n, dtype=np.bool_)
     use = np.empty(n, dtype=np.bool_)
@@ -420,10 +419,10 @@ def edge_labels(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
 @kernel
 def range_labels(distance: np.ndarray, lam: np.ndarray, near: float, tolerance: float,
                  hit: int, unknown: int) -> tuple[np.ndarray, np.ndarray]:
-    """`align.rays._labels`' first labels by range, in one pass: each ray's residual
+    """`align.fit.labels._labels`' first labels by range, in one pass: each ray's residual
     distance - lam and its label (int8): ``hit`` for a return within ``near`` of the plane,
     ``unknown`` for one farther in front or behind it but within ``tolerance``, 0 (a miss)
-    otherwise; the numpy version's comparisons of the same floats."""
+    otherwise."""
     n = distance.shape[0]
     lab = np.zeros(n, dtype=np.int8)
     res = np.empty(n)
@@ -441,7 +440,7 @@ def range_labels(distance: np.ndarray, lam: np.ndarray, near: float, tolerance: 
 @kernel
 def bright_limit(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray, hit: int,
                  ratio: float, least: int, quantile: float) -> tuple[float, bool]:
-    """`align.rays._bright_ends`' threshold: ``ratio`` times the ``quantile`` of the inner
+    """`align.fit.labels.bright_ends`' threshold: ``ratio`` times the ``quantile`` of the inner
     hits' ``intensity`` (np.partition's value at int(quantile (n - 1))), and whether any hit
     is brighter; inf and False with fewer than ``least`` inner hits."""
     n = 0
@@ -467,12 +466,12 @@ def seen_counts(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
                 distance: np.ndarray, offset: float, front: float, w2: float, h2: float,
                 window: float, deep: float, hit: int, miss: int, dropout: int
                 ) -> tuple[np.ndarray, int, int, int, int, int]:
-    """`align.rays.estimate_rays`' account of what was seen, in one pass over the rays at the
-    estimate (board coordinates ``x``, ``z``, ranges to the plane ``lam``): whether a miss lies
-    beyond each edge (left, right, bottom, top) within ``window`` alongside it (`_edges_seen`),
-    and the rays inside the rectangle, those of them whose return lies in front of the plane
-    by more than ``front`` (the range ``offset`` removed), the dropouts inside, the misses
-    inside by ``deep`` and the hits outside by ``deep``: the numpy version's comparisons."""
+    """`align.rays.pipeline.estimate_rays`' account of what was seen, in one pass over the rays at
+    the estimate (board coordinates ``x``, ``z``, ranges to the plane ``lam``): whether a miss lies
+    beyond each edge (left, right, bottom, top) within ``window`` alongside it (`_edges_seen`), and
+    the rays inside the rectangle, those of them whose return lies in front of the plane by more
+    than ``front`` (the range ``offset`` removed), the dropouts inside, the misses inside by
+    ``deep`` and the hits outside by ``deep``."""
     seen = np.zeros(4, dtype=np.bool_)
     inside = occluded = dropouts = inside_miss = outside_hits = 0
     for i in range(x.shape[0]):
@@ -499,14 +498,14 @@ def laser_ends(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
                ext: np.ndarray, hit_label: int, reach_x: float, reach_z: float
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                           np.ndarray, float]:
-    """`align.rays._Sides.of`'s lasers' ends in one pass and a sort per laser: the hits taken
+    """`align.fit.sides.Sides.of`'s lasers' ends in one pass and a sort per laser: the hits taken
     (label ``hit_label``, |x| < ``reach_x``, |z| < ``reach_z``), every ray's x_l = x + e_l and
     x_r = x - e_r, and per laser with such hits (ascending) its leftmost hit by x_l and its
     rightmost by x_r (the first of equal ones, as the stable lexsorts), their indices and
     ends (x_l, z, x_r, z), and the median step: the middle value of |x| differences of a
     laser's consecutive hits sorted by x_l (0 with none). Returns (hit, x_l, x_r, left,
-    right, ends, step). The same floats as the numpy version (the same elementwise sums;
-    the rest are comparisons, and np.partition's middle value is the sorted one's)."""
+    right, ends, step). Only x_l and x_r are computed (one sum each); the rest are
+    comparisons, and the median step is np.partition's middle value."""
     n = x.shape[0]
     hit = np.empty(n, dtype=np.bool_)
     x_l, x_r = np.empty(n), np.empty(n)
@@ -557,7 +556,7 @@ def laser_ends(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
 @kernel
 def _kth_smallest(a: np.ndarray, k: int) -> float:
     """np.partition(a, k)[k] for finite ``a`` (reordered in place): quickselect, the middle
-    of three as pivot (numba's np.partition took 8 us for 600 values)."""
+    of three as pivot (a few hundred values: cheaper than numba's np.partition)."""
     lo, hi = 0, a.shape[0] - 1
     while hi > lo:
         mid = (lo + hi) // 2
@@ -588,13 +587,12 @@ def window_pool(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarray,
                 offset_z: np.ndarray, centre: float, lo: float, hi: float, ring_lo: int,
                 ring_hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
                                        np.ndarray, np.ndarray, np.ndarray]:
-    """`window_firings` and the selected rays as `align.rays._candidate_pool` takes them, in
+    """`window_firings` and the selected rays as `align.fit.rays._candidate_pool` takes them, in
     one pass: their indices, origins (``offset_z`` of their laser along Z: the laser table's
     vertical offsets, zeros where a scan's are not applied) and unit directions (as
     `Scan.directions`: ``cos_el``, ``sin_el`` the laser table's elevations' cosines and
-    sines, the azimuth's taken here: numba's and numpy's sine and cosine are the C
-    library's, the same floats), ranges, lasers, azimuths (``centre`` plus the relative one,
-    numpy's sum) and rings."""
+    sines, the azimuth's taken here with the C library's sine and cosine, which numpy calls
+    too), ranges, lasers, azimuths (``centre`` plus the relative one) and rings."""
     idx, rel = window_firings(azimuth, laser_id, ring_of_laser, centre, lo, hi, ring_lo,
                               ring_hi)
     k = idx.shape[0]
@@ -621,13 +619,11 @@ def window_pool(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarray,
 @kernel
 def _wrapped(v: float, two_pi: float) -> float:
     """v % two_pi as Python and numpy take it (fmod, then the divisor added to a negative
-    remainder; a zero's sign aside, which the callers' - pi that follows removes, as it did
-    for the fast path they had), without the slow floating-point remainder where the result
-    is known: v itself
-    on [0, 2 pi); v - 2 pi on [2 pi, 4 pi) (fmod's exact remainder, the difference exact by
-    Sterbenz's lemma); v + 2 pi on (-2 pi, 0) (fmod gives v, to which 2 pi is added). A scan's
-    azimuths relative to a board's centre fall in one of these: the remainder took most of
-    `window_firings`' time where half the scan lay past 2 pi."""
+    remainder; a zero's sign aside, which the callers' - pi that follows removes), without
+    the slow floating-point remainder where the result is known: v itself on [0, 2 pi);
+    v - 2 pi on [2 pi, 4 pi) (fmod's exact remainder, the difference exact by Sterbenz's
+    lemma); v + 2 pi on (-2 pi, 0) (fmod gives v, to which 2 pi is added). A scan's azimuths
+    relative to a board's centre fall in one of these, so the remainder is rarely taken."""
     if 0.0 <= v < two_pi:
         return v
     if two_pi <= v < two_pi + two_pi:
@@ -642,7 +638,7 @@ def window_firings(azimuth: np.ndarray, laser_id: np.ndarray, ring_of_laser: np.
                    centre: float, lo: float, hi: float, ring_lo: int, ring_hi: int
                    ) -> tuple[np.ndarray, np.ndarray]:
     """The firings of rings ``ring_lo`` .. ``ring_hi`` whose azimuth relative to ``centre``
-    (wrapped into [-pi, pi) as `align.rays._unwrap` wraps it, element by element) lies in
+    (wrapped into [-pi, pi) as `align.geometry.unwrap` wraps it, element by element) lies in
     [``lo``, ``hi``] (rad): their indices and relative azimuths, in one pass over the scan."""
     n = azimuth.shape[0]
     idx = np.empty(n, dtype=np.int64)
@@ -666,10 +662,9 @@ def range_rays(x: np.ndarray, z: np.ndarray, lam: np.ndarray, origin: np.ndarray
                direction: np.ndarray, distance: np.ndarray, hit: np.ndarray, offset: float,
                w_in: float, h_in: float, limit: float
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """`align.rays._Model.assign`: the hits (``hit``) with |x| < ``w_in`` and |z| < ``h_in``
+    """`align.fit.model.Model.assign`: the hits (``hit``) with |x| < ``w_in`` and |z| < ``h_in``
     whose range residual distance - offset - lam is below ``limit`` (m) in size; the mask and
-    their origins, directions and ranges, contiguous. One pass (the numpy version's masks and
-    three gathers cost 4x)."""
+    their origins, directions and ranges, contiguous, in one pass."""
     n = x.shape[0]
     use = np.zeros(n, dtype=np.bool_)
     count = 0

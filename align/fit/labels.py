@@ -40,7 +40,7 @@ def labels_ordered(rays: Rays, lam: np.ndarray, sigma_r: float, *, p: RaysParams
     """`_labels`, and the rays' order by scan, laser and azimuth it sorted them in."""
     # a hit within the hit band of the plane; in front: something before the board; just
     # behind (beyond the noise, within the label tolerance): the board's noise or a thing
-    # close behind it (a stand's clamp): unknown. Compiled (`align.fit_kernels.range_labels`)
+    # close behind it (a stand's clamp): unknown. Compiled (`range_labels`)
     lab, res = range_labels(rays.distance, lam, hit_band(sigma_r, p=p), p.label_tolerance, HIT,
                             UNKNOWN)
     ret = rays.distance > 0
@@ -71,7 +71,7 @@ def _behind_ends(rays: Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
     # groups too few to test from each end are tested whole: a laser that meets only a
     # stand's post or a holder below or above the board (a few returns 4 cm behind, each
     # within the noise); left as hits, they pull a grazed edge onto the post. The others from
-    # each end. Compiled (`align.fit_kernels.behind_groups`).
+    # each end. Compiled (`behind_groups`).
     return behind_groups(order, rays.scan, rays.laser, np.asarray(res, dtype=np.float64),
                          p.behind_run, p.behind_reach, p.behind_min, p.behind_sigmas * sigma_r)
 
@@ -102,7 +102,7 @@ def grazing_runs(rays: Rays, lab: np.ndarray, coords: tuple[np.ndarray, ...],
     # last positions in ``order``, whose ends are seen (not at the end of what was looked
     # at), each beside a miss or a return behind the plane (the same thing behind, further
     # back; not a return in front, which may hide the board going on, nor a dropout):
-    # compiled (`align.fit_kernels.hit_runs`; two dozen masks and diffs in numpy)
+    # in one pass over ``order`` (`hit_runs`)
     starts, ends = hit_runs(order, lab, rays.laser, rays.scan, rays.azimuth, rays.distance,
                             expected, p.max_gap, HIT, MISS, UNKNOWN)
     out = np.zeros(len(lab), dtype=bool)
@@ -139,8 +139,8 @@ def bright_ends(rays: Rays, lab: np.ndarray, intensity: np.ndarray, inner: np.nd
     end inwards while they are: a mask over the rays. ``order``: the rays by scan, laser and
     azimuth. A patterned board's bright squares are among its inner hits, so they pass."""
     out = np.zeros(len(lab), dtype=bool)
-    # the threshold and whether any hit passes it, compiled (`align.fit_kernels.
-    # bright_limit`: np.partition's 99th percentile); the ends only where one does
+    # the threshold and whether any hit passes it, compiled (`bright_limit`: np.partition's
+    # 99th percentile); the ends only where one does
     limit, any_odd = bright_limit(lab, intensity, inner, HIT, p.bright_ratio, p.bright_reference,
                                   0.99)
     if not any_odd:

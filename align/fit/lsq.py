@@ -35,8 +35,8 @@ def _gauss_newton(model: Model, theta: np.ndarray, max_iter: int = 30
     fit_b = model.offset_prior is not None
     b0, sb = model.offset_prior if fit_b else (0.0, 1.0)
     o_r, u_r, d_r, offset, sigma_r, *edges = model._fit_arrays()
-    # the whole loop compiled (`align.fit_kernels.lm_fit`): a dozen numpy calls per step cost
-    # twice the arithmetic
+    # the whole loop compiled (`lm_fit`): a step is a dozen small array operations, whose
+    # per-call overhead would outweigh their arithmetic
     p, j, converged, it = lm_fit(np.asarray(theta, dtype=np.float64), fit_b, offset,
                                  float(b0), float(sb), o_r, u_r, d_r, sigma_r, *edges,
                                  JACOBIAN_STEP, max_iter)
@@ -203,6 +203,6 @@ def _contradicted(model: Model, theta: np.ndarray, margin: float = 0.01) -> int:
     """How many hits lie outside the rectangle at ``theta`` and misses inside it, by more than
     ``margin`` (m)."""
     x, z, _ = model.coords(theta)
-    # compiled (`align.fit_kernels.contradicted`): four masks over the rays in numpy
+    # one compiled pass over the rays (`contradicted`)
     return int(contradicted(x, z, model.lab, HIT, MISS, model.board.width / 2,
                             model.board.height / 2, margin))

@@ -15,11 +15,10 @@ def _fit_residuals(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.
                    uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
                    sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
                    out: np.ndarray) -> None:
-    """`align.rays._Model.residuals` into ``out``: the whitened range residuals of the
+    """`align.fit.model.Model.residuals` into ``out``: the whitened range residuals of the
     interior hits (rays o_r + lam u_r, measured ranges d_r, m), then the used brackets' (hit
     rays oh, uh and miss rays om, um; the edge's side ``sgn``, sigma ``sd`` (m), whether it is
-    a side edge ``vert``). ``rot``: R of ``theta``. The same expressions as the numpy version,
-    ray by ray (no temporaries)."""
+    a side edge ``vert``). ``rot``: R of ``theta``. Ray by ray, without temporaries."""
     r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
     t0, t1, t2 = theta[0], theta[1], theta[2]
     nr = o_r.shape[0]
@@ -129,9 +128,8 @@ def _residuals_into(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np
                     uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
                     sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
                     out: np.ndarray) -> None:
-    """`align.kernels._fit_residuals` (`align.rays._Model.residuals` into ``out``), the same
-    expressions. A copy on purpose, as `rotation` is: numba's cache checks only a kernel's own
-    file, and `lm_fit` calls it (tests/test_fit_kernels.py holds the two equal bit for bit)."""
+    """`_fit_residuals` (`align.fit.model.Model.residuals` into ``out``), the same expressions,
+    for `jacobian_into` and `_lm_residuals` (tests/test_fit_kernels.py holds the two equal)."""
     r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
     t0, t1, t2 = theta[0], theta[1], theta[2]
     nr = o_r.shape[0]
@@ -170,7 +168,7 @@ def jacobian_into(theta: np.ndarray, f0: np.ndarray, o_r: np.ndarray, u_r: np.nd
                    uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
                    sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
                    step: float, j: np.ndarray, f: np.ndarray) -> None:
-    """`align.rays._Model.jacobian`: d residuals / d theta at ``theta`` (residuals ``f0``) into
+    """`align.fit.model.Model.jacobian`: d residuals / d theta at ``theta`` (residuals ``f0``) into
     the first six columns of ``j``, the translations analytically, the rotations by forward
     differences of ``step`` (rad); ``f``: scratch of the residuals' length."""
     rots = jacobian_rotations(theta, step)
@@ -212,7 +210,7 @@ def _lm_residuals(p: np.ndarray, fit_b: bool, offset: float, b0: float, sb: floa
                   oh: np.ndarray, uh: np.ndarray, om: np.ndarray, um: np.ndarray,
                   sgn: np.ndarray, sd: np.ndarray, vert: np.ndarray, w2: float, h2: float,
                   thick: float) -> np.ndarray:
-    """`align.rays._gauss_newton`'s residuals at ``p``: the model's, and with the offset fitted
+    """`align.fit.lsq._gauss_newton`'s residuals at ``p``: the model's, and with the offset fitted
     (``fit_b``: p[6] the offset) its prior's (p[6] - b0) / sb last; else at ``offset``."""
     n = o_r.shape[0] + oh.shape[0]
     f = np.empty(n + 1 if fit_b else n)
@@ -231,7 +229,7 @@ def _lm_jacobian(p: np.ndarray, f: np.ndarray, fit_b: bool, offset: float, sb: f
                  oh: np.ndarray, uh: np.ndarray, om: np.ndarray, um: np.ndarray,
                  sgn: np.ndarray, sd: np.ndarray, vert: np.ndarray, w2: float, h2: float,
                  thick: float, step: float) -> np.ndarray:
-    """`align.rays._gauss_newton`'s Jacobian at ``p`` (residuals ``f``): six columns, and with
+    """`align.fit.lsq._gauss_newton`'s Jacobian at ``p`` (residuals ``f``): six columns, and with
     the offset fitted a seventh (-1 / sigma_r for the ranges, 1 / sb for its prior)."""
     n = o_r.shape[0] + oh.shape[0]
     n_p = 7 if fit_b else 6
@@ -268,9 +266,9 @@ def _normal_equations(j: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 @kernel
 def _normal_equations_6(j: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`_normal_equations` of six columns with its 27 sums in registers (in the array, each
-    sum waited on a load and a store per row: 2x slower): the same products added in the
-    same order, so the same floats."""
+    """`_normal_equations` of six columns with its 27 sums in registers (summed in the array,
+    each waits on a load and a store per row): the same products added in the same order, so
+    the same floats."""
     a00 = a10 = a11 = a20 = a21 = a22 = a30 = a31 = a32 = a33 = 0.0
     a40 = a41 = a42 = a43 = a44 = a50 = a51 = a52 = a53 = a54 = a55 = 0.0
     g0 = g1 = g2 = g3 = g4 = g5 = 0.0
@@ -329,12 +327,11 @@ def lm_fit(theta: np.ndarray, fit_b: bool, offset: float, b0: float, sb: float,
            uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray, sd: np.ndarray,
            vert: np.ndarray, w2: float, h2: float, thick: float, step: float, max_iter: int
            ) -> tuple[np.ndarray, np.ndarray, bool, int]:
-    """`align.rays._gauss_newton`'s Levenberg-Marquardt loop, whole: returns (p, J, converged,
-    iterations), p the six pose parameters and with ``fit_b`` the offset seventh (its prior
-    (b0, sb)); else the offset is held at ``offset``. The arrays are `Model._fit_arrays`'.
-    The same steps as the python loop; the normal equations summed here rather than by BLAS,
-    so the numbers agree to rounding (1e-12), not bit for bit. One call instead of a dozen
-    numpy calls per step: the python overhead was two thirds of the loop's time."""
+    """`align.fit.lsq._gauss_newton`'s Levenberg-Marquardt loop, whole: returns (p, J,
+    converged, iterations), p the six pose parameters and with ``fit_b`` the offset seventh
+    (its prior (b0, sb)); else the offset is held at ``offset``. The arrays are
+    `Model._fit_arrays`'. The normal equations are summed here rather than by BLAS, so they
+    agree with J^T J to rounding (1e-12), not exactly."""
     n_p = 7 if fit_b else 6
     p = np.empty(n_p)
     p[:6] = theta

@@ -71,8 +71,8 @@ class Model:
         t_x) + lam u.r0 and Z alike, lam depending on t_y and the rotation alone."""
         rkey = theta[[1, 3, 4, 5]].tobytes()
         if self._products is None or self._products[0] != rkey:
-            # compiled (`align.fit_kernels.ray_products`: the same floats as the matrix-vector
-            # products and the elementwise steps)
+            # `ray_products`: the floats of `board_coordinates`' matrix-vector products and
+            # elementwise steps, so a shifted pose's coordinates equal a fresh computation's
             self._products = (rkey, ray_products(self.rays.origin, self.rays.direction,
                                                  rotation(theta[3], theta[4], theta[5]),
                                                  float(theta[1])))
@@ -90,7 +90,7 @@ class Model:
         w2, h2 = self.board.width / 2, self.board.height / 2
         x, z, lam = self.coords(theta)
         r = self.rays
-        # the fit only ever looks at these rays: kept contiguous (`align.fit_kernels.range_rays`)
+        # the fit only ever looks at these rays: kept contiguous (`range_rays`)
         self.use_range, *rng = range_rays(x, z, lam, r.origin, r.direction, r.distance,
                                           self.lab == 1, float(self.offset),
                                           w2 - self.p.edge_margin,
@@ -134,7 +134,7 @@ class Model:
         with np.errstate(divide="ignore", invalid="ignore"):
             z_at = np.abs(zh + (np.sign(dx) * w2 - xh) * dz / dx)
         z_at = np.where(np.isfinite(z_at), z_at, np.inf)
-        # `align.fit_kernels.grazes_top_or_bottom`: a ring grazing the top or bottom edge
+        # `grazes_top_or_bottom`: a ring grazing the top or bottom edge
         off_side = np.abs(np.abs(0.5 * (xh + xm)) - w2)
         grazes = (off_side > SIDE_REACH) & (np.abs(np.abs(0.5 * (zh + zm)) - h2)
                                             < 0.5 * off_side)
@@ -161,8 +161,8 @@ class Model:
         The shift moves every board coordinate by the same amount and leaves the ranges alone,
         so the profile is cheap. The cost counts hits outside the rectangle and misses inside it
         (more than ``tol`` from its edge), then adds the brackets' squared residuals with their
-        edges reassigned for each shift: one compiled pass (`align.fit_kernels.profile_cost`;
-        the numpy version's (brackets x shifts) temporaries cost 10x).
+        edges reassigned for each shift: one compiled pass (`profile_cost`), without a
+        (brackets x shifts) temporary.
         """
         x, z, _ = self.coords(theta)
         vx, vz = lidar_up(theta)
@@ -173,7 +173,7 @@ class Model:
 
     def shift(self, theta: np.ndarray, ds: np.ndarray) -> np.ndarray:
         """``theta`` moved to the cheapest shift of `profile` over ``ds`` (its first minimum,
-        `align.fit_kernels.profile_best`: the brackets costed only where they can decide)."""
+        `profile_best`: the brackets costed only where they can decide)."""
         x, z, _ = self.coords(theta)
         vx, vz = lidar_up(theta)
         s = float(ds[profile_best(x, z, self._hits, self._misses, self.bh, self.bm,
@@ -186,7 +186,7 @@ class Model:
         return out
 
     def _fit_arrays(self) -> tuple:
-        """The arrays and constants `align.kernels.fit_residuals` reads, in its order after
+        """The arrays and constants `fit_residuals` reads, in its order after
         (theta, rot)."""
         return (*self._range, float(self.offset), float(self.sigma_r), *self._ubh, *self._ubm,
                 self._usign, self._usd, self._uvert, self.board.width / 2,
@@ -199,7 +199,7 @@ class Model:
         points on the board, over its sigma; the plate's side face puts the edge further out
         for a ray heading inwards that passes the front edge by less than thickness x (its
         lateral over forward direction): it still hits the board. One compiled pass over the
-        rays (`align.kernels.fit_residuals`; the numpy version's two dozen calls cost 10x)."""
+        rays (`fit_residuals`)."""
 
         theta = np.asarray(theta, dtype=np.float64)
         rot = rotation(theta[3], theta[4], theta[5])
@@ -210,7 +210,7 @@ class Model:
 
         X = o.r0 + t_x + lam u.r0, Z = o.r2 + t_z + lam u.r2, lam = -(o.r1 + t_y) / u.r1 (r_k
         the rows of R): t_x and t_z move X and Z one for one; t_y moves lam by -1 / u.r1.
-        The fit's own (`align.fit_kernels._jacobian_into`, which `lm_fit` calls in its loop).
+        The fit's own (`jacobian_into`, which `lm_fit` calls in its loop).
         """
 
         f0 = np.asarray(f0, dtype=np.float64)

@@ -46,8 +46,7 @@ def candidates_at(scans: list[Scan], segs: list[Segmentation], theta: np.ndarray
     spacing = _ring_spacing(theta, float(np.max(np.diff(np.sort(scans[0].lasers.elevation)))))
     win = max(p.window, p.window_rings * spacing)
     # `board_coordinates` of the pool and the rays within the window, in one compiled pass
-    # (the same floats): numpy's products, masks and gathers over the pool's few thousand
-    # rays, for the thousand kept, cost four times as much
+    # (the same floats): no products, masks or gathers over the whole pool for the rays kept
     keep, x, z, lam = window_rays(cat[0], cat[1], rotation(theta[3], theta[4], theta[5]),
                                   float(theta[0]), float(theta[1]), float(theta[2]),
                                   board.width / 2 + win, board.height / 2 + win)
@@ -85,9 +84,8 @@ def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpe
         lasers = s.lasers
         rings = lasers.ring_of_laser[s.laser_id[g.board]]
         # the board's rings and one more on each side, within the window, and their rays: one
-        # compiled pass over the scan (`align.fit_kernels.window_pool`, the floats of
-        # `Scan.origins`, `Scan.directions`; the numpy version's masks over every firing cost
-        # 0.3 ms a scan, its gathers and directions 0.1 ms)
+        # compiled pass over the scan (`window_pool`, the floats of `Scan.origins`,
+        # `Scan.directions`), without masks over every firing
         offset_z = (np.array(lasers.vertical_offset, dtype=np.float64)  # writable, as zeros:
                     if s.vertical_offsets_applied else np.zeros(lasers.n_lasers))  # one type
         idx, *rays_in = window_pool(s.azimuth, s.laser_id, s.distance, lasers.ring_of_laser,

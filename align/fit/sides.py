@@ -19,8 +19,7 @@ def side_widening(u: np.ndarray, theta: np.ndarray, board: BoardSpec) -> np.ndar
     """(M, 4) how far past the left, right, bottom and top edge (m) the rays with directions
     ``u`` still hit the plate at ``theta``: its side faces, seen by rays heading inwards past
     an edge (as `Model.residuals`)."""
-    # compiled (`align.fit_kernels.side_faces`: the same floats as u @ rot.T, the ratios,
-    # np.maximum and the product)
+    # compiled (`side_faces`: the floats of u @ rot.T, the ratios, np.maximum and the product)
     return side_faces(np.ascontiguousarray(u, dtype=np.float64),
                       rotation(theta[3], theta[4], theta[5]), float(board.thickness))
 
@@ -88,9 +87,8 @@ class Sides:
     right end's (m), each hit as far in as its side-face allowance lets it lie (``x_l``,
     ``x_r``: every ray's); ``hit``: the hits taken; ``tol``: how far off the lines a board's
     own end may lie (m: within a step inside its edge, within half a step of the lines
-    through them all, and `p.overhang_slack`); ``lines``: (a_l, a_r,
-                                                                    b), the side edges as x =
-    a + b z (`_side_lines`), or None when too few lasers reach them."""
+    through them all, and `p.overhang_slack`); ``lines``: (a_l, a_r, b), the side edges as
+    x = a + b z (`_side_lines`), or None when too few lasers reach them."""
 
     ids: np.ndarray
     ends: np.ndarray
@@ -108,8 +106,7 @@ class Sides:
         w2, h2, margin = board.width / 2, board.height / 2, p.outlier_margin
         # the hits, per laser its leftmost hit (the first of equal ones, as argmin) and its
         # rightmost, and the azimuth step on the board (the median spacing of a laser's
-        # consecutive hits): compiled (`align.fit_kernels.laser_ends`; two lexsorts and a
-        # dozen masks and diffs in numpy)
+        # consecutive hits), in one pass and a sort per laser (`laser_ends`)
         hit, x_l, x_r, il, _, ends, step = laser_ends(x, z, lab, laser, ext, HIT, w2 + margin,
                                                       h2 + margin)
         if len(il) < 3:
@@ -138,8 +135,8 @@ def _side_lines(ends: np.ndarray, w2: float, tol: float, inward: float, *, p: Ra
     board's own ends count as beyond them, which costs their last hit; a holder's end kept
     pulls them out, which hides it."""
     # the ends near each side (left ones first), x = line + residual, and the design of
-    # (a_l, a_r, b): compiled (`align.fit_kernels.side_ends`), as the worst end each round
-    # (`line_excess`); the normal equations and their solution numpy's, as they were
+    # (a_l, a_r, b): compiled (`side_ends`), as the worst end each round (`line_excess`);
+    # the normal equations (3 x 3) solved by numpy
     xs, out_sign, a, n_r = side_ends(ends, w2, p.edge_reach)
     keep = np.ones(len(xs), dtype=bool)
     n_kept = len(xs)

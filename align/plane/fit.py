@@ -21,7 +21,7 @@ def _orient(n: np.ndarray, d: float) -> tuple[np.ndarray, float]:
 def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors orthogonal to the unit normal n and to each other: the axes of the small
     rotations alpha, beta of `fit_rays`' covariance (n x e_z, then n x e_x if n is vertical)."""
-    e1 = np.array([n[1], -n[0], 0.0])  # n x e_z (np.cross costs ~30 us)
+    e1 = np.array([n[1], -n[0], 0.0])  # n x e_z, written out (np.cross's checks cost more)
     if np.linalg.norm(e1) < 1e-6:
         e1 = np.array([0.0, n[2], -n[1]])  # n x e_x
     e1 /= np.linalg.norm(e1)
@@ -31,9 +31,9 @@ def tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def fit_lsq(points: np.ndarray) -> tuple[np.ndarray, float]:
     """Orthogonal (total) least-squares plane through ``points`` (N, 3), m.
 
-    Compiled (`align.kernels.lsq_plane`: the scatter matrix's eigenvector, a tenth of the
-    SVD's time) for three or more finite points; numpy's SVD otherwise, which says what is
-    wrong with them."""
+    Compiled (`lsq_plane`: the scatter matrix's eigenvector, the SVD's normal to a few
+    1e-16) for three or more finite points; numpy's SVD otherwise, which says what is wrong
+    with them."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim == 2 and pts.shape[0] >= 3 and pts.shape[1] == 3 and np.isfinite(pts).all():
         n, d = lsq_plane(np.ascontiguousarray(pts))
@@ -66,7 +66,7 @@ def ransac(
     Zisserman 2000): a count cannot tell a board's plane from one tilted by degrees that still
     holds its returns within the threshold and takes in a stand's behind it besides (a band of
     4 cm about a 0.54 m board holds it at 8 deg of tilt); the squared distances can. The
-    hypotheses are scored in one compiled loop (`align.plane.kernels`), the distances as
+    hypotheses are scored in one compiled loop (`ransac_best`, `msac_best`), the distances as
     numpy's BLAS computes them.
     """
     n_pts = len(points)
@@ -132,8 +132,8 @@ def fit_rays(
     n + alpha e1 + beta e2 of n (e1, e2 = `tangent_basis` (n)) and for d, scaled by the residual
     variance sigma^2 (m^2) estimated from the fit, at least ``sigma_floor``^2.
     """
-    # the Gauss-Newton loop compiled (`align.fit_kernels.ray_plane_fit`): at a few hundred
-    # rays, numpy's per-call overhead was most of its time
+    # the Gauss-Newton loop compiled (`ray_plane_fit`): at a few hundred rays an iteration's
+    # arithmetic is small beside the per-call overhead of its array operations
     n, d, cov, sigma = ray_plane_fit(
         np.ascontiguousarray(ranges, dtype=np.float64),
         np.ascontiguousarray(origins, dtype=np.float64),

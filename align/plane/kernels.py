@@ -16,7 +16,7 @@ from align.jit import kernel
 @njit(inline="always")
 def _triple_plane(px: np.ndarray, py: np.ndarray, pz: np.ndarray, i0: int, i1: int, i2: int
                   ) -> tuple[bool, float, float, float, float]:
-    """The plane through points ``i0``, ``i1``, ``i2`` as `align.plane.ransac` forms it, term
+    """The plane through points ``i0``, ``i1``, ``i2`` as `align.plane.fit.ransac` forms it, term
     by term (np.cross, einsum's (x0 y0 + x2 y2) + x1 y1 for the norm and the offset): (not
     degenerate, the unit normal's three components, the offset d). Degenerate: a normal of
     length 1e-9 or less (the rest is then meaningless)."""
@@ -43,7 +43,7 @@ def ransac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
     most of them (the first of equal counts) among the planes through the point triples
     ``tri`` (H, 3) of the points ``xyz`` (3, N: rows x, y, z, so that the loop over the
     points runs on contiguous rows, four at a time); degenerate triples are skipped.
-    `align.plane.ransac`'s scoring, term by term in its order: np.cross, einsum's (x0 y0 + x2
+    `align.plane.fit.ransac`'s scoring, term by term in its order: np.cross, einsum's (x0 y0 + x2
     y2) + x1 y1 for the norms and offsets, the distance matrix's fused sums (`fma`). Index -1
     when every triple is degenerate."""
     px, py, pz = xyz[0], xyz[1], xyz[2]
@@ -76,15 +76,15 @@ SUM_ROUNDING = 1.2e-16
 @kernel
 def msac_best(xyz: np.ndarray, tri: np.ndarray, threshold: float
               ) -> tuple[int, bool, np.ndarray]:
-    """`align.plane.ransac`'s truncated choice (MSAC): the index of the hypothesis (a plane
+    """`align.plane.fit.ransac`'s truncated choice (MSAC): the index of the hypothesis (a plane
     through a point triple of ``tri`` (H, 3); degenerate ones skipped, as `ransac_best`)
     with the least sum of squared distances capped at ``threshold`` (m) over the points
     ``xyz`` (3, N), whether that choice is certain, and its inliers (distance under the
-    threshold). The distances are numpy's floats (`ransac_best`'s), but their sum runs in
-    loop order where numpy's einsum sums in its own: the choice is certain when every other
-    hypothesis' sum exceeds the least by more than either order's rounding can move them
-    (`SUM_ROUNDING`), so that numpy's np.argmin picks it too; the caller decides the rest
-    as numpy does. Index -1 when every triple is degenerate."""
+    threshold). The distances are `ransac_best`'s, but their sum runs in loop order where
+    np.einsum sums in its own: the choice is certain when every other hypothesis' sum
+    exceeds the least by more than either order's rounding can move them (`SUM_ROUNDING`),
+    so that np.argmin over einsum's sums picks it too; the caller decides the rest with
+    those sums (`align.plane.fit._msac_scored`). Index -1 when every triple is degenerate."""
     px, py, pz = xyz[0], xyz[1], xyz[2]
     n_pts, n_h = px.shape[0], tri.shape[0]
     sums = np.full(n_h, np.inf)
@@ -150,12 +150,12 @@ def plane_band(xyz: np.ndarray, n: np.ndarray, d: float, threshold: float) -> np
 def lsq_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
     """The orthogonal least-squares plane (unit normal, distance; m) of ``points`` (N, 3):
     the eigenvector of the centred points' 3 x 3 scatter matrix with the smallest eigenvalue,
-    oriented so that the distance is >= 0. `align.plane.fit_lsq`'s SVD of the (N, 3) centred
-    points gives the same vector (its right singular vectors are the scatter's eigenvectors)
-    to a few 1e-16: a board's scatter is well conditioned (its smallest eigenvalue is the
-    noise's, its gap to the others the board's extent squared), and the mean is taken first so
-    that nothing is lost to the offset. 4-8 us for 50-1000 points, against 40-100 us for
-    numpy's SVD, which the segmentation and the paper's method call five to seven times a
+    oriented so that the distance is >= 0. The SVD of the (N, 3) centred points
+    (`align.plane.fit._fit_lsq_svd`) gives the same vector (its right singular vectors are the
+    scatter's eigenvectors) to a few 1e-16: a board's scatter is well conditioned (its
+    smallest eigenvalue is the noise's, its gap to the others the board's extent squared), and
+    the mean is taken first so that nothing is lost to the offset. A 3 x 3 eigenproblem
+    rather than an (N, 3) SVD: the segmentation and the paper's method fit several planes a
     scan."""
     n = points.shape[0]
     cx = 0.0
@@ -191,7 +191,7 @@ def lsq_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
     return normal, d
 @kernel
 def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`align.plane.tangent_basis`: e1 = n x e_z (n x e_x for a vertical n), e2 = n x e1."""
+    """`align.plane.fit.tangent_basis`: e1 = n x e_z (n x e_x for a vertical n), e2 = n x e1."""
     e1 = np.array([n[1], -n[0], 0.0])
     if np.linalg.norm(e1) < 1e-6:
         e1 = np.array([0.0, n[2], -n[1]])
@@ -211,11 +211,11 @@ def _dot3(a: np.ndarray, i: int, v: np.ndarray) -> float:
 def ray_plane_fit(ranges: np.ndarray, origins: np.ndarray, dirs: np.ndarray, n0: np.ndarray,
                   d0: float, iterations: int, tol: float, sigma_floor: float
                   ) -> tuple[np.ndarray, float, np.ndarray, float]:
-    """`align.plane.fit_rays`, whole: Gauss-Newton on the range residuals along the rays, the
-    steps by least squares (LAPACK's gelsd with numpy's default rcond, as np.linalg.lstsq),
-    the covariance from the last iterate's Jacobian, the plane flipped to d >= 0. The products
-    with n, e1, e2 summed per ray rather than by BLAS: equal to rounding. One call instead of
-    two dozen numpy calls per iteration (their overhead was most of the fit's time)."""
+    """`align.plane.fit.fit_rays`, whole: Gauss-Newton on the range residuals along the rays,
+    the steps by least squares (LAPACK's gelsd with numpy's default rcond, as
+    np.linalg.lstsq), the covariance from the last iterate's Jacobian, the plane flipped to
+    d >= 0. The products with n, e1, e2 summed per ray rather than by BLAS: equal to
+    rounding."""
     m = ranges.shape[0]
     n = n0 / np.linalg.norm(n0)
     d = d0

@@ -1,12 +1,12 @@
 """The pose as the posterior mean given the ranges' plane and every hit/miss label.
 
-For a plane, the posterior of roll, x and z given the labels is exact (`align.feasible`: uniform
-on the poses consistent with every label). The plane itself is uncertain (the ranges' fit,
-`align.plane.fit_rays`: n, d and the covariance C_g of g = (alpha, beta, d)), so it is integrated
-out: each plane's in-plane posterior is weighted by the labels' evidence for it (the consistent
-set's volume) and by the ranges' density. The labels thereby sharpen the plane a little (a board
-of known width seen at the right distance), and they can rule a plane out: a distance a few mm
-off puts a hit at one side edge and a miss at the other closer together than the board is wide.
+For a plane, the posterior of roll, x and z given the labels is exact (`align.posterior.moments`:
+uniform on the poses consistent with every label). The plane itself is uncertain (the ranges' fit,
+`align.plane.fit.fit_rays`: n, d and the covariance C_g of g = (alpha, beta, d)), so it is
+integrated out: each plane's in-plane posterior is weighted by the labels' evidence for it (the
+consistent set's volume) and by the ranges' density. The labels thereby sharpen the plane a little
+(a board of known width seen at the right distance), and they can rule a plane out: a distance a few
+mm off puts a hit at one side edge and a miss at the other closer together than the board is wide.
 
 The integral over g is a 3 x 3 x 3 Gauss-Hermite rule on the ranges' Gaussian: its error for the
 smooth way the pose moves with the plane is far below that of random draws (two dozen importance
@@ -76,17 +76,16 @@ SINGLE_SCAN_STEP = np.deg2rad(0.02)
 
 @dataclass
 class OffsetModel:
-    """A common range offset b as a nuisance of the plane: the ranges' joint Gaussian of
-    g = (alpha, beta, d) (about the ML plane, `plane.fit_rays_offsets`) and b, given as b's
-    estimate from the ranges ``b_hat``, its covariance with g ``c_gb`` (3,) and variance
-    ``c_bb``; ``centre``, ``centre_std``: b and its sigma from a fit that saw the board's size
-    (the least squares), where to look; ``slope``: that fit's d pose / d b (its covariance's
-    regression, (6,)), the direction in which the labels trade the offset against the plane's
-    other directions (None: not known); ``c_noise``: with per-laser offsets as random effects,
-    the ranges' covariance of g given b from their noise alone (the per-laser offsets left
-    out), which says in what direction those offsets widen the plane (None: none modelled).
-    `label_posterior` fills in ``mean`` and ``std``: b's posterior given the ranges and the
-    labels."""
+    """A common range offset b as a nuisance of the plane: the ranges' joint Gaussian of g = (alpha,
+    beta, d) (about the ML plane, `align.plane.fit.fit_rays_offsets`) and b, given as b's estimate
+    from the ranges ``b_hat``, its covariance with g ``c_gb`` (3,) and variance ``c_bb``;
+    ``centre``, ``centre_std``: b and its sigma from a fit that saw the board's size (the least
+    squares), where to look; ``slope``: that fit's d pose / d b (its covariance's regression, (6,)),
+    the direction in which the labels trade the offset against the plane's other directions (None:
+    not known); ``c_noise``: with per-laser offsets as random effects, the ranges' covariance of g
+    given b from their noise alone (the per-laser offsets left out), which says in what direction
+    those offsets widen the plane (None: none modelled). `label_posterior` fills in ``mean`` and
+    ``std``: b's posterior given the ranges and the labels."""
 
     b_hat: float
     c_gb: np.ndarray
@@ -119,7 +118,7 @@ class LabelledRays:
     """The rays that carry edge information: origins and unit directions (M, 3) in {L}, labels
     (1 hit, 0 miss) and the plate's side face's widening of the left, right, bottom and top edge
     for each ray (M, 4), m. ``odds`` (M,): for a hit, how much likelier its return is off the
-    board than on it (`align.moments.soft_moments`; None or 0: a hard constraint)."""
+    board than on it (`moments.soft_moments`; None or 0: a hard constraint)."""
 
     origin: np.ndarray
     direction: np.ndarray
@@ -138,8 +137,8 @@ class LabelledRays:
         origin as the board's corners (plus 0.2 m) moves that far x the roll change."""
         vx, vz = lidar_up(ref)
         arm = (0.5 * board.diagonal + 0.2) * reach
-        # `binding` of the rays' board coordinates, compiled (`align.fit_kernels.
-        # binding_rays`: the same floats and tests), its hits and misses apart: the subset's
+        # `binding` of the rays' board coordinates, compiled (`binding_rays`: the same floats
+        # and tests), its hits and misses apart: the subset's
         # split for the posterior's kernel taken from them, not from masks over it
         hits, misses = binding_rays(self.origin, self.direction, self.label,
                                     rotation(ref[3], ref[4], ref[5]), float(ref[0]),
@@ -157,7 +156,7 @@ class LabelledRays:
     @functools.cached_property
     def _split(self) -> tuple[np.ndarray, ...]:
         """The hits' origins, directions and widenings, then the misses': contiguous float64,
-        `align.moments.plane_posteriors`' arguments (split once, not per plane)."""
+        `moments.plane_posteriors`' arguments (split once, not per plane)."""
         hit, miss = self.label == 1, self.label == 0
         return tuple(np.ascontiguousarray(a[mask], dtype=np.float64) for mask in (hit, miss)
                      for a in (self.origin, self.direction, self.ext))
@@ -175,8 +174,8 @@ class LabelledRays:
         """`in_plane` for each plane normals[i] . p = ds[i] ((P, 3), (P,)) in one compiled call,
         each with the pose (6,) of its posterior's mean (`_pose`); None where no roll on the
         grid is consistent with the labels. Each label's likelihood is
-        `align.moments.label_moments`' (1 on the positions its box allows, else 0; a soft
-        hit's ``odds`` off it, `align.moments.soft_moments`)."""
+        `align.posterior.moments.label_moments`' (1 on the positions its box allows, else 0;
+        a soft hit's ``odds`` off it, `moments.soft_moments`)."""
         weight = roll_weight(board, rolls, roll_prior)
         rows = moments.plane_posteriors(
             *self._split, np.ascontiguousarray(normals, dtype=np.float64),
@@ -188,7 +187,7 @@ class LabelledRays:
     def in_plane(self, n: np.ndarray, d: float, board: BoardSpec, rolls: np.ndarray,
                  roll_prior: tuple[float, float] | None = None
                  ) -> moments.InPlanePosterior | None:
-        """`align.moments.in_plane_posterior` for the plane n . p = d, with the roll prior
+        """`moments.in_plane_posterior` for the plane n . p = d, with the roll prior
         (mean, 1-sigma, rad; compared modulo the board's symmetry) if given."""
         found = self.posteriors(np.asarray(n)[None, :], np.array([d]), board, rolls, roll_prior)[0]
         return None if found is None else found[0]
@@ -207,7 +206,7 @@ def roll_weight(board: BoardSpec, rolls: np.ndarray, roll_prior: tuple[float, fl
 
 
 def _unpack(row: np.ndarray) -> tuple[moments.InPlanePosterior, np.ndarray]:
-    """One row of `align.moments.plane_posteriors`: the posterior and its pose."""
+    """One row of `moments.plane_posteriors`: the posterior and its pose."""
     k, own = moments, row.copy()  # one copy; the posterior and the pose are views of it
     post = moments.InPlanePosterior(own[k.MEAN:k.MEAN + 3], own[k.COV:k.COV + 9].reshape(3, 3),
                                      float(own[k.EVIDENCE]),
@@ -746,7 +745,7 @@ def _moments(nodes: list[_Node], c_plane: np.ndarray, given: bool = False
     return mean, j_g @ c_post @ j_g.T + k @ within @ k.T
 
 
-#: np.triu_indices(3), once (18 us a call); read-only.
+#: np.triu_indices(3), computed once; read-only.
 _TRIU = np.triu_indices(3)
 for _a in _TRIU:
     _a.flags.writeable = False

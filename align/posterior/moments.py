@@ -21,8 +21,8 @@ its least-squares pose.
 
 A hit may also come from something a few cm behind the board beside an edge (a holder, a box),
 inside the range band that makes it a hit: one such return pins the set to hold it. A hit whose
-range residual makes that likely is a soft label (`soft_moments`): its likelihood off the board
-is its odds (`align.rays._clutter_odds`) rather than 0, and the posterior sums over which of
+range residual makes that likely is a soft label (`soft_moments`): its likelihood off the board is
+its odds (`align.posterior.rays._clutter_odds`) rather than 0, and the posterior sums over which of
 these hits are the board's.
 """
 
@@ -662,12 +662,11 @@ def _sort_pairs(key: np.ndarray, other: np.ndarray) -> None:
 
 
 # The in-plane posterior for many planes in one compiled call (`plane_posteriors`): a rule's 27
-# planes used to cost a dozen numpy calls each on arrays of a few hundred rays and ~100 rolls, two
-# thirds of the hit/miss posterior's 8.7 ms per scan in call overhead (docs/align.md, "Where the
-# time goes"). It lives beside `label_moments`, which it calls: numba's cache of a function is
-# invalidated only by edits of its own module, so a kernel elsewhere would keep a stale copy.
-# It matches `in_plane_posterior` (the numpy version, the reference) to rounding: its sums run
-# in loop order where numpy sums pairwise or in BLAS's order (tests/test_posterior_kernels.py).
+# planes, each on a few hundred rays and ~100 rolls, where per-plane array calls would cost more
+# in overhead than in arithmetic. It lives beside `label_moments`, which it calls (`align.jit`
+# says why a kernel calls only its own module's). It matches `in_plane_posterior` (one plane)
+# to rounding: its sums run in loop order where numpy sums pairwise or in BLAS's order
+# (tests/test_posterior_kernels.py).
 
 #: Columns of `plane_posteriors`' rows: consistent (1.0) or not (0.0), the mean (roll, t_x,
 #: t_z), the covariance (3 x 3, C order), the evidence, the support's first and last roll, and
@@ -716,7 +715,7 @@ def plane_posteriors(hit_o: np.ndarray, hit_u: np.ndarray, hit_ext: np.ndarray,
 #: A hit whose odds of coming from something off the board are below this is a hard
 #: constraint (`soft_moments`): each soft hit doubles the sum's cost, and the set without a
 #: hit this unlikely enters the sum at a tenth of its weight or less (2.8 range sigmas,
-#: `align.rays._clutter_odds`).
+#: `align.posterior.rays._clutter_odds`).
 MIN_ODDS = 0.1
 #: At most this many soft hits per plane, those with the largest odds (the others hard): a
 #: scan has at most one or two holders' returns in its hit band.
@@ -854,7 +853,7 @@ def _points(o: np.ndarray, u: np.ndarray, n: np.ndarray, d: float) -> np.ndarray
 @kernel
 def _summary(mom: np.ndarray, rolls: np.ndarray, row: np.ndarray) -> bool:
     """The posterior's moments from the per-roll area and moments ``mom`` (K, 6) into ``row``
-    (`align.feasible.in_plane_posterior`'s sums over the grid: uniform steps, the step
+    (`in_plane_posterior`'s sums over the grid: uniform steps, the step
     cancels). False, ``row`` left as it is: no roll consistent."""
     n_k = rolls.shape[0]
     total = 0.0
@@ -965,10 +964,10 @@ def _label_moments(n: np.ndarray, points: np.ndarray, labels: np.ndarray, ext: n
 def binding_rays(origin: np.ndarray, direction: np.ndarray, label: np.ndarray,
                  rot: np.ndarray, t_x: float, t_y: float, t_z: float, w2: float, h2: float,
                  mx: float, mz: float) -> tuple[np.ndarray, np.ndarray]:
-    """`align.label_posterior.binding` of the rays' board coordinates at the pose with
-    rotation ``rot`` and translation (t_x, t_y, t_z) (`align.geometry.board_coordinates`'
-    floats, as `window_rays` computes them), in one pass: the hits (label 1) not deeper than
-    (``mx``, ``mz``) inside the ``w2`` x ``h2`` half-rectangle and the misses (label 0) not
+    """`align.posterior.hit_miss.binding` of the rays' board coordinates at the pose with rotation
+    ``rot`` and translation (t_x, t_y, t_z) (`align.geometry.board_coordinates`' floats, as
+    `align.fit.label_kernels.window_rays` computes them), in one pass: the hits (label 1) not deeper
+    than (``mx``, ``mz``) inside the ``w2`` x ``h2`` half-rectangle and the misses (label 0) not
     farther outside, as two index arrays in the rays' order (m)."""
     m = origin.shape[0]
     hits, misses = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)

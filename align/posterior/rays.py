@@ -23,13 +23,13 @@ def ray_points(model: Model, theta: np.ndarray, tolerance: tuple[float, float],
                 intensity: np.ndarray | None = None,
                 partial: tuple[float, float] = (0.0, 0.0), *, p: RaysParams) -> tuple[LabelledRays,
                                                                                       np.ndarray]:
-    """The rays that carry edge information, for `align.label_posterior`. Misses well inside
-    and hits well outside the rectangle at ``theta`` are left out (dropouts, strays). A hit may
-    lie up to ``tolerance`` (rad seen from the LiDAR: across the side edges, across the top and
-    bottom edges) outside the rectangle and a miss as far inside it (`Hints.edge_tolerance`);
-    a hit whose ``intensity`` (per model ray) says only part of the beam met the board, up to
-    ``partial`` (`Hints.partial_edge_tolerance`, `_partial_hits`). Also returns the rays'
-    indices in the model's."""
+    """The rays that carry edge information, for `align.posterior.hit_miss.label_posterior`. Misses
+    well inside and hits well outside the rectangle at ``theta`` are left out (dropouts, strays). A
+    hit may lie up to ``tolerance`` (rad seen from the LiDAR: across the side edges, across the top
+    and bottom edges) outside the rectangle and a miss as far inside it (`Hints.edge_tolerance`); a
+    hit whose ``intensity`` (per model ray) says only part of the beam met the board, up to
+    ``partial`` (`Hints.partial_edge_tolerance`, `_partial_hits`). Also returns the rays' indices in
+    the model's."""
     rays, board = model.rays, model.board
     x, z, lam = model.coords(theta)  # board_coordinates' floats (the fit's pose: often kept)
     lab = model.lab
@@ -48,7 +48,7 @@ def ray_points(model: Model, theta: np.ndarray, tolerance: tuple[float, float],
                      np.hypot(np.float64(t_h) * vx, np.float64(t_v) * vz)])
            for t_h, t_v in (tolerance, t_part)]  # (across the sides, the top and bottom)
     # the labels kept (misses well inside and hits well outside left out) and the widened
-    # allowances, compiled (`align.fit_kernels.edge_labels`; a dozen numpy passes)
+    # allowances, in one compiled pass (`edge_labels`)
     w2, h2, margin = board.width / 2, board.height / 2, p.outlier_margin
     use = edge_labels(x, z, lam, lab, _NO_INTENSITY if intensity is None else intensity, ext,
                       HIT, MISS, w2, h2, margin, p.partial_intensity, per[0], per[1])
@@ -65,9 +65,8 @@ _NO_INTENSITY = np.empty(0, dtype=np.uint8)
 def _clutter_odds(res: np.ndarray, sigma_r: float, *, p: RaysParams) -> np.ndarray:
     """How much likelier a hit with range residual ``res`` (m) is from something off the board
     (uniform over the hit band, `p.clutter_chance`) than from the board (Gaussian,
-                                                                                  ``sigma_r``),
-    for `align.feasible.soft_moments`: 0.1 at 2.8 sigma, 0.4 at 3.3 sigma, 0.8 at the band's
-    3.5 sigma."""
+    ``sigma_r``), for `align.posterior.moments.soft_moments`: 0.1 at 2.8 sigma, 0.4 at 3.3
+    sigma, 0.8 at the band's 3.5 sigma."""
     near = hit_band(sigma_r, p=p)
     scale = p.clutter_chance * math.sqrt(2 * math.pi) * sigma_r / (2 * near)
     return scale * np.exp(np.minimum(0.5 * (res / sigma_r) ** 2, 50.0))
@@ -99,8 +98,8 @@ def violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.nda
 
 def pose_per_plane(theta: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
     """d pose / d g (6, 3) at ``theta``: how the pose moves with the plane's small rotations and
-    distance g = (alpha, beta, d) about (n, d) (`plane.fit_rays`' parametrisation), its roll and
-    in-plane position held."""
+    distance g = (alpha, beta, d) about (n, d) (`align.plane.fit.fit_rays`' parametrisation), its
+    roll and in-plane position held."""
     e1, e2 = tangent_basis(n)
     h = 1e-6
     base = pose_from_plane(n, d, theta[3])

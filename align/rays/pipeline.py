@@ -93,7 +93,7 @@ class Plane:
 
 def board_plane(scans: list[Scan], segs: list[Segmentation], board: BoardSpec, hints: Hints,
                 rng: np.random.Generator, *, p: RaysParams) -> Plane:
-    """Step 1: the ML plane along the rays of the board's returns (`align.plane.fit_rays`), from
+    """Step 1: the ML plane along the rays of the board's returns (`fit_rays`), from
     a RANSAC start; with the ranges' offsets as nuisance parameters where the hints say so."""
     rays, n, d = _board_rays(scans, segs, rng, p=p)
     o, u, r = rays.origin, rays.direction, rays.distance

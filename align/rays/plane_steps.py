@@ -63,7 +63,7 @@ def plane_moved(first: tuple[np.ndarray, float], inside: tuple[np.ndarray, float
                 p: RaysParams
                  ) -> bool:
     """Whether the cluster's plane ``first`` (n, d) lies more than `p.plane_moved_chi2` from the
-    plane ``inside`` (n, d and the covariance of `plane.fit_rays`' (alpha, beta, d))."""
+    plane ``inside`` (n, d and the covariance of `align.plane.fit.fit_rays`' (alpha, beta, d))."""
     n0, d0 = first
     n1, d1, c1 = inside
     e1, e2 = tangent_basis(n1)

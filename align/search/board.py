@@ -58,7 +58,7 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
                   ) -> tuple[float, float, float]:
     """How board-like a flat cluster (the firings ``sel`` of ``scan``) is, three fractions:
     held, of its returns that the board's rectangle holds at the best in-plane rotation
-    (`align.roll_search`, coarse pass: 1 for the board, less for a larger surface); fill, of
+    (`align.search.roll`, coarse pass: 1 for the board, less for a larger surface); fill, of
     the rays inside that rectangle that return from its plane rather than from behind it (1 for
     the board, less for a smaller object); free, of the returns just outside the rectangle
     (`SURROUND`) that are not on its plane (1 for a board that stands free, less for a piece of
@@ -279,7 +279,7 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     # a candidate on one ring can only be a board too far (the floor's long runs, a cluster
     # each, are most of them): those are weighed only when no candidate on two rings or more
     # is near enough. The others are weighed first, in label order, and their planes'
-    # hypotheses are drawn first (about 0.2 ms a scan saved: the floor's two runs' planes)
+    # hypotheses are drawn first (the one-ring ones, mostly the floor's runs, only if needed)
     near_able = st["rings"][ids] >= 2
     planes: dict[int, list[np.ndarray]] = {}  # candidate label -> its board-sized planes
     _planes(scan, board, rng, ids[near_able], idx, bounds[:-1][near_able],

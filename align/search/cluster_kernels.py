@@ -1,7 +1,7 @@
 """Compiled kernels of the board search's clustering: `grid_clusters` (the clusters on the
-firing grid in one pass: the same partition, label numbering and statistics as the numpy
-reference in tests/naive.py), the members of a cluster, the firing order, a consecutive ring
-block, the variance summed as numpy's pairwise sum does it."""
+firing grid in one pass: the partition, label numbering and statistics of a union-find over
+the runs), the members of a cluster, the firing order, a consecutive ring block, the variance
+summed as numpy's pairwise sum does it (so np.sum's value exactly)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ def _find(parent: np.ndarray, i: int) -> int:
 def _union(parent: np.ndarray, a: int, b: int) -> None:
     """Join the sets of ``a`` and ``b`` under the smaller root: each root stays its set's
     smallest node, so numbering the roots in node order numbers the components as
-    `align.segment._union_find` (and scipy's connected components) do."""
+    scipy's connected components do."""
     ra = _find(parent, a)
     rb = _find(parent, b)
     if ra < rb:
@@ -42,7 +42,8 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
     """Clusters of the returns ``ok`` of a scan in firing order: (label per firing, count,
     mean distance and rings per cluster).
 
-    The firings k0 .. k0 + nl * m form an (m sequences, nl lasers) grid (`segment._grid`).
+    The firings k0 .. k0 + nl * m form an (m sequences, nl lasers) grid
+    (`align.search.clusters._grid`).
     Returns join along a laser's ring into runs: consecutive firings closer than the
     range-proportional threshold (``radius_per_m`` times the range, at least ``radius_min``),
     or across firings without any return when the ranges agree within it and the gap is
@@ -264,7 +265,7 @@ def _components(parent: np.ndarray, run: np.ndarray, run_count: np.ndarray,
 
 @kernel
 def in_ring_block(rings: np.ndarray, counted: np.ndarray) -> np.ndarray:
-    """Which of the returns on ``rings`` lie on the `align.segment.consecutive_ring_block` of
+    """Which of the returns on ``rings`` lie on the `align.search.rings.consecutive_ring_block` of
     the rings of those ``counted``: np.isin(rings, consecutive_ring_block(rings[counted])),
     in one pass and a loop over the rings (the same integer counts, the same threshold, the
     first of equally large blocks)."""
@@ -302,8 +303,7 @@ def cluster_members(labels: np.ndarray, cand: np.ndarray) -> tuple[np.ndarray, n
     """The firings of the candidate clusters (``cand`` per label; label -1: none), grouped by
     label in increasing order and in scan order within each: (firings, bounds), the k-th
     candidate's firings firings[bounds[k]:bounds[k + 1]]. A counting sort in two passes:
-    `align.segment.find_board`'s stable argsort of the labels and its searchsorted, without
-    the whole-scan gathers."""
+    the order of a stable argsort of the labels, without the whole-scan gathers."""
     n_lab = cand.shape[0]
     slot = np.full(n_lab, -1, dtype=np.int64)  # label -> its rank among the candidates
     n_cand = 0
@@ -331,7 +331,7 @@ def cluster_members(labels: np.ndarray, cand: np.ndarray) -> tuple[np.ndarray, n
 @kernel
 def in_firing_order(laser_id: np.ndarray, k0: int, m: int, nl: int) -> bool:
     """Whether firings k0 .. k0 + nl * m list lasers 0 .. nl - 1 in every sequence
-    (`align.segment._grid`'s check, without the (m, nl) comparison array)."""
+    (`align.search.clusters._grid`'s check, without the (m, nl) comparison array)."""
     for s in range(m):
         base = k0 + s * nl
         for lz in range(nl):
@@ -378,7 +378,7 @@ def _block_sum(a: np.ndarray, lo: int, n: int) -> float:
 def _pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
     """a[lo:lo + n].sum() as numpy sums a contiguous float64 array (its pairwise_sum: blocks
     of up to `_PW_BLOCKSIZE` by `_block_sum`, longer runs split in two at a multiple of 8 and
-    the halves' sums added, left + right), so the same value bit for bit. Iterative, with its
+    the halves' sums added, left + right), so np.sum's value exactly. Iterative, with its
     own stack: numba's cache does not reload a recursive kernel safely."""
     los = np.empty(64, dtype=np.int64)  # depth log2(n / 128): 64 is never reached
     ns = np.empty(64, dtype=np.int64)
@@ -412,8 +412,8 @@ def _pairwise_sum(a: np.ndarray, lo: int, n: int) -> float:
 @kernel
 def total_variance(x: np.ndarray, y: np.ndarray, z: np.ndarray, sel: np.ndarray) -> float:
     """The sum over x, y, z of (c - c.sum() / N) ** 2 summed over N, for c each coordinate of
-    the returns ``sel`` (`segment._board_score`'s total variance, m^2): numpy's sums
-    (`_pairwise_sum`) over the same temporaries, without building six of them."""
+    the returns ``sel`` (`align.search.board.board_score`'s total variance, m^2): numpy's
+    sums (`_pairwise_sum`) of those temporaries' values, without building them."""
     k = sel.shape[0]
     c = np.empty(k)
     var = 0.0

@@ -82,7 +82,7 @@ def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagon
     rings of the same firing sequence (and each ring's wrap-around) by a union-find over the
     runs; a run longer than `LONG_RUN` board diagonals (the floor's ring, a wall) joins nothing,
     or the board, its stand and the floor ring at the stand's foot chain into one cluster. One
-    compiled pass (`align.kernels.grid_clusters`): about 0.5 ms for a full rotation.
+    compiled pass (`grid_clusters`).
     """
 
     k0, m = grid

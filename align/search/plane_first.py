@@ -60,7 +60,7 @@ def rectangle_held(scan: Scan, sel: np.ndarray, n: np.ndarray, d: float, board: 
     """The firings ``sel`` whose returns the board's rectangle (grown by `HELD_MARGIN`) holds,
     placed in the plane n . p = d where it holds the most of them: the board's part of a plane
     that also holds things beside it. The in-plane rotation is the one where the rectangle's
-    sides leave out the fewest (`align.kernels.best_roll`, the coarse roll pass of
+    sides leave out the fewest (`align.search.roll_kernels.best_roll`, the coarse roll pass of
     `rectangle_fit`); the position is the best of both sides at once (`_densest_box`), not of
     each alone: a box's face beside the board and the floor's strip below it would each draw
     one side's window their way."""

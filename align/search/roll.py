@@ -12,7 +12,8 @@ the start rolls for the fit. A prior on the roll (`Hints.roll_prior`) narrows th
 
 Only the returns are used here: they are many and sit inside the board by construction, so a
 few strays (a hand, a stand) do not move the minimum. The misses, which bound the rectangle from
-outside, are left to the fit and the hit/miss posterior that follow (`align.label_posterior`).
+outside, are left to the fit and the hit/miss posterior that follow
+(`align.posterior.hit_miss.label_posterior`).
 """
 
 from __future__ import annotations
@@ -58,8 +59,8 @@ class RollStart:
 def _window_fit(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
     """For each column of ``coords`` (n, K): the most points a window of ``length`` holds, and
     the shift that centres the window on them (minus the middle of their extent). The columns
-    are consecutive rolls: `align.fit_kernels.window_sweep` sorts each from the last's order
-    (`_slide` is the reference it replaced)."""
+    are consecutive rolls: `window_sweep` sorts each from the last's order (the same counts
+    and shifts as `align.search.roll_kernels._slide` on each column sorted anew)."""
     return window_sweep(np.ascontiguousarray(coords, dtype=np.float64), float(length))
 
 

@@ -15,7 +15,7 @@ from align.jit import kernel
 
 @kernel
 def _slide_sorted(xs: np.ndarray, length: float) -> tuple[int, float]:
-    """`align.roll_search._slide` of one sorted row: the most points a window of ``length``
+    """`_slide` of one sorted row: the most points a window of ``length``
     holds and the shift that centres the window on them (the first such window)."""
     n = xs.shape[0]
     j = 0
@@ -168,7 +168,7 @@ def _most_within(points: np.ndarray, rows: np.ndarray, a: int, length: float, bi
 def best_roll(points: np.ndarray, r0: np.ndarray, r2: np.ndarray, len_x: float,
               len_z: float) -> tuple[int, int, float, float]:
     """The roll at which a W x H box leaves out the fewest of a cluster's points:
-    `align._left_out` over the rolls (rows of ``r0``, ``r2``, (K, 3); the points'
+    `align.search.roll.left_out` over the rolls (rows of ``r0``, ``r2``, (K, 3); the points'
     coordinates points @ r0.T and points @ r2.T, `_project`) followed by its argmin, without
     projecting and sorting the points at every roll.
 
@@ -285,7 +285,7 @@ def _remainder(v: float, two_pi: float, taken: np.ndarray) -> float:
 
 @kernel
 def _rel_azimuth(azimuth: float, centre: float, taken: np.ndarray) -> float:
-    """`segment._unwrap` of one azimuth, rad: the same operations and result, the slow
+    """`align.geometry.unwrap` of one azimuth, rad: the same operations and result, the slow
     floating-point remainder x % 2 pi (`_remainder`, counted in ``taken``) only for x outside
     (-2 pi, 4 pi). Inside it the remainder is x itself on [0, 2 pi); x - 2 pi on [2 pi, 4 pi),
     exact there (Sterbenz) as fmod is; and on (-2 pi, 0), where fmod gives x, the remainder's
@@ -310,7 +310,7 @@ def rectangle_rays(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarr
                    r0: np.ndarray, r2: np.ndarray, t_x: float, t_z: float, half_w: float,
                    half_h: float, margin: float, band: float, surround_lo: float,
                    surround_hi: float) -> tuple[int, int, int, int]:
-    """`align.segment.rectangle_fit`'s count of the rays around a cluster (the firings
+    """`align.search.board.rectangle_fit`'s count of the rays around a cluster (the firings
     ``sel``) in one pass over the scan, without gathering them: (on the plane inside the
     rectangle, off it inside, in the surround band, on the plane in the band).
 
@@ -320,9 +320,9 @@ def rectangle_rays(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarr
     ``n``, ``d`` at lam; its point in the rectangle's frame (rows ``r0``, ``r2`` of the
     rotation, shifts ``t_x``, ``t_z``). Inside: lam > 0 and within half the rectangle less
     ``margin``; a return is on the plane within ``band`` of lam; the surround is ``surround_lo``
-    .. ``surround_hi`` outside the rectangle. The same floating-point operations as the numpy
-    version, element by element (numpy's matrix-vector products as `gemv3`; a ray parallel to
-    the plane gives inf or nan as numpy's division does)."""
+    .. ``surround_hi`` outside the rectangle. The floats of `Scan.directions`, `Scan.origins`
+    and the numpy expressions, element by element (the matrix-vector products as `gemv3`; a
+    ray parallel to the plane gives inf or nan, numpy's error model)."""
     taken = np.zeros(1, dtype=np.int64)
     ring_lo, ring_hi = 1 << 30, -1
     widest = 0.0
@@ -395,8 +395,7 @@ TAIL_FRACTION = 0.25
 @kernel
 def _slide_sorted_column(xs: np.ndarray, length: float) -> tuple[int, float]:
     """The sliding window over one sorted column: the most points a window of ``length``
-    holds and minus the middle of the first such window's points (`align.roll_search._slide`
-    of one row)."""
+    holds and minus the middle of the first such window's points (`_slide` of one row)."""
     n = xs.shape[0]
     j = 0
     best, lo, hi = 0, 0.0, 0.0
@@ -490,7 +489,7 @@ def _column_fit(row: np.ndarray, lo: float, hi: float, length: float, order: np.
 
 @kernel
 def window_sweep(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
-    """`align.roll_search._window_fit`: for each column of ``coords`` (n, K), the most points a
+    """`align.search.roll._window_fit`: for each column of ``coords`` (n, K), the most points a
     window of ``length`` holds and the shift that centres it on them (minus the middle of the
     first such window's points).
 
@@ -513,7 +512,7 @@ def window_sweep_rows(rows: np.ndarray, length: float) -> tuple[np.ndarray, np.n
     count = np.zeros(k, dtype=np.int64)
     shift = np.zeros(k)
     if n == 0 or k == 0:
-        shift[:] = -0.0  # -(0 + 0) / 2: an empty window's middle, as the numpy version's
+        shift[:] = -0.0  # -(0 + 0) / 2: an empty window's middle, as `_slide` gives it
         return count, shift
     order = np.empty(n, dtype=np.int64)
     xs, left, right = np.empty(n), np.empty(n), np.empty(n)
@@ -536,13 +535,13 @@ def window_sweep_projected(points: np.ndarray, axes: np.ndarray, length: float
     """`window_sweep` of ``points @ axes.T`` ((n, 3) points, (K, 3) axes: the coordinates
     along a rectangle's axis at K rolls) without the product and its transpose: each roll's
     coordinates are computed into one contiguous row as OpenBLAS's kernels compute them
-    (`_project`, bit for bit). Gathering a roll's column out of the (n, K)
-    product cost as much as all the sliding."""
+    (`_project`: the product's floats exactly), rather than gathered as a column out of the
+    (n, K) product."""
     n, k = points.shape[0], axes.shape[0]
     count = np.zeros(k, dtype=np.int64)
     shift = np.zeros(k)
     if n == 0 or k == 0:
-        shift[:] = -0.0  # -(0 + 0) / 2: an empty window's middle, as the numpy version's
+        shift[:] = -0.0  # -(0 + 0) / 2: an empty window's middle, as `_slide` gives it
         return count, shift
     row = np.empty(n)
     order = np.empty(n, dtype=np.int64)
@@ -576,7 +575,7 @@ def window_sweep_pair(points: np.ndarray, axes_a: np.ndarray, axes_b: np.ndarray
                       len_a: float, len_b: float
                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """`window_sweep_projected` along both of a rectangle's axes at K rolls (``axes_a``,
-    ``axes_b`` (K, 3), windows ``len_a``, ``len_b``), for `align._left_out`: the
+    ``axes_b`` (K, 3), windows ``len_a``, ``len_b``), for `align.search.roll.left_out`: the
     counts and shifts along the first axis at every roll, and along the second only where
     the roll can leave out within one of the fewest points, 2n - count_a - count_b, of any
     roll: a window holds at most n, so a roll leaves out at least n - count_a, and one that
