@@ -33,6 +33,8 @@ def gemv3(a0: float, a1: float, a2: float, x0: float, x1: float, x2: float) -> f
     """One row of numpy's (N, 3) @ (3,) as OpenBLAS's Haswell dgemv computes it (the middle
     term first, then the others fused: equal to numpy's product on real scans)."""
     return fma(a2, x2, fma(a0, x0, a1 * x1))
+
+
 @kernel
 def rotation(roll: float, tilt: float, yaw: float) -> np.ndarray:
     """`align.geometry.rotation` for kernels: the same expressions (and the same libm cos and

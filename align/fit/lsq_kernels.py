@@ -10,60 +10,18 @@ from align.jit import kernel
 
 
 @kernel
-def _fit_residuals(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
-                   d_r: np.ndarray, offset: float, sigma_r: float, oh: np.ndarray,
-                   uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
-                   sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
-                   out: np.ndarray) -> None:
-    """`align.fit.model.Model.residuals` into ``out``: the whitened range residuals of the
-    interior hits (rays o_r + lam u_r, measured ranges d_r, m), then the used brackets' (hit
-    rays oh, uh and miss rays om, um; the edge's side ``sgn``, sigma ``sd`` (m), whether it is
-    a side edge ``vert``). ``rot``: R of ``theta``. Ray by ray, without temporaries."""
-    r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
-    t0, t1, t2 = theta[0], theta[1], theta[2]
-    nr = o_r.shape[0]
-    for i in range(nr):
-        lam = -(o_r[i, 0] * r10 + o_r[i, 1] * r11 + o_r[i, 2] * r12 + t1) / (
-            u_r[i, 0] * r10 + u_r[i, 1] * r11 + u_r[i, 2] * r12)
-        out[i] = (d_r[i] - offset - lam) / sigma_r
-    for i in range(oh.shape[0]):
-        # both rays in {O}: X, Z where each meets the board plane Y = 0
-        dh0 = uh[i, 0] * rot[0, 0] + uh[i, 1] * rot[0, 1] + uh[i, 2] * rot[0, 2]
-        dh1 = uh[i, 0] * r10 + uh[i, 1] * r11 + uh[i, 2] * r12
-        dh2 = uh[i, 0] * rot[2, 0] + uh[i, 1] * rot[2, 1] + uh[i, 2] * rot[2, 2]
-        oh0 = oh[i, 0] * rot[0, 0] + oh[i, 1] * rot[0, 1] + oh[i, 2] * rot[0, 2] + t0
-        oh1 = oh[i, 0] * r10 + oh[i, 1] * r11 + oh[i, 2] * r12 + t1
-        oh2 = oh[i, 0] * rot[2, 0] + oh[i, 1] * rot[2, 1] + oh[i, 2] * rot[2, 2] + t2
-        lh = -oh1 / dh1
-        dm0 = um[i, 0] * rot[0, 0] + um[i, 1] * rot[0, 1] + um[i, 2] * rot[0, 2]
-        dm1 = um[i, 0] * r10 + um[i, 1] * r11 + um[i, 2] * r12
-        dm2 = um[i, 0] * rot[2, 0] + um[i, 1] * rot[2, 1] + um[i, 2] * rot[2, 2]
-        om0 = om[i, 0] * rot[0, 0] + om[i, 1] * rot[0, 1] + om[i, 2] * rot[0, 2] + t0
-        om1 = om[i, 0] * r10 + om[i, 1] * r11 + om[i, 2] * r12 + t1
-        om2 = om[i, 0] * rot[2, 0] + om[i, 1] * rot[2, 1] + om[i, 2] * rot[2, 2] + t2
-        lm = -om1 / dm1
-        s = sgn[i]
-        # the plate's side face widens the edge for a ray heading inwards past it
-        if vert[i]:
-            ext = thick * max(0.0, -s * dh0 / dh1)
-            e = s * (w2 + ext) - 0.5 * ((oh0 + lh * dh0) + (om0 + lm * dm0))
-        else:
-            ext = thick * max(0.0, -s * dh2 / dh1)
-            e = s * (h2 + ext) - 0.5 * ((oh2 + lh * dh2) + (om2 + lm * dm2))
-        out[nr + i] = e / sd[i]
-
-
-@kernel
 def fit_residuals(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
                   d_r: np.ndarray, offset: float, sigma_r: float, oh: np.ndarray,
                   uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
                   sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float
                   ) -> np.ndarray:
-    """`_fit_residuals` as a new array (range residuals first, then the brackets')."""
+    """`_residuals_into` as a new array (range residuals first, then the brackets')."""
     out = np.empty(o_r.shape[0] + oh.shape[0])
-    _fit_residuals(theta, rot, o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn, sd, vert,
-                   w2, h2, thick, out)
+    _residuals_into(theta, rot, o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn, sd, vert,
+                    w2, h2, thick, out)
     return out
+
+
 #: `inverse_diagonal` trusts its Cholesky inverse while the matrix's condition number is
 #: provably below this (numpy's pinv drops singular values below 1e-15 of the largest: far
 #: beyond it, the two agree to rounding).
@@ -128,8 +86,11 @@ def _residuals_into(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np
                     uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
                     sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
                     out: np.ndarray) -> None:
-    """`_fit_residuals` (`align.fit.model.Model.residuals` into ``out``), the same expressions,
-    for `jacobian_into` and `_lm_residuals` (tests/test_fit_kernels.py holds the two equal)."""
+    """`align.fit.model.Model.residuals` into ``out``: the whitened range residuals of the
+    interior hits (rays o_r + lam u_r, measured ranges d_r, m), then the used brackets' (hit
+    rays oh, uh and miss rays om, um; the edge's side ``sgn``, sigma ``sd`` (m), whether it is
+    a side edge ``vert``). ``rot``: R of ``theta``. Ray by ray, without temporaries; the fit's
+    Jacobian (`jacobian_into`) and loop (`_lm_residuals`) call it too."""
     r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
     t0, t1, t2 = theta[0], theta[1], theta[2]
     nr = o_r.shape[0]

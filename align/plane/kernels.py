@@ -189,6 +189,8 @@ def lsq_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
         normal = -normal
         d = -d
     return normal, d
+
+
 @kernel
 def _tangent_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`align.plane.fit.tangent_basis`: e1 = n x e_z (n x e_x for a vertical n), e2 = n x e1."""

@@ -960,6 +960,8 @@ def _label_moments(n: np.ndarray, points: np.ndarray, labels: np.ndarray, ext: n
     hit, miss = labels == 1, labels == 0
     return label_moments(points[hit], points[miss], ext[hit], ext[miss], *plane_rows(rolls, n),
                          width / 2, height / 2)
+
+
 @kernel(error_model="numpy")
 def binding_rays(origin: np.ndarray, direction: np.ndarray, label: np.ndarray,
                  rot: np.ndarray, t_x: float, t_y: float, t_z: float, w2: float, h2: float,

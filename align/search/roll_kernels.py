@@ -372,6 +372,8 @@ def rectangle_rays(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarr
             if on_plane:
                 n_band_on += 1
     return n_on, n_off, n_band, n_band_on
+
+
 @kernel
 def _insertion_sort(xs: np.ndarray, order: np.ndarray) -> None:
     """Sort ``xs`` ascending in place, permuting ``order`` with it: linear in the length plus
