@@ -18,7 +18,6 @@ import pytest
 from scipy import stats
 
 import align
-import align.segment
 from align.result import Hints, Status
 from twin.core.pose import POSE_FIELDS_EDGE
 from twin.core.scan import Scan
@@ -332,8 +331,8 @@ def test_ml_plane_along_rays_is_unbiased_where_least_squares_is_not():
     # by a draw-dependent amount (the ML plane 3.4 standard errors off over 80 scans)
     from align_synth import BENCH_POSE, synth_scan
 
-    from align import plane
     from align.geometry import board_coordinates, plane_of_pose
+    from align.plane import fit as plane
 
     rng = np.random.default_rng(4)
     theta = BENCH_POSE.as_array()

@@ -18,8 +18,9 @@ import pytest
 from scipy import stats
 
 import align
-from align import plane, symmetry
+from align import symmetry
 from align.geometry import in_plane_rotation, plane_of_pose, rotation
+from align.plane import fit as plane
 from twin.sim.bench import BenchSim
 from twin.sim.emulation import EmulationConfig
 from twin.sim.params import BenchParams, BoardPattern
@@ -79,7 +80,9 @@ def test_reported_roll_is_the_upright_one_and_equivalents_see_the_same_board():
                               *np.deg2rad(rng.uniform(-50, 50, 2))])
             cov = np.diag(rng.uniform(1e-6, 1e-4, 6))
             can, cov_c = symmetry.canonical(theta, board, cov)
-            rolls = [abs(symmetry._wrap(e[3])) for e in symmetry.equivalents(theta, board)]
+            # the equivalents' rolls wrapped to [-pi, pi)
+            rolls = [abs((e[3] + np.pi) % (2 * np.pi) - np.pi)
+                     for e in symmetry.equivalents(theta, board)]
             # in the range, or (a square seen at large tilt or yaw, whose 90 deg turns mix
             # them into the roll) the least roll of its equivalents
             assert lo < np.rad2deg(can[3]) <= hi + 1e-9 or abs(can[3]) <= min(rolls) + 1e-9

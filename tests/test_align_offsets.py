@@ -78,7 +78,7 @@ def test_a_ring_grazing_the_top_edge_near_a_corner_holds_the_fits_height():
     30 mm short, that crossing was left out as a corner at the right height and taken for the
     side edge from a start 3 cm low (then dropped as gross); nothing else held z, every fit
     settled 32 mm low with 426 misses inside its rectangle, the posterior found nothing, and
-    the offset came out 12.7 mm off (`align.fit_kernels.grazes_top_or_bottom`)."""
+    the offset came out 12.7 mm off (`align.fit.bracket_kernels.grazes_top_or_bottom`)."""
     params = BenchParams.from_edge(roll_deg=0.9084134270754474, tilt_deg=2.5792125117846156,
                                    yaw_deg=-0.5305904053419566, lever_arm_mm=(0.0, 0.0, 60.0))
     sim = BenchSim(params, seed=1038096735, noise=EmulationConfig(

@@ -123,18 +123,19 @@ def test_a_holder_below_the_board_on_a_ring_that_misses_it_is_not_a_grazing_edge
     # them for one and rolled the rectangle by 0.6-2.1 deg to ride them (4 of 5 scans)
     _, scans = _holder_scene((0.04246123, 0.00563728, -0.01343984), 984659277, 1463840930,
                              -0.00907365, 6.677941)
-    from align.rays import HIT, candidates_at, grazing_runs, _labels
-    from align.segment import find_board
+    from align.fit.labels import grazing_runs, labels_ordered
+    from align.fit.rays import HIT, candidates_at
+    from align.params import RaysParams
+    from align.search.board import find_board
 
     board = align.BoardSpec()
     theta = scans[0].meta["truth_pose"].as_array()
     flagged_off, flagged_on = 0, 0
     for s in scans:
         seg = find_board(s, board, align.Hints())
-        rays, coords, _ = candidates_at([s], [seg], theta, board)
-        lab = _labels(rays, coords[2], 0.014)
-        order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
-        out = grazing_runs(rays, lab, coords, coords[2], board, order)
+        rays, coords, _ = candidates_at([s], [seg], theta, board, p=RaysParams())
+        lab, order = labels_ordered(rays, coords[2], 0.014, p=RaysParams())
+        out = grazing_runs(rays, lab, coords, coords[2], board, order, p=RaysParams())
         x, z = coords[0], coords[1]
         on = (np.abs(x) < board.width / 2) & (np.abs(z) < board.height / 2)
         assert np.all(lab[out] == HIT)
@@ -180,8 +181,10 @@ def test_a_bright_hit_beside_a_side_edge_does_not_roll_a_confident_estimate():
     # its face 21 mm behind the board's, gives one ring a last hit no side line can tell from
     # the board's; as a hit the posterior held it inside the rectangle and rolled it by 0.8
     # deg at a sigma of 0.12 (7 sigma). It is brighter than any of the board's own
-    from align.rays import bright_ends, candidates_at, _labels
-    from align.segment import find_board
+    from align.fit.labels import bright_ends, labels_ordered
+    from align.fit.rays import candidates_at
+    from align.params import RaysParams
+    from align.search.board import find_board
 
     _, scans = _holder_scene((0.00170699, -0.03560768, -0.00589595), 317153660, 2071925616,
                              0.00389507, 7.455301)
@@ -192,12 +195,11 @@ def test_a_bright_hit_beside_a_side_edge_does_not_roll_a_confident_estimate():
     seen = 0
     for s in scans:
         rays, coords, _ = candidates_at([s], [find_board(s, board, align.Hints())], theta,
-                                         board)
-        lab = _labels(rays, coords[2], 0.014)
+                                         board, p=RaysParams())
+        lab, order = labels_ordered(rays, coords[2], 0.014, p=RaysParams())
         x, z = coords[0], coords[1]
         inner = (np.abs(x) < w2 - 0.03) & (np.abs(z) < h2 - 0.03)
-        order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
-        out = bright_ends(rays, lab, s.intensity[rays.gidx], inner, order)
+        out = bright_ends(rays, lab, s.intensity[rays.gidx], inner, order, p=RaysParams())
         assert not np.any(out & (np.abs(x) < w2) & (np.abs(z) < h2))  # none of the board's
         if not np.any(out):
             continue
@@ -214,7 +216,7 @@ def test_the_plane_is_the_boards_not_one_through_the_board_and_the_stand_behind_
     # besides, so it had the most inliers, and the fit from it failed as partial_board (2 of
     # 5 scans; the board's cluster was the third candidate tried). The truncated squared
     # distances (MSAC) prefer the board's
-    from align import plane
+    from align.plane import fit as plane
 
     _, scans = _holder_scene((0.03674628, -0.03466357, 0.04862743), 1075524602, 2084259073,
                              0.00641303, 2.473855)
@@ -258,12 +260,13 @@ def test_one_holder_return_in_the_hit_band_does_not_pin_the_posterior(mount, sce
                                                                        which):
     # as a hard label the posterior held the rectangle on it: roll off by -0.90 deg at a sigma
     # of 0.13 (6.8 sigma) and by 0.53 deg at 0.11 (5.1 sigma). Its range residual makes it a
-    # soft label (`align.feasible.soft_moments`), whose set without it outweighs the set
+    # soft label (`align.posterior.moments.soft_moments`), whose set without it outweighs the set
     # with it
-    from align.feasible import MIN_ODDS
-    from align.rays import _clutter_odds
+    from align.params import RaysParams
+    from align.posterior.moments import MIN_ODDS
+    from align.posterior.rays import _clutter_odds
 
-    assert _clutter_odds(np.array([0.049]), 0.014)[0] > 2 * MIN_ODDS
+    assert _clutter_odds(np.array([0.049]), 0.014, p=RaysParams())[0] > 2 * MIN_ODDS
     _, scans = _holder_scene(mount, scene_seed, scan_seed, x, yaw_deg)
     z = _roll_errors(scans[which:which + 1])
     assert abs(z[0, 0]) < 3 * z[0, 1], np.rad2deg(z)

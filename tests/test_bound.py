@@ -1,4 +1,4 @@
-"""align.bound: the precision bound of a station design.
+"""align.design.bound: the precision bound of a station design.
 
 Fast tests: its properties (noise, scans fused, symmetry, board size, frames, any laser table),
 its parts against independent computations (the ranges' information against the rays of an
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 from align_synth import synth_scan
 
-from align import bound_labels
 from align.board import BoardSpec
-from align.bound import (
+from align.design import bound_labels
+from align.design.bound import (
     Firing,
     RangeNoise,
     board_to_station,

@@ -1,37 +1,16 @@
-"""align.feasible: the consistent set's area and moments against a brute-force raster, and the
-in-plane posterior's roll against the labels' geometry."""
+"""align.posterior.moments: the consistent set's area and moments against a brute-force raster,
+and the in-plane posterior's roll against the labels' geometry."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from align import feasible
+from align.floats import plane_rows
+from align.posterior import moments
+from tests import naive
 
 W2, H2 = 0.45, 0.27
-
-
-def _raster(p_hit, p_miss, ext_hit, ext_miss, n=1500):
-    """(area, mean t_x, mean t_z, var t_x, var t_z, cov) of the consistent positions at roll 0
-    (board coordinates X = p_x, Z = p_z), by testing every cell of an n x n raster over the box
-    that the hits alone allow."""
-    lo_x = np.max(-W2 - ext_hit[:, 0] - p_hit[:, 0])
-    hi_x = np.min(W2 + ext_hit[:, 1] - p_hit[:, 0])
-    lo_z = np.max(-H2 - ext_hit[:, 2] - p_hit[:, 2])
-    hi_z = np.min(H2 + ext_hit[:, 3] - p_hit[:, 2])
-    u = (np.arange(n) + 0.5) / n
-    tx, tz = np.meshgrid(lo_x + u * (hi_x - lo_x), lo_z + u * (hi_z - lo_z), indexing="ij")
-    ok = np.ones_like(tx, dtype=bool)  # the window is the hits' box: each miss cuts it
-    for p, e in zip(p_miss, ext_miss, strict=True):
-        if not (W2 + e[1] - p[0] > lo_x and -W2 - e[0] - p[0] < hi_x and
-                H2 + e[3] - p[2] > lo_z and -H2 - e[2] - p[2] < hi_z):
-            continue  # misses the window
-        ok &= ~((p[0] + tx > -W2 - e[0]) & (p[0] + tx < W2 + e[1]) &
-                (p[2] + tz > -H2 - e[2]) & (p[2] + tz < H2 + e[3]))
-    cell = (hi_x - lo_x) * (hi_z - lo_z) / n**2
-    a = ok.sum() * cell
-    mx, mz = tx[ok].mean(), tz[ok].mean()
-    return a, mx, mz, tx[ok].var(), tz[ok].var(), np.mean((tx[ok] - mx) * (tz[ok] - mz))
 
 
 def _edge_rays(rng, n_ring=5, step=0.009):
@@ -62,8 +41,8 @@ def test_label_moments_match_a_raster(seed):
     p_miss = np.vstack((p_miss, extra))
     e_miss = np.vstack((e_miss, np.zeros((6, 4))))
     r0, r2 = np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
-    m = feasible.label_moments(p_hit, p_miss, e_hit, e_miss, r0, r2, W2, H2)[0]
-    a, mx, mz, vx, vz, cxz = _raster(p_hit, p_miss, e_hit, e_miss)
+    m = moments.label_moments(p_hit, p_miss, e_hit, e_miss, r0, r2, W2, H2)[0]
+    a, mx, mz, vx, vz, cxz = naive.raster(p_hit, p_miss, e_hit, e_miss, W2, H2)
     assert m[0] > 0
     assert m[0] == pytest.approx(a, rel=0.005)
     got = np.array([m[1], m[2]]) / m[0]
@@ -78,7 +57,7 @@ def test_inconsistent_labels_give_no_posterior():
     p_hit = np.array([[-0.6, 0.0, 0.0], [0.6, 0.0, 0.0]])
     labels = np.ones(2, dtype=np.int8)
     rolls = np.linspace(-0.01, 0.01, 21)
-    assert feasible.in_plane_posterior(np.array([0.0, 1.0, 0.0]), p_hit, labels,
+    assert moments.in_plane_posterior(np.array([0.0, 1.0, 0.0]), p_hit, labels,
                                        np.zeros((2, 4)), 0.9, 0.54, rolls) is None
 
 
@@ -98,7 +77,7 @@ def test_posterior_brackets_the_true_roll_and_position():
             lab.append(1 if abs(bx) <= W2 and abs(bz) <= H2 else 0)
     pts, lab = np.array(pts), np.array(lab, dtype=np.int8)
     rolls = np.deg2rad(np.linspace(-1.5, 2.5, 401))
-    post = feasible.in_plane_posterior(np.array([0.0, 1.0, 0.0]), pts, lab,
+    post = moments.in_plane_posterior(np.array([0.0, 1.0, 0.0]), pts, lab,
                                        np.zeros((len(pts), 4)), 0.9, 0.54, rolls)
     assert post is not None
     sd = np.sqrt(np.diag(post.cov))
@@ -119,10 +98,10 @@ def test_label_moments_over_a_roll_grid_match_roll_by_roll():
     p_hit, p_miss = p_hit + offset, p_miss + offset
     n = np.array([0.0, 1.0, 0.0])
     rolls = np.deg2rad(np.linspace(-3.0, 3.0, 301))
-    r0, r2 = feasible._rows(rolls, n)
+    r0, r2 = plane_rows(rolls, n)
     args = (p_hit, p_miss, e_hit, e_miss)
-    grid = feasible.label_moments(*args, r0, r2, W2, H2)
-    one = np.vstack([feasible.label_moments(*args, r0[k:k + 1], r2[k:k + 1], W2, H2)
+    grid = moments.label_moments(*args, r0, r2, W2, H2)
+    one = np.vstack([moments.label_moments(*args, r0[k:k + 1], r2[k:k + 1], W2, H2)
                      for k in range(len(rolls))])
     assert np.count_nonzero(grid[:, 0]) > 10  # some rolls are consistent
     np.testing.assert_array_equal(grid, one)
@@ -134,34 +113,15 @@ def test_binding_labels_keep_every_label_when_the_rows_do_not_turn_rigidly():
     rng = np.random.default_rng(4)
     p_hit, p_miss, e_hit, e_miss = _edge_rays(rng)
     rolls = np.deg2rad(np.linspace(-1.0, 1.0, 41))
-    r0, r2 = feasible._rows(rolls, np.array([0.0, 1.0, 0.0]))
-    lim_h, lim_m = feasible._limits(e_hit, W2, H2), feasible._limits(e_miss, W2, H2)
-    hits, misses = feasible.binding_labels(p_hit, p_miss, lim_h, lim_m, r0, r2)
+    r0, r2 = plane_rows(rolls, np.array([0.0, 1.0, 0.0]))
+    lim_h, lim_m = moments._limits(e_hit, W2, H2), moments._limits(e_miss, W2, H2)
+    hits, misses = moments.binding_labels(p_hit, p_miss, lim_h, lim_m, r0, r2)
     assert len(hits) < len(p_hit) and len(misses) < len(p_miss)  # rigid: some left out
     bent = r2.copy()
     bent[20] += 1e-6  # no longer unit, nor r0 x n
-    hits, misses = feasible.binding_labels(p_hit, p_miss, lim_h, lim_m, r0, bent)
+    hits, misses = moments.binding_labels(p_hit, p_miss, lim_h, lim_m, r0, bent)
     np.testing.assert_array_equal(hits, np.arange(len(p_hit)))
     np.testing.assert_array_equal(misses, np.arange(len(p_miss)))
-
-
-def _soft_raster(p_hit, p_miss, odds, n=1200):
-    """`_raster`'s integrals (area and the five moments, unnormalised) at roll 0 with each
-    hit's likelihood 1 on the board and ``odds`` off it (0: a hard constraint): every cell of
-    a raster over the box the hard hits allow weighted by the product of the soft hits'."""
-    hard = odds == 0
-    lo_x, hi_x = np.max(-W2 - p_hit[hard, 0]), np.min(W2 - p_hit[hard, 0])
-    lo_z, hi_z = np.max(-H2 - p_hit[hard, 2]), np.min(H2 - p_hit[hard, 2])
-    u = (np.arange(n) + 0.5) / n
-    tx, tz = np.meshgrid(lo_x + u * (hi_x - lo_x), lo_z + u * (hi_z - lo_z), indexing="ij")
-    w = np.ones_like(tx)
-    for p in p_miss:
-        w[(np.abs(p[0] + tx) < W2) & (np.abs(p[2] + tz) < H2)] = 0.0
-    for p, k in zip(p_hit[~hard], odds[~hard], strict=True):
-        w[~((np.abs(p[0] + tx) <= W2) & (np.abs(p[2] + tz) <= H2))] *= min(k, 1.0)
-    cell = (hi_x - lo_x) * (hi_z - lo_z) / n**2
-    return cell * np.array([w.sum(), (w * tx).sum(), (w * tz).sum(), (w * tx**2).sum(),
-                            (w * tz**2).sum(), (w * tx * tz).sum()])
 
 
 def test_soft_hits_weigh_the_sets_without_them_as_a_raster_does():
@@ -173,25 +133,26 @@ def test_soft_hits_weigh_the_sets_without_them_as_a_raster_does():
     rng = np.random.default_rng(3)
     p_hit, p_miss, e_hit, e_miss = _edge_rays(rng)
     zero_h, zero_m = np.zeros_like(e_hit), np.zeros_like(e_miss)
-    _, mx, _, vx, _, _ = _raster(p_hit, p_miss, zero_h, zero_m)
+    _, mx, _, vx, _, _ = naive.raster(p_hit, p_miss, zero_h, zero_m, W2, H2)
     half = np.sqrt(3 * vx)  # the consistent t_x: about mx +- half
     extra = np.array([[W2 - mx, 0.0, 0.05], [W2 - mx - 0.5 * half, 0.0, -0.1]])
     p_hit = np.vstack((p_hit, extra))
     odds = np.zeros(len(p_hit))
     odds[-2:] = 4.0, 0.3
-    odds[0] = 0.5 * feasible.MIN_ODDS
+    odds[0] = 0.5 * moments.MIN_ODDS
     zero_h = np.zeros((len(p_hit), 4))
     r0, r2 = np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
-    soft = feasible._soft_hits(odds)
+    soft = moments._soft_hits(odds)
     assert list(soft) == [len(p_hit) - 2, len(p_hit) - 1]
-    got = feasible.soft_moments(p_hit, p_miss, zero_h, zero_m, r0, r2, W2, H2, odds, soft)[0]
-    want = _soft_raster(p_hit, p_miss, np.where(odds < feasible.MIN_ODDS, 0.0, odds))
+    got = moments.soft_moments(p_hit, p_miss, zero_h, zero_m, r0, r2, W2, H2, odds, soft)[0]
+    want = naive.soft_raster(p_hit, p_miss, np.where(odds < moments.MIN_ODDS, 0.0, odds),
+                              W2, H2)
     assert got[0] == pytest.approx(want[0], rel=0.005)
     np.testing.assert_allclose(got[1:3] / got[0], want[1:3] / want[0], atol=5e-5)
     np.testing.assert_allclose(got[3:] / got[0], want[3:] / want[0], rtol=0.01, atol=1e-8)
     # as hard labels they hold the board in the left half of its positions; as soft ones
     # the mean is pulled back towards the middle, and the set is wider
-    hard = feasible.label_moments(p_hit, p_miss, zero_h, zero_m, r0, r2, W2, H2)[0]
+    hard = moments.label_moments(p_hit, p_miss, zero_h, zero_m, r0, r2, W2, H2)[0]
     assert hard[1] / hard[0] < mx - 0.3 * half
     assert hard[1] / hard[0] + 0.1 * half < got[1] / got[0] < mx
     assert got[3] / got[0] - (got[1] / got[0]) ** 2 > 1.5 * (hard[3] / hard[0]
@@ -203,29 +164,29 @@ def test_soft_hits_make_no_posterior_where_the_labels_allow_none():
     # caller's stray rounds handle labels that contradict each other)
     rng = np.random.default_rng(3)
     p_hit, p_miss, _, _ = _edge_rays(rng)
-    _, mx, _, _, _, _ = _raster(p_hit, p_miss, np.zeros((len(p_hit), 4)),
-                                np.zeros((len(p_miss), 4)))
+    _, mx, _, _, _, _ = naive.raster(p_hit, p_miss, np.zeros((len(p_hit), 4)),
+                                     np.zeros((len(p_miss), 4)), W2, H2)
     p_hit = np.vstack((p_hit, [[W2 - mx + 0.012, 0.0, 0.05]]))
     odds = np.zeros(len(p_hit))
     odds[-1] = 1.0
     r0, r2 = np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
     args = (p_hit, p_miss, np.zeros((len(p_hit), 4)), np.zeros((len(p_miss), 4)), r0, r2, W2,
             H2)
-    assert feasible.label_moments(*args)[0, 0] == 0.0
-    assert feasible.soft_moments(*args, odds, feasible._soft_hits(odds))[0, 0] == 0.0
+    assert moments.label_moments(*args)[0, 0] == 0.0
+    assert moments.soft_moments(*args, odds, moments._soft_hits(odds))[0, 0] == 0.0
 
 
 def test_soft_moments_without_soft_hits_are_the_hard_ones():
     rng = np.random.default_rng(8)
     p_hit, p_miss, e_hit, e_miss = _edge_rays(rng)
     rolls = np.deg2rad(np.linspace(-1.0, 1.0, 41))
-    r0, r2 = feasible._rows(rolls, np.array([0.0, 1.0, 0.0]))
-    odds = np.full(len(p_hit), 0.5 * feasible.MIN_ODDS)
+    r0, r2 = plane_rows(rolls, np.array([0.0, 1.0, 0.0]))
+    odds = np.full(len(p_hit), 0.5 * moments.MIN_ODDS)
     odds[:3] = 0.5  # soft, but deep inside the board: they bind nowhere on the grid
     inner = (np.abs(p_hit[:, 0]) < 0.2) & (np.abs(p_hit[:, 2]) < 0.1)
     p_hit = np.vstack((p_hit[inner][:3], p_hit[~inner]))
     e_hit = np.vstack((e_hit[inner][:3], e_hit[~inner]))
     args = (p_hit, p_miss, e_hit, e_miss, r0, r2, W2, H2)
     np.testing.assert_array_equal(
-        feasible.soft_moments(*args, odds, feasible._soft_hits(odds)),
-        feasible.label_moments(*args))
+        moments.soft_moments(*args, odds, moments._soft_hits(odds)),
+        moments.label_moments(*args))

@@ -1,4 +1,4 @@
-"""align.label_posterior: the hit/miss posterior with the plane marginalised, on synthetic scans
+"""align.posterior.hit_miss: the hit/miss posterior with the plane marginalised, on synthetic scans
 whose labels are exact (a VLP-16's 16 rings, 0.2 deg azimuth steps, a board 2.5 m ahead), so
 that the only errors are the ones the posterior must account for: the edges' sampling and the
 plane's."""
@@ -8,10 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from align import plane
 from align.board import BoardSpec
 from align.geometry import board_coordinates, plane_of_pose
-from align.label_posterior import (
+from align.plane import fit as plane
+from align.posterior.hit_miss import (
     LabelledRays,
     OffsetModel,
     _laser_directions,
@@ -163,12 +163,12 @@ def test_per_laser_directions_span_the_plane_given_the_offset_beside_w():
 
 
 def test_near_is_the_binding_masks_subset_and_split():
-    """`LabelledRays.near` (compiled: `fit_kernels.binding_rays`) against its numpy version:
+    """`LabelledRays.near` (compiled: `moments.binding_rays`) against its numpy version:
     board coordinates, `binding`'s masks, `select`, and the subset's own split into hits and
     misses, bit for bit, at poses about the labels' and off them, for reaches up to 4 deg;
     rays with origins off the centre (a laser's vertical offset)."""
     from align.geometry import lidar_up
-    from align.label_posterior import binding
+    from align.posterior.hit_miss import binding
 
     rng = np.random.default_rng(12)
     for k in range(40):

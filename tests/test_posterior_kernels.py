@@ -1,6 +1,6 @@
-"""The hit/miss posterior's compiled kernel (`align.feasible.plane_posteriors`) against
-the numpy version it replaced (`align.feasible.in_plane_posterior` per plane, then
-`align.label_posterior._pose` of its mean), on synthetic VLP-16 scans whose labels are exact:
+"""The hit/miss posterior's compiled kernel (`align.posterior.moments.plane_posteriors`)
+against the numpy version (`tests.naive.plane_posterior_row`: `in_plane_posterior` per plane,
+then the pose of its mean), on synthetic VLP-16 scans whose labels are exact:
 many planes about the true one in one call, with the plate's side face widening the edges, a
 roll prior, and planes no roll explains. The same numbers to rounding (the kernel's sums run in
 loop order, numpy's pairwise or in BLAS's order)."""
@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from numba import njit
 
-from align import feasible, plane
 from align.board import BoardSpec
+from align.floats import plane_rows, plane_rows_of
 from align.geometry import board_coordinates, plane_of_pose
-from align.label_posterior import LabelledRays, _pose
+from align.plane import fit as plane
+from align.posterior import moments
+from align.posterior.hit_miss import LabelledRays
+from tests import naive
 
 BOARD = BoardSpec()
 
@@ -46,19 +48,6 @@ def _planes(rng: np.random.Generator, theta: np.ndarray, count: int
     return n / np.linalg.norm(n, axis=1, keepdims=True), d0 + g[:, 2]
 
 
-def _reference(rays: LabelledRays, n: np.ndarray, d: float, rolls: np.ndarray,
-               weight: np.ndarray | None) -> np.ndarray | None:
-    """One plane's row as the numpy code computed it."""
-    lam = (d - rays.origin @ n) / (rays.direction @ n)
-    points = rays.origin + lam[:, None] * rays.direction
-    post = feasible.in_plane_posterior(n, points, rays.label, rays.ext, BOARD.width,
-                                       BOARD.height, rolls, weight)
-    if post is None:
-        return None
-    return np.concatenate(([1.0], post.mean, post.cov.ravel(), [post.evidence],
-                           post.support, _pose(n, d, post.mean)))
-
-
 @pytest.mark.parametrize(("seed", "dist", "prior"), [(0, 1.5, False), (1, 2.5, True),
                                                      (2, 4.0, False), (3, 2.0, True)])
 def test_plane_posteriors_match_the_numpy_version(seed, dist, prior):
@@ -74,20 +63,24 @@ def test_plane_posteriors_match_the_numpy_version(seed, dist, prior):
     rolls = theta[3] + np.deg2rad(np.linspace(-0.6, 0.6, 121))
     weight = (np.exp(-0.5 * ((rolls - theta[3]) / np.deg2rad(0.2)) ** 2) if prior
               else np.empty(0))
-    rows = feasible.plane_posteriors(*rays._split, normals, ds, rolls, weight,
+    # the hits' origins, directions and widenings, then the misses'
+    split = [np.ascontiguousarray(a[m], dtype=np.float64)
+             for m in (rays.label == 1, rays.label == 0)
+             for a in (rays.origin, rays.direction, rays.ext)]
+    rows = moments.plane_posteriors(*split, normals, ds, rolls, weight,
                                      BOARD.width / 2, BOARD.height / 2, np.empty(0))
-    assert rows.shape == (len(ds), feasible.WIDTH)
+    assert rows.shape == (len(ds), moments.WIDTH)
     found = 0
     for row, n, d in zip(rows, normals, ds, strict=True):
-        ref = _reference(rays, n, float(d), rolls, weight if prior else None)
+        ref = naive.plane_posterior_row(rays, n, float(d), BOARD, rolls, weight if prior else None)
         if ref is None:
-            assert row[feasible.OK] == 0.0
+            assert row[moments.OK] == 0.0
             continue
         found += 1
         scale = np.maximum(np.abs(ref), 1e-6)  # covariances' entries of 1e-8: absolute
         np.testing.assert_allclose(row, ref, rtol=1e-10, atol=1e-12 * scale.max())
     assert found >= 8, found  # most planes near the true one are consistent
-    assert rows[-1, feasible.OK] == 0.0
+    assert rows[-1, moments.OK] == 0.0
 
 
 def test_in_plane_is_the_kernels_single_plane():
@@ -103,7 +96,7 @@ def test_in_plane_is_the_kernels_single_plane():
         np.testing.assert_array_equal(one.mean, post.mean)
         np.testing.assert_array_equal(one.cov, post.cov)
         assert one.evidence == post.evidence and one.support == post.support
-        np.testing.assert_allclose(pose, _pose(n, float(d), post.mean), rtol=1e-12,
+        np.testing.assert_allclose(pose, naive.plane_pose(n, float(d), post.mean), rtol=1e-12,
                                    atol=1e-15)
 
 
@@ -117,9 +110,9 @@ def test_rows_from_the_grids_trig_match_roll_by_roll_and_the_rotation():
     rolls = np.sort(rng.uniform(-np.pi / 2, np.pi / 2, 101))
     n = np.array([0.05, 0.99, -0.08])
     n /= np.linalg.norm(n)
-    r0, r2 = feasible._rows_of(np.cos(rolls), np.sin(rolls), n)
+    r0, r2 = plane_rows_of(np.cos(rolls), np.sin(rolls), n)
     for k, roll in enumerate(rolls):
-        a0, a2 = feasible._rows_kernel(rolls[k:k + 1], n)
+        a0, a2 = plane_rows(rolls[k:k + 1], n)
         np.testing.assert_array_equal(r0[k], a0[0])
         np.testing.assert_array_equal(r2[k], a2[0])
         rot = rotation(*pose_from_plane(n, 2.0, roll)[3:])
@@ -127,40 +120,9 @@ def test_rows_from_the_grids_trig_match_roll_by_roll_and_the_rotation():
         np.testing.assert_allclose(r2[k], rot[2], atol=1e-12)
 
 
-@njit(cache=True)
-def _moments_every_label(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2):
-    """`feasible.label_moments` by its definition: every hit and every miss at every roll, in
-    their order, no label left out (the reference for the kernels that leave labels out)."""
-    n_k, n_h, n_m = r0.shape[0], p_hit.shape[0], p_miss.shape[0]
-    out = np.zeros((n_k, 6))
-    lim_h, lim_m = feasible._limits(ext_hit, w2, h2), feasible._limits(ext_miss, w2, h2)
-    bx0, bx1, bz0, bz1 = np.empty(n_m), np.empty(n_m), np.empty(n_m), np.empty(n_m)
-    iz0, iz1, xs = np.empty(n_m), np.empty(n_m), np.empty(2 * n_m + 2)
-    for k in range(n_k):
-        a0, a1, c0, c1 = -np.inf, np.inf, -np.inf, np.inf
-        for i in range(n_h):
-            x = p_hit[i, 0] * r0[k, 0] + p_hit[i, 1] * r0[k, 1] + p_hit[i, 2] * r0[k, 2]
-            z = p_hit[i, 0] * r2[k, 0] + p_hit[i, 1] * r2[k, 1] + p_hit[i, 2] * r2[k, 2]
-            a0, a1 = max(a0, lim_h[i, 0] - x), min(a1, lim_h[i, 1] - x)
-            c0, c1 = max(c0, lim_h[i, 2] - z), min(c1, lim_h[i, 3] - z)
-        if not (a1 > a0 and c1 > c0) or np.isinf(a1 - a0) or np.isinf(c1 - c0):
-            continue
-        nb = 0
-        for i in range(n_m):  # every overlapping miss's box, cut out by _box_minus_boxes
-            x = p_miss[i, 0] * r0[k, 0] + p_miss[i, 1] * r0[k, 1] + p_miss[i, 2] * r0[k, 2]
-            z = p_miss[i, 0] * r2[k, 0] + p_miss[i, 1] * r2[k, 1] + p_miss[i, 2] * r2[k, 2]
-            x0, x1, z0, z1 = lim_m[i, 0] - x, lim_m[i, 1] - x, lim_m[i, 2] - z, lim_m[i, 3] - z
-            if x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1:
-                bx0[nb], bx1[nb], bz0[nb], bz1[nb] = x0, x1, z0, z1
-                nb += 1
-        feasible._box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs,
-                                  out[k])
-    return out
-
-
 @pytest.fixture(scope="module")
 def twin_batches():
-    """`feasible.plane_posteriors`' real inputs: the default estimate of twin scans (the
+    """`moments.plane_posteriors`' real inputs: the default estimate of twin scans (the
     paper's yaw sweep's bench, divergence and mixed returns on, as the demo has them) at three
     stage yaws, every batch of planes it asks for, captured around the real kernel."""
     from align.api import estimate
@@ -172,13 +134,13 @@ def twin_batches():
     bench = SimBench(seed=0)
     bench.home()
     batches = []
-    kernel = feasible.plane_posteriors
+    kernel = moments.plane_posteriors
 
     def capture(*args):
         batches.append(args)
         return kernel(*args)
 
-    feasible.plane_posteriors = capture
+    moments.plane_posteriors = capture
     try:
         for i in (0, 10, 20):  # -10, 0 and +10 deg
             visit(bench, plan.references[i])
@@ -186,7 +148,7 @@ def twin_batches():
             for scan in bench.scans(2):
                 estimate(scan)
     finally:
-        feasible.plane_posteriors = kernel
+        moments.plane_posteriors = kernel
     assert len(batches) >= 6
     return batches
 
@@ -199,44 +161,16 @@ def test_label_moments_equal_every_label_on_twin_scans(twin_batches):
     for (hit_o, hit_u, hit_ext, miss_o, miss_u, miss_ext, normals, ds, rolls, _, w2,
          h2, _) in twin_batches:
         for n, d in zip(normals, ds, strict=True):
-            ph, pm = feasible._points(hit_o, hit_u, n, d), feasible._points(miss_o, miss_u, n, d)
-            r0, r2 = feasible._rows_of(np.cos(rolls), np.sin(rolls), n)
-            got = feasible.label_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
-            ref = _moments_every_label(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
+            ph, pm = moments._points(hit_o, hit_u, n, d), moments._points(miss_o, miss_u, n, d)
+            r0, r2 = plane_rows_of(np.cos(rolls), np.sin(rolls), n)
+            got = moments.label_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
+            ref = naive.moments_every_label(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
             np.testing.assert_array_equal(got, ref)
             planes += 1
-            hits, misses = feasible.binding_labels(ph, pm, feasible._limits(hit_ext, w2, h2),
-                                                   feasible._limits(miss_ext, w2, h2), r0, r2)
+            hits, misses = moments.binding_labels(ph, pm, moments._limits(hit_ext, w2, h2),
+                                                   moments._limits(miss_ext, w2, h2), r0, r2)
             assert len(hits) < len(ph) and len(misses) < len(pm)  # some are left out
     assert planes >= 60, planes
-
-
-def _soft_every_label(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2, odds, soft):
-    """`feasible.soft_moments` by its definition: the soft hits it weighs, then the sum over
-    which of them are off the board of their weights times every label's moments without
-    them (`_moments_every_label`), in its order."""
-    full = _moments_every_label(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2)
-    if not np.any(full[:, 0] > 0):
-        return full
-    hits, _ = feasible.binding_labels(p_hit, p_miss, feasible._limits(ext_hit, w2, h2),
-                                      feasible._limits(ext_miss, w2, h2), r0, r2)
-    chosen = feasible._binding_soft(p_hit, p_miss, ext_hit, feasible._limits(ext_miss, w2, h2),
-                                    r0, r2, w2, h2, soft, hits)[0]
-    if len(chosen) == 0:
-        return full
-    kappa = np.minimum(odds[chosen], 1.0)
-    total = np.zeros_like(full)
-    for mask in range(1 << len(chosen)):
-        w, keep = 1.0, np.ones(len(p_hit), dtype=bool)
-        for t in range(len(chosen)):
-            off = (mask >> t) & 1
-            w *= kappa[t] if off else 1.0 - kappa[t]
-            keep[chosen[t]] = not off
-        if w == 0.0:
-            continue
-        total += w * (full if mask == 0 else _moments_every_label(
-            p_hit[keep], p_miss, ext_hit[keep], ext_miss, r0, r2, w2, h2))
-    return total
 
 
 def test_soft_moments_equal_their_sum_over_every_label(twin_batches):
@@ -254,18 +188,18 @@ def test_soft_moments_equal_their_sum_over_every_label(twin_batches):
                 odds[rng.choice(len(hit_o), min(6, len(hit_o)), replace=False)] = 0.5
             if len(odds) == 0:
                 continue
-            soft = feasible._soft_hits(odds)
+            soft = moments._soft_hits(odds)
             for n, d in list(zip(normals, ds, strict=True))[::4]:
-                ph = feasible._points(hit_o, hit_u, n, d)
-                pm = feasible._points(miss_o, miss_u, n, d)
-                r0, r2 = feasible._rows_of(np.cos(rolls), np.sin(rolls), n)
-                got = feasible.soft_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2, odds,
+                ph = moments._points(hit_o, hit_u, n, d)
+                pm = moments._points(miss_o, miss_u, n, d)
+                r0, r2 = plane_rows_of(np.cos(rolls), np.sin(rolls), n)
+                got = moments.soft_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2, odds,
                                             soft)
-                ref = _soft_every_label(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2, odds, soft)
+                ref = naive.soft_every_label(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2, odds, soft)
                 np.testing.assert_array_equal(got, ref)
-                hits, _ = feasible.binding_labels(ph, pm, feasible._limits(hit_ext, w2, h2),
-                                                  feasible._limits(miss_ext, w2, h2), r0, r2)
-                weighed += len(feasible._binding_soft(ph, pm, hit_ext,
-                                                      feasible._limits(miss_ext, w2, h2), r0,
+                hits, _ = moments.binding_labels(ph, pm, moments._limits(hit_ext, w2, h2),
+                                                  moments._limits(miss_ext, w2, h2), r0, r2)
+                weighed += len(moments._binding_soft(ph, pm, hit_ext,
+                                                      moments._limits(miss_ext, w2, h2), r0,
                                                       r2, w2, h2, soft, hits)[0]) > 0
     assert weighed >= 10, weighed

@@ -1,4 +1,4 @@
-"""The roll search's sweep (`align.fit_kernels.window_sweep_projected`: tails sorted alone,
+"""The roll search's sweep (`align.search.roll_kernels.window_sweep_projected`: tails sorted alone,
 each roll projected into a row) against the numpy reference it replaced (the (n, K) product
 points @ axes.T, every column sorted afresh and slid), on the search's own inputs from real
 scans: the twin's and the recorded VLP-16's."""
@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 
 import align
-from align import roll_search
 from align.board import BoardSpec
-from align.feasible import plane_rows
-from align.fit_kernels import window_sweep_projected
+from align.fit import starts
+from align.floats import plane_rows
+from align.search import roll as roll_search
+from align.search.roll_kernels import window_sweep_projected
+from tests import naive
 from tests.conftest import DATA_DIR
-from tests.test_fit_kernels import window_fit_reference
 from tests.test_rays_kernels import ACFR_BOARD
 from twin.lidar.pcd import read_pcd_scans
 from twin.sim.bench import BenchSim
@@ -24,14 +25,14 @@ from twin.sim.bench import BenchSim
 def searches(request) -> list[tuple[tuple, dict]]:
     """The arguments of every `roll_search.search` call of estimates of real scans."""
     calls: list[tuple[tuple, dict]] = []
-    real = roll_search.search
+    real = starts.search  # the fit's starts call it
 
     def recorded(*args, **kwargs):
         calls.append((args, kwargs))
         return real(*args, **kwargs)
 
     mp = pytest.MonkeyPatch()
-    mp.setattr(roll_search, "search", recorded)
+    mp.setattr(starts, "search", recorded)
     try:
         for seed in range(4):
             align.estimate(BenchSim(seed=seed).scan(), board=BoardSpec(), hints=align.Hints())
@@ -44,29 +45,18 @@ def searches(request) -> list[tuple[tuple, dict]]:
     return calls
 
 
-def left_out_reference(points: np.ndarray, n: np.ndarray, board: BoardSpec, rolls: np.ndarray,
-                       tol: float, z_first: bool = False
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """`roll_search._left_out` before the sweep projected the points itself (and counted
-    every roll along both axes)."""
-    r0, r2 = plane_rows(rolls, n)
-    cx, tx = window_fit_reference(points @ r0.T, board.width + 2 * tol)
-    cz, tz = window_fit_reference(points @ r2.T, board.height + 2 * tol)
-    return 2 * len(points) - cx - cz, tx, tz
-
-
 def test_projected_sweep_is_the_sorted_slide_bit_for_bit(searches):
     tails = 0
     for args, _ in searches:
         points, n, board = args[0], args[1], args[2]
         for k, step in ((roll_search.COARSE_POINTS, roll_search.COARSE_STEP),
                         (roll_search.FINE_POINTS, roll_search.FINE_STEP)):
-            p = np.ascontiguousarray(roll_search._subsample(points, k))
+            p = np.ascontiguousarray(roll_search.subsample(points, k))
             rolls = np.arange(-np.pi / 2, np.pi / 2, step)
             for axes, length in zip(plane_rows(rolls, n), (board.width + 0.02, board.height + 0.02),
                                     strict=True):
                 got = window_sweep_projected(p, np.ascontiguousarray(axes), length)
-                want = window_fit_reference(p @ axes.T, length)
+                want = naive.window_fit(p @ axes.T, length)
                 np.testing.assert_array_equal(got[0], want[0])
                 np.testing.assert_array_equal(got[1], want[1])
                 tails += int(np.sum((got[0] < len(p)) & (got[0] > 0.75 * len(p))))
@@ -75,7 +65,7 @@ def test_projected_sweep_is_the_sorted_slide_bit_for_bit(searches):
 
 def test_search_starts_are_those_of_the_numpy_reference(searches, monkeypatch):
     got = [roll_search.search(*a, **k) for a, k in searches]
-    monkeypatch.setattr(roll_search, "left_out", left_out_reference)
+    monkeypatch.setattr(roll_search, "left_out", naive.left_out)
     want = [roll_search.search(*a, **k) for a, k in searches]
     assert got == want
     assert all(len(s) > 0 for s in got)
@@ -91,12 +81,12 @@ def test_left_out_is_exact_within_one_of_the_fewest(searches):
         points, n, board = args[0], args[1], args[2]
         for k, step, grow in ((roll_search.COARSE_POINTS, roll_search.COARSE_STEP, 0.0146),
                               (roll_search.FINE_POINTS, roll_search.FINE_STEP, 0.01)):
-            p = np.ascontiguousarray(roll_search._subsample(points, k))
+            p = np.ascontiguousarray(roll_search.subsample(points, k))
             rolls = np.arange(-np.pi / 2 - 0.2, np.pi / 2 + 0.2, step)
-            want, w_tx, w_tz = left_out_reference(p, n, board, rolls, grow)
+            want, w_tx, w_tz = naive.left_out(p, n, board, rolls, grow)
             near = want <= want.min() + 1
             for z_first in (False, True):
-                got, tx, tz = roll_search._left_out(p, n, board, rolls, grow, z_first)
+                got, tx, tz = roll_search.left_out(p, n, board, rolls, grow, z_first)
                 np.testing.assert_array_equal(got[near], want[near])
                 np.testing.assert_array_equal(tx[near], w_tx[near])
                 np.testing.assert_array_equal(tz[near], w_tz[near])

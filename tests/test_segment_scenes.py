@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 import align
-from align import segment
-from align.segment import find_board
+from align.search.board import find_board
+from align.search.clusters import cluster
+from align.search.plane_first import plane_candidates, rectangle_held
 from scenarios.study.protocol import pose_errors
 from twin.sim.bench import BenchSim
 from twin.sim.emulation import EmulationConfig
@@ -179,7 +180,7 @@ def test_a_board_whose_every_ring_runs_on_onto_a_box_behind_it_is_found_plane_fi
     scans = _scene_scans((0.011828518952848519, 0.04982741048265341, 0.04748273019271621),
                          832013771, 921223694, -0.007627717652556292, -2.010168781199062)
     on = _board_returns(scans[0])
-    labels, _ = segment.cluster(scans[0], scans[0].valid, align.BoardSpec().diagonal, 0.54)
+    labels, _ = cluster(scans[0], scans[0].valid, align.BoardSpec().diagonal, 0.54)
     assert max(np.count_nonzero(on & (labels == lab)) for lab in np.unique(labels[on])) \
         < 0.3 * on.sum()
     assert min(_found(scans)) >= 1
@@ -213,13 +214,13 @@ def test_a_board_buried_with_things_in_its_plane_is_cut_down_to_its_rectangle():
     # returns for the board's 573), so the board's rectangle held too little of it to be chosen
     scans = _scene_scans((0.050462705695633686, -0.005668492972236462, -0.01901784066606767),
                          2146528404, 786062889, -0.006624282942070675, -9.019732208738159)
-    from align.plane import fit_lsq
+    from align.plane.fit import fit_lsq
 
     s = scans[0]
     on = _board_returns(s)
-    found = segment.plane_candidates(s, align.BoardSpec(), SHARP)
+    found = plane_candidates(s, align.BoardSpec(), SHARP)
     best = max(found, key=lambda c: np.count_nonzero(on[c]))
     assert np.count_nonzero(on[best]) > 0.95 * on.sum() and len(best) < 1.1 * on.sum()
     n, d = fit_lsq(s.xyz[best])
-    assert len(segment.rectangle_held(s, best, n, d, align.BoardSpec())) == len(best)
+    assert len(rectangle_held(s, best, n, d, align.BoardSpec())) == len(best)
     assert sum(k >= 1 for k in _found(scans)) >= 3
