@@ -21,8 +21,7 @@ from scipy.sparse.csgraph import connected_components
 from align.baselines.paper import plane_axes
 from align.board import BoardSpec
 from align.fit.bracket_kernels import SIDE_REACH
-from align.fit.brackets import rays_between_hits as stage_rays_between_hits
-from align.fit.labels import _behind_ends, hit_band
+from align.fit.labels import hit_band
 from align.fit.lsq_kernels import inverse_diagonal
 from align.fit.model import Model
 from align.fit.rays import DROPOUT, HIT, MISS, UNKNOWN, Rays
@@ -33,7 +32,7 @@ from align.params import RaysParams
 from align.plane.fit import fit_lsq, predicted_range, tangent_basis
 from align.posterior import moments
 from align.posterior.hit_miss import LabelledRays
-from align.posterior.rays import _clutter_odds, _partial_hits
+from align.posterior.rays import _clutter_odds
 from align.search import roll
 from align.search.board import FILL_MARGIN, FLAT_BAND, SURROUND
 from align.search.clusters import (
@@ -56,7 +55,7 @@ P = RaysParams()
 # ---------------------------------------------------------------------------------------------
 
 def ransac_scored(points: np.ndarray, tri: np.ndarray, threshold: float, truncated: bool
-                  ) -> tuple[np.ndarray, float, np.ndarray]:
+                 ) -> tuple[np.ndarray, float, np.ndarray]:
     """`align.plane.fit.ransac` from its point triples ``tri`` (H, 3) on: every hypothesis's
     distances at once (an (H, N) matrix); the most inliers win (numpy's first maximum), or with
     ``truncated`` (MSAC) the least sum of squared distances capped at ``threshold`` (its first
@@ -113,8 +112,8 @@ def slide(xs: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fit_rays(ranges: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
-                       n0: np.ndarray, d0: float, iterations: int = 8, tol: float = 1e-9,
-                       sigma_floor: float = 0.0) -> tuple[np.ndarray, float, np.ndarray, float]:
+             n0: np.ndarray, d0: float, iterations: int = 8, tol: float = 1e-9,
+             sigma_floor: float = 0.0) -> tuple[np.ndarray, float, np.ndarray, float]:
     """`align.plane.fit.fit_rays` as numpy calls (its kernel: `ray_plane_fit`)."""
 
     n, d = n0 / np.linalg.norm(n0), float(d0)
@@ -170,7 +169,7 @@ def union_find(n: int, a: np.ndarray, b: np.ndarray) -> tuple[int, np.ndarray]:
 
 
 def labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagonal: float,
-                 short_side: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+                short_side: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """`align.search.clusters`' grid labels as numpy passes (its kernel: `grid_clusters`)."""
     k0, m = grid
     nl = scan.lasers.n_lasers
@@ -260,7 +259,7 @@ def labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagona
 
 
 def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
-                  ) -> tuple[float, float, float]:
+                 ) -> tuple[float, float, float]:
     """`align.search.board.rectangle_fit` as numpy calls (its kernels: `best_roll`,
     `rectangle_rays`)."""
     points = scan.xyz[sel]
@@ -311,7 +310,7 @@ def window_fit(coords: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarra
 
 def left_out(points: np.ndarray, n: np.ndarray, board: BoardSpec, rolls: np.ndarray,
              tol: float, z_first: bool = False
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`align.search.roll.left_out` with the points projected by numpy (and counted
     every roll along both axes)."""
     r0, r2 = plane_rows(rolls, n)
@@ -395,9 +394,8 @@ def labels(rays, lam, sigma_r):
     lab[ret & (np.abs(res) <= near)] = HIT
     lab[ret & ((res < -near) | ((res > near) & (res <= P.label_tolerance)))] = \
         UNKNOWN
-    order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
-    lab[_behind_ends(rays, lab, res, sigma_r, order, p=P)] = UNKNOWN
-    inner = stage_rays_between_hits(rays, lab, order) & ~ret
+    lab[behind_ends(rays, lab, res, sigma_r)] = UNKNOWN
+    inner = rays_between_hits(rays, lab) & ~ret
     hits = int(np.count_nonzero(lab == HIT))
     if np.count_nonzero(inner) >= max(P.min_dropouts, P.dropout_fraction * hits):
         lab[~ret] = DROPOUT
@@ -405,7 +403,7 @@ def labels(rays, lam, sigma_r):
 
 
 def behind_ends(rays: Rays, lab: np.ndarray, res: np.ndarray,
-                          sigma_r: float) -> np.ndarray:
+                sigma_r: float) -> np.ndarray:
     """`align.fit.labels._behind_ends` with its loop over the lasers in python (its kernel:
     `behind_groups`)."""
 
@@ -515,7 +513,7 @@ def rays_between_hits(rays: Rays, lab: np.ndarray) -> np.ndarray:
 
 
 def board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray
-                          ) -> tuple[np.ndarray, np.ndarray]:
+               ) -> tuple[np.ndarray, np.ndarray]:
     """`align.fit.brackets`' board spans as numpy runs sorted by size (its kernel:
     `board_spans`)."""
     n_l = int(ls.max()) + 1 if len(ls) else 0
@@ -573,7 +571,7 @@ def hit_miss_brackets(rays: Rays, lab: np.ndarray) -> tuple[np.ndarray, np.ndarr
 
 
 def vertical_brackets(rays: Rays, lab: np.ndarray, off: np.ndarray
-                                ) -> tuple[np.ndarray, np.ndarray]:
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """`align.fit.brackets.vertical_brackets` with a dictionary of rings (its kernel:
     `column_brackets`)."""
     col = {}
@@ -644,7 +642,7 @@ def side_lines(ends, w2, tol, inward):
 
 
 def profile(model: Model, theta: np.ndarray, ds: np.ndarray,
-                      tol: float = 3e-3) -> np.ndarray:
+            tol: float = 3e-3) -> np.ndarray:
     """`Model.profile` as numpy calls (its kernel: `profile_cost`)."""
     x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
     vx, vz = lidar_up(theta)
@@ -684,7 +682,7 @@ def profile(model: Model, theta: np.ndarray, ds: np.ndarray,
 
 
 def classify(model: Model, theta: np.ndarray, guard: float,
-                       crossings: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+             crossings: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`Model.classify`'s kinds, signs and sigmas as numpy calls (its kernel:
     `classify_edges`)."""
     x, z, _ = board_coordinates(theta, model.rays.origin, model.rays.direction)
@@ -710,7 +708,7 @@ def assign(model: Model, theta: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 def board_coords(rot: np.ndarray, theta: np.ndarray, o: np.ndarray, u: np.ndarray
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Board coordinates X, Z of rays (origins o, directions u in {L}) and their directions in
     {O}, for the rotation ``rot`` of pose ``theta`` (the numpy version's helper)."""
     d = u @ rot.T
@@ -764,7 +762,7 @@ def jacobian(model: Model, theta: np.ndarray, f0: np.ndarray) -> np.ndarray:
 
 
 def gauss_newton(model: Model, theta: np.ndarray, max_iter: int = 30
-                           ) -> tuple[np.ndarray, np.ndarray, bool, int]:
+                ) -> tuple[np.ndarray, np.ndarray, bool, int]:
     """The fit's Levenberg-Marquardt as a python loop of numpy calls (its kernel: `lm_fit`)."""
 
     converged = False
@@ -836,6 +834,16 @@ def plane_pose(n: np.ndarray, d: float, q: np.ndarray) -> np.ndarray:
     return th
 
 
+def partial_hits(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray) -> np.ndarray:
+    """The hits dimmer than `RaysParams.partial_intensity` of the median of the hits well
+    inside the rectangle (``inner``): a divergent beam straddling an edge (`ray_points` takes
+    them in `edge_labels`' pass); none without inner hits to compare with."""
+    ref = intensity[(lab == HIT) & inner]
+    if len(ref) == 0:
+        return np.zeros(len(lab), dtype=bool)
+    return (lab == HIT) & (intensity < P.partial_intensity * float(np.median(ref)))
+
+
 def ray_points(model, theta, tolerance, intensity=None, partial=(0.0, 0.0)):
     """`align.posterior.rays.ray_points` as numpy calls (its kernel: `edge_labels`)."""
     rays, board = model.rays, model.board
@@ -850,7 +858,7 @@ def ray_points(model, theta, tolerance, intensity=None, partial=(0.0, 0.0)):
     vx, vz = lidar_up(theta)
     t_h, t_v = np.full(len(lab), tolerance[0]), np.full(len(lab), tolerance[1])
     if intensity is not None:
-        part = _partial_hits(lab, intensity, inner, p=P)
+        part = partial_hits(lab, intensity, inner)
         t_h[part] = max(tolerance[0], partial[0]) if tolerance[0] > 0 else 0.0
         t_v[part] = max(tolerance[1], partial[1]) if tolerance[1] > 0 else 0.0
     per_x, per_z = np.hypot(t_h * vz, t_v * vx), np.hypot(t_h * vx, t_v * vz)
@@ -1000,7 +1008,7 @@ def corner_jacobian(beta, p_l, p_o):
 
 
 def feature_points(points: np.ndarray, n: np.ndarray, d: float
-                             ) -> tuple[np.ndarray, np.ndarray]:
+                  ) -> tuple[np.ndarray, np.ndarray]:
     """`align.baselines.paper.feature_points` as numpy calls (its kernel: `corner_points`)."""
     proj = points - np.outer(points @ n - d, n)
     h, v = plane_axes(n)
