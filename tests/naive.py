@@ -641,6 +641,22 @@ def side_lines(ends, w2, tol, inward):
         keep[worst] = False
 
 
+def edges_seen(x: np.ndarray, z: np.ndarray, lab: np.ndarray, board: BoardSpec
+               ) -> tuple[bool, bool, bool, bool]:
+    """Whether the LiDAR looked beyond each edge (left, right, bottom, top) and saw no board
+    there: a miss just outside it (within `RaysParams.window`), alongside it (its kernel:
+    `seen_counts`)."""
+    w2, h2 = board.width / 2, board.height / 2
+    miss = lab == MISS
+    along_x, along_z = np.abs(z) <= h2, np.abs(x) <= w2
+    out = []
+    for c, half, along, side in ((x, w2, along_x, -1), (x, w2, along_x, 1),
+                                 (z, h2, along_z, -1), (z, h2, along_z, 1)):
+        beyond = (side * c > half) & (side * c < half + P.window)
+        out.append(bool(np.any(miss & along & beyond)))
+    return tuple(out)
+
+
 def profile(model: Model, theta: np.ndarray, ds: np.ndarray,
             tol: float = 3e-3) -> np.ndarray:
     """`Model.profile` as numpy calls (its kernel: `profile_cost`)."""

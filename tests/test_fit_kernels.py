@@ -10,9 +10,8 @@ import pytest
 
 import align
 from align.board import BoardSpec
-from align.fit.bracket_kernels import contradicted
+from align.fit.bracket_kernels import board_spans, contradicted
 from align.fit.brackets import (
-    _board_spans,
     hit_miss_brackets,
     rays_between_hits,
     vertical_brackets,
@@ -26,7 +25,6 @@ from align.floats import plane_rows
 from align.geometry import board_coordinates, lidar_up, unwrap
 from align.params import RaysParams
 from align.posterior.rays import ray_points
-from align.rays.pipeline import _edges_seen
 from align.search.roll_kernels import window_sweep
 from tests import naive
 from tests.conftest import DATA_DIR
@@ -438,7 +436,7 @@ def test_between_hits_match_numpy_on_real_scans(models):
 
 
 def test_board_spans_match_numpy_on_real_scans(models):
-    """`align.fit.brackets._board_spans` (`board_spans`) against its numpy version: the models'
+    """`board_spans` (the brackets' span of each laser) against its numpy version: the models'
     labels, with hits dropped at random (runs split, ties of equal runs), and none."""
     rng = np.random.default_rng(12)
     for model, _ in models:
@@ -453,15 +451,16 @@ def test_board_spans_match_numpy_on_real_scans(models):
             if k == 3:
                 lab[:] = MISS
             ls, az, lb = rays.laser[order], rays.azimuth[order], lab[order]
-            got, want = _board_spans(ls, az, lb, p=P), naive.board_spans(ls, az, lb)
+            got = board_spans(ls, az, lb == HIT, P.zone_azimuth)
+            want = naive.board_spans(ls, az, lb)
             for g, w in zip(got, want, strict=True):
                 np.testing.assert_array_equal(g, w)
         # equal runs on one laser: the later wins
         ls = np.zeros(7, dtype=rays.laser.dtype)
         az = np.array([0.0, 0.001, 0.1, 0.101, 0.2, 0.201, 0.3])
         lb = np.array([1, 1, 0, 1, 1, 0, 1], dtype=np.int8)
-        for g, w in zip(_board_spans(ls, az, lb, p=P), naive.board_spans(ls, az, lb),
-                        strict=True):
+        got = board_spans(ls, az, lb == HIT, P.zone_azimuth)
+        for g, w in zip(got, naive.board_spans(ls, az, lb), strict=True):
             np.testing.assert_array_equal(g, w)
 
 
@@ -855,7 +854,7 @@ def test_labels_and_bright_ends_match_numpy_on_real_scans(models):
 
 def test_seen_counts_match_numpy_on_real_scans(models):
     """`seen_counts` (the estimate's account of what was seen) against
-    `align.rays.pipeline._edges_seen` and numpy's masks: the models' labels, with misses,
+    `tests.naive.edges_seen` and numpy's masks: the models' labels, with misses,
     dropouts and returns in front put in at random, at poses off the fit's (edges unseen, rays
     blocked)."""
     from align.fit.label_kernels import seen_counts
@@ -876,7 +875,7 @@ def test_seen_counts_match_numpy_on_real_scans(models):
                                                                         < 0.1)
             b, front = 0.003 * k, 0.04
             inside = (np.abs(x) < w2) & (np.abs(z) < h2)
-            want = (_edges_seen(x, z, lab, board, p=P), int(np.sum(inside)),
+            want = (naive.edges_seen(x, z, lab, board), int(np.sum(inside)),
                     int(np.sum(inside & (distance > 0) & (distance - b - lam < -front))),
                     int(np.sum(inside & (lab == DROPOUT))),
                     int(np.sum(inside & (np.abs(x) < w2 - 0.02) & (np.abs(z) < h2 - 0.02)
