@@ -80,7 +80,7 @@ class RaysParams:
     min_dropouts: int = 3
     #: A laser's outermost hits are something just behind the board beside its edge (a holder, a
     #: box standing behind it) when their mean range residual is this many standard errors and at
-    #: least `behind_min` behind the plane (`_behind_ends`). 5 sigma: a board's own ends pass
+    #: least `behind_min` behind the plane (`behind_ends`). 5 sigma: a board's own ends pass
     #: (about 1 in 1000 scans trims an end it should not, which costs a bracket, not a bias).
     behind_sigmas: float = 5.0
     behind_min: float = 0.01

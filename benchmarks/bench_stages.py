@@ -54,7 +54,7 @@ STAGES = (
     (plane_fit, "fit_rays", "plane: ML along the rays (`align.plane.fit.fit_rays`)"),
     (lsq, "fit_from", "joint least-squares fit (`align.fit.lsq.fit_from`)"),
     (fit_rays, "candidates_at", "- its candidate rays at a pose (`fit.rays.candidates_at`)"),
-    (lsq, "_gauss_newton", "- its Levenberg-Marquardt (`fit.lsq._gauss_newton`)"),
+    (lsq, "gauss_newton", "- its Levenberg-Marquardt (`fit.lsq.gauss_newton`)"),
     (hit_miss, "label_posterior", "hit/miss posterior (`align.posterior.hit_miss`)"),
     (moments, "plane_posteriors",
      "- its compiled in-plane posteriors (`posterior.moments.plane_posteriors`)"),

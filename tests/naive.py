@@ -32,7 +32,7 @@ from align.params import RaysParams
 from align.plane.fit import fit_lsq, predicted_range, tangent_basis
 from align.posterior import moments
 from align.posterior.hit_miss import LabelledRays
-from align.posterior.rays import _clutter_odds
+from align.posterior.rays import clutter_odds
 from align.search import roll
 from align.search.board import FILL_MARGIN, FLAT_BAND, SURROUND
 from align.search.clusters import (
@@ -404,7 +404,7 @@ def labels(rays, lam, sigma_r):
 
 def behind_ends(rays: Rays, lab: np.ndarray, res: np.ndarray,
                 sigma_r: float) -> np.ndarray:
-    """`align.fit.labels._behind_ends` with its loop over the lasers in python (its kernel:
+    """`align.fit.labels.behind_ends` with its loop over the lasers in python (its kernel:
     `behind_groups`)."""
 
     out = np.zeros(len(lab), dtype=bool)
@@ -881,7 +881,7 @@ def ray_points(model, theta, tolerance, intensity=None, partial=(0.0, 0.0)):
     per_edge = np.column_stack((per_x, per_x, per_z, per_z))
     ext += (lam * np.where(lab == 1, 1.0, -1.0))[:, None] * per_edge
     use &= ~overhanging(x, z, lab, rays.laser, ext, board, p=P)
-    odds = _clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r, p=P)
+    odds = clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r, p=P)
     return (LabelledRays(rays.origin[use], u[use], lab[use], ext[use],
                                   odds * (lab[use] == HIT)), np.flatnonzero(use))
 
@@ -906,7 +906,7 @@ def moments_every_label(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2):
     their order, no label left out (the reference for the kernels that leave labels out)."""
     n_k, n_h, n_m = r0.shape[0], p_hit.shape[0], p_miss.shape[0]
     out = np.zeros((n_k, 6))
-    lim_h, lim_m = moments._limits(ext_hit, w2, h2), moments._limits(ext_miss, w2, h2)
+    lim_h, lim_m = moments.box_limits(ext_hit, w2, h2), moments.box_limits(ext_miss, w2, h2)
     bx0, bx1, bz0, bz1 = np.empty(n_m), np.empty(n_m), np.empty(n_m), np.empty(n_m)
     iz0, iz1, xs = np.empty(n_m), np.empty(n_m), np.empty(2 * n_m + 2)
     for k in range(n_k):
@@ -919,14 +919,14 @@ def moments_every_label(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2):
         if not (a1 > a0 and c1 > c0) or np.isinf(a1 - a0) or np.isinf(c1 - c0):
             continue
         nb = 0
-        for i in range(n_m):  # every overlapping miss's box, cut out by _box_minus_boxes
+        for i in range(n_m):  # every overlapping miss's box, cut out by box_minus_boxes
             x = p_miss[i, 0] * r0[k, 0] + p_miss[i, 1] * r0[k, 1] + p_miss[i, 2] * r0[k, 2]
             z = p_miss[i, 0] * r2[k, 0] + p_miss[i, 1] * r2[k, 1] + p_miss[i, 2] * r2[k, 2]
             x0, x1, z0, z1 = lim_m[i, 0] - x, lim_m[i, 1] - x, lim_m[i, 2] - z, lim_m[i, 3] - z
             if x1 > a0 and x0 < a1 and z1 > c0 and z0 < c1:
                 bx0[nb], bx1[nb], bz0[nb], bz1[nb] = x0, x1, z0, z1
                 nb += 1
-        moments._box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs,
+        moments.box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs,
                                   out[k])
     return out
 
@@ -938,9 +938,9 @@ def soft_every_label(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2, odds, sof
     full = moments_every_label(p_hit, p_miss, ext_hit, ext_miss, r0, r2, w2, h2)
     if not np.any(full[:, 0] > 0):
         return full
-    hits, _ = moments.binding_labels(p_hit, p_miss, moments._limits(ext_hit, w2, h2),
-                                      moments._limits(ext_miss, w2, h2), r0, r2)
-    chosen = moments._binding_soft(p_hit, p_miss, ext_hit, moments._limits(ext_miss, w2, h2),
+    hits, _ = moments.binding_labels(p_hit, p_miss, moments.box_limits(ext_hit, w2, h2),
+                                      moments.box_limits(ext_miss, w2, h2), r0, r2)
+    chosen = moments.binding_soft(p_hit, p_miss, ext_hit, moments.box_limits(ext_miss, w2, h2),
                                     r0, r2, w2, h2, soft, hits)[0]
     if len(chosen) == 0:
         return full

@@ -264,9 +264,9 @@ def test_one_holder_return_in_the_hit_band_does_not_pin_the_posterior(mount, sce
     # with it
     from align.params import RaysParams
     from align.posterior.moments import MIN_ODDS
-    from align.posterior.rays import _clutter_odds
+    from align.posterior.rays import clutter_odds
 
-    assert _clutter_odds(np.array([0.049]), 0.014, p=RaysParams())[0] > 2 * MIN_ODDS
+    assert clutter_odds(np.array([0.049]), 0.014, p=RaysParams())[0] > 2 * MIN_ODDS
     _, scans = _holder_scene(mount, scene_seed, scan_seed, x, yaw_deg)
     z = _roll_errors(scans[which:which + 1])
     assert abs(z[0, 0]) < 3 * z[0, 1], np.rad2deg(z)

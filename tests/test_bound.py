@@ -182,7 +182,7 @@ def test_label_posterior_against_an_exact_grid(n_scans):
     _, var, _ = bound_labels.gaussian_information(zero, cr, fixed, n_scans)
     cov, _ = bound_labels.expected_covariance(zero, cr, fixed, n_scans, var, None,
                                               np.random.default_rng(5), 256, 48)
-    lo, hi = bound_labels._brackets(cr, fixed, n_scans, None, np.random.default_rng(5), 256)
+    lo, hi = bound_labels.crossing_brackets(cr, fixed, n_scans, None, np.random.default_rng(5), 256)
     span = 0.06 / n_scans
     roll = np.linspace(-span, span, 4001)
     exact = []

@@ -114,7 +114,7 @@ def test_binding_labels_keep_every_label_when_the_rows_do_not_turn_rigidly():
     p_hit, p_miss, e_hit, e_miss = _edge_rays(rng)
     rolls = np.deg2rad(np.linspace(-1.0, 1.0, 41))
     r0, r2 = plane_rows(rolls, np.array([0.0, 1.0, 0.0]))
-    lim_h, lim_m = moments._limits(e_hit, W2, H2), moments._limits(e_miss, W2, H2)
+    lim_h, lim_m = moments.box_limits(e_hit, W2, H2), moments.box_limits(e_miss, W2, H2)
     hits, misses = moments.binding_labels(p_hit, p_miss, lim_h, lim_m, r0, r2)
     assert len(hits) < len(p_hit) and len(misses) < len(p_miss)  # rigid: some left out
     bent = r2.copy()
@@ -142,7 +142,7 @@ def test_soft_hits_weigh_the_sets_without_them_as_a_raster_does():
     odds[0] = 0.5 * moments.MIN_ODDS
     zero_h = np.zeros((len(p_hit), 4))
     r0, r2 = np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
-    soft = moments._soft_hits(odds)
+    soft = moments.soft_hits(odds)
     assert list(soft) == [len(p_hit) - 2, len(p_hit) - 1]
     got = moments.soft_moments(p_hit, p_miss, zero_h, zero_m, r0, r2, W2, H2, odds, soft)[0]
     want = naive.soft_raster(p_hit, p_miss, np.where(odds < moments.MIN_ODDS, 0.0, odds),
@@ -173,7 +173,7 @@ def test_soft_hits_make_no_posterior_where_the_labels_allow_none():
     args = (p_hit, p_miss, np.zeros((len(p_hit), 4)), np.zeros((len(p_miss), 4)), r0, r2, W2,
             H2)
     assert moments.label_moments(*args)[0, 0] == 0.0
-    assert moments.soft_moments(*args, odds, moments._soft_hits(odds))[0, 0] == 0.0
+    assert moments.soft_moments(*args, odds, moments.soft_hits(odds))[0, 0] == 0.0
 
 
 def test_soft_moments_without_soft_hits_are_the_hard_ones():
@@ -188,5 +188,5 @@ def test_soft_moments_without_soft_hits_are_the_hard_ones():
     e_hit = np.vstack((e_hit[inner][:3], e_hit[~inner]))
     args = (p_hit, p_miss, e_hit, e_miss, r0, r2, W2, H2)
     np.testing.assert_array_equal(
-        moments.soft_moments(*args, odds, moments._soft_hits(odds)),
+        moments.soft_moments(*args, odds, moments.soft_hits(odds)),
         moments.label_moments(*args))

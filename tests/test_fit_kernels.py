@@ -16,11 +16,11 @@ from align.fit.brackets import (
     rays_between_hits,
     vertical_brackets,
 )
-from align.fit.labels import _behind_ends, bright_ends, grazing_runs, labels_ordered
-from align.fit.lsq import _gauss_newton
+from align.fit.labels import behind_ends, bright_ends, grazing_runs, labels_ordered
+from align.fit.lsq import gauss_newton
 from align.fit.model import Model
 from align.fit.rays import DROPOUT, HIT, MISS, UNKNOWN, Rays
-from align.fit.sides import Sides, _side_lines, side_widening
+from align.fit.sides import Sides, side_lines, side_widening
 from align.floats import plane_rows
 from align.geometry import board_coordinates, lidar_up, unwrap
 from align.params import RaysParams
@@ -61,7 +61,7 @@ def test_profile_best_is_the_profiles_first_minimum(models):
     the whole profile: poses off by up to a few cm and degrees, the profile's own tolerance
     and none, sharp and blurred edges (bracket costs far above the 1e6 of a violation),
     shifts with ties and a coarse grid."""
-    from align.fit.bracket_kernels import _violations, profile_best, profile_cost
+    from align.fit.bracket_kernels import profile_best, profile_cost, violations
 
     rng = np.random.default_rng(23)
     for model, theta in models:
@@ -96,7 +96,7 @@ def test_profile_best_is_the_profiles_first_minimum(models):
                 3e-3, 1e-7 * (k % 3), 1e-7)
         cost = profile_cost(*args)
         want = int(np.argmin(cost))
-        viol = _violations(*args[:4], *args[6:12])
+        viol = violations(*args[:4], *args[6:12])
         wins_elsewhere += viol[want] > viol.min()
         assert profile_best(*args) == want
     assert wins_elsewhere > 0  # the case the bound exists for was met
@@ -221,7 +221,7 @@ def test_behind_ends_match_numpy_on_real_scans(models):
                     lab[grp[keep:]] = MISS
                     if rng.random() < 0.5:
                         res[grp[:keep]] += 0.03
-            got = _behind_ends(rays, lab, res, sigma_r, p=P)
+            got = behind_ends(rays, lab, res, sigma_r, p=P)
             np.testing.assert_array_equal(got, naive.behind_ends(rays, lab, res, sigma_r))
             marked += int(got.sum())
         assert marked > 0
@@ -353,10 +353,10 @@ def test_classify_matches_numpy_on_real_scans(models):
 
 
 def test_residual_copies_are_kernels_bit_for_bit(models):
-    """`_residuals_into` (`lm_fit` calls it) is `fit_residuals`' residuals, bit
+    """`residuals_into` (`lm_fit` calls it) is `fit_residuals`' residuals, bit
     for bit, at the estimate and off it, with a range offset. (The Jacobian has one version,
     `jacobian_into`, held against numpy's in tests/test_rays_kernels.py.)"""
-    from align.fit.lsq_kernels import _residuals_into
+    from align.fit.lsq_kernels import residuals_into
     from align.floats import rotation
 
     for model, theta in models:
@@ -366,7 +366,7 @@ def test_residual_copies_are_kernels_bit_for_bit(models):
             f = model.residuals(t)
             o_r, u_r, d_r, offset, sigma_r, *edges = model._fit_arrays()
             got = np.empty(len(f))
-            _residuals_into(t, rotation(t[3], t[4], t[5]), o_r, u_r, d_r, offset, sigma_r,
+            residuals_into(t, rotation(t[3], t[4], t[5]), o_r, u_r, d_r, offset, sigma_r,
                             *edges, got)
             np.testing.assert_array_equal(got, f)
             model.offset = 0.0
@@ -374,14 +374,14 @@ def test_residual_copies_are_kernels_bit_for_bit(models):
 
 @pytest.mark.parametrize("prior", [None, (0.01, 0.02)])
 def test_lm_fit_matches_the_python_loop(models, prior):
-    """`lm_fit` (`align.fit.lsq._gauss_newton`) takes the python loop's steps: the same
+    """`lm_fit` (`align.fit.lsq.gauss_newton`) takes the python loop's steps: the same
     iterations and convergence, the pose, offset and Jacobian to rounding (its normal equations
     are summed in another order than BLAS's), from the estimate and from starts moved off it."""
     for model, theta in models:
         for dt in (np.zeros(6), np.array([4e-3, -6e-3, 3e-3, 1.5e-2, -5e-3, 8e-3])):
             start = theta + dt
             results = []
-            for fit in (naive.gauss_newton, _gauss_newton):
+            for fit in (naive.gauss_newton, gauss_newton):
                 model.offset, model.offset_prior = 0.0, prior
                 results.append((*fit(model, start.copy()), model.offset))
             (p0, j0, c0, i0, b0), (p1, j1, c1, i1, b1) = results
@@ -532,16 +532,16 @@ def test_used_edges_and_contradicted_match_numpy_on_real_scans(models):
 
 
 def test_numpy_mean_is_np_mean_bit_for_bit():
-    """`label_kernels._numpy_mean` (the short groups' mean in `behind_groups`) is np.mean of the
+    """`label_kernels.numpy_mean` (the short groups' mean in `behind_groups`) is np.mean of the
     gathered values bit for bit, for every size up to 128."""
-    from align.fit.label_kernels import _numpy_mean
+    from align.fit.label_kernels import numpy_mean
 
     rng = np.random.default_rng(13)
     res = rng.normal(0.0, 0.01, 400) + rng.choice([0.0, 0.03], 400)
     for n in range(1, 129):
         for _ in range(20):
             idx = rng.choice(len(res), n, replace=False)
-            assert _numpy_mean(res, idx) == float(res[idx].mean())
+            assert numpy_mean(res, idx) == float(res[idx].mean())
 
 
 def test_laser_ends_match_numpy_on_real_scans(models):
@@ -583,9 +583,9 @@ def replace_thickness(board: BoardSpec, k: int) -> BoardSpec:
 
 
 def test_kth_smallest_is_np_partitions():
-    """`_kth_smallest` (`laser_ends`' median step) against np.partition: random, rounded
+    """`kth_smallest` (`laser_ends`' median step) against np.partition: random, rounded
     (ties), constant, sorted and reversed values, one to two thousand of them."""
-    from align.fit.label_kernels import _kth_smallest
+    from align.fit.label_kernels import kth_smallest
 
     rng = np.random.default_rng(4)
     for trial in range(3000):
@@ -593,7 +593,7 @@ def test_kth_smallest_is_np_partitions():
         a = [rng.random(n), np.round(rng.random(n), 1), np.zeros(n), np.sort(rng.random(n)),
              np.sort(rng.random(n))[::-1].copy()][trial % 5]
         k = int(rng.integers(0, n))
-        assert _kth_smallest(a.copy(), k) == np.partition(a, k)[k]
+        assert kth_smallest(a.copy(), k) == np.partition(a, k)[k]
 
 
 def test_grazing_runs_match_numpy_on_real_scans(models):
@@ -655,7 +655,7 @@ def test_side_faces_match_numpy_on_real_scans():
 
 
 def test_side_lines_match_numpy():
-    """`align.fit.sides._side_lines` (compiled around numpy's normal equations) against the numpy
+    """`align.fit.sides.side_lines` (compiled around numpy's normal equations) against the numpy
     version, bit for bit: lasers' ends of a rolled board with noise, holders' ends beyond a
     side, rings leaving through the top or bottom (ends well inside), too few ends."""
     rng = np.random.default_rng(21)
@@ -672,7 +672,7 @@ def test_side_lines_match_numpy():
             ends[i, c] += (1 if c == 2 else -1) * rng.choice([0.01, 0.03, -0.02, -0.06])
         tol, inward = 0.006 + 0.002 * rng.random(), 0.015 + 0.01 * rng.random()
         want = naive.side_lines(ends, w2, tol, inward)
-        got = _side_lines(ends, w2, tol, inward, p=P)
+        got = side_lines(ends, w2, tol, inward, p=P)
         assert got == want
         found += want is not None
         dropped += want is not None and want != naive.side_lines(ends, w2, 1.0, 1.0)
@@ -698,9 +698,9 @@ def test_lidar_up_is_the_rotations_column_bit_for_bit():
 
 
 def test_normal_equations_in_registers_are_the_loops():
-    """`_normal_equations` of six columns (its sums in registers) against the loop over the
+    """`normal_equations` of six columns (its sums in registers) against the loop over the
     array it replaced: the same floats, the products added in the same order."""
-    from align.fit.lsq_kernels import _normal_equations
+    from align.fit.lsq_kernels import normal_equations
 
     rng = np.random.default_rng(5)
     for n in (0, 1, 7, 555):
@@ -708,7 +708,7 @@ def test_normal_equations_in_registers_are_the_loops():
             j = rng.normal(size=(n, cols)) * rng.lognormal(size=cols) * 1e3
             f = rng.normal(size=n)
             loop = naive.normal_equations(j, f)
-            for got, want in zip(_normal_equations(j, f), loop, strict=True):
+            for got, want in zip(normal_equations(j, f), loop, strict=True):
                 np.testing.assert_array_equal(got, want)
 
 

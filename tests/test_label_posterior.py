@@ -14,9 +14,9 @@ from align.plane import fit as plane
 from align.posterior.hit_miss import (
     LabelledRays,
     OffsetModel,
-    _laser_directions,
     gauss_hermite,
     label_posterior,
+    laser_directions,
 )
 
 BOARD = BoardSpec()
@@ -149,7 +149,7 @@ def test_per_laser_directions_span_the_plane_given_the_offset_beside_w():
     w = np.array([3e-4, 0.0, 1e-3])
     w /= np.sqrt(w @ np.linalg.solve(c_cond, w))
     offset = OffsetModel(0.0, np.zeros(3), 1e-6, c_noise=c_noise)
-    axes = _laser_directions(offset, c_cond, w)
+    axes = laser_directions(offset, c_cond, w)
     assert len(axes) == 2
     basis = np.column_stack([w, *axes])
     # independent and one sigma each: together they are c_cond
@@ -159,7 +159,7 @@ def test_per_laser_directions_span_the_plane_given_the_offset_beside_w():
     assert share[0] > 0.5 > share[1]
     assert abs(axes[0][1]) > 3 * abs(axes[0][0])  # mostly the lean: tilt
     # without per-laser offsets nothing more is profiled
-    assert _laser_directions(OffsetModel(0.0, np.zeros(3), 1e-6), c_cond, w) == []
+    assert laser_directions(OffsetModel(0.0, np.zeros(3), 1e-6), c_cond, w) == []
 
 
 def test_near_is_the_binding_masks_subset_and_split():

@@ -161,14 +161,15 @@ def test_label_moments_equal_every_label_on_twin_scans(twin_batches):
     for (hit_o, hit_u, hit_ext, miss_o, miss_u, miss_ext, normals, ds, rolls, _, w2,
          h2, _) in twin_batches:
         for n, d in zip(normals, ds, strict=True):
-            ph, pm = moments._points(hit_o, hit_u, n, d), moments._points(miss_o, miss_u, n, d)
+            ph = moments.plane_points(hit_o, hit_u, n, d)
+            pm = moments.plane_points(miss_o, miss_u, n, d)
             r0, r2 = plane_rows_of(np.cos(rolls), np.sin(rolls), n)
             got = moments.label_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
             ref = naive.moments_every_label(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
             np.testing.assert_array_equal(got, ref)
             planes += 1
-            hits, misses = moments.binding_labels(ph, pm, moments._limits(hit_ext, w2, h2),
-                                                   moments._limits(miss_ext, w2, h2), r0, r2)
+            hits, misses = moments.binding_labels(ph, pm, moments.box_limits(hit_ext, w2, h2),
+                                                   moments.box_limits(miss_ext, w2, h2), r0, r2)
             assert len(hits) < len(ph) and len(misses) < len(pm)  # some are left out
     assert planes >= 60, planes
 
@@ -188,18 +189,18 @@ def test_soft_moments_equal_their_sum_over_every_label(twin_batches):
                 odds[rng.choice(len(hit_o), min(6, len(hit_o)), replace=False)] = 0.5
             if len(odds) == 0:
                 continue
-            soft = moments._soft_hits(odds)
+            soft = moments.soft_hits(odds)
             for n, d in list(zip(normals, ds, strict=True))[::4]:
-                ph = moments._points(hit_o, hit_u, n, d)
-                pm = moments._points(miss_o, miss_u, n, d)
+                ph = moments.plane_points(hit_o, hit_u, n, d)
+                pm = moments.plane_points(miss_o, miss_u, n, d)
                 r0, r2 = plane_rows_of(np.cos(rolls), np.sin(rolls), n)
                 got = moments.soft_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2, odds,
                                             soft)
                 ref = naive.soft_every_label(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2, odds, soft)
                 np.testing.assert_array_equal(got, ref)
-                hits, _ = moments.binding_labels(ph, pm, moments._limits(hit_ext, w2, h2),
-                                                  moments._limits(miss_ext, w2, h2), r0, r2)
-                weighed += len(moments._binding_soft(ph, pm, hit_ext,
-                                                      moments._limits(miss_ext, w2, h2), r0,
+                hits, _ = moments.binding_labels(ph, pm, moments.box_limits(hit_ext, w2, h2),
+                                                  moments.box_limits(miss_ext, w2, h2), r0, r2)
+                weighed += len(moments.binding_soft(ph, pm, hit_ext,
+                                                      moments.box_limits(miss_ext, w2, h2), r0,
                                                       r2, w2, h2, soft, hits)[0]) > 0
     assert weighed >= 10, weighed

@@ -29,13 +29,13 @@ from align.search.cluster_kernels import (
     total_variance,
 )
 from align.search.clusters import (
-    _grid,
-    _labels_grid,
     cluster,
+    firing_grid,
+    labels_grid,
 )
 from align.search.rings import consecutive_ring_block
 from align.search.roll import COARSE_STEP, TOLERANCE, left_out
-from align.search.roll_kernels import _rel_azimuth, best_roll
+from align.search.roll_kernels import best_roll, rel_azimuth
 from tests import naive
 from tests.conftest import DATA_DIR
 from twin.core.scan import Scan
@@ -70,12 +70,12 @@ def test_grid_clusters_match_the_numpy_reference_on_real_scans(real_scans):
     every real scan, for the search region find_board uses and for every return."""
     compared = 0
     for scan, board, hints in real_scans:
-        grid = _grid(scan)
+        grid = firing_grid(scan)
         assert grid is not None  # both captures are on the sensor's firing grid
         short = min(board.width, board.height)
         for ok in (search_mask(scan, board, hints), scan.valid):
             want_labels, want = naive.labels_grid(scan, grid, ok, board.diagonal, short)
-            got_labels, got = _labels_grid(scan, grid, ok, board.diagonal, short)
+            got_labels, got = labels_grid(scan, grid, ok, board.diagonal, short)
             np.testing.assert_array_equal(got_labels, want_labels)
             for key in ("count", "distance", "rings"):
                 assert got[key].dtype == want[key].dtype, key
@@ -246,7 +246,7 @@ def test_corner_residuals_and_jacobian_match_numpy():
 
 
 def test_rel_azimuth_is_unwrap_bit_for_bit():
-    """The compiled pass's relative azimuth (`roll_kernels._rel_azimuth`, its remainder's shortcuts)
+    """The compiled pass's relative azimuth (`roll_kernels.rel_azimuth`, its remainder's shortcuts)
     against `align.geometry.unwrap`, on random azimuths and centres and at the shortcuts' edges."""
     rng = np.random.default_rng(23)
     two_pi = 2 * np.pi
@@ -256,7 +256,7 @@ def test_rel_azimuth_is_unwrap_bit_for_bit():
     for centre in (*rng.uniform(-np.pi, np.pi, 5), 0.0, np.pi, -np.pi):
         want = unwrap(az, centre)
         taken = np.zeros(1, dtype=np.int64)
-        got = np.array([_rel_azimuth(a, centre, taken) for a in az])
+        got = np.array([rel_azimuth(a, centre, taken) for a in az])
         assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
         assert 0 < taken[0] < len(az) // 2  # the remainder only outside the shortcuts
 

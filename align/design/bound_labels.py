@@ -161,7 +161,7 @@ def expected_covariance(info_other: np.ndarray, crossings: Crossings, fixed: Fix
     n = info_other.shape[0]
     b = len(fixed)
     g = np.concatenate((crossings.g, fixed.g)).reshape(-1, n)
-    lo, hi = _brackets(crossings, fixed, n_scans, laser_phase, rng, draws)
+    lo, hi = crossing_brackets(crossings, fixed, n_scans, laser_phase, rng, draws)
     # a blurred crossing is no hard interval: it enters as a Gaussian measurement of its
     # bracket's midpoint (its slab variance, the blur's share included); the rest are hard
     soft = np.concatenate((crossings.blur_var > 0, np.zeros(b, dtype=bool)))
@@ -240,8 +240,9 @@ def _chains_covariance(root: np.ndarray, kept: list[np.ndarray], draws: int) -> 
             + 0.25 * np.einsum("di,dj->ij", gap, gap)) / draws
 
 
-def _brackets(crossings: Crossings, fixed: Fixed, n_scans: int, laser_phase: np.ndarray | None,
-              rng: np.random.Generator, draws: int) -> tuple[np.ndarray, np.ndarray]:
+def crossing_brackets(crossings: Crossings, fixed: Fixed, n_scans: int,
+                      laser_phase: np.ndarray | None, rng: np.random.Generator, draws: int
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """Each slab's interval (lo, hi), (D, K + B), in ``draws`` data sets: every crossing's
     brackets over the N scans (each scan at its own phase) intersected; the fixed ones."""
     k, b = len(crossings), len(fixed)

@@ -92,7 +92,7 @@ def profile_cost(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray
     ``blur_side``, ``blur_top``: the blur across the side and the top/bottom edges, m.
     numpy's error model: a bracket along an edge divides by zero (z_at infinite), no raise."""
     n = ds.shape[0]
-    viol = _violations(x, z, hit, miss, ds, vx, vz, w2, h2, tol)
+    viol = violations(x, z, hit, miss, ds, vx, vz, w2, h2, tol)
     out = np.empty(n)
     for j in range(n):
         out[j] = 1e6 * viol[j] + _bracket_cost(x, z, bh, bm, ds[j], vx, vz, w2, h2,
@@ -101,7 +101,7 @@ def profile_cost(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray
 
 
 @kernel
-def _violations(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray,
+def violations(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray,
                 ds: np.ndarray, vx: float, vz: float, w2: float, h2: float, tol: float
                 ) -> np.ndarray:
     """`profile_cost`'s labels violated at each shift: hits outside the rectangle grown by
@@ -179,7 +179,7 @@ def profile_best(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray
     n = ds.shape[0]
     if n == 0:
         raise ValueError("attempt to get argmin of an empty sequence")
-    viol = _violations(x, z, hit, miss, ds, vx, vz, w2, h2, tol)
+    viol = violations(x, z, hit, miss, ds, vx, vz, w2, h2, tol)
     finite = np.isfinite(vx) and np.isfinite(vz) and np.isfinite(blur_side) and np.isfinite(
         blur_top)
     for i in range(bh.shape[0]):
@@ -408,10 +408,10 @@ def between_hits(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, hit: np
 @kernel
 def board_spans(ls: np.ndarray, az: np.ndarray, hit: np.ndarray, zone: float
                 ) -> tuple[np.ndarray, np.ndarray]:
-    """`align.fit.brackets._board_spans`: per laser the first and last position (in the rays sorted
-    by laser ``ls`` and azimuth ``az``) of its longest run of hits (``hit``), a run ending where the
-    next hit is another laser's or more than ``zone`` (rad) away; of equally long runs the last (as
-    a stable sort by size would put last). -1 without hits."""
+    """Per laser the first and last position (in the rays sorted by laser ``ls`` and azimuth
+    ``az``) of its longest run of hits (``hit``), a run ending where the next hit is another
+    laser's or more than ``zone`` (rad) away; of equally long runs the last (as a stable sort by
+    size would put last). -1 without hits."""
     n_l = ls.max() + 1 if ls.shape[0] else 0
     first = np.full(n_l, -1, dtype=np.int64)
     last = np.full(n_l, -1, dtype=np.int64)

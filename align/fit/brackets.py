@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from align.fit.bracket_kernels import between_hits, board_spans, column_brackets, laser_brackets
+from align.fit.bracket_kernels import between_hits, column_brackets, laser_brackets
 from align.fit.rays import DROPOUT, HIT, Rays
 from align.params import RaysParams
 
@@ -29,19 +29,10 @@ def hit_miss_brackets(rays: Rays, lab: np.ndarray, *, p: RaysParams) -> tuple[np
     square that ranged wrong). Dropouts are skipped: a bracket spans them (the edge lies
     anywhere between the hit and the miss).
     """
-    # the links and transitions along each laser, its span on the board (`_board_spans`) and
+    # the links and transitions along each laser, its span on the board (`board_spans`) and
     # the walk over the zones, compiled (`laser_brackets`, `edge_brackets`)
     return laser_brackets(np.lexsort((rays.azimuth, rays.laser)), rays.laser, rays.azimuth,
                           lab, DROPOUT, HIT, p.max_gap, p.zone_azimuth)
-
-
-def _board_spans(ls: np.ndarray, az: np.ndarray, lb: np.ndarray, *, p: RaysParams
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Per laser, the first and last hit (positions in the rays sorted by laser and azimuth) of
-    its longest run of hits, a run ending where the next hit is more than `p.zone_azimuth` away:
-    the board's span on that laser, not a stray beside it (a stand's part within the label
-    tolerance of the plane, on the same ring). -1 for a laser without hits."""
-    return board_spans(ls, az, lb == HIT, p.zone_azimuth)  # one pass over the sorted rays
 
 
 def vertical_brackets(rays: Rays, lab: np.ndarray, off: np.ndarray

@@ -36,12 +36,12 @@ def _behind_run(order: np.ndarray, a: int, b: int, res: np.ndarray, run: int, re
 
 
 @kernel
-def _numpy_mean(res: np.ndarray, idx: np.ndarray) -> float:
+def numpy_mean(res: np.ndarray, idx: np.ndarray) -> float:
     """np.mean(res[idx]) exactly, for up to 128 values: numpy's pairwise sum adds fewer
     than 8 values in order from 0, up to 128 in 8 running sums combined as a tree."""
     n = idx.shape[0]
     if n > 128:
-        raise ValueError("_numpy_mean: more than 128 values")
+        raise ValueError("numpy_mean: more than 128 values")
     if n < 8:
         total = 0.0
         for k in range(n):
@@ -65,9 +65,9 @@ def _numpy_mean(res: np.ndarray, idx: np.ndarray) -> float:
 @kernel
 def behind_groups(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, res: np.ndarray,
                   run: int, reach: int, least: float, threshold: float) -> np.ndarray:
-    """`align.fit.labels._behind_ends` after its sort: ``order`` lists the hits by scan, laser and
+    """`align.fit.labels.behind_ends` after its sort: ``order`` lists the hits by scan, laser and
     azimuth; each group (a laser in a scan) of at least ``run`` and fewer than 3 ``run`` hits
-    is marked whole where its mean range residual ``res`` (np.mean's value, `_numpy_mean`)
+    is marked whole where its mean range residual ``res`` (np.mean's value, `numpy_mean`)
     exceeds ``least`` (m) and times sqrt(its size) exceeds ``threshold`` (m); a longer one
     from each end (`_behind_run`). A mask over ``res``, in one walk over the groups."""
     out = np.zeros(res.shape[0], dtype=np.bool_)
@@ -80,7 +80,7 @@ def behind_groups(order: np.ndarray, scan: np.ndarray, laser: np.ndarray, res: n
             b += 1
         size = b - a
         if run <= size < 3 * run:
-            mean = _numpy_mean(res, order[a:b])
+            mean = numpy_mean(res, order[a:b])
             if mean > least and mean * np.sqrt(size) > threshold:
                 out[order[a:b]] = True
         elif size >= 3 * run:
@@ -162,7 +162,7 @@ def shifted_coords(ox: np.ndarray, ux: np.ndarray, oz: np.ndarray, uz: np.ndarra
 @kernel
 def side_ends(ends: np.ndarray, w2: float, reach: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """`align.fit.sides._side_lines`' ends at the side edges: of the lasers' ends (K, 4: left x, z,
+    """`align.fit.sides.side_lines`' ends at the side edges: of the lasers' ends (K, 4: left x, z,
     right x, z), the left ones within ``reach`` of -``w2`` then the right ones within it of
     ``w2``: their x, the sign that makes a residual x - line positive beyond the edge, and
     the design (1 - side, side, z) (rows, C order), and how many are right ones (copies of
@@ -192,7 +192,7 @@ def side_ends(ends: np.ndarray, w2: float, reach: float
 @kernel
 def line_excess(xs: np.ndarray, a: np.ndarray, coef: np.ndarray, sign: np.ndarray,
                 keep: np.ndarray, tol: float, inward: float) -> tuple[int, float]:
-    """`align.fit.sides._side_lines`' worst end for the lines ``coef``: np.argmax of the kept
+    """`align.fit.sides.side_lines`' worst end for the lines ``coef``: np.argmax of the kept
     ends' excess (beyond the lines by more than ``tol``, or inside them by more than
     ``inward``; 0 for the others and those within), with the excess. a @ coef as `gemv3`,
     np.maximum's elementwise maxima, and np.argmax's first maximum (a nan first)."""
@@ -381,9 +381,9 @@ def edge_labels(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
     tolerance across the left, right, bottom and top edge at its range ``lam``, outwards for a hit,
     inwards for a miss: ``per_part`` (across the sides, across the top and bottom;
     `Hints.partial_edge_tolerance`) for a partial hit, dimmer than ``partial_ratio`` of the median
-    ``intensity`` of the hits well inside (`_partial_hits`; none with an empty ``intensity`` or no
-    such hits), ``per_full`` for the others. The median is np.median's (the middle value, or the
-    mean of the middle two)."""
+    ``intensity`` of the hits well inside (`tests/naive.partial_hits`; none with an empty
+    ``intensity`` or no such hits), ``per_full`` for the others. The median is np.median's (the
+    middle value, or the mean of the middle two)."""
     n = x.shape[0]
     inner = np.empty(n, dtype=np.bool_)
     use = np.empty(n, dtype=np.bool_)
@@ -402,8 +402,8 @@ def edge_labels(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
                 ref[t] = intensity[i]
                 t += 1
         half = n_ref // 2
-        upper = _kth_smallest(ref.copy(), half)
-        median = upper if n_ref % 2 else (_kth_smallest(ref, half - 1) + upper) / 2.0
+        upper = kth_smallest(ref.copy(), half)
+        median = upper if n_ref % 2 else (kth_smallest(ref, half - 1) + upper) / 2.0
         limit = partial_ratio * median
     for i in range(n):
         part = intensity.shape[0] == n and lab[i] == hit and intensity[i] < limit
@@ -454,7 +454,7 @@ def bright_limit(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray, hit:
         if lab[i] == hit and inner[i]:
             ref[t] = intensity[i]
             t += 1
-    limit = ratio * _kth_smallest(ref, int(quantile * (n - 1)))
+    limit = ratio * kth_smallest(ref, int(quantile * (n - 1)))
     for i in range(lab.shape[0]):
         if lab[i] == hit and intensity[i] > limit:
             return limit, True
@@ -468,10 +468,10 @@ def seen_counts(x: np.ndarray, z: np.ndarray, lam: np.ndarray, lab: np.ndarray,
                 ) -> tuple[np.ndarray, int, int, int, int, int]:
     """`align.rays.pipeline.estimate_rays`' account of what was seen, in one pass over the rays at
     the estimate (board coordinates ``x``, ``z``, ranges to the plane ``lam``): whether a miss lies
-    beyond each edge (left, right, bottom, top) within ``window`` alongside it (`_edges_seen`), and
-    the rays inside the rectangle, those of them whose return lies in front of the plane by more
-    than ``front`` (the range ``offset`` removed), the dropouts inside, the misses inside by
-    ``deep`` and the hits outside by ``deep``."""
+    beyond each edge (left, right, bottom, top) within ``window`` alongside it
+    (`tests/naive.edges_seen`), and the rays inside the rectangle, those of them whose return lies
+    in front of the plane by more than ``front`` (the range ``offset`` removed), the dropouts
+    inside, the misses inside by ``deep`` and the hits outside by ``deep``."""
     seen = np.zeros(4, dtype=np.bool_)
     inside = occluded = dropouts = inside_miss = outside_hits = 0
     for i in range(x.shape[0]):
@@ -549,12 +549,12 @@ def laser_ends(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray,
         left[q], right[q] = il, ir
         ends[q, 0], ends[q, 1], ends[q, 2], ends[q, 3] = x_l[il], z[il], x_r[ir], z[ir]
         q += 1
-    step = _kth_smallest(steps[:s], s // 2) if s > 0 else 0.0
+    step = kth_smallest(steps[:s], s // 2) if s > 0 else 0.0
     return hit, x_l, x_r, left, right, ends, step
 
 
 @kernel
-def _kth_smallest(a: np.ndarray, k: int) -> float:
+def kth_smallest(a: np.ndarray, k: int) -> float:
     """np.partition(a, k)[k] for finite ``a`` (reordered in place): quickselect, the middle
     of three as pivot (a few hundred values: cheaper than numba's np.partition)."""
     lo, hi = 0, a.shape[0] - 1

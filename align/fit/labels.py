@@ -21,20 +21,6 @@ def hit_band(sigma_r: float, *, p: RaysParams) -> float:
     return min(p.label_tolerance, p.front_sigmas * sigma_r)
 
 
-def _labels(rays: Rays, lam: np.ndarray, sigma_r: float, *, p: RaysParams) -> np.ndarray:
-    """`HIT`, `MISS` (no return or far behind), `UNKNOWN` (something in front, or just behind:
-    `p.front_sigmas` of the range noise ``sigma_r``, m) for each ray, and
-    `DROPOUT` for the rays without a return when the board itself drops returns.
-
-    A board is convex, so a laser's rays between two of its hits on the board lie on the board:
-    if such rays return nothing (black squares of a chessboard, on some sensors), then no return
-    is no evidence of a miss anywhere on this board, and every ray without a return is left
-    out. A board that returns everywhere keeps them as misses (they bound it where nothing
-    stands behind it).
-    """
-    return labels_ordered(rays, lam, sigma_r, p=p)[0]
-
-
 def labels_ordered(rays: Rays, lam: np.ndarray, sigma_r: float, *, p: RaysParams
                     ) -> tuple[np.ndarray, np.ndarray]:
     """`_labels`, and the rays' order by scan, laser and azimuth it sorted them in."""
@@ -46,7 +32,7 @@ def labels_ordered(rays: Rays, lam: np.ndarray, sigma_r: float, *, p: RaysParams
     ret = rays.distance > 0
     # one sort for both: the rays by scan, laser and azimuth (the hits' order is its subset)
     order = np.lexsort((rays.azimuth, rays.laser, rays.scan))
-    lab[_behind_ends(rays, lab, res, sigma_r, order, p=p)] = UNKNOWN
+    lab[behind_ends(rays, lab, res, sigma_r, order, p=p)] = UNKNOWN
     inner = rays_between_hits(rays, lab, order) & ~ret
     hits = int(np.count_nonzero(lab == HIT))
     if np.count_nonzero(inner) >= max(p.min_dropouts, p.dropout_fraction * hits):
@@ -54,7 +40,7 @@ def labels_ordered(rays: Rays, lam: np.ndarray, sigma_r: float, *, p: RaysParams
     return lab, order
 
 
-def _behind_ends(rays: Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
+def behind_ends(rays: Rays, lab: np.ndarray, res: np.ndarray, sigma_r: float,
                  order: np.ndarray | None = None, *, p: RaysParams) -> np.ndarray:
     """The hits at either end of a laser's run on the board (per scan, by azimuth) that lie
     behind the plane as a group: a mask over the rays.

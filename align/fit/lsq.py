@@ -20,7 +20,7 @@ from align.search.result import Segmentation
 from twin.core.scan import Scan
 
 
-def _gauss_newton(model: Model, theta: np.ndarray, max_iter: int = 30
+def gauss_newton(model: Model, theta: np.ndarray, max_iter: int = 30
                   ) -> tuple[np.ndarray, np.ndarray, bool, int]:
     """Levenberg-Marquardt on the whitened residuals.
 
@@ -67,14 +67,14 @@ def staged_fit(model: Model, theta: np.ndarray, ds: np.ndarray
     iters = 0
     for guard, crossings in ((0.005, False), (0.002, True)):
         model.classify(theta, guard, crossings)
-        theta, j, conv, it = _gauss_newton(model, theta)
+        theta, j, conv, it = gauss_newton(model, theta)
         iters += it
         moved = model.shift(theta, ds)
         shift = float(np.hypot(moved[0] - theta[0], moved[2] - theta[2]))
         theta = moved
     if shift > 0.0015:  # the profile moved the rectangle by more than its 1 mm grid: refit
         model.classify(theta, 0.002, True)
-        theta, j, conv, it = _gauss_newton(model, theta)
+        theta, j, conv, it = gauss_newton(model, theta)
         iters += it
     f = model.residuals(theta)
     return theta, j, conv, iters, float(f @ f / max(len(f) - 6, 1))

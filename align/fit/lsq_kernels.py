@@ -15,9 +15,9 @@ def fit_residuals(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.n
                   uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
                   sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float
                   ) -> np.ndarray:
-    """`_residuals_into` as a new array (range residuals first, then the brackets')."""
+    """`residuals_into` as a new array (range residuals first, then the brackets')."""
     out = np.empty(o_r.shape[0] + oh.shape[0])
-    _residuals_into(theta, rot, o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn, sd, vert,
+    residuals_into(theta, rot, o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn, sd, vert,
                     w2, h2, thick, out)
     return out
 
@@ -81,7 +81,7 @@ def jacobian_rotations(theta: np.ndarray, step: float) -> np.ndarray:
 
 
 @kernel
-def _residuals_into(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
+def residuals_into(theta: np.ndarray, rot: np.ndarray, o_r: np.ndarray, u_r: np.ndarray,
                     d_r: np.ndarray, offset: float, sigma_r: float, oh: np.ndarray,
                     uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray,
                     sd: np.ndarray, vert: np.ndarray, w2: float, h2: float, thick: float,
@@ -159,7 +159,7 @@ def jacobian_into(theta: np.ndarray, f0: np.ndarray, o_r: np.ndarray, u_r: np.nd
     for k in range(3):
         t[:] = theta
         t[3 + k] += step
-        _residuals_into(t, rots[1 + k], o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn,
+        residuals_into(t, rots[1 + k], o_r, u_r, d_r, offset, sigma_r, oh, uh, om, um, sgn,
                         sd, vert, w2, h2, thick, f)
         for i in range(nr + nb):
             j[i, 3 + k] = (f[i] - f0[i]) / step
@@ -171,13 +171,13 @@ def _lm_residuals(p: np.ndarray, fit_b: bool, offset: float, b0: float, sb: floa
                   oh: np.ndarray, uh: np.ndarray, om: np.ndarray, um: np.ndarray,
                   sgn: np.ndarray, sd: np.ndarray, vert: np.ndarray, w2: float, h2: float,
                   thick: float) -> np.ndarray:
-    """`align.fit.lsq._gauss_newton`'s residuals at ``p``: the model's, and with the offset fitted
+    """`align.fit.lsq.gauss_newton`'s residuals at ``p``: the model's, and with the offset fitted
     (``fit_b``: p[6] the offset) its prior's (p[6] - b0) / sb last; else at ``offset``."""
     n = o_r.shape[0] + oh.shape[0]
     f = np.empty(n + 1 if fit_b else n)
     t = p[:6].copy()
     off = p[6] if fit_b else offset
-    _residuals_into(t, rotation(t[3], t[4], t[5]), o_r, u_r, d_r, off, sigma_r, oh, uh, om,
+    residuals_into(t, rotation(t[3], t[4], t[5]), o_r, u_r, d_r, off, sigma_r, oh, uh, om,
                     um, sgn, sd, vert, w2, h2, thick, f)
     if fit_b:
         f[n] = (p[6] - b0) / sb
@@ -190,7 +190,7 @@ def _lm_jacobian(p: np.ndarray, f: np.ndarray, fit_b: bool, offset: float, sb: f
                  oh: np.ndarray, uh: np.ndarray, om: np.ndarray, um: np.ndarray,
                  sgn: np.ndarray, sd: np.ndarray, vert: np.ndarray, w2: float, h2: float,
                  thick: float, step: float) -> np.ndarray:
-    """`align.fit.lsq._gauss_newton`'s Jacobian at ``p`` (residuals ``f``): six columns, and with
+    """`align.fit.lsq.gauss_newton`'s Jacobian at ``p`` (residuals ``f``): six columns, and with
     the offset fitted a seventh (-1 / sigma_r for the ranges, 1 / sb for its prior)."""
     n = o_r.shape[0] + oh.shape[0]
     n_p = 7 if fit_b else 6
@@ -206,7 +206,7 @@ def _lm_jacobian(p: np.ndarray, f: np.ndarray, fit_b: bool, offset: float, sb: f
 
 
 @kernel
-def _normal_equations(j: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def normal_equations(j: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """J^T J and J^T f, summed row by row (both symmetric halves from one product)."""
     n_p = j.shape[1]
     if n_p == 6:
@@ -227,7 +227,7 @@ def _normal_equations(j: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 @kernel
 def _normal_equations_6(j: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`_normal_equations` of six columns with its 27 sums in registers (summed in the array,
+    """`normal_equations` of six columns with its 27 sums in registers (summed in the array,
     each waits on a load and a store per row): the same products added in the same order, so
     the same floats."""
     a00 = a10 = a11 = a20 = a21 = a22 = a30 = a31 = a32 = a33 = 0.0
@@ -288,7 +288,7 @@ def lm_fit(theta: np.ndarray, fit_b: bool, offset: float, b0: float, sb: float,
            uh: np.ndarray, om: np.ndarray, um: np.ndarray, sgn: np.ndarray, sd: np.ndarray,
            vert: np.ndarray, w2: float, h2: float, thick: float, step: float, max_iter: int
            ) -> tuple[np.ndarray, np.ndarray, bool, int]:
-    """`align.fit.lsq._gauss_newton`'s Levenberg-Marquardt loop, whole: returns (p, J,
+    """`align.fit.lsq.gauss_newton`'s Levenberg-Marquardt loop, whole: returns (p, J,
     converged, iterations), p the six pose parameters and with ``fit_b`` the offset seventh
     (its prior (b0, sb)); else the offset is held at ``offset``. The arrays are
     `Model._fit_arrays`'. The normal equations are summed here rather than by BLAS, so they
@@ -306,7 +306,7 @@ def lm_fit(theta: np.ndarray, fit_b: bool, offset: float, b0: float, sb: float,
                      vert, w2, h2, thick, step)
     it = 0
     for it in range(1, max_iter + 1):
-        a, g = _normal_equations(j, f)
+        a, g = normal_equations(j, f)
         diag, ok = inverse_diagonal(a)
         if not ok:
             diag = np.diag(np.linalg.pinv(a))

@@ -7,7 +7,6 @@ import numpy as np
 
 from align.board import BoardSpec
 from align.fit.bracket_kernels import (
-    SIDE_REACH,
     classify_edges,
     profile_best,
     profile_cost,
@@ -43,7 +42,7 @@ class Model:
         self.edge_sd = np.ones(len(bh))
         self.excluded = np.zeros(len(bh), dtype=bool)  # left out of every fit (gross errors)
         #: The common range offset the ranges carry (m), and its prior (mean, 1-sigma) when it
-        #: is fitted with the pose (`_gauss_newton`); None: held at ``offset``.
+        #: is fitted with the pose (`gauss_newton`); None: held at ``offset``.
         self.offset = 0.0
         self.offset_prior: tuple[float, float] | None = None
         #: The last pose's board coordinates of all rays (`coords`): its bytes and (X, Z, lam).
@@ -123,31 +122,6 @@ class Model:
         vx, vz = lidar_up(theta)
         self.blur_edges = (float(np.hypot(self.blur * vz, self.blur_z * vx)),
                            float(np.hypot(self.blur * vx, self.blur_z * vz)))
-
-    def _edges(self, xh, zh, xm, zm, guard: float = 0.0):
-        """Edge kind (1 side, 2 top or bottom, 0 left out), sign and sigma (m) of brackets.
-
-        sigma = sqrt(width^2 / 12 + blur^2), width = the bracket's extent across its edge.
-        """
-        w2, h2 = self.board.width / 2, self.board.height / 2
-        dx, dz = xm - xh, zm - zh
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z_at = np.abs(zh + (np.sign(dx) * w2 - xh) * dz / dx)
-        z_at = np.where(np.isfinite(z_at), z_at, np.inf)
-        # `grazes_top_or_bottom`: a ring grazing the top or bottom edge
-        off_side = np.abs(np.abs(0.5 * (xh + xm)) - w2)
-        grazes = (off_side > SIDE_REACH) & (np.abs(np.abs(0.5 * (zh + zm)) - h2)
-                                            < 0.5 * off_side)
-        vert = (z_at <= h2) & ~grazes
-        kind = np.where(vert, 1, 2).astype(np.int8)
-        kind = np.where(((np.abs(z_at - h2) < guard) & ~grazes) | ((dx == 0) & (dz == 0)), 0,
-                        kind)
-        # which side: that of the miss (a ring crossing the top edge runs almost level, so
-        # the sign of its tiny height change says nothing)
-        sign = np.where(vert, np.sign(xm), np.sign(zm))
-        width = np.where(vert, dx, dz)
-        sd = np.sqrt(width**2 / 12 + np.where(vert, *self.blur_edges) ** 2)
-        return kind, sign, sd
 
     def _width(self, theta: np.ndarray) -> np.ndarray:
         """Each bracket's extent across its edge (m) at pose theta."""

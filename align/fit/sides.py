@@ -33,7 +33,7 @@ def overhanging(x: np.ndarray, z: np.ndarray, lab: np.ndarray, laser: np.ndarray
     what a fit finds, degrees off.
 
     The side edges are straight, parallel lines, and every laser that reaches one ends within
-    an azimuth step inside it. Their ends at both sides give the two lines (`_side_lines`,
+    an azimuth step inside it. Their ends at both sides give the two lines (`side_lines`,
     robust: an end beyond them is a holder's, one well inside them a ring leaving through the
     top or bottom edge near a corner). Of a laser whose end lies beyond its side's line by
     more than half a step and `p.overhang_slack`, the hits beyond the line are returned (the
@@ -88,7 +88,7 @@ class Sides:
     ``x_r``: every ray's); ``hit``: the hits taken; ``tol``: how far off the lines a board's
     own end may lie (m: within a step inside its edge, within half a step of the lines
     through them all, and `p.overhang_slack`); ``lines``: (a_l, a_r, b), the side edges as
-    x = a + b z (`_side_lines`), or None when too few lasers reach them."""
+    x = a + b z (`side_lines`), or None when too few lasers reach them."""
 
     ids: np.ndarray
     ends: np.ndarray
@@ -113,7 +113,7 @@ class Sides:
             return None
         ids = laser[il]
         tol = 0.5 * step + p.overhang_slack
-        return cls(ids, ends, hit, x_l, x_r, tol, _side_lines(ends, w2, tol, step + tol, p=p))
+        return cls(ids, ends, hit, x_l, x_r, tol, side_lines(ends, w2, tol, step + tol, p=p))
 
     def reaches(self, xs: np.ndarray, zs: np.ndarray) -> bool:
         """Whether the points (``xs``, ``zs``, m) reach a side edge: lie within twice `tol` inside
@@ -123,7 +123,7 @@ class Sides:
                     np.any(xs > a_r + b * zs - 2 * self.tol))
 
 
-def _side_lines(ends: np.ndarray, w2: float, tol: float, inward: float, *, p: RaysParams
+def side_lines(ends: np.ndarray, w2: float, tol: float, inward: float, *, p: RaysParams
                 ) -> tuple[float, float, float] | None:
     """The board's side edges as seen by the lasers' ends, x = a_l + b z and x = a_r + b z (one
     slope: the edges are parallel), or None when too few lasers reach them. ``ends`` (K, 4):

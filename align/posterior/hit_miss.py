@@ -307,7 +307,7 @@ def _consistent_rolls(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, s
         v = offset.c_gb / offset.c_bb
         c_cond = c_plane - np.outer(offset.c_gb, offset.c_gb) / offset.c_bb
         w = _coupled_direction(offset, theta, frame.n0, frame.d0, v, c_cond)
-        axes = ([w] if w is not None else []) + _laser_directions(offset, c_cond, w)
+        axes = ([w] if w is not None else []) + laser_directions(offset, c_cond, w)
         profile = _joint_profile(
             offset, v, axes, c_cond,
             lambda g: wide.in_plane(*frame.moved(g), board, rolls, roll_prior))
@@ -471,7 +471,7 @@ def _coupled_direction(offset: OffsetModel, theta: np.ndarray, n0: np.ndarray, d
     return y / math.sqrt(m2)
 
 
-def _laser_directions(offset: OffsetModel, c_cond: np.ndarray, w: np.ndarray | None
+def laser_directions(offset: OffsetModel, c_cond: np.ndarray, w: np.ndarray | None
                       ) -> list[np.ndarray]:
     """The plane's directions independent of ``w`` under the ranges' conditional ``c_cond``
     (the plane given b, per-laser offsets included), each one sigma of it, the one in which the
@@ -499,7 +499,7 @@ def _joint_profile(offset: OffsetModel, v: np.ndarray, axes: list[np.ndarray],
                    ) -> tuple[np.ndarray, moments.InPlanePosterior, np.ndarray] | None:
     """The labels' evidence over the offset b jointly with the plane's directions ``axes``
     they hold beyond the ranges: the one b trades against (w, `_coupled_direction`) and, with
-    per-laser offsets, the rest (`_laser_directions`). The plane is
+    per-laser offsets, the rest (`laser_directions`). The plane is
     g = v (b - b_hat) + sum_k s_k a_k, each s_k the ranges' standard normal along a_k (given b,
     independent of it and of each other), integrated over the s_k by a tensor of 3-point
     Gauss-Hermite rules and over b by `_offset_profile` at each node. The band found along the

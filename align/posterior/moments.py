@@ -22,7 +22,7 @@ its least-squares pose.
 A hit may also come from something a few cm behind the board beside an edge (a holder, a box),
 inside the range band that makes it a hit: one such return pins the set to hold it. A hit whose
 range residual makes that likely is a soft label (`soft_moments`): its likelihood off the board is
-its odds (`align.posterior.rays._clutter_odds`) rather than 0, and the posterior sums over which of
+its odds (`align.posterior.rays.clutter_odds`) rather than 0, and the posterior sums over which of
 these hits are the board's.
 """
 
@@ -58,7 +58,7 @@ def binding_labels(p_hit: np.ndarray, p_miss: np.ndarray, lim_h: np.ndarray,
                    lim_m: np.ndarray, r0: np.ndarray, r2: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
     """The hits and misses (indices, in their order) that can change the consistent set at some
-    roll of the grid ``r0``, ``r2``; the others cannot (``lim_*``: `_limits`).
+    roll of the grid ``r0``, ``r2``; the others cannot (``lim_*``: `box_limits`).
 
     Of a few hundred labels a few dozen can bind anywhere on the grid: each side of the hits'
     box is the largest (or least) of the hits' edges, and the misses that cut into it are those
@@ -115,8 +115,8 @@ def _moments_binding(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                      ) -> tuple[np.ndarray, np.ndarray]:
     """`label_moments`, and the hits that can bind on the grid (`binding_labels`' indices),
     which `soft_moments` reuses."""
-    hits, misses = binding_labels(p_hit, p_miss, _limits(ext_hit, w2, h2),
-                                  _limits(ext_miss, w2, h2), r0, r2)
+    hits, misses = binding_labels(p_hit, p_miss, box_limits(ext_hit, w2, h2),
+                                  box_limits(ext_miss, w2, h2), r0, r2)
     return _block_moments(_rows_at(p_hit, hits), _rows_at(p_miss, misses),
                           _rows_at(ext_hit, hits), _rows_at(ext_miss, misses), r0, r2, w2,
                           h2, _NO_BOXES, _NO_MOMENTS)[0], hits
@@ -168,7 +168,7 @@ def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
         for j in range(3):  # elementwise: an array expression here allocated per hit
             centre[j] += p_hit[i, j] / n_h
     # per ray, once: its edges' constants and its point relative to the centre
-    lim_h, lim_m = _limits(ext_hit, w2, h2), _limits(ext_miss, w2, h2)
+    lim_h, lim_m = box_limits(ext_hit, w2, h2), box_limits(ext_miss, w2, h2)
     q_h, q_m = _relative(p_hit, centre), _relative(p_miss, centre)
     keep_h, keep_m = np.empty(n_h, dtype=np.int64), np.empty(n_m, dtype=np.int64)
     g_p, g_lim = np.empty((n_m, 3)), np.empty((n_m, 4))  # a block's misses, contiguous
@@ -198,7 +198,7 @@ def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
             a0, a1, c0, c1, nb = _shrunk_box(a0, a1, c0, c1, g_p, g_lim, nm, r0[k], r2[k], bx0,
                                              bx1, bz0, bz1)
             if a1 > a0 and c1 > c0:
-                _box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs, out[k])
+                box_minus_boxes(a0, a1, c0, c1, bx0, bx1, bz0, bz1, nb, iz0, iz1, xs, out[k])
     return out, boxes
 
 
@@ -227,7 +227,7 @@ def _shrunk_box(a0: float, a1: float, c0: float, c1: float, g_p: np.ndarray,
     """The hits' box (a0, a1, c0, c1) at one roll (rows ``r0k``, ``r2k``) less the misses'
     boxes that overlap it, and those boxes (``bx0`` .. ``bz1``, their count last)."""
     # the misses' boxes that overlap it. Those that cover it across its whole height
-    # or width from one side only shrink it (`_box_minus_boxes`' first step), here at
+    # or width from one side only shrink it (`box_minus_boxes`' first step), here at
     # once: the box they leave does not depend on the order they are applied in, and
     # the later ones are tested against the smaller box
     nb = 0
@@ -258,7 +258,7 @@ def _shrunk_box(a0: float, a1: float, c0: float, c1: float, g_p: np.ndarray,
 
 
 @kernel
-def _limits(ext: np.ndarray, w2: float, h2: float) -> np.ndarray:
+def box_limits(ext: np.ndarray, w2: float, h2: float) -> np.ndarray:
     """Each ray's box edges before its coordinate is subtracted, (M, 4): -w2 - e_l, w2 + e_r,
     -h2 - e_b, h2 + e_t (a box's edge, e.g. -w2 - e_l - X, is then the same float as when
     written out: the same operations in the same order)."""
@@ -501,7 +501,7 @@ def _binding_hits(q: np.ndarray, lim: np.ndarray, rx: np.ndarray, rz: np.ndarray
     Each side is a maximum (or minimum) over the hits, and a hit whose best case stays below
     another's worst case never is it. Coordinates are taken relative to a common point (``q``,
     `_relative`: its own coordinate is common to every hit at a roll, so it cancels in the
-    comparison) and move by |p - c|_1 times the spread. ``lim``: `_limits`."""
+    comparison) and move by |p - c|_1 times the spread. ``lim``: `box_limits`."""
     n = q.shape[0]
     # the best lower bound of each side's maximum: a0 = max(-w2 - e_l - X),
     # -a1 = max(-w2 - e_r + X), c0 = max(-h2 - e_b - Z), -c1 = max(-h2 - e_t + Z)
@@ -530,7 +530,7 @@ def _binding_hits(q: np.ndarray, lim: np.ndarray, rx: np.ndarray, rz: np.ndarray
 def _hit_box(p: np.ndarray, lim: np.ndarray, hits: np.ndarray, r0: np.ndarray,
              r2: np.ndarray, out: np.ndarray) -> None:
     """The hits' box at one roll, the intersection of theirs, into ``out``: a0, a1, c0, c1
-    (in place: an allocation per roll cost more than the loop). ``lim``: `_limits`."""
+    (in place: an allocation per roll cost more than the loop). ``lim``: `box_limits`."""
     a0, a1, c0, c1 = -np.inf, np.inf, -np.inf, np.inf
     for i in hits:
         x = p[i, 0] * r0[0] + p[i, 1] * r0[1] + p[i, 2] * r0[2]
@@ -551,7 +551,7 @@ def _binding_misses(q: np.ndarray, lim: np.ndarray, c: np.ndarray, r0: np.ndarra
     order, into ``keep``; returns how many: the others overlap none of them. Both boxes are
     taken relative to the point ``c``'s coordinates at each roll (``q``: the misses relative
     to it, `_relative`): a miss's then moves by |p - c|_1 times the spread (``dx``, ``dz``,
-    `_row_spread`) from where it is at the centre roll. ``lim``: `_limits`."""
+    `_row_spread`) from where it is at the centre roll. ``lim``: `box_limits`."""
     lo_x, hi_x, lo_z, hi_z = np.inf, -np.inf, np.inf, -np.inf
     for k in range(boxes.shape[0]):
         cx = c[0] * r0[k, 0] + c[1] * r0[k, 1] + c[2] * r0[k, 2]
@@ -571,7 +571,7 @@ def _binding_misses(q: np.ndarray, lim: np.ndarray, c: np.ndarray, r0: np.ndarra
 
 
 @kernel
-def _box_minus_boxes(a0: float, a1: float, c0: float, c1: float, bx0: np.ndarray,
+def box_minus_boxes(a0: float, a1: float, c0: float, c1: float, bx0: np.ndarray,
                      bx1: np.ndarray, bz0: np.ndarray, bz1: np.ndarray, nb: int,
                      iz0: np.ndarray, iz1: np.ndarray, xs: np.ndarray, out: np.ndarray) -> None:
     """Add to ``out`` (6,) the area and moments of the box [a0, a1] x [c0, c1] minus the first
@@ -693,11 +693,11 @@ def plane_posteriors(hit_o: np.ndarray, hit_u: np.ndarray, hit_ext: np.ndarray,
     out = np.zeros((n_p, WIDTH))
     # the planes share the grid: its cosines and sines once, not per plane
     cr, sr = np.cos(rolls), np.sin(rolls)
-    soft = _soft_hits(hit_odds)
+    soft = soft_hits(hit_odds)
     for p in range(n_p):
         n = normals[p]
-        ph = _points(hit_o, hit_u, n, ds[p])
-        pm = _points(miss_o, miss_u, n, ds[p])
+        ph = plane_points(hit_o, hit_u, n, ds[p])
+        pm = plane_points(miss_o, miss_u, n, ds[p])
         r0, r2 = plane_rows_of(cr, sr, n)
         if soft.shape[0] == 0:
             mom = label_moments(ph, pm, hit_ext, miss_ext, r0, r2, w2, h2)
@@ -715,7 +715,7 @@ def plane_posteriors(hit_o: np.ndarray, hit_u: np.ndarray, hit_ext: np.ndarray,
 #: A hit whose odds of coming from something off the board are below this is a hard
 #: constraint (`soft_moments`): each soft hit doubles the sum's cost, and the set without a
 #: hit this unlikely enters the sum at a tenth of its weight or less (2.8 range sigmas,
-#: `align.posterior.rays._clutter_odds`).
+#: `align.posterior.rays.clutter_odds`).
 MIN_ODDS = 0.1
 #: At most this many soft hits per plane, those with the largest odds (the others hard): a
 #: scan has at most one or two holders' returns in its hit band.
@@ -723,20 +723,20 @@ MAX_SOFT = 2
 
 
 @kernel
-def _soft_hits(odds: np.ndarray) -> np.ndarray:
+def soft_hits(odds: np.ndarray) -> np.ndarray:
     """The hits (indices) whose odds are at least `MIN_ODDS`, by decreasing odds."""
     idx = np.flatnonzero(odds >= MIN_ODDS)
     return idx[np.argsort(-odds[idx], kind="mergesort")]
 
 
 @kernel
-def _binding_soft(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
+def binding_soft(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                   lim_m: np.ndarray, r0: np.ndarray, r2: np.ndarray, w2: float, h2: float,
                   soft: np.ndarray, hits: np.ndarray) -> np.ndarray:
     """The soft hits (of ``soft``, by decreasing odds) that can bind on the grid, at most
     `MAX_SOFT`: one at a time, each judged without the ones before it (a hit 6 mm past an
     edge binds nowhere while one 12 mm past it is held, and may once that one is not).
-    ``hits``: `binding_labels`' hits of every label; ``lim_m``: the misses' `_limits`.
+    ``hits``: `binding_labels`' hits of every label; ``lim_m``: the misses' `box_limits`.
     Also returns the hits (indices) and misses that can bind without the first one chosen
     (`binding_labels` of that set, which judged the second; empty with none chosen): the set
     `soft_moments` weighs first without it."""
@@ -751,7 +751,7 @@ def _binding_soft(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
         else:
             rows = np.flatnonzero(keep)
             kept, kept_m = binding_labels(_rows_at(p_hit, rows), p_miss,
-                                          _limits(_rows_at(ext_hit, rows), w2, h2), lim_m,
+                                          box_limits(_rows_at(ext_hit, rows), w2, h2), lim_m,
                                           r0, r2)
             binds[rows[kept]] = True
             if s == 1:
@@ -782,14 +782,14 @@ def soft_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     The product over the soft hits S of (kappa_i + (1 - kappa_i) 1_i) is a sum over the
     subsets T of S taken as off the board: prod_T kappa_i prod_(S - T) (1 - kappa_i) times the
     consistent set of the labels without T. Exact, one `label_moments` per subset; only the
-    soft hits that can bind on the grid count (`_binding_soft`), at most `MAX_SOFT` of them
+    soft hits that can bind on the grid count (`binding_soft`), at most `MAX_SOFT` of them
     (the likeliest; the others hard). ``soft``: the candidates, by decreasing odds.
 
     A hit taken as certain pins the posterior: one return 50 mm behind the plane (3.4 sigma)
     and 5 mm past an edge turned roll by 0.9 deg at a reported 0.13 deg; as a soft label its
     weight is that of the set without it against the set with it."""
-    lim_m = _limits(ext_miss, w2, h2)
-    hits, misses = binding_labels(p_hit, p_miss, _limits(ext_hit, w2, h2), lim_m, r0, r2)
+    lim_m = box_limits(ext_miss, w2, h2)
+    hits, misses = binding_labels(p_hit, p_miss, box_limits(ext_hit, w2, h2), lim_m, r0, r2)
     out, boxes = _block_moments(_rows_at(p_hit, hits), _rows_at(p_miss, misses),
                                 _rows_at(ext_hit, hits), _rows_at(ext_miss, misses), r0, r2,
                                 w2, h2, _NO_BOXES, _NO_MOMENTS)
@@ -799,7 +799,7 @@ def soft_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
         # box beside the board on every ring (divergent beam): the set without one soft hit
         # held a rectangle turned 1.6 deg, at a sigma of 0.06
         return out
-    chosen, first_h, first_m = _binding_soft(p_hit, p_miss, ext_hit, lim_m, r0, r2, w2, h2,
+    chosen, first_h, first_m = binding_soft(p_hit, p_miss, ext_hit, lim_m, r0, r2, w2, h2,
                                              soft, hits)
     s = chosen.shape[0]
     if s == 0:
@@ -819,14 +819,14 @@ def soft_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
             mom = out
         else:
             # `label_moments` of the hits kept: the labels that can bind among them (for the
-            # first soft hit off, `_binding_soft` found them already), then the blocks,
+            # first soft hit off, `binding_soft` found them already), then the blocks,
             # each roll whose hits' box is the whole set's taking that set's moments
             if mask == 1:
                 h_idx, m_idx = first_h, first_m
             else:
                 rows = np.flatnonzero(keep)
                 kept, m_idx = binding_labels(_rows_at(p_hit, rows), p_miss,
-                                             _limits(_rows_at(ext_hit, rows), w2, h2), lim_m,
+                                             box_limits(_rows_at(ext_hit, rows), w2, h2), lim_m,
                                              r0, r2)
                 h_idx = rows[kept]
             mom = _block_moments(_rows_at(p_hit, h_idx), _rows_at(p_miss, m_idx),
@@ -837,7 +837,7 @@ def soft_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
 
 
 @kernel
-def _points(o: np.ndarray, u: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
+def plane_points(o: np.ndarray, u: np.ndarray, n: np.ndarray, d: float) -> np.ndarray:
     """Where the rays (origins ``o``, directions ``u``) meet the plane n . p = d."""
     m = o.shape[0]
     p = np.empty((m, 3))

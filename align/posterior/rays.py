@@ -28,8 +28,8 @@ def ray_points(model: Model, theta: np.ndarray, tolerance: tuple[float, float],
     hit may lie up to ``tolerance`` (rad seen from the LiDAR: across the side edges, across the top
     and bottom edges) outside the rectangle and a miss as far inside it (`Hints.edge_tolerance`); a
     hit whose ``intensity`` (per model ray) says only part of the beam met the board, up to
-    ``partial`` (`Hints.partial_edge_tolerance`, `_partial_hits`). Also returns the rays' indices in
-    the model's."""
+    ``partial`` (`Hints.partial_edge_tolerance`, `tests/naive.partial_hits`). Also returns the rays'
+    indices in the model's."""
     rays, board = model.rays, model.board
     x, z, lam = model.coords(theta)  # board_coordinates' floats (the fit's pose: often kept)
     lab = model.lab
@@ -38,7 +38,7 @@ def ray_points(model: Model, theta: np.ndarray, tolerance: tuple[float, float],
     # the tolerance across each edge as the beam's footprint allows it: the support of the
     # ellipse with half-axes (side, top/bottom tolerance) along the LiDAR's horizontal and up
     # directions, in the edge's normal direction (a level board: the tolerances as given);
-    # for partial hits (`_partial_hits`) the partial tolerance, but a sharp beam (a
+    # for partial hits (`tests/naive.partial_hits`) the partial tolerance, but a sharp beam (a
     # tolerance of 0) has no partial returns: a dim hit there is a dark patch of the board,
     # on it
     vx, vz = lidar_up(theta)
@@ -53,7 +53,7 @@ def ray_points(model: Model, theta: np.ndarray, tolerance: tuple[float, float],
     use = edge_labels(x, z, lam, lab, _NO_INTENSITY if intensity is None else intensity, ext,
                       HIT, MISS, w2, h2, margin, p.partial_intensity, per[0], per[1])
     use &= ~overhanging(x, z, lab, rays.laser, ext, board, p=p)
-    odds = _clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r, p=p)
+    odds = clutter_odds(rays.distance[use] - model.offset - lam[use], model.sigma_r, p=p)
     return (LabelledRays(rays.origin[use], u[use], lab[use], ext[use],
                          odds * (lab[use] == HIT)), np.flatnonzero(use))
 
@@ -62,7 +62,7 @@ def ray_points(model: Model, theta: np.ndarray, tolerance: tuple[float, float],
 _NO_INTENSITY = np.empty(0, dtype=np.uint8)
 
 
-def _clutter_odds(res: np.ndarray, sigma_r: float, *, p: RaysParams) -> np.ndarray:
+def clutter_odds(res: np.ndarray, sigma_r: float, *, p: RaysParams) -> np.ndarray:
     """How much likelier a hit with range residual ``res`` (m) is from something off the board
     (uniform over the hit band, `p.clutter_chance`) than from the board (Gaussian,
     ``sigma_r``), for `align.posterior.moments.soft_moments`: 0.1 at 2.8 sigma, 0.4 at 3.3
@@ -70,20 +70,6 @@ def _clutter_odds(res: np.ndarray, sigma_r: float, *, p: RaysParams) -> np.ndarr
     near = hit_band(sigma_r, p=p)
     scale = p.clutter_chance * math.sqrt(2 * math.pi) * sigma_r / (2 * near)
     return scale * np.exp(np.minimum(0.5 * (res / sigma_r) ** 2, 50.0))
-
-
-def _partial_hits(lab: np.ndarray, intensity: np.ndarray, inner: np.ndarray, *,
-                  p: RaysParams) -> np.ndarray:
-    """The hits dimmer than `p.partial_intensity` of the median of the hits well inside the
-    rectangle (``inner``): a divergent beam straddling an edge returns the board at the board's
-    range, along the beam's centre, when the board's part of the spot outshines a dark or far
-    background, so its centre may lie up to half the beam's width outside the edge; a return
-    of the whole spot is as bright as the board's inner ones. None partial without inner hits
-    to compare with. (The definition: `ray_points` takes them in `edge_labels`' pass.)"""
-    ref = intensity[(lab == HIT) & inner]
-    if len(ref) == 0:
-        return np.zeros(len(lab), dtype=bool)
-    return (lab == HIT) & (intensity < p.partial_intensity * float(np.median(ref)))
 
 
 def violation(rays: LabelledRays, board: BoardSpec, theta: np.ndarray) -> np.ndarray:

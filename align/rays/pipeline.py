@@ -444,20 +444,3 @@ def _status(diag: dict, seen: dict, model: Model, conv: bool, *, p: RaysParams) 
             f"rays blocked in front, {inside_miss} misses inside, {outside_hits} hits outside, "
             f"chi2/dof {diag['chi2_per_dof']:.1f}")
     return (Status.NOT_CONVERGED if not conv else Status.OK), ""
-
-
-def _edges_seen(x: np.ndarray, z: np.ndarray, lab: np.ndarray, board: BoardSpec, *, p: RaysParams
-                ) -> tuple[bool, bool, bool, bool]:
-    """Whether the LiDAR looked beyond each edge (left, right, bottom, top) and saw no board
-    there: a miss just outside it (within `p.window`), alongside it. An edge beyond the field of
-    view, behind an occluder or on a dark patch that returns nothing has none: the rectangle
-    could extend there, so the board is not wholly seen."""
-    w2, h2 = board.width / 2, board.height / 2
-    miss = lab == MISS
-    along_x, along_z = np.abs(z) <= h2, np.abs(x) <= w2
-    out = []
-    for c, half, along, side in ((x, w2, along_x, -1), (x, w2, along_x, 1),
-                                 (z, h2, along_z, -1), (z, h2, along_z, 1)):
-        beyond = (side * c > half) & (side * c < half + p.window)
-        out.append(bool(np.any(miss & along & beyond)))
-    return tuple(out)

@@ -43,7 +43,7 @@ def grid_clusters(x: np.ndarray, y: np.ndarray, z: np.ndarray, dist: np.ndarray,
     mean distance and rings per cluster).
 
     The firings k0 .. k0 + nl * m form an (m sequences, nl lasers) grid
-    (`align.search.clusters._grid`).
+    (`align.search.clusters.firing_grid`).
     Returns join along a laser's ring into runs: consecutive firings closer than the
     range-proportional threshold (``radius_per_m`` times the range, at least ``radius_min``),
     or across firings without any return when the ranges agree within it and the gap is
@@ -331,7 +331,7 @@ def cluster_members(labels: np.ndarray, cand: np.ndarray) -> tuple[np.ndarray, n
 @kernel
 def in_firing_order(laser_id: np.ndarray, k0: int, m: int, nl: int) -> bool:
     """Whether firings k0 .. k0 + nl * m list lasers 0 .. nl - 1 in every sequence
-    (`align.search.clusters._grid`'s check, without the (m, nl) comparison array)."""
+    (`align.search.clusters.firing_grid`'s check, without the (m, nl) comparison array)."""
     for s in range(m):
         base = k0 + s * nl
         for lz in range(nl):

@@ -49,7 +49,7 @@ def ring_radius_scale(scan: Scan) -> float:
 
 
 
-def _grid(scan: Scan) -> tuple[int, int] | None:
+def firing_grid(scan: Scan) -> tuple[int, int] | None:
     """(first, sequences) when the scan is in firing order, else None.
 
     A scan from the decoder or the emulation lists the L lasers of each firing sequence in
@@ -71,7 +71,7 @@ def _grid(scan: Scan) -> tuple[int, int] | None:
     return k0, m
 
 
-def _labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagonal: float,
+def labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagonal: float,
                  short_side: float) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Cluster labels on the firing grid, and count, mean distance and rings per cluster.
 
@@ -143,9 +143,9 @@ def cluster(scan: Scan, ok: np.ndarray, board_diagonal: float = np.inf,
     the returns in ``ok``; labels of firings outside it mean nothing.
     """
     n = len(scan)
-    grid = _grid(scan)
+    grid = firing_grid(scan)
     if grid is not None:
-        return _labels_grid(scan, grid, ok, board_diagonal, short_side)
+        return labels_grid(scan, grid, ok, board_diagonal, short_side)
     a, b = _edges_sorted(scan, ok)
     g = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
     _, labels = connected_components(g, directed=False)

@@ -284,7 +284,7 @@ def _remainder(v: float, two_pi: float, taken: np.ndarray) -> float:
 
 
 @kernel
-def _rel_azimuth(azimuth: float, centre: float, taken: np.ndarray) -> float:
+def rel_azimuth(azimuth: float, centre: float, taken: np.ndarray) -> float:
     """`align.geometry.unwrap` of one azimuth, rad: the same operations and result, the slow
     floating-point remainder x % 2 pi (`_remainder`, counted in ``taken``) only for x outside
     (-2 pi, 4 pi). Inside it the remainder is x itself on [0, 2 pi); x - 2 pi on [2 pi, 4 pi),
@@ -331,7 +331,7 @@ def rectangle_rays(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarr
         ring = ring_of_laser[laser_id[i]]
         ring_lo = min(ring_lo, ring)
         ring_hi = max(ring_hi, ring)
-        widest = max(widest, abs(_rel_azimuth(azimuth[i], centre, taken)))
+        widest = max(widest, abs(rel_azimuth(azimuth[i], centre, taken)))
     span = widest + reach
     in_w, in_h = half_w - margin, half_h - margin
     n0, n1, n2 = n[0], n[1], n[2]
@@ -344,7 +344,7 @@ def rectangle_rays(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarr
         # a ray without a return counts for none: its geometry is skipped
         if ring < ring_lo or ring > ring_hi or not distance[i] > 0:
             continue
-        if not abs(_rel_azimuth(azimuth[i], centre, taken)) <= span:
+        if not abs(rel_azimuth(azimuth[i], centre, taken)) <= span:
             continue
         ce = cos_el[lid]
         u0 = ce * np.sin(azimuth[i])
@@ -395,26 +395,9 @@ TAIL_FRACTION = 0.25
 
 
 @kernel
-def _slide_sorted_column(xs: np.ndarray, length: float) -> tuple[int, float]:
-    """The sliding window over one sorted column: the most points a window of ``length``
-    holds and minus the middle of the first such window's points (`_slide` of one row)."""
-    n = xs.shape[0]
-    j = 0
-    best, lo, hi = 0, 0.0, 0.0
-    for i in range(n):
-        if j < i:
-            j = i
-        while j + 1 < n and xs[j + 1] <= xs[i] + length:
-            j += 1
-        if j - i + 1 > best:
-            best, lo, hi = j - i + 1, xs[i], xs[j]
-    return best, -0.5 * (lo + hi)
-
-
-@kernel
 def _slide_tails(left: np.ndarray, right: np.ndarray, n: int, first_in: float,
                  last_in: float, top: float, length: float) -> tuple[int, float]:
-    """`_slide_sorted_column` of a column of ``n`` points from its sorted tails alone.
+    """`_slide_sorted` of a column of ``n`` points from its sorted tails alone.
 
     With lo, hi the column's least and greatest values: ``left`` (sorted) holds the values x
     whose window [x, x + length] misses hi, ``right`` (sorted) those beyond lo + length. Every
@@ -485,7 +468,7 @@ def _column_fit(row: np.ndarray, lo: float, hi: float, length: float, order: np.
     for i in range(n):
         xs[i] = row[order[i]]
     _insertion_sort(xs, order)
-    best, mid = _slide_sorted_column(xs, length)
+    best, mid = _slide_sorted(xs, length)
     return best, mid, True
 
 
@@ -618,25 +601,3 @@ def window_sweep_pair(points: np.ndarray, axes_a: np.ndarray, axes_b: np.ndarray
         sorted_once = sorted_once or whole
         least = min(least, 2 * n - ca[c] - best)
     return ca, ta, cb, tb, counted
-
-
-
-@kernel
-def _slide(xs: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
-    """`_window_fit` on rows sorted ascending (K, n): two pointers along each row."""
-    k, n = xs.shape
-    count = np.zeros(k, dtype=np.int64)
-    shift = np.zeros(k)
-    for r in range(k):
-        j = 0
-        best, lo, hi = 0, 0.0, 0.0
-        for i in range(n):
-            if j < i:
-                j = i
-            while j + 1 < n and xs[r, j + 1] <= xs[r, i] + length:
-                j += 1
-            if j - i + 1 > best:
-                best, lo, hi = j - i + 1, xs[r, i], xs[r, j]
-        count[r] = best
-        shift[r] = -0.5 * (lo + hi)
-    return count, shift
