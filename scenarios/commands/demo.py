@@ -97,7 +97,7 @@ def calibrate_sensor(bench: SimBench, no_progress: bool, out: Path
         cal = calibrate.on_bench(bench,
                                  progress=lambda done, _total: bar.update(done - bar.done))
     out.mkdir(parents=True, exist_ok=True)
-    laser_calibration.save(cal, out / CALIBRATION_NAME)
+    calibrate.write(cal, out / CALIBRATION_NAME)
     print(f"aimbench demo: calibrated {int((cal.returns > 0).sum())} lasers' range offsets "
           f"at stage yaw {list(calibrate.DEFAULT_YAWS_DEG)} deg -> "
           f"{out / CALIBRATION_NAME}", file=sys.stderr)
