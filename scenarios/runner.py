@@ -24,9 +24,7 @@ import contextlib
 import logging
 import math
 import os
-import signal
 import sys
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -36,6 +34,7 @@ import numpy as np
 
 from scenarios.bench import Bench, BenchError, TravelError
 from scenarios.config import MAX_CONSECUTIVE_FAILURES
+from scenarios.interrupt import StopFlag
 from scenarios.plans import Plan, Reference, references_beyond
 from scenarios.progress import Bar, is_terminal
 from scenarios.store import ScanResult, Store, StoreError
@@ -279,35 +278,6 @@ class Progress:
             self.stream.flush()
 
 
-class _StopFlag:
-    """SIGINT/SIGTERM set a flag the loop checks between scans; a second SIGINT interrupts."""
-
-    def __init__(self, on_first: Callable[[], None]) -> None:
-        self.stop = False
-        self.signal: str | None = None
-        self._on_first = on_first
-        self._saved: dict[int, Any] = {}
-
-    def _handler(self, signum: int, frame: object) -> None:
-        if self.stop and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        self.stop = True
-        self.signal = signal.Signals(signum).name
-        self._on_first()
-
-    def __enter__(self) -> _StopFlag:
-        # Signal handlers can only be set from the main thread; elsewhere (a test calling the
-        # runner from a worker) the loop still honours `stop` set directly.
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._saved[sig] = signal.signal(sig, self._handler)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, handler in self._saved.items():
-            signal.signal(sig, handler)
-
-
 class Runner:
     """Runs `plan` on `bench` into `store` with `estimator`.
 
@@ -354,7 +324,7 @@ class Runner:
         """
         store, plan = self.store, self.plan
         resumed = store.scan_count() > 0 or store.status not in ("created",)
-        with _StopFlag(lambda: self.progress.message(self.stop_message)) as flag:
+        with StopFlag(lambda: self.progress.message(self.stop_message)) as flag:
             store.set_status("running", ("resumed" if resumed else "started") + self._how())
             where: dict[str, int | None] = {"reference": None, "scan": None}
             try:
@@ -390,7 +360,7 @@ class Runner:
                 todo.append((i, (max(done) + 1) if done else 0, self.plan.scans - len(done)))
         return todo
 
-    def _execute(self, todo: list[tuple[int, int, int]], flag: _StopFlag, where: dict) -> bool:
+    def _execute(self, todo: list[tuple[int, int, int]], flag: StopFlag, where: dict) -> bool:
         """Take the scans of `todo` on this process's bench; True if stopped by a signal."""
         self.bench.home()
         for i, first, n in todo:
@@ -413,10 +383,10 @@ class Runner:
 
     # -- steps -----------------------------------------------------------------------------
 
-    def _stopping(self, flag: _StopFlag) -> bool:
+    def _stopping(self, flag: StopFlag) -> bool:
         return self.stop or flag.stop
 
-    def _interrupted(self, flag: _StopFlag) -> str:
+    def _interrupted(self, flag: StopFlag) -> str:
         self.progress.finish()
         self.store.set_status("interrupted", f"stopped by {flag.signal or 'request'}; "
                                              f"{self.store.scan_count()} scans saved")
@@ -448,7 +418,7 @@ class Runner:
     def _go_to(self, ref: Reference) -> StagePose:
         return visit(self.bench, ref, self.move_timeout_s)
 
-    def _take_scans(self, i: int, ref: Reference, first: int, n: int, flag: _StopFlag,
+    def _take_scans(self, i: int, ref: Reference, first: int, n: int, flag: StopFlag,
                     where: dict) -> bool:
         """Take and store `n` scans numbered from `first`; True if stopped by a signal."""
         watch = _FailureWatch(self.max_consecutive_failures)
@@ -822,7 +792,7 @@ class ParallelSimRunner(Runner):
         if self.engine is not None:  # workers started ahead that no run took (a failure)
             self.engine.close()
 
-    def _execute(self, todo: list[tuple[int, int, int]], flag: _StopFlag, where: dict) -> bool:
+    def _execute(self, todo: list[tuple[int, int, int]], flag: StopFlag, where: dict) -> bool:
         """Deal `todo` to the workers and store what they send; True if stopped by a signal."""
         from scenarios.study.engines import LocalEngine
 

@@ -28,7 +28,6 @@ import align
 from scenarios import calibrate, cliargs, plans
 from scenarios import station as stations
 from scenarios.bench import open_bench
-from scenarios.commands.version import versions
 from scenarios.config import MAX_CONSECUTIVE_FAILURES, RunConfig
 from scenarios.report import Tolerances, summary_lines, write
 from scenarios.runner import (
@@ -39,6 +38,7 @@ from scenarios.runner import (
     sim_engine,
 )
 from scenarios.store import Store
+from scenarios.versions import versions
 from twin.core.errors import AimbenchError
 
 
