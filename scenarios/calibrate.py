@@ -200,15 +200,11 @@ def check(cal: laser_calibration.LaserCalibration, scans: Sequence[Scan],
     return out
 
 
-def applied(calibration: dict | None) -> str:
-    """What a report or a store says of a run's calibration (its stored dict, or None)."""
-    if not calibration:
+def applied(calibration: laser_calibration.LaserCalibration | None) -> str:
+    """What a report or a store says of a run's calibration (None: none was applied)."""
+    if calibration is None:
         return "none applied (raw ranges; `aimbench calibrate` makes one for --calibration)"
-    try:
-        cal = laser_calibration.LaserCalibration.from_dict(calibration)
-    except (ValueError, KeyError, TypeError):
-        return "applied (a calibration this version cannot read)"
-    return f"applied: {cal.describe()}"
+    return f"applied: {calibration.describe()}"
 
 
 #: What a failing uncalibrated run adds to its verdict.

@@ -30,14 +30,18 @@ import os
 import sqlite3
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from scenarios.plans import Plan, Reference
 from twin.core.errors import AimbenchError
 from twin.core.pose import POSE_FIELDS, Pose, StagePose
+
+if TYPE_CHECKING:
+    from align import PoseEstimate
 
 #: File name of the store inside a run folder.
 STORE_NAME = "run.sqlite"
@@ -346,8 +350,9 @@ def _finite(obj: object) -> object:
 class ScanResult:
     """One scan's outcome, as the store keeps it (SI units).
 
-    pose, std, covariance: the estimate (None when the estimator found no pose); std and
-        covariance in the order of `twin.core.pose.POSE_FIELDS` (m, rad).
+    estimate: align's answer (`align.PoseEstimate`): its status, its pose (kept only when the
+        estimate succeeded), its covariance and sigma in the order of
+        `twin.core.pose.POSE_FIELDS` (m, rad), its diagnostics and timings.
     truth: the twin's true LiDAR pose in the board frame for this scan (None on hardware).
     stage: where the stages reported they were while the scan was taken, if they did.
     scan_s: wall time to acquire the scan; estimate_s: wall time of the estimator (s).
@@ -355,11 +360,7 @@ class ScanResult:
 
     reference: int
     scan: int
-    status: str
-    success: bool
-    pose: Pose | None = None
-    std: np.ndarray | None = None
-    covariance: np.ndarray | None = None
+    estimate: PoseEstimate
     truth: Pose | None = None
     stage: StagePose | None = None
     points: int | None = None
@@ -368,31 +369,30 @@ class ScanResult:
     acquired_at: float | None = None
     scan_s: float | None = None
     estimate_s: float | None = None
-    diagnostics: dict = field(default_factory=dict)
-    timings: dict = field(default_factory=dict)
 
     def row(self) -> dict[str, object]:
         """The column values of this result's row in ``scan``."""
+        est = self.estimate
         nan6 = [None] * 6
-        pose = list(self.pose.as_array()) if self.pose is not None else nan6
-        std = list(np.asarray(self.std, float)) if self.std is not None else nan6
+        pose = list(est.pose.as_array()) if est.success else nan6
+        std = list(est.std) if est.std is not None else nan6
         truth = list(self.truth.as_array()) if self.truth is not None else nan6
         row: dict[str, object] = {
             "reference": int(self.reference), "scan": int(self.scan),
-            "status": str(self.status), "success": int(bool(self.success)),
+            "status": str(est.status), "success": int(est.success),
         }
         for cols, values in ((_POSE_COLS, pose), (_STD_COLS, std), (_TRUTH_COLS, truth)):
             row.update({c: _real(v) for c, v in zip(cols, values, strict=True)})
         row.update({
-            "covariance": dumps(np.asarray(self.covariance, float))
-            if self.covariance is not None else None,
+            "covariance": dumps(np.asarray(est.covariance, float))
+            if est.covariance is not None else None,
             "stage_yaw_rad": _real(self.stage.yaw_rad) if self.stage else None,
             "stage_x_m": _real(self.stage.x_m) if self.stage else None,
             "points": self.points, "complete": None if self.complete is None
             else int(self.complete),
             "missing_packets": self.missing_packets, "acquired_at": self.acquired_at,
             "scan_s": self.scan_s, "estimate_s": self.estimate_s,
-            "diagnostics": dumps(self.diagnostics), "timings": dumps(self.timings),
+            "diagnostics": dumps(est.diagnostics), "timings": dumps(est.timings),
         })
         return row
 

@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
             # is of the sensor the sweep scans, and the sweep takes the bench over.
             bench = SimBench(seed=config.seed, ideal=config.ideal, station=config.station)
             cal = calibrate_sensor(bench, args.no_progress, out)
-            config = config.with_(calibration=cal.to_dict())
+            config = config.with_(calibration=cal)
         rc = execute(None if resume else plan, config, out, resume,
                      progress=not args.no_progress, report=True, tol=tolerances(args),
                      engine=engine, bench=bench)
