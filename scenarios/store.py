@@ -158,7 +158,7 @@ def _finite_real(v: float, what: str) -> float:
     return f
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: Path) -> None:
     """Make a rename in `folder` durable (a power cut after it keeps the new name)."""
     fd = os.open(folder, os.O_RDONLY)
     try:
@@ -172,11 +172,13 @@ def _remove_stale_temps(folder: Path) -> None:
     never became a store and hold no results."""
     for tmp in folder.glob(f"{_TEMP_PREFIX}*"):
         pid = tmp.name[len(_TEMP_PREFIX):]
-        if not pid.isdigit() or not _alive(int(pid)):
+        if not pid.isdigit() or not process_alive(int(pid)):
             tmp.unlink(missing_ok=True)
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process `pid` still runs (one of another user's counts: it cannot be signalled
+    but exists), so that a lock it left is not taken over."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -230,7 +232,7 @@ def check_store(path: Path, conn: sqlite3.Connection) -> list[str]:
     short inside its last page (it reads the missing bytes as zeros), so the file's length is
     checked against its pages too; then the metadata must decode and the rows must fit the plan
     (one reference row per plan reference, scans numbered within the plan, valid JSON)."""
-    problems = _file_problems(path)
+    problems = file_problems(path)
     if problems:
         return problems  # the rows of a truncated file are not worth reading
     try:
@@ -260,13 +262,13 @@ def check_store(path: Path, conn: sqlite3.Connection) -> list[str]:
 _MAGIC = b"SQLite format 3\x00"
 
 
-def _sqlite_header(path: Path) -> bool:
+def sqlite_header(path: Path) -> bool:
     """Whether `path` begins like an SQLite file (empty files do not)."""
     with path.open("rb") as f:
         return f.read(len(_MAGIC)) == _MAGIC
 
 
-def _file_problems(path: Path) -> list[str]:
+def file_problems(path: Path) -> list[str]:
     """A file cut short, from its own header (SQLite's file format, section 1.3: page size at
     byte 16, page count at 28, valid when the change counter at 24 equals the one at 92), read
     without SQLite, which fails on such a file with a bare "malformed"."""
@@ -459,7 +461,7 @@ class Store:
             _build(tmp, plan, config, bench, versions)
             # The rename is atomic on POSIX: run.sqlite appears complete or not at all.
             os.replace(tmp, path)
-            _fsync_dir(run_dir)
+            fsync_dir(run_dir)
         except BaseException:
             tmp.unlink(missing_ok=True)
             if made_dir:
@@ -485,7 +487,7 @@ class Store:
             raise StoreError(f"{path} was never initialised (its run was stopped while the "
                              "store was being created) and holds no results; start the run "
                              f"again: a new sweep with --out {path.parent} replaces it")
-        if not _sqlite_header(path):
+        if not sqlite_header(path):
             raise StoreError(f"{path} is not a readable aimbench run store: not an SQLite "
                              "file; give the folder of a run that aimbench sweep made")
         try:

@@ -204,7 +204,7 @@ def show_lines(r: dict) -> list[str]:
     for a in rec_mod.AXES:
         if r[f"err_{a}"] is None:
             continue
-        s, unit = rec_mod._SCALE[a], rec_mod._UNIT[a]
+        s, unit = rec_mod.SCALE[a], rec_mod.UNIT[a]
         def cell(c: str, r: dict = r, a: str = a, s: float = s) -> str:
             v = r[f"{c}_{a}"]
             return f"{'-':>9}" if v is None else f"{v * s:>9.3f}"
