@@ -9,7 +9,8 @@ only where the ring crosses the board's top or bottom edge (there the hit/miss t
 the ring pins the ring's height to the edge), so it is reported only for those lasers, and as
 "not observed" (None) for the others.
 
-File format (JSON, `save` / `load`): ``{"format": "aimbench.laser_calibration", "version": 2,
+File format (JSON; `scenarios.calibrate.write` / `read` write and read it, `to_dict` /
+`from_dict` are its content): ``{"format": "aimbench.laser_calibration", "version": 2,
 "sensor": {"id", "model", "n_lasers"}, "made": {...}, "lasers": [{"laser_id", "elevation_deg",
 "range_offset_m", "range_offset_std_m", "elevation_offset_rad", "elevation_offset_std_rad",
 "returns", "edge_crossings"} per laser], "source": {...}}``. Offsets are measured minus true: the
@@ -24,15 +25,13 @@ returns counted), and whatever the caller adds (the software's version). Version
 identity) still load, with an unknown sensor. `identity_warnings` and `ring_bias` are the pieces
 of the check that a capture fits a calibration (`scenarios.calibrate.check`).
 
-`apply` is pure; `load` and `save` are the only functions here that touch a file.
+Pure, as the rest of align/: no function here touches a file.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 
@@ -156,16 +155,6 @@ class LaserCalibration:
                    dict(d.get("made") or {}))
 
 
-def save(cal: LaserCalibration, path: str | Path) -> None:
-    """Write the calibration file (JSON)."""
-    Path(path).write_text(json.dumps(cal.to_dict(), indent=1) + "\n")
-
-
-def load(path: str | Path) -> LaserCalibration:
-    """Read a calibration file written by `save` (ValueError if it is not one)."""
-    return LaserCalibration.from_dict(json.loads(Path(path).read_text()))
-
-
 def apply(scan: Scan, cal: LaserCalibration) -> Scan:
     """The scan with per-laser range offsets removed and x, y, z recomputed (pure).
 
@@ -210,9 +199,10 @@ def _directions(azimuth: np.ndarray, elevation: np.ndarray) -> np.ndarray:
     return np.column_stack((ce * np.sin(azimuth), ce * np.cos(azimuth), np.sin(elevation)))
 
 
-def estimate(scans: Sequence[Scan], poses: Sequence[Pose], board: BoardSpec = BoardSpec(),  # noqa: B008
-             name: str = "", sensor_id: str | None = None,
-             made: dict | None = None) -> LaserCalibration:
+def fit_laser_offsets(scans: Sequence[Scan], poses: Sequence[Pose],
+                      board: BoardSpec = BoardSpec(),  # noqa: B008
+                      name: str = "", sensor_id: str | None = None,
+                      made: dict | None = None) -> LaserCalibration:
     """Per-laser range offsets (and elevation offsets where observable) from board scans.
 
     ``poses``: the true LiDAR pose in the board frame for each scan. Range offset of laser l:

@@ -21,6 +21,10 @@ class Status(enum.StrEnum):
     BOARD_TOO_FAR = "board_too_far"  # a board-like cluster beyond the usable distance
     NOT_CONVERGED = "not_converged"  # the solver did not settle
     UNKNOWN_METHOD = "unknown_method"
+    #: Never returned by `align.estimate`: what a caller that catches an exception the
+    #: estimator raised records instead of its answer (the runner: one bad scan must not lose
+    #: a sweep), with the message as ``diagnostics["error"]``.
+    ESTIMATOR_ERROR = "estimator_error"
 
 
 @dataclass(frozen=True)

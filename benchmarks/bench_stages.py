@@ -39,7 +39,7 @@ from align.search import board as search_board
 from align.search import clusters, roll
 from scenarios import plans
 from scenarios.bench import SimBench
-from scenarios.runner import align_call, visit
+from scenarios.runner import make_estimator, visit
 
 #: Issue 20's goals, CPU ms per scan.
 GOALS_MS = {"rays": 10.0, "paper": 2.0}
@@ -112,7 +112,7 @@ def main() -> int:
     timer = Timer()
     for mod, name, stage in STAGES:
         wrap_everywhere(mod, name, timer.wrap(getattr(mod, name), stage))
-    methods = {"rays": align_call(None), "paper": align_call("paper")}
+    methods = {"rays": make_estimator(None), "paper": make_estimator("paper")}
     for f in methods.values():
         f(scans[0])  # the kernels loaded (or compiled) before the clock runs
     print(f"bench_stages: {len(scans)} scans of the yaw sweep (seed {args.seed}), CPU ms per "

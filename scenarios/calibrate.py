@@ -1,5 +1,6 @@
 """Sensor calibration before an inspection: per-laser range offsets from scans of the board at
-known poses (`align.calibration` does the estimation; this module gathers the scans and poses).
+known poses (`align.calibration` does the estimation; this module gathers the scans and poses,
+and reads and writes the calibration file: `read`, `write`).
 
 Why: a VLP-16's lasers each carry a few mm of range offset (the reference paper measured up to
 5 mm); over the six rings on the board that tilts the fitted plane by tenths of a degree, more
@@ -19,6 +20,7 @@ and result store shows: which calibration, or that none was applied.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
@@ -56,15 +58,20 @@ class CalibrationError(AimbenchError):
 
 
 def read(path: str | Path) -> laser_calibration.LaserCalibration:
-    """A calibration file, with a clear error when it is missing or not one."""
+    """A calibration file (`write`'s JSON), with a clear error when it is missing or not one."""
     path = Path(path)
     if not path.is_file():
         raise CalibrationError(f"no calibration file {path}; make one with `aimbench calibrate`")
     try:
-        return laser_calibration.load(path)
-    except (ValueError, KeyError, TypeError) as exc:
+        return laser_calibration.LaserCalibration.from_dict(json.loads(path.read_text()))
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise CalibrationError(f"{path} is not an aimbench laser calibration ({exc}); make one "
                                "with `aimbench calibrate`") from exc
+
+
+def write(cal: laser_calibration.LaserCalibration, path: str | Path) -> None:
+    """Write the calibration file: `LaserCalibration.to_dict` as JSON (what `read` reads)."""
+    Path(path).write_text(json.dumps(cal.to_dict(), indent=1) + "\n")
 
 
 def twin_sensor_id(seed: int) -> str:
@@ -73,7 +80,7 @@ def twin_sensor_id(seed: int) -> str:
 
 
 def _made(how: str) -> dict:
-    from scenarios.commands.version import versions
+    from scenarios.versions import versions
 
     v = versions()
     return {"at": datetime.now(UTC).isoformat(timespec="seconds"), "how": how,
@@ -88,8 +95,8 @@ def from_scans(scans: Sequence[Scan], poses: Sequence[Pose], name: str, board: A
     if not scans:
         raise CalibrationError(f"{name}: no scan with a known pose to calibrate from")
     kwargs = {"board": board} if board is not None else {}
-    cal = laser_calibration.estimate(scans, poses, name=name, sensor_id=sensor_id,
-                                     made=_made(how), **kwargs)
+    cal = laser_calibration.fit_laser_offsets(scans, poses, name=name, sensor_id=sensor_id,
+                                              made=_made(how), **kwargs)
     if not (cal.returns > 0).any():
         raise CalibrationError(f"{name}: no return on the board's interior; is the board in "
                                "view and the pose right?")
@@ -193,15 +200,11 @@ def check(cal: laser_calibration.LaserCalibration, scans: Sequence[Scan],
     return out
 
 
-def applied(calibration: dict | None) -> str:
-    """What a report or a store says of a run's calibration (its stored dict, or None)."""
-    if not calibration:
+def applied(calibration: laser_calibration.LaserCalibration | None) -> str:
+    """What a report or a store says of a run's calibration (None: none was applied)."""
+    if calibration is None:
         return "none applied (raw ranges; `aimbench calibrate` makes one for --calibration)"
-    try:
-        cal = laser_calibration.LaserCalibration.from_dict(calibration)
-    except (ValueError, KeyError, TypeError):
-        return "applied (a calibration this version cannot read)"
-    return f"applied: {cal.describe()}"
+    return f"applied: {calibration.describe()}"
 
 
 #: What a failing uncalibrated run adds to its verdict.

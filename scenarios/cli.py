@@ -13,8 +13,7 @@ import importlib
 import pkgutil
 import sys
 
-from scenarios import commands
-from scenarios.commands import version
+from scenarios import commands, versions
 from twin.core.errors import AimbenchError
 
 
@@ -22,7 +21,7 @@ class _Version(argparse.Action):
     """``--version``: asks git for the commit only when given (not on every command)."""
 
     def __call__(self, parser: argparse.ArgumentParser, *args: object) -> None:
-        print(version.short())
+        print(versions.short())
         parser.exit(0)
 
 

@@ -11,9 +11,10 @@ run used even if the file has changed or gone since.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
+from align.calibration import LaserCalibration
 from scenarios.station import Station, StationError
 from scenarios.station import default as default_station
 from scenarios.station import from_dict as station_from_dict
@@ -37,7 +38,8 @@ class RunConfig:
     ideal: the twin with every error source off. scans, poses: what the command line asked for.
     argv: the command line. demo: made by ``aimbench demo``. max_consecutive_failures: see
     `MAX_CONSECUTIVE_FAILURES`. jobs: worker processes (simulated bench only). calibration: the
-    per-laser calibration applied to every scan (an `align.calibration` dict), or None.
+    per-laser calibration applied to every scan (read once, from its file or the store), or
+    None.
     station: the bench (`scenarios.station.Station`; default: the paper's), with any command
     line override (``--board-mm``) applied; station_file: the file it was read from, if any.
     sensor_id: the LiDAR's serial number or a user's id for it (None: not given; on the twin
@@ -57,16 +59,17 @@ class RunConfig:
     demo: bool = False
     max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES
     jobs: int = 1
-    calibration: dict | None = field(default=None, hash=False, compare=False)
+    calibration: LaserCalibration | None = field(default=None, hash=False, compare=False)
     station: Station = field(default_factory=default_station, hash=False, compare=False)
     station_file: str | None = None
     sensor_id: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-ready, the form the store keeps."""
-        d = asdict(self)
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
         d["argv"] = list(self.argv)
         d["station"] = self.station.to_dict()
+        d["calibration"] = self.calibration.to_dict() if self.calibration is not None else None
         return d
 
     @classmethod
@@ -89,6 +92,13 @@ class RunConfig:
             except StationError as exc:
                 raise AimbenchError(f"{exc} (the run was stored by another aimbench version; "
                                     "start a new run)") from None
+        if values.pop("calibration", None):  # parsed here once: the run uses the object
+            try:
+                values["calibration"] = LaserCalibration.from_dict(d["calibration"])
+            except (ValueError, KeyError, TypeError, AttributeError) as exc:
+                raise AimbenchError(f"the run's stored calibration cannot be read ({exc}; the "
+                                    "run was stored by another aimbench version): start a new "
+                                    "run") from None
         return cls(**values)
 
     def with_(self, **changes: Any) -> RunConfig:

@@ -522,11 +522,11 @@ def calibration_line(rep: RunReport) -> str:
     one adds that calibrating is the likely fix."""
     from scenarios.calibrate import UNCALIBRATED_HINT, applied
 
-    config = rep.meta.get("config") or {}
-    line = applied(config.get("calibration"))
+    calibration = RunConfig.from_dict(rep.meta.get("config")).calibration
+    line = applied(calibration)
     _, reasons = rep.verdict()
     angles = any(r.split()[:2] in (["tilt", "accuracy"], ["roll", "accuracy"]) for r in reasons)
-    if angles and not config.get("calibration"):
+    if angles and calibration is None:
         line += f"; {UNCALIBRATED_HINT}"
     return line
 

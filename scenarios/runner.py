@@ -21,27 +21,31 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import dataclasses
 import logging
 import math
 import os
-import signal
 import sys
-import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, TextIO
 
 import numpy as np
 
+import align
+from align import PoseEstimate, Status
+from align import calibration as laser_calibration
+from align.calibration import LaserCalibration
 from scenarios.bench import Bench, BenchError, TravelError
 from scenarios.config import MAX_CONSECUTIVE_FAILURES
+from scenarios.interrupt import StopFlag
 from scenarios.plans import Plan, Reference, references_beyond
 from scenarios.progress import Bar, is_terminal
 from scenarios.store import ScanResult, Store, StoreError
 from scenarios.truth import scan_truth
 from twin.core.errors import AimbenchError
-from twin.core.pose import Pose, StagePose
+from twin.core.pose import StagePose
 from twin.core.scan import Scan
 
 
@@ -88,90 +92,38 @@ class PipelineCPU:
         self.startup_s += other.startup_s
 
 
-@dataclass
-class Estimate:
-    """What the runner keeps of an estimator's answer for one scan (SI units)."""
-
-    status: str
-    success: bool
-    pose: Pose | None
-    std: np.ndarray | None = None
-    covariance: np.ndarray | None = None
-    diagnostics: dict = field(default_factory=dict)
-    timings: dict = field(default_factory=dict)
-
-
-Estimator = Callable[[Scan], Estimate]
-
-
-def align_call(method: str | None = None, board: Any = None,
-               calibration: dict | None = None) -> Callable[[Scan], Any]:
-    """align's estimate of one scan the way a run makes it: its method (None: align's default),
-    its board, and its sensor calibration (an `align.calibration` dict, applied to every scan
-    before estimating; stored in the run's configuration so a resume or a replay uses the same).
-    Returns align's `PoseEstimate`. An unknown method is refused here, before any move."""
-    import align
-    from align import calibration as laser_calibration
-
-    methods = getattr(align, "METHODS", None)
-    if method is not None and methods is not None and method not in methods:
-        raise AimbenchError(f"unknown estimation method {method!r}; use one of "
-                            f"{', '.join(methods)}")
-    kwargs: dict[str, Any] = {"board": board if board is not None else align.BoardSpec()}
-    if method is not None:
-        kwargs["method"] = method
-    cal = (laser_calibration.LaserCalibration.from_dict(calibration)
-           if calibration else None)
-
-    def estimate(scan: Scan) -> Any:
-        if cal is not None:
-            scan = laser_calibration.apply(scan, cal)
-        return align.estimate([scan], **kwargs)
-
-    return estimate
+#: The runner's estimate of one scan: align's own answer (`align.PoseEstimate`), stored as is.
+Estimator = Callable[[Scan], PoseEstimate]
 
 
 def make_estimator(method: str | None = None, board: Any = None,
-                   calibration: dict | None = None) -> Estimator:
-    """The runner's single-scan estimator: `align_call` adapted to `Estimate`.
+                   calibration: LaserCalibration | None = None) -> Estimator:
+    """align's estimate of one scan the way a run makes it: its method (None: align's default),
+    its board (None: the paper's), and its sensor calibration, applied to every scan before
+    estimating (the run's configuration keeps it, so a resume or a replay uses the same). An
+    unknown method is refused here, before any move.
 
-    An exception inside the estimator becomes a failed scan with the message as its diagnostic
-    rather than a crashed run (one bad scan must not lose a sweep).
+    An exception inside the estimator becomes a failed estimate (`Status.ESTIMATOR_ERROR`, the
+    message as its diagnostic) rather than a crashed run: one bad scan must not lose a sweep.
     """
-    call = align_call(method, board, calibration)
+    if method is not None and method not in align.METHODS:
+        raise AimbenchError(f"unknown estimation method {method!r}; use one of "
+                            f"{', '.join(align.METHODS)}")
+    name = method if method is not None else align.DEFAULT_METHOD
+    board = board if board is not None else align.BoardSpec()
 
-    def estimate(scan: Scan) -> Estimate:
+    def estimate(scan: Scan) -> PoseEstimate:
         try:
-            pe = call(scan)
+            if calibration is not None:
+                scan = laser_calibration.apply(scan, calibration)
+            return align.estimate([scan], board=board, method=name)
         except AimbenchError:
             raise
         except Exception as exc:  # an estimator bug on one scan: record it, keep the run
-            return Estimate(status="estimator_error", success=False, pose=None,
-                            diagnostics={"error": f"{type(exc).__name__}: {exc}"})
-        return adapt_estimate(pe)
+            return PoseEstimate.failed(Status.ESTIMATOR_ERROR, name,
+                                       error=f"{type(exc).__name__}: {exc}")
 
     return estimate
-
-
-def adapt_estimate(pe: Any) -> Estimate:
-    """`Estimate` from align's `PoseEstimate` (duck-typed, so a stub or a new method fits)."""
-    status = getattr(pe, "status", "ok")
-    status = getattr(status, "value", status)  # an Enum status
-    success = bool(getattr(pe, "success", pe.pose is not None))
-    pose = pe.pose if success else None
-    cov = getattr(pe, "covariance", None)
-    std = getattr(pe, "std", None)
-    if std is None and cov is not None:
-        std = np.sqrt(np.clip(np.diag(np.asarray(cov, float)), 0, None))
-    if isinstance(std, Pose):
-        std = std.as_array()
-    return Estimate(
-        status=str(status), success=success, pose=pose,
-        std=None if std is None else np.asarray(std, float),
-        covariance=None if cov is None else np.asarray(cov, float),
-        diagnostics=dict(getattr(pe, "diagnostics", {}) or {}),
-        timings=dict(getattr(pe, "timings", {}) or {}),
-    )
 
 
 class Progress:
@@ -216,14 +168,14 @@ class Progress:
     def skip(self, n: int) -> None:
         self.done += n
 
-    def scan(self, est: Estimate, reference: int | None = None) -> None:
+    def scan(self, est: PoseEstimate, reference: int | None = None) -> None:
         if reference is not None:
             self._ref = reference
         acc = self._acc.setdefault(self._ref, {"done": 0, "yaw": [], "x": [], "fail": 0})
         self.done += 1
         self.session_scans += 1
         acc["done"] += 1
-        if est.success and est.pose is not None:
+        if est.success:
             acc["yaw"].append(est.pose.yaw)
             acc["x"].append(est.pose.x)
         else:
@@ -279,35 +231,6 @@ class Progress:
             self.stream.flush()
 
 
-class _StopFlag:
-    """SIGINT/SIGTERM set a flag the loop checks between scans; a second SIGINT interrupts."""
-
-    def __init__(self, on_first: Callable[[], None]) -> None:
-        self.stop = False
-        self.signal: str | None = None
-        self._on_first = on_first
-        self._saved: dict[int, Any] = {}
-
-    def _handler(self, signum: int, frame: object) -> None:
-        if self.stop and signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        self.stop = True
-        self.signal = signal.Signals(signum).name
-        self._on_first()
-
-    def __enter__(self) -> _StopFlag:
-        # Signal handlers can only be set from the main thread; elsewhere (a test calling the
-        # runner from a worker) the loop still honours `stop` set directly.
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._saved[sig] = signal.signal(sig, self._handler)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for sig, handler in self._saved.items():
-            signal.signal(sig, handler)
-
-
 class Runner:
     """Runs `plan` on `bench` into `store` with `estimator`.
 
@@ -354,7 +277,7 @@ class Runner:
         """
         store, plan = self.store, self.plan
         resumed = store.scan_count() > 0 or store.status not in ("created",)
-        with _StopFlag(lambda: self.progress.message(self.stop_message)) as flag:
+        with StopFlag(lambda: self.progress.message(self.stop_message)) as flag:
             store.set_status("running", ("resumed" if resumed else "started") + self._how())
             where: dict[str, int | None] = {"reference": None, "scan": None}
             try:
@@ -390,7 +313,7 @@ class Runner:
                 todo.append((i, (max(done) + 1) if done else 0, self.plan.scans - len(done)))
         return todo
 
-    def _execute(self, todo: list[tuple[int, int, int]], flag: _StopFlag, where: dict) -> bool:
+    def _execute(self, todo: list[tuple[int, int, int]], flag: StopFlag, where: dict) -> bool:
         """Take the scans of `todo` on this process's bench; True if stopped by a signal."""
         self.bench.home()
         for i, first, n in todo:
@@ -413,10 +336,10 @@ class Runner:
 
     # -- steps -----------------------------------------------------------------------------
 
-    def _stopping(self, flag: _StopFlag) -> bool:
+    def _stopping(self, flag: StopFlag) -> bool:
         return self.stop or flag.stop
 
-    def _interrupted(self, flag: _StopFlag) -> str:
+    def _interrupted(self, flag: StopFlag) -> str:
         self.progress.finish()
         self.store.set_status("interrupted", f"stopped by {flag.signal or 'request'}; "
                                              f"{self.store.scan_count()} scans saved")
@@ -448,7 +371,7 @@ class Runner:
     def _go_to(self, ref: Reference) -> StagePose:
         return visit(self.bench, ref, self.move_timeout_s)
 
-    def _take_scans(self, i: int, ref: Reference, first: int, n: int, flag: _StopFlag,
+    def _take_scans(self, i: int, ref: Reference, first: int, n: int, flag: StopFlag,
                     where: dict) -> bool:
         """Take and store `n` scans numbered from `first`; True if stopped by a signal."""
         watch = _FailureWatch(self.max_consecutive_failures)
@@ -474,7 +397,7 @@ class Runner:
                     stage = None
                 commits.add(scan_result(i, k, scan, est, stage, t_scan, t_est))
                 self.progress.scan(est)
-                watch.add(est.success, est.status, est.diagnostics)
+                watch.add(est)
                 k += 1
                 where["scan"] = k
                 if self._stopping(flag):
@@ -510,15 +433,16 @@ def visit(bench: Bench, ref: Reference, timeout_s: float = 120.0) -> StagePose:
     return bench.wait_until_there(timeout_s)
 
 
-def scan_result(reference: int, k: int, scan: Scan, est: Estimate,
+def scan_result(reference: int, k: int, scan: Scan, est: PoseEstimate,
                 stage: StagePose | None, scan_s: float, estimate_s: float) -> ScanResult:
-    """What the store keeps of scan `k` at `reference` and its estimate."""
+    """What the store keeps of scan `k` at `reference` and its estimate: the estimate without
+    its ``used`` indices (the store keeps none; a parallel run's workers would send them to the
+    writing process for nothing)."""
     return ScanResult(
-        reference=reference, scan=k, status=est.status, success=est.success, pose=est.pose,
-        std=est.std, covariance=est.covariance, truth=scan_truth(scan), stage=stage,
-        points=int(np.count_nonzero(scan.valid)), complete=bool(scan.complete),
-        missing_packets=int(scan.missing_packets), acquired_at=time.time(),
-        scan_s=scan_s, estimate_s=estimate_s, diagnostics=est.diagnostics, timings=est.timings)
+        reference=reference, scan=k, estimate=dataclasses.replace(est, used={}),
+        truth=scan_truth(scan), stage=stage, points=int(np.count_nonzero(scan.valid)),
+        complete=bool(scan.complete), missing_packets=int(scan.missing_packets),
+        acquired_at=time.time(), scan_s=scan_s, estimate_s=estimate_s)
 
 
 class _FailureWatch:
@@ -530,11 +454,11 @@ class _FailureWatch:
         self.consecutive = 0
         self.successes = 0
 
-    def add(self, success: bool, status: str, diagnostics: dict) -> None:
-        self.successes += bool(success)
-        self.consecutive = 0 if success else self.consecutive + 1
+    def add(self, est: PoseEstimate) -> None:
+        self.successes += est.success
+        self.consecutive = 0 if est.success else self.consecutive + 1
         if self.successes == 0 and self.consecutive >= self.limit:
-            raise _no_board(self.consecutive, status, diagnostics)
+            raise _no_board(self.consecutive, str(est.status), est.diagnostics)
 
 
 def _no_board(consecutive: int, status: str, diagnostics: dict) -> BenchError:
@@ -617,7 +541,9 @@ def _worker_twin_for(setup: dict) -> Any:
 def _worker_setup(setup: dict) -> tuple[Any, Estimator, Plan]:
     import json
 
-    key = json.dumps(setup, sort_keys=True, default=str)
+    cal = setup["calibration"]  # a `LaserCalibration`: keyed by its content
+    key = json.dumps({**setup, "calibration": cal.to_dict() if cal is not None else None},
+                     sort_keys=True, default=str)
     if key not in _worker_bench:
         bench = _worker_twin_for(setup)
         _worker_bench.clear()
@@ -796,7 +722,7 @@ class ParallelSimRunner(Runner):
 
     def __init__(self, plan: Plan, bench: Bench, store: Store, *, seed: int = 0,
                  ideal: bool = False, method: str | None = None,
-                 calibration: dict | None = None, jobs: int = 2,
+                 calibration: LaserCalibration | None = None, jobs: int = 2,
                  progress: Progress | None = None,
                  max_consecutive_failures: int = MAX_CONSECUTIVE_FAILURES,
                  station: Any = None, engine: Any = None) -> None:
@@ -822,7 +748,7 @@ class ParallelSimRunner(Runner):
         if self.engine is not None:  # workers started ahead that no run took (a failure)
             self.engine.close()
 
-    def _execute(self, todo: list[tuple[int, int, int]], flag: _StopFlag, where: dict) -> bool:
+    def _execute(self, todo: list[tuple[int, int, int]], flag: StopFlag, where: dict) -> bool:
         """Deal `todo` to the workers and store what they send; True if stopped by a signal."""
         from scenarios.study.engines import LocalEngine
 
@@ -840,9 +766,9 @@ class ParallelSimRunner(Runner):
 
         def on_commit(r: ScanResult) -> None:
             where.update(reference=r.reference, scan=r.scan)
-            self.progress.scan(Estimate(r.status, r.success, r.pose), r.reference)
+            self.progress.scan(r.estimate, r.reference)
             watches.setdefault(r.reference, _FailureWatch(self.max_consecutive_failures)
-                               ).add(r.success, r.status, r.diagnostics)
+                               ).add(r.estimate)
 
         commits = _OrderedCommits(self.store, todo, on_commit)
 

@@ -625,15 +625,17 @@ def _model_at(loc: list[str]) -> type[BaseModel] | None:
         field = model.model_fields.get(name) if model is not None else None
         if field is None:
             return None
-        model = _section_type(field.annotation)
+        model = section_type(field.annotation)
     return model
 
 
-def _section_type(annotation: Any) -> type[BaseModel] | None:
+def section_type(annotation: Any) -> type[BaseModel] | None:
+    """The station section (a pydantic model) a field's annotation holds, e.g. through
+    ``Section | None``; None for a plain value."""
     if isinstance(annotation, type) and issubclass(annotation, BaseModel):
         return annotation
     for arg in getattr(annotation, "__args__", ()):
-        found = _section_type(arg)
+        found = section_type(arg)
         if found is not None:
             return found
     return None

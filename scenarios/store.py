@@ -30,14 +30,18 @@ import os
 import sqlite3
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from scenarios.plans import Plan, Reference
 from twin.core.errors import AimbenchError
 from twin.core.pose import POSE_FIELDS, Pose, StagePose
+
+if TYPE_CHECKING:
+    from align import PoseEstimate
 
 #: File name of the store inside a run folder.
 STORE_NAME = "run.sqlite"
@@ -154,7 +158,7 @@ def _finite_real(v: float, what: str) -> float:
     return f
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: Path) -> None:
     """Make a rename in `folder` durable (a power cut after it keeps the new name)."""
     fd = os.open(folder, os.O_RDONLY)
     try:
@@ -168,11 +172,13 @@ def _remove_stale_temps(folder: Path) -> None:
     never became a store and hold no results."""
     for tmp in folder.glob(f"{_TEMP_PREFIX}*"):
         pid = tmp.name[len(_TEMP_PREFIX):]
-        if not pid.isdigit() or not _alive(int(pid)):
+        if not pid.isdigit() or not process_alive(int(pid)):
             tmp.unlink(missing_ok=True)
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process `pid` still runs (one of another user's counts: it cannot be signalled
+    but exists), so that a lock it left is not taken over."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -226,7 +232,7 @@ def check_store(path: Path, conn: sqlite3.Connection) -> list[str]:
     short inside its last page (it reads the missing bytes as zeros), so the file's length is
     checked against its pages too; then the metadata must decode and the rows must fit the plan
     (one reference row per plan reference, scans numbered within the plan, valid JSON)."""
-    problems = _file_problems(path)
+    problems = file_problems(path)
     if problems:
         return problems  # the rows of a truncated file are not worth reading
     try:
@@ -256,13 +262,13 @@ def check_store(path: Path, conn: sqlite3.Connection) -> list[str]:
 _MAGIC = b"SQLite format 3\x00"
 
 
-def _sqlite_header(path: Path) -> bool:
+def sqlite_header(path: Path) -> bool:
     """Whether `path` begins like an SQLite file (empty files do not)."""
     with path.open("rb") as f:
         return f.read(len(_MAGIC)) == _MAGIC
 
 
-def _file_problems(path: Path) -> list[str]:
+def file_problems(path: Path) -> list[str]:
     """A file cut short, from its own header (SQLite's file format, section 1.3: page size at
     byte 16, page count at 28, valid when the change counter at 24 equals the one at 92), read
     without SQLite, which fails on such a file with a bare "malformed"."""
@@ -346,8 +352,9 @@ def _finite(obj: object) -> object:
 class ScanResult:
     """One scan's outcome, as the store keeps it (SI units).
 
-    pose, std, covariance: the estimate (None when the estimator found no pose); std and
-        covariance in the order of `twin.core.pose.POSE_FIELDS` (m, rad).
+    estimate: align's answer (`align.PoseEstimate`): its status, its pose (kept only when the
+        estimate succeeded), its covariance and sigma in the order of
+        `twin.core.pose.POSE_FIELDS` (m, rad), its diagnostics and timings.
     truth: the twin's true LiDAR pose in the board frame for this scan (None on hardware).
     stage: where the stages reported they were while the scan was taken, if they did.
     scan_s: wall time to acquire the scan; estimate_s: wall time of the estimator (s).
@@ -355,11 +362,7 @@ class ScanResult:
 
     reference: int
     scan: int
-    status: str
-    success: bool
-    pose: Pose | None = None
-    std: np.ndarray | None = None
-    covariance: np.ndarray | None = None
+    estimate: PoseEstimate
     truth: Pose | None = None
     stage: StagePose | None = None
     points: int | None = None
@@ -368,31 +371,30 @@ class ScanResult:
     acquired_at: float | None = None
     scan_s: float | None = None
     estimate_s: float | None = None
-    diagnostics: dict = field(default_factory=dict)
-    timings: dict = field(default_factory=dict)
 
     def row(self) -> dict[str, object]:
         """The column values of this result's row in ``scan``."""
+        est = self.estimate
         nan6 = [None] * 6
-        pose = list(self.pose.as_array()) if self.pose is not None else nan6
-        std = list(np.asarray(self.std, float)) if self.std is not None else nan6
+        pose = list(est.pose.as_array()) if est.success else nan6
+        std = list(est.std) if est.std is not None else nan6
         truth = list(self.truth.as_array()) if self.truth is not None else nan6
         row: dict[str, object] = {
             "reference": int(self.reference), "scan": int(self.scan),
-            "status": str(self.status), "success": int(bool(self.success)),
+            "status": str(est.status), "success": int(est.success),
         }
         for cols, values in ((_POSE_COLS, pose), (_STD_COLS, std), (_TRUTH_COLS, truth)):
             row.update({c: _real(v) for c, v in zip(cols, values, strict=True)})
         row.update({
-            "covariance": dumps(np.asarray(self.covariance, float))
-            if self.covariance is not None else None,
+            "covariance": dumps(np.asarray(est.covariance, float))
+            if est.covariance is not None else None,
             "stage_yaw_rad": _real(self.stage.yaw_rad) if self.stage else None,
             "stage_x_m": _real(self.stage.x_m) if self.stage else None,
             "points": self.points, "complete": None if self.complete is None
             else int(self.complete),
             "missing_packets": self.missing_packets, "acquired_at": self.acquired_at,
             "scan_s": self.scan_s, "estimate_s": self.estimate_s,
-            "diagnostics": dumps(self.diagnostics), "timings": dumps(self.timings),
+            "diagnostics": dumps(est.diagnostics), "timings": dumps(est.timings),
         })
         return row
 
@@ -459,7 +461,7 @@ class Store:
             _build(tmp, plan, config, bench, versions)
             # The rename is atomic on POSIX: run.sqlite appears complete or not at all.
             os.replace(tmp, path)
-            _fsync_dir(run_dir)
+            fsync_dir(run_dir)
         except BaseException:
             tmp.unlink(missing_ok=True)
             if made_dir:
@@ -485,7 +487,7 @@ class Store:
             raise StoreError(f"{path} was never initialised (its run was stopped while the "
                              "store was being created) and holds no results; start the run "
                              f"again: a new sweep with --out {path.parent} replaces it")
-        if not _sqlite_header(path):
+        if not sqlite_header(path):
             raise StoreError(f"{path} is not a readable aimbench run store: not an SQLite "
                              "file; give the folder of a run that aimbench sweep made")
         try:

@@ -45,7 +45,7 @@ def test_calibrate_command_from_a_capture_with_its_truth(tmp_path: Path):
     assert sim.returncode == 0, sim.stderr
     res = aimbench("calibrate", "cap.pcap", "--out", "cal.json", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
-    cal = laser_calibration.load(tmp_path / "cal.json")
+    cal = calibrate.read(tmp_path / "cal.json")
     used = np.flatnonzero(cal.returns > 0)
     assert len(used) == 6
     # the truth file says which sensor the twin emulated: the capture's offsets come back
@@ -145,8 +145,8 @@ def test_calibration_file_names_its_sensor_and_how_it_was_made(tmp_path: Path, t
     assert res["returns"] == int(cal.returns.sum())
     assert 0 < res["rms_after_m"] <= res["rms_before_m"] < 0.05
     assert made["aimbench"] and made["aimbench_commit"]
-    laser_calibration.save(cal, tmp_path / "cal.json")
-    again = laser_calibration.load(tmp_path / "cal.json")
+    calibrate.write(cal, tmp_path / "cal.json")
+    again = calibrate.read(tmp_path / "cal.json")
     assert again.sensor == cal.sensor and again.made == cal.made
     assert json.loads((tmp_path / "cal.json").read_text())["version"] == 2
     line = again.describe()
@@ -185,7 +185,7 @@ def test_check_warns_when_the_scans_are_another_units(twin_cals):
 
 
 def test_calibrate_check_command_exits_1_on_a_misfit(tmp_path: Path, twin_cals):
-    laser_calibration.save(twin_cals[1], tmp_path / "other.json")
+    calibrate.write(twin_cals[1], tmp_path / "other.json")
     assert aimbench("simulate", "--scans", "3", "--seed", "0", "--out", "cap.pcap",
                     cwd=tmp_path).returncode == 0
     res = aimbench("calibrate", "cap.pcap", "--check", "other.json", "--sensor-id",
@@ -200,7 +200,7 @@ def test_calibrate_check_command_exits_1_on_a_misfit(tmp_path: Path, twin_cals):
 @pytest.mark.slow
 def test_sweep_with_another_units_calibration_warns_and_stores_the_warning(tmp_path: Path,
                                                                             twin_cals):
-    laser_calibration.save(twin_cals[1], tmp_path / "other.json")
+    calibrate.write(twin_cals[1], tmp_path / "other.json")
     toml = tmp_path / "one.toml"
     toml.write_text("scans = 4\nyaw_deg = 0\nx_mm = 0\n")
     res = aimbench("sweep", str(toml), "--out", "run", "--no-progress", "--calibration",

@@ -86,12 +86,18 @@ def test_a_bad_plan_file_is_one_line_and_leaves_no_run(capsys, monkeypatch, tmp_
     assert not Path("run").exists()
 
 
-def test_a_calibration_truth_that_is_not_json_is_one_line(capsys, tmp_path: Path):
+@pytest.mark.parametrize(("text", "expected"), [
+    ("surveyed poses: see the lab book\n", "notes.txt: not a truth file (not JSON"),
+    # an entry with a time but no pose (read as the zero pose once)
+    ('{"scans": [{"time_s": 12.5}]}', "notes.txt: an entry without a pose"),
+])
+def test_a_calibration_truth_that_is_not_one_is_one_line(capsys, tmp_path: Path, text: str,
+                                                         expected: str):
     notes = tmp_path / "notes.txt"
-    notes.write_text("surveyed poses: see the lab book\n")
+    notes.write_text(text)
     line = bad(capsys, "calibrate", str(CAPTURE), "--truth", str(notes), "--out",
                str(tmp_path / "cal.json"))
-    assert "notes.txt: not a truth file (not JSON" in line
+    assert expected in line
     assert not (tmp_path / "cal.json").exists()
 
 

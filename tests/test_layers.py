@@ -4,6 +4,7 @@ back up fails here with the file, the line and the import that breaks the rule."
 from __future__ import annotations
 
 import ast
+import functools
 import re
 import subprocess
 import sys
@@ -62,6 +63,12 @@ ALIGN_ALLOWED: dict[str, tuple[str, ...]] = {
     "align.api": (*_RAYS, "align.rays", "align.baselines"),
     "align": ("align.api", "align.board", "align.result"),  # the package's face
 }
+#: Inside scenarios/ the command line is the top: only the commands and the CLI that finds them
+#: import a command; what a lower module needs of one moves down (e.g. `scenarios.versions`).
+COMMANDS = "scenarios.commands"
+COMMAND_IMPORTERS = ("scenarios.commands", "scenarios.cli")
+#: Code outside the layers that the private-name rule reads too.
+TOOLS = ("benchmarks", "tools")
 
 #: Third-party libraries that only one place of the project may import.
 CONFINED: dict[str, tuple[str, ...]] = {
@@ -91,9 +98,15 @@ def _within(module: str, prefixes: tuple[str, ...]) -> bool:
     return any(module == p or module.startswith(p + ".") for p in prefixes)
 
 
+@functools.cache
+def _tree(path: Path) -> ast.Module:
+    """The file's syntax tree, parsed once for all the rules here (the probes are new files)."""
+    return ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+
+
 def _imports(path: Path) -> list[tuple[int, str]]:
     """(line, module) of every import in the file, at any depth (lazy imports count too)."""
-    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    tree = _tree(path)
     package = _module_of(path) if path.name == "__init__.py" else _module_of(path).rpartition(
         ".")[0]
     found = []
@@ -115,6 +128,7 @@ def _imports(path: Path) -> list[tuple[int, str]]:
     return found
 
 
+@functools.cache
 def _is_module(name: str) -> bool:
     path = REPO.joinpath(*name.split("."))
     return path.with_suffix(".py").is_file() or (path / "__init__.py").is_file()
@@ -171,6 +185,84 @@ def test_the_align_rule_catches_a_stage_importing_upward():
     assert len(_align_broken("align.floats", [(1, "align.jit"), (2, "align.geometry")])) == 1
     assert len(_align_broken("align.design.bound", [(5, "align.plane.fit")])) == 1
     assert _align_broken("align.fit.lsq", [(4, "align.search.result"), (5, "align.jit")]) == []
+def test_nothing_below_the_command_line_imports_a_command():
+    broken = []
+    for path in _project_files():
+        module = _module_of(path)
+        for line, imported in _imports(path):
+            if _within(imported, (COMMANDS,)) and not _within(module, COMMAND_IMPORTERS):
+                broken.append(f"{path.relative_to(REPO)}:{line} imports {imported}: only "
+                              f"{', '.join(COMMAND_IMPORTERS)} may import a command")
+    assert not broken, "\n".join(broken)
+
+
+def _private_uses(path: Path) -> list[tuple[int, str]]:
+    """(line, ``module.name``) of each private name (a leading underscore, not a dunder) of
+    another project module that the file imports (``from m import _x``) or reads through an
+    imported module (``m._x``, ``import m as k; k._x``)."""
+    tree = _tree(path)
+    me = _module_of(path)
+    modules: dict[str, str] = {}  # a name bound to a project module -> the module
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            modules.update({a.asname or a.name: a.name for a in node.names
+                            if _within(a.name, PROJECT)})
+        elif isinstance(node, ast.ImportFrom) and not node.level and _within(node.module or "",
+                                                                              PROJECT):
+            for a in node.names:
+                sub = f"{node.module}.{a.name}"
+                if _is_module(sub):
+                    modules[a.asname or a.name] = sub
+                elif _private(a.name) and node.module != me:
+                    found.append((node.lineno, sub))
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and _private(node.attr):
+            chain, base = [], node.value
+            while isinstance(base, ast.Attribute):
+                chain.append(base.attr)
+                base = base.value
+            if isinstance(base, ast.Name) and base.id in modules:
+                owner = ".".join([modules[base.id], *reversed(chain)])
+                if _is_module(owner) and owner != me:
+                    found.append((node.lineno, f"{owner}.{node.attr}"))
+    return found
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def _private_report(files: list[Path]) -> list[str]:
+    """The private uses (file:line: what)."""
+    broken = []
+    for path in files:
+        rel = path.relative_to(REPO).as_posix()
+        for line, name in _private_uses(path):
+            broken.append(f"{rel}:{line} uses {name}, private to its module: make it "
+                          "public (or move it) where another module needs it")
+    return broken
+
+
+def test_no_module_reads_another_modules_private_names():
+    """The project's code (tests aside) reaches another module only through its public names,
+    so a module can be restructured behind them."""
+    files = _project_files() + [f for top in TOOLS for f in sorted((REPO / top).rglob("*.py"))]
+    broken = _private_report(files)
+    assert not broken, "\n".join(broken)
+
+
+def test_the_private_name_rule_catches_a_private_import():
+    """The checker itself: both spellings of a private read are reported."""
+    bad = REPO / "scenarios" / "_private_probe.py"
+    bad.write_text("from scenarios.runner import _deal\nimport scenarios.store as s\n"
+                   "s._real(1.0)\n", encoding="utf-8")
+    try:
+        broken = _private_report([bad])
+        assert [b.split(" uses ")[0] for b in broken] == ["scenarios/_private_probe.py:1",
+                                                          "scenarios/_private_probe.py:3"]
+    finally:
+        bad.unlink()
 
 
 @pytest.mark.parametrize("library", sorted(CONFINED))

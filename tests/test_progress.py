@@ -11,10 +11,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+from align import PoseEstimate, Status
 from scenarios.commands.info import progress_bar
 from scenarios.plans import Plan, Reference
 from scenarios.progress import Bar, is_terminal
-from scenarios.runner import Estimate, Progress
+from scenarios.runner import Progress
 from twin.core.pose import Pose
 
 REPO = Path(__file__).resolve().parents[1]
@@ -62,7 +63,7 @@ def test_sweep_progress_one_line_per_reference_off_a_terminal() -> None:
     for i in range(3):
         p.start_reference(i, 0)
         for _ in range(2):
-            p.scan(Estimate("ok", True, Pose(x=0.7, yaw=math.radians(i - 1.0))))
+            p.scan(PoseEstimate(Status.OK, "rays", Pose(x=0.7, yaw=math.radians(i - 1.0))))
         p.end_reference()
     p.message("stopping")
     p.finish()
@@ -81,7 +82,7 @@ def test_sweep_progress_is_a_bar_on_a_terminal() -> None:
     for i in (1, 2):
         p.start_reference(i, 0)
         for _ in range(2):
-            p.scan(Estimate("ok", True, Pose(x=0.7)))
+            p.scan(PoseEstimate(Status.OK, "rays", Pose(x=0.7)))
         p.end_reference()
     p.finish()
     text = out.getvalue()

@@ -41,7 +41,7 @@ def test_importing_aimbench_registers_the_gym_env(tmp_path):
 
 
 def test_cli_version_names_every_library_and_the_commit(tmp_path):
-    from scenarios.commands.version import git_commit
+    from scenarios.versions import git_commit
 
     v = json.loads(subprocess.run([sys.executable, "-m", "scenarios.cli", "version", "--json"],
                                   cwd=tmp_path, capture_output=True, text=True,

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from align import PoseEstimate, Status
 from scenarios import plans, report
 from scenarios.report import Tolerances
 from scenarios.store import ScanResult, Store
@@ -31,13 +32,15 @@ def _fill(store: Store, plan: plans.Plan, lever: np.ndarray | None = None,
                      tilt=-0.002, yaw=yaw)
         for k in range(plan.scans):
             if (i, k) in fail:
-                store.add_scan(ScanResult(i, k, "no_board", False, truth=truth))
+                store.add_scan(ScanResult(i, k, PoseEstimate(Status.NO_BOARD, "test"),
+                                          truth=truth))
                 continue
             e = math.radians(BIAS_DEG[i] + (D if k % 2 == 0 else -D))
             a = truth.as_array()
             a[5] += e
             a[0] += x_err_mm * 1e-3
-            store.add_scan(ScanResult(i, k, "ok", True, Pose.from_array(a), truth=truth))
+            store.add_scan(ScanResult(i, k, PoseEstimate(Status.OK, "test", Pose.from_array(a)),
+                                      truth=truth))
         store.finish_reference(i)
 
 

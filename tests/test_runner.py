@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from align import PoseEstimate, Status
 from scenarios import plans
 from scenarios.bench import Bench, SimBench, TravelError
 from scenarios.plans import Plan, Reference
 from scenarios.runner import (
-    Estimate,
     Progress,
     RunFailed,
     Runner,
@@ -173,8 +173,8 @@ def test_progress_line_shows_the_estimate_so_far():
     p.start_reference(0, 0)
     from twin.core.pose import Pose
 
-    p.scan(Estimate("ok", True, Pose(x=0.7, yaw=math.radians(-2.0))))
-    p.scan(Estimate("no_board", False, None))
+    p.scan(PoseEstimate(Status.OK, METHOD, Pose(x=0.7, yaw=math.radians(-2.0))))
+    p.scan(PoseEstimate(Status.NO_BOARD, METHOD))
     line = p.line()
     assert "ref 1/3" in line and "scan 2/2" in line
     assert "yaw -2.000" in line and "x +700.0" in line and "1 without pose" in line
@@ -269,7 +269,7 @@ def test_results_are_committed_in_scan_order_whatever_order_they_arrive(tmp_path
     bench = SimBench(seed=2)
     bench.prepare(0, 0)
     scan = next(bench.scans(1))
-    est = Estimate("ok", True, None)
+    est = PoseEstimate(Status.OK, METHOD)
 
     def result(i: int, k: int):
         return scan_result(i, k, scan, est, None, 0.0, 0.0)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from align import PoseEstimate, Status
 from scenarios import plans
 from scenarios.store import STORE_NAME, ScanResult, Store, StoreError
 from twin.core.pose import Pose, StagePose
@@ -26,15 +27,15 @@ REPO = Path(__file__).resolve().parents[1]
 def _result(ref: int, k: int, ok: bool = True) -> ScanResult:
     truth = Pose(x=-0.7, y=-2.5, yaw=math.radians(ref))
     pose = Pose(x=truth.x + 1e-3 * k, y=truth.y, yaw=truth.yaw + 1e-4) if ok else None
-    return ScanResult(reference=ref, scan=k, status="ok" if ok else "no_board", success=ok,
-                      pose=pose, std=np.full(6, 1e-3) if ok else None,
-                      covariance=np.eye(6) * 1e-6 if ok else None, truth=truth,
+    estimate = PoseEstimate(Status.OK if ok else Status.NO_BOARD, "rays", pose,
+                            np.eye(6) * 1e-6 if ok else None,  # std 1e-3
+                            diagnostics={"rings": np.int64(6), "residual": np.float32(0.01),
+                                         "nan": math.nan, "arr": np.arange(3)},
+                            timings={"total": 0.01})
+    return ScanResult(reference=ref, scan=k, estimate=estimate, truth=truth,
                       stage=StagePose(x_m=0.0, yaw_rad=math.radians(ref)), points=1234,
                       complete=True,
-                      missing_packets=0, acquired_at=time.time(), scan_s=0.1, estimate_s=0.01,
-                      diagnostics={"rings": np.int64(6), "residual": np.float32(0.01),
-                                   "nan": math.nan, "arr": np.arange(3)},
-                      timings={"total": 0.01})
+                      missing_packets=0, acquired_at=time.time(), scan_s=0.1, estimate_s=0.01)
 
 
 def test_create_stores_plan_config_versions(tmp_path: Path):
@@ -167,6 +168,7 @@ _WRITER = textwrap.dedent("""
     import sys, time, math
     import numpy as np
     from scenarios import plans
+    from align import PoseEstimate, Status
     from scenarios.store import Store, ScanResult
     from twin.core.pose import Pose
     # more scans per reference than it can write before the kill (over 1,000 in 0.5 s on a
@@ -175,8 +177,9 @@ _WRITER = textwrap.dedent("""
     print("ready", flush=True)
     k = 0
     while True:
-        s.add_scan(ScanResult(0, k, "ok", True, Pose(x=k * 1e-3), np.ones(6), np.eye(6),
-                              diagnostics={"blob": "x" * 2000}))
+        est = PoseEstimate(Status.OK, "rays", Pose(x=k * 1e-3), np.eye(6),
+                           diagnostics={"blob": "x" * 2000})
+        s.add_scan(ScanResult(0, k, est))
         k += 1
 """)
 
@@ -201,5 +204,5 @@ def test_sigkill_mid_write_leaves_a_consistent_store(tmp_path: Path):
         rows = list(s.iter_scans())
         assert all(r["x_m"] == pytest.approx(r["scan"] * 1e-3) for r in rows)
         assert all(len(r["diagnostics"]["blob"]) == 2000 for r in rows)
-        s.add_scan(ScanResult(0, len(done), "ok", True, Pose()))
+        s.add_scan(ScanResult(0, len(done), PoseEstimate(Status.OK, "rays", Pose())))
         assert s.scan_count() == len(done) + 1

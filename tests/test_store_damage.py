@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from align import PoseEstimate, Status
 from scenarios import plans
 from scenarios.store import STORE_NAME, ScanResult, Store, StoreError
 from twin.core.pose import Pose
@@ -31,10 +32,9 @@ def _filled(run: Path, refs: int = 3, scans: int = 4) -> Path:
     with Store.create(run, plan, {"bench": "sim"}) as s:
         for i in range(refs):
             for k in range(scans):
-                s.add_scan(ScanResult(i, k, "ok", True, Pose(x=1e-3 * k, yaw=0.01 * i),
-                                      np.full(6, 1e-3), np.eye(6), Pose(yaw=0.01 * i),
-                                      diagnostics={"blob": list(range(100))},
-                                      acquired_at=time.time()))
+                est = PoseEstimate(Status.OK, "rays", Pose(x=1e-3 * k, yaw=0.01 * i),
+                                   np.eye(6) * 1e-6, diagnostics={"blob": list(range(100))})
+                s.add_scan(ScanResult(i, k, est, Pose(yaw=0.01 * i), acquired_at=time.time()))
         s.set_status("completed")
         s.conn.execute("PRAGMA wal_checkpoint(TRUNCATE)")
     return run

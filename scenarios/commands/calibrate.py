@@ -25,7 +25,6 @@ import sys
 
 import numpy as np
 
-from align import calibration as laser_calibration
 from scenarios import calibrate, cliargs
 from scenarios import station as stations
 from scenarios.commands.info import add_sensor_arguments, sensor_options
@@ -74,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
                                      progress=lambda done, _total: bar.update(done - bar.done))
     else:
         raise AimbenchError("give a CAPTURE.pcap with its truth file, or --bench sim")
-    laser_calibration.save(cal, args.out)
+    calibrate.write(cal, args.out)
     used = np.flatnonzero(cal.returns > 0)
     print(f"aimbench calibrate: {len(used)} lasers calibrated -> {args.out}", file=sys.stderr)
     print(f"aimbench calibrate: {cal.describe()}", file=sys.stderr)

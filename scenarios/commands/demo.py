@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
             # is of the sensor the sweep scans, and the sweep takes the bench over.
             bench = SimBench(seed=config.seed, ideal=config.ideal, station=config.station)
             cal = calibrate_sensor(bench, args.no_progress, out)
-            config = config.with_(calibration=cal.to_dict())
+            config = config.with_(calibration=cal)
         rc = execute(None if resume else plan, config, out, resume,
                      progress=not args.no_progress, report=True, tol=tolerances(args),
                      engine=engine, bench=bench)
@@ -97,7 +97,7 @@ def calibrate_sensor(bench: SimBench, no_progress: bool, out: Path
         cal = calibrate.on_bench(bench,
                                  progress=lambda done, _total: bar.update(done - bar.done))
     out.mkdir(parents=True, exist_ok=True)
-    laser_calibration.save(cal, out / CALIBRATION_NAME)
+    calibrate.write(cal, out / CALIBRATION_NAME)
     print(f"aimbench demo: calibrated {int((cal.returns > 0).sum())} lasers' range offsets "
           f"at stage yaw {list(calibrate.DEFAULT_YAWS_DEG)} deg -> "
           f"{out / CALIBRATION_NAME}", file=sys.stderr)

@@ -40,7 +40,7 @@ from scenarios.commands.info import (
     quiet_scans,
     warn_lines,
 )
-from scenarios.truth import load_truth, truth_for, truth_path
+from scenarios.truth import ScanTruth, load_truth, truth_for, truth_path
 from twin.core.errors import AimbenchError
 from twin.core.pose import POSE_FIELDS_EDGE, Pose
 
@@ -118,7 +118,7 @@ def table(rows: list[dict]) -> list[str]:
     return lines
 
 
-def _truths(args: argparse.Namespace) -> list[tuple[float | None, Pose]]:
+def _truths(args: argparse.Namespace) -> list[ScanTruth]:
     """The capture's truth entries: ``--truth FILE``, else ``CAPTURE.truth.json`` if there."""
     if args.truth is not None:
         return load_truth(args.truth)
@@ -179,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     # The first whole raw scans go to the check that they fit the calibration, once.
     first: list | None = [] if cal is not None else None
     if cal is not None:
-        print(f"aimbench estimate: calibration {calibrate.applied(cal.to_dict())}",
+        print(f"aimbench estimate: calibration {calibrate.applied(cal)}",
               file=sys.stderr)
     # A station file named on the command line decodes as its sensor (model, factory
     # calibration); without one the packets' product id decides.

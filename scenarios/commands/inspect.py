@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import align
+from align.calibration import LaserCalibration
 from scenarios import calibrate
 from scenarios import station as stations
 from scenarios.inspection import records as rec_mod
@@ -62,7 +63,8 @@ def _misalignment(args: argparse.Namespace) -> dict[str, float]:
 
 def _one(args: argparse.Namespace, records: rec_mod.Records, station: Any, unit: str,
          source: str, misalignment: dict[str, float], seed: int, batch: str | None,
-         calibration: dict | None, cal_file: str | None, live: Any) -> tuple[Inspection, int]:
+         calibration: LaserCalibration | None, cal_file: str | None, live: Any
+         ) -> tuple[Inspection, int]:
     """Inspect one unit and commit its record; returns the inspection and its record id."""
     keep = source == "sim" or source.startswith("udp://")
     capture = records.capture_path(unit) if keep else None
@@ -202,7 +204,7 @@ def show_lines(r: dict) -> list[str]:
     for a in rec_mod.AXES:
         if r[f"err_{a}"] is None:
             continue
-        s, unit = rec_mod._SCALE[a], rec_mod._UNIT[a]
+        s, unit = rec_mod.SCALE[a], rec_mod.UNIT[a]
         def cell(c: str, r: dict = r, a: str = a, s: float = s) -> str:
             v = r[f"{c}_{a}"]
             return f"{'-':>9}" if v is None else f"{v * s:>9.3f}"

@@ -28,7 +28,6 @@ import align
 from scenarios import calibrate, cliargs, plans
 from scenarios import station as stations
 from scenarios.bench import open_bench
-from scenarios.commands.version import versions
 from scenarios.config import MAX_CONSECUTIVE_FAILURES, RunConfig
 from scenarios.report import Tolerances, summary_lines, write
 from scenarios.runner import (
@@ -39,6 +38,7 @@ from scenarios.runner import (
     sim_engine,
 )
 from scenarios.store import Store
+from scenarios.versions import versions
 from twin.core.errors import AimbenchError
 
 
@@ -214,9 +214,10 @@ def run_sensor_id(config: RunConfig) -> str | None:
 def calibration_record(config: RunConfig) -> dict:
     """What the store keeps of the run's calibration: whether one was applied, the line the
     report shows, and its identity (the whole file is in the configuration)."""
-    cal = config.calibration or {}
-    return {"applied": bool(cal), "describe": calibrate.applied(config.calibration),
-            "sensor": cal.get("sensor"), "made": cal.get("made"),
+    cal = config.calibration
+    record = cal.to_dict() if cal is not None else {}
+    return {"applied": cal is not None, "describe": calibrate.applied(cal),
+            "sensor": record.get("sensor"), "made": record.get("made"),
             "run_sensor_id": run_sensor_id(config)}
 
 
@@ -224,11 +225,11 @@ def calibration_check(config: RunConfig, store: Store, stream) -> Callable | Non
     """Warn now of a calibration that names another sensor; return the check of the first
     scans (`scenarios.calibrate.check`) for the runner, None without a calibration. Each
     warning goes to the store's events and to ``stream``."""
-    if not config.calibration:
+    cal = config.calibration
+    if cal is None:
         return None
     from align import calibration as laser_calibration
 
-    cal = laser_calibration.LaserCalibration.from_dict(config.calibration)
     sensor_id = run_sensor_id(config)
 
     def warn(messages: list[str]) -> None:
@@ -248,8 +249,8 @@ def calibration_check(config: RunConfig, store: Store, stream) -> Callable | Non
 def check_config(config: RunConfig) -> None:
     """Refuse settings that cannot work before a run folder is made."""
     config.check()
-    # An unknown method or a bad calibration fails here, not after a move.
-    make_estimator(config.method, calibration=config.calibration)
+    # An unknown method fails here, not after a move.
+    make_estimator(config.method)
 
 
 def _report(store: Store, report: bool, tol: Tolerances | None, stream) -> int:
@@ -273,7 +274,7 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
         lidar=args.lidar, method=args.method, seed=0 if args.seed is None else args.seed,
         ideal=bool(args.ideal), scans=args.scans, poses=args.poses, argv=tuple(sys.argv[1:]),
         max_consecutive_failures=args.max_consecutive_failures, jobs=args.jobs,
-        calibration=calibrate.read(cal_file).to_dict() if cal_file else None,
+        calibration=calibrate.read(cal_file) if cal_file else None,
         station=station, station_file=station_file, sensor_id=args.sensor_id)
 
 

@@ -119,7 +119,8 @@ def _edge(pose: Pose) -> dict[str, float]:
 def inspect_unit(acq: Acquisition, station: Station, unit: str, *,
                  scans: int = DEFAULT_SCANS, max_scans: int | None = None,
                  method: str = align.DEFAULT_METHOD, hints: align.Hints | None = None,
-                 calibration: dict | None = None, on_attempt: Any = None) -> Inspection:
+                 calibration: laser_calibration.LaserCalibration | None = None,
+                 on_attempt: Any = None) -> Inspection:
     """Inspect one unit from `acq` (module docstring). ``max_scans``: the most scans a
     re-measure may reach (default ``scans`` x (1 + `REMEASURE_FACTOR`); equal to ``scans``: no
     re-measure). ``calibration``: a per-laser range calibration to apply to every scan.

@@ -35,13 +35,13 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from scenarios.store import _alive, _file_problems, _fsync_dir, _sqlite_header, dumps
+from scenarios.store import dumps, file_problems, fsync_dir, process_alive, sqlite_header
 from twin.core.errors import AimbenchError
 
 SCHEMA_VERSION = 1
 AXES = ("x", "y", "z", "roll", "tilt", "yaw")
-_UNIT = {"x": "mm", "y": "mm", "z": "mm", "roll": "deg", "tilt": "deg", "yaw": "deg"}
-_SCALE = {"x": 1e3, "y": 1e3, "z": 1e3, "roll": 180 / math.pi, "tilt": 180 / math.pi,
+UNIT = {"x": "mm", "y": "mm", "z": "mm", "roll": "deg", "tilt": "deg", "yaw": "deg"}
+SCALE = {"x": 1e3, "y": 1e3, "z": 1e3, "roll": 180 / math.pi, "tilt": 180 / math.pi,
           "yaw": 180 / math.pi}
 #: Per-axis columns and whether they scale to edge units.
 _AXIS_COLS = (("err", True), ("u_est", True), ("u_sys", True), ("u", True), ("limit", True),
@@ -118,7 +118,7 @@ def _create(path: Path) -> None:
         raise RecordError(f"cannot create the folder of {path}: {exc.strerror}") from None
     for stale in folder.glob(f".{path.name}{_TEMP_SUFFIX}*"):
         pid = stale.name.rpartition("-")[2]
-        if pid.isdigit() and not _alive(int(pid)):
+        if pid.isdigit() and not process_alive(int(pid)):
             stale.unlink(missing_ok=True)
     tmp = folder / f".{path.name}{_TEMP_SUFFIX}{os.getpid()}"
     try:
@@ -139,7 +139,7 @@ def _create(path: Path) -> None:
             tmp.unlink()
             return
         os.replace(tmp, path)
-        _fsync_dir(folder)
+        fsync_dir(folder)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -147,9 +147,9 @@ def _create(path: Path) -> None:
 
 def check(path: Path) -> list[str]:
     """What is wrong with the record store at `path` (empty: nothing), read-only."""
-    if not _sqlite_header(path):
+    if not sqlite_header(path):
         return ["not an SQLite file"]
-    problems = _file_problems(path)
+    problems = file_problems(path)
     if problems:
         return problems
     conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=30.0)
@@ -307,7 +307,7 @@ class Records:
                 for c, scaled in _AXIS_COLS:
                     v = d[f"{c}_{a}"]
                     if scaled:
-                        row[f"{c}_{a}_{_UNIT[a]}"] = None if v is None else v * _SCALE[a]
+                        row[f"{c}_{a}_{UNIT[a]}"] = None if v is None else v * SCALE[a]
             if header is None:
                 header = list(row)
             out.append([row[h] for h in header])

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from scenarios.inspection.records import _SCALE, _UNIT, AXES
+from scenarios.inspection.records import AXES, SCALE, UNIT
 from scenarios.inspection.verdict import RULE_TEXT
 
 COLORS = {"pass": "#2e7d32", "fail": "#c62828", "inconclusive": "#ef8f00"}
@@ -172,9 +172,9 @@ def _axes_panel(ax: Any, row: dict, judged: list[str]) -> None:
             ax.barh(y, 2 * (1 - big_u), left=-(1 - big_u), height=0.3, color="#c8e6c9")
         color = COLORS[row[f"verdict_{a}"]]
         ax.errorbar([e], [y], xerr=[[big_u], [big_u]], fmt="o", color=color, capsize=4)
-        ax.text(1.55, y, f"{row[f'err_{a}'] * _SCALE[a]:+.3f} +-{row[f'u_{a}'] * k * _SCALE[a]:.3f}"
-                f" {_UNIT[a]}", va="center", fontsize=8, color=color)
-    ax.set_yticks(range(len(judged)), [f"{a} ({_UNIT[a]})" for a in reversed(judged)])
+        ax.text(1.55, y, f"{row[f'err_{a}'] * SCALE[a]:+.3f} +-{row[f'u_{a}'] * k * SCALE[a]:.3f}"
+                f" {UNIT[a]}", va="center", fontsize=8, color=color)
+    ax.set_yticks(range(len(judged)), [f"{a} ({UNIT[a]})" for a in reversed(judged)])
     ax.axvline(-1, c="#2e7d32", lw=1)
     ax.axvline(1, c="#2e7d32", lw=1)
     ax.set_xlim(-2.2, 2.9)
@@ -210,13 +210,13 @@ def unit_report(row: dict, insp: Any, folder: Path) -> Path:
     for a in AXES:
         if row[f"err_{a}"] is None:
             continue
-        s = _SCALE[a]
+        s = SCALE[a]
 
         def f(c: str, a: str = a, s: float = s) -> str:
             v = row[f"{c}_{a}"]
             return "-" if v is None else f"{v * s:.3f}"
         big_u = "-" if row[f"u_{a}"] is None else f"{row[f'u_{a}'] * k * s:.3f}"
-        rows.append([f"{a} ({_UNIT[a]})", f"{row[f'err_{a}'] * s:+.3f}", f("u_est"), f("u_sys"),
+        rows.append([f"{a} ({UNIT[a]})", f"{row[f'err_{a}'] * s:+.3f}", f("u_est"), f("u_sys"),
                      big_u, f("limit"), row[f"verdict_{a}"] or "not judged"]
                     + ([] if row[f"true_{a}"] is None else [f"{row[f'true_{a}'] * s:+.3f}"]))
     header = ["axis", "error", "u estimator", "u system", "U = k u", "limit", "verdict"]
@@ -276,8 +276,8 @@ def line_summary(rows: list[dict], folder: Path) -> Path:
     fig, axs = plt.subplots(2, max(1, len(judged)), figsize=(4.0 * max(1, len(judged)), 7.0),
                             dpi=100, squeeze=False)
     for j, a in enumerate(judged):
-        vals = np.array([r[f"err_{a}"] * _SCALE[a] for r in ok if r[f"err_{a}"] is not None])
-        lim = next(r[f"limit_{a}"] for r in ok if r[f"limit_{a}"] is not None) * _SCALE[a]
+        vals = np.array([r[f"err_{a}"] * SCALE[a] for r in ok if r[f"err_{a}"] is not None])
+        lim = next(r[f"limit_{a}"] for r in ok if r[f"limit_{a}"] is not None) * SCALE[a]
         verdicts = [r["verdict"] for r in ok if r[f"err_{a}"] is not None]
         h = axs[0, j]
         bins = np.linspace(min(vals.min(), -lim) * 1.1, max(vals.max(), lim) * 1.1, 30)
@@ -287,7 +287,7 @@ def line_summary(rows: list[dict], folder: Path) -> Path:
                label=["pass", "inconclusive", "fail"])
         for x in (-lim, lim):
             h.axvline(x, c="k", ls="--", lw=1)
-        h.set_title(f"{a} error ({_UNIT[a]})")
+        h.set_title(f"{a} error ({UNIT[a]})")
         h.legend(fontsize=7)
         c = axs[1, j]
         centre, lcl, ucl = control_limits(vals)
@@ -308,9 +308,9 @@ def line_summary(rows: list[dict], folder: Path) -> Path:
          str(sum(u == v for u in units.values()))] for v in ("pass", "fail", "inconclusive")])
     stats = []
     for a in judged:
-        vals = np.array([r[f"err_{a}"] * _SCALE[a] for r in ok if r[f"err_{a}"] is not None])
+        vals = np.array([r[f"err_{a}"] * SCALE[a] for r in ok if r[f"err_{a}"] is not None])
         centre, lcl, ucl = control_limits(vals)
-        stats.append([f"{a} ({_UNIT[a]})", f"{vals.mean():+.3f}", f"{vals.std(ddof=1):.3f}"
+        stats.append([f"{a} ({UNIT[a]})", f"{vals.mean():+.3f}", f"{vals.std(ddof=1):.3f}"
                       if len(vals) > 1 else "-", f"{lcl:+.3f}", f"{ucl:+.3f}"])
     page = folder / "summary.html"
     page.write_text(

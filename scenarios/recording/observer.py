@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, TextIO
@@ -28,12 +28,15 @@ from typing import TYPE_CHECKING, Any, Protocol, TextIO
 import numpy as np
 
 from scenarios.recording import log as rl
-from twin.core.errors import AimbenchError
 from twin.core.pose import Pose, StagePose
 from twin.core.scan import Scan
 
 if TYPE_CHECKING:
     import rerun as rr
+
+    from align import PoseEstimate
+    from align.calibration import LaserCalibration
+    from scenarios.runner import Estimator
 
 #: The nominal scan period of the VLP-16 at 600 rpm, s: the stage clock of a replay advances by
 #: it per scan (a store records no sensor clock).
@@ -289,15 +292,14 @@ class RerunObserver:
             return int(reference) * int(self.scans_per_reference) + int(k)
         return self.count
 
-    def on_scan(self, scan: Scan | None, estimate: Any, truth: Pose | None = None, *,
+    def on_scan(self, scan: Scan | None, estimate: PoseEstimate, truth: Pose | None = None, *,
                 reference: int | None = None, k: int | None = None,
                 stage: StagePose | None = None, wall_time: float | None = None,
                 sensor_time: float | None = None, missing_packets: int | None = None,
                 complete: bool | None = None) -> None:
-        """One scan and its estimate (anything with ``status``, ``success``/``pose``,
-        ``diagnostics`` and optionally ``used``: align's `PoseEstimate` or the runner's
-        `Estimate`). ``scan`` may be None (a replay without captures): then only the poses,
-        errors and annotations are logged."""
+        """One scan and its estimate (``used``: what align used of the scan, drawn over it).
+        ``scan`` may be None (a replay without captures): then only the poses, errors and
+        annotations are logged."""
         self.on_start()
         t0 = time.perf_counter()
         rec = self.rec
@@ -310,11 +312,8 @@ class RerunObserver:
             from scenarios.truth import scan_truth
 
             truth = scan_truth(scan)
-        status = getattr(estimate, "status", "ok")
-        status = str(getattr(status, "value", status))
-        pose = getattr(estimate, "pose", None)
-        success = bool(getattr(estimate, "success", pose is not None)) and pose is not None
-        diagnostics = getattr(estimate, "diagnostics", None) or {}
+        status, success, pose = str(estimate.status), estimate.success, estimate.pose
+        diagnostics = estimate.diagnostics
         if sensor_time is None and scan is not None and len(scan):
             sensor_time = float(scan.time[0])
         rec.reset_time()
@@ -335,7 +334,7 @@ class RerunObserver:
             if sensor is not None:
                 rec.log("world/sensor", rl.pose_transform(sensor))
             rl.log_scan_points(rec, scan, color_by=self.color_by, every=self.points_every)
-            rl.log_used(rec, scan, getattr(estimate, "used", None) if success else None)
+            rl.log_used(rec, scan, estimate.used if success else None)
         if (truth is not None) not in self._styled:
             # Styled on first use: a recording shows either errors (twin) or estimates.
             self._styled.add(truth is not None)
@@ -425,28 +424,20 @@ class ObservedBench:
 
 
 def observed_estimator(bench: ObservedBench, method: str | None = None, board: Any = None,
-                       calibration: dict | None = None) -> Callable[[Scan], Any]:
-    """The runner's estimator (`scenarios.runner.align_call`, as `make_estimator` makes it),
-    logging each scan with align's full answer (``used``: the board points and features, which
-    the runner's `Estimate` does not keep) before handing the runner its usual `Estimate`."""
-    from scenarios.runner import Estimate, adapt_estimate, align_call
+                       calibration: LaserCalibration | None = None) -> Estimator:
+    """The runner's estimator (`scenarios.runner.make_estimator`), logging each scan with
+    align's answer (with ``used``: the board points and features) before handing it on."""
+    from scenarios.runner import make_estimator
 
-    call = align_call(method, board, calibration)
+    call = make_estimator(method, board, calibration)
 
-    def estimate(scan: Scan) -> Any:
-        try:
-            pe = call(scan)
-            est = adapt_estimate(pe)
-        except AimbenchError:
-            raise
-        except Exception as exc:  # as make_estimator: one bad scan must not lose the sweep
-            est = pe = Estimate(status="estimator_error", success=False, pose=None,
-                                diagnostics={"error": f"{type(exc).__name__}: {exc}"})
+    def estimate(scan: Scan) -> PoseEstimate:
+        est = call(scan)
         try:
             stage = bench.position()
         except Exception:
             stage = None
-        bench.observer.on_scan(scan, pe, None, reference=bench.reference, k=bench.k,
+        bench.observer.on_scan(scan, est, None, reference=bench.reference, k=bench.k,
                                stage=stage, wall_time=time.time())
         return est
 
@@ -483,8 +474,9 @@ class RerunSession:
         self._closed = False
         self.stream.write(f"rerun: {sinks.describe()}\n")
 
-    def instrument(self, bench: Any, method: str | None, calibration: dict | None = None,
-                   board: Any = None) -> tuple[Any, Callable[[Scan], Any]]:
+    def instrument(self, bench: Any, method: str | None,
+                   calibration: LaserCalibration | None = None, board: Any = None
+                   ) -> tuple[Any, Estimator]:
         """The bench and estimator to hand the runner instead of the plain ones (``board``: the
         run's align `BoardSpec`, None for the paper's)."""
         observed = ObservedBench(bench, self.observer, self.plan)

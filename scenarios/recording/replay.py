@@ -39,6 +39,10 @@ from twin.lidar.sources import capture_scans, parse_source
 if TYPE_CHECKING:
     import rerun as rr
 
+    from align import PoseEstimate
+    from align.calibration import LaserCalibration
+    from scenarios.runner import Estimator
+
 #: Largest difference between a stored and a re-computed pose that still counts as the same
 #: estimate: m for positions, rad for angles (far below anything a report shows).
 SAME_POSE_TOL = 1e-6
@@ -117,24 +121,21 @@ def recapture(store: Store, capture: Path,
 # ---------------------------------------------------------------------------------------------
 # Runs
 # ---------------------------------------------------------------------------------------------
-def run_estimator(method: str | None, calibration: dict | None = None, board: Any = None
-                  ) -> Callable[[Scan], Any]:
+def run_estimator(method: str | None, calibration: LaserCalibration | None = None,
+                  board: Any = None) -> Estimator:
     """align's estimate of one scan with the run's method, calibration and board (its station's
-    `BoardSpec`; None: the paper's), the call the runner makes (`scenarios.runner.align_call`)."""
-    from scenarios.runner import align_call
+    `BoardSpec`; None: the paper's), as the runner makes it (`scenarios.runner.make_estimator`)."""
+    from scenarios.runner import make_estimator
 
-    return align_call(method or None, board, calibration=calibration)
+    return make_estimator(method or None, board, calibration)
 
 
-@dataclass
-class _Stored:
-    """A store row in the shape `RerunObserver.on_scan` takes as an estimate."""
+def _stored_estimate(row: Mapping[str, Any], method: str) -> PoseEstimate:
+    """The estimate a store row keeps: its status, pose and diagnostics (no covariance)."""
+    from align import PoseEstimate, Status
 
-    status: str
-    success: bool
-    pose: Pose | None
-    diagnostics: dict
-    used: dict = field(default_factory=dict)
+    return PoseEstimate(Status(row["status"]), method, pose=pose_from_row(row),
+                        diagnostics=row.get("diagnostics") or {})
 
 
 def _same_pose(a: Pose | None, b: Pose | None) -> bool:
@@ -225,11 +226,10 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
         if pending is not None and (pending[0], pending[1]) == (i, k):
             scan = pending[2]
             pending = next(source, None)
-        stored = _Stored(status=row["status"], success=bool(row["success"]),
-                         pose=pose_from_row(row), diagnostics=row.get("diagnostics") or {})
+        stored = _stored_estimate(row, config.method or "")
         if scan is not None:
             fresh = estimator(scan)
-            stored.used = dict(getattr(fresh, "used", {}) or {})
+            stored.used = fresh.used  # what align used of the scan, drawn over it
             fresh_pose = fresh.pose if fresh.success else None
             if not _same_pose(fresh_pose, stored.pose if stored.success else None):
                 summary.mismatches += 1

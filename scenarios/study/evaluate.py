@@ -124,7 +124,7 @@ class Point:
                 est = align.estimate(scans[i:i + n] if n > 1 else scans[i], board=self.board,
                                      method=self.method, hints=self.hints)
                 cpu = time.process_time() - c0
-                status = str(getattr(est.status, "value", est.status))
+                status = str(est.status)
                 if not est.success:
                     rows.append((k, n, g, status, False, [math.nan] * 6, [math.nan] * 6, cpu))
                     continue

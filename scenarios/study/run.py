@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from scenarios import station as stations
+from scenarios.interrupt import StopFlag
 from scenarios.progress import Bar
-from scenarios.runner import _StopFlag
 from scenarios.study.evaluate import NO_BOUND, STOPPED, bound_available, evaluate_task
 from scenarios.study.spec import StudySpec, apply, design
 from scenarios.study.store import StudyStore
@@ -43,7 +43,7 @@ def check(spec: StudySpec, folder: Path) -> tuple[stations.Station, list[dict[st
 def create(spec: StudySpec, folder: Path, out: Path, config: dict[str, Any]) -> StudyStore:
     """A new study store in `out`, every design point checked first (nothing is made for a
     study that cannot run)."""
-    from scenarios.commands.version import versions
+    from scenarios.versions import versions
 
     base, points = check(spec, folder)
     tasks = math.ceil(spec.protocol.poses / spec.protocol.poses_per_task)
@@ -151,7 +151,7 @@ def execute(store: StudyStore, engine: Any, progress: bool = True,
 
     message = ("stopping after the tasks in flight (results so far are saved; --resume "
                "continues; Ctrl-C again to stop at once)")
-    with _StopFlag(lambda: bar.message(message)) as flag:
+    with StopFlag(lambda: bar.message(message)) as flag:
         try:
             stopped = engine.run(evaluate_task, tasks, on_result,
                                  should_stop=lambda: flag.stop, on_lost=on_lost)

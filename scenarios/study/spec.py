@@ -269,7 +269,7 @@ def check_name(key: str, where: str) -> None:
             raise StudyError(f"{where}: {key}: not a station key ({'.'.join(parts[:i + 1])} "
                              f"unknown; allowed there: {allowed}) nor one of the study's own "
                              f"({', '.join(OWN_PARAMETERS)}); see docs/studies.md")
-        model = stations._section_type(field.annotation) or field.annotation
+        model = stations.section_type(field.annotation) or field.annotation
     if isinstance(model, type) and issubclass(model, BaseModel):
         raise StudyError(f"{where}: {key}: a table of the station file, not a value; name one of "
                          f"its keys ({', '.join(model.model_fields)})")

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from scenarios.store import _file_problems, _fsync_dir, dumps
+from scenarios.store import dumps, file_problems, fsync_dir
 from twin.core.errors import AimbenchError
 
 STORE_NAME = "study.sqlite"
@@ -129,7 +129,7 @@ class StudyStore:
             with tmp.open("rb+") as f:
                 os.fsync(f.fileno())
             os.replace(tmp, path)  # atomic: study.sqlite appears whole or not at all
-            _fsync_dir(folder)
+            fsync_dir(folder)
         except BaseException:
             tmp.unlink(missing_ok=True)
             raise
@@ -143,7 +143,7 @@ class StudyStore:
         if not path.is_file():
             raise StudyStoreError(f"no study in {folder} (no {STORE_NAME}); run aimbench study "
                                   f"FILE.toml --out {folder} first")
-        problems = _file_problems(path)
+        problems = file_problems(path)
         if not problems:
             with contextlib.closing(sqlite3.connect(path, timeout=30.0)) as conn:
                 try:
