@@ -15,8 +15,10 @@ from __future__ import annotations
 import argparse
 import ast
 import importlib
+import io
 import pkgutil
 import sys
+import tokenize
 from pathlib import Path
 
 from scenarios import commands
@@ -42,16 +44,30 @@ def command_names() -> list[str]:
 
 
 def command_help(name: str) -> str:
-    """The ``help=`` a command's module gives ``add_parser(name, ...)``, read from its source (a
-    literal string, as every command writes it); empty when it is not a literal."""
+    """The ``help=`` a command's module gives ``add_parser("NAME", ...)``, read from its source
+    (a literal string, as every command writes it); empty when there is none. Only that call is
+    parsed: parsing every command's whole module would cost --help a quarter of a second."""
     source = Path(commands.__path__[0], f"{name}.py").read_text(encoding="utf-8")
-    for node in ast.walk(ast.parse(source)):
-        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
-                and node.func.attr == "add_parser" and node.args
-                and isinstance(node.args[0], ast.Constant) and node.args[0].value == name):
-            for kw in node.keywords:
-                if kw.arg == "help" and isinstance(kw.value, ast.Constant):
-                    return str(kw.value.value)
+    start = source.find(f'add_parser("{name}"')
+    if start < 0:
+        return ""
+    call = source[start + len("add_parser"):]
+    depth = 0
+    for tok in tokenize.generate_tokens(io.StringIO(call).readline):
+        if tok.type == tokenize.OP and tok.string in "([{":
+            depth += 1
+        elif tok.type == tokenize.OP and tok.string in ")]}":
+            depth -= 1
+            if depth == 0:
+                lines = call.splitlines(keepends=True)[: tok.end[0]]
+                lines[-1] = lines[-1][: tok.end[1]]
+                node = ast.parse("f" + "".join(lines), mode="eval").body
+                break
+    else:
+        return ""
+    for kw in getattr(node, "keywords", ()):
+        if kw.arg == "help" and isinstance(kw.value, ast.Constant):
+            return str(kw.value.value)
     return ""
 
 

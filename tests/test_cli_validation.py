@@ -113,3 +113,27 @@ def test_estimate_with_the_board_out_of_view_prints_no_pose(capsys, tmp_path: Pa
     assert main(["estimate", str(cap)]) == 1
     table = capsys.readouterr().out
     assert "129." not in table and "(0.0 mm" not in table
+
+
+def test_the_command_line_imports_only_the_command_that_runs(capsys):
+    # Issue 38: --help lists every command with its help line without importing any command
+    # module (nor numpy); a command's own parser is the full one. The lines read from source
+    # are those the modules register.
+    import subprocess
+    import sys
+
+    from scenarios.cli import ALL, build_parser, command_help, command_names
+
+    probe = ("import sys; from scenarios.cli import main\n"
+             "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+             "print(sorted(m for m in sys.modules if m.startswith('scenarios.commands.') or "
+             "m == 'numpy'), file=sys.stderr)")
+    res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=60, cwd=Path(__file__).resolve().parents[1], check=True)
+    assert res.stderr.strip().splitlines()[-1] == "[]", res.stderr
+    full = build_parser(ALL)._subparsers._group_actions[0]
+    helps = {a.dest: a.help for a in full._choices_actions}
+    assert set(helps) == set(command_names())
+    assert all(helps[name] and command_help(name) == helps[name] for name in helps)
+    for name in command_names():
+        assert name in res.stdout and (helps[name].split()[0] in res.stdout)
