@@ -117,6 +117,10 @@ def align_call(method: str | None = None, board: Any = None,
     if method is not None and methods is not None and method not in methods:
         raise AimbenchError(f"unknown estimation method {method!r}; use one of "
                             f"{', '.join(methods)}")
+    if method == "icp":  # a resumed run, a plan file: the command line checks its own --method
+        from scenarios.extras import require
+
+        require("open3d", "the method icp")
     kwargs: dict[str, Any] = {"board": board if board is not None else align.BoardSpec()}
     if method is not None:
         kwargs["method"] = method

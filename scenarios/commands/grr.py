@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from scenarios import station as stations
+from scenarios.extras import require
 from scenarios.inspection.records import Records
 from scenarios.inspection.verdict import EDGE_SCALE, EDGE_UNIT, edge_key, limits_si
 from twin.core.errors import AimbenchError
@@ -88,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
     with Records.open(db, create=args.twin) as records:
         if args.bias:
             return _bias(args, records)
+        require("statsmodels", "the gauge R&R's ANOVA (aimbench grr)")  # before the study runs
         if args.twin:
             station = stations.from_args(args, twin=True)[0]
             placement = {**studies.DEFAULT_PLACEMENT}

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import align
-from scenarios import calibrate
+from scenarios import calibrate, cliargs
 from scenarios import station as stations
 from scenarios.inspection import records as rec_mod
 from scenarios.inspection.acquire import open_acquisition
@@ -235,7 +235,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--report", default=None, metavar="DIR",
                    help="write the unit's one-page report (HTML and PNG) into DIR")
     p.add_argument("--json", action="store_true", help="one JSON object per unit")
-    p.add_argument("--method", default=align.DEFAULT_METHOD, choices=align.METHODS,
+    p.add_argument("--method", type=cliargs.estimation_method, default=align.DEFAULT_METHOD,
+                   choices=align.METHODS,
                    help=f"estimator (default {align.DEFAULT_METHOD})")
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="per-laser range calibration to apply (default: the station's "

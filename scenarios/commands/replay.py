@@ -19,6 +19,7 @@ import sys
 from pathlib import Path
 
 import align
+from scenarios import cliargs
 from scenarios.commands.info import add_sensor_arguments, sensor_options
 from scenarios.progress import Bar
 from scenarios.recording.observer import (
@@ -49,6 +50,9 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
+    from scenarios.extras import require
+
+    require("rerun", "aimbench replay")
     from scenarios.recording import log as rl
     from scenarios.recording import replay
     from scenarios.truth import truth_path
@@ -128,7 +132,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="log every N-th return of a scan (smaller recordings; default 1)")
     p.add_argument("--color-by", choices=("intensity", "ring"), default="intensity",
                    help="colour of the raw returns (default intensity)")
-    p.add_argument("--method", choices=align.METHODS,
+    p.add_argument("--method", type=cliargs.estimation_method, choices=align.METHODS,
                    help=f"capture: estimation method (default: align's, {align.DEFAULT_METHOD})")
     p.add_argument("--truth", help="capture: truth file (default CAPTURE.truth.json if present)")
     p.add_argument("--limit", "--scans", type=int, metavar="N",

@@ -325,7 +325,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--scans", type=cliargs.positive_int,
                    help="scans per reference (default: the paper's, 100; 50 for montecarlo)")
     p.add_argument("--poses", type=cliargs.positive_int, help="Monte Carlo poses (default 200)")
-    p.add_argument("--method", choices=align.METHODS,
+    p.add_argument("--method", type=cliargs.estimation_method, choices=align.METHODS,
                    help=f"estimation method (default: align's, {align.DEFAULT_METHOD})")
     p.add_argument("--max-consecutive-failures", type=cliargs.positive_int,
                    default=MAX_CONSECUTIVE_FAILURES,

@@ -119,6 +119,9 @@ def open_recording(name: str, sinks: SinkOptions, truth: bool = True,
                    stream: TextIO | None = None) -> rr.RecordingStream:
     """A new recording with aimbench's blueprint (error plots with ``truth``, else estimates),
     attached to the chosen sinks."""
+    from scenarios.extras import require
+
+    require("rerun", "a rerun recording")
     import rerun as rr
 
     stream = stream if stream is not None else sys.stderr
