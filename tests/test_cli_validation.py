@@ -137,3 +137,20 @@ def test_the_command_line_imports_only_the_command_that_runs(capsys):
     assert all(helps[name] and command_help(name) == helps[name] for name in helps)
     for name in command_names():
         assert name in res.stdout and (helps[name].split()[0] in res.stdout)
+
+
+@pytest.mark.parametrize(("hidden", "argv", "extra"), [
+    ("open3d", ["estimate", str(CAPTURE), "--method", "icp"], "open3d"),
+    ("rerun", ["replay", str(CAPTURE), "--save", "x.rrd"], "rerun"),
+    ("statsmodels", ["grr", "--db", "g.sqlite"], "grr"),
+])
+def test_a_missing_extra_is_one_line_naming_it(capsys, monkeypatch, tmp_path: Path, hidden,
+                                               argv, extra):
+    # `make demo` installs no extras (issue 38): a command needing one says which, before it
+    # runs (the library hidden as if it were not installed: None in sys.modules).
+    import sys
+
+    monkeypatch.setitem(sys.modules, hidden, None)
+    monkeypatch.chdir(tmp_path)
+    assert f"pip install 'aimbench[{extra}]'" in bad(capsys, *argv)
+    assert list(tmp_path.iterdir()) == []  # nothing made

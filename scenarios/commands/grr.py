@@ -86,10 +86,11 @@ def run(args: argparse.Namespace) -> int:
     db = Path(args.db) if args.db else None
     if db is None:
         raise AimbenchError("give --db: the records to analyse (a twin study is stored there)")
+    if not args.bias:  # before a study runs or a record is read
+        require("statsmodels", "the gauge R&R's ANOVA (aimbench grr)")
     with Records.open(db, create=args.twin) as records:
         if args.bias:
             return _bias(args, records)
-        require("statsmodels", "the gauge R&R's ANOVA (aimbench grr)")  # before the study runs
         if args.twin:
             station = stations.from_args(args, twin=True)[0]
             placement = {**studies.DEFAULT_PLACEMENT}
