@@ -267,7 +267,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--rerun", action="store_true",
                    help="show the inspection live in rerun (the board, the points, the "
                         "estimated and nominal frames, the verdict)")
-    from scenarios.recording.observer import add_sink_arguments
+    from scenarios.recording.options import add_sink_arguments
 
     add_sink_arguments(p, "with --rerun: write the recording to this .rrd file")
     p.set_defaults(func=run)

@@ -340,11 +340,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-report", action="store_true", help="do not write the report")
     add_tolerance_arguments(p)
-    try:  # rerun logging (scenarios/recording/observer.py): optional, the sweep works without it
-        from scenarios.recording.observer import add_rerun_arguments
-    except ImportError:
-        pass
-    else:
-        add_rerun_arguments(p)
+    # rerun logging's options (the recording itself, scenarios/recording/observer.py, needs the
+    # rerun extra and is imported only with --rerun)
+    from scenarios.recording.options import add_rerun_arguments
+
+    add_rerun_arguments(p)
     p.set_defaults(func=run)
     return p
