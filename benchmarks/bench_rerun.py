@@ -125,6 +125,9 @@ def main() -> None:
                     size = rrd.stat().st_size
     (c_plain, w_plain), (c_rr, w_rr) = best["plain"], best["rerun"]
     ratio_cpu = c_rr / c_plain
+    # what logging adds, scaled to the goal's sweep (CPU: a loaded machine's wall time moves by
+    # more than the whole cost)
+    log_s = (c_rr - c_plain) / n * GOAL_SCANS
     ratio_wall = w_rr / w_plain
     rows = [
         ("sweep CPU time, plain", f"{c_plain:.1f} s", f"{c_plain / n * 1e3:.1f} ms/scan", ""),
@@ -138,8 +141,8 @@ def main() -> None:
         (".rrd size per scan", f"{size / n / 2**10:.0f} KiB", "", ""),
         (f".rrd size, {GOAL_SCANS} scans", f"{size / n * GOAL_SCANS / 1e6:.0f} MB",
          f"goal {GOAL_BYTES / 1e6:.0f} MB", f"{size / n * GOAL_SCANS / GOAL_BYTES:.2f}"),
-        (f"logging wall, {GOAL_SCANS} scans", f"{(w_rr - w_plain) / n * GOAL_SCANS:.1f} s",
-         f"goal {GOAL_LOG_S:.0f} s", f"{(w_rr - w_plain) / n * GOAL_SCANS / GOAL_LOG_S:.2f}"),
+        (f"logging CPU, {GOAL_SCANS} scans", f"{log_s:.1f} s", f"goal {GOAL_LOG_S:.0f} s",
+         f"{log_s / GOAL_LOG_S:.2f}"),
     ]
     print()
     print(f"{'figure':<28} {'value':>12}  {'anchor':<22} {'ratio':>6}")
@@ -148,13 +151,16 @@ def main() -> None:
         print(f"{fig:<28} {val:>12}  {anchor:<22} {ratio:>6}")
     print()
     scaled = size / n * GOAL_SCANS
-    small = scaled <= GOAL_BYTES
-    print(f"the recording of {GOAL_SCANS} scans would take {scaled / 1e6:.0f} MB: "
-          f"{'within' if small else 'BEYOND'} the {GOAL_BYTES / 1e6:.0f} MB goal")
-    ok = ratio_cpu <= 1 + MAX_OVERHEAD and (small or args.full_clouds)
+    small = (scaled <= GOAL_BYTES and log_s <= GOAL_LOG_S) or args.full_clouds
+    print(f"a recording of {GOAL_SCANS} scans: {scaled / 1e6:.0f} MB and {log_s:.1f} s of "
+          f"logging: {'within' if small else 'BEYOND'} the goal of {GOAL_BYTES / 1e6:.0f} MB "
+          f"and {GOAL_LOG_S:.0f} s" + (" (full clouds: not held to it)" if args.full_clouds
+                                       else ""))
+    within = ratio_cpu <= 1 + MAX_OVERHEAD
+    ok = within and small
     print(f"logging {'adds' if ratio_cpu >= 1 else 'saves'} {abs(ratio_cpu - 1) * 100:.1f} % "
           f"CPU time ({(ratio_wall - 1) * 100:+.1f} % wall): "
-          f"{'within' if ok else 'BEYOND'} the {MAX_OVERHEAD * 100:.0f} % ceiling"
+          f"{'within' if within else 'BEYOND'} the {MAX_OVERHEAD * 100:.0f} % ceiling"
           + ("" if issue else f" (measured on {len(refs)} x {args.scans}, not 21 x 100)"))
     sys.exit(0 if ok else 1)
 

@@ -8,10 +8,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-#: The default decimation of a recording's clouds: every 16th return away from the board (the
+#: The default decimation of a recording's clouds: every 32nd return away from the board (the
 #: board's neighbourhood whole), so that a 2,100-scan sweep records in under 100 MB (issue 38;
 #: benchmarks/bench_rerun.py); ``--full-clouds`` logs every return.
-DEFAULT_POINTS_EVERY = 16
+DEFAULT_POINTS_EVERY = 32
 
 @dataclass
 class SinkOptions:
