@@ -171,7 +171,8 @@ def _linearity(args: argparse.Namespace) -> int:
     xs = [float(v) for v in args.x_refs_mm.split(",")]
     with bench:
         data = studies.run_linearity(bench, station, yaw_deg=yaw, x_mm=xs,
-                                     repeats=args.repeats, scans=args.scans)
+                                     repeats=args.repeats, scans=args.scans,
+                                     progress=True)  # on stderr: --json's stdout stays JSON
     results = [msa.linearity(*data[a], edge_key(a), EDGE_UNIT[a], args.confidence)
                for a in ("yaw", "x") if len(data[a][0]) > 2]
     if args.json:
