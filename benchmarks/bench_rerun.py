@@ -80,6 +80,24 @@ def run_sweep(plan: plans.Plan, out: Path, seed: int, rrd: Path | None,
     return time.process_time() - c0, time.perf_counter() - w0
 
 
+def static_size(tmp: Path, seed: int) -> int:
+    """Bytes of a recording that holds the static scene only (the bench's geometry, the board,
+    the blueprint): what a recording costs once, whatever its length."""
+    from scenarios.recording.observer import (
+        RerunObserver,
+        SinkOptions,
+        close_recording,
+        open_recording,
+    )
+
+    sinks = SinkOptions(save=tmp / "static.rrd")
+    quiet = open(os.devnull, "w")  # noqa: SIM115
+    rec = open_recording("static", sinks, stream=quiet)
+    RerunObserver(rec).on_start("static", SimBench(seed=seed).info())
+    close_recording(rec, sinks, stream=quiet)
+    return (tmp / "static.rrd").stat().st_size
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -123,12 +141,14 @@ def main() -> None:
                     best[mode] = (cpu, wall)
                 if rrd is not None:
                     size = rrd.stat().st_size
+        fixed = static_size(Path(tmp), args.seed)
     (c_plain, w_plain), (c_rr, w_rr) = best["plain"], best["rerun"]
     ratio_cpu = c_rr / c_plain
     # what logging adds, scaled to the goal's sweep (CPU: a loaded machine's wall time moves by
     # more than the whole cost)
     log_s = (c_rr - c_plain) / n * GOAL_SCANS
     ratio_wall = w_rr / w_plain
+    scaled = fixed + (size - fixed) / n * GOAL_SCANS  # the static scene once, then per scan
     rows = [
         ("sweep CPU time, plain", f"{c_plain:.1f} s", f"{c_plain / n * 1e3:.1f} ms/scan", ""),
         ("sweep CPU time, --rerun", f"{c_rr:.1f} s", f"{c_rr / n * 1e3:.1f} ms/scan",
@@ -139,8 +159,9 @@ def main() -> None:
          f"ceiling {MAX_OVERHEAD * 100:.0f} %", f"{ratio_cpu:.3f}"),
         (".rrd size", f"{size / 2**20:.1f} MiB", f"{n} scans", ""),
         (".rrd size per scan", f"{size / n / 2**10:.0f} KiB", "", ""),
-        (f".rrd size, {GOAL_SCANS} scans", f"{size / n * GOAL_SCANS / 1e6:.0f} MB",
-         f"goal {GOAL_BYTES / 1e6:.0f} MB", f"{size / n * GOAL_SCANS / GOAL_BYTES:.2f}"),
+        (".rrd size, static scene", f"{fixed / 2**20:.1f} MiB", "once", ""),
+        (f".rrd size, {GOAL_SCANS} scans", f"{scaled / 1e6:.0f} MB",
+         f"goal {GOAL_BYTES / 1e6:.0f} MB", f"{scaled / GOAL_BYTES:.2f}"),
         (f"logging CPU, {GOAL_SCANS} scans", f"{log_s:.1f} s", f"goal {GOAL_LOG_S:.0f} s",
          f"{log_s / GOAL_LOG_S:.2f}"),
     ]
@@ -150,7 +171,6 @@ def main() -> None:
     for fig, val, anchor, ratio in rows:
         print(f"{fig:<28} {val:>12}  {anchor:<22} {ratio:>6}")
     print()
-    scaled = size / n * GOAL_SCANS
     small = (scaled <= GOAL_BYTES and log_s <= GOAL_LOG_S) or args.full_clouds
     print(f"a recording of {GOAL_SCANS} scans: {scaled / 1e6:.0f} MB and {log_s:.1f} s of "
           f"logging: {'within' if small else 'BEYOND'} the goal of {GOAL_BYTES / 1e6:.0f} MB "

@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import math
 
+from scenarios.progress import StageMotion
 from twin.stage import grbl
 from twin.stage.controller import StageController, StageStatus
 
@@ -44,32 +45,6 @@ def _print_settings(stage: StageController) -> None:
         print(f"{setting:<14} {meaning}" + (f" ({unit})" if unit else ""))
 
 
-def _where(st: StageStatus) -> str:
-    """The position as a moving display shows it (relative to the bench reference)."""
-    return (f"{st.state}  x {st.x_m * 1000.0:+8.3f} mm  "
-            f"yaw {math.degrees(st.yaw_rad):+8.4f} deg")
-
-
-class _Motion:
-    """The position while the stages home or move: on a terminal a bar whose text follows the
-    stages (every status polled), elsewhere a line about once a second."""
-
-    def __init__(self, desc: str) -> None:
-        from scenarios.progress import Bar
-
-        # ten polls a second (the controller's STATUS_POLL_S, wait_idle's 20 ms plus a reply)
-        self.bar = Bar(None, desc, unit="reports", every=10)
-
-    def __call__(self, st: StageStatus) -> None:
-        self.bar.update(1, status=_where(st))
-
-    def __enter__(self) -> _Motion:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.bar.close()
-
-
 def run(args: argparse.Namespace) -> int:
     letters = None
     if args.axes is not None:
@@ -82,14 +57,14 @@ def run(args: argparse.Namespace) -> int:
         if args.action == "status":
             _print_status(stage.status())
         elif args.action == "home":
-            with _Motion("homing") as shown:
+            with StageMotion("homing") as shown:
                 st = stage.home(timeout=args.timeout, on_status=shown)
             _print_status(st)
         elif args.action == "move":
             st = stage.status()
             x_m = st.x_m if args.x_mm is None else args.x_mm / 1000.0
             yaw = st.yaw_rad if args.yaw_deg is None else math.radians(args.yaw_deg)
-            with _Motion("moving") as shown:
+            with StageMotion("moving") as shown:
                 stage.move_to(x_m=x_m, yaw_rad=yaw, wait=True, timeout=args.timeout,
                               on_status=shown)
             _print_status(stage.status())

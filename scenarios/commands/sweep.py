@@ -143,6 +143,7 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
             board = config.station.board_spec()
             estimator = make_estimator(config.method, board, config.calibration)
             bench = bench if bench is not None else open_bench(config)
+            bench.progress = progress
         except AimbenchError as exc:
             store.set_status("failed", f"opening the {config.bench} bench: {exc}")
             raise
