@@ -118,8 +118,36 @@ def close_recording(rec: rr.RecordingStream, sinks: SinkOptions,
         _serve_until_interrupted()
     rec.disconnect()
     if sinks.save:
+        compact_recording(Path(sinks.save), stream)
         stream.write(f"rerun: recording saved to {sinks.save} (open it with: rerun "
                      f"{sinks.save})\n")
+
+
+def compact_recording(path: Path, stream: TextIO | None = None) -> None:
+    """Rewrite the .rrd at ``path`` with rerun's own compaction (``rerun rrd optimize``): the
+    SDK writes a chunk per log call as it goes, about a thousand per hundred scans, each with
+    its own Arrow schema; merged, the file is half the size (issue 38: a 2,100-scan sweep under
+    100 MB) and loads faster. A compaction that fails leaves the file as written, and says so."""
+    import os
+    import subprocess
+
+    if not path.is_file():
+        return
+    tmp = path.with_name(path.name + ".compacting")
+    cmd = [sys.executable, "-m", "rerun", "rrd", "optimize", str(path), "-o", str(tmp)]
+    try:
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    except (OSError, subprocess.SubprocessError) as exc:
+        res = None
+        why = str(exc)
+    else:
+        why = (res.stderr.strip().splitlines() or ["no message"])[-1]
+    if res is not None and res.returncode == 0 and tmp.is_file():
+        os.replace(tmp, path)
+        return
+    tmp.unlink(missing_ok=True)
+    (stream if stream is not None else sys.stderr).write(
+        f"rerun: the recording was kept as written (rerun rrd optimize failed: {why})\n")
 
 
 def _serve_until_interrupted() -> None:
