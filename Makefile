@@ -8,8 +8,11 @@ STAMP  := $(VENV)/.aimbench-installed
 TEST_STAMP  := $(VENV)/.aimbench-test-installed
 BENCH_STAMP := $(VENV)/.aimbench-bench-installed
 RUN    ?= runs/demo
-# Test workers (pytest-xdist): the suite's tests are independent, and CI machines have two cores.
+# Test workers (pytest-xdist): the suite's files are independent, and CI machines have two cores.
+# --dist loadfile: a file's tests on one worker, so its module fixtures (a sweep, a study, the
+# firmware in simavr) are made once, as in a serial run.
 JOBS   ?= 2
+XDIST  := -n $(JOBS) --dist loadfile
 
 .PHONY: setup demo test test-fast lint bench clean
 
@@ -33,10 +36,10 @@ demo: setup
 
 ## The whole test suite (README, second command; CI runs this), on $(JOBS) workers.
 test: $(TEST_STAMP)
-	$(BIN)/python -m pytest -n $(JOBS)
+	$(BIN)/python -m pytest $(XDIST)
 
 test-fast: $(TEST_STAMP)
-	$(BIN)/python -m pytest -n $(JOBS) -m "not slow"
+	$(BIN)/python -m pytest $(XDIST) -m "not slow"
 
 lint: $(TEST_STAMP)
 	$(BIN)/ruff check .
