@@ -86,6 +86,10 @@ class Bench(abc.ABC):
     def travel(self) -> tuple[tuple[float, float], tuple[float, float]]:
         """((yaw_min_rad, yaw_max_rad), (x_min_m, x_max_m)) the stages can reach."""
 
+    #: Show the stages' position while they home (a hardware bench; the sweep's --no-progress
+    #: turns it off).
+    progress = True
+
     @abc.abstractmethod
     def home(self) -> None:
         """Find the stages' home (limit switches on hardware); afterwards yaw = x = 0."""
@@ -246,7 +250,11 @@ class HardwareBench(Bench):
 
     def home(self) -> None:
         if self.controller is not None:
-            self.controller.home()
+            from scenarios.progress import StageMotion
+
+            # a homing cycle takes seconds (15 on the wire-level twin): the position as it goes
+            with StageMotion("homing", enabled=self.progress) as shown:
+                self.controller.home(on_status=shown)
         self._target = StagePose()
 
     def move_to(self, *, x_m: float, yaw_rad: float) -> None:

@@ -114,3 +114,18 @@ def input_file(text: str) -> Path:
     if not path.is_file():
         raise argparse.ArgumentTypeError(f"no such file {text}")
     return path
+
+
+def estimation_method(text: str) -> str:
+    """align's method name (its ``choices`` are checked after); ``icp`` only with Open3D, which
+    comes with the ``open3d`` extra: without it the user reads what to install before anything
+    runs, rather than every scan failing."""
+    if text == "icp":
+        from scenarios.extras import MissingExtraError, require
+
+        try:
+            require("open3d", "--method icp")
+        except MissingExtraError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+

@@ -11,9 +11,10 @@ messages printed above the bar (`Bar.write`).
 
 from __future__ import annotations
 
+import math
 import os
 import sys
-from typing import TextIO
+from typing import Any, TextIO
 
 from tqdm import tqdm
 
@@ -104,6 +105,29 @@ class Bar:
         self.enabled = False
 
     def __enter__(self) -> Bar:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class StageMotion:
+    """The stages' position while they home or move (a callable for
+    `twin.stage.controller.StageController`'s ``on_status``): on a terminal a bar whose text
+    follows the stages, elsewhere a line every ten status reports (about one a second)."""
+
+    def __init__(self, desc: str, enabled: bool = True, stream: TextIO | None = None) -> None:
+        self.bar = Bar(None, desc, unit="reports", every=10, enabled=enabled, stream=stream)
+
+    def __call__(self, st: Any) -> None:
+        """``st``: a `twin.stage.controller.StageStatus` (relative to the bench reference)."""
+        self.bar.update(1, status=f"{st.state}  x {st.x_m * 1000.0:+8.3f} mm  "
+                                  f"yaw {math.degrees(st.yaw_rad):+8.4f} deg")
+
+    def close(self) -> None:
+        self.bar.close()
+
+    def __enter__(self) -> StageMotion:
         return self
 
     def __exit__(self, *exc: object) -> None:

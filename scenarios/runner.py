@@ -109,6 +109,10 @@ def make_estimator(method: str | None = None, board: Any = None,
     if method is not None and method not in align.METHODS:
         raise AimbenchError(f"unknown estimation method {method!r}; use one of "
                             f"{', '.join(align.METHODS)}")
+    if method == "icp":  # a resumed run, a plan file: the command line checks its own --method
+        from scenarios.extras import require
+
+        require("open3d", "the method icp")
     name = method if method is not None else align.DEFAULT_METHOD
     board = board if board is not None else align.BoardSpec()
 

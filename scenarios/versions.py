@@ -52,7 +52,11 @@ def versions() -> dict[str, str]:
 
 
 def short() -> str:
-    """One line for ``aimbench --version``: the version and the commit."""
-    v = versions()
-    commit = v["aimbench-commit"]
-    return f"aimbench {v['aimbench']} (commit {commit[:12] + commit[40:]})"
+    """One line for ``aimbench --version``: the version and the commit (aimbench's own version
+    alone: looking up every tracked library costs more than the 0.3 s the answer may take)."""
+    try:
+        own = metadata.version("aimbench")
+    except metadata.PackageNotFoundError:
+        own = "not installed"
+    commit = git_commit()
+    return f"aimbench {own} (commit {commit[:12] + commit[40:]})"

@@ -119,3 +119,44 @@ def test_estimate_with_the_board_out_of_view_prints_no_pose(capsys, tmp_path: Pa
     assert main(["estimate", str(cap)]) == 1
     table = capsys.readouterr().out
     assert "129." not in table and "(0.0 mm" not in table
+
+
+def test_the_command_line_imports_only_the_command_that_runs(capsys):
+    # Issue 38: --help lists every command with its help line without importing any command
+    # module (nor numpy); a command's own parser is the full one. The lines read from source
+    # are those the modules register.
+    import subprocess
+    import sys
+
+    from scenarios.cli import ALL, build_parser, command_help, command_names
+
+    probe = ("import sys; from scenarios.cli import main\n"
+             "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+             "print(sorted(m for m in sys.modules if m.startswith('scenarios.commands.') or "
+             "m == 'numpy'), file=sys.stderr)")
+    res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=60, cwd=Path(__file__).resolve().parents[1], check=True)
+    assert res.stderr.strip().splitlines()[-1] == "[]", res.stderr
+    full = build_parser(ALL)._subparsers._group_actions[0]
+    helps = {a.dest: a.help for a in full._choices_actions}
+    assert set(helps) == set(command_names())
+    assert all(helps[name] and command_help(name) == helps[name] for name in helps)
+    for name in command_names():
+        assert name in res.stdout and (helps[name].split()[0] in res.stdout)
+
+
+@pytest.mark.parametrize(("hidden", "argv", "extra"), [
+    ("open3d", ["estimate", str(CAPTURE), "--method", "icp"], "open3d"),
+    ("rerun", ["replay", str(CAPTURE), "--save", "x.rrd"], "rerun"),
+    ("statsmodels", ["grr", "--db", "g.sqlite"], "grr"),
+])
+def test_a_missing_extra_is_one_line_naming_it(capsys, monkeypatch, tmp_path: Path, hidden,
+                                               argv, extra):
+    # `make demo` installs no extras (issue 38): a command needing one says which, before it
+    # runs (the library hidden as if it were not installed: None in sys.modules).
+    import sys
+
+    monkeypatch.setitem(sys.modules, hidden, None)
+    monkeypatch.chdir(tmp_path)
+    assert f"pip install 'aimbench[{extra}]'" in bad(capsys, *argv)
+    assert list(tmp_path.iterdir()) == []  # nothing made

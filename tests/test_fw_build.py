@@ -7,12 +7,14 @@ import re
 import subprocess
 
 from bench_fw import FIRMWARE_DIR
+from twin.stage.hil import build_lock
 
 
 def make(*targets: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        ["make", "-C", str(FIRMWARE_DIR), *targets], capture_output=True, text=True, timeout=600
-    )
+    # under the harness's lock: another test worker may be building bench_fw for simavr
+    with build_lock():
+        return subprocess.run(["make", "-C", str(FIRMWARE_DIR), *targets], capture_output=True,
+                              text=True, timeout=600)
 
 
 def test_firmware_builds_and_fits() -> None:

@@ -127,6 +127,7 @@ def test_grr_command_on_the_twin_and_from_records(tmp_path: Path):
     r = cli("grr", "--linearity", "--bench", "sim", "--yaw-refs-deg=-1,0,1",
             "--x-refs-mm=-10,0,10", "--repeats", "2", "--scans", "3", "--json")
     assert r.returncode == 0, r.stderr
+    assert "linearity: 12/12 measurements" in r.stderr  # its progress, beside the JSON
     lin = {a["axis"]: a for a in json.loads(r.stdout)["axes"]}
     # The twin's stages are exact: the gauge follows them (slope near 0, the bias near 0).
     assert abs(lin["yaw_deg"]["slope"]) < 0.1 and abs(lin["x_mm"]["slope"]) < 0.2

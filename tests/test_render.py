@@ -5,6 +5,7 @@ segmentation of the same view."""
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -41,6 +42,9 @@ def test_render_the_bench_scene_to_png_headless(tmp_path: Path) -> None:
                    "--height", "360", cwd=tmp_path)
     assert res.returncode == 0, res.stderr
     assert "camera overview" in res.stderr and "bench.png" in res.stderr
+    # seconds of work, each step shown as it ends
+    assert re.search(r"^render: 2/4 steps \| OpenGL context \(\w+\)$", res.stderr, re.M)
+    assert "render: 4/4 steps | written to" in res.stderr
     img = matplotlib.image.imread(tmp_path / "bench.png")
     assert img.shape[:2] == (360, 640)
     rgb = (img[..., :3] * 255).astype(int)

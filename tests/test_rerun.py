@@ -59,7 +59,7 @@ def replayed(run_dir: Path) -> tuple[Recording, object, list[dict]]:
     path = run_dir / "replay.rrd"
     rec = rl.new_recording("test replay")
     rec.save(path, default_blueprint=rl.blueprint())
-    summary = replay_run(run_dir, rec)
+    summary = replay_run(run_dir, rec, points_every=1)  # the full clouds (--full-clouds)
     rec.flush()
     rec.disconnect()
     with Store.open(run_dir) as store:
@@ -97,6 +97,32 @@ def test_replayed_scans_are_the_runs_own(replayed):
         step = row["reference"] * SCANS + row["scan"]
         (positions,) = recording.at("/world/sensor/scan", "scan", step, "Points3D:positions")
         assert len(positions) == row["points"]
+
+
+def test_a_decimated_cloud_keeps_the_boards_neighbourhood_whole(tmp_path: Path):
+    """A recording's default cloud (issue 38: a 2,100-scan sweep under 100 MB): every return
+    around the board, where the estimator reads its edges, and every 32nd elsewhere."""
+    import align
+    from twin.sim.bench import BenchSim
+
+    scan = BenchSim(seed=1).scan()
+    used = align.estimate(scan).used
+    keep = rl.board_neighbourhood(scan, used)
+    assert keep is not None and keep[np.asarray(used["board"])].all()
+    assert 0.01 < keep[scan.valid].mean() < 0.1  # the board's span, not the room
+    path = tmp_path / "one.rrd"
+    rec = rl.new_recording("decimated")
+    rec.save(path)
+    logged = rl.log_scan_points(rec, scan, every=32, keep=keep)
+    rec.flush()
+    rec.disconnect()
+    row = read_rrd(path).rows("/world/sensor/scan", "Points3D:positions")[0]
+    positions = row.components["Points3D:positions"]
+    near, far = scan.valid & keep, scan.valid & ~keep
+    assert len(positions) == logged == near.sum() + -(-far.sum() // 32)
+    got = {tuple(p) for p in np.asarray(positions, dtype=np.float32).tolist()}
+    whole = np.column_stack((scan.x, scan.y, scan.z))[near].astype(np.float32)
+    assert {tuple(p) for p in whole.tolist()} <= got  # rerun keeps float32 as given
 
 
 def test_true_and_estimated_pose_of_a_known_scan(replayed):
@@ -289,7 +315,7 @@ def test_live_sweep_through_the_runner_logs_each_scan(tmp_path: Path):
     store = Store.create(tmp_path / "run", plan, {"bench": "sim", "seed": 4}, bench.info())
     sinks = SinkOptions(save=tmp_path / "run" / "run.rrd")
     rec = open_recording("live", sinks)
-    observer = RerunObserver(rec, scans_per_reference=plan.scans)
+    observer = RerunObserver(rec, scans_per_reference=plan.scans, points_every=1)  # full clouds
     observed = ObservedBench(bench, observer, plan)
     try:
         status = Runner(plan, observed, store, observed_estimator(observed)).run()
@@ -348,7 +374,7 @@ def test_clouds_of_the_first_scans_only_are_still_the_runs_own(run_dir: Path, tm
     path = tmp_path / "first.rrd"
     rec = rl.new_recording()
     rec.save(path)
-    summary = replay_run(run_dir, rec, clouds_per_reference=1)
+    summary = replay_run(run_dir, rec, clouds_per_reference=1, points_every=1)
     rec.flush()
     rec.disconnect()
     assert summary.clouds == len(YAWS_DEG) and summary.mismatches == 0
@@ -373,7 +399,7 @@ def test_a_real_capture_shorter_than_a_rotation_is_replayed_in_pieces(sample_pca
     path = tmp_path / "real.rrd"
     rec = rl.new_recording()
     rec.save(path)
-    summary = replay_capture(sample_pcap, rec)
+    summary = replay_capture(sample_pcap, rec, points_every=1)  # whole clouds: counted
     rec.flush()
     rec.disconnect()
     recording = read_rrd(path)
@@ -394,7 +420,7 @@ def _replay_points(run_dir: Path, tmp_path: Path) -> tuple[object, dict, dict]:
     path = tmp_path / "replay.rrd"
     rec = rl.new_recording()
     rec.save(path)
-    summary = replay_run(run_dir, rec)
+    summary = replay_run(run_dir, rec, points_every=1)  # the full clouds (--full-clouds)
     rec.flush()
     rec.disconnect()
     recording = read_rrd(path)

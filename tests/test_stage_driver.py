@@ -6,6 +6,7 @@ of a combined move take their last step together.
 from __future__ import annotations
 
 import math
+import re
 import time
 from collections.abc import Iterator
 
@@ -244,3 +245,28 @@ def test_reconnect_keeps_position(bench: Bench, homed: StageController) -> None:
             assert bench.hil.positions().resets == resets
     finally:
         homed.connect()
+
+
+def test_stage_command_shows_the_position_while_it_homes_and_moves(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # `aimbench stage home` / `move` wait seconds for the stages: the position is shown as it
+    # changes (here, not a terminal: a line per ten status reports), then the final status.
+    from scenarios.cli import main
+
+    with SimavrHarness(start_x_mm=4.0, start_a_deg=3.0) as hil:
+        assert main(["stage", "--port", hil.url, "home"]) == 0
+        out, err = capsys.readouterr()
+        homing = re.findall(r"^homing: \d+ reports \| Home\s+x\s+(\S+) mm\s+yaw\s+(\S+) deg$",
+                            err, re.M)
+        assert len({x for x, _ in homing}) >= 2, err  # seen moving, not only where it ended
+        assert re.search(r"^state\s+Idle$", out, re.M)
+        assert re.search(r"^x\s+-50\.000 mm from the bench centre", out, re.M), out
+
+        assert main(["stage", "--port", hil.url, "move", "--x-mm", "-46", "--yaw-deg",
+                     "-28"]) == 0
+        out, err = capsys.readouterr()
+        xs = [float(x) for x in re.findall(r"^moving: \d+ reports \| Run\s+x\s+(\S+) mm", err,
+                                           re.M)]
+        assert xs and all(-50.0 < x < -46.0 for x in xs), err  # on the way
+        assert re.search(r"^x\s+-46\.000 mm from the bench centre", out, re.M), out

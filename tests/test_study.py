@@ -284,7 +284,7 @@ def _kill(pid: int) -> None:
 
 @pytest.mark.slow
 def test_the_report_shows_every_design_and_the_cheapest_meeting_the_target(
-        reference_study: Path):
+        reference_study: Path, capsys: pytest.CaptureFixture[str]):
     import pyarrow.parquet as pq
 
     from scenarios.study.results import EDGE, cheapest, meets, parse_target, summarize
@@ -321,6 +321,14 @@ def test_the_report_shows_every_design_and_the_cheapest_meeting_the_target(
     if not bound_available():
         # The gap until align.bound lands: said, and the bound columns empty, not invented.
         assert all(math.isnan(v) for r in results for v in r.bound)
+    # Written again (`study --report`) with its progress: a line per step, each figure named.
+    from scenarios.study.report import write
+
+    with StudyStore.open(reference_study) as store:
+        write(store, progress=True)
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("report: ")]
+    assert lines[0] == "report: 1/7 steps | heat map of board.width_mm x distance_mm, 1 fused"
+    assert "curve of scans_fused" in "\n".join(lines) and lines[-1] == "report: 7/7 steps | done"
 
 
 @pytest.mark.slow

@@ -5,6 +5,7 @@ give results that agree within their precision."""
 from __future__ import annotations
 
 import os
+import re
 import sqlite3
 import subprocess
 import sys
@@ -18,13 +19,14 @@ PLAN = "name = 'wire'\nscans = 6\nyaw_deg = [-3, 0, 3]\n"
 AXES = ("x_m", "y_m", "z_m", "roll_rad", "tilt_rad", "yaw_rad")
 
 
-def sweep(tmp_path: Path, bench: str) -> Path:
+def sweep(tmp_path: Path, bench: str, *options: str) -> tuple[Path, str]:
+    """Run the plan on `bench`; (the run folder, what the sweep printed on stderr)."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     res = subprocess.run([sys.executable, "-m", "scenarios.cli", "sweep", "plan.toml", "--bench",
-                          bench, "--seed", "3", "--out", bench, "--no-progress"], cwd=tmp_path,
+                          bench, "--seed", "3", "--out", bench, *options], cwd=tmp_path,
                          env=env, capture_output=True, text=True, timeout=600)
     assert res.returncode in (0, 1), res.stderr  # 1: a FAIL verdict, still a complete run
-    return tmp_path / bench
+    return tmp_path / bench, res.stderr
 
 
 def per_reference(run: Path) -> dict[int, np.ndarray]:
@@ -42,8 +44,11 @@ def per_reference(run: Path) -> dict[int, np.ndarray]:
 @pytest.mark.simavr
 def test_serve_with_hardware_bench_agrees_with_simbench(tmp_path: Path):
     (tmp_path / "plan.toml").write_text(PLAN)
-    wire = per_reference(sweep(tmp_path, "serve"))
-    sim = per_reference(sweep(tmp_path, "sim"))
+    run, err = sweep(tmp_path, "serve")
+    # seconds of homing before the first scan: the stages' position shown as they go
+    assert re.search(r"^homing: \d+ reports \| Home\s+x\s+\S+ mm\s+yaw", err, re.M), err
+    wire = per_reference(run)
+    sim = per_reference(sweep(tmp_path, "sim", "--no-progress")[0])
     with sqlite3.connect(tmp_path / "serve" / "run.sqlite") as c:
         stages = c.execute("SELECT stage_yaw_rad FROM reference ORDER BY reference").fetchall()
         bench = c.execute("SELECT value FROM meta WHERE key='bench'").fetchone()[0]

@@ -1,9 +1,16 @@
 #!/usr/bin/env bash
 # Set up everything aimbench needs on a fresh Debian 12 machine with Python >= 3.11:
-# the Debian packages (as root, with apt-get), then .venv with the project and its test extras.
+# the Debian packages (as root, with apt-get), then .venv with the project and the extras named.
 # Idempotent: packages already installed are not fetched again.
+#
+#   tools/setup.sh              the main job only (what `make demo` needs)
+#   tools/setup.sh test,bench   with the extras of pyproject.toml named (`make test`, `make bench`)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+EXTRAS=${1:-}
+case "$EXTRAS" in
+  *[!a-z0-9,-]*) echo "setup: error: extras are names separated by commas (e.g. test,bench), got '$EXTRAS'" >&2; exit 1 ;;
+esac
 
 # Why each Debian package:
 #   libusb-1.0-0                       open3d's Python module links against it
@@ -51,8 +58,13 @@ if [ ! -x .venv/bin/python ]; then
   "$PYTHON" -m venv .venv
 fi
 .venv/bin/python -m pip install -q --upgrade pip
-echo "setup: installing aimbench and its test extras into .venv"
-.venv/bin/python -m pip install -q -e '.[test]'
+if [ -n "$EXTRAS" ]; then
+  echo "setup: installing aimbench with the extras $EXTRAS into .venv"
+  .venv/bin/python -m pip install -q -e ".[$EXTRAS]"
+else
+  echo "setup: installing aimbench (the main job's libraries only) into .venv"
+  .venv/bin/python -m pip install -q -e .
+fi
 # Compile the numba kernels now, into numba's cache (beside their modules), so the first command
 # of a fresh install does not wait for them (scenarios/warmup.py).
 echo "setup: compiling the numba kernels (once: about 3 minutes of one core, 200 s measured)"

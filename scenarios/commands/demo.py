@@ -112,7 +112,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--scans", type=cliargs.positive_int, default=DEMO_SCANS,
                    help=f"scans per reference (default {DEMO_SCANS}; the paper: 100)")
     p.add_argument("--seed", type=cliargs.seed, default=0, help="the twin's noise seed (default 0)")
-    p.add_argument("--method", choices=align.METHODS,
+    p.add_argument("--method", type=cliargs.estimation_method, choices=align.METHODS,
                    help=f"estimation method (default: align's, {align.DEFAULT_METHOD})")
     p.add_argument("--jobs", type=cliargs.positive_int, default=min(2, os.cpu_count() or 1),
                    help="worker processes (default: 2 or the CPU count if lower)")

@@ -253,7 +253,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--truth", default=None, metavar="FILE",
                    help="the capture's true poses (a truth file: aimbench simulate writes "
                         "CAPTURE.truth.json, which is read when present): print the errors")
-    p.add_argument("--method", default=align.DEFAULT_METHOD, choices=align.METHODS,
+    p.add_argument("--method", type=cliargs.estimation_method, default=align.DEFAULT_METHOD,
+                   choices=align.METHODS,
                    help=f"estimator (default {align.DEFAULT_METHOD}; 'paper' is the reference "
                         "paper's, 'icp' the Open3D baseline)")
     p.add_argument("--fuse", type=cliargs.positive_int, default=1, metavar="N",

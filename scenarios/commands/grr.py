@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from scenarios import station as stations
+from scenarios.extras import require
 from scenarios.inspection.records import Records
 from scenarios.inspection.verdict import EDGE_SCALE, EDGE_UNIT, edge_key, limits_si
 from twin.core.errors import AimbenchError
@@ -85,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
     db = Path(args.db) if args.db else None
     if db is None:
         raise AimbenchError("give --db: the records to analyse (a twin study is stored there)")
+    if not args.bias:  # before a study runs or a record is read
+        require("statsmodels", "the gauge R&R's ANOVA (aimbench grr)")
     with Records.open(db, create=args.twin) as records:
         if args.bias:
             return _bias(args, records)
@@ -168,7 +171,8 @@ def _linearity(args: argparse.Namespace) -> int:
     xs = [float(v) for v in args.x_refs_mm.split(",")]
     with bench:
         data = studies.run_linearity(bench, station, yaw_deg=yaw, x_mm=xs,
-                                     repeats=args.repeats, scans=args.scans)
+                                     repeats=args.repeats, scans=args.scans,
+                                     progress=True)  # on stderr: --json's stdout stays JSON
     results = [msa.linearity(*data[a], edge_key(a), EDGE_UNIT[a], args.confidence)
                for a in ("yaw", "x") if len(data[a][0]) > 2]
     if args.json:

@@ -28,7 +28,7 @@ from typing import Any
 
 import align
 from align.calibration import LaserCalibration
-from scenarios import calibrate
+from scenarios import calibrate, cliargs
 from scenarios import station as stations
 from scenarios.inspection import records as rec_mod
 from scenarios.inspection.acquire import open_acquisition
@@ -237,7 +237,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--report", default=None, metavar="DIR",
                    help="write the unit's one-page report (HTML and PNG) into DIR")
     p.add_argument("--json", action="store_true", help="one JSON object per unit")
-    p.add_argument("--method", default=align.DEFAULT_METHOD, choices=align.METHODS,
+    p.add_argument("--method", type=cliargs.estimation_method, default=align.DEFAULT_METHOD,
+                   choices=align.METHODS,
                    help=f"estimator (default {align.DEFAULT_METHOD})")
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="per-laser range calibration to apply (default: the station's "
@@ -268,7 +269,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--rerun", action="store_true",
                    help="show the inspection live in rerun (the board, the points, the "
                         "estimated and nominal frames, the verdict)")
-    from scenarios.recording.observer import add_sink_arguments
+    from scenarios.recording.options import add_sink_arguments
 
     add_sink_arguments(p, "with --rerun: write the recording to this .rrd file")
     p.set_defaults(func=run)

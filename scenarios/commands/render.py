@@ -71,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
     import matplotlib.image
     import mujoco
 
+    from scenarios.progress import Bar
     from twin.sim.render import OffscreenRenderer, camera_names
 
     out = Path(args.out)
@@ -78,21 +79,28 @@ def run(args: argparse.Namespace) -> int:
         raise AimbenchError(f"--out {out}: the picture is written as PNG; name it *.png")
     if not out.parent.is_dir():
         raise AimbenchError(f"cannot write {out}: the folder {out.parent} does not exist")
-    model = _load(Path(args.model))
-    data = mujoco.MjData(model)
-    if args.keyframe is not None:
-        key = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, args.keyframe)
-        if key < 0:
-            keys = [model.key(i).name for i in range(model.nkey)]
-            raise AimbenchError(f"no keyframe {args.keyframe!r} in the model; it has "
-                                f"{', '.join(keys) or 'none'}")
-        mujoco.mj_resetDataKeyframe(model, data, key)
-    mujoco.mj_forward(model, data)
-    camera = _camera(args, camera_names(model))
-    with OffscreenRenderer(model, args.width, args.height, backend=args.backend) as renderer:
-        image = renderer.render(data, camera)
-        backend = renderer.backend
-    matplotlib.image.imsave(out, image)
+    # seconds in all (the model's compile, a software OpenGL context, the picture): each step
+    # is shown as it ends (scenarios/progress.py)
+    with Bar(4, "render", unit="steps", every=1) as bar:
+        model = _load(Path(args.model))
+        data = mujoco.MjData(model)
+        if args.keyframe is not None:
+            key = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_KEY, args.keyframe)
+            if key < 0:
+                keys = [model.key(i).name for i in range(model.nkey)]
+                raise AimbenchError(f"no keyframe {args.keyframe!r} in the model; it has "
+                                    f"{', '.join(keys) or 'none'}")
+            mujoco.mj_resetDataKeyframe(model, data, key)
+        mujoco.mj_forward(model, data)
+        camera = _camera(args, camera_names(model))
+        bar.update(1, status="model compiled")
+        with OffscreenRenderer(model, args.width, args.height, backend=args.backend) as renderer:
+            bar.update(1, status=f"OpenGL context ({renderer.backend})")
+            image = renderer.render(data, camera)
+            backend = renderer.backend
+            bar.update(1, status="rendered")
+        matplotlib.image.imsave(out, image)
+        bar.update(1, status=f"written to {out}")
     seen = f"camera {camera}" if isinstance(camera, str) else "the free camera"
     print(f"aimbench render: {args.model} from {seen}, {args.width} x {args.height} "
           f"({backend}) -> {out}", file=sys.stderr)

@@ -19,12 +19,13 @@ import sys
 from pathlib import Path
 
 import align
+from scenarios import cliargs
 from scenarios.commands.info import add_sensor_arguments, sensor_options
 from scenarios.progress import Bar
-from scenarios.recording.observer import (
+from scenarios.recording.options import (
+    add_cloud_arguments,
     add_sink_arguments,
-    close_recording,
-    open_recording,
+    points_every,
     sink_options,
 )
 from twin.core.errors import AimbenchError
@@ -49,8 +50,12 @@ class _Progress:
 
 
 def run(args: argparse.Namespace) -> int:
+    from scenarios.extras import require
+
+    require("rerun", "aimbench replay")
     from scenarios.recording import log as rl
     from scenarios.recording import replay
+    from scenarios.recording.observer import close_recording, open_recording
     from scenarios.truth import truth_path
 
     src = Path(args.source)
@@ -62,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             summary = replay.replay_run(
                 src, rec, clouds=not args.no_clouds,
-                clouds_per_reference=args.clouds_per_reference, points_every=args.points_every,
+                clouds_per_reference=args.clouds_per_reference, points_every=points_every(args),
                 color_by=args.color_by, tolerances=tol, progress=progress)
         finally:
             progress.close()
@@ -82,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             summary = replay.replay_capture(
                 args.source, rec, method=args.method, truth=args.truth, limit=args.limit,
-                points_every=args.points_every, color_by=args.color_by, tolerances=tol,
+                points_every=points_every(args), color_by=args.color_by, tolerances=tol,
                 progress=progress, **sensor_options(args))
         finally:
             progress.close()
@@ -124,11 +129,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="run folder: only what the store holds, no point clouds (fast)")
     p.add_argument("--clouds-per-reference", type=int, metavar="N",
                    help="run folder: point clouds of the first N scans of each reference only")
-    p.add_argument("--points-every", type=int, default=1, metavar="N",
-                   help="log every N-th return of a scan (smaller recordings; default 1)")
+    add_cloud_arguments(p)
     p.add_argument("--color-by", choices=("intensity", "ring"), default="intensity",
                    help="colour of the raw returns (default intensity)")
-    p.add_argument("--method", choices=align.METHODS,
+    p.add_argument("--method", type=cliargs.estimation_method, choices=align.METHODS,
                    help=f"capture: estimation method (default: align's, {align.DEFAULT_METHOD})")
     p.add_argument("--truth", help="capture: truth file (default CAPTURE.truth.json if present)")
     p.add_argument("--limit", "--scans", type=int, metavar="N",

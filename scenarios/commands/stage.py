@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import math
 
+from scenarios.progress import StageMotion
 from twin.stage import grbl
 from twin.stage.controller import StageController, StageStatus
 
@@ -56,12 +57,16 @@ def run(args: argparse.Namespace) -> int:
         if args.action == "status":
             _print_status(stage.status())
         elif args.action == "home":
-            _print_status(stage.home(timeout=args.timeout))
+            with StageMotion("homing") as shown:
+                st = stage.home(timeout=args.timeout, on_status=shown)
+            _print_status(st)
         elif args.action == "move":
             st = stage.status()
             x_m = st.x_m if args.x_mm is None else args.x_mm / 1000.0
             yaw = st.yaw_rad if args.yaw_deg is None else math.radians(args.yaw_deg)
-            stage.move_to(x_m=x_m, yaw_rad=yaw, wait=True, timeout=args.timeout)
+            with StageMotion("moving") as shown:
+                stage.move_to(x_m=x_m, yaw_rad=yaw, wait=True, timeout=args.timeout,
+                              on_status=shown)
             _print_status(stage.status())
         elif args.action == "settings":
             _print_settings(stage)

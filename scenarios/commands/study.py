@@ -79,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
                              f"continue with: aimbench study --resume --out {out}\n")
         if args.no_report:
             return 130 if status == "interrupted" else 0
-        md, res, best = write(store, target, args.within_s, args.by)
+        md, res, best = write(store, target, args.within_s, args.by,
+                              progress=not getattr(args, "no_progress", False))
         if target is not None:
             if best is None:
                 print("cheapest design: none of this study's designs meets the target")

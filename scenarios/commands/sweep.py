@@ -143,6 +143,7 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
             board = config.station.board_spec()
             estimator = make_estimator(config.method, board, config.calibration)
             bench = bench if bench is not None else open_bench(config)
+            bench.progress = progress
         except AimbenchError as exc:
             store.set_status("failed", f"opening the {config.bench} bench: {exc}")
             raise
@@ -326,7 +327,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--scans", type=cliargs.positive_int,
                    help="scans per reference (default: the paper's, 100; 50 for montecarlo)")
     p.add_argument("--poses", type=cliargs.positive_int, help="Monte Carlo poses (default 200)")
-    p.add_argument("--method", choices=align.METHODS,
+    p.add_argument("--method", type=cliargs.estimation_method, choices=align.METHODS,
                    help=f"estimation method (default: align's, {align.DEFAULT_METHOD})")
     p.add_argument("--max-consecutive-failures", type=cliargs.positive_int,
                    default=MAX_CONSECUTIVE_FAILURES,
@@ -341,11 +342,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--no-report", action="store_true", help="do not write the report")
     add_tolerance_arguments(p)
-    try:  # rerun logging (scenarios/recording/observer.py): optional, the sweep works without it
-        from scenarios.recording.observer import add_rerun_arguments
-    except ImportError:
-        pass
-    else:
-        add_rerun_arguments(p)
+    # rerun logging's options (the recording itself, scenarios/recording/observer.py, needs the
+    # rerun extra and is imported only with --rerun)
+    from scenarios.recording.options import add_rerun_arguments
+
+    add_rerun_arguments(p)
     p.set_defaults(func=run)
     return p

@@ -88,6 +88,9 @@ def balanced_ss(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def anova_table(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(SS, df) of parts, appraisers, interaction and error from statsmodels' ANOVA of the
     linear model y ~ part + appraiser + part:appraiser (the reported table)."""
+    from scenarios.extras import require
+
+    require("statsmodels", "the gauge R&R's ANOVA")
     import pandas as pd
     from statsmodels.formula.api import ols
     from statsmodels.stats.anova import anova_lm

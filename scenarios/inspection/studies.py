@@ -160,28 +160,36 @@ def run_bias_twin(station: Any, records: Records, *, units: int, seed: int = 0,
 
 
 def run_linearity(bench: Any, station: Any, *, yaw_deg: list[float], x_mm: list[float],
-                  repeats: int = 3, scans: int = 10) -> dict[str, tuple[list, list]]:
+                  repeats: int = 3, scans: int = 10,
+                  progress: bool = False) -> dict[str, tuple[list, list]]:
     """(references, measured) per axis (yaw in deg, x in mm) on a bench's stage references:
     the rotation stage at each yaw reference with x at 0, then the linear stage at each x
-    reference with yaw at 0; ``repeats`` measurements of ``scans`` scans each."""
+    reference with yaw at 0; ``repeats`` measurements of ``scans`` scans each. ``progress``:
+    a bar of the measurements on stderr (`scenarios.progress.Bar`)."""
     import align
+    from scenarios.progress import Bar
 
     nominal, _ = mounting.nominal_pose(station)
     board = station.board_spec()
     out: dict[str, tuple[list, list]] = {"yaw": ([], []), "x": ([], [])}
     plan = [("yaw", v, 0.0, math.radians(v)) for v in yaw_deg] + \
         [("x", v, v * 1e-3, 0.0) for v in x_mm]
-    bench.home()
-    for axis, ref, x_m, yaw_rad in plan:
-        bench.move_to(x_m=x_m, yaw_rad=yaw_rad)
-        bench.wait_until_there()
-        for _ in range(repeats):
-            est = align.estimate(list(bench.scans(scans)), board)
-            if not est.success:
-                continue
-            err, _, _ = mounting.mounting_error(est.pose, None, station, nominal)
-            i = AXES.index(axis)
-            out[axis][0].append(ref)
-            out[axis][1].append(float(err[i] * EDGE_SCALE[axis]))
+    with Bar(len(plan) * repeats, "linearity", unit="measurements", enabled=progress) as bar:
+        bar.set_status("homing")
+        bench.home()
+        for axis, ref, x_m, yaw_rad in plan:
+            unit = "deg" if axis == "yaw" else "mm"
+            bar.set_status(f"{axis} {ref:+g} {unit}")
+            bench.move_to(x_m=x_m, yaw_rad=yaw_rad)
+            bench.wait_until_there()
+            for _ in range(repeats):
+                est = align.estimate(list(bench.scans(scans)), board)
+                bar.update(1)
+                if not est.success:
+                    continue
+                err, _, _ = mounting.mounting_error(est.pose, None, station, nominal)
+                i = AXES.index(axis)
+                out[axis][0].append(ref)
+                out[axis][1].append(float(err[i] * EDGE_SCALE[axis]))
     bench.move_to(x_m=0.0, yaw_rad=0.0)
     return out

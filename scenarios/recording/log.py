@@ -349,17 +349,46 @@ def log_pose(rec: rr.RecordingStream, entity: str, pose: Pose | None,
     rec.log(entity, pose_transform(pose), rr.TransformAxes3D(axis_length))
 
 
+#: How far beyond the board's returns a decimated cloud keeps every return, rad: in azimuth, and
+#: in elevation a little more than the VLP-16's 2 deg between lasers, so the board's edges and
+#: the misses beside them (what the estimator reads) stay whole, left, right, above and below.
+NEIGHBOURHOOD_AZIMUTH_RAD = math.radians(5.0)
+NEIGHBOURHOOD_ELEVATION_RAD = math.radians(2.5)
+
+
+def board_neighbourhood(scan: Scan, used: Mapping[str, Any] | None,
+                        azimuth_rad: float = NEIGHBOURHOOD_AZIMUTH_RAD,
+                        elevation_rad: float = NEIGHBOURHOOD_ELEVATION_RAD
+                        ) -> np.ndarray | None:
+    """The firings (a mask over the scan) within the azimuth and elevation span of the board's
+    returns (the estimator's ``used["board"]``), widened by ``azimuth_rad`` and
+    ``elevation_rad`` each side; None without board returns. The azimuth span is taken about
+    their circular mean (the board may straddle azimuth 0)."""
+    board = _indices(used, "board", len(scan))
+    if not len(board):
+        return None
+    az = np.asarray(scan.azimuth, dtype=float)
+    centre = float(np.angle(np.exp(1j * az[board]).mean()))
+    off = np.abs(np.angle(np.exp(1j * (az - centre))))
+    elevation = np.asarray(scan.elevation, dtype=float)
+    low, high = elevation[board].min() - elevation_rad, elevation[board].max() + elevation_rad
+    return (off <= off[board].max() + azimuth_rad) & (elevation >= low) & (elevation <= high)
+
+
 def log_scan_points(rec: rr.RecordingStream, scan: Scan, entity: str = "world/sensor/scan",
-                    color_by: str = "intensity", every: int = 1) -> int:
+                    color_by: str = "intensity", every: int = 1,
+                    keep: np.ndarray | None = None) -> int:
     """The scan's returns in {L} (firings with no return are left out), coloured by intensity or
-    ring; ``every`` > 1 keeps every n-th return (smaller recordings). Returns the points logged.
+    ring; ``every`` > 1 keeps every n-th return (smaller recordings) except those in ``keep`` (a
+    mask of firings logged whole: the board's neighbourhood). Returns the points logged.
     """
     import rerun as rr
 
     mask = scan.valid
     if every > 1:
-        idx = np.flatnonzero(mask)[::every]
-        mask = np.zeros(len(scan), dtype=bool)
+        rest = mask if keep is None else mask & ~keep
+        idx = np.flatnonzero(rest)[::every]
+        mask = mask & keep if keep is not None else np.zeros(len(scan), dtype=bool)
         mask[idx] = True
     # float32: rerun stores positions as f32 anyway; converting here halves the copy.
     xyz = np.column_stack((scan.x[mask], scan.y[mask], scan.z[mask])).astype(np.float32)

@@ -29,6 +29,7 @@ import numpy as np
 from scenarios.bench import SEEDING
 from scenarios.config import RunConfig
 from scenarios.recording.observer import RerunObserver, pose_from_row
+from scenarios.recording.options import DEFAULT_POINTS_EVERY
 from scenarios.store import Store
 from scenarios.truth import load_truth, truth_for, truth_path
 from twin.core.errors import AimbenchError
@@ -145,7 +146,7 @@ def _same_pose(a: Pose | None, b: Pose | None) -> bool:
 
 
 def replay_run(run_dir: str | Path, rec: rr.RecordingStream, *, clouds: bool = True,
-               clouds_per_reference: int | None = None, points_every: int = 1,
+               clouds_per_reference: int | None = None, points_every: int = DEFAULT_POINTS_EVERY,
                color_by: str = "intensity", tolerances: Mapping[str, float] | None = None,
                progress: Callable[[int, int], None] | None = None) -> ReplaySummary:
     """Log the run in ``run_dir`` into ``rec`` (see the module's docstring).
@@ -271,7 +272,7 @@ def _level(level: str) -> str:
 # ---------------------------------------------------------------------------------------------
 def replay_capture(capture: str | Path, rec: rr.RecordingStream, *, method: str | None = None,
                    truth: str | Path | None = None, limit: int | None = None,
-                   points_every: int = 1, color_by: str = "intensity",
+                   points_every: int = DEFAULT_POINTS_EVERY, color_by: str = "intensity",
                    tolerances: Mapping[str, float] | None = None,
                    progress: Callable[[int, int], None] | None = None,
                    model: Any = None, lasers: Any = None) -> ReplaySummary:

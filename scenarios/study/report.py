@@ -24,30 +24,41 @@ PLOT_AXES = ("x_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg")
 
 
 def write(store: StudyStore, target: dict[str, float] | None = None,
-          within_s: float | None = None, by: str = "sim") -> tuple[Path, list[DesignResult],
-                                                                   DesignResult | None]:
-    """Write the report and the Parquet exports; (report.md, the results, the cheapest)."""
+          within_s: float | None = None, by: str = "sim", progress: bool = False
+          ) -> tuple[Path, list[DesignResult], DesignResult | None]:
+    """Write the report and the Parquet exports; (report.md, the results, the cheapest).
+    progress: show each step on stderr (`scenarios.progress.Bar`): a report of many designs
+    takes seconds (matplotlib, a figure per parameter)."""
     import matplotlib
+
+    from scenarios.progress import Bar
 
     matplotlib.use("Agg")
     results = summarize(store)
-    export_parquet(store, results)
     spec = store.get("spec")
     params = _varied(results)
     plotted = _plotted(results)
     figures = []
     numeric = [p for p in plotted if p != "scans_fused" and all(
         _is_number(r.params.get(p)) for r in results)]
-    if len(numeric) >= 2:
-        for n in sorted({r.fused for r in results}):
+    fused = sorted({r.fused for r in results}) if len(numeric) >= 2 else []
+    steps = 2 + len(fused) + len(plotted)  # exports, figures, report.md
+    with Bar(steps, "report", unit="steps", every=1, enabled=progress) as bar:
+        bar.set_status("the Parquet exports")
+        export_parquet(store, results)
+        for n in fused:
+            bar.update(1, status=f"heat map of {numeric[0]} x {numeric[1]}, {n} fused")
             figures.append(_heatmap(store.folder, [r for r in results if r.fused == n],
                                     numeric[0], numeric[1], n))
-    for p in plotted:
-        figures.append(_curve(store.folder, results, p))
-    best = cheapest(results, target, within_s, by) if target else None
-    md = store.folder / "report.md"
-    md.write_text(_markdown(store, spec, results, params, figures, target, within_s, by, best),
-                  encoding="utf-8")
+        for p in plotted:
+            bar.update(1, status=f"curve of {p}")
+            figures.append(_curve(store.folder, results, p))
+        bar.update(1, status="report.md")
+        best = cheapest(results, target, within_s, by) if target else None
+        md = store.folder / "report.md"
+        md.write_text(_markdown(store, spec, results, params, figures, target, within_s, by,
+                                best), encoding="utf-8")
+        bar.update(1, status="done")
     return md, results, best
 
 

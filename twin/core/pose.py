@@ -11,7 +11,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 #: Order of the pose parameters in arrays and covariances.
 POSE_FIELDS = ("x", "y", "z", "roll", "tilt", "yaw")
@@ -36,6 +35,10 @@ class Pose:
 
     def rotation(self) -> np.ndarray:
         """R = Rz(yaw) Rx(tilt) Ry(roll), mapping {L} directions into {O}."""
+        # scipy imported where used: the stage controller and the command line import this
+        # module for `StagePose`, and scipy alone costs them a few tenths of a second to start
+        from scipy.spatial.transform import Rotation
+
         return Rotation.from_euler("ZXY", [self.yaw, self.tilt, self.roll]).as_matrix()
 
     def matrix(self) -> np.ndarray:
@@ -60,6 +63,8 @@ class Pose:
     @classmethod
     def from_matrix(cls, rotation: np.ndarray, translation: np.ndarray) -> Pose:
         """The pose whose rotation is `rotation` (3 x 3, {L} -> {O}) and position `translation`."""
+        from scipy.spatial.transform import Rotation
+
         yaw, tilt, roll = Rotation.from_matrix(rotation).as_euler("ZXY")
         return cls(*(float(v) for v in translation), float(roll), float(tilt), float(yaw))
 

@@ -23,6 +23,7 @@ as them (`twin.lidar.pcd.read_pcd`). npz and Parquet keep {L} and the sensor clo
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from collections.abc import Sequence
 from pathlib import Path
@@ -99,6 +100,9 @@ def export_scans(scans: Sequence[Scan], path: str | Path, *, summary: dict | Non
                           f"give one of {', '.join(FORMATS)}")
     if not path.parent.is_dir():
         raise ExportError(f"cannot write {path}: the folder {path.parent} does not exist")
+    if ext == ".ply" and importlib.util.find_spec("open3d") is None:
+        raise ExportError(f"cannot write {path}: .ply is written by open3d, which is not "
+                          "installed: pip install 'aimbench[open3d]' (or write .pcd)")
     try:
         if ext in (".pcd", ".ply"):
             fields = cloud_fields(scans)

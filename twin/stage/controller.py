@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 import termios
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import TracebackType
 
@@ -37,6 +38,9 @@ from twin.stage import grbl
 #: The bench's machine position of the reference pose (PROTOCOL.md, "Bench settings").
 X_REF_MM = 50.0
 YAW_REF_DEG = 30.0
+#: How often a line that waits (``$H``) asks for the position when a display wants it, s: ten
+#: reports a second redraw a position smoothly and cost the controller nothing.
+STATUS_POLL_S = 0.1
 
 
 class StageError(AimbenchError):
@@ -389,9 +393,12 @@ class StageController:
             self._note(line)
         return banner
 
-    def command(self, line: str, timeout_s: float | None = None) -> list[str]:
+    def command(self, line: str, timeout_s: float | None = None,
+                on_status: Callable[[StageStatus], None] | None = None) -> list[str]:
         """Send one line and wait for its ``ok``; returns the lines printed before it.
 
+        on_status: while waiting, ask for a status report every `STATUS_POLL_S` and call it with
+        each (a line that waits long, such as ``$H``, shows where the stages are).
         Raises GrblError on ``error:N``, GrblAlarm if an alarm was raised meanwhile,
         StageTimeout if no reply came, StageResetError if the controller reset meanwhile.
         """
@@ -400,8 +407,15 @@ class StageController:
         deadline = time.monotonic() + timeout
         info: list[str] = []
         alarm: int | None = None
+        asked = 0  # status queries sent and not answered yet
+        next_poll = time.monotonic() + STATUS_POLL_S if on_status is not None else math.inf
         while True:
-            reply = self._readline(deadline)
+            reply = self._readline(min(deadline, next_poll))
+            if reply is None and time.monotonic() < deadline:  # time to ask where the stages are
+                self._write(grbl.STATUS_QUERY)
+                asked += 1
+                next_poll = time.monotonic() + STATUS_POLL_S
+                continue
             if reply is None:
                 if alarm is not None:  # a stock Grbl sends no reply after a critical alarm
                     raise GrblAlarm(alarm, f"while executing {line!r}")
@@ -413,6 +427,7 @@ class StageController:
             if reply == "ok":
                 if alarm is not None:
                     raise GrblAlarm(alarm, f"while executing {line!r}")
+                self._collect_reports(asked)
                 return info
             code = grbl.error_code(reply)
             if code is not None:
@@ -431,11 +446,38 @@ class StageController:
                     f"the stage controller on {self.url!r} reset while executing {line!r}; "
                     "re-home it before moving"
                 )
-            if reply.startswith("<"):
-                continue  # a stale status report
+            if reply.startswith("<"):  # asked for here, or a stale one
+                if asked > 0:
+                    asked -= 1
+                    self._report(reply, on_status)
+                continue
             if reply.startswith("[MSG:"):
                 self._note(reply)
             info.append(reply)
+
+    def _report(self, line: str, on_status: Callable[[StageStatus], None] | None) -> None:
+        """Hand a status report to ``on_status`` (one that cannot be read is skipped: it only
+        feeds a display)."""
+        if on_status is None:
+            return
+        try:
+            st = self._to_status(grbl.parse_status(line))
+        except ValueError:
+            return
+        on_status(st)
+
+    def _collect_reports(self, asked: int) -> None:
+        """Read the replies to status queries still unanswered when a line's ``ok`` came, so
+        that the next `status` reads its own report, not one of these."""
+        deadline = time.monotonic() + self.reply_timeout_s
+        while asked > 0:
+            line = self._readline(deadline)
+            if line is None:
+                return
+            if line.startswith("<"):
+                asked -= 1
+            else:
+                self._note(line)
 
     # ---- state --------------------------------------------------------------------------------
 
@@ -487,18 +529,22 @@ class StageController:
         timeout: float = 60.0,
         poll_s: float = 0.02,
         target: tuple[float, float] | None = None,
+        on_status: Callable[[StageStatus], None] | None = None,
     ) -> StageStatus:
         """Poll status until the controller is Idle (arrived); returns the final status.
 
         target: the commanded machine position (x mm, a deg); then Idle only counts once the
         reported position is there too (a stock Grbl may report Idle for a moment before a
         just-accepted move starts), and resting elsewhere for 0.5 s raises StageError.
+        on_status: called with every status polled (a progress display of the position).
         Raises GrblAlarm if it is (or goes) into alarm, StageTimeout after `timeout` s.
         """
         deadline = time.monotonic() + timeout
         elsewhere_since: float | None = None
         while True:
             st = self.status()
+            if on_status is not None:
+                on_status(st)
             now = time.monotonic()
             if st.state == "Idle":
                 if target is None or self._at(st, target):
@@ -534,11 +580,13 @@ class StageController:
 
     # ---- commands -----------------------------------------------------------------------------
 
-    def home(self, timeout: float = 120.0) -> StageStatus:
-        """Run the homing cycle ($H) and wait until it is done; machine zero is then known."""
+    def home(self, timeout: float = 120.0,
+             on_status: Callable[[StageStatus], None] | None = None) -> StageStatus:
+        """Run the homing cycle ($H) and wait until it is done; machine zero is then known.
+        on_status: called with every status polled while it homes and until it is Idle."""
         self.last_alarm = None
-        self.command("$H", timeout_s=timeout)
-        return self.wait_idle(timeout)
+        self.command("$H", timeout_s=timeout, on_status=on_status)
+        return self.wait_idle(timeout, on_status=on_status)
 
     def unlock(self) -> None:
         """Leave the alarm state without homing ($X); the position is then trusted as is."""
@@ -551,19 +599,22 @@ class StageController:
         timeout: float | None,
         estimate_s: float,
         target: tuple[float, float] | None,
+        on_status: Callable[[StageStatus], None] | None = None,
     ) -> None:
         self.last_alarm = None
         self.command(words)
         if wait:
             limit = timeout if timeout is not None else 2.0 * estimate_s + 5.0
-            self.wait_idle(limit, target=target)
+            self.wait_idle(limit, target=target, on_status=on_status)
 
     def move_to(
-        self, *, x_m: float, yaw_rad: float, wait: bool = True, timeout: float | None = None
+        self, *, x_m: float, yaw_rad: float, wait: bool = True, timeout: float | None = None,
+        on_status: Callable[[StageStatus], None] | None = None,
     ) -> None:
         """Rapid move (G0) to x (m) and yaw (rad) relative to the bench reference.
 
-        With wait, returns once the stages are at rest there (raises on alarm or timeout).
+        With wait, returns once the stages are at rest there (raises on alarm or timeout);
+        on_status is called with every status polled meanwhile (`wait_idle`).
         """
         x_mm = self._quantize(self.x_ref_mm + x_m * 1000.0, 0)
         yaw_deg = self._quantize(self.yaw_ref_deg + math.degrees(yaw_rad), 1)
@@ -571,7 +622,7 @@ class StageController:
         estimate = self._estimate_s(x_mm, yaw_deg, relative=False)
         self._move(
             f"G90G0{lx}{grbl.format_number(x_mm)}{la}{grbl.format_number(yaw_deg)}",
-            wait, timeout, estimate, (x_mm, yaw_deg),
+            wait, timeout, estimate, (x_mm, yaw_deg), on_status,
         )
 
     def move_by(

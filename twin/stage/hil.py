@@ -23,6 +23,7 @@ firmware's MPos in steps exactly).
 
 from __future__ import annotations
 
+import fcntl
 import math
 import mmap
 import select
@@ -31,7 +32,8 @@ import struct
 import subprocess
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -114,11 +116,22 @@ class HilPositions:
     marked: bool
 
 
+@contextmanager
+def build_lock() -> Iterator[None]:
+    """One `make` in bench_fw at a time across processes: two makes writing the same objects at
+    once (two test workers, two `aimbench hil` started together on a fresh tree) corrupt them."""
+    BUILD_DIR.mkdir(exist_ok=True)
+    with open(BUILD_DIR / ".make.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        yield
+
+
 def build(quiet: bool = True) -> None:
     """Build the firmware and the harness (make is a no-op when they are up to date)."""
     cmd = ["make", "-s", "-C", str(FIRMWARE_DIR), "all", "harness"]
     try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+        with build_lock():
+            out = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     except FileNotFoundError as exc:
         raise HilError("`make` is not installed: run tools/setup.sh (make setup)") from exc
     if out.returncode != 0:
@@ -329,4 +342,5 @@ def wait_until(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 
         time.sleep(poll_s)
 
 
-__all__ = ["BenchAxes", "HilError", "HilPositions", "SimavrHarness", "build", "wait_until"]
+__all__ = ["BenchAxes", "HilError", "HilPositions", "SimavrHarness", "build", "build_lock",
+           "wait_until"]

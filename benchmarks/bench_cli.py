@@ -1,0 +1,75 @@
+"""How fast the `aimbench` command line answers: ``--help`` and ``--version`` against 0.3 s, and
+each command's parser ready (its module imported, its work about to start: ``aimbench CMD
+--help``) against 0.5 s (issue 38), beside a bare Python start as the floor no command beats.
+
+    .venv/bin/python benchmarks/bench_cli.py               # every command, 5 runs each
+    .venv/bin/python benchmarks/bench_cli.py --runs 9 sweep demo
+
+Each figure is the median wall time of whole processes (``python -m scenarios.cli ...``, one
+warm-up run first), so a shared machine's noise moves single runs, not the figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from scenarios.cli import command_names
+
+#: Issue 38's goals (s).
+TOP_GOAL_S = 0.3
+COMMAND_GOAL_S = 0.5
+REPO = Path(__file__).resolve().parents[1]
+
+
+def wall(argv: list[str], runs: int) -> float:
+    """Median wall time (s) of ``argv`` as a process, after one run not counted."""
+    times = []
+    for i in range(runs + 1):
+        t = time.perf_counter()
+        subprocess.run(argv, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                       check=True)
+        if i:
+            times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("commands", nargs="*", help="commands to time (default: every command)")
+    p.add_argument("--runs", type=int, default=5, help="counted runs of each (default 5)")
+    args = p.parse_args()
+    names = args.commands or command_names()
+    cli = [sys.executable, "-m", "scenarios.cli"]
+    print(f"aimbench command line: median of {args.runs} runs each; machine: {os.cpu_count()} "
+          f"CPUs, load average {os.getloadavg()[0]:.1f} at start")
+    rows = [("python -c pass (the floor)", wall([sys.executable, "-c", "pass"], args.runs),
+             None)]
+    rows.append(("aimbench --help", wall([*cli, "--help"], args.runs), TOP_GOAL_S))
+    rows.append(("aimbench --version", wall([*cli, "--version"], args.runs), TOP_GOAL_S))
+    for name in names:
+        rows.append((f"aimbench {name} --help", wall([*cli, name, "--help"], args.runs),
+                     COMMAND_GOAL_S))
+    print()
+    print(f"{'figure':<34} {'value':>8}  {'anchor':>8} {'ratio':>6}")
+    print("-" * 62)
+    late = []
+    for fig, value, goal in rows:
+        anchor = f"{goal:.1f} s" if goal is not None else ""
+        ratio = f"{value / goal:.2f}" if goal is not None else ""
+        print(f"{fig:<34} {value:>6.2f} s  {anchor:>8} {ratio:>6}")
+        if goal is not None and value > goal:
+            late.append(fig)
+    print()
+    print("every figure within its goal" if not late else f"beyond the goal: {', '.join(late)}")
+    sys.exit(1 if late else 0)
+
+
+if __name__ == "__main__":
+    main()

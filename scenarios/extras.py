@@ -1,0 +1,41 @@
+"""The optional parts of aimbench and the pip extra that installs each (pyproject.toml).
+
+`make demo` installs the main job's libraries only (issue 38: its .venv under 1 GB); a command
+that needs a library of an extra checks for it with `require` before it starts, and a user
+without it reads one line naming the extra to install, not a traceback from deep inside.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+from twin.core.errors import AimbenchError
+
+#: module -> (distribution, extra): what each optional library is installed by.
+OPTIONAL = {
+    "open3d": ("open3d", "open3d"),
+    "rerun": ("rerun-sdk", "rerun"),
+    "statsmodels": ("statsmodels", "grr"),
+}
+
+
+class MissingExtraError(AimbenchError):
+    """A command needs a library of an extra that is not installed."""
+
+
+def installed(module: str) -> bool:
+    """Whether ``module`` can be imported (without importing it: open3d takes seconds)."""
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # a parent package missing, or sys.modules[name] = None
+        return False
+
+
+def require(module: str, what: str) -> None:
+    """Raise `MissingExtraError` naming the extra when ``module`` is not installed; ``what``:
+    what needs it (the start of the message: "--method icp", "aimbench grr")."""
+    if installed(module):
+        return
+    dist, extra = OPTIONAL[module]
+    raise MissingExtraError(f"{what} needs {dist}, which is not installed: "
+                            f"pip install 'aimbench[{extra}]'")
