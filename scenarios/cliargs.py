@@ -88,6 +88,16 @@ def float_within(low: float, high: float) -> Callable[[str], float]:
     return parse
 
 
+def probability(text: str) -> float:
+    """A level strictly between 0 and 1 (a confidence: 0.95; 1.5 or 95 is a mistake)."""
+    value = _float(text)
+    if not 0.0 < value < 1.0:
+        hint = f" (did you mean {value / 100:g}?)" if 50.0 <= value < 100.0 else ""
+        raise argparse.ArgumentTypeError(f"must be between 0 and 1, e.g. 0.95, got {value:g}"
+                                         + hint)
+    return value
+
+
 #: A limit or a size that can be 0 but not negative (tolerances, thicknesses).
 non_negative_float = float_within(0.0, math.inf)
 #: A distance or a length that must be more than nothing.

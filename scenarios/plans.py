@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from scenarios import station
-from twin.core.errors import AimbenchError
+from twin.core.errors import AimbenchError, few
 from twin.core.pose import StagePose
 
 #: Paper defaults (section V): the real bench's sweeps.
@@ -359,9 +359,12 @@ def from_toml(path: str | Path) -> Plan:
                         f"{', '.join(BUILTIN)}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise PlanError(f"{where} is not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib recurses once per level of nested arrays or tables
+        raise PlanError(f"{where}: arrays or tables nested too deep to be a plan file; give "
+                        "a TOML sweep (docs/scenarios.md)") from None
     unknown = set(data) - _TOP_KEYS
     if unknown:
-        raise PlanError(f"{where}: unknown keys {sorted(unknown)}; allowed: {sorted(_TOP_KEYS)}")
+        raise PlanError(f"{where}: unknown keys {few(unknown)}; allowed: {sorted(_TOP_KEYS)}")
     scans = data.get("scans", PAPER_SCANS)
     if not isinstance(scans, int) or isinstance(scans, bool) or not 1 <= scans <= MAX_SCANS:
         raise PlanError(f"{where}: scans must be a whole number 1..{MAX_SCANS}, got {scans!r}")
@@ -382,7 +385,7 @@ def from_toml(path: str | Path) -> Plan:
                 raise PlanError(f"{where}: reference {i + 1} must be a table ([[reference]])")
             unknown = set(r) - _REF_KEYS
             if unknown:
-                raise PlanError(f"{where}: reference {i + 1}: unknown keys {sorted(unknown)}")
+                raise PlanError(f"{where}: reference {i + 1}: unknown keys {few(unknown)}")
             yaw, x = (_axis(r.get(k, 0.0), k, f"{where} reference {i + 1}")
                       for k in ("yaw_deg", "x_mm"))
             if len(yaw) != 1 or len(x) != 1:
@@ -433,7 +436,7 @@ def _mount(spec: object, where: str) -> dict[str, float] | None:
         raise PlanError(f"{where}: mount must be a table of {', '.join(MOUNT_KEYS)}")
     unknown = set(spec) - set(MOUNT_KEYS)
     if unknown:
-        raise PlanError(f"{where}: mount: unknown keys {sorted(unknown)}; allowed: "
+        raise PlanError(f"{where}: mount: unknown keys {few(unknown)}; allowed: "
                         f"{', '.join(MOUNT_KEYS)}")
     values = {k: spec.get(k, 0.0) for k in MOUNT_KEYS}
     bad = {k: v for k, v in values.items()

@@ -46,7 +46,7 @@ from pydantic import (
     model_validator,
 )
 
-from twin.core.errors import AimbenchError
+from twin.core.errors import AimbenchError, one_line, short_repr
 from twin.core.pose import Pose
 from twin.core.sensors import MODELS, model_named
 
@@ -74,7 +74,10 @@ class StationError(AimbenchError):
 class _Section(BaseModel):
     """A table of the station file: typed, frozen, no unknown keys, defaults validated too."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    # allow_inf_nan=False: every float of a station is finite. A NaN mount angle made the twin
+    # loop forever on MuJoCo warnings and an inspection store a record with x NaN (issue 37).
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True,
+                              allow_inf_nan=False)
 
 
 class PoseMmDeg(_Section):
@@ -517,6 +520,9 @@ def load(spec: str | Path | None = None) -> Station:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise StationError(f"{path} is not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib recurses once per level of nested arrays or tables
+        raise StationError(f"{path}: arrays or tables nested too deep to be a station file; "
+                           "give a TOML station file (docs/station.md)") from None
     return from_dict(data, str(path), base=path.parent, check_files=True)
 
 
@@ -613,10 +619,10 @@ def _describe(exc: ValidationError) -> str:
         got = err.get("input")
         # A value error's own message already says what it got.
         if kind not in ("missing", "value_error") and not isinstance(got, dict):
-            msg += f" (got {got!r})"
+            msg += f" (got {short_repr(got)})"
         parts.append(f"{key}: {msg}")
     # One message per key (a tuple's elements would repeat it).
-    return "; ".join(dict.fromkeys(parts))
+    return one_line(list(dict.fromkeys(parts)))
 
 
 def _model_at(loc: list[str]) -> type[BaseModel] | None:

@@ -53,6 +53,12 @@ def bad(capsys: pytest.CaptureFixture, *argv: str) -> str:
     (("export", "r", "--parquet", "."), "--parquet: . is a folder"),
     (("calibrate", "--bench", "sim", "--out", "."), "--out: . is a folder"),
     (("demo", "--jobs", "0"), "--jobs: must be a whole number >= 1"),
+    # issue 37: refused up front, not after the whole study or on the serial line
+    (("grr", "--twin", "--confidence", "1.5"), "--confidence: must be between 0 and 1"),
+    (("grr", "--twin", "--confidence", "95"), "(did you mean 0.95?)"),
+    (("stage", "--port", "loop://", "move", "--x-mm", "nan"), "--x-mm: 'nan' is not a finite"),
+    (("stage", "--port", "loop://", "--axes", "XX", "status"), "--axes: 'XX' names one axis "
+                                                               "twice"),
 ])
 def test_a_bad_option_is_one_line(capsys, monkeypatch, tmp_path: Path, argv, expected):
     monkeypatch.chdir(tmp_path)
