@@ -104,6 +104,23 @@ non_negative_float = float_within(0.0, math.inf)
 positive_float = float_above(0.0)
 
 
+#: Longest unit id (a VIN is 17 characters, serial numbers are shorter).
+MAX_ID_CHARS = 64
+
+
+def unit_id(text: str) -> str:
+    """A unit's id (a VIN, a serial): printable, no control characters (a newline split the
+    record list), no blank ends, at most `MAX_ID_CHARS` characters."""
+    if not text or not text.isprintable() or text != text.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} is not a unit id: give printable "
+                                         "characters, no newline, tab or blank at the ends "
+                                         "(e.g. VIN123)")
+    if len(text) > MAX_ID_CHARS:
+        raise argparse.ArgumentTypeError(f"a unit id has at most {MAX_ID_CHARS} characters, "
+                                         f"got {len(text)}")
+    return text
+
+
 def output_file(text: str) -> Path:
     """A file to write: not a folder, in a folder that exists (it is not created silently)."""
     path = Path(text)

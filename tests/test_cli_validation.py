@@ -59,6 +59,12 @@ def bad(capsys: pytest.CaptureFixture, *argv: str) -> str:
     (("stage", "--port", "loop://", "move", "--x-mm", "nan"), "--x-mm: 'nan' is not a finite"),
     (("stage", "--port", "loop://", "--axes", "XX", "status"), "--axes: 'XX' names one axis "
                                                                "twice"),
+    (("inspect", "sim", "--units", "0", "--db", "x.sqlite"), "--units: must be a whole number "
+                                                             ">= 1, got 0"),
+    (("inspect", "sim", "--unit", "VIN1\nVIN2", "--db", "x.sqlite"), "is not a unit id: give "
+                                                                     "printable characters"),
+    (("inspect", "sim", "--unit", "A", "--tilt-deg", "nan", "--db", "x.sqlite"),
+     "--tilt-deg: 'nan' is not a finite number"),
 ])
 def test_a_bad_option_is_one_line(capsys, monkeypatch, tmp_path: Path, argv, expected):
     monkeypatch.chdir(tmp_path)
