@@ -280,7 +280,8 @@ class Progress:
 
 
 class _StopFlag:
-    """SIGINT/SIGTERM set a flag the loop checks between scans; a second SIGINT interrupts."""
+    """SIGINT/SIGTERM set a flag the loop checks between scans; a second one interrupts (a
+    scan that never ends, as a NaN station's did, must not make SIGTERM ignored)."""
 
     def __init__(self, on_first: Callable[[], None]) -> None:
         self.stop = False
@@ -289,7 +290,7 @@ class _StopFlag:
         self._saved: dict[int, Any] = {}
 
     def _handler(self, signum: int, frame: object) -> None:
-        if self.stop and signum == signal.SIGINT:
+        if self.stop:
             raise KeyboardInterrupt
         self.stop = True
         self.signal = signal.Signals(signum).name

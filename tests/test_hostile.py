@@ -4,6 +4,8 @@ asserts the documented outcome: a result, or one clear line naming the problem."
 
 from __future__ import annotations
 
+import os
+import signal
 import sqlite3
 import time
 from pathlib import Path
@@ -52,3 +54,17 @@ def test_twin_units_named_apart_are_different_units():
 
     seeds = {unit_seed(f"T{i}") for i in range(100)}
     assert len(seeds) == 100 and unit_seed("T1") == unit_seed("T1")
+
+
+def test_a_second_sigterm_stops_a_sweep_stuck_in_a_scan():
+    """SIGTERM only set a flag checked between scans: a scan that never ended (a NaN station
+    hung the twin) made a sweep deaf to it. The second SIGTERM now interrupts, as Ctrl-C's."""
+    from scenarios.runner import _StopFlag
+
+    said = []
+    with _StopFlag(lambda: said.append(1)) as flag, pytest.raises(KeyboardInterrupt):
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert flag.stop and flag.signal == "SIGTERM" and said == [1]
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(1.0)  # the handler runs here
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
