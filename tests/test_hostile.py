@@ -10,12 +10,15 @@ import sqlite3
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from scenarios import station as stations
 from scenarios.inspection.acquire import TwinAcquisition
 from scenarios.inspection.procedure import inspect_unit
 from scenarios.inspection.records import RecordError, Records, record_row
+from twin.lidar.clouds import BadTimesWarning, CloudError
+from twin.lidar.pcd import PcdFormatError, read_pcd, read_pcd_scans
 
 
 def test_a_locked_record_store_keeps_the_record_and_says_so(tmp_path: Path, capsys):
@@ -44,7 +47,7 @@ def test_a_locked_record_store_keeps_the_record_and_says_so(tmp_path: Path, caps
         assert [(r["unit"], r["trial"], r["verdict"]) for r in rows] == [
             ("LOCK-1", 1, row["verdict"])]
         assert rows[0]["err_tilt"] == row["err_tilt"] and not list(rec.pending.glob("*.json"))
-        rid, trial = rec.add(row)
+        _, trial = rec.add(row)
         assert trial == 2 and rec.count() == 2
 
 
@@ -68,3 +71,75 @@ def test_a_second_sigterm_stops_a_sweep_stuck_in_a_scan():
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(1.0)  # the handler runs here
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL
+
+
+# -- point clouds: PCD files and their fields ---------------------------------------------------
+
+@pytest.fixture(scope="module")
+def hits(sample_pcap: Path):
+    """The sample capture's first whole rotation, its returns only (a driver's cloud)."""
+    from twin.lidar.capture import open_pcap, read_capture
+
+    scan = read_capture(open_pcap(sample_pcap), cut_azimuth=None).scans[0]
+    return scan, scan.hits()
+
+
+def write_pcd(path: Path, fields: dict[str, np.ndarray], compression: str | None = None) -> Path:
+    from pypcd4 import PointCloud
+
+    pc = PointCloud.from_points(list(fields.values()), tuple(fields),
+                                tuple(a.dtype.type for a in fields.values()))
+    pc.save(path, encoding=compression) if compression else pc.save(path)
+    return path
+
+
+def ros(h) -> dict[str, np.ndarray]:
+    return {"x": h.y.astype(np.float32), "y": -h.x.astype(np.float32),
+            "z": h.z.astype(np.float32)}
+
+
+def test_a_pcd_header_claiming_gigabytes_is_refused_before_allocating(hits, tmp_path: Path):
+    _, h = hits
+    path = write_pcd(tmp_path / "scan.pcd", ros(h))
+    data = path.read_bytes()
+    header, _, body = data.partition(b"DATA binary\n")
+    for line, value in ((b"COUNT 1 1 1", b"COUNT 1 99999999 1"),
+                        (f"POINTS {len(h)}".encode(), b"POINTS 999999999999")):
+        assert line in header
+        bad = tmp_path / "bad.pcd"
+        bad.write_bytes(header.replace(line, value) + b"DATA binary\n" + body)
+        t0 = time.monotonic()
+        with pytest.raises(PcdFormatError, match=r"the header claims .* the file holds \d+ bytes"):
+            read_pcd(bad)
+        assert time.monotonic() - t0 < 1.0
+
+
+def test_pcd_ring_scan_and_time_fields_that_are_not_numbers(hits, tmp_path: Path):
+    """NaN in a ring or scan field was a traceback; NaN times doubled a rotation's firings."""
+    scan, h = hits
+    fields = {**ros(h), "ring": h.ring.astype(np.float32),
+              "time": (h.time - h.time[0]).astype(np.float64)}
+    fields["ring"][7] = np.nan
+    with pytest.raises(CloudError, match="ring field holds 1 values that are not whole"):
+        read_pcd_scans(write_pcd(tmp_path / "ring.pcd", fields))
+    fields["ring"][7] = h.ring[7]
+    fields["time"][::50] = np.nan
+    with pytest.warns(BadTimesWarning, match="values are not finite; the field is not used"):
+        rebuilt = read_pcd_scans(write_pcd(tmp_path / "time.pcd", fields))
+    assert len(rebuilt) == 1 and len(rebuilt[0]) == len(scan)
+    fields = {**ros(h), "scan": np.zeros(len(h), np.float32)}
+    fields["scan"][3] = np.nan
+    with pytest.raises(PcdFormatError, match="the scan field holds values that are not whole"):
+        read_pcd(write_pcd(tmp_path / "scan.pcd", fields))
+
+
+def test_a_pcd_scan_field_of_many_values_is_read_in_linear_time(tmp_path: Path):
+    n = 40_000
+    rng = np.random.default_rng(1)
+    xyz = {k: rng.normal(size=n).astype(np.float32) for k in "xyz"}
+    path = write_pcd(tmp_path / "many.pcd", {**xyz, "scan": np.arange(n, dtype=np.int32)})
+    t0 = time.monotonic()
+    clouds = read_pcd(path)
+    assert time.monotonic() - t0 < 2.0  # one mask per scan value: ~15 s
+    assert len(clouds) == n and clouds[123].meta["scan_in_file"] == 123
+    assert float(clouds[123].x[0]) == -float(xyz["y"][123])
