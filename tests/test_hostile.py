@@ -143,3 +143,62 @@ def test_a_pcd_scan_field_of_many_values_is_read_in_linear_time(tmp_path: Path):
     assert time.monotonic() - t0 < 2.0  # one mask per scan value: ~15 s
     assert len(clouds) == n and clouds[123].meta["scan_in_file"] == 123
     assert float(clouds[123].x[0]) == -float(xyz["y"][123])
+
+
+# -- which sensor the packets come from ----------------------------------------------------------
+
+def _capture(path: Path, payloads: list[bytes]) -> Path:
+    from twin.lidar.pcap import PcapWriter
+
+    with PcapWriter(path) as w:
+        for i, p in enumerate(payloads):
+            w.write_udp(p, 1.0 + i * 1.327e-3)
+    return path
+
+
+def test_two_sensors_on_one_port_are_refused_and_a_corrupt_id_is_not(sample_pcap, tmp_path):
+    """A VLP-16 and a VLP-32C on one port: one was measured, the other's packets dropped
+    unsaid (and inspect stored a PASS). Now refused naming both; a stray corrupted product id
+    byte stays a malformed packet, dropped and counted."""
+    from twin.lidar.capture import open_pcap, read_capture
+    from twin.lidar.pcap import read_pcap
+    from twin.lidar.scans import MixedSensorsError
+
+    real = [r.payload for r in read_pcap(sample_pcap)]
+    mixed = [p[:-1] + (b"\x28" if i % 2 else p[-1:]) for i, p in enumerate(real)]
+    with pytest.raises(MixedSensorsError, match=r"two sensors on one port: \d+ of \d+ are a "
+                                                r"VLP-32C's \(product id 0x28\), the others a "
+                                                r"VLP-16's"):
+        read_capture(open_pcap(_capture(tmp_path / "mixed.pcap", mixed)))
+    stray = list(real)
+    stray[40] = stray[40][:-1] + b"\x28"
+    cap = read_capture(open_pcap(_capture(tmp_path / "stray.pcap", stray)))
+    assert cap.scans and cap.summary["rejected"] == {"product_id": 1}
+
+
+def test_a_model_given_against_the_product_id_is_said(sample_pcap, tmp_path):
+    """A VLP-32C's capture decoded as a VLP-16 under ``--station paper`` said nothing."""
+    from twin.lidar.capture import open_pcap, read_capture
+    from twin.lidar.scans import ModelOverrideWarning
+
+    with pytest.warns(ModelOverrideWarning, match="product id 0x22 says VLP-16, but they are "
+                                                  "decoded as a VLP-32C"):
+        read_capture(open_pcap(sample_pcap), model="VLP-32C", keep_scans=False)
+
+
+def test_another_models_calibration_is_one_line_not_applied(sample_pcap, tmp_path, capsys):
+    """Item 5: a calibration of another model printed "calibration applied", then a 14-line
+    traceback."""
+    from align import calibration as laser_calibration
+    from scenarios.cli import main
+
+    cal = laser_calibration.LaserCalibration(
+        range_offset=np.zeros(32), range_offset_std=np.full(32, 1e-4),
+        sensor={"id": "unit 7", "model": "VLP-32C", "n_lasers": 32})
+    laser_calibration.save(cal, tmp_path / "cal32.json")
+    code = main(["estimate", str(sample_pcap), "--keep-partial", "--calibration",
+                 str(tmp_path / "cal32.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err and "calibration applied" not in err, err
+    assert ("error: the calibration is a VLP-32C's (32 lasers), the scans come from a VLP-16 "
+            "(16 lasers): calibrate this sensor") in err

@@ -178,9 +178,7 @@ def run(args: argparse.Namespace) -> int:
     rows, seen, group = [], 0, []
     # The first whole raw scans go to the check that they fit the calibration, once.
     first: list | None = [] if cal is not None else None
-    if cal is not None:
-        print(f"aimbench estimate: calibration {calibrate.applied(cal.to_dict())}",
-              file=sys.stderr)
+    seen_cal = False
     # A station file named on the command line decodes as its sensor (model, factory
     # calibration); without one the packets' product id decides.
     with open_source(args, station if args.station is not None else None) as source:
@@ -195,7 +193,11 @@ def run(args: argparse.Namespace) -> int:
                     if len(first) == calibrate.CHECK_SCANS:
                         _warn_fit(cal, first, args.sensor_id)
                         first = None
-                group.append(laser_calibration.apply(scan, cal) if cal is not None else scan)
+                group.append(calibrate.apply(scan, cal) if cal is not None else scan)
+                if cal is not None and seen_cal is False:  # said once it fits the scans
+                    print(f"aimbench estimate: calibration {calibrate.applied(cal.to_dict())}",
+                          file=sys.stderr)
+                    seen_cal = True
                 if len(group) < args.fuse:
                     continue
                 res = align.estimate(group if args.fuse > 1 else group[0], board, args.method,

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 import align
-from align import calibration as laser_calibration
+from scenarios import calibrate
 from scenarios.inspection import mounting
 from scenarios.inspection.acquire import Acquisition, AcquisitionError
 from scenarios.inspection.verdict import (
@@ -145,7 +145,7 @@ def inspect_unit(acq: Acquisition, station: Station, unit: str, *,
     while True:
         new = acq.take(want - len(taken))
         if calibration is not None:
-            new = [laser_calibration.apply(s, calibration) for s in new]
+            new = [calibrate.apply(s, calibration) for s in new]
         taken += new
         if not taken:
             raise AcquisitionError(f"{acq.source}: no whole scan to inspect ({acq.rejected} "
