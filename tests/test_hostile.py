@@ -202,3 +202,35 @@ def test_another_models_calibration_is_one_line_not_applied(sample_pcap, tmp_pat
     assert code == 2 and "Traceback" not in err and "calibration applied" not in err, err
     assert ("error: the calibration is a VLP-32C's (32 lasers), the scans come from a VLP-16 "
             "(16 lasers): calibrate this sensor") in err
+
+
+def test_a_second_receiver_on_a_port_is_refused():
+    """Two receivers bound one UDP port (SO_REUSEADDR): the kernel split the stream between
+    them and the starved one blamed the cabling. The second bind now fails in one line."""
+    from twin.lidar.udp import UdpError, UdpReceiver
+
+    with UdpReceiver("127.0.0.1", data_port=0, position_port=None) as first:
+        port = first.ports["data"]
+        with pytest.raises(UdpError, match=f"cannot bind UDP 127.0.0.1:{port} .*another "
+                                           "program"):
+            UdpReceiver("127.0.0.1", data_port=port, position_port=None)
+
+
+def test_a_second_stage_client_on_a_port_is_refused():
+    """Two stage clients on one serial port interleaved their lines and the errors blamed the
+    hardware; the port is now held exclusively and the second client is told."""
+    import pty
+
+    import serial
+
+    from twin.stage.controller import StageConnectionError, StageController
+
+    controller, device = pty.openpty()
+    name = os.ttyname(device)
+    try:
+        with serial.Serial(name, exclusive=True), pytest.raises(
+                StageConnectionError, match="that no other program has the port open"):
+            StageController(name).connect()
+    finally:
+        os.close(controller)
+        os.close(device)
