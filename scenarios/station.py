@@ -59,6 +59,12 @@ STATIONS_PACKAGE = "scenarios.stations"
 #: The default station: the reference paper's bench.
 DEFAULT_STATION = "paper"
 
+#: A pattern's smallest square, mm, and most squares: the twin builds each square as a geom,
+#: and an absurdly fine chessboard (1e-3 mm squares) took minutes and gigabytes (issue 37);
+#: a VLP-16's beam is ~10 mm wide at 2.5 m, so finer squares are not seen anyway.
+MIN_SQUARE_MM = 5.0
+MAX_SQUARES = 2500
+
 Mm = StrictFloat
 Deg = StrictFloat
 Positive = Annotated[StrictFloat, Field(gt=0)]
@@ -104,10 +110,19 @@ class Pattern(_Section):
 
     kind: Literal["chessboard"] = "chessboard"
     squares: tuple[Annotated[StrictInt, Field(ge=1)], Annotated[StrictInt, Field(ge=1)]]
-    square_mm: Positive
+    square_mm: Annotated[StrictFloat, Field(ge=MIN_SQUARE_MM)]
     dark_reflectivity: Reflectance = 0.03
     light_reflectivity: Reflectance = 0.8
     offset_mm: tuple[StrictFloat, StrictFloat] = (0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _few_enough(self) -> Pattern:
+        n = self.squares[0] * self.squares[1]
+        if n > MAX_SQUARES:
+            raise ValueError(f"{self.squares[0]} x {self.squares[1]} = {n} squares; the twin "
+                             f"draws each as a body, at most {MAX_SQUARES} (larger squares: "
+                             "a LiDAR's beam is about 10 mm wide at the board anyway)")
+        return self
 
 
 class Board(_Section):

@@ -106,6 +106,10 @@ def test_the_paper_station_is_the_default_and_ships_installed():
     ("[board]\nposition_mm = [nan, 0, 500]\n", "board.position_mm: Input should be a finite"),
     ("[board]\nwidth_mm = inf\n", "board.width_mm: Input should be a finite"),
     ("[sensor]\nrange_offset_mm = nan\n", "sensor.range_offset_mm: Input should be a finite"),
+    # an absurdly fine chessboard took minutes and gigabytes to build
+    ("[board.pattern]\nsquares = [100, 60]\nsquare_mm = 5.0\n", "6000 squares; the twin draws"),
+    ("[board.pattern]\nsquares = [7, 5]\nsquare_mm = 0.001\n", "board.pattern.square_mm: Input "
+                                                               "should be greater than or equal"),
 ])
 def test_a_bad_station_file_names_the_key(tmp_path: Path, text: str, message: str):
     path = write(tmp_path, text)
