@@ -234,3 +234,21 @@ def test_a_second_stage_client_on_a_port_is_refused():
     finally:
         os.close(controller)
         os.close(device)
+
+
+def test_a_ros2_bag_damaged_in_its_middle_is_one_line(sample_pcap, tmp_path):
+    """Only opening a bag was guarded: a .db3 damaged in its middle was sqlite3's traceback."""
+    from tests.bag_support import write_packet_bag
+    from twin.lidar.bags import Bag, BagError
+    from twin.lidar.capture import Packet
+    from twin.lidar.pcap import read_pcap
+
+    packets = [Packet(r.timestamp, 2368, r.payload) for r in read_pcap(sample_pcap)]
+    write_packet_bag(tmp_path / "bag", packets, ros2=True)
+    db = next((tmp_path / "bag").glob("*.db3"))
+    data = bytearray(db.read_bytes())
+    middle = len(data) // 4096 // 2 * 4096  # three whole SQLite pages in the middle
+    data[middle:middle + 3 * 4096] = b"\xff" * (3 * 4096)
+    db.write_bytes(bytes(data))
+    with Bag(tmp_path / "bag") as bag, pytest.raises(BagError, match="damaged after message"):
+        list(bag.packets())

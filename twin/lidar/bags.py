@@ -123,7 +123,20 @@ class Bag:
 
     def _messages(self) -> Iterator[tuple[int, object]]:
         connections = [c for c in self._reader.connections if c.topic == self.topic]
-        for conn, stamp_ns, raw in self._reader.messages(connections=connections):
+        stream = self._reader.messages(connections=connections)
+        while True:
+            # Only opening was guarded: a .db3 damaged in its middle raised sqlite3's (or
+            # rosbags') error from the reading, a traceback (issue 37).
+            try:
+                item = next(stream, None)
+            except Exception as exc:  # sqlite3.DatabaseError, rosbags' ReaderError, ...
+                detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise BagError(f"{self.path}: damaged after message {self.messages} on "
+                               f"{self.topic} ({detail}); what came before it was read; copy "
+                               "the bag again or cut it (ros2 bag convert)") from None
+            if item is None:
+                return
+            conn, stamp_ns, raw = item
             try:
                 msg = self._reader.deserialize(raw, conn.msgtype)
             except Exception as exc:
