@@ -211,6 +211,26 @@ def _json_or_none(text: object) -> object:
         return None
 
 
+def writable(path: Path) -> bool:
+    """Whether the SQLite file `path` and its folder (its -wal and -shm files) can be written:
+    not on a read-only filesystem, not in a folder of someone else's."""
+    return os.access(path.parent, os.W_OK) and os.access(path, os.W_OK)
+
+
+def _connect_read_only(path: Path) -> sqlite3.Connection:
+    """A connection to a store that cannot be written (a read-only filesystem, a CD, a folder
+    of another user's). SQLite cannot open a WAL file there (it needs the -shm file), and then
+    said "unable to open database file", which was reported as a damaged store (issue 37); a
+    store closed cleanly has no WAL left and is read as immutable."""
+    wal = path.with_name(path.name + "-wal")
+    if wal.is_file() and wal.stat().st_size > 0:
+        raise StoreError(f"{path} cannot be written here (a read-only filesystem or folder) "
+                         f"and its last results are still in {wal.name}, which SQLite can read "
+                         "only where it may write; copy the run folder somewhere writable and "
+                         "give that")
+    return sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True, isolation_level=None)
+
+
 def _damaged(path: Path, problems: list[str]) -> str:
     shown = "; ".join(problems[:_MAX_PROBLEMS])
     more = f" (and {len(problems) - _MAX_PROBLEMS} more)" if len(problems) > _MAX_PROBLEMS else ""
@@ -412,9 +432,11 @@ class Store:
     commit half-way).
     """
 
-    def __init__(self, path: Path, conn: sqlite3.Connection) -> None:
+    def __init__(self, path: Path, conn: sqlite3.Connection, read_only: bool = False) -> None:
         self.path = path
         self.conn = conn
+        #: Opened where it cannot be written (a read-only filesystem or folder): read it only.
+        self.read_only = read_only
 
     # -- opening ---------------------------------------------------------------------------
 
@@ -488,8 +510,10 @@ class Store:
         if not _sqlite_header(path):
             raise StoreError(f"{path} is not a readable aimbench run store: not an SQLite "
                              "file; give the folder of a run that aimbench sweep made")
+        read_only = not writable(path)
         try:
-            conn = sqlite3.connect(path, isolation_level=None, timeout=30.0)
+            conn = _connect_read_only(path) if read_only else sqlite3.connect(
+                path, isolation_level=None, timeout=30.0)
         except sqlite3.DatabaseError as exc:
             raise StoreError(f"{path} is not a readable aimbench run store: {exc}") from None
         try:
@@ -505,7 +529,11 @@ class Store:
                 raise StoreError(f"{path}: unknown store schema {version and version[0]}; "
                                  f"this aimbench reads version {SCHEMA_VERSION}")
         finally:
-            conn.close()
+            if not read_only:
+                conn.close()
+        if read_only:
+            conn.row_factory = sqlite3.Row
+            return cls(path, conn, read_only=True)
         return cls(path, cls._connect(path))
 
     def close(self) -> None:

@@ -4,9 +4,12 @@ asserts the documented outcome: a result, or one clear line naming the problem."
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import sqlite3
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -19,6 +22,8 @@ from scenarios.inspection.procedure import inspect_unit
 from scenarios.inspection.records import RecordError, Records, record_row
 from twin.lidar.clouds import BadTimesWarning, CloudError
 from twin.lidar.pcd import PcdFormatError, read_pcd, read_pcd_scans
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def test_a_locked_record_store_keeps_the_record_and_says_so(tmp_path: Path, capsys):
@@ -252,3 +257,41 @@ def test_a_ros2_bag_damaged_in_its_middle_is_one_line(sample_pcap, tmp_path):
     db.write_bytes(bytes(data))
     with Bag(tmp_path / "bag") as bag, pytest.raises(BagError, match="damaged after message"):
         list(bag.packets())
+
+
+def _read_only(folder: Path, *commands: list[str]) -> list[tuple[int, str]]:
+    """Each of `commands` (aimbench's argv) run with `folder` mounted read-only (a private
+    mount namespace of an unprivileged user: util-linux's unshare, no root needed), in one
+    process: (exit code, its stdout and stderr) each."""
+    code = ("import contextlib, io, json\nfrom scenarios.cli import main\n"
+            f"for argv in {[list(c) for c in commands]!r}:\n"
+            "    out = io.StringIO()\n"
+            "    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):\n"
+            "        rc = main(argv)\n"
+            "    print(json.dumps([rc, out.getvalue()]))\n")
+    cmd = (f"mount --bind {folder} {folder} && mount -o remount,bind,ro {folder} && "
+           f"exec {sys.executable} -c \"$0\"")
+    r = subprocess.run(["unshare", "-rm", "sh", "-c", cmd, code], capture_output=True,
+                       text=True, env={**os.environ, "PYTHONPATH": str(REPO)}, timeout=120)
+    assert r.returncode == 0, r.stderr
+    return [json.loads(line) for line in r.stdout.splitlines()]
+
+
+@pytest.mark.slow
+def test_a_healthy_store_on_a_read_only_filesystem_is_read_not_called_damaged(tmp_path):
+    """A healthy store on a read-only filesystem was called damaged ("unable to open database
+    file"). It is read; what would write into it says where instead."""
+    from scenarios import plans
+    from scenarios.store import Store
+
+    run = tmp_path / "run"
+    Store.create(run, plans.yaw_sweep()).close()
+    report, here, resume = _read_only(
+        run, ["report", str(run), "--out", str(tmp_path / "rep")], ["report", str(run)],
+        ["sweep", "--resume", "--out", str(run)])
+    assert report[0] == 1 and "damaged" not in report[1], report  # FAIL: no scans yet
+    assert "verdict: FAIL (no scans stored)" in report[1]
+    assert (tmp_path / "rep/report.md").is_file()
+    assert here[0] == 2 and "give --out DIR to write it elsewhere" in here[1], here
+    assert resume[0] == 2 and "copy the run folder somewhere writable" in resume[1], resume
+    assert len(resume[1].splitlines()) == 1

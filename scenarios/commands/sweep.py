@@ -38,7 +38,7 @@ from scenarios.runner import (
     make_estimator,
     sim_engine,
 )
-from scenarios.store import Store
+from scenarios.store import Store, StoreError
 from twin.core.errors import AimbenchError
 
 
@@ -110,6 +110,11 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
     stream = stream if stream is not None else sys.stderr
     if resume:
         store = Store.open(out)
+        if store.read_only:
+            store.close()
+            raise StoreError(f"{out} cannot be written here (a read-only filesystem or folder): "
+                             "a resumed run adds its scans to it; copy the run folder somewhere "
+                             "writable and resume that")
         # A resumed run keeps its settings; only where the hardware is may change.
         config = RunConfig.from_dict(store.get("config")).with_(
             **{k: v for k, v in (("port", config.port), ("lidar", config.lidar))
