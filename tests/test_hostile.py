@@ -295,3 +295,44 @@ def test_a_healthy_store_on_a_read_only_filesystem_is_read_not_called_damaged(tm
     assert here[0] == 2 and "give --out DIR to write it elsewhere" in here[1], here
     assert resume[0] == 2 and "copy the run folder somewhere writable" in resume[1], resume
     assert len(resume[1].splitlines()) == 1
+
+
+def _children(pid: int) -> set[int]:
+    out = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.add(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_workers_and_the_resource_tracker_die_with_a_killed_parent():
+    """After kill -9 of `study`, its worker and multiprocessing's resource tracker stayed
+    alive; the workers now watch their parent and end with it, and the tracker with them."""
+    code = ("import sys, time\nfrom scenarios.study.engines import LocalEngine\n"
+            "e = LocalEngine(jobs=2).start()\nprint(' '.join(map(str, e.workers)), flush=True)\n"
+            "time.sleep(600)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": str(REPO)})
+    try:
+        workers = [int(p) for p in proc.stdout.readline().split()]
+        helpers = _children(proc.pid)  # the workers and the resource tracker
+        assert len(workers) == 2 and set(workers) < helpers, (workers, helpers)
+    finally:
+        proc.kill()
+        proc.wait()
+    deadline = time.monotonic() + 10
+    while any(_alive(p) for p in helpers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [p for p in helpers if _alive(p)], "left running after the parent's kill -9"
