@@ -65,6 +65,9 @@ DEFAULT_STATION = "paper"
 MIN_SQUARE_MM = 5.0
 MAX_SQUARES = 2500
 
+#: A board whose both sides are below this, mm, is a size in metres given as millimetres.
+MIN_BOARD_MM = 20.0
+
 Mm = StrictFloat
 Deg = StrictFloat
 Positive = Annotated[StrictFloat, Field(gt=0)]
@@ -552,9 +555,15 @@ def board_mm(text: str | list | tuple, where: str) -> dict[str, float]:
     elif isinstance(text, list | tuple) and all(
             isinstance(v, int | float) and not isinstance(v, bool) for v in text):
         values = [float(v) for v in text]
-    if len(values) != 2 or min(values) <= 0:
+    if len(values) != 2 or not min(values) > 0 or not math.isfinite(max(values)):
         raise StationError(f"{where}: board_mm {text!r}: give WIDTHxHEIGHT in mm, e.g. "
                            "\"900x540\" (or [900, 540] in a TOML file)")
+    if max(values) < MIN_BOARD_MM:
+        # 0.9x0.54: metres given for millimetres; every scan then said "no cluster looks like
+        # the board" (issue 37).
+        raise StationError(f"{where}: board_mm {text!r} is {values[0]:g} x {values[1]:g} mm, "
+                           f"smaller than any target board; did you mean "
+                           f"{values[0] * 1000:g}x{values[1] * 1000:g} (the size in mm)?")
     return {"width_mm": values[0], "height_mm": values[1]}
 
 
@@ -597,7 +606,11 @@ def resolve(spec: str | Path | None) -> Path:
     text = str(spec)
     if text in shipped():
         return shipped_path(text)
-    return Path(text).expanduser()
+    path = Path(text).expanduser()
+    # ``--station my-bench`` for my-bench.toml, as a shipped station is named without it.
+    if not path.suffix and not path.exists() and path.with_name(path.name + ".toml").is_file():
+        return path.with_name(path.name + ".toml")
+    return path
 
 
 def shipped() -> tuple[str, ...]:

@@ -65,6 +65,9 @@ def bad(capsys: pytest.CaptureFixture, *argv: str) -> str:
                                                                      "printable characters"),
     (("inspect", "sim", "--unit", "A", "--tilt-deg", "nan", "--db", "x.sqlite"),
      "--tilt-deg: 'nan' is not a finite number"),
+    (("simluate", "--scans", "2"), "unknown command 'simluate'; did you mean 'simulate'?"),
+    (("estimate", str(CAPTURE), "--board-mm", "0.9x0.54"), "is 0.9 x 0.54 mm, smaller than any "
+                                                           "target board; did you mean 900x540"),
 ])
 def test_a_bad_option_is_one_line(capsys, monkeypatch, tmp_path: Path, argv, expected):
     monkeypatch.chdir(tmp_path)

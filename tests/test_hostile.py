@@ -336,3 +336,12 @@ def test_workers_and_the_resource_tracker_die_with_a_killed_parent():
     while any(_alive(p) for p in helpers) and time.monotonic() < deadline:
         time.sleep(0.1)
     assert not [p for p in helpers if _alive(p)], "left running after the parent's kill -9"
+
+
+def test_a_station_is_found_without_its_toml_suffix(tmp_path, monkeypatch):
+    """``--station my-bench`` did not try my-bench.toml (the shipped ones are named so)."""
+    (tmp_path / "my-bench.toml").write_text('name = "mine"\n[board]\nwidth_mm = 1000.0\n')
+    monkeypatch.chdir(tmp_path)
+    assert stations.load("my-bench").board.width_mm == 1000.0
+    with pytest.raises(stations.StationError, match="no such station file other"):
+        stations.load("other")
