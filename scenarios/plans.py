@@ -93,8 +93,11 @@ class Reference:
         return self.x_m * 1e3
 
     def describe(self) -> str:
-        """``yaw -3.0 deg, x 5.0 mm`` plus the mount if any: for messages and progress."""
-        text = f"yaw {self.yaw_deg:+.2f} deg, x {self.x_mm:+.1f} mm"
+        """``stage yaw -3.00 deg, stage_x +5.0 mm`` plus the mount if any: for messages and
+        progress. The stages' positions, named so: the board frame's x of an estimate is
+        another quantity (the LiDAR 700 mm to the side), and printed beside it the two read
+        as one (issue 37)."""
+        text = f"stage yaw {self.yaw_deg:+.2f} deg, stage_x {self.x_mm:+.1f} mm"
         if self.mount:
             text += " (mount " + ", ".join(f"{k} {v:+.2f}" for k, v in self.mount.items()) + ")"
         return text

@@ -241,7 +241,7 @@ class Progress:
         if acc["yaw"]:
             yaw = np.degrees(acc["yaw"])
             x = np.array(acc["x"]) * 1e3
-            text += (f" | yaw {yaw.mean():+.3f}±{yaw.std():.3f} deg"
+            text += (f" | estimate (board frame): yaw {yaw.mean():+.3f}±{yaw.std():.3f} deg"
                      f" x {x.mean():+.1f}±{x.std():.1f} mm")
         if acc["fail"]:
             text += f" | {acc['fail']} without pose"

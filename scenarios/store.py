@@ -204,6 +204,27 @@ def _is_unborn(path: Path) -> bool:
         conn.close()
 
 
+def _never_started(path: Path) -> bool:
+    """True for the store of a run that failed before its bench opened (no bench recorded, no
+    scan): a hardware start without the board plugged in left one, and the same command, run
+    again once it was, was refused as "already holds a run" (issue 37). It holds no results;
+    a new run replaces it."""
+    try:
+        conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0)
+    except sqlite3.DatabaseError:
+        return False
+    try:
+        meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
+        scans = conn.execute("SELECT COUNT(*) FROM scan").fetchone()[0]
+        return (_json_or_none(meta.get("status")) == "failed" and scans == 0
+                and not _json_or_none(meta.get("bench", "null"))
+                and not _json_or_none(meta.get("bench_resumed", "null")))
+    except sqlite3.DatabaseError:
+        return False
+    finally:
+        conn.close()
+
+
 def _json_or_none(text: object) -> object:
     try:
         return json.loads(text) if isinstance(text, str | bytes) else None
@@ -467,7 +488,7 @@ class Store:
         """
         run_dir = Path(run_dir)
         path = run_dir / STORE_NAME
-        if path.exists() and not _is_unborn(path):
+        if path.exists() and not _is_unborn(path) and not _never_started(path):
             raise StoreError(f"{run_dir} already holds a run; continue it with --resume or "
                              "choose another --out")
         made_dir = not run_dir.exists()
@@ -480,6 +501,8 @@ class Store:
         try:
             _build(tmp, plan, config, bench, versions)
             # The rename is atomic on POSIX: run.sqlite appears complete or not at all.
+            for side in ("-wal", "-shm"):  # of a never-started run this replaces
+                path.with_name(path.name + side).unlink(missing_ok=True)
             os.replace(tmp, path)
             _fsync_dir(run_dir)
         except BaseException:

@@ -345,3 +345,39 @@ def test_a_station_is_found_without_its_toml_suffix(tmp_path, monkeypatch):
     assert stations.load("my-bench").board.width_mm == 1000.0
     with pytest.raises(stations.StationError, match="no such station file other"):
         stations.load("other")
+
+
+def test_a_run_that_never_started_does_not_block_its_retry(tmp_path):
+    """A hardware start without the board left run.sqlite, and the same command once it was
+    plugged in was refused ("already holds a run"). A run that failed before its bench opened
+    holds nothing and is replaced; one whose bench opened is still never overwritten."""
+    from scenarios import plans
+    from scenarios.store import Store, StoreError
+
+    plan = plans.yaw_sweep()
+    with Store.create(tmp_path / "run", plan) as store:
+        store.set_status("failed", "opening the hw bench: no Grbl controller answers")
+    with Store.create(tmp_path / "run", plan) as store:
+        assert store.status != "failed"
+        store.put(bench={"kind": "hw"})
+        store.set_status("failed", "the LiDAR went silent")
+    with pytest.raises(StoreError, match="already holds a run"):
+        Store.create(tmp_path / "run", plan)
+
+
+def test_resume_refuses_options_that_differ_from_the_stored_run(tmp_path, capsys):
+    """`sweep --resume` dropped the scenario, --scans, --seed, --method and --calibration
+    silently; `sweep x --resume --out runs/yaw` rewrote the yaw run's report."""
+    from scenarios import plans
+    from scenarios.cli import main
+    from scenarios.config import RunConfig
+    from scenarios.store import Store
+
+    run = tmp_path / "yaw"
+    config = RunConfig(scenario="yaw", method="rays", seed=0, scans=5)
+    Store.create(run, plans.yaw_sweep(scans=5), config=config.as_dict()).close()
+    code = main(["sweep", "x", "--resume", "--out", str(run), "--seed", "3", "--scans", "5",
+                 "--method", "rays"])
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "these differ: the scenario x (the run: yaw); --seed 3 (the run: 0). Drop them" in err
