@@ -381,3 +381,23 @@ def test_resume_refuses_options_that_differ_from_the_stored_run(tmp_path, capsys
     err = capsys.readouterr().err
     assert code == 2 and len(err.splitlines()) == 1, err
     assert "these differ: the scenario x (the run: yaw); --seed 3 (the run: 0). Drop them" in err
+
+
+def test_decoded_files_say_which_rows_are_returns_and_their_frame(hits, tmp_path):
+    """decode to .parquet/.npz kept no-return rays at (0, 0, 0) unflagged; the point clouds'
+    frame was written only in the Parquet metadata."""
+    import pyarrow.parquet as pq
+
+    from twin.lidar.export import CLOUD_FRAME, export_scans
+
+    scan, _ = hits
+    export_scans([scan], tmp_path / "s.parquet")
+    table = pq.read_table(tmp_path / "s.parquet")
+    valid = table.column("valid").to_numpy()
+    assert str(table.schema.field("valid").type) == "bool"
+    assert valid.sum() == scan.valid.sum() and (~valid).sum() == (scan.distance == 0).sum() > 0
+    export_scans([scan], tmp_path / "s.npz")
+    assert np.array_equal(np.load(tmp_path / "s.npz")["valid"], valid)
+    export_scans([scan], tmp_path / "s.pcd")
+    assert (tmp_path / "s.pcd").read_bytes().startswith(b"# " + CLOUD_FRAME.encode() + b"\n")
+    assert len(read_pcd(tmp_path / "s.pcd")[0]) == valid.sum()  # still a PCD file PCL reads
