@@ -768,7 +768,10 @@ class Store:
             ref = refs[d["reference"]]
             row: dict[str, object] = {
                 "reference": d["reference"], "scan": d["scan"], "label": ref["label"],
-                "ref_yaw_deg": math.degrees(ref["yaw_rad"]), "ref_x_mm": ref["x_m"] * 1e3,
+                # Rounded below any stage's resolution: the plan's -6 deg, stored in rad,
+                # came back as -6.000000000000001 (issue 37).
+                "ref_yaw_deg": round(math.degrees(ref["yaw_rad"]), EDGE_DIGITS),
+                "ref_x_mm": round(ref["x_m"] * 1e3, EDGE_DIGITS),
                 **{f"ref_mount_{k}": (ref["mount"] or {}).get(k) for k in
                    ("roll_deg", "tilt_deg", "yaw_deg", "x_mm")},
                 "status": d["status"], "success": bool(d["success"]),
@@ -826,6 +829,10 @@ class Store:
 
 #: Export columns that are instants (Unix time, s), written to Parquet as UTC timestamps.
 TIMESTAMP_COLUMNS = ("acquired_at",)
+#: Export columns of text; every other column is a number (or a flag) when it has values.
+TEXT_COLUMNS = ("label", "status", "diagnostics", "timings")
+#: Decimals the references are exported with (deg, mm): far below any stage's resolution.
+EDGE_DIGITS = 9
 
 
 def _arrow_column(pa: object, name: str, values: list[object]) -> object:
@@ -834,6 +841,10 @@ def _arrow_column(pa: object, name: str, values: list[object]) -> object:
     if name in TIMESTAMP_COLUMNS:
         micros = [None if v is None else round(float(v) * 1e6) for v in values]
         return pa.array(micros, type=pa.timestamp("us", tz="UTC"))
-    if not values:
-        return pa.array(values, type=pa.null())
-    return pa.array(values)
+    column = pa.array(values)
+    if column.type == pa.null():
+        # Every value missing (no run had a mount, say): typed as the column's values are
+        # when present, not as Parquet's null type that readers cannot compute with.
+        kind = pa.string() if name in TEXT_COLUMNS else pa.float64()
+        column = pa.array(values, type=kind)
+    return column

@@ -401,3 +401,29 @@ def test_decoded_files_say_which_rows_are_returns_and_their_frame(hits, tmp_path
     export_scans([scan], tmp_path / "s.pcd")
     assert (tmp_path / "s.pcd").read_bytes().startswith(b"# " + CLOUD_FRAME.encode() + b"\n")
     assert len(read_pcd(tmp_path / "s.pcd")[0]) == valid.sum()  # still a PCD file PCL reads
+
+
+def test_a_parquet_export_has_exact_references_and_typed_columns(tmp_path):
+    """``ref_yaw_deg`` read -6.000000000000001 and ``ref_mount_*`` were typed null."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from scenarios import plans
+    from scenarios.store import ScanResult, Store
+    from twin.core.pose import Pose, StagePose
+
+    plan = plans.yaw_sweep(scans=1)
+    i = next(k for k, r in enumerate(plan.references) if round(r.yaw_deg, 6) == -6.0)
+    stage = StagePose(x_m=0.0, yaw_rad=plan.references[i].yaw_rad)
+    with Store.create(tmp_path, plan) as s:
+        s.add_scan(ScanResult(reference=i, scan=0, status="ok", success=True,
+                              pose=Pose(x=-0.7, y=-2.5), std=np.full(6, 1e-3),
+                              covariance=np.eye(6) * 1e-6, truth=None, stage=stage,
+                              points=1000, complete=True, missing_packets=0,
+                              acquired_at=time.time(), scan_s=0.1, estimate_s=0.01,
+                              diagnostics={}, timings={}))
+        s.export_parquet(tmp_path / "scans.parquet")
+    table = pq.read_table(tmp_path / "scans.parquet")
+    assert table.num_rows == 1 and table.column("ref_yaw_deg").to_pylist() == [-6.0]
+    nulls = [f for f in table.schema.names if table.schema.field(f).type == pa.null()]
+    assert not nulls and table.schema.field("ref_mount_roll_deg").type == pa.float64()
