@@ -148,8 +148,8 @@ def _write_ply(path: Path, fields: dict[str, np.ndarray]) -> None:
 
 #: What a point cloud file says of its frame and fields, in its header's comments (it was
 #: written only in the Parquet metadata, issue 37).
-CLOUD_FRAME = ("aimbench: sensor frame, ROS convention: x forward, y left, z up (m); returns "
-               "only; ring 0 = lowest beam; time s after the scan's first firing; scan = index")
+CLOUD_FRAME = ("aimbench: sensor frame, x forward, y left, z up (m); returns only; ring 0 "
+               "lowest; time s from the scan's first firing")
 
 
 def _header_comment(path: Path, before: bytes, line: bytes) -> None:
