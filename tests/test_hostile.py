@@ -427,3 +427,19 @@ def test_a_parquet_export_has_exact_references_and_typed_columns(tmp_path):
     assert table.num_rows == 1 and table.column("ref_yaw_deg").to_pylist() == [-6.0]
     nulls = [f for f in table.schema.names if table.schema.field(f).type == pa.null()]
     assert not nulls and table.schema.field("ref_mount_roll_deg").type == pa.float64()
+
+
+def test_a_board_size_other_than_the_truth_files_is_said(sample_pcap, tmp_path, capsys):
+    """A board of the wrong size was reported as occlusion, though the capture's truth file
+    names the size."""
+    import shutil
+
+    from scenarios.cli import main
+
+    shutil.copy(sample_pcap, tmp_path / "cap.pcap")
+    (tmp_path / "cap.truth.json").write_text(json.dumps(
+        {"station": {"board": {"width_mm": 900.0, "height_mm": 540.0}}, "scans": []}))
+    main(["estimate", str(tmp_path / "cap.pcap"), "--keep-partial", "--board-mm", "600x400"])
+    err = capsys.readouterr().err
+    assert ("the truth file cap.truth.json says the board is 900 x 540 mm; this estimate looks "
+            "for 600 x 400 mm") in err and "give --board-mm 900x540" in err
