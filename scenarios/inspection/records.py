@@ -112,8 +112,12 @@ LOCK_WAIT_S = 300.0
 LOCK_NOTICE_S = 10.0
 
 
+#: How long a statement waits for another connection's lock, s (`Records.add` waits longer).
+BUSY_TIMEOUT_S = 30.0
+
+
 def _connect(path: Path) -> sqlite3.Connection:
-    conn = sqlite3.connect(path, isolation_level=None, timeout=30.0)
+    conn = sqlite3.connect(path, isolation_level=None, timeout=BUSY_TIMEOUT_S)
     conn.row_factory = sqlite3.Row
     conn.execute("PRAGMA journal_mode=WAL")
     conn.execute("PRAGMA synchronous=FULL")
@@ -312,6 +316,8 @@ class Records:
             except sqlite3.IntegrityError as exc:
                 unit = row.get("unit") if row is not None else "kept in " + str(self.pending)
                 raise RecordError(f"the record of unit {unit} cannot be stored: {exc}") from None
+            finally:
+                self.conn.execute(f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT_S * 1000)}")
         for f in files:  # committed: their copies go
             f.unlink(missing_ok=True)
         return rid, int(trial)
