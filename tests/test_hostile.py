@@ -139,13 +139,15 @@ def test_pcd_ring_scan_and_time_fields_that_are_not_numbers(hits, tmp_path: Path
 
 
 def test_a_pcd_scan_field_of_many_values_is_read_in_linear_time(tmp_path: Path):
-    n = 40_000
+    n = 100_000
     rng = np.random.default_rng(1)
     xyz = {k: rng.normal(size=n).astype(np.float32) for k in "xyz"}
     path = write_pcd(tmp_path / "many.pcd", {**xyz, "scan": np.arange(n, dtype=np.int32)})
     t0 = time.monotonic()
     clouds = read_pcd(path)
-    assert time.monotonic() - t0 < 2.0  # one mask per scan value: ~15 s
+    # One mask per scan value (quadratic) took 3 s for 40,000 values, ~19 s for these; one
+    # sort takes ~1 s (most of it making the clouds), on the loaded 2-core machine.
+    assert time.monotonic() - t0 < 6.0
     assert len(clouds) == n and clouds[123].meta["scan_in_file"] == 123
     assert float(clouds[123].x[0]) == -float(xyz["y"][123])
 
