@@ -74,6 +74,18 @@ def write(cal: laser_calibration.LaserCalibration, path: str | Path) -> None:
     Path(path).write_text(json.dumps(cal.to_dict(), indent=1) + "\n")
 
 
+def apply(scan: Scan, cal: laser_calibration.LaserCalibration) -> Scan:
+    """`align.calibration.apply`, refusing in one line a calibration of another sensor model
+    (a VLP-16's on a VLP-32C's scans was a traceback after "calibration applied")."""
+    if cal.n_lasers != scan.lasers.n_lasers:
+        made = f"a {cal.model}'s" if cal.model else "another sensor's"
+        raise CalibrationError(
+            f"the calibration is {made} ({cal.n_lasers} lasers), the scans come from a "
+            f"{scan.lasers.model} ({scan.lasers.n_lasers} lasers): calibrate this sensor "
+            "(aimbench calibrate) and give its file, or leave --calibration out")
+    return laser_calibration.apply(scan, cal)
+
+
 def twin_sensor_id(seed: int) -> str:
     """The id of the twin's sensor: the seed draws its per-laser offsets (one unit per seed)."""
     return f"twin seed {int(seed)}"

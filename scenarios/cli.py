@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import difflib
 import importlib
 import io
 import pkgutil
@@ -94,13 +95,31 @@ def _command_in(argv: list[str]) -> str | None:
     return next((word for word in argv if not word.startswith("-")), None)
 
 
+def _did_you_mean(parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    """A mistyped command refused with the nearest one (argparse lists them all, no hint)."""
+    first = next((a for a in argv if not a.startswith("-")), None)
+    sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+    if first is None or sub is None or first in sub.choices:
+        return
+    near = difflib.get_close_matches(first, list(sub.choices), n=1, cutoff=0.6)
+    hint = f"; did you mean '{near[0]}'?" if near else ""
+    parser.exit(2, f"aimbench: error: unknown command '{first}'{hint} (aimbench --help lists "
+                   "them)\n")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    # Line by line even into a pipe: a table on stdout and a warning on stderr then reach the
+    # terminal in the order they were written, not the warning glued onto the table's end.
+    if hasattr(sys.stdout, "reconfigure"):
+        sys.stdout.reconfigure(line_buffering=True)
     parser = build_parser(load=_command_in(argv))
+    _did_you_mean(parser, argv)
     args = parser.parse_args(argv)
     try:
         return int(args.func(args) or 0)
     except AimbenchError as exc:
+        sys.stdout.flush()
         print(f"aimbench {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -88,10 +88,37 @@ def float_within(low: float, high: float) -> Callable[[str], float]:
     return parse
 
 
+def probability(text: str) -> float:
+    """A level strictly between 0 and 1 (a confidence: 0.95; 1.5 or 95 is a mistake)."""
+    value = _float(text)
+    if not 0.0 < value < 1.0:
+        hint = f" (did you mean {value / 100:g}?)" if 50.0 <= value < 100.0 else ""
+        raise argparse.ArgumentTypeError(f"must be between 0 and 1, e.g. 0.95, got {value:g}"
+                                         + hint)
+    return value
+
+
 #: A limit or a size that can be 0 but not negative (tolerances, thicknesses).
 non_negative_float = float_within(0.0, math.inf)
 #: A distance or a length that must be more than nothing.
 positive_float = float_above(0.0)
+
+
+#: Longest unit id (a VIN is 17 characters, serial numbers are shorter).
+MAX_ID_CHARS = 64
+
+
+def unit_id(text: str) -> str:
+    """A unit's id (a VIN, a serial): printable, no control characters (a newline split the
+    record list), no blank ends, at most `MAX_ID_CHARS` characters."""
+    if not text or not text.isprintable() or text != text.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} is not a unit id: give printable "
+                                         "characters, no newline, tab or blank at the ends "
+                                         "(e.g. VIN123)")
+    if len(text) > MAX_ID_CHARS:
+        raise argparse.ArgumentTypeError(f"a unit id has at most {MAX_ID_CHARS} characters, "
+                                         f"got {len(text)}")
+    return text
 
 
 def output_file(text: str) -> Path:

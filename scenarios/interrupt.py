@@ -1,7 +1,7 @@
 """Ctrl-C and SIGTERM as a request to stop between units of work (scans, study tasks).
 
 A run or a study checks `StopFlag.stop` between its scans or tasks and ends cleanly with what it
-committed; a second Ctrl-C raises `KeyboardInterrupt` at once (still safe: a store's
+committed; a second Ctrl-C or SIGTERM raises `KeyboardInterrupt` at once (still safe: a store's
 transaction is atomic). The sweep's runner and the study's dealer share it.
 """
 
@@ -14,7 +14,9 @@ from typing import Any
 
 
 class StopFlag:
-    """SIGINT/SIGTERM set a flag the loop checks between scans; a second SIGINT interrupts.
+    """SIGINT/SIGTERM set a flag the loop checks between scans; a second one interrupts (a
+    scan that never ends, as one of a station with NaN in it did, must not make SIGTERM
+    ignored).
 
     on_first: called at the first signal (e.g. to say that the run is stopping).
     """
@@ -27,7 +29,7 @@ class StopFlag:
         self._saved: dict[int, Any] = {}
 
     def _handler(self, signum: int, frame: object) -> None:
-        if self.stop and signum == signal.SIGINT:
+        if self.stop:
             raise KeyboardInterrupt
         self.stop = True
         self.signal = signal.Signals(signum).name

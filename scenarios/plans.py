@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from scenarios import station
-from twin.core.errors import AimbenchError
+from twin.core.errors import AimbenchError, few
 from twin.core.pose import StagePose
 
 #: Paper defaults (section V): the real bench's sweeps.
@@ -93,8 +93,11 @@ class Reference:
         return self.x_m * 1e3
 
     def describe(self) -> str:
-        """``yaw -3.0 deg, x 5.0 mm`` plus the mount if any: for messages and progress."""
-        text = f"yaw {self.yaw_deg:+.2f} deg, x {self.x_mm:+.1f} mm"
+        """``stage yaw -3.00 deg, stage_x +5.0 mm`` plus the mount if any: for messages and
+        progress. The stages' positions, named so: the board frame's x of an estimate is
+        another quantity (the LiDAR 700 mm to the side), and printed beside it the two read
+        as one (issue 37)."""
+        text = f"stage yaw {self.yaw_deg:+.2f} deg, stage_x {self.x_mm:+.1f} mm"
         if self.mount:
             text += " (mount " + ", ".join(f"{k} {v:+.2f}" for k, v in self.mount.items()) + ")"
         return text
@@ -359,9 +362,12 @@ def from_toml(path: str | Path) -> Plan:
                         f"{', '.join(BUILTIN)}") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise PlanError(f"{where} is not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib recurses once per level of nested arrays or tables
+        raise PlanError(f"{where}: arrays or tables nested too deep to be a plan file; give "
+                        "a TOML sweep (docs/scenarios.md)") from None
     unknown = set(data) - _TOP_KEYS
     if unknown:
-        raise PlanError(f"{where}: unknown keys {sorted(unknown)}; allowed: {sorted(_TOP_KEYS)}")
+        raise PlanError(f"{where}: unknown keys {few(unknown)}; allowed: {sorted(_TOP_KEYS)}")
     scans = data.get("scans", PAPER_SCANS)
     if not isinstance(scans, int) or isinstance(scans, bool) or not 1 <= scans <= MAX_SCANS:
         raise PlanError(f"{where}: scans must be a whole number 1..{MAX_SCANS}, got {scans!r}")
@@ -382,7 +388,7 @@ def from_toml(path: str | Path) -> Plan:
                 raise PlanError(f"{where}: reference {i + 1} must be a table ([[reference]])")
             unknown = set(r) - _REF_KEYS
             if unknown:
-                raise PlanError(f"{where}: reference {i + 1}: unknown keys {sorted(unknown)}")
+                raise PlanError(f"{where}: reference {i + 1}: unknown keys {few(unknown)}")
             yaw, x = (_axis(r.get(k, 0.0), k, f"{where} reference {i + 1}")
                       for k in ("yaw_deg", "x_mm"))
             if len(yaw) != 1 or len(x) != 1:
@@ -433,7 +439,7 @@ def _mount(spec: object, where: str) -> dict[str, float] | None:
         raise PlanError(f"{where}: mount must be a table of {', '.join(MOUNT_KEYS)}")
     unknown = set(spec) - set(MOUNT_KEYS)
     if unknown:
-        raise PlanError(f"{where}: mount: unknown keys {sorted(unknown)}; allowed: "
+        raise PlanError(f"{where}: mount: unknown keys {few(unknown)}; allowed: "
                         f"{', '.join(MOUNT_KEYS)}")
     values = {k: spec.get(k, 0.0) for k in MOUNT_KEYS}
     bad = {k: v for k, v in values.items()

@@ -35,8 +35,8 @@ import numpy as np
 
 import align
 from align import PoseEstimate, Status
-from align import calibration as laser_calibration
 from align.calibration import LaserCalibration
+from scenarios import calibrate
 from scenarios.bench import Bench, BenchError, TravelError
 from scenarios.config import MAX_CONSECUTIVE_FAILURES
 from scenarios.interrupt import StopFlag
@@ -119,7 +119,7 @@ def make_estimator(method: str | None = None, board: Any = None,
     def estimate(scan: Scan) -> PoseEstimate:
         try:
             if calibration is not None:
-                scan = laser_calibration.apply(scan, calibration)
+                scan = calibrate.apply(scan, calibration)  # another model's: one line
             return align.estimate([scan], board=board, method=name)
         except AimbenchError:
             raise
@@ -196,7 +196,7 @@ class Progress:
         if acc["yaw"]:
             yaw = np.degrees(acc["yaw"])
             x = np.array(acc["x"]) * 1e3
-            text += (f" | yaw {yaw.mean():+.3f}±{yaw.std():.3f} deg"
+            text += (f" | estimate (board frame): yaw {yaw.mean():+.3f}±{yaw.std():.3f} deg"
                      f" x {x.mean():+.1f}±{x.std():.1f} mm")
         if acc["fail"]:
             text += f" | {acc['fail']} without pose"

@@ -46,7 +46,7 @@ from pydantic import (
     model_validator,
 )
 
-from twin.core.errors import AimbenchError
+from twin.core.errors import AimbenchError, one_line, short_repr
 from twin.core.pose import Pose
 from twin.core.sensors import MODELS, model_named
 
@@ -58,6 +58,15 @@ DECISION_RULES = ("iso14253-1", "simple")
 STATIONS_PACKAGE = "scenarios.stations"
 #: The default station: the reference paper's bench.
 DEFAULT_STATION = "paper"
+
+#: A pattern's smallest square, mm, and most squares: the twin builds each square as a geom,
+#: and an absurdly fine chessboard (1e-3 mm squares) took minutes and gigabytes (issue 37);
+#: a VLP-16's beam is ~10 mm wide at 2.5 m, so finer squares are not seen anyway.
+MIN_SQUARE_MM = 5.0
+MAX_SQUARES = 2500
+
+#: A board whose both sides are below this, mm, is a size in metres given as millimetres.
+MIN_BOARD_MM = 20.0
 
 Mm = StrictFloat
 Deg = StrictFloat
@@ -74,7 +83,10 @@ class StationError(AimbenchError):
 class _Section(BaseModel):
     """A table of the station file: typed, frozen, no unknown keys, defaults validated too."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    # allow_inf_nan=False: every float of a station is finite. A NaN mount angle made the twin
+    # loop forever on MuJoCo warnings and an inspection store a record with x NaN (issue 37).
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True,
+                              allow_inf_nan=False)
 
 
 class PoseMmDeg(_Section):
@@ -101,10 +113,19 @@ class Pattern(_Section):
 
     kind: Literal["chessboard"] = "chessboard"
     squares: tuple[Annotated[StrictInt, Field(ge=1)], Annotated[StrictInt, Field(ge=1)]]
-    square_mm: Positive
+    square_mm: Annotated[StrictFloat, Field(ge=MIN_SQUARE_MM)]
     dark_reflectivity: Reflectance = 0.03
     light_reflectivity: Reflectance = 0.8
     offset_mm: tuple[StrictFloat, StrictFloat] = (0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _few_enough(self) -> Pattern:
+        n = self.squares[0] * self.squares[1]
+        if n > MAX_SQUARES:
+            raise ValueError(f"{self.squares[0]} x {self.squares[1]} = {n} squares; the twin "
+                             f"draws each as a body, at most {MAX_SQUARES} (larger squares: "
+                             "a LiDAR's beam is about 10 mm wide at the board anyway)")
+        return self
 
 
 class Board(_Section):
@@ -517,6 +538,9 @@ def load(spec: str | Path | None = None) -> Station:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise StationError(f"{path} is not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib recurses once per level of nested arrays or tables
+        raise StationError(f"{path}: arrays or tables nested too deep to be a station file; "
+                           "give a TOML station file (docs/station.md)") from None
     return from_dict(data, str(path), base=path.parent, check_files=True)
 
 
@@ -531,9 +555,15 @@ def board_mm(text: str | list | tuple, where: str) -> dict[str, float]:
     elif isinstance(text, list | tuple) and all(
             isinstance(v, int | float) and not isinstance(v, bool) for v in text):
         values = [float(v) for v in text]
-    if len(values) != 2 or min(values) <= 0:
+    if len(values) != 2 or not min(values) > 0 or not math.isfinite(max(values)):
         raise StationError(f"{where}: board_mm {text!r}: give WIDTHxHEIGHT in mm, e.g. "
                            "\"900x540\" (or [900, 540] in a TOML file)")
+    if max(values) < MIN_BOARD_MM:
+        # 0.9x0.54: metres given for millimetres; every scan then said "no cluster looks like
+        # the board" (issue 37).
+        raise StationError(f"{where}: board_mm {text!r} is {values[0]:g} x {values[1]:g} mm, "
+                           f"smaller than any target board; did you mean "
+                           f"{values[0] * 1000:g}x{values[1] * 1000:g} (the size in mm)?")
     return {"width_mm": values[0], "height_mm": values[1]}
 
 
@@ -576,7 +606,11 @@ def resolve(spec: str | Path | None) -> Path:
     text = str(spec)
     if text in shipped():
         return shipped_path(text)
-    return Path(text).expanduser()
+    path = Path(text).expanduser()
+    # ``--station my-bench`` for my-bench.toml, as a shipped station is named without it.
+    if not path.suffix and not path.exists() and path.with_name(path.name + ".toml").is_file():
+        return path.with_name(path.name + ".toml")
+    return path
 
 
 def shipped() -> tuple[str, ...]:
@@ -613,10 +647,10 @@ def _describe(exc: ValidationError) -> str:
         got = err.get("input")
         # A value error's own message already says what it got.
         if kind not in ("missing", "value_error") and not isinstance(got, dict):
-            msg += f" (got {got!r})"
+            msg += f" (got {short_repr(got)})"
         parts.append(f"{key}: {msg}")
     # One message per key (a tuple's elements would repeat it).
-    return "; ".join(dict.fromkeys(parts))
+    return one_line(list(dict.fromkeys(parts)))
 
 
 def _model_at(loc: list[str]) -> type[BaseModel] | None:

@@ -210,11 +210,52 @@ def _is_unborn(path: Path) -> bool:
         conn.close()
 
 
+def _never_started(path: Path) -> bool:
+    """True for the store of a run that failed before its bench opened (no bench recorded, no
+    scan): a hardware start without the board plugged in left one, and the same command, run
+    again once it was, was refused as "already holds a run" (issue 37). It holds no results;
+    a new run replaces it."""
+    try:
+        conn = sqlite3.connect(f"file:{path}?mode=ro", uri=True, timeout=5.0)
+    except sqlite3.DatabaseError:
+        return False
+    try:
+        meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
+        scans = conn.execute("SELECT COUNT(*) FROM scan").fetchone()[0]
+        return (_json_or_none(meta.get("status")) == "failed" and scans == 0
+                and not _json_or_none(meta.get("bench", "null"))
+                and not _json_or_none(meta.get("bench_resumed", "null")))
+    except sqlite3.DatabaseError:
+        return False
+    finally:
+        conn.close()
+
+
 def _json_or_none(text: object) -> object:
     try:
         return json.loads(text) if isinstance(text, str | bytes) else None
     except (json.JSONDecodeError, UnicodeDecodeError):
         return None
+
+
+def writable(path: Path) -> bool:
+    """Whether the SQLite file `path` and its folder (its -wal and -shm files) can be written:
+    not on a read-only filesystem, not in a folder of someone else's."""
+    return os.access(path.parent, os.W_OK) and os.access(path, os.W_OK)
+
+
+def _connect_read_only(path: Path) -> sqlite3.Connection:
+    """A connection to a store that cannot be written (a read-only filesystem, a CD, a folder
+    of another user's). SQLite cannot open a WAL file there (it needs the -shm file), and then
+    said "unable to open database file", which was reported as a damaged store (issue 37); a
+    store closed cleanly has no WAL left and is read as immutable."""
+    wal = path.with_name(path.name + "-wal")
+    if wal.is_file() and wal.stat().st_size > 0:
+        raise StoreError(f"{path} cannot be written here (a read-only filesystem or folder) "
+                         f"and its last results are still in {wal.name}, which SQLite can read "
+                         "only where it may write; copy the run folder somewhere writable and "
+                         "give that")
+    return sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True, isolation_level=None)
 
 
 def _damaged(path: Path, problems: list[str]) -> str:
@@ -414,9 +455,11 @@ class Store:
     commit half-way).
     """
 
-    def __init__(self, path: Path, conn: sqlite3.Connection) -> None:
+    def __init__(self, path: Path, conn: sqlite3.Connection, read_only: bool = False) -> None:
         self.path = path
         self.conn = conn
+        #: Opened where it cannot be written (a read-only filesystem or folder): read it only.
+        self.read_only = read_only
 
     # -- opening ---------------------------------------------------------------------------
 
@@ -447,7 +490,7 @@ class Store:
         """
         run_dir = Path(run_dir)
         path = run_dir / STORE_NAME
-        if path.exists() and not _is_unborn(path):
+        if path.exists() and not _is_unborn(path) and not _never_started(path):
             raise StoreError(f"{run_dir} already holds a run; continue it with --resume or "
                              "choose another --out")
         made_dir = not run_dir.exists()
@@ -460,6 +503,8 @@ class Store:
         try:
             _build(tmp, plan, config, bench, versions)
             # The rename is atomic on POSIX: run.sqlite appears complete or not at all.
+            for side in ("-wal", "-shm"):  # of a never-started run this replaces
+                path.with_name(path.name + side).unlink(missing_ok=True)
             os.replace(tmp, path)
             fsync_dir(run_dir)
         except BaseException:
@@ -490,8 +535,10 @@ class Store:
         if not sqlite_header(path):
             raise StoreError(f"{path} is not a readable aimbench run store: not an SQLite "
                              "file; give the folder of a run that aimbench sweep made")
+        read_only = not writable(path)
         try:
-            conn = sqlite3.connect(path, isolation_level=None, timeout=30.0)
+            conn = _connect_read_only(path) if read_only else sqlite3.connect(
+                path, isolation_level=None, timeout=30.0)
         except sqlite3.DatabaseError as exc:
             raise StoreError(f"{path} is not a readable aimbench run store: {exc}") from None
         try:
@@ -507,7 +554,11 @@ class Store:
                 raise StoreError(f"{path}: unknown store schema {version and version[0]}; "
                                  f"this aimbench reads version {SCHEMA_VERSION}")
         finally:
-            conn.close()
+            if not read_only:
+                conn.close()
+        if read_only:
+            conn.row_factory = sqlite3.Row
+            return cls(path, conn, read_only=True)
         return cls(path, cls._connect(path))
 
     def close(self) -> None:
@@ -719,7 +770,10 @@ class Store:
             ref = refs[d["reference"]]
             row: dict[str, object] = {
                 "reference": d["reference"], "scan": d["scan"], "label": ref["label"],
-                "ref_yaw_deg": math.degrees(ref["yaw_rad"]), "ref_x_mm": ref["x_m"] * 1e3,
+                # Rounded below any stage's resolution: the plan's -6 deg, stored in rad,
+                # came back as -6.000000000000001 (issue 37).
+                "ref_yaw_deg": round(math.degrees(ref["yaw_rad"]), EDGE_DIGITS),
+                "ref_x_mm": round(ref["x_m"] * 1e3, EDGE_DIGITS),
                 **{f"ref_mount_{k}": (ref["mount"] or {}).get(k) for k in
                    ("roll_deg", "tilt_deg", "yaw_deg", "x_mm")},
                 "status": d["status"], "success": bool(d["success"]),
@@ -777,6 +831,10 @@ class Store:
 
 #: Export columns that are instants (Unix time, s), written to Parquet as UTC timestamps.
 TIMESTAMP_COLUMNS = ("acquired_at",)
+#: Export columns of text; every other column is a number (or a flag) when it has values.
+TEXT_COLUMNS = ("label", "status", "diagnostics", "timings")
+#: Decimals the references are exported with (deg, mm): far below any stage's resolution.
+EDGE_DIGITS = 9
 
 
 def _arrow_column(pa: object, name: str, values: list[object]) -> object:
@@ -785,6 +843,10 @@ def _arrow_column(pa: object, name: str, values: list[object]) -> object:
     if name in TIMESTAMP_COLUMNS:
         micros = [None if v is None else round(float(v) * 1e6) for v in values]
         return pa.array(micros, type=pa.timestamp("us", tz="UTC"))
-    if not values:
-        return pa.array(values, type=pa.null())
-    return pa.array(values)
+    column = pa.array(values)
+    if column.type == pa.null():
+        # Every value missing (no run had a mount, say): typed as the column's values are
+        # when present, not as Parquet's null type that readers cannot compute with.
+        kind = pa.string() if name in TEXT_COLUMNS else pa.float64()
+        column = pa.array(values, type=kind)
+    return column

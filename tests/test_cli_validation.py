@@ -53,6 +53,21 @@ def bad(capsys: pytest.CaptureFixture, *argv: str) -> str:
     (("export", "r", "--parquet", "."), "--parquet: . is a folder"),
     (("calibrate", "--bench", "sim", "--out", "."), "--out: . is a folder"),
     (("demo", "--jobs", "0"), "--jobs: must be a whole number >= 1"),
+    # issue 37: refused up front, not after the whole study or on the serial line
+    (("grr", "--twin", "--confidence", "1.5"), "--confidence: must be between 0 and 1"),
+    (("grr", "--twin", "--confidence", "95"), "(did you mean 0.95?)"),
+    (("stage", "--port", "loop://", "move", "--x-mm", "nan"), "--x-mm: 'nan' is not a finite"),
+    (("stage", "--port", "loop://", "--axes", "XX", "status"), "--axes: 'XX' names one axis "
+                                                               "twice"),
+    (("inspect", "sim", "--units", "0", "--db", "x.sqlite"), "--units: must be a whole number "
+                                                             ">= 1, got 0"),
+    (("inspect", "sim", "--unit", "VIN1\nVIN2", "--db", "x.sqlite"), "is not a unit id: give "
+                                                                     "printable characters"),
+    (("inspect", "sim", "--unit", "A", "--tilt-deg", "nan", "--db", "x.sqlite"),
+     "--tilt-deg: 'nan' is not a finite number"),
+    (("simluate", "--scans", "2"), "unknown command 'simluate'; did you mean 'simulate'?"),
+    (("estimate", str(CAPTURE), "--board-mm", "0.9x0.54"), "is 0.9 x 0.54 mm, smaller than any "
+                                                           "target board; did you mean 900x540"),
 ])
 def test_a_bad_option_is_one_line(capsys, monkeypatch, tmp_path: Path, argv, expected):
     monkeypatch.chdir(tmp_path)

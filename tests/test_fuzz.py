@@ -14,6 +14,7 @@ import math
 import os
 import tempfile
 import threading
+import time
 import tomllib
 import warnings
 from pathlib import Path
@@ -315,3 +316,230 @@ def test_the_valid_plans_parse():
         assert tomllib.loads(text)
         plan = _plan_or_error(text)
         assert plan is not None and len(plan) >= 2
+
+
+# -- the station file: any float NaN or infinite (issue 37) -------------------------------------
+
+def _float_leaves(value: object, path: tuple = ()) -> list[tuple]:
+    """The paths of the floats of a station's dict (a tuple's element by its index)."""
+    if isinstance(value, dict):
+        return [p for k, v in value.items() for p in _float_leaves(v, (*path, k))]
+    if isinstance(value, list | tuple):
+        return [p for i, v in enumerate(value) for p in _float_leaves(v, (*path, i))]
+    return [path] if isinstance(value, float) else []
+
+
+def _station_doc() -> dict:
+    from scenarios import station as stations
+
+    doc = stations.Station().model_dump()
+    doc["mount"]["nominal"] = stations.PoseMmDeg().model_dump()
+    doc["board"]["pattern"] = {"squares": [4, 3], "square_mm": 100.0}
+    for key in ("calibration_file", "range_calibration", "range_offset_std_mm"):
+        doc["sensor"].pop(key)
+    doc["stages"].pop("port")
+    return stations.from_dict(doc).model_dump(exclude_none=True)
+
+
+STATION_DOC = _station_doc()
+STATION_FLOATS = _float_leaves(STATION_DOC)
+
+
+def _set(doc: dict, path: tuple, value: float) -> None:
+    *head, last = path
+    node = doc
+    for k in head:
+        node = node[k]
+    if isinstance(node, tuple):
+        raise AssertionError("tuples are lists after the copy")
+    node[last] = value
+
+
+def _lists(value: object) -> object:
+    if isinstance(value, dict):
+        return {k: _lists(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_lists(v) for v in value]
+    return value
+
+
+@fuzz(100)
+@given(st.lists(st.tuples(st.sampled_from(STATION_FLOATS),
+                          st.one_of(st.sampled_from([math.nan, math.inf, -math.inf, 1e300,
+                                                     -1e300, 0.0, -0.0]),
+                                    st.floats(allow_nan=True, allow_infinity=True))),
+                min_size=1, max_size=4))
+def test_station_files_with_any_float(changes):
+    """A station with a NaN or an infinity anywhere is refused naming the key; one accepted
+    has only finite floats (a NaN mount angle hung the twin; an inspection stored x NaN)."""
+    from scenarios import station as stations
+
+    doc = _lists(STATION_DOC)
+    for path, value in changes:
+        _set(doc, path, value)
+    with fuzz_input("station file floats"), tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "station.toml"
+        path.write_text(tomli_w.dumps(doc), encoding="utf-8")
+        try:
+            station = stations.load(path)
+        except stations.StationError as exc:
+            text = str(exc)
+            assert "\n" not in text and len(text) < 2000
+            return
+    assert all(math.isfinite(v) for v in _floats(station.model_dump()))
+    assert np.isfinite(station.board_in_bench()).all()
+
+
+def _floats(value: object) -> list[float]:
+    if isinstance(value, dict):
+        return [f for v in value.values() for f in _floats(v)]
+    if isinstance(value, list | tuple):
+        return [f for v in value for f in _floats(v)]
+    return [value] if isinstance(value, float) else []
+
+
+# -- ROS PointCloud2 layouts (issue 37) ----------------------------------------------------------
+
+def _cloud_message(fields, point_step, width, height, row_step, n_bytes, bigendian):
+    from twin.lidar.bags import CLOUD_TYPE, typestore
+
+    store = typestore(True)
+    Cloud2, Field = store.types[CLOUD_TYPE], store.types["sensor_msgs/msg/PointField"]
+    Header, Time = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
+    return Cloud2(header=Header(stamp=Time(sec=0, nanosec=0), frame_id="velodyne"),
+                  height=height, width=width,
+                  fields=[Field(name=n, offset=o, datatype=t, count=c) for n, o, t, c in fields],
+                  is_bigendian=bigendian, point_step=point_step, row_step=row_step,
+                  data=np.arange(n_bytes, dtype=np.uint64).astype(np.uint8), is_dense=True)
+
+
+cloud_fields = st.lists(st.tuples(st.sampled_from(["x", "y", "z", "intensity", "ring", "time"]),
+                                  st.integers(0, 40), st.integers(0, 9), st.integers(0, 2)),
+                        max_size=8).map(lambda f: [("x", 0, 7, 1), ("y", 4, 7, 1),
+                                                   ("z", 8, 7, 1), *f])
+
+
+@fuzz(200)
+@given(cloud_fields, st.integers(0, 48), st.integers(0, 6), st.integers(0, 4),
+       st.integers(0, 400), st.integers(0, 600), st.booleans())
+def test_point_cloud2_messages_of_any_layout(fields, point_step, width, height, row_step,
+                                             n_bytes, bigendian):
+    """A field past the point, a field twice, point_step 0, rows past the data: a `BagError`
+    naming it (each was a traceback); a layout that holds together: every point read."""
+    from twin.lidar.bags import BagError, cloud_records
+
+    msg = _cloud_message(fields, point_step, width, height, row_step, n_bytes, bigendian)
+    with fuzz_input("PointCloud2 layout"):
+        try:
+            rec = cloud_records(msg, "fuzzed")
+        except BagError as exc:
+            assert "\n" not in str(exc)
+            return
+    assert len(rec) == width * height and {"x", "y", "z"} <= set(rec.dtype.names)
+
+
+# -- PCD headers (issue 37) ------------------------------------------------------------------------
+
+def _small_pcd() -> bytes:
+    from pypcd4 import PointCloud
+
+    rng = np.random.default_rng(0)
+    arrays = [rng.normal(size=50).astype(np.float32) for _ in range(3)]
+    arrays.append(np.arange(50, dtype=np.uint16) % 16)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "small.pcd"
+        PointCloud.from_points(arrays, ("x", "y", "z", "ring"),
+                               (np.float32, np.float32, np.float32, np.uint16)).save(path)
+        return path.read_bytes()
+
+
+SMALL_PCD = _small_pcd()
+PCD_HEADER, _, PCD_BODY = SMALL_PCD.partition(b"DATA binary\n")
+PCD_KEYS = ("SIZE", "COUNT", "WIDTH", "HEIGHT", "POINTS", "TYPE", "FIELDS")
+
+
+@fuzz(150)
+@given(st.lists(st.tuples(st.sampled_from(PCD_KEYS),
+                          st.lists(st.one_of(st.integers(-2, 2**40).map(str),
+                                             st.sampled_from(["F", "U", "I", "x", "nan", ""])),
+                                   max_size=5)), max_size=3),
+       st.sampled_from(["binary", "ascii", "binary_compressed"]), st.integers(0, len(PCD_BODY)))
+def test_pcd_files_with_hostile_headers(changes, data, keep):
+    """Any header claim (COUNT 99999999, POINTS 2**40...) is checked against the file before
+    anything is allocated: clouds, or a `CloudError`, quickly."""
+    from twin.lidar.clouds import CloudError
+    from twin.lidar.pcd import read_pcd
+
+    lines = PCD_HEADER.decode().splitlines()
+    for key, values in changes:
+        lines = [f"{key} {' '.join(values)}" if ln.startswith(key + " ") else ln for ln in lines]
+    text = "\n".join(lines).encode() + f"\nDATA {data}\n".encode() + PCD_BODY[:keep]
+    with fuzz_input("PCD header"), tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "fuzzed.pcd"
+        path.write_bytes(text)
+        t0 = time.monotonic()
+        try:
+            clouds = read_pcd(path)
+        except CloudError as exc:
+            assert "\n" not in str(exc)
+            clouds = []
+        assert time.monotonic() - t0 < 5.0
+    assert sum(len(c) for c in clouds) <= 50 * 200
+
+
+# -- factory calibration files (issue 37) ----------------------------------------------------------
+
+CAL_KEYS = ("laser_id", "rot_correction", "vert_correction", "vert_offset_correction",
+            "horiz_offset_correction", "dist_correction")
+hostile_values = st.one_of(
+    st.sampled_from([math.nan, math.inf, 1e300, -1e300, -1, 0, 1.5, True, None, "", "abc",
+                     [], [1], {}, {"a": 1}, 2**70]),
+    st.floats(allow_nan=True, allow_infinity=True), st.integers(-2**40, 2**40), st.text(max_size=5))
+
+
+def _cal_doc(n: int = 4) -> dict:
+    return {"num_lasers": n, "distance_resolution": 0.002,
+            "lasers": [{"laser_id": i, "rot_correction": 0.0,
+                        "vert_correction": math.radians(-15 + 2 * i),
+                        "vert_offset_correction": 0.01, "horiz_offset_correction": 0.0,
+                        "dist_correction": 0.0} for i in range(n)]}
+
+
+@fuzz(60)
+@given(st.lists(st.tuples(st.integers(0, 3), st.sampled_from((*CAL_KEYS, "num_lasers",
+                                                             "distance_resolution")),
+                          hostile_values), min_size=1, max_size=4))
+def test_calibration_files_with_wrong_types(changes):
+    """A ROS calibration YAML with any value of any type, and the same as VeloView XML: a
+    laser table with finite, bounded geometry, or one `CalibrationFileError` line."""
+    import yaml
+
+    from twin.lidar.calibration_file import (
+        MAX_OFFSET_M,
+        CalibrationFileError,
+        parse_ros_yaml,
+        parse_veloview_xml,
+    )
+
+    doc = _cal_doc()
+    for i, key, value in changes:
+        (doc if key in ("num_lasers", "distance_resolution") else doc["lasers"][i])[key] = value
+    xml = ("<boost_serialization><DB><distLSB_>{}</distLSB_><points_>".format(
+        doc["distance_resolution"] * 100 if isinstance(doc["distance_resolution"], float)
+        else doc["distance_resolution"])
+        + "".join(f"<item><px><id_>{e['laser_id']}</id_><rotCorrection_>{e['rot_correction']}"
+                  f"</rotCorrection_><vertCorrection_>{e['vert_correction']}</vertCorrection_>"
+                  f"<vertOffsetCorrection_>{e['vert_offset_correction']}"
+                  "</vertOffsetCorrection_></px></item>" for e in doc["lasers"])
+        + "</points_></DB></boost_serialization>")
+    with fuzz_input("sensor calibration file"):
+        for parse, text in ((parse_ros_yaml, yaml.safe_dump(doc)), (parse_veloview_xml, xml)):
+            try:
+                table, unit = parse(text, "fuzzed")
+            except CalibrationFileError as exc:
+                assert "\n" not in str(exc)
+                continue
+            for k in ("elevation", "vertical_offset", "azimuth_offset", "horizontal_offset"):
+                assert np.isfinite(getattr(table, k)).all()
+            assert np.abs(table.vertical_offset).max() <= MAX_OFFSET_M
+            assert unit is None or 0 < unit <= 1.0

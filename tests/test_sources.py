@@ -285,7 +285,7 @@ def test_decode_writes_by_extension_and_refuses_others(sample_pcap, pcap_scans, 
         assert proc.returncode == 0, proc.stderr
     returns = sum(int(s.valid.sum()) for s in pcap_scans)
     # PCD: PCL's header, the ROS fields, readable by Open3D; and by us, as the same scans.
-    head = (tmp_path / "s.pcd").read_bytes()[:200].decode("ascii", "replace")
+    head = (tmp_path / "s.pcd").read_bytes()[:500].decode("ascii", "replace")
     assert "FIELDS x y z intensity ring time scan" in head and "DATA binary" in head
     for ext in ("pcd", "ply"):
         cloud = o3d.t.io.read_point_cloud(str(tmp_path / f"s.{ext}"))

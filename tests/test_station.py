@@ -18,6 +18,7 @@ import pytest
 from scipy.spatial import ConvexHull
 
 from align.board import BoardSpec
+from scenarios import plans
 from scenarios import station as stations
 from scenarios.bench import HardwareBench, SimBench, open_bench
 from scenarios.config import RunConfig
@@ -97,12 +98,39 @@ def test_the_paper_station_is_the_default_and_ships_installed():
     ("[tolerances]\nrule = 'loose'\n", "tolerances.rule: Input should be 'iso14253-1' or"),
     ("board = 3\n", "board: must be a table"),
     ("[board\n", "is not valid TOML"),
+    # issue 37: NaN and inf are refused in every float (a NaN mount angle hung the twin)
+    ("[mount]\nroll_deg = nan\n", "mount.roll_deg: Input should be a finite number (got nan)"),
+    ("[mount]\nlever_arm_mm = [0, inf, 60]\n", "mount.lever_arm_mm: Input should be a finite"),
+    ("[mount.nominal]\nx_mm = -inf\n", "mount.nominal.x_mm: Input should be a finite"),
+    ("[frame.pose]\nyaw_deg = nan\n", "frame.pose.yaw_deg: Input should be a finite"),
+    ("[board]\nposition_mm = [nan, 0, 500]\n", "board.position_mm: Input should be a finite"),
+    ("[board]\nwidth_mm = inf\n", "board.width_mm: Input should be a finite"),
+    ("[sensor]\nrange_offset_mm = nan\n", "sensor.range_offset_mm: Input should be a finite"),
+    # an absurdly fine chessboard took minutes and gigabytes to build
+    ("[board.pattern]\nsquares = [100, 60]\nsquare_mm = 5.0\n", "6000 squares; the twin draws"),
+    ("[board.pattern]\nsquares = [7, 5]\nsquare_mm = 0.001\n", "board.pattern.square_mm: Input "
+                                                               "should be greater than or equal"),
 ])
 def test_a_bad_station_file_names_the_key(tmp_path: Path, text: str, message: str):
     path = write(tmp_path, text)
     with pytest.raises(stations.StationError, match="^" + str(path)) as err:
         stations.load(path)
     assert message in str(err.value) and "\n" not in str(err.value)
+
+
+def test_hostile_station_files_are_short_lines(tmp_path: Path):
+    """Issue 37: 1,000 unknown keys made a 143,000-character line; TOML nested deep a
+    RecursionError. Both are one short line now, the first problems named."""
+    many = write(tmp_path, "".join(f"key{i:04d} = 1\n" for i in range(1000)), "many.toml")
+    with pytest.raises(stations.StationError) as err:
+        stations.load(many)
+    text = str(err.value)
+    assert len(text) < 1000 and "key0000: unknown key" in text and "and 995 more problems" in text
+    for deep in ("a = " + "[" * 5000 + "]" * 5000, "a = " + "{b = " * 5000 + "1" + "}" * 5000):
+        with pytest.raises(stations.StationError, match="nested too deep"):
+            stations.load(write(tmp_path, deep + "\n", "deep.toml"))
+    with pytest.raises(plans.PlanError, match="nested too deep"):
+        plans.from_toml(write(tmp_path, "yaw_deg = " + "[" * 5000 + "]" * 5000, "deep.toml"))
 
 
 def test_a_bad_station_is_one_line_on_the_command_line(tmp_path: Path, sample_pcap: Path):

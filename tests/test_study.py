@@ -106,6 +106,14 @@ def reference_study(tmp_path_factory: pytest.TempPathFactory) -> Path:
     ({"noise": {"range_sigma": 3.0}}, "noise.range_sigma: unknown key"),
     ({"grid": {"distance_mm": [2000.0], "stages.base_position_mm[1]": [-2000.0]}},
      "distance_mm and stages.base_position_mm[1] both set where the LiDAR stand is"),
+    # issue 37: NaN and inf made a store that could be neither resumed nor reported
+    ({"grid": {"distance_mm": [math.nan]}}, "grid.distance_mm: each value must be a number"),
+    ({"grid": {"board.width_mm": [math.inf]}}, "grid.board.width_mm: each value must be"),
+    ({"draws": {"n": 3, "ranges": {"distance_mm": [2000.0, math.inf]}}},
+     "draws.ranges.distance_mm: give [low, high], two numbers"),
+    ({"protocol": {"angle_deg": math.nan}}, "protocol.angle_deg: Input should be a finite"),
+    ({"noise": {"range_offset_mm": -math.inf}}, "noise.range_offset_mm: Input should be a "
+                                                "finite"),
 ])
 def test_a_bad_study_file_is_refused_naming_the_key(data: dict, message: str):
     with pytest.raises(StudyError, match=None) as info:

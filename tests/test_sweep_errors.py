@@ -43,7 +43,7 @@ def test_reference_beyond_travel(tmp_path: Path):
     (tmp_path / "far.toml").write_text("scans = 2\nyaw_deg = [0, 10, 45]\n")
     res = aimbench("sweep", "far.toml", "--out", "run", cwd=tmp_path)
     line = one_error_line(res)
-    assert "at reference 2 (yaw +45.00 deg, x +0.0 mm)" in line
+    assert "at reference 2 (stage yaw +45.00 deg, stage_x +0.0 mm)" in line
     assert "beyond the stages' travel (yaw -30.0..+30.0 deg" in line
     assert "nothing was moved" in line
     run = tmp_path / "run"

@@ -28,6 +28,7 @@ import argparse
 import json
 import math
 import sys
+from pathlib import Path
 
 import align
 from align import calibration as laser_calibration
@@ -126,6 +127,24 @@ def _truths(args: argparse.Namespace) -> list[ScanTruth]:
     return load_truth(beside) if beside.is_file() else []
 
 
+def _warn_board_size(args: argparse.Namespace, station: stations.Station) -> None:
+    """Say when the capture's truth file names another board than the one estimated with: a
+    board of the wrong size was reported as occlusion ("nothing seen beyond its top edge, 610
+    misses inside") though the truth file said the size (issue 37)."""
+    path = Path(args.truth) if args.truth is not None else truth_path(args.capture)
+    try:
+        board = json.loads(path.read_text(encoding="utf-8"))["station"]["board"]
+        size = (float(board["width_mm"]), float(board["height_mm"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return  # no truth file, or one without its station: nothing to compare
+    have = (station.board.width_mm, station.board.height_mm)
+    if max(abs(a - b) for a, b in zip(size, have, strict=True)) > 1.0:
+        print(f"aimbench estimate: warning: the truth file {path.name} says the board is "
+              f"{size[0]:g} x {size[1]:g} mm; this estimate looks for {have[0]:g} x "
+              f"{have[1]:g} mm (--board-mm or --station), and a board of another size reads as "
+              f"one partly hidden; give --board-mm {size[0]:g}x{size[1]:g}", file=sys.stderr)
+
+
 def _edge_tolerance(text: str) -> tuple[float, float]:
     """``--edge-tolerance-mrad``: H,V or one value for both, mrad -> rad."""
     try:
@@ -175,12 +194,11 @@ def run(args: argparse.Namespace) -> int:
                         roll_prior=_roll_prior(args.roll_hint_deg, station),
                         **station.range_offset_hints(calibrated=cal is not None))
     truths = _truths(args)
+    _warn_board_size(args, station)
     rows, seen, group = [], 0, []
     # The first whole raw scans go to the check that they fit the calibration, once.
     first: list | None = [] if cal is not None else None
-    if cal is not None:
-        print(f"aimbench estimate: calibration {calibrate.applied(cal)}",
-              file=sys.stderr)
+    seen_cal = False
     # A station file named on the command line decodes as its sensor (model, factory
     # calibration); without one the packets' product id decides.
     with open_source(args, station if args.station is not None else None) as source:
@@ -195,7 +213,11 @@ def run(args: argparse.Namespace) -> int:
                     if len(first) == calibrate.CHECK_SCANS:
                         _warn_fit(cal, first, args.sensor_id)
                         first = None
-                group.append(laser_calibration.apply(scan, cal) if cal is not None else scan)
+                group.append(calibrate.apply(scan, cal) if cal is not None else scan)
+                if cal is not None and seen_cal is False:  # said once it fits the scans
+                    print(f"aimbench estimate: calibration {calibrate.applied(cal)}",
+                          file=sys.stderr)
+                    seen_cal = True
                 if len(group) < args.fuse:
                     continue
                 res = align.estimate(group if args.fuse > 1 else group[0], board, args.method,

@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from scenarios import cliargs
 from scenarios import station as stations
 from scenarios.extras import require
 from scenarios.inspection.records import Records
@@ -198,23 +199,28 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--db", metavar="FILE", help="the inspection records (SQLite)")
     p.add_argument("--batch", help="analyse only the records of this batch (a study's name)")
     p.add_argument("--twin", action="store_true", help="run the study on the twin first")
-    p.add_argument("--parts", type=int, default=10, help="twin: parts (units), default 10")
-    p.add_argument("--appraisers", type=int, default=3,
+    p.add_argument("--parts", type=cliargs.int_at_least(2), default=10,
+                   help="twin: parts (units), default 10")
+    p.add_argument("--appraisers", type=cliargs.positive_int, default=3,
                    help="twin: appraisers (re-mountings), default 3")
-    p.add_argument("--trials", type=int, default=2, help="twin: trials per mounting, default 2")
-    p.add_argument("--scans", type=int, default=10, help="scans per measurement (default 10)")
-    p.add_argument("--seed", type=int, default=0, help="the twin study's seed")
-    p.add_argument("--placement-deg", type=float, default=None,
+    p.add_argument("--trials", type=cliargs.int_at_least(2), default=2,
+                   help="twin: trials per mounting, default 2")
+    p.add_argument("--scans", type=cliargs.positive_int, default=10,
+                   help="scans per measurement (default 10)")
+    p.add_argument("--seed", type=cliargs.seed, default=0, help="the twin study's seed")
+    p.add_argument("--placement-deg", type=cliargs.non_negative_float, default=None,
                    help="twin: a re-mounting's placement error, 1-sigma deg (default 0.05)")
-    p.add_argument("--placement-mm", type=float, default=None,
+    p.add_argument("--placement-mm", type=cliargs.non_negative_float, default=None,
                    help="twin: a re-mounting's placement error, 1-sigma mm (default 0.5)")
-    p.add_argument("--range-noise-mm", type=float, default=None,
+    p.add_argument("--range-noise-mm", type=cliargs.non_negative_float, default=None,
                    help="twin: the sensor's range noise, 1-sigma mm (default the twin's 14)")
     p.add_argument("--no-sensor-errors", action="store_true",
                    help="twin: sensors without per-laser or common range offsets")
-    p.add_argument("--confidence", type=float, default=0.95, help="interval level (0.95)")
+    p.add_argument("--confidence", type=cliargs.probability, default=0.95,
+                   help="interval level (0.95)")
     p.add_argument("--bias", action="store_true", help="bias across twin units (with --twin)")
-    p.add_argument("--units", type=int, default=30, help="--bias: twin units (default 30)")
+    p.add_argument("--units", type=cliargs.int_at_least(2), default=30,
+                   help="--bias: twin units (default 30)")
     p.add_argument("--linearity", action="store_true",
                    help="bias and linearity against the stages' references")
     p.add_argument("--bench", choices=("sim", "serve", "hw"), default="sim",
@@ -225,7 +231,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="--linearity: rotation stage references, deg")
     p.add_argument("--x-refs-mm", default="-15,-7.5,0,7.5,15",
                    help="--linearity: linear stage references, mm")
-    p.add_argument("--repeats", type=int, default=3, help="--linearity: measurements each")
+    p.add_argument("--repeats", type=cliargs.positive_int, default=3,
+                   help="--linearity: measurements each")
     p.add_argument("--json", action="store_true", help="one JSON object")
     p.set_defaults(func=run)
     return p

@@ -20,6 +20,7 @@ and only then prints the verdict. Exit status: 0 PASS, 1 FAIL, 3 INCONCLUSIVE, 2
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
@@ -54,6 +55,12 @@ def verdict_line(insp: Inspection, rid: int | None = None, trial: int | None = N
     tail = f"  [{insp.scans_used} scans" + (f", record {rid}" if rid is not None else "") + \
         (f", trial {trial}" if trial and trial > 1 else "") + "]"
     return head + "  ".join(cells) + tail
+
+
+def unit_seed(unit: str) -> int:
+    """A twin unit's seed drawn from its id: each id its own sensor (one default seed made
+    ``--unit T1`` and ``--unit T2`` the same unit), the same id always the same."""
+    return int.from_bytes(hashlib.sha256(unit.encode("utf-8")).digest()[:4], "little")
 
 
 def _misalignment(args: argparse.Namespace) -> dict[str, float]:
@@ -131,15 +138,17 @@ def run(args: argparse.Namespace) -> int:
     try:
         with rec_mod.Records.open(db, create=True) as records:
             if args.units is None:
+                seed = args.seed if args.seed is not None else unit_seed(args.unit)
                 insp, _ = _one(args, records, station, args.unit, source, misalignment,
-                               args.seed, None, calibration, cal_file, live)
+                               seed, None, calibration, cal_file, live)
                 return EXIT[insp.verdict]
             if misalignment:
                 raise AimbenchError("a simulated line draws each unit's misalignment: give "
                                     "--units without --roll-deg .. --z-mm")
-            batch = f"sim-line seed {args.seed} spread {args.spread:g}"
+            line_seed = args.seed or 0
+            batch = f"sim-line seed {line_seed} spread {args.spread:g}"
             done = records.units_of_batch(batch)
-            for u in line_units(station, args.units, args.seed, args.spread):
+            for u in line_units(station, args.units, line_seed, args.spread):
                 if u.name in done:
                     continue
                 _one(args, records, station, u.name, "sim", u.misalignment, u.seed, batch,
@@ -224,13 +233,13 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("source", nargs="?", metavar="SOURCE",
                    help="sim, udp://HOST:PORT or a recording (default: the station's sensor)")
     stations.add_arguments(p)
-    p.add_argument("--unit", help="the unit's id (a VIN, a serial number)")
+    p.add_argument("--unit", type=cliargs.unit_id, help="the unit's id (a VIN, a serial number)")
     p.add_argument("--db", required=True, metavar="FILE",
                    help="the record store (SQLite, created if missing; captures kept in "
                         "FILE's folder under NAME.captures/)")
-    p.add_argument("--scans", type=int, default=DEFAULT_SCANS,
+    p.add_argument("--scans", type=cliargs.positive_int, default=DEFAULT_SCANS,
                    help=f"scans per measurement (default {DEFAULT_SCANS}: 1 s of data)")
-    p.add_argument("--max-scans", type=int, default=None, metavar="N",
+    p.add_argument("--max-scans", type=cliargs.positive_int, default=None, metavar="N",
                    help="most scans an automatic re-measure may reach (default 3 x --scans; "
                         "= --scans: no re-measure)")
     p.add_argument("--operator", default=None, help="who inspects (kept in the record)")
@@ -247,16 +256,19 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     for key, what in (("roll_deg", "roll, deg"), ("tilt_deg", "tilt, deg"),
                       ("yaw_deg", "yaw, deg"), ("x_mm", "x shift, mm"), ("y_mm", "y shift, mm"),
                       ("z_mm", "z shift, mm")):
-        twin.add_argument(f"--{key.replace('_', '-')}", dest=key, type=float, default=None,
+        twin.add_argument(f"--{key.replace('_', '-')}", dest=key, type=cliargs.finite_float,
+                          default=None,
                           help=f"the unit's mount misalignment: {what}")
-    twin.add_argument("--seed", type=int, default=0,
-                      help="the twin unit's seed: its sensor errors and noise (default 0)")
+    twin.add_argument("--seed", type=cliargs.seed, default=None,
+                      help="the twin unit's seed: its sensor errors and noise (default: drawn "
+                           "from the unit's id, so that --unit T1 and T2 are two units; a "
+                           "line's: 0)")
     twin.add_argument("--no-sensor-errors", action="store_true",
                       help="a sensor without per-laser or common range offsets (noise stays)")
-    twin.add_argument("--units", type=int, default=None, metavar="N",
+    twin.add_argument("--units", type=cliargs.positive_int, default=None, metavar="N",
                       help="a simulated line: N twin units with random misalignments (unit i "
                            "is the same for a given --seed; a rerun skips units recorded)")
-    twin.add_argument("--spread", type=float, default=DEFAULT_SPREAD,
+    twin.add_argument("--spread", type=cliargs.non_negative_float, default=DEFAULT_SPREAD,
                       help="with --units: misalignments uniform within +-SPREAD x each limit "
                            f"(default {DEFAULT_SPREAD})")
     browse = p.add_argument_group("the records")

@@ -13,11 +13,15 @@ from pathlib import Path
 
 from scenarios.commands.sweep import add_tolerance_arguments, tolerances
 from scenarios.report import summary_lines, write
-from scenarios.store import Store
+from scenarios.store import Store, StoreError
 
 
 def run(args: argparse.Namespace) -> int:
     with Store.open(Path(args.run)) as store:
+        if args.out is None and store.read_only:
+            raise StoreError(f"{args.run} cannot be written here (a read-only filesystem or "
+                             "folder), and the report goes into the run folder; give --out DIR "
+                             "to write it elsewhere")
         rep, md, page = write(store, tolerances(args), args.out)
         if args.csv:
             store.export_csv(Path(args.out or store.run_dir) / "scans.csv")

@@ -79,11 +79,19 @@ def run(args: argparse.Namespace) -> int:
         laser_offsets_m=[float(v) for v in sim.emulator.laser_offsets])
     if not args.quiet:
         p = scans[0].meta["truth_pose"]
-        print(f"wrote {out} ({len(scans)} scans) and {truth.name}; true pose: "
-              f"x {p.x * 1e3:.1f} mm, y {p.y * 1e3:.1f} mm, z {p.z * 1e3:.1f} mm, "
-              f"roll {math.degrees(p.roll):.3f} deg, tilt {math.degrees(p.tilt):.3f} deg, "
-              f"yaw {math.degrees(p.yaw):.3f} deg")
+        # The stages' position and the LiDAR's pose in the board frame {O} are two things:
+        # "--x-mm 10" then "true pose: x 710.0 mm" read as a wrong x (issue 37).
+        print(f"wrote {out} ({len(scans)} scans) and {truth.name}; stages at stage_x "
+              f"{args.x_mm:+.1f} mm, stage yaw {args.yaw_deg:+.3f} deg; true pose of the LiDAR "
+              f"in the board frame {{O}}: x {p.x * 1e3:.1f} mm, y {p.y * 1e3:.1f} mm, "
+              f"z {p.z * 1e3:.1f} mm, roll {_deg(p.roll)} deg, tilt {_deg(p.tilt)} deg, "
+              f"yaw {_deg(p.yaw)} deg")
     return 0
+
+
+def _deg(rad: float) -> str:
+    """Degrees to 3 decimals, a value that rounds to zero printed 0.000, not -0.000."""
+    return f"{round(math.degrees(rad), 3) + 0.0:.3f}"
 
 
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:

@@ -17,9 +17,13 @@ from __future__ import annotations
 import argparse
 import math
 
+from scenarios import cliargs
 from scenarios.progress import StageMotion
 from twin.stage import grbl
 from twin.stage.controller import StageController, StageStatus
+
+#: The axis letters a Grbl controller may name (bench_fw drives X and A).
+AXIS_LETTERS = "XYZABC"
 
 
 def _print_status(st: StageStatus) -> None:
@@ -45,13 +49,20 @@ def _print_settings(stage: StageController) -> None:
         print(f"{setting:<14} {meaning}" + (f" ({unit})" if unit else ""))
 
 
+def axes(text: str) -> tuple[str, str]:
+    """``--axes``: two different Grbl axis letters (linear, rotary), e.g. XA."""
+    letters = text.upper()
+    if len(letters) != 2 or not set(letters) <= set(AXIS_LETTERS):
+        raise argparse.ArgumentTypeError(f"{text!r}: give two Grbl axis letters of "
+                                         f"{AXIS_LETTERS}, linear then rotary, e.g. XA or XY")
+    if letters[0] == letters[1]:
+        raise argparse.ArgumentTypeError(f"{text!r} names one axis twice; the linear and the "
+                                         "rotary stage are two axes, e.g. XA or XY")
+    return (letters[0], letters[1])
+
+
 def run(args: argparse.Namespace) -> int:
-    letters = None
-    if args.axes is not None:
-        axes = args.axes.upper()
-        if len(axes) != 2:
-            raise SystemExit("aimbench stage: error: --axes takes two letters, e.g. XA or XY")
-        letters = (axes[0], axes[1])
+    letters = args.axes
     with StageController(args.port, axis_letters=letters) as stage:
         print(f"axes      {stage.axis_note}")
         if args.action == "status":
@@ -77,16 +88,19 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("stage", help="status, home, move or settings of the stage controller")
     p.add_argument("--port", required=True,
                    help="serial port or pyserial URL (/dev/ttyACM0, the pty of `aimbench hil`)")
-    p.add_argument("--axes", default=None,
+    p.add_argument("--axes", type=axes, default=None,
                    help="letters of the linear and rotary axes (default: found from the "
                         "controller, XA on bench_fw, XY on a stock grbl-Mega)")
-    p.add_argument("--timeout", type=float, default=120.0, help="seconds to wait for arrival")
+    p.add_argument("--timeout", type=cliargs.positive_float, default=120.0,
+                   help="seconds to wait for arrival")
     actions = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     actions.add_parser("status", help="state and position")
     actions.add_parser("home", help="run the homing cycle ($H)")
     mv = actions.add_parser("move", help="move to a position relative to the bench reference")
-    mv.add_argument("--x-mm", type=float, default=None, help="x from the bench centre, mm")
-    mv.add_argument("--yaw-deg", type=float, default=None, help="yaw from the reference, deg")
+    mv.add_argument("--x-mm", type=cliargs.finite_float, default=None,
+                   help="x from the bench centre, mm")
+    mv.add_argument("--yaw-deg", type=cliargs.finite_float, default=None,
+                   help="yaw from the reference, deg")
     actions.add_parser("settings", help="list the controller's settings ($$)")
     p.set_defaults(func=run)
     return p

@@ -88,7 +88,11 @@ def run(args: argparse.Namespace) -> int:
                 desc = ", ".join(f"{k}={v}" for k, v in best.params.items())
                 print(f"cheapest design: point {best.point} ({desc}), {best.fused} scans fused, "
                       f"{best.time_s:.2f} s, board {best.board_area_m2:.3f} m2")
-        sys.stderr.write(f"report: {md} ({len(res)} designs)\n")
+        # Counted as the progress counts them: design points (a row per scans-fused value each,
+        # which "36 designs" beside "12 design points" did not say).
+        points = len({r.point for r in res})
+        sys.stderr.write(f"report: {md} ({points} design points, {len(res)} rows: each with "
+                         f"every scans-fused value)\n")
         return 130 if status == "interrupted" else 0
     finally:
         if engine is not None:

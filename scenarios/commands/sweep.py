@@ -19,6 +19,7 @@ The run folder gets ``run.sqlite`` (every scan's result, committed one by one), 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -37,7 +38,7 @@ from scenarios.runner import (
     make_estimator,
     sim_engine,
 )
-from scenarios.store import Store
+from scenarios.store import Store, StoreError
 from scenarios.versions import versions
 from twin.core.errors import AimbenchError
 
@@ -110,6 +111,11 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
     stream = stream if stream is not None else sys.stderr
     if resume:
         store = Store.open(out)
+        if store.read_only:
+            store.close()
+            raise StoreError(f"{out} cannot be written here (a read-only filesystem or folder): "
+                             "a resumed run adds its scans to it; copy the run folder somewhere "
+                             "writable and resume that")
         # A resumed run keeps its settings; only where the hardware is may change.
         config = RunConfig.from_dict(store.get("config")).with_(
             **{k: v for k, v in (("port", config.port), ("lidar", config.lidar))
@@ -279,11 +285,48 @@ def config_from_args(args: argparse.Namespace) -> RunConfig:
         station=station, station_file=station_file, sensor_id=args.sensor_id)
 
 
+#: The options a resumed run takes from its store, by RunConfig field: given with --resume,
+#: they were silently dropped (issue 37), and `sweep x --resume --out runs/yaw` went on with
+#: the yaw run.
+RESUME_FIXED = {"scenario": "the scenario", "scans": "--scans", "poses": "--poses",
+                "seed": "--seed", "method": "--method", "calibration": "--calibration",
+                "ideal": "--ideal", "sensor_id": "--sensor-id"}
+
+
+def _refuse_resume_changes(args: argparse.Namespace, out: Path) -> None:
+    """Refuse, naming them, the options of a resume that differ from the run's stored ones
+    (the same value again is fine: the original command with --resume added)."""
+    given = {k: getattr(args, k) for k in RESUME_FIXED if getattr(args, k) not in (None, False)}
+    if not given:
+        return
+    with Store.open(out) as store:
+        stored = store.get("config") or {}
+    differ = []
+    for key, value in given.items():
+        was = stored.get(key)
+        if key == "calibration":
+            value = calibrate.read(value).to_dict()
+            same = json.dumps(value, sort_keys=True, default=str) == json.dumps(
+                was, sort_keys=True, default=str)
+            value = args.calibration
+            was = "none" if not was else "another calibration"
+        else:
+            same = was == value
+        if not same:
+            differ.append(f"{RESUME_FIXED[key]} {value} (the run: {was})")
+    if differ:
+        raise AimbenchError(f"{out} holds a run that --resume continues with its own settings; "
+                            f"these differ: {'; '.join(differ)}. Drop them to resume, or give "
+                            "another --out for a new run")
+
+
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if args.resume and (args.station or args.board_mm):
         raise AimbenchError("a resumed run keeps the station it was started with (the store "
                             "holds it); drop --station / --board-mm, or start a new run")
+    if args.resume:
+        _refuse_resume_changes(args, out)
     config = config_from_args(args)
     plan = None
     if not args.resume:

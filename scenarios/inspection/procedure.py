@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 
 import align
-from align import calibration as laser_calibration
+from align.calibration import LaserCalibration
+from scenarios import calibrate
 from scenarios.inspection import mounting
 from scenarios.inspection.acquire import Acquisition, AcquisitionError
 from scenarios.inspection.verdict import (
@@ -119,7 +120,7 @@ def _edge(pose: Pose) -> dict[str, float]:
 def inspect_unit(acq: Acquisition, station: Station, unit: str, *,
                  scans: int = DEFAULT_SCANS, max_scans: int | None = None,
                  method: str = align.DEFAULT_METHOD, hints: align.Hints | None = None,
-                 calibration: laser_calibration.LaserCalibration | None = None,
+                 calibration: LaserCalibration | None = None,
                  on_attempt: Any = None) -> Inspection:
     """Inspect one unit from `acq` (module docstring). ``max_scans``: the most scans a
     re-measure may reach (default ``scans`` x (1 + `REMEASURE_FACTOR`); equal to ``scans``: no
@@ -146,7 +147,7 @@ def inspect_unit(acq: Acquisition, station: Station, unit: str, *,
     while True:
         new = acq.take(want - len(taken))
         if calibration is not None:
-            new = [laser_calibration.apply(s, calibration) for s in new]
+            new = [calibrate.apply(s, calibration) for s in new]
         taken += new
         if not taken:
             raise AcquisitionError(f"{acq.source}: no whole scan to inspect ({acq.rejected} "

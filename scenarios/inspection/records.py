@@ -30,6 +30,7 @@ import json
 import math
 import os
 import sqlite3
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -101,8 +102,22 @@ class RecordError(AimbenchError):
     """A record store that cannot be created, opened or trusted, or a record not there."""
 
 
+class _Locked(Exception):
+    """The store stayed locked by another program for `Records.lock_wait_s`."""
+
+
+#: `Records.lock_wait_s` and `Records.lock_notice_s` (s): a store is locked for a moment by
+#: another inspect or an export; five minutes of it is a program left holding it.
+LOCK_WAIT_S = 300.0
+LOCK_NOTICE_S = 10.0
+
+
+#: How long a statement waits for another connection's lock, s (`Records.add` waits longer).
+BUSY_TIMEOUT_S = 30.0
+
+
 def _connect(path: Path) -> sqlite3.Connection:
-    conn = sqlite3.connect(path, isolation_level=None, timeout=30.0)
+    conn = sqlite3.connect(path, isolation_level=None, timeout=BUSY_TIMEOUT_S)
     conn.row_factory = sqlite3.Row
     conn.execute("PRAGMA journal_mode=WAL")
     conn.execute("PRAGMA synchronous=FULL")
@@ -203,7 +218,9 @@ class Records:
             raise RecordError(f"{path} is damaged or not an inspection store: "
                               f"{'; '.join(problems[:5])}; keep it as it is and give another "
                               "--db")
-        return cls(path, _connect(path))
+        records = cls(path, _connect(path))
+        records.flush_pending()
+        return records
 
     def close(self) -> None:
         self.conn.close()
@@ -229,24 +246,109 @@ class Records:
 
     # -- writing ---------------------------------------------------------------------------
 
+    #: How long `add` waits for a store another program holds locked before it keeps the
+    #: record in the `pending` folder instead (s), and how often it says it is waiting.
+    lock_wait_s = LOCK_WAIT_S
+    lock_notice_s = LOCK_NOTICE_S
+
+    @property
+    def pending(self) -> Path:
+        """Where records wait that could not be committed because the store was locked."""
+        return self.path.with_name(self.path.stem + ".pending")
+
     def add(self, row: dict[str, Any]) -> tuple[int, int]:
-        """Commit one record (the column values of `record_row`); returns (id, trial)."""
+        """Commit one record (the column values of `record_row`); returns (id, trial).
+
+        Records kept in `pending` by an earlier add are committed first, in the same
+        transaction. A store another program holds locked is waited for (saying so on stderr
+        every `lock_notice_s`) up to `lock_wait_s`; then the record is kept in `pending` and a
+        `RecordError` says where: a unit's record is never lost to a lock (issue 37: after 30 s
+        it was, with a traceback)."""
         row = dict(row)
         row.pop("trial", None)
+        try:
+            return self._commit(row)
+        except _Locked:
+            kept = self._keep_pending(row)
+            raise RecordError(
+                f"the record store {self.path} stayed locked by another program for "
+                f"{self.lock_wait_s:g} s; unit {row.get('unit')}'s record (verdict "
+                f"{row.get('verdict')}) is kept in {kept} and goes into the store with the "
+                f"next record (or `aimbench inspect --db {self.path} --list`); close the "
+                "program that holds the store") from None
+
+    def flush_pending(self, wait_s: float = 0.0) -> int:
+        """Commit the records kept in `pending`, waiting up to `wait_s` for a lock (still
+        held: they stay); how many were committed."""
+        n = len(self._pending_files())
+        if not n:
+            return 0
+        wait, self.lock_wait_s = self.lock_wait_s, wait_s
+        try:
+            self._commit(None)
+        except _Locked:
+            return 0
+        finally:
+            self.lock_wait_s = wait
+        return n
+
+    def _commit(self, row: dict[str, Any] | None) -> tuple[int, int]:
+        """Commit the pending records and `row` in one transaction, waiting out a lock."""
+        deadline = time.monotonic() + self.lock_wait_s
+        while True:
+            files = self._pending_files()
+            step = max(0.0, min(self.lock_notice_s, deadline - time.monotonic()))
+            self.conn.execute(f"PRAGMA busy_timeout = {int(step * 1000)}")
+            try:
+                with self._tx() as conn:
+                    for f in files:
+                        self._insert(conn, json.loads(f.read_text(encoding="utf-8")))
+                    rid, trial = self._insert(conn, row) if row is not None else (0, 0)
+                break
+            except sqlite3.OperationalError as exc:
+                if "locked" not in str(exc) and "busy" not in str(exc):
+                    raise
+                if time.monotonic() >= deadline:
+                    raise _Locked from None
+                print(f"aimbench: note: the record store {self.path} is locked by another "
+                      f"program; waiting (up to {max(0.0, deadline - time.monotonic()):.0f} s "
+                      "more) to store the record", file=sys.stderr, flush=True)
+            except sqlite3.IntegrityError as exc:
+                unit = row.get("unit") if row is not None else "kept in " + str(self.pending)
+                raise RecordError(f"the record of unit {unit} cannot be stored: {exc}") from None
+            finally:
+                self.conn.execute(f"PRAGMA busy_timeout = {int(BUSY_TIMEOUT_S * 1000)}")
+        for f in files:  # committed: their copies go
+            f.unlink(missing_ok=True)
+        return rid, int(trial)
+
+    @staticmethod
+    def _insert(conn: sqlite3.Connection, row: dict[str, Any]) -> tuple[int, int]:
         cols = ["trial", *row]
         marks = ", ".join("?" for _ in row)
         sql = (f"INSERT INTO inspection ({', '.join(cols)}) SELECT COALESCE(MAX(trial), 0) + 1, "
                f"{marks} FROM inspection WHERE unit = ?")
-        try:
-            with self._tx() as conn:
-                cur = conn.execute(sql, (*row.values(), row["unit"]))
-                rid = int(cur.lastrowid)
-                trial = conn.execute("SELECT trial FROM inspection WHERE id=?",
-                                     (rid,)).fetchone()[0]
-        except sqlite3.IntegrityError as exc:
-            raise RecordError(f"the record of unit {row.get('unit')} cannot be stored: "
-                              f"{exc}") from None
+        cur = conn.execute(sql, (*row.values(), row["unit"]))
+        rid = int(cur.lastrowid)
+        trial = conn.execute("SELECT trial FROM inspection WHERE id=?", (rid,)).fetchone()[0]
         return rid, int(trial)
+
+    def _pending_files(self) -> list[Path]:
+        return sorted(self.pending.glob("*.json")) if self.pending.is_dir() else []
+
+    def _keep_pending(self, row: dict[str, Any]) -> Path:
+        """Write `row` durably into `pending` (a temporary file renamed into place)."""
+        self.pending.mkdir(parents=True, exist_ok=True)
+        name = f"{time.time_ns()}-{os.getpid()}"
+        tmp = self.pending / f".{name}.tmp"
+        with tmp.open("w", encoding="utf-8") as f:
+            f.write(dumps(row))
+            f.flush()
+            os.fsync(f.fileno())
+        path = self.pending / f"{name}.json"
+        os.replace(tmp, path)
+        fsync_dir(self.pending)
+        return path
 
     @contextlib.contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:

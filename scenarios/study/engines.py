@@ -87,8 +87,29 @@ def stopping() -> bool:
 Warm = tuple[Callable, tuple]
 
 
-def _init_local(messages: Any, stop: Any, warm: Warm | None = None) -> None:
+#: How often a worker looks whether its parent is still there, s.
+PARENT_WATCH_S = 0.5
+
+
+def _watch_parent(parent: int) -> None:
+    """End this worker when `parent` is gone. After a kill -9 of `study` (or of a sweep), its
+    workers went on with their tasks and kept multiprocessing's resource tracker alive with
+    them (issue 37): nothing was left to take their results. A thread that polls the parent
+    id rather than prctl's PR_SET_PDEATHSIG, which fires when the *thread* that spawned the
+    worker ends, not the process, and exists on Linux only."""
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_WATCH_S)
+        os._exit(1)  # the parent is gone: its results have nowhere to go
+
+    threading.Thread(target=watch, name="aimbench-parent-watch", daemon=True).start()
+
+
+def _init_local(messages: Any, stop: Any, warm: Warm | None = None,
+                parent: int | None = None) -> None:
     global _messages, _stop
+    if parent is not None:
+        _watch_parent(parent)
     # The caller decides when to stop (its own SIGINT handler sets `stop`).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ.update(WORKER_ENV)
@@ -177,7 +198,7 @@ class LocalEngine:
 
     def _pool(self, ctx: Any, messages: Any, stop: Any) -> cf.ProcessPoolExecutor:
         return cf.ProcessPoolExecutor(self.jobs, mp_context=ctx, initializer=_init_local,
-                                      initargs=(messages, stop, self.warm))
+                                      initargs=(messages, stop, self.warm, os.getpid()))
 
     def run(self, fn: Callable, tasks: Sequence[Task], on_result: OnResult,
             on_message: OnMessage | None = None, should_stop: Callable[[], bool] = lambda: False,

@@ -60,7 +60,7 @@ from pydantic import (
 )
 
 from scenarios import station as stations
-from twin.core.errors import AimbenchError
+from twin.core.errors import AimbenchError, one_line, short_repr
 
 #: Most design points one study may hold (a study of more is several studies).
 MAX_POINTS = 5000
@@ -84,7 +84,10 @@ class StudyError(AimbenchError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    # allow_inf_nan=False: a NaN or inf value (a grid's, a range's) made a store that could
+    # be neither resumed nor reported (issue 37).
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True,
+                              allow_inf_nan=False)
 
 
 class Protocol(_Section):
@@ -174,6 +177,9 @@ def load(path: str | Path) -> tuple[StudySpec, Path]:
         raise StudyError(f"{path} is not a study file ({exc}); give a TOML file") from None
     except tomllib.TOMLDecodeError as exc:
         raise StudyError(f"{path} is not valid TOML: {exc}") from None
+    except RecursionError:  # tomllib recurses once per level of nested arrays or tables
+        raise StudyError(f"{path}: arrays or tables nested too deep to be a study file; give "
+                         "a TOML study file (docs/studies.md)") from None
     return from_dict(data, str(path)), path.parent
 
 
@@ -212,9 +218,9 @@ def _describe(exc: ValidationError) -> str:
             msg = "give a list of values, e.g. [900.0]"
         if err["type"] not in ("missing", "extra_forbidden") and not isinstance(
                 err.get("input"), dict) and not (ranges and err["type"] == "missing"):
-            msg += f" (got {err.get('input')!r})"
+            msg += f" (got {short_repr(err.get('input'))})"
         parts.setdefault(key, f"{key}: {msg}")
-    return "; ".join(parts.values())
+    return one_line(list(parts.values()))
 
 
 def _check_parameters(spec: StudySpec, where: str) -> None:

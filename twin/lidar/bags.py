@@ -123,7 +123,20 @@ class Bag:
 
     def _messages(self) -> Iterator[tuple[int, object]]:
         connections = [c for c in self._reader.connections if c.topic == self.topic]
-        for conn, stamp_ns, raw in self._reader.messages(connections=connections):
+        stream = self._reader.messages(connections=connections)
+        while True:
+            # Only opening was guarded: a .db3 damaged in its middle raised sqlite3's (or
+            # rosbags') error from the reading, a traceback (issue 37).
+            try:
+                item = next(stream, None)
+            except Exception as exc:  # sqlite3.DatabaseError, rosbags' ReaderError, ...
+                detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise BagError(f"{self.path}: damaged after message {self.messages} on "
+                               f"{self.topic} ({detail}); what came before it was read; copy "
+                               "the bag again or cut it (ros2 bag convert)") from None
+            if item is None:
+                return
+            conn, stamp_ns, raw = item
             try:
                 msg = self._reader.deserialize(raw, conn.msgtype)
             except Exception as exc:
@@ -182,16 +195,41 @@ def cloud_records(msg, name: str) -> np.ndarray:
     if not {"x", "y", "z"} <= {f.name for f in fields}:
         raise BagError(f"{name}: the PointCloud2 has no x/y/z fields (fields: "
                        f"{' '.join(f.name for f in msg.fields)})")
+    _check_layout(msg, fields, name)
     order = ">" if msg.is_bigendian else "<"
     dtype = np.dtype({"names": [f.name for f in fields],
                       "formats": [order + POINT_FIELD_TYPES[f.datatype] for f in fields],
                       "offsets": [f.offset for f in fields], "itemsize": msg.point_step})
     n = msg.width * msg.height
     data = np.asarray(msg.data, dtype=np.uint8)
-    if msg.point_step * n > len(data) or max(f.offset for f in fields) >= msg.point_step:
-        raise BagError(f"{name}: the PointCloud2 says {n} points of {msg.point_step} bytes but "
-                       f"holds {len(data)} bytes: a damaged message")
     if msg.height > 1 and msg.row_step != msg.point_step * msg.width:
         rows = data[: msg.row_step * msg.height].reshape(msg.height, msg.row_step)
         data = rows[:, : msg.point_step * msg.width].copy()
     return np.frombuffer(data[: msg.point_step * n].tobytes(), dtype=dtype)
+
+
+def _check_layout(msg, fields: list, name: str) -> None:
+    """Refuse a PointCloud2 whose layout contradicts itself (each was a traceback, issue 37): a
+    field named twice, a point_step of 0, a field reaching past its point, rows longer than
+    the data or shorter than their points."""
+    names = [f.name for f in fields]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    damaged = f"{name}: a damaged PointCloud2"
+    if twice:
+        raise BagError(f"{damaged}: the field {', '.join(twice)} is declared twice")
+    step, width, height = int(msg.point_step), int(msg.width), int(msg.height)
+    if step <= 0:
+        raise BagError(f"{damaged}: point_step {step} (a point takes at least its x, y, z)")
+    for f in fields:
+        size = np.dtype(POINT_FIELD_TYPES[f.datatype]).itemsize
+        if f.offset + size > step:
+            raise BagError(f"{damaged}: the field {f.name} ({size} bytes at offset {f.offset}) "
+                           f"reaches past the point's {step} bytes (point_step)")
+    size = len(msg.data)
+    if height > 1 and msg.row_step != step * width:
+        if msg.row_step < step * width or msg.row_step * height > size:
+            raise BagError(f"{damaged}: {height} rows of {msg.row_step} bytes (row_step) for "
+                           f"{width} points of {step} bytes, in {size} bytes of data")
+    elif step * width * height > size:
+        raise BagError(f"{damaged}: it says {width * height} points of {step} bytes but holds "
+                       f"{size} bytes")

@@ -35,6 +35,11 @@ from twin.core.errors import AimbenchError
 from twin.core.lasers import LaserTable
 
 CM = 0.01  # m per cm (VeloView's unit)
+#: Largest vertical or horizontal offset of a laser's origin a file may give, m: Velodyne's are
+#: a few cm; 1e300 (issue 37) made every point infinite downstream.
+MAX_OFFSET_M = 0.5
+#: Largest distance unit, in the file's unit (m in the YAML, cm in the XML): theirs is 0.002 m.
+MAX_LSB = 1.0
 
 
 class CalibrationFileError(AimbenchError):
@@ -59,6 +64,9 @@ def parse_ros_yaml(text: str, name: str = "calibration") -> tuple[LaserTable, fl
     """The ROS velodyne driver's calibration YAML as a laser table and distance unit."""
     try:
         doc = yaml.safe_load(text)
+    except RecursionError:
+        raise CalibrationFileError(f"{name}: lists or mappings nested too deep: not a ROS "
+                                   "velodyne calibration") from None
     except yaml.YAMLError as exc:
         raise CalibrationFileError(
             f"{name}: not a YAML file ({exc.__class__.__name__}); a sensor calibration is "
@@ -79,8 +87,8 @@ def parse_ros_yaml(text: str, name: str = "calibration") -> tuple[LaserTable, fl
                                                   "dist_correction_y")],
         })
     unit = doc.get("distance_resolution")
-    table = _table(rows, name, int(doc.get("num_lasers", len(rows))))
-    return table, None if unit is None else _number(unit, "distance_resolution", name)
+    table = _table(rows, name, _count(doc.get("num_lasers", len(rows)), "num_lasers", name))
+    return table, None if unit is None else _resolution(unit, "distance_resolution", name)
 
 
 def parse_veloview_xml(text: str, name: str = "calibration") -> tuple[LaserTable, float | None]:
@@ -95,7 +103,8 @@ def parse_veloview_xml(text: str, name: str = "calibration") -> tuple[LaserTable
         raise CalibrationFileError(f"{name}: no DB/points_ element: not a VeloView calibration")
     enabled = None
     if db.find("enabled_") is not None:
-        enabled = [int(e.text or 0) != 0 for e in db.find("enabled_") if e.tag == "item"]
+        enabled = [_count(e.text or 0, "enabled_", name) != 0 for e in db.find("enabled_")
+                   if e.tag == "item"]
 
     def field(px: ElementTree.Element, tag: str, default: float | None = 0.0) -> float | None:
         el = px.find(tag)
@@ -120,7 +129,8 @@ def parse_veloview_xml(text: str, name: str = "calibration") -> tuple[LaserTable
         rows = [r for r in rows if _laser_id(r, name) < len(enabled)
                 and enabled[_laser_id(r, name)]]
     lsb = db.find("distLSB_")
-    unit = None if lsb is None or lsb.text is None else CM * _number(lsb.text, "distLSB_", name)
+    unit = None if lsb is None or lsb.text is None else CM * _resolution(lsb.text, "distLSB_",
+                                                                         name)
     return _table(rows, name, len(rows)), unit
 
 
@@ -131,6 +141,23 @@ def _number(value, what: str, name: str) -> float:
         raise CalibrationFileError(f"{name}: {what} is {value!r}, not a number") from None
     if not math.isfinite(v):
         raise CalibrationFileError(f"{name}: {what} is {v}, not a finite number")
+    return v
+
+
+def _count(value, what: str, name: str) -> int:
+    """A whole number >= 0 of the file (a count, a flag)."""
+    v = _number(value, what, name)
+    if v != int(v) or v < 0:
+        raise CalibrationFileError(f"{name}: {what} is {value!r}, not a whole number >= 0")
+    return int(v)
+
+
+def _resolution(value, what: str, name: str) -> float:
+    """The distance unit: a positive number of metres or centimetres, not above `MAX_LSB`."""
+    v = _number(value, what, name)
+    if not 0.0 < v <= MAX_LSB:
+        raise CalibrationFileError(f"{name}: {what} is {value!r}; a distance resolution is a "
+                                   f"positive number (0.002 m, 0.2 cm on Velodyne sensors)")
     return v
 
 
@@ -164,5 +191,12 @@ def _table(rows: list[dict], name: str, num_lasers: int) -> LaserTable:
     if (np.abs(col["vert"]) >= math.pi / 2).any() or (np.abs(col["rot"]) >= math.pi).any():
         raise CalibrationFileError(f"{name}: an angle is out of range (radians expected in the "
                                    "YAML, degrees in the XML)")
+    for k in ("vert_offset", "horiz_offset"):
+        worst = float(np.max(np.abs(col[k])))
+        if worst > MAX_OFFSET_M:
+            raise CalibrationFileError(
+                f"{name}: a laser's {k.replace('_', ' ')} correction is {worst:g} m; a laser's "
+                f"origin is within {MAX_OFFSET_M:g} m of the optical centre (metres expected in "
+                "the YAML, centimetres in the XML)")
     return LaserTable(f"calibration {name}", col["vert"], col["vert_offset"], -col["rot"],
                       col["horiz_offset"])

@@ -77,6 +77,10 @@ class RingsFromElevationWarning(UserWarning):
     """The cloud had no ring field: each point's laser was taken from its elevation."""
 
 
+class BadTimesWarning(UserWarning):
+    """The cloud's time field holds NaN or infinite values: it is not used."""
+
+
 @dataclass(frozen=True, eq=False)
 class Cloud:
     """The returns of one rotation: per-point arrays in {L} (m), as a file or message held them.
@@ -227,6 +231,7 @@ def _points(cloud: Cloud, lasers: LaserTable, vertical_offsets: bool | None
         if len(ring) != len(x):
             raise CloudError(f"{cloud.name}: the ring field has {len(ring)} values for "
                              f"{len(x)} points")
+        ring = _whole_numbers(ring[ok], "ring", cloud.name, ring)
         top = int(ring[ok].max()) if ok.any() else 0
         if top >= lasers.n_lasers or (ok.any() and int(ring[ok].min()) < 0):
             raise UnsupportedCloudError(
@@ -261,11 +266,34 @@ def _points(cloud: Cloud, lasers: LaserTable, vertical_offsets: bool | None
     intensity = (np.zeros(len(x)) if cloud.intensity is None
                  else np.asarray(cloud.intensity, dtype=np.float64)[ok])
     time = None if cloud.time is None else np.asarray(cloud.time, dtype=np.float64)[ok]
+    if time is not None and not np.isfinite(time).all():
+        # A NaN time sorted last and the sweep wrapped a second turn over it: one rotation's
+        # firings doubled (issue 37). Not a time order: the file's order is used, and said.
+        bad = int((~np.isfinite(time)).sum())
+        warnings.warn(f"{cloud.name}: {bad} of the time field's values are not finite; the "
+                      "field is not used (the points are taken in the file's order)",
+                      BadTimesWarning, stacklevel=4)
+        notes["times_not_finite"] = bad
+        time = None
     order = (np.arange(len(x)) if time is None else np.argsort(np.argsort(time, kind="stable")))
     pts = _Points(x=x, y=y, z=z, intensity=intensity, laser=laser.astype(np.intp),
                   azimuth=np.arctan2(x, y) % TWO_PI,
                   distance=np.hypot(rxy, z - off), time=time, order=order)
     return pts, bool(vertical_offsets), notes
+
+
+def _whole_numbers(values: np.ndarray, field: str, name: str, whole: np.ndarray) -> np.ndarray:
+    """`whole` (a per-point field) as integers, refused naming the field if the usable
+    points' `values` hold a NaN, an infinity or a fraction (a ring is a laser's number)."""
+    if values.dtype.kind == "f":
+        bad = ~np.isfinite(values) | (values != np.round(values))
+        if bad.any():
+            raise CloudError(f"{name}: the {field} field holds {int(bad.sum())} values that are "
+                             f"not whole numbers (first {values[bad][0]!r}): a damaged cloud, "
+                             f"or not a LiDAR's {field} numbers")
+        finite = np.where(np.isfinite(whole), whole, -1)
+        return finite.astype(np.int64)
+    return whole
 
 
 def _nearest_laser(el: np.ndarray, lasers: LaserTable) -> np.ndarray:

@@ -3,8 +3,8 @@
 =========  ================================================================================
 extension  what is written
 =========  ================================================================================
-``.npz``   every firing of every scan (misses too), flat arrays in {L}: what
-           `scans_to_arrays` lists, with the source's summary as JSON
+``.npz``   every firing of every scan (misses too, ``valid`` False, at x = y = z = 0), flat
+           arrays in {L}: what `scans_to_arrays` lists, with the source's summary as JSON
 ``.parquet``  the same per-firing columns as one Parquet table (pyarrow); the summary and the
            per-scan figures as JSON in the file's metadata (``aimbench.summary``,
            ``aimbench.scans``)
@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -43,8 +45,10 @@ class ExportError(AimbenchError):
 def scans_to_arrays(scans: Sequence[Scan], returns_only: bool = False) -> dict[str, np.ndarray]:
     """Flat per-point and per-scan arrays of a list of scans (what the .npz holds).
 
-    Per point: x, y, z (m, {L}), distance (m, 0 = no return), intensity, laser_id, ring,
-    azimuth_deg, time_s (sensor clock), scan (index), return_type (`ReturnType` flags). Per
+    Per point: x, y, z (m, {L}), distance (m, 0 = no return), valid (a return: a firing
+    without one keeps its place with x = y = z = 0, which a reader taking every row as a point
+    would see as returns at the sensor's centre), intensity, laser_id, ring, azimuth_deg,
+    time_s (sensor clock), scan (index), return_type (`ReturnType` flags). Per
     scan: scan_index, scan_start (first point), scan_points, scan_complete, scan_partial,
     scan_missing_packets, scan_packets, scan_rpm.
     """
@@ -55,7 +59,8 @@ def scans_to_arrays(scans: Sequence[Scan], returns_only: bool = False) -> dict[s
     whole = Scan.concatenate(list(scans)) if scans else Scan.empty()
     return {
         "x": whole.x, "y": whole.y, "z": whole.z, "distance": whole.distance,
-        "intensity": whole.intensity, "laser_id": whole.laser_id, "ring": whole.ring,
+        "valid": whole.distance > 0, "intensity": whole.intensity,
+        "laser_id": whole.laser_id, "ring": whole.ring,
         "azimuth_deg": np.degrees(whole.azimuth), "time_s": whole.time,
         "scan": scan_of_point, "return_type": whole.return_type,
         "scan_index": np.array([s.index for s in scans], dtype=np.int32),
@@ -127,6 +132,7 @@ def _write_pcd(path: Path, fields: dict[str, np.ndarray]) -> None:
     cloud = PointCloud.from_points([fields[k] for k in names], names,
                                    [fields[k].dtype for k in names])
     cloud.save(path, encoding=Encoding.BINARY)
+    _header_comment(path, b"VERSION", b"# " + CLOUD_FRAME.encode() + b"\n")
 
 
 def _write_ply(path: Path, fields: dict[str, np.ndarray]) -> None:
@@ -141,10 +147,33 @@ def _write_ply(path: Path, fields: dict[str, np.ndarray]) -> None:
     pc.point["scan"] = o3d.core.Tensor(fields["scan"].astype(np.int32).reshape(-1, 1))
     if not o3d.t.io.write_point_cloud(str(path), pc, write_ascii=False):
         raise ExportError(f"cannot write {path}: Open3D's PLY writer failed")
+    _header_comment(path, b"element", b"comment " + CLOUD_FRAME.encode() + b"\n")
+
+
+#: What a point cloud file says of its frame and fields, in its header's comments (it was
+#: written only in the Parquet metadata, issue 37).
+CLOUD_FRAME = ("aimbench: sensor frame, x forward, y left, z up (m); returns only; ring 0 "
+               "lowest; time s from the scan's first firing")
+
+
+def _header_comment(path: Path, before: bytes, line: bytes) -> None:
+    """Insert comment `line` into the header of the file at `path`, before its first line
+    starting with `before` (PCD's VERSION, PLY's first element), copying the data as is."""
+    tmp = path.with_name(path.name + ".tmp")
+    with path.open("rb") as src, tmp.open("wb") as dst:
+        head = b""
+        while True:
+            ln = src.readline()
+            if not ln or ln.startswith(before):
+                dst.write(head + line + ln)
+                break
+            head += ln
+        shutil.copyfileobj(src, dst, 1 << 20)
+    os.replace(tmp, path)
 
 
 #: Per-point columns of the Parquet table (the per-scan arrays go to its metadata).
-_PER_POINT = ("x", "y", "z", "distance", "intensity", "laser_id", "ring", "azimuth_deg",
+_PER_POINT = ("x", "y", "z", "distance", "valid", "intensity", "laser_id", "ring", "azimuth_deg",
               "time_s", "scan", "return_type")
 
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -50,9 +51,16 @@ def read_pcd(path: str | Path) -> list[Cloud]:
     if "scan" not in names:
         return [Cloud.from_ros(x, y, z, intensity=intensity, ring=ring, time=time,
                                name=str(path), meta={"file": str(path)})]
+    scan = rec["scan"]
+    if scan.dtype.kind == "f" and not (np.isfinite(scan) & (scan == np.round(scan))).all():
+        raise PcdFormatError(f"{path}: the scan field holds values that are not whole numbers "
+                             "(NaN, inf or a fraction): a damaged file; write it again")
+    # Grouped by one sort (a mask per scan number was quadratic in the scans a file holds).
+    keys, inverse = np.unique(scan, return_inverse=True)
+    by_scan = np.split(np.argsort(inverse, kind="stable"),
+                       np.cumsum(np.bincount(inverse, minlength=len(keys)))[:-1])
     clouds = []
-    for k in np.unique(rec["scan"]):
-        sel = rec["scan"] == k
+    for k, sel in zip(keys, by_scan, strict=True):
         clouds.append(Cloud.from_ros(
             x[sel], y[sel], z[sel],
             intensity=None if intensity is None else intensity[sel],
@@ -79,6 +87,8 @@ def _records(path: Path) -> tuple[np.ndarray, tuple[float, ...] | None]:
             if not head.lstrip().startswith((b"#", b"VERSION", b"FIELDS")):
                 raise PcdFormatError(f"{path}: not a PCD file (starts with {head[:16]!r}); "
                                      "write one with PCL, Open3D or `aimbench decode --out X.pcd`")
+            _check_sizes(path, f)
+            f.seek(0)
             pc = PointCloud.from_fileobj(f)
     except FileNotFoundError:
         raise PcdFormatError(f"{path}: no such file (check the path)") from None
@@ -97,6 +107,58 @@ def _records(path: Path) -> tuple[np.ndarray, tuple[float, ...] | None]:
     vp = tuple(float(v) for v in pc.metadata.viewpoint)
     identity = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
     return rec, None if np.allclose(vp, identity) else vp
+
+
+#: Largest header a PCD file may have, bytes (PCL's are a few hundred).
+MAX_HEADER_BYTES = 64 * 1024
+#: The most a binary_compressed file's data may grow when unpacked: LZF turns at most 3 bytes
+#: into 264 (a run), so a larger claim is a damaged or hostile header.
+MAX_LZF_RATIO = 88
+
+
+def _check_sizes(path: Path, f: BinaryIO) -> None:
+    """Refuse a header whose points, sizes and counts claim more data than the file holds,
+    before anything is allocated (a 0.4 MB file claiming COUNT 99999999 made pypcd4 allocate
+    gigabytes before failing)."""
+    header: dict[str, list[str]] = {}
+    text = f.read(MAX_HEADER_BYTES)
+    pos = 0
+    while True:
+        end = text.find(b"\n", pos)
+        if end < 0:
+            raise PcdFormatError(f"{path}: no DATA line in the first {MAX_HEADER_BYTES} bytes: "
+                                 "not a PCD file, or a damaged header; write it again")
+        words = text[pos:end].decode("ascii", "replace").split()
+        pos = end + 1
+        if words and not words[0].startswith("#"):
+            header[words[0].upper()] = words[1:]
+            if words[0].upper() == "DATA":
+                break
+    try:
+        sizes = [int(v) for v in header.get("SIZE", [])]
+        counts = [int(v) for v in header.get("COUNT", ["1"] * len(sizes))]
+        width = int(header.get("WIDTH", ["0"])[0])
+        height = int(header.get("HEIGHT", ["1"])[0])
+        points = int(header.get("POINTS", [str(width * height)])[0])
+    except (ValueError, IndexError):
+        raise PcdFormatError(f"{path}: its header's SIZE, COUNT, WIDTH, HEIGHT or POINTS is not "
+                             "a whole number: a damaged file; write it again") from None
+    if min([*sizes, *counts, width, height, points, 0]) < 0 or len(counts) != len(sizes):
+        raise PcdFormatError(f"{path}: its header's sizes and counts do not agree (SIZE "
+                             f"{' '.join(header.get('SIZE', []))}, COUNT "
+                             f"{' '.join(header.get('COUNT', []))}): a damaged file")
+    claimed = points * sum(s * c for s, c in zip(sizes, counts, strict=True))
+    data = path.stat().st_size - pos
+    kind = (header.get("DATA") or ["?"])[0].lower()
+    # ascii: at least a digit and a separator per value; binary: every byte; compressed: LZF's
+    # largest ratio.
+    most = {"ascii": data // 2 * max(sizes, default=1), "binary": data,
+            "binary_compressed": data * MAX_LZF_RATIO}.get(kind, data)
+    if claimed > most:
+        raise PcdFormatError(f"{path}: the header claims {points} points of "
+                             f"{claimed // max(points, 1)} bytes ({claimed} bytes), the file "
+                             f"holds {data} bytes of {kind} data: the file was cut off or its "
+                             "header is damaged; write it again")
 
 
 def _to_sensor_frame(x: np.ndarray, y: np.ndarray, z: np.ndarray,

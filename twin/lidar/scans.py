@@ -26,6 +26,7 @@ and velodyne_decoder do this; it lets the two be compared scan by scan).
 from __future__ import annotations
 
 import math
+import warnings
 from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -36,7 +37,7 @@ import numpy as np
 from twin.core import vlp16
 from twin.core.lasers import LaserTable
 from twin.core.scan import Scan
-from twin.core.sensors import VLP16, SensorModel
+from twin.core.sensors import MODELS, VLP16, SensorModel, model_of_product_id
 from twin.lidar.packets import (
     DATA_PACKET_DTYPE,
     FIRINGS_PER_PACKET,
@@ -50,6 +51,36 @@ from twin.lidar.packets import (
 )
 
 TWO_PI = 2.0 * math.pi
+#: Product ids of the models aimbench knows: another of them on a stream is another sensor.
+KNOWN_PRODUCT_IDS = np.array(sorted({m.product_id for m in MODELS.values()}), dtype=np.uint8)
+#: Packets of another known sensor that make a stream two sensors' (at least this many, and
+#: at least this share of the stream): a corrupted product id byte is rarer than that.
+MIXED_MIN_PACKETS = 3
+MIXED_SHARE = 0.02
+
+
+class MixedSensorsError(UnsupportedSensorError):
+    """Packets of two sensor models arrive on one port."""
+
+
+class ModelOverrideWarning(UserWarning):
+    """The packets' product id names another model than the one they are decoded as."""
+
+
+def _warn_model_override(pid: int, sensor: SensorModel, model: SensorModel | None) -> None:
+    """Say when a given model (``--model``, a station's sensor.model) overrides a product id
+    that names another: a VLP-32C's capture decoded as a VLP-16 under ``--station paper`` was
+    silently wrong (issue 37). 0x21 is also old VLP-16 firmware's: not told."""
+    named = model_of_product_id(pid)
+    if model is None or named is None or named.name == sensor.name:
+        return
+    if pid == vlp16.PRODUCT_ID_VLP16_OLD_FIRMWARE:
+        return
+    warnings.warn(
+        f"the packets' product id 0x{pid:02x} says {named.name}, but they are decoded as a "
+        f"{sensor.name} (--model or the station's sensor.model): {named.n_lasers} lasers read as "
+        f"{sensor.n_lasers}; give --model '{named.name}' or a station of that sensor if the id "
+        "is right", ModelOverrideWarning, stacklevel=4)
 #: `ScanAssembler.push` takes payloads in groups of this many.
 INBOX = 8
 #: Default for `ScanAssembler.break_s`: a timestamp step longer than this is a break in the
@@ -142,6 +173,8 @@ class ScanAssembler:
         self.break_s = float(break_s)
         self.stats = StreamStats()
         self.product_id: int | None = None
+        self._seen_ids = 0
+        self._foreign_ids: Counter = Counter()
         self._inbox: list[bytes] = []
         # Arrival-order timestamp unwrapping.
         self._last_raw: int | None = None
@@ -252,6 +285,25 @@ class ScanAssembler:
         self._pend_ts = np.concatenate((self._pend_ts, ts))
         self._pend_aux = np.concatenate((self._pend_aux, np.column_stack((hours, brk))))
 
+    def _check_one_sensor(self, product_ids: np.ndarray, other: np.ndarray) -> None:
+        """Refuse a stream in which another known sensor's packets keep coming: two sensors on
+        one port (a VLP-16's packets were measured and a VLP-32C's dropped unsaid, issue 37).
+        A corrupted byte now and then is a malformed packet, dropped and counted."""
+        self._seen_ids += len(product_ids)
+        foreign = other & np.isin(product_ids, KNOWN_PRODUCT_IDS)
+        if not foreign.any():
+            return
+        self._foreign_ids.update(product_ids[foreign].tolist())
+        n = sum(self._foreign_ids.values())
+        if n >= MIXED_MIN_PACKETS and n >= MIXED_SHARE * self._seen_ids:
+            pid, count = self._foreign_ids.most_common(1)[0]
+            mine = self.sensor.name if self.sensor is not None else f"0x{self.product_id:02x}"
+            raise MixedSensorsError(
+                f"packets of two sensors on one port: {count} of {self._seen_ids} are a "
+                f"{model_of_product_id(pid).name}'s (product id 0x{pid:02x}), the others a "
+                f"{mine}'s (0x{self.product_id:02x}); give each sensor its own port (its "
+                "web page's data port; docs/vlp16.md), or record one at a time")
+
     def _release(self, final: bool) -> list[Scan]:
         raw, ts, aux = self._pend_raw, self._pend_ts, self._pend_aux
         rec = _records(raw)
@@ -264,7 +316,9 @@ class ScanAssembler:
                 rec["product_id"], rec["timestamp"], rec["return_mode"], self.model,
                 rec["blocks"]["channels"]["distance"])
             self.sensor = sensor if self.lasers is None else _with_table(sensor, self.lasers)
+            _warn_model_override(self.product_id, sensor, self.model)
         other = rec["product_id"] != self.product_id
+        self._check_one_sensor(rec["product_id"], other)
         self.stats.rejected["product_id"] += int(other.sum())
         if other.any():
             raw, ts, aux = raw[~other], ts[~other], aux[~other]

@@ -103,7 +103,10 @@ class UdpReceiver:
 
     def _open(self, port: int, size: int, rcvbuf_bytes: int) -> None:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        # No SO_REUSEADDR: on Linux it lets a second UDP socket bind the same port, and the
+        # kernel then gives each datagram to one of them: two receivers (a second aimbench, a
+        # ROS driver) each got part of the stream and the starved one blamed the cabling. A
+        # UDP port has no TIME_WAIT to reuse; a second bind now fails, saying who may hold it.
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf_bytes)
         # Not Linux: kernel drops stay uncounted (the packet timestamps still show the gaps).
         with contextlib.suppress(OSError):

@@ -193,8 +193,12 @@ class StageController:
         the settings are read (for move timeouts and step rounding).
         """
         try:
+            # exclusive: a second client on the port (two aimbench, a serial monitor) would
+            # interleave its lines with ours and the errors would blame the hardware (issue 37);
+            # the port is locked (flock) and a second open fails below, saying so.
             self._ser = serial.serial_for_url(
-                self.url, baudrate=self.baudrate, timeout=0.02, write_timeout=2.0
+                self.url, baudrate=self.baudrate, timeout=0.02, write_timeout=2.0,
+                exclusive=True,
             )
         except (serial.SerialException, ValueError, OSError) as exc:
             raise StageConnectionError(
