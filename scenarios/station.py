@@ -53,7 +53,7 @@ from twin.core.sensors import MODELS, model_named
 #: The sensor models aimbench can decode and emulate (twin/core/sensors.py).
 SENSOR_MODELS = tuple(MODELS)
 #: The decision rules an inspection may use (docs/station.md says what each does).
-DECISION_RULES = ("iso14253-1", "simple")
+DECISION_RULES = ("iso14253-1", "vda5", "simple")
 #: Where the shipped example stations live (package data of `scenarios`).
 STATIONS_PACKAGE = "scenarios.stations"
 #: The default station: the reference paper's bench.
@@ -283,7 +283,9 @@ class Tolerances(_Section):
     """An inspection's specification: the largest allowed mounting error per axis (None: the
     axis is not judged) and the decision rule. ``iso14253-1``: PASS only when the error plus its
     expanded uncertainty (``coverage_k`` sigma) is inside the limit, FAIL when the error minus
-    it is outside, otherwise inconclusive; ``simple``: the error alone against the limit.
+    it is outside, otherwise inconclusive; ``vda5``: VDA 5's acceptance, PASS only inside the
+    tolerance narrowed by that expanded uncertainty, otherwise FAIL; ``simple``: the error
+    alone against the limit.
     Example limits: the paper states none; its method's accuracy (0.2 deg, 4 mm) fits well
     inside these. y and z are not judged (the paper inspects orientation and horizontal
     position only)."""
@@ -294,7 +296,7 @@ class Tolerances(_Section):
     x_mm: Limit = 10.0
     y_mm: Limit = None
     z_mm: Limit = None
-    rule: Literal["iso14253-1", "simple"] = "iso14253-1"
+    rule: Literal["iso14253-1", "vda5", "simple"] = "iso14253-1"
     coverage_k: Positive = 2.0
     system_sigma: SystemSigma = SystemSigma()
 

@@ -269,6 +269,12 @@ class Records:
         return {r[0] for r in self.conn.execute(
             "SELECT unit FROM inspection WHERE batch = ?", (batch,))}
 
+    def batches(self) -> dict[str, int]:
+        """Each batch's name and its number of records, oldest first."""
+        return {r[0]: int(r[1]) for r in self.conn.execute(
+            "SELECT batch, COUNT(*) FROM inspection WHERE batch IS NOT NULL GROUP BY batch "
+            "ORDER BY MIN(id)")}
+
     def rows(self, where: str = "", params: tuple = ()) -> list[dict[str, Any]]:
         """Records as dicts (SI, JSON decoded), in the order they were made."""
         out = []
