@@ -51,6 +51,11 @@ def test_a_killed_line_keeps_exactly_its_units_and_resumes(tmp_path: Path):
     again = start(tmp_path)
     out, err = again.communicate(timeout=600)
     assert again.returncode == 0, err
+    # the final tally counts the whole line, those inspected now and before
+    tally = err.strip().splitlines()[-1]
+    assert tally.startswith("line 'sim-line seed 4 spread 1.3': 6 units "
+                            f"({6 - len(units)} inspected now, {len(units)} recorded before)")
+    assert "wrong PASS" in tally
     resumed = [line.split()[0] for line in out.splitlines()]
     assert not set(resumed) & set(units), "a unit was inspected twice"
     with Records.open(db) as rec:
@@ -64,3 +69,15 @@ def test_a_killed_line_keeps_exactly_its_units_and_resumes(tmp_path: Path):
     names = {Path(r["capture_path"]).name for r in rows}
     whole = {p.name for p in (tmp_path / "line.captures").glob("*.pcap")}
     assert whole == names
+
+
+@pytest.mark.slow
+def test_ctrl_c_says_how_to_go_on(tmp_path: Path):
+    proc = start(tmp_path)
+    first = proc.stdout.readline()
+    assert first.startswith("sim4-0001"), proc.stderr.read()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130
+    assert "run the same command again to inspect the rest" in err.strip().splitlines()[-1]
+    assert "Traceback" not in err

@@ -228,3 +228,73 @@ def histogram(values: Sequence[float], bins: int | None = None,
         span = (min(span[0], float(x.min())), max(span[1], float(x.max())))
     counts, edges = np.histogram(x, bins=bins, range=span)
     return Histogram(edges.tolist(), counts.astype(int).tolist())
+
+
+# -- a line's records ---------------------------------------------------------------------------
+
+@dataclass
+class AxisSPC:
+    """One judged axis of a line's records, in its edge unit (mm, deg)."""
+
+    axis: str
+    unit: str
+    limit: float
+    chart: IMRChart | None
+    capability: Capability | None
+    histogram: Histogram | None
+
+    def to_dict(self) -> dict:
+        return {"axis": self.axis, "unit": self.unit, "limit": self.limit,
+                "chart": None if self.chart is None else self.chart.to_dict(),
+                "capability": None if self.capability is None else self.capability.to_dict(),
+                "histogram": None if self.histogram is None else self.histogram.to_dict()}
+
+
+def line_spc(rows: list[dict], rules: str = "nelson") -> list[AxisSPC]:
+    """SPC of every judged axis of a line's records (in their order; records without a pose
+    left out): the I-MR chart of the mounting errors with the run rules, Cp/Cpk/Pp/Ppk against
+    [-limit, +limit], the histogram over the specification."""
+    from scenarios.inspection.verdict import AXES, EDGE_SCALE, EDGE_UNIT, edge_key
+
+    out = []
+    ok = [r for r in rows if r["status"] == "ok"]
+    for a in AXES:
+        limits = [r[f"limit_{a}"] for r in ok if r[f"limit_{a}"] is not None]
+        if not limits:
+            continue
+        s = EDGE_SCALE[a]
+        lim = limits[-1] * s
+        x = [r[f"err_{a}"] * s for r in ok if r[f"err_{a}"] is not None]
+        enough = len(x) >= 2
+        out.append(AxisSPC(edge_key(a), EDGE_UNIT[a], lim,
+                           imr_chart(x, rules) if enough else None,
+                           capability(x, -lim, lim) if enough else None,
+                           histogram(x, span=(-lim, lim)) if x else None))
+    return out
+
+
+def summary_lines(rows: list[dict]) -> list[str]:
+    """The line's summary as text: the verdicts' tally, then per judged axis the mean, the
+    short-term and overall sigma, Cp, Cpk, Pp, Ppk and the run rules broken."""
+    n = len(rows)
+    counts = {v: sum(r["verdict"] == v for r in rows) for v in ("pass", "fail", "inconclusive")}
+    units = len({r["unit"] for r in rows})
+    out = [f"{n} inspections of {units} units: " + ", ".join(
+        f"{counts[v]} {v.upper()}" + (f" ({100 * counts[v] / n:.1f} %)" if n else "")
+        for v in counts)]
+    axes = line_spc(rows)
+    if not axes:
+        return out
+    out.append(f"{'axis':<10}{'limit':>8}{'n':>5}{'mean':>10}{'s within':>10}{'s overall':>10}"
+               f"{'Cp':>7}{'Cpk':>7}{'Pp':>7}{'Ppk':>7}  run rules (Nelson)")
+    for ax in axes:
+        c = ax.capability
+        if c is None:
+            out.append(f"{ax.axis:<10}{ax.limit:>8.3g}  fewer than two values")
+            continue
+        rules = sorted({s.rule for s in ax.chart.signals}) if ax.chart else []
+        broken = ", ".join(f"{r} x{sum(s.rule == r for s in ax.chart.signals)}" for r in rules)
+        out.append(f"{ax.axis:<10}{ax.limit:>8.3g}{c.n:>5}{c.mean:>+10.3f}"
+                   f"{c.sigma_within:>10.3f}{c.sigma_overall:>10.3f}{c.cp:>7.2f}{c.cpk:>7.2f}"
+                   f"{c.pp:>7.2f}{c.ppk:>7.2f}  {broken or 'none'}")
+    return out
