@@ -37,6 +37,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    StrictBool,
     StrictFloat,
     StrictInt,
     StrictStr,
@@ -317,6 +318,48 @@ class Twin(_Section):
     scene: Literal["bench", "lab"] = "bench"
 
 
+class LineUser(_Section):
+    """Someone who may log in to the line station (`aimbench station`): the web pages and, for
+    the PLC's account, OPC UA. ``password_scrypt``: the password's scrypt hash as `aimbench
+    station --hash-password` prints it (never the password itself)."""
+
+    name: Annotated[StrictStr, Field(min_length=1)]
+    role: Literal["operator", "engineer", "plc"]
+    password_scrypt: Annotated[StrictStr, Field(pattern=r"^scrypt\$")]
+
+
+class OpcUa(_Section):
+    """The station's OPC UA server for the line's PLC. ``anonymous``: anyone who reaches the
+    port may trigger inspections, no security policy (a closed cell network only); otherwise
+    users with the role ``plc`` log in by name and password over Basic256Sha256
+    SignAndEncrypt with the station's certificate (generated, self-signed, when the files
+    named here do not exist)."""
+
+    port: Annotated[StrictInt, Field(ge=1, le=65535)] = 4840
+    anonymous: StrictBool = True
+    certificate: StrictStr = "station-cert.der"
+    private_key: StrictStr = "station-key.pem"
+
+
+class Line(_Section):
+    """The line station (`aimbench station`, docs/station-line.md): the address its web pages,
+    HTTP/JSON endpoint and OPC UA server listen on (the machine itself unless named), the
+    web port, who may log in and as what, and the OPC UA server's security."""
+
+    address: StrictStr = "127.0.0.1"
+    port: Annotated[StrictInt, Field(ge=1, le=65535)] = 8080
+    users: tuple[LineUser, ...] = ()
+    opcua: OpcUa = OpcUa()
+
+    @model_validator(mode="after")
+    def _unique_users(self) -> Line:
+        names = [u.name for u in self.users]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"users named twice: {dup}")
+        return self
+
+
 class Station(_Section):
     """A bench, as the station file describes it (module docstring; docs/station.md)."""
 
@@ -329,6 +372,7 @@ class Station(_Section):
     tolerances: Tolerances = Tolerances()
     frame: StationFrame = StationFrame()
     twin: Twin = Twin()
+    line: Line = Line()
 
     # -- what the rest of aimbench takes (SI) -------------------------------------------------
     def board_spec(self) -> Any:

@@ -19,10 +19,14 @@ LINE = ["inspect", "sim", "--units", "6", "--seed", "4", "--scans", "3", "--max-
         "--db", "line.sqlite"]
 
 
-def start(tmp_path: Path) -> subprocess.Popen:
+def start(tmp_path: Path, ctrl_c: bool = False) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
+    # A shell's background job ignores SIGINT, and so would Python started from it: give the
+    # line Ctrl-C's default, as in a terminal.
+    reset = (lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)) if ctrl_c else None
     return subprocess.Popen([sys.executable, "-m", "scenarios.cli", *LINE], cwd=tmp_path,
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=reset)
 
 
 @pytest.mark.slow
@@ -73,7 +77,7 @@ def test_a_killed_line_keeps_exactly_its_units_and_resumes(tmp_path: Path):
 
 @pytest.mark.slow
 def test_ctrl_c_says_how_to_go_on(tmp_path: Path):
-    proc = start(tmp_path)
+    proc = start(tmp_path, ctrl_c=True)
     first = proc.stdout.readline()
     assert first.startswith("sim4-0001"), proc.stderr.read()
     proc.send_signal(signal.SIGINT)
