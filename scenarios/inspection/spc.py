@@ -113,8 +113,10 @@ def moving_ranges(values: Sequence[float]) -> np.ndarray:
     return np.abs(np.diff(x))
 
 
-def imr_chart(values: Sequence[float], rules: str = "nelson") -> IMRChart:
-    """The I-MR chart of `values` in their order, with the run rules' signals."""
+def imr_chart(values: Sequence[float], rules: str = "nelson",
+              last_only: bool = False) -> IMRChart:
+    """The I-MR chart of `values` in their order, with the run rules' signals (``last_only``:
+    those of the last point only)."""
     x = _clean(values)
     if len(x) < 2:
         raise ValueError("an individuals chart needs at least two values")
@@ -124,15 +126,16 @@ def imr_chart(values: Sequence[float], rules: str = "nelson") -> IMRChart:
     chart = IMRChart(values=x.tolist(), moving_ranges=mr.tolist(), center=center, mr_bar=mr_bar,
                      sigma=sigma, ucl=center + 3 * sigma, lcl=center - 3 * sigma,
                      mr_ucl=D4 * mr_bar)
-    chart.signals = run_rules(x, center, sigma, rules)
+    chart.signals = run_rules(x, center, sigma, rules, last_only)
     chart.mr_signals = [i + 1 for i, r in enumerate(mr) if r > chart.mr_ucl]
     return chart
 
 
 def run_rules(values: Sequence[float], center: float, sigma: float,
-              rules: str = "nelson") -> list[Signal]:
+              rules: str = "nelson", last_only: bool = False) -> list[Signal]:
     """The run-rule signals of `values` about `center` in zones of `sigma` (module docstring),
-    in the order of the points, each rule reported at every point that completes it."""
+    in the order of the points, each rule reported at every point that completes it
+    (``last_only``: only those the last point completes, what a live alarm needs)."""
     if rules not in RULE_SETS:
         raise ValueError(f"unknown run rules {rules!r}; use one of {RULE_SETS}")
     x = _clean(values)
@@ -153,7 +156,7 @@ def run_rules(values: Sequence[float], center: float, sigma: float,
     def hit(test: str, i: int) -> None:
         out.append(Signal(rules, num[test], i, text[num[test]]))
 
-    for i in range(len(z)):
+    for i in range(len(z) - 1 if last_only else 0, len(z)):
         if abs(z[i]) > 3:
             hit("beyond3", i)
         for s in (1, -1):
@@ -250,7 +253,8 @@ class AxisSPC:
                 "histogram": None if self.histogram is None else self.histogram.to_dict()}
 
 
-def line_spc(rows: list[dict], rules: str = "nelson") -> list[AxisSPC]:
+def line_spc(rows: list[dict], rules: str = "nelson", last_only: bool = False
+             ) -> list[AxisSPC]:
     """SPC of every judged axis of a line's records (in their order; records without a pose
     left out): the I-MR chart of the mounting errors with the run rules, Cp/Cpk/Pp/Ppk against
     [-limit, +limit], the histogram over the specification."""
@@ -267,7 +271,7 @@ def line_spc(rows: list[dict], rules: str = "nelson") -> list[AxisSPC]:
         x = [r[f"err_{a}"] * s for r in ok if r[f"err_{a}"] is not None]
         enough = len(x) >= 2
         out.append(AxisSPC(edge_key(a), EDGE_UNIT[a], lim,
-                           imr_chart(x, rules) if enough else None,
+                           imr_chart(x, rules, last_only) if enough else None,
                            capability(x, -lim, lim) if enough else None,
                            histogram(x, span=(-lim, lim)) if x else None))
     return out

@@ -4,8 +4,11 @@ Every front end (the operator's page, the HTTP/JSON endpoint, the PLC over OPC U
 `StationEngine.trigger`; the first to take the lock inspects, any other gets `Busy` (a clear
 refusal naming the unit in progress) until the verdict is out. The inspection itself is the
 inspection package's pipeline, unchanged: `acquire.open_acquisition` -> `procedure.inspect_unit`
--> `records.record_row` -> `Records.add` (crash-safe SQLite); it runs in one worker thread so the
-pages and the OPC UA server stay live while the twin or the sensor scans.
+-> `records.record_row` -> `Records.add` (crash-safe SQLite). The scanning and estimating run in
+one worker *process* (the twin's kernels and the estimator hold the interpreter's lock for long
+stretches: in a thread they starved the pages and the OPC UA server until a PLC's requests timed
+out); the record is committed by the station's own process, so a worker that dies loses no
+record and leaves none half-written.
 
 The state every front end shows (`Snapshot`): ``idle``, ``busy`` (with the unit, who triggered
 it, the phase and the scans so far), ``done`` (the last result) or ``error`` (with the message).
@@ -122,6 +125,7 @@ class StationEngine:
         self._loop: asyncio.AbstractEventLoop | None = None
         # one worker: the inspections and every write to the store happen there, in order
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="inspection")
+        self._pool: Any = None
         with rec_mod.Records.open(self.db, create=True) as r:
             r.ensure_audit()
         self._records = rec_mod.Records(self.db, self._connect())
@@ -157,6 +161,8 @@ class StationEngine:
 
     def close(self) -> None:
         self._worker.shutdown(wait=True)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
         with self._db_lock:
             self._records.close()
 
@@ -247,81 +253,78 @@ class StationEngine:
             s.state, s.phase, s.result = "done", "", result
             s.results += 1
             s.message = result["message"]
-            s.alarms = self.alarms()
+            s.alarms = result.pop("alarms")
             self._notify()
             return result
         finally:
             self._lock.release()
 
     def _inspect(self, unit: str, origin: str, who: str | None) -> dict[str, Any]:
-        """One unit, in the worker thread: audit start, acquire, inspect, record, audit end."""
+        """One unit, in the worker thread: audit start, measure (in the worker process),
+        record, audit end."""
         with self._db_lock:
             last = self._records.conn.execute("SELECT COALESCE(MAX(id), 0) FROM inspection"
                                               ).fetchone()[0]
             self._records.audit(who, None, "start", {"unit": unit, "origin": origin,
                                                      "last_record": int(last)})
-        misalignment, seed = (twin_unit(self.station, unit) if self.source == "sim"
-                              else ({}, 0))
         keep = self.source == "sim" or self.source.startswith("udp://")
         capture = self._records.capture_path(unit) if keep else None
-        started = time.time()
-        acq = open_acquisition(self.source, self.station, capture, misalignment=misalignment,
-                               seed=seed)
-
-        def progress(insp: Any) -> None:
-            self.snapshot.scans = insp.scans_used
-            self.snapshot.phase = f"judged {len(insp.attempts)} time(s)"
-            self._notify_threadsafe()
-
-        try:
-            insp = inspect_unit(acq, self.station, unit, scans=self.scans,
-                                max_scans=self.max_scans, calibration=self.calibration,
-                                on_attempt=progress)
-        except BaseException:
-            acq.close(complete=False)
-            raise
-        acq.close()
-        row = rec_mod.record_row(
-            insp, station=self.station, operator=who, source=self.source,
-            capture=acq.capture, capture_sha256=acq.capture_sha256(), sensor=acq.sensor,
-            calibration=calibration_identity(self.station, self.cal_file), started_at=started,
-            batch=self.snapshot.batch)
+        job = dict(station=self.station.to_dict(), source=self.source, unit=unit,
+                   scans=self.scans, max_scans=self.max_scans, cal_file=self.cal_file,
+                   capture=None if capture is None else str(capture), operator=who,
+                   batch=self.snapshot.batch,
+                   view=None if self.board_view is None else str(self.board_view))
+        row, view = self._process().submit(measure, job).result()
         with self._db_lock:
-            rid, trial = self._records.add(row)
+            rid, _ = self._records.add(row)
             self._records.audit(who, None, "end", {"unit": unit, "record": rid,
-                                                   "verdict": str(insp.verdict)})
+                                                   "verdict": row["verdict"]})
             stored = self._records.get(rid)
         out = result_dict(stored)
         out["origin"] = origin
-        if self.board_view is not None:
-            out["board_view"] = self._board_view(stored, insp)
+        out["alarms"] = self.alarms()  # here, off the event loop
+        if view is not None:
+            out["board_view"] = view
         return out
 
-    def _board_view(self, row: dict[str, Any], insp: Any) -> str | None:
-        from scenarios.inspection.report import unit_figure
+    def _process(self) -> Any:
+        """The worker process (started once, on first use; a new one if it died)."""
+        from concurrent.futures import ProcessPoolExecutor
+        from multiprocessing import get_context
 
-        try:
-            self.board_view.mkdir(parents=True, exist_ok=True)
-            png = self.board_view / f"unit-{row['id']}.png"
-            unit_figure(row, insp, png)
-            return png.name
-        except Exception:  # the picture is a nicety: never lose a verdict over it
-            return None
+        if self._pool is None or getattr(self._pool, "_broken", False):
+            # spawn: a fresh interpreter, never a fork of this one's threads and sockets
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"))
+        return self._pool
+
+    def warm_up(self) -> None:
+        """Start the worker process and load its imports now, not at the first unit."""
+        self._process().submit(_warm).result()
 
     # -- SPC -----------------------------------------------------------------------------------
 
-    def recent(self, n: int = SPC_WINDOW) -> list[dict[str, Any]]:
-        """The latest n records (of the current batch if one is set), oldest first."""
+    def recent(self, n: int = SPC_WINDOW, light: bool = False) -> list[dict[str, Any]]:
+        """The latest n records (of the current batch if one is set), oldest first; ``light``:
+        only the columns SPC reads (no JSON to decode)."""
         b = self.snapshot.batch
         where = ("WHERE id IN (SELECT id FROM inspection " + ("WHERE batch = ? " if b else "")
                  + "ORDER BY id DESC LIMIT ?)")
-        return self.rows(where, ((b, n) if b else (n,)))
+        params = (b, n) if b else (n,)
+        if not light:
+            return self.rows(where, params)
+        from scenarios.inspection.verdict import AXES
+
+        cols = ", ".join(["id", "status"] + [f"{c}_{a}" for a in AXES for c in ("err", "limit")])
+        with self._db_lock:
+            cur = self._records.conn.execute(
+                f"SELECT {cols} FROM inspection {where} ORDER BY id", params)
+            return [dict(r) for r in cur]
 
     def alarms(self) -> list[dict[str, Any]]:
         """The run rules the latest record breaks, per axis (Nelson's rules on the I chart,
         and the MR chart's upper limit)."""
         out = []
-        for ax in spc.line_spc(self.recent()):
+        for ax in spc.line_spc(self.recent(light=True), last_only=True):
             if ax.chart is None:
                 continue
             last = len(ax.chart.values) - 1
@@ -332,6 +335,55 @@ class StationEngine:
                 out.append({"axis": ax.axis, "rule": "MR", "text": "moving range above its "
                             "upper control limit"})
         return out
+
+
+def _warm() -> None:
+    import scenarios.inspection.procedure  # noqa: F401  (align, numba's cached kernels)
+    import twin.sim.bench  # noqa: F401
+
+
+def measure(job: dict[str, Any]) -> tuple[dict[str, Any], str | None]:
+    """In the worker process: acquire, inspect and make the record's row (not committed),
+    and the board's picture if asked. The pipeline of `aimbench inspect`, unchanged."""
+    import json
+
+    from scenarios import calibrate
+    from scenarios import station as stations
+
+    station = stations.from_dict(job["station"], "the station")
+    unit, source = job["unit"], job["source"]
+    misalignment, seed = twin_unit(station, unit) if source == "sim" else ({}, 0)
+    capture = None if job["capture"] is None else Path(job["capture"])
+    calibration = calibrate.read(job["cal_file"]) if job["cal_file"] else None
+    started = time.time()
+    acq = open_acquisition(source, station, capture, misalignment=misalignment, seed=seed)
+    try:
+        insp = inspect_unit(acq, station, unit, scans=job["scans"],
+                            max_scans=job["max_scans"], calibration=calibration)
+    except BaseException:
+        acq.close(complete=False)
+        raise
+    acq.close()
+    row = rec_mod.record_row(
+        insp, station=station, operator=job["operator"], source=source, capture=acq.capture,
+        capture_sha256=acq.capture_sha256(), sensor=acq.sensor,
+        calibration=calibration_identity(station, job["cal_file"]), started_at=started,
+        batch=job["batch"])
+    view = None
+    if job["view"]:
+        from scenarios.inspection.report import unit_figure
+
+        try:  # the picture is a nicety: never lose a verdict over it
+            folder = Path(job["view"])
+            folder.mkdir(parents=True, exist_ok=True)
+            name = f"{hashlib.sha256(f'{unit}{started}'.encode()).hexdigest()[:16]}.png"
+            shown = {k: (json.loads(v) if k in rec_mod._JSON_COLS and isinstance(v, str)
+                         else v) for k, v in row.items()}
+            unit_figure(shown, insp, folder / name)
+            view = name
+        except Exception:
+            view = None
+    return row, view
 
 
 def result_dict(row: dict[str, Any]) -> dict[str, Any]:

@@ -5,19 +5,20 @@ uncertainty, limit and verdict. Errors are states, never silence.
 
 Address space (namespace ``urn:aimbench:line-station``), under ``Objects/Station``:
 
-| node | type | who writes | meaning |
-|---|---|---|---|
-| PartId | String | PLC | the unit to inspect next (a VIN, a serial) |
-| Start | Boolean | PLC | rising edge: inspect PartId now; the station sets it back to false once taken |
-| State | String | station | idle, busy, done or error |
-| Busy, Done, Error, Refused | Boolean | station | the state as flags; Refused: the last Start was refused (busy, bad id) |
-| Message | String | station | why (an error, a refusal, the verdict's reason) |
-| ResultPartId | String | station | the unit the result below belongs to |
-| Verdict | String | station | pass, fail or inconclusive |
-| RecordId | Int64 | station | the record in the station's store |
-| ResultCounter | UInt32 | station | results published since the station started |
-| Axes/AXIS/Value, Uncertainty, Limit | Double | station | the mounting error, U = k u, the limit (mm or deg as AXIS says: x_mm, tilt_deg...) |
-| Axes/AXIS/Verdict | String | station | that axis's verdict |
+- PartId (String, the PLC writes): the unit to inspect next (a VIN, a serial).
+- Start (Boolean, the PLC writes): true = inspect PartId now; the station sets it back to
+  false once taken (or refused).
+- State (String): idle, busy, done or error; Busy, Done, Error, Refused (Boolean): the same
+  as flags, Refused meaning the last Start was refused (busy, a bad id).
+- Message (String): why (an error, a refusal, the verdict's reason).
+- ResultPartId (String), Verdict (String: pass, fail, inconclusive), RecordId (Int64: the
+  record in the station's store), ResultCounter (UInt32: the PLC's results since the station
+  started). These and Done belong to the parts the PLC started: a unit inspected from the
+  page or by MES changes State and Busy, not them; Done stays true until the PLC's next
+  accepted Start.
+- Axes/AXIS/Value, Uncertainty, Limit (Double) and Verdict (String), AXIS one of the judged
+  axes named with their unit (x_mm, roll_deg, tilt_deg, yaw_deg...): the mounting error,
+  U = k u, the limit and that axis's verdict.
 
 The results are written before Done turns true, so a PLC that sees Done reads a whole result.
 Security: anonymous and no security policy only when the station file says
@@ -84,6 +85,10 @@ class StationOpcUa:
         self.nodes: dict[str, Any] = {}
         self.axes: dict[str, dict[str, Any]] = {}
         self._tasks: set[asyncio.Task] = set()
+        self.counter = 0  # the PLC's results since the station started
+        # one snapshot written whole before the next: a PLC never reads Done of one state
+        # beside the flags of another
+        self._writing = asyncio.Lock()
 
     async def start(self) -> None:
         cfg = self.engine.station.line.opcua
@@ -170,35 +175,56 @@ class StationOpcUa:
             task.add_done_callback(self._tasks.discard)
 
     async def _start(self) -> None:
+        """Take a Start: decide first (Refused and Message), then set Start back to false, so
+        a PLC that sees Start false reads this attempt's Refused, never an older one's."""
         n = self.nodes
         part = await n["PartId"].read_value()
-        await n["Start"].write_value(False)  # taken (or refused): the PLC may set it again
         try:
             if self.engine.busy:
                 # refuse before touching the engine's state: the unit in progress stands
                 raise Busy(f"busy: inspecting unit {self.engine.snapshot.unit}; {part} was "
                            "not started, set Start again when Busy is false")
-            await n["Refused"].write_value(False)
-            await self.engine.trigger(part, "opcua", who="plc", role="plc")
+            # the trigger takes the engine's lock before its first await: nothing can come
+            # between this check and it
+            run = asyncio.ensure_future(self.engine.trigger(part, "opcua", who="plc",
+                                                            role="plc"))
         except Busy as exc:
-            await n["Refused"].write_value(True)
             await n["Message"].write_value(str(exc))
+            await n["Refused"].write_value(True)
+            await n["Start"].write_value(False)
             self.engine.audit("plc", "plc", "refused", {"origin": "opcua", "unit": part,
                                                         "why": "busy"})
+            return
+        await asyncio.sleep(0)  # let the trigger take the lock and say busy
+        await n["Done"].write_value(False)  # the PLC's previous result is no longer the last
+        await n["Refused"].write_value(False)
+        await n["Start"].write_value(False)
+        try:
+            await run
         except AimbenchError as exc:
             # a bad id is refused; a failed inspection is already the engine's error state
             if self.engine.snapshot.state != "error":
+                await n["Message"].write_value(str(exc))
                 await n["Refused"].write_value(True)
-            await n["Message"].write_value(str(exc))
+        except Exception:  # never die silently: the PLC must see an error state
+            logging.getLogger(__name__).exception("the inspection of %s failed", part)
 
     # -- the station's state ------------------------------------------------------------------
 
     async def _publish(self, snap: Snapshot) -> None:
+        async with self._writing:
+            await self._write(snap)
+
+    async def _write(self, snap: Snapshot) -> None:
+        """The station's state to the nodes. The result nodes and Done are the PLC's own:
+        they change only with a part the PLC started (the page's and MES's units do not
+        overwrite them), and Done stays true until the PLC's next accepted Start, so a PLC
+        never has to catch a passing moment."""
         n = self.nodes
         if not n:
             return
-        if snap.state == "done" and snap.result is not None:
-            r = snap.result
+        r = snap.result
+        if snap.state == "done" and r is not None and r.get("origin") == "opcua":
             for a in r["axes"]:
                 nodes = self.axes.get(a["axis"])
                 if nodes is None:
@@ -211,13 +237,11 @@ class StationOpcUa:
             await n["Verdict"].write_value(r["verdict"])
             await n["RecordId"].write_value(ua.Variant(int(r["record"]), ua.VariantType.Int64))
             await n["ResultPartId"].write_value(r["unit"])
-            await n["ResultCounter"].write_value(ua.Variant(snap.results,
+            self.counter += 1
+            await n["ResultCounter"].write_value(ua.Variant(self.counter,
                                                             ua.VariantType.UInt32))
-        if snap.state == "busy":
-            await n["Done"].write_value(False)
-            await n["Error"].write_value(False)
+            await n["Done"].write_value(True)
         await n["Message"].write_value(snap.message)
         await n["State"].write_value(snap.state)
         await n["Busy"].write_value(snap.state == "busy")
         await n["Error"].write_value(snap.state == "error")
-        await n["Done"].write_value(snap.state == "done")

@@ -180,7 +180,7 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
                 progress = ui.linear_progress(value=0, show_value=False).props("indeterminate")
                 progress.visible = False
                 unit_in = ui.input("unit id (scan or type, then Enter)").props(
-                    "autofocus outlined id=unit-input input-class=text-h5").classes("w-full")
+                    "autofocus outlined input-class=text-h5").classes("w-full")
                 message = ui.label("").classes("text-body1").props("id=message")
                 alarms = ui.column()
             with ui.column().classes("w-1/2"):
@@ -211,7 +211,8 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
 
         def refresh() -> None:
             s = engine.snapshot
-            key = (s.state, s.results, s.scans, s.message, len(s.alarms))
+            busy_s = time.time() - s.started_at if s.state == "busy" and s.started_at else 0.0
+            key = (s.state, s.results, round(busy_s, 1), s.message, len(s.alarms))
             if key == shown.get("key"):
                 return
             shown["key"] = key
@@ -219,7 +220,7 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
             if s.state == "busy":
                 text, color = "INSPECTING", COLORS["busy"]
                 unit_lbl.text = f"unit {s.unit} ({s.origin})"
-                phase.text = f"scanning: {s.scans} scans so far"
+                phase.text = f"scanning and estimating: {busy_s:.1f} s"
             elif s.state == "error":
                 text, color = "ERROR", COLORS["error"]
                 unit_lbl.text = f"unit {s.unit}"
@@ -238,12 +239,7 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
             progress.visible = s.state == "busy"
             message.text = s.message
             if r is not None and s.state != "busy":
-                rows = "".join(
-                    f"<tr><td style='padding-right:12px'><b>{a['axis']}</b></td>"
-                    f"<td style='padding-right:12px'>{_fmt(a['value'])} &plusmn; {_fmt(a['U'])}"
-                    f" (limit {a['limit']:.3g})</td><td>{band_svg(a['value'], a['U'], a['limit'], a['verdict'])}</td>"
-                    f"<td style='color:{COLORS.get(a['verdict'] or '', '#000')}'>"
-                    f"{(a['verdict'] or 'not judged').upper()}</td></tr>" for a in r["axes"])
+                rows = "".join(_axis_row(a) for a in r["axes"])
                 axes_box.content = (f"<table>{rows}</table><div style='font-size:12px'>"
                                     f"rule {r['rule']}, U = {r['k']:g} u; orange: the guard "
                                     "bands (within U of a limit)</div>")
@@ -274,8 +270,8 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
                      "engineer's page cannot be opened. Add an engineer (aimbench station "
                      "--hash-password) and start the station again.")
             return
-        name = ui.input("name").props("id=login-name")
-        pw = ui.input("password", password=True).props("id=login-password")
+        name = ui.input("name")
+        pw = ui.input("password", password=True)
 
         def try_login() -> None:
             u = auth.authenticate(station, name.value or "", pw.value or "")
@@ -300,7 +296,7 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
         rows = engine.recent()
         with ui.row().classes("items-center"):
             ui.label(f"batch: {engine.snapshot.batch or '(none)'}").classes("text-h6")
-            batch_in = ui.input("new batch").props("id=batch-input")
+            batch_in = ui.input("new batch")
 
             def set_batch() -> None:
                 engine.set_batch(batch_in.value, u.name, u.role)
@@ -402,6 +398,16 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
         rows = engine.rows("WHERE id IN (SELECT id FROM inspection ORDER BY id DESC LIMIT ?)",
                            (max(1, min(limit, 1000)),))
         return [result_dict(r) for r in rows]
+
+
+def _axis_row(a: dict[str, Any]) -> str:
+    """One judged axis on the operator's page: error +- U (limit), the picture, the verdict."""
+    band = band_svg(a["value"], a["U"], a["limit"], a["verdict"])
+    color = COLORS.get(a["verdict"] or "", "#000")
+    return (f"<tr><td style='padding-right:12px'><b>{a['axis']}</b></td>"
+            f"<td style='padding-right:12px'>{_fmt(a['value'])} &plusmn; {_fmt(a['U'])} "
+            f"(limit {a['limit']:.3g})</td><td>{band}</td><td style='color:{color}'>"
+            f"{(a['verdict'] or 'not judged').upper()}</td></tr>")
 
 
 def _fmt(v: float | None) -> str:
