@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import hashlib
+import os
 import sqlite3
 import threading
 import time
@@ -294,7 +295,9 @@ class StationEngine:
 
         if self._pool is None or getattr(self._pool, "_broken", False):
             # spawn: a fresh interpreter, never a fork of this one's threads and sockets
-            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"))
+            self._pool = ProcessPoolExecutor(max_workers=1, mp_context=get_context("spawn"),
+                                             initializer=_follow_parent,
+                                             initargs=(os.getpid(),))
         return self._pool
 
     def warm_up(self) -> None:
@@ -335,6 +338,17 @@ class StationEngine:
                 out.append({"axis": ax.axis, "rule": "MR", "text": "moving range above its "
                             "upper control limit"})
         return out
+
+
+def _follow_parent(parent: int) -> None:
+    """In the worker process: end when the station's process is gone (a kill -9 of the
+    station must not leave a worker behind holding the sensor or a core)."""
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(0)
+
+    threading.Thread(target=watch, daemon=True).start()
 
 
 def _warm() -> None:
