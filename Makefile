@@ -3,6 +3,8 @@
 VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.aimbench-installed
+# the tests' own Debian packages too (tools/setup.sh --test: chromium, chromium-driver)
+TSTAMP := $(VENV)/.aimbench-test-installed
 RUN    ?= runs/demo
 
 .PHONY: setup demo test test-fast lint bench clean
@@ -17,11 +19,15 @@ $(STAMP): pyproject.toml tools/setup.sh
 demo: setup
 	$(BIN)/aimbench demo --out $(RUN)
 
+$(TSTAMP): pyproject.toml tools/setup.sh
+	bash tools/setup.sh --test
+	touch $(STAMP) $@
+
 ## The whole test suite (README, second command; CI runs this).
-test: setup
+test: $(TSTAMP)
 	$(BIN)/python -m pytest
 
-test-fast: setup
+test-fast: $(TSTAMP)
 	$(BIN)/python -m pytest -m "not slow"
 
 lint: setup

@@ -2,6 +2,7 @@
 # Set up everything aimbench needs on a fresh Debian 12 machine with Python >= 3.11:
 # the Debian packages (as root, with apt-get), then .venv with the project and its test extras.
 # Idempotent: packages already installed are not fetched again.
+# --test: also the Debian packages only the tests need (TEST_DEBS below); `make test` passes it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -16,6 +17,15 @@ cd "$(dirname "$0")/.."
 #                                      env's render_mode="rgb_array"
 DEBS=(libusb-1.0-0 gcc-avr avr-libc arduino-core-avr libsimavr-dev libelf-dev pkg-config make g++
       libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0)
+
+# Only for the tests (`tools/setup.sh --test`, which `make test` runs):
+#   chromium chromium-driver           a real headless browser for the line station's pages
+#                                      (tests/test_line_station.py, Selenium with
+#                                      /usr/bin/chromedriver: no browser is downloaded)
+TEST_DEBS=(chromium chromium-driver)
+if [ "${1:-}" = "--test" ]; then
+  DEBS+=("${TEST_DEBS[@]}")
+fi
 
 PYTHON=${PYTHON:-}
 if [ -z "$PYTHON" ]; then
