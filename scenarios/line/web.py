@@ -260,7 +260,7 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
                              (LAST_UNITS,)))]
 
         del s0
-        ui.timer(0.25, refresh)
+        ui.timer(0.1, refresh)
 
     @ui.page("/login", title="aimbench login")
     def login_page() -> None:
