@@ -405,7 +405,8 @@ def _axis_row(a: dict[str, Any]) -> str:
     band = band_svg(a["value"], a["U"], a["limit"], a["verdict"])
     color = COLORS.get(a["verdict"] or "", "#000")
     return (f"<tr><td style='padding-right:12px'><b>{a['axis']}</b></td>"
-            f"<td style='padding-right:12px'>{_fmt(a['value'])} &plusmn; {_fmt(a['U'])} "
+            f"<td style='padding-right:12px'>{_fmt(a['value'])} &plusmn; "
+            f"{'-' if a['U'] is None else format(a['U'], '.3f')} "
             f"(limit {a['limit']:.3g})</td><td>{band}</td><td style='color:{color}'>"
             f"{(a['verdict'] or 'not judged').upper()}</td></tr>")
 
