@@ -22,6 +22,7 @@ import os
 from pathlib import Path
 
 from scenarios import station as stations
+from scenarios.cliargs import int_at_least
 from scenarios.inspection.procedure import DEFAULT_SCANS
 from twin.core.errors import AimbenchError
 
@@ -76,14 +77,14 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--address", default=None,
                    help="listen on this address (default: the station file's [line] address, "
                         "127.0.0.1)")
-    p.add_argument("--port", type=int, default=None,
+    p.add_argument("--port", type=int_at_least(1), default=None,
                    help="web and JSON port (default: the station file's, 8080)")
-    p.add_argument("--opcua-port", type=int, default=None,
+    p.add_argument("--opcua-port", type=int_at_least(1), default=None,
                    help="OPC UA port (default: the station file's, 4840)")
     p.add_argument("--no-opcua", action="store_true", help="no OPC UA server")
-    p.add_argument("--scans", type=int, default=DEFAULT_SCANS,
+    p.add_argument("--scans", type=int_at_least(1), default=DEFAULT_SCANS,
                    help=f"scans per measurement (default {DEFAULT_SCANS})")
-    p.add_argument("--max-scans", type=int, default=None,
+    p.add_argument("--max-scans", type=int_at_least(1), default=None,
                    help="most scans a re-measure may reach (default 3 x --scans)")
     p.add_argument("--calibration", default=None, metavar="FILE",
                    help="per-laser range calibration (default: the station's)")
