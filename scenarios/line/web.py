@@ -25,6 +25,7 @@ JSON endpoint. The pages poll the engine's state a few times a second.
 
 from __future__ import annotations
 
+import asyncio
 import base64
 import html
 import json
@@ -287,13 +288,14 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
         ui.button("log in", on_click=try_login).props("id=login-button")
 
     @ui.page("/engineer", title=f"aimbench {station.name}: engineer")
-    def engineer_page() -> None:
+    async def engineer_page() -> None:
         u = _user()
         if u is None or not u.may("engineer"):
             ui.navigate.to("/login")
             return
         header("engineer")
-        rows = engine.recent()
+        # the SPC's columns only, computed off the event loop (the PLC's requests go on)
+        rows = await asyncio.to_thread(engine.recent, light=True)
         with ui.row().classes("items-center"):
             ui.label(f"batch: {engine.snapshot.batch or '(none)'}").classes("text-h6")
             batch_in = ui.input("new batch")
@@ -307,7 +309,7 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
         ui.label(f"SPC over the last {len(rows)} records"
                  + (f" of batch {engine.snapshot.batch}" if engine.snapshot.batch else "")
                  ).classes("text-h6")
-        axes = spc.line_spc(rows)
+        axes = await asyncio.to_thread(spc.line_spc, rows)
         cap_rows = []
         for ax in axes:
             if ax.chart is None:
@@ -329,11 +331,12 @@ def build(engine: StationEngine, views: Path | None, type1_reference: str | None
         ui.table(columns=[{"name": k, "label": k, "field": k} for k in (
             "axis", "n", "mean", "s within", "s overall", "Cp", "Cpk", "Pp", "Ppk", "signals")],
             rows=cap_rows, row_key="axis").props("dense id=capability")
-        _studies(engine, type1_reference)
+        await _studies(engine, type1_reference)
         st = station.to_dict()
         ui.label("station file in force").classes("text-h6")
         ui.label(f"{station.name}, sha256 {station_hash(st)}").props("id=station-hash")
-        cal = rows[-1]["calibration"] if rows else {}
+        last = engine.rows("WHERE id = (SELECT MAX(id) FROM inspection)")
+        cal = last[0]["calibration"] if last else {}
         ui.label(f"calibration: {json.dumps(cal) if cal else 'none'}")
         ui.code(json.dumps(st, indent=1), language="json").classes("w-full h-64")
         ui.label("audit trail").classes("text-h6")
@@ -415,7 +418,11 @@ def _fmt(v: float | None) -> str:
     return "-" if v is None else f"{v:+.3f}"
 
 
-def _studies(engine: StationEngine, type1_reference: str | None) -> None:
+#: Gauge R&R results by (batch, records): its bootstrap takes seconds, once per study.
+_GRR_CACHE: dict[tuple[str, int], Any] = {}
+
+
+async def _studies(engine: StationEngine, type1_reference: str | None) -> None:
     """The Type-1 and gauge R&R studies found in the store (by their batches' names)."""
     from scenarios.inspection import msa, studies
     from scenarios.inspection.verdict import EDGE_SCALE, EDGE_UNIT, edge_key, limits_si
@@ -453,7 +460,12 @@ def _studies(engine: StationEngine, type1_reference: str | None) -> None:
         from scenarios.commands.grr import grr_report
 
         try:
-            res = grr_report(engine.rows("WHERE batch = ?", (grr[-1],)), engine.station, 0.95)
+            key = (grr[-1], batches[grr[-1]])
+            if key not in _GRR_CACHE:
+                _GRR_CACHE[key] = await asyncio.to_thread(
+                    grr_report, engine.rows("WHERE batch = ?", (grr[-1],)), engine.station,
+                    0.95)
+            res = _GRR_CACHE[key]
             ui.label(f"gauge R&R: batch {grr[-1]}")
             ui.table(columns=[{"name": k, "label": k, "field": k} for k in (
                 "axis", "%GRR tol", "ndc", "acceptance")], rows=[
