@@ -169,7 +169,9 @@ class StationEngine:
 
     def _recover(self) -> None:
         """After a kill: a started inspection without its record is an error to show."""
-        starts = [a for a in self.audit_rows(50) if a["action"] in ("start", "end", "recovered")]
+        # an inspection that failed is concluded too (its error was shown and logged)
+        starts = [a for a in self.audit_rows(50)
+                  if a["action"] in ("start", "end", "recovered", "error")]
         self.audit(None, "station", "station started", {
             "software_version": software_version(), "source": self.source,
             "station": self.station.name,
