@@ -516,8 +516,10 @@ class Station(_Section):
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready, the form a run's configuration keeps (file paths resolved)."""
-        return self.model_dump(mode="json")
+        """JSON-ready, the form a run's configuration keeps (file paths resolved). Without the
+        line station's users: their password hashes belong in the station file only, not in
+        every record, the station's hash or the engineer's page."""
+        return self.model_dump(mode="json", exclude={"line": {"users"}})
 
 
 #: How far a unit's roll on the board may be from the station's nominal, 1 sigma, deg: wide

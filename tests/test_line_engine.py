@@ -37,6 +37,7 @@ def test_passwords_are_scrypt_hashes_and_roles_say_who_may_what():
         stations.from_dict({"line": {"users": [
             {"name": "a", "role": "plc", "password_scrypt": "plain-text"}]}})
     assert stations.load("paper").line.address == "127.0.0.1"  # this machine unless named
+    assert "users" not in st.to_dict()["line"]  # no password hash in records or on pages
 
 
 def test_unit_ids_and_twin_units():
