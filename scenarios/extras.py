@@ -16,6 +16,8 @@ OPTIONAL = {
     "open3d": ("open3d", "open3d"),
     "rerun": ("rerun-sdk", "rerun"),
     "statsmodels": ("statsmodels", "grr"),
+    "nicegui": ("nicegui", "station"),
+    "asyncua": ("asyncua", "station"),
 }
 
 

@@ -37,6 +37,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    StrictBool,
     StrictFloat,
     StrictInt,
     StrictStr,
@@ -53,7 +54,7 @@ from twin.core.sensors import MODELS, model_named
 #: The sensor models aimbench can decode and emulate (twin/core/sensors.py).
 SENSOR_MODELS = tuple(MODELS)
 #: The decision rules an inspection may use (docs/station.md says what each does).
-DECISION_RULES = ("iso14253-1", "simple")
+DECISION_RULES = ("iso14253-1", "vda5", "simple")
 #: Where the shipped example stations live (package data of `scenarios`).
 STATIONS_PACKAGE = "scenarios.stations"
 #: The default station: the reference paper's bench.
@@ -304,7 +305,9 @@ class Tolerances(_Section):
     """An inspection's specification: the largest allowed mounting error per axis (None: the
     axis is not judged) and the decision rule. ``iso14253-1``: PASS only when the error plus its
     expanded uncertainty (``coverage_k`` sigma) is inside the limit, FAIL when the error minus
-    it is outside, otherwise inconclusive; ``simple``: the error alone against the limit.
+    it is outside, otherwise inconclusive; ``vda5``: VDA 5's acceptance, PASS only inside the
+    tolerance narrowed by that expanded uncertainty, otherwise FAIL; ``simple``: the error
+    alone against the limit.
     Example limits: the paper states none; its method's accuracy (0.2 deg, 4 mm) fits well
     inside these. y and z are not judged (the paper inspects orientation and horizontal
     position only)."""
@@ -315,7 +318,7 @@ class Tolerances(_Section):
     x_mm: Limit = 10.0
     y_mm: Limit = None
     z_mm: Limit = None
-    rule: Literal["iso14253-1", "simple"] = "iso14253-1"
+    rule: Literal["iso14253-1", "vda5", "simple"] = "iso14253-1"
     coverage_k: Positive = 2.0
     system_sigma: SystemSigma = SystemSigma()
 
@@ -336,6 +339,48 @@ class Twin(_Section):
     scene: Literal["bench", "lab"] = "bench"
 
 
+class LineUser(_Section):
+    """Someone who may log in to the line station (`aimbench station`): the web pages and, for
+    the PLC's account, OPC UA. ``password_scrypt``: the password's scrypt hash as `aimbench
+    station --hash-password` prints it (never the password itself)."""
+
+    name: Annotated[StrictStr, Field(min_length=1)]
+    role: Literal["operator", "engineer", "plc"]
+    password_scrypt: Annotated[StrictStr, Field(pattern=r"^scrypt\$")]
+
+
+class OpcUa(_Section):
+    """The station's OPC UA server for the line's PLC. ``anonymous``: anyone who reaches the
+    port may trigger inspections, no security policy (a closed cell network only); otherwise
+    users with the role ``plc`` log in by name and password over Basic256Sha256
+    SignAndEncrypt with the station's certificate (generated, self-signed, when the files
+    named here do not exist)."""
+
+    port: Annotated[StrictInt, Field(ge=1, le=65535)] = 4840
+    anonymous: StrictBool = True
+    certificate: StrictStr = "station-cert.der"
+    private_key: StrictStr = "station-key.pem"
+
+
+class Line(_Section):
+    """The line station (`aimbench station`, docs/station-line.md): the address its web pages,
+    HTTP/JSON endpoint and OPC UA server listen on (the machine itself unless named), the
+    web port, who may log in and as what, and the OPC UA server's security."""
+
+    address: StrictStr = "127.0.0.1"
+    port: Annotated[StrictInt, Field(ge=1, le=65535)] = 8080
+    users: tuple[LineUser, ...] = ()
+    opcua: OpcUa = OpcUa()
+
+    @model_validator(mode="after")
+    def _unique_users(self) -> Line:
+        names = [u.name for u in self.users]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"users named twice: {dup}")
+        return self
+
+
 class Station(_Section):
     """A bench, as the station file describes it (module docstring; docs/station.md)."""
 
@@ -348,6 +393,7 @@ class Station(_Section):
     tolerances: Tolerances = Tolerances()
     frame: StationFrame = StationFrame()
     twin: Twin = Twin()
+    line: Line = Line()
 
     # -- what the rest of aimbench takes (SI) -------------------------------------------------
     def board_spec(self) -> Any:
@@ -491,8 +537,10 @@ class Station(_Section):
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready, the form a run's configuration keeps (file paths resolved)."""
-        return self.model_dump(mode="json")
+        """JSON-ready, the form a run's configuration keeps (file paths resolved). Without the
+        line station's users: their password hashes belong in the station file only, not in
+        every record, the station's hash or the engineer's page."""
+        return self.model_dump(mode="json", exclude={"line": {"users"}})
 
 
 #: How far a unit's roll on the board may be from the station's nominal, 1 sigma, deg: wide

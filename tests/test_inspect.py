@@ -171,7 +171,8 @@ def test_a_units_own_range_errors_stated_by_the_station_keep_the_sigma_honest():
 def test_inspect_sim_records_reports_and_exports(tmp_path: Path):
     db = tmp_path / "line.sqlite"
     r = cli("inspect", "sim", "--unit", "VIN-1", "--tilt-deg", "2.5", "--seed", "3", "--db",
-            str(db), "--operator", "ann", "--report", "rep", "--json", cwd=tmp_path)
+            str(db), "--operator", "ann", "--report", "rep", "--json", "--batch", "lot-7",
+            cwd=tmp_path)
     assert r.returncode == 1, r.stderr  # FAIL
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["verdict"] == "fail" and out["record"] == 1 and out["scans"] == 10
@@ -214,6 +215,14 @@ def test_inspect_sim_records_reports_and_exports(tmp_path: Path):
     summary = cli("inspect", "--db", str(db), "--summary", "--report", "rep", cwd=tmp_path)
     assert summary.returncode == 0, summary.stderr
     assert "pass rate" in (tmp_path / "rep" / "summary.html").read_text()
+    # --summary prints without --report: the tally and each axis's capability
+    summary = cli("inspect", "--db", str(db), "--summary", "--batch", "lot-7", cwd=tmp_path)
+    assert summary.returncode == 0, summary.stderr
+    assert summary.stdout.startswith("1 inspections of 1 units: 0 PASS (0.0 %), 1 FAIL")
+    assert first["batch"] == "lot-7" and rows[1]["batch"] is None
+    # a batch that is not there is refused with the batches there are
+    grr = cli("grr", "--db", str(db), "--batch", "lot-8", cwd=tmp_path)
+    assert grr.returncode == 2 and "'lot-7' (1 records)" in grr.stderr, grr.stderr
 
 
 def test_bad_input_is_one_line_and_loses_nothing(tmp_path: Path):

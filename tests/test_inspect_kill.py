@@ -19,10 +19,14 @@ LINE = ["inspect", "sim", "--units", "6", "--seed", "4", "--scans", "3", "--max-
         "--db", "line.sqlite"]
 
 
-def start(tmp_path: Path) -> subprocess.Popen:
+def start(tmp_path: Path, ctrl_c: bool = False) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
+    # A shell's background job ignores SIGINT, and so would Python started from it: give the
+    # line Ctrl-C's default, as in a terminal.
+    reset = (lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)) if ctrl_c else None
     return subprocess.Popen([sys.executable, "-m", "scenarios.cli", *LINE], cwd=tmp_path,
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=reset)
 
 
 @pytest.mark.slow
@@ -51,6 +55,11 @@ def test_a_killed_line_keeps_exactly_its_units_and_resumes(tmp_path: Path):
     again = start(tmp_path)
     out, err = again.communicate(timeout=600)
     assert again.returncode == 0, err
+    # the final tally counts the whole line, those inspected now and before
+    tally = err.strip().splitlines()[-1]
+    assert tally.startswith("line 'sim-line seed 4 spread 1.3': 6 units "
+                            f"({6 - len(units)} inspected now, {len(units)} recorded before)")
+    assert "wrong PASS" in tally
     resumed = [line.split()[0] for line in out.splitlines()]
     assert not set(resumed) & set(units), "a unit was inspected twice"
     with Records.open(db) as rec:
@@ -64,3 +73,15 @@ def test_a_killed_line_keeps_exactly_its_units_and_resumes(tmp_path: Path):
     names = {Path(r["capture_path"]).name for r in rows}
     whole = {p.name for p in (tmp_path / "line.captures").glob("*.pcap")}
     assert whole == names
+
+
+@pytest.mark.slow
+def test_ctrl_c_says_how_to_go_on(tmp_path: Path):
+    proc = start(tmp_path, ctrl_c=True)
+    first = proc.stdout.readline()
+    assert first.startswith("sim4-0001"), proc.stderr.read()
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130
+    assert "run the same command again to inspect the rest" in err.strip().splitlines()[-1]
+    assert "Traceback" not in err

@@ -26,6 +26,7 @@ ALLOWED: dict[str, tuple[str, ...]] = {
     "models": (),
     "bench_fw": (),
     "scenarios": ("twin", "align", "models", "bench_fw"),
+    "scenarios.line": ("scenarios", "twin", "align", "models", "bench_fw"),
     "aimbench": ("scenarios.envs",),
 }
 PROJECT = ("twin", "align", "scenarios", "models", "bench_fw", "aimbench")
@@ -75,6 +76,9 @@ CONFINED: dict[str, tuple[str, ...]] = {
     "rerun": ("scenarios.recording",),
     "gymnasium": ("scenarios.envs",),
     "mujoco": ("twin.sim", "scenarios"),
+    # the line station's web framework and OPC UA server live in its own folder
+    "nicegui": ("scenarios.line",),
+    "asyncua": ("scenarios.line",),
 }
 
 

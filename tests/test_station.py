@@ -95,7 +95,7 @@ def test_the_paper_station_is_the_default_and_ships_installed():
     ("[sensor.network]\nport = 70000\n", "sensor.network.port: Input should be less than"),
     ("[stages]\nyaw_axis = 'X'\n", "x_axis and yaw_axis are both 'X'"),
     ("[stages]\nx_travel_mm = [10, 50]\n", "stages.x_travel_mm: [10, 50] must hold the bench"),
-    ("[tolerances]\nrule = 'loose'\n", "tolerances.rule: Input should be 'iso14253-1' or"),
+    ("[tolerances]\nrule = 'loose'\n", "tolerances.rule: Input should be 'iso14253-1', 'vda5' or"),
     ("board = 3\n", "board: must be a table"),
     ("[board\n", "is not valid TOML"),
     # issue 37: NaN and inf are refused in every float (a NaN mount angle hung the twin)

@@ -24,6 +24,15 @@ esac
 DEBS=(libusb-1.0-0 gcc-avr avr-libc arduino-core-avr libsimavr-dev libelf-dev pkg-config make g++
       libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0)
 
+# Only for the tests (the extra `test`: `tools/setup.sh test`, which `make test` runs):
+#   chromium chromium-driver           a real headless browser for the line station's pages
+#                                      (tests/test_line_station.py, Selenium with
+#                                      /usr/bin/chromedriver: no browser is downloaded)
+TEST_DEBS=(chromium chromium-driver)
+case ",$EXTRAS," in
+  *,test,*) DEBS+=("${TEST_DEBS[@]}") ;;
+esac
+
 PYTHON=${PYTHON:-}
 if [ -z "$PYTHON" ]; then
   for candidate in python3.11 python3.12 python3.13 python3; do

@@ -4,6 +4,8 @@
     aimbench grr --db line.sqlite [--batch NAME]       # from a real line's records
     aimbench grr --bias --twin --units 30 --db bias.sqlite   # bias across units (twin)
     aimbench grr --linearity --bench sim|serve|hw      # bias and linearity on the stages
+    aimbench grr --type1 --reference ref.toml --twin --db t1.sqlite   # Type-1 study (twin)
+    aimbench grr --type1 --reference ref.toml --db line.sqlite [--batch NAME]   # from records
 
 Gauge R&R: the AIAG crossed ANOVA (parts x appraisers or re-mountings x trials) per judged
 axis: EV, AV, GRR, PV with their 95 % intervals, %GRR against the station's tolerance (and
@@ -14,8 +16,12 @@ operators (``--operator``), each unit inspected by each operator the same number
 ``--bias --twin``: the error estimate - truth of n twin units, each with its own sensor: mean,
 spread, the chi-square of the estimator's sigma, and the measurement-system term the station
 file may state as ``[tolerances.system_sigma]``. ``--linearity``: AIAG bias and linearity of
-yaw and x against the stages' references. Studies on the twin are stored in ``--db`` and
-resume where they stopped.
+yaw and x against the stages' references. ``--type1 --reference FILE``: the Type-1 study
+of one reference part (FILE: ``unit = "ID"`` and a ``[reference]`` table of its calibrated
+mounting error, ``tilt_deg = 0.3``...) measured ``--repeats`` times (at least 25): per judged
+axis Cg = 0.2 T / 4 s and Cgk = (0.1 T - |bias|) / 2 s against the tolerance T = 2 x limit
+(capable: both >= 1.33), the bias with its t-test, and VDA 5's Q_MP = 2 U / T. Studies on the
+twin are stored in ``--db`` and resume where they stopped.
 """
 
 from __future__ import annotations
@@ -87,9 +93,14 @@ def run(args: argparse.Namespace) -> int:
     db = Path(args.db) if args.db else None
     if db is None:
         raise AimbenchError("give --db: the records to analyse (a twin study is stored there)")
-    if not args.bias:  # before a study runs or a record is read
+    if args.type1 and not args.reference:
+        raise AimbenchError("--type1 needs --reference FILE: the reference part's id and its "
+                            "calibrated mounting error (docs/inspection.md)")
+    if not (args.bias or args.type1):  # before a study runs or a record is read
         require("statsmodels", "the gauge R&R's ANOVA (aimbench grr)")
     with Records.open(db, create=args.twin) as records:
+        if args.type1:
+            return _type1(args, records)
         if args.bias:
             return _bias(args, records)
         if args.twin:
@@ -106,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
                 on_record=_progress(args))
         else:
             batch = args.batch
-        rows = records.rows("WHERE batch = ?", (batch,)) if batch else records.rows()
+        rows = _batch_rows(records, batch)
         station = _station_of(args, rows)
         results = grr_report(rows, station, args.confidence, args.seed)
     if args.json:
@@ -116,6 +127,80 @@ def run(args: argparse.Namespace) -> int:
         for line in grr_lines(results):
             print(line)
     return 0
+
+
+def _batch_rows(records: Records, batch: str | None) -> list[dict]:
+    """The records of a batch (all without one); a batch with no record is an error that
+    lists the batches there are."""
+    if not batch:
+        return records.rows()
+    rows = records.rows("WHERE batch = ?", (batch,))
+    if not rows:
+        there = records.batches()
+        listed = "; ".join(f"{b!r} ({n} records)" for b, n in there.items()) or "none"
+        raise AimbenchError(f"no records of batch {batch!r} in {records.path}; its batches: "
+                            f"{listed}")
+    return rows
+
+
+def _type1(args: argparse.Namespace, records: Records) -> int:
+    from scenarios.inspection import msa, studies
+    from scenarios.inspection.verdict import VDA5_QMP_MAX, q_mp, system_sigma_si
+
+    unit, reference = studies.read_reference(args.reference)
+    repeats = args.repeats if args.repeats is not None else msa.TYPE1_MIN_N
+    if repeats < msa.TYPE1_MIN_N:
+        raise AimbenchError(f"--repeats {repeats}: a Type-1 study takes at least "
+                            f"{msa.TYPE1_MIN_N} repeats of the reference part (50 preferred)")
+    if args.twin:
+        station = stations.from_args(args, twin=True)[0]
+        batch = studies.run_type1_twin(station, records, unit=unit, reference=reference,
+                                       repeats=repeats, seed=args.seed, scans=args.scans,
+                                       sensor_errors=not args.no_sensor_errors,
+                                       on_record=_progress(args))
+        rows = _batch_rows(records, batch)
+    else:
+        batch = args.batch
+        rows = [r for r in _batch_rows(records, batch) if r["unit"] == unit]
+        if not rows:
+            raise AimbenchError(f"no records of the reference part {unit!r} in {records.path}"
+                                + (f" batch {batch!r}" if batch else "") + "; inspect it with "
+                                f"--unit {unit} at least {msa.TYPE1_MIN_N} times")
+        station = _station_of(args, rows)
+    tol = station.tolerances
+    system = system_sigma_si(tol)
+    results, qmp = [], {}
+    for axis, lim in limits_si(tol).items():
+        x = studies.type1_data(rows, axis)
+        if len(x) < msa.TYPE1_MIN_N:
+            raise AimbenchError(f"{len(x)} measurements of {unit} with a pose; a Type-1 study "
+                                f"takes at least {msa.TYPE1_MIN_N}")
+        key, s = edge_key(axis), EDGE_SCALE[axis]
+        res = msa.type1(x, reference[key], 2 * lim * s, key, EDGE_UNIT[axis])
+        results.append(res)
+        # the measurement process's u: the gauge's repeatability and bias (from this study)
+        # with the station's stated system term, in quadrature (VDA 5's U_MP, simplified)
+        u = (res.sd ** 2 + res.bias ** 2 + (system[axis] * s) ** 2) ** 0.5
+        qmp[key] = q_mp(u, lim * s, tol.coverage_k)
+    if args.json:
+        print(json.dumps({"batch": batch, "unit": unit, "station": station.name,
+                          "axes": [{**r.to_dict(), "q_mp": qmp[r.axis]} for r in results]}))
+        return 0
+    print(f"Type-1 study of {unit} ({results[0].n if results else 0} repeats; Cg = "
+          f"{msa.TYPE1_PCT:g} % T / {msa.TYPE1_SIGMAS:g} s, capable when Cg and Cgk >= "
+          f"{msa.TYPE1_MIN_C}; bias t-test two-sided, alpha 0.05)")
+    print(f"{'axis':<10}{'reference':>10}{'mean':>10}{'s':>9}{'bias':>10}{'t':>8}{'p':>8}"
+          f"{'Cg':>7}{'Cgk':>7}{'Q_MP':>7}  verdict")
+    for r in results:
+        verdict = "capable" if r.capable else "NOT capable"
+        if r.bias_significant:
+            verdict += ", bias significant"
+        if qmp[r.axis] > VDA5_QMP_MAX:
+            verdict += f", Q_MP over {100 * VDA5_QMP_MAX:g} %"
+        print(f"{r.axis:<10}{r.reference:>+10.3f}{r.mean:>+10.3f}{r.sd:>9.4f}{r.bias:>+10.4f}"
+              f"{r.t:>8.2f}{r.p:>8.3f}{r.cg:>7.2f}{r.cgk:>7.2f}{100 * qmp[r.axis]:>6.1f}%  "
+              f"{verdict}")
+    return 0 if all(r.capable for r in results) else 1
 
 
 def _progress(args: argparse.Namespace) -> Any:
@@ -172,7 +257,7 @@ def _linearity(args: argparse.Namespace) -> int:
     xs = [float(v) for v in args.x_refs_mm.split(",")]
     with bench:
         data = studies.run_linearity(bench, station, yaw_deg=yaw, x_mm=xs,
-                                     repeats=args.repeats, scans=args.scans,
+                                     repeats=args.repeats or 3, scans=args.scans,
                                      progress=True)  # on stderr: --json's stdout stays JSON
     results = [msa.linearity(*data[a], edge_key(a), EDGE_UNIT[a], args.confidence)
                for a in ("yaw", "x") if len(data[a][0]) > 2]
@@ -231,8 +316,14 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="--linearity: rotation stage references, deg")
     p.add_argument("--x-refs-mm", default="-15,-7.5,0,7.5,15",
                    help="--linearity: linear stage references, mm")
-    p.add_argument("--repeats", type=cliargs.positive_int, default=3,
-                   help="--linearity: measurements each")
+    p.add_argument("--repeats", type=cliargs.positive_int, default=None,
+                   help="--linearity: measurements at each reference (default 3); --type1: "
+                        "repeats of the reference part (default and least 25)")
+    p.add_argument("--type1", action="store_true",
+                   help="Type-1 gauge study of a reference part (Cg, Cgk, bias; with "
+                        "--reference)")
+    p.add_argument("--reference", metavar="FILE",
+                   help="--type1: the reference part (TOML: unit and its [reference] errors)")
     p.add_argument("--json", action="store_true", help="one JSON object")
     p.set_defaults(func=run)
     return p

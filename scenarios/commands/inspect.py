@@ -14,7 +14,12 @@ and only then prints the verdict. Exit status: 0 PASS, 1 FAIL, 3 INCONCLUSIVE, 2
     aimbench inspect udp://0.0.0.0:2368 --station my-line.toml --unit VIN124 --db line.sqlite
     aimbench inspect sim --units 200 --seed 7 --db line.sqlite   # a simulated line (resumable)
     aimbench inspect --db line.sqlite --list | --show 12 | --export line.parquet
-    aimbench inspect --db line.sqlite --summary --report reports/
+    aimbench inspect --db line.sqlite --summary [--report reports/]   # + --batch NAME
+
+``--batch NAME`` files the records under a batch (a shift, a lot, a study), which
+``aimbench grr --batch NAME`` and ``--summary --batch NAME`` read back. A simulated line
+without ``--batch`` is filed under its seed and spread. Ctrl-C stops after saying which units
+have records and how to go on.
 """
 
 from __future__ import annotations
@@ -106,6 +111,25 @@ def _one(args: argparse.Namespace, records: rec_mod.Records, station: Any, unit:
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except KeyboardInterrupt:
+        print(f"aimbench inspect: {_interrupted(args)}", file=sys.stderr, flush=True)
+        return 130
+
+
+def _interrupted(args: argparse.Namespace) -> str:
+    """What Ctrl-C leaves and how to go on (a unit without a verdict has no record)."""
+    if args.units is not None:
+        return ("interrupted: every unit reported above has its record; run the same command "
+                "again to inspect the rest (recorded units are skipped)")
+    if args.unit:
+        return (f"interrupted: unit {args.unit} has no record (nothing half-written); inspect "
+                "it again with the same command")
+    return "interrupted"
+
+
+def _run(args: argparse.Namespace) -> int:
     db = Path(args.db)
     if args.list or args.show or args.export or args.summary:
         return _browse(args, db)
@@ -140,29 +164,62 @@ def run(args: argparse.Namespace) -> int:
             if args.units is None:
                 seed = args.seed if args.seed is not None else unit_seed(args.unit)
                 insp, _ = _one(args, records, station, args.unit, source, misalignment,
-                               seed, None, calibration, cal_file, live)
+                               seed, args.batch, calibration, cal_file, live)
                 return EXIT[insp.verdict]
             if misalignment:
                 raise AimbenchError("a simulated line draws each unit's misalignment: give "
                                     "--units without --roll-deg .. --z-mm")
             line_seed = args.seed or 0
-            batch = f"sim-line seed {line_seed} spread {args.spread:g}"
+            batch = args.batch or f"sim-line seed {line_seed} spread {args.spread:g}"
             done = records.units_of_batch(batch)
+            new = 0
             for u in line_units(station, args.units, line_seed, args.spread):
                 if u.name in done:
                     continue
                 _one(args, records, station, u.name, "sim", u.misalignment, u.seed, batch,
                      calibration, cal_file, live)
+                new += 1
+            if not args.json:
+                _tally(records, batch, new)
             return 0
     finally:
         if live is not None:
             live.close()
 
 
+def _tally(records: rec_mod.Records, batch: str, new: int) -> None:
+    """The simulated line's final tally: its verdicts, and against the twin's truth the
+    wrong ones (a PASS of a unit truly out, a FAIL of a unit truly in)."""
+    rows = records.rows("WHERE batch = ?", (batch,))
+    counts = {v: sum(r["verdict"] == v for r in rows) for v in ("pass", "fail", "inconclusive")}
+    wrong_pass = wrong_fail = 0
+    for r in rows:
+        true = [r[f"true_{a}"] for a in rec_mod.AXES if r[f"limit_{a}"] is not None]
+        lims = [r[f"limit_{a}"] for a in rec_mod.AXES if r[f"limit_{a}"] is not None]
+        if not lims or any(t is None for t in true):
+            continue
+        inside = all(abs(t) <= lim for t, lim in zip(true, lims, strict=True))
+        wrong_pass += r["verdict"] == "pass" and not inside
+        wrong_fail += r["verdict"] == "fail" and inside
+    n = len(rows)
+    print(f"line {batch!r}: {n} units ({new} inspected now, {n - new} recorded before): "
+          + ", ".join(f"{counts[v]} {v.upper()} ({100 * counts[v] / max(n, 1):.1f} %)"
+                      for v in counts)
+          + f"; against the twin's truth {wrong_pass} wrong PASS, {wrong_fail} wrong FAIL",
+          file=sys.stderr)
+
+
 def _browse(args: argparse.Namespace, db: Path) -> int:
     with rec_mod.Records.open(db) as records:
+        rows = records.rows()
+        if args.batch:
+            rows = [r for r in rows if r["batch"] == args.batch]
+            if not rows:
+                there = "; ".join(f"{b!r} ({n} records)" for b, n in records.batches().items())
+                raise AimbenchError(f"no records of batch {args.batch!r} in {db}; its "
+                                    f"batches: {there or 'none'}")
         if args.list:
-            for line in list_lines(records.rows()):
+            for line in list_lines(rows):
                 print(line)
         if args.show:
             row = records.get(args.show)
@@ -175,12 +232,19 @@ def _browse(args: argparse.Namespace, db: Path) -> int:
             path = records.export(args.export)
             print(f"wrote {path} ({records.count()} records)", file=sys.stderr)
         if args.summary:
-            if not args.report:
-                raise AimbenchError("--summary writes the line's summary into --report DIR")
-            from scenarios.inspection.report import line_summary
+            from scenarios.inspection import spc
 
-            page = line_summary(records.rows(), Path(args.report))
-            print(f"wrote {page}", file=sys.stderr)
+            if args.json:
+                print(json.dumps({"batch": args.batch, "records": len(rows),
+                                  "axes": [a.to_dict() for a in spc.line_spc(rows)]}))
+            else:
+                for line in spc.summary_lines(rows):
+                    print(line)
+            if args.report:
+                from scenarios.inspection.report import line_summary
+
+                page = line_summary(rows, Path(args.report))
+                print(f"wrote {page}", file=sys.stderr)
     return 0
 
 
@@ -243,6 +307,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="most scans an automatic re-measure may reach (default 3 x --scans; "
                         "= --scans: no re-measure)")
     p.add_argument("--operator", default=None, help="who inspects (kept in the record)")
+    p.add_argument("--batch", default=None, metavar="NAME",
+                   help="file the records under this batch (a lot, a shift; grr --batch reads "
+                        "it); with --list/--summary: only this batch's records")
     p.add_argument("--report", default=None, metavar="DIR",
                    help="write the unit's one-page report (HTML and PNG) into DIR")
     p.add_argument("--json", action="store_true", help="one JSON object per unit")
@@ -276,8 +343,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     browse.add_argument("--show", metavar="ID", help="one record (an id, or a unit's latest)")
     browse.add_argument("--export", metavar="FILE", help="every record to FILE (.csv, .parquet)")
     browse.add_argument("--summary", action="store_true",
-                        help="the line's summary (pass rate, histograms, control charts) into "
-                             "--report DIR")
+                        help="the line's summary: the tally, and per axis Cp/Cpk/Pp/Ppk and "
+                             "the run rules broken; with --report DIR also the page "
+                             "(histograms, control charts)")
     p.add_argument("--rerun", action="store_true",
                    help="show the inspection live in rerun (the board, the points, the "
                         "estimated and nominal frames, the verdict)")

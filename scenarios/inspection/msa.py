@@ -314,3 +314,79 @@ def linearity(reference: np.ndarray, measured: np.ndarray, axis: str, unit: str,
                      float(fit.intercept), (fit.intercept - q * fit.intercept_stderr,
                                             fit.intercept + q * fit.intercept_stderr),
                      p_int, float(fit.rvalue ** 2))
+
+
+# -- the Type-1 gauge study ------------------------------------------------------------------
+
+#: The Type-1 study's conventions (Bosch booklet 10, VDA 5, Minitab's defaults but L): the
+#: gauge may use K = 20 % of the tolerance, its spread counted as L = 4 standard deviations
+#: (+-2 s), and it is capable when Cg and Cgk are both at least 1.33.
+TYPE1_PCT = 20.0
+TYPE1_SIGMAS = 4.0
+TYPE1_MIN_C = 1.33
+#: The fewest repeats of the reference part a Type-1 study accepts (50 preferred).
+TYPE1_MIN_N = 25
+
+
+@dataclass
+class Type1:
+    """A Type-1 gauge study of one characteristic: n repeats of a reference part.
+
+    Cg = (K/100 T) / (L s); Cgk = (K/200 T - |bias|) / (L/2 s), bias = mean - reference, its
+    t = bias / (s / sqrt n) against Student's t with n - 1 degrees of freedom (two-sided p).
+    """
+
+    axis: str
+    unit: str
+    n: int
+    reference: float
+    tolerance: float
+    mean: float
+    sd: float
+    bias: float
+    t: float
+    p: float
+    cg: float
+    cgk: float
+    pct: float = TYPE1_PCT
+    sigmas: float = TYPE1_SIGMAS
+    alpha: float = 0.05
+
+    @property
+    def capable(self) -> bool:
+        return self.cg >= TYPE1_MIN_C and self.cgk >= TYPE1_MIN_C
+
+    @property
+    def bias_significant(self) -> bool:
+        return self.p < self.alpha
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**self.__dict__, "capable": self.capable,
+                "bias_significant": self.bias_significant}
+
+
+def type1(values: np.ndarray, reference: float, tolerance: float, axis: str, unit: str,
+          pct: float = TYPE1_PCT, sigmas: float = TYPE1_SIGMAS, alpha: float = 0.05) -> Type1:
+    """The Type-1 study of `values` (repeats of a part whose true value is `reference`)
+    against a tolerance of width `tolerance` (USL - LSL), all in one unit."""
+    x = np.asarray(values, float)
+    x = x[np.isfinite(x)]
+    n = len(x)
+    if n < 2:
+        raise ValueError("a Type-1 study needs at least two measurements")
+    if not tolerance > 0:
+        raise ValueError(f"the tolerance's width must be positive, not {tolerance}")
+    mean, sd = float(x.mean()), float(x.std(ddof=1))
+    bias = mean - float(reference)
+    if sd > 0:
+        t = bias / (sd / math.sqrt(n))
+        p = float(2 * stats.t.sf(abs(t), n - 1))
+        cg = pct / 100 * tolerance / (sigmas * sd)
+        cgk = (pct / 200 * tolerance - abs(bias)) / (sigmas / 2 * sd)
+    else:  # a gauge that reads the same every time: only its bias can be judged
+        t = math.inf if bias else 0.0
+        p = 0.0 if bias else 1.0
+        cg = math.inf
+        cgk = math.inf if abs(bias) <= pct / 200 * tolerance else -math.inf
+    return Type1(axis, unit, n, float(reference), float(tolerance), mean, sd, bias, float(t),
+                 p, float(cg), float(cgk), pct, sigmas, alpha)

@@ -95,6 +95,10 @@ CREATE TABLE inspection (
 CREATE INDEX inspection_batch ON inspection (batch, unit);
 """
 _TABLES = {"meta", "inspection"}
+#: The line station's audit trail: every trigger, refusal, login, change and recovery.
+_AUDIT_SCHEMA = """CREATE TABLE IF NOT EXISTS audit (
+    id INTEGER PRIMARY KEY, at REAL NOT NULL, who TEXT, role TEXT, action TEXT NOT NULL,
+    detail TEXT NOT NULL CHECK (json_valid(detail)))"""
 _TEMP_SUFFIX = ".creating-"
 
 
@@ -362,6 +366,31 @@ class Records:
             raise
         self.conn.execute("COMMIT")
 
+    # -- the audit trail (the line station's) --------------------------------------------------
+
+    def ensure_audit(self) -> None:
+        """Create the audit table if this store has none (a store made by `inspect` gets one
+        the first time a line station opens it; `check` does not ask for it)."""
+        self.conn.execute(_AUDIT_SCHEMA)
+
+    def audit(self, who: str | None, role: str | None, action: str,
+              detail: dict[str, Any] | None = None) -> int:
+        """Commit one entry of the audit trail (who did what, when); returns its id."""
+        with self._tx() as conn:
+            cur = conn.execute(
+                "INSERT INTO audit (at, who, role, action, detail) VALUES (?, ?, ?, ?, ?)",
+                (time.time(), who, role, action, dumps(detail or {})))
+        return int(cur.lastrowid)
+
+    def audit_rows(self, limit: int = 200) -> list[dict[str, Any]]:
+        """The latest entries of the audit trail, newest first."""
+        out = []
+        for r in self.conn.execute("SELECT * FROM audit ORDER BY id DESC LIMIT ?", (limit,)):
+            d = dict(r)
+            d["detail"] = json.loads(d["detail"]) if d["detail"] else {}
+            out.append(d)
+        return out
+
     # -- reading ---------------------------------------------------------------------------
 
     def count(self) -> int:
@@ -370,6 +399,12 @@ class Records:
     def units_of_batch(self, batch: str) -> set[str]:
         return {r[0] for r in self.conn.execute(
             "SELECT unit FROM inspection WHERE batch = ?", (batch,))}
+
+    def batches(self) -> dict[str, int]:
+        """Each batch's name and its number of records, oldest first."""
+        return {r[0]: int(r[1]) for r in self.conn.execute(
+            "SELECT batch, COUNT(*) FROM inspection WHERE batch IS NOT NULL GROUP BY batch "
+            "ORDER BY MIN(id)")}
 
     def rows(self, where: str = "", params: tuple = ()) -> list[dict[str, Any]]:
         """Records as dicts (SI, JSON decoded), in the order they were made."""

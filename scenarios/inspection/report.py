@@ -256,13 +256,15 @@ def unit_report(row: dict, insp: Any, folder: Path) -> Path:
 # -- the line ----------------------------------------------------------------------------------
 
 def control_limits(values: np.ndarray) -> tuple[float, float, float]:
-    """Individuals chart: (centre, lower, upper) control limits, mean -+ 3 MR/1.128."""
+    """Individuals chart: (centre, lower, upper) control limits, mean -+ 3 MR/1.128 (`spc`)."""
+    from scenarios.inspection import spc
+
     v = np.asarray(values, float)
     centre = float(v.mean())
     if len(v) < 2:
         return centre, centre, centre
-    sigma = float(np.abs(np.diff(v)).mean() / 1.128)
-    return centre, centre - 3 * sigma, centre + 3 * sigma
+    chart = spc.imr_chart(v)
+    return chart.center, chart.lcl, chart.ucl
 
 
 def line_summary(rows: list[dict], folder: Path) -> Path:

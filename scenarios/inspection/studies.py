@@ -193,3 +193,68 @@ def run_linearity(bench: Any, station: Any, *, yaw_deg: list[float], x_mm: list[
                 out[axis][1].append(float(err[i] * EDGE_SCALE[axis]))
     bench.move_to(x_m=0.0, yaw_rad=0.0)
     return out
+
+
+def read_reference(path: str) -> tuple[str, dict[str, float]]:
+    """A Type-1 study's reference part (TOML): ``unit = "REF-1"`` and a ``[reference]`` table
+    of its calibrated mounting error per axis in edge units (``tilt_deg = 0.3``...); axes left
+    out are 0. Returns (unit, {edge key: value})."""
+    import tomllib
+    from pathlib import Path
+
+    keys = [edge_key(a) for a in AXES]
+    try:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise StudyError(f"no reference file {path}; write a TOML file with unit = \"ID\" and "
+                         "a [reference] table (tilt_deg = ..., x_mm = ...)") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise StudyError(f"{path} is not a readable TOML reference file: {exc}") from None
+    ref = data.get("reference", {})
+    if not isinstance(ref, dict):
+        raise StudyError(f"{path}: [reference] must be a table of {', '.join(keys)}")
+    unknown = sorted(set(ref) - set(keys)) + sorted(set(data) - {"unit", "reference"})
+    if unknown:
+        raise StudyError(f"{path}: unknown keys {unknown}; the file has unit = \"ID\" and a "
+                         f"[reference] table of {', '.join(keys)}")
+    bad = [k for k, v in ref.items() if not isinstance(v, int | float) or isinstance(v, bool)]
+    if bad:
+        raise StudyError(f"{path}: reference values must be numbers ({', '.join(bad)})")
+    unit = data.get("unit", "REF")
+    if not isinstance(unit, str) or not unit:
+        raise StudyError(f"{path}: unit must be the reference part's id (a string)")
+    return unit, {k: float(ref.get(k, 0.0)) for k in keys}
+
+
+def run_type1_twin(station: Any, records: Records, *, unit: str, reference: dict[str, float],
+                   repeats: int, seed: int = 0, scans: int = 10, sensor_errors: bool = True,
+                   on_record: Callable[[Any, int], None] | None = None) -> str:
+    """Type-1 study on the twin: one reference part (its mounting error `reference`, edge
+    units; its own sensor from `seed`) measured `repeats` times, left in place (new scans
+    each time). Resumes; returns the batch name."""
+    batch = f"type1 twin {unit} seed {seed} scans {scans}" + (
+        "" if sensor_errors else " ideal sensor")
+    done = sum(r["status"] == "ok" for r in records.rows("WHERE batch = ?", (batch,)))
+    tried = len(records.rows("WHERE batch = ?", (batch,)))
+    while done < repeats and tried < 2 * repeats:
+        started = time.time()
+        acq = TwinAcquisition(station, reference, seed=seed, sensor_errors=sensor_errors,
+                              noise_seed=int(np.random.default_rng(
+                                  (int(seed), tried, 11)).integers(2**31)))
+        with acq:
+            insp = inspect_unit(acq, station, unit, scans=scans, max_scans=scans)
+        rid, _ = records.add(record_row(
+            insp, station=station, operator="type1", source="sim", capture=None,
+            capture_sha256=None, sensor=acq.sensor, calibration={}, started_at=started,
+            batch=batch))
+        tried += 1
+        done += insp.status == "ok"
+        if on_record is not None:
+            on_record(insp, rid)
+    return batch
+
+
+def type1_data(rows: list[dict], axis: str) -> np.ndarray:
+    """One axis's measured errors (edge units) of the records with a pose, in their order."""
+    return np.array([r[f"err_{axis}"] * EDGE_SCALE[axis] for r in rows
+                     if r["status"] == "ok" and r[f"err_{axis}"] is not None])

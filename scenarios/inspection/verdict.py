@@ -12,6 +12,13 @@ symmetric limit L on an error e:
     FAIL          |e| - U >  L
     INCONCLUSIVE  otherwise (re-measure with more scans, then a person decides)
 
+``vda5`` is VDA 5's acceptance (VDA Volume 5, Capability of Measurement Processes, 2nd ed.
+2010, chapter 8): the tolerance narrowed by the expanded uncertainty on each side is the
+acceptance zone, and a line accepts a unit only there; outside it the unit is rejected (there
+is no third outcome to hand to a person): PASS when |e| + U <= L, else FAIL. It takes the
+same U as ISO 14253-1's rule; VDA 5 also asks the measurement process itself to be suitable,
+Q_MP = 2 U / T <= 30 % with T = 2 L the tolerance's width (`q_mp`).
+
 ``simple`` is the shared-risk rule (no guard band): PASS when |e| <= L, else FAIL. The
 standard uncertainty u of an axis is the estimator's sigma combined in quadrature with the
 station's stated measurement-system term (``tolerances.system_sigma``), the same for every unit.
@@ -34,8 +41,12 @@ EDGE_SCALE = {"x": 1e3, "y": 1e3, "z": 1e3, "roll": 180.0 / math.pi, "tilt": 180
 RULE_TEXT = {
     "iso14253-1": ("ISO 14253-1 guard bands: PASS when |error| + U <= limit, FAIL when "
                    "|error| - U > limit, otherwise INCONCLUSIVE (U = k u)"),
+    "vda5": ("VDA 5 acceptance: the tolerance narrowed by U; PASS when |error| + U <= limit, "
+             "otherwise FAIL (U = k u)"),
     "simple": "simple acceptance (no guard band): PASS when |error| <= limit, otherwise FAIL",
 }
+#: VDA 5's largest ratio Q_MP = 2 U / T of a suitable measurement process.
+VDA5_QMP_MAX = 0.30
 
 
 class Verdict(enum.StrEnum):
@@ -87,13 +98,22 @@ def judge(error: float, u: float, limit: float, rule: str = "iso14253-1",
     if rule == "simple":
         return Verdict.PASS if abs(error) <= limit else Verdict.FAIL
     if not math.isfinite(u) or not math.isfinite(error):
-        return Verdict.INCONCLUSIVE
+        # nothing proven: VDA 5 accepts only what is proven inside, ISO 14253-1 hands it on
+        return Verdict.FAIL if rule == "vda5" else Verdict.INCONCLUSIVE
     big_u = k * u
     if abs(error) + big_u <= limit:
         return Verdict.PASS
+    if rule == "vda5":
+        return Verdict.FAIL
     if abs(error) - big_u > limit:
         return Verdict.FAIL
     return Verdict.INCONCLUSIVE
+
+
+def q_mp(u: float, limit: float, k: float = 2.0) -> float:
+    """VDA 5's capability ratio of the measurement process, 2 U / T with T = 2 x limit: at most
+    `VDA5_QMP_MAX` for a process fit to judge this tolerance."""
+    return 2 * k * u / (2 * limit)
 
 
 def judge_axis(axis: str, error: float, u_estimator: float, u_system: float, limit: float,

@@ -1,0 +1,82 @@
+"""The Type-1 gauge study (msa.type1, `aimbench grr --type1`) and VDA 5's acceptance rule."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from scenarios.inspection import msa
+from scenarios.inspection.verdict import Verdict, judge, q_mp
+
+
+def test_type1_figures_by_hand():
+    """25 readings of a reference part of 10.000 in a tolerance 9.9..10.1 (T = 0.2): the
+    readings 10.000 +- 0.004 alternating, one at 10.006, so every figure is exact by hand:
+    mean = 10.000 + 0.006/25 = 10.00024; Cg = 0.2 x 0.2 / (4 s); Cgk = (0.1 x 0.2 - |bias|)
+    / (2 s); t = bias / (s / 5)."""
+    x = np.array([10.004, 9.996] * 12 + [10.006])
+    r = msa.type1(x, 10.0, 0.2, "x_mm", "mm")
+    s = x.std(ddof=1)
+    assert r.n == 25 and r.mean == pytest.approx(10.00024, abs=1e-12)
+    assert r.bias == pytest.approx(0.00024, abs=1e-12)
+    assert r.cg == pytest.approx(0.04 / (4 * s))
+    assert r.cgk == pytest.approx((0.02 - 0.00024) / (2 * s))
+    assert r.t == pytest.approx(0.00024 / (s / 5))
+    assert r.p == pytest.approx(2 * stats.t.sf(r.t, 24))
+    assert r.capable == (r.cg >= 1.33 and r.cgk >= 1.33)
+    assert not r.bias_significant
+    # a gauge that reads 0.006 high everywhere: capable spread, significant bias, lower Cgk
+    b = msa.type1(x + 0.006, 10.0, 0.2, "x_mm", "mm")
+    assert b.cg == pytest.approx(r.cg) and b.cgk < r.cgk and b.bias_significant
+    with pytest.raises(ValueError, match="tolerance"):
+        msa.type1(x, 10.0, 0.0, "x_mm", "mm")
+
+
+@pytest.mark.parametrize(("error", "u", "iso", "vda"), [
+    (0.5, 0.1, Verdict.PASS, Verdict.PASS),          # 0.5 + 0.2 <= 1: proven inside
+    (0.9, 0.1, Verdict.INCONCLUSIVE, Verdict.FAIL),  # inside, but not by U: VDA 5 rejects
+    (1.1, 0.1, Verdict.INCONCLUSIVE, Verdict.FAIL),
+    (1.3, 0.1, Verdict.FAIL, Verdict.FAIL),          # proven outside
+    (0.1, math.inf, Verdict.INCONCLUSIVE, Verdict.FAIL),
+])
+def test_vda5_accepts_only_inside_the_narrowed_tolerance(error, u, iso, vda):
+    assert judge(error, u, 1.0, "iso14253-1", 2.0) == iso
+    assert judge(error, u, 1.0, "vda5", 2.0) == vda
+    assert q_mp(0.075, 1.0, 2.0) == pytest.approx(0.15)  # 2 U / T = 2 x 0.15 / 2
+
+
+@pytest.mark.slow
+def test_grr_type1_on_the_twin_and_from_its_records(tmp_path, capsys):
+    """25 repeats of a twin reference part (1 scan each, an ideal sensor: about 20 s), then
+    the same study read back from the records by its batch; a wrong batch lists the batches."""
+    from scenarios.cli import main
+
+    ref = tmp_path / "ref.toml"
+    ref.write_text('unit = "REF-1"\n[reference]\ntilt_deg = 0.3\nyaw_deg = -0.2\n'
+                   'x_mm = 2.0\n', encoding="utf-8")
+    db = str(tmp_path / "t1.sqlite")
+    code = main(["grr", "--type1", "--reference", str(ref), "--twin", "--db", db,
+                 "--scans", "1", "--no-sensor-errors", "--json"])
+    twin = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code in (0, 1)
+    axes = {a["axis"]: a for a in twin["axes"]}
+    assert set(axes) == {"roll_deg", "tilt_deg", "yaw_deg", "x_mm"}
+    assert all(a["n"] == 25 for a in axes.values())
+    assert axes["tilt_deg"]["reference"] == 0.3 and axes["roll_deg"]["reference"] == 0.0
+    # an ideal sensor: the twin's estimate is unbiased, so the mean is near the reference
+    for a in axes.values():
+        assert abs(a["bias"]) < 4 * a["sd"] / math.sqrt(a["n"]) + 1e-9, a
+
+    assert main(["grr", "--type1", "--reference", str(ref), "--db", db, "--batch",
+                 twin["batch"], "--json"]) == code
+    again = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert again["axes"] == twin["axes"]
+
+    assert main(["grr", "--type1", "--reference", str(ref), "--db", db, "--batch",
+                 "nope"]) == 2
+    err = capsys.readouterr().err
+    assert "no records of batch 'nope'" in err and twin["batch"] in err and "25 records" in err
