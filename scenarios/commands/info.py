@@ -19,6 +19,7 @@ from twin.core.errors import AimbenchError
 from twin.core.scan import Scan
 from twin.core.sensors import MODELS, model_named
 from twin.lidar.calibration_file import read_calibration_file
+from twin.lidar.conventions import CONVENTIONS
 from twin.lidar.sources import ScanSource, open_scans
 
 SOURCE_HELP = ("a capture (.pcap/.pcapng), the live sensor (udp://HOST:PORT, e.g. "
@@ -103,6 +104,10 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
                         "velodyne_decoder do)")
     p.add_argument("--no-vertical-offsets", action="store_true",
                    help="do not add the lasers' vertical offsets to z")
+    p.add_argument("--cloud-convention", choices=tuple(CONVENTIONS), default=None,
+                   help="the driver that wrote a point cloud (how it turned each laser's "
+                        "point; docs/vlp16.md): default, told from the cloud's fields, else "
+                        "from its points")
     add_sensor_arguments(p)
 
 
@@ -143,6 +148,7 @@ def decode_options(args: argparse.Namespace, station: Any = None) -> dict:
         "cut_azimuth": None if args.cut_at_start else math.radians(args.cut_azimuth_deg),
         "split": args.split,
         "vertical_offsets": not args.no_vertical_offsets,
+        "cloud_convention": getattr(args, "cloud_convention", None),
         **sensor_options(args, station),
     }
 
@@ -166,6 +172,11 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: How a cloud's driver convention was told, as `info` says it.
+_TOLD = {"fields": "told by the cloud's fields", "points": "told from the points",
+         "option": "given by --cloud-convention"}
+
+
 def format_summary(s: dict) -> str:
     """The summary as aligned lines of text, for whichever kind of source it came from."""
     kind = s.get("kind", "pcap")
@@ -182,6 +193,8 @@ def format_summary(s: dict) -> str:
                        f"{s['rebuilt_misses']} misses rebuilt from the firing grid"),
             ("vertical offsets", "in the points' z" if s["vertical_offsets"] else
              "not applied (as the ROS driver writes)"),
+            ("convention", f"{s.get('cloud_convention') or '-'} "
+                           f"({_TOLD.get(s.get('cloud_convention_from'), 'given')})"),
         ]
         return "\n".join(f"{k:17s} {v}" for k, v in lines)
     lines += [

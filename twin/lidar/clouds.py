@@ -169,7 +169,13 @@ def scan_from_cloud(
         anchor = pts.block_azimuth.astype(np.float64) % TWO_PI
     else:
         pts.block_azimuth = None
-        anchor = pts.azimuth - lasers.azimuth_offset[pts.laser] - step0 * drv[pts.laser]
+    # The rotation the driver put in each point, share of a step (nebula's VLP-32 decoder puts
+    # none in the last block of each packet).
+    rot = drv[pts.laser]
+    if pts.block_azimuth is None and conv.name == "nebula" and lasers.n_lasers == 32:
+        rot = _nebula_last_blocks(pts, drv, lasers, step0)
+    if pts.block_azimuth is None:
+        anchor = pts.azimuth - lasers.azimuth_offset[pts.laser] - step0 * rot
     seq_az, seq_index, slot_seq, step, partial, unfilled = _sequences(pts, anchor, step0)
     n_seq = int(seq_index[-1]) + 1
     nl = lasers.n_lasers
@@ -201,7 +207,7 @@ def scan_from_cloud(
                   + lasers.azimuth_offset[kept_lid])
         dturn = (target - pts.azimuth[keep] + math.pi) % TWO_PI - math.pi
     else:
-        dturn = (true - drv)[pts.laser[keep]] * step
+        dturn = (true[pts.laser[keep]] - rot[keep]) * step
     azimuth[at] = (pts.azimuth[keep] + dturn) % TWO_PI
     for name in ("distance", "z"):
         arrays[name][at] = getattr(pts, name)[keep]
@@ -371,6 +377,30 @@ def _convention(cloud: Cloud, given: str | CloudConvention | None, pts: _Points,
                             pts.laser, step0, lasers.n_lasers) for _, rot in candidates]
     best = int(np.argmin(costs))
     return candidates[best][0], "points", candidates[best][1]
+
+
+def _nebula_last_blocks(pts: _Points, drv: np.ndarray, lasers: LaserTable,
+                        step0: float) -> np.ndarray:
+    """Each point's rotation in a nebula VLP-32 cloud without its ``azimuth`` field: the
+    channel's share of the step, but none in the last block of every packet of 12
+    (vlp32_decoder.cpp gives that block an azimuth step of 0). Those blocks are found on the
+    grid the others give: the lasers whose share is far from a whole step land on a sequence
+    there when not turned, and do so every 12th sequence. The lasers whose share is nearly a
+    whole step (channels 19-29) cannot tell, and keep the channel's share."""
+    rot = drv[pts.laser].copy()
+    base = pts.azimuth - lasers.azimuth_offset[pts.laser]
+    seq_az, seq_index, *_ = _sequences(pts, base - step0 * rot, step0)
+    rel = (base - seq_az[0]) % TWO_PI + seq_az[0]
+    k0 = np.interp(rel, seq_az, seq_index.astype(np.float64))
+    near = np.abs(k0 - np.rint(k0)) < 0.25
+    telling = np.abs(rot - np.rint(rot)) >= 0.25
+    evidence = near & telling
+    if evidence.sum() < 8:
+        return rot
+    q = np.rint(k0).astype(np.int64) % 12
+    phase = int(np.argmax(np.bincount(q[evidence], minlength=12)))
+    rot[evidence & (q == phase)] = 0.0
+    return rot
 
 
 def _grouping_cost(c: np.ndarray, laser: np.ndarray, step0: float, n_lasers: int) -> int:

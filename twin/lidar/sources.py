@@ -46,6 +46,7 @@ from twin.core.scan import Scan
 from twin.core.sensors import VLP16, SensorModel
 from twin.lidar.capture import PacketScans, PcapSource, UdpSource
 from twin.lidar.clouds import Cloud, CloudError, SparseCloudError, scan_from_cloud
+from twin.lidar.conventions import convention_named
 from twin.lidar.packets import resolve_model
 
 #: What every error about a source name says can be given.
@@ -228,7 +229,8 @@ class CloudScanSource(ScanSource):
     def __init__(self, name: SourceName, clouds: Iterable[Cloud], *,
                  max_scans: int | None = None, model: SensorModel = VLP16,
                  lasers: LaserTable | None = None, extra: dict | None = None,
-                 closer: Callable[[], None] | None = None) -> None:
+                 closer: Callable[[], None] | None = None,
+                 convention: str | None = None) -> None:
         if lasers is not None and lasers.n_lasers != model.n_lasers:
             raise CloudError(f"the laser table {lasers.model!r} has {lasers.n_lasers} lasers, a "
                              f"{model.name} {model.n_lasers}: give the model it calibrates "
@@ -237,6 +239,8 @@ class CloudScanSource(ScanSource):
         self.clouds = clouds
         self.model = model
         self.lasers = model.lasers if lasers is None else lasers
+        self.convention = convention_named(convention)  # checked before any cloud is read
+        self._conventions: dict[str, str] = {}  # convention -> how it was told
         self._tally: list[_CloudTally] = []
         self._warnings: list[str] = []
 
@@ -246,7 +250,10 @@ class CloudScanSource(ScanSource):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 try:
-                    scan = scan_from_cloud(cloud, self.lasers, index=index, model=self.model)
+                    scan = scan_from_cloud(cloud, self.lasers, index=index, model=self.model,
+                                           convention=self.convention)
+                    self._conventions.setdefault(scan.meta["cloud_convention"],
+                                                 scan.meta["cloud_convention_from"])
                 except SparseCloudError as exc:
                     # A scrap among many (a capture's last few firings, say) is a partial scan,
                     # as the assembler makes it, not the end of the source.
@@ -282,6 +289,10 @@ class CloudScanSource(ScanSource):
             "distinct_returns": sum(s.returns for s in t),  # a cloud lists each echo once
             "rebuilt_misses": sum(s.firings - s.returns for s in t),
             "vertical_offsets": any(s.offsets for s in t),
+            # the driver's convention (twin.lidar.conventions) and how it was told
+            "cloud_convention": " / ".join(self._conventions) or None,
+            "cloud_convention_from": " / ".join(dict.fromkeys(self._conventions.values()))
+            or None,
             "warnings": list(self._warnings),
         }
 
@@ -314,6 +325,7 @@ def open_scans(
     split: str = "firing",
     vertical_offsets: bool = True,
     model: str | SensorModel | None = None,
+    cloud_convention: str | None = None,
 ) -> ScanSource:
     """A `ScanSource` for any source name (module docstring).
 
@@ -324,13 +336,14 @@ def open_scans(
     the sensor packets are decoded as, whatever their product id says (None: from the product
     id), and whose grid clouds are rebuilt on (None: the VLP-16's). ``lasers``: the unit's own
     laser table (a calibration file, `twin.lidar.calibration_file`) instead of the model's,
-    for packets and clouds alike.
+    for packets and clouds alike. ``cloud_convention``: the driver that wrote a point cloud
+    (`twin.lidar.conventions`; None: told from its fields or its points).
     """
     src = name if isinstance(name, SourceName) else parse_source(name)
     sensor = resolve_model(model)
     decode = {"cut_azimuth": cut_azimuth, "split": split, "vertical_offsets": vertical_offsets,
               "model": sensor, "lasers": lasers}
-    cloud = {"model": sensor or VLP16, "lasers": lasers}
+    cloud = {"model": sensor or VLP16, "lasers": lasers, "convention": cloud_convention}
     if src.kind == "pcap":
         pcap = PcapSource(src.path)
         return PacketScanSource(src, pcap, max_scans=max_scans, closer=pcap.reader.close,
