@@ -386,7 +386,8 @@ def _nebula_last_blocks(pts: _Points, drv: np.ndarray, lasers: LaserTable,
     (vlp32_decoder.cpp gives that block an azimuth step of 0). Those blocks are found on the
     grid the others give: the lasers whose share is far from a whole step land on a sequence
     there when not turned, and do so every 12th sequence. The lasers whose share is nearly a
-    whole step (channels 19-29) cannot tell, and keep the channel's share."""
+    whole step (channels 19-29) land on it turned or not: two returns of one laser there are
+    the two blocks', in their order; a lone one keeps the channel's share."""
     rot = drv[pts.laser].copy()
     base = pts.azimuth - lasers.azimuth_offset[pts.laser]
     seq_az, seq_index, *_ = _sequences(pts, base - step0 * rot, step0)
@@ -397,9 +398,19 @@ def _nebula_last_blocks(pts: _Points, drv: np.ndarray, lasers: LaserTable,
     evidence = near & telling
     if evidence.sum() < 8:
         return rot
-    q = np.rint(k0).astype(np.int64) % 12
-    phase = int(np.argmax(np.bincount(q[evidence], minlength=12)))
-    rot[evidence & (q == phase)] = 0.0
+    k = np.rint(k0).astype(np.int64)
+    phase = int(np.argmax(np.bincount(k[evidence] % 12, minlength=12)))
+    last = near & (k % 12 == phase)
+    rot[last & telling] = 0.0
+    # A laser whose share is about a whole step lands there from both blocks: the previous
+    # block's point turned, this block's not. The later of the two (time, else file order:
+    # nebula writes block by block) is this block's.
+    pair = last & ~telling & (np.rint(drv[pts.laser]) == 1)
+    idx = np.flatnonzero(pair)
+    key = k[idx] * lasers.n_lasers + pts.laser[idx]
+    srt = np.lexsort((pts.order[idx], key))
+    twin = np.flatnonzero(np.diff(key[srt]) == 0) + 1
+    rot[idx[srt][twin]] = 0.0
     return rot
 
 
