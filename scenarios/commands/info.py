@@ -108,6 +108,9 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
                    help="the driver that wrote a point cloud (how it turned each laser's "
                         "point; docs/vlp16.md): default, told from the cloud's fields, else "
                         "from its points")
+    p.add_argument("--metadata", metavar="FILE.json", default=None,
+                   help="an Ouster sensor's metadata JSON, which its packets are read with "
+                        "(default: the NAME.json recorded beside a NAME.pcap)")
     add_sensor_arguments(p)
 
 
@@ -149,6 +152,7 @@ def decode_options(args: argparse.Namespace, station: Any = None) -> dict:
         "split": args.split,
         "vertical_offsets": not args.no_vertical_offsets,
         "cloud_convention": getattr(args, "cloud_convention", None),
+        "ouster_metadata": getattr(args, "metadata", None),
         **sensor_options(args, station),
     }
 
@@ -197,6 +201,18 @@ def format_summary(s: dict) -> str:
                            f"({_TOLD.get(s.get('cloud_convention_from'), 'given')})"),
         ]
         return "\n".join(f"{k:17s} {v}" for k, v in lines)
+    if "lidar_mode" in s:  # an Ouster sensor's packets
+        lines += [
+            ("model", f"{s['model']} ({s['prod_line']}, serial {s['serial'] or '-'}, "
+                      f"firmware {s['firmware'] or '-'}; metadata {s['metadata']})"),
+            ("lidar mode", f"{s['lidar_mode']} ({s['profile']} packets)"),
+            ("rpm", rpm),
+            ("data packets", f"{s['data_packets']} ({s['other_datagrams']} other datagrams)"),
+            ("scans", f"{s['scans']} ({s['complete_scans']} complete, {s['partial_scans']} "
+                      f"partial: {s['missing_columns']} columns missing)"),
+            ("points", f"{s['points']} firings, {s['returns']} returns"),
+        ]
+        return "\n".join(f"{k:17s} {v}" for k, v in lines)
     lines += [
         ("model", f"{s['model'] or '-'} (product id {s['product_id'] or '-'})"),
         ("return mode", s["return_mode"] or "-"),
@@ -228,12 +244,14 @@ def format_summary(s: dict) -> str:
 
 def _describe(s: dict) -> str:
     kind = s.get("kind", "pcap")
-    if kind == "udp":
+    if kind == "udp" and "lidar_mode" not in s:
         return f"{s['capture']} (live)"
     if "bag" in s:
         b = s["bag"]
         return (f"{s['capture']} (ROS bag, topic {b['topic']}, {b['type']}, "
                 f"{b['messages']} messages)")
+    if "lidar_mode" in s:
+        return f"{s['capture']} (Ouster lidar packets, {'live' if kind == 'udp' else kind})"
     f = s.get("file")
     if f is not None:
         return (f"{s['capture']} ({f.get('format', '?')}, "

@@ -221,6 +221,41 @@ class PacketScanSource(ScanSource):
         return self.reader.summary()
 
 
+class OusterScanSource(ScanSource):
+    """Scans of an Ouster sensor's lidar packets (a pcap, or live on its port), read with its
+    metadata JSON (`twin.lidar.ouster`)."""
+
+    def __init__(self, name: SourceName, packets: Iterable, info, *,
+                 max_scans: int | None = None, extra: dict | None = None,
+                 closer: Callable[[], None] | None = None, batch: int = 64) -> None:
+        from twin.lidar.ouster import OusterScans
+
+        super().__init__(name, max_scans, extra, closer)
+        self.reader = OusterScans(packets, info, batch=batch)
+
+    def _scans(self) -> Iterator[Scan]:
+        return iter(self.reader)
+
+    def _summary(self) -> dict:
+        return self.reader.summary()
+
+
+def _ouster_info(src: SourceName, metadata: str | Path | None):
+    """The Ouster metadata a source is read with: the one given, else (a pcap) the JSON
+    recorded beside it when it is an Ouster sensor's; None: not an Ouster source."""
+    from twin.lidar.ouster import OusterError, OusterInfo, metadata_beside
+
+    if metadata is not None:
+        return OusterInfo.from_json(Path(metadata))
+    beside = metadata_beside(src.path) if src.kind == "pcap" else None
+    if beside is None:
+        return None
+    try:
+        return OusterInfo.from_json(beside)
+    except OusterError:
+        return None  # another tool's JSON (not a sensor's metadata): a Velodyne capture
+
+
 class CloudScanSource(ScanSource):
     """Scans rebuilt from point clouds (PCD files, a bag of PointCloud2) on the grid of
     ``model`` (its firing timing; the VLP-16 by default) with its laser table, or ``lasers``
@@ -326,6 +361,7 @@ def open_scans(
     vertical_offsets: bool = True,
     model: str | SensorModel | None = None,
     cloud_convention: str | None = None,
+    ouster_metadata: str | Path | None = None,
 ) -> ScanSource:
     """A `ScanSource` for any source name (module docstring).
 
@@ -337,9 +373,15 @@ def open_scans(
     id), and whose grid clouds are rebuilt on (None: the VLP-16's). ``lasers``: the unit's own
     laser table (a calibration file, `twin.lidar.calibration_file`) instead of the model's,
     for packets and clouds alike. ``cloud_convention``: the driver that wrote a point cloud
-    (`twin.lidar.conventions`; None: told from its fields or its points).
+    (`twin.lidar.conventions`; None: told from its fields or its points). ``ouster_metadata``:
+    an Ouster sensor's metadata JSON, which its packets are read with (a pcap's is found
+    beside it, ``NAME.json``, without it).
     """
     src = name if isinstance(name, SourceName) else parse_source(name)
+    if src.kind in ("pcap", "udp"):
+        info = _ouster_info(src, ouster_metadata)
+        if info is not None:
+            return _open_ouster(src, info, max_scans, timeout_s)
     sensor = resolve_model(model)
     decode = {"cut_azimuth": cut_azimuth, "split": split, "vertical_offsets": vertical_offsets,
               "model": sensor, "lasers": lasers}
@@ -371,6 +413,22 @@ def open_scans(
     except CloudError:
         bag.close()
         raise
+
+
+def _open_ouster(src: SourceName, info, max_scans: int | None,
+                 timeout_s: float) -> OusterScanSource:
+    if src.kind == "pcap":
+        pcap = PcapSource(src.path, data_port=info.udp_port_lidar,
+                          position_port=info.udp_port_lidar + 1)
+        return OusterScanSource(src, pcap, info, max_scans=max_scans,
+                                closer=pcap.reader.close)
+    from twin.lidar.udp import UdpReceiver
+
+    rx = UdpReceiver(src.host, data_port=src.port, position_port=None, timeout_s=timeout_s,
+                     data_size=info.packet_bytes)
+    # live: each packet decoded as it comes, so that a frame is yielded as soon as it ends
+    return OusterScanSource(src, UdpSource(rx), info, max_scans=max_scans, batch=1,
+                            extra={"udp": lambda: rx.stats.as_dict()}, closer=rx.close)
 
 
 def capture_scans(name: str | Path, *, whole_only: bool = True,
