@@ -27,6 +27,7 @@ from twin.lidar.ouster import (
     decode_packets,
     encode_packets,
     frames,
+    pixel_order,
     scans_from_payloads,
 )
 from twin.lidar.pcap import read_pcap
@@ -76,19 +77,25 @@ def test_points_are_ouster_sdks_and_every_pixel_is_a_firing(payloads, info):
     assert len(scan) == h * w and int(scan.valid.sum()) == 27310 and scan.complete
     assert scan.lasers.model == "OS-1-32-G" and scan.meta["model"] == "OS1-32"
     ref = json.loads((OS1 / "OS-1-32-G_v2.1.1_1024x10_xyz_ouster_sdk.json").read_text())
-    i = np.asarray(ref["column"]) * h + np.asarray(ref["row"])  # column by column
+    beam, col = pixel_order(info)  # the scan's firings: destaggered columns of every beam
+    where = np.empty((h, w), dtype=np.int64)
+    where[beam, col] = np.arange(len(beam))
+    i = where[np.asarray(ref["row"]), np.asarray(ref["column"])]
     # ouster-sdk's sensor frame (x forward, y left, z up from the base) from our {L}
     sensor = np.column_stack((scan.y[i], -scan.x[i], scan.z[i] + 36.18e-3))
     assert np.abs(sensor - np.asarray(ref["xyz"])).max() < 1e-8
-    # a pixel's azimuth is its beam's direction (up to the 15.8 mm beam origin off the axis)
+    # each return lies on its firing's ray, from its beam's origin on the axis, up to the
+    # beam origin's 1.2 mm across the beam (15.8 mm off the axis, beams up to 4.3 deg aside)
     v = scan.valid
-    seen = np.arctan2(scan.x[v], scan.y[v])
-    d = (seen - scan.azimuth[v] + np.pi) % (2 * np.pi) - np.pi
-    far = scan.distance[v] > 2.0
-    assert np.degrees(np.abs(d[far])).max() < 0.05
+    ray = scan.origins()[v] + scan.distance[v, None] * scan.directions()[v]
+    assert np.abs(ray - scan.xyz[v]).max() < 1.3e-3
+    # destaggered: a firing sequence's beams at one azimuth (within 0.2 deg on this unit)
+    seq_az = scan.azimuth.reshape(-1, h)
+    spread = (seq_az - seq_az[:, :1] + np.pi) % (2 * np.pi) - np.pi
+    assert np.degrees(np.abs(spread)).max() < 0.2
     # elevations as the metadata's beam altitudes, beam 0 the highest
-    assert scan.ring[0] == h - 1 and np.allclose(np.degrees(scan.lasers.elevation[:3]),
-                                                 [12.75, 10.03, 7.27])
+    assert scan.laser_id[0] == 0 and scan.ring[0] == h - 1
+    assert np.allclose(np.degrees(scan.lasers.elevation[:3]), [12.75, 10.03, 7.27])
 
 
 def test_the_pcap_reads_with_the_metadata_beside_it_and_live_on_the_sensors_port(payloads):

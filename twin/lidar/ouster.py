@@ -27,9 +27,11 @@ the lidar frame's (the optical centre, not the sensor frame's origin 36 mm lower
 transform's translation is left out). So a pixel's azimuth in {L} is 2 pi column / W + beam
 azimuth - pi: column 0 points backwards (at the connector) and the columns turn clockwise.
 
-A `Scan` of a frame keeps every pixel, returns or not, column by column (the firing grid
-the estimator reads: a column is a firing sequence, a beam a laser). Decoding is bytes in,
-arrays out; the pcap and socket readers are `twin.lidar.pcap` and `twin.lidar.udp`.
+A `Scan` of a frame keeps every pixel, returns or not, destaggered column by destaggered
+column (`pixel_order`: the firing grid the estimator reads, a column of every beam at one
+azimuth a firing sequence, a beam a laser; each pixel keeps its own column's time). Decoding
+is bytes in, arrays out; the pcap and socket readers are `twin.lidar.pcap` and
+`twin.lidar.udp`.
 """
 
 from __future__ import annotations
@@ -85,9 +87,16 @@ class OusterInfo:
             if len(getattr(self, name)) != h:
                 raise OusterError(f"{self.source}: {name} has {len(getattr(self, name))} entries "
                                   f"for {h} beams: a damaged metadata file")
+        # A beam leaves from n = lidar_origin_to_beam_origin off the axis, along the encoder's
+        # horizontal direction, b = the beam's azimuth offset aside of its own: n cos b along
+        # it, which puts its line through the axis at z = -n cos b tan(altitude) (as a
+        # VLP-32C's lasers about its focal point: the "vertical offset" rays start from), and
+        # n sin b across it (the horizontal offset, < 1.3 mm on an OS1).
+        alt, b = np.radians(self.beam_altitude_deg), np.radians(self.beam_azimuth_deg)
+        n_m = float(np.hypot(*self.beam_to_lidar_mm)) * 1e-3
         object.__setattr__(self, "lasers", LaserTable(
-            self.prod_line, np.radians(self.beam_altitude_deg),
-            np.zeros(h), np.radians(self.beam_azimuth_deg)))
+            self.prod_line, alt, -n_m * np.cos(b) * np.tan(alt) + self.beam_to_lidar_mm[1] * 1e-3,
+            b, n_m * np.sin(b)))
 
     # -- derived ---------------------------------------------------------------------------
     @property
@@ -295,28 +304,51 @@ def xyz_lidar(range_mm: np.ndarray, info: OusterInfo) -> np.ndarray:
     return p
 
 
-def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
-    """The `Scan` of a frame: every pixel of the column window, column by column, in {L}."""
+def pixel_order(info: OusterInfo) -> tuple[np.ndarray, np.ndarray]:
+    """(beam, column) of each firing of a frame's `Scan`, in the scan's order: destaggered
+    columns (ouster-sdk's ``destagger``: beam b's pixel at column c goes to column
+    c + pixel_shift_by_row[b]), each with its beams in order. So one "firing sequence" of the
+    scan holds every beam at (nearly) one azimuth, as the estimator's firing grid has it (its
+    neighbours across rings are neighbours in space: the beams' azimuth offsets, up to 8.5 deg
+    apart on an OS1, are taken out), and every column of the window is kept."""
     h, w = info.pixels_per_column, info.columns_per_frame
     lo, hi = info.column_window
-    cols = np.arange(lo, hi + 1) if lo <= hi else np.r_[lo:w, 0:hi + 1]
-    p = xyz_lidar(frame.range_mm, info)[:, cols] * 1e-3  # (H, C, 3) m, sensor axes
+    window = np.zeros(w, dtype=bool)
+    window[np.arange(lo, hi + 1) if lo <= hi else np.r_[lo:w, 0:hi + 1]] = True
+    shift = info.pixel_shift_by_row
+    start = int(shift.max())  # the first destaggered column every beam has fired
+    j = (np.arange(w) + start) % w  # destaggered columns, from the cut behind the sensor
+    beam = np.tile(np.arange(h), w)
+    col = (np.repeat(j, h) - shift[beam]) % w
+    keep = window[col]
+    return beam[keep], col[keep]
+
+
+def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
+    """The `Scan` of a frame: every pixel of the column window in {L}, in `pixel_order`."""
+    w = info.columns_per_frame
+    beam, col = pixel_order(info)
+    p = xyz_lidar(frame.range_mm, info)[beam, col] * 1e-3  # (N, 3) m, sensor axes
     # {L}: y forward, x right (X_L = -y, Y_L = x of the sensor frame's axes)
-    x, y, z = (-p[..., 1]).T.ravel(), p[..., 0].T.ravel(), p[..., 2].T.ravel()
-    rng = frame.range_mm[:, cols].T.ravel()
-    distance = np.where(rng > 0, np.sqrt(x * x + y * y + z * z), 0.0)
-    lid = np.tile(np.arange(h, dtype=np.uint8), len(cols))
-    azimuth = ((2.0 * np.pi * np.repeat(cols, h) / w + np.radians(info.beam_azimuth_deg)[lid]
-                - np.pi) % (2.0 * np.pi))
-    time = np.repeat(frame.timestamp_ns[cols].astype(np.float64) * 1e-9, h)
+    x, y, z = (np.ascontiguousarray(a) for a in (-p[:, 1], p[:, 0], p[:, 2]))
+    rng = frame.range_mm[beam, col]
+    # the range from the beam's origin on the axis (`OusterInfo.lasers`' vertical offsets)
+    zo = z - info.lasers.vertical_offset[beam]
+    distance = np.where(rng > 0, np.sqrt(x * x + y * y + zo * zo), 0.0)
+    lid = beam.astype(np.uint8)
+    azimuth = ((2.0 * np.pi * col / w + np.radians(info.beam_azimuth_deg)[beam] - np.pi)
+               % (2.0 * np.pi))
+    time = frame.timestamp_ns[col].astype(np.float64) * 1e-9
+    lo, hi = info.column_window
+    cols = np.arange(lo, hi + 1) if lo <= hi else np.r_[lo:w, 0:hi + 1]
     missing = int((~frame.received[cols]).sum())
     return Scan(
         distance=distance, azimuth=azimuth, laser_id=lid,
-        intensity=np.clip(frame.reflectivity[:, cols].T.ravel(), 0, 255).astype(np.uint8),
+        intensity=frame.reflectivity[beam, col].astype(np.uint8),
         time=time, return_type=np.full(len(lid), int(ReturnType.STRONGEST), dtype=np.uint8),
         x=x, y=y, z=z, index=index, complete=missing == 0, packets=frame.packets,
         missing_packets=int(np.ceil(missing / info.columns_per_packet)), product_id=0,
-        vertical_offsets_applied=False, lasers=info.lasers,
+        vertical_offsets_applied=True, lasers=info.lasers,
         meta={"model": info.model, "prod_line": info.prod_line, "frame_id": frame.frame_id,
               "rpm": 60.0 * info.rate_hz, "lidar_mode": info.lidar_mode,
               "missing_columns": missing, "partial": missing > 0})
@@ -398,3 +430,97 @@ class OusterScans:
             "points": c["firings"], "returns": c["returns"],
             "missing_columns": c["missing_columns"], "metadata": i.source, "warnings": [],
         }
+
+
+# ----------------------------------------------------------------------------------------------
+# Models: real units' metadata (ouster-sdk's test captures), for the twin and as nominal tables
+
+#: Metadata of a real unit of each line and beam count (ouster_metadata/SOURCE.md); 64 beams:
+#: the 128's every second beam (a 64-beam unit's uniform layout spans the same field of view).
+_METADATA_FILES = {
+    ("OS0", 32): "OS-0-32-U1_v2.2.0_1024x10.json", ("OS0", 128): "OS-0-128-U1_v2.3.0_1024x10.json",
+    ("OS1", 32): "OS-1-32-G_v2.1.1_1024x10.json", ("OS1", 128): "OS-1-128_v2.3.0_1024x10.json",
+    ("OS2", 32): "OS-2-32-U0_v2.0.0_1024x10.json", ("OS2", 128): "OS-2-128-U1_v2.3.0_1024x10.json",
+}
+#: Every Ouster model aimbench knows, by name.
+OUSTER_MODELS = tuple(f"OS{k}-{b}" for k in (0, 1, 2) for b in (32, 64, 128))
+#: The lidar modes (columns x frames a second) the sensors run.
+LIDAR_MODES = ("512x10", "512x20", "1024x10", "1024x20", "2048x10")
+
+
+def is_ouster_model(name: str) -> bool:
+    return _ouster_key(name) is not None
+
+
+def _ouster_key(name: str) -> tuple[str, int] | None:
+    key = "".join(ch for ch in str(name).upper() if ch.isalnum())  # OS164, OS-1-64 -> OS164
+    for model in OUSTER_MODELS:
+        line, beams = model.split("-")
+        if key == line + beams:
+            return line, int(beams)
+    return None
+
+
+def nominal_info(model: str, lidar_mode: str = "1024x10") -> OusterInfo:
+    """The metadata of a model (``OS1-64``...) in a lidar mode, from a real unit's file
+    (`_METADATA_FILES`), sending LEGACY packets on port 7502."""
+    key = _ouster_key(model)
+    if key is None:
+        raise OusterError(f"unknown Ouster model {model!r}: aimbench knows "
+                          f"{', '.join(OUSTER_MODELS)}")
+    if lidar_mode not in LIDAR_MODES:
+        raise OusterError(f"unknown lidar mode {lidar_mode!r}: give one of "
+                          f"{', '.join(LIDAR_MODES)}")
+    line, beams = key
+    path = Path(__file__).with_name("ouster_metadata") / _METADATA_FILES[
+        (line, 128 if beams == 64 else beams)]
+    base = OusterInfo.from_json(path)
+    rows = np.arange(0, base.pixels_per_column, base.pixels_per_column // beams)
+    w = int(lidar_mode.split("x")[0])
+    return OusterInfo(
+        prod_line=f"OS-{line[2]}-{beams}", lidar_mode=lidar_mode, columns_per_frame=w,
+        pixels_per_column=beams, columns_per_packet=16, column_window=(0, w - 1),
+        pixel_shift_by_row=base.pixel_shift_by_row[rows] * w // base.columns_per_frame,
+        beam_altitude_deg=base.beam_altitude_deg[rows],
+        beam_azimuth_deg=base.beam_azimuth_deg[rows], beam_to_lidar_mm=base.beam_to_lidar_mm,
+        lidar_to_sensor=base.lidar_to_sensor, udp_profile_lidar="LEGACY",
+        udp_port_lidar=LIDAR_PORT, serial="twin", firmware=base.firmware,
+        source=f"{path.name} ({model}, {lidar_mode})")
+
+
+def info_json(info: OusterInfo) -> str:
+    """The metadata as the flat JSON of firmware 2.x (ouster-sdk and `OusterInfo` read it)."""
+    return json.dumps({
+        "prod_line": info.prod_line, "prod_sn": info.serial, "build_rev": info.firmware,
+        "lidar_mode": info.lidar_mode,
+        "beam_altitude_angles": info.beam_altitude_deg.tolist(),
+        "beam_azimuth_angles": info.beam_azimuth_deg.tolist(),
+        "lidar_origin_to_beam_origin_mm": info.beam_to_lidar_mm[0],
+        "lidar_to_sensor_transform": info.lidar_to_sensor.ravel().tolist(),
+        "data_format": {
+            "columns_per_frame": info.columns_per_frame,
+            "columns_per_packet": info.columns_per_packet,
+            "pixels_per_column": info.pixels_per_column,
+            "pixel_shift_by_row": info.pixel_shift_by_row.tolist(),
+            "column_window": list(info.column_window),
+            "udp_profile_lidar": info.udp_profile_lidar,
+        },
+        "udp_port_lidar": info.udp_port_lidar,
+    }, indent=1)
+
+
+def columns_from_frame(frame: Frame, info: OusterInfo) -> np.ndarray:
+    """The LEGACY columns of a frame, in measurement-id order (`encode_packets` writes them)."""
+    w = info.columns_per_frame
+    cols = np.zeros(w, dtype=column_dtype(info))
+    cols["timestamp"] = frame.timestamp_ns
+    cols["measurement_id"] = np.arange(w)
+    cols["frame_id"] = frame.frame_id
+    cols["encoder"] = np.arange(w) * (90112 // w)  # encoder ticks, 90112 a turn (deprecated)
+    cols["status"] = np.where(frame.received, COLUMN_VALID, 0)
+    px = cols["pixels"]
+    px["range"] = frame.range_mm.T
+    px["reflectivity"] = frame.reflectivity.T
+    px["signal"] = frame.signal.T
+    px["near_ir"] = frame.near_ir.T
+    return cols
