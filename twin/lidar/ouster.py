@@ -203,17 +203,16 @@ def column_dtype(info: OusterInfo) -> np.dtype:
 
 
 def decode_packets(payloads: Iterable[bytes], info: OusterInfo) -> np.ndarray:
-    """The columns of LEGACY lidar packets, (n_packets * columns_per_packet,) records (range
-    masked to its 20 bits). Payloads of another size are skipped (IMU packets, other sensors)."""
+    """The columns of LEGACY lidar packets, (n_packets * columns_per_packet,) read-only records
+    (the range word as sent: `frames` keeps its 20 bits). Payloads of another size are skipped
+    (IMU packets, other sensors)."""
     if info.udp_profile_lidar != "LEGACY":
         raise OusterError(f"{info.source}: the sensor sends the {info.udp_profile_lidar} packet "
                           "profile; aimbench decodes LEGACY only: set udp_profile_lidar to "
                           "LEGACY on the sensor")
     size = info.packet_bytes
     good = [p for p in payloads if len(p) == size]
-    cols = np.frombuffer(b"".join(good), dtype=column_dtype(info)).copy()
-    cols["pixels"]["range"] &= RANGE_MASK
-    return cols
+    return np.frombuffer(b"".join(good), dtype=column_dtype(info))
 
 
 def encode_packets(cols: np.ndarray, info: OusterInfo) -> list[bytes]:
@@ -259,13 +258,16 @@ def _frame(cols: np.ndarray, info: OusterInfo) -> Frame:
     m = cols["measurement_id"].astype(np.intp)
     keep = (m < w) & (cols["status"] == COLUMN_VALID)
     cols, m = cols[keep], m[keep]
-    out = {name: np.zeros((h, w), dtype=dt) for name, dt in (
+    # filled column by column, (W, H) in memory; the fields are their (H, W) views
+    out = {name: np.zeros((w, h), dtype=dt) for name, dt in (
         ("range_mm", np.uint32), ("reflectivity", np.uint8), ("signal", np.uint16),
         ("near_ir", np.uint16))}
     px = cols["pixels"]  # (n, h)
     for name, src in (("range_mm", "range"), ("reflectivity", "reflectivity"),
                       ("signal", "signal"), ("near_ir", "near_ir")):
-        out[name][:, m] = px[src].T
+        out[name][m] = px[src]
+    out["range_mm"] &= RANGE_MASK
+    out = {name: a.T for name, a in out.items()}
     ts = np.zeros(w, dtype=np.uint64)
     ts[m] = cols["timestamp"]
     mid = np.zeros(w, dtype=np.uint16)
@@ -283,23 +285,31 @@ def _frame(cols: np.ndarray, info: OusterInfo) -> Frame:
 # Points and scans
 
 
+def beam_geometry(info: OusterInfo, beam: np.ndarray, col: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Unit direction and offset (mm) of pixels (beam, column), (..., 3) each in the sensor
+    frame's axes: a return at range r (mm) lies at r direction + offset (ouster-sdk's
+    xyzlut.cpp, module docstring; the transform's translation left out)."""
+    w = info.columns_per_frame
+    enc = 2.0 * np.pi - col * (2.0 * np.pi / w)
+    a = enc - np.radians(info.beam_azimuth_deg)[beam]
+    alt = np.radians(info.beam_altitude_deg)[beam]
+    d = np.stack((np.cos(a) * np.cos(alt), np.sin(a) * np.cos(alt), np.sin(alt)), axis=-1)
+    bx, bz = info.beam_to_lidar_mm
+    n = math.hypot(bx, bz) if bz else bx
+    off = np.stack((np.cos(enc) * bx - d[..., 0] * n, np.sin(enc) * bx - d[..., 1] * n,
+                    -d[..., 2] * n + bz), axis=-1)
+    rot = info.lidar_to_sensor[:3, :3]
+    return d @ rot.T, off @ rot.T
+
+
 def xyz_lidar(range_mm: np.ndarray, info: OusterInfo) -> np.ndarray:
     """(H, W, 3) points in mm, ouster-sdk's cartesian() without the transform's translation
     (module docstring); pixels without a return at 0."""
     h, w = info.pixels_per_column, info.columns_per_frame
-    enc = 2.0 * np.pi - np.arange(w) * (2.0 * np.pi / w)  # (W,)
-    az = -np.radians(info.beam_azimuth_deg)[:, None]  # (H, 1)
-    alt = np.radians(info.beam_altitude_deg)[:, None]
-    d = np.stack(np.broadcast_arrays(np.cos(enc + az) * np.cos(alt),
-                                     np.sin(enc + az) * np.cos(alt),
-                                     np.broadcast_to(np.sin(alt), (h, w))), axis=-1)
-    bx, bz = info.beam_to_lidar_mm
-    n = math.hypot(bx, bz) if bz else bx
-    off = np.stack(np.broadcast_arrays(np.cos(enc)[None, :] * bx - d[..., 0] * n,
-                                       np.sin(enc)[None, :] * bx - d[..., 1] * n,
-                                       -d[..., 2] * n + bz), axis=-1)
+    beam, col = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    d, off = beam_geometry(info, beam, col)
     p = range_mm[..., None].astype(np.float64) * d + off
-    p = p @ info.lidar_to_sensor[:3, :3].T
     p[range_mm == 0] = 0.0
     return p
 
@@ -324,28 +334,65 @@ def pixel_order(info: OusterInfo) -> tuple[np.ndarray, np.ndarray]:
     return beam[keep], col[keep]
 
 
-def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
-    """The `Scan` of a frame: every pixel of the column window in {L}, in `pixel_order`."""
+@dataclass(frozen=True, eq=False)
+class _ScanTable:
+    """What every frame of a sensor shares, in the scan's firing order (`pixel_order`): each
+    firing's beam, column, azimuth and the unit ray from its origin on the axis in {L}, with
+    the point's offset from that ray's start per mm of range (computed once per metadata)."""
+
+    beam: np.ndarray
+    col: np.ndarray
+    azimuth: np.ndarray
+    direction: np.ndarray  # (N, 3) {L}, of the sensor frame's xyz per mm of range
+    offset: np.ndarray  # (N, 3) {L}, mm
+    origin_z: np.ndarray  # (N,) m, the firing's vertical offset
+
+
+_TABLES: dict[int, tuple[OusterInfo, _ScanTable]] = {}
+
+
+def _scan_table(info: OusterInfo) -> _ScanTable:
+    hit = _TABLES.get(id(info))
+    if hit is not None and hit[0] is info:
+        return hit[1]
     w = info.columns_per_frame
     beam, col = pixel_order(info)
-    p = xyz_lidar(frame.range_mm, info)[beam, col] * 1e-3  # (N, 3) m, sensor axes
-    # {L}: y forward, x right (X_L = -y, Y_L = x of the sensor frame's axes)
-    x, y, z = (np.ascontiguousarray(a) for a in (-p[:, 1], p[:, 0], p[:, 2]))
-    rng = frame.range_mm[beam, col]
+    d, off = beam_geometry(info, beam, col)
+    to_l = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    table = _ScanTable(
+        beam=beam, col=col,
+        azimuth=(2.0 * np.pi * col / w + np.radians(info.beam_azimuth_deg)[beam] - np.pi)
+        % (2.0 * np.pi),
+        direction=d @ to_l.T, offset=off @ to_l.T,
+        origin_z=info.lasers.vertical_offset[beam])
+    if len(_TABLES) > 16:
+        _TABLES.clear()
+    _TABLES[id(info)] = (info, table)
+    return table
+
+
+def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
+    """The `Scan` of a frame: every pixel of the column window in {L}, in `pixel_order`."""
+    t = _scan_table(info)
+    w = info.columns_per_frame
+    rng = frame.range_mm[t.beam, t.col]
+    hit = rng > 0
+    r = rng.astype(np.float64)
+    # p = r d + offset (xyz_lidar), in m; {L}: y forward, x right
+    x = np.where(hit, (r * t.direction[:, 0] + t.offset[:, 0]) * 1e-3, 0.0)
+    y = np.where(hit, (r * t.direction[:, 1] + t.offset[:, 1]) * 1e-3, 0.0)
+    z = np.where(hit, (r * t.direction[:, 2] + t.offset[:, 2]) * 1e-3, 0.0)
     # the range from the beam's origin on the axis (`OusterInfo.lasers`' vertical offsets)
-    zo = z - info.lasers.vertical_offset[beam]
-    distance = np.where(rng > 0, np.sqrt(x * x + y * y + zo * zo), 0.0)
-    lid = beam.astype(np.uint8)
-    azimuth = ((2.0 * np.pi * col / w + np.radians(info.beam_azimuth_deg)[beam] - np.pi)
-               % (2.0 * np.pi))
-    time = frame.timestamp_ns[col].astype(np.float64) * 1e-9
+    zo = z - t.origin_z
+    distance = np.where(hit, np.sqrt(x * x + y * y + zo * zo), 0.0)
+    time = frame.timestamp_ns[t.col].astype(np.float64) * 1e-9
     lo, hi = info.column_window
     cols = np.arange(lo, hi + 1) if lo <= hi else np.r_[lo:w, 0:hi + 1]
     missing = int((~frame.received[cols]).sum())
     return Scan(
-        distance=distance, azimuth=azimuth, laser_id=lid,
-        intensity=frame.reflectivity[beam, col].astype(np.uint8),
-        time=time, return_type=np.full(len(lid), int(ReturnType.STRONGEST), dtype=np.uint8),
+        distance=distance, azimuth=t.azimuth.copy(), laser_id=t.beam.astype(np.uint8),
+        intensity=frame.reflectivity[t.beam, t.col].astype(np.uint8),
+        time=time, return_type=np.full(len(rng), int(ReturnType.STRONGEST), dtype=np.uint8),
         x=x, y=y, z=z, index=index, complete=missing == 0, packets=frame.packets,
         missing_packets=int(np.ceil(missing / info.columns_per_packet)), product_id=0,
         vertical_offsets_applied=True, lasers=info.lasers,
@@ -366,47 +413,36 @@ class OusterScans:
     A frame with columns missing (the first of a live stream, joined mid-rotation; lost
     packets) is flagged partial, never presented as whole."""
 
-    def __init__(self, packets: Iterable, info: OusterInfo, batch: int = 64) -> None:
+    def __init__(self, packets: Iterable, info: OusterInfo) -> None:
         self.packets = packets
         self.info = info
-        self.batch = batch
         self.counts = {"packets": 0, "other_datagrams": 0, "frames": 0, "complete": 0,
                        "firings": 0, "returns": 0, "missing_columns": 0}
 
     def __iter__(self) -> Iterator[Scan]:
-        pending: list[np.ndarray] = []
-        buf: list[bytes] = []
-        index = 0
         size = self.info.packet_bytes
-
-        def flush() -> Iterator[Scan]:
-            nonlocal index, pending
-            cols = np.concatenate(pending) if pending else np.zeros(0, column_dtype(self.info))
-            fid = cols["frame_id"]
-            # every frame but the last is over; the last waits for more columns
-            last = int(np.flatnonzero(np.concatenate(([True], fid[1:] != fid[:-1])))[-1])
-            for f in frames(cols[:last], self.info):
-                yield self._scan(f, index)
-                index += 1
-            pending = [cols[last:]]
-
+        frame: list[bytes] = []  # the packets of the frame being received
+        current = None
+        index = 0
         for p in self.packets:
             payload = p if isinstance(p, bytes | bytearray | memoryview) else p.payload
             if len(payload) != size:
                 self.counts["other_datagrams"] += 1
                 continue
             self.counts["packets"] += 1
-            buf.append(bytes(payload))
-            if len(buf) >= self.batch:
-                pending.append(decode_packets(buf, self.info))
-                buf = []
-                yield from flush()
-        if buf:
-            pending.append(decode_packets(buf, self.info))
-        cols = np.concatenate(pending) if pending else np.zeros(0, column_dtype(self.info))
-        for f in frames(cols, self.info):
+            fid = int.from_bytes(payload[10:12], "little")  # the first column's frame id
+            if fid != current and frame:
+                yield from self._scans_of(frame, index)
+                index += 1
+                frame = []
+            current = fid
+            frame.append(bytes(payload))
+        if frame:
+            yield from self._scans_of(frame, index)
+
+    def _scans_of(self, payloads: list[bytes], index: int) -> Iterator[Scan]:
+        for f in frames(decode_packets(payloads, self.info), self.info):
             yield self._scan(f, index)
-            index += 1
 
     def _scan(self, f: Frame, index: int) -> Scan:
         s = scan_from_frame(f, self.info, index=index)

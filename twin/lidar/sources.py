@@ -227,11 +227,11 @@ class OusterScanSource(ScanSource):
 
     def __init__(self, name: SourceName, packets: Iterable, info, *,
                  max_scans: int | None = None, extra: dict | None = None,
-                 closer: Callable[[], None] | None = None, batch: int = 64) -> None:
+                 closer: Callable[[], None] | None = None) -> None:
         from twin.lidar.ouster import OusterScans
 
         super().__init__(name, max_scans, extra, closer)
-        self.reader = OusterScans(packets, info, batch=batch)
+        self.reader = OusterScans(packets, info)
 
     def _scans(self) -> Iterator[Scan]:
         return iter(self.reader)
@@ -426,8 +426,8 @@ def _open_ouster(src: SourceName, info, max_scans: int | None,
 
     rx = UdpReceiver(src.host, data_port=src.port, position_port=None, timeout_s=timeout_s,
                      data_size=info.packet_bytes)
-    # live: each packet decoded as it comes, so that a frame is yielded as soon as it ends
-    return OusterScanSource(src, UdpSource(rx), info, max_scans=max_scans, batch=1,
+    # (a frame is yielded as soon as the next one's first packet arrives)
+    return OusterScanSource(src, UdpSource(rx), info, max_scans=max_scans,
                             extra={"udp": lambda: rx.stats.as_dict()}, closer=rx.close)
 
 
