@@ -117,10 +117,13 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
 def add_sensor_arguments(p: argparse.ArgumentParser) -> None:
     """Which sensor the packets come from: ``--model`` and ``--sensor-calibration``, on every
     command that reads a source (a ``--station`` file's [sensor] gives both otherwise)."""
-    p.add_argument("--model", choices=tuple(MODELS), default=None,
+    p.add_argument("--model", choices=(*MODELS, "PandarXT32"), default=None,
                    help="decode as this model whatever the product id byte says (default: "
                         "the --station file's sensor.model if one is given, else from the "
                         "product id); point clouds are rebuilt on its grid (default VLP-16)")
+    p.add_argument("--angles", metavar="FILE.csv", default=None,
+                   help="a Hesai PandarXT32's angle-correction file (Channel,Elevation,Azimuth; "
+                        "default: the nominal one nebula ships)")
     p.add_argument("--sensor-calibration", metavar="FILE", default=None,
                    help="the unit's factory laser table (VeloView .xml or ROS driver .yaml) "
                         "instead of the model's nominal one (default: the --station file's "
@@ -153,6 +156,7 @@ def decode_options(args: argparse.Namespace, station: Any = None) -> dict:
         "vertical_offsets": not args.no_vertical_offsets,
         "cloud_convention": getattr(args, "cloud_convention", None),
         "ouster_metadata": getattr(args, "metadata", None),
+        "hesai_angles": getattr(args, "angles", None),
         **sensor_options(args, station),
     }
 
@@ -201,6 +205,16 @@ def format_summary(s: dict) -> str:
                            f"({_TOLD.get(s.get('cloud_convention_from'), 'given')})"),
         ]
         return "\n".join(f"{k:17s} {v}" for k, v in lines)
+    if s.get("model") == "PandarXT32":  # a Hesai's packets
+        lines += [
+            ("model", f"PandarXT32 (angles {s['laser_table']})"),
+            ("return mode", s["return_mode"] if s["return_mode"] is not None else "-"),
+            ("rpm", rpm),
+            ("data packets", f"{s['data_packets']} ({s['other_datagrams']} other datagrams)"),
+            ("scans", f"{s['scans']} whole rotations"),
+            ("points", f"{s['points']} firings, {s['returns']} returns"),
+        ]
+        return "\n".join(f"{k:17s} {v}" for k, v in lines)
     if "lidar_mode" in s:  # an Ouster sensor's packets
         lines += [
             ("model", f"{s['model']} ({s['prod_line']}, serial {s['serial'] or '-'}, "
@@ -244,14 +258,15 @@ def format_summary(s: dict) -> str:
 
 def _describe(s: dict) -> str:
     kind = s.get("kind", "pcap")
-    if kind == "udp" and "lidar_mode" not in s:
+    if kind == "udp" and "lidar_mode" not in s and s.get("model") != "PandarXT32":
         return f"{s['capture']} (live)"
     if "bag" in s:
         b = s["bag"]
         return (f"{s['capture']} (ROS bag, topic {b['topic']}, {b['type']}, "
                 f"{b['messages']} messages)")
-    if "lidar_mode" in s:
-        return f"{s['capture']} (Ouster lidar packets, {'live' if kind == 'udp' else kind})"
+    if "lidar_mode" in s or s.get("model") == "PandarXT32":
+        maker = "Ouster lidar" if "lidar_mode" in s else "Hesai PandarXT32"
+        return f"{s['capture']} ({maker} packets, {'live' if kind == 'udp' else kind})"
     f = s.get("file")
     if f is not None:
         return (f"{s['capture']} ({f.get('format', '?')}, "

@@ -362,6 +362,7 @@ def open_scans(
     model: str | SensorModel | None = None,
     cloud_convention: str | None = None,
     ouster_metadata: str | Path | None = None,
+    hesai_angles: str | Path | None = None,
 ) -> ScanSource:
     """A `ScanSource` for any source name (module docstring).
 
@@ -375,9 +376,13 @@ def open_scans(
     for packets and clouds alike. ``cloud_convention``: the driver that wrote a point cloud
     (`twin.lidar.conventions`; None: told from its fields or its points). ``ouster_metadata``:
     an Ouster sensor's metadata JSON, which its packets are read with (a pcap's is found
-    beside it, ``NAME.json``, without it).
+    beside it, ``NAME.json``, without it). ``model="PandarXT32"``: a Hesai PandarXT32's packets
+    (`twin.lidar.hesai`), with its angle-correction file ``hesai_angles`` (default: nominal).
     """
     src = name if isinstance(name, SourceName) else parse_source(name)
+    if isinstance(model, str) and _is_xt32(model):
+        cut = 18000 if cut_azimuth is None else round(math.degrees(cut_azimuth) * 100) % 36000
+        return _open_xt32(src, hesai_angles, max_scans, timeout_s, cut)
     if src.kind in ("pcap", "udp"):
         info = _ouster_info(src, ouster_metadata)
         if info is not None:
@@ -413,6 +418,49 @@ def open_scans(
     except CloudError:
         bag.close()
         raise
+
+
+def _is_xt32(model: str) -> bool:
+    return "".join(ch for ch in model.upper() if ch.isalnum()) in ("PANDARXT32", "XT32")
+
+
+class XT32ScanSource(ScanSource):
+    """Scans of a Hesai PandarXT32's packets (a pcap, or live), `twin.lidar.hesai`."""
+
+    def __init__(self, name: SourceName, packets: Iterable, angles, *,
+                 max_scans: int | None = None, extra: dict | None = None,
+                 closer: Callable[[], None] | None = None, cut_cdeg: int = 18000) -> None:
+        from twin.lidar.hesai import XT32Scans
+
+        super().__init__(name, max_scans, extra, closer)
+        self.reader = XT32Scans(packets, angles, cut_cdeg)
+
+    def _scans(self) -> Iterator[Scan]:
+        return iter(self.reader)
+
+    def _summary(self) -> dict:
+        return self.reader.summary()
+
+
+def _open_xt32(src: SourceName, angles_file: str | Path | None, max_scans: int | None,
+               timeout_s: float, cut_cdeg: int) -> XT32ScanSource:
+    from twin.lidar.hesai import DATA_PORT, DEFAULT_ANGLES, PACKET_BYTES, XT32Angles
+
+    angles = XT32Angles.from_csv(angles_file or DEFAULT_ANGLES)
+    if src.kind == "pcap":
+        pcap = PcapSource(src.path, data_port=DATA_PORT)
+        return XT32ScanSource(src, pcap, angles, max_scans=max_scans, closer=pcap.reader.close,
+                              cut_cdeg=cut_cdeg)
+    if src.kind == "udp":
+        from twin.lidar.udp import UdpReceiver
+
+        rx = UdpReceiver(src.host, data_port=src.port, position_port=None,
+                         timeout_s=timeout_s, data_size=PACKET_BYTES)
+        return XT32ScanSource(src, UdpSource(rx), angles, max_scans=max_scans,
+                              extra={"udp": lambda: rx.stats.as_dict()}, closer=rx.close,
+                              cut_cdeg=cut_cdeg)
+    raise SourceError(f"{src}: a PandarXT32's packets are read from a pcap or udp://, not "
+                      f"a {src.kind} source")
 
 
 def _open_ouster(src: SourceName, info, max_scans: int | None,
