@@ -21,9 +21,10 @@ better than the paper's VLP-16). The bound column (the information bound per mod
 (`time.process_time`), one BLAS thread.
 
 Ouster OS0/OS1/OS2 x 32/64/128 (1024x10) go through `twin.sim.ouster_twin` (a real unit's
-metadata, its LEGACY packets, our decoder); then two rows on Ouster decoding: agreement with
-ouster-sdk on its own real capture, and frames per second against ouster-sdk's (measured when
-ouster-sdk can be imported).
+metadata, its LEGACY packets, our decoder), the Hesai PandarXT32 through `twin.sim.hesai_twin`
+(nebula's angle corrections, its packets, our decoder); then two rows on Ouster decoding:
+agreement with ouster-sdk on its own real capture, and frames per second against ouster-sdk's
+(measured when ouster-sdk can be imported).
 """
 
 from __future__ import annotations
@@ -49,6 +50,7 @@ from bench_align import AXES, PAPER, UNITS, errors, random_pose
 
 import align
 from twin.core.sensors import MODELS
+from twin.lidar.hesai import DEFAULT_ANGLES, XT32Angles, XT32Scans
 from twin.lidar.ouster import (
     OUSTER_MODELS,
     columns_from_frame,
@@ -62,6 +64,7 @@ from twin.lidar.scans import ScanAssembler
 from twin.lidar.sources import open_scans
 from twin.sim.bench import BenchSim
 from twin.sim.emulation import EmulationConfig
+from twin.sim.hesai_twin import emulate_xt32
 from twin.sim.ouster_twin import emulate_frames, write_ouster_pcap
 
 
@@ -83,6 +86,17 @@ def ouster_scans(params, x: float, yaw: float, seed: int, n: int, model: str) ->
     frames, truth = emulate_frames(sim, info, n, rng=np.random.default_rng(seed))
     payloads = [p for f in frames for p in encode_packets(columns_from_frame(f, info), info)]
     return scans_from_payloads(payloads, info), truth
+
+
+def xt32_scans(params, x: float, yaw: float, seed: int, n: int) -> tuple:
+    """``n`` rotations of a Hesai PandarXT32 on the twin at one pose, through its packets and
+    our decoder (`twin.sim.hesai_twin`)."""
+    angles = XT32Angles.from_csv(DEFAULT_ANGLES)
+    sim = BenchSim(params, seed=seed)
+    sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
+    packets, truth = emulate_xt32(sim, angles, n + 1, rng=np.random.default_rng(seed),
+                                  start_cdeg=9000)
+    return list(XT32Scans(packets, angles))[:n], truth
 
 
 def ouster_decode_rows() -> list[str]:
@@ -151,8 +165,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--poses", type=int, default=10, help="random poses (paper: 200)")
     ap.add_argument("--scans", type=int, default=10, help="scans per pose (paper: 50)")
     ap.add_argument("--seed", type=int, default=2026)
-    ap.add_argument("--models", default=",".join((*MODELS, *OUSTER_MODELS)),
-                    help="comma-separated (Velodyne and Ouster)")
+    ap.add_argument("--models", default=",".join((*MODELS, *OUSTER_MODELS, "PandarXT32")),
+                    help="comma-separated (Velodyne, Ouster, Hesai PandarXT32)")
     ap.add_argument("--no-decode", action="store_true",
                     help="skip the Ouster decode agreement and throughput rows")
     ap.add_argument("--methods", default="paper,rays", help="comma-separated")
@@ -165,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     c_start = time.process_time()
     for model in models:
-        cfg = (None if is_ouster_model(model) else
+        cfg = (None if is_ouster_model(model) or model == "PandarXT32" else
                EmulationConfig(model=model, laser_offset_sigma=0.0, divergence=False))
         rng = np.random.default_rng(args.seed)
         single = {m: ([], [], []) for m in methods}  # per-pose stds, errors, sigmas
@@ -175,7 +189,9 @@ def main(argv: list[str] | None = None) -> int:
         for _ in range(args.poses):
             params, x, yaw = random_pose(rng, 3.0, 30.0, 0.0)
             seed = int(rng.integers(2**31))
-            if cfg is None:
+            if model == "PandarXT32":
+                scans, truth = xt32_scans(params, x, yaw, seed, args.scans)
+            elif cfg is None:
                 scans, truth = ouster_scans(params, x, yaw, seed, args.scans, model)
             else:
                 sim = BenchSim(params, seed=seed, noise=cfg)

@@ -227,3 +227,25 @@ class XT32Scans:
                 "data_packets": c["packets"], "other_datagrams": c["other_datagrams"],
                 "scans": c["scans"], "complete_scans": c["scans"], "partial_scans": 0,
                 "points": c["firings"], "returns": c["returns"], "warnings": []}
+
+
+def encode_xt32(block_azimuth_cdeg: np.ndarray, distance_m: np.ndarray,
+                reflectivity: np.ndarray, timestamp_us: np.ndarray, *, rpm: float = 600.0,
+                return_mode: int = 0x37, first_sequence: int = 0) -> list[bytes]:
+    """Single-return PandarXT32 packets: ``block_azimuth_cdeg`` (n, 8), ``distance_m`` and
+    ``reflectivity`` (n, 8, 32), ``timestamp_us`` (n,): the layout `decode_xt32` reads, the
+    distance in 4 mm units (0: no return)."""
+    n = len(block_azimuth_cdeg)
+    rec = np.zeros(n, dtype=PACKET_DTYPE)
+    rec["sop"] = 0xFFEE  # 0xEE 0xFF on the wire
+    rec["protocol"] = (6, 1)
+    rec["laser_num"], rec["block_num"], rec["dis_unit"], rec["return_num"] = N_CHANNELS, 8, 4, 1
+    rec["blocks"]["azimuth"] = block_azimuth_cdeg
+    rec["blocks"]["units"]["distance"] = np.clip(np.rint(distance_m / 0.004), 0, 65535)
+    rec["blocks"]["units"]["reflectivity"] = reflectivity
+    rec["return_mode"] = return_mode
+    rec["motor_speed"] = round(rpm)
+    rec["timestamp"] = timestamp_us % (1 << 32)
+    rec["udp_sequence"] = (first_sequence + np.arange(n)) % (1 << 32)
+    raw = rec.tobytes()
+    return [raw[i:i + PACKET_BYTES] for i in range(0, len(raw), PACKET_BYTES)]
