@@ -3,7 +3,8 @@
 tests/data/nebula-xt32/ holds one rotation of a real PandarXT32 (dual return, 600 rpm) from
 nebula's decoder test (Apache 2.0), and the points nebula's decoder made of its first quarter
 (its test's ground truth). Decoded from the published packet layout and the angle-correction
-file, the rotation gives nebula's points to float precision: every one of them, and no other.
+file, the rotation gives nebula's points to float precision: every one of them, and no other;
+and hydra4, an independent decoder on PyPI, reads the real packets and the twin's as we do.
 """
 
 from __future__ import annotations
@@ -59,3 +60,27 @@ def test_the_pcap_is_a_whole_rotation_through_the_source_layer(capsys):
                  "--angles", str(DEFAULT_ANGLES)]) == 0
     out = capsys.readouterr().out
     assert "PandarXT32" in out and "1 whole rotations" in out and "64000 firings" in out
+
+
+def test_hydra4_decodes_the_twins_and_the_real_packets_as_we_do():
+    """hydra4 (MapIV's XT32 decoder, an independent one) on the real rotation (it decodes the
+    first block of each dual-return pair) and on the twin's single-return packets."""
+    from types import SimpleNamespace
+
+    from hydra4.decoders import PandarXT32
+
+    from twin.sim.bench import BenchSim
+    from twin.sim.hesai_twin import emulate_xt32
+
+    angles = XT32Angles.from_csv(XT32 / "PandarXT32.csv")
+    theirs = PandarXT32(XT32 / "PandarXT32.csv", 0.0, 200.0)
+    twin, _ = emulate_xt32(BenchSim(seed=2), angles, 1, rng=np.random.default_rng(2))
+    for payloads, blocks in (([r.payload for r in read_pcap(PCAP)][:60], slice(0, 8, 2)),
+                             (twin[:60], slice(0, 8))):
+        dec = decode_xt32(payloads, angles)
+        ours = np.stack([dec.x, dec.y, dec.z], axis=-1)[:, blocks]
+        ours = ours[dec.distance[:, blocks] > 0]
+        pts = [p[:3] for pkt in payloads
+               for b in theirs(SimpleNamespace(data=pkt)) for p in b.points]
+        assert len(pts) == len(ours) > 1000
+        assert np.abs(np.asarray(pts) - ours).max() < 1e-9

@@ -245,7 +245,12 @@ def encode_xt32(block_azimuth_cdeg: np.ndarray, distance_m: np.ndarray,
     rec["blocks"]["units"]["reflectivity"] = reflectivity
     rec["return_mode"] = return_mode
     rec["motor_speed"] = round(rpm)
-    rec["timestamp"] = timestamp_us % (1 << 32)
+    # date and time (years since 1900, month, day, hour, minute, second): 2025-01-01 12:00
+    # plus the whole seconds of the timestamp; the timestamp the microseconds within it
+    sec = np.asarray(timestamp_us) // 1_000_000
+    rec["date_time"] = np.column_stack((np.full(n, 125), np.ones(n), np.ones(n),
+                                        np.full(n, 12), (sec // 60) % 60, sec % 60))
+    rec["timestamp"] = np.asarray(timestamp_us) % 1_000_000
     rec["udp_sequence"] = (first_sequence + np.arange(n)) % (1 << 32)
     raw = rec.tobytes()
     return [raw[i:i + PACKET_BYTES] for i in range(0, len(raw), PACKET_BYTES)]
