@@ -71,3 +71,28 @@ def test_simulate_writes_what_info_and_estimate_read(tmp_path, capsys):
     assert main(["estimate", str(out), "--truth", str(tmp_path / "os1.truth.json")]) == 0
     est = capsys.readouterr().out
     assert " ok " in est and "error" in est
+
+
+def test_a_station_of_an_ouster_decodes_its_captures_and_refuses_the_velodyne_twin(tmp_path,
+                                                                                   capsys):
+    """``sensor.model = "os1-64"`` in a station file: the model's name as aimbench writes it,
+    its captures read (a capture without its metadata JSON: the model's nominal beams, said in a
+    warning), and the benches that emulate Velodynes refuse it in one line."""
+    from scenarios import station as stations
+    from scenarios.bench import SimBench
+    from scenarios.cli import main
+    from twin.core.errors import AimbenchError
+
+    path = tmp_path / "ouster.toml"
+    path.write_text('[sensor]\nmodel = "os1-64"\n')
+    st = stations.load(path)
+    assert st.sensor.model == "OS1-64" and st.decoding() == {"model": "OS1-64", "lasers": None}
+    out = tmp_path / "os1.pcap"
+    sim = BenchSim(BenchParams.from_edge(tilt_deg=0.5), seed=3)
+    write_ouster_pcap(sim, nominal_info("OS1-64"), out, 1, rng=np.random.default_rng(3))
+    out.with_suffix(".json").unlink()  # the metadata lost: the model's nominal beams stand in
+    assert main(["estimate", str(out), "--station", str(path)]) == 0
+    captured = capsys.readouterr()
+    assert "nominal beams" in captured.err and " ok " in captured.out
+    with pytest.raises(AimbenchError, match="emulates the Velodyne models"):
+        SimBench(station=st)

@@ -17,7 +17,7 @@ from typing import Any
 from scenarios.progress import Bar
 from twin.core.errors import AimbenchError
 from twin.core.scan import Scan
-from twin.core.sensors import MODELS, model_named
+from twin.core.sensors import MODELS
 from twin.lidar.calibration_file import read_calibration_file
 from twin.lidar.conventions import CONVENTIONS
 from twin.lidar.sources import ScanSource, open_scans
@@ -140,12 +140,16 @@ def sensor_options(args: argparse.Namespace, station: Any = None) -> dict:
     cal = getattr(args, "sensor_calibration", None)
     lasers = None if cal is None else read_calibration_file(cal)[0]
     if station is not None:
-        same = model is None or model_named(model).name == station.sensor.model
+        same = model is None or _model_key(model) == _model_key(station.sensor.model)
         if model is None:
             model = station.sensor.model
         if lasers is None and same:
             lasers = station.factory_lasers()
     return {"model": model, "lasers": lasers}
+
+
+def _model_key(name: str) -> str:
+    return "".join(ch for ch in name.upper() if ch.isalnum())
 
 
 def decode_options(args: argparse.Namespace, station: Any = None) -> dict:

@@ -79,6 +79,9 @@ class OusterInfo:
     serial: str = ""
     firmware: str = ""
     source: str = "metadata"
+    #: What a reader should be told about how this metadata was come by (its summary's
+    #: warnings): a model's nominal beams standing in for a unit's, say.
+    notes: list = field(default_factory=list, repr=False)
     lasers: LaserTable = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -464,7 +467,8 @@ class OusterScans:
             "other_datagrams": c["other_datagrams"], "scans": c["frames"],
             "complete_scans": c["complete"], "partial_scans": c["frames"] - c["complete"],
             "points": c["firings"], "returns": c["returns"],
-            "missing_columns": c["missing_columns"], "metadata": i.source, "warnings": [],
+            "missing_columns": c["missing_columns"], "metadata": i.source,
+            "warnings": list(i.notes),
         }
 
 
@@ -486,6 +490,13 @@ LIDAR_MODES = ("512x10", "512x20", "1024x10", "1024x20", "2048x10")
 
 def is_ouster_model(name: str) -> bool:
     return _ouster_key(name) is not None
+
+
+def ouster_model_name(name: str) -> str | None:
+    """The model's name as aimbench writes it (``os1-64``, ``OS-1-64`` -> ``OS1-64``), None
+    when it is not an Ouster's."""
+    key = _ouster_key(name)
+    return None if key is None else f"{key[0]}-{key[1]}"
 
 
 def _ouster_key(name: str) -> tuple[str, int] | None:

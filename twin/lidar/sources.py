@@ -240,15 +240,27 @@ class OusterScanSource(ScanSource):
         return self.reader.summary()
 
 
-def _ouster_info(src: SourceName, metadata: str | Path | None):
+def _ouster_info(src: SourceName, metadata: str | Path | None, model: str | None = None):
     """The Ouster metadata a source is read with: the one given, else (a pcap) the JSON
-    recorded beside it when it is an Ouster sensor's; None: not an Ouster source."""
-    from twin.lidar.ouster import OusterError, OusterInfo, metadata_beside
+    recorded beside it when it is an Ouster sensor's, else an Ouster ``model``'s nominal one
+    (with a warning: a unit's beams are its own); None: not an Ouster source."""
+    from twin.lidar.ouster import (
+        OusterError,
+        OusterInfo,
+        is_ouster_model,
+        metadata_beside,
+        nominal_info,
+    )
 
     if metadata is not None:
         return OusterInfo.from_json(Path(metadata))
     beside = metadata_beside(src.path) if src.kind == "pcap" else None
     if beside is None:
+        if model is not None and is_ouster_model(model):
+            info = nominal_info(model)
+            info.notes.append(f"no metadata JSON beside {src.path or src}: read as the "
+                              f"{model}'s nominal beams; give the unit's own with --metadata")
+            return info
         return None
     try:
         return OusterInfo.from_json(beside)
@@ -384,7 +396,7 @@ def open_scans(
         cut = 18000 if cut_azimuth is None else round(math.degrees(cut_azimuth) * 100) % 36000
         return _open_xt32(src, hesai_angles, max_scans, timeout_s, cut)
     if src.kind in ("pcap", "udp"):
-        info = _ouster_info(src, ouster_metadata)
+        info = _ouster_info(src, ouster_metadata, model if isinstance(model, str) else None)
         if info is not None:
             return _open_ouster(src, info, max_scans, timeout_s)
     sensor = resolve_model(model)
