@@ -18,6 +18,12 @@ standard deviation of the single-scan estimates (fused: RMS error over poses), c
 simulation precision (its table: 0.15 / 0.20 / 0.10 deg, 4.8 mm); ratio = anchor / figure (> 1:
 better than the paper's VLP-16). The bound column (the information bound per model) is left to
 `align.design.bound`. CPU seconds of this process (`time.process_time`), one BLAS thread.
+
+Ouster OS0/OS1/OS2 x 32/64/128 (1024x10) go through `twin.sim.ouster_twin` (a real unit's
+metadata, its LEGACY packets, our decoder), the Hesai PandarXT32 through `twin.sim.hesai_twin`
+(nebula's angle corrections, its packets, our decoder); then two rows on Ouster decoding:
+agreement with ouster-sdk on its own real capture, and frames per second against ouster-sdk's
+(measured when ouster-sdk can be imported).
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import sys
+import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -42,9 +49,22 @@ from bench_align import AXES, PAPER, UNITS, errors, random_pose
 
 import align
 from twin.core.sensors import MODELS
+from twin.lidar.hesai import DEFAULT_ANGLES, XT32Angles, XT32Scans
+from twin.lidar.ouster import (
+    OUSTER_MODELS,
+    columns_from_frame,
+    encode_packets,
+    is_ouster_model,
+    nominal_info,
+    scans_from_payloads,
+    xyz_lidar,
+)
 from twin.lidar.scans import ScanAssembler
+from twin.lidar.sources import open_scans
 from twin.sim.bench import BenchSim
 from twin.sim.emulation import EmulationConfig
+from twin.sim.hesai_twin import emulate_xt32
+from twin.sim.ouster_twin import emulate_frames, write_ouster_pcap
 
 
 def captured_scans(sim: BenchSim, n: int) -> list:
@@ -56,12 +76,98 @@ def captured_scans(sim: BenchSim, n: int) -> list:
     return whole[:n], truth
 
 
+def ouster_scans(params, x: float, yaw: float, seed: int, n: int, model: str) -> tuple:
+    """``n`` frames of an Ouster on the twin at one pose, as decoded from its own LEGACY
+    packets (`twin.sim.ouster_twin`), and the truth."""
+    info = nominal_info(model)
+    sim = BenchSim(params, seed=seed)
+    sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
+    frames, truth = emulate_frames(sim, info, n, rng=np.random.default_rng(seed))
+    payloads = [p for f in frames for p in encode_packets(columns_from_frame(f, info), info)]
+    return scans_from_payloads(payloads, info), truth
+
+
+def xt32_scans(params, x: float, yaw: float, seed: int, n: int) -> tuple:
+    """``n`` rotations of a Hesai PandarXT32 on the twin at one pose, through its packets and
+    our decoder (`twin.sim.hesai_twin`)."""
+    angles = XT32Angles.from_csv(DEFAULT_ANGLES)
+    sim = BenchSim(params, seed=seed)
+    sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
+    packets, truth = emulate_xt32(sim, angles, n + 1, rng=np.random.default_rng(seed),
+                                  start_cdeg=9000)
+    return list(XT32Scans(packets, angles))[:n], truth
+
+
+def ouster_decode_rows() -> list[str]:
+    """Decode agreement with ouster-sdk on its own real OS1-32 capture (its digest of every
+    field; its XYZLut's points), and decode throughput against ouster-sdk's when installed."""
+    import hashlib
+    import json
+
+    from twin.lidar.ouster import OusterInfo, decode_packets
+    from twin.lidar.ouster import frames as ouster_frames
+    from twin.lidar.pcap import read_pcap
+
+    data = Path(__file__).resolve().parent.parent / "tests" / "data" / "ouster-os1-32"
+    info = OusterInfo.from_json(data / "OS-1-32-G_v2.1.1_1024x10.json")
+    payloads = [r.payload for r in read_pcap(data / "OS-1-32-G_v2.1.1_1024x10.pcap", ports=None)]
+    (f,) = list(ouster_frames(decode_packets(payloads, info), info))
+    digest = json.loads((data / "OS-1-32-G_v2.1.1_1024x10_digest.json").read_text())["scans"][0]
+    md5 = {"RANGE": f.range_mm, "SIGNAL": f.signal, "NEAR_IR": f.near_ir,
+           "REFLECTIVITY": f.reflectivity, "TIMESTAMP": f.timestamp_ns,
+           "MEASUREMENT_ID": f.measurement_id, "STATUS": f.status.astype(np.uint64)}
+    same = sum(hashlib.md5(np.ascontiguousarray(a).tobytes()).hexdigest() == digest[k]
+               for k, a in md5.items())
+    ref = json.loads((data / "OS-1-32-G_v2.1.1_1024x10_xyz_ouster_sdk.json").read_text())
+    p = xyz_lidar(f.range_mm, info)[ref["row"], ref["column"]] * 1e-3
+    p[:, 2] += info.lidar_to_sensor[2, 3] * 1e-3
+    dxyz = float(np.abs(p - np.asarray(ref["xyz"])).max())
+    rows = [f"decode agreement with ouster-sdk (its OS1-32 capture): {same}/{len(md5)} fields' "
+            f"md5 equal (anchor {len(md5)}), points within {dxyz:.1e} m of its XYZLut's "
+            f"({len(ref['row'])} points)"]
+    # throughput: a 20-frame OS1-128 1024x10 pcap of the twin, through the source layer
+    with tempfile.TemporaryDirectory() as tmp:
+        pcap = Path(tmp) / "os1128.pcap"
+        sim = BenchSim(seed=1)
+        write_ouster_pcap(sim, nominal_info("OS1-128"), pcap, 20, rng=np.random.default_rng(1))
+        best = min(_time(lambda: sum(1 for _ in open_scans(pcap))) for _ in range(3))
+        ours = 20 / best
+        try:
+            from ouster.sdk import core, open_source
+
+            def sdk() -> None:
+                src = open_source(str(pcap), meta=[str(pcap.with_suffix(".json"))],
+                                  index=False)
+                lut = core.XYZLut(src.sensor_info[0], use_extrinsics=False)
+                for fs in src:
+                    lut(fs[0].field(core.ChanField.RANGE))
+
+            theirs = 20 / min(_time(sdk) for _ in range(3))
+            note = "measured now"
+        except ImportError:
+            theirs = 80.2  # ouster-sdk 1.0.1 in its own venv, this machine, one core, 2026-12-07
+            note = "ouster-sdk not installed here (it pins rosbags 0.9.23): measured 2026-12-07"
+    rows.append(f"decode throughput, OS1-128 1024x10 pcap -> scans (points in {{L}}): "
+                f"{ours:.1f} frames/s; ouster-sdk pcap -> frames -> XYZLut {theirs:.1f} frames/s "
+                f"({note}); ratio {ours / theirs:.2f}; real time needs 10")
+    return rows
+
+
+def _time(fn) -> float:
+    t = time.perf_counter()
+    fn()
+    return time.perf_counter() - t
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--poses", type=int, default=10, help="random poses (paper: 200)")
     ap.add_argument("--scans", type=int, default=10, help="scans per pose (paper: 50)")
     ap.add_argument("--seed", type=int, default=2026)
-    ap.add_argument("--models", default=",".join(MODELS), help="comma-separated")
+    ap.add_argument("--models", default=",".join((*MODELS, *OUSTER_MODELS, "PandarXT32")),
+                    help="comma-separated (Velodyne, Ouster, Hesai PandarXT32)")
+    ap.add_argument("--no-decode", action="store_true",
+                    help="skip the Ouster decode agreement and throughput rows")
     ap.add_argument("--methods", default="paper,rays", help="comma-separated")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
@@ -72,7 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     c_start = time.process_time()
     for model in models:
-        cfg = EmulationConfig(model=model, laser_offset_sigma=0.0, divergence=False)
+        cfg = (None if is_ouster_model(model) or model == "PandarXT32" else
+               EmulationConfig(model=model, laser_offset_sigma=0.0, divergence=False))
         rng = np.random.default_rng(args.seed)
         single = {m: ([], [], []) for m in methods}  # per-pose stds, errors, sigmas
         fused = {m: ([], []) for m in methods}
@@ -80,9 +187,15 @@ def main(argv: list[str] | None = None) -> int:
         cpu = dict.fromkeys(methods, 0.0)
         for _ in range(args.poses):
             params, x, yaw = random_pose(rng, 3.0, 30.0, 0.0)
-            sim = BenchSim(params, seed=int(rng.integers(2**31)), noise=cfg)
-            sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
-            scans, truth = captured_scans(sim, args.scans)
+            seed = int(rng.integers(2**31))
+            if model == "PandarXT32":
+                scans, truth = xt32_scans(params, x, yaw, seed, args.scans)
+            elif cfg is None:
+                scans, truth = ouster_scans(params, x, yaw, seed, args.scans, model)
+            else:
+                sim = BenchSim(params, seed=seed, noise=cfg)
+                sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
+                scans, truth = captured_scans(sim, args.scans)
             for m in methods:
                 c0 = time.process_time()
                 errs, sigs = [], []
@@ -133,6 +246,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{model:12} {m:6} {mode:9} {name:10} " + " ".join(f"{x:10.3f}" for x in v)
               + f"  {ratio:>34}  " + " ".join(f"{c:6.2f}" for c in chi2)
               + f" {failed:6d}  (align.design.bound)")
+    if not args.no_decode:
+        print()
+        for row in ouster_decode_rows():
+            print(row)
     return 0
 
 

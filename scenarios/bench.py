@@ -36,6 +36,7 @@ from scenarios.station import default as default_station
 from twin.core.errors import AimbenchError
 from twin.core.pose import StagePose
 from twin.core.scan import Scan
+from twin.core.sensors import MODELS
 from twin.core.vlp16 import DATA_PORT
 
 #: The paper's bench travel, used when a bench cannot tell its own: yaw +-10 deg sweeps need at
@@ -441,6 +442,11 @@ class SimBench(Bench):
         if noise is None:
             # The station's sensor model (its nominal lasers: the twin is no particular unit).
             model = (station if station is not None else default_station()).sensor.model
+            if model not in MODELS:
+                raise AimbenchError(
+                    f"the twin bench emulates the Velodyne models ({', '.join(MODELS)}); the "
+                    f"station's sensor.model is {model}: write its captures with `aimbench "
+                    f"simulate --model {model}` and estimate those")
             noise = (EmulationConfig.ideal(model=model) if ideal
                      else EmulationConfig(model=model))
         self._mount: dict[str, float] | None = None

@@ -216,8 +216,16 @@ class Sensor(_Section):
         try:
             return model_named(value).name
         except KeyError:
-            raise ValueError(f"unknown sensor model {value!r}; aimbench knows "
-                             f"{', '.join(SENSOR_MODELS)}") from None
+            pass
+        from twin.lidar.ouster import OUSTER_MODELS, ouster_model_name
+
+        ouster = ouster_model_name(value)
+        if ouster is not None:  # an Ouster: read with its metadata JSON (--metadata)
+            return ouster
+        if "".join(ch for ch in value.upper() if ch.isalnum()) in ("PANDARXT32", "XT32"):
+            return "PandarXT32"
+        raise ValueError(f"unknown sensor model {value!r}; aimbench knows "
+                         f"{', '.join((*SENSOR_MODELS, *OUSTER_MODELS, 'PandarXT32'))}")
 
     @field_validator("calibration_file")
     @classmethod
@@ -483,6 +491,11 @@ class Station(_Section):
             table, _ = read_calibration_file(path)
         except AimbenchError as exc:
             raise StationError(f"sensor.calibration_file: {exc}; see docs/station.md") from None
+        if self.sensor.model not in SENSOR_MODELS:
+            raise StationError(f"sensor.calibration_file {path}: a Velodyne calibration file, but "
+                               f"sensor.model is {self.sensor.model} (an Ouster reads its "
+                               "metadata JSON, --metadata; a PandarXT32 its angle file, "
+                               "--angles); see docs/station.md")
         model = model_named(self.sensor.model)
         if table.n_lasers != model.n_lasers:
             raise StationError(f"sensor.calibration_file {path}: {table.n_lasers} lasers, but a "

@@ -17,8 +17,9 @@ from typing import Any
 from scenarios.progress import Bar
 from twin.core.errors import AimbenchError
 from twin.core.scan import Scan
-from twin.core.sensors import MODELS, model_named
+from twin.core.sensors import MODELS
 from twin.lidar.calibration_file import read_calibration_file
+from twin.lidar.conventions import CONVENTIONS
 from twin.lidar.sources import ScanSource, open_scans
 
 SOURCE_HELP = ("a capture (.pcap/.pcapng), the live sensor (udp://HOST:PORT, e.g. "
@@ -103,16 +104,26 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
                         "velodyne_decoder do)")
     p.add_argument("--no-vertical-offsets", action="store_true",
                    help="do not add the lasers' vertical offsets to z")
+    p.add_argument("--cloud-convention", choices=tuple(CONVENTIONS), default=None,
+                   help="the driver that wrote a point cloud (how it turned each laser's "
+                        "point; docs/vlp16.md): default, told from the cloud's fields, else "
+                        "from its points")
+    p.add_argument("--metadata", metavar="FILE.json", default=None,
+                   help="an Ouster sensor's metadata JSON, which its packets are read with "
+                        "(default: the NAME.json recorded beside a NAME.pcap)")
     add_sensor_arguments(p)
 
 
 def add_sensor_arguments(p: argparse.ArgumentParser) -> None:
     """Which sensor the packets come from: ``--model`` and ``--sensor-calibration``, on every
     command that reads a source (a ``--station`` file's [sensor] gives both otherwise)."""
-    p.add_argument("--model", choices=tuple(MODELS), default=None,
+    p.add_argument("--model", choices=(*MODELS, "PandarXT32"), default=None,
                    help="decode as this model whatever the product id byte says (default: "
                         "the --station file's sensor.model if one is given, else from the "
                         "product id); point clouds are rebuilt on its grid (default VLP-16)")
+    p.add_argument("--angles", metavar="FILE.csv", default=None,
+                   help="a Hesai PandarXT32's angle-correction file (Channel,Elevation,Azimuth; "
+                        "default: the nominal one nebula ships)")
     p.add_argument("--sensor-calibration", metavar="FILE", default=None,
                    help="the unit's factory laser table (VeloView .xml or ROS driver .yaml) "
                         "instead of the model's nominal one (default: the --station file's "
@@ -129,12 +140,16 @@ def sensor_options(args: argparse.Namespace, station: Any = None) -> dict:
     cal = getattr(args, "sensor_calibration", None)
     lasers = None if cal is None else read_calibration_file(cal)[0]
     if station is not None:
-        same = model is None or model_named(model).name == station.sensor.model
+        same = model is None or _model_key(model) == _model_key(station.sensor.model)
         if model is None:
             model = station.sensor.model
         if lasers is None and same:
             lasers = station.factory_lasers()
     return {"model": model, "lasers": lasers}
+
+
+def _model_key(name: str) -> str:
+    return "".join(ch for ch in name.upper() if ch.isalnum())
 
 
 def decode_options(args: argparse.Namespace, station: Any = None) -> dict:
@@ -143,6 +158,9 @@ def decode_options(args: argparse.Namespace, station: Any = None) -> dict:
         "cut_azimuth": None if args.cut_at_start else math.radians(args.cut_azimuth_deg),
         "split": args.split,
         "vertical_offsets": not args.no_vertical_offsets,
+        "cloud_convention": getattr(args, "cloud_convention", None),
+        "ouster_metadata": getattr(args, "metadata", None),
+        "hesai_angles": getattr(args, "angles", None),
         **sensor_options(args, station),
     }
 
@@ -166,6 +184,11 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+#: How a cloud's driver convention was told, as `info` says it.
+_TOLD = {"fields": "told by the cloud's fields", "points": "told from the points",
+         "option": "given by --cloud-convention"}
+
+
 def format_summary(s: dict) -> str:
     """The summary as aligned lines of text, for whichever kind of source it came from."""
     kind = s.get("kind", "pcap")
@@ -182,6 +205,30 @@ def format_summary(s: dict) -> str:
                        f"{s['rebuilt_misses']} misses rebuilt from the firing grid"),
             ("vertical offsets", "in the points' z" if s["vertical_offsets"] else
              "not applied (as the ROS driver writes)"),
+            ("convention", f"{s.get('cloud_convention') or '-'} "
+                           f"({_TOLD.get(s.get('cloud_convention_from'), 'given')})"),
+        ]
+        return "\n".join(f"{k:17s} {v}" for k, v in lines)
+    if s.get("model") == "PandarXT32":  # a Hesai's packets
+        lines += [
+            ("model", f"PandarXT32 (angles {s['laser_table']})"),
+            ("return mode", s["return_mode"] if s["return_mode"] is not None else "-"),
+            ("rpm", rpm),
+            ("data packets", f"{s['data_packets']} ({s['other_datagrams']} other datagrams)"),
+            ("scans", f"{s['scans']} whole rotations"),
+            ("points", f"{s['points']} firings, {s['returns']} returns"),
+        ]
+        return "\n".join(f"{k:17s} {v}" for k, v in lines)
+    if "lidar_mode" in s:  # an Ouster sensor's packets
+        lines += [
+            ("model", f"{s['model']} ({s['prod_line']}, serial {s['serial'] or '-'}, "
+                      f"firmware {s['firmware'] or '-'}; metadata {s['metadata']})"),
+            ("lidar mode", f"{s['lidar_mode']} ({s['profile']} packets)"),
+            ("rpm", rpm),
+            ("data packets", f"{s['data_packets']} ({s['other_datagrams']} other datagrams)"),
+            ("scans", f"{s['scans']} ({s['complete_scans']} complete, {s['partial_scans']} "
+                      f"partial: {s['missing_columns']} columns missing)"),
+            ("points", f"{s['points']} firings, {s['returns']} returns"),
         ]
         return "\n".join(f"{k:17s} {v}" for k, v in lines)
     lines += [
@@ -215,12 +262,15 @@ def format_summary(s: dict) -> str:
 
 def _describe(s: dict) -> str:
     kind = s.get("kind", "pcap")
-    if kind == "udp":
+    if kind == "udp" and "lidar_mode" not in s and s.get("model") != "PandarXT32":
         return f"{s['capture']} (live)"
     if "bag" in s:
         b = s["bag"]
         return (f"{s['capture']} (ROS bag, topic {b['topic']}, {b['type']}, "
                 f"{b['messages']} messages)")
+    if "lidar_mode" in s or s.get("model") == "PandarXT32":
+        maker = "Ouster lidar" if "lidar_mode" in s else "Hesai PandarXT32"
+        return f"{s['capture']} ({maker} packets, {'live' if kind == 'udp' else kind})"
     f = s.get("file")
     if f is not None:
         return (f"{s['capture']} ({f.get('format', '?')}, "

@@ -27,6 +27,7 @@ from scenarios import station as stations
 from scenarios.truth import write_truth
 from twin.core.errors import AimbenchError
 from twin.core.sensors import MODELS
+from twin.lidar.ouster import LIDAR_MODES, OUSTER_MODELS, is_ouster_model
 
 
 def _jsonable(obj) -> dict:
@@ -62,6 +63,10 @@ def run(args: argparse.Namespace) -> int:
         mount_tilt=base.mount_tilt + math.radians(args.tilt_deg),
         mount_yaw=base.mount_yaw + math.radians(args.mount_yaw_deg))
     model = args.model or station.sensor.model
+    if is_ouster_model(model):
+        return _simulate_ouster(args, params, model, out, station, station_file)
+    if model == "PandarXT32":
+        return _simulate_xt32(args, params, out, station, station_file)
     try:
         noise = (EmulationConfig.ideal(model=model) if args.ideal
                  else EmulationConfig(model=model))
@@ -94,6 +99,75 @@ def _deg(rad: float) -> str:
     return f"{round(math.degrees(rad), 3) + 0.0:.3f}"
 
 
+def _simulate_ouster(args: argparse.Namespace, params, model: str, out: Path,
+                     station: stations.Station, station_file) -> int:
+    """An Ouster's frames of the twin's bench (`twin.sim.ouster_twin`): the pcap, its metadata
+    JSON beside it (what the sensor's tools record), and the truth file."""
+    import numpy as np
+
+    from twin.lidar.ouster import nominal_info, scans_from_payloads
+    from twin.lidar.pcap import read_pcap
+    from twin.sim.bench import BenchSim
+    from twin.sim.ouster_twin import write_ouster_pcap
+
+    info = nominal_info(model, args.lidar_mode)
+    sim = BenchSim(params, seed=args.seed)
+    sim.move_to(x_m=args.x_mm * 1e-3, yaw_rad=math.radians(args.yaw_deg))  # checks the travel
+    rng = np.random.default_rng(args.seed)
+    truth_pose = write_ouster_pcap(sim, info, out, args.scans, rng=rng,
+                                   range_sigma=0.0 if args.ideal else 0.01)
+    scans = scans_from_payloads([r.payload for r in read_pcap(out, ports=None)], info)
+    for s in scans:
+        s.meta["truth_pose"] = truth_pose
+    truth = write_truth(out, scans, seed=args.seed, ideal=bool(args.ideal),
+                        stage={"x_mm": sim.stage_x() * 1e3,
+                               "yaw_deg": math.degrees(sim.stage_yaw())},
+                        station=station.to_dict(), station_file=station_file,
+                        params=_jsonable(params), sensor={"model": model,
+                                                          "lidar_mode": args.lidar_mode,
+                                                          "metadata": info.source})
+    if not args.quiet:
+        p = truth_pose
+        print(f"wrote {out} ({len(scans)} {model} frames, {args.lidar_mode}), "
+              f"{out.with_suffix('.json').name} (its metadata) and {truth.name}; true pose: "
+              f"x {p.x * 1e3:.1f} mm, y {p.y * 1e3:.1f} mm, z {p.z * 1e3:.1f} mm, "
+              f"roll {math.degrees(p.roll):.3f} deg, tilt {math.degrees(p.tilt):.3f} deg, "
+              f"yaw {math.degrees(p.yaw):.3f} deg")
+    return 0
+
+
+def _simulate_xt32(args: argparse.Namespace, params, out: Path, station: stations.Station,
+                   station_file) -> int:
+    """A Hesai PandarXT32's packets of the twin's bench (`twin.sim.hesai_twin`) and the truth
+    file; its rotations cut at 180 deg, read back with ``--model PandarXT32``."""
+    import numpy as np
+
+    from twin.lidar.capture import PcapSource
+    from twin.lidar.hesai import DEFAULT_ANGLES, XT32Angles, XT32Scans
+    from twin.sim.bench import BenchSim
+    from twin.sim.hesai_twin import write_xt32_pcap
+
+    angles = XT32Angles.from_csv(DEFAULT_ANGLES)
+    sim = BenchSim(params, seed=args.seed)
+    sim.move_to(x_m=args.x_mm * 1e-3, yaw_rad=math.radians(args.yaw_deg))  # checks the travel
+    truth_pose = write_xt32_pcap(sim, angles, out, args.scans + 1,
+                                 rng=np.random.default_rng(args.seed), rpm=args.rpm,
+                                 range_sigma=0.0 if args.ideal else 0.01, start_cdeg=9000)
+    scans = list(XT32Scans(PcapSource(out), angles))
+    for s in scans:
+        s.meta["truth_pose"] = truth_pose
+    truth = write_truth(out, scans, seed=args.seed, ideal=bool(args.ideal),
+                        stage={"x_mm": sim.stage_x() * 1e3,
+                               "yaw_deg": math.degrees(sim.stage_yaw())},
+                        station=station.to_dict(), station_file=station_file,
+                        params=_jsonable(params), sensor={"model": "PandarXT32",
+                                                          "angles": str(DEFAULT_ANGLES)})
+    if not args.quiet:
+        print(f"wrote {out} ({len(scans)} PandarXT32 rotations; read it with --model "
+              f"PandarXT32) and {truth.name}")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="write a lidar capture of the simulated bench and its "
                                         "ground truth")
@@ -122,8 +196,10 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="the scene the bench stands in (default: the station's twin.scene; "
                         "'bench': floor, wall and beams; 'lab': a cluttered lab around it)")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
-    p.add_argument("--model", choices=tuple(MODELS), default=None,
+    p.add_argument("--model", choices=(*MODELS, *OUSTER_MODELS, "PandarXT32"), default=None,
                    help="the sensor emulated (default: the station's sensor.model; the "
-                        "paper's: VLP-16)")
+                        "paper's: VLP-16); an Ouster's pcap gets its metadata JSON beside it")
+    p.add_argument("--lidar-mode", choices=LIDAR_MODES, default="1024x10",
+                   help="an Ouster's columns x frames a second (default 1024x10)")
     p.set_defaults(func=run)
     return p

@@ -27,6 +27,7 @@ from twin.core import vlp16
 from twin.core.errors import AimbenchError
 from twin.lidar.capture import Packet
 from twin.lidar.clouds import Cloud
+from twin.lidar.conventions import cloud_fields
 
 #: velodyne_msgs (the ROS velodyne driver's package; ROS 1 and ROS 2 define them alike, ROS 1's
 #: ``time`` being ROS 2's builtin_interfaces/Time): what a bag of raw packets holds.
@@ -161,14 +162,15 @@ class Bag:
             raise BagError(f"{self.path}: topic {self.topic} holds packets, not point clouds")
         for stamp_ns, msg in self._messages():
             rec = cloud_records(msg, f"{self.path} {self.topic} message {self.messages - 1}")
-            names = rec.dtype.names
-            intensity = next((rec[f] for f in ("intensity", "reflectivity") if f in names), None)
-            yield Cloud.from_ros(
-                rec["x"], rec["y"], rec["z"], intensity=intensity,
-                ring=rec["ring"] if "ring" in names else None,
-                time=rec["time"] if "time" in names else None,
-                name=f"{self.path} {self.topic} at {stamp_ns * 1e-9:.6f} s",
-                meta={"stamp_s": stamp_ns * 1e-9, "frame_id": msg.header.frame_id})
+            # The driver's fields (ring or channel, time in s or ns...): twin.lidar.conventions
+            fields, told = cloud_fields(rec)
+            meta = {"stamp_s": stamp_ns * 1e-9, "frame_id": msg.header.frame_id,
+                    "cloud_fields": list(rec.dtype.names), "organized": msg.height > 1}
+            if told:
+                meta["convention_from"] = told
+            yield Cloud.from_ros(rec["x"], rec["y"], rec["z"], **fields,
+                                 name=f"{self.path} {self.topic} at {stamp_ns * 1e-9:.6f} s",
+                                 meta=meta)
 
     def info(self) -> dict:
         """What the bag holds (for `aimbench info`)."""

@@ -43,6 +43,7 @@ from twin.core.errors import AimbenchError
 from twin.core.lasers import LaserTable
 from twin.core.scan import ReturnType, Scan
 from twin.core.sensors import MODELS, SensorModel
+from twin.lidar.conventions import CONVENTIONS, CloudConvention, convention_named, turn
 
 TWO_PI = 2.0 * math.pi
 #: Interior gaps of the sweep up to this wide are firings that all missed and are rebuilt; a
@@ -97,6 +98,12 @@ class Cloud:
     time: np.ndarray | None = None
     name: str = "point cloud"
     meta: dict = field(default_factory=dict)
+    #: The driver's convention (`twin.lidar.conventions`), when its fields tell it; None: to be
+    #: told from the points.
+    convention: str | None = None
+    #: The encoder azimuth of each point's block, rad, when the driver writes it (nebula's
+    #: ``azimuth`` field for the 32-laser models).
+    block_azimuth: np.ndarray | None = None
 
     @classmethod
     def from_ros(cls, x: np.ndarray, y: np.ndarray, z: np.ndarray, **kwargs) -> Cloud:
@@ -122,6 +129,7 @@ class _Points:
     distance: np.ndarray
     time: np.ndarray | None
     order: np.ndarray  # position of each point in the sweep's time order
+    block_azimuth: np.ndarray | None  # the encoder azimuth of each point's block (rad), if given
 
 
 def scan_from_cloud(
@@ -131,6 +139,7 @@ def scan_from_cloud(
     vertical_offsets: bool | None = None,
     index: int = 0,
     model: SensorModel | None = None,
+    convention: str | CloudConvention | None = None,
 ) -> Scan:
     """The `Scan` of a cloud's rotation with the misses rebuilt (module docstring).
 
@@ -139,7 +148,9 @@ def scan_from_cloud(
     one of `FIRING_TIMING` (a unit's calibration table needs its model given).
     ``vertical_offsets``: whether the cloud's z carries the lasers' vertical offsets (our
     decoder's default) or not (the ROS velodyne driver's); None decides from the points: with
-    the right choice every laser's returns lie at one elevation.
+    the right choice every laser's returns lie at one elevation. ``convention``: the driver
+    that wrote the cloud (`twin.lidar.conventions`: how it turned each laser's point); None:
+    the cloud's own (told by its fields), else told from the points.
     """
     if model is not None:
         if model.n_lasers != lasers.n_lasers:
@@ -153,10 +164,23 @@ def scan_from_cloud(
         raise UnsupportedCloudError(
             f"{cloud.name}: cannot rebuild the firing grid of a {lasers.model}: aimbench knows "
             f"the firing timing of {', '.join(FIRING_TIMING)} only (name the model)")
+    true = delay / period
     pts, offsets_applied, notes = _points(cloud, lasers, vertical_offsets)
     step0 = _azimuth_step(pts)
-    seq_az, seq_index, slot_seq, step, partial, unfilled = _sequences(pts, delay / period,
-                                                                     step0, lasers)
+    conv, told, drv = _convention(cloud, convention, pts, true, step0, lasers)
+    if pts.block_azimuth is not None and conv.name == "nebula" and lasers.n_lasers == 32:
+        # nebula's VLP-32 decoder writes each block's encoder azimuth: one sequence each.
+        anchor = pts.block_azimuth.astype(np.float64) % TWO_PI
+    else:
+        pts.block_azimuth = None
+    # The rotation the driver put in each point, share of a step (nebula's VLP-32 decoder puts
+    # none in the last block of each packet).
+    rot = drv[pts.laser]
+    if pts.block_azimuth is None and conv.name == "nebula" and lasers.n_lasers == 32:
+        rot = _nebula_last_blocks(pts, drv, lasers, step0)
+    if pts.block_azimuth is None:
+        anchor = pts.azimuth - lasers.azimuth_offset[pts.laser] - step0 * rot
+    seq_az, seq_index, slot_seq, step, partial, unfilled = _sequences(pts, anchor, step0)
     n_seq = int(seq_index[-1]) + 1
     nl = lasers.n_lasers
     # One return per (sequence, laser) slot: in dual-return clouds (and where the cloud's two ends
@@ -178,9 +202,20 @@ def scan_from_cloud(
     arrays = {name: np.zeros(n) for name in ("distance", "x", "y", "z")}
     intensity = np.zeros(n, dtype=np.uint8)
     at = slot[keep]
-    azimuth[at] = pts.azimuth[keep]
-    for name in ("distance", "x", "y", "z"):
+    # Each return turned to its firing's azimuth: by the rotation during its laser's firing
+    # delay that the driver left out (or put in wrongly), or, where the driver wrote the
+    # block's azimuth, onto the grid's azimuth outright (its 0.01 deg rounding gone too).
+    if pts.block_azimuth is not None:
+        kept_lid = pts.laser[keep]
+        target = (pts.block_azimuth[keep] + rate * delay[kept_lid]
+                  + lasers.azimuth_offset[kept_lid])
+        dturn = (target - pts.azimuth[keep] + math.pi) % TWO_PI - math.pi
+    else:
+        dturn = (true[pts.laser[keep]] - rot[keep]) * step
+    azimuth[at] = (pts.azimuth[keep] + dturn) % TWO_PI
+    for name in ("distance", "z"):
         arrays[name][at] = getattr(pts, name)[keep]
+    arrays["x"][at], arrays["y"][at] = turn(pts.x[keep], pts.y[keep], dturn)
     intensity[at] = np.clip(np.rint(pts.intensity[keep]), 0, 255).astype(np.uint8)
     time = seq_of * period + delay[lid]
     if pts.time is not None:
@@ -206,6 +241,9 @@ def scan_from_cloud(
             "partial": partial,
             "unfilled_gaps_deg": [round(math.degrees(g), 3) for g in unfilled],
             "azimuth_span_deg": math.degrees(span),
+            "cloud_convention": conv.name if told != "points" else _alike(drv, lasers, true),
+            "cloud_convention_from": told,
+            "turned_max_deg": float(np.degrees(np.abs(dturn).max())) if len(dturn) else 0.0,
             "start_time_s": float(time[0]),
             "end_time_s": float(time[-1]),
             **notes,
@@ -276,9 +314,11 @@ def _points(cloud: Cloud, lasers: LaserTable, vertical_offsets: bool | None
         notes["times_not_finite"] = bad
         time = None
     order = (np.arange(len(x)) if time is None else np.argsort(np.argsort(time, kind="stable")))
+    extra = {name: None if getattr(cloud, name) is None else np.asarray(getattr(cloud, name))[ok]
+             for name in ("block_azimuth",)}
     pts = _Points(x=x, y=y, z=z, intensity=intensity, laser=laser.astype(np.intp),
                   azimuth=np.arctan2(x, y) % TWO_PI,
-                  distance=np.hypot(rxy, z - off), time=time, order=order)
+                  distance=np.hypot(rxy, z - off), time=time, order=order, **extra)
     return pts, bool(vertical_offsets), notes
 
 
@@ -338,6 +378,86 @@ def _check_elevations(name: str, el: np.ndarray, laser: np.ndarray, lasers: Lase
 
 
 # ----------------------------------------------------------------------------------------------
+# The driver's convention
+
+
+def _convention(cloud: Cloud, given: str | CloudConvention | None, pts: _Points,
+                true: np.ndarray, step0: float, lasers: LaserTable
+                ) -> tuple[CloudConvention, str, np.ndarray]:
+    """The convention the cloud is read by, how it was told (``option``, ``fields``,
+    ``points``), and the rotation its driver put in each laser's point (share of a step)."""
+    conv = convention_named(given)
+    if conv is not None:
+        return conv, "option", conv.rotation(lasers.n_lasers, true)
+    if cloud.convention is not None:
+        conv = convention_named(cloud.convention)
+        return conv, "fields", conv.rotation(lasers.n_lasers, true)
+    # From the points: the rotation under which each sequence's returns line up. Wrong ones
+    # merge neighbouring sequences (a laser twice in a group) or split one (more groups).
+    candidates: list[tuple[CloudConvention, np.ndarray]] = []
+    for c in CONVENTIONS.values():
+        rot = c.rotation(lasers.n_lasers, true)
+        if not any(np.array_equal(rot, r) for _, r in candidates):
+            candidates.append((c, rot))
+    if len(candidates) == 1:
+        return candidates[0][0], "points", candidates[0][1]
+    costs = [_grouping_cost(pts.azimuth - lasers.azimuth_offset[pts.laser] - step0 * rot[pts.laser],
+                            pts.laser, step0, lasers.n_lasers) for _, rot in candidates]
+    best = int(np.argmin(costs))
+    return candidates[best][0], "points", candidates[best][1]
+
+
+def _nebula_last_blocks(pts: _Points, drv: np.ndarray, lasers: LaserTable,
+                        step0: float) -> np.ndarray:
+    """Each point's rotation in a nebula VLP-32 cloud without its ``azimuth`` field: the
+    channel's share of the step, but none in the last block of every packet of 12
+    (vlp32_decoder.cpp gives that block an azimuth step of 0). Those blocks are found on the
+    grid the others give: the lasers whose share is far from a whole step land on a sequence
+    there when not turned, and do so every 12th sequence. The lasers whose share is nearly a
+    whole step (channels 19-29) land on it turned or not: two returns of one laser there are
+    the two blocks', in their order; a lone one keeps the channel's share."""
+    rot = drv[pts.laser].copy()
+    base = pts.azimuth - lasers.azimuth_offset[pts.laser]
+    seq_az, seq_index, *_ = _sequences(pts, base - step0 * rot, step0)
+    rel = (base - seq_az[0]) % TWO_PI + seq_az[0]
+    k0 = np.interp(rel, seq_az, seq_index.astype(np.float64))
+    near = np.abs(k0 - np.rint(k0)) < 0.25
+    telling = np.abs(rot - np.rint(rot)) >= 0.25
+    evidence = near & telling
+    if evidence.sum() < 8:
+        return rot
+    k = np.rint(k0).astype(np.int64)
+    phase = int(np.argmax(np.bincount(k[evidence] % 12, minlength=12)))
+    last = near & (k % 12 == phase)
+    rot[last & telling] = 0.0
+    # A laser whose share is about a whole step lands there from both blocks: the previous
+    # block's point turned, this block's not. The later of the two (time, else file order:
+    # nebula writes block by block) is this block's.
+    pair = last & ~telling & (np.rint(drv[pts.laser]) == 1)
+    idx = np.flatnonzero(pair)
+    key = k[idx] * lasers.n_lasers + pts.laser[idx]
+    srt = np.lexsort((pts.order[idx], key))
+    twin = np.flatnonzero(np.diff(key[srt]) == 0) + 1
+    rot[idx[srt][twin]] = 0.0
+    return rot
+
+
+def _grouping_cost(c: np.ndarray, laser: np.ndarray, step0: float, n_lasers: int) -> int:
+    """Groups of returns closer than half a step, plus the returns whose laser is already in
+    their group: the fewest for the rotation the driver used."""
+    srt = np.argsort(c % TWO_PI, kind="stable")
+    gid = np.concatenate(([0], np.cumsum(np.diff((c % TWO_PI)[srt]) > 0.5 * step0)))
+    keys = gid * n_lasers + laser[srt]
+    return int(gid[-1] + 1) + int(len(keys) - len(np.unique(keys)))
+
+
+def _alike(rot: np.ndarray, lasers: LaserTable, true: np.ndarray) -> str:
+    """The conventions that turn this model's points as ``rot`` does, one name or ``a = b``."""
+    return " = ".join(c.name for c in CONVENTIONS.values()
+                      if np.array_equal(c.rotation(lasers.n_lasers, true), rot))
+
+
+# ----------------------------------------------------------------------------------------------
 # Steps 2 and 3: the firing sequences
 
 
@@ -355,16 +475,15 @@ def _azimuth_step(pts: _Points) -> float:
     return float(np.median(d))
 
 
-def _sequences(pts: _Points, delay_fraction: np.ndarray, step0: float, lasers: LaserTable
+def _sequences(pts: _Points, c: np.ndarray, step0: float
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, bool, list[float]]:
-    """Group the returns into firing sequences along the sweep.
+    """Group the returns into firing sequences along the sweep; ``c``: the azimuth each
+    return's sequence started at, as the driver's convention gives it (step 2).
 
     Returns the sequences' azimuths (unwrapped, in sweep order), each sequence's index on the
     rebuilt grid (gaps filled), each point's sequence, the measured step (rad), whether the cloud
     covers less than a turn, and the widths of the gaps left unfilled (rad).
     """
-    # The azimuth each sequence started at, from each return (step 2).
-    c = pts.azimuth - lasers.azimuth_offset[pts.laser] - step0 * delay_fraction[pts.laser]
     by_time = np.argsort(pts.order)
     start = float(c[by_time[0]])
     rel = (c - start + 0.5 * step0) % TWO_PI

@@ -23,10 +23,7 @@ from twin.core import vlp16
 from twin.core.lasers import LaserTable
 from twin.core.scan import Scan
 from twin.lidar.clouds import Cloud, CloudError, scan_from_cloud
-
-#: Field names read as intensity, first found wins (ROS drivers write intensity; Ouster and
-#: some others reflectivity).
-INTENSITY_FIELDS = ("intensity", "reflectivity")
+from twin.lidar.conventions import cloud_fields
 
 
 class PcdFormatError(CloudError):
@@ -45,12 +42,13 @@ def read_pcd(path: str | Path) -> list[Cloud]:
     x, y, z = (rec[f].astype(np.float64) for f in ("x", "y", "z"))
     if viewpoint is not None:
         x, y, z = _to_sensor_frame(x, y, z, viewpoint)
-    intensity = next((rec[f] for f in INTENSITY_FIELDS if f in names), None)
-    ring = rec["ring"] if "ring" in names else None
-    time = rec["time"] if "time" in names else None
+    # The driver's fields (ring or channel, time in s or ns...): `twin.lidar.conventions`.
+    fields, told = cloud_fields(rec)
+    meta = {"file": str(path), "cloud_fields": list(names)}
+    if told:
+        meta["convention_from"] = told
     if "scan" not in names:
-        return [Cloud.from_ros(x, y, z, intensity=intensity, ring=ring, time=time,
-                               name=str(path), meta={"file": str(path)})]
+        return [Cloud.from_ros(x, y, z, **fields, name=str(path), meta=meta)]
     scan = rec["scan"]
     if scan.dtype.kind == "f" and not (np.isfinite(scan) & (scan == np.round(scan))).all():
         raise PcdFormatError(f"{path}: the scan field holds values that are not whole numbers "
@@ -63,9 +61,8 @@ def read_pcd(path: str | Path) -> list[Cloud]:
     for k, sel in zip(keys, by_scan, strict=True):
         clouds.append(Cloud.from_ros(
             x[sel], y[sel], z[sel],
-            intensity=None if intensity is None else intensity[sel],
-            ring=None if ring is None else ring[sel], time=None if time is None else time[sel],
-            name=f"{path} scan {int(k)}", meta={"file": str(path), "scan_in_file": int(k)}))
+            **{f: v if v is None or f == "convention" else v[sel] for f, v in fields.items()},
+            name=f"{path} scan {int(k)}", meta={**meta, "scan_in_file": int(k)}))
     return clouds
 
 

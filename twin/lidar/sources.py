@@ -46,6 +46,7 @@ from twin.core.scan import Scan
 from twin.core.sensors import VLP16, SensorModel
 from twin.lidar.capture import PacketScans, PcapSource, UdpSource
 from twin.lidar.clouds import Cloud, CloudError, SparseCloudError, scan_from_cloud
+from twin.lidar.conventions import convention_named
 from twin.lidar.packets import resolve_model
 
 #: What every error about a source name says can be given.
@@ -220,6 +221,53 @@ class PacketScanSource(ScanSource):
         return self.reader.summary()
 
 
+class OusterScanSource(ScanSource):
+    """Scans of an Ouster sensor's lidar packets (a pcap, or live on its port), read with its
+    metadata JSON (`twin.lidar.ouster`)."""
+
+    def __init__(self, name: SourceName, packets: Iterable, info, *,
+                 max_scans: int | None = None, extra: dict | None = None,
+                 closer: Callable[[], None] | None = None) -> None:
+        from twin.lidar.ouster import OusterScans
+
+        super().__init__(name, max_scans, extra, closer)
+        self.reader = OusterScans(packets, info)
+
+    def _scans(self) -> Iterator[Scan]:
+        return iter(self.reader)
+
+    def _summary(self) -> dict:
+        return self.reader.summary()
+
+
+def _ouster_info(src: SourceName, metadata: str | Path | None, model: str | None = None):
+    """The Ouster metadata a source is read with: the one given, else (a pcap) the JSON
+    recorded beside it when it is an Ouster sensor's, else an Ouster ``model``'s nominal one
+    (with a warning: a unit's beams are its own); None: not an Ouster source."""
+    from twin.lidar.ouster import (
+        OusterError,
+        OusterInfo,
+        is_ouster_model,
+        metadata_beside,
+        nominal_info,
+    )
+
+    if metadata is not None:
+        return OusterInfo.from_json(Path(metadata))
+    beside = metadata_beside(src.path) if src.kind == "pcap" else None
+    if beside is None:
+        if model is not None and is_ouster_model(model):
+            info = nominal_info(model)
+            info.notes.append(f"no metadata JSON beside {src.path or src}: read as the "
+                              f"{model}'s nominal beams; give the unit's own with --metadata")
+            return info
+        return None
+    try:
+        return OusterInfo.from_json(beside)
+    except OusterError:
+        return None  # another tool's JSON (not a sensor's metadata): a Velodyne capture
+
+
 class CloudScanSource(ScanSource):
     """Scans rebuilt from point clouds (PCD files, a bag of PointCloud2) on the grid of
     ``model`` (its firing timing; the VLP-16 by default) with its laser table, or ``lasers``
@@ -228,7 +276,8 @@ class CloudScanSource(ScanSource):
     def __init__(self, name: SourceName, clouds: Iterable[Cloud], *,
                  max_scans: int | None = None, model: SensorModel = VLP16,
                  lasers: LaserTable | None = None, extra: dict | None = None,
-                 closer: Callable[[], None] | None = None) -> None:
+                 closer: Callable[[], None] | None = None,
+                 convention: str | None = None) -> None:
         if lasers is not None and lasers.n_lasers != model.n_lasers:
             raise CloudError(f"the laser table {lasers.model!r} has {lasers.n_lasers} lasers, a "
                              f"{model.name} {model.n_lasers}: give the model it calibrates "
@@ -237,6 +286,8 @@ class CloudScanSource(ScanSource):
         self.clouds = clouds
         self.model = model
         self.lasers = model.lasers if lasers is None else lasers
+        self.convention = convention_named(convention)  # checked before any cloud is read
+        self._conventions: dict[str, str] = {}  # convention -> how it was told
         self._tally: list[_CloudTally] = []
         self._warnings: list[str] = []
 
@@ -246,7 +297,10 @@ class CloudScanSource(ScanSource):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 try:
-                    scan = scan_from_cloud(cloud, self.lasers, index=index, model=self.model)
+                    scan = scan_from_cloud(cloud, self.lasers, index=index, model=self.model,
+                                           convention=self.convention)
+                    self._conventions.setdefault(scan.meta["cloud_convention"],
+                                                 scan.meta["cloud_convention_from"])
                 except SparseCloudError as exc:
                     # A scrap among many (a capture's last few firings, say) is a partial scan,
                     # as the assembler makes it, not the end of the source.
@@ -282,6 +336,10 @@ class CloudScanSource(ScanSource):
             "distinct_returns": sum(s.returns for s in t),  # a cloud lists each echo once
             "rebuilt_misses": sum(s.firings - s.returns for s in t),
             "vertical_offsets": any(s.offsets for s in t),
+            # the driver's convention (twin.lidar.conventions) and how it was told
+            "cloud_convention": " / ".join(self._conventions) or None,
+            "cloud_convention_from": " / ".join(dict.fromkeys(self._conventions.values()))
+            or None,
             "warnings": list(self._warnings),
         }
 
@@ -314,6 +372,9 @@ def open_scans(
     split: str = "firing",
     vertical_offsets: bool = True,
     model: str | SensorModel | None = None,
+    cloud_convention: str | None = None,
+    ouster_metadata: str | Path | None = None,
+    hesai_angles: str | Path | None = None,
 ) -> ScanSource:
     """A `ScanSource` for any source name (module docstring).
 
@@ -324,13 +385,24 @@ def open_scans(
     the sensor packets are decoded as, whatever their product id says (None: from the product
     id), and whose grid clouds are rebuilt on (None: the VLP-16's). ``lasers``: the unit's own
     laser table (a calibration file, `twin.lidar.calibration_file`) instead of the model's,
-    for packets and clouds alike.
+    for packets and clouds alike. ``cloud_convention``: the driver that wrote a point cloud
+    (`twin.lidar.conventions`; None: told from its fields or its points). ``ouster_metadata``:
+    an Ouster sensor's metadata JSON, which its packets are read with (a pcap's is found
+    beside it, ``NAME.json``, without it). ``model="PandarXT32"``: a Hesai PandarXT32's packets
+    (`twin.lidar.hesai`), with its angle-correction file ``hesai_angles`` (default: nominal).
     """
     src = name if isinstance(name, SourceName) else parse_source(name)
+    if isinstance(model, str) and _is_xt32(model):
+        cut = 18000 if cut_azimuth is None else round(math.degrees(cut_azimuth) * 100) % 36000
+        return _open_xt32(src, hesai_angles, max_scans, timeout_s, cut)
+    if src.kind in ("pcap", "udp"):
+        info = _ouster_info(src, ouster_metadata, model if isinstance(model, str) else None)
+        if info is not None:
+            return _open_ouster(src, info, max_scans, timeout_s)
     sensor = resolve_model(model)
     decode = {"cut_azimuth": cut_azimuth, "split": split, "vertical_offsets": vertical_offsets,
               "model": sensor, "lasers": lasers}
-    cloud = {"model": sensor or VLP16, "lasers": lasers}
+    cloud = {"model": sensor or VLP16, "lasers": lasers, "convention": cloud_convention}
     if src.kind == "pcap":
         pcap = PcapSource(src.path)
         return PacketScanSource(src, pcap, max_scans=max_scans, closer=pcap.reader.close,
@@ -358,6 +430,65 @@ def open_scans(
     except CloudError:
         bag.close()
         raise
+
+
+def _is_xt32(model: str) -> bool:
+    return "".join(ch for ch in model.upper() if ch.isalnum()) in ("PANDARXT32", "XT32")
+
+
+class XT32ScanSource(ScanSource):
+    """Scans of a Hesai PandarXT32's packets (a pcap, or live), `twin.lidar.hesai`."""
+
+    def __init__(self, name: SourceName, packets: Iterable, angles, *,
+                 max_scans: int | None = None, extra: dict | None = None,
+                 closer: Callable[[], None] | None = None, cut_cdeg: int = 18000) -> None:
+        from twin.lidar.hesai import XT32Scans
+
+        super().__init__(name, max_scans, extra, closer)
+        self.reader = XT32Scans(packets, angles, cut_cdeg)
+
+    def _scans(self) -> Iterator[Scan]:
+        return iter(self.reader)
+
+    def _summary(self) -> dict:
+        return self.reader.summary()
+
+
+def _open_xt32(src: SourceName, angles_file: str | Path | None, max_scans: int | None,
+               timeout_s: float, cut_cdeg: int) -> XT32ScanSource:
+    from twin.lidar.hesai import DATA_PORT, DEFAULT_ANGLES, PACKET_BYTES, XT32Angles
+
+    angles = XT32Angles.from_csv(angles_file or DEFAULT_ANGLES)
+    if src.kind == "pcap":
+        pcap = PcapSource(src.path, data_port=DATA_PORT)
+        return XT32ScanSource(src, pcap, angles, max_scans=max_scans, closer=pcap.reader.close,
+                              cut_cdeg=cut_cdeg)
+    if src.kind == "udp":
+        from twin.lidar.udp import UdpReceiver
+
+        rx = UdpReceiver(src.host, data_port=src.port, position_port=None,
+                         timeout_s=timeout_s, data_size=PACKET_BYTES)
+        return XT32ScanSource(src, UdpSource(rx), angles, max_scans=max_scans,
+                              extra={"udp": lambda: rx.stats.as_dict()}, closer=rx.close,
+                              cut_cdeg=cut_cdeg)
+    raise SourceError(f"{src}: a PandarXT32's packets are read from a pcap or udp://, not "
+                      f"a {src.kind} source")
+
+
+def _open_ouster(src: SourceName, info, max_scans: int | None,
+                 timeout_s: float) -> OusterScanSource:
+    if src.kind == "pcap":
+        pcap = PcapSource(src.path, data_port=info.udp_port_lidar,
+                          position_port=info.udp_port_lidar + 1)
+        return OusterScanSource(src, pcap, info, max_scans=max_scans,
+                                closer=pcap.reader.close)
+    from twin.lidar.udp import UdpReceiver
+
+    rx = UdpReceiver(src.host, data_port=src.port, position_port=None, timeout_s=timeout_s,
+                     data_size=info.packet_bytes)
+    # (a frame is yielded as soon as the next one's first packet arrives)
+    return OusterScanSource(src, UdpSource(rx), info, max_scans=max_scans,
+                            extra={"udp": lambda: rx.stats.as_dict()}, closer=rx.close)
 
 
 def capture_scans(name: str | Path, *, whole_only: bool = True,

@@ -84,8 +84,11 @@ class UdpReceiver:
         position_port: int | None = vlp16.POSITION_PORT,
         rcvbuf_bytes: int = DEFAULT_RCVBUF_BYTES,
         timeout_s: float = 2.0,
+        data_size: int = vlp16.DATA_PAYLOAD_SIZE,
     ) -> None:
         self.bind_addr = bind_addr
+        #: the data packets' payload size (another sensor's, an Ouster's say, on its port)
+        self.data_size = data_size
         self.timeout_s = timeout_s
         self.stats = ReceiverStats()
         self._sel = selectors.DefaultSelector()
@@ -93,7 +96,7 @@ class UdpReceiver:
         self._kind: dict[int, int] = {}  # local port -> expected payload size
         self._ovfl: dict[int, int] = {}
         try:
-            for port, size in ((data_port, vlp16.DATA_PAYLOAD_SIZE),
+            for port, size in ((data_port, data_size),
                                (position_port, vlp16.POSITION_PAYLOAD_SIZE)):
                 if port is not None:
                     self._open(port, size, rcvbuf_bytes)
@@ -133,7 +136,7 @@ class UdpReceiver:
         """The bound local ports: ``{"data": ..., "position": ...}``."""
         out = {}
         for port, size in self._kind.items():
-            out["data" if size == vlp16.DATA_PAYLOAD_SIZE else "position"] = port
+            out["data" if size == self.data_size else "position"] = port
         return out
 
     def __enter__(self) -> UdpReceiver:
@@ -221,7 +224,8 @@ class UdpReceiver:
         anc = socket.CMSG_SPACE(4)
         while True:
             try:
-                payload, ancdata, _, _ = sock.recvmsg(2048, anc)
+                # (one byte more than expected, so that a longer datagram shows as one)
+                payload, ancdata, _, _ = sock.recvmsg(max(2048, size + 1), anc)
             except (BlockingIOError, InterruptedError):
                 return
             now = time.time()
@@ -234,7 +238,7 @@ class UdpReceiver:
                                         and not is_velodyne_data(payload)):
                 self.stats.malformed += 1
                 continue
-            if size == vlp16.DATA_PAYLOAD_SIZE:
+            if size == self.data_size:
                 self.stats.data += 1
             else:
                 self.stats.position += 1

@@ -1,0 +1,573 @@
+"""Ouster OS0 / OS1 / OS2 lidar packets: the sensor's metadata, decoding, frames, and scans.
+
+An Ouster sensor needs its metadata to be read at all (the packet holds ranges, not angles):
+the JSON file the sensor serves (``/api/v1/sensor/metadata``) and every recording tool saves
+beside its pcap. `OusterInfo.from_json` reads both the flat format of firmware 2.0-2.3 and the
+nested one of later firmware and ouster-sdk (``sensor_info``, ``beam_intrinsics``,
+``lidar_data_format``, ``config_params``, ``lidar_intrinsics``).
+
+Packets (Ouster's software user manual, "lidar data format"; ouster-sdk's ``types.cpp``): the
+``LEGACY`` profile, which every firmware speaks: 16 columns a packet, each column a 16-byte
+header (timestamp u64 ns, measurement id u16, frame id u16, encoder count u32), one 12-byte
+pixel per beam (range u32 of which 20 bits are mm, reflectivity u16 of which ouster-sdk keeps
+the low byte, signal u16, near-IR u16, 2 unused bytes) and a status u32 (0xFFFFFFFF when the
+column is valid). Little-endian. Other
+profiles (RNG19_RFL8_SIG16_NIR16[_DUAL], RNG15_RFL8_NIR8) are refused in one line.
+
+A frame is W columns (512, 1024 or 2048) of H beams (32, 64 or 128), as fired: pixel (row,
+column) is beam ``row`` fired at column ``column`` (ouster-sdk's "staggered" frame). Its points
+(ouster-sdk ``xyzlut.cpp``): encoder angle e = 2 pi (1 - column / W), beam azimuth a = -2 pi
+beam_azimuth / 360, altitude phi; with n = lidar_origin_to_beam_origin_mm,
+
+    p = (r - n) (cos(e + a) cos phi, sin(e + a) cos phi, sin phi) + n (cos e, sin e, 0)
+
+in the lidar frame (x towards the connector), turned by lidar_to_sensor_transform's rotation
+(180 deg about z). aimbench's {L} is that frame with y forward: X_L = -y, Y_L = x; its origin
+the lidar frame's (the optical centre, not the sensor frame's origin 36 mm lower: the
+transform's translation is left out). So a pixel's azimuth in {L} is 2 pi column / W + beam
+azimuth - pi: column 0 points backwards (at the connector) and the columns turn clockwise.
+
+A `Scan` of a frame keeps every pixel, returns or not, destaggered column by destaggered
+column (`pixel_order`: the firing grid the estimator reads, a column of every beam at one
+azimuth a firing sequence, a beam a laser; each pixel keeps its own column's time). Decoding
+is bytes in, arrays out; the pcap and socket readers are `twin.lidar.pcap` and
+`twin.lidar.udp`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from twin.core.errors import AimbenchError
+from twin.core.lasers import LaserTable
+from twin.core.scan import ReturnType, Scan
+
+#: The lidar data port of every Ouster sensor (the IMU's is 7503).
+LIDAR_PORT = 7502
+#: Valid column status of the LEGACY profile.
+COLUMN_VALID = 0xFFFFFFFF
+RANGE_MASK = 0x000FFFFF
+
+
+class OusterError(AimbenchError):
+    """Ouster metadata or packets that cannot be read (a bad file, an unsupported profile)."""
+
+
+@dataclass(frozen=True, eq=False)
+class OusterInfo:
+    """What a sensor's metadata says, in the units it says it (deg, mm)."""
+
+    prod_line: str
+    lidar_mode: str
+    columns_per_frame: int
+    pixels_per_column: int
+    columns_per_packet: int
+    column_window: tuple[int, int]
+    pixel_shift_by_row: np.ndarray
+    beam_altitude_deg: np.ndarray
+    beam_azimuth_deg: np.ndarray
+    beam_to_lidar_mm: tuple[float, float]  # (x, z) of beam_to_lidar_transform
+    lidar_to_sensor: np.ndarray  # 4 x 4, mm
+    udp_profile_lidar: str = "LEGACY"
+    udp_port_lidar: int = LIDAR_PORT
+    serial: str = ""
+    firmware: str = ""
+    source: str = "metadata"
+    #: What a reader should be told about how this metadata was come by (its summary's
+    #: warnings): a model's nominal beams standing in for a unit's, say.
+    notes: list = field(default_factory=list, repr=False)
+    lasers: LaserTable = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        h = self.pixels_per_column
+        for name in ("pixel_shift_by_row", "beam_altitude_deg", "beam_azimuth_deg"):
+            if len(getattr(self, name)) != h:
+                raise OusterError(f"{self.source}: {name} has {len(getattr(self, name))} entries "
+                                  f"for {h} beams: a damaged metadata file")
+        # A beam leaves from n = lidar_origin_to_beam_origin off the axis, along the encoder's
+        # horizontal direction, b = the beam's azimuth offset aside of its own: n cos b along
+        # it, which puts its line through the axis at z = -n cos b tan(altitude) (as a
+        # VLP-32C's lasers about its focal point: the "vertical offset" rays start from), and
+        # n sin b across it (the horizontal offset, < 1.3 mm on an OS1).
+        alt, b = np.radians(self.beam_altitude_deg), np.radians(self.beam_azimuth_deg)
+        n_m = float(np.hypot(*self.beam_to_lidar_mm)) * 1e-3
+        object.__setattr__(self, "lasers", LaserTable(
+            self.prod_line, alt, -n_m * np.cos(b) * np.tan(alt) + self.beam_to_lidar_mm[1] * 1e-3,
+            b, n_m * np.sin(b)))
+
+    # -- derived ---------------------------------------------------------------------------
+    @property
+    def rate_hz(self) -> float:
+        """Frames a second, from the lidar mode (``1024x10``: 10 Hz)."""
+        return float(self.lidar_mode.split("x")[1])
+
+    @property
+    def column_bytes(self) -> int:
+        return 16 + 12 * self.pixels_per_column + 4
+
+    @property
+    def packet_bytes(self) -> int:
+        return self.columns_per_packet * self.column_bytes
+
+    @property
+    def model(self) -> str:
+        """``OS1-32``-style name of the product line (``OS-1-32-G`` -> ``OS1-32``)."""
+        parts = self.prod_line.split("-")
+        if len(parts) >= 3 and parts[0] == "OS":
+            return f"OS{parts[1]}-{parts[2]}"
+        return self.prod_line
+
+    # -- reading ---------------------------------------------------------------------------
+    @classmethod
+    def from_json(cls, text: str | bytes | Path, source: str | None = None) -> OusterInfo:
+        """The metadata of a JSON text or file (flat firmware 2.x format or nested)."""
+        if isinstance(text, Path):
+            source = source or str(text)
+            try:
+                text = text.read_text()
+            except OSError as exc:
+                raise OusterError(f"{text}: cannot read the Ouster metadata file "
+                                  f"({exc.strerror or exc})") from None
+        source = source or "metadata"
+        try:
+            d = json.loads(text)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise OusterError(f"{source}: not a JSON file ({exc}); give the sensor's metadata "
+                              "JSON (saved beside its pcap)") from None
+        try:
+            return cls._parse(d, source)
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise OusterError(f"{source}: not an Ouster sensor's metadata (missing or bad "
+                              f"{exc}); give the JSON the sensor serves at "
+                              "/api/v1/sensor/metadata") from None
+
+    @classmethod
+    def _parse(cls, d: dict, source: str) -> OusterInfo:
+        if "sensor_info" in d:  # nested: firmware 2.4+ and ouster-sdk's own files
+            si, bi = d["sensor_info"], d["beam_intrinsics"]
+            fmt, cfg = d["lidar_data_format"], d.get("config_params", {})
+            li = d.get("lidar_intrinsics", {})
+            prod, serial, fw = si["prod_line"], str(si.get("prod_sn", "")), si.get("build_rev", "")
+            mode = cfg.get("lidar_mode", f"{fmt['columns_per_frame']}x10")
+            profile = fmt.get("udp_profile_lidar", cfg.get("udp_profile_lidar", "LEGACY"))
+            port = int(cfg.get("udp_port_lidar", LIDAR_PORT))
+            lts = li.get("lidar_to_sensor_transform")
+        else:  # flat: firmware 2.0-2.3
+            bi, fmt = d, d["data_format"]
+            prod, serial, fw = d["prod_line"], str(d.get("prod_sn", "")), d.get("build_rev", "")
+            mode = d.get("lidar_mode", f"{fmt['columns_per_frame']}x10")
+            profile = fmt.get("udp_profile_lidar", "LEGACY")
+            port = int(d.get("udp_port_lidar", LIDAR_PORT))
+            lts = d.get("lidar_to_sensor_transform")
+        if "beam_to_lidar_transform" in bi:
+            b2l = np.asarray(bi["beam_to_lidar_transform"], dtype=float).reshape(4, 4)
+            beam = (float(b2l[0, 3]), float(b2l[2, 3]))
+        else:
+            beam = (float(bi["lidar_origin_to_beam_origin_mm"]), 0.0)
+        lts = (np.diag([-1.0, -1.0, 1.0, 1.0]) if lts is None
+               else np.asarray(lts, dtype=float).reshape(4, 4))
+        return cls(
+            prod_line=prod, lidar_mode=mode,
+            columns_per_frame=int(fmt["columns_per_frame"]),
+            pixels_per_column=int(fmt["pixels_per_column"]),
+            columns_per_packet=int(fmt["columns_per_packet"]),
+            column_window=tuple(int(v) for v in fmt.get(
+                "column_window", (0, int(fmt["columns_per_frame"]) - 1))),
+            pixel_shift_by_row=np.asarray(fmt["pixel_shift_by_row"], dtype=np.int64),
+            beam_altitude_deg=np.asarray(bi["beam_altitude_angles"], dtype=float),
+            beam_azimuth_deg=np.asarray(bi["beam_azimuth_angles"], dtype=float),
+            beam_to_lidar_mm=beam, lidar_to_sensor=lts, udp_profile_lidar=profile,
+            udp_port_lidar=port, serial=serial, firmware=fw, source=source)
+
+
+def metadata_beside(pcap: str | Path) -> Path | None:
+    """The metadata JSON recorded beside a pcap (same name, ``.json``), if there is one."""
+    p = Path(pcap).with_suffix(".json")
+    return p if p.is_file() else None
+
+
+# ----------------------------------------------------------------------------------------------
+# Packets
+
+
+def column_dtype(info: OusterInfo) -> np.dtype:
+    """One column of a LEGACY packet as a NumPy record."""
+    pixel = np.dtype([("range", "<u4"), ("reflectivity", "<u2"), ("signal", "<u2"),
+                      ("near_ir", "<u2"), ("unused", "<u2")])
+    return np.dtype([("timestamp", "<u8"), ("measurement_id", "<u2"), ("frame_id", "<u2"),
+                     ("encoder", "<u4"), ("pixels", pixel, (info.pixels_per_column,)),
+                     ("status", "<u4")])
+
+
+def decode_packets(payloads: Iterable[bytes], info: OusterInfo) -> np.ndarray:
+    """The columns of LEGACY lidar packets, (n_packets * columns_per_packet,) read-only records
+    (the range word as sent: `frames` keeps its 20 bits). Payloads of another size are skipped
+    (IMU packets, other sensors)."""
+    if info.udp_profile_lidar != "LEGACY":
+        raise OusterError(f"{info.source}: the sensor sends the {info.udp_profile_lidar} packet "
+                          "profile; aimbench decodes LEGACY only: set udp_profile_lidar to "
+                          "LEGACY on the sensor")
+    size = info.packet_bytes
+    good = [p for p in payloads if len(p) == size]
+    return np.frombuffer(b"".join(good), dtype=column_dtype(info))
+
+
+def encode_packets(cols: np.ndarray, info: OusterInfo) -> list[bytes]:
+    """LEGACY packets of columns (`decode_packets`' records), ``columns_per_packet`` a packet."""
+    cpp = info.columns_per_packet
+    if len(cols) % cpp:
+        raise ValueError(f"{len(cols)} columns do not fill packets of {cpp}")
+    raw = np.ascontiguousarray(cols.astype(column_dtype(info))).tobytes()
+    size = info.packet_bytes
+    return [raw[i:i + size] for i in range(0, len(raw), size)]
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One frame as the sensor sent it: (H, W) fields by (beam, measurement id), per-column
+    headers (W,), and which columns arrived valid."""
+
+    frame_id: int
+    range_mm: np.ndarray
+    reflectivity: np.ndarray
+    signal: np.ndarray
+    near_ir: np.ndarray
+    timestamp_ns: np.ndarray
+    measurement_id: np.ndarray
+    status: np.ndarray
+    received: np.ndarray
+    packets: int
+
+
+def frames(columns: np.ndarray, info: OusterInfo) -> Iterator[Frame]:
+    """The frames of decoded columns, in order (a new frame id starts a new frame)."""
+    if not len(columns):
+        return
+    fid = columns["frame_id"].astype(np.int64)
+    starts = np.flatnonzero(np.concatenate(([True], fid[1:] != fid[:-1])))
+    ends = np.concatenate((starts[1:], [len(columns)]))
+    for a, b in zip(starts, ends, strict=True):
+        yield _frame(columns[a:b], info)
+
+
+def _frame(cols: np.ndarray, info: OusterInfo) -> Frame:
+    h, w = info.pixels_per_column, info.columns_per_frame
+    m = cols["measurement_id"].astype(np.intp)
+    keep = (m < w) & (cols["status"] == COLUMN_VALID)
+    cols, m = cols[keep], m[keep]
+    # filled column by column, (W, H) in memory; the fields are their (H, W) views
+    out = {name: np.zeros((w, h), dtype=dt) for name, dt in (
+        ("range_mm", np.uint32), ("reflectivity", np.uint8), ("signal", np.uint16),
+        ("near_ir", np.uint16))}
+    px = cols["pixels"]  # (n, h)
+    for name, src in (("range_mm", "range"), ("reflectivity", "reflectivity"),
+                      ("signal", "signal"), ("near_ir", "near_ir")):
+        out[name][m] = px[src]
+    out["range_mm"] &= RANGE_MASK
+    out = {name: a.T for name, a in out.items()}
+    ts = np.zeros(w, dtype=np.uint64)
+    ts[m] = cols["timestamp"]
+    mid = np.zeros(w, dtype=np.uint16)
+    mid[m] = cols["measurement_id"]
+    status = np.zeros(w, dtype=np.uint32)
+    status[m] = cols["status"]
+    received = np.zeros(w, dtype=bool)
+    received[m] = True
+    return Frame(int(cols["frame_id"][0]) if len(cols) else -1, **out, timestamp_ns=ts,
+                 measurement_id=mid, status=status, received=received,
+                 packets=int(np.ceil(len(cols) / info.columns_per_packet)))
+
+
+# ----------------------------------------------------------------------------------------------
+# Points and scans
+
+
+def beam_geometry(info: OusterInfo, beam: np.ndarray, col: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Unit direction and offset (mm) of pixels (beam, column), (..., 3) each in the sensor
+    frame's axes: a return at range r (mm) lies at r direction + offset (ouster-sdk's
+    xyzlut.cpp, module docstring; the transform's translation left out)."""
+    w = info.columns_per_frame
+    enc = 2.0 * np.pi - col * (2.0 * np.pi / w)
+    a = enc - np.radians(info.beam_azimuth_deg)[beam]
+    alt = np.radians(info.beam_altitude_deg)[beam]
+    d = np.stack((np.cos(a) * np.cos(alt), np.sin(a) * np.cos(alt), np.sin(alt)), axis=-1)
+    bx, bz = info.beam_to_lidar_mm
+    n = math.hypot(bx, bz) if bz else bx
+    off = np.stack((np.cos(enc) * bx - d[..., 0] * n, np.sin(enc) * bx - d[..., 1] * n,
+                    -d[..., 2] * n + bz), axis=-1)
+    rot = info.lidar_to_sensor[:3, :3]
+    return d @ rot.T, off @ rot.T
+
+
+def xyz_lidar(range_mm: np.ndarray, info: OusterInfo) -> np.ndarray:
+    """(H, W, 3) points in mm, ouster-sdk's cartesian() without the transform's translation
+    (module docstring); pixels without a return at 0."""
+    h, w = info.pixels_per_column, info.columns_per_frame
+    beam, col = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    d, off = beam_geometry(info, beam, col)
+    p = range_mm[..., None].astype(np.float64) * d + off
+    p[range_mm == 0] = 0.0
+    return p
+
+
+def pixel_order(info: OusterInfo) -> tuple[np.ndarray, np.ndarray]:
+    """(beam, column) of each firing of a frame's `Scan`, in the scan's order: destaggered
+    columns (ouster-sdk's ``destagger``: beam b's pixel at column c goes to column
+    c + pixel_shift_by_row[b]), each with its beams in order. So one "firing sequence" of the
+    scan holds every beam at (nearly) one azimuth, as the estimator's firing grid has it (its
+    neighbours across rings are neighbours in space: the beams' azimuth offsets, up to 8.5 deg
+    apart on an OS1, are taken out), and every column of the window is kept."""
+    h, w = info.pixels_per_column, info.columns_per_frame
+    lo, hi = info.column_window
+    window = np.zeros(w, dtype=bool)
+    window[np.arange(lo, hi + 1) if lo <= hi else np.r_[lo:w, 0:hi + 1]] = True
+    shift = info.pixel_shift_by_row
+    start = int(shift.max())  # the first destaggered column every beam has fired
+    j = (np.arange(w) + start) % w  # destaggered columns, from the cut behind the sensor
+    beam = np.tile(np.arange(h), w)
+    col = (np.repeat(j, h) - shift[beam]) % w
+    keep = window[col]
+    return beam[keep], col[keep]
+
+
+@dataclass(frozen=True, eq=False)
+class _ScanTable:
+    """What every frame of a sensor shares, in the scan's firing order (`pixel_order`): each
+    firing's beam, column, azimuth and the unit ray from its origin on the axis in {L}, with
+    the point's offset from that ray's start per mm of range (computed once per metadata)."""
+
+    beam: np.ndarray
+    col: np.ndarray
+    azimuth: np.ndarray
+    direction: np.ndarray  # (N, 3) {L}, of the sensor frame's xyz per mm of range
+    offset: np.ndarray  # (N, 3) {L}, mm
+    origin_z: np.ndarray  # (N,) m, the firing's vertical offset
+
+
+_TABLES: dict[int, tuple[OusterInfo, _ScanTable]] = {}
+
+
+def _scan_table(info: OusterInfo) -> _ScanTable:
+    hit = _TABLES.get(id(info))
+    if hit is not None and hit[0] is info:
+        return hit[1]
+    w = info.columns_per_frame
+    beam, col = pixel_order(info)
+    d, off = beam_geometry(info, beam, col)
+    to_l = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    table = _ScanTable(
+        beam=beam, col=col,
+        azimuth=(2.0 * np.pi * col / w + np.radians(info.beam_azimuth_deg)[beam] - np.pi)
+        % (2.0 * np.pi),
+        direction=d @ to_l.T, offset=off @ to_l.T,
+        origin_z=info.lasers.vertical_offset[beam])
+    if len(_TABLES) > 16:
+        _TABLES.clear()
+    _TABLES[id(info)] = (info, table)
+    return table
+
+
+def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
+    """The `Scan` of a frame: every pixel of the column window in {L}, in `pixel_order`."""
+    t = _scan_table(info)
+    w = info.columns_per_frame
+    rng = frame.range_mm[t.beam, t.col]
+    hit = rng > 0
+    r = rng.astype(np.float64)
+    # p = r d + offset (xyz_lidar), in m; {L}: y forward, x right
+    x = np.where(hit, (r * t.direction[:, 0] + t.offset[:, 0]) * 1e-3, 0.0)
+    y = np.where(hit, (r * t.direction[:, 1] + t.offset[:, 1]) * 1e-3, 0.0)
+    z = np.where(hit, (r * t.direction[:, 2] + t.offset[:, 2]) * 1e-3, 0.0)
+    # the range from the beam's origin on the axis (`OusterInfo.lasers`' vertical offsets)
+    zo = z - t.origin_z
+    distance = np.where(hit, np.sqrt(x * x + y * y + zo * zo), 0.0)
+    time = frame.timestamp_ns[t.col].astype(np.float64) * 1e-9
+    lo, hi = info.column_window
+    cols = np.arange(lo, hi + 1) if lo <= hi else np.r_[lo:w, 0:hi + 1]
+    missing = int((~frame.received[cols]).sum())
+    return Scan(
+        distance=distance, azimuth=t.azimuth.copy(), laser_id=t.beam.astype(np.uint8),
+        intensity=frame.reflectivity[t.beam, t.col].astype(np.uint8),
+        time=time, return_type=np.full(len(rng), int(ReturnType.STRONGEST), dtype=np.uint8),
+        x=x, y=y, z=z, index=index, complete=missing == 0, packets=frame.packets,
+        missing_packets=int(np.ceil(missing / info.columns_per_packet)), product_id=0,
+        vertical_offsets_applied=True, lasers=info.lasers,
+        meta={"model": info.model, "prod_line": info.prod_line, "frame_id": frame.frame_id,
+              "rpm": 60.0 * info.rate_hz, "lidar_mode": info.lidar_mode,
+              "missing_columns": missing, "partial": missing > 0})
+
+
+def scans_from_payloads(payloads: Iterable[bytes], info: OusterInfo) -> list[Scan]:
+    """Every frame of some lidar packets as a `Scan`."""
+    return [scan_from_frame(f, info, index=i)
+            for i, f in enumerate(frames(decode_packets(payloads, info), info))]
+
+
+class OusterScans:
+    """Scans from a stream of datagrams (anything with a ``payload``, or bytes), each yielded
+    as soon as its frame ends (the next frame id arrives, or the stream does), and a summary.
+    A frame with columns missing (the first of a live stream, joined mid-rotation; lost
+    packets) is flagged partial, never presented as whole."""
+
+    def __init__(self, packets: Iterable, info: OusterInfo) -> None:
+        self.packets = packets
+        self.info = info
+        self.counts = {"packets": 0, "other_datagrams": 0, "frames": 0, "complete": 0,
+                       "firings": 0, "returns": 0, "missing_columns": 0}
+
+    def __iter__(self) -> Iterator[Scan]:
+        size = self.info.packet_bytes
+        frame: list[bytes] = []  # the packets of the frame being received
+        current = None
+        index = 0
+        for p in self.packets:
+            payload = p if isinstance(p, bytes | bytearray | memoryview) else p.payload
+            if len(payload) != size:
+                self.counts["other_datagrams"] += 1
+                continue
+            self.counts["packets"] += 1
+            fid = int.from_bytes(payload[10:12], "little")  # the first column's frame id
+            if fid != current and frame:
+                yield from self._scans_of(frame, index)
+                index += 1
+                frame = []
+            current = fid
+            frame.append(bytes(payload))
+        if frame:
+            yield from self._scans_of(frame, index)
+
+    def _scans_of(self, payloads: list[bytes], index: int) -> Iterator[Scan]:
+        for f in frames(decode_packets(payloads, self.info), self.info):
+            yield self._scan(f, index)
+
+    def _scan(self, f: Frame, index: int) -> Scan:
+        s = scan_from_frame(f, self.info, index=index)
+        c = self.counts
+        c["frames"] += 1
+        c["complete"] += int(s.complete)
+        c["firings"] += len(s)
+        c["returns"] += int(s.valid.sum())
+        c["missing_columns"] += s.meta["missing_columns"]
+        return s
+
+    def summary(self) -> dict:
+        c, i = self.counts, self.info
+        return {
+            "model": i.model, "prod_line": i.prod_line, "lidar_mode": i.lidar_mode,
+            "profile": i.udp_profile_lidar, "serial": i.serial, "firmware": i.firmware,
+            "product_id": None, "return_mode": "single", "lasers": i.pixels_per_column,
+            "laser_table": i.prod_line, "rpm": 60.0 * i.rate_hz, "data_packets": c["packets"],
+            "other_datagrams": c["other_datagrams"], "scans": c["frames"],
+            "complete_scans": c["complete"], "partial_scans": c["frames"] - c["complete"],
+            "points": c["firings"], "returns": c["returns"],
+            "missing_columns": c["missing_columns"], "metadata": i.source,
+            "warnings": list(i.notes),
+        }
+
+
+# ----------------------------------------------------------------------------------------------
+# Models: real units' metadata (ouster-sdk's test captures), for the twin and as nominal tables
+
+#: Metadata of a real unit of each line and beam count (ouster_metadata/SOURCE.md); 64 beams:
+#: the 128's every second beam (a 64-beam unit's uniform layout spans the same field of view).
+_METADATA_FILES = {
+    ("OS0", 32): "OS-0-32-U1_v2.2.0_1024x10.json", ("OS0", 128): "OS-0-128-U1_v2.3.0_1024x10.json",
+    ("OS1", 32): "OS-1-32-G_v2.1.1_1024x10.json", ("OS1", 128): "OS-1-128_v2.3.0_1024x10.json",
+    ("OS2", 32): "OS-2-32-U0_v2.0.0_1024x10.json", ("OS2", 128): "OS-2-128-U1_v2.3.0_1024x10.json",
+}
+#: Every Ouster model aimbench knows, by name.
+OUSTER_MODELS = tuple(f"OS{k}-{b}" for k in (0, 1, 2) for b in (32, 64, 128))
+#: The lidar modes (columns x frames a second) the sensors run.
+LIDAR_MODES = ("512x10", "512x20", "1024x10", "1024x20", "2048x10")
+
+
+def is_ouster_model(name: str) -> bool:
+    return _ouster_key(name) is not None
+
+
+def ouster_model_name(name: str) -> str | None:
+    """The model's name as aimbench writes it (``os1-64``, ``OS-1-64`` -> ``OS1-64``), None
+    when it is not an Ouster's."""
+    key = _ouster_key(name)
+    return None if key is None else f"{key[0]}-{key[1]}"
+
+
+def _ouster_key(name: str) -> tuple[str, int] | None:
+    key = "".join(ch for ch in str(name).upper() if ch.isalnum())  # OS164, OS-1-64 -> OS164
+    for model in OUSTER_MODELS:
+        line, beams = model.split("-")
+        if key == line + beams:
+            return line, int(beams)
+    return None
+
+
+def nominal_info(model: str, lidar_mode: str = "1024x10") -> OusterInfo:
+    """The metadata of a model (``OS1-64``...) in a lidar mode, from a real unit's file
+    (`_METADATA_FILES`), sending LEGACY packets on port 7502."""
+    key = _ouster_key(model)
+    if key is None:
+        raise OusterError(f"unknown Ouster model {model!r}: aimbench knows "
+                          f"{', '.join(OUSTER_MODELS)}")
+    if lidar_mode not in LIDAR_MODES:
+        raise OusterError(f"unknown lidar mode {lidar_mode!r}: give one of "
+                          f"{', '.join(LIDAR_MODES)}")
+    line, beams = key
+    path = Path(__file__).with_name("ouster_metadata") / _METADATA_FILES[
+        (line, 128 if beams == 64 else beams)]
+    base = OusterInfo.from_json(path)
+    rows = np.arange(0, base.pixels_per_column, base.pixels_per_column // beams)
+    w = int(lidar_mode.split("x")[0])
+    return OusterInfo(
+        prod_line=f"OS-{line[2]}-{beams}", lidar_mode=lidar_mode, columns_per_frame=w,
+        pixels_per_column=beams, columns_per_packet=16, column_window=(0, w - 1),
+        pixel_shift_by_row=base.pixel_shift_by_row[rows] * w // base.columns_per_frame,
+        beam_altitude_deg=base.beam_altitude_deg[rows],
+        beam_azimuth_deg=base.beam_azimuth_deg[rows], beam_to_lidar_mm=base.beam_to_lidar_mm,
+        lidar_to_sensor=base.lidar_to_sensor, udp_profile_lidar="LEGACY",
+        udp_port_lidar=LIDAR_PORT, serial="twin", firmware=base.firmware,
+        source=f"{path.name} ({model}, {lidar_mode})")
+
+
+def info_json(info: OusterInfo) -> str:
+    """The metadata as the flat JSON of firmware 2.x (ouster-sdk and `OusterInfo` read it)."""
+    return json.dumps({
+        "prod_line": info.prod_line, "prod_sn": info.serial, "build_rev": info.firmware,
+        "lidar_mode": info.lidar_mode,
+        "beam_altitude_angles": info.beam_altitude_deg.tolist(),
+        "beam_azimuth_angles": info.beam_azimuth_deg.tolist(),
+        "lidar_origin_to_beam_origin_mm": info.beam_to_lidar_mm[0],
+        "lidar_to_sensor_transform": info.lidar_to_sensor.ravel().tolist(),
+        "data_format": {
+            "columns_per_frame": info.columns_per_frame,
+            "columns_per_packet": info.columns_per_packet,
+            "pixels_per_column": info.pixels_per_column,
+            "pixel_shift_by_row": info.pixel_shift_by_row.tolist(),
+            "column_window": list(info.column_window),
+            "udp_profile_lidar": info.udp_profile_lidar,
+        },
+        "udp_port_lidar": info.udp_port_lidar,
+    }, indent=1)
+
+
+def columns_from_frame(frame: Frame, info: OusterInfo) -> np.ndarray:
+    """The LEGACY columns of a frame, in measurement-id order (`encode_packets` writes them)."""
+    w = info.columns_per_frame
+    cols = np.zeros(w, dtype=column_dtype(info))
+    cols["timestamp"] = frame.timestamp_ns
+    cols["measurement_id"] = np.arange(w)
+    cols["frame_id"] = frame.frame_id
+    cols["encoder"] = np.arange(w) * (90112 // w)  # encoder ticks, 90112 a turn (deprecated)
+    cols["status"] = np.where(frame.received, COLUMN_VALID, 0)
+    px = cols["pixels"]
+    px["range"] = frame.range_mm.T
+    px["reflectivity"] = frame.reflectivity.T
+    px["signal"] = frame.signal.T
+    px["near_ir"] = frame.near_ir.T
+    return cols
