@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import sqlite3
 import subprocess
@@ -445,3 +446,14 @@ def test_a_board_size_other_than_the_truth_files_is_said(sample_pcap, tmp_path, 
     err = capsys.readouterr().err
     assert ("the truth file cap.truth.json says the board is 900 x 540 mm; this estimate looks "
             "for 600 x 400 mm") in err and "give --board-mm 900x540" in err
+
+
+def test_a_value_that_rounds_to_zero_prints_without_a_sign():
+    """`yaw -0.000` in the estimate's table read as a sign where there is none."""
+    from scenarios.commands.estimate import COLUMNS, table
+
+    row = {"scan": 1, "scans": 1, "status": "ok", **{k: -1e-4 for k, _, _ in COLUMNS},
+           **{f"{k}_std": 0.01 for k, _, _ in COLUMNS}, **{f"{k}_error": -2e-4 for k, _, _ in
+                                                         COLUMNS}}
+    text = "\n".join(table([row]))
+    assert not re.search(r"(?<!\+)-0\.0+\b", text) and "+0.000" in text, text

@@ -85,6 +85,11 @@ def errors(estimate: Pose, truth: Pose) -> dict[str, float]:
     return out
 
 
+def _nz(value: float, digits: int) -> float:
+    """`value` rounded to `digits`, a negative zero made 0: "yaw -0.000" read as a sign."""
+    return round(value, digits) + 0.0
+
+
 def table(rows: list[dict]) -> list[str]:
     """The human table: each estimate's quantities with their 1-sigma, its error line beneath
     when the truth is known, and the mean and RMS error over the estimates with status ok."""
@@ -99,19 +104,19 @@ def table(rows: list[dict]) -> list[str]:
         cells = []
         for k, w, d in COLUMNS:
             sd = r.get(f"{k}_std")
-            text = f"{r[k]:.{d}f}" + (f" +-{sd:.{d}f}" if sd is not None else "")
+            text = f"{_nz(r[k], d):.{d}f}" + (f" +-{sd:.{d}f}" if sd is not None else "")
             cells.append(f"{text:>{w}}")
         lines.append(lead + "".join(cells))
         if "x_mm_error" in r:
             lines.append(f"{'':9} {'error':14}" + "".join(
-                f"{r[f'{k}_error']:>+{w}.{d}f}" for k, w, d in COLUMNS))
+                f"{_nz(r[f'{k}_error'], d):>+{w}.{d}f}" for k, w, d in COLUMNS))
     with_err = [r for r in rows if "x_mm_error" in r and r["status"] == "ok"]
     if with_err:
         for name, sign, fn in (
                 ("mean error", "+", lambda v: sum(v) / len(v)),
                 ("rms error", "", lambda v: math.sqrt(sum(e * e for e in v) / len(v)))):
             lines.append(f"{'':9} {name:14}" + "".join(
-                f"{fn([r[f'{k}_error'] for r in with_err]):>{sign}{w}.{d}f}"
+                f"{_nz(fn([r[f'{k}_error'] for r in with_err]), d):>{sign}{w}.{d}f}"
                 for k, w, d in COLUMNS))
         n = len(with_err)
         lines.append(f"{'':9} errors: estimate - truth, over the {n} estimate{'s' * (n != 1)} "
