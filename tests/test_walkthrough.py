@@ -88,6 +88,12 @@ def test_the_readmes_commands_in_order_on_the_twin(tmp_path: Path):
     assert rows and all("yaw_deg" in r for r in rows), est.stdout
     # The twin's stage at yaw 2 deg: the estimate's yaw within the paper's 0.2 deg of the truth.
     assert abs(rows[0]["yaw_deg"] - rows[0]["truth"]["yaw_deg"]) < 0.2, rows[0]
+    # Item 1: the estimate says its ranges are uncalibrated, and refuses another unit's
+    # calibration (cal.json is seed 0's, cap.pcap seed 1's: tilt came out -0.27 +- 0.07 deg)
+    assert "calibration none applied" in est.stderr, est.stderr
+    other = aimbench(tmp_path, "estimate", "cap.pcap", "--calibration", "cal.json", ok=(2,))
+    assert "'twin seed 0'" in other.stderr and "'twin seed 1'" in other.stderr
+    assert "--seed 1" in other.stderr and len(other.stderr.strip().splitlines()) == 1
     # Item 5: another model's calibration is one line, never "applied" then a traceback.
     wrong_cal = aimbench(tmp_path, "estimate", "c32.pcap", "--calibration", "cal.json",
                          ok=(2,))

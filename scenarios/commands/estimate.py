@@ -132,6 +132,42 @@ def _truths(args: argparse.Namespace) -> list[ScanTruth]:
     return load_truth(beside) if beside.is_file() else []
 
 
+def _truth_header(args: argparse.Namespace) -> dict:
+    """The capture's truth file as written (what `simulate` adds: its seed, station...), or {}."""
+    path = Path(args.truth) if args.truth is not None else truth_path(args.capture)
+    try:
+        head = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return head if isinstance(head, dict) else {}
+
+
+def _capture_sensor(args: argparse.Namespace) -> str | None:
+    """The sensor the capture comes from, when it can be told: ``--sensor-id``, else the twin
+    unit its truth file names (each seed of the twin is another unit, with its own per-laser
+    range offsets)."""
+    if args.sensor_id is not None:
+        return args.sensor_id
+    seed = _truth_header(args).get("seed")
+    return calibrate.twin_sensor_id(seed) if isinstance(seed, int) else None
+
+
+def _check_unit(cal: laser_calibration.LaserCalibration, args: argparse.Namespace) -> None:
+    """Refuse a calibration made for another unit than the one the capture's truth file names:
+    its per-laser offsets lean the plane the other way (tilt -0.27 +- 0.07 deg for a true 0,
+    confidently wrong). An id given with --sensor-id the user vouches for: `_warn_fit` says it."""
+    if args.sensor_id is not None or cal.sensor_id is None:
+        return
+    unit = _capture_sensor(args)
+    if unit is not None and unit != cal.sensor_id:
+        seed = _truth_header(args)["seed"]
+        raise AimbenchError(
+            f"the calibration was made for sensor {cal.sensor_id!r}, the capture's truth file "
+            f"says it comes from {unit!r}: another unit's range offsets lean the plane, not "
+            f"correct it; calibrate this unit (aimbench calibrate --bench sim --seed {seed} "
+            "--out cal.json) or leave --calibration out")
+
+
 def _warn_board_size(args: argparse.Namespace, station: stations.Station) -> None:
     """Say when the capture's truth file names another board than the one estimated with: a
     board of the wrong size was reported as occlusion ("nothing seen beyond its top edge, 610
@@ -194,6 +230,10 @@ def run(args: argparse.Namespace) -> int:
         window = (math.radians(c), math.radians(hw))
     cal_file = args.calibration or station.sensor.range_calibration
     cal = calibrate.read(cal_file) if cal_file else None
+    if cal is not None:
+        _check_unit(cal, args)
+    else:  # as a sweep says it: the ranges are the sensor's own, offsets and all
+        print(f"aimbench estimate: calibration {calibrate.applied(None)}", file=sys.stderr)
     hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window,
                         edge_tolerance=_edge_tolerance(args.edge_tolerance_mrad),
                         roll_prior=_roll_prior(args.roll_hint_deg, station),
@@ -216,7 +256,7 @@ def run(args: argparse.Namespace) -> int:
                 if first is not None:
                     first.append(scan)
                     if len(first) == calibrate.CHECK_SCANS:
-                        _warn_fit(cal, first, args.sensor_id)
+                        _warn_fit(cal, first, _capture_sensor(args))
                         first = None
                 group.append(calibrate.apply(scan, cal) if cal is not None else scan)
                 if cal is not None and seen_cal is False:  # said once it fits the scans
@@ -235,7 +275,7 @@ def run(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:  # a live source: Ctrl-C ends it; what was estimated stands
             pass
     if first:  # fewer whole scans than the check takes: check those
-        _warn_fit(cal, first, args.sensor_id)
+        _warn_fit(cal, first, _capture_sensor(args))
     if group and not rows:
         # fewer whole scans than --fuse asks for: fuse those there are rather than print
         # nothing, and say so
