@@ -137,7 +137,8 @@ def compact_recording(path: Path, stream: TextIO | None = None) -> None:
     if not path.is_file():
         return
     tmp = path.with_name(path.name + ".compacting")
-    cmd = [sys.executable, "-m", "rerun", "rrd", "optimize", str(path), "-o", str(tmp)]
+    # rerun_cli: the thin launcher of the rerun binary (`-m rerun` would load the whole SDK first)
+    cmd = [sys.executable, "-m", "rerun_cli", "rrd", "optimize", str(path), "-o", str(tmp)]
     try:
         res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     except (OSError, subprocess.SubprocessError) as exc:
