@@ -135,7 +135,7 @@ class Board(_Section):
 
     width_mm: Positive = 900.0
     height_mm: Positive = 540.0
-    thickness_mm: Positive = 3.0
+    thickness_mm: NonNegative = 3.0  # 0: a printed sheet
     #: Centre of the front face in the bench frame, mm (paper: 0.5 m above the floor).
     position_mm: Vec3 = (0.0, 0.0, 500.0)
     #: Turned about the vertical (positive: the face turns to the left seen from above), deg.

@@ -478,3 +478,20 @@ def test_simulate_and_estimate_a_diamond_station(tmp_path: Path):
         assert abs(row["roll_deg_error"]) < 4 * row["roll_deg_std"] + 0.3, row
     bad = aimbench("estimate", "cap.pcap", "--roll-hint-deg", "x", cwd=tmp_path)
     assert bad.returncode != 0 and "--roll-hint-deg takes CENTRE" in bad.stderr
+
+
+def test_a_printed_sheet_is_a_board_of_thickness_zero(tmp_path: Path):
+    """A chessboard printed on paper has no side face: thickness 0 is accepted (issue 34: it
+    was refused, "Input should be greater than 0"), the twin builds it and the board is found."""
+    import align
+    from twin.sim.bench import BenchSim
+
+    path = tmp_path / "sheet.toml"
+    path.write_text('name = "sheet"\n[board]\nthickness_mm = 0\n', encoding="utf-8")
+    station = stations.load(path)
+    assert station.board.thickness_mm == 0 and station.board_spec().thickness == 0
+    scan = BenchSim(station.bench_params(), seed=2).scan()
+    est = align.estimate(scan, station.board_spec())
+    assert est.success, est.diagnostics.get("reason")
+    err = est.pose.as_array() - scan.meta["truth_pose"].as_array()
+    assert np.all(np.abs(err[3:]) < np.deg2rad(1.0)) and np.all(np.abs(err[:3]) < 0.03)

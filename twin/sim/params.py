@@ -34,6 +34,10 @@ HOLDER_GEOM_PREFIX = "board_holder_"
 CLUTTER_GEOM_PREFIX = "clutter_"
 
 
+#: The plate the twin builds for a board of thickness 0 (a printed sheet), m.
+SHEET = 1e-4
+
+
 @dataclass(frozen=True)
 class SceneBox:
     """A box the scene holds besides the nominal bench: a holder on the board (``pos`` in the
@@ -169,9 +173,8 @@ class BenchParams:
             raise ValueError(f"scene {self.scene!r} is not one of {', '.join(SCENES)}")
         if self.board_width <= 0 or self.board_height <= 0:
             raise ValueError("board_width and board_height must be positive (m)")
-        if self.board_thickness <= 0:
-            # MuJoCo boxes need a positive half size; a sheet is a thin plate, not none.
-            raise ValueError("board_thickness must be positive (m)")
+        if self.board_thickness < 0:
+            raise ValueError("board_thickness must not be negative (m)")
         pat = self.board_pattern
         if pat is not None:
             w, h = pat.size
@@ -210,8 +213,11 @@ class BenchParams:
         board.pos = np.asarray(self.board_position, dtype=float)
         board.quat = self.board_quat()
         geom = spec.geom(BOARD_GEOM)
-        geom.size = [self.board_width / 2, self.board_thickness / 2, self.board_height / 2]
-        geom.pos = [0.0, self.board_thickness / 2, 0.0]
+        # a printed sheet (thickness 0) is a plate of SHEET thick: MuJoCo's boxes need a positive
+        # half size, and no ray meets a 0.1 mm edge face at the bench's incidences
+        depth = max(self.board_thickness, SHEET)
+        geom.size = [self.board_width / 2, depth / 2, self.board_height / 2]
+        geom.pos = [0.0, depth / 2, 0.0]
         for corner, (sx, sz) in {"tl": (-1, 1), "tr": (1, 1), "bl": (-1, -1),
                                  "br": (1, -1)}.items():
             spec.site(f"board_corner_{corner}").pos = [
