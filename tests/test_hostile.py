@@ -68,10 +68,10 @@ def test_twin_units_named_apart_are_different_units():
 def test_a_second_sigterm_stops_a_sweep_stuck_in_a_scan():
     """SIGTERM only set a flag checked between scans: a scan that never ended (a NaN station
     hung the twin) made a sweep deaf to it. The second SIGTERM now interrupts, as Ctrl-C's."""
-    from scenarios.runner import _StopFlag
+    from scenarios.interrupt import StopFlag
 
     said = []
-    with _StopFlag(lambda: said.append(1)) as flag, pytest.raises(KeyboardInterrupt):
+    with StopFlag(lambda: said.append(1)) as flag, pytest.raises(KeyboardInterrupt):
         os.kill(os.getpid(), signal.SIGTERM)
         assert flag.stop and flag.signal == "SIGTERM" and said == [1]
         os.kill(os.getpid(), signal.SIGTERM)
@@ -198,12 +198,13 @@ def test_another_models_calibration_is_one_line_not_applied(sample_pcap, tmp_pat
     """Item 5: a calibration of another model printed "calibration applied", then a 14-line
     traceback."""
     from align import calibration as laser_calibration
+    from scenarios import calibrate
     from scenarios.cli import main
 
     cal = laser_calibration.LaserCalibration(
         range_offset=np.zeros(32), range_offset_std=np.full(32, 1e-4),
         sensor={"id": "unit 7", "model": "VLP-32C", "n_lasers": 32})
-    laser_calibration.save(cal, tmp_path / "cal32.json")
+    calibrate.write(cal, tmp_path / "cal32.json")
     code = main(["estimate", str(sample_pcap), "--keep-partial", "--calibration",
                  str(tmp_path / "cal32.json")])
     err = capsys.readouterr().err
@@ -411,6 +412,7 @@ def test_a_parquet_export_has_exact_references_and_typed_columns(tmp_path):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
+    from align import PoseEstimate, Status
     from scenarios import plans
     from scenarios.store import ScanResult, Store
     from twin.core.pose import Pose, StagePose
@@ -419,12 +421,10 @@ def test_a_parquet_export_has_exact_references_and_typed_columns(tmp_path):
     i = next(k for k, r in enumerate(plan.references) if round(r.yaw_deg, 6) == -6.0)
     stage = StagePose(x_m=0.0, yaw_rad=plan.references[i].yaw_rad)
     with Store.create(tmp_path, plan) as s:
-        s.add_scan(ScanResult(reference=i, scan=0, status="ok", success=True,
-                              pose=Pose(x=-0.7, y=-2.5), std=np.full(6, 1e-3),
-                              covariance=np.eye(6) * 1e-6, truth=None, stage=stage,
+        est = PoseEstimate(Status.OK, "rays", Pose(x=-0.7, y=-2.5), np.eye(6) * 1e-6)
+        s.add_scan(ScanResult(reference=i, scan=0, estimate=est, truth=None, stage=stage,
                               points=1000, complete=True, missing_packets=0,
-                              acquired_at=time.time(), scan_s=0.1, estimate_s=0.01,
-                              diagnostics={}, timings={}))
+                              acquired_at=time.time(), scan_s=0.1, estimate_s=0.01))
         s.export_parquet(tmp_path / "scans.parquet")
     table = pq.read_table(tmp_path / "scans.parquet")
     assert table.num_rows == 1 and table.column("ref_yaw_deg").to_pylist() == [-6.0]

@@ -59,7 +59,7 @@ def test_board_not_in_view(tmp_path: Path):
     (tmp_path / "up.toml").write_text("scans = 15\nyaw_deg = [0, 1]\n[mount]\ntilt_deg = 30\n")
     res = aimbench("sweep", "up.toml", "--out", "run", cwd=tmp_path)
     line = one_error_line(res)
-    assert "at reference 0 (yaw +0.00 deg" in line and "scan 9" in line
+    assert "at reference 0 (stage yaw +0.00 deg" in line and "scan 9" in line
     assert "no pose in 10 scans in a row" in line
     assert "'no_board'" in line or "'partial_board'" in line
     assert "board is not in view" in line

@@ -36,6 +36,7 @@ from scenarios import cliargs
 from scenarios import station as stations
 from scenarios.extras import require
 from scenarios.inspection.records import Records
+from scenarios.inspection.studies import grr_report
 from scenarios.inspection.verdict import EDGE_SCALE, EDGE_UNIT, edge_key, limits_si
 from twin.core.errors import AimbenchError
 
@@ -47,19 +48,6 @@ def _station_of(args: argparse.Namespace, rows: list[dict]) -> stations.Station:
     if args.station is not None or not rows:
         return stations.from_args(args)[0]
     return stations.from_dict(rows[-1]["station_json"], "the records' station")
-
-
-def grr_report(rows: list[dict], station: stations.Station, confidence: float,
-               seed: int = 0) -> list[msa.GaugeRR]:
-    from scenarios.inspection import msa, studies
-
-    out = []
-    for axis, lim in limits_si(station.tolerances).items():
-        y, _, _ = studies.grr_data(rows, axis)
-        width = 2 * lim * EDGE_SCALE[axis]
-        out.append(msa.gauge_rr(y, edge_key(axis), EDGE_UNIT[axis], width, confidence,
-                                seed=seed))
-    return out
 
 
 def grr_lines(results: list[msa.GaugeRR]) -> list[str]:

@@ -47,7 +47,7 @@ SCALE = {"x": 1e3, "y": 1e3, "z": 1e3, "roll": 180 / math.pi, "tilt": 180 / math
 #: Per-axis columns and whether they scale to edge units.
 _AXIS_COLS = (("err", True), ("u_est", True), ("u_sys", True), ("u", True), ("limit", True),
               ("true", True), ("verdict", False))
-_JSON_COLS = ("station_json", "calibration", "sensor", "pose_in_station", "nominal",
+JSON_COLS = ("station_json", "calibration", "sensor", "pose_in_station", "nominal",
               "covariance", "attempts", "diagnostics", "timings")
 
 _SCHEMA = f"""
@@ -187,7 +187,7 @@ def check(path: Path) -> list[str]:
         if version is None or json.loads(version[0]) != SCHEMA_VERSION:
             return [f"unknown schema {version and version[0]}; this aimbench reads version "
                     f"{SCHEMA_VERSION}"]
-        valid = " AND ".join(f"({c} IS NULL OR json_valid({c}))" for c in _JSON_COLS)
+        valid = " AND ".join(f"({c} IS NULL OR json_valid({c}))" for c in JSON_COLS)
         broken = conn.execute(f"SELECT COUNT(*), MIN(id) FROM inspection WHERE NOT ({valid})"
                               ).fetchone()
         if broken[0]:
@@ -411,7 +411,7 @@ class Records:
         out = []
         for r in self.conn.execute(f"SELECT * FROM inspection {where} ORDER BY id", params):
             d = dict(r)
-            for c in _JSON_COLS:
+            for c in JSON_COLS:
                 d[c] = json.loads(d[c]) if d[c] is not None else None
             out.append(d)
         return out
@@ -437,7 +437,7 @@ class Records:
         for d in self.rows():
             row: dict[str, Any] = {}
             for k, v in d.items():
-                if k in _JSON_COLS and k not in ("attempts", "diagnostics", "timings"):
+                if k in JSON_COLS and k not in ("attempts", "diagnostics", "timings"):
                     continue
                 row[k] = dumps(v) if isinstance(v, dict | list) else v
             for a in AXES:

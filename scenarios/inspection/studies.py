@@ -19,7 +19,7 @@ import math
 import time
 from collections import defaultdict
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -28,8 +28,12 @@ from scenarios.inspection.acquire import TwinAcquisition, unit_sensor
 from scenarios.inspection.line import line_units
 from scenarios.inspection.procedure import inspect_unit
 from scenarios.inspection.records import AXES, Records, record_row
-from scenarios.inspection.verdict import EDGE_SCALE, edge_key
+from scenarios.inspection.verdict import EDGE_SCALE, EDGE_UNIT, edge_key, limits_si
 from twin.core.errors import AimbenchError
+
+if TYPE_CHECKING:
+    from scenarios.inspection import msa
+    from scenarios.station import Station
 
 #: A re-mounting's placement error, 1-sigma per axis (edge units), unless told: a fixture that
 #: locates a vehicle to half a millimetre and 0.05 deg (assumed).
@@ -258,3 +262,18 @@ def type1_data(rows: list[dict], axis: str) -> np.ndarray:
     """One axis's measured errors (edge units) of the records with a pose, in their order."""
     return np.array([r[f"err_{axis}"] * EDGE_SCALE[axis] for r in rows
                      if r["status"] == "ok" and r[f"err_{axis}"] is not None])
+
+
+def grr_report(rows: list[dict], station: Station, confidence: float,
+               seed: int = 0) -> list[msa.GaugeRR]:
+    """The gauge R&R of a study's records, per axis against the station's tolerance (the
+    ANOVA needs the extra grr: statsmodels, imported here only)."""
+    from scenarios.inspection import msa
+
+    out = []
+    for axis, lim in limits_si(station.tolerances).items():
+        y, _, _ = grr_data(rows, axis)
+        width = 2 * lim * EDGE_SCALE[axis]
+        out.append(msa.gauge_rr(y, edge_key(axis), EDGE_UNIT[axis], width, confidence,
+                                seed=seed))
+    return out

@@ -393,7 +393,7 @@ def measure(job: dict[str, Any]) -> tuple[dict[str, Any], str | None]:
             folder = Path(job["view"])
             folder.mkdir(parents=True, exist_ok=True)
             name = f"{hashlib.sha256(f'{unit}{started}'.encode()).hexdigest()[:16]}.png"
-            shown = {k: (json.loads(v) if k in rec_mod._JSON_COLS and isinstance(v, str)
+            shown = {k: (json.loads(v) if k in rec_mod.JSON_COLS and isinstance(v, str)
                          else v) for k, v in row.items()}
             unit_figure(shown, insp, folder / name)
             view = name

@@ -457,7 +457,7 @@ async def _studies(engine: StationEngine, type1_reference: str | None) -> None:
                  f"--db {engine.db})")
     grr = [b for b in batches if b.startswith("grr")]
     if grr:
-        from scenarios.commands.grr import grr_report
+        from scenarios.inspection.studies import grr_report
 
         try:
             key = (grr[-1], batches[grr[-1]])
