@@ -99,6 +99,17 @@ def _deg(rad: float) -> str:
     return f"{round(math.degrees(rad), 3) + 0.0:.3f}"
 
 
+def _truth_file(args: argparse.Namespace, out: Path, scans: list, sim, station: stations.Station,
+                station_file, params, sensor: dict) -> Path:
+    """The truth file of another sensor's capture of the twin: what `simulate` writes for a
+    Velodyne's, with the sensor it emulated."""
+    return write_truth(out, scans, seed=args.seed, ideal=bool(args.ideal),
+                       stage={"x_mm": sim.stage_x() * 1e3,
+                              "yaw_deg": math.degrees(sim.stage_yaw())},
+                       station=station.to_dict(), station_file=station_file,
+                       params=_jsonable(params), sensor=sensor)
+
+
 def _simulate_ouster(args: argparse.Namespace, params, model: str, out: Path,
                      station: stations.Station, station_file) -> int:
     """An Ouster's frames of the twin's bench (`twin.sim.ouster_twin`): the pcap, its metadata
@@ -119,13 +130,8 @@ def _simulate_ouster(args: argparse.Namespace, params, model: str, out: Path,
     scans = scans_from_payloads([r.payload for r in read_pcap(out, ports=None)], info)
     for s in scans:
         s.meta["truth_pose"] = truth_pose
-    truth = write_truth(out, scans, seed=args.seed, ideal=bool(args.ideal),
-                        stage={"x_mm": sim.stage_x() * 1e3,
-                               "yaw_deg": math.degrees(sim.stage_yaw())},
-                        station=station.to_dict(), station_file=station_file,
-                        params=_jsonable(params), sensor={"model": model,
-                                                          "lidar_mode": args.lidar_mode,
-                                                          "metadata": info.source})
+    truth = _truth_file(args, out, scans, sim, station, station_file, params,
+                        {"model": model, "lidar_mode": args.lidar_mode, "metadata": info.source})
     if not args.quiet:
         p = truth_pose
         print(f"wrote {out} ({len(scans)} {model} frames, {args.lidar_mode}), "
@@ -156,12 +162,8 @@ def _simulate_xt32(args: argparse.Namespace, params, out: Path, station: station
     scans = list(XT32Scans(PcapSource(out), angles))
     for s in scans:
         s.meta["truth_pose"] = truth_pose
-    truth = write_truth(out, scans, seed=args.seed, ideal=bool(args.ideal),
-                        stage={"x_mm": sim.stage_x() * 1e3,
-                               "yaw_deg": math.degrees(sim.stage_yaw())},
-                        station=station.to_dict(), station_file=station_file,
-                        params=_jsonable(params), sensor={"model": "PandarXT32",
-                                                          "angles": str(DEFAULT_ANGLES)})
+    truth = _truth_file(args, out, scans, sim, station, station_file, params,
+                        {"model": "PandarXT32", "angles": str(DEFAULT_ANGLES)})
     if not args.quiet:
         print(f"wrote {out} ({len(scans)} PandarXT32 rotations; read it with --model "
               f"PandarXT32) and {truth.name}")
