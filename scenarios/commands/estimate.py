@@ -232,8 +232,6 @@ def run(args: argparse.Namespace) -> int:
     cal = calibrate.read(cal_file) if cal_file else None
     if cal is not None:
         _check_unit(cal, args)
-    else:  # as a sweep says it: the ranges are the sensor's own, offsets and all
-        print(f"aimbench estimate: calibration {calibrate.applied(None)}", file=sys.stderr)
     hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window,
                         edge_tolerance=_edge_tolerance(args.edge_tolerance_mrad),
                         roll_prior=_roll_prior(args.roll_hint_deg, station),
@@ -259,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
                         _warn_fit(cal, first, _capture_sensor(args))
                         first = None
                 group.append(calibrate.apply(scan, cal) if cal is not None else scan)
-                if cal is not None and seen_cal is False:  # said once it fits the scans
+                if not seen_cal:  # said once, when it fits the scans; none: as a sweep says it
                     print(f"aimbench estimate: calibration {calibrate.applied(cal)}",
                           file=sys.stderr)
                     seen_cal = True
