@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Sequence
 
@@ -9,10 +10,11 @@ import numpy as np
 
 from align.baselines.paper import estimate_paper
 from align.board import BoardSpec
+from align.choice import DECISIVE_LR, Candidate, Decision, decide, region_log_prior
 from align.params import DEFAULT_PARAMS, RaysParams
 from align.rays.pipeline import estimate_rays
 from align.result import Hints, PoseEstimate, Status
-from align.search.candidates import other_candidates
+from align.search.candidates import candidate_segmentation, other_candidates
 from align.search.result import Segmentation
 from align.search.static import segment_static
 from twin.core.scan import Scan
@@ -65,14 +67,7 @@ def estimate(
         res = _per_scan_mean(
             [estimate_icp(scan_list[i], board, hints, segs[i]) for i in ok], "icp")
     else:
-        res = estimate_rays([scan_list[i] for i in ok], [segs[i] for i in ok], board, hints, p=p)
-        # the choice's rays are not the board's rectangle (returns in front of it where it
-        # would be, no edge seen, fewer rings than a board has): the board search's score is a
-        # cheap likeness, the labels of every ray against the known rectangle are the test.
-        # The next candidates, as board-like or nearly, are tried; the first the rectangle
-        # explains is the board
-        if res.status in (Status.PARTIAL_BOARD, Status.TOO_FEW_RINGS):
-            res = _other_candidates(scan_list, ok[0], segs[ok[0]], board, hints, res, p=p)
+        res = _rays(scan_list, segs, ok, board, hints, p=p)
     if method == "rays" and not ok and res.status == Status.NO_BOARD:
         # no cluster looked like the board: it may be cut apart among clusters that do not
         res = _other_candidates(scan_list, 0, None, board, hints, res, p=p)
@@ -83,19 +78,117 @@ def estimate(
     return res
 
 
+def _rays(scans: list[Scan], segs: list[Segmentation], ok: list[int], board: BoardSpec,
+          hints: Hints, *, p: RaysParams) -> PoseEstimate:
+    """Method rays: the search's first choice fitted; where the search found other board-like
+    candidates, the choice between them all (`_choose`); where the first choice's rays are not
+    the board's rectangle, the retry on its other candidates (`_other_candidates`)."""
+    res = estimate_rays([scans[i] for i in ok], [segs[i] for i in ok], board, hints, p=p)
+    first = ok[0]
+    if segs[first].alternatives or hints.board_region is not None:
+        res = _choose(scans, first, segs[first], board, hints, res, p=p)
+    # the choice's rays are not the board's rectangle (returns in front of it where it would
+    # be, no edge seen, fewer rings than a board has): the board search's score is a cheap
+    # likeness, the labels of every ray against the known rectangle are the test. The next
+    # candidates, as board-like or nearly, are tried; the first the rectangle explains is
+    # the board
+    if res.status in (Status.PARTIAL_BOARD, Status.TOO_FEW_RINGS):
+        res = _other_candidates(scans, first, segs[first], board, hints, res, p=p)
+    return res
+
+
+def _choose(scans: list[Scan], first: int, ref: Segmentation, board: BoardSpec, hints: Hints,
+            res: PoseEstimate, *, p: RaysParams) -> PoseEstimate:
+    """The board among the search's first choice and its runners-up (``ref.alternatives``),
+    each fitted on scan ``first`` and weighed on the same terms (`align.choice.decide`):
+    ``res`` (the first choice's estimate, of every scan) when it stands; the winner's estimate
+    of every scan when another wins; an `AMBIGUOUS_BOARD` or `BOARD_OUTSIDE_REGION` failure
+    naming the candidates; ``res`` itself when none passed (the retry's business)."""
+    n_scans = len(scans) - first
+    # the first choice's own estimate where it is of one scan or stands alone (the region's
+    # check only: the centre of a fused estimate is the same board's)
+    single = (res if n_scans == 1 or not ref.alternatives
+              else estimate_rays([scans[first]], [ref], board, hints, p=p))
+    cands = [Candidate(0, ref.board, ref.score, single)]
+    for k, returns in enumerate(ref.alternatives, start=1):
+        g = candidate_segmentation(scans[first], returns, ref.n_clusters)
+        cands.append(Candidate(k, returns, ref.alternative_scores[k - 1],
+                               estimate_rays([scans[first]], [g], board, hints, p=p)))
+    decision = decide(cands, hints)
+    if decision.chosen is None:
+        if decision.outside_region:
+            return _outside_region(decision, hints)
+        return res
+    if not decision.decisive:
+        return _ambiguous(decision)
+    chosen = decision.chosen
+    if chosen.index == 0:
+        out = res
+    elif n_scans == 1:
+        out = chosen.estimate
+    else:
+        g = candidate_segmentation(scans[first], chosen.returns, ref.n_clusters)
+        out = _fused_from(scans, first, g, board, hints, p=p)
+    out.diagnostics.update(board_candidate=chosen.index, board_candidates=len(cands),
+                           board_log10_lr=decision.log10_lr)
+    return out
+
+
+def _fused_from(scans: list[Scan], first: int, g: Segmentation, board: BoardSpec, hints: Hints,
+                *, p: RaysParams) -> PoseEstimate:
+    """The estimate of scans ``first`` on, the board taken as ``g`` in scan ``first``."""
+    segs = segment_static(scans[first:], board, hints, g)
+    use = [i for i, a in enumerate(segs) if a.status == Status.OK]
+    return estimate_rays([scans[first + i] for i in use], [segs[i] for i in use], board, hints,
+                         p=p)
+
+
+def _where(c: Candidate) -> str:
+    """A candidate's board as a user reads it: its centre in the LiDAR's frame, mm, and fit."""
+    x, y, z = 1e3 * c.centre()
+    return (f"candidate {c.index} at ({x:+.0f}, {y:+.0f}, {z:+.0f}) mm in the LiDAR's frame, "
+            f"chi2/dof {c.estimate.diagnostics.get('chi2_per_dof', math.nan):.2f}")
+
+
+def _ambiguous(decision: Decision) -> PoseEstimate:
+    """No pose: two candidates the rays cannot tell apart, both named."""
+    a, b = decision.chosen, decision.runner_up
+    assert a is not None and b is not None
+    reason = (f"two board-like objects explain the rays about as well (likelihood ratio "
+              f"10^{decision.log10_lr:.1f}, below {DECISIVE_LR:g}): {_where(a)}; {_where(b)}. "
+              "Give the station's board position and tolerance (board.position_tolerance_mm), "
+              "or narrow the search (--azimuth-deg, --expected-distance-m)")
+    out = PoseEstimate.failed(Status.AMBIGUOUS_BOARD, "rays", reason=reason,
+                              board_log10_lr=decision.log10_lr)
+    out.used["candidates"] = [a.estimate, b.estimate]
+    return out
+
+
+def _outside_region(decision: Decision, hints: Hints) -> PoseEstimate:
+    """No pose: every candidate that passed lies beyond the station's board region."""
+    assert hints.board_region is not None
+    where, radius = hints.board_region
+    c = decision.outside_region[0]
+    reason = (f"no board within {1e3 * radius:.0f} mm of where the station puts it "
+              f"({', '.join(f'{1e3 * v:+.0f}' for v in where)}) mm in the LiDAR's frame); "
+              f"the board-like object found is {_where(c)}. Check the board's position in the "
+              "station file, or that the unit is mounted as the station says")
+    out = PoseEstimate.failed(Status.BOARD_OUTSIDE_REGION, "rays", reason=reason)
+    out.used["candidates"] = [o.estimate for o in decision.outside_region]
+    return out
+
+
 def _other_candidates(scans: list[Scan], first: int, ref: Segmentation | None,
                       board: BoardSpec, hints: Hints, res: PoseEstimate, *, p: RaysParams
                       ) -> PoseEstimate:
     """The retry: the first of the board search's other candidates on scan ``first``
-    (`align.search.candidates`) whose rays the known rectangle explains, or ``res`` (the first
-    choice's failure). The board search's score is a cheap likeness; the labels of every ray
-    against the known rectangle are the test."""
+    (`align.search.candidates`) whose rays the known rectangle explains and that lies in the
+    station's board region, or ``res`` (the first choice's failure). The board search's score
+    is a cheap likeness; the labels of every ray against the known rectangle are the test."""
     for k, g in enumerate(other_candidates(scans[first], ref, board, hints), start=1):
-        segs = segment_static(scans[first:], board, hints, g)
-        use = [i for i, a in enumerate(segs) if a.status == Status.OK]
-        alt = estimate_rays([scans[first + i] for i in use], [segs[i] for i in use], board, hints,
-                            p=p)
-        if alt.success:
+        alt = _fused_from(scans, first, g, board, hints, p=p)
+        if alt.success and region_log_prior(Candidate(k, g.board, math.nan, alt).centre(),
+                                            hints) > -math.inf:
             alt.diagnostics["board_candidate"] = k  # 0: the search's first choice
             return alt
     return res

@@ -20,6 +20,10 @@ class Status(enum.StrEnum):
     TOO_FEW_RINGS = "too_few_rings"  # fewer rings on the board than the method needs
     BOARD_TOO_FAR = "board_too_far"  # a board-like cluster beyond the usable distance
     NOT_CONVERGED = "not_converged"  # the solver did not settle
+    #: two board-like objects explain the rays about as well (`align.choice`): no pose
+    AMBIGUOUS_BOARD = "ambiguous_board"
+    #: the only board-like objects found lie outside the station's board region
+    BOARD_OUTSIDE_REGION = "board_outside_region"
     UNKNOWN_METHOD = "unknown_method"
     #: Never returned by `align.estimate`: what a caller that catches an exception the
     #: estimator raised records instead of its answer (the runner: one bad scan must not lose
@@ -83,6 +87,10 @@ class Hints:
     #: then share an unknown offset: a random effect in the plane's fit, whose tilt it would
     #: otherwise bias (about 0.35 deg for +-5 mm) with a sigma that does not cover it.
     laser_offset_sigma: float = 0.0
+    #: Where the station's board is: its centre in the LiDAR's frame {L}, m, and the radius
+    #: it may be off by, m; or None (anywhere). A candidate beyond the radius is never the
+    #: board; within, the prior weighs it (`align.choice`).
+    board_region: tuple[tuple[float, float, float], float] | None = None
     #: Seed for the randomised parts (RANSAC; the hit/miss posterior's fallbacks).
     seed: int = 0
 

@@ -148,6 +148,12 @@ class Board(_Section):
     #: Diffuse (Lambertian) reflectance of the face, 0..1 (bare aluminium, assumed 0.55).
     reflectivity: Reflectance = 0.55
     pattern: Pattern | None = None
+    #: How far the board's centre may be from where this station puts it, as the LiDAR at
+    #: its nominal pose sees it, mm: the board's own placement and the unit's mounting
+    #: tolerance together. Given, the estimate never takes an object beyond it for the board
+    #: (`align.Hints.board_region`; status board_outside_region) and weighs the candidates
+    #: within it. None: the board may be anywhere the search looks.
+    position_tolerance_mm: Positive | None = None
 
     @model_validator(mode="after")
     def _pattern_fits(self) -> Board:
@@ -424,6 +430,20 @@ class Station(_Section):
         r_ol = self.board_in_bench()[:3, :3].T @ r_wl
         roll = Pose.from_matrix(r_ol, np.zeros(3)).roll
         return roll, math.radians(ROLL_PRIOR_SD_DEG)
+
+    def board_region(self, lidar_in_station: Pose | None) -> tuple[tuple[float, float, float],
+                                                                   float] | None:
+        """The board's region as the LiDAR at ``lidar_in_station`` (its nominal pose) sees it:
+        (the board's centre in {L}, m; the radius, m), as `align.Hints.board_region`; None
+        without ``board.position_tolerance_mm`` or a nominal pose."""
+        tol = self.board.position_tolerance_mm
+        if tol is None or lidar_in_station is None:
+            return None
+        w_from_s = self.frame.pose.to_pose().matrix()
+        w_from_l = w_from_s @ lidar_in_station.matrix()
+        centre_w = self.board_in_bench()[:3, 3]
+        centre_l = np.linalg.solve(w_from_l, np.append(centre_w, 1.0))[:3]
+        return (float(centre_l[0]), float(centre_l[1]), float(centre_l[2])), tol * 1e-3
 
     def range_offset_hints(self, calibrated: bool = False) -> dict[str, Any]:
         """The sensor's range-offset priors as `align.Hints` fields, m. ``calibrated``: a

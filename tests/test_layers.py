@@ -61,7 +61,9 @@ ALIGN_ALLOWED: dict[str, tuple[str, ...]] = {
     "align.rays": _RAYS,
     "align.baselines": (*ALIGN_COMMON, "align.plane", "align.search"),
     "align.design": ("align.board", "align.geometry"),
-    "align.api": (*_RAYS, "align.rays", "align.baselines"),
+    # the board's choice between candidates: their estimates and the hints, nothing else
+    "align.choice": ("align.result",),
+    "align.api": (*_RAYS, "align.rays", "align.baselines", "align.choice"),
     "align": ("align.api", "align.board", "align.result"),  # the package's face
 }
 #: Inside scenarios/ the command line is the top: only the commands and the CLI that finds them

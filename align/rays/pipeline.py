@@ -389,6 +389,7 @@ def outcome(sol: Solution, fit: Fit, n_starts: int, sigma_r: float, board: Board
         "in_plane_rotation_rad": in_plane_rotation(theta), "range_sigma_m": sigma_r,
         "iterations": sol.iters, **sol.offset_diag,
         "chi2_per_dof": float(np.sum(model.residuals(theta) ** 2) / max(len(sol.j) - 6, 1)),
+        "dof": max(len(sol.j) - 6, 1),
         "outside_hits": seen.pop("outside_hits"),
     }
     status, reason = _status(diag, seen, model, sol.conv, p=p)

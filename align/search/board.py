@@ -303,10 +303,12 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
         order = np.flatnonzero(near)[np.argsort(-score[near], kind="stable")]
         lab = int(order[0])
         sel = members[lab]
-        alt = tuple(members[int(o)] for o in order[1:1 + MAX_ALTERNATIVES]
-                    if score[o] >= ALTERNATIVE_SCORE * score[lab])
+        kept = [int(o) for o in order[1:1 + MAX_ALTERNATIVES]
+                if score[o] >= ALTERNATIVE_SCORE * score[lab]]
         return Segmentation(Status.OK, sel, n_lab, float(dist[lab]), ring_count(scan, sel),
-                            alternatives=alt)
+                            alternatives=tuple(members[o] for o in kept),
+                            score=float(score[lab]),
+                            alternative_scores=tuple(float(score[o]) for o in kept))
     if np.any(far):
         lab = int(np.flatnonzero(far)[np.argmax(score[far])])
         sel = members[lab]

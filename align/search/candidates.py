@@ -23,6 +23,14 @@ RESEARCHES = 2
 PLANE_CANDIDATES = 4
 
 
+def candidate_segmentation(scan: Scan, returns: np.ndarray, n_clusters: int,
+                           by_plane: bool = False) -> Segmentation:
+    """The returns ``returns`` of ``scan`` taken as the board's cluster."""
+    rings = scan.lasers.ring_of_laser[scan.laser_id[returns]]
+    return Segmentation(Status.OK, returns, n_clusters, float(np.mean(scan.distance[returns])),
+                        len(np.unique(rings)), by_plane=by_plane)
+
+
 def other_candidates(scan: Scan, ref: Segmentation | None, board: BoardSpec, hints: Hints
                      ) -> Iterator[Segmentation]:
     """The search's other candidates on ``scan``, best first; each is taken as tried once
@@ -40,9 +48,7 @@ def other_candidates(scan: Scan, ref: Segmentation | None, board: BoardSpec, hin
 
     def candidate(returns: np.ndarray, by_plane: bool = False) -> Segmentation:
         tried.append(returns)
-        rings = scan.lasers.ring_of_laser[scan.laser_id[returns]]
-        return Segmentation(Status.OK, returns, n_clusters, float(np.mean(scan.distance[returns])),
-                            len(np.unique(rings)), by_plane=by_plane)
+        return candidate_segmentation(scan, returns, n_clusters, by_plane)
 
     grown = None if ref is None else regrown(scan, ref.board, hints)
     queue = ([] if grown is None else [grown]) + ([] if ref is None else list(ref.alternatives))

@@ -22,6 +22,10 @@ class Segmentation:
     #: the next most board-like candidates' returns, best first: what an estimator that finds
     #: the choice is not the board (the known rectangle does not explain its rays) tries next
     alternatives: tuple[np.ndarray, ...] = ()
+    #: the search's likeness (`align.search.board.board_score`) of the choice and of each
+    #: alternative (nan: not scored, e.g. a candidate of the retry)
+    score: float = float("nan")
+    alternative_scores: tuple[float, ...] = ()
     #: the returns were chosen by their distance to a plane (`plane_candidates`): their own
     #: plane leans towards that one (the noise beyond the band is left out)
     by_plane: bool = False

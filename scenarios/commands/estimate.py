@@ -235,6 +235,9 @@ def run(args: argparse.Namespace) -> int:
     hints = align.Hints(expected_distance=args.expected_distance_m, azimuth_window=window,
                         edge_tolerance=_edge_tolerance(args.edge_tolerance_mrad),
                         roll_prior=_roll_prior(args.roll_hint_deg, station),
+                        board_region=station.board_region(
+                            None if station.mount.nominal is None
+                            else station.mount.nominal.to_pose()),
                         **station.range_offset_hints(calibrated=cal is not None))
     truths = _truths(args)
     _warn_board_size(args, station)

@@ -133,6 +133,7 @@ def inspect_unit(acq: Acquisition, station: Station, unit: str, *,
         # a unit on the line is a new one: its own range offset (the station's prior on it)
         # is estimated with its pose, not taken as zero
         hints = align.Hints(roll_prior=station.roll_prior(),
+                            board_region=station.board_region(mounting.nominal_pose(station)[0]),
                             **station.range_offset_hints(calibrated=calibration is not None))
     t_trigger = time.perf_counter()
     cpu0 = time.process_time()
