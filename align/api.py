@@ -10,7 +10,7 @@ import numpy as np
 
 from align.baselines.paper import estimate_paper
 from align.board import BoardSpec
-from align.choice import DECISIVE_LR, Candidate, Decision, decide, region_log_prior
+from align.choice import DECISIVE_LR, Candidate, Decision, decide, region_log_prior, weigh
 from align.params import DEFAULT_PARAMS, RaysParams
 from align.rays.pipeline import estimate_rays
 from align.result import Hints, PoseEstimate, Status
@@ -115,12 +115,17 @@ def _choose(scans: list[Scan], first: int, ref: Segmentation, board: BoardSpec, 
         cands.append(Candidate(k, returns, ref.alternative_scores[k - 1],
                                estimate_rays([scans[first]], [g], board, hints, p=p)))
     decision = decide(cands, hints)
+    weighed = [_described(c, hints) for c in cands]
     if decision.chosen is None:
         if decision.outside_region:
-            return _outside_region(decision, hints)
+            out = _outside_region(decision, hints)
+            out.used["candidates"] = weighed
+            return out
         return res
     if not decision.decisive:
-        return _ambiguous(decision)
+        out = _ambiguous(decision)
+        out.used["candidates"] = weighed
+        return out
     chosen = decision.chosen
     if chosen.index == 0:
         out = res
@@ -131,7 +136,18 @@ def _choose(scans: list[Scan], first: int, ref: Segmentation, board: BoardSpec, 
         out = _fused_from(scans, first, g, board, hints, p=p)
     out.diagnostics.update(board_candidate=chosen.index, board_candidates=len(cands),
                            board_log10_lr=decision.log10_lr)
+    out.used["candidates"] = weighed
     return out
+
+
+def _described(c: Candidate, hints: Hints) -> dict:
+    """One weighed candidate for the result's ``used["candidates"]`` (what `--explain` draws):
+    its index, the search's score, its returns in the first scan, its fit's status, pose and
+    chi2/dof, and its log weight (`align.choice.weigh`)."""
+    e = c.estimate
+    return {"index": c.index, "score": c.score, "returns": c.returns, "status": str(e.status),
+            "pose": e.pose, "chi2_per_dof": e.diagnostics.get("chi2_per_dof"),
+            "log_weight": weigh(c, hints) if c.passed else -math.inf}
 
 
 def _fused_from(scans: list[Scan], first: int, g: Segmentation, board: BoardSpec, hints: Hints,
@@ -160,7 +176,6 @@ def _ambiguous(decision: Decision) -> PoseEstimate:
               "or narrow the search (--azimuth-deg, --expected-distance-m)")
     out = PoseEstimate.failed(Status.AMBIGUOUS_BOARD, "rays", reason=reason,
                               board_log10_lr=decision.log10_lr)
-    out.used["candidates"] = [a.estimate, b.estimate]
     return out
 
 
@@ -174,7 +189,6 @@ def _outside_region(decision: Decision, hints: Hints) -> PoseEstimate:
               f"the board-like object found is {_where(c)}. Check the board's position in the "
               "station file, or that the unit is mounted as the station says")
     out = PoseEstimate.failed(Status.BOARD_OUTSIDE_REGION, "rays", reason=reason)
-    out.used["candidates"] = [o.estimate for o in decision.outside_region]
     return out
 
 
