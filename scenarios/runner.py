@@ -97,10 +97,13 @@ Estimator = Callable[[Scan], PoseEstimate]
 
 
 def make_estimator(method: str | None = None, board: Any = None,
-                   calibration: LaserCalibration | None = None) -> Estimator:
+                   calibration: LaserCalibration | None = None,
+                   station: Any = None) -> Estimator:
     """align's estimate of one scan the way a run makes it: its method (None: align's default),
     its board (None: the paper's), and its sensor calibration, applied to every scan before
-    estimating (the run's configuration keeps it, so a resume or a replay uses the same). An
+    estimating (the run's configuration keeps it, so a resume or a replay uses the same), with
+    the hints of its ``station`` (`scenarios.station.Station.estimate_hints`: a new unit's
+    range offset estimated unless the calibration measured it; None: align's defaults). An
     unknown method is refused here, before any move.
 
     An exception inside the estimator becomes a failed estimate (`Status.ESTIMATOR_ERROR`, the
@@ -115,12 +118,13 @@ def make_estimator(method: str | None = None, board: Any = None,
         require("open3d", "the method icp")
     name = method if method is not None else align.DEFAULT_METHOD
     board = board if board is not None else align.BoardSpec()
+    hints = None if station is None else station.estimate_hints(calibrated=calibration is not None)
 
     def estimate(scan: Scan) -> PoseEstimate:
         try:
             if calibration is not None:
                 scan = calibrate.apply(scan, calibration)  # another model's: one line
-            return align.estimate([scan], board=board, method=name)
+            return align.estimate([scan], board=board, method=name, hints=hints)
         except AimbenchError:
             raise
         except Exception as exc:  # an estimator bug on one scan: record it, keep the run
@@ -553,7 +557,7 @@ def _worker_setup(setup: dict) -> tuple[Any, Estimator, Plan]:
         _worker_bench.clear()
         st = bench.station
         estimator = make_estimator(setup["method"], st.board_spec() if st else None,
-                                   setup["calibration"])
+                                   setup["calibration"], st)
         _worker_bench[key] = (bench, estimator, Plan.from_dict(setup["plan"]))
     return _worker_bench[key]
 

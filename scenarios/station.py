@@ -77,6 +77,13 @@ Reflectance = Annotated[StrictFloat, Field(ge=0, le=1)]
 Vec3 = tuple[StrictFloat, StrictFloat, StrictFloat]
 
 
+#: A sensor model's range accuracy where `twin.core.sensors` has none, m (the VLP-16's +-30 mm).
+DEFAULT_RANGE_ACCURACY = 0.03
+#: The 1-sigma a known, non-zero common offset (``range_offset_std_mm = 0``) is given, m: far
+#: below any estimate's, so that the estimate applies it rather than estimating it.
+KNOWN_OFFSET_STD = 1e-5
+
+
 class StationError(AimbenchError):
     """A station file that cannot be read or is not valid (the message names the key)."""
 
@@ -203,10 +210,13 @@ class Sensor(_Section):
     #: The per-laser range calibration written by `aimbench calibrate`, if any.
     range_calibration: StrictStr | None = None
     #: The unit's common range offset (what it adds to every range), mm, and its 1-sigma: the
-    #: estimate's prior on it (`align.Hints.range_offset_prior`). A unit measured before:
-    #: its value and standard error; a new unit: 0 and the datasheet's spread (the VLP-16's
-    #: +-30 mm accuracy, about 17 mm as a uniform's sigma). No ``range_offset_std_mm``: the
-    #: ranges are taken as unbiased (a calibrated unit) and the offset is not estimated.
+    #: estimate's prior on it (`align.Hints.range_offset_prior`), so that the offset is
+    #: estimated with the pose. A unit measured before: its value and standard error. Not
+    #: given (a new unit, the default): 0 and the datasheet's spread, its range accuracy
+    #: taken as a uniform's half width (the VLP-16's +-30 mm: 17.3 mm; `datasheet_offset_std`).
+    #: 0: the offset is known to be ``range_offset_mm`` and not estimated. A per-laser range
+    #: calibration applied to the scans (`aimbench calibrate`) measured the offset: then it is
+    #: not estimated either.
     range_offset_mm: StrictFloat = 0.0
     range_offset_std_mm: NonNegative | None = None
     #: 1-sigma of the unit's per-laser range offsets, mm (the paper: up to 5 mm): carried in
@@ -445,16 +455,43 @@ class Station(_Section):
         centre_l = np.linalg.solve(w_from_l, np.append(centre_w, 1.0))[:3]
         return (float(centre_l[0]), float(centre_l[1]), float(centre_l[2])), tol * 1e-3
 
+    def datasheet_offset_std(self) -> float:
+        """A new unit's common range offset's 1-sigma, m: the sensor model's datasheet range
+        accuracy (+-a, "typical") taken as a uniform's half width, a / sqrt(3). A model without
+        one in `twin.core.sensors` (an Ouster, a Hesai): +-30 mm, the VLP-16's."""
+        try:
+            accuracy = model_named(self.sensor.model).range_accuracy
+        except KeyError:
+            accuracy = DEFAULT_RANGE_ACCURACY
+        return accuracy / math.sqrt(3.0)
+
     def range_offset_hints(self, calibrated: bool = False) -> dict[str, Any]:
-        """The sensor's range-offset priors as `align.Hints` fields, m. ``calibrated``: a
-        per-laser range calibration is applied to the scans, so the per-laser offsets it
-        measured are gone (what is left of them is its standard errors: far below the
-        estimate's noise) and not put into the covariance."""
+        """The sensor's range-offset priors as `align.Hints` fields, m (`Sensor.range_offset_mm`
+        says when the common offset is estimated). ``calibrated``: a per-laser range
+        calibration is applied to the scans, so the common and per-laser offsets it measured
+        are gone (what is left of them is its standard errors: far below the estimate's
+        noise), not estimated and not put into the covariance."""
         s = self.sensor
-        prior = (None if s.range_offset_std_mm is None
-                 else (s.range_offset_mm * 1e-3, s.range_offset_std_mm * 1e-3))
+        mean = s.range_offset_mm * 1e-3
+        if calibrated:
+            prior = None
+        elif s.range_offset_std_mm is None:
+            prior = (mean, self.datasheet_offset_std())
+        elif s.range_offset_std_mm == 0.0:  # known: applied, not estimated
+            prior = None if mean == 0.0 else (mean, KNOWN_OFFSET_STD)
+        else:
+            prior = (mean, s.range_offset_std_mm * 1e-3)
         laser = 0.0 if calibrated else s.laser_offset_std_mm * 1e-3
         return {"range_offset_prior": prior, "laser_offset_sigma": laser}
+
+    def estimate_hints(self, calibrated: bool = False) -> Any:
+        """align's `Hints` for this station's scans at any stage pose: the roll prior and the
+        range offsets (`range_offset_hints`). The board's region is not among them: it holds at
+        the nominal pose only (`board_region`)."""
+        import align
+
+        return align.Hints(roll_prior=self.roll_prior(),
+                           **self.range_offset_hints(calibrated=calibrated))
 
     def bench_params(self, **changes: Any) -> Any:
         """The twin's `twin.sim.params.BenchParams` for this station (``changes``: fields to set

@@ -5,6 +5,7 @@ poses; and the twin's random scenes."""
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -70,6 +71,29 @@ def test_a_30_mm_offset_is_recovered_and_does_not_move_the_pose():
         naive = align.estimate(scans, hints=align.Hints(**SHARP))
         e0, sd0 = pose_errors(naive, truth)
         assert max(abs(e0[5]) / sd0[5], abs(e0[0]) / sd0[0]) > 2
+
+
+def test_a_new_unit_has_its_offset_estimated_by_default():
+    """The shipped station (and so the command line without one) takes a unit as new: its
+    common offset estimated with the datasheet's prior; a range calibration applied, or an
+    offset stated as known (std 0), is not estimated (issue 34)."""
+    from scenarios.station import Station
+
+    st = Station()
+    assert st.estimate_hints().range_offset_prior == pytest.approx((0.0, DATASHEET))
+    assert st.estimate_hints(calibrated=True).range_offset_prior is None
+    hdl = Station.model_validate({"sensor": {"model": "HDL-32E"}})
+    assert hdl.estimate_hints().range_offset_prior[1] == pytest.approx(0.02 / np.sqrt(3.0))
+    known = Station.model_validate({"sensor": {"range_offset_mm": -30.0,
+                                               "range_offset_std_mm": 0.0}})
+    b, b_sd = known.estimate_hints().range_offset_prior
+    assert b == pytest.approx(-0.03) and b_sd < 1e-4
+    scans, sim = _scans(np.random.default_rng(22), 10, range_bias=-0.030)
+    est = align.estimate(scans, hints=replace(st.estimate_hints(), **SHARP))
+    assert est.success, est.diagnostics.get("reason")
+    e, sd = pose_errors(est, scans[0].meta["truth_pose"])
+    assert np.all(np.abs(e[[0, 3, 4, 5]]) < 4 * sd[[0, 3, 4, 5]]), (e, sd)
+    assert abs(est.diagnostics["range_offset_m"] - sim.emulator.range_bias) < 2e-3
 
 
 def test_a_ring_grazing_the_top_edge_near_a_corner_holds_the_fits_height():

@@ -147,7 +147,8 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
                                 config.method)
         try:
             board = config.station.board_spec()
-            estimator = make_estimator(config.method, board, config.calibration)
+            estimator = make_estimator(config.method, board, config.calibration,
+                                       config.station)
             bench = bench if bench is not None else open_bench(config)
             bench.progress = progress
         except AimbenchError as exc:

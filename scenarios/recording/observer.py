@@ -414,12 +414,13 @@ class ObservedBench:
 
 
 def observed_estimator(bench: ObservedBench, method: str | None = None, board: Any = None,
-                       calibration: LaserCalibration | None = None) -> Estimator:
+                       calibration: LaserCalibration | None = None,
+                       station: Any = None) -> Estimator:
     """The runner's estimator (`scenarios.runner.make_estimator`), logging each scan with
     align's answer (with ``used``: the board points and features) before handing it on."""
     from scenarios.runner import make_estimator
 
-    call = make_estimator(method, board, calibration)
+    call = make_estimator(method, board, calibration, station)
 
     def estimate(scan: Scan) -> PoseEstimate:
         est = call(scan)
@@ -462,6 +463,7 @@ class RerunSession:
                                       scans_per_reference=plan.scans, points_every=points_every,
                                       **scene)
         self.observer.on_start(name, info)
+        self.station = station
         self._closed = False
         self.stream.write(f"rerun: {sinks.describe()}\n")
 
@@ -471,7 +473,8 @@ class RerunSession:
         """The bench and estimator to hand the runner instead of the plain ones (``board``: the
         run's align `BoardSpec`, None for the paper's)."""
         observed = ObservedBench(bench, self.observer, self.plan)
-        return observed, observed_estimator(observed, method, board, calibration=calibration)
+        return observed, observed_estimator(observed, method, board, calibration=calibration,
+                                            station=self.station)
 
     def finish(self, status: str, message: str | None = None) -> None:
         self.observer.on_finish(status, message)

@@ -123,12 +123,12 @@ def recapture(store: Store, capture: Path,
 # Runs
 # ---------------------------------------------------------------------------------------------
 def run_estimator(method: str | None, calibration: LaserCalibration | None = None,
-                  board: Any = None) -> Estimator:
+                  board: Any = None, station: Any = None) -> Estimator:
     """align's estimate of one scan with the run's method, calibration and board (its station's
     `BoardSpec`; None: the paper's), as the runner makes it (`scenarios.runner.make_estimator`)."""
     from scenarios.runner import make_estimator
 
-    return make_estimator(method or None, board, calibration)
+    return make_estimator(method or None, board, calibration, station)
 
 
 def _stored_estimate(row: Mapping[str, Any], method: str) -> PoseEstimate:
@@ -202,7 +202,7 @@ def _replay_store(store: Store, run_dir: Path, rec: rr.RecordingStream, clouds: 
             summary.notes.append("the run predates per-scan seeding: its re-simulated point "
                                  "clouds are not the scans it estimated (flagged per scan)")
     position = {(r["reference"], r["scan"]): n for n, r in enumerate(rows)}
-    estimator = run_estimator(config.method, config.calibration, board)
+    estimator = run_estimator(config.method, config.calibration, board, config.station)
     refs = store.references()
     # The store's events, merged with the scans by time, become annotations.
     events = sorted(store.events(), key=lambda e: e["at"])
