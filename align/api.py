@@ -142,11 +142,14 @@ def _choose(scans: list[Scan], first: int, ref: Segmentation, board: BoardSpec, 
 
 def _described(c: Candidate, hints: Hints) -> dict:
     """One weighed candidate for the result's ``used["candidates"]`` (what `--explain` draws):
-    its index, the search's score, its returns in the first scan, its fit's status, pose and
-    chi2/dof, and its log weight (`align.choice.weigh`)."""
+    its index, the search's score, its returns in the first scan, its fit's status, pose,
+    chi2/dof and the size its rays see (width, height and their sigmas, m), and its log weight
+    (`align.choice.weigh`)."""
     e = c.estimate
     return {"index": c.index, "score": c.score, "returns": c.returns, "status": str(e.status),
             "pose": e.pose, "chi2_per_dof": e.diagnostics.get("chi2_per_dof"),
+            "seen_size_m": tuple(e.diagnostics.get(k) for k in (
+                "seen_width_m", "seen_height_m", "seen_width_std_m", "seen_height_std_m")),
             "log_weight": weigh(c, hints) if c.passed else -math.inf}
 
 

@@ -22,9 +22,13 @@ class BoardSpec:
     #: thickness x tan(incidence) (about 1 mm at 3 mm and 20 deg, ten times a fused bracket's
     #: width). 3 mm: the twin's plate (models/target_board.xml); measure the real one.
     thickness: float = 0.003
+    #: 1-sigma of the width and height given, m: a board measured with a tape. What the size the
+    #: rays see is compared with (`align.fit.size.size_mismatch`).
+    size_std: float = 0.001
 
     def __post_init__(self) -> None:
-        if not (self.width > 0 and self.height > 0 and self.thickness >= 0):
+        if not (self.width > 0 and self.height > 0 and self.thickness >= 0
+                and self.size_std >= 0):
             raise ValueError(f"board size must be positive, got {self.width} x {self.height} m "
                              f"x {self.thickness} m")
 

@@ -196,6 +196,11 @@ class RaysParams:
 
     #: At least this many hit/miss brackets (3 in-plane unknowns: roll, x, z, and one to spare).
     min_brackets: int = 4
+    #: The size the rays see (`align.fit.size`) refuses the size given beyond this squared
+    #: Mahalanobis distance (2 degrees of freedom: 1 in 10,000 by chance): the size is then
+    #: freed and the pose moved to where the rays put it, its covariance widened. Below it the
+    #: size is taken as given and nothing changes: the fit leans only where the size is wrong.
+    size_refused_d2: float = 18.4
 
     @property
     def trimmed_variance(self) -> float:

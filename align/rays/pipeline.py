@@ -20,6 +20,7 @@ from align.fit.labels import hit_band
 from align.fit.lsq import Fit, fit_from, staged_fit
 from align.fit.model import Model, build_model
 from align.fit.rays import DROPOUT, HIT, MISS, UNKNOWN, rays_of
+from align.fit.size import seen_size, size_mismatch
 from align.fit.starts import held_by, start_at, starts_on
 from align.geometry import in_plane_rotation, pose_from_plane
 from align.params import RaysParams
@@ -392,13 +393,34 @@ def outcome(sol: Solution, fit: Fit, n_starts: int, sigma_r: float, board: Board
         "dof": max(len(sol.j) - 6, 1),
         "outside_hits": seen.pop("outside_hits"),
     }
+    theta, cov = _size_checked(model, theta, sol.cov, board, diag, p=p)
     status, reason = _status(diag, seen, model, sol.conv, p=p)
     if reason:
         diag["reason"] = reason
     used = {"board": rays.gidx[model.use_range],
             "features": np.stack((rays.gidx[model.bh[k > 0]], rays.gidx[model.bm[k > 0]]), axis=1)}
-    theta, cov = symmetry.canonical(theta, board, sol.cov)
+    theta, cov = symmetry.canonical(theta, board, cov)
     return PoseEstimate(status, "rays", Pose.from_array(theta), cov, diag, used, timings)
+
+
+def _size_checked(model: Model, theta: np.ndarray, cov: np.ndarray, board: BoardSpec,
+                  diag: dict, *, p: RaysParams) -> tuple[np.ndarray, np.ndarray]:
+    """The size the rays see (`align.fit.size`) into ``diag``; where it refuses the size given
+    (`p.size_refused_d2`), the pose where the rays put it with the size freed, and its wider
+    covariance; else (theta, cov) as they were."""
+    size = seen_size(model, theta)
+    if size is None:
+        return theta, cov
+    d2 = size_mismatch(size, board.width, board.height, board.size_std)
+    sd_w, sd_h = size.std
+    diag.update(seen_width_m=size.width, seen_width_std_m=float(sd_w),
+                seen_height_m=size.height, seen_height_std_m=float(sd_h),
+                size_mismatch_d2=d2, size_freed=d2 > p.size_refused_d2)
+    if d2 <= p.size_refused_d2:
+        return theta, cov
+    theta = theta + size.pose_step
+    diag["in_plane_rotation_rad"] = in_plane_rotation(theta)
+    return theta, cov + size.pose_cov
 
 
 def _seen(sol: Solution, sigma_r: float, board: BoardSpec, *, p: RaysParams) -> dict:
