@@ -103,7 +103,8 @@ def make_estimator(method: str | None = None, board: Any = None,
     its board (None: the paper's), and its sensor calibration, applied to every scan before
     estimating (the run's configuration keeps it, so a resume or a replay uses the same), with
     the hints of its ``station`` (`scenarios.station.Station.estimate_hints`: a new unit's
-    range offset estimated unless the calibration measured it; None: align's defaults). An
+    range offset estimated unless the calibration measured it; None: the paper's station, as a
+    run's configuration has it without a station file, so that a replay estimates alike). An
     unknown method is refused here, before any move.
 
     An exception inside the estimator becomes a failed estimate (`Status.ESTIMATOR_ERROR`, the
@@ -118,7 +119,11 @@ def make_estimator(method: str | None = None, board: Any = None,
         require("open3d", "the method icp")
     name = method if method is not None else align.DEFAULT_METHOD
     board = board if board is not None else align.BoardSpec()
-    hints = None if station is None else station.estimate_hints(calibrated=calibration is not None)
+    if station is None:
+        from scenarios.station import Station
+
+        station = Station()
+    hints = station.estimate_hints(calibrated=calibration is not None)
 
     def estimate(scan: Scan) -> PoseEstimate:
         try:

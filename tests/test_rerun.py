@@ -171,7 +171,6 @@ def test_failed_scans_are_annotated_and_clear_the_estimate(replayed):
 
 def test_board_points_and_features_are_what_the_estimator_used(replayed, run_dir: Path):
     """The board points and the features at a scan are align's `used` for that very scan."""
-    import align
     from scenarios.recording.replay import resimulate
 
     recording, _, rows = replayed
@@ -180,7 +179,7 @@ def test_board_points_and_features_are_what_the_estimator_used(replayed, run_dir
         if not wanted:
             pytest.fail("no scan of the test sweep got a pose: the estimator or the twin broke")
         i, k, scan = next(resimulate(store, {min(wanted)}))
-    est = align.estimate([scan])
+    est = make_estimator(None)(scan)  # the run's estimator: its (default) station's hints
     step = i * SCANS + k
     (board,) = recording.at("/world/sensor/board_points", "scan", step, "Points3D:positions")
     (feats,) = recording.at("/world/sensor/features", "scan", step, "Points3D:positions")
