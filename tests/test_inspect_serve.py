@@ -37,7 +37,7 @@ def test_serve_then_inspect_udp(tmp_path: Path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     serve = subprocess.Popen(
         [sys.executable, "-m", "scenarios.cli", "serve", "--station", "station.json", "--udp",
-         f"127.0.0.1:{port}", "--seed", "2", "--x-start-mm", "0", "--a-start-deg", "0"],
+         f"127.0.0.1:{port}", "--seed", "2", "--home"],
         cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True)
     try:
@@ -50,12 +50,16 @@ def test_serve_then_inspect_udp(tmp_path: Path):
             cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
     finally:
         serve.terminate()
-        serve.wait(timeout=30)
+        _, served = serve.communicate(timeout=30)
+    # Powered up 20 mm and 10 deg from home, the stages were homed and moved to the reference
+    # through the firmware (an un-homed stage FAILed x by 30 mm, unsaid: issue 37).
+    assert "homed and at the bench reference" in served, served
     assert r.returncode == 1, r.stderr  # 2.5 deg of tilt against a 1 deg limit: FAIL
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["verdict"] == "fail" and out["scans"] == 10
     # Within the twin's own sensor errors (per-laser offsets bias tilt by up to ~0.6 deg).
     assert abs(out["tilt_deg"] - 2.5) < 0.8, out["tilt_deg"]
+    assert abs(out["x_mm"]) < 3 * out["x_mm_std"] + 2.0, out  # the stages at the reference
     with Records.open(tmp_path / "line.sqlite") as rec:
         row = rec.get("WIRE-1")
     assert row["source"] == f"udp://127.0.0.1:{port}" and row["operator"] == "ci"
@@ -67,3 +71,19 @@ def test_serve_then_inspect_udp(tmp_path: Path):
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert info.returncode == 0, info.stderr
     assert json.loads(info.stdout)["complete_scans"] >= 10
+
+
+def test_serve_says_where_its_stages_stand():
+    """Without --home the stages stand where they powered up, and serve says what that means
+    for a client that moves nothing; with it, that they are at the reference."""
+    import argparse
+
+    from scenarios.commands import serve
+
+    parser = argparse.ArgumentParser()
+    serve.register(parser.add_subparsers())
+    line = serve._stages_line(parser.parse_args(["serve"]), "/dev/pts/7")
+    assert "un-homed +20 mm and +10 deg" in line and "stage --port /dev/pts/7 home" in line
+    assert "--home" in line
+    homed = serve._stages_line(parser.parse_args(["serve", "--home"]), "/dev/pts/7")
+    assert "at the bench reference" in homed
