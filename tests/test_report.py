@@ -21,8 +21,10 @@ MOUNT_YAW_DEG = 0.7  # unknown on the real bench: the relative errors must not s
 
 
 def _fill(store: Store, plan: plans.Plan, lever: np.ndarray | None = None,
-          x_err_mm: float = 0.0, fail: set[tuple[int, int]] = frozenset()) -> None:
-    """Scans whose yaw error at reference i is BIAS_DEG[i] + (+D, -D, +D, -D)."""
+          x_err_mm: float = 0.0, fail: set[tuple[int, int]] = frozenset(),
+          truth_known: bool = True) -> None:
+    """Scans whose yaw error at reference i is BIAS_DEG[i] + (+D, -D, +D, -D); without
+    ``truth_known``, as a hardware bench stores them (no truth)."""
     lever = np.zeros(3) if lever is None else lever
     for i, ref in enumerate(plan.references):
         yaw = ref.yaw_rad + math.radians(MOUNT_YAW_DEG)
@@ -40,7 +42,7 @@ def _fill(store: Store, plan: plans.Plan, lever: np.ndarray | None = None,
             a[5] += e
             a[0] += x_err_mm * 1e-3
             store.add_scan(ScanResult(i, k, PoseEstimate(Status.OK, "test", Pose.from_array(a)),
-                                      truth=truth))
+                                      truth=truth if truth_known else None))
         store.finish_reference(i)
 
 
@@ -81,6 +83,22 @@ def test_relative_errors_cancel_the_unknown_mount_offset(yaw_run: Store):
         # Roll, tilt, x and z are constant across the sweep: zero relative error.
         for a in ("roll", "tilt", "x", "z"):
             assert es.per_ref[i][a][0] == pytest.approx(0, abs=1e-9)
+
+
+def test_a_relative_verdict_says_what_it_cannot_see(tmp_path: Path):
+    """A hardware run (no truth) is judged on relative errors, which cancel a bias common to
+    every reference: the summary says so, and that the mount's own offset is not judged (the
+    same uncalibrated twin PASSed through --bench serve and FAILed on --bench sim, unsaid)."""
+    plan = plans.yaw_sweep(-1, 1, 1, scans=4)
+    with Store.create(tmp_path / "hw", plan, {"bench": "hw", "method": "test"},
+                      {"kind": "hw"}) as s:
+        _fill(s, plan, truth_known=False)
+        s.set_status("completed")
+        rep = report.analyze(s)
+    assert rep.absolute is None and rep.relative is not None
+    lines = report.summary_lines(rep)
+    assert lines[2].startswith("judged on errors relative to the baseline reference")
+    assert "cancels and is not judged" in lines[2]
 
 
 def test_relative_x_follows_the_stage_and_the_lever_arm(tmp_path: Path):
