@@ -177,9 +177,11 @@ def test_inspect_sim_records_reports_and_exports(tmp_path: Path):
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["verdict"] == "fail" and out["record"] == 1 and out["scans"] == 10
     assert abs(out["tilt_deg_true"] - 2.5) < 1e-9
-    r2 = cli("inspect", "sim", "--unit", "VIN-1", "--seed", "3", "--db", str(db), cwd=tmp_path)
+    r2 = cli("inspect", "sim", "--unit", "VIN-1", "--seed", "3", "--db", str(db),
+             "--no-captures", cwd=tmp_path)
     assert r2.returncode in (0, 3), r2.stderr
     assert "VIN-1" in r2.stdout and "trial 2" in r2.stdout
+    assert "captures:" not in r2.stderr  # said when kept (2 MB a unit), not when not
     with Records.open(db) as rec:
         rows = rec.rows()
         assert [(x["unit"], x["trial"]) for x in rows] == [("VIN-1", 1), ("VIN-1", 2)]
@@ -191,6 +193,8 @@ def test_inspect_sim_records_reports_and_exports(tmp_path: Path):
         assert cap.is_file() and hashlib.sha256(cap.read_bytes()).hexdigest() == \
             first["capture_sha256"]
         assert first["sensor_serial"] == "twin-3" and first["board_found"] == 1
+        assert rows[1]["capture_path"] is None and rows[1]["capture_sha256"] is None
+    assert len(list((tmp_path / "line.captures").glob("*.pcap"))) == 1
     # The kept capture is the sensor's data: it estimates as the record says.
     est = cli("estimate", str(cap), "--fuse", "10", "--json", cwd=tmp_path)
     assert est.returncode == 0, est.stderr

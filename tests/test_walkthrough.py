@@ -104,5 +104,6 @@ def test_the_readmes_commands_in_order_on_the_twin(tmp_path: Path):
                     "line.sqlite", "--report", "reports", ok=(0, 1, 3))
     assert insp.stdout.startswith("VIN1") and re.search(r"PASS|FAIL|INCONCLUSIVE", insp.stdout)
     assert (tmp_path / "reports" / "VIN1-1.html").is_file()
+    assert "captures: each unit's raw packets kept in line.captures/" in insp.stderr
     listing = aimbench(tmp_path, "inspect", "--db", "line.sqlite", "--list")
     assert listing.stdout.count("VIN1") == 1

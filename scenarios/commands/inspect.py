@@ -78,7 +78,7 @@ def _one(args: argparse.Namespace, records: rec_mod.Records, station: Any, unit:
          calibration: LaserCalibration | None, cal_file: str | None, live: Any
          ) -> tuple[Inspection, int]:
     """Inspect one unit and commit its record; returns the inspection and its record id."""
-    keep = source == "sim" or source.startswith("udp://")
+    keep = (source == "sim" or source.startswith("udp://")) and not args.no_captures
     capture = records.capture_path(unit) if keep else None
     started = time.time()
     acq = open_acquisition(source, station, capture, misalignment=misalignment, seed=seed,
@@ -161,6 +161,11 @@ def _run(args: argparse.Namespace) -> int:
         live = LiveView.from_args(args, station)
     try:
         with rec_mod.Records.open(db, create=True) as records:
+            if not args.json and not args.no_captures and (
+                    source == "sim" or source.startswith("udp://")):
+                print(f"captures: each unit's raw packets kept in {records.captures}/ (about "
+                      f"2 MB per unit of a VLP-16's 10 scans; --no-captures keeps none)",
+                      file=sys.stderr)
             if args.units is None:
                 seed = args.seed if args.seed is not None else unit_seed(args.unit)
                 insp, _ = _one(args, records, station, args.unit, source, misalignment,
@@ -202,6 +207,10 @@ def _tally(records: rec_mod.Records, batch: str, new: int) -> None:
         wrong_pass += r["verdict"] == "pass" and not inside
         wrong_fail += r["verdict"] == "fail" and inside
     n = len(rows)
+    kept = sum(p.stat().st_size for p in records.captures.glob("*.pcap")) \
+        if records.captures.is_dir() else 0
+    if kept:
+        print(f"captures: {kept / 1e6:.0f} MB in {records.captures}/", file=sys.stderr)
     print(f"line {batch!r}: {n} units ({new} inspected now, {n - new} recorded before): "
           + ", ".join(f"{counts[v]} {v.upper()} ({100 * counts[v] / max(n, 1):.1f} %)"
                       for v in counts)
@@ -313,6 +322,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--report", default=None, metavar="DIR",
                    help="write the unit's one-page report (HTML and PNG) into DIR")
     p.add_argument("--json", action="store_true", help="one JSON object per unit")
+    p.add_argument("--no-captures", action="store_true",
+                   help="keep no raw capture of the twin's or a live sensor's packets (about "
+                        "2 MB per unit; a recording given as the source is its own capture)")
     p.add_argument("--method", type=cliargs.estimation_method, default=align.DEFAULT_METHOD,
                    choices=align.METHODS,
                    help=f"estimator (default {align.DEFAULT_METHOD})")

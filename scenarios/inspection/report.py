@@ -219,9 +219,12 @@ def unit_report(row: dict, insp: Any, folder: Path) -> Path:
         rows.append([f"{a} ({UNIT[a]})", f"{row[f'err_{a}'] * s:+.3f}", f("u_est"), f("u_sys"),
                      big_u, f("limit"), row[f"verdict_{a}"] or "not judged"]
                     + ([] if row[f"true_{a}"] is None else [f"{row[f'true_{a}'] * s:+.3f}"]))
-    header = ["axis", "error", "u estimator", "u system", "U = k u", "limit", "verdict"]
+    # "measured" beside "true": the twin's truth is not what the gauge saw (issue 37: "error"
+    # beside "true error (twin)" read as two measurements)
+    header = ["axis", "measured error", "u estimator", "u system", "U = k u", "limit",
+              "verdict"]
     if row["true_x"] is not None:
-        header.append("true error (twin)")
+        header.append("true error (the twin's, not measured)")
     when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(row["started_at"]))
     ident = [
         ["record", f"{row['id']} (trial {row['trial']} of this unit)"], ["time", when],
