@@ -191,6 +191,10 @@ def _along_rays(scan: Scan, dist: np.ndarray, ret: np.ndarray
     scale = np.divide(dist, scan.distance, out=np.zeros_like(dist), where=ret)
     lift = np.where(ret & scan.vertical_offsets_applied,
                     scan.lasers.vertical_offset[scan.laser_id], 0.0)
+    if scan.vertical_offsets_applied and scan.lasers.horizontal_offset.any():
+        o = np.where(ret[:, None], scan.origins(), 0.0)  # origins off the beam (an Ouster's)
+        return ((scan.x - o[:, 0]) * scale + o[:, 0], (scan.y - o[:, 1]) * scale + o[:, 1],
+                (scan.z - lift) * scale + lift)
     return scan.x * scale, scan.y * scale, (scan.z - lift) * scale + lift
 
 

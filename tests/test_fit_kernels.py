@@ -715,19 +715,28 @@ def test_normal_equations_in_registers_are_the_loops():
 def test_window_pool_is_the_scans_selected_rays():
     """`window_pool` (`align.fit.rays`' candidate pool) against `window_firings` and `Scan.select`'s
     origins, directions, ranges, lasers and rings, bit for bit, on real and twin scans, with
-    and without the lasers' vertical offsets applied (the sine and cosine of the azimuth are
-    numba's: the C library's, as numpy's)."""
+    and without the lasers' vertical and horizontal offsets applied (the sine and cosine of the
+    azimuth are numba's: the C library's, as numpy's)."""
     from dataclasses import replace
 
     from align.fit.label_kernels import window_firings, window_pool
 
     scans = [read_pcd_scans(p)[0] for p in sorted((DATA_DIR / "acfr-vlp16").glob("pose*_full.pcd"))]
     scans.append(BenchSim(seed=3).scan())
+    # an Ouster's lasers: origins off the beam by up to 1.2 mm (horizontal offsets)
+    from twin.core.lasers import LaserTable
+
+    lt = scans[-1].lasers
+    h = np.random.default_rng(23).uniform(-1.2e-3, 1.2e-3, lt.n_lasers)
+    scans.append(replace(scans[-1], lasers=LaserTable(lt.model, lt.elevation, lt.vertical_offset,
+                                                      lt.azimuth_offset, h)))
     scans += [replace(s, vertical_offsets_applied=False) for s in scans[-2:]]
     rng = np.random.default_rng(19)
     for s in scans:
         lasers = s.lasers
         offset_z = (np.array(lasers.vertical_offset) if s.vertical_offsets_applied
+                    else np.zeros(lasers.n_lasers))
+        offset_h = (np.array(lasers.horizontal_offset) if s.vertical_offsets_applied
                     else np.zeros(lasers.n_lasers))
         for c in (0.0, np.pi - 1e-3, float(rng.uniform(-np.pi, np.pi))):
             lo, hi = sorted(rng.uniform(-np.pi, np.pi, 2))
@@ -739,8 +748,8 @@ def test_window_pool_is_the_scans_selected_rays():
             want = (idx, sub.origins(), sub.directions(), sub.distance, sub.laser_id, rel + c,
                     sub.ring)
             got = window_pool(s.azimuth, s.laser_id, s.distance, lasers.ring_of_laser,
-                              np.cos(lasers.elevation), np.sin(lasers.elevation), offset_z, c,
-                              lo, hi, r_lo, r_hi)
+                              np.cos(lasers.elevation), np.sin(lasers.elevation), offset_z,
+                              offset_h, c, lo, hi, r_lo, r_hi)
             for g, w in zip(got, want, strict=True):
                 np.testing.assert_array_equal(g, w)
                 assert g.dtype == w.dtype

@@ -584,12 +584,14 @@ def kth_smallest(a: np.ndarray, k: int) -> float:
 @kernel
 def window_pool(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarray,
                 ring_of_laser: np.ndarray, cos_el: np.ndarray, sin_el: np.ndarray,
-                offset_z: np.ndarray, centre: float, lo: float, hi: float, ring_lo: int,
-                ring_hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                       np.ndarray, np.ndarray, np.ndarray]:
+                offset_z: np.ndarray, offset_h: np.ndarray, centre: float, lo: float,
+                hi: float, ring_lo: int, ring_hi: int
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                           np.ndarray, np.ndarray]:
     """`window_firings` and the selected rays as `align.fit.rays._candidate_pool` takes them, in
-    one pass: their indices, origins (``offset_z`` of their laser along Z: the laser table's
-    vertical offsets, zeros where a scan's are not applied) and unit directions (as
+    one pass: their indices, origins (as `Scan.origins`: ``offset_z`` of their laser along Z
+    and ``offset_h`` h across the beam, (-h cos a, h sin a): the laser table's offsets, zeros
+    where a scan's are not applied) and unit directions (as
     `Scan.directions`: ``cos_el``, ``sin_el`` the laser table's elevations' cosines and
     sines, the azimuth's taken here with the C library's sine and cosine, which numpy calls
     too), ranges, lasers, azimuths (``centre`` plus the relative one) and rings."""
@@ -609,6 +611,10 @@ def window_pool(azimuth: np.ndarray, laser_id: np.ndarray, distance: np.ndarray,
         direction[t, 1] = ce * np.cos(a)
         direction[t, 2] = sin_el[lid]
         origin[t, 2] = offset_z[lid]
+        h = offset_h[lid]
+        if h != 0.0:
+            origin[t, 0] = -h * np.cos(a)
+            origin[t, 1] = h * np.sin(a)
         dist[t] = distance[i]
         laser[t] = lid
         az[t] = rel[t] + centre

@@ -86,12 +86,15 @@ def _candidate_pool(scans: list[Scan], segs: list[Segmentation], board: BoardSpe
         # the board's rings and one more on each side, within the window, and their rays: one
         # compiled pass over the scan (`window_pool`, the floats of `Scan.origins`,
         # `Scan.directions`), without masks over every firing
+        applied = s.vertical_offsets_applied
         offset_z = (np.array(lasers.vertical_offset, dtype=np.float64)  # writable, as zeros:
-                    if s.vertical_offsets_applied else np.zeros(lasers.n_lasers))  # one type
+                    if applied else np.zeros(lasers.n_lasers))  # one type
+        offset_h = (np.array(lasers.horizontal_offset, dtype=np.float64)
+                    if applied else np.zeros(lasers.n_lasers))
         idx, *rays_in = window_pool(s.azimuth, s.laser_id, s.distance, lasers.ring_of_laser,
                                     np.cos(lasers.elevation), np.sin(lasers.elevation),
-                                    offset_z, c, float(lo), float(hi), int(rings.min()) - 1,
-                                    int(rings.max()) + 1)
+                                    offset_z, offset_h, c, float(lo), float(hi),
+                                    int(rings.min()) - 1, int(rings.max()) + 1)
         parts.append((*rays_in, idx + offset, np.full(len(idx), len(parts))))
         offset += len(s)
     cat = [np.concatenate(p) for p in zip(*parts, strict=True)]
@@ -117,6 +120,10 @@ def rays_of(scan: Scan, idx: np.ndarray, lid: np.ndarray | None = None
     o = np.zeros((len(lid), 3))
     if scan.vertical_offsets_applied:
         o[:, 2] = lasers.vertical_offset[lid]
+        if lasers.horizontal_offset.any():
+            hl = lasers.horizontal_offset[lid]
+            o[:, 0] = -hl * np.cos(az)
+            o[:, 1] = hl * np.sin(az)
     return o, u
 
 
