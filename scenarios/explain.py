@@ -19,6 +19,7 @@ from __future__ import annotations
 import itertools
 import math
 import textwrap
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -305,6 +306,21 @@ def _ranges(values: np.ndarray) -> str:
     return ", ".join(out)
 
 
+def _brackets(scans: list[Scan], est: PoseEstimate) -> tuple[np.ndarray, np.ndarray]:
+    """The edge brackets (``used["features"]``: a hit and a miss each, indexed into the
+    concatenation of the scans): their azimuths and elevations, (k, 2) deg each."""
+    feats = np.asarray(est.used.get("features", np.zeros((0, 2))), dtype=np.int64)
+    feats = feats.reshape(-1, 2)
+    total = sum(len(s) for s in scans)
+    feats = feats[np.all((feats >= 0) & (feats < total), axis=1)]
+    if not len(feats):
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    joined = scans[0] if len(scans) == 1 else Scan.concatenate(scans)
+    picked = joined.select(feats.reshape(-1))
+    az, el = _firing_az_el(picked)
+    return az.reshape(-1, 2), el.reshape(-1, 2)
+
+
 def _candidate_line(c: dict, chosen: int | None) -> str:
     """One candidate as the picture's list says it: index, where, status, score, log weight."""
     lw = c.get("log_weight")
@@ -313,11 +329,13 @@ def _candidate_line(c: dict, chosen: int | None) -> str:
             + (", chosen" if c["index"] == chosen else ""))
 
 
-def explain_figure(scan: Scan, est: PoseEstimate, board: BoardSpec,
+def explain_figure(scans: Scan | Sequence[Scan], est: PoseEstimate, board: BoardSpec,
                    hints: Hints | None = None) -> Any:
-    """The picture of ``est`` on ``scan`` (its first scan, for a fused estimate), a matplotlib
-    Figure (module docstring). ``hints``: those the estimate was made with (the azimuth window
-    drawn where nothing was found, the advice's limits)."""
+    """The picture of ``est`` on its scan, a matplotlib Figure (module docstring). ``scans``:
+    the scan, or the scans a fused estimate was made of: the picture is the first's (its
+    returns, the board's among them, the candidates), with the edge brackets of every scan (a
+    static scene: each bracket where its rays were). ``hints``: those the estimate was made
+    with (the azimuth window drawn where nothing was found, the advice's limits)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -326,6 +344,8 @@ def explain_figure(scan: Scan, est: PoseEstimate, board: BoardSpec,
     from matplotlib.ticker import FormatStrFormatter
 
     hints = hints or Hints()
+    scan_list = [scans] if isinstance(scans, Scan) else list(scans)
+    scan = scan_list[0]
     n = len(scan)
     az_all, el_all = _firing_az_el(scan)
     centre, half, around = _window(scan, est, board, hints, az_all)
@@ -437,18 +457,17 @@ def explain_figure(scan: Scan, est: PoseEstimate, board: BoardSpec,
         ax.text(x0, float(el_all[board_idx].max()) + 1.2, "ring", fontsize=6.5, ha="right",
                 color="#333333")
     # the hits and misses that bracket the rectangle's edges, each pair joined
-    feats = np.asarray(est.used.get("features", np.zeros((0, 2))), dtype=np.int64)
-    feats = feats.reshape(-1, 2)
-    feats = feats[np.all((feats >= 0) & (feats < n), axis=1)]
-    if len(feats):
-        for h, mi in feats:
-            ax.plot([rel[h], rel[mi]], [el_all[h], el_all[mi]], color="#555555", lw=0.8,
-                    zorder=4)
-        ax.scatter(rel[feats[:, 0]], el_all[feats[:, 0]], s=46, marker="o",
-                   facecolors="none", edgecolors="#2e7d32", linewidths=1.3, zorder=5,
-                   label=f"hit at an edge ({len(feats)})")
-        ax.scatter(rel[feats[:, 1]], el_all[feats[:, 1]], s=20, marker="x", c="#c62828",
-                   linewidths=1.2, zorder=5, label=f"miss at an edge ({len(feats)})")
+    f_az, f_el = _brackets(scan_list, est)
+    if len(f_az):
+        f_rel = _wrap(f_az, centre)
+        for (h, mi), (eh, em) in zip(f_rel, f_el, strict=True):
+            ax.plot([h, mi], [eh, em], color="#555555", lw=0.8, zorder=4)
+        every = f", from {len(scan_list)} scans" if len(scan_list) > 1 else ""
+        ax.scatter(f_rel[:, 0], f_el[:, 0], s=46, marker="o", facecolors="none",
+                   edgecolors="#2e7d32", linewidths=1.3, zorder=5,
+                   label=f"hit at an edge ({len(f_az)}{every})")
+        ax.scatter(f_rel[:, 1], f_el[:, 1], s=20, marker="x", c="#c62828", linewidths=1.2,
+                   zorder=5, label=f"miss at an edge ({len(f_az)}{every})")
     if est.pose is not None:
         a, e = _az_el(_outline(est.pose, board))
         ax.plot(_wrap(a, centre), e, color="k" if est.success else "#ef8f00", lw=1.8,
@@ -484,8 +503,8 @@ def explain_figure(scan: Scan, est: PoseEstimate, board: BoardSpec,
     return fig
 
 
-def write_explain_png(path: str | Path, scan: Scan, est: PoseEstimate, board: BoardSpec,
-                      hints: Hints | None = None, dpi: int = 100) -> Path:
+def write_explain_png(path: str | Path, scans: Scan | Sequence[Scan], est: PoseEstimate,
+                      board: BoardSpec, hints: Hints | None = None, dpi: int = 100) -> Path:
     """Draw `explain_figure` into the PNG ``path`` (its folder made; 256 colours) and return
     the path."""
     path = Path(path)
@@ -494,7 +513,7 @@ def write_explain_png(path: str | Path, scan: Scan, est: PoseEstimate, board: Bo
 
     from PIL import Image  # matplotlib's own dependency
 
-    fig = explain_figure(scan, est, board, hints)
+    fig = explain_figure(scans, est, board, hints)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)
     # 256 colours: a third of the bytes, the same picture (flat colours, a few gradients)

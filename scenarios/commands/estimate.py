@@ -21,9 +21,10 @@ sensor the packets come from: its ``sensor.model`` and ``sensor.calibration_file
 unless ``--model`` / ``--sensor-calibration`` say otherwise (without ``--station``, the
 packets' product id decides). The defaults find the paper's board without hints.
 
-``--explain FILE.png`` draws the first estimate on its first scan (`scenarios.explain`): the
-scan about the board from the LiDAR, every candidate weighed, the chosen rectangle, the hits and
-misses at its edges and the rings that cross it, and prints ``explain: wrote FILE.png``. An
+``--explain FILE.png`` draws the first estimate on its first scan (`scenarios.explain`; the edge
+brackets of every scan it fused): the scan about the board from the LiDAR, every candidate
+weighed, the chosen rectangle, the hits and misses at its edges and the rings that cross it,
+and prints ``explain: wrote FILE.png``. An
 ``advice: ...`` line follows, the one thing to change (`scenarios.explain.advice`), for that
 estimate and for every failed one (each line once): after the table, or on stderr with
 ``--json``.
@@ -277,7 +278,7 @@ def run(args: argparse.Namespace) -> int:
                 res = align.estimate(group if args.fuse > 1 else group[0], board, args.method,
                                      hints)
                 row = _row(group[0].index, len(group), res, truth_for(group[0], truths))
-                told.add(group[0], res)
+                told.add(group, res)
                 group = []
                 rows.append(row)
                 if args.json:
@@ -295,7 +296,7 @@ def run(args: argparse.Namespace) -> int:
               f"{len(group)} or less)", file=sys.stderr)
         res = align.estimate(group if len(group) > 1 else group[0], board, args.method, hints)
         rows.append(_row(group[0].index, len(group), res, truth_for(group[0], truths)))
-        told.add(group[0], res)
+        told.add(group, res)
         if args.json:
             print(json.dumps(rows[-1], allow_nan=False), flush=True)
     elif group:
@@ -319,21 +320,22 @@ def run(args: argparse.Namespace) -> int:
 
 
 class _Explain:
-    """``--explain FILE.png``: the picture of the first estimate (`scenarios.explain`, its first
-    scan), and the advice lines: that estimate's, and each failed estimate's (each line once)."""
+    """``--explain FILE.png``: the picture of the first estimate (`scenarios.explain`: its first
+    scan, the edge brackets of all it fused), and the advice lines: that estimate's, and each
+    failed estimate's (each line once)."""
 
     def __init__(self, path: str | None, board: align.BoardSpec, hints: align.Hints) -> None:
         self.path, self.board, self.hints = path, board, hints
         self.lines: list[str] = []
         self._said: set[str] = set()
 
-    def add(self, scan, res: align.PoseEstimate) -> None:
+    def add(self, scans: list, res: align.PoseEstimate) -> None:
         from scenarios.explain import advice, write_explain_png
 
         tip = None
         if self.path is not None:
             try:
-                write_explain_png(self.path, scan, res, self.board, self.hints)
+                write_explain_png(self.path, scans, res, self.board, self.hints)
             except OSError as exc:
                 raise AimbenchError(f"--explain {self.path}: cannot write it ({exc})") from exc
             self.lines.append(f"explain: wrote {self.path}")
@@ -395,7 +397,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="draw why the board was found or not: the scan about the board from "
                         "the LiDAR, every candidate with its score, the chosen rectangle, the "
                         "hits and misses at its edges, the rings that cross it and one line of "
-                        "advice (the first estimate, its first scan)")
+                        "advice (the first estimate: its first scan, the edge brackets of all "
+                        "it fused)")
     p.add_argument("--keep-partial", action="store_true",
                    help="also estimate from incomplete scans (first/last of a capture)")
     add_decode_options(p)
