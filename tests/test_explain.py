@@ -92,6 +92,22 @@ def test_the_real_scan_with_a_wrong_board_size_is_partial_and_says_what_to_do(ac
     assert_picture(write_explain_png(tmp_path / "small.png", scan, est, small, ACFR_HINTS))
 
 
+def test_the_inspection_page_has_the_picture(acfr, tmp_path: Path):
+    from types import SimpleNamespace
+
+    from scenarios.inspection.report import explain_figure
+
+    _, scan, est = acfr[0]
+    row = {"station_json": {"board": {"width_mm": 610.0, "height_mm": 850.0,
+                                      "thickness_mm": 0.0}}}
+    png, tip = explain_figure(row, SimpleNamespace(scans=[scan], estimate=est),
+                              tmp_path / "unit-1-explain.png")
+    assert_picture(png)
+    assert tip == advice(est, ACFR_BOARD)
+    assert explain_figure(row, SimpleNamespace(scans=[], estimate=None), tmp_path / "x.png") \
+        is None
+
+
 def _twin(seed: int, **params) -> object:
     return BenchSim(BenchParams(**params), seed=seed, noise=NOISE).scan()
 
