@@ -59,6 +59,11 @@ def estimate(
         g = min(segs, key=lambda s: rank.index(s.status) if s.status in rank else 0)
         res = PoseEstimate.failed(g.status, method, reason=g.reason, distance_m=g.distance,
                                   rings=g.rings)
+        if g.status == Status.BOARD_TOO_FAR:
+            # the board-like cluster's returns, indexed as `used` is (into the concatenation
+            # of the scans): what `--explain` shows of a board too far
+            k = next(i for i, s in enumerate(segs) if s is g)
+            res.used["cluster"] = g.board + sum(len(s) for s in scan_list[:k])
     elif method == "paper":
         res = _paper(scan_list, segs, ok, board, hints)
     elif method == "icp":

@@ -102,8 +102,10 @@ class PoseEstimate:
     ``covariance`` is 6 x 6 in the order x, y, z, roll, tilt, yaw (m, rad). ``used`` holds the
     indices of the firings the estimate used (``used["board"]``: the board's returns;
     ``used["features"]``: the feature firings, e.g. the paper's four corner points or the hit/miss
-    firings bracketing an edge); indices refer to the scan, or to the concatenation of the scans
-    for a fused estimate. ``timings`` are wall-clock seconds per stage.
+    firings bracketing an edge; ``used["candidates"]``: every board-like object weighed, and
+    ``used["cluster"]``: for `BOARD_TOO_FAR`, the returns of the board-like cluster found too
+    far); indices refer to the scan, or to the concatenation of the scans for a fused
+    estimate. ``timings`` are wall-clock seconds per stage.
     """
 
     status: Status

@@ -200,6 +200,9 @@ def test_inspect_sim_records_reports_and_exports(tmp_path: Path):
     assert est.returncode == 0, est.stderr
     page = tmp_path / "rep" / "VIN-1-1.html"
     assert page.is_file() and (tmp_path / "rep" / "VIN-1-1.png").stat().st_size > 10_000
+    # why the board was found (scenarios.explain), beneath the figure
+    assert (tmp_path / "rep" / "VIN-1-1-explain.png").stat().st_size > 10_000
+    assert "How the board was found" in page.read_text()
     assert "FAIL" in page.read_text() and "data:image/png;base64" in page.read_text()
     for name in ("line.csv", "line.parquet"):
         r = cli("inspect", "--db", str(db), "--export", name, cwd=tmp_path)

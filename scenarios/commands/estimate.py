@@ -20,6 +20,14 @@ calibration is applied unless ``--calibration`` names another. A station file al
 sensor the packets come from: its ``sensor.model`` and ``sensor.calibration_file`` decode them
 unless ``--model`` / ``--sensor-calibration`` say otherwise (without ``--station``, the
 packets' product id decides). The defaults find the paper's board without hints.
+
+``--explain FILE.png`` draws the first estimate on its first scan (`scenarios.explain`; the edge
+brackets of every scan it fused): the scan about the board from the LiDAR, every candidate
+weighed, the chosen rectangle, the hits and misses at its edges and the rings that cross it,
+and prints ``explain: wrote FILE.png``. An
+``advice: ...`` line follows, the one thing to change (`scenarios.explain.advice`), for that
+estimate and for every failed one (each line once): after the table, or on stderr with
+``--json``.
 """
 
 from __future__ import annotations
@@ -241,6 +249,7 @@ def run(args: argparse.Namespace) -> int:
                         **station.range_offset_hints(calibrated=cal is not None))
     truths = _truths(args)
     _warn_board_size(args, station)
+    told = _Explain(args.explain, board, hints)
     rows, seen, group = [], 0, []
     # The first whole raw scans go to the check that they fit the calibration, once.
     first: list | None = [] if cal is not None else None
@@ -269,6 +278,7 @@ def run(args: argparse.Namespace) -> int:
                 res = align.estimate(group if args.fuse > 1 else group[0], board, args.method,
                                      hints)
                 row = _row(group[0].index, len(group), res, truth_for(group[0], truths))
+                told.add(group, res)
                 group = []
                 rows.append(row)
                 if args.json:
@@ -286,6 +296,7 @@ def run(args: argparse.Namespace) -> int:
               f"{len(group)} or less)", file=sys.stderr)
         res = align.estimate(group if len(group) > 1 else group[0], board, args.method, hints)
         rows.append(_row(group[0].index, len(group), res, truth_for(group[0], truths)))
+        told.add(group, res)
         if args.json:
             print(json.dumps(rows[-1], allow_nan=False), flush=True)
     elif group:
@@ -300,7 +311,41 @@ def run(args: argparse.Namespace) -> int:
     if not args.json:
         for line in table(rows):
             print(line)
+    for line in told.lines:
+        if args.json:  # stdout is JSON lines
+            print(f"aimbench estimate: {line}", file=sys.stderr)
+        else:
+            print(line)
     return 0 if any(r["status"] == "ok" for r in rows) else 1
+
+
+class _Explain:
+    """``--explain FILE.png``: the picture of the first estimate (`scenarios.explain`: its first
+    scan, the edge brackets of all it fused), and the advice lines: that estimate's, and each
+    failed estimate's (each line once)."""
+
+    def __init__(self, path: str | None, board: align.BoardSpec, hints: align.Hints) -> None:
+        self.path, self.board, self.hints = path, board, hints
+        self.lines: list[str] = []
+        self._said: set[str] = set()
+
+    def add(self, scans: list, res: align.PoseEstimate) -> None:
+        from scenarios.explain import advice, write_explain_png
+
+        tip = None
+        if self.path is not None:
+            try:
+                write_explain_png(self.path, scans, res, self.board, self.hints)
+            except OSError as exc:
+                raise AimbenchError(f"--explain {self.path}: cannot write it ({exc})") from exc
+            self.lines.append(f"explain: wrote {self.path}")
+            tip = advice(res, self.board, self.hints)
+            self.path = None  # the first estimate's only
+        elif not res.success:
+            tip = advice(res, self.board, self.hints)
+        if tip and tip not in self._said:
+            self._said.add(tip)
+            self.lines.append(f"advice: {tip}")
 
 
 def _warn_fit(cal: laser_calibration.LaserCalibration, scans: list, sensor_id: str | None
@@ -348,6 +393,12 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "(default: the station's sensor.range_calibration, if any)")
     p.add_argument("--sensor-id", help="the LiDAR's serial number or your id for it, checked "
                                        "against the calibration's")
+    p.add_argument("--explain", metavar="FILE.png", default=None,
+                   help="draw why the board was found or not: the scan about the board from "
+                        "the LiDAR, every candidate with its score, the chosen rectangle, the "
+                        "hits and misses at its edges, the rings that cross it and one line of "
+                        "advice (the first estimate: its first scan, the edge brackets of all "
+                        "it fused)")
     p.add_argument("--keep-partial", action="store_true",
                    help="also estimate from incomplete scans (first/last of a capture)")
     add_decode_options(p)

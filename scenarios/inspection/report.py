@@ -11,6 +11,11 @@ identity (station, operator, time, software, sensor, capture and its SHA-256), a
 - each judged axis against its limit: the tolerance zone, the guard bands (limit -+ U) and the
   error with its U, coloured by the axis's verdict.
 
+and, beneath, ``<unit>-<record>-explain.png``: why the board was found or not
+(`scenarios.explain`, what ``aimbench estimate --explain`` draws) on the first scan of the
+estimate and the edge brackets of all its scans, with the advice line (no board, ambiguous, a
+size the rays refuse) on the page.
+
 The line's summary (``summary.html``, ``summary.png``): counts and pass rate, per-axis
 histograms of the errors with their limits, and an individuals control chart of each axis (the
 centre line, the 3-sigma control limits from the average moving range, sigma = MR/1.128, and
@@ -205,6 +210,7 @@ def unit_report(row: dict, insp: Any, folder: Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     stem = f"{_safe(row['unit'])}-{row['id']}"
     png = unit_figure(row, insp, folder / f"{stem}.png")
+    explained = explain_figure(row, insp, folder / f"{stem}-explain.png")
     k = row["coverage_k"]
     rows = []
     for a in AXES:
@@ -252,8 +258,38 @@ def unit_report(row: dict, insp: Any, folder: Path) -> Path:
         "estimator's standard uncertainty combined in quadrature with the station's stated "
         "measurement-system term.</p>"
         + _table(header, rows) + _png_tag(png, "the board, the frames and each axis")
-        + _table(["", ""], ident) + "</body></html>", encoding="utf-8")
+        + _explained(explained) + _table(["", ""], ident) + "</body></html>", encoding="utf-8")
     return page
+
+
+def _board_spec(row: dict) -> Any:
+    """The station's board as align's `BoardSpec`, from the record."""
+    from align.board import BoardSpec
+
+    b = row["station_json"]["board"]
+    return BoardSpec(b["width_mm"] * 1e-3, b["height_mm"] * 1e-3,
+                     b.get("thickness_mm", 3.0) * 1e-3)
+
+
+def explain_figure(row: dict, insp: Any, path: Path) -> tuple[Path, str | None] | None:
+    """The estimate explained on its first scan, with the edge brackets of all
+    (`scenarios.explain`), as a PNG, and its advice; None without an estimate or a scan."""
+    est = getattr(insp, "estimate", None)
+    if est is None or not getattr(insp, "scans", None):
+        return None
+    from scenarios.explain import advice, write_explain_png
+
+    board = _board_spec(row)
+    return write_explain_png(path, insp.scans, est, board), advice(est, board)
+
+
+def _explained(explained: tuple[Path, str | None] | None) -> str:
+    if explained is None:
+        return ""
+    png, tip = explained
+    text = f"<p><b>Advice:</b> {html.escape(tip)}</p>" if tip else ""
+    return ("<h2>How the board was found</h2>" + text
+            + _png_tag(png, "the scan about the board, the candidates and the chosen rectangle"))
 
 
 # -- the line ----------------------------------------------------------------------------------
