@@ -49,22 +49,18 @@ from bench_align import AXES, PAPER, UNITS, errors, random_pose
 
 import align
 from twin.core.sensors import MODELS
-from twin.lidar.hesai import DEFAULT_ANGLES, XT32Angles, XT32Scans
 from twin.lidar.ouster import (
     OUSTER_MODELS,
-    columns_from_frame,
-    encode_packets,
     is_ouster_model,
     nominal_info,
-    scans_from_payloads,
     xyz_lidar,
 )
 from twin.lidar.scans import ScanAssembler
 from twin.lidar.sources import open_scans
 from twin.sim.bench import BenchSim
 from twin.sim.emulation import EmulationConfig
-from twin.sim.hesai_twin import emulate_xt32
-from twin.sim.ouster_twin import emulate_frames, write_ouster_pcap
+from twin.sim.ouster_twin import write_ouster_pcap
+from twin.sim.sensor_twins import own_twin_scans
 
 
 def captured_scans(sim: BenchSim, n: int) -> list:
@@ -74,28 +70,6 @@ def captured_scans(sim: BenchSim, n: int) -> list:
     whole = [s for s in asm.push_many(payloads) + asm.finish() if s.complete]
     truth = scans[0].meta["truth_pose"]
     return whole[:n], truth
-
-
-def ouster_scans(params, x: float, yaw: float, seed: int, n: int, model: str) -> tuple:
-    """``n`` frames of an Ouster on the twin at one pose, as decoded from its own LEGACY
-    packets (`twin.sim.ouster_twin`), and the truth."""
-    info = nominal_info(model)
-    sim = BenchSim(params, seed=seed)
-    sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
-    frames, truth = emulate_frames(sim, info, n, rng=np.random.default_rng(seed))
-    payloads = [p for f in frames for p in encode_packets(columns_from_frame(f, info), info)]
-    return scans_from_payloads(payloads, info), truth
-
-
-def xt32_scans(params, x: float, yaw: float, seed: int, n: int) -> tuple:
-    """``n`` rotations of a Hesai PandarXT32 on the twin at one pose, through its packets and
-    our decoder (`twin.sim.hesai_twin`)."""
-    angles = XT32Angles.from_csv(DEFAULT_ANGLES)
-    sim = BenchSim(params, seed=seed)
-    sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
-    packets, truth = emulate_xt32(sim, angles, n + 1, rng=np.random.default_rng(seed),
-                                  start_cdeg=9000)
-    return list(XT32Scans(packets, angles))[:n], truth
 
 
 def ouster_decode_rows() -> list[str]:
@@ -188,10 +162,9 @@ def main(argv: list[str] | None = None) -> int:
         for _ in range(args.poses):
             params, x, yaw = random_pose(rng, 3.0, 30.0, 0.0)
             seed = int(rng.integers(2**31))
-            if model == "PandarXT32":
-                scans, truth = xt32_scans(params, x, yaw, seed, args.scans)
-            elif cfg is None:
-                scans, truth = ouster_scans(params, x, yaw, seed, args.scans, model)
+            if cfg is None:  # an Ouster's or the PandarXT32's own twin, through its packets
+                scans, truth = own_twin_scans(params, model, x=x, yaw=np.deg2rad(yaw),
+                                              n=args.scans, seed=seed)
             else:
                 sim = BenchSim(params, seed=seed, noise=cfg)
                 sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))

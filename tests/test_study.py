@@ -215,6 +215,26 @@ def test_a_block_of_poses_is_the_same_whoever_computes_it_and_however_it_is_cut(
     assert np.all(np.abs(err[:, 0]) < 0.03) and np.all(np.abs(err[:, 3:]) < np.radians(1.5))
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("model", ["OS1-64", "PandarXT32"])
+def test_a_design_point_of_an_ouster_or_a_hesai_runs_its_own_twin(model: str):
+    """``sensor.model`` over Ouster and Hesai models: the point's scans are that sensor's twin's
+    (twin.sim.sensor_twins, through its packets and aimbench's decoder), estimated at the
+    truth within their sigmas, with the bound of that sensor's beams and firing."""
+    from scenarios import station as stations
+
+    spec = from_dict({"seed": 5, "protocol": {"poses": 2, "scans": 2, "scans_fused": [1, 2]},
+                      "grid": {"sensor.model": [model]}})
+    out = evaluate_task(spec.model_dump(mode="json"), stations.default().to_dict(),
+                        {"sensor.model": model}, 0, 2)
+    assert all(r[4] for r in out["estimates"]), [r[3] for r in out["estimates"]]
+    err = np.array([r[5] for r in out["estimates"]])
+    sig = np.array([r[6] for r in out["estimates"]])
+    assert np.all(np.abs(err) < 5 * sig), (err / sig).round(1)
+    bound = np.array([r[2] for r in out["bounds"]])
+    assert np.all(np.isfinite(bound)) and np.all(bound[:, 3] < np.radians(0.5))
+
+
 # -- a small study, for real ---------------------------------------------------------------
 
 @pytest.mark.slow

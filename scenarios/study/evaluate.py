@@ -88,9 +88,18 @@ class Point:
         self.divergence = bool(own["noise.divergence"])
         noise = {"range_noise_sigma": sigma, "range_bias": offset, "laser_offset_sigma": 0.0,
                  "divergence": self.divergence}
-        # The sensor model reaches the twin as EmulationConfig.model (twin.core.sensors);
-        # an aimbench without it has only the VLP-16, the one model its station file takes.
-        if "model" in getattr(EmulationConfig, "__dataclass_fields__", {}):
+        # A Velodyne model reaches the twin as EmulationConfig.model (twin.core.sensors); an
+        # Ouster or a Hesai has a twin of its own (twin.sim.sensor_twins: Gaussian range noise
+        # of the study's sigma, a sharp beam; no range offset or divergence to set there).
+        from twin.sim.sensor_twins import is_own_twin
+
+        self.own_twin = is_own_twin(station.sensor.model)
+        if self.own_twin and (offset or self.divergence):
+            raise ValueError(f"{station.sensor.model}'s twin has no range offset or beam "
+                             "divergence to set: leave noise.range_offset_mm and "
+                             "noise.divergence at their defaults for it")
+        self.sigma = sigma
+        if not self.own_twin:
             noise["model"] = station.sensor.model
         self.config = EmulationConfig(**noise)
         self.board = station.board_spec()
@@ -112,10 +121,18 @@ class Point:
         rng = np.random.default_rng([self.spec.seed, k])
         params, x, yaw = random_pose(rng, p.angle_deg, p.x_mm, p.stage_yaw_deg,
                                      base=self.station.bench_params())
-        sim = BenchSim(params, seed=int(rng.integers(2**31)), noise=self.config)
-        sim.move_to(x_m=x, yaw_rad=math.radians(yaw))
-        scans = [sim.scan() for _ in range(p.scans)]
-        truth = scans[0].meta["truth_pose"]
+        seed = int(rng.integers(2**31))
+        if self.own_twin:  # an Ouster's or a Hesai's twin, through its packets
+            from twin.sim.sensor_twins import own_twin_scans
+
+            scans, truth = own_twin_scans(params, self.station.sensor.model, x=x,
+                                          yaw=math.radians(yaw), n=p.scans, seed=seed,
+                                          range_sigma=self.sigma)
+        else:
+            sim = BenchSim(params, seed=seed, noise=self.config)
+            sim.move_to(x_m=x, yaw_rad=math.radians(yaw))
+            scans = [sim.scan() for _ in range(p.scans)]
+            truth = scans[0].meta["truth_pose"]
         truth_s = self.station.lidar_in_station(truth)
         rows = []
         for n in self.fused:
@@ -168,9 +185,12 @@ class Point:
         if not bound_available():
             return [(k, n, [math.nan] * 6, 0.0) for n in self.fused]
         from align.design.bound import Firing, RangeNoise, board_to_station, precision_bound
+        from twin.sim.sensor_twins import firing_of
 
         level = board_to_station(truth, self.in_plane)
-        firing = Firing(rpm=self.config.rpm, period=vlp16.SEQUENCE_PERIOD)
+        own = firing_of(self.station.sensor.model)
+        firing = (Firing(rpm=self.config.rpm, period=vlp16.SEQUENCE_PERIOD) if own is None
+                  else Firing(rpm=own.rpm, period=own.period, laser_times=own.laser_times))
         noise = RangeNoise(sigma=self.range_sigma, offset_sigma=self.range_offset)
         jac = self.jacobian(truth)
         rows = []

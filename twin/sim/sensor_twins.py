@@ -1,0 +1,93 @@
+"""Scans of any sensor aimbench emulates, at one pose of the bench: the one call a comparison of
+sensors makes (a study over ``sensor.model``, `benchmarks/bench_models.py`).
+
+The Velodyne models are `twin.sim.bench.BenchSim`'s own emulation (its `EmulationConfig.model`).
+An Ouster (OS0/OS1/OS2, 32/64/128 beams, 1024x10) and a Hesai PandarXT32 have twins of their
+own (`twin.sim.ouster_twin`, `twin.sim.hesai_twin`) that cast the bench's rays from their beams
+and write the sensor's packets; their scans here are those packets decoded by aimbench's
+decoders (`twin.lidar.ouster`, `twin.lidar.hesai`), as a capture of the real sensor would be.
+`firing_of` gives the firing pattern the precision bound (`align.design.bound.Firing`) needs.
+SI units.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from twin.core.pose import Pose
+from twin.core.scan import Scan
+from twin.lidar.ouster import is_ouster_model, ouster_model_name
+
+#: The Hesai model the twin emulates (its angle file: `twin.lidar.hesai.DEFAULT_ANGLES`).
+HESAI_MODELS = ("PandarXT32",)
+
+
+def is_own_twin(model: str) -> bool:
+    """Whether ``model`` has a twin of its own (an Ouster, a Hesai) rather than `BenchSim`'s."""
+    return is_ouster_model(model) or model in HESAI_MODELS
+
+
+@dataclass(frozen=True)
+class FiringPattern:
+    """What the precision bound needs of a sensor's firing: spin rate (rpm), s between two
+    firings of one laser, and each laser's time within that step (None: all at once, as an
+    Ouster's column fires every beam together)."""
+
+    rpm: float
+    period: float
+    laser_times: tuple[float, ...] | None
+
+
+def firing_of(model: str) -> FiringPattern | None:
+    """The firing of an Ouster or Hesai twin (None for a Velodyne model: `BenchSim`'s own)."""
+    if is_ouster_model(model):
+        from twin.lidar.ouster import nominal_info
+
+        info = nominal_info(ouster_model_name(model))
+        return FiringPattern(60.0 * info.rate_hz, 1.0 / (info.columns_per_frame * info.rate_hz),
+                             None)
+    if model in HESAI_MODELS:
+        from twin.sim.hesai_twin import BLOCK_PERIOD
+
+        return FiringPattern(600.0, BLOCK_PERIOD, None)
+    return None
+
+
+def own_twin_scans(params: Any, model: str, *, x: float, yaw: float, n: int, seed: int,
+                   range_sigma: float = 0.01) -> tuple[list[Scan], Pose]:
+    """``n`` scans of an Ouster's or a PandarXT32's twin on the bench of ``params`` (a
+    `twin.sim.params.BenchParams`) with the stages at ``x`` (m) and ``yaw`` (rad), through its
+    packets and aimbench's decoder; and the true pose of {L} in the board frame. Gaussian range
+    noise of ``range_sigma`` (m); ``seed`` seeds the bench and the noise."""
+    from twin.sim.bench import BenchSim
+
+    sim = BenchSim(params, seed=seed)
+    sim.move_to(x_m=x, yaw_rad=yaw)
+    rng = np.random.default_rng(seed)
+    if is_ouster_model(model):
+        from twin.lidar.ouster import (
+            columns_from_frame,
+            encode_packets,
+            nominal_info,
+            scans_from_payloads,
+        )
+        from twin.sim.ouster_twin import emulate_frames
+
+        info = nominal_info(ouster_model_name(model))
+        frames, truth = emulate_frames(sim, info, n, rng=rng, range_sigma=range_sigma)
+        payloads = [p for f in frames for p in encode_packets(columns_from_frame(f, info), info)]
+        return scans_from_payloads(payloads, info), truth
+    if model in HESAI_MODELS:
+        from twin.lidar.hesai import DEFAULT_ANGLES, XT32Angles, XT32Scans
+        from twin.sim.hesai_twin import emulate_xt32
+
+        angles = XT32Angles.from_csv(DEFAULT_ANGLES)
+        # one turn more than asked: the first packet starts mid-turn, a quarter turn in
+        packets, truth = emulate_xt32(sim, angles, n + 1, rng=rng, range_sigma=range_sigma,
+                                      start_cdeg=9000)
+        return list(XT32Scans(packets, angles))[:n], truth
+    raise ValueError(f"{model!r} has no twin of its own: it is BenchSim's (EmulationConfig.model)")
+
