@@ -25,6 +25,7 @@ import abc
 import hashlib
 import math
 import os
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -124,12 +125,12 @@ def _on(it: Iterator[Scan]) -> Iterator[Scan]:
 class RecordedAcquisition(Acquisition):
     """A recording, read on from where the last `take` stopped; the file is the capture."""
 
-    def __init__(self, source: str) -> None:
+    def __init__(self, source: str, decoding: dict[str, Any] | None = None) -> None:
         from twin.lidar.sources import open_scans, parse_source
 
         name = parse_source(source)
         super().__init__(source=source, kind=name.kind, capture=Path(name.path))
-        self._src = open_scans(name)
+        self._src = open_scans(name, **(decoding or {}))
         self._it = iter(self._src)
 
     def _scans(self, n: int) -> Iterator[Scan]:
@@ -158,19 +159,24 @@ class _Tee:
 class LiveAcquisition(Acquisition):
     """The live sensor on ``udp://HOST:PORT``; every datagram goes into ``capture``."""
 
-    def __init__(self, source: str, capture: Path, timeout_s: float = 2.0) -> None:
-        from twin.lidar.capture import PacketScans, UdpSource
+    def __init__(self, source: str, capture: Path, timeout_s: float = 2.0,
+                 decoding: dict[str, Any] | None = None) -> None:
+        from twin.lidar.capture import UdpSource
         from twin.lidar.pcap import PcapWriter
-        from twin.lidar.sources import LIVE_BATCH, parse_source
+        from twin.lidar.sources import live_reader, parse_source
         from twin.lidar.udp import UdpReceiver
 
         name = parse_source(source)
         super().__init__(source=source, kind="udp", capture=Path(capture))
+        # the station's sensor: an Ouster's or a PandarXT32's packets read by their decoders
+        size, read, notes = live_reader(name, **(decoding or {}))
+        for note in notes:
+            print(f"aimbench inspect: {note}", file=sys.stderr)
         self._part = self.capture.with_name(self.capture.name + ".part")
         self._rx = UdpReceiver(name.host, data_port=name.port, position_port=None,
-                               timeout_s=timeout_s)
+                               timeout_s=timeout_s, data_size=size)
         self._writer = PcapWriter(self._part)
-        self._it = iter(PacketScans(_Tee(UdpSource(self._rx), self._writer), batch=LIVE_BATCH))
+        self._it = iter(read(_Tee(UdpSource(self._rx), self._writer)))
         self.sensor["address"] = f"{name.host}:{name.port}"
 
     def _scans(self, n: int) -> Iterator[Scan]:
@@ -277,5 +283,15 @@ def open_acquisition(source: str, station: Any, capture: Path | None, *,
     if source.startswith("udp://"):
         if capture is None:
             raise AcquisitionError("a live inspection keeps its capture: give --db")
-        return LiveAcquisition(source, capture, timeout_s)
-    return RecordedAcquisition(source)
+        return LiveAcquisition(source, capture, timeout_s, own_decoder(station))
+    return RecordedAcquisition(source, own_decoder(station))
+
+
+def own_decoder(station: Any) -> dict[str, Any]:
+    """The decoding a station's sensor needs beyond the Velodyne packets' own product id: an
+    Ouster's or a PandarXT32's model, read by its decoder (`twin.lidar.sources.open_scans`);
+    nothing for a Velodyne (its packets say which model they are)."""
+    from twin.lidar.ouster import is_ouster_model
+
+    model = station.sensor.model
+    return {"model": model} if is_ouster_model(model) or model == "PandarXT32" else {}

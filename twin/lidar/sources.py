@@ -475,6 +475,30 @@ def _open_xt32(src: SourceName, angles_file: str | Path | None, max_scans: int |
                       f"a {src.kind} source")
 
 
+def live_reader(name: SourceName, *, model: str | SensorModel | None = None,
+                lasers: LaserTable | None = None, ouster_metadata: str | Path | None = None,
+                hesai_angles: str | Path | None = None
+                ) -> tuple[int, Callable[[Iterable], Iterable[Scan]], list[str]]:
+    """How a live sensor's packets become scans, for a caller that handles the packets itself
+    (an inspection keeps every datagram as it passes): the data payload size its receiver
+    takes, the reader of an iterable of packets, and notes to say (an Ouster read with its
+    model's nominal beams). ``model`` as `open_scans`: an Ouster or a PandarXT32 is read by its
+    own decoder, anything else as Velodyne packets."""
+    if isinstance(model, str) and _is_xt32(model):
+        from twin.lidar.hesai import DEFAULT_ANGLES, PACKET_BYTES, XT32Angles, XT32Scans
+
+        angles = XT32Angles.from_csv(hesai_angles or DEFAULT_ANGLES)
+        return PACKET_BYTES, lambda packets: XT32Scans(packets, angles, 18000), []
+    info = _ouster_info(name, ouster_metadata, model if isinstance(model, str) else None)
+    if info is not None:
+        from twin.lidar.ouster import OusterScans
+
+        return info.packet_bytes, lambda packets: OusterScans(packets, info), list(info.notes)
+    decode = {"model": resolve_model(model), "lasers": lasers}
+    return (vlp16.DATA_PAYLOAD_SIZE,
+            lambda packets: PacketScans(packets, batch=LIVE_BATCH, **decode), [])
+
+
 def _open_ouster(src: SourceName, info, max_scans: int | None,
                  timeout_s: float) -> OusterScanSource:
     if src.kind == "pcap":
