@@ -72,6 +72,19 @@ def test_fused_scans_tilt_as_one_over_root_n_roll_faster():
     assert fused.std[3] / single.std[3] < 0.6 / math.sqrt(10)
 
 
+def test_a_phase_locked_sensors_labels_do_not_add_up_over_scans():
+    """Scans that fire at the same azimuths (an Ouster's fixed columns) bracket every edge at
+    the same place: fused, their labels are one scan's (roll no better than the labels of
+    one scan with N scans' ranges), while tilt still falls as 1 / sqrt(N) from the ranges."""
+    locked = Firing(phase_locked=True)
+    single = precision_bound(BENCH, noise=NOISE, firing=locked)
+    fused = precision_bound(BENCH, noise=NOISE, firing=locked, n_scans=10)
+    free = precision_bound(BENCH, noise=NOISE, n_scans=10)
+    assert single.std == pytest.approx(precision_bound(BENCH, noise=NOISE).std, rel=1e-9)
+    assert fused.std[4] / single.std[4] == pytest.approx(1 / math.sqrt(10), rel=0.1)
+    assert fused.std[3] > 2 * free.std[3] and fused.std[3] > 0.3 * single.std[3]
+
+
 def test_mirror_pose_has_the_same_bound():
     # mirrored left to right (x, roll, yaw change sign) the geometry is the same; with the
     # lasers' firing offsets averaged over (the spin's sense is not mirrored), so is the bound

@@ -45,7 +45,8 @@ of variance w^2 / 12 per bracket (or the intersection variance of one crossing's
 would ignore that the crossings cut each other: single-scan roll 23 % too high, fused 2x.
 
 **What it assumes.** The pose is static over the scans; each scan starts at an independent
-uniform phase (the rpm wanders by a few rpm: the paper's sensor, the twin); the sensor is
+uniform phase (the rpm wanders by a few rpm: the paper's sensor, the twin), unless the firing is
+``phase_locked`` (an Ouster: every scan at the same azimuths, its labels one scan's); the sensor is
 calibrated (nominal elevations; per-laser range offsets removed); the beam is sharp unless
 ``edge_blur`` is set (a random jitter of where a beam turns from hit to miss, as an angle seen
 from the sensor: a crossing's labels are then probit-like, with the Fisher information
@@ -109,12 +110,17 @@ class Firing:
     ``rpm``: spin rate; ``period``: s between consecutive firings of one laser (the VLP-16's
     firing sequence, 55.296 us: 0.2 deg at 600 rpm); ``laser_times``: each laser's firing time
     within the period, s, by laser id (default the VLP-16's; None: unknown, averaged over).
-    A laser table's azimuth offsets add to these.
+    A laser table's azimuth offsets add to these. ``phase_locked``: every scan fires at the
+    same azimuths (an Ouster's columns are fixed encoder positions; a sensor locked to a
+    clock's phase): N scans then bracket each edge crossing at the same place, so their
+    labels carry one scan's information about the edges (their ranges still N scans'); False
+    (a free-running head, the VLP-16's and the twin's): independent phases.
     """
 
     rpm: float = 600.0
     period: float = vlp16.SEQUENCE_PERIOD
     laser_times: tuple[float, ...] | None = VLP16_LASER_TIMES
+    phase_locked: bool = False
 
     def __post_init__(self) -> None:
         if not (self.rpm > 0 and self.period > 0):
@@ -347,7 +353,9 @@ def precision_bound(
     s, t, inside, lid, az = _ring_samples(st, theta, board, lasers, da)
     edge, laser, a_cross = _find_crossings(st, s, az)
     counts = tuple(int(np.sum(edge == e)) for e in range(4))
-    crossings = _crossing_slabs(st, edge, laser, a_cross, da, n_scans, noise, n_par)
+    # scans whose labels bracket the edges at independent places (one, phase-locked)
+    n_labels = 1 if firing.phase_locked else n_scans
+    crossings = _crossing_slabs(st, edge, laser, a_cross, da, n_labels, noise, n_par)
     intervals = _ring_brackets(st, [e for e in range(4) if counts[e] == 0], s, t, inside, lid,
                                az, n_par)
     fixed = _combine_parallel(intervals, n_par)
@@ -356,7 +364,7 @@ def precision_bound(
                                          n_par)
     info_o = info_r + prior
     info_e, slab_var, iterations = bound_labels.gaussian_information(info_o, crossings, fixed,
-                                                                     n_scans)
+                                                                     n_labels)
     cov_g = bound_labels.covariance(info_o + info_e)
     diagnostics: dict = {"slabs": len(crossings) + len(fixed), "iterations": iterations,
                          "azimuth_step": da}
@@ -364,8 +372,8 @@ def precision_bound(
     used = "gaussian"
     if labels == "exact" and np.isfinite(np.diag(cov_g)).all() and len(slab_var):
         rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-        cov, diag = bound_labels.expected_covariance(info_o, crossings, fixed, n_scans, slab_var,
-                                                     laser_phase, rng, DRAWS, SWEEPS)
+        cov, diag = bound_labels.expected_covariance(info_o, crossings, fixed, n_labels,
+                                                     slab_var, laser_phase, rng, DRAWS, SWEEPS)
         diagnostics.update(diag)
         used = "exact"
     cov_b = cov[:6, :6]

@@ -190,7 +190,8 @@ class Point:
         level = board_to_station(truth, self.in_plane)
         own = firing_of(self.station.sensor.model)
         firing = (Firing(rpm=self.config.rpm, period=vlp16.SEQUENCE_PERIOD) if own is None
-                  else Firing(rpm=own.rpm, period=own.period, laser_times=own.laser_times))
+                  else Firing(rpm=own.rpm, period=own.period, laser_times=own.laser_times,
+                              phase_locked=own.phase_locked))
         noise = RangeNoise(sigma=self.range_sigma, offset_sigma=self.range_offset)
         jac = self.jacobian(truth)
         rows = []

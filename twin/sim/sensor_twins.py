@@ -32,13 +32,15 @@ def is_own_twin(model: str) -> bool:
 
 @dataclass(frozen=True)
 class FiringPattern:
-    """What the precision bound needs of a sensor's firing: spin rate (rpm), s between two
-    firings of one laser, and each laser's time within that step (None: all at once, as an
-    Ouster's column fires every beam together)."""
+    """What the precision bound needs of a sensor's firing (`align.design.bound.Firing`): spin
+    rate (rpm), s between two firings of one laser, each laser's time within that step (None:
+    all at once, as an Ouster's column fires every beam together), and whether every scan fires
+    at the same azimuths (``phase_locked``)."""
 
     rpm: float
     period: float
     laser_times: tuple[float, ...] | None
+    phase_locked: bool
 
 
 def firing_of(model: str) -> FiringPattern | None:
@@ -46,13 +48,17 @@ def firing_of(model: str) -> FiringPattern | None:
     if is_ouster_model(model):
         from twin.lidar.ouster import nominal_info
 
+        # An Ouster measures at fixed encoder positions (column c at 2 pi (1 - c / W)): every
+        # frame samples the same azimuths, its twin's too.
         info = nominal_info(ouster_model_name(model))
         return FiringPattern(60.0 * info.rate_hz, 1.0 / (info.columns_per_frame * info.rate_hz),
-                             None)
+                             None, True)
     if model in HESAI_MODELS:
         from twin.sim.hesai_twin import BLOCK_PERIOD
 
-        return FiringPattern(600.0, BLOCK_PERIOD, None)
+        # The twin's PandarXT32 turns at exactly 600 rpm: its blocks repeat their azimuths every
+        # turn, as a unit phase-locked to its clock does (a free-running one's wander).
+        return FiringPattern(600.0, BLOCK_PERIOD, None, True)
     return None
 
 
