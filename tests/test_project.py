@@ -74,3 +74,18 @@ def test_method_options_list_their_choices(tmp_path):
                           "nope", "--out", "r"], cwd=tmp_path, capture_output=True, text=True)
     assert bad.returncode == 2 and "choose from 'rays', 'paper', 'icp'" in bad.stderr
     assert not (tmp_path / "r").exists()
+
+
+def test_every_python_package_is_installed():
+    """Every folder with an ``__init__.py`` under the project's packages is in pyproject's
+    package list (a wheel, or Ray's pip runtime environment, would lack an unlisted one: the
+    align.* subpackages were), and every listed package exists."""
+    import tomllib
+
+    listed = set(tomllib.loads((REPO_DIR / "pyproject.toml").read_text())["tool"]["setuptools"]
+                 ["packages"])
+    found = {".".join(p.parent.relative_to(REPO_DIR).parts)
+             for top in ("aimbench", "align", "models", "scenarios", "twin")
+             for p in (REPO_DIR / top).rglob("__init__.py")}
+    assert found - listed == set(), sorted(found - listed)
+    assert all((REPO_DIR / name.replace(".", "/")).is_dir() for name in listed)
