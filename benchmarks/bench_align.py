@@ -6,6 +6,9 @@
     .venv/bin/python benchmarks/bench_align.py --scenes --poses 40 --scans 5 --stage-yaw-deg 10
     .venv/bin/python benchmarks/bench_align.py --scenes --poses 40 --scans 5 --stage-yaw-deg 10 \
         --seeds 1-20          # 20 seeds x 40 scenes x 5 scans pooled
+    .venv/bin/python benchmarks/bench_align.py --distractors    # 40 cases x 5 scenes x 5 scans
+    .venv/bin/python benchmarks/bench_align.py --distractors --kinds panel --boards diamond \
+        --poses 10 --out distractors.json
 
 Protocol (paper, section IV-B): random poses, every angle within +-3 deg and x within +-30 mm
 of the bench's reference, 50 scans each. Angles: the LiDAR's mount misalignment (roll, tilt,
@@ -15,6 +18,13 @@ quantisation; per-laser offsets off: they are what `align.calibration` removes),
 off; ``--divergence`` turns beam divergence and mixed edge returns on. The estimator is told the
 beam the twin has, as a user tells it the sensor's (`align.Hints.edge_tolerance`: 0 for the
 sharp beam, the VLP-16's default with divergence).
+
+``--distractors``: the board among the things a real station has about it
+(`twin.sim.distractors`: a second panel, a door, a whiteboard, a monitor, a cabinet; in front
+of, beside, behind and nearer than the board), each single scan estimated with the stated
+distance and without, counted right, WRONG (ok, but another object), ambiguous or failed, the
+right ones' errors beside the same scans without the distractor (`docs/align.md`,
+"Distractors").
 
 Per method and mode (single scan; N scans fused), per axis: accuracy = mean over poses of the
 per-pose mean error, signed and absolute; precision = mean over poses of the per-pose standard
@@ -339,6 +349,264 @@ def scenes(args: argparse.Namespace) -> int:
     return 0
 
 
+def _centre_l(pose) -> np.ndarray:
+    """The board's centre in the LiDAR's frame {L} of a pose of {L} in {O} (p_O = R p_L + t),
+    m: as `align.choice.Candidate.centre` reads an estimate."""
+    return -pose.rotation().T @ np.array([pose.x, pose.y, pose.z])
+
+
+#: A fitted board whose centre lies farther than this from the true board's (in {L}, m) is
+#: another object: the board's own estimates are within millimetres, the nearest distractor's
+#: centre is over 0.3 m away.
+RIGHT_WITHIN = 0.1
+
+
+def _verdict(est: align.PoseEstimate, centre: np.ndarray) -> str:
+    """"right", "WRONG" (ok, but the fitted board's centre is not the true one's), or the
+    failure's status."""
+    if not est.success:
+        return str(est.status)
+    return "right" if np.linalg.norm(_centre_l(est.pose) - centre) < RIGHT_WITHIN else "WRONG"
+
+
+def _angle_errors(est: align.PoseEstimate, truth, board: align.BoardSpec) -> np.ndarray:
+    """(roll, tilt, yaw) error, deg, against the truth's equivalent nearest the estimate (a
+    rectangle turned half a turn about its normal is the same board)."""
+    from align.symmetry import nearest_equivalent
+    from scenarios.study.protocol import wrap
+
+    e = est.pose.as_array() - nearest_equivalent(truth.as_array(), est.pose.as_array(), board)
+    return np.rad2deg(wrap(e[3:]))
+
+
+def _candidates_of(est: align.PoseEstimate) -> list[dict]:
+    """The weighed candidates of an estimate, as plain numbers (JSON): index, the search's
+    score, returns, status, centre in {L} (m), chi2/dof, log weight."""
+    out = []
+    for c in est.used.get("candidates", []):
+        pose = c.get("pose")
+        out.append({"index": c["index"], "score": float(c["score"]),
+                    "returns": len(c["returns"]), "status": c["status"],
+                    "centre_m": None if pose is None else [round(float(v), 3)
+                                                            for v in _centre_l(pose)],
+                    "chi2_per_dof": c.get("chi2_per_dof"),
+                    "log_weight": float(c["log_weight"])})
+    return out
+
+
+def _stated(hints: align.Hints, centre: np.ndarray) -> align.Hints:
+    """``hints`` with the board's distance stated: the true one (``centre`` in {L}, m)."""
+    from dataclasses import replace
+
+    return replace(hints, expected_distance=float(np.linalg.norm(centre)))
+
+
+def _anchor(params, x: float, yaw: float, seed: int, cfg: EmulationConfig, n: int,
+            board: align.BoardSpec, hints: align.Hints) -> list:
+    """The scans of a scene without its distractor, each estimated with the distance stated:
+    per scan its verdict and, where right, its (roll, tilt, yaw) errors, deg."""
+    scans, _ = _scans(params, x, yaw, seed, cfg, n)
+    truth = scans[0].meta["truth_pose"]
+    centre = _centre_l(truth)
+    out = []
+    for j, s in enumerate(scans):
+        est = _estimate(s, board, _stated(hints, centre), f"anchor seed {seed} scan {j}")
+        v = _verdict(est, centre)
+        out.append((v, _angle_errors(est, truth, board) if v == "right" else None))
+    return out
+
+
+#: Scans on which the estimator raised (`_estimate`): (where, the exception's text).
+RAISED: list[tuple[str, str]] = []
+
+
+def _estimate(scan, board: align.BoardSpec, hints: align.Hints, where: str
+              ) -> align.PoseEstimate:
+    """`align.estimate`, an exception recorded as the runner records it (status
+    `estimator_error`, the message kept in `RAISED` with ``where``): one bad scan must not
+    lose the table, and the estimator promises a status, never an exception."""
+    try:
+        return align.estimate(scan, board=board, hints=hints)
+    except Exception as exc:  # counted and reported, as the runner does
+        RAISED.append((where, f"{type(exc).__name__}: {exc}"))
+        return align.PoseEstimate.failed(align.Status.ESTIMATOR_ERROR, "rays", error=str(exc))
+
+
+def _distractor_board(name: str):
+    """The board of a ``--boards`` name: level (the paper's) or diamond (hung turned 45 deg
+    about its normal, raised clear of the floor with the LiDAR)."""
+    from twin.sim.distractors import diamond
+    from twin.sim.params import BenchParams
+
+    return {"level": BenchParams(), "diamond": diamond(BenchParams())}[name]
+
+
+def distractors(args: argparse.Namespace) -> int:
+    """Issue 34's proof on the twin: for each board (level, diamond), kind of distractor and
+    placement, ``--poses`` scenes of ``--scans`` single scans, each estimated with the
+    distance a user states (the true one: `Hints.expected_distance`) and, unless
+    ``--stated-only``, without; counted by verdict (`_verdict`). The scenes are the bench's
+    random ones (`random_pose`, `random_scene`: mount, stage, wall, stand, clutter), drawn
+    once per board and shared by every kind and placement, so every case's anchor is the same
+    scans without the distractor (the same scan seeds: the twin draws its range noise per
+    firing); where a distractor needs the wall moved back
+    (`twin.sim.distractors.room_for`), the anchor is that scene's, without it."""
+    from align.board import BoardSpec
+    from twin.sim import distractors as dz
+    from twin.sim.params import random_scene
+
+    cfg, base_hints = _beam(args)
+    poses = args.poses
+    kinds = [k for k in args.kinds.split(",") if k] or list(dz.KINDS)
+    places = [p for p in args.placements.split(",") if p] or list(dz.PLACEMENTS)
+    boards = [b for b in args.boards.split(",") if b]
+    cpu0, t0 = time.process_time(), time.time()
+    rows, wrongs = [], []
+
+    for bi, bname in enumerate(boards):
+        base = _distractor_board(bname)
+        board = BoardSpec(base.board_width, base.board_height)
+        rng = np.random.default_rng([args.seed, bi])
+        scenes_b = []
+        for _ in range(poses):
+            params, x, yaw = random_pose(rng, args.angle_deg, args.x_mm, args.stage_yaw_deg,
+                                         base=base)
+            params = random_scene(np.random.default_rng(rng.integers(2**31)), params,
+                                  max_holders=args.holders)
+            scenes_b.append((params, x, yaw, int(rng.integers(2**31)),
+                             dz.lidar_in_world(params, x, float(np.deg2rad(yaw)))))
+        anchors: dict = {}  # (pose, wall) -> per scan (verdict, errors or None)
+        for ki, kind in enumerate(kinds):
+            for pi, place in enumerate(places):
+                row = {"board": bname, "kind": kind, "placement": place, "scans": 0,
+                       "seen_median": 0, "stated": {}, "bare": {}, "anchor": {},
+                       "err": [], "err_anchor": []}
+                seen = []
+                for p, (params, x, yaw, seed, lidar) in enumerate(scenes_b):
+                    d = dz.place(kind, place, np.random.default_rng([args.seed, bi, ki, pi, p]),
+                                 params, lidar[0])
+                    room = dz.room_for(params, d)
+                    if (p, room.wall_distance) not in anchors:
+                        anchors[(p, room.wall_distance)] = _anchor(
+                            room, x, yaw, seed, cfg, args.scans, board, base_hints)
+                    ref = anchors[(p, room.wall_distance)]
+                    scans, _ = _scans(dz.with_distractor(room, d), x, yaw, seed, cfg,
+                                      args.scans)
+                    truth = scans[0].meta["truth_pose"]
+                    centre = _centre_l(truth)
+                    for j, s in enumerate(scans):
+                        m = s.distance > 0
+                        seen.append(dz.returns_on(np.column_stack([s.x[m], s.y[m], s.z[m]]),
+                                                  lidar, d.boxes[0]))
+                        row["scans"] += 1
+                        a_v, a_e = ref[j]
+                        row["anchor"][a_v] = row["anchor"].get(a_v, 0) + 1
+                        hint_sets = [("stated", _stated(base_hints, centre))]
+                        if not args.stated_only:
+                            hint_sets.append(("bare", base_hints))
+                        for key, h in hint_sets:
+                            est = _estimate(s, board, h, f"{bname} {kind} {place} pose {p} "
+                                            f"scan {j} ({key})")
+                            v = _verdict(est, centre)
+                            row[key][v] = row[key].get(v, 0) + 1
+                            if key == "stated" and v == "right" and a_e is not None:
+                                row["err"].append(_angle_errors(est, truth, board).tolist())
+                                row["err_anchor"].append(a_e.tolist())
+                            if v == "WRONG":
+                                wrongs.append({
+                                    "board": bname, "kind": kind, "placement": place,
+                                    "hints": key, "pose": p, "scan": j,
+                                    "true_centre_m": [round(float(v), 3) for v in centre],
+                                    "fitted_centre_m": [round(float(v), 3)
+                                                        for v in _centre_l(est.pose)],
+                                    "distractor_face_w_m": [round(v, 3) for v in d.centre],
+                                    "board_log10_lr": est.diagnostics.get("board_log10_lr"),
+                                    "board_candidate": est.diagnostics.get("board_candidate"),
+                                    "candidates": _candidates_of(est)})
+                row["seen_median"] = int(np.median(seen))
+                rows.append(row)
+                print(f"  {bname} {kind} {place}: {time.time() - t0:.0f} s", file=sys.stderr)
+    cpu, wall = time.process_time() - cpu0, time.time() - t0
+    _distractor_table(args, rows, cpu, wall)
+    if wrongs:
+        print(f"\n# ok estimates of the WRONG object ({len(wrongs)}):")
+        for w in wrongs:
+            print(f"  {w['board']} {w['kind']} {w['placement']} ({w['hints']} hints) pose "
+                  f"{w['pose']} scan {w['scan']}: fitted centre {w['fitted_centre_m']} m, true "
+                  f"{w['true_centre_m']} m, candidate {w['board_candidate']}, log10 LR "
+                  f"{w['board_log10_lr']}")
+            for c in w["candidates"]:
+                chi2 = c["chi2_per_dof"]
+                print(f"      cand {c['index']}: {c['status']:14} centre {c['centre_m']} "
+                      f"chi2/dof {'-' if chi2 is None else round(chi2, 3)} log w "
+                      f"{c['log_weight']:.1f} returns {c['returns']} score {c['score']:.2f}")
+    for where, text in RAISED:
+        print(f"  the estimator raised on {where}: {text}")
+    if args.out:
+        import json
+
+        Path(args.out).write_text(json.dumps(
+            {"args": {k: v for k, v in vars(args).items()}, "cpu_s": cpu, "wall_s": wall,
+             "rows": rows, "wrong": wrongs, "raised": RAISED}, indent=1, default=str))
+    return 0
+
+
+def _distractor_table(args: argparse.Namespace, rows: list[dict], cpu: float,
+                      wall: float) -> None:
+    """The table of `distractors`: per case the counts with the stated distance and without,
+    and the right ones' RMS angle errors beside the same scans' without the distractor."""
+    def counts(c: dict) -> tuple[int, int, int, int]:
+        amb = c.get("ambiguous_board", 0)
+        return (c.get("right", 0), c.get("WRONG", 0), amb,
+                sum(c.values()) - c.get("right", 0) - c.get("WRONG", 0) - amb)
+
+    def rms(e: list) -> np.ndarray:
+        return np.sqrt(np.mean(np.square(e), axis=0)) if e else np.full(3, np.nan)
+
+    print(f"\n# the board among distractors on the twin: {args.poses} scenes x {args.scans} "
+          f"single scans per case, angles within +-{args.angle_deg:g} deg + stage yaw "
+          f"+-{args.stage_yaw_deg:g}, random scenes (holders <= {args.holders}), 14 mm noise, "
+          f"{'divergence on' if args.divergence else 'sharp beam'}, seed {args.seed}")
+    print("# with the distance stated (Hints.expected_distance, the true one): right / WRONG / "
+          "ambiguous / failed; the same without it; RMS deg of the right ones (stated) and of "
+          "the same scans without the distractor, ratio\n")
+    hdr = (f"{'board':8} {'kind':10} {'place':7} {'scans':>5} {'seen':>5} | {'right':>5} "
+           f"{'WRONG':>5} {'ambig':>5} {'fail':>5} | {'right':>5} {'WRONG':>5} {'ambig':>5} "
+           f"{'fail':>5} | " + "  ".join(f"{a + ' RMS (anchor) ratio':>25}"
+                                         for a in ("roll", "tilt", "yaw")))
+    print(f"{'':28}{'':11}| {'stated distance':^23} | {'no distance':^23} |")
+    print(hdr)
+    tot = {"scans": 0, "stated": {}, "bare": {}, "anchor": {}, "err": [], "err_anchor": []}
+    for r in rows:
+        s, b = counts(r["stated"]), counts(r["bare"]) if r["bare"] else ("-",) * 4
+        e, ea = rms(r["err"]), rms(r["err_anchor"])
+        acc = "  ".join(f"{e[i]:8.3f} ({ea[i]:6.3f}) {e[i] / ea[i]:5.2f}   " for i in range(3))
+        print(f"{r['board']:8} {r['kind']:10} {r['placement']:7} {r['scans']:5d} "
+              f"{r['seen_median']:5d} | " + " ".join(f"{v:>5}" for v in s) + " | "
+              + " ".join(f"{v:>5}" for v in b) + f" | {acc}")
+        tot["scans"] += r["scans"]
+        for k in ("stated", "bare", "anchor"):
+            for v, n in r[k].items():
+                tot[k][v] = tot[k].get(v, 0) + n
+        tot["err"] += r["err"]
+        tot["err_anchor"] += r["err_anchor"]
+    s = counts(tot["stated"])
+    b = counts(tot["bare"]) if tot["bare"] else ("-",) * 4
+    e, ea = rms(tot["err"]), rms(tot["err_anchor"])
+    acc = "  ".join(f"{e[i]:8.3f} ({ea[i]:6.3f}) {e[i] / ea[i]:5.2f}   " for i in range(3))
+    print(f"{'total':26} {tot['scans']:5d} {'':5} | " + " ".join(f"{v:>5}" for v in s) + " | "
+          + " ".join(f"{v:>5}" for v in b) + f" | {acc}")
+    print(f"\n  ok WRONG: {s[1]} with the distance stated, {b[1]} without (anchor: 0); "
+          f"ambiguous_board {100 * s[2] / tot['scans']:.1f} % stated, "
+          + (f"{100 * b[2] / tot['scans']:.1f} % without" if tot["bare"] else "without: not run")
+          + f"; right {100 * s[0] / tot['scans']:.1f} % stated")
+    fails = {k: v for k, v in tot["stated"].items() if k not in ("right", "WRONG")}
+    fails_b = {k: v for k, v in tot["bare"].items() if k not in ("right", "WRONG")}
+    print(f"  by status, stated: {fails or 'none'}; without: {fails_b or 'none'}")
+    print(f"  the same scans without the distractor (stated): {tot['anchor']}")
+    print(f"  time: {cpu:.0f} s CPU (time.process_time, one BLAS thread), {wall:.0f} s wall")
+
+
 def _seed_list(text: str) -> list[int]:
     """Seeds from "1-20" or "3,5,9" (or both, comma-separated)."""
     out = []
@@ -350,8 +618,10 @@ def _seed_list(text: str) -> list[int]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--poses", type=int, default=200, help="random poses (paper: 200)")
-    ap.add_argument("--scans", type=int, default=50, help="scans per pose (paper: 50)")
+    ap.add_argument("--poses", type=int, default=None,
+                    help="random poses (paper: 200; --distractors: 5 scenes per case)")
+    ap.add_argument("--scans", type=int, default=None,
+                    help="scans per pose (paper: 50; --distractors: 5)")
     ap.add_argument("--seed", type=int, default=2024)
     ap.add_argument("--angle-deg", type=float, default=3.0, help="mount angles within +-this")
     ap.add_argument("--stage-yaw-deg", type=float, default=0.0,
@@ -370,8 +640,24 @@ def main(argv: list[str] | None = None) -> int:
                     help="--scenes: at most this many holders at the board's edges (0-4)")
     ap.add_argument("--seeds", default="",
                     help="--scenes: several seeds pooled, e.g. 1-20 (default: --seed)")
+    ap.add_argument("--distractors", action="store_true",
+                    help="the board among distractors (a second panel, a door, ...) instead")
+    ap.add_argument("--kinds", default="",
+                    help="--distractors: comma-separated kinds (default: all)")
+    ap.add_argument("--placements", default="",
+                    help="--distractors: comma-separated placements (default: all)")
+    ap.add_argument("--boards", default="level,diamond",
+                    help="--distractors: level, diamond (hung turned 45 deg), or both")
+    ap.add_argument("--stated-only", action="store_true",
+                    help="--distractors: only with the distance stated (half the time)")
+    ap.add_argument("--out", default="", help="--distractors: the rows as JSON to this file")
     args = ap.parse_args(argv)
+    small = args.distractors  # its default is 40 cases x 25 scans, not the paper's 200 x 50
+    args.poses = args.poses if args.poses is not None else (5 if small else 200)
+    args.scans = args.scans if args.scans is not None else (5 if small else 50)
     warnings.simplefilter("ignore")
+    if args.distractors:
+        return distractors(args)
     if args.offsets:
         return offsets(args)
     if args.scenes:

@@ -64,6 +64,10 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     return outcome(solution, fit, len(starts), plane.sigma_r, board, timings, p=p)
 
 
+#: The fewest rays a plane is fitted to (three points fix a plane).
+MIN_PLANE_RAYS = 3
+
+
 @dataclass(frozen=True)
 class BoardRays:
     """The board's returns as rays, from all scans: origins, directions, ranges, rings, which of
@@ -105,10 +109,16 @@ def board_plane(scans: list[Scan], segs: list[Segmentation], board: BoardSpec, h
     # degrees to pass between both; the rectangle the search finds then leaves it out, and
     # the plane is fitted again to what that rectangle holds
     starts, looked_at = starts_on(o, u, keep, rays.first, n, d, board, hints, p=p)
-    if starts and starts[0].left_out > p.spill * looked_at:
-        keep = keep & held_by(o, u, n, d, starts[0], board, p=p)
+    held = (keep & held_by(o, u, n, d, starts[0], board, p=p)
+            if starts and starts[0].left_out > p.spill * looked_at else None)
+    # a rectangle that holds fewer returns than a plane needs is no refit's start: a candidate
+    # whose plane the rays barely meet (a few returns of the floor, the rays at grazing
+    # incidence: the rectangle found kilometres away) raised here, an empty fit
+    if held is not None and np.count_nonzero(held) >= MIN_PLANE_RAYS:
+        keep = held
         n, d, _, sigma = fit_rays(r[keep], o[keep], u[keep], n, d)
-        keep &= np.abs(r - predicted_range(n, d, o, u)) < p.trim * sigma
+        trimmed = keep & (np.abs(r - predicted_range(n, d, o, u)) < p.trim * sigma)
+        keep = trimmed if np.count_nonzero(trimmed) >= MIN_PLANE_RAYS else keep
         n, d, c_plane, sigma = fit_rays(r[keep], o[keep], u[keep], n, d,
                                         sigma_floor=p.range_sigma_floor)
         starts = None

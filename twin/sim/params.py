@@ -44,18 +44,30 @@ class SceneBox:
     board frame {O}: a clamp or bracket at an edge, just beyond it, near the board's plane) or
     a piece of clutter in the room (``pos`` in {W}: a cabinet, a tripod, a box on the floor).
     ``size``: half sizes along the frame's axes, m; ``yaw``: turned about the vertical, rad;
-    ``reflectivity``: its diffuse reflectance (None: the background's)."""
+    ``reflectivity``: its diffuse reflectance (None: the background's); ``roll``: then turned
+    about its own Y axis, rad (R = Rz(yaw) Ry(roll), `BenchParams`' convention): a panel thin
+    along Y hung turned about its normal, as a diamond board is (`twin.sim.distractors`: a
+    second panel hung as the board is). 0 builds the box exactly as before the field was."""
 
     pos: tuple[float, float, float]
     size: tuple[float, float, float]
     yaw: float = 0.0
     reflectivity: float | None = None
+    roll: float = 0.0
 
     def __post_init__(self) -> None:
         if min(self.size) <= 0:
             raise ValueError("a scene box needs positive half sizes (m)")
         if self.reflectivity is not None and not 0.0 <= self.reflectivity <= 1.0:
             raise ValueError("reflectivity is a diffuse reflectance in [0, 1]")
+
+    def quat(self) -> np.ndarray:
+        """The box's orientation in its parent's frame, MuJoCo (w, x, y, z). Without a roll the
+        quaternion of the yaw alone, written as it always was (the same floats: a scene without
+        rolled boxes compiles to the same model)."""
+        if self.roll == 0.0:
+            return np.array([np.cos(self.yaw / 2), 0.0, 0.0, np.sin(self.yaw / 2)])
+        return _quat_wxyz(self.roll, 0.0, self.yaw)
 
 
 def _quat_wxyz(roll: float, tilt: float, yaw: float) -> np.ndarray:
@@ -256,14 +268,14 @@ class BenchParams:
             g = board.add_geom(cls)
             g.name, g.type = f"{HOLDER_GEOM_PREFIX}{i}", mujoco.mjtGeom.mjGEOM_BOX
             g.size, g.pos = list(box.size), list(box.pos)
-            g.quat = [np.cos(box.yaw / 2), 0.0, 0.0, np.sin(box.yaw / 2)]
+            g.quat = box.quat()
         if self.clutter:
             room = spec.worldbody.add_body(name="clutter", childclass="aimbench")
             for i, box in enumerate(self.clutter):
                 g = room.add_geom(cls)
                 g.name, g.type = f"{CLUTTER_GEOM_PREFIX}{i}", mujoco.mjtGeom.mjGEOM_BOX
                 g.size, g.pos = list(box.size), list(box.pos)
-                g.quat = [np.cos(box.yaw / 2), 0.0, 0.0, np.sin(box.yaw / 2)]
+                g.quat = box.quat()
 
     def _add_pattern(self, spec: mujoco.MjSpec) -> None:
         """The pattern's squares as box geoms of the board body, just in front of its face."""
