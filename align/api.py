@@ -4,13 +4,24 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from align.baselines.paper import estimate_paper
 from align.board import BoardSpec
-from align.choice import DECISIVE_LR, Candidate, Decision, decide, region_log_prior, weigh
+from align.choice import (
+    DECISIVE_LR,
+    DISTANCE_REFUSED_SIGMAS,
+    DISTANCE_SIGMA,
+    HIDDEN_GAP,
+    Candidate,
+    Decision,
+    decide,
+    placed,
+    region_log_prior,
+    weigh,
+)
 from align.params import DEFAULT_PARAMS, RaysParams
 from align.rays.pipeline import estimate_rays
 from align.result import Hints, PoseEstimate, Status
@@ -90,7 +101,7 @@ def _rays(scans: list[Scan], segs: list[Segmentation], ok: list[int], board: Boa
     the board's rectangle, the retry on its other candidates (`_other_candidates`)."""
     res = estimate_rays([scans[i] for i in ok], [segs[i] for i in ok], board, hints, p=p)
     first = ok[0]
-    if segs[first].alternatives or hints.board_region is not None:
+    if segs[first].alternatives or placed(hints):
         res = _choose(scans, first, segs[first], board, hints, res, p=p)
     # the choice's rays are not the board's rectangle (returns in front of it where it would
     # be, no edge seen, fewer rings than a board has): the board search's score is a cheap
@@ -119,7 +130,7 @@ def _choose(scans: list[Scan], first: int, ref: Segmentation, board: BoardSpec, 
         g = candidate_segmentation(scans[first], returns, ref.n_clusters)
         cands.append(Candidate(k, returns, ref.alternative_scores[k - 1],
                                estimate_rays([scans[first]], [g], board, hints, p=p)))
-    decision = decide(cands, hints)
+    decision = decide(cands, hints, _hides(scans[first], board))
     weighed = [_described(c, hints) for c in cands]
     if decision.chosen is None:
         if decision.outside_region:
@@ -143,6 +154,34 @@ def _choose(scans: list[Scan], first: int, ref: Segmentation, board: BoardSpec, 
                            board_log10_lr=decision.log10_lr)
     out.used["candidates"] = weighed
     return out
+
+
+#: Returns of a candidate in front of another's rectangle that make it hide part of it.
+HIDING_RETURNS = 5
+
+
+def _hides(scan: Scan, board: BoardSpec) -> Callable[[Candidate, Candidate], bool]:
+    """`align.choice.decide`'s ``hides(front, behind)`` on ``scan``: whether at least
+    `HIDING_RETURNS` of ``front``'s returns lie on rays that meet ``behind``'s fitted rectangle
+    `HIDDEN_GAP` or more beyond them (the rays from the optical centre: a laser's offset of a
+    few cm is far below the gap)."""
+
+    def hides(front: Candidate, behind: Candidate) -> bool:
+        pose = behind.estimate.pose
+        if pose is None or len(front.returns) == 0:
+            return False
+        pts = scan.xyz[np.asarray(front.returns)]
+        rng = np.linalg.norm(pts, axis=1)
+        u = (pts / np.maximum(rng, 1e-9)[:, None]) @ pose.rotation().T  # in the board's frame
+        t = np.array([pose.x, pose.y, pose.z])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = -t[1] / u[:, 1]  # where each ray meets the board's plane y = 0
+        x, z = t[0] + s * u[:, 0], t[2] + s * u[:, 2]
+        behind_it = ((np.abs(x) <= board.width / 2) & (np.abs(z) <= board.height / 2)
+                     & (s >= rng + HIDDEN_GAP))
+        return int(np.count_nonzero(behind_it)) >= HIDING_RETURNS
+
+    return hides
 
 
 def _described(c: Candidate, hints: Hints) -> dict:
@@ -178,9 +217,15 @@ def _ambiguous(decision: Decision) -> PoseEstimate:
     """No pose: two candidates the rays cannot tell apart, both named."""
     a, b = decision.chosen, decision.runner_up
     assert a is not None and b is not None
-    reason = (f"two board-like objects explain the rays about as well (likelihood ratio "
-              f"10^{decision.log10_lr:.1f}, below {DECISIVE_LR:g}): {_where(a)}; {_where(b)}. "
-              "Give the station's board position and tolerance (board.position_tolerance_mm), "
+    what = ("a board-like object passed, and another, partly hidden by something in front of "
+            "it, may be the board as well (the rays cannot tell a board hidden behind a panel "
+            "from a panel in front of a board; where the station puts the board decides it, "
+            f"by a ratio of 10^{decision.log10_lr:.1f}, below {DECISIVE_LR:g})"
+            if decision.hidden else
+            f"two board-like objects explain the rays about as well (likelihood ratio "
+            f"10^{decision.log10_lr:.1f}, below {DECISIVE_LR:g})")
+    reason = (f"{what}: {_where(a)}; {_where(b)}. Clear the line of sight to the board, give "
+              "the station's board position and tolerance (board.position_tolerance_mm), "
               "or narrow the search (--azimuth-deg, --expected-distance-m)")
     out = PoseEstimate.failed(Status.AMBIGUOUS_BOARD, "rays", reason=reason,
                               board_log10_lr=decision.log10_lr)
@@ -188,14 +233,19 @@ def _ambiguous(decision: Decision) -> PoseEstimate:
 
 
 def _outside_region(decision: Decision, hints: Hints) -> PoseEstimate:
-    """No pose: every candidate that passed lies beyond the station's board region."""
-    assert hints.board_region is not None
-    where, radius = hints.board_region
+    """No pose: every candidate that passed lies beyond the station's board region, or too far
+    from the distance stated (`align.choice.DISTANCE_REFUSED_SIGMAS`)."""
     c = decision.outside_region[0]
-    reason = (f"no board within {1e3 * radius:.0f} mm of where the station puts it "
-              f"({', '.join(f'{1e3 * v:+.0f}' for v in where)}) mm in the LiDAR's frame); "
-              f"the board-like object found is {_where(c)}. Check the board's position in the "
-              "station file, or that the unit is mounted as the station says")
+    if hints.board_region is not None:
+        where, radius = hints.board_region
+        near = (f"within {1e3 * radius:.0f} mm of where the station puts it "
+                f"({', '.join(f'{1e3 * v:+.0f}' for v in where)}) mm in the LiDAR's frame)")
+    else:
+        near = (f"within {DISTANCE_REFUSED_SIGMAS * DISTANCE_SIGMA:.1f} m of the distance "
+                f"stated ({hints.expected_distance:.2f} m)")
+    reason = (f"no board {near}; the board-like object found is {_where(c)}. Check the "
+              "board's position in the station file or the distance given, or that the unit "
+              "is mounted as the station says")
     out = PoseEstimate.failed(Status.BOARD_OUTSIDE_REGION, "rays", reason=reason)
     return out
 
@@ -209,8 +259,14 @@ def _other_candidates(scans: list[Scan], first: int, ref: Segmentation | None,
     is a cheap likeness; the labels of every ray against the known rectangle are the test."""
     for k, g in enumerate(other_candidates(scans[first], ref, board, hints), start=1):
         alt = _fused_from(scans, first, g, board, hints, p=p)
-        if alt.success and region_log_prior(Candidate(k, g.board, math.nan, alt).centre(),
-                                            hints) > -math.inf:
+        cand = Candidate(k, g.board, math.nan, alt)
+        if alt.success and region_log_prior(cand.centre(), hints) > -math.inf:
+            # the first choice failed; partly hidden, it may be the board all the same
+            if ref is not None:
+                decision = decide([Candidate(0, ref.board, ref.score, res), cand], hints,
+                                  _hides(scans[first], board))
+                if not decision.decisive:
+                    return _ambiguous(decision)
             alt.diagnostics["board_candidate"] = k  # 0: the search's first choice
             return alt
     return res
