@@ -189,9 +189,17 @@ class Point:
 
         level = board_to_station(truth, self.in_plane)
         own = firing_of(self.station.sensor.model)
-        firing = (Firing(rpm=self.config.rpm, period=vlp16.SEQUENCE_PERIOD) if own is None
-                  else Firing(rpm=own.rpm, period=own.period, laser_times=own.laser_times,
-                              phase_locked=own.phase_locked))
+        if own is not None:
+            firing = Firing(rpm=own.rpm, period=own.period, laser_times=own.laser_times,
+                            phase_locked=own.phase_locked)
+        elif self.station.sensor.model == "VLP-16":
+            firing = Firing(rpm=self.config.rpm, period=vlp16.SEQUENCE_PERIOD)
+        else:  # another Velodyne: its own firing sequence (a VLP-32C's took the VLP-16's: no bound)
+            from twin.core.sensors import model_named
+
+            m = model_named(self.station.sensor.model)
+            firing = Firing(rpm=self.config.rpm, period=m.sequence_period,
+                            laser_times=tuple(float(v) for v in m.firing_offset))
         noise = RangeNoise(sigma=self.range_sigma, offset_sigma=self.range_offset)
         jac = self.jacobian(truth)
         rows = []
