@@ -201,6 +201,12 @@ class RaysParams:
     #: freed and the pose moved to where the rays put it, its covariance widened. Below it the
     #: size is taken as given and nothing changes: the fit leans only where the size is wrong.
     size_refused_d2: float = 18.4
+    #: The most oblique a board can be seen and measured, rad: the angle between the line of
+    #: sight to its centre and its normal. Beyond it (75 deg: a quarter of its width seen) the
+    #: edges along the line of sight are not measured and the fit is not vouched for
+    #: (partial_board); a cabinet's side seen edge-on passed as a board 86-92 deg off
+    #: (bench_align.py --distractors). Boards are inspected within 60 deg.
+    max_incidence: float = math.radians(75.0)
 
     @property
     def trimmed_variance(self) -> float:

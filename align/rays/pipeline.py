@@ -22,7 +22,7 @@ from align.fit.model import Model, build_model
 from align.fit.rays import DROPOUT, HIT, MISS, UNKNOWN, rays_of
 from align.fit.size import seen_size, size_mismatch
 from align.fit.starts import held_by, start_at, starts_on
-from align.geometry import in_plane_rotation, pose_from_plane
+from align.geometry import in_plane_rotation, pose_from_plane, rotation
 from align.params import RaysParams
 from align.plane.fit import fit_rays, fit_rays_offsets, predicted_range, ransac
 from align.posterior.hit_miss import OffsetModel, label_posterior
@@ -404,6 +404,7 @@ def outcome(sol: Solution, fit: Fit, n_starts: int, sigma_r: float, board: Board
         "outside_hits": seen.pop("outside_hits"),
     }
     theta, cov = _size_checked(model, theta, sol.cov, board, diag, p=p)
+    diag["incidence_rad"] = _incidence(theta)
     status, reason = _status(diag, seen, model, sol.conv, p=p)
     if reason:
         diag["reason"] = reason
@@ -431,6 +432,14 @@ def _size_checked(model: Model, theta: np.ndarray, cov: np.ndarray, board: Board
     theta = theta + size.pose_step
     diag["in_plane_rotation_rad"] = in_plane_rotation(theta)
     return theta, cov + size.pose_cov
+
+
+def _incidence(theta: np.ndarray) -> float:
+    """The angle between the line of sight to the board's centre and the board's normal, rad."""
+    r = rotation(theta[3], theta[4], theta[5])
+    centre = -r.T @ theta[:3]  # in {L}
+    cos_i = abs(float(r[1] @ centre)) / max(float(np.linalg.norm(centre)), 1e-9)
+    return float(np.arccos(min(cos_i, 1.0)))
 
 
 def _seen(sol: Solution, sigma_r: float, board: BoardSpec, *, p: RaysParams) -> dict:
@@ -461,6 +470,11 @@ def _status(diag: dict, seen: dict, model: Model, conv: bool, *, p: RaysParams) 
     seen = seen["seen"]
     n_hit = max(diag["hits"], 1)
     diag["edges_seen"] = "".join("lrbt"[i] for i in range(4) if seen[i])
+    if diag["incidence_rad"] > p.max_incidence:
+        return Status.PARTIAL_BOARD, (
+            f"the board would be seen at {np.degrees(diag['incidence_rad']):.0f} deg of "
+            f"incidence, beyond the {np.degrees(p.max_incidence):.0f} deg at which a board is "
+            "measured: an object seen edge-on, not the board facing the LiDAR")
     occluded, inside_miss = diag["occluded_rays"], diag["inside_misses"]
     outside_hits, brackets = diag["outside_hits"], diag["brackets"]
     if (not all(seen) or brackets < p.min_brackets
