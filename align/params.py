@@ -207,6 +207,12 @@ class RaysParams:
     #: (partial_board); a cabinet's side seen edge-on passed as a board 86-92 deg off
     #: (bench_align.py --distractors). Boards are inspected within 60 deg.
     max_incidence: float = math.radians(75.0)
+    #: A board whose seen size the rays hold off the size given (`size_refused_d2`) by more
+    #: than this fraction in width or height is not vouched for (partial_board, the sizes
+    #: said): another object, or a size given wrong. A board reads within a few % of its
+    #: drawing (the five real scans: 1-2.5 %, their ranges 3 cm long); a cabinet's face passed
+    #: as a board 7-10 % off (bench_align.py --distractors).
+    size_refused_ratio: float = 0.05
 
     @property
     def trimmed_variance(self) -> float:

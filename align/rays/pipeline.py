@@ -434,6 +434,14 @@ def _size_checked(model: Model, theta: np.ndarray, cov: np.ndarray, board: Board
     return theta, cov + size.pose_cov
 
 
+def _size_off(diag: dict, board: BoardSpec) -> float:
+    """The largest relative difference of the seen size from the size given (0: none seen)."""
+    if "seen_width_m" not in diag:
+        return 0.0
+    return max(abs(diag["seen_width_m"] / board.width - 1.0),
+               abs(diag["seen_height_m"] / board.height - 1.0))
+
+
 def _incidence(theta: np.ndarray) -> float:
     """The angle between the line of sight to the board's centre and the board's normal, rad."""
     r = rotation(theta[3], theta[4], theta[5])
@@ -475,6 +483,14 @@ def _status(diag: dict, seen: dict, model: Model, conv: bool, *, p: RaysParams) 
             f"the board would be seen at {np.degrees(diag['incidence_rad']):.0f} deg of "
             f"incidence, beyond the {np.degrees(p.max_incidence):.0f} deg at which a board is "
             "measured: an object seen edge-on, not the board facing the LiDAR")
+    off = _size_off(diag, model.board)
+    if diag.get("size_freed") and off > p.size_refused_ratio:
+        return Status.PARTIAL_BOARD, (
+            f"the rays see a {1e3 * diag['seen_width_m']:.0f} x "
+            f"{1e3 * diag['seen_height_m']:.0f} mm rectangle, not the "
+            f"{1e3 * model.board.width:.0f} x {1e3 * model.board.height:.0f} mm given "
+            f"({100 * off:.0f} % off): another object, or the board's size given wrong "
+            "(--board-mm, board.width_mm and height_mm)")
     occluded, inside_miss = diag["occluded_rays"], diag["inside_misses"]
     outside_hits, brackets = diag["outside_hits"], diag["brackets"]
     if (not all(seen) or brackets < p.min_brackets
