@@ -208,3 +208,24 @@ def test_a_candidate_whose_size_is_unseen_earns_less():
     assert d.chosen.index == 1 and d.decisive
     d = decide(_candidates(other, sharp), align.Hints())
     assert d.chosen.index == 1 and d.decisive
+
+
+def test_a_board_of_another_size_than_given_is_not_vouched_for():
+    """The paper's 900 x 540 mm board given 6 or 10 % too small or too large: the estimate is
+    not ok (a board given 6-10 % small passed, x 26-44 mm and roll 1 deg off: the rectangle's
+    edge sat inside the board with its outside hits under 3 %), and says the size given may be
+    wrong; 3 % off (a drawing against a printed board, ranges read long) the pose is freed
+    from the size given and stands."""
+    hints = align.Hints(edge_tolerance=(0.0, 0.0))
+    for seed in (4, 5):
+        scan = BenchSim(seed=seed, noise=NOISE).scan()
+        truth = scan.meta["truth_pose"].as_array()
+        for f in (0.9, 0.94, 1.06, 1.1):
+            est = align.estimate(scan, board=align.BoardSpec(0.9 * f, 0.54 * f), hints=hints)
+            assert est.status == align.Status.PARTIAL_BOARD, (seed, f, est.diagnostics)
+            assert "size" in est.diagnostics["reason"], est.diagnostics["reason"]
+        for f in (0.97, 1.03):
+            est = align.estimate(scan, board=align.BoardSpec(0.9 * f, 0.54 * f), hints=hints)
+            assert est.success and est.diagnostics["size_freed"], (seed, f, est.diagnostics)
+            err = (est.pose.as_array() - truth) / est.std
+            assert np.all(np.abs(err) < 4), (seed, f, err.round(1))

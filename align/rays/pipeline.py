@@ -493,6 +493,18 @@ def _status(diag: dict, seen: dict, model: Model, conv: bool, *, p: RaysParams) 
             "(--board-mm, board.width_mm and height_mm)")
     occluded, inside_miss = diag["occluded_rays"], diag["inside_misses"]
     outside_hits, brackets = diag["outside_hits"], diag["brackets"]
+    per_edge = [diag[f"edges_{n}"] for n in ("left", "right", "bottom", "top")]
+    if (outside_hits or inside_miss) and min(per_edge) == 0:
+        # hits beyond an edge, or misses inside it, that no hit/miss pair brackets: the
+        # rectangle's edge is not where the rays put the board's (a board given 6 % small or
+        # large passed so, x 26-27 mm off; 10 % small, 44 mm)
+        unbracketed = "/".join(n for n, c in zip(("left", "right", "bottom", "top"), per_edge,
+                                                  strict=True) if c == 0)
+        return Status.PARTIAL_BOARD, (
+            f"{outside_hits} hits outside the board's rectangle, {inside_miss} misses inside "
+            f"it and no hit/miss pair across its {unbracketed} edge: the rays do not put the "
+            "board's edge there (is the board's size given right? --board-mm, board.width_mm "
+            "and height_mm)")
     if (not all(seen) or brackets < p.min_brackets
             or occluded > 0.03 * n_inside or inside_miss > 0.03 * n_inside
             or outside_hits > 0.03 * n_hit or diag["chi2_per_dof"] > 3.0
