@@ -107,7 +107,7 @@ class Sight:
     @classmethod
     def of(cls, params: BenchParams, sensor: np.ndarray) -> Sight:
         """The sight of ``params``' board from the optical centre ``sensor`` ({W}, m)."""
-        from twin.sim.params import _quat_wxyz  # the convention the model is built with
+        from twin.sim.params import quat_wxyz  # the convention the model is built with
 
         sensor = np.asarray(sensor, dtype=float)
         board = np.asarray(params.board_position, dtype=float)
@@ -115,7 +115,7 @@ class Sight:
         distance = float(np.linalg.norm(flat))
         ahead = flat / distance
         right = np.array([ahead[1], -ahead[0], 0.0])
-        w, x, y, z = _quat_wxyz(params.board_roll, params.board_tilt, params.board_yaw)
+        w, x, y, z = quat_wxyz(params.board_roll, params.board_tilt, params.board_yaw)
         from scipy.spatial.transform import Rotation
 
         r = Rotation.from_quat([x, y, z, w]).as_matrix()

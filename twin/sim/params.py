@@ -67,10 +67,10 @@ class SceneBox:
         rolled boxes compiles to the same model)."""
         if self.roll == 0.0:
             return np.array([np.cos(self.yaw / 2), 0.0, 0.0, np.sin(self.yaw / 2)])
-        return _quat_wxyz(self.roll, 0.0, self.yaw)
+        return quat_wxyz(self.roll, 0.0, self.yaw)
 
 
-def _quat_wxyz(roll: float, tilt: float, yaw: float) -> np.ndarray:
+def quat_wxyz(roll: float, tilt: float, yaw: float) -> np.ndarray:
     """MuJoCo quaternion (w, x, y, z) of R = Rz(yaw) Rx(tilt) Ry(roll) (DESIGN.md convention)."""
     x, y, z, w = Rotation.from_euler("ZXY", [yaw, tilt, roll]).as_quat()
     return np.array([w, x, y, z])
@@ -213,11 +213,11 @@ class BenchParams:
 
     def mount_quat(self) -> np.ndarray:
         """Orientation of the LiDAR frame in the turntable frame, MuJoCo (w, x, y, z)."""
-        return _quat_wxyz(self.mount_roll, self.mount_tilt, self.mount_yaw)
+        return quat_wxyz(self.mount_roll, self.mount_tilt, self.mount_yaw)
 
     def board_quat(self) -> np.ndarray:
         """Orientation of the board frame {O} in {W}, MuJoCo (w, x, y, z)."""
-        return _quat_wxyz(self.board_roll, self.board_tilt, self.board_yaw)
+        return quat_wxyz(self.board_roll, self.board_tilt, self.board_yaw)
 
     def apply(self, spec: mujoco.MjSpec) -> mujoco.MjSpec:
         """Edit a spec of ``models/scene.xml`` in place to this bench; returns it."""
