@@ -449,11 +449,24 @@ class Station(_Section):
         tol = self.board.position_tolerance_mm
         if tol is None or lidar_in_station is None:
             return None
+        centre_l = self._board_centre_seen(lidar_in_station)
+        return (float(centre_l[0]), float(centre_l[1]), float(centre_l[2])), tol * 1e-3
+
+    def board_distance(self, lidar_in_station: Pose | None) -> float | None:
+        """How far the board's centre is from the LiDAR at ``lidar_in_station`` (its nominal
+        pose), m, as `align.Hints.expected_distance`: what a line states of every unit (a
+        board-sized panel hiding the board, 1 m nearer, is then refused); None without a
+        nominal pose."""
+        if lidar_in_station is None:
+            return None
+        return float(np.linalg.norm(self._board_centre_seen(lidar_in_station)))
+
+    def _board_centre_seen(self, lidar_in_station: Pose) -> np.ndarray:
+        """The board's centre in the frame {L} of the LiDAR at ``lidar_in_station``, m."""
         w_from_s = self.frame.pose.to_pose().matrix()
         w_from_l = w_from_s @ lidar_in_station.matrix()
         centre_w = self.board_in_bench()[:3, 3]
-        centre_l = np.linalg.solve(w_from_l, np.append(centre_w, 1.0))[:3]
-        return (float(centre_l[0]), float(centre_l[1]), float(centre_l[2])), tol * 1e-3
+        return np.linalg.solve(w_from_l, np.append(centre_w, 1.0))[:3]
 
     def datasheet_offset_std(self) -> float:
         """A new unit's common range offset's 1-sigma, m: the sensor model's datasheet range

@@ -230,3 +230,18 @@ def test_a_board_of_another_size_than_given_is_not_vouched_for():
             assert est.success and est.diagnostics["size_freed"], (seed, f, est.diagnostics)
             err = (est.pose.as_array() - truth) / est.std
             assert np.all(np.abs(err) < 4), (seed, f, err.round(1))
+
+
+def test_an_inspection_states_the_boards_distance_from_the_station():
+    """A line knows where its board is: the inspection's hints carry the board's distance from
+    the nominally mounted LiDAR (the paper's bench: 2.5 m in front, 0.7 m to the side), so a
+    board-sized panel hiding the board 1 m nearer is refused rather than passed for it."""
+    from scenarios.inspection import mounting
+
+    station = Station()
+    at = mounting.nominal_pose(station)[0]
+    assert station.board_distance(at) == pytest.approx(math.hypot(0.7, 2.5), abs=1e-3)
+    assert station.board_distance(None) is None
+    hints = align.Hints(expected_distance=station.board_distance(at))
+    assert region_log_prior(np.array([-0.99, 1.30, -0.05]), hints) == -math.inf
+    assert region_log_prior(np.array([-0.70, 2.50, 0.0]), hints) > -0.5

@@ -132,8 +132,12 @@ def inspect_unit(acq: Acquisition, station: Station, unit: str, *,
     if hints is None:
         # a unit on the line is a new one: its own range offset (the station's prior on it)
         # is estimated with its pose, not taken as zero
+        # and the board is where the station puts it: its distance stated (a panel hiding the
+        # board must not pass for it), its region where the station gives a tolerance
+        at = mounting.nominal_pose(station)[0]
         hints = align.Hints(roll_prior=station.roll_prior(),
-                            board_region=station.board_region(mounting.nominal_pose(station)[0]),
+                            expected_distance=station.board_distance(at),
+                            board_region=station.board_region(at),
                             **station.range_offset_hints(calibrated=calibration is not None))
     t_trigger = time.perf_counter()
     cpu0 = time.process_time()
