@@ -24,13 +24,17 @@ is the board" against "b is" is exp(w_a - w_b), with
   object seen too obliquely or too partly to say its size earns little; one of another size
   loses.
 - the prior: what the user says of the board's distance (`Hints.expected_distance`, a
-  Gaussian of `DISTANCE_SIGMA`) and the station's region (`Hints.board_region`: a Gaussian of
-  a third of its radius about its centre; a candidate beyond the radius is refused outright).
+  Gaussian of `DISTANCE_SIGMA`, refused beyond `DISTANCE_REFUSED_SIGMAS`) and the station's
+  region (`Hints.board_region`: a Gaussian of a third of its radius about its centre; a
+  candidate beyond the radius is refused outright).
 
 The best candidate is chosen when its ratio over every other that passed is at least
 `DECISIVE_LR`; otherwise the choice is ambiguous and no pose is reported. Two identical
 panels side by side are ambiguous by construction (only a prior can tell them apart), as they
-should be: a confident choice between them would be a coin toss.
+should be: a confident choice between them would be a coin toss. So is a board hidden in part
+behind a panel of its own size (`hidden_board`): the panel passes, the board fails its own
+fit, and the rays tell that story no better than "a board in front of a panel"; such a failed
+candidate is the chosen one's rival, weighed on the priors alone.
 """
 
 from __future__ import annotations
