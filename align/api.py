@@ -22,6 +22,7 @@ from align.choice import (
     region_log_prior,
     weigh,
 )
+from align.geometry import board_coordinates
 from align.params import DEFAULT_PARAMS, RaysParams
 from align.rays.pipeline import estimate_rays
 from align.result import Hints, PoseEstimate, Status
@@ -172,13 +173,10 @@ def _hides(scan: Scan, board: BoardSpec) -> Callable[[Candidate, Candidate], boo
             return False
         pts = scan.xyz[np.asarray(front.returns)]
         rng = np.linalg.norm(pts, axis=1)
-        u = (pts / np.maximum(rng, 1e-9)[:, None]) @ pose.rotation().T  # in the board's frame
-        t = np.array([pose.x, pose.y, pose.z])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = -t[1] / u[:, 1]  # where each ray meets the board's plane y = 0
-        x, z = t[0] + s * u[:, 0], t[2] + s * u[:, 2]
+        x, z, lam = board_coordinates(pose.as_array(), np.zeros_like(pts),
+                                      pts / np.maximum(rng, 1e-9)[:, None])
         behind_it = ((np.abs(x) <= board.width / 2) & (np.abs(z) <= board.height / 2)
-                     & (s >= rng + HIDDEN_GAP))
+                     & (lam >= rng + HIDDEN_GAP))
         return int(np.count_nonzero(behind_it)) >= HIDING_RETURNS
 
     return hides

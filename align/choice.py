@@ -45,6 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from align.geometry import board_centre
 from align.result import Hints, PoseEstimate, Status
 
 #: The likelihood ratio the chosen candidate must hold over every other that passed, for the
@@ -101,10 +102,7 @@ class Candidate:
     def centre(self) -> np.ndarray | None:
         """The fitted board's centre in the LiDAR's frame {L}, m (None: no pose)."""
         pose = self.estimate.pose
-        if pose is None:
-            return None
-        r = pose.rotation()
-        return -r.T @ np.array([pose.x, pose.y, pose.z])
+        return None if pose is None else board_centre(pose.as_array())
 
 
 def goodness(est: PoseEstimate) -> float:
@@ -162,8 +160,8 @@ def placed(hints: Hints) -> bool:
 
 def hidden_board(c: Candidate) -> bool:
     """Whether a candidate that failed may be the board partly hidden (`HIDDEN_SHARE`): rays
-    blocked in front of it, none of its hits outside its rectangle, `HIDDEN_EDGES` of its
-    edges seen, its fit sound."""
+    blocked in front of it, at most that share of its hits outside its rectangle,
+    `HIDDEN_EDGES` of its edges seen, its fit sound."""
     e = c.estimate
     if e.status != Status.PARTIAL_BOARD or e.pose is None:
         return False

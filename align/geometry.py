@@ -43,6 +43,12 @@ def board_coordinates(
     return x, z, lam
 
 
+def board_centre(theta: np.ndarray) -> np.ndarray:
+    """The board's centre in {L}, m, for pose ``theta`` (the LiDAR in the board's frame)."""
+    r = rotation(theta[3], theta[4], theta[5])
+    return -r.T @ np.asarray(theta[:3], dtype=float)
+
+
 def plane_of_pose(theta: np.ndarray) -> tuple[np.ndarray, float]:
     """The board plane in {L}: unit normal n (away from the LiDAR) and distance d, m."""
     r = rotation(theta[3], theta[4], theta[5])

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from align.board import BoardSpec
+from align.geometry import board_centre
 from align.params import DEFAULT_PARAMS
 from align.result import Hints, PoseEstimate, Status
 from twin.core.pose import Pose
@@ -61,9 +62,7 @@ def _size_advice(diag: dict, board: BoardSpec) -> str | None:
 
 def _centre(pose: Pose | None) -> np.ndarray | None:
     """The board's centre in the LiDAR's frame {L}, m (`align.choice.Candidate.centre`)."""
-    if pose is None:
-        return None
-    return -pose.rotation().T @ pose.translation
+    return None if pose is None else board_centre(pose.as_array())
 
 
 def _where(c: dict) -> str:

@@ -62,7 +62,7 @@ ALIGN_ALLOWED: dict[str, tuple[str, ...]] = {
     "align.baselines": (*ALIGN_COMMON, "align.plane", "align.search"),
     "align.design": ("align.board", "align.geometry"),
     # the board's choice between candidates: their estimates and the hints, nothing else
-    "align.choice": ("align.result",),
+    "align.choice": ("align.geometry", "align.result"),
     "align.api": (*_RAYS, "align.rays", "align.baselines", "align.choice"),
     "align": ("align.api", "align.board", "align.result"),  # the package's face
 }

@@ -117,13 +117,7 @@ def rays_of(scan: Scan, idx: np.ndarray, lid: np.ndarray | None = None
     u[:, 0] = ce * np.sin(az)
     u[:, 1] = ce * np.cos(az)
     u[:, 2] = np.sin(lasers.elevation)[lid]
-    o = np.zeros((len(lid), 3))
-    if scan.vertical_offsets_applied:
-        o[:, 2] = lasers.vertical_offset[lid]
-        if lasers.horizontal_offset.any():
-            hl = lasers.horizontal_offset[lid]
-            o[:, 0] = -hl * np.cos(az)
-            o[:, 1] = hl * np.sin(az)
+    o = lasers.origins(lid, az) if scan.vertical_offsets_applied else np.zeros((len(lid), 3))
     return o, u
 
 

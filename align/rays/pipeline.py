@@ -22,7 +22,7 @@ from align.fit.model import Model, build_model
 from align.fit.rays import DROPOUT, HIT, MISS, UNKNOWN, rays_of
 from align.fit.size import seen_size, size_mismatch
 from align.fit.starts import held_by, start_at, starts_on
-from align.geometry import in_plane_rotation, pose_from_plane, rotation
+from align.geometry import board_centre, in_plane_rotation, plane_of_pose, pose_from_plane
 from align.params import RaysParams
 from align.plane.fit import fit_rays, fit_rays_offsets, predicted_range, ransac
 from align.posterior.hit_miss import OffsetModel, label_posterior
@@ -434,6 +434,36 @@ def _size_checked(model: Model, theta: np.ndarray, cov: np.ndarray, board: Board
     return theta, cov + size.pose_cov
 
 
+def _not_the_board(diag: dict, board: BoardSpec, *, p: RaysParams) -> str:
+    """Why a rectangle that may explain its rays is not vouched for as the board, or "": seen
+    edge-on (`p.max_incidence`); a size the rays hold off the one given (`p.size_refused_ratio`);
+    or hits beyond an edge, or misses inside it, with no hit/miss pair across that edge while
+    two or more cross the opposite one (across a level board's top and bottom edges one pair
+    is usual, none at one of them happens on a true board). A board given 6-10 % small or
+    large passed so, x 26-58 mm off; a cabinet's face, 7-10 % off its size."""
+    if diag["incidence_rad"] > p.max_incidence:
+        return (f"the board would be seen at {np.degrees(diag['incidence_rad']):.0f} deg of "
+                f"incidence, beyond the {np.degrees(p.max_incidence):.0f} deg at which a board "
+                "is measured: an object seen edge-on, not the board facing the LiDAR")
+    off = _size_off(diag, board)
+    if diag.get("size_freed") and off > p.size_refused_ratio:
+        return (f"the rays see a {1e3 * diag['seen_width_m']:.0f} x "
+                f"{1e3 * diag['seen_height_m']:.0f} mm rectangle, not the "
+                f"{1e3 * board.width:.0f} x {1e3 * board.height:.0f} mm given "
+                f"({100 * off:.0f} % off): another object, or the board's size given wrong "
+                "(--board-mm, board.width_mm and height_mm)")
+    outside_hits, inside_miss = diag["outside_hits"], diag["inside_misses"]
+    per_edge = [diag[f"edges_{n}"] for n in ("left", "right", "bottom", "top")]
+    bare = [i for i in range(4) if per_edge[i] == 0 and per_edge[i ^ 1] >= 2]
+    if (outside_hits or inside_miss) and bare:
+        unbracketed = "/".join(("left", "right", "bottom", "top")[i] for i in bare)
+        return (f"{outside_hits} hits outside the board's rectangle, {inside_miss} misses "
+                f"inside it and no hit/miss pair across its {unbracketed} edge: the rays do "
+                "not put the board's edge there (is the board's size given right? --board-mm, "
+                "board.width_mm and height_mm)")
+    return ""
+
+
 def _size_off(diag: dict, board: BoardSpec) -> float:
     """The largest relative difference of the seen size from the size given (0: none seen)."""
     if "seen_width_m" not in diag:
@@ -444,9 +474,9 @@ def _size_off(diag: dict, board: BoardSpec) -> float:
 
 def _incidence(theta: np.ndarray) -> float:
     """The angle between the line of sight to the board's centre and the board's normal, rad."""
-    r = rotation(theta[3], theta[4], theta[5])
-    centre = -r.T @ theta[:3]  # in {L}
-    cos_i = abs(float(r[1] @ centre)) / max(float(np.linalg.norm(centre)), 1e-9)
+    normal, _ = plane_of_pose(theta)
+    centre = board_centre(theta)
+    cos_i = abs(float(normal @ centre)) / max(float(np.linalg.norm(centre)), 1e-9)
     return float(np.arccos(min(cos_i, 1.0)))
 
 
@@ -478,36 +508,11 @@ def _status(diag: dict, seen: dict, model: Model, conv: bool, *, p: RaysParams) 
     seen = seen["seen"]
     n_hit = max(diag["hits"], 1)
     diag["edges_seen"] = "".join("lrbt"[i] for i in range(4) if seen[i])
-    if diag["incidence_rad"] > p.max_incidence:
-        return Status.PARTIAL_BOARD, (
-            f"the board would be seen at {np.degrees(diag['incidence_rad']):.0f} deg of "
-            f"incidence, beyond the {np.degrees(p.max_incidence):.0f} deg at which a board is "
-            "measured: an object seen edge-on, not the board facing the LiDAR")
-    off = _size_off(diag, model.board)
-    if diag.get("size_freed") and off > p.size_refused_ratio:
-        return Status.PARTIAL_BOARD, (
-            f"the rays see a {1e3 * diag['seen_width_m']:.0f} x "
-            f"{1e3 * diag['seen_height_m']:.0f} mm rectangle, not the "
-            f"{1e3 * model.board.width:.0f} x {1e3 * model.board.height:.0f} mm given "
-            f"({100 * off:.0f} % off): another object, or the board's size given wrong "
-            "(--board-mm, board.width_mm and height_mm)")
+    not_it = _not_the_board(diag, model.board, p=p)
+    if not_it:
+        return Status.PARTIAL_BOARD, not_it
     occluded, inside_miss = diag["occluded_rays"], diag["inside_misses"]
     outside_hits, brackets = diag["outside_hits"], diag["brackets"]
-    per_edge = [diag[f"edges_{n}"] for n in ("left", "right", "bottom", "top")]
-    # an edge no hit/miss pair brackets while the rings cross its opposite edge (2 pairs or
-    # more there: across a level board's top and bottom edges one pair is usual, none at one
-    # of them happens on a true board)
-    bare = [i for i in range(4) if per_edge[i] == 0 and per_edge[i ^ 1] >= 2]
-    if (outside_hits or inside_miss) and bare:
-        # hits beyond an edge, or misses inside it, that no hit/miss pair brackets: the
-        # rectangle's edge is not where the rays put the board's (a board given 6 % small or
-        # large passed so, x 26-27 mm off; 10 % small, 44 mm)
-        unbracketed = "/".join(("left", "right", "bottom", "top")[i] for i in bare)
-        return Status.PARTIAL_BOARD, (
-            f"{outside_hits} hits outside the board's rectangle, {inside_miss} misses inside "
-            f"it and no hit/miss pair across its {unbracketed} edge: the rays do not put the "
-            "board's edge there (is the board's size given right? --board-mm, board.width_mm "
-            "and height_mm)")
     if (not all(seen) or brackets < p.min_brackets
             or occluded > 0.03 * n_inside or inside_miss > 0.03 * n_inside
             or outside_hits > 0.03 * n_hit or diag["chi2_per_dof"] > 3.0

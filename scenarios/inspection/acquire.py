@@ -291,7 +291,7 @@ def own_decoder(station: Any) -> dict[str, Any]:
     """The decoding a station's sensor needs beyond the Velodyne packets' own product id: an
     Ouster's or a PandarXT32's model, read by its decoder (`twin.lidar.sources.open_scans`);
     nothing for a Velodyne (its packets say which model they are)."""
-    from twin.lidar.ouster import is_ouster_model
+    from twin.lidar.sources import own_decoder as reads_own_packets
 
     model = station.sensor.model
-    return {"model": model} if is_ouster_model(model) or model == "PandarXT32" else {}
+    return {"model": model} if reads_own_packets(model) else {}

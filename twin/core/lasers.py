@@ -77,6 +77,18 @@ class LaserTable:
     def elevation_deg(self) -> np.ndarray:
         return np.degrees(self.elevation)
 
+    def origins(self, laser_id: np.ndarray, azimuth: np.ndarray) -> np.ndarray:
+        """Where the rays of lasers ``laser_id`` fired at ``azimuth`` (rad) start in {L}, (N, 3),
+        m: the vertical offset along Z_L, and the horizontal offset h across the beam,
+        (-h cos a, h sin a) in (X_L, Y_L), as the decoders put them into the points."""
+        o = np.zeros((len(laser_id), 3))
+        o[:, 2] = self.vertical_offset[laser_id]
+        if self.horizontal_offset.any():
+            h = self.horizontal_offset[laser_id]
+            o[:, 0] = -h * np.cos(azimuth)
+            o[:, 1] = h * np.sin(azimuth)
+        return o
+
     def same_geometry(self, other: LaserTable, atol: float = 1e-12) -> bool:
         """The same lasers at the same angles and offsets (the model's name aside)."""
         return self.n_lasers == other.n_lasers and all(

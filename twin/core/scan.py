@@ -122,15 +122,9 @@ class Scan:
         along Z_L, and its horizontal offset h across the beam, (-h cos a, h sin a) in (X_L,
         Y_L) at the ray's azimuth a (as the decoders put it into the points: an Ouster's n sin b,
         up to 1.2 mm on an OS1; 0 for the VLP-16)."""
-        o = np.zeros((len(self), 3))
-        if self.vertical_offsets_applied:
-            o[:, 2] = self.lasers.vertical_offset[self.laser_id]
-            h = self.lasers.horizontal_offset
-            if h.any():
-                hl = h[self.laser_id]
-                o[:, 0] = -hl * np.cos(self.azimuth)
-                o[:, 1] = hl * np.sin(self.azimuth)
-        return o
+        if not self.vertical_offsets_applied:
+            return np.zeros((len(self), 3))
+        return self.lasers.origins(self.laser_id, self.azimuth)
 
     def select(self, mask: np.ndarray) -> Scan:
         """A scan with only the firings where ``mask`` is true (or at the given indices)."""

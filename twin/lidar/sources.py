@@ -432,6 +432,14 @@ def open_scans(
         raise
 
 
+def own_decoder(model: str) -> bool:
+    """Whether a model's packets are read by a decoder of their own (an Ouster's, a
+    PandarXT32's) rather than as Velodyne packets, whose product id names their model."""
+    from twin.lidar.ouster import is_ouster_model
+
+    return is_ouster_model(model) or _is_xt32(model)
+
+
 def _is_xt32(model: str) -> bool:
     return "".join(ch for ch in model.upper() if ch.isalnum()) in ("PANDARXT32", "XT32")
 

@@ -26,8 +26,11 @@ HESAI_MODELS = ("PandarXT32",)
 
 
 def is_own_twin(model: str) -> bool:
-    """Whether ``model`` has a twin of its own (an Ouster, a Hesai) rather than `BenchSim`'s."""
-    return is_ouster_model(model) or model in HESAI_MODELS
+    """Whether ``model`` has a twin of its own (an Ouster, a Hesai: the models with a decoder of
+    their own, `twin.lidar.sources.own_decoder`) rather than `BenchSim`'s."""
+    from twin.lidar.sources import own_decoder
+
+    return own_decoder(model)
 
 
 @dataclass(frozen=True)
