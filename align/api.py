@@ -23,6 +23,7 @@ from align.choice import (
     weigh,
 )
 from align.geometry import board_coordinates
+from align.methods import DEFAULT_METHOD, METHODS
 from align.params import DEFAULT_PARAMS, RaysParams
 from align.rays.pipeline import estimate_rays
 from align.result import Hints, PoseEstimate, Status
@@ -30,10 +31,6 @@ from align.search.candidates import candidate_segmentation, other_candidates
 from align.search.result import Segmentation
 from align.search.static import segment_static
 from twin.core.scan import Scan
-
-#: The methods `estimate` knows, best first.
-METHODS = ("rays", "paper", "icp")
-DEFAULT_METHOD = "rays"
 
 
 def estimate(

@@ -39,7 +39,7 @@ PROJECT = ("twin", "align", "scenarios", "models", "bench_fw", "aimbench")
 #: the shared modules every stage may use; they import no stage. The leaf of float helpers
 #: (floats) imports only the decorator that compiles it (jit), and jit nothing of align.
 ALIGN_COMMON = ("align.board", "align.geometry", "align.result", "align.symmetry",
-                "align.params", "align.floats", "align.jit")
+                "align.params", "align.methods", "align.floats", "align.jit")
 _PLANE = (*ALIGN_COMMON,)
 _SEARCH = (*_PLANE, "align.plane")
 _FIT = (*_SEARCH, "align.search")
@@ -52,6 +52,7 @@ ALIGN_ALLOWED: dict[str, tuple[str, ...]] = {
     "align.geometry": (),
     "align.result": (),
     "align.params": (),
+    "align.methods": (),
     "align.symmetry": ("align.board", "align.geometry"),
     "align.calibration": ("align.board", "align.geometry"),
     "align.plane": _PLANE,
@@ -64,7 +65,8 @@ ALIGN_ALLOWED: dict[str, tuple[str, ...]] = {
     # the board's choice between candidates: their estimates and the hints, nothing else
     "align.choice": ("align.geometry", "align.result"),
     "align.api": (*_RAYS, "align.rays", "align.baselines", "align.choice"),
-    "align": ("align.api", "align.board", "align.result"),  # the package's face
+    # the package's face
+    "align": ("align.api", "align.board", "align.result", "align.methods"),
 }
 #: Inside scenarios/ the command line is the top: only the commands and the CLI that finds them
 #: import a command; what a lower module needs of one moves down (e.g. `scenarios.versions`).
