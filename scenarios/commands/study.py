@@ -23,16 +23,19 @@ import sys
 from pathlib import Path
 
 from scenarios import cliargs
-from scenarios.study import results as study_results
-from scenarios.study import run as study_run
-from scenarios.study.engines import make_engine
-from scenarios.study.report import write
-from scenarios.study.spec import load
-from scenarios.study.store import STORE_NAME, StudyStore
 from twin.core.errors import AimbenchError
 
 
 def run(args: argparse.Namespace) -> int:
+    # imported here, not at the top: the design's evaluation loads MuJoCo and scipy (about a
+    # second), which `aimbench study --help` does not need (issue 38)
+    from scenarios.study import results as study_results
+    from scenarios.study import run as study_run
+    from scenarios.study.engines import make_engine
+    from scenarios.study.report import write
+    from scenarios.study.spec import load
+    from scenarios.study.store import STORE_NAME, StudyStore
+
     out = Path(args.out)
     target = study_results.parse_target(args.target) if args.target else None
     if args.within_s is not None and target is None:
