@@ -439,14 +439,22 @@ class SimBench(Bench):
         if params is None:
             params = (station if station is not None else default_station()).bench_params()
         self.base_params = params
+        #: An Ouster's or a Hesai's model: its own twin (`twin.sim.sensor_twins`) makes the
+        #: scans, on this bench's MuJoCo scene; None: `BenchSim`'s Velodyne emulation does.
+        self.own_model: str | None = None
         if noise is None:
             # The station's sensor model (its nominal lasers: the twin is no particular unit).
             model = (station if station is not None else default_station()).sensor.model
             if model not in MODELS:
-                raise AimbenchError(
-                    f"the twin bench emulates the Velodyne models ({', '.join(MODELS)}); the "
-                    f"station's sensor.model is {model}: write its captures with `aimbench "
-                    f"simulate --model {model}` and estimate those")
+                from twin.sim.sensor_twins import is_own_twin
+
+                if not is_own_twin(model):
+                    raise AimbenchError(
+                        f"the twin bench emulates {', '.join(MODELS)}, the Ouster models and "
+                        f"the PandarXT32; the station's sensor.model is {model}")
+                # BenchSim still builds the scene and moves the stages; its own emulator
+                # (a Velodyne's) is never asked for a scan.
+                self.own_model, model = model, next(iter(MODELS))
             noise = (EmulationConfig.ideal(model=model) if ideal
                      else EmulationConfig(model=model))
         self._mount: dict[str, float] | None = None
@@ -478,6 +486,7 @@ class SimBench(Bench):
         (y0, y1), (x0, x1) = self.travel()
         return {
             "kind": "sim", "seed": self.seed, "ideal": self.ideal, "seeding": SEEDING,
+            **({"own_twin": self.own_model} if self.own_model is not None else {}),
             **({"station": self.station.name} if self.station is not None else {}),
             "params": {k: (list(v) if isinstance(v, tuple) else v)
                        for k, v in vars(p).items() if not k.startswith("_")},
@@ -533,10 +542,22 @@ class SimBench(Bench):
             self._next_scan += 1
             # The twin's generator (noise, rpm wander, dropouts, the rotation's phase) and its
             # clock, both from (seed, reference, scan) alone.
-            self._sim.restart_sensor(np.random.default_rng((self.seed, i, k)), scan_start_s(k))
+            rng = np.random.default_rng((self.seed, i, k))
+            if self.own_model is not None:
+                from twin.sim.sensor_twins import own_twin_packets
+
+                # the own twins are at rest and phase-locked: one scan from its own generator
+                sigma = 0.0 if self.ideal else OWN_TWIN_RANGE_SIGMA
+                yield own_twin_packets(self._sim, self.own_model, 1, rng=rng,
+                                       range_sigma=sigma).scans[0]
+                continue
+            self._sim.restart_sensor(rng, scan_start_s(k))
             yield self._sim.scan()
 
 
+#: The range noise of an Ouster's or a Hesai's twin on `SimBench`, 1-sigma, m (the twins'
+#: default: `twin.sim.sensor_twins.own_twin_packets`).
+OWN_TWIN_RANGE_SIGMA = 0.01
 #: How `SimBench` seeds its scans (stored in a run's bench info, so that a replay knows a run
 #: made before scans were seeded one by one).
 SEEDING = "per scan: (seed, reference, scan)"

@@ -73,15 +73,14 @@ def test_simulate_writes_what_info_and_estimate_read(tmp_path, capsys):
     assert " ok " in est and "error" in est
 
 
-def test_a_station_of_an_ouster_decodes_its_captures_and_refuses_the_velodyne_twin(tmp_path,
+def test_a_station_of_an_ouster_decodes_its_captures_and_the_sim_bench_takes_it(tmp_path,
                                                                                    capsys):
     """``sensor.model = "os1-64"`` in a station file: the model's name as aimbench writes it,
     its captures read (a capture without its metadata JSON: the model's nominal beams, said in a
-    warning), and the benches that emulate Velodynes refuse it in one line."""
+    warning), and the simulated bench takes it (its own twin's scans)."""
     from scenarios import station as stations
     from scenarios.bench import SimBench
     from scenarios.cli import main
-    from twin.core.errors import AimbenchError
 
     path = tmp_path / "ouster.toml"
     path.write_text('[sensor]\nmodel = "os1-64"\n')
@@ -94,5 +93,5 @@ def test_a_station_of_an_ouster_decodes_its_captures_and_refuses_the_velodyne_tw
     assert main(["estimate", str(out), "--station", str(path)]) == 0
     captured = capsys.readouterr()
     assert "nominal beams" in captured.err and " ok " in captured.out
-    with pytest.raises(AimbenchError, match="emulates the Velodyne models"):
-        SimBench(station=st)
+    # the simulated bench scans it with the Ouster's own twin (tests/test_own_twin_benches.py)
+    assert SimBench(station=st).own_model == "OS1-64"

@@ -13,7 +13,10 @@ inspection:
   misalignment and, as a new unit has, its own sensor errors: per-laser range offsets drawn
   from the unit's seed (the twin's 2.5 mm sigma) and a common range offset (2.5 mm sigma, both
   clipped at the paper's 5 mm). Its data packets are written as the capture, byte for byte what
-  the sensor would have sent; the scans come with the twin's truth.
+  the sensor would have sent; the scans come with the twin's truth. A station whose sensor is
+  an Ouster or a PandarXT32 gets that sensor's own twin (`twin.sim.sensor_twins`: range noise,
+  no per-laser offsets), its packets written on its own port (an Ouster's metadata JSON beside
+  the capture, as `aimbench simulate` writes it).
 
 Scans that are not whole (the rotation joined mid-way, a rotation with missing packets) are
 counted in ``rejected`` and never used.
@@ -237,14 +240,27 @@ class TwinAcquisition(Acquisition):
                          mount_tilt=p.mount_tilt + math.radians(m.get("tilt_deg", 0.0)),
                          mount_yaw=p.mount_yaw + math.radians(m.get("yaw_deg", 0.0)),
                          lever_arm=tuple(float(v) for v in lever))
+        from twin.sim.sensor_twins import is_own_twin
+
+        #: An Ouster's or a Hesai's model: its own twin sends the packets (module docstring).
+        self.own_model = station.sensor.model if is_own_twin(station.sensor.model) else None
         if noise is None:
-            noise = unit_sensor(seed) if sensor_errors else EmulationConfig().with_(
-                laser_offset_sigma=0.0, laser_offsets=None, range_bias=0.0)
+            noise = unit_sensor(seed) if sensor_errors and self.own_model is None else \
+                EmulationConfig().with_(laser_offset_sigma=0.0, laser_offsets=None,
+                                        range_bias=0.0)
         self.misalignment = m
-        self.sim = BenchSim(params, seed=int(seed if noise_seed is None else noise_seed),
-                            noise=noise)
-        self.sensor.update({"serial": f"twin-{int(seed)}", "range_bias_m": noise.range_bias,
-                            "laser_offsets_m": [float(v) for v in self.sim.emulator.laser_offsets]})
+        noise_seed = int(seed if noise_seed is None else noise_seed)
+        self.sim = BenchSim(params, seed=noise_seed, noise=noise)
+        self.sensor["serial"] = f"twin-{int(seed)}"
+        if self.own_model is None:
+            self.sensor.update({"range_bias_m": noise.range_bias, "laser_offsets_m": [
+                float(v) for v in self.sim.emulator.laser_offsets]})
+        else:
+            # its twin draws range noise only: no per-laser or common offsets to record
+            self.sensor.update({"model": self.own_model, "range_bias_m": 0.0})
+            self._rng = np.random.default_rng((noise_seed, 35))
+            self._sent_s = 0.0
+            self._metadata: str | None = None
         self._writer = None
         self._part = None
         if capture is not None:
@@ -256,6 +272,9 @@ class TwinAcquisition(Acquisition):
         self._epoch = time.time()
 
     def _scans(self, n: int) -> Iterator[Scan]:
+        if self.own_model is not None:
+            yield from self._own_scans(n)
+            return
         payloads, arrival, scans = self.sim.packets(n)
         if self._writer is not None:
             for payload, t in zip(payloads, arrival, strict=True):
@@ -263,11 +282,27 @@ class TwinAcquisition(Acquisition):
                                        dst_port=vlp16.DATA_PORT)
         yield from scans
 
+    def _own_scans(self, n: int) -> Iterator[Scan]:
+        from twin.sim.sensor_twins import own_twin_packets
+
+        sent = own_twin_packets(self.sim, self.own_model, n, rng=self._rng)
+        if self._writer is not None:
+            for payload, t in zip(sent.payloads, sent.times_s, strict=True):
+                self._writer.write_udp(payload, self._epoch + self._sent_s + float(t),
+                                       dst_port=sent.port, src_port=sent.port)
+        # the next take's packets follow these on the capture's clock
+        self._sent_s += float(sent.times_s[-1]) + 1e-3
+        self._metadata = sent.metadata_json
+        yield from sent.scans
+
     def close(self, complete: bool = True) -> None:
         if self._writer is not None:
             self._writer.close()
             if complete:
                 os.replace(self._part, self.capture)
+                if getattr(self, "_metadata", None) is not None:
+                    # an Ouster's capture is read with its metadata, found beside it
+                    self.capture.with_suffix(".json").write_text(self._metadata)
             self._writer = None
 
 

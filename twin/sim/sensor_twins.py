@@ -65,6 +65,64 @@ def firing_of(model: str) -> FiringPattern | None:
     return None
 
 
+@dataclass(frozen=True)
+class TwinPackets:
+    """What an Ouster's or a PandarXT32's twin sent for some scans at rest: its datagrams, each
+    one's time from the first (s) and UDP port, the scans aimbench's decoder reads from them
+    (each carrying the twin's truth, ``meta["truth_pose"]``, as `BenchSim`'s scans do), the true
+    pose of {L} in {O}, and the metadata JSON a capture keeps beside it (an Ouster's; None for
+    the XT32, whose angle file is the model's own)."""
+
+    payloads: list[bytes]
+    times_s: np.ndarray
+    port: int
+    scans: list[Scan]
+    truth: Pose
+    metadata_json: str | None
+
+
+def own_twin_packets(sim: Any, model: str, n: int, *, rng: np.random.Generator,
+                     range_sigma: float = 0.01) -> TwinPackets:
+    """``n`` scans of an Ouster's or a PandarXT32's twin on ``sim`` (a `twin.sim.bench.BenchSim`
+    at rest, its stages where they are) through its packets and aimbench's decoder. Gaussian
+    range noise of ``range_sigma`` (m) drawn from ``rng``."""
+    if is_ouster_model(model):
+        from twin.lidar.ouster import (
+            columns_from_frame,
+            encode_packets,
+            info_json,
+            nominal_info,
+            scans_from_payloads,
+        )
+        from twin.sim.ouster_twin import emulate_frames
+
+        info = nominal_info(ouster_model_name(model))
+        frames, truth = emulate_frames(sim, info, n, rng=rng, range_sigma=range_sigma)
+        payloads = [p for f in frames for p in encode_packets(columns_from_frame(f, info), info)]
+        packet_s = info.columns_per_packet / (info.columns_per_frame * info.rate_hz)
+        return _with_truth(TwinPackets(
+            payloads, np.arange(len(payloads)) * packet_s, info.udp_port_lidar,
+            scans_from_payloads(payloads, info), truth, info_json(info)))
+    if model in HESAI_MODELS:
+        from twin.lidar.hesai import DATA_PORT, DEFAULT_ANGLES, XT32Angles, XT32Scans
+        from twin.sim.hesai_twin import BLOCK_PERIOD, BLOCKS_PER_PACKET, emulate_xt32
+
+        angles = XT32Angles.from_csv(DEFAULT_ANGLES)
+        # one turn more than asked: the first packet starts mid-turn, a quarter turn in
+        packets, truth = emulate_xt32(sim, angles, n + 1, rng=rng, range_sigma=range_sigma,
+                                      start_cdeg=9000)
+        return _with_truth(TwinPackets(
+            packets, np.arange(len(packets)) * BLOCKS_PER_PACKET * BLOCK_PERIOD, DATA_PORT,
+            list(XT32Scans(packets, angles))[:n], truth, None))
+    raise ValueError(f"{model!r} has no twin of its own: it is BenchSim's (EmulationConfig.model)")
+
+
+def _with_truth(packets: TwinPackets) -> TwinPackets:
+    for scan in packets.scans:
+        scan.meta.update(truth=packets.truth.to_edge(), truth_pose=packets.truth)
+    return packets
+
+
 def own_twin_scans(params: Any, model: str, *, x: float, yaw: float, n: int, seed: int,
                    range_sigma: float = 0.01) -> tuple[list[Scan], Pose]:
     """``n`` scans of an Ouster's or a PandarXT32's twin on the bench of ``params`` (a
@@ -75,28 +133,7 @@ def own_twin_scans(params: Any, model: str, *, x: float, yaw: float, n: int, see
 
     sim = BenchSim(params, seed=seed)
     sim.move_to(x_m=x, yaw_rad=yaw)
-    rng = np.random.default_rng(seed)
-    if is_ouster_model(model):
-        from twin.lidar.ouster import (
-            columns_from_frame,
-            encode_packets,
-            nominal_info,
-            scans_from_payloads,
-        )
-        from twin.sim.ouster_twin import emulate_frames
-
-        info = nominal_info(ouster_model_name(model))
-        frames, truth = emulate_frames(sim, info, n, rng=rng, range_sigma=range_sigma)
-        payloads = [p for f in frames for p in encode_packets(columns_from_frame(f, info), info)]
-        return scans_from_payloads(payloads, info), truth
-    if model in HESAI_MODELS:
-        from twin.lidar.hesai import DEFAULT_ANGLES, XT32Angles, XT32Scans
-        from twin.sim.hesai_twin import emulate_xt32
-
-        angles = XT32Angles.from_csv(DEFAULT_ANGLES)
-        # one turn more than asked: the first packet starts mid-turn, a quarter turn in
-        packets, truth = emulate_xt32(sim, angles, n + 1, rng=rng, range_sigma=range_sigma,
-                                      start_cdeg=9000)
-        return list(XT32Scans(packets, angles))[:n], truth
-    raise ValueError(f"{model!r} has no twin of its own: it is BenchSim's (EmulationConfig.model)")
+    got = own_twin_packets(sim, model, n, rng=np.random.default_rng(seed),
+                           range_sigma=range_sigma)
+    return got.scans, got.truth
 
