@@ -38,9 +38,10 @@ def test_capability_equals_the_nist_handbook_example():
     https://www.itl.nist.gov/div898/handbook/pmc/section1/pmc16.htm: USL 20, LSL 8, mean 16,
     sigma 2 give Cp 1.0, Cpk 0.6667 (Cpu 0.6667, Cpl 1.3333). Provenance as NIST_FLOW's: the
     figures as the same independent transcription gives them ("NIST 6.1.6: USL 20, LSL 8,
-    x-bar 16, s 2 -> Cp 1.0, Cpk 0.6667, Cpu 0.6667, Cpl 1.3333"); the page's definitions
-    (Cp the specification's width over 6 sigma, Cpk the nearer side over 3 sigma) were read
-    in a copy of pmc16.htm."""
+    x-bar 16, s 2 -> Cp 1.0, Cpk 0.6667, Cpu 0.6667, Cpl 1.3333"); of the page itself only
+    its opening was read, in a copy that names it as its source
+    (http://credit-help.biz/forex/33563): the specification's width over "6 process standard
+    deviation units", which is Cp here."""
     cp, cpk = spc.indices(16.0, 2.0, 8.0, 20.0)
     assert cp == 1.0
     assert round(cpk, 4) == 0.6667
