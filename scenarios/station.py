@@ -378,12 +378,16 @@ class OpcUa(_Section):
     port may trigger inspections, no security policy (a closed cell network only); otherwise
     users with the role ``plc`` log in by name and password over Basic256Sha256
     SignAndEncrypt with the station's certificate (generated, self-signed, when the files
-    named here do not exist)."""
+    named here do not exist), from a client whose own certificate is in ``trust_list``: a
+    folder of the trusted client certificates, or of the CAs that issued them (DER or PEM),
+    created empty on first start, read again at every new session (a PLC added needs no
+    restart). Relative paths are beside the store."""
 
     port: Annotated[StrictInt, Field(ge=1, le=65535)] = 4840
     anonymous: StrictBool = True
     certificate: StrictStr = "station-cert.der"
     private_key: StrictStr = "station-key.pem"
+    trust_list: Annotated[StrictStr, Field(min_length=1)] = "opcua-trusted"
 
 
 class Line(_Section):

@@ -1,6 +1,7 @@
 """`aimbench station` end to end: the real process on the twin, a real headless browser
 (Debian's chromium and chromedriver, driven by Selenium; nothing downloaded), a real OPC UA
-client as the line's PLC (asyncua, username over Basic256Sha256 SignAndEncrypt), the JSON
+client as the line's PLC (asyncua, username over Basic256Sha256 SignAndEncrypt, its certificate
+in the station's trust list), the JSON
 endpoint, and a kill -9 mid-inspection. One scan per unit keeps the twin's share of CPU down.
 """
 
@@ -264,6 +265,11 @@ async def plc_client(station: Station, tmp: Path, user: str = "plc1",
     await setup_self_signed_certificate(key, cert, "urn:aimbench:test-plc", "localhost",
                                         [ExtendedKeyUsageOID.CLIENT_AUTH],
                                         {"commonName": "test plc"})
+    # the engineer trusts this PLC: its certificate in the station's trust list
+    # (tests/test_line_opcua.py shows an untrusted one refused)
+    trust = station.db.parent / (station.db.stem + ".station") / "opcua-trusted"
+    trust.mkdir(parents=True, exist_ok=True)
+    shutil.copy(cert, trust)
     client = Client(station.opc_url, timeout=30)
     client.application_uri = "urn:aimbench:test-plc"
     client.set_user(user)

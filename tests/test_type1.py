@@ -36,6 +36,46 @@ def test_type1_figures_by_hand():
         msa.type1(x, 10.0, 0.0, "x_mm", "mm")
 
 
+#: A published Type-1 study with its data: the example JASP (the jaspQualityControl module,
+#: https://github.com/jasp-stats/jaspQualityControl) ships as Type1InstrumentCapability.jasp,
+#: its data in tests/testthat/Type1.csv ("Type 1 Study, Schweinfurt, Gauge: S-441-0,
+#: 13-Nov-10, Reference = -4.0 um, Resolution = 0.1 um, Tolerance for dm is 15 um"; the help
+#: page of that analysis cites Dodson et al., SKF's Statistical Process Control handbook, 2009),
+#: 50 readings in um.
+JASP_TYPE1 = [-4.0, -4.1, -4.1, -4.1, -4.1, -3.9, -3.9, -3.9, -4.1, -4.2,
+              -3.9, -4.2, -4.0, -3.8, -3.9, -3.9, -3.9, -3.9, -4.6, -4.3,
+              -3.9, -3.7, -3.7, -3.9, -4.0, -5.0, -3.9, -3.8, -3.7, -3.8,
+              -3.7, -3.8, -3.6, -3.5, -3.6, -3.6, -3.4, -5.1, -3.5, -4.0,
+              -4.5, -3.5, -5.1, -5.0, -3.5, -3.5, -3.5, -3.6, -3.6, -3.5]
+
+
+def test_type1_equals_a_published_study():
+    """JASP's printed figures for JASP_TYPE1 (tests/testthat/test-msaType1Gauge.R and
+    test-example-Type1InstrumentCapability.R of jaspQualityControl), with its defaults K = 20 %
+    of the tolerance and L = 6 standard deviations (Minitab's too, "Methods and formulas for
+    Type 1 Gage Study", https://support.minitab.com/en-us/minitab/help-and-how-to/
+    quality-and-process-improvement/measurement-system-analysis/how-to/gage-study/
+    type-1-gage-study/methods-and-formulas/methods-and-formulas/): mean -3.946, s
+    0.420014577006512, bias 0.054, t 0.909105737620188 on 49 degrees of freedom, p
+    0.367744349288335, Cg 1.19, Cgk 1.15, %Var(repeatability) 16.8 and %Var(repeatability and
+    bias) 17.43 (Minitab's K / Cg and K / Cgk, which pin Cg and Cgk to four digits)."""
+    r = msa.type1(np.array(JASP_TYPE1), -4.0, 15.0, "dm", "um", pct=20.0, sigmas=6.0)
+    assert r.n == 50
+    assert round(r.mean, 3) == -3.946
+    assert r.sd == pytest.approx(0.420014577006512, rel=1e-12)
+    assert r.bias == pytest.approx(0.054, abs=1e-12)
+    assert r.t == pytest.approx(0.909105737620188, rel=1e-12)
+    assert r.p == pytest.approx(0.367744349288335, rel=1e-12)
+    assert round(r.cg, 2) == 1.19 and round(r.cgk, 2) == 1.15
+    assert round(100 * 0.20 / r.cg, 1) == 16.8 and round(100 * 0.20 / r.cgk, 2) == 17.43
+    assert not r.capable and not r.bias_significant
+    # the station's own convention, L = 4 (docs/inspection.md), on the same study: the spread
+    # counted as +-2 s instead of +-3 s, so Cg and Cgk are 6/4 of the figures above
+    d = msa.type1(np.array(JASP_TYPE1), -4.0, 15.0, "dm", "um")
+    assert d.sigmas == 4.0 and d.cg == pytest.approx(1.5 * r.cg) and d.cgk == pytest.approx(
+        1.5 * r.cgk)
+
+
 @pytest.mark.parametrize(("error", "u", "iso", "vda"), [
     (0.5, 0.1, Verdict.PASS, Verdict.PASS),          # 0.5 + 0.2 <= 1: proven inside
     (0.9, 0.1, Verdict.INCONCLUSIVE, Verdict.FAIL),  # inside, but not by U: VDA 5 rejects

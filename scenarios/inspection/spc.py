@@ -14,8 +14,9 @@ Western Electric (1956): 1 a point beyond 3 sigma; 2 two of three in a row beyon
 one side; 3 four of five beyond 1 sigma on one side; 4 eight in a row on one side.
 Nelson (1984) keeps 1, 5 (= WE 2), 6 (= WE 3) and adds 2 nine in a row on one side, 3 six in
 a row steadily rising or falling, 4 fourteen in a row alternating up and down, 7 fifteen in a
-row within 1 sigma, 8 eight in a row with none within 1 sigma (either side). A signal is
-reported at the point that completes the pattern.
+row within 1 sigma, 8 eight in a row with none within 1 sigma and points on both sides of the
+centre line. A signal is reported at the point that completes the pattern. (The published
+statements of both sets that tests/test_spc.py checks them against are cited there.)
 
 **Capability** against the two-sided specification [LSL, USL]: Cp = (USL - LSL) / 6 sigma,
 Cpk = min(USL - mean, mean - LSL) / 3 sigma with the short-term sigma (MR-bar / d2); Pp and
@@ -50,7 +51,7 @@ NELSON = {
     5: "two of three in a row beyond 2 sigma on one side",
     6: "four of five in a row beyond 1 sigma on one side",
     7: "fifteen in a row within 1 sigma",
-    8: "eight in a row none within 1 sigma",
+    8: "eight in a row none within 1 sigma, on both sides",
 }
 
 
@@ -180,7 +181,9 @@ def run_rules(values: Sequence[float], center: float, sigma: float,
             if len(w) == 15 and np.all(np.abs(w) < 1):
                 hit("within1", i)
             w = z[max(0, i - 7):i + 1]
-            if len(w) == 8 and np.all(np.abs(w) > 1):
+            # Nelson's 8 is a mixture: the points jump across the centre, so both sides
+            # must be there (eight beyond 1 sigma on one side is a shift, his 2, 5 and 6)
+            if len(w) == 8 and np.all(np.abs(w) > 1) and np.any(w > 0) and np.any(w < 0):
                 hit("none_within1", i)
     return out
 

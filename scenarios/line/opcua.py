@@ -24,7 +24,12 @@ The results are written before Done turns true, so a PLC that sees Done reads a 
 Security: anonymous and no security policy only when the station file says
 ``[line.opcua] anonymous = true``; otherwise users of role ``plc`` log in by name and password,
 over Basic256Sha256 SignAndEncrypt only, with the station's certificate (self-signed, generated
-on first start when the files named do not exist).
+on first start when the files named do not exist), and only from a client whose application
+instance certificate is trusted: in the station's trust list (``[line.opcua] trust_list``, a
+folder of client certificates or of the CAs that issued them), within its validity, its URI the
+client's application URI, its key usage an OPC UA client's (OPC 10000-6 6.2.2; asyncua's
+`CertificateValidator` with `TRUSTED_VALIDATION`). Any other is refused (BadCertificateUntrusted
+and its kin) and the refusal written to the audit trail.
 """
 
 from __future__ import annotations
@@ -32,12 +37,18 @@ from __future__ import annotations
 import asyncio
 import logging
 import socket
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from asyncua import Server, ua
+from asyncua.common.utils import ServiceError
 from asyncua.crypto.permission_rules import User as UaUser
 from asyncua.crypto.permission_rules import UserRole
+from asyncua.crypto.truststore import TrustStore
+from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes
 
 from scenarios.line import auth
 from scenarios.line.engine import Busy, Snapshot, StationEngine
@@ -47,15 +58,96 @@ NAMESPACE = "urn:aimbench:line-station"
 APP_URI = "urn:aimbench:line-station:server"
 
 
-class _StationUsers:
-    """asyncua's user manager: the station file's users of role ``plc``."""
+def describe(cert: x509.Certificate) -> dict[str, str]:
+    """What the audit trail and the refusal say of a certificate: its subject and its SHA-1
+    thumbprint (the one OPC UA tools show)."""
+    return {"subject": cert.subject.rfc4514_string(),
+            "thumbprint": cert.fingerprint(hashes.SHA1()).hex()}  # OPC UA names certs by SHA-1
 
-    def __init__(self, station: Any) -> None:
+
+class StationTrust:
+    """Which clients the secured endpoint talks to: those whose certificate is trusted by the
+    folder `folder` (a certificate there, or the CA that issued it), checked by asyncua's
+    `CertificateValidator` at CreateSession and, for the certificate that actually secures
+    the channel, again at ActivateSession (`channel_trusted`): a client could otherwise open
+    the channel with one certificate and create its session naming none."""
+
+    OPTIONS = (CertificateValidatorOptions.TRUSTED_VALIDATION
+               | CertificateValidatorOptions.PEER_CLIENT)
+
+    def __init__(self, folder: Path, audit: Any) -> None:
+        self.folder = folder
+        self.audit = audit  # StationEngine.audit
+        self.store = TrustStore([folder], [])  # loaded by `load`: trusts no one until then
+        self.validator = CertificateValidator(self.OPTIONS, self.store)
+
+    async def load(self) -> None:
+        """Read the trust list's folder (created empty if missing). A file there that is no
+        certificate raises AimbenchError naming it."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        store = TrustStore([self.folder], [])
+        try:
+            await store.load_trust()
+        except ValueError as exc:
+            # cryptography refuses an empty store; a fresh TrustStore trusts no one, which
+            # is what an empty trust list means
+            if "empty store" not in str(exc):
+                raise AimbenchError(f"the OPC UA trust list {self.folder}: {exc}") from exc
+        except Exception as exc:
+            raise AimbenchError(f"the OPC UA trust list {self.folder}: {exc}") from exc
+        self.store = store
+        self.validator = CertificateValidator(self.OPTIONS, store)
+
+    async def __call__(self, cert: x509.Certificate,
+                       app: ua.ApplicationDescription) -> None:
+        """asyncua's certificate validator (`Server.set_certificate_validator`): raises
+        ServiceError with the OPC UA status that says why a client is refused."""
+        # read the folder again: an engineer who adds a PLC's certificate needs no restart
+        try:
+            await self.load()
+        except AimbenchError as exc:
+            # a bad file dropped in neither locks the line out nor trusts anyone new
+            logging.getLogger(__name__).warning("%s; the trust list read before stands", exc)
+        try:
+            await self.validator.validate(cert, app)
+        except ServiceError as exc:
+            why = ua.StatusCode(exc.code).name
+            self.audit("plc", "plc", "opcua certificate refused",
+                       {**describe(cert), "application_uri": app.ApplicationUri, "why": why})
+            logging.getLogger(__name__).warning(
+                "OPC UA client %s refused: %s (put its certificate in %s to trust it)",
+                describe(cert)["subject"], why, self.folder)
+            raise
+
+    def channel_trusted(self, der: bytes | None) -> bool:
+        """Whether the certificate that secures a session's channel is in the trust list (the
+        store as the last session read it)."""
+        if not der:
+            return False
+        cert = x509.load_der_x509_certificate(der)
+        now = datetime.now(UTC)
+        if (self.store.validate(cert)
+                and cert.not_valid_before_utc <= now <= cert.not_valid_after_utc):
+            return True
+        self.audit("plc", "plc", "opcua certificate refused",
+                   {**describe(cert), "why": "the channel's certificate is not trusted"})
+        return False
+
+
+class _StationUsers:
+    """asyncua's user manager: the station file's users of role ``plc``, over a channel
+    secured by a trusted client certificate."""
+
+    def __init__(self, station: Any, trust: StationTrust) -> None:
         self.station = station
+        self.trust = trust
 
     def get_user(self, iserver: Any, username: str | None = None, password: str | None = None,
-                 certificate: Any = None) -> UaUser | None:
+                 certificate: bytes | None = None) -> UaUser | None:
         if not username or password is None:
+            return None
+        # asyncua hands over the channel's certificate for a user-name token
+        if not self.trust.channel_trusted(certificate):
             return None
         user = auth.authenticate(self.station, username, password)
         if user is None or user.role != "plc":
@@ -82,6 +174,7 @@ class StationOpcUa:
         self.host, self.port = host, port
         self.folder = folder
         self.server: Server | None = None
+        self.trust: StationTrust | None = None  # None: anonymous, no security
         self.nodes: dict[str, Any] = {}
         self.axes: dict[str, dict[str, Any]] = {}
         self._tasks: set[asyncio.Task] = set()
@@ -93,8 +186,13 @@ class StationOpcUa:
     async def start(self) -> None:
         cfg = self.engine.station.line.opcua
         logging.getLogger("asyncua").setLevel(logging.ERROR)
-        server = Server(user_manager=None if cfg.anonymous else _StationUsers(
-            self.engine.station))
+        # asyncua's trust store logs a traceback for every untrusted certificate; the station
+        # says it in one line and in the audit trail (StationTrust)
+        logging.getLogger("asyncuagds").setLevel(logging.CRITICAL)
+        trust = None if cfg.anonymous else StationTrust(self._path(cfg.trust_list),
+                                                        self.engine.audit)
+        server = Server(user_manager=None if trust is None else _StationUsers(
+            self.engine.station, trust))
         await server.init()
         server.set_endpoint(f"opc.tcp://{self.host}:{self.port}/aimbench/station")
         server.set_server_name(f"aimbench station {self.engine.station.name}")
@@ -110,6 +208,9 @@ class StationOpcUa:
             await server.load_private_key(str(key))
             server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt])
             server.set_identity_tokens([ua.UserNameIdentityToken])
+            await trust.load()
+            server.set_certificate_validator(trust)
+            self.trust = trust
         idx = await server.register_namespace(NAMESPACE)
         obj = await server.nodes.objects.add_object(idx, "Station")
 
