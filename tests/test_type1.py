@@ -16,15 +16,15 @@ from scenarios.inspection.verdict import Verdict, judge, q_mp
 def test_type1_figures_by_hand():
     """25 readings of a reference part of 10.000 in a tolerance 9.9..10.1 (T = 0.2): the
     readings 10.000 +- 0.004 alternating, one at 10.006, so every figure is exact by hand:
-    mean = 10.000 + 0.006/25 = 10.00024; Cg = 0.2 x 0.2 / (4 s); Cgk = (0.1 x 0.2 - |bias|)
-    / (2 s); t = bias / (s / 5)."""
+    mean = 10.000 + 0.006/25 = 10.00024; Cg = 0.2 x 0.2 / (6 s); Cgk = (0.1 x 0.2 - |bias|)
+    / (3 s); t = bias / (s / 5)."""
     x = np.array([10.004, 9.996] * 12 + [10.006])
     r = msa.type1(x, 10.0, 0.2, "x_mm", "mm")
     s = x.std(ddof=1)
     assert r.n == 25 and r.mean == pytest.approx(10.00024, abs=1e-12)
     assert r.bias == pytest.approx(0.00024, abs=1e-12)
-    assert r.cg == pytest.approx(0.04 / (4 * s))
-    assert r.cgk == pytest.approx((0.02 - 0.00024) / (2 * s))
+    assert r.cg == pytest.approx(0.04 / (6 * s))
+    assert r.cgk == pytest.approx((0.02 - 0.00024) / (3 * s))
     assert r.t == pytest.approx(0.00024 / (s / 5))
     assert r.p == pytest.approx(2 * stats.t.sf(r.t, 24))
     assert r.capable == (r.cg >= 1.33 and r.cgk >= 1.33)
@@ -69,11 +69,12 @@ def test_type1_equals_a_published_study():
     assert round(r.cg, 2) == 1.19 and round(r.cgk, 2) == 1.15
     assert round(100 * 0.20 / r.cg, 1) == 16.8 and round(100 * 0.20 / r.cgk, 2) == 17.43
     assert not r.capable and not r.bias_significant
-    # the station's own convention, L = 4 (docs/inspection.md), on the same study: the spread
-    # counted as +-2 s instead of +-3 s, so Cg and Cgk are 6/4 of the figures above
+    # the default is that convention; a company rule of L = 4 counts the spread as +-2 s, so
+    # its Cg and Cgk are 6/4 of the figures above
     d = msa.type1(np.array(JASP_TYPE1), -4.0, 15.0, "dm", "um")
-    assert d.sigmas == 4.0 and d.cg == pytest.approx(1.5 * r.cg) and d.cgk == pytest.approx(
-        1.5 * r.cgk)
+    assert d.sigmas == 6.0 and d.cg == r.cg and d.cgk == r.cgk
+    f = msa.type1(np.array(JASP_TYPE1), -4.0, 15.0, "dm", "um", sigmas=4.0)
+    assert f.cg == pytest.approx(1.5 * r.cg) and f.cgk == pytest.approx(1.5 * r.cgk)
 
 
 @pytest.mark.parametrize(("error", "u", "iso", "vda"), [

@@ -19,7 +19,7 @@ file may state as ``[tolerances.system_sigma]``. ``--linearity``: AIAG bias and 
 yaw and x against the stages' references. ``--type1 --reference FILE``: the Type-1 study
 of one reference part (FILE: ``unit = "ID"`` and a ``[reference]`` table of its calibrated
 mounting error, ``tilt_deg = 0.3``...) measured ``--repeats`` times (at least 25): per judged
-axis Cg = 0.2 T / 4 s and Cgk = (0.1 T - |bias|) / 2 s against the tolerance T = 2 x limit
+axis Cg = 0.2 T / 6 s and Cgk = (0.1 T - |bias|) / 3 s against the tolerance T = 2 x limit
 (capable: both >= 1.33), the bias with its t-test, and VDA 5's Q_MP = 2 U / T. Studies on the
 twin are stored in ``--db`` and resume where they stopped.
 """

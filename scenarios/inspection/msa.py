@@ -318,11 +318,13 @@ def linearity(reference: np.ndarray, measured: np.ndarray, axis: str, unit: str,
 
 # -- the Type-1 gauge study ------------------------------------------------------------------
 
-#: The Type-1 study's conventions (Bosch booklet 10, VDA 5, Minitab's defaults but L): the
-#: gauge may use K = 20 % of the tolerance, its spread counted as L = 4 standard deviations
-#: (+-2 s), and it is capable when Cg and Cgk are both at least 1.33.
+#: The Type-1 study's conventions (Bosch booklet 10 since its 2003 edition, Minitab's and
+#: JASP's defaults): the gauge may use K = 20 % of the tolerance, its spread counted as L = 6
+#: standard deviations (+-3 s), and it is capable when Cg and Cgk are both at least 1.33. Some
+#: company rules count L = 4 (`type1(..., sigmas=4)`): 6/4 the figures, a laxer test; the
+#: published convention is the one a customer's auditor recomputes, so it is the default.
 TYPE1_PCT = 20.0
-TYPE1_SIGMAS = 4.0
+TYPE1_SIGMAS = 6.0
 TYPE1_MIN_C = 1.33
 #: The fewest repeats of the reference part a Type-1 study accepts (50 preferred).
 TYPE1_MIN_N = 25
