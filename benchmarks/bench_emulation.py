@@ -39,6 +39,7 @@ import os
 import pstats
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -107,26 +108,37 @@ def _emulators(scene: str, rpm: float) -> dict[str, BenchSim]:
         ("divergence, all sub-rays", EmulationConfig(subrays="all")))}
 
 
-def bench_scene(scene: str, az: np.ndarray, repeats: int, profile: bool
-                ) -> list[tuple[str, float, float, str, float | None]]:
-    """Rows (name, cpu s, wall s, anchor, anchor's time s or None) of one scene."""
-    n_rays = az.size
+def bare_multiray(sim: BenchSim, az: np.ndarray) -> tuple[Callable[[], None], np.ndarray]:
+    """One `mujoco.mj_multiRay` call over a rotation's firings (``az``, `firing_grid`) from
+    ``sim``'s optical centre, nothing else: what casting every ray through MuJoCo costs, the
+    floor the emulation and the sweep are measured against; and the rays' unit directions in
+    {L}."""
     lid = np.tile(np.arange(vlp16.N_LASERS, dtype=np.uint8), az.shape[0])
-    sims = _emulators(scene, 600.0)
-    sim = sims["no divergence"]
     ph = sim.physics
     pos, rot = ph.lidar_pose_world()
     w = vlp16.ELEVATION[lid]
     a = az.reshape(-1)
     u = np.column_stack((np.cos(w) * np.sin(a), np.cos(w) * np.cos(a), np.sin(w)))
     vec = np.ascontiguousarray(u @ rot.T).reshape(-1)
-    gid = np.zeros(n_rays, dtype=np.int32)
-    dist = np.zeros(n_rays)
+    gid = np.zeros(az.size, dtype=np.int32)
+    dist = np.zeros(az.size)
     group = sim.caster.geomgroup
 
     def bare() -> None:
         mujoco.mj_multiRay(ph.model, ph.data, pos, vec, group, 1, ph.sensor_body_id, gid, dist,
-                           None, n_rays, vlp16.RANGE_MAX)
+                           None, az.size, vlp16.RANGE_MAX)
+
+    return bare, u
+
+
+def bench_scene(scene: str, az: np.ndarray, repeats: int, profile: bool
+                ) -> list[tuple[str, float, float, str, float | None]]:
+    """Rows (name, cpu s, wall s, anchor, anchor's time s or None) of one scene."""
+    sims = _emulators(scene, 600.0)
+    sim = sims["no divergence"]
+    ph = sim.physics
+    group = sim.caster.geomgroup
+    bare, u = bare_multiray(sim, az)
 
     rows: list[tuple[str, float, float, str, float | None]] = []
     cpu, wall = timed(bare, repeats)
