@@ -161,7 +161,7 @@ def placed(hints: Hints) -> bool:
 def hidden_board(c: Candidate) -> bool:
     """Whether a candidate that failed may be the board partly hidden (`HIDDEN_SHARE`): rays
     blocked in front of it, at most that share of its hits outside its rectangle,
-    `HIDDEN_EDGES` of its edges seen, its fit sound."""
+    `HIDDEN_EDGES` of its edges seen, its fit sound, the board's size not refused."""
     e = c.estimate
     if e.status != Status.PARTIAL_BOARD or e.pose is None:
         return False
@@ -170,7 +170,10 @@ def hidden_board(c: Candidate) -> bool:
     return (d.get("occluded_rays", 0) > HIDDEN_SHARE * hits
             and d.get("outside_hits", math.inf) <= HIDDEN_SHARE * hits
             and d.get("chi2_per_dof", math.inf) <= 3.0
-            and len(d.get("edges_seen", "")) >= HIDDEN_EDGES)
+            and len(d.get("edges_seen", "")) >= HIDDEN_EDGES
+            # the rays do not refuse the board's size for it (`align.fit.size`): a box's
+            # face behind the board, partly hidden by it, is another size along an edge seen
+            and not d.get("size_freed", False))
 
 
 @dataclass(frozen=True)

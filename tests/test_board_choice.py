@@ -108,7 +108,9 @@ def test_the_stations_region_picks_the_board(panel_scans):
         est = align.estimate(scans, hints=hints)
         assert est.success, est.diagnostics
         assert np.all(np.abs(est.pose.as_array()[:3] - truth[:3]) < 4 * est.std[:3] + 1e-3)
-        assert est.diagnostics["board_candidates"] == 2
+        # the two panels, and the wall between them, seen past the board's edge, weighed too
+        # (`align.search.board.BEHIND_CHOICE`): the region still picks the board
+        assert est.diagnostics["board_candidates"] >= 2
 
 
 def test_a_board_outside_the_region_is_refused(panel_scans):

@@ -114,6 +114,17 @@ ALTERNATIVE_SCORE = 0.25
 
 
 MAX_ALTERNATIVES = 2
+#: A candidate this much further than the choice, its azimuths meeting the choice's (within
+#: `BESIDE_CHOICE`), is kept beside it whatever its score, m: it may be the board partly hidden
+#: by the choice (a board-sized panel in front of the board), which the rectangle's fill scores
+#: low; the choice between them (`align.choice`) asks whether it is (bench_align.py
+#: --distractors: without a stated distance, a level board half hidden behind a panel scored
+#: 0.03 of the panel and the panel passed as the board).
+BEHIND_CHOICE = 0.2
+#: How far apart in azimuth the returns of a candidate hidden in part by the choice and the
+#: choice's own may be, rad: next to each other, the choice's silhouette edge between them, a
+#: firing step or two apart (`AZ_STEP_RANGE`); a panel beside the board is degrees away.
+BESIDE_CHOICE = math.radians(2.0)
 
 
 #: A cluster is a candidate with at least this fraction of the returns the board would give.
@@ -240,6 +251,15 @@ def expected_returns(scan: Scan, board: BoardSpec, dist: np.ndarray | float) -> 
         return (board.width / (dist * az_step)) * (board.height / (dist * ring_step) + 1)
 
 
+def _azimuths_meet(scan: Scan, a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether the azimuth spans of returns ``a`` and ``b`` overlap or lie within
+    `BESIDE_CHOICE` of each other (the spans taken about ``b``'s mean azimuth: no wrap)."""
+    centre = np.angle(np.mean(np.exp(1j * scan.azimuth[b])))
+    ra = np.angle(np.exp(1j * (scan.azimuth[a] - centre)))
+    rb = np.angle(np.exp(1j * (scan.azimuth[b] - centre)))
+    return bool(ra.min() <= rb.max() + BESIDE_CHOICE and rb.min() <= ra.max() + BESIDE_CHOICE)
+
+
 def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
     """Cluster the scan and pick the board's cluster (paper III-A).
 
@@ -303,8 +323,10 @@ def find_board(scan: Scan, board: BoardSpec, hints: Hints) -> Segmentation:
         order = np.flatnonzero(near)[np.argsort(-score[near], kind="stable")]
         lab = int(order[0])
         sel = members[lab]
-        kept = [int(o) for o in order[1:1 + MAX_ALTERNATIVES]
-                if score[o] >= ALTERNATIVE_SCORE * score[lab]]
+        kept = [int(o) for o in order[1:]
+                if score[o] >= ALTERNATIVE_SCORE * score[lab]
+                or (score[o] > 0.0 and dist[o] >= dist[lab] + BEHIND_CHOICE
+                    and _azimuths_meet(scan, members[o], sel))][:MAX_ALTERNATIVES]
         return Segmentation(Status.OK, sel, n_lab, float(dist[lab]), ring_count(scan, sel),
                             alternatives=tuple(members[o] for o in kept),
                             score=float(score[lab]),
