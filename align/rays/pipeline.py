@@ -51,6 +51,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     """Joint estimate from one or more scans of a static pose (their board clusters found)."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(hints.seed)
+    p = p.for_firing_step(firing_step(scans[0]))
     plane = board_plane(scans, segs, board, hints, rng, p=p)
     t_plane = time.perf_counter()
     starts = roll_starts(plane, board, hints, p=p)
@@ -62,6 +63,15 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     solution = hit_miss_posterior(scans, plane, fit, board, hints, rng, p=p)
     timings = {"plane": t_plane - t0, "fit": time.perf_counter() - t_plane}
     return outcome(solution, fit, len(starts), plane.sigma_r, board, timings, p=p)
+
+
+def firing_step(scan: Scan) -> float:
+    """The azimuth between two firings of the least fired laser of a rotation, rad (2 pi over
+    its firings; one pass of counting, not a sort). A PandarQT128's middle lasers fire every
+    0.8 deg, half as often as its others; the VLP-16's every 0.2 deg."""
+    counts = np.bincount(scan.laser_id, minlength=scan.lasers.n_lasers)
+    fired = counts[counts > 0]
+    return 2.0 * math.pi / float(fired.min()) if len(fired) else 0.0
 
 
 #: The fewest rays a plane is fitted to (three points fix a plane).

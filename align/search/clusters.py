@@ -115,8 +115,10 @@ def _edges_sorted(scan: Scan, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     m = same & (d < np.minimum(thr[1:], thr[:-1]))
     a_list = [np.flatnonzero(m)]
     b_list = [a_list[0] + 1]
-    starts = np.searchsorted(ring_s, np.arange(17))
-    for k in range(15):
+    # every pair of adjacent rings of the sensor's table (a QT128 has 128, not the VLP-16's 16)
+    nl = scan.lasers.n_lasers
+    starts = np.searchsorted(ring_s, np.arange(nl + 1))
+    for k in range(nl - 1):
         lo, hi = starts[k], starts[k + 1]
         lo2, hi2 = starts[k + 1], starts[k + 2]
         if hi - lo == 0 or hi2 - lo2 == 0:
