@@ -216,7 +216,7 @@ def test_a_block_of_poses_is_the_same_whoever_computes_it_and_however_it_is_cut(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("model", ["OS1-64", "PandarXT32", "VLP-32C"])
+@pytest.mark.parametrize("model", ["OS1-64", "PandarXT32", "PandarQT128", "VLP-32C"])
 def test_a_design_point_of_another_sensor_runs_its_twin_with_its_bound(model: str):
     """``sensor.model`` over Ouster, Hesai and Velodyne models: the point's scans are that
     sensor's twin's (an Ouster's or a Hesai's through its packets and aimbench's decoder,
