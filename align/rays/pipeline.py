@@ -66,12 +66,17 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
 
 
 def firing_step(scan: Scan) -> float:
-    """The azimuth between two firings of the least fired laser of a rotation, rad (2 pi over
-    its firings; one pass of counting, not a sort). A PandarQT128's middle lasers fire every
-    0.8 deg, half as often as its others; the VLP-16's every 0.2 deg."""
+    """The azimuth between two firings of the least fired laser, rad: the median step between
+    its firings sorted by azimuth (0 if it fired once), so that a scan cut to a window or out
+    of firing order says the same. A PandarQT128's middle lasers fire every 0.8 deg, half as
+    often as its others; the VLP-16's every 0.2 deg."""
     counts = np.bincount(scan.laser_id, minlength=scan.lasers.n_lasers)
-    fired = counts[counts > 0]
-    return 2.0 * math.pi / float(fired.min()) if len(fired) else 0.0
+    if not np.any(counts):
+        return 0.0
+    least = int(np.argmin(np.where(counts > 0, counts, np.iinfo(counts.dtype).max)))
+    steps = np.diff(np.sort(scan.azimuth[scan.laser_id == least]))
+    steps = steps[steps > 0]
+    return float(np.median(steps)) if len(steps) else 0.0
 
 
 #: The fewest rays a plane is fitted to (three points fix a plane).
