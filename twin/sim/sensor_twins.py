@@ -67,8 +67,15 @@ def firing_of(model: str) -> FiringPattern | None:
 
         # Phase-locked as the XT32's. The lasers that see a board near the horizon (channels
         # 33-64, -18 to +6 deg) fire in one of the two loops only: every other firing, 0.8 deg
-        # at 600 rpm (channels 65-128 every firing, 0.4 deg: the bound is pessimistic for them)
-        return FiringPattern(600.0, 2 * QT128.firing_period, None, True)
+        # at 600 rpm (channels 65-128 every firing, 0.4 deg: the bound is pessimistic for
+        # them). The twin fires a firing's channels at its block's azimuth (as the decoders
+        # read it): loop 1's at the period's start, loop 2's (channels 1-32) half a period
+        # later. Their times matter: channels 33-64 share one azimuth offset within 0.3 deg,
+        # so their brackets along a side edge fall at one phase, and the bound with the
+        # phases unknown (averaged) said half the twin's roll spread (0.31 against 0.62 deg
+        # fused, benchmarks/bench_models.py); with them it says 0.62.
+        times = tuple(QT128.firing_period if c < 32 else 0.0 for c in range(128))
+        return FiringPattern(600.0, 2 * QT128.firing_period, times, True)
     return None
 
 
