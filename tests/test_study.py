@@ -233,7 +233,10 @@ def test_a_design_point_of_another_sensor_runs_its_twin_with_its_bound(model: st
     sig = np.array([r[6] for r in out["estimates"]])
     assert np.all(np.abs(err) < 5 * sig), (err / sig).round(1)
     bound = np.array([r[2] for r in out["bounds"]])
-    assert np.all(np.isfinite(bound)) and np.all(bound[:, 3] < np.radians(0.5))
+    # the QT128's lasers at the board fire 0.8 deg apart at one phase: its roll bound is about
+    # 0.6 deg (docs/vlp16.md), the others' under 0.5
+    limit = np.radians(1.0 if model == "PandarQT128" else 0.5)
+    assert np.all(np.isfinite(bound)) and np.all(bound[:, 3] < limit)
 
 
 # -- a small study, for real ---------------------------------------------------------------
