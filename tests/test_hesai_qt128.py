@@ -137,3 +137,34 @@ def test_the_model_is_named_and_refused_when_the_file_is_another_models():
         assert "a PandarQT128 has 128" in str(exc)
     else:
         raise AssertionError("a 32-channel file read as a QT128's")
+
+
+def test_single_return_and_unsigned_packets_read_by_the_block_loops():
+    """Single return (0x37): each block its own firing, block 0 loop 1 and block 1 loop 2
+    (nebula's pandar_qt128.hpp), 0.4 deg apart; a packet without the 32 bytes of cyber
+    security (1095 bytes) reads the same."""
+    from twin.lidar.hesai import QT128_SIGNED_BYTES, encode_qt128, scans_from_hesai
+
+    angles = HesaiAngles.from_csv(default_angles("PandarQT128"), "PandarQT128")
+    n = 1400  # 2,800 firings at 0.4 deg: past 180 deg three times, two whole turns
+    rng = np.random.default_rng(0)
+    az = (np.arange(2 * n) * 40).reshape(n, 2) % 36000
+    dist = rng.uniform(1.0, 20.0, (n, 2, 128))
+    refl = rng.integers(1, 255, (n, 2, 128))
+    ts = np.rint(np.arange(n) * 2e6 * QT128.firing_period).astype(np.int64)
+    for signed in (True, False):
+        packets = encode_qt128(az, dist, refl, ts, np.zeros(n), return_mode=0x37, signed=signed)
+        assert {len(p) for p in packets} == {QT128_SIGNED_BYTES if signed else QT128_BYTES}
+        dec = decode_hesai(packets, angles)
+        assert np.array_equal(dec.loop, np.tile([0, 1], (n, 1)))
+        fired = QT128_FIRED[dec.loop]
+        assert np.all(dec.distance[~fired] == 0)
+        assert np.abs(dec.distance[fired] - dist[fired]).max() <= 0.002 + 1e-12
+        scans = scans_from_hesai(dec, angles)
+        assert len(scans) == 2 and all(len(s) == 900 * 96 for s in scans)
+        # firings 111.11 us apart; a channel's time its loop's offset within its firing
+        # (channel 101: 79,800 ns in loop 1, 80,656 in loop 2; the scan starts on a loop 1)
+        t = scans[0].time[scans[0].laser_id == 100]
+        k = np.arange(len(t))
+        offset = np.where(k % 2 == 0, 79800e-9, 80656e-9)
+        assert np.allclose(t - offset, k * QT128.firing_period, atol=1e-12)
