@@ -8,6 +8,7 @@ Lengths in m, angles in rad.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -111,7 +112,8 @@ class RaysParams:
 
     #: Consecutive transitions closer than this (in azimuth, rad) form one mixed zone.
     zone_azimuth: float = float(np.deg2rad(0.5))
-    #: Neighbours farther apart than this in azimuth bracket nothing (a dropped firing), rad.
+    #: Neighbours farther apart than this in azimuth bracket nothing (a dropped firing), rad;
+    #: at least `GAP_STEPS` of the sensor's own firing step (`for_firing_step`).
     max_gap: float = float(np.deg2rad(0.7))
 
     # The least-squares model (`align.fit.model`)
@@ -222,6 +224,24 @@ class RaysParams:
         return 1.0 - 2.0 * c * math.exp(-c**2 / 2) / math.sqrt(2 * math.pi) / math.erf(
             c / math.sqrt(2))
 
+    def for_firing_step(self, step: float) -> RaysParams:
+        """These parameters for a sensor firing each laser every ``step`` rad: `max_gap` at
+        least `GAP_STEPS` steps, so that a sparser sensor's neighbours still bracket an edge (a
+        PandarQT128's middle lasers fire every 0.8 deg, past the 0.7 deg set for the VLP-16's
+        0.2; every model measured before, 0.18 to 0.4 deg, keeps 0.7; an Ouster of 512
+        columns, 0.7 deg, now gets 1.05)."""
+        gap = min(GAP_STEPS * step, MAX_GAP)
+        if gap <= self.max_gap:
+            return self
+        return dataclasses.replace(self, max_gap=gap)
+
+
+#: Neighbours along a laser this many firing steps apart still bracket: one firing dropped
+#: (two steps) is a gap, and a step read a little long by the azimuth's rounding is not.
+GAP_STEPS = 1.5
+#: ... but never more than this, rad (the board search joins nothing farther apart either:
+#: `align.search.clusters.MAX_AZIMUTH_GAP`, 1 deg), whatever a scan of a few firings says.
+MAX_GAP = math.radians(1.5)
 
 #: The values every figure was measured with.
 DEFAULT_PARAMS = RaysParams()

@@ -16,14 +16,18 @@ fused), per axis (tilt, roll, yaw deg; x mm): precision = mean over poses of the
 standard deviation of the single-scan estimates (fused: RMS error over poses), chi2 = mean of
 (error / reported sigma)^2 (1 for an honest sigma). The anchor is the paper's own VLP-16
 simulation precision (its table: 0.15 / 0.20 / 0.10 deg, 4.8 mm); ratio = anchor / figure (> 1:
-better than the paper's VLP-16). The bound column (the information bound per model) is left to
-`align.design.bound`. CPU seconds of this process (`time.process_time`), one BLAS thread.
+better than the paper's VLP-16). Method ``bound``: the precision bound of `align.design.bound`
+at each pose's truth with the model's lasers and firing (`twin.sim.sensor_twins.firing_of` for
+an Ouster's or a Hesai's twin, a Velodyne's own firing sequence) and the twin's range noise with
+the packet's unit, RMS over poses, single and fused (the beam sharp, as the twins'). CPU seconds
+of this process (`time.process_time`), one BLAS thread.
 
 Ouster OS0/OS1/OS2 x 32/64/128 (1024x10) go through `twin.sim.ouster_twin` (a real unit's
-metadata, its LEGACY packets, our decoder), the Hesai PandarXT32 through `twin.sim.hesai_twin`
-(nebula's angle corrections, its packets, our decoder); then two rows on Ouster decoding:
-agreement with ouster-sdk on its own real capture, and frames per second against ouster-sdk's
-(measured when ouster-sdk can be imported).
+metadata, its LEGACY packets, our decoder), the Hesai PandarXT32 and PandarQT128 through
+`twin.sim.hesai_twin` (nebula's angle corrections, their packets, our decoder); then the decode
+rows: Ouster agreement with ouster-sdk on its own real capture and frames per second against
+ouster-sdk's (measured when ouster-sdk can be imported), and each Hesai model's agreement with
+nebula's decoder on a real capture (its test's ground-truth points).
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
+import contextlib
 import sys
 import tempfile
 import time
@@ -60,6 +65,7 @@ from twin.lidar.sources import open_scans
 from twin.sim.bench import BenchSim
 from twin.sim.emulation import EmulationConfig
 from twin.sim.ouster_twin import write_ouster_pcap
+from twin.sim.sensor_twins import HESAI_MODELS as HESAI
 from twin.sim.sensor_twins import own_twin_scans
 
 
@@ -127,6 +133,83 @@ def ouster_decode_rows() -> list[str]:
     return rows
 
 
+#: Per Hesai model: its real capture in tests/data, nebula's points of it, nebula's test's
+#: nearest range (m; nebula keeps a return at it: 0.3 m, 75 units, is common on the QT128)
+#: and dual-return threshold (m; 0: only an echo repeated is dropped).
+HESAI_CASES = {
+    "PandarXT32": ("nebula-xt32", "xt32-one-turn.pcap", "xt32-nebula-points-first-quarter.npy",
+                   0.05, 0.0),
+    "PandarQT128": ("nebula-qt128", "qt128-first-quarter.pcap",
+                    "qt128-nebula-points-first-quarter.npy", 0.3, 0.1),
+}
+
+
+def hesai_decode_rows(models: list[str]) -> list[str]:
+    """Each Hesai model's decode agreement with nebula's C++ decoder: its real capture
+    (nebula's decoder test recording) against the ground-truth points nebula's decoder wrote
+    of its first quarter, with nebula's test settings, nearest neighbours both ways (as
+    tests/test_hesai.py and tests/test_hesai_qt128.py)."""
+    from scipy.spatial import cKDTree
+
+    from twin.lidar.hesai import HesaiAngles, decode_hesai
+    from twin.lidar.pcap import read_pcap
+
+    data = Path(__file__).resolve().parent.parent / "tests" / "data"
+    rows = []
+    for model in (m for m in models if m in HESAI_CASES):
+        folder, pcap, points, near, threshold = HESAI_CASES[model]
+        angles = HesaiAngles.from_csv(data / folder / f"{model}.csv", model)
+        payloads = [r.payload for r in read_pcap(data / folder / pcap)]
+        dec = decode_hesai(payloads, angles)
+        d = dec.distance
+        keep = (d >= near) & (d <= angles.model.max_range)
+        # a dual pair's first block (the last return): dropped when it repeats the strongest,
+        # or is within the threshold of it (nebula's hesai_decoder.hpp convert_returns)
+        gap = np.abs(d[:, 0::2] - d[:, 1::2])
+        keep[:, 0::2] &= gap >= threshold if threshold else gap > 0
+        xyz = np.stack([dec.x, dec.y, dec.z], axis=-1)
+        ours = xyz[keep]
+        if model == "PandarXT32":  # the rotation's packets up to 90 deg (the first: the turn
+            # before, but for its blocks past 0 deg)
+            end = 1 + int(np.argmax(dec.block_azimuth_cdeg[1:, 0] >= 9000))
+            quarter = xyz[1:end][keep[1:end]]
+        else:  # the quarter by the points' own azimuth
+            a = np.degrees(np.arctan2(ours[:, 0], ours[:, 1])) % 360
+            quarter = ours[(a >= 0) & (a < 90)]
+        truth = np.load(data / folder / points).astype(np.float64)
+        to_ours, _ = cKDTree(ours).query(truth)
+        to_truth, _ = cKDTree(truth).query(quarter)
+        rows.append(f"decode agreement with nebula's decoder ({model}, its real capture): "
+                    f"quarter rotation {len(quarter)} points, its {len(truth)}; each of its "
+                    f"within {to_ours.max():.1e} m of ours, each of ours within "
+                    f"{to_truth.max():.1e} m of its")
+    return rows
+
+
+def bound_of(model: str, truth, n: int, seed: int, lasers) -> np.ndarray:
+    """The precision bound (tilt, roll, yaw deg, x mm) of ``n`` scans at ``truth`` (the board
+    frame of the paper's level board) for the model's lasers and firing."""
+    from align.design.bound import Firing, RangeNoise, precision_bound
+    from twin.core.sensors import model_named
+    from twin.sim.sensor_twins import firing_of
+
+    own = firing_of(model)
+    if own is not None:  # an Ouster's or a Hesai's twin: 10 mm noise, its packet's unit
+        firing = Firing(rpm=own.rpm, period=own.period, laser_times=own.laser_times,
+                        phase_locked=own.phase_locked)
+        sigma, unit = 0.01, (0.004 if model in HESAI else 0.001)
+    else:  # a Velodyne's: BenchSim's noise for the model (the paper's scaled), its unit
+        m = model_named(model)
+        firing = Firing(rpm=600.0, period=m.sequence_period,
+                        laser_times=tuple(float(v) for v in m.firing_offset))
+        sigma = float(EmulationConfig(model=model).range_noise_sigma)
+        unit = m.distance_unit
+    noise = RangeNoise(sigma=float(np.hypot(sigma, unit / np.sqrt(12))), offset_sigma=0.0)
+    b = precision_bound(truth, lasers=lasers, firing=firing, noise=noise, n_scans=n, seed=seed)
+    std = np.asarray(b.std)
+    return np.array([np.degrees(std[4]), np.degrees(std[3]), np.degrees(std[5]), std[0] * 1e3])
+
+
 def _time(fn) -> float:
     t = time.perf_counter()
     fn()
@@ -138,10 +221,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--poses", type=int, default=10, help="random poses (paper: 200)")
     ap.add_argument("--scans", type=int, default=10, help="scans per pose (paper: 50)")
     ap.add_argument("--seed", type=int, default=2026)
-    ap.add_argument("--models", default=",".join((*MODELS, *OUSTER_MODELS, "PandarXT32")),
-                    help="comma-separated (Velodyne, Ouster, Hesai PandarXT32)")
+    ap.add_argument("--models", default=",".join((*MODELS, *OUSTER_MODELS, *HESAI)),
+                    help="comma-separated (Velodyne, Ouster, Hesai PandarXT32, PandarQT128)")
     ap.add_argument("--no-decode", action="store_true",
-                    help="skip the Ouster decode agreement and throughput rows")
+                    help="skip the Ouster and Hesai decode agreement and throughput rows")
+    ap.add_argument("--no-bound", action="store_true", help="skip the bound rows")
     ap.add_argument("--methods", default="paper,rays", help="comma-separated")
     args = ap.parse_args(argv)
     warnings.simplefilter("ignore")
@@ -152,23 +236,28 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     c_start = time.process_time()
     for model in models:
-        cfg = (None if is_ouster_model(model) or model == "PandarXT32" else
+        cfg = (None if is_ouster_model(model) or model in HESAI else
                EmulationConfig(model=model, laser_offset_sigma=0.0, divergence=False))
         rng = np.random.default_rng(args.seed)
         single = {m: ([], [], []) for m in methods}  # per-pose stds, errors, sigmas
         fused = {m: ([], []) for m in methods}
         fails = {m: [0, 0] for m in methods}
         cpu = dict.fromkeys(methods, 0.0)
+        bounds: dict[str, list] = {"single": [], f"fused {args.scans}": []}
         for _ in range(args.poses):
             params, x, yaw = random_pose(rng, 3.0, 30.0, 0.0)
             seed = int(rng.integers(2**31))
-            if cfg is None:  # an Ouster's or the PandarXT32's own twin, through its packets
+            if cfg is None:  # an Ouster's or a Hesai's own twin, through its packets
                 scans, truth = own_twin_scans(params, model, x=x, yaw=np.deg2rad(yaw),
                                               n=args.scans, seed=seed)
             else:
                 sim = BenchSim(params, seed=seed, noise=cfg)
                 sim.move_to(x_m=x, yaw_rad=np.deg2rad(yaw))
                 scans, truth = captured_scans(sim, args.scans)
+            if not args.no_bound:
+                for mode, n in zip(bounds, (1, args.scans), strict=True):
+                    with contextlib.suppress(ValueError):  # a geometry the bound cannot take
+                        bounds[mode].append(bound_of(model, truth, n, seed, scans[0].lasers))
             for m in methods:
                 c0 = time.process_time()
                 errs, sigs = [], []
@@ -203,12 +292,16 @@ def main(argv: list[str] | None = None) -> int:
                              np.sqrt((fe**2).mean(axis=0)), np.nanmean((fe / fs) ** 2, axis=0),
                              fails[m][1]))
             rows.append((model, m, "cpu", f"{cpu[m] / args.poses:.2f} s/pose", None, None, 0))
+        for mode, b in bounds.items():
+            if b:
+                rows.append((model, "bound", mode, "RMS", np.sqrt(np.mean(np.square(b), axis=0)),
+                             None, 0))
     print(f"\n# the paper's bench on the twin, per model: {args.poses} poses x {args.scans} "
           f"scans, angles within +-3 deg, x within +-30 mm, seed {args.seed}; "
           f"cpu {time.process_time() - c_start:.0f} s\n")
     hdr = " ".join(f"{a + ' ' + u:>10}" for a, u in zip(AXES, UNITS, strict=True))
     print(f"{'model':12} {'method':6} {'mode':9} {'figure':10} {hdr}  {'ratio (anchor/figure)':>34}"
-          f"  {'chi2':>27} failed  bound")
+          f"  {'chi2':>27} failed")
     print(f"{'VLP-16':12} {'paper':6} {'table':9} {'anchor':10} "
           + " ".join(f"{v:10.3f}" for v in anchor) + "  (the paper's simulation precision)")
     for model, m, mode, name, v, chi2, failed in rows:
@@ -216,12 +309,15 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{model:12} {m:6} {mode:9} {name}")
             continue
         ratio = " ".join(f"{r:8.2f}" for r in anchor / v)
+        chi = (" ".join(f"{c:6.2f}" for c in chi2) + f" {failed:6d}") if chi2 is not None else ""
         print(f"{model:12} {m:6} {mode:9} {name:10} " + " ".join(f"{x:10.3f}" for x in v)
-              + f"  {ratio:>34}  " + " ".join(f"{c:6.2f}" for c in chi2)
-              + f" {failed:6d}  (align.design.bound)")
+              + f"  {ratio:>34}  " + chi)
     if not args.no_decode:
         print()
-        for row in ouster_decode_rows():
+        if any(is_ouster_model(m) for m in models):
+            for row in ouster_decode_rows():
+                print(row)
+        for row in hesai_decode_rows(models):
             print(row)
     return 0
 

@@ -450,8 +450,8 @@ class SimBench(Bench):
 
                 if not is_own_twin(model):
                     raise AimbenchError(
-                        f"the twin bench emulates {', '.join(MODELS)}, the Ouster models and "
-                        f"the PandarXT32; the station's sensor.model is {model}")
+                        f"the twin bench emulates {', '.join(MODELS)}, the Ouster models, the "
+                        f"PandarXT32 and the PandarQT128; the station's sensor.model is {model}")
                 # BenchSim still builds the scene and moves the stages; its own emulator
                 # (a Velodyne's) is never asked for a scan.
                 self.own_model, model = model, next(iter(MODELS))

@@ -238,10 +238,13 @@ class Sensor(_Section):
         ouster = ouster_model_name(value)
         if ouster is not None:  # an Ouster: read with its metadata JSON (--metadata)
             return ouster
-        if "".join(ch for ch in value.upper() if ch.isalnum()) in ("PANDARXT32", "XT32"):
-            return "PandarXT32"
+        from twin.lidar.hesai import HESAI_MODELS, hesai_model
+
+        hesai = hesai_model(value)
+        if hesai is not None:  # a Hesai: read with its angle-correction file (--angles)
+            return hesai.name
         raise ValueError(f"unknown sensor model {value!r}; aimbench knows "
-                         f"{', '.join((*SENSOR_MODELS, *OUSTER_MODELS, 'PandarXT32'))}")
+                         f"{', '.join((*SENSOR_MODELS, *OUSTER_MODELS, *HESAI_MODELS))}")
 
     @field_validator("calibration_file")
     @classmethod
@@ -568,7 +571,7 @@ class Station(_Section):
         if self.sensor.model not in SENSOR_MODELS:
             raise StationError(f"sensor.calibration_file {path}: a Velodyne calibration file, but "
                                f"sensor.model is {self.sensor.model} (an Ouster reads its "
-                               "metadata JSON, --metadata; a PandarXT32 its angle file, "
+                               "metadata JSON, --metadata; a Hesai its angle file, "
                                "--angles); see docs/station.md")
         model = model_named(self.sensor.model)
         if table.n_lasers != model.n_lasers:

@@ -29,7 +29,7 @@ def station_of(model: str) -> stations.Station:
                               "the test's station")
 
 
-@pytest.mark.parametrize("model", ["OS1-32", "PandarXT32"])
+@pytest.mark.parametrize("model", ["OS1-32", "PandarXT32", "PandarQT128"])
 def test_the_sim_bench_scans_an_ouster_or_a_hesai_with_its_truth_and_seeds(model: str):
     station = station_of(model)
     bench = SimBench(seed=3, station=station)

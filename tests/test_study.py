@@ -216,7 +216,7 @@ def test_a_block_of_poses_is_the_same_whoever_computes_it_and_however_it_is_cut(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("model", ["OS1-64", "PandarXT32", "VLP-32C"])
+@pytest.mark.parametrize("model", ["OS1-64", "PandarXT32", "PandarQT128", "VLP-32C"])
 def test_a_design_point_of_another_sensor_runs_its_twin_with_its_bound(model: str):
     """``sensor.model`` over Ouster, Hesai and Velodyne models: the point's scans are that
     sensor's twin's (an Ouster's or a Hesai's through its packets and aimbench's decoder,
@@ -233,7 +233,10 @@ def test_a_design_point_of_another_sensor_runs_its_twin_with_its_bound(model: st
     sig = np.array([r[6] for r in out["estimates"]])
     assert np.all(np.abs(err) < 5 * sig), (err / sig).round(1)
     bound = np.array([r[2] for r in out["bounds"]])
-    assert np.all(np.isfinite(bound)) and np.all(bound[:, 3] < np.radians(0.5))
+    # the QT128's lasers at the board fire 0.8 deg apart at one phase: its roll bound is about
+    # 0.6 deg (docs/vlp16.md), the others' under 0.5
+    limit = np.radians(1.0 if model == "PandarQT128" else 0.5)
+    assert np.all(np.isfinite(bound)) and np.all(bound[:, 3] < limit)
 
 
 # -- a small study, for real ---------------------------------------------------------------

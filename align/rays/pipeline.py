@@ -51,6 +51,7 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     """Joint estimate from one or more scans of a static pose (their board clusters found)."""
     t0 = time.perf_counter()
     rng = np.random.default_rng(hints.seed)
+    p = p.for_firing_step(firing_step(scans[0]))
     plane = board_plane(scans, segs, board, hints, rng, p=p)
     t_plane = time.perf_counter()
     starts = roll_starts(plane, board, hints, p=p)
@@ -62,6 +63,20 @@ def estimate_rays(scans: list[Scan], segs: list[Segmentation], board: BoardSpec,
     solution = hit_miss_posterior(scans, plane, fit, board, hints, rng, p=p)
     timings = {"plane": t_plane - t0, "fit": time.perf_counter() - t_plane}
     return outcome(solution, fit, len(starts), plane.sigma_r, board, timings, p=p)
+
+
+def firing_step(scan: Scan) -> float:
+    """The azimuth between two firings of the least fired laser, rad: the median step between
+    its firings sorted by azimuth (0 if it fired once), so that a scan cut to a window or out
+    of firing order says the same. A PandarQT128's middle lasers fire every 0.8 deg, half as
+    often as its others; the VLP-16's every 0.2 deg."""
+    counts = np.bincount(scan.laser_id, minlength=scan.lasers.n_lasers)
+    if not np.any(counts):
+        return 0.0
+    least = int(np.argmin(np.where(counts > 0, counts, np.iinfo(counts.dtype).max)))
+    steps = np.diff(np.sort(scan.azimuth[scan.laser_id == least]))
+    steps = steps[steps > 0]
+    return float(np.median(steps)) if len(steps) else 0.0
 
 
 #: The fewest rays a plane is fitted to (three points fix a plane).

@@ -101,8 +101,13 @@ def labels_grid(scan: Scan, grid: tuple[int, int], ok: np.ndarray, board_diagona
     return labels, {"count": count, "distance": distance, "rings": rings}
 
 
-def _edges_sorted(scan: Scan, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Neighbour pairs for a scan in any order: sort by ring and azimuth, then search."""
+def _edges_sorted(scan: Scan, ok: np.ndarray, board_diagonal: float = np.inf
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Neighbour pairs for a scan in any order: sort by ring and azimuth, then search. As on
+    the firing grid (`grid_clusters`), a run along a ring longer than `LONG_RUN` board
+    diagonals (its azimuth span times its mean range: the floor's ring, a wall) joins no other
+    ring: a PandarQT128's scan, which has no grid, otherwise chained its board through the
+    stand to the floor and walls into one cluster of the whole room."""
     idx = np.flatnonzero(ok)
     ring = scan.ring[idx].astype(np.int64)
     az = scan.azimuth[idx]
@@ -113,10 +118,19 @@ def _edges_sorted(scan: Scan, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     same = (ring_s[1:] == ring_s[:-1]) & (np.diff(az_s) < MAX_AZIMUTH_GAP)
     d = np.linalg.norm(pts[1:] - pts[:-1], axis=1)
     m = same & (d < np.minimum(thr[1:], thr[:-1]))
+    # the runs along each ring (a new run wherever two neighbours in order do not join)
+    run = np.concatenate(([0], np.cumsum(~m)))
+    first = np.flatnonzero(np.concatenate(([True], ~m)))
+    last = np.concatenate((first[1:] - 1, [len(run) - 1]))
+    count = last - first + 1
+    mean_d = np.add.reduceat(scan.distance[idx], first) / count
+    long_run = ((az_s[last] - az_s[first]) * mean_d > LONG_RUN * board_diagonal)[run]
     a_list = [np.flatnonzero(m)]
     b_list = [a_list[0] + 1]
-    starts = np.searchsorted(ring_s, np.arange(17))
-    for k in range(15):
+    # every pair of adjacent rings of the sensor's table (a QT128 has 128, not the VLP-16's 16)
+    nl = scan.lasers.n_lasers
+    starts = np.searchsorted(ring_s, np.arange(nl + 1))
+    for k in range(nl - 1):
         lo, hi = starts[k], starts[k + 1]
         lo2, hi2 = starts[k + 1], starts[k + 2]
         if hi - lo == 0 or hi2 - lo2 == 0:
@@ -130,6 +144,7 @@ def _edges_sorted(scan: Scan, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         dst = lo2 + pick
         close = np.abs(az_s[dst] - az_s[src]) < MAX_AZIMUTH_GAP
         close &= np.linalg.norm(pts[dst] - pts[src], axis=1) < np.minimum(thr[dst], thr[src])
+        close &= ~(long_run[src] | long_run[dst])
         a_list.append(src[close])
         b_list.append(dst[close])
     return idx[np.concatenate(a_list)], idx[np.concatenate(b_list)]
@@ -146,7 +161,7 @@ def cluster(scan: Scan, ok: np.ndarray, board_diagonal: float = np.inf,
     grid = firing_grid(scan)
     if grid is not None:
         return labels_grid(scan, grid, ok, board_diagonal, short_side)
-    a, b = _edges_sorted(scan, ok)
+    a, b = _edges_sorted(scan, ok, board_diagonal)
     g = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
     _, labels = connected_components(g, directed=False)
     return labels, _cluster_stats(scan, labels, ok)

@@ -22,6 +22,10 @@ from twin.lidar.calibration_file import read_calibration_file
 from twin.lidar.conventions import CONVENTIONS
 from twin.lidar.sources import ScanSource, open_scans
 
+#: The Hesai models read by their own decoder (`twin.lidar.hesai.HESAI_MODELS`; spelt out here
+#: so that the parser is built without importing the decoder).
+_HESAI = ("PandarXT32", "PandarQT128")
+
 SOURCE_HELP = ("a capture (.pcap/.pcapng), the live sensor (udp://HOST:PORT, e.g. "
                "udp://0.0.0.0:2368; Ctrl-C ends it), a ROS 1 .bag, a ROS 2 bag (its folder, "
                ".db3 or .mcap; BAG#TOPIC names the LiDAR topic) or a .pcd file")
@@ -117,13 +121,13 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
 def add_sensor_arguments(p: argparse.ArgumentParser) -> None:
     """Which sensor the packets come from: ``--model`` and ``--sensor-calibration``, on every
     command that reads a source (a ``--station`` file's [sensor] gives both otherwise)."""
-    p.add_argument("--model", choices=(*MODELS, "PandarXT32"), default=None,
+    p.add_argument("--model", choices=(*MODELS, *_HESAI), default=None,
                    help="decode as this model whatever the product id byte says (default: "
                         "the --station file's sensor.model if one is given, else from the "
                         "product id); point clouds are rebuilt on its grid (default VLP-16)")
     p.add_argument("--angles", metavar="FILE.csv", default=None,
-                   help="a Hesai PandarXT32's angle-correction file (Channel,Elevation,Azimuth; "
-                        "default: the nominal one nebula ships)")
+                   help="a Hesai PandarXT32's or PandarQT128's angle-correction file (Channel,"
+                        "Elevation,Azimuth; default: the nominal one nebula ships)")
     p.add_argument("--sensor-calibration", metavar="FILE", default=None,
                    help="the unit's factory laser table (VeloView .xml or ROS driver .yaml) "
                         "instead of the model's nominal one (default: the --station file's "
@@ -209,9 +213,9 @@ def format_summary(s: dict) -> str:
                            f"({_TOLD.get(s.get('cloud_convention_from'), 'given')})"),
         ]
         return "\n".join(f"{k:17s} {v}" for k, v in lines)
-    if s.get("model") == "PandarXT32":  # a Hesai's packets
+    if s.get("model") in _HESAI:  # a Hesai's packets
         lines += [
-            ("model", f"PandarXT32 (angles {s['laser_table']})"),
+            ("model", f"{s['model']} (angles {s['laser_table']})"),
             ("return mode", s["return_mode"] if s["return_mode"] is not None else "-"),
             ("rpm", rpm),
             ("data packets", f"{s['data_packets']} ({s['other_datagrams']} other datagrams)"),
@@ -262,14 +266,14 @@ def format_summary(s: dict) -> str:
 
 def _describe(s: dict) -> str:
     kind = s.get("kind", "pcap")
-    if kind == "udp" and "lidar_mode" not in s and s.get("model") != "PandarXT32":
+    if kind == "udp" and "lidar_mode" not in s and s.get("model") not in _HESAI:
         return f"{s['capture']} (live)"
     if "bag" in s:
         b = s["bag"]
         return (f"{s['capture']} (ROS bag, topic {b['topic']}, {b['type']}, "
                 f"{b['messages']} messages)")
-    if "lidar_mode" in s or s.get("model") == "PandarXT32":
-        maker = "Ouster lidar" if "lidar_mode" in s else "Hesai PandarXT32"
+    if "lidar_mode" in s or s.get("model") in _HESAI:
+        maker = "Ouster lidar" if "lidar_mode" in s else f"Hesai {s['model']}"
         return f"{s['capture']} ({maker} packets, {'live' if kind == 'udp' else kind})"
     f = s.get("file")
     if f is not None:

@@ -65,8 +65,8 @@ def run(args: argparse.Namespace) -> int:
     model = args.model or station.sensor.model
     if is_ouster_model(model):
         return _simulate_ouster(args, params, model, out, station, station_file)
-    if model == "PandarXT32":
-        return _simulate_xt32(args, params, out, station, station_file)
+    if model in ("PandarXT32", "PandarQT128"):
+        return _simulate_hesai(args, params, model, out, station, station_file)
     try:
         noise = (EmulationConfig.ideal(model=model) if args.ideal
                  else EmulationConfig(model=model))
@@ -142,31 +142,32 @@ def _simulate_ouster(args: argparse.Namespace, params, model: str, out: Path,
     return 0
 
 
-def _simulate_xt32(args: argparse.Namespace, params, out: Path, station: stations.Station,
-                   station_file) -> int:
-    """A Hesai PandarXT32's packets of the twin's bench (`twin.sim.hesai_twin`) and the truth
-    file; its rotations cut at 180 deg, read back with ``--model PandarXT32``."""
+def _simulate_hesai(args: argparse.Namespace, params, model: str, out: Path,
+                    station: stations.Station, station_file) -> int:
+    """A Hesai PandarXT32's or PandarQT128's packets of the twin's bench
+    (`twin.sim.hesai_twin`) and the truth file; its rotations cut at 180 deg, read back with
+    ``--model`` the same."""
     import numpy as np
 
     from twin.lidar.capture import PcapSource
-    from twin.lidar.hesai import DEFAULT_ANGLES, XT32Angles, XT32Scans
+    from twin.lidar.hesai import HesaiAngles, HesaiScans, default_angles
     from twin.sim.bench import BenchSim
-    from twin.sim.hesai_twin import write_xt32_pcap
+    from twin.sim.hesai_twin import write_hesai_pcap
 
-    angles = XT32Angles.from_csv(DEFAULT_ANGLES)
+    angles = HesaiAngles.from_csv(default_angles(model), model)
     sim = BenchSim(params, seed=args.seed)
     sim.move_to(x_m=args.x_mm * 1e-3, yaw_rad=math.radians(args.yaw_deg))  # checks the travel
-    truth_pose = write_xt32_pcap(sim, angles, out, args.scans + 1,
-                                 rng=np.random.default_rng(args.seed), rpm=args.rpm,
-                                 range_sigma=0.0 if args.ideal else 0.01, start_cdeg=9000)
-    scans = list(XT32Scans(PcapSource(out), angles))
+    truth_pose = write_hesai_pcap(sim, angles, out, args.scans + 1,
+                                  rng=np.random.default_rng(args.seed), rpm=args.rpm,
+                                  range_sigma=0.0 if args.ideal else 0.01, start_cdeg=9000)
+    scans = list(HesaiScans(PcapSource(out), angles))
     for s in scans:
         s.meta["truth_pose"] = truth_pose
     truth = _truth_file(args, out, scans, sim, station, station_file, params,
-                        {"model": "PandarXT32", "angles": str(DEFAULT_ANGLES)})
+                        {"model": model, "angles": str(default_angles(model))})
     if not args.quiet:
-        print(f"wrote {out} ({len(scans)} PandarXT32 rotations; read it with --model "
-              f"PandarXT32) and {truth.name}")
+        print(f"wrote {out} ({len(scans)} {model} rotations; read it with --model "
+              f"{model}) and {truth.name}")
     return 0
 
 
@@ -198,7 +199,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="the scene the bench stands in (default: the station's twin.scene; "
                         "'bench': floor, wall and beams; 'lab': a cluttered lab around it)")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
-    p.add_argument("--model", choices=(*MODELS, *OUSTER_MODELS, "PandarXT32"), default=None,
+    p.add_argument("--model", choices=(*MODELS, *OUSTER_MODELS, "PandarXT32", "PandarQT128"),
+                   default=None,
                    help="the sensor emulated (default: the station's sensor.model; the "
                         "paper's: VLP-16); an Ouster's pcap gets its metadata JSON beside it")
     p.add_argument("--lidar-mode", choices=LIDAR_MODES, default="1024x10",

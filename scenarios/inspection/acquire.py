@@ -171,7 +171,7 @@ class LiveAcquisition(Acquisition):
 
         name = parse_source(source)
         super().__init__(source=source, kind="udp", capture=Path(capture))
-        # the station's sensor: an Ouster's or a PandarXT32's packets read by their decoders
+        # the station's sensor: an Ouster's or a Hesai's packets read by their decoders
         size, read, notes = live_reader(name, **(decoding or {}))
         for note in notes:
             print(f"aimbench inspect: {note}", file=sys.stderr)
@@ -324,7 +324,7 @@ def open_acquisition(source: str, station: Any, capture: Path | None, *,
 
 def own_decoder(station: Any) -> dict[str, Any]:
     """The decoding a station's sensor needs beyond the Velodyne packets' own product id: an
-    Ouster's or a PandarXT32's model, read by its decoder (`twin.lidar.sources.open_scans`);
+    Ouster's or a Hesai's model, read by its decoder (`twin.lidar.sources.open_scans`);
     nothing for a Velodyne (its packets say which model they are)."""
     from twin.lidar.sources import own_decoder as reads_own_packets
 

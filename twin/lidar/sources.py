@@ -388,13 +388,14 @@ def open_scans(
     for packets and clouds alike. ``cloud_convention``: the driver that wrote a point cloud
     (`twin.lidar.conventions`; None: told from its fields or its points). ``ouster_metadata``:
     an Ouster sensor's metadata JSON, which its packets are read with (a pcap's is found
-    beside it, ``NAME.json``, without it). ``model="PandarXT32"``: a Hesai PandarXT32's packets
-    (`twin.lidar.hesai`), with its angle-correction file ``hesai_angles`` (default: nominal).
+    beside it, ``NAME.json``, without it). ``model="PandarXT32"`` or ``"PandarQT128"``: a
+    Hesai's packets (`twin.lidar.hesai`), with its angle-correction file ``hesai_angles``
+    (default: the model's nominal one).
     """
     src = name if isinstance(name, SourceName) else parse_source(name)
-    if isinstance(model, str) and _is_xt32(model):
+    if isinstance(model, str) and _is_hesai(model):
         cut = 18000 if cut_azimuth is None else round(math.degrees(cut_azimuth) * 100) % 36000
-        return _open_xt32(src, hesai_angles, max_scans, timeout_s, cut)
+        return _open_hesai(src, model, hesai_angles, max_scans, timeout_s, cut)
     if src.kind in ("pcap", "udp"):
         info = _ouster_info(src, ouster_metadata, model if isinstance(model, str) else None)
         if info is not None:
@@ -434,26 +435,35 @@ def open_scans(
 
 def own_decoder(model: str) -> bool:
     """Whether a model's packets are read by a decoder of their own (an Ouster's, a
-    PandarXT32's) rather than as Velodyne packets, whose product id names their model."""
+    Hesai's) rather than as Velodyne packets, whose product id names their model."""
     from twin.lidar.ouster import is_ouster_model
 
-    return is_ouster_model(model) or _is_xt32(model)
+    return is_ouster_model(model) or _is_hesai(model)
 
 
-def _is_xt32(model: str) -> bool:
-    return "".join(ch for ch in model.upper() if ch.isalnum()) in ("PANDARXT32", "XT32")
+def _is_hesai(model: str) -> bool:
+    from twin.lidar.hesai import hesai_model
+
+    return hesai_model(model) is not None
 
 
-class XT32ScanSource(ScanSource):
-    """Scans of a Hesai PandarXT32's packets (a pcap, or live), `twin.lidar.hesai`."""
+def _hesai_angles(model: str, angles_file: str | Path | None):
+    from twin.lidar.hesai import HesaiAngles, default_angles
+
+    return HesaiAngles.from_csv(angles_file or default_angles(model), model)
+
+
+class HesaiScanSource(ScanSource):
+    """Scans of a Hesai PandarXT32's or PandarQT128's packets (a pcap, or live),
+    `twin.lidar.hesai`."""
 
     def __init__(self, name: SourceName, packets: Iterable, angles, *,
                  max_scans: int | None = None, extra: dict | None = None,
                  closer: Callable[[], None] | None = None, cut_cdeg: int = 18000) -> None:
-        from twin.lidar.hesai import XT32Scans
+        from twin.lidar.hesai import HesaiScans
 
         super().__init__(name, max_scans, extra, closer)
-        self.reader = XT32Scans(packets, angles, cut_cdeg)
+        self.reader = HesaiScans(packets, angles, cut_cdeg)
 
     def _scans(self) -> Iterator[Scan]:
         return iter(self.reader)
@@ -462,25 +472,25 @@ class XT32ScanSource(ScanSource):
         return self.reader.summary()
 
 
-def _open_xt32(src: SourceName, angles_file: str | Path | None, max_scans: int | None,
-               timeout_s: float, cut_cdeg: int) -> XT32ScanSource:
-    from twin.lidar.hesai import DATA_PORT, DEFAULT_ANGLES, PACKET_BYTES, XT32Angles
+def _open_hesai(src: SourceName, model: str, angles_file: str | Path | None,
+                max_scans: int | None, timeout_s: float, cut_cdeg: int) -> HesaiScanSource:
+    from twin.lidar.hesai import DATA_PORT
 
-    angles = XT32Angles.from_csv(angles_file or DEFAULT_ANGLES)
+    angles = _hesai_angles(model, angles_file)
     if src.kind == "pcap":
         pcap = PcapSource(src.path, data_port=DATA_PORT)
-        return XT32ScanSource(src, pcap, angles, max_scans=max_scans, closer=pcap.reader.close,
-                              cut_cdeg=cut_cdeg)
+        return HesaiScanSource(src, pcap, angles, max_scans=max_scans,
+                               closer=pcap.reader.close, cut_cdeg=cut_cdeg)
     if src.kind == "udp":
         from twin.lidar.udp import UdpReceiver
 
         rx = UdpReceiver(src.host, data_port=src.port, position_port=None,
-                         timeout_s=timeout_s, data_size=PACKET_BYTES)
-        return XT32ScanSource(src, UdpSource(rx), angles, max_scans=max_scans,
-                              extra={"udp": lambda: rx.stats.as_dict()}, closer=rx.close,
-                              cut_cdeg=cut_cdeg)
-    raise SourceError(f"{src}: a PandarXT32's packets are read from a pcap or udp://, not "
-                      f"a {src.kind} source")
+                         timeout_s=timeout_s, data_size=angles.model.packet_bytes)
+        return HesaiScanSource(src, UdpSource(rx), angles, max_scans=max_scans,
+                               extra={"udp": lambda: rx.stats.as_dict()}, closer=rx.close,
+                               cut_cdeg=cut_cdeg)
+    raise SourceError(f"{src}: a {angles.model.name}'s packets are read from a pcap or udp://, "
+                      f"not a {src.kind} source")
 
 
 def live_reader(name: SourceName, *, model: str | SensorModel | None = None,
@@ -490,13 +500,14 @@ def live_reader(name: SourceName, *, model: str | SensorModel | None = None,
     """How a live sensor's packets become scans, for a caller that handles the packets itself
     (an inspection keeps every datagram as it passes): the data payload size its receiver
     takes, the reader of an iterable of packets, and notes to say (an Ouster read with its
-    model's nominal beams). ``model`` as `open_scans`: an Ouster or a PandarXT32 is read by its
+    model's nominal beams). ``model`` as `open_scans`: an Ouster or a Hesai is read by its
     own decoder, anything else as Velodyne packets."""
-    if isinstance(model, str) and _is_xt32(model):
-        from twin.lidar.hesai import DEFAULT_ANGLES, PACKET_BYTES, XT32Angles, XT32Scans
+    if isinstance(model, str) and _is_hesai(model):
+        from twin.lidar.hesai import HesaiScans
 
-        angles = XT32Angles.from_csv(hesai_angles or DEFAULT_ANGLES)
-        return PACKET_BYTES, lambda packets: XT32Scans(packets, angles, 18000), []
+        angles = _hesai_angles(model, hesai_angles)
+        return (angles.model.packet_bytes, lambda packets: HesaiScans(packets, angles, 18000),
+                [])
     info = _ouster_info(name, ouster_metadata, model if isinstance(model, str) else None)
     if info is not None:
         from twin.lidar.ouster import OusterScans

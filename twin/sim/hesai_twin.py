@@ -1,13 +1,18 @@
-"""A Hesai PandarXT32 on the twin's bench, written as its own data packets.
+"""A Hesai PandarXT32 or PandarQT128 on the twin's bench, written as its own data packets.
 
 Every firing is a MuJoCo ray (`twin.sim.emulation.RayCaster.cast`) from the optical centre at
 its block's azimuth plus the channel's azimuth offset and the channel's elevation (the unit's
-angle-correction file, `twin.lidar.hesai`): what the decoder reads back. The blocks are 50 us
-apart (0.18 deg at 600 rpm, 2,000 a turn), 8 a packet; the bench stands still meanwhile.
+angle-correction file, `twin.lidar.hesai`): what the decoder reads back. The bench stands still
+meanwhile. PandarXT32: blocks 50 us apart (0.18 deg at 600 rpm, 2,000 a turn), 8 a packet,
+single return (strongest). PandarQT128C2X: firings 111.11 us apart (0.4 deg at 600 rpm, 900 a
+turn), one a packet, in the real unit's default dual-return mode (0x39, last and strongest: a
+single echo written in both blocks, as the real capture's flat surfaces are), its two firing
+loops alternating packet by packet with the dark channels of each loop not fired (distance 0),
+the three CRCs and 32 zero bytes of cyber security: 1127 bytes as the real unit sends.
 Measurement model (assumed, stated): Gaussian range noise of 1 sigma ``range_sigma`` (default
-10 mm, the order of the datasheet's +-1 cm accuracy), the packet's 4 mm unit, no return nearer
-than 0.05 m or beyond 120 m (nebula's limits for the XT32), a sharp beam, reflectivity 100 x
-the surface's diffuse reflectance x the cosine of incidence. Single return (strongest).
+10 mm, the order of both datasheets' +-1 cm accuracy), the packet's 4 mm unit, no return
+nearer than 0.05 m or beyond nebula's limit for the model (120 m XT32, 50 m QT128), a sharp
+beam, reflectivity 100 x the surface's diffuse reflectance x the cosine of incidence.
 """
 
 from __future__ import annotations
@@ -17,14 +22,47 @@ from pathlib import Path
 import numpy as np
 
 from twin.core.pose import Pose
-from twin.lidar.hesai import DATA_PORT, N_CHANNELS, XT32Angles, encode_xt32
+from twin.lidar.hesai import (
+    DATA_PORT,
+    N_CHANNELS,
+    QT128,
+    QT128_FIRED,
+    XT32,
+    HesaiAngles,
+    encode_qt128,
+    encode_xt32,
+)
 from twin.lidar.pcap import PcapWriter
 
 BLOCK_PERIOD = 50e-6  # s
 BLOCKS_PER_PACKET = 8
 
 
-def emulate_xt32(sim, angles: XT32Angles, n_rotations: int, *, rng: np.random.Generator,
+def _cast(sim, angles: HesaiAngles, block_cdeg: np.ndarray, fired: np.ndarray,
+          rng: np.random.Generator, range_sigma: float, max_range: float
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """Distances (m, 0: none) and reflectivities of the fired channels of each firing at
+    ``block_cdeg`` (n,), ``fired`` (n, channels): one ray each from the optical centre."""
+    a = np.radians(block_cdeg / 100.0)[:, None] + np.radians(angles.azimuth_deg)
+    el = np.broadcast_to(np.radians(angles.elevation_deg)[None, :], a.shape)
+    a, el = a[fired], el[fired]
+    d_l = np.column_stack((np.cos(el) * np.sin(a), np.cos(el) * np.cos(a), np.sin(el)))
+    p_w, r_w = sim.physics.lidar_pose_world()
+    d_w = d_l @ r_w.T
+    t, gid, nrm = sim.caster.cast(np.broadcast_to(p_w, d_w.shape).copy(), d_w)
+    refl_of = sim.params.geom_reflectivity(sim.physics.model)
+    r = t + rng.normal(0.0, range_sigma, t.shape)
+    hit = np.isfinite(t) & (gid >= 0) & (r > 0.05) & (r < max_range)
+    cos_inc = np.abs(np.einsum("ij,ij->i", nrm, d_w))
+    dist = np.zeros(fired.shape)
+    refl = np.zeros(fired.shape, dtype=np.uint8)
+    dist[fired] = np.where(hit, np.where(hit, r, 0.0), 0.0)
+    refl[fired] = np.where(hit, np.minimum(255, np.rint(100.0 * refl_of[np.maximum(gid, 0)]
+                                                        * cos_inc)), 0)
+    return dist, refl
+
+
+def emulate_xt32(sim, angles: HesaiAngles, n_rotations: int, *, rng: np.random.Generator,
                  rpm: float = 600.0, range_sigma: float = 0.01,
                  start_cdeg: int = 0) -> tuple[list[bytes], Pose]:
     """Packets of ``n_rotations`` turns of ``sim``'s bench (a `twin.sim.bench.BenchSim` at
@@ -33,31 +71,58 @@ def emulate_xt32(sim, angles: XT32Angles, n_rotations: int, *, rng: np.random.Ge
     n_packets = -(-(n_rotations * per_turn + 1) // BLOCKS_PER_PACKET)
     k = np.arange(n_packets * BLOCKS_PER_PACKET)
     block_cdeg = np.rint(start_cdeg + k * (36000.0 / per_turn)).astype(np.int64) % 36000
-    a = np.radians(block_cdeg / 100.0)[:, None] + np.radians(angles.azimuth_deg)
-    el = np.radians(angles.elevation_deg)[None, :]
-    d_l = np.stack(np.broadcast_arrays(np.cos(el) * np.sin(a), np.cos(el) * np.cos(a),
-                                       np.sin(el)), axis=-1).reshape(-1, 3)
-    p_w, r_w = sim.physics.lidar_pose_world()
-    d_w = d_l @ r_w.T
-    t, gid, nrm = sim.caster.cast(np.broadcast_to(p_w, d_w.shape).copy(), d_w)
-    refl_of = sim.params.geom_reflectivity(sim.physics.model)
-    r = t + rng.normal(0.0, range_sigma, t.shape)
-    hit = np.isfinite(t) & (gid >= 0) & (r > 0.05) & (r < 120.0)
-    dist = np.where(hit, np.where(hit, r, 0.0), 0.0).reshape(-1, BLOCKS_PER_PACKET, N_CHANNELS)
-    cos_inc = np.abs(np.einsum("ij,ij->i", nrm, d_w))
-    refl = np.where(hit, np.minimum(255, np.rint(100.0 * refl_of[np.maximum(gid, 0)] * cos_inc)),
-                    0).astype(np.uint8).reshape(dist.shape)
+    dist, refl = _cast(sim, angles, block_cdeg, np.ones((len(k), N_CHANNELS), dtype=bool), rng,
+                       range_sigma, XT32.max_range)
     ts = np.rint(np.arange(n_packets) * BLOCKS_PER_PACKET * BLOCK_PERIOD * 1e6).astype(np.int64)
-    packets = encode_xt32(block_cdeg.reshape(-1, BLOCKS_PER_PACKET), dist, refl, ts, rpm=rpm)
+    packets = encode_xt32(block_cdeg.reshape(-1, BLOCKS_PER_PACKET),
+                          dist.reshape(-1, BLOCKS_PER_PACKET, N_CHANNELS),
+                          refl.reshape(-1, BLOCKS_PER_PACKET, N_CHANNELS), ts, rpm=rpm)
     return packets, sim.physics.lidar_pose_in_board()
 
 
-def write_xt32_pcap(sim, angles: XT32Angles, path: str | Path, n_rotations: int, *,
-                    rng: np.random.Generator, epoch_s: float = 1.7e9, **kwargs) -> Pose:
-    """The packets of `emulate_xt32` in a pcap (UDP port 2368); the true pose."""
-    packets, truth = emulate_xt32(sim, angles, n_rotations, rng=rng, **kwargs)
+def emulate_qt128(sim, angles: HesaiAngles, n_rotations: int, *, rng: np.random.Generator,
+                  rpm: float = 600.0, range_sigma: float = 0.01,
+                  start_cdeg: int = 0) -> tuple[list[bytes], Pose]:
+    """Packets of ``n_rotations`` turns of ``sim``'s bench as a PandarQT128C2X in dual-return
+    mode sees it, one firing a packet from ``start_cdeg``; and the true pose of {L} in {O}."""
+    period = QT128.firing_period
+    per_turn = round(60.0 / rpm / period)
+    k = np.arange(n_rotations * per_turn + 1)
+    block_cdeg = np.rint(start_cdeg + k * (36000.0 / per_turn)).astype(np.int64) % 36000
+    loop = k % 2  # loop 1 and loop 2 alternate firing by firing
+    dist, refl = _cast(sim, angles, block_cdeg, QT128_FIRED[loop], rng, range_sigma,
+                       QT128.max_range)
+    ts = np.rint(k * period * 1e6).astype(np.int64)
+    packets = encode_qt128(np.column_stack((block_cdeg, block_cdeg)),
+                           np.stack((dist, dist), axis=1), np.stack((refl, refl), axis=1), ts,
+                           loop, rpm=rpm)
+    return packets, sim.physics.lidar_pose_in_board()
+
+
+#: The twin of each Hesai model, and the s between its packets (the firing's period is the
+#: sensor's clock: another rpm changes the firings a turn, as on the XT32).
+EMULATORS = {XT32.name: (emulate_xt32, BLOCKS_PER_PACKET * BLOCK_PERIOD),
+             QT128.name: (emulate_qt128, QT128.firing_period)}
+
+
+def emulate_hesai(sim, angles: HesaiAngles, n_rotations: int, **kwargs) -> tuple[list[bytes],
+                                                                                  Pose]:
+    """`emulate_xt32` or `emulate_qt128`, by the model of ``angles``."""
+    return EMULATORS[angles.model.name][0](sim, angles, n_rotations, **kwargs)
+
+
+def write_hesai_pcap(sim, angles: HesaiAngles, path: str | Path, n_rotations: int, *,
+                     rng: np.random.Generator, epoch_s: float = 1.7e9, **kwargs) -> Pose:
+    """The packets of `emulate_hesai` in a pcap (UDP port 2368); the true pose."""
+    packets, truth = emulate_hesai(sim, angles, n_rotations, rng=rng, **kwargs)
+    dt = EMULATORS[angles.model.name][1]
     with PcapWriter(path) as out:
         for i, p in enumerate(packets):
-            out.write_udp(p, epoch_s + i * BLOCKS_PER_PACKET * BLOCK_PERIOD,
-                          dst_port=DATA_PORT, src_port=10000)
+            out.write_udp(p, epoch_s + i * dt, dst_port=DATA_PORT, src_port=10000)
     return truth
+
+
+def write_xt32_pcap(sim, angles: HesaiAngles, path: str | Path, n_rotations: int, *,
+                    rng: np.random.Generator, epoch_s: float = 1.7e9, **kwargs) -> Pose:
+    """The packets of `emulate_xt32` in a pcap (UDP port 2368); the true pose."""
+    return write_hesai_pcap(sim, angles, path, n_rotations, rng=rng, epoch_s=epoch_s, **kwargs)

@@ -2,12 +2,12 @@
 sensors makes (a study over ``sensor.model``, `benchmarks/bench_models.py`).
 
 The Velodyne models are `twin.sim.bench.BenchSim`'s own emulation (its `EmulationConfig.model`).
-An Ouster (OS0/OS1/OS2, 32/64/128 beams, 1024x10) and a Hesai PandarXT32 have twins of their
-own (`twin.sim.ouster_twin`, `twin.sim.hesai_twin`) that cast the bench's rays from their beams
-and write the sensor's packets; their scans here are those packets decoded by aimbench's
-decoders (`twin.lidar.ouster`, `twin.lidar.hesai`), as a capture of the real sensor would be.
-`firing_of` gives the firing pattern the precision bound (`align.design.bound.Firing`) needs.
-SI units.
+An Ouster (OS0/OS1/OS2, 32/64/128 beams, 1024x10) and a Hesai PandarXT32 or PandarQT128 have
+twins of their own (`twin.sim.ouster_twin`, `twin.sim.hesai_twin`) that cast the bench's rays
+from their beams and write the sensor's packets; their scans here are those packets decoded by
+aimbench's decoders (`twin.lidar.ouster`, `twin.lidar.hesai`), as a capture of the real sensor
+would be. `firing_of` gives the firing pattern the precision bound (`align.design.bound.Firing`)
+needs. SI units.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from twin.core.pose import Pose
 from twin.core.scan import Scan
 from twin.lidar.ouster import is_ouster_model, ouster_model_name
 
-#: The Hesai model the twin emulates (its angle file: `twin.lidar.hesai.DEFAULT_ANGLES`).
-HESAI_MODELS = ("PandarXT32",)
+#: The Hesai models the twin emulates (their angle files: `twin.lidar.hesai.default_angles`).
+HESAI_MODELS = ("PandarXT32", "PandarQT128")
 
 
 def is_own_twin(model: str) -> bool:
@@ -56,22 +56,36 @@ def firing_of(model: str) -> FiringPattern | None:
         info = nominal_info(ouster_model_name(model))
         return FiringPattern(60.0 * info.rate_hz, 1.0 / (info.columns_per_frame * info.rate_hz),
                              None, True)
-    if model in HESAI_MODELS:
+    if model == "PandarXT32":
         from twin.sim.hesai_twin import BLOCK_PERIOD
 
         # The twin's PandarXT32 turns at exactly 600 rpm: its blocks repeat their azimuths every
         # turn, as a unit phase-locked to its clock does (a free-running one's wander).
         return FiringPattern(600.0, BLOCK_PERIOD, None, True)
+    if model == "PandarQT128":
+        from twin.lidar.hesai import QT128
+
+        # Phase-locked as the XT32's. The lasers that see a board near the horizon (channels
+        # 33-64, -18 to +6 deg) fire in one of the two loops only: every other firing, 0.8 deg
+        # at 600 rpm (channels 65-128 every firing, 0.4 deg: the bound is pessimistic for
+        # them). The twin fires a firing's channels at its block's azimuth (as the decoders
+        # read it): loop 1's at the period's start, loop 2's (channels 1-32) half a period
+        # later. Their times matter: channels 33-64 share one azimuth offset within 0.3 deg,
+        # so their brackets along a side edge fall at one phase, and the bound with the
+        # phases unknown (averaged) said half the twin's roll spread (0.31 against 0.62 deg
+        # fused, benchmarks/bench_models.py); with them it says 0.62.
+        times = tuple(QT128.firing_period if c < 32 else 0.0 for c in range(128))
+        return FiringPattern(600.0, 2 * QT128.firing_period, times, True)
     return None
 
 
 @dataclass(frozen=True)
 class TwinPackets:
-    """What an Ouster's or a PandarXT32's twin sent for some scans at rest: its datagrams, each
+    """What an Ouster's or a Hesai's twin sent for some scans at rest: its datagrams, each
     one's time from the first (s) and UDP port, the scans aimbench's decoder reads from them
     (each carrying the twin's truth, ``meta["truth_pose"]``, as `BenchSim`'s scans do), the true
     pose of {L} in {O}, and the metadata JSON a capture keeps beside it (an Ouster's; None for
-    the XT32, whose angle file is the model's own)."""
+    a Hesai, whose angle file is the model's own)."""
 
     payloads: list[bytes]
     times_s: np.ndarray
@@ -83,7 +97,7 @@ class TwinPackets:
 
 def own_twin_packets(sim: Any, model: str, n: int, *, rng: np.random.Generator,
                      range_sigma: float = 0.01) -> TwinPackets:
-    """``n`` scans of an Ouster's or a PandarXT32's twin on ``sim`` (a `twin.sim.bench.BenchSim`
+    """``n`` scans of an Ouster's or a Hesai's twin on ``sim`` (a `twin.sim.bench.BenchSim`
     at rest, its stages where they are) through its packets and aimbench's decoder. Gaussian
     range noise of ``range_sigma`` (m) drawn from ``rng``."""
     if is_ouster_model(model):
@@ -104,16 +118,16 @@ def own_twin_packets(sim: Any, model: str, n: int, *, rng: np.random.Generator,
             payloads, np.arange(len(payloads)) * packet_s, info.udp_port_lidar,
             scans_from_payloads(payloads, info), truth, info_json(info)))
     if model in HESAI_MODELS:
-        from twin.lidar.hesai import DATA_PORT, DEFAULT_ANGLES, XT32Angles, XT32Scans
-        from twin.sim.hesai_twin import BLOCK_PERIOD, BLOCKS_PER_PACKET, emulate_xt32
+        from twin.lidar.hesai import DATA_PORT, HesaiAngles, HesaiScans, default_angles
+        from twin.sim.hesai_twin import EMULATORS, emulate_hesai
 
-        angles = XT32Angles.from_csv(DEFAULT_ANGLES)
+        angles = HesaiAngles.from_csv(default_angles(model), model)
         # one turn more than asked: the first packet starts mid-turn, a quarter turn in
-        packets, truth = emulate_xt32(sim, angles, n + 1, rng=rng, range_sigma=range_sigma,
-                                      start_cdeg=9000)
+        packets, truth = emulate_hesai(sim, angles, n + 1, rng=rng, range_sigma=range_sigma,
+                                       start_cdeg=9000)
         return _with_truth(TwinPackets(
-            packets, np.arange(len(packets)) * BLOCKS_PER_PACKET * BLOCK_PERIOD, DATA_PORT,
-            list(XT32Scans(packets, angles))[:n], truth, None))
+            packets, np.arange(len(packets)) * EMULATORS[angles.model.name][1], DATA_PORT,
+            list(HesaiScans(packets, angles))[:n], truth, None))
     raise ValueError(f"{model!r} has no twin of its own: it is BenchSim's (EmulationConfig.model)")
 
 
@@ -125,7 +139,7 @@ def _with_truth(packets: TwinPackets) -> TwinPackets:
 
 def own_twin_scans(params: Any, model: str, *, x: float, yaw: float, n: int, seed: int,
                    range_sigma: float = 0.01) -> tuple[list[Scan], Pose]:
-    """``n`` scans of an Ouster's or a PandarXT32's twin on the bench of ``params`` (a
+    """``n`` scans of an Ouster's or a Hesai's twin on the bench of ``params`` (a
     `twin.sim.params.BenchParams`) with the stages at ``x`` (m) and ``yaw`` (rad), through its
     packets and aimbench's decoder; and the true pose of {L} in the board frame. Gaussian range
     noise of ``range_sigma`` (m); ``seed`` seeds the bench and the noise."""
