@@ -1213,10 +1213,13 @@ class LidarEmulator:
         The model itself is `twin.sim.raykernel.measure_firings`; the randomness
         `_noise_words` and `_dropouts`."""
         words, sigma_r, sigma_i = self._noise_words(len(r))
+        # offsets always read-only (as `_firing_offsets` caches them): numba compiles a kernel
+        # once per argument type, and a read-only array is another type than a writable one
+        offsets = np.ascontiguousarray(offsets, dtype=np.float64).view()
+        offsets.flags.writeable = False
         distance, intensity, rtype, near, near_energy = raykernel.measure_firings(
             np.ascontiguousarray(r, dtype=np.float64), np.ascontiguousarray(refl, dtype=np.float64),
-            np.ascontiguousarray(offsets, dtype=np.float64), words, sigma_r, sigma_i,
-            self._exponent, *self._model_args)
+            offsets, words, sigma_r, sigma_i, self._exponent, *self._model_args)
         out = Returns(distance, intensity, rtype)
         self._dropouts(out, near, energy[near] if energy is not None else near_energy)
         return out
