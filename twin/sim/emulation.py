@@ -578,11 +578,13 @@ class LidarEmulator:
 
     def _firing_offsets(self, n_seq: int) -> np.ndarray:
         """Each firing's range offset (laser offset + bias) for ``n_seq`` whole sequences,
-        firing order (cached; read-only)."""
+        firing order (cached; not to be written). Writable, as every other path's offsets and
+        `_grid_tables`' are: numba compiles `raykernel.measure_firings` (and the block helper
+        it shares with `grid_pass`) once per argument type, and a read-only array is another
+        type."""
         cached = getattr(self, "_firing_offset_cache", None)
         if cached is None or len(cached) != n_seq * self._n_l:
             cached = np.tile(self._range_offsets, n_seq)
-            cached.flags.writeable = False
             self._firing_offset_cache = cached
         return cached
 
@@ -1213,13 +1215,10 @@ class LidarEmulator:
         The model itself is `twin.sim.raykernel.measure_firings`; the randomness
         `_noise_words` and `_dropouts`."""
         words, sigma_r, sigma_i = self._noise_words(len(r))
-        # offsets always read-only (as `_firing_offsets` caches them): numba compiles a kernel
-        # once per argument type, and a read-only array is another type than a writable one
-        offsets = np.ascontiguousarray(offsets, dtype=np.float64).view()
-        offsets.flags.writeable = False
         distance, intensity, rtype, near, near_energy = raykernel.measure_firings(
             np.ascontiguousarray(r, dtype=np.float64), np.ascontiguousarray(refl, dtype=np.float64),
-            offsets, words, sigma_r, sigma_i, self._exponent, *self._model_args)
+            np.ascontiguousarray(offsets, dtype=np.float64), words, sigma_r, sigma_i,
+            self._exponent, *self._model_args)
         out = Returns(distance, intensity, rtype)
         self._dropouts(out, near, energy[near] if energy is not None else near_energy)
         return out

@@ -413,9 +413,10 @@ def grid_rays(azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray, k:
     base_sincos(az_t[0], sb, cb)
     for r in range(row_laser.shape[0]):
         o = r * n_seq
-        _row_segment(az_t[row_laser[r]], az_t[0], sb, cb, row_dh[r], 0, k, ranges, n_ranges, r,
-                     cutoff, sin_a[o:o + n_seq], cos_a[o:o + n_seq], dist[o:o + n_seq],
-                     cos_inc[o:o + n_seq], gid[o:o + n_seq])
+        # (s_lo typed as `grid_pass` passes it: a literal 0 would compile `_row_segment` twice)
+        _row_segment(az_t[row_laser[r]], az_t[0], sb, cb, row_dh[r], np.int64(0), k, ranges,
+                     n_ranges, r, cutoff, sin_a[o:o + n_seq], cos_a[o:o + n_seq],
+                     dist[o:o + n_seq], cos_inc[o:o + n_seq], gid[o:o + n_seq])
     return None
 
 
@@ -1866,7 +1867,7 @@ def measure_firings(r: np.ndarray, refl: np.ndarray, offsets: np.ndarray, words:
                            np.empty(b, dtype=np.float32))
     near = np.empty(n, dtype=np.int64)
     near_energy = np.empty(n)
-    n_near = 0
+    n_near = np.int64(0)  # (typed: a literal 0 would compile `_near` twice)
     for i0 in range(0, n, b):
         i1 = min(n, i0 + b)
         m = i1 - i0
@@ -1988,7 +1989,7 @@ def grid_pass(azimuth: np.ndarray, k: np.ndarray, ranges: np.ndarray, n_ranges: 
     z = np.empty((n_slots, n))
     near = np.empty(n, dtype=np.int64)
     near_energy = np.empty(n)
-    n_near = 0
+    n_near = np.int64(0)  # (typed: a literal 0 would compile `_near` twice)
     # per block: rows of lasers (16, bs), firing order (bs, 16), float32 scratch
     az_t = np.empty((n_l, bs))
     sb = np.empty(bs)
