@@ -5,14 +5,16 @@
 The emulation's kernels (`twin.sim.raykernel`) and the estimator's (`align`) are compiled with
 ``cache=True``: the first process that calls them compiles them and writes them to numba's cache
 beside their modules (``__pycache__``), and every later process loads them (well under a
-second). Compiling them all takes about 200 s of one core on the development machine
-(2026-12-06: the emulation's 75 s, the estimator's 115 s; 83 s in all before the estimator's
-inner loops became kernels). The set-up (tools/setup.sh, ``make setup``) runs this module once,
-so the first ``aimbench simulate`` of a fresh install does not wait. It runs the twin the ways
-the commands do (every effect on, no divergence, ideal, dual and last returns, the brute-force
-sub-rays, a moving scan, packets, the lab scene) and the default estimate once: each kernel is
-compiled for the argument types those calls give it, which are the types every command gives it
-(numba compiles per type signature).
+second). Compiling them all takes about 2.5 minutes of one core on the development machine
+(2026-12-07, `benchmarks/bench_warmup.py`, against issue 38's 60 s: 239 s before one signature per
+kernel and the raykernel block helpers as calls, 206 s after, run side by side on the same load; on
+a quiet machine about 183 s before; 83 s in all before the estimator's inner loops became kernels;
+docs/twin.md says where the rest goes). The set-up (tools/setup.sh, ``make setup``) runs this
+module once, so the first ``aimbench simulate`` of a fresh install does not wait. It runs the twin
+the ways the commands do (every effect on, no divergence, ideal, dual and last returns, the
+brute-force sub-rays, a moving scan, packets, the lab scene) and the default estimate once: each
+kernel is compiled for the argument types those calls give it, which are the types every command
+gives it (numba compiles per type signature).
 
 A kernel whose source changed since it was cached compiles again on first use; the command
 then says so on stderr (`twin.sim.raykernel`'s notice), once. It lives in `scenarios/`

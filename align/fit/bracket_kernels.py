@@ -108,8 +108,9 @@ def violations(x: np.ndarray, z: np.ndarray, hit: np.ndarray, miss: np.ndarray,
     ``tol``, misses inside it shrunk by ``tol``."""
     viol = np.zeros(ds.shape[0], dtype=np.int64)
     viol[:] = hit.shape[0]
-    _count_inside(x, z, hit, ds, vx, vz, w2 + tol, h2 + tol, -1, viol)
-    _count_inside(x, z, miss, ds, vx, vz, w2 + -tol, h2 + -tol, 1, viol)
+    # (the signs as int64, not literals: numba would compile `_count_inside` once per value)
+    _count_inside(x, z, hit, ds, vx, vz, w2 + tol, h2 + tol, np.int64(-1), viol)
+    _count_inside(x, z, miss, ds, vx, vz, w2 + -tol, h2 + -tol, np.int64(1), viol)
     return viol
 
 

@@ -80,10 +80,13 @@ def binding_labels(p_hit: np.ndarray, p_miss: np.ndarray, lim_h: np.ndarray,
     for i in range(n_m):
         mc[0, i] = i
     last = n_k - 1
-    _edges_at(p_hit, lim_h, hc, 0, n_h, r0, r2, 0, hv, FIRST)
-    _edges_at(p_miss, lim_m, mc, 0, n_m, r0, r2, 0, mv, FIRST)
-    _edges_at(p_hit, lim_h, hc, 0, n_h, r0, r2, last, hv, LAST)
-    _edges_at(p_miss, lim_m, mc, 0, n_m, r0, r2, last, mv, LAST)
+    # (the roll and the end typed, not literal: numba would compile `_edges_at` once per
+    # literal value)
+    first, end_first, end_last = np.int64(0), np.int64(FIRST), np.int64(LAST)
+    _edges_at(p_hit, lim_h, hc, 0, n_h, r0, r2, first, hv, end_first)
+    _edges_at(p_miss, lim_m, mc, 0, n_m, r0, r2, first, mv, end_first)
+    _edges_at(p_hit, lim_h, hc, 0, n_h, r0, r2, last, hv, end_last)
+    _edges_at(p_miss, lim_m, mc, 0, n_m, r0, r2, last, mv, end_last)
     sag = _sag(r0, r2, 0, last) if _rigid_rows(r0, r2) else np.inf
     nh = _keep_hits(hc, hv, 0, FIRST, LAST, n_h, qh, sag, champ, th)
     nm = _keep_misses(mc, mv, 0, FIRST, LAST, n_m, qm, sag, th, sure)
@@ -119,7 +122,7 @@ def _moments_binding(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
                                   box_limits(ext_miss, w2, h2), r0, r2)
     return _block_moments(_rows_at(p_hit, hits), _rows_at(p_miss, misses),
                           _rows_at(ext_hit, hits), _rows_at(ext_miss, misses), r0, r2, w2,
-                          h2, _NO_BOXES, _NO_MOMENTS)[0], hits
+                          h2, np.empty((0, 4)), np.empty((0, 6)))[0], hits
 
 
 @kernel
@@ -130,10 +133,6 @@ def _rows_at(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
         for c in range(a.shape[1]):
             out[t, c] = a[idx[t], c]
     return out
-
-
-#: `_block_moments` without a base set: no roll's moments taken from elsewhere.
-_NO_BOXES, _NO_MOMENTS = np.empty((0, 4)), np.empty((0, 6))
 
 
 @kernel
@@ -152,6 +151,8 @@ def _block_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     where the hits' box is the base's, float for float, the consistent set is too (the misses
     that overlap a box and the order they cut it in depend on the box alone, and the labels a
     filter leaves out overlap none of it), so its moments are the base's, taken as they are.
+    The empty ones are made by the caller, writable: a global array is a read-only constant to
+    numba, another signature to compile.
     """
     n_k = r0.shape[0]
     n_h, n_m = p_hit.shape[0], p_miss.shape[0]
@@ -792,7 +793,7 @@ def soft_moments(p_hit: np.ndarray, p_miss: np.ndarray, ext_hit: np.ndarray,
     hits, misses = binding_labels(p_hit, p_miss, box_limits(ext_hit, w2, h2), lim_m, r0, r2)
     out, boxes = _block_moments(_rows_at(p_hit, hits), _rows_at(p_miss, misses),
                                 _rows_at(ext_hit, hits), _rows_at(ext_miss, misses), r0, r2,
-                                w2, h2, _NO_BOXES, _NO_MOMENTS)
+                                w2, h2, np.empty((0, 4)), np.empty((0, 6)))
     if not np.any(out[:, 0] > 0):
         # no position holds every label: the soft hits widen a posterior, they do not make
         # one (the caller's stray rounds refit the pose without the labels it violates). A

@@ -501,7 +501,9 @@ def window_sweep_rows(rows: np.ndarray, length: float) -> tuple[np.ndarray, np.n
         return count, shift
     order = np.empty(n, dtype=np.int64)
     xs, left, right = np.empty(n), np.empty(n), np.empty(n)
-    sorted_once = False
+    # typed, not literal: numba types a callee's call on its first pass with a literal False
+    # and compiles it again for bool once the loop's phi is typed
+    sorted_once = np.bool_(False)
     for c in range(k):
         row = rows[c]
         lo, hi = row[0], row[0]
@@ -531,7 +533,9 @@ def window_sweep_projected(points: np.ndarray, axes: np.ndarray, length: float
     row = np.empty(n)
     order = np.empty(n, dtype=np.int64)
     xs, left, right = np.empty(n), np.empty(n), np.empty(n)
-    sorted_once = False
+    # typed, not literal: numba types a callee's call on its first pass with a literal False
+    # and compiles it again for bool once the loop's phi is typed
+    sorted_once = np.bool_(False)
     for c in range(k):
         best, mid, whole = _projected_column(points, axes, c, length, row, order, xs, left,
                                              right, sorted_once)
@@ -581,12 +585,13 @@ def window_sweep_pair(points: np.ndarray, axes_a: np.ndarray, axes_b: np.ndarray
     row = np.empty(n)
     order = np.empty(n, dtype=np.int64)
     xs, left, right = np.empty(n), np.empty(n), np.empty(n)
-    first = 0
+    first = np.int64(0)  # (typed: as sorted_once in window_sweep)
     for c in range(1, k):
         if ca[c] > ca[first]:
             first = c
+    # (a typed False, not a literal: numba compiles a callee once per literal value)
     best, mid, sorted_once = _projected_column(points, axes_b, first, len_b, row, order, xs,
-                                               left, right, False)
+                                               left, right, np.bool_(False))
     cb[first], tb[first] = best, mid
     least = 2 * n - ca[first] - best
     for c in range(k):

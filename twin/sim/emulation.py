@@ -578,11 +578,13 @@ class LidarEmulator:
 
     def _firing_offsets(self, n_seq: int) -> np.ndarray:
         """Each firing's range offset (laser offset + bias) for ``n_seq`` whole sequences,
-        firing order (cached; read-only)."""
+        firing order (cached; not to be written). Writable, as every other path's offsets and
+        `_grid_tables`' are: numba compiles `raykernel.measure_firings` (and the block helper
+        it shares with `grid_pass`) once per argument type, and a read-only array is another
+        type."""
         cached = getattr(self, "_firing_offset_cache", None)
         if cached is None or len(cached) != n_seq * self._n_l:
             cached = np.tile(self._range_offsets, n_seq)
-            cached.flags.writeable = False
             self._firing_offset_cache = cached
         return cached
 

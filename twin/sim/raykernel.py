@@ -53,6 +53,14 @@ compiles again in each process, silently). ``error_model="numpy"``: a float divi
 gives inf/nan as in numpy (the plane rule divides by directions parallel to a plane and then
 rejects the result) instead of raising, which also keeps the loops free of checks.
 
+Inlining (issue 38, compile time). numba's ``inline="always"`` copies a helper's IR into every
+caller and types and lowers it again there; a plain call compiles the helper once and LLVM still
+inlines it where that pays. So per-ray helpers called inside a loop LLVM vectorises (`ray_plane`,
+`_box`, `_nearer`, `_sincos_series`, ...) stay ``inline="always"`` (as calls they cost the lab
+scene 10-20 % of its speed), and the block helpers, whose loops are their own (`_measure_block`,
+`_row_segment`, `_points_block`, `_to_firings`, `_ln_f32`, ...), are plain calls: half of
+`grid_pass`'s compile time went into their copies, for no speed (bench_emulation.py).
+
 Randomness never comes from here: the callers draw every random word from the emulator's
 `numpy.random.Generator` and pass them in, so a seed gives the same run bit for bit.
 """
@@ -147,7 +155,7 @@ def unwrap(base: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(inline="always")
+@njit(error_model="numpy")
 def _column_ranges(b_u: np.ndarray, centre: float, half: float, out: np.ndarray) -> int:
     """The columns s whose unwrapped base ``b_u[s]`` lies within ``centre`` +- ``half`` modulo
     2 pi: up to ``len(out)`` ranges [out[j, 0], out[j, 1]), one per turn the grid spans.
@@ -307,7 +315,7 @@ def base_sincos(base: np.ndarray, sb: np.ndarray, cb: np.ndarray) -> None:
     return None
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _row_segment(a_row: np.ndarray, b_row: np.ndarray, sb: np.ndarray, cb: np.ndarray,
                  dh: float, s_lo: int, k: np.ndarray, ranges: np.ndarray,
                  n_ranges: np.ndarray, r: int, cutoff: float, sin_a: np.ndarray,
@@ -405,9 +413,10 @@ def grid_rays(azimuth: np.ndarray, row_laser: np.ndarray, row_dh: np.ndarray, k:
     base_sincos(az_t[0], sb, cb)
     for r in range(row_laser.shape[0]):
         o = r * n_seq
-        _row_segment(az_t[row_laser[r]], az_t[0], sb, cb, row_dh[r], 0, k, ranges, n_ranges, r,
-                     cutoff, sin_a[o:o + n_seq], cos_a[o:o + n_seq], dist[o:o + n_seq],
-                     cos_inc[o:o + n_seq], gid[o:o + n_seq])
+        # (s_lo typed as `grid_pass` passes it: a literal 0 would compile `_row_segment` twice)
+        _row_segment(az_t[row_laser[r]], az_t[0], sb, cb, row_dh[r], np.int64(0), k, ranges,
+                     n_ranges, r, cutoff, sin_a[o:o + n_seq], cos_a[o:o + n_seq],
+                     dist[o:o + n_seq], cos_inc[o:o + n_seq], gid[o:o + n_seq])
     return None
 
 
@@ -1149,7 +1158,7 @@ def _search(a: np.ndarray, lo: int, hi: int, v: int) -> int:
     return lo
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _row_spans(rows: np.ndarray, bounds: np.ndarray, n_rows: int
                ) -> tuple[np.ndarray, np.ndarray]:
     """Where each row's candidates lie in `grid_candidates`' ray index: [lo[r], hi[r]) (empty
@@ -1303,8 +1312,11 @@ def solid_cast(ray_index: np.ndarray, dirs: np.ndarray, rows: np.ndarray, bounds
         f = f | FLAG_MUJOCO if full_rows[r] else f
         for q in range(bounds[j], bounds[j + 1]):
             flags[q] = f
-    _solids_pass(0, flags, dirs_t, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
-                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist, gid, nrm_t, flags)
+    # (stage and select typed as in `subray_cast`'s call: one compiled `_solids_pass` for
+    # both, not one per literal stage; stage 0 never reads ``select``)
+    _solids_pass(np.int64(0), flags.view(np.bool_), dirs_t, n_k, full_rows, iv_row, iv_geom,
+                 iv_start, run_q, g_kind, g_pos, g_mat, g_size, meshes, origins, row_laser,
+                 dist, gid, nrm_t, flags)
     # The planes, as `ray_planes` has MuJoCo's rule, for every ray but whole rows' (a ray
     # left to MuJoCo or for later keeps its boxes' and planes' hit: `merge_nearest`); only
     # where `plane_rows` says the plane can be met at all (its live rows and their column
@@ -1459,8 +1471,9 @@ def subray_cast(ray_index: np.ndarray, dirs: np.ndarray, dirs_t: np.ndarray, row
     # a curved geom's or a mesh's (a sub-ray's hit so far is a box's or a plane's), go back
     # into ``nrm_a``)
     nrm_t = np.zeros((3, n))
-    _solids_pass(1, select, dirs_t, n_k, full_rows, iv_row, iv_geom, iv_start, run_q, g_kind,
-                 g_pos, g_mat, g_size, meshes, origins, row_laser, dist_a, gid_a, nrm_t, flags)
+    _solids_pass(np.int64(1), select, dirs_t, n_k, full_rows, iv_row, iv_geom, iv_start,
+                 run_q, g_kind, g_pos, g_mat, g_size, meshes, origins, row_laser, dist_a, gid_a,
+                 nrm_t, flags)
     for q in range(n):
         g = gid_a[q]
         if select[q] and g >= 0 and g_kind[g] != KIND_BOX and g_kind[g] != KIND_MUJOCO:
@@ -1616,7 +1629,7 @@ def echoes(r: np.ndarray, e: np.ndarray, separation: float
 # --------------------------------------------------------------------------------------------
 # Float32 transcendentals (vectorisable; Cephes' single-precision polynomials)
 # --------------------------------------------------------------------------------------------
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _ln_f32(x: np.ndarray, out: np.ndarray, mant: np.ndarray, ex: np.ndarray) -> None:
     """Natural log of positive normal float32 ``x`` into ``out`` (distinct arrays; ``mant``,
     ``ex``: float32 scratch of the same length): Cephes' logf (exponent from the bits,
@@ -1646,7 +1659,7 @@ def _ln_f32(x: np.ndarray, out: np.ndarray, mant: np.ndarray, ex: np.ndarray) ->
         out[i] = (f + y) + np.float32(0.693359375) * e
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _exp_f32(x: np.ndarray, out: np.ndarray, pow2: np.ndarray) -> None:
     """exp of float32 ``x`` (|x| < 87) into ``out`` (distinct arrays; ``pow2``: float32
     scratch): Cephes' expf (x = n ln 2 + g, |g| <= ln 2 / 2, degree-7 polynomial, 2^n from the
@@ -1685,7 +1698,7 @@ def exp_f32(x: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _box_muller(w1: np.ndarray, w2: np.ndarray, sigma_a: float, sigma_b: float,
                 out_a: np.ndarray, out_b: np.ndarray, u1: np.ndarray, rad: np.ndarray,
                 scratch: np.ndarray) -> None:
@@ -1747,7 +1760,7 @@ _RINT_MAGIC = 6755399441055744.0
 _RINT_MAGIC32 = np.float32(12582912.0)  # 1.5 x 2^23, for float32 (|x| < 2^22)
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _measure_block(r: np.ndarray, refl: np.ndarray, offsets: np.ndarray, w1: np.ndarray,
                    w2: np.ndarray, noisy: bool, sigma_range: float, sigma_intensity: float,
                    exponent: float, unit: float, range_min: float, range_max: float,
@@ -1804,7 +1817,7 @@ def _measure_block(r: np.ndarray, refl: np.ndarray, offsets: np.ndarray, w1: np.
         t_out[i] = u8 if d_out[i] > 0.0 else np.uint8(0)
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _near(r: np.ndarray, refl: np.ndarray, near_bound: float, i0: int, near: np.ndarray,
           near_energy: np.ndarray, n_near: int) -> int:
     """Append the returns whose energy refl / r^2 is below ``near_bound`` to ``near`` (global
@@ -1854,7 +1867,7 @@ def measure_firings(r: np.ndarray, refl: np.ndarray, offsets: np.ndarray, words:
                            np.empty(b, dtype=np.float32))
     near = np.empty(n, dtype=np.int64)
     near_energy = np.empty(n)
-    n_near = 0
+    n_near = np.int64(0)  # (typed: a literal 0 would compile `_near` twice)
     for i0 in range(0, n, b):
         i1 = min(n, i0 + b)
         m = i1 - i0
@@ -1872,7 +1885,7 @@ def measure_firings(r: np.ndarray, refl: np.ndarray, offsets: np.ndarray, words:
     return distance, intensity, rtype, near[:n_near].copy(), near_energy[:n_near].copy()
 
 
-@njit(inline="always", error_model="numpy")
+@njit(error_model="numpy")
 def _points_block(d: np.ndarray, sin_a: np.ndarray, cos_a: np.ndarray, cos_el: np.ndarray,
                   sin_el: np.ndarray, vertical: np.ndarray, x: np.ndarray, y: np.ndarray,
                   z: np.ndarray, rc: np.ndarray) -> None:
@@ -1918,7 +1931,7 @@ def firing_points(distance: np.ndarray, sin_a: np.ndarray, cos_a: np.ndarray,
 # --------------------------------------------------------------------------------------------
 # One ray per firing: the whole grid in one pass
 # --------------------------------------------------------------------------------------------
-@njit(inline="always")
+@njit(error_model="numpy")
 def _to_firings(src: np.ndarray, dst: np.ndarray) -> None:
     """Rows of lasers (L, B) into firing order (B, L) (for the VLP-16 a loop of a fixed 16,
     which LLVM turns into a few vector shuffles per sequence)."""
@@ -1976,7 +1989,7 @@ def grid_pass(azimuth: np.ndarray, k: np.ndarray, ranges: np.ndarray, n_ranges: 
     z = np.empty((n_slots, n))
     near = np.empty(n, dtype=np.int64)
     near_energy = np.empty(n)
-    n_near = 0
+    n_near = np.int64(0)  # (typed: a literal 0 would compile `_near` twice)
     # per block: rows of lasers (16, bs), firing order (bs, 16), float32 scratch
     az_t = np.empty((n_l, bs))
     sb = np.empty(bs)
