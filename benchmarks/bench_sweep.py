@@ -3,13 +3,15 @@
     .venv/bin/python benchmarks/bench_sweep.py [--scans 100] [--jobs 2] [--method NAME] [--seed 0]
 
 The whole pipeline of `aimbench sweep yaw --bench sim --jobs 2` (the demo's sweep, without its
-calibration and report): 21 references (-10..+10 deg), `--scans` scans each (the paper: 100, so
-2,100 scans), every scan emulated by the twin (MuJoCo ray casts, the paper's noise model) and
-estimated by `align` in `--jobs` worker processes (started as the run opens, warming up their
-twins and kernels while this process opens the store and its own twin), and committed to a
-run store on disk (SQLite, WAL, fsynced commits of a few scans each) by this process. Moves
-cost no wall time on the simulated bench (simulated trapezoids). ``--jobs 1`` runs it in this
-one process (`aimbench sweep`'s default).
+calibration and report, the unit's range offsets known as the calibration measures them;
+``--offset-estimated``: estimated with every scan's pose, as for a new uncalibrated unit): 21
+references (-10..+10 deg), `--scans` scans each (the paper: 100, so 2,100 scans), every scan
+emulated by the twin (MuJoCo ray casts, the paper's noise model) and estimated by `align` in
+`--jobs` worker processes (started as the run opens, warming up their twins and kernels while this
+process opens the store and its own twin), and committed to a run store on disk (SQLite, WAL,
+fsynced commits of a few scans each) by this process. Moves cost no wall time on the simulated
+bench (simulated trapezoids). ``--jobs 1`` runs it in this one process (`aimbench sweep`'s
+default).
 
 Printed side by side: the sweep's wall time and its CPU time (this process and its workers), beside
 issue 38's anchor, 10 s of wall time for 21 x 100 on 2 cores (scaled to the scans run), and the
@@ -33,12 +35,14 @@ import tempfile
 import time
 import warnings
 from pathlib import Path
+from typing import Any
 
 # this checkout's code, not whatever the environment installed (an editable install of another
 # worktree would be measured instead)
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from scenarios import plans
+from scenarios import station as stations
 from scenarios.bench import SimBench
 from scenarios.runner import ParallelSimRunner, PipelineCPU, Runner, make_estimator, sim_engine
 from scenarios.store import Store
@@ -61,23 +65,38 @@ MULTIRAY_REPEATS = 30
 PAPER_SCANS = 3
 
 
+def sweep_station(offset_estimated: bool) -> Any:
+    """The station the sweep runs on: the paper's, its unit's range offsets known (common and
+    per laser, as the demo's calibration measures them: the hints of
+    `Station.estimate_hints(calibrated=True)`) or, ``offset_estimated``, estimated with every
+    scan's pose as for a new, uncalibrated unit (the integral over the common offset and the
+    per-laser offsets' directions costs about 0.3 s of CPU a scan)."""
+    station = stations.default()
+    if offset_estimated:
+        return station
+    d = station.to_dict()
+    d["sensor"].update(range_offset_std_mm=0.0, laser_offset_std_mm=0.0)  # known: 0 mm
+    return stations.from_dict(d, "bench_sweep's station")
+
+
 def run_sweep(plan: plans.Plan, folder: Path, jobs: int, method: str | None,
-              seed: int) -> tuple[float, float, float, PipelineCPU, int, int]:
+              seed: int, station: Any) -> tuple[float, float, float, PipelineCPU, int, int]:
     """The sweep as the command runs it; (wall s, CPU s, this process's set-up CPU s, the
     pipeline's CPU, scans stored, scans with a pose)."""
     t0, c0 = wall_and_cpu()
     # As `aimbench sweep` does: the workers first, so that their start-up overlaps the rest.
-    engine = sim_engine(jobs, seed, method=method) if jobs > 1 else None
-    bench = SimBench(seed=seed)
+    engine = sim_engine(jobs, seed, station=station, method=method) if jobs > 1 else None
+    bench = SimBench(seed=seed, station=station)
     store = Store.create(folder, plan, {"bench": "sim", "method": method, "jobs": jobs},
                          bench.info())
     # A sweep would stop on a reference with no pose at all; the timing must not.
     if engine is not None:
         runner: Runner = ParallelSimRunner(plan, bench, store, seed=seed, method=method,
                                            jobs=jobs, max_consecutive_failures=10**9,
-                                           engine=engine)
+                                           station=station, engine=engine)
     else:
-        runner = Runner(plan, bench, store, make_estimator(method),
+        runner = Runner(plan, bench, store,
+                        make_estimator(method, station.board_spec(), None, station),
                         max_consecutive_failures=10**9)
     setup_cpu = wall_and_cpu()[1] - c0
     status = runner.run()
@@ -126,6 +145,9 @@ def main() -> None:
                     help=f"worker processes (default {GOAL_CORES}, the demo's; 1: in process)")
     ap.add_argument("--method", default=None, help="estimation method (default: align's)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--offset-estimated", action="store_true",
+                    help="estimate the unit's common range offset with every scan, as for a new "
+                         "uncalibrated unit (default: known, as the demo's calibration gives it)")
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)  # the twin's NaN masks, not our figures
 
@@ -136,7 +158,8 @@ def main() -> None:
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="aimbench-bench-") as tmp:
         wall, cpu, setup_cpu, pipe, n, ok = run_sweep(plan, Path(tmp) / "run", args.jobs,
-                                                      method, args.seed)
+                                                      method, args.seed,
+                                                      sweep_station(args.offset_estimated))
     load_after = os.getloadavg()[0]
     paper = paper_ms(plan, args.seed)
     multiray = bare_multiray_ms(args.seed)
@@ -195,7 +218,8 @@ def main() -> None:
     ]
     w = [max(len(r[i]) for r in rows) for i in range(4)]
     print(f"bench_sweep: the paper's yaw sweep on SimBench, {args.jobs} worker "
-          f"process{'es' * (args.jobs > 1)}, {os.cpu_count()} CPU cores, seed {args.seed}")
+          f"process{'es' * (args.jobs > 1)}, {os.cpu_count()} CPU cores, seed {args.seed}, the "
+          f"unit's range offset {'estimated' if args.offset_estimated else 'known'}")
     print(f"| {'figure':<{w[0]}} | {'value':>{w[1]}} | {'anchor':<{w[2]}} | {'ratio':>{w[3]}} |")
     print(f"|{'-' * (w[0] + 2)}|{'-' * (w[1] + 2)}|{'-' * (w[2] + 2)}|{'-' * (w[3] + 2)}|")
     for r in rows:
