@@ -14,7 +14,7 @@ inspection:
   from the unit's seed (the twin's 2.5 mm sigma) and a common range offset (2.5 mm sigma, both
   clipped at the paper's 5 mm). Its data packets are written as the capture, byte for byte what
   the sensor would have sent; the scans come with the twin's truth. A station whose sensor is
-  an Ouster or a PandarXT32 gets that sensor's own twin (`twin.sim.sensor_twins`: range noise,
+  an Ouster or a Hesai gets that sensor's own twin (`twin.sim.sensor_twins`: range noise,
   no per-laser offsets), its packets written on its own port (an Ouster's metadata JSON beside
   the capture, as `aimbench simulate` writes it).
 
@@ -44,6 +44,9 @@ from twin.core.scan import Scan
 #: The twin's per-unit common range offset, 1-sigma and clip, m (the paper: "offset up to 5 mm").
 UNIT_RANGE_BIAS_SIGMA = 0.0025
 UNIT_RANGE_BIAS_CLIP = 0.005
+#: The stream of a twin unit's seed its Ouster's or Hesai's range noise is drawn from (as its
+#: Velodyne's per-laser offsets come from stream 16, `unit_sensor`): apart from every other.
+OWN_TWIN_STREAM = 35
 #: Misalignment keys a twin unit takes (edge units): the mount's angles and the optical
 #: centre's shift on the turntable (its frame: x right, y forward, z up).
 MISALIGNMENT_KEYS = ("x_mm", "y_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg")
@@ -258,8 +261,8 @@ class TwinAcquisition(Acquisition):
         else:
             # its twin draws range noise only: no per-laser or common offsets to record
             self.sensor.update({"model": self.own_model, "range_bias_m": 0.0})
-            self._rng = np.random.default_rng((noise_seed, 35))
-            self._sent_s = 0.0
+            self._rng = np.random.default_rng((noise_seed, OWN_TWIN_STREAM))
+            self._sent_s, self._frames = 0.0, 0
             self._metadata: str | None = None
         self._writer = None
         self._part = None
@@ -285,7 +288,9 @@ class TwinAcquisition(Acquisition):
     def _own_scans(self, n: int) -> Iterator[Scan]:
         from twin.sim.sensor_twins import own_twin_packets
 
-        sent = own_twin_packets(self.sim, self.own_model, n, rng=self._rng)
+        sent = own_twin_packets(self.sim, self.own_model, n, rng=self._rng,
+                                first_frame=self._frames, t0_s=self._sent_s)
+        self._frames += n  # a re-measure's frames numbered on, as the sensor's are
         if self._writer is not None:
             for payload, t in zip(sent.payloads, sent.times_s, strict=True):
                 self._writer.write_udp(payload, self._epoch + self._sent_s + float(t),

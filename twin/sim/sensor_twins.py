@@ -96,10 +96,13 @@ class TwinPackets:
 
 
 def own_twin_packets(sim: Any, model: str, n: int, *, rng: np.random.Generator,
-                     range_sigma: float = 0.01) -> TwinPackets:
+                     range_sigma: float = 0.01, first_frame: int = 0,
+                     t0_s: float = 0.0) -> TwinPackets:
     """``n`` scans of an Ouster's or a Hesai's twin on ``sim`` (a `twin.sim.bench.BenchSim`
     at rest, its stages where they are) through its packets and aimbench's decoder. Gaussian
-    range noise of ``range_sigma`` (m) drawn from ``rng``."""
+    range noise of ``range_sigma`` (m) drawn from ``rng``. ``first_frame``, ``t0_s``: an
+    Ouster's first frame id and its sensor time, s (a capture that goes on from earlier packets
+    numbers its frames on)."""
     if is_ouster_model(model):
         from twin.lidar.ouster import (
             columns_from_frame,
@@ -111,7 +114,8 @@ def own_twin_packets(sim: Any, model: str, n: int, *, rng: np.random.Generator,
         from twin.sim.ouster_twin import emulate_frames
 
         info = nominal_info(ouster_model_name(model))
-        frames, truth = emulate_frames(sim, info, n, rng=rng, range_sigma=range_sigma)
+        frames, truth = emulate_frames(sim, info, n, rng=rng, range_sigma=range_sigma,
+                                       t0_s=t0_s, first_frame_id=first_frame)
         payloads = [p for f in frames for p in encode_packets(columns_from_frame(f, info), info)]
         packet_s = info.columns_per_packet / (info.columns_per_frame * info.rate_hz)
         return _with_truth(TwinPackets(
