@@ -20,11 +20,8 @@ from twin.core.scan import Scan
 from twin.core.sensors import MODELS
 from twin.lidar.calibration_file import read_calibration_file
 from twin.lidar.conventions import CONVENTIONS
+from twin.lidar.hesai import HESAI_MODELS
 from twin.lidar.sources import ScanSource, open_scans
-
-#: The Hesai models read by their own decoder (`twin.lidar.hesai.HESAI_MODELS`; spelt out here
-#: so that the parser is built without importing the decoder).
-_HESAI = ("PandarXT32", "PandarQT128")
 
 SOURCE_HELP = ("a capture (.pcap/.pcapng), the live sensor (udp://HOST:PORT, e.g. "
                "udp://0.0.0.0:2368; Ctrl-C ends it), a ROS 1 .bag, a ROS 2 bag (its folder, "
@@ -121,7 +118,7 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
 def add_sensor_arguments(p: argparse.ArgumentParser) -> None:
     """Which sensor the packets come from: ``--model`` and ``--sensor-calibration``, on every
     command that reads a source (a ``--station`` file's [sensor] gives both otherwise)."""
-    p.add_argument("--model", choices=(*MODELS, *_HESAI), default=None,
+    p.add_argument("--model", choices=(*MODELS, *HESAI_MODELS), default=None,
                    help="decode as this model whatever the product id byte says (default: "
                         "the --station file's sensor.model if one is given, else from the "
                         "product id); point clouds are rebuilt on its grid (default VLP-16)")
@@ -213,7 +210,7 @@ def format_summary(s: dict) -> str:
                            f"({_TOLD.get(s.get('cloud_convention_from'), 'given')})"),
         ]
         return "\n".join(f"{k:17s} {v}" for k, v in lines)
-    if s.get("model") in _HESAI:  # a Hesai's packets
+    if s.get("model") in HESAI_MODELS:  # a Hesai's packets
         lines += [
             ("model", f"{s['model']} (angles {s['laser_table']})"),
             ("return mode", s["return_mode"] if s["return_mode"] is not None else "-"),
@@ -266,13 +263,13 @@ def format_summary(s: dict) -> str:
 
 def _describe(s: dict) -> str:
     kind = s.get("kind", "pcap")
-    if kind == "udp" and "lidar_mode" not in s and s.get("model") not in _HESAI:
+    if kind == "udp" and "lidar_mode" not in s and s.get("model") not in HESAI_MODELS:
         return f"{s['capture']} (live)"
     if "bag" in s:
         b = s["bag"]
         return (f"{s['capture']} (ROS bag, topic {b['topic']}, {b['type']}, "
                 f"{b['messages']} messages)")
-    if "lidar_mode" in s or s.get("model") in _HESAI:
+    if "lidar_mode" in s or s.get("model") in HESAI_MODELS:
         maker = "Ouster lidar" if "lidar_mode" in s else f"Hesai {s['model']}"
         return f"{s['capture']} ({maker} packets, {'live' if kind == 'udp' else kind})"
     f = s.get("file")

@@ -27,6 +27,7 @@ from scenarios import station as stations
 from scenarios.truth import write_truth
 from twin.core.errors import AimbenchError
 from twin.core.sensors import MODELS
+from twin.lidar.hesai import HESAI_MODELS
 from twin.lidar.ouster import LIDAR_MODES, OUSTER_MODELS, is_ouster_model
 
 
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
     model = args.model or station.sensor.model
     if is_ouster_model(model):
         return _simulate_ouster(args, params, model, out, station, station_file)
-    if model in ("PandarXT32", "PandarQT128"):
+    if model in HESAI_MODELS:
         return _simulate_hesai(args, params, model, out, station, station_file)
     try:
         noise = (EmulationConfig.ideal(model=model) if args.ideal
@@ -199,7 +200,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="the scene the bench stands in (default: the station's twin.scene; "
                         "'bench': floor, wall and beams; 'lab': a cluttered lab around it)")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
-    p.add_argument("--model", choices=(*MODELS, *OUSTER_MODELS, "PandarXT32", "PandarQT128"),
+    p.add_argument("--model", choices=(*MODELS, *OUSTER_MODELS, *HESAI_MODELS),
                    default=None,
                    help="the sensor emulated (default: the station's sensor.model; the "
                         "paper's: VLP-16); an Ouster's pcap gets its metadata JSON beside it")

@@ -19,10 +19,12 @@ import numpy as np
 
 from twin.core.pose import Pose
 from twin.core.scan import Scan
+from twin.lidar.hesai import HESAI_MODELS as HESAI_DECODED
 from twin.lidar.ouster import is_ouster_model, ouster_model_name
 
-#: The Hesai models the twin emulates (their angle files: `twin.lidar.hesai.default_angles`).
-HESAI_MODELS = ("PandarXT32", "PandarQT128")
+#: The Hesai models the twin emulates: every one the decoder reads (their angle files:
+#: `twin.lidar.hesai.default_angles`).
+HESAI_MODELS = tuple(HESAI_DECODED)
 
 
 def is_own_twin(model: str) -> bool:
