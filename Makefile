@@ -10,9 +10,11 @@ BENCH_STAMP := $(VENV)/.aimbench-bench-installed
 RUN    ?= runs/demo
 # Test workers (pytest-xdist): the suite's files are independent, and CI machines have two cores.
 # --dist loadfile: a file's tests on one worker, so its module fixtures (a sweep, a study, the
-# firmware in simavr) are made once, as in a serial run.
+# firmware in simavr) are made once, as in a serial run. --no-loadscope-reorder: the files in
+# the order tests/conftest.py gives them, the long ones first (xdist's own puts the files with
+# the most tests first, and a long file of three tests started last ran alone for minutes).
 JOBS   ?= 2
-XDIST  := -n $(JOBS) --dist loadfile
+XDIST  := -n $(JOBS) --dist loadfile --no-loadscope-reorder
 
 .PHONY: setup demo test test-fast lint bench clean
 

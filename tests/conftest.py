@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -9,6 +10,8 @@ import pytest
 TESTS_DIR = Path(__file__).resolve().parent
 REPO_DIR = TESTS_DIR.parent
 DATA_DIR = TESTS_DIR / "data"
+#: Each long test file's seconds as a run measured them (`tools/test_costs.py` refreshes it).
+COSTS = TESTS_DIR / "costs.json"
 
 
 @pytest.fixture(scope="session")
@@ -26,3 +29,14 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         help="serial port of a real stage controller (e.g. /dev/ttyACM0) for the stage protocol "
         "tests; default: the firmware in simavr",
     )
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The test files dearest first (tests/costs.json; the others after, in their own order).
+
+    `make test` hands whole files to two workers in the collection's order (--dist loadfile
+    --no-loadscope-reorder): a long file started last runs alone while the other worker is
+    idle. xdist's own order, most tests first, started the study on Ray (3 tests, 4 min) near
+    the end. Deterministic, as xdist requires: every worker collects the same order."""
+    cost = json.loads(COSTS.read_text(encoding="utf-8")) if COSTS.exists() else {}
+    items.sort(key=lambda item: -cost.get(item.location[0], 0.0))
