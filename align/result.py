@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from align.hint_defaults import EDGE_TOLERANCE
 from twin.core.pose import POSE_FIELDS_EDGE, Pose
 
 
@@ -57,7 +58,7 @@ class Hints:
     #: outside a side edge and 0.3 mrad outside the top or bottom one, where a ring runs along
     #: the edge; 0.5 mrad is the most its beam allows there (a third of the divergence). (0, 0)
     #: for a sharp beam (a twin without beam divergence).
-    edge_tolerance: tuple[float, float] = (0.08e-3, 0.5e-3)
+    edge_tolerance: tuple[float, float] = EDGE_TOLERANCE
     #: How far outside an edge a hit may lie whose intensity is below half the board's (only
     #: part of the beam met the board), rad, across the side edges and across the top and
     #: bottom edges: the beam's half-divergence (the VLP-16's 3 x 1.5 mrad beam). Before a dark

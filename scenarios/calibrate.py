@@ -31,15 +31,13 @@ import numpy as np
 
 from align import calibration as laser_calibration
 from scenarios.bench import Bench
+from scenarios.defaults import CALIBRATION_SCANS as DEFAULT_SCANS
+from scenarios.defaults import CALIBRATION_YAWS_DEG as DEFAULT_YAWS_DEG
 from scenarios.truth import scan_truth
 from twin.core.errors import AimbenchError
 from twin.core.pose import Pose, StagePose
 from twin.core.scan import Scan
 
-#: Stage yaws the simulated calibration visits, deg: the sweep's range, so that every laser
-#: that meets the board in a sweep is calibrated (a partial correction can do more harm).
-DEFAULT_YAWS_DEG = (-8.0, 0.0, 8.0)
-DEFAULT_SCANS = 20
 #: `Bench.prepare` reference numbers for calibration scans: apart from any plan's, so a
 #: simulated calibration never reuses a sweep's noise draws.
 _PREPARE_BASE = 1_000_000

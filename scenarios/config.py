@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 from align.calibration import LaserCalibration
+from scenarios.defaults import MAX_CONSECUTIVE_FAILURES
 from scenarios.station import Station, StationError
 from scenarios.station import default as default_station
 from scenarios.station import from_dict as station_from_dict
@@ -22,9 +23,6 @@ from twin.core.errors import AimbenchError
 
 #: Benches a run can use: the twin in process, the real one, the wire-level twin it starts.
 BENCHES = ("sim", "hw", "serve")
-#: Stop a reference (and the run) when this many scans in a row gave no pose and none at this
-#: reference did: the board is not in view, and more scans will not bring it back.
-MAX_CONSECUTIVE_FAILURES = 10
 
 
 @dataclass(frozen=True)

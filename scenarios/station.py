@@ -28,7 +28,6 @@ import json
 import math
 import sys
 import tomllib
-from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -47,6 +46,18 @@ from pydantic import (
     model_validator,
 )
 
+# The command line's part (--station, the shipped stations, the default, the roll prior's SD)
+# lives in station_options, which a command's parser imports without pydantic; these names stay
+# reachable here, where the model and its users have always read them.
+from scenarios.station_options import (
+    DEFAULT_STATION,
+    ROLL_PRIOR_SD_DEG,
+    resolve,
+    shipped,
+)
+from scenarios.station_options import STATIONS_PACKAGE as STATIONS_PACKAGE
+from scenarios.station_options import add_arguments as add_arguments
+from scenarios.station_options import shipped_path as shipped_path
 from twin.core.errors import AimbenchError, one_line, short_repr
 from twin.core.pose import Pose
 from twin.core.sensors import MODELS, model_named
@@ -55,10 +66,6 @@ from twin.core.sensors import MODELS, model_named
 SENSOR_MODELS = tuple(MODELS)
 #: The decision rules an inspection may use (docs/station.md says what each does).
 DECISION_RULES = ("iso14253-1", "vda5", "simple")
-#: Where the shipped example stations live (package data of `scenarios`).
-STATIONS_PACKAGE = "scenarios.stations"
-#: The default station: the reference paper's bench.
-DEFAULT_STATION = "paper"
 
 #: A pattern's smallest square, mm, and most squares: the twin builds each square as a geom,
 #: and an absurdly fine chessboard (1e-3 mm squares) took minutes and gigabytes (issue 37);
@@ -633,12 +640,6 @@ class Station(_Section):
         return self.model_dump(mode="json", exclude={"line": {"users"}})
 
 
-#: How far a unit's roll on the board may be from the station's nominal, 1 sigma, deg: wide
-#: enough for a badly bolted unit and a stage turned by its travel, narrow enough that the
-#: board's symmetric rotations (90 deg apart) are told apart.
-ROLL_PRIOR_SD_DEG = 10.0
-
-
 def _m(mm: tuple[float, ...]) -> tuple[float, ...]:
     # Divided, not multiplied by 1e-3: 700 mm is then exactly the paper's 0.7 m.
     return tuple(float(v) / 1000.0 for v in mm)
@@ -705,16 +706,6 @@ def board_mm(text: str | list | tuple, where: str) -> dict[str, float]:
     return {"width_mm": values[0], "height_mm": values[1]}
 
 
-def add_arguments(p: Any, board: bool = True) -> None:
-    """``--station`` (and ``--board-mm``) on a command's parser."""
-    p.add_argument("--station", metavar="FILE|NAME",
-                   help="the bench's station file (TOML, docs/station.md) or a shipped one's name "
-                        f"({', '.join(shipped())}); default: the paper's bench")
-    if board:
-        p.add_argument("--board-mm", metavar="WxH",
-                       help="board WIDTHxHEIGHT, mm, instead of the station's (e.g. 900x540)")
-
-
 def from_args(args: Any, twin: bool = False) -> tuple[Station, str | None]:
     """The station a command's ``--station`` names, with ``--board-mm`` (and
     ``--board-thickness-mm`` where a command has it) applied; and the file it came from. Its
@@ -735,31 +726,6 @@ def from_args(args: Any, twin: bool = False) -> tuple[Station, str | None]:
 def default() -> Station:
     """The default station: the shipped paper's bench (read once; a `Station` is frozen)."""
     return load(DEFAULT_STATION)
-
-
-def resolve(spec: str | Path | None) -> Path:
-    """The file a ``--station`` value names: a path, or a shipped station's name."""
-    if spec is None:
-        spec = DEFAULT_STATION
-    text = str(spec)
-    if text in shipped():
-        return shipped_path(text)
-    path = Path(text).expanduser()
-    # ``--station my-bench`` for my-bench.toml, as a shipped station is named without it.
-    if not path.suffix and not path.exists() and path.with_name(path.name + ".toml").is_file():
-        return path.with_name(path.name + ".toml")
-    return path
-
-
-def shipped() -> tuple[str, ...]:
-    """The names of the example stations installed with aimbench."""
-    folder = resources.files(STATIONS_PACKAGE)
-    return tuple(sorted(p.name.removesuffix(".toml") for p in folder.iterdir()
-                        if p.name.endswith(".toml")))
-
-
-def shipped_path(name: str) -> Path:
-    return Path(str(resources.files(STATIONS_PACKAGE).joinpath(f"{name}.toml")))
 
 
 def _describe(exc: ValidationError) -> str:

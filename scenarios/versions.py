@@ -10,7 +10,6 @@ from __future__ import annotations
 import platform
 import subprocess
 from functools import cache
-from importlib import metadata
 from pathlib import Path
 
 #: Distributions whose versions matter to a result: the simulator and the sensor emulation
@@ -41,6 +40,8 @@ def git_commit(source: Path = SOURCE) -> str:
 
 def versions() -> dict[str, str]:
     """Installed versions of aimbench (and its commit), Python and the tracked libraries."""
+    from importlib import metadata  # here: its import costs --help 30 ms (issue 38)
+
     out = {"python": platform.python_version()}
     for dist in TRACKED:
         try:
@@ -54,6 +55,8 @@ def versions() -> dict[str, str]:
 def short() -> str:
     """One line for ``aimbench --version``: the version and the commit (aimbench's own version
     alone: looking up every tracked library costs more than the 0.3 s the answer may take)."""
+    from importlib import metadata
+
     try:
         own = metadata.version("aimbench")
     except metadata.PackageNotFoundError:

@@ -39,7 +39,8 @@ PROJECT = ("twin", "align", "scenarios", "models", "bench_fw", "aimbench")
 #: the shared modules every stage may use; they import no stage. The leaf of float helpers
 #: (floats) imports only the decorator that compiles it (jit), and jit nothing of align.
 ALIGN_COMMON = ("align.board", "align.geometry", "align.result", "align.symmetry",
-                "align.params", "align.methods", "align.floats", "align.jit")
+                "align.params", "align.methods", "align.hint_defaults", "align.floats",
+                "align.jit")
 _PLANE = (*ALIGN_COMMON,)
 _SEARCH = (*_PLANE, "align.plane")
 _FIT = (*_SEARCH, "align.search")
@@ -50,7 +51,9 @@ ALIGN_ALLOWED: dict[str, tuple[str, ...]] = {
     "align.floats": ("align.jit",),
     "align.board": (),
     "align.geometry": (),
-    "align.result": (),
+    # the hints' defaults the command line shows, as plain numbers (align.hint_defaults)
+    "align.result": ("align.hint_defaults",),
+    "align.hint_defaults": (),
     "align.params": (),
     "align.methods": (),
     "align.symmetry": ("align.board", "align.geometry"),

@@ -23,16 +23,17 @@ from __future__ import annotations
 import argparse
 import sys
 
-import numpy as np
-
-from scenarios import calibrate, cliargs
-from scenarios import station as stations
+from scenarios import cliargs, defaults, station_options
 from scenarios.commands.info import add_sensor_arguments, sensor_options
-from scenarios.progress import Bar
 from twin.core.errors import AimbenchError
+
+# The calibration, the station model and the twin are imported by the functions that run (numpy,
+# pydantic, the estimator: about half a second), not for the parser (issue 38).
 
 
 def _check(args: argparse.Namespace) -> int:
+    from scenarios import calibrate
+    from scenarios import station as stations
     from twin.lidar.sources import capture_scans
 
     cal = calibrate.read(args.check)
@@ -50,6 +51,12 @@ def _check(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from scenarios import calibrate
+    from scenarios import station as stations
+    from scenarios.progress import Bar
+
     if args.check:
         if not args.capture:
             raise AimbenchError("--check CAL needs a recording to check it against")
@@ -96,9 +103,9 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--bench", choices=("sim",), help="calibrate on the simulated bench")
     p.add_argument("--seed", type=cliargs.seed, default=0,
                    help="the twin's seed (its sensor; default 0)")
-    p.add_argument("--yaw-deg", default=",".join(f"{v:g}" for v in calibrate.DEFAULT_YAWS_DEG),
+    p.add_argument("--yaw-deg", default=",".join(f"{v:g}" for v in defaults.CALIBRATION_YAWS_DEG),
                    help="stage yaws to scan at, deg, comma-separated (default %(default)s)")
-    p.add_argument("--scans", type=cliargs.positive_int, default=calibrate.DEFAULT_SCANS,
+    p.add_argument("--scans", type=cliargs.positive_int, default=defaults.CALIBRATION_SCANS,
                    help="scans per stage yaw (default %(default)s)")
     p.add_argument("--sensor-id", help="the sensor's serial number or your id for it (default: "
                                        "on the twin 'twin seed S', else none)")
@@ -108,7 +115,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="check that the recording fits this calibration file instead (exit 1 "
                         "if not)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    stations.add_arguments(p)
+    station_options.add_arguments(p)
     add_sensor_arguments(p)
     p.set_defaults(func=run)
     return p

@@ -22,10 +22,13 @@ from scenarios.commands.info import (
     warn_lines,
 )
 from twin.core.errors import AimbenchError
-from twin.lidar.export import FORMATS, ExportError, export_scans
+from twin.lidar.format_names import EXPORT_FORMATS as FORMATS
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: the writers import numpy, which the parser does not need (issue 38)
+    from twin.lidar.export import ExportError, export_scans
+
     out = Path(args.out)
     if out.suffix.lower() not in FORMATS:  # refused before a live source is read
         raise ExportError(f"cannot write {out}: unknown extension {out.suffix or '(none)'}; "

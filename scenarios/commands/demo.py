@@ -20,16 +20,17 @@ import argparse
 import os
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import align
-from align import calibration as laser_calibration
-from scenarios import calibrate, cliargs, plans
-from scenarios.bench import SimBench
-from scenarios.commands.sweep import add_tolerance_arguments, execute, tolerances
-from scenarios.config import RunConfig
-from scenarios.progress import Bar
-from scenarios.runner import sim_engine
-from scenarios.store import STORE_NAME, Store
+import align  # its names load on first use: METHODS and DEFAULT_METHOD without the estimator
+from scenarios import cliargs
+from scenarios.commands.sweep import add_tolerance_arguments
+
+# The bench, the runner and the store are imported by the functions that run (numpy, pydantic,
+# MuJoCo, the estimator: about a second), not for the parser (issue 38).
+if TYPE_CHECKING:
+    from align import calibration as laser_calibration
+    from scenarios.bench import SimBench
 
 #: Scans per reference in the demo: the paper's 100 (2,100 scans). The whole demo costs about
 #: 67 s of CPU (some 30 ms a scan, benchmarks/bench_sweep.py, and 6-7 s of start-up,
@@ -40,6 +41,13 @@ CALIBRATION_NAME = "calibration.json"
 
 
 def run(args: argparse.Namespace) -> int:
+    from scenarios import plans
+    from scenarios.bench import SimBench
+    from scenarios.commands.sweep import execute, tolerances
+    from scenarios.config import RunConfig
+    from scenarios.runner import sim_engine
+    from scenarios.store import STORE_NAME, Store
+
     out = Path(args.out)
     store_path = out / STORE_NAME
     if args.fresh:
@@ -92,6 +100,9 @@ def calibrate_sensor(bench: SimBench, no_progress: bool, out: Path
                      ) -> laser_calibration.LaserCalibration:
     """The bench's routine before the sweep: the twin sensor's per-laser range offsets from
     scans of the board at the calibration's stage yaws, saved to `out`/calibration.json."""
+    from scenarios import calibrate
+    from scenarios.progress import Bar
+
     total = len(calibrate.DEFAULT_YAWS_DEG) * calibrate.DEFAULT_SCANS
     with Bar(total, "calibrate", "scans", enabled=not no_progress) as bar:
         cal = calibrate.on_bench(bench,

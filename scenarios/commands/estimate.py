@@ -36,12 +36,13 @@ import argparse
 import json
 import math
 import sys
+from functools import cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import align
-from align import calibration as laser_calibration
-from scenarios import calibrate, cliargs
-from scenarios import station as stations
+import align  # its names load on first use: METHODS and DEFAULT_METHOD without the estimator
+from align.hint_defaults import EDGE_TOLERANCE
+from scenarios import cliargs, station_options
 from scenarios.commands.info import (
     add_decode_options,
     add_source_arguments,
@@ -49,17 +50,29 @@ from scenarios.commands.info import (
     quiet_scans,
     warn_lines,
 )
-from scenarios.truth import ScanTruth, load_truth, truth_for, truth_path
 from twin.core.errors import AimbenchError
-from twin.core.pose import POSE_FIELDS_EDGE, Pose
+
+# The estimator, the calibration, the station model and the truth files are imported by the
+# functions that use them (numpy, pydantic, numba's kernels: most of a second), not for the
+# parser (issue 38).
+if TYPE_CHECKING:
+    from align import calibration as laser_calibration
+    from scenarios import station as stations
+    from scenarios.truth import ScanTruth
+    from twin.core.pose import Pose
 
 #: The table's columns: (key, width, decimals) of each quantity, its 1-sigma and its error.
 COLUMNS = (("x_mm", 16, 1), ("y_mm", 18, 1), ("z_mm", 16, 1),
            ("roll_deg", 17, 3), ("tilt_deg", 17, 3), ("yaw_deg", 17, 3))
 
-#: The keys of a row that are the pose or its standard deviations (edge units and SI).
-_POSE_KEYS = (*POSE_FIELDS_EDGE, *(f"{k}_std" for k in POSE_FIELDS_EDGE), "x_m", "y_m", "z_m",
-              "x_m_std", "y_m_std", "z_m_std")
+
+@cache
+def _pose_keys() -> tuple[str, ...]:
+    """The keys of a row that are the pose or its standard deviations (edge units and SI)."""
+    from twin.core.pose import POSE_FIELDS_EDGE
+
+    return (*POSE_FIELDS_EDGE, *(f"{k}_std" for k in POSE_FIELDS_EDGE), "x_m", "y_m", "z_m",
+            "x_m_std", "y_m_std", "z_m_std")
 
 
 def _row(first: int, n: int, res: align.PoseEstimate, truth: Pose | None = None) -> dict:
@@ -69,7 +82,7 @@ def _row(first: int, n: int, res: align.PoseEstimate, truth: Pose | None = None)
     row = {"scan": first, "scans": n}
     row.update(res.to_edge_dict())
     if not res.success:
-        row.update(dict.fromkeys(_POSE_KEYS))
+        row.update(dict.fromkeys(_pose_keys()))
         row.setdefault("reason", _REASONS.get(row["status"], "no pose"))
     if truth is not None:
         row["truth"] = truth.to_edge()
@@ -85,6 +98,8 @@ _REASONS = {"partial_board": "only a part of the board is seen: no pose it can s
 
 def errors(estimate: Pose, truth: Pose) -> dict[str, float]:
     """estimate - truth per axis, mm and deg; angle differences wrapped into [-180, 180)."""
+    from twin.core.pose import POSE_FIELDS_EDGE
+
     est, tru = estimate.to_edge(), truth.to_edge()
     out = {}
     for k in POSE_FIELDS_EDGE:
@@ -134,6 +149,8 @@ def table(rows: list[dict]) -> list[str]:
 
 def _truths(args: argparse.Namespace) -> list[ScanTruth]:
     """The capture's truth entries: ``--truth FILE``, else ``CAPTURE.truth.json`` if there."""
+    from scenarios.truth import load_truth, truth_path
+
     if args.truth is not None:
         return load_truth(args.truth)
     beside = truth_path(args.capture)
@@ -142,6 +159,8 @@ def _truths(args: argparse.Namespace) -> list[ScanTruth]:
 
 def _truth_header(args: argparse.Namespace) -> dict:
     """The capture's truth file as written (what `simulate` adds: its seed, station...), or {}."""
+    from scenarios.truth import truth_path
+
     path = Path(args.truth) if args.truth is not None else truth_path(args.capture)
     try:
         head = json.loads(path.read_text(encoding="utf-8"))
@@ -156,6 +175,8 @@ def _capture_sensor(args: argparse.Namespace) -> str | None:
     range offsets)."""
     if args.sensor_id is not None:
         return args.sensor_id
+    from scenarios import calibrate
+
     seed = _truth_header(args).get("seed")
     return calibrate.twin_sensor_id(seed) if isinstance(seed, int) else None
 
@@ -180,6 +201,8 @@ def _warn_board_size(args: argparse.Namespace, station: stations.Station) -> Non
     """Say when the capture's truth file names another board than the one estimated with: a
     board of the wrong size was reported as occlusion ("nothing seen beyond its top edge, 610
     misses inside") though the truth file said the size (issue 37)."""
+    from scenarios.truth import truth_path
+
     path = Path(args.truth) if args.truth is not None else truth_path(args.capture)
     try:
         board = json.loads(path.read_text(encoding="utf-8"))["station"]["board"]
@@ -214,7 +237,8 @@ def _roll_prior(text: str | None, station: stations.Station) -> tuple[float, flo
         return station.roll_prior()
     try:
         values = [float(v) for v in text.split(":")]
-        centre, sd = values if len(values) == 2 else (values[0], stations.ROLL_PRIOR_SD_DEG)
+        centre, sd = values if len(values) == 2 else (values[0],
+                                                      station_options.ROLL_PRIOR_SD_DEG)
     except ValueError as exc:
         raise AimbenchError("--roll-hint-deg takes CENTRE or CENTRE:SD in degrees, e.g. "
                             "-45:10") from exc
@@ -224,6 +248,10 @@ def _roll_prior(text: str | None, station: stations.Station) -> tuple[float, flo
 
 
 def run(args: argparse.Namespace) -> int:
+    from scenarios import calibrate
+    from scenarios import station as stations
+    from scenarios.truth import truth_for
+
     station, _ = stations.from_args(args)
     board = station.board_spec()
     if args.fuse < 1:
@@ -351,6 +379,8 @@ class _Explain:
 def _warn_fit(cal: laser_calibration.LaserCalibration, scans: list, sensor_id: str | None
               ) -> None:
     """One warning line per reason the raw scans do not fit the calibration."""
+    from scenarios import calibrate
+
     for w in calibrate.check(cal, scans, sensor_id):
         print(f"aimbench estimate: warning: {w}", file=sys.stderr)
 
@@ -359,7 +389,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("estimate", help="estimate the LiDAR's pose in the board frame from a "
                                         "capture (per scan, or fused over N scans)")
     add_source_arguments(p)
-    stations.add_arguments(p)
+    station_options.add_arguments(p)
     p.add_argument("--board-thickness-mm", type=cliargs.non_negative_float, default=None,
                    help="plate thickness, mm, instead of the station's (its side face widens the "
                         "near edge; the paper's: 3)")
@@ -380,10 +410,11 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--roll-hint-deg", metavar="CENTRE[:SD]", default=None,
                    help="hint: the LiDAR's roll on the board, deg (a board hung turned by a "
                         "clockwise puts a level LiDAR at -a; default: the station's "
-                        f"board.in_plane_deg, SD {stations.ROLL_PRIOR_SD_DEG:g}; the rotation "
+                        f"board.in_plane_deg, SD {station_options.ROLL_PRIOR_SD_DEG:g}; the "
+                        "rotation "
                         "is found without it)")
     p.add_argument("--edge-tolerance-mrad", metavar="H,V",
-                   default=",".join(f"{1e3 * v:g}" for v in align.Hints().edge_tolerance),
+                   default=",".join(f"{1e3 * v:g}" for v in EDGE_TOLERANCE),
                    help="how far a hit may lie outside the board's edge (a miss inside), mrad "
                         "seen from the LiDAR, across the side edges and across the top and "
                         "bottom ones: mixed returns of a divergent beam (default %(default)s, "

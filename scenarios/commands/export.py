@@ -14,11 +14,14 @@ from collections.abc import Callable
 from pathlib import Path
 
 from scenarios import cliargs
-from scenarios.store import Store
 from twin.core.errors import AimbenchError
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: the store imports the station model and numpy, which the parser does
+    # not need (issue 38)
+    from scenarios.store import Store
+
     if not args.csv and not args.parquet:
         raise AimbenchError("give --csv FILE and/or --parquet FILE")
     with Store.open(Path(args.run)) as store:

@@ -32,19 +32,32 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from scenarios import cliargs
-from scenarios import station as stations
+from scenarios import cliargs, station_options
 from scenarios.extras import require
-from scenarios.inspection.records import Records
-from scenarios.inspection.studies import grr_report
 from scenarios.inspection.verdict import EDGE_SCALE, EDGE_UNIT, edge_key, limits_si
 from twin.core.errors import AimbenchError
 
-if TYPE_CHECKING:  # scipy.stats and statsmodels load only when a study runs (a second or two)
+# scipy.stats and statsmodels load only when a study runs (a second or two); the station model
+# and the records (pydantic, numpy) when the command runs, not for its parser (issue 38).
+if TYPE_CHECKING:
+    from scenarios import station as stations
     from scenarios.inspection import msa
+    from scenarios.inspection.records import Records
+
+
+def __getattr__(name: str) -> Any:
+    """``grr_report`` (scenarios.inspection.studies'), which this module has always offered,
+    loaded when it is asked for (PEP 562)."""
+    if name == "grr_report":
+        from scenarios.inspection.studies import grr_report
+
+        return grr_report
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _station_of(args: argparse.Namespace, rows: list[dict]) -> stations.Station:
+    from scenarios import station as stations
+
     if args.station is not None or not rows:
         return stations.from_args(args)[0]
     return stations.from_dict(rows[-1]["station_json"], "the records' station")
@@ -74,7 +87,10 @@ def grr_lines(results: list[msa.GaugeRR]) -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from scenarios import station as stations
     from scenarios.inspection import studies
+    from scenarios.inspection.records import Records
+    from scenarios.inspection.studies import grr_report
 
     if args.linearity:
         return _linearity(args)
@@ -132,6 +148,7 @@ def _batch_rows(records: Records, batch: str | None) -> list[dict]:
 
 
 def _type1(args: argparse.Namespace, records: Records) -> int:
+    from scenarios import station as stations
     from scenarios.inspection import msa, studies
     from scenarios.inspection.verdict import VDA5_QMP_MAX, q_mp, system_sigma_si
 
@@ -201,6 +218,7 @@ def _progress(args: argparse.Namespace) -> Any:
 
 
 def _bias(args: argparse.Namespace, records: Records) -> int:
+    from scenarios import station as stations
     from scenarios.inspection import msa, studies
 
     if not args.twin:
@@ -234,6 +252,7 @@ def _bias(args: argparse.Namespace, records: Records) -> int:
 
 
 def _linearity(args: argparse.Namespace) -> int:
+    from scenarios import station as stations
     from scenarios.bench import open_bench
     from scenarios.config import RunConfig
     from scenarios.inspection import msa, studies
@@ -268,7 +287,7 @@ def _linearity(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("grr", help="gauge R&R, bias and linearity of the inspection station",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    stations.add_arguments(p, board=False)
+    station_options.add_arguments(p, board=False)
     p.add_argument("--db", metavar="FILE", help="the inspection records (SQLite)")
     p.add_argument("--batch", help="analyse only the records of this batch (a study's name)")
     p.add_argument("--twin", action="store_true", help="run the study on the twin first")

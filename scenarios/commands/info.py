@@ -12,16 +12,18 @@ import sys
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from scenarios.progress import Bar
 from twin.core.errors import AimbenchError
-from twin.core.scan import Scan
-from twin.core.sensors import MODELS
-from twin.lidar.calibration_file import read_calibration_file
-from twin.lidar.conventions import CONVENTIONS
-from twin.lidar.hesai import HESAI_MODELS
-from twin.lidar.sources import ScanSource, open_scans
+from twin.core.sensor_names import HESAI_NAMES, VELODYNE_NAMES
+from twin.lidar.format_names import CLOUD_CONVENTIONS
+
+# The readers, the decoders and the progress bar (numpy, tqdm) are imported where a source is
+# read: the parsers of every command that reads one are built from this module (issue 38).
+if TYPE_CHECKING:
+    from scenarios.progress import Bar
+    from twin.core.scan import Scan
+    from twin.lidar.sources import ScanSource
 
 SOURCE_HELP = ("a capture (.pcap/.pcapng), the live sensor (udp://HOST:PORT, e.g. "
                "udp://0.0.0.0:2368; Ctrl-C ends it), a ROS 1 .bag, a ROS 2 bag (its folder, "
@@ -39,6 +41,8 @@ def add_source_arguments(p: argparse.ArgumentParser) -> None:
 def open_source(args: argparse.Namespace, station: Any = None) -> ScanSource:
     """The `ScanSource` the command line names, decoded as its options say (and, for what they
     leave unsaid, as ``station``'s sensor: `decode_options`)."""
+    from twin.lidar.sources import open_scans
+
     if getattr(args, "scans", None) is not None and args.scans < 1:
         raise AimbenchError(f"--scans {args.scans}: give at least 1")
     return open_scans(args.capture, max_scans=getattr(args, "scans", None),
@@ -69,6 +73,8 @@ PCAP_SCAN_BYTES = 95_300
 def progress_bar(name: str, command: str, min_bytes: int = PROGRESS_BYTES) -> Bar:
     """The `scenarios.progress.Bar` of reading source ``name``: over the estimated scans of a
     big pcap, counting scans of another big file or of a live sensor, off for small files."""
+    from scenarios.progress import Bar
+
     path = Path(name)
     live = name.startswith("udp://")
     size = path.stat().st_size if path.is_file() else 0
@@ -105,7 +111,7 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
                         "velodyne_decoder do)")
     p.add_argument("--no-vertical-offsets", action="store_true",
                    help="do not add the lasers' vertical offsets to z")
-    p.add_argument("--cloud-convention", choices=tuple(CONVENTIONS), default=None,
+    p.add_argument("--cloud-convention", choices=CLOUD_CONVENTIONS, default=None,
                    help="the driver that wrote a point cloud (how it turned each laser's "
                         "point; docs/vlp16.md): default, told from the cloud's fields, else "
                         "from its points")
@@ -118,7 +124,7 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
 def add_sensor_arguments(p: argparse.ArgumentParser) -> None:
     """Which sensor the packets come from: ``--model`` and ``--sensor-calibration``, on every
     command that reads a source (a ``--station`` file's [sensor] gives both otherwise)."""
-    p.add_argument("--model", choices=(*MODELS, *HESAI_MODELS), default=None,
+    p.add_argument("--model", choices=(*VELODYNE_NAMES, *HESAI_NAMES), default=None,
                    help="decode as this model whatever the product id byte says (default: "
                         "the --station file's sensor.model if one is given, else from the "
                         "product id); point clouds are rebuilt on its grid (default VLP-16)")
@@ -137,6 +143,8 @@ def sensor_options(args: argparse.Namespace, station: Any = None) -> dict:
     ``--sensor-calibration``, else the sensor of ``station`` (a `scenarios.station.Station` the
     command was given, None: none): its model and its factory calibration file's table. A
     ``--model`` other than the station's drops the station's file (another model's table)."""
+    from twin.lidar.calibration_file import read_calibration_file
+
     model = getattr(args, "model", None)
     cal = getattr(args, "sensor_calibration", None)
     lasers = None if cal is None else read_calibration_file(cal)[0]
@@ -210,7 +218,7 @@ def format_summary(s: dict) -> str:
                            f"({_TOLD.get(s.get('cloud_convention_from'), 'given')})"),
         ]
         return "\n".join(f"{k:17s} {v}" for k, v in lines)
-    if s.get("model") in HESAI_MODELS:  # a Hesai's packets
+    if s.get("model") in HESAI_NAMES:  # a Hesai's packets
         lines += [
             ("model", f"{s['model']} (angles {s['laser_table']})"),
             ("return mode", s["return_mode"] if s["return_mode"] is not None else "-"),
@@ -263,13 +271,13 @@ def format_summary(s: dict) -> str:
 
 def _describe(s: dict) -> str:
     kind = s.get("kind", "pcap")
-    if kind == "udp" and "lidar_mode" not in s and s.get("model") not in HESAI_MODELS:
+    if kind == "udp" and "lidar_mode" not in s and s.get("model") not in HESAI_NAMES:
         return f"{s['capture']} (live)"
     if "bag" in s:
         b = s["bag"]
         return (f"{s['capture']} (ROS bag, topic {b['topic']}, {b['type']}, "
                 f"{b['messages']} messages)")
-    if "lidar_mode" in s or s.get("model") in HESAI_MODELS:
+    if "lidar_mode" in s or s.get("model") in HESAI_NAMES:
         maker = "Ouster lidar" if "lidar_mode" in s else f"Hesai {s['model']}"
         return f"{s['capture']} ({maker} packets, {'live' if kind == 'udp' else kind})"
     f = s.get("file")

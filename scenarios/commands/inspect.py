@@ -30,19 +30,22 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import align
-from align.calibration import LaserCalibration
-from scenarios import calibrate, cliargs
-from scenarios import station as stations
-from scenarios.inspection import records as rec_mod
-from scenarios.inspection.acquire import open_acquisition
-from scenarios.inspection.identity import calibration_identity
-from scenarios.inspection.line import DEFAULT_SPREAD, line_units
-from scenarios.inspection.procedure import DEFAULT_SCANS, Inspection, inspect_unit
+import align  # its names load on first use: METHODS and DEFAULT_METHOD without the estimator
+from scenarios import cliargs, station_options
+from scenarios.defaults import INSPECTION_SCANS as DEFAULT_SCANS
+from scenarios.defaults import LINE_SPREAD as DEFAULT_SPREAD
 from scenarios.inspection.verdict import RULE_TEXT, Verdict
 from twin.core.errors import AimbenchError
+
+# The procedure, the acquisition (the twin or a sensor), the records and the station model are
+# imported by the functions that run (numpy, pydantic, MuJoCo, the estimator: about a second),
+# not for the parser (issue 38).
+if TYPE_CHECKING:
+    from align.calibration import LaserCalibration
+    from scenarios.inspection import records as rec_mod
+    from scenarios.inspection.procedure import Inspection
 
 EXIT = {Verdict.PASS: 0, Verdict.FAIL: 1, Verdict.INCONCLUSIVE: 3}
 
@@ -78,6 +81,11 @@ def _one(args: argparse.Namespace, records: rec_mod.Records, station: Any, unit:
          calibration: LaserCalibration | None, cal_file: str | None, live: Any
          ) -> tuple[Inspection, int]:
     """Inspect one unit and commit its record; returns the inspection and its record id."""
+    from scenarios.inspection import records as rec_mod
+    from scenarios.inspection.acquire import open_acquisition
+    from scenarios.inspection.identity import calibration_identity
+    from scenarios.inspection.procedure import inspect_unit
+
     keep = (source == "sim" or source.startswith("udp://")) and not args.no_captures
     capture = records.capture_path(unit) if keep else None
     started = time.time()
@@ -130,6 +138,11 @@ def _interrupted(args: argparse.Namespace) -> str:
 
 
 def _run(args: argparse.Namespace) -> int:
+    from scenarios import calibrate
+    from scenarios import station as stations
+    from scenarios.inspection import records as rec_mod
+    from scenarios.inspection.line import line_units
+
     db = Path(args.db)
     if args.list or args.show or args.export or args.summary:
         return _browse(args, db)
@@ -195,6 +208,8 @@ def _run(args: argparse.Namespace) -> int:
 def _tally(records: rec_mod.Records, batch: str, new: int) -> None:
     """The simulated line's final tally: its verdicts, and against the twin's truth the
     wrong ones (a PASS of a unit truly out, a FAIL of a unit truly in)."""
+    from scenarios.inspection import records as rec_mod
+
     rows = records.rows("WHERE batch = ?", (batch,))
     counts = {v: sum(r["verdict"] == v for r in rows) for v in ("pass", "fail", "inconclusive")}
     wrong_pass = wrong_fail = 0
@@ -219,6 +234,8 @@ def _tally(records: rec_mod.Records, batch: str, new: int) -> None:
 
 
 def _browse(args: argparse.Namespace, db: Path) -> int:
+    from scenarios.inspection import records as rec_mod
+
     with rec_mod.Records.open(db) as records:
         rows = records.rows()
         if args.batch:
@@ -269,6 +286,8 @@ def list_lines(rows: list[dict]) -> list[str]:
 
 
 def show_lines(r: dict) -> list[str]:
+    from scenarios.inspection import records as rec_mod
+
     when = time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(r["started_at"]))
     lines = [f"record {r['id']}: unit {r['unit']} (trial {r['trial']}), {when}, operator "
              f"{r['operator'] or '-'}",
@@ -305,7 +324,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("source", nargs="?", metavar="SOURCE",
                    help="sim, udp://HOST:PORT or a recording (default: the station's sensor)")
-    stations.add_arguments(p)
+    station_options.add_arguments(p)
     p.add_argument("--unit", type=cliargs.unit_id, help="the unit's id (a VIN, a serial number)")
     p.add_argument("--db", required=True, metavar="FILE",
                    help="the record store (SQLite, created if missing; captures kept in "

@@ -18,11 +18,17 @@ import argparse
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import models
+import models  # the MJCF files' paths only
 from scenarios import cliargs
 from twin.core.errors import AimbenchError
-from twin.sim.render import BACKENDS, FreeCamera
+from twin.sim.gl_backends import BACKENDS
+
+# The renderer is imported by the functions that draw: it loads MuJoCo and numpy (about 0.3 s),
+# which the parser does not need (issue 38).
+if TYPE_CHECKING:
+    from twin.sim.render import FreeCamera
 
 
 def _floats(text: str, n: int, what: str) -> tuple[float, ...]:
@@ -36,6 +42,8 @@ def _floats(text: str, n: int, what: str) -> tuple[float, ...]:
 
 
 def _camera(args: argparse.Namespace, names: list[str]) -> str | FreeCamera:
+    from twin.sim.render import FreeCamera
+
     free = FreeCamera(
         lookat=_floats(args.lookat, 3, "--lookat") if args.lookat else None,
         distance=args.distance,

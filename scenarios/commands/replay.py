@@ -17,11 +17,11 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import align
+import align  # its names load on first use: METHODS and DEFAULT_METHOD without the estimator
 from scenarios import cliargs
 from scenarios.commands.info import add_sensor_arguments, sensor_options
-from scenarios.progress import Bar
 from scenarios.recording.options import (
     add_cloud_arguments,
     add_sink_arguments,
@@ -29,6 +29,9 @@ from scenarios.recording.options import (
     sink_options,
 )
 from twin.core.errors import AimbenchError
+
+if TYPE_CHECKING:  # tqdm's bar, made when the replay reports its first scan (issue 38)
+    from scenarios.progress import Bar
 
 
 class _Progress:
@@ -41,6 +44,8 @@ class _Progress:
 
     def __call__(self, done: int, total: int) -> None:
         if self.bar is None:
+            from scenarios.progress import Bar
+
             self.bar = Bar(total, "replay", "scans", enabled=self.enabled, every=25)
         self.bar.update(done - self.bar.done)
 

@@ -12,11 +12,14 @@ import sys
 from pathlib import Path
 
 from scenarios.commands.sweep import add_tolerance_arguments, tolerances
-from scenarios.report import summary_lines, write
-from scenarios.store import Store, StoreError
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: the report and the store import numpy, matplotlib's helpers and the
+    # station model, which the parser does not need (issue 38)
+    from scenarios.report import summary_lines, write
+    from scenarios.store import Store, StoreError
+
     with Store.open(Path(args.run)) as store:
         if args.out is None and store.read_only:
             raise StoreError(f"{args.run} cannot be written here (a read-only filesystem or "

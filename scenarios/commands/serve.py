@@ -23,8 +23,7 @@ import signal
 import sys
 import time
 
-from scenarios import cliargs
-from scenarios import station as stations
+from scenarios import cliargs, station_options
 from twin.core.errors import AimbenchError
 
 
@@ -40,6 +39,9 @@ def parse_udp(text: str) -> tuple[str, int]:
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: the station model and the twin (pydantic, MuJoCo) are the run's,
+    # not the parser's (issue 38)
+    from scenarios import station as stations
     from twin.sim.emulation import EmulationConfig
     from twin.sim.wire import WireTwin
 
@@ -123,7 +125,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--udp", default=None,
                    help="where the VLP-16 packets go, HOST:PORT (default 127.0.0.1 and the "
                         "station's data port, 2368 on the paper's bench)")
-    stations.add_arguments(p, board=False)
+    station_options.add_arguments(p, board=False)
     p.add_argument("--seed", type=int, default=0, help="the twin's noise seed (default 0)")
     p.add_argument("--ideal", action="store_true", help="every emulation error source off")
     p.add_argument("--x-start-mm", type=cliargs.finite_float, default=20.0,

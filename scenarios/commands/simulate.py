@@ -20,15 +20,17 @@ import argparse
 import dataclasses
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from models import SCENES
-from scenarios import cliargs
-from scenarios import station as stations
-from scenarios.truth import write_truth
+from models import SCENES  # the MJCF files' paths only
+from scenarios import cliargs, station_options
 from twin.core.errors import AimbenchError
-from twin.core.sensors import MODELS
-from twin.lidar.hesai import HESAI_MODELS
-from twin.lidar.ouster import LIDAR_MODES, OUSTER_MODELS, is_ouster_model
+from twin.core.sensor_names import HESAI_NAMES, LIDAR_MODES, OUSTER_MODELS, VELODYNE_NAMES
+
+# The station model, the twin and the writers are imported by the functions that run (pydantic,
+# numpy, MuJoCo: about a second), not for the parser (issue 38).
+if TYPE_CHECKING:
+    from scenarios import station as stations
 
 
 def _jsonable(obj) -> dict:
@@ -49,8 +51,12 @@ def _check_travel(station: stations.Station, args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from scenarios import station as stations
+    from scenarios.truth import write_truth
+    from twin.lidar.ouster import is_ouster_model
     from twin.sim.bench import BenchSim
     from twin.sim.emulation import EmulationConfig
+
     if args.scans < 1:
         raise AimbenchError("--scans must be at least 1")
     out = Path(args.out)
@@ -66,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     model = args.model or station.sensor.model
     if is_ouster_model(model):
         return _simulate_ouster(args, params, model, out, station, station_file)
-    if model in HESAI_MODELS:
+    if model in HESAI_NAMES:
         return _simulate_hesai(args, params, model, out, station, station_file)
     try:
         noise = (EmulationConfig.ideal(model=model) if args.ideal
@@ -104,6 +110,8 @@ def _truth_file(args: argparse.Namespace, out: Path, scans: list, sim, station: 
                 station_file, params, sensor: dict) -> Path:
     """The truth file of another sensor's capture of the twin: what `simulate` writes for a
     Velodyne's, with the sensor it emulated."""
+    from scenarios.truth import write_truth
+
     return write_truth(out, scans, seed=args.seed, ideal=bool(args.ideal),
                        stage={"x_mm": sim.stage_x() * 1e3,
                               "yaw_deg": math.degrees(sim.stage_yaw())},
@@ -195,12 +203,12 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--return-mode", choices=("strongest", "last", "dual"), default="strongest")
     p.add_argument("--out", required=True, type=cliargs.output_file,
                    help="capture file to write (.pcap)")
-    stations.add_arguments(p)
+    station_options.add_arguments(p)
     p.add_argument("--scene", choices=tuple(SCENES), default=None,
                    help="the scene the bench stands in (default: the station's twin.scene; "
                         "'bench': floor, wall and beams; 'lab': a cluttered lab around it)")
     p.add_argument("--quiet", action="store_true", help="print nothing on success")
-    p.add_argument("--model", choices=(*MODELS, *OUSTER_MODELS, *HESAI_MODELS),
+    p.add_argument("--model", choices=(*VELODYNE_NAMES, *OUSTER_MODELS, *HESAI_NAMES),
                    default=None,
                    help="the sensor emulated (default: the station's sensor.model; the "
                         "paper's: VLP-16); an Ouster's pcap gets its metadata JSON beside it")

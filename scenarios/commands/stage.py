@@ -16,11 +16,14 @@ from __future__ import annotations
 
 import argparse
 import math
+from typing import TYPE_CHECKING
 
 from scenarios import cliargs
-from scenarios.progress import StageMotion
-from twin.stage import grbl
-from twin.stage.controller import StageController, StageStatus
+
+# The driver (pyserial, numpy through its poses) and the progress display (tqdm) are imported
+# by the functions that talk to the controller, not for the parser (issue 38).
+if TYPE_CHECKING:
+    from twin.stage.controller import StageController, StageStatus
 
 #: The axis letters a Grbl controller may name (bench_fw drives X and A).
 AXIS_LETTERS = "XYZABC"
@@ -40,6 +43,8 @@ def _print_status(st: StageStatus) -> None:
 
 
 def _print_settings(stage: StageController) -> None:
+    from twin.stage import grbl
+
     letters = stage.mpos_axes
     rotary = stage.slot(1)  # the rotary stage's slot: its settings are in degrees
     units = ",".join("deg" if i == rotary else "mm" for i in range(len(letters)))
@@ -62,6 +67,9 @@ def axes(text: str) -> tuple[str, str]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from scenarios.progress import StageMotion
+    from twin.stage.controller import StageController
+
     letters = args.axes
     with StageController(args.port, axis_letters=letters) as stage:
         print(f"axes      {stage.axis_note}")

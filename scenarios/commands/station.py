@@ -21,14 +21,17 @@ import getpass
 import os
 from pathlib import Path
 
-from scenarios import station as stations
+from scenarios import station_options
 from scenarios.cliargs import int_at_least
+from scenarios.defaults import INSPECTION_SCANS as DEFAULT_SCANS
 from scenarios.extras import require
-from scenarios.inspection.procedure import DEFAULT_SCANS
 from twin.core.errors import AimbenchError
 
 
 def run(args: argparse.Namespace) -> int:
+    # here, not at the top: the station model (pydantic) is the run's, not the parser's
+    # (issue 38); the line's web and OPC UA servers load only once the station file is read
+    from scenarios import station as stations
     from scenarios.line import auth
 
     if args.hash_password:
@@ -73,7 +76,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p = sub.add_parser("station", help="the line station: operator and engineer web pages, "
                                        "OPC UA for the PLC, HTTP/JSON for MES",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    stations.add_arguments(p)
+    station_options.add_arguments(p)
     p.add_argument("--db", metavar="FILE", help="the record store (SQLite, created if missing)")
     p.add_argument("--source", default="sim",
                    help="sim (default), serve, or udp://HOST:PORT (the live sensor)")

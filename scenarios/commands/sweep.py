@@ -23,24 +23,22 @@ import json
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import align
-from scenarios import calibrate, cliargs, plans
-from scenarios import station as stations
-from scenarios.bench import open_bench
-from scenarios.config import MAX_CONSECUTIVE_FAILURES, RunConfig
-from scenarios.report import Tolerances, summary_lines, write
-from scenarios.runner import (
-    ParallelSimRunner,
-    Progress,
-    Runner,
-    make_estimator,
-    sim_engine,
-)
-from scenarios.store import Store, StoreError
-from scenarios.versions import versions
+import align  # its names load on first use: METHODS and DEFAULT_METHOD without the estimator
+from scenarios import cliargs, station_options
+from scenarios.defaults import MAX_CONSECUTIVE_FAILURES
 from twin.core.errors import AimbenchError
+
+# The bench, the runner, the store and the report are imported by the functions that run
+# (numpy, pydantic, MuJoCo, the estimator: about a second): this module's parser and its
+# add_*_arguments, which demo and report share, need none of them (issue 38).
+if TYPE_CHECKING:
+    from scenarios import plans
+    from scenarios import station as stations
+    from scenarios.config import RunConfig
+    from scenarios.report import Tolerances
+    from scenarios.store import Store
 
 
 def add_bench_arguments(p: argparse.ArgumentParser) -> None:
@@ -67,7 +65,7 @@ def add_bench_arguments(p: argparse.ArgumentParser) -> None:
                         "the run stores its content")
     p.add_argument("--sensor-id", help="the LiDAR's serial number or your id for it, checked "
                                        "against the calibration's (the twin's: 'twin seed S')")
-    stations.add_arguments(p)
+    station_options.add_arguments(p)
 
 
 def add_tolerance_arguments(p: argparse.ArgumentParser) -> None:
@@ -85,6 +83,8 @@ def add_tolerance_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def tolerances(args: argparse.Namespace) -> Tolerances:
+    from scenarios.report import Tolerances
+
     return Tolerances(angle_deg=args.tolerance_deg, x_mm=args.tolerance_mm,
                       precision_angle_deg=args.precision_deg, precision_x_mm=args.precision_mm,
                       max_failed_fraction=args.max_failed_percent / 100.0)
@@ -108,6 +108,13 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
     failed; 130: interrupted (resumable). A failure raises (the CLI prints one line) after the
     run is marked failed in its store, including a bench that cannot be opened.
     """
+    from scenarios.bench import open_bench
+    from scenarios.config import RunConfig
+    from scenarios.report import write
+    from scenarios.runner import ParallelSimRunner, Progress, Runner, make_estimator, sim_engine
+    from scenarios.store import Store, StoreError
+    from scenarios.versions import versions
+
     stream = stream if stream is not None else sys.stderr
     if resume:
         store = Store.open(out)
@@ -134,8 +141,6 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
                                 ".toml file), or --resume")
         check_config(config)
         if not config.method:
-            import align
-
             # Stored by name, so the run says what it used even if the default changes.
             config = config.with_(method=align.DEFAULT_METHOD)
         store = Store.create(out, plan, config=config.as_dict(), versions=versions())
@@ -214,6 +219,8 @@ def execute(plan: plans.Plan | None, config: RunConfig, out: Path, resume: bool,
 
 def run_sensor_id(config: RunConfig) -> str | None:
     """The id of the run's sensor: given (--sensor-id), or the twin's (its seed) on the twin."""
+    from scenarios import calibrate
+
     if config.sensor_id is not None:
         return config.sensor_id
     return calibrate.twin_sensor_id(config.seed) if config.bench == "sim" else None
@@ -222,6 +229,8 @@ def run_sensor_id(config: RunConfig) -> str | None:
 def calibration_record(config: RunConfig) -> dict:
     """What the store keeps of the run's calibration: whether one was applied, the line the
     report shows, and its identity (the whole file is in the configuration)."""
+    from scenarios import calibrate
+
     cal = config.calibration
     record = cal.to_dict() if cal is not None else {}
     return {"applied": cal is not None, "describe": calibrate.applied(cal),
@@ -237,6 +246,7 @@ def calibration_check(config: RunConfig, store: Store, stream) -> Callable | Non
     if cal is None:
         return None
     from align import calibration as laser_calibration
+    from scenarios import calibrate
 
     sensor_id = run_sensor_id(config)
 
@@ -256,12 +266,16 @@ def calibration_check(config: RunConfig, store: Store, stream) -> Callable | Non
 
 def check_config(config: RunConfig) -> None:
     """Refuse settings that cannot work before a run folder is made."""
+    from scenarios.runner import make_estimator
+
     config.check()
     # An unknown method fails here, not after a move.
     make_estimator(config.method)
 
 
 def _report(store: Store, report: bool, tol: Tolerances | None, stream) -> int:
+    from scenarios.report import summary_lines, write
+
     if not report:
         return 0
     rep, md, page = write(store, tol)
@@ -275,6 +289,10 @@ def _report(store: Store, report: bool, tol: Tolerances | None, stream) -> int:
 def config_from_args(args: argparse.Namespace) -> RunConfig:
     """The run's configuration from the command line and its station file: the stage port and
     the range calibration default to the station's."""
+    from scenarios import calibrate
+    from scenarios import station as stations
+    from scenarios.config import RunConfig
+
     station, station_file = stations.from_args(args, twin=args.bench != "hw")
     cal_file = args.calibration or station.sensor.range_calibration
     return RunConfig(
@@ -297,6 +315,9 @@ RESUME_FIXED = {"scenario": "the scenario", "scans": "--scans", "poses": "--pose
 def _refuse_resume_changes(args: argparse.Namespace, out: Path) -> None:
     """Refuse, naming them, the options of a resume that differ from the run's stored ones
     (the same value again is fine: the original command with --resume added)."""
+    from scenarios import calibrate
+    from scenarios.store import Store
+
     given = {k: getattr(args, k) for k in RESUME_FIXED if getattr(args, k) not in (None, False)}
     if not given:
         return
@@ -322,6 +343,8 @@ def _refuse_resume_changes(args: argparse.Namespace, out: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from scenarios import plans
+
     out = Path(args.out)
     if args.resume and (args.station or args.board_mm):
         raise AimbenchError("a resumed run keeps the station it was started with (the store "

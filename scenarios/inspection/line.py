@@ -16,10 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from scenarios.defaults import LINE_SPREAD as DEFAULT_SPREAD
 from scenarios.inspection.verdict import EDGE_SCALE, edge_key, limits_si
 from scenarios.station import Station
-
-DEFAULT_SPREAD = 1.3
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,7 @@ import numpy as np
 import align
 from align.calibration import LaserCalibration
 from scenarios import calibrate
+from scenarios.defaults import INSPECTION_SCANS as DEFAULT_SCANS
 from scenarios.inspection import mounting
 from scenarios.inspection.acquire import Acquisition, AcquisitionError
 from scenarios.inspection.verdict import (
@@ -42,8 +43,6 @@ from scenarios.station import Station
 from twin.core.pose import Pose
 from twin.core.scan import Scan
 
-#: Scans per inspection unless told: 1 s of data at the VLP-16's 600 rpm.
-DEFAULT_SCANS = 10
 #: A re-measure adds this many times the first scans (so 10 -> 30 scans in all).
 REMEASURE_FACTOR = 2
 

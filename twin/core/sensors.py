@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from twin.core import sensor_names as names
 from twin.core import vlp16
 from twin.core.lasers import LaserTable
 
@@ -139,7 +140,7 @@ def _table(name: str, elevation_deg, vertical_offset_m, azimuth_offset_deg=None)
 
 
 VLP16 = SensorModel(
-    name="VLP-16", product_id=vlp16.PRODUCT_ID_VLP16, lasers=vlp16.LASERS,
+    name=names.VLP16, product_id=vlp16.PRODUCT_ID_VLP16, lasers=vlp16.LASERS,
     # Manual 9.5: lasers 2.304 us apart, a sequence every 55.296 us (16 firings + recharge).
     firing_offset=np.arange(16) * vlp16.LASER_PERIOD, sequence_period=vlp16.SEQUENCE_PERIOD,
     distance_unit=vlp16.DISTANCE_UNIT,  # manual 9.3.1.4: 2 mm
@@ -151,7 +152,7 @@ VLP16 = SensorModel(
 )
 
 PUCK_HIRES = SensorModel(
-    name="Puck Hi-Res", product_id=0x24,  # Hi-Res manual 9.3.1.5: factory byte 0x24
+    name=names.PUCK_HIRES, product_id=0x24,  # Hi-Res manual 9.3.1.5: factory byte 0x24
     lasers=_table(
         "Puck Hi-Res",
         # Hi-Res manual, laser table: -10..+10 deg in 1.33 deg steps, interleaved like the VLP-16.
@@ -188,7 +189,7 @@ _VLP32C_TABLE = np.array([
 VLP32C_FOCAL_DISTANCE = 42.4e-3
 
 VLP32C = SensorModel(
-    name="VLP-32C", product_id=0x28,  # manual 9.3.1.5: factory byte 0x28
+    name=names.VLP32C, product_id=0x28,  # manual 9.3.1.5: factory byte 0x28
     lasers=_table("VLP-32C", _VLP32C_TABLE[:, 0],
                   VLP32C_FOCAL_DISTANCE * np.tan(-np.deg2rad(_VLP32C_TABLE[:, 0])),
                   _VLP32C_TABLE[:, 1]),
@@ -205,7 +206,7 @@ VLP32C = SensorModel(
 )
 
 HDL32E = SensorModel(
-    name="HDL-32E", product_id=0x21,  # manual appendix B: factory byte 0x21
+    name=names.HDL32E, product_id=0x21,  # manual appendix B: factory byte 0x21
     lasers=_table(
         "HDL-32E",
         # Manual, "vertical angle" table by laser id: -30.67..+10.67 deg, interleaved.
@@ -228,12 +229,13 @@ HDL32E = SensorModel(
     manual="HDL-32E user manual 63-9113 Rev. H", aliases=("HDL32E", "HDL32"),
 )
 
-#: Every model, by name.
+#: Every model, by name (`twin.core.sensor_names.VELODYNE_NAMES`, which the command line
+#: offers without importing this module).
 MODELS: dict[str, SensorModel] = {m.name: m for m in (VLP16, PUCK_HIRES, VLP32C, HDL32E)}
 #: Product ids of the factory byte (the four models' manuals, and the VLS-128's and
 #: Velarray's for a clear refusal).
-PRODUCT_NAMES = {0x21: "HDL-32E", 0x22: "VLP-16", 0x24: "Puck Hi-Res", 0x28: "VLP-32C",
-                 0x31: "Velarray", 0xA1: "VLS-128"}
+PRODUCT_NAMES = {0x21: names.HDL32E, 0x22: names.VLP16, 0x24: names.PUCK_HIRES,
+                 0x28: names.VLP32C, 0x31: "Velarray", 0xA1: "VLS-128"}
 
 
 def _key(name: str) -> str:

@@ -51,6 +51,7 @@ import numpy as np
 
 from twin.core.errors import AimbenchError
 from twin.core.sensors import SensorModel
+from twin.lidar import format_names as names
 
 #: nebula's and the ROS driver's VLP-32 constants (velodyne_scan_decoder.hpp,
 #: rawdata.cc buildTimings): one channel every 2.304 us of a 55.296 us block.
@@ -89,11 +90,13 @@ class CloudConvention:
         return np.asarray(true, dtype=np.float64)
 
 
+#: The conventions by name (`twin.lidar.format_names.CLOUD_CONVENTIONS`, which the command line
+#: offers).
 CONVENTIONS: dict[str, CloudConvention] = {c.name: c for c in (
-    CloudConvention("aimbench", "aimbench decode / export"),
-    CloudConvention("velodyne-decoder", "valgur/velodyne_decoder", sequence_field="column"),
-    CloudConvention("ros-velodyne", "ros-drivers/velodyne velodyne_pointcloud (ROS 1 and 2)"),
-    CloudConvention("nebula", "tier4/nebula", ring_field="channel", time_field="time_stamp",
+    CloudConvention(names.AIMBENCH, "aimbench decode / export"),
+    CloudConvention(names.VELODYNE_DECODER, "valgur/velodyne_decoder", sequence_field="column"),
+    CloudConvention(names.ROS_VELODYNE, "ros-drivers/velodyne velodyne_pointcloud (ROS 1 and 2)"),
+    CloudConvention(names.NEBULA, "tier4/nebula", ring_field="channel", time_field="time_stamp",
                     time_unit=1e-9),
 )}
 

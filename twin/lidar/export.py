@@ -34,8 +34,9 @@ import numpy as np
 
 from twin.core.errors import AimbenchError
 from twin.core.scan import Scan
+from twin.lidar.format_names import EXPORT_FORMATS as FORMATS
 
-FORMATS = (".npz", ".parquet", ".pcd", ".ply")
+# FORMATS, the extensions written, are named in format_names: `aimbench decode --out` lists them.
 
 
 class ExportError(AimbenchError):

@@ -65,6 +65,7 @@ import numpy as np
 from twin.core.errors import AimbenchError
 from twin.core.lasers import LaserTable
 from twin.core.scan import ReturnType, Scan
+from twin.core.sensor_names import PANDAR_QT128, PANDAR_XT32
 
 #: Hesai's default data port.
 DATA_PORT = 2368
@@ -162,13 +163,14 @@ class HesaiModel:
         return len(payload) in self.sizes and payload[:2] == b"\xee\xff"
 
 
-XT32 = HesaiModel("PandarXT32", N_CHANNELS, N_BLOCKS, PACKET_DTYPE, (PACKET_BYTES,), 50e-6,
+XT32 = HesaiModel(PANDAR_XT32, N_CHANNELS, N_BLOCKS, PACKET_DTYPE, (PACKET_BYTES,), 50e-6,
                   (368e-9 + 1512e-9 * np.arange(N_CHANNELS))[None, :], 0.05, 120.0,
                   SINGLE_MODES)
-QT128 = HesaiModel("PandarQT128", QT128_CHANNELS, QT128_BLOCKS, QT128_DTYPE,
+QT128 = HesaiModel(PANDAR_QT128, QT128_CHANNELS, QT128_BLOCKS, QT128_DTYPE,
                    (QT128_BYTES, QT128_SIGNED_BYTES), 1.0 / 9000.0,
                    np.stack([QT128_LOOP1_NS, QT128_LOOP2_NS]) * 1e-9, 0.05, 50.0,
                    QT128_SINGLE_MODES)
+#: The models by name (`twin.core.sensor_names.HESAI_NAMES`, which the command line offers).
 HESAI_MODELS = {m.name: m for m in (XT32, QT128)}
 
 

@@ -47,6 +47,10 @@ import numpy as np
 from twin.core.errors import AimbenchError
 from twin.core.lasers import LaserTable
 from twin.core.scan import ReturnType, Scan
+from twin.core.sensor_names import LIDAR_MODES, OUSTER_MODELS
+
+# OUSTER_MODELS and LIDAR_MODES are named in twin.core.sensor_names: the command line lists them
+# without importing this module.
 
 #: The lidar data port of every Ouster sensor (the IMU's is 7503).
 LIDAR_PORT = 7502
@@ -482,10 +486,6 @@ _METADATA_FILES = {
     ("OS1", 32): "OS-1-32-G_v2.1.1_1024x10.json", ("OS1", 128): "OS-1-128_v2.3.0_1024x10.json",
     ("OS2", 32): "OS-2-32-U0_v2.0.0_1024x10.json", ("OS2", 128): "OS-2-128-U1_v2.3.0_1024x10.json",
 }
-#: Every Ouster model aimbench knows, by name.
-OUSTER_MODELS = tuple(f"OS{k}-{b}" for k in (0, 1, 2) for b in (32, 64, 128))
-#: The lidar modes (columns x frames a second) the sensors run.
-LIDAR_MODES = ("512x10", "512x20", "1024x10", "1024x20", "2048x10")
 
 
 def is_ouster_model(name: str) -> bool:

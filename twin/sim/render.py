@@ -21,9 +21,9 @@ import mujoco
 import numpy as np
 
 from twin.core.errors import AimbenchError
+from twin.sim.gl_backends import BACKENDS
 
-#: Headless backends in the order they are tried, and the Debian packages each needs.
-BACKENDS = ("egl", "osmesa", "glfw")
+#: The Debian packages each of the headless BACKENDS (in the order they are tried) needs.
 DEBIAN_PACKAGES = {"egl": "libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0",
                    "osmesa": "libosmesa6",
                    "glfw": "a display (DISPLAY) and libglfw3"}
