@@ -34,13 +34,16 @@ TASKS = 2 * 4
 
 @pytest.fixture(scope="module")
 def local_ray():
-    """A Ray on this machine with two CPUs, ended with the module (its own processes only)."""
+    """A Ray on this machine with two CPUs, ended with the module (its own processes only;
+    the SIGTERM handler ray.init sets in this worker put back, as `RayEngine.close` does)."""
+    sigterm = signal.getsignal(signal.SIGTERM)
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
              runtime_env=runtime_env("none"))
     try:
         yield ray
     finally:
         ray.shutdown()
+        signal.signal(signal.SIGTERM, sigterm)
 
 
 def _rows(folder: Path) -> list[tuple]:

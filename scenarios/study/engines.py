@@ -381,6 +381,9 @@ class RayEngine:
         self.retries = 0
         self.workers: list[int] = []
         self._started = False
+        # ray.init makes SIGTERM exit this process (its driver's handler) and shutdown leaves
+        # it so: the handler found here is put back by `close`
+        self._sigterm = signal.getsignal(signal.SIGTERM)
         if not self.ray.is_initialized():
             kind = env or ("none" if address is None else "modules")
             try:
@@ -403,6 +406,8 @@ class RayEngine:
         if self._started:
             self.ray.shutdown()
             self._started = False
+            if threading.current_thread() is threading.main_thread():
+                signal.signal(signal.SIGTERM, self._sigterm)
 
     def run(self, fn: Callable, tasks: Sequence[Task], on_result: OnResult,
             on_message: OnMessage | None = None, should_stop: Callable[[], bool] = lambda: False,
