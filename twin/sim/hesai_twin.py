@@ -8,8 +8,10 @@ azimuth increases), plus the channel's azimuth offset; at the channel's elevatio
 angle-correction file). The packet carries the block's azimuth, as a real unit's does, so a
 decoder that leaves the rotation out (nebula's, ``decode_hesai(..., firetime=False)``) reads
 each channel up to 0.19 deg (XT32) or 0.36 deg (QT128) short of where it looked, at 600 rpm;
-aimbench's default decode puts it back. The bench stands still meanwhile. PandarXT32: blocks 50 us apart (0.18 deg at 600 rpm, 2,000 a turn), 8 a packet,
-single return (strongest). PandarQT128C2X: firings 111.11 us apart (0.4 deg at 600 rpm, 900 a
+aimbench's default decode puts it back. The bench stands still meanwhile.
+
+PandarXT32: blocks 50 us apart (0.18 deg at 600 rpm, 2,000 a turn), 8 a packet, single return
+(strongest). PandarQT128C2X: firings 111.11 us apart (0.4 deg at 600 rpm, 900 a
 turn), one a packet, in the real unit's default dual-return mode (0x39, last and strongest: a
 single echo written in both blocks, as the real capture's flat surfaces are), its two firing
 loops alternating packet by packet with the dark channels of each loop not fired (distance 0),
