@@ -24,10 +24,12 @@ of this process (`time.process_time`), one BLAS thread.
 
 Ouster OS0/OS1/OS2 x 32/64/128 (1024x10) go through `twin.sim.ouster_twin` (a real unit's
 metadata, its LEGACY packets, our decoder), the Hesai PandarXT32 and PandarQT128 through
-`twin.sim.hesai_twin` (nebula's angle corrections, their packets, our decoder); then the decode
-rows: Ouster agreement with ouster-sdk on its own real capture and frames per second against
-ouster-sdk's (measured when ouster-sdk can be imported), and each Hesai model's agreement with
-nebula's decoder on a real capture (its test's ground-truth points).
+`twin.sim.hesai_twin` (nebula's angle corrections, their packets with each channel cast where
+the head turned to when it fired, our decoder, which puts that rotation back as Hesai's SDK 2.0
+does with its firetime file); then the decode rows: Ouster agreement with ouster-sdk on its own
+real capture and frames per second against ouster-sdk's (measured when ouster-sdk can be
+imported), and each Hesai model's agreement with nebula's decoder on a real capture (its test's
+ground-truth points; our decode without the firing rotation, as nebula's).
 """
 
 from __future__ import annotations
@@ -160,7 +162,8 @@ def hesai_decode_rows(models: list[str]) -> list[str]:
         folder, pcap, points, near, threshold = HESAI_CASES[model]
         angles = HesaiAngles.from_csv(data / folder / f"{model}.csv", model)
         payloads = [r.payload for r in read_pcap(data / folder / pcap)]
-        dec = decode_hesai(payloads, angles)
+        # nebula's azimuths: its decoder leaves the firing rotation out (twin.lidar.hesai)
+        dec = decode_hesai(payloads, angles, firetime=False)
         d = dec.distance
         keep = (d >= near) & (d <= angles.model.max_range)
         # a dual pair's first block (the last return): dropped when it repeats the strongest,

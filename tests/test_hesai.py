@@ -23,7 +23,8 @@ PCAP = XT32 / "xt32-one-turn.pcap"
 
 def test_the_rotation_decodes_to_nebulas_points():
     angles = XT32Angles.from_csv(XT32 / "PandarXT32.csv")
-    dec = decode_xt32([r.payload for r in read_pcap(PCAP)], angles)
+    # nebula's azimuths: the head's rotation during a firing left out (hesai_decoder.hpp)
+    dec = decode_xt32([r.payload for r in read_pcap(PCAP)], angles, firetime=False)
     assert set(dec.return_mode.tolist()) == {0x39} and np.median(dec.motor_rpm) == 599
     truth = np.load(XT32 / "xt32-nebula-points-first-quarter.npy").astype(np.float64)
     # nebula's cloud: every return once (a dual pair's second block repeats a single echo),
@@ -77,10 +78,33 @@ def test_hydra4_decodes_the_twins_and_the_real_packets_as_we_do():
     twin, _ = emulate_xt32(BenchSim(seed=2), angles, 1, rng=np.random.default_rng(2))
     for payloads, blocks in (([r.payload for r in read_pcap(PCAP)][:60], slice(0, 8, 2)),
                              (twin[:60], slice(0, 8))):
-        dec = decode_xt32(payloads, angles)
+        dec = decode_xt32(payloads, angles, firetime=False)  # hydra4 leaves it out too
         ours = np.stack([dec.x, dec.y, dec.z], axis=-1)[:, blocks]
         ours = ours[dec.distance[:, blocks] > 0]
         pts = [p[:3] for pkt in payloads
                for b in theirs(SimpleNamespace(data=pkt)) for p in b.points]
         assert len(pts) == len(ours) > 1000
         assert np.abs(np.asarray(pts) - ours).max() < 1e-9
+
+
+def test_the_default_decode_turns_each_channel_by_its_firing_time():
+    """By default each channel's azimuth has the head's rotation until it fires in it (Hesai's
+    SDK 2.0 with ``PandarXT-32_Firetime Correction File.csv``: 6 + 1.512 (channel - 1) us, at
+    the packet's motor speed): nebula's real points turned by exactly that, channel by channel
+    (channel 32: 52.872 us x 599 rpm = 0.190 deg), the ranges and elevations untouched."""
+    angles = XT32Angles.from_csv(XT32 / "PandarXT32.csv")
+    payloads = [r.payload for r in read_pcap(PCAP)]
+    ours, nebula = decode_xt32(payloads, angles), decode_xt32(payloads, angles, firetime=False)
+    assert ours.firetime and not nebula.firetime
+    hit = ours.distance > 0
+    turn = np.angle(np.exp(1j * (ours.azimuth - nebula.azimuth)))  # rad, wrapped
+    want = 599 * 6.0 * (6.0 + 1.512 * np.arange(32)) * 1e-6  # deg: us x rpm x 6 deg/s
+    assert np.allclose(np.degrees(turn), want, atol=1e-9)
+    assert abs(want[31] - 0.190) < 0.001 and abs(want[0] - 0.0216) < 0.0001
+    # the points: the same range and height, turned about z by the firing rotation
+    assert np.allclose(np.hypot(ours.x, ours.y), np.hypot(nebula.x, nebula.y), atol=1e-12)
+    assert np.array_equal(ours.z, nebula.z)
+    a_ours = np.arctan2(ours.x, ours.y)[hit]
+    a_neb = np.arctan2(nebula.x, nebula.y)[hit]
+    got = np.degrees(np.angle(np.exp(1j * (a_ours - a_neb))))
+    assert np.allclose(got, np.broadcast_to(want, hit.shape)[hit], atol=1e-9)

@@ -47,8 +47,27 @@ its azimuth offset, its elevation the file's (``Channel,Elevation,Azimuth``, deg
 forward and x right as aimbench's {L} (nebula's hesai_decoder.hpp computes the same). The
 firing times: XT32 (nebula's pandar_xt32.hpp) 368 + 1512 x channel ns after the block's start,
 the blocks 50 us apart; QT128 the loop tables' offsets, firings 111.11 us apart (0.4 deg at
-600 rpm). The decoder leaves the head's rotation during a firing out of the azimuth, as Hesai's
-and nebula's do.
+600 rpm).
+
+The head turns while a firing's channels fire one after another, so a channel's ray is not at
+its block's azimuth: ``decode_hesai`` puts the rotation in by default (``firetime=True``), a
+channel's azimuth = block azimuth + omega x firetime[channel] + azimuth offset, omega from the
+packet's motor speed (rpm). That is what Hesai's own SDK does when given a firetime correction
+file (HesaiLidar_SDK_2.0, libhesai/UdpParser/src/udp6_1_parser.cc for the XT32 and
+udp3_2_parser.cc for the QT128: ``azimuth += (rotation_flag > 0 ? 1 : -1) *
+GetFiretimesCorrection(channel, motor speed)``, general_parser.cc: ``firetime_correction_[ch] *
+speed * 6E-6`` degrees, i.e. firetime in us x rpm x 6 deg/s; rotation_flag > 0 when the block
+azimuths increase, as they do on these units), and what aimbench does with a Velodyne's firing
+delays (`twin.lidar.packets`). The firetimes are Hesai's files in that SDK
+(correction/firetime_correction/): ``PandarXT-32_Firetime Correction File.csv``, 6 us + 1.512 us
+x (channel - 1), and ``QT128C2X_Firetime Correction File.csv``, nebula's loop tables exactly.
+The XT32's is nebula's channel time plus a constant 5.632 us: nebula's pandar_xt32.hpp puts
+``block_offset_ns = 5632 - 50000 * ...`` + ``channel_offset_ns = 368 + 1512 * channel`` in each
+point's ``time_stamp``, the same firing time as the SDK's (``block_ns_offset`` + firetime,
+udp6_1_parser.cc). nebula (hesai_decoder.hpp) and Hesai's SDK without that file leave the
+rotation out of the azimuth and the points: ``firetime=False`` decodes exactly as they do (the
+tests hold it to nebula's real clouds). At 600 rpm the rotation is 0.02 to 0.19 deg across an
+XT32's channels, 0.002 to 0.36 deg on a QT128.
 
 Bytes in, arrays out: the pcap and socket readers are elsewhere.
 """
@@ -150,7 +169,8 @@ class HesaiModel:
     dtype: np.dtype
     sizes: tuple[int, ...]  # payload sizes accepted (the record is their first dtype.itemsize)
     firing_period: float  # s between consecutive firings at 600 rpm (single return)
-    channel_time: np.ndarray  # (loops, channels) s after the firing's start
+    channel_time: np.ndarray  # (loops, channels) s after the firing's start (nebula's)
+    firetime: np.ndarray  # (loops, channels) s after the block's azimuth (Hesai's SDK 2.0 file)
     min_range: float  # m, nebula's SensorT::min_range: the twin returns nothing nearer
     max_range: float  # m, nebula's SensorT::max_range
     single_modes: dict[int, str]  # the return-mode bytes of one return a firing
@@ -163,13 +183,22 @@ class HesaiModel:
         return len(payload) in self.sizes and payload[:2] == b"\xee\xff"
 
 
+#: The XT32's channel n (0-based) fires 368 + 1512 n ns after its block's start (nebula's
+#: pandar_xt32.hpp ``channel_offset_ns``) and 6 + 1.512 n us after the block's azimuth (Hesai's
+#: ``PandarXT-32_Firetime Correction File.csv``, HesaiLidar_SDK_2.0: nebula's 5632 ns block
+#: offset plus its channel offset).
+XT32_CHANNEL_TIME = 368e-9 + 1512e-9 * np.arange(N_CHANNELS)
+XT32_FIRETIME = 6e-6 + 1.512e-6 * np.arange(N_CHANNELS)
+#: The QT128C2X's loop tables are its firetime file (``QT128C2X_Firetime Correction File.csv``,
+#: loop by loop, to the ns), s.
+QT128_LOOP_TIME = np.stack([QT128_LOOP1_NS, QT128_LOOP2_NS]) * 1e-9
+
 XT32 = HesaiModel(PANDAR_XT32, N_CHANNELS, N_BLOCKS, PACKET_DTYPE, (PACKET_BYTES,), 50e-6,
-                  (368e-9 + 1512e-9 * np.arange(N_CHANNELS))[None, :], 0.05, 120.0,
+                  XT32_CHANNEL_TIME[None, :], XT32_FIRETIME[None, :], 0.05, 120.0,
                   SINGLE_MODES)
 QT128 = HesaiModel(PANDAR_QT128, QT128_CHANNELS, QT128_BLOCKS, QT128_DTYPE,
                    (QT128_BYTES, QT128_SIGNED_BYTES), 1.0 / 9000.0,
-                   np.stack([QT128_LOOP1_NS, QT128_LOOP2_NS]) * 1e-9, 0.05, 50.0,
-                   QT128_SINGLE_MODES)
+                   QT128_LOOP_TIME, QT128_LOOP_TIME, 0.05, 50.0, QT128_SINGLE_MODES)
 #: The models by name (`twin.core.sensor_names.HESAI_NAMES`, which the command line offers).
 HESAI_MODELS = {m.name: m for m in (XT32, QT128)}
 
@@ -237,11 +266,12 @@ class HesaiPackets:
     block_azimuth_cdeg: np.ndarray  # (n, blocks)
     distance: np.ndarray  # m, 0 = none
     reflectivity: np.ndarray
-    azimuth: np.ndarray  # rad, block + channel offset
+    azimuth: np.ndarray  # rad, block + rotation until the channel fires + channel offset
     x: np.ndarray
     y: np.ndarray
     z: np.ndarray
     loop: np.ndarray | None = None  # (n, blocks): the firing loop of each block (QT128), 0 or 1
+    firetime: bool = True  # whether ``azimuth`` has the head's rotation during the firing in it
 
 
 XT32Packets = HesaiPackets
@@ -259,8 +289,25 @@ def _loops(rec: np.ndarray, model: HesaiModel) -> np.ndarray | None:
     return np.where(single[:, None], by_block, by_flag).astype(np.uint8)
 
 
-def decode_hesai(payloads: list[bytes], angles: HesaiAngles) -> HesaiPackets:
-    """Decode the packets of ``angles.model`` (payloads of another size or start are skipped)."""
+def firing_rotation(motor_rpm: np.ndarray, loop: np.ndarray | None, model: HesaiModel
+                    ) -> np.ndarray:
+    """How far the head turned from each block's azimuth to each channel's firing, rad,
+    (n, blocks, channels): omega (the packet's motor speed) x the channel's firetime in its
+    block's loop. Positive: the units turn the way their azimuth increases."""
+    omega = np.asarray(motor_rpm, dtype=np.float64) * (2.0 * math.pi / 60.0)  # rad/s
+    n = len(omega)
+    times = (model.firetime[np.zeros((n, model.n_blocks), dtype=np.intp)] if loop is None
+             else model.firetime[loop])
+    return omega[:, None, None] * times
+
+
+def decode_hesai(payloads: list[bytes], angles: HesaiAngles, *, firetime: bool = True
+                 ) -> HesaiPackets:
+    """Decode the packets of ``angles.model`` (payloads of another size or start are skipped).
+
+    ``firetime``: put the head's rotation until each channel fires in its azimuth (Hesai's SDK
+    2.0 with its firetime file; the rays the unit cast); False: leave it out, as nebula does
+    (module docstring)."""
     model = angles.model
     size = model.dtype.itemsize
     good = [bytes(p[:size]) for p in payloads if model.accepts(p)]
@@ -271,19 +318,25 @@ def decode_hesai(payloads: list[bytes], angles: HesaiAngles) -> HesaiPackets:
     az_cdeg = blocks["azimuth"].astype(np.int64)
     distance = blocks["units"]["distance"] * (rec["dis_unit"].astype(np.float64)[:, None, None]
                                               * 1e-3)
-    a = (np.radians(az_cdeg / 100.0)[:, :, None] + np.radians(angles.azimuth_deg)) % (2 * math.pi)
+    loop = _loops(rec, model)
+    a = np.radians(az_cdeg / 100.0)[:, :, None] + np.radians(angles.azimuth_deg)
+    if firetime:
+        a = a + firing_rotation(rec["motor_speed"], loop, model)
+    a %= 2 * math.pi
     el = np.radians(angles.elevation_deg)
     xy = distance * np.cos(el)
     return HesaiPackets(
         timestamp_us=rec["timestamp"].astype(np.int64), return_mode=rec["return_mode"].copy(),
         motor_rpm=rec["motor_speed"].astype(np.float64), block_azimuth_cdeg=az_cdeg,
         distance=distance, reflectivity=blocks["units"]["reflectivity"].copy(), azimuth=a,
-        x=xy * np.sin(a), y=xy * np.cos(a), z=distance * np.sin(el), loop=_loops(rec, model))
+        x=xy * np.sin(a), y=xy * np.cos(a), z=distance * np.sin(el), loop=loop,
+        firetime=firetime)
 
 
-def decode_xt32(payloads: list[bytes], angles: HesaiAngles) -> HesaiPackets:
+def decode_xt32(payloads: list[bytes], angles: HesaiAngles, *, firetime: bool = True
+                ) -> HesaiPackets:
     """Decode PandarXT32 packets (payloads of another size or start are skipped)."""
-    return decode_hesai(payloads, angles)
+    return decode_hesai(payloads, angles, firetime=firetime)
 
 
 _FIELDS = ("distance", "reflectivity", "azimuth", "x", "y", "z")
@@ -326,7 +379,9 @@ def scans_from_hesai(dec: HesaiPackets, angles: HesaiAngles, *, cut_cdeg: int = 
         fired = (np.ones((m, nc), dtype=bool) if dec.loop is None
                  else QT128_FIRED[loop[lo:hi]])
         lid = np.broadcast_to(np.arange(nc, dtype=np.uint8), (m, nc))[fired]
-        time = (np.arange(m)[:, None] * t_firing + model.channel_time[loop[lo:hi]])[fired]
+        # each channel's firing time from the block's azimuth (Hesai's firetime): the time the
+        # azimuth's rotation is (with ``dec.firetime``) omega times
+        time = (np.arange(m)[:, None] * t_firing + model.firetime[loop[lo:hi]])[fired]
         cols = {k: fields[k][lo:hi][fired] for k in _FIELDS}
         scans.append(Scan(
             distance=cols["distance"], azimuth=cols["azimuth"], laser_id=lid,
@@ -335,7 +390,7 @@ def scans_from_hesai(dec: HesaiPackets, angles: HesaiAngles, *, cut_cdeg: int = 
             x=cols["x"], y=cols["y"], z=cols["z"], index=i, complete=True, packets=0,
             product_id=0, vertical_offsets_applied=False, lasers=lasers,
             meta={"model": model.name, "rpm": float(np.median(dec.motor_rpm)),
-                  "angles": angles.source}))
+                  "angles": angles.source, "firetime": dec.firetime}))
     return scans
 
 
@@ -360,11 +415,14 @@ def default_angles(model: HesaiModel | str) -> Path:
 
 class HesaiScans:
     """Whole rotations from a stream of datagrams (``payload`` attributes or bytes), decoded a
-    rotation at a time, and a summary."""
+    rotation at a time, and a summary. ``firetime``: as `decode_hesai`'s (False: nebula's
+    azimuths, the firing rotation left out)."""
 
-    def __init__(self, packets, angles: HesaiAngles, cut_cdeg: int = 18000) -> None:
+    def __init__(self, packets, angles: HesaiAngles, cut_cdeg: int = 18000, *,
+                 firetime: bool = True) -> None:
         self.packets = packets
         self.angles = angles
+        self.firetime = firetime
         self.cut = cut_cdeg  # where one rotation ends and the next begins, 0.01 deg
         self.counts = {"packets": 0, "other_datagrams": 0, "scans": 0, "firings": 0,
                        "returns": 0, "return_mode": None, "rpm": None}
@@ -393,7 +451,7 @@ class HesaiScans:
             last_az = az
 
     def _scans(self, buf: list[bytes], index: int):
-        dec = decode_hesai(buf, self.angles)
+        dec = decode_hesai(buf, self.angles, firetime=self.firetime)
         self.counts["return_mode"] = int(dec.return_mode[-1])
         self.counts["rpm"] = float(np.median(dec.motor_rpm))
         for s in scans_from_hesai(dec, self.angles, cut_cdeg=self.cut):

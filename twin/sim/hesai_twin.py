@@ -1,10 +1,17 @@
 """A Hesai PandarXT32 or PandarQT128 on the twin's bench, written as its own data packets.
 
 Every firing is a MuJoCo ray (`twin.sim.emulation.RayCaster.cast`) from the optical centre at
-its block's azimuth plus the channel's azimuth offset and the channel's elevation (the unit's
-angle-correction file, `twin.lidar.hesai`): what the decoder reads back. The bench stands still
-meanwhile. PandarXT32: blocks 50 us apart (0.18 deg at 600 rpm, 2,000 a turn), 8 a packet,
-single return (strongest). PandarQT128C2X: firings 111.11 us apart (0.4 deg at 600 rpm, 900 a
+the azimuth the head has when that channel fires: its block's azimuth, plus the rotation until
+the channel fires (omega from the rpm, times the channel's firetime in its loop: Hesai's
+firetime correction files, `twin.lidar.hesai.HesaiModel.firetime`; the head turns the way the
+azimuth increases), plus the channel's azimuth offset; at the channel's elevation (the unit's
+angle-correction file). The packet carries the block's azimuth, as a real unit's does, so a
+decoder that leaves the rotation out (nebula's, ``decode_hesai(..., firetime=False)``) reads
+each channel up to 0.19 deg (XT32) or 0.36 deg (QT128) short of where it looked, at 600 rpm;
+aimbench's default decode puts it back. The bench stands still meanwhile.
+
+PandarXT32: blocks 50 us apart (0.18 deg at 600 rpm, 2,000 a turn), 8 a packet, single return
+(strongest). PandarQT128C2X: firings 111.11 us apart (0.4 deg at 600 rpm, 900 a
 turn), one a packet, in the real unit's default dual-return mode (0x39, last and strongest: a
 single echo written in both blocks, as the real capture's flat surfaces are), its two firing
 loops alternating packet by packet with the dark channels of each loop not fired (distance 0),
@@ -39,11 +46,14 @@ BLOCKS_PER_PACKET = 8
 
 
 def _cast(sim, angles: HesaiAngles, block_cdeg: np.ndarray, fired: np.ndarray,
-          rng: np.random.Generator, range_sigma: float, max_range: float
-          ) -> tuple[np.ndarray, np.ndarray]:
+          firetime: np.ndarray, rpm: float, rng: np.random.Generator, range_sigma: float,
+          max_range: float) -> tuple[np.ndarray, np.ndarray]:
     """Distances (m, 0: none) and reflectivities of the fired channels of each firing at
-    ``block_cdeg`` (n,), ``fired`` (n, channels): one ray each from the optical centre."""
-    a = np.radians(block_cdeg / 100.0)[:, None] + np.radians(angles.azimuth_deg)
+    ``block_cdeg`` (n,), ``fired`` (n, channels): one ray each from the optical centre, at the
+    azimuth the head turning at ``rpm`` has ``firetime`` (n, channels; s) after the block's."""
+    omega = rpm * 2.0 * np.pi / 60.0  # rad/s, the direction the azimuth increases
+    a = (np.radians(block_cdeg / 100.0)[:, None] + omega * firetime
+         + np.radians(angles.azimuth_deg))
     el = np.broadcast_to(np.radians(angles.elevation_deg)[None, :], a.shape)
     a, el = a[fired], el[fired]
     d_l = np.column_stack((np.cos(el) * np.sin(a), np.cos(el) * np.cos(a), np.sin(el)))
@@ -71,8 +81,10 @@ def emulate_xt32(sim, angles: HesaiAngles, n_rotations: int, *, rng: np.random.G
     n_packets = -(-(n_rotations * per_turn + 1) // BLOCKS_PER_PACKET)
     k = np.arange(n_packets * BLOCKS_PER_PACKET)
     block_cdeg = np.rint(start_cdeg + k * (36000.0 / per_turn)).astype(np.int64) % 36000
-    dist, refl = _cast(sim, angles, block_cdeg, np.ones((len(k), N_CHANNELS), dtype=bool), rng,
-                       range_sigma, XT32.max_range)
+    fired = np.ones((len(k), N_CHANNELS), dtype=bool)
+    dist, refl = _cast(sim, angles, block_cdeg, fired,
+                       np.broadcast_to(XT32.firetime[0], fired.shape), rpm, rng, range_sigma,
+                       XT32.max_range)
     ts = np.rint(np.arange(n_packets) * BLOCKS_PER_PACKET * BLOCK_PERIOD * 1e6).astype(np.int64)
     packets = encode_xt32(block_cdeg.reshape(-1, BLOCKS_PER_PACKET),
                           dist.reshape(-1, BLOCKS_PER_PACKET, N_CHANNELS),
@@ -90,8 +102,8 @@ def emulate_qt128(sim, angles: HesaiAngles, n_rotations: int, *, rng: np.random.
     k = np.arange(n_rotations * per_turn + 1)
     block_cdeg = np.rint(start_cdeg + k * (36000.0 / per_turn)).astype(np.int64) % 36000
     loop = k % 2  # loop 1 and loop 2 alternate firing by firing
-    dist, refl = _cast(sim, angles, block_cdeg, QT128_FIRED[loop], rng, range_sigma,
-                       QT128.max_range)
+    dist, refl = _cast(sim, angles, block_cdeg, QT128_FIRED[loop], QT128.firetime[loop], rpm,
+                       rng, range_sigma, QT128.max_range)
     ts = np.rint(k * period * 1e6).astype(np.int64)
     packets = encode_qt128(np.column_stack((block_cdeg, block_cdeg)),
                            np.stack((dist, dist), axis=1), np.stack((refl, refl), axis=1), ts,

@@ -59,24 +59,33 @@ def firing_of(model: str) -> FiringPattern | None:
         return FiringPattern(60.0 * info.rate_hz, 1.0 / (info.columns_per_frame * info.rate_hz),
                              None, True)
     if model == "PandarXT32":
+        from twin.lidar.hesai import XT32
         from twin.sim.hesai_twin import BLOCK_PERIOD
 
         # The twin's PandarXT32 turns at exactly 600 rpm: its blocks repeat their azimuths every
-        # turn, as a unit phase-locked to its clock does (a free-running one's wander).
-        return FiringPattern(600.0, BLOCK_PERIOD, None, True)
+        # turn, as a unit phase-locked to its clock does (a free-running one's wander). Each
+        # channel fires its firetime after the block's azimuth (6 + 1.512 n us: the twin casts
+        # it there, `twin.sim.hesai_twin`), so the channels' phases within the 0.18 deg step
+        # spread over 0.17 deg (a vernier) instead of being unknown.
+        return FiringPattern(600.0, BLOCK_PERIOD, tuple(float(t) for t in XT32.firetime[0]),
+                             True)
     if model == "PandarQT128":
         from twin.lidar.hesai import QT128
 
         # Phase-locked as the XT32's. The lasers that see a board near the horizon (channels
         # 33-64, -18 to +6 deg) fire in one of the two loops only: every other firing, 0.8 deg
         # at 600 rpm (channels 65-128 every firing, 0.4 deg: the bound is pessimistic for
-        # them). The twin fires a firing's channels at its block's azimuth (as the decoders
-        # read it): loop 1's at the period's start, loop 2's (channels 1-32) half a period
-        # later. Their times matter: channels 33-64 share one azimuth offset within 0.3 deg,
-        # so their brackets along a side edge fall at one phase, and the bound with the
-        # phases unknown (averaged) said half the twin's roll spread (0.31 against 0.62 deg
-        # fused, benchmarks/bench_models.py); with them it says 0.62.
-        times = tuple(QT128.firing_period if c < 32 else 0.0 for c in range(128))
+        # them). The twin casts each channel at its block's azimuth plus the rotation until it
+        # fires (its loop's firetime): loop 1 at the period's start, loop 2 (channels 1-32)
+        # half a period later, each plus its firetime in that loop (channels 65-128: loop 1's,
+        # the one phase the bound takes). Their times matter: channels 33-64 share one azimuth
+        # offset within 0.3 deg, so their brackets along a side edge fall at phases the
+        # firetimes set, and the bound with the phases unknown (averaged) said half the
+        # twin's roll spread (0.31 against 0.62 deg fused, benchmarks/bench_models.py, before
+        # the firetimes were in the twin).
+        ft = QT128.firetime
+        times = tuple(float(QT128.firing_period + ft[1, c] if c < 32 else ft[0, c])
+                      for c in range(128))
         return FiringPattern(600.0, 2 * QT128.firing_period, times, True)
     return None
 
