@@ -216,15 +216,22 @@ def scan_from_ouster_cloud(rec: np.ndarray, info: OusterInfo, *, index: int = 0,
 
 
 def pcd_shape(path: str | Path) -> tuple[int, int]:
-    """(WIDTH, HEIGHT) of a PCD file's header (1 x N when it has none)."""
+    """(WIDTH, HEIGHT) of a PCD file's header ((0, 1) when it has none, or no file: the PCD
+    reader says what is wrong with it)."""
+    from twin.lidar.pcd import MAX_HEADER_BYTES
+
     head: dict[str, str] = {}
-    with Path(path).open("rb") as f:
-        for raw in f:
-            words = raw.decode("ascii", "replace").split()
-            if words and not words[0].startswith("#"):
-                head[words[0].upper()] = words[1] if len(words) > 1 else ""
-                if words[0].upper() == "DATA" or len(head) > 16:
-                    break
+    try:
+        with Path(path).open("rb") as f:
+            text = f.read(MAX_HEADER_BYTES)
+    except OSError:
+        return 0, 1
+    for line in text.split(b"\n"):
+        words = line.decode("ascii", "replace").split()
+        if words and not words[0].startswith("#"):
+            head[words[0].upper()] = words[1] if len(words) > 1 else ""
+            if words[0].upper() == "DATA":
+                break
     try:
         return int(head.get("WIDTH", "0")), int(head.get("HEIGHT", "1"))
     except ValueError:
