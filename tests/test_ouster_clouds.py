@@ -16,6 +16,7 @@ import numpy.lib.recfunctions as rfn
 import pytest
 
 import align
+from tests.bag_support import write_records_bag
 from tests.conftest import DATA_DIR
 from twin.core.scan import Scan
 from twin.lidar.ouster import (
@@ -128,6 +129,28 @@ def test_a_pcd_file_reads_with_its_metadata_and_without_it_is_one_line(info, fra
     with open_scans(path) as source:
         (scan,) = list(source)
     assert_same_scan(scan, packets)
+
+
+@pytest.mark.parametrize("ros2", [True, False])
+def test_a_bag_of_ouster_ros_clouds_gives_the_packets_scans(info, frame, tmp_path, ros2):
+    packets = scan_from_frame(frame, info)
+    cloud = ouster_ros_cloud(frame, info)
+    path = write_records_bag(tmp_path / ("os1" if ros2 else "os1.bag"), [cloud, cloud],
+                             ros2=ros2)
+    with pytest.raises(OusterCloudError, match="--ouster-metadata"):
+        open_scans(path)
+    with open_scans(path, ouster_metadata=META) as source:
+        scans = list(source)
+        summary = source.summary()
+    assert len(scans) == 2 and summary["bag"]["messages"] == 2
+    for scan in scans:
+        assert_same_scan(scan, packets)
+    # a Velodyne's cloud in a bag still goes the rebuilding way (tests/test_sources.py); an
+    # unorganised cloud with metadata given is refused in one line
+    flat = write_records_bag(tmp_path / ("flat" if ros2 else "flat.bag"), [cloud.ravel()],
+                             ros2=ros2)
+    with pytest.raises(OusterCloudError, match="1 x 32768 cloud"):
+        list(open_scans(flat, ouster_metadata=META))
 
 
 def test_another_sensors_metadata_is_refused(frame, info):

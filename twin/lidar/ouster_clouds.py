@@ -30,8 +30,10 @@ NaN or an all-zero point) is a miss.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+import itertools
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -46,6 +48,9 @@ from twin.lidar.ouster import (
     scan_from_frame,
 )
 from twin.lidar.sources import ScanSource, SourceName
+
+if TYPE_CHECKING:
+    from twin.lidar.bags import Bag
 
 #: Fields of ouster-ros's default (``original``) point, os_point.h, in its order.
 OUSTER_ROS_DTYPE = np.dtype([
@@ -266,8 +271,9 @@ class OusterCloudSource(ScanSource):
     its metadata."""
 
     def __init__(self, name: SourceName, clouds: Iterable[tuple[np.ndarray, str]],
-                 info: OusterInfo, *, max_scans: int | None = None) -> None:
-        super().__init__(name, max_scans)
+                 info: OusterInfo, *, max_scans: int | None = None, extra: dict | None = None,
+                 closer: Callable[[], None] | None = None) -> None:
+        super().__init__(name, max_scans, extra, closer)
         self.clouds = clouds
         self.info = info
         self._tally = {"scans": 0, "points": 0, "returns": 0}
@@ -313,3 +319,24 @@ def open_ouster_pcd(src: SourceName, metadata: str | Path | None,
 
 def _pcd_clouds(path: Path, info: OusterInfo) -> Iterator[tuple[np.ndarray, str]]:
     yield pcd_cloud(path), str(path)
+
+
+def open_ouster_bag(src: SourceName, bag: Bag, metadata: str | Path | None,
+                    max_scans: int | None = None) -> OusterCloudSource | None:
+    """The source of a bag's PointCloud2 topic when it is an Ouster driver's organised cloud
+    (its first message's shape says so, or metadata was given), None for another cloud."""
+    clouds = bag.organised_clouds()
+    first = next(clouds, None)
+    if first is None:
+        return None
+    height, width = first[0].shape
+    if metadata is None and not looks_like_ouster(width, height):
+        bag.messages = 0  # the cloud path reads the topic again from its first message
+        return None
+    try:
+        info = metadata_for(bag.path, metadata)
+    except AimbenchError:
+        bag.close()
+        raise
+    return OusterCloudSource(src, itertools.chain([first], clouds), info, max_scans=max_scans,
+                             extra={"bag": bag.info}, closer=bag.close)

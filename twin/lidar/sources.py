@@ -428,6 +428,12 @@ def open_scans(
     from twin.lidar.bags import Bag
 
     bag = Bag(src.path, src.topic)
+    if bag.kind == "cloud":
+        from twin.lidar.ouster_clouds import open_ouster_bag
+
+        ouster = open_ouster_bag(src, bag, ouster_metadata, max_scans)  # an Ouster driver's
+        if ouster is not None:
+            return ouster
     if bag.kind == "packets":
         return PacketScanSource(src, bag.packets(), max_scans=max_scans, extra={"bag": bag.info},
                                 closer=bag.close, **decode)
