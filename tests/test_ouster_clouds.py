@@ -9,6 +9,7 @@ cloud, estimates the pose its packets do.
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -23,6 +24,7 @@ from twin.lidar.ouster import (
     OusterInfo,
     decode_packets,
     frames,
+    info_json,
     nominal_info,
     scan_from_frame,
 )
@@ -171,7 +173,7 @@ def test_info_says_ouster_cloud(info, frame, tmp_path, capsys):
     assert "--ouster-metadata" in capsys.readouterr().err
 
 
-def test_an_os1_64_twin_cloud_estimates_its_packets_pose(tmp_path):
+def test_an_os1_64_twin_cloud_estimates_its_packets_pose(tmp_path, capsys):
     info = nominal_info("OS1-64")
     sim = BenchSim(BenchParams.from_edge(roll_deg=1.0, tilt_deg=-0.5, yaw_deg=2.0), seed=5)
     (frame,), _ = emulate_frames(sim, info, 1, rng=np.random.default_rng(1))
@@ -185,3 +187,11 @@ def test_an_os1_64_twin_cloud_estimates_its_packets_pose(tmp_path):
     assert a.success and b.success
     z = (b.pose.as_array() - a.pose.as_array()) / np.sqrt(np.diag(a.covariance))
     assert np.abs(z).max() < 0.05, np.round(z, 3)
+    # and `aimbench estimate` reads the cloud saved as ouster-ros's PCD, its metadata beside it
+    from scenarios.cli import main
+
+    write_ouster_pcd(tmp_path / "os1-64.pcd", ouster_ros_cloud(frame, info))
+    (tmp_path / "os1-64.json").write_text(info_json(info))
+    assert main(["estimate", str(tmp_path / "os1-64.pcd"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["status"] == "ok" and out["hits"] > 500
