@@ -159,6 +159,9 @@ def test_another_sensors_metadata_is_refused(frame, info):
     cloud = ouster_ros_cloud(frame, info)
     with pytest.raises(OusterCloudError, match="32 x 1024 cloud"):
         scan_from_ouster_cloud(cloud, nominal_info("OS1-64"))
+    # the same shape, another line's beams: its points lie 0.7 m off the OS2-32's rays
+    with pytest.raises(OusterCloudError, match="off the rays of the OS2-32 metadata"):
+        scan_from_ouster_cloud(cloud, nominal_info("OS2-32"))
 
 
 def test_info_says_ouster_cloud(info, frame, tmp_path, capsys):

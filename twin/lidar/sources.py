@@ -431,7 +431,7 @@ def open_scans(
     if bag.kind == "cloud":
         from twin.lidar.ouster_clouds import open_ouster_bag
 
-        ouster = open_ouster_bag(src, bag, ouster_metadata, max_scans)  # an Ouster driver's
+        ouster = open_ouster_bag(src, bag, ouster_metadata, max_scans)  # ouster-ros's cloud
         if ouster is not None:
             return ouster
     if bag.kind == "packets":
