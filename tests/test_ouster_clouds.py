@@ -151,8 +151,16 @@ def test_a_bag_of_ouster_ros_clouds_gives_the_packets_scans(info, frame, tmp_pat
     # unorganised cloud with metadata given is refused in one line
     flat = write_records_bag(tmp_path / ("flat" if ros2 else "flat.bag"), [cloud.ravel()],
                              ros2=ros2)
-    with pytest.raises(OusterCloudError, match="1 x 32768 cloud"):
+    with pytest.raises(OusterCloudError, match="an unorganised cloud of 32768 points"):
         list(open_scans(flat, ouster_metadata=META))
+    # ouster-ros's unorganised cloud (organized:=false, the misses dropped) is told by its
+    # fields: refused in one line, not rebuilt as a Velodyne's
+    dropped = cloud.ravel()[np.isfinite(cloud.ravel()["x"])]
+    flat = write_records_bag(tmp_path / ("drop" if ros2 else "drop.bag"), [dropped], ros2=ros2)
+    with pytest.raises(OusterCloudError, match="organized:=false"):
+        list(open_scans(flat, ouster_metadata=META))
+    with pytest.raises(OusterCloudError, match="--ouster-metadata"):
+        open_scans(flat)
 
 
 def test_another_sensors_metadata_is_refused(frame, info):

@@ -70,9 +70,16 @@ class OusterCloudError(AimbenchError):
     """An organised cloud that is not the metadata's sensor's, or without its metadata."""
 
 
-def looks_like_ouster(width: int, height: int) -> bool:
-    """Whether a cloud of this shape is an Ouster driver's organised cloud (H beams x W)."""
-    return height in OUSTER_HEIGHTS and width in OUSTER_WIDTHS
+#: Fields only an Ouster driver writes (ouster-ros's ``original`` and ``native`` points).
+OUSTER_FIELDS = ({"reflectivity", "ambient", "range"}, {"near_ir"})
+
+
+def looks_like_ouster(width: int, height: int, fields: Iterable[str] = ()) -> bool:
+    """Whether a cloud is an Ouster driver's: an organised cloud's shape (H beams x W), or
+    the fields of ouster-ros's points."""
+    names = set(fields)
+    return (height in OUSTER_HEIGHTS and width in OUSTER_WIDTHS) or any(
+        f <= names for f in OUSTER_FIELDS)
 
 
 def metadata_for(path: str | Path, given: str | Path | None) -> OusterInfo:
@@ -176,6 +183,10 @@ def _layout(rec: np.ndarray, info: OusterInfo, hit: np.ndarray) -> tuple[bool, s
 def frame_from_cloud(rec: np.ndarray, info: OusterInfo) -> tuple[Frame, dict]:
     """The packet path's `Frame` of an (H, W) organised cloud, and how it was laid out."""
     h, w = info.pixels_per_column, info.columns_per_frame
+    if rec.shape[0] == 1 and rec.shape[1] != w:
+        raise OusterCloudError(f"an unorganised cloud of {rec.shape[1]} points (ouster-ros's "
+                               "organized:=false drops the pixels without a return): record its "
+                               "organised cloud (the default) or its packets")
     if rec.shape != (h, w):
         raise OusterCloudError(f"a {rec.shape[0]} x {rec.shape[1]} cloud (rows x columns), the "
                                f"metadata's {info.model} {info.lidar_mode} frames are {h} x {w}")
@@ -225,9 +236,9 @@ def scan_from_ouster_cloud(rec: np.ndarray, info: OusterInfo, *, index: int = 0,
     return scan
 
 
-def pcd_shape(path: str | Path) -> tuple[int, int]:
-    """(WIDTH, HEIGHT) of a PCD file's header ((0, 1) when it has none, or no file: the PCD
-    reader says what is wrong with it)."""
+def pcd_shape(path: str | Path) -> tuple[int, int, list[str]]:
+    """(WIDTH, HEIGHT, FIELDS) of a PCD file's header ((0, 1, []) when it has none, or no file:
+    the PCD reader says what is wrong with it)."""
     from twin.lidar.pcd import MAX_HEADER_BYTES
 
     head: dict[str, str] = {}
@@ -235,24 +246,25 @@ def pcd_shape(path: str | Path) -> tuple[int, int]:
         with Path(path).open("rb") as f:
             text = f.read(MAX_HEADER_BYTES)
     except OSError:
-        return 0, 1
+        return 0, 1, []
     for line in text.split(b"\n"):
         words = line.decode("ascii", "replace").split()
         if words and not words[0].startswith("#"):
-            head[words[0].upper()] = words[1] if len(words) > 1 else ""
+            head[words[0].upper()] = " ".join(words[1:])
             if words[0].upper() == "DATA":
                 break
     try:
-        return int(head.get("WIDTH", "0")), int(head.get("HEIGHT", "1"))
+        return (int(head.get("WIDTH", "0")), int(head.get("HEIGHT", "1")),
+                head.get("FIELDS", "").split())
     except ValueError:
-        return 0, 1
+        return 0, 1, []
 
 
 def pcd_cloud(path: str | Path) -> np.ndarray:
     """The (HEIGHT, WIDTH) records of an organised PCD file."""
     from twin.lidar.pcd import _records
 
-    width, height = pcd_shape(path)
+    width, height, _ = pcd_shape(path)
     rec, viewpoint = _records(Path(path))
     if viewpoint is not None:
         raise OusterCloudError(f"{path}: an Ouster cloud moved by its VIEWPOINT: write it in "
@@ -313,10 +325,10 @@ class OusterCloudSource(ScanSource):
 
 def open_ouster_pcd(src: SourceName, metadata: str | Path | None,
                     max_scans: int | None = None) -> OusterCloudSource | None:
-    """The source of a PCD file that is an Ouster organised cloud (its shape says so, or
-    metadata was given), None for another cloud."""
-    width, height = pcd_shape(src.path)
-    if metadata is None and not looks_like_ouster(width, height):
+    """The source of a PCD file that is an Ouster driver's cloud (its shape or its fields say
+    so, or metadata was given), None for another cloud."""
+    width, height, fields = pcd_shape(src.path)
+    if metadata is None and not looks_like_ouster(width, height, fields):
         return None
     info = metadata_for(src.path, metadata)
     return OusterCloudSource(src, _pcd_clouds(Path(src.path), info), info, max_scans=max_scans)
@@ -329,13 +341,14 @@ def _pcd_clouds(path: Path, info: OusterInfo) -> Iterator[tuple[np.ndarray, str]
 def open_ouster_bag(src: SourceName, bag: Bag, metadata: str | Path | None,
                     max_scans: int | None = None) -> OusterCloudSource | None:
     """The source of a bag's PointCloud2 topic when it is an Ouster driver's organised cloud
-    (its first message's shape says so, or metadata was given), None for another cloud."""
+    (its first message's shape or fields say so, or metadata was given), None for another
+    cloud."""
     clouds = bag.organised_clouds()
     first = next(clouds, None)
     if first is None:
         return None
     height, width = first[0].shape
-    if metadata is None and not looks_like_ouster(width, height):
+    if metadata is None and not looks_like_ouster(width, height, first[0].dtype.names or ()):
         bag.messages = 0  # the cloud path reads the topic again from its first message
         return None
     try:
