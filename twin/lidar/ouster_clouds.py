@@ -124,7 +124,7 @@ def ouster_ros_cloud(frame: Frame, info: OusterInfo, *, cloud_frame: str = "os_s
     xyz = r[..., None].astype(np.float32) * d + off
     xyz[(r <= min_range_mm) | (r >= max_range_mm)] = np.nan
     ts = frame.timestamp_ns
-    scan_ts = ts[np.flatnonzero(ts)[0]] if ts.any() else 0  # compute_scan_ts_0, column 0 valid
+    scan_ts = _scan_ts(ts, info)
     col_ts = ts[src]
     out = np.zeros((h, w), dtype=OUSTER_ROS_DTYPE)
     out["x"], out["y"], out["z"] = xyz[..., 0], xyz[..., 1], xyz[..., 2]
@@ -135,6 +135,18 @@ def ouster_ros_cloud(frame: Frame, info: OusterInfo, *, cloud_frame: str = "os_s
     out["ambient"] = frame.near_ir[u, src]
     out["range"] = r
     return out
+
+
+def _scan_ts(ts: np.ndarray, info: OusterInfo) -> int:
+    """The scan's stamp, ns, as lidar_packet_handler.h's compute_scan_ts_0 takes it: the first
+    column's timestamp, extrapolated back to column 0 by the mode's column spacing when the
+    first columns are missing (its later scans interpolate from the previous one's last)."""
+    valid = np.flatnonzero(ts)
+    if not len(valid):
+        return 0
+    k = int(valid[0])
+    spacing_ns = 1e9 / (info.columns_per_frame * info.rate_hz)
+    return round(float(ts[k]) - spacing_ns * k)
 
 
 def write_ouster_pcd(path: str | Path, rec: np.ndarray) -> None:
