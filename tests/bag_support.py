@@ -103,6 +103,34 @@ def write_cloud_bag(path: Path, scans: Sequence[Scan], *, ros2: bool,
     return path
 
 
+#: PointField datatypes of numpy's kinds and sizes (sensor_msgs/PointField).
+_POINT_FIELD = {("f", 4): 7, ("u", 4): 6, ("u", 2): 4, ("u", 1): 2}
+
+
+def write_records_bag(path: Path, clouds: Sequence[np.ndarray], *, ros2: bool,
+                      topic: str = "/ouster/points", frame_id: str = "os_sensor") -> Path:
+    """A bag of PointCloud2 messages holding structured arrays as they are: an (H, W) one as
+    an organised cloud (height H, width W), as ouster-ros publishes its cloud."""
+    store = typestore(ros2)
+    Cloud, Field = store.types[CLOUD_TYPE], store.types["sensor_msgs/msg/PointField"]
+    with _writer(path, ros2) as w:
+        conn = w.add_connection(topic, CLOUD_TYPE, typestore=store)
+        for i, rec in enumerate(clouds):
+            dt = rec.dtype
+            t = EPOCH_S + 0.1 * i
+            fields = [Field(name=n, offset=dt.fields[n][1], count=1,
+                            datatype=_POINT_FIELD[dt[n].kind, dt[n].itemsize])
+                      for n in dt.names]
+            height, width = rec.shape if rec.ndim == 2 else (1, len(rec))
+            msg = Cloud(header=_header(store, t, frame_id), height=height, width=width,
+                        fields=fields, is_bigendian=False, point_step=dt.itemsize,
+                        row_step=dt.itemsize * width,
+                        data=np.ascontiguousarray(rec).view(np.uint8).reshape(-1),
+                        is_dense=False)
+            w.write(conn, int(t * 1e9), _serialize(store, msg, CLOUD_TYPE, ros2))
+    return path
+
+
 def write_other_bag(path: Path, *, ros2: bool) -> Path:
     """A bag without LiDAR data: an IMU topic and a string topic."""
     store = typestore(ros2)

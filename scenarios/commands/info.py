@@ -115,9 +115,11 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
                    help="the driver that wrote a point cloud (how it turned each laser's "
                         "point; docs/vlp16.md): default, told from the cloud's fields, else "
                         "from its points")
-    p.add_argument("--metadata", metavar="FILE.json", default=None,
-                   help="an Ouster sensor's metadata JSON, which its packets are read with "
-                        "(default: the NAME.json recorded beside a NAME.pcap)")
+    p.add_argument("--metadata", "--ouster-metadata", dest="metadata", metavar="FILE.json",
+                   default=None,
+                   help="an Ouster sensor's metadata JSON, which its packets or its driver's "
+                        "organised cloud are read with (default: the NAME.json recorded "
+                        "beside a NAME.pcap or NAME.pcd)")
     add_sensor_arguments(p)
 
 
@@ -203,6 +205,8 @@ def format_summary(s: dict) -> str:
     kind = s.get("kind", "pcap")
     rpm = "-" if s["rpm"] is None else f"{s['rpm']:.1f}"
     lines = [("source", _describe(s))]
+    if "ouster_cloud" in s:  # an Ouster driver's organised cloud
+        return _ouster_cloud_summary(s, lines)
     if kind in ("pcd",) or "clouds" in s:
         lines += [
             ("model", f"{s['model']} (from the rings and elevations of the points)"),
@@ -269,7 +273,23 @@ def format_summary(s: dict) -> str:
     return "\n".join(f"{k:17s} {v}" for k, v in lines)
 
 
+def _ouster_cloud_summary(s: dict, lines: list[tuple[str, Any]]) -> str:
+    """An Ouster organised cloud's summary (`twin.lidar.ouster_clouds`): every pixel is a
+    firing, nothing rebuilt."""
+    lines += [
+        ("model", f"{s['model']} ({s['prod_line']}, serial {s['serial'] or '-'}, "
+                  f"firmware {s['firmware'] or '-'}; metadata {s['metadata']})"),
+        ("lidar mode", s["lidar_mode"]),
+        ("rpm", f"{s['rpm']:.1f}"),
+        ("clouds", f"{s['clouds']} organised (rows = beams; {s['ouster_cloud'] or '-'})"),
+        ("points", f"{s['points']} firings (every pixel), {s['returns']} returns"),
+    ]
+    return "\n".join(f"{k:17s} {v}" for k, v in lines)
+
+
 def _describe(s: dict) -> str:
+    if "ouster_cloud" in s:
+        return f"{s['capture']} (Ouster organised point cloud)"
     kind = s.get("kind", "pcap")
     if kind == "udp" and "lidar_mode" not in s and s.get("model") not in HESAI_NAMES:
         return f"{s['capture']} (live)"

@@ -172,6 +172,16 @@ class Bag:
                                  name=f"{self.path} {self.topic} at {stamp_ns * 1e-9:.6f} s",
                                  meta=meta)
 
+    def organised_clouds(self) -> Iterator[tuple[np.ndarray, str]]:
+        """Every PointCloud2 of the topic as its (height, width) records and a name: an
+        organised cloud's rows and columns kept (`twin.lidar.ouster_clouds`)."""
+        if self.kind != "cloud":
+            raise BagError(f"{self.path}: topic {self.topic} holds packets, not point clouds")
+        for stamp_ns, msg in self._messages():
+            name = f"{self.path} {self.topic} at {stamp_ns * 1e-9:.6f} s"
+            rec = cloud_records(msg, name)
+            yield rec.reshape(int(msg.height), int(msg.width)), name
+
     def info(self) -> dict:
         """What the bag holds (for `aimbench info`)."""
         return {"path": str(self.path), "topic": self.topic, "type": self.msgtype,

@@ -43,6 +43,10 @@ channel fires left out (up to 0.19 deg on an XT32, 0.36 deg on a QT128 at 600 rp
 ``time_stamp`` field has the firing time in it, so the rotation could be put back); aimbench's
 decoder and the SDK with its firetime file put it in.
 
+Ouster clouds are not rebuilt either, nor need to be: ouster-ros's (and ouster-sdk's XYZLut's)
+cloud is organised, every pixel kept, and `twin.lidar.ouster_clouds` reads it with the sensor's
+metadata into the packets' own scan (`twin.lidar.sources` tries it first on an organised cloud).
+
 A cloud's convention is told by its fields where they tell it (``column``: velodyne_decoder;
 ``channel``: nebula; ``scan``: aimbench), from its points otherwise (the rotation under which
 each firing sequence's returns line up, `twin.lidar.clouds`), or given (``--cloud-convention``).

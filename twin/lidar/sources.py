@@ -388,7 +388,8 @@ def open_scans(
     for packets and clouds alike. ``cloud_convention``: the driver that wrote a point cloud
     (`twin.lidar.conventions`; None: told from its fields or its points). ``ouster_metadata``:
     an Ouster sensor's metadata JSON, which its packets are read with (a pcap's is found
-    beside it, ``NAME.json``, without it). ``model="PandarXT32"`` or ``"PandarQT128"``: a
+    beside it, ``NAME.json``, without it), or its driver's organised cloud is
+    (`twin.lidar.ouster_clouds`). ``model="PandarXT32"`` or ``"PandarQT128"``: a
     Hesai's packets (`twin.lidar.hesai`), with its angle-correction file ``hesai_angles``
     (default: the model's nominal one).
     """
@@ -416,12 +417,23 @@ def open_scans(
                                 extra={"udp": lambda: rx.stats.as_dict()}, closer=rx.close,
                                 **decode)
     if src.kind == "pcd":
+        from twin.lidar.ouster_clouds import open_ouster_pcd
         from twin.lidar.pcd import read_pcd
+
+        ouster = open_ouster_pcd(src, ouster_metadata, max_scans)  # an Ouster organised cloud
+        if ouster is not None:
+            return ouster
 
         return CloudScanSource(src, read_pcd(src.path), max_scans=max_scans, **cloud)
     from twin.lidar.bags import Bag
 
     bag = Bag(src.path, src.topic)
+    if bag.kind == "cloud":
+        from twin.lidar.ouster_clouds import open_ouster_bag
+
+        ouster = open_ouster_bag(src, bag, ouster_metadata, max_scans)  # ouster-ros's cloud
+        if ouster is not None:
+            return ouster
     if bag.kind == "packets":
         return PacketScanSource(src, bag.packets(), max_scans=max_scans, extra={"bag": bag.info},
                                 closer=bag.close, **decode)
