@@ -1,0 +1,292 @@
+"""nebula's Hesai point clouds (PandarXT32) read back as the scans its packets give.
+
+What nebula writes (tier4/nebula, read at its main branch):
+
+- ``nebula_core_common/point_types.hpp``: ``PointXYZIRCAEDT``, fields x y z (float32, m)
+  intensity (uint8) return_type (uint8) channel (uint16, the laser, 0-based) azimuth elevation
+  (float32, rad) distance (float32, m) time_stamp (uint32, ns after the cloud's stamp).
+- ``nebula_hesai_decoders/decoders/hesai_decoder.hpp`` ``convert_returns``: for each group of
+  ``n_returns`` blocks (one firing), each channel, each return: a point unless its distance is 0
+  or outside the model's and the configuration's range, unless (dual return) it is not the
+  group's last block and is identical to another return (``IDENTICAL``, written once, from the
+  last block) or within ``dual_return_distance_threshold`` of one. No-return points are
+  dropped: the misses are not in the cloud. x = r cos(el) sin(az), y = r cos(el) cos(az),
+  z = r sin(el): Hesai's own frame, y forward and x right, as aimbench's {L}. ``azimuth`` is the
+  block's azimuth + the channel's azimuth offset (the angle corrector): the head's rotation
+  until the channel fires is left out (`twin.lidar.hesai`'s docstring). Points are written
+  firing by firing, channel by channel, return by return.
+- ``pandar_xt32.hpp``: a point's time after its packet's = ``5632 - 50000 * ((8 - block - 1) /
+  n_returns)`` + ``368 + 1512 * channel`` ns; ``get_return_type`` (``hesai_sensor.hpp``): in
+  last-and-strongest mode (0x39) the first block's return is LAST_STRONGEST or LAST, the
+  second's STRONGEST or SECONDSTRONGEST (strongest: reflectivity not below the other's).
+  ``time_stamp`` = packet time (the tail's date and time + its us) - the cloud's stamp (the
+  earliest point time of its first firing) + that offset.
+
+`nebula_hesai_cloud` writes that cloud from packets; `scan_from_nebula_hesai` reads one back:
+each point's firing from its block azimuth (its ``azimuth`` minus the channel's offset, or
+atan2(x, y) without the field), the firing grid rebuilt (a firing every 0.18 deg at 600 rpm:
+the firings where every channel missed put back), the misses put back, and the head's rotation
+put back into each channel's azimuth (the model's firetime at the rpm the time stamps give,
+else the grid's step): it writes the grid as packets (`twin.lidar.hesai.encode_xt32`) and reads
+them as the packet path does (`decode_hesai`, `scans_from_hesai`), so the scan is the packet
+path's by construction. What differs from the packet path's scan: a miss's azimuth on a firing
+where every channel missed is interpolated from its neighbours (the packets' is the encoder's),
+a return nebula dropped as out of range is a miss, and nebula's scan cutter (hesai_decoder.hpp
+``scan_cutter_``, cut per channel at the cut angle) can leave a channel of the first or last
+firing in the next cloud: there it is a miss. The QT128 (two firing loops, dark channels) is
+not done here.
+"""
+
+from __future__ import annotations
+
+import calendar
+import itertools
+
+import numpy as np
+
+from twin.core.scan import Scan
+from twin.lidar.hesai import (
+    XT32,
+    HesaiAngles,
+    HesaiError,
+    decode_hesai,
+    encode_xt32,
+    scans_from_hesai,
+)
+
+#: nebula's PointXYZIRCAEDT (point_types.hpp), packed (PCD and PointCloud2 store it so).
+NEBULA_POINT_DTYPE = np.dtype([
+    ("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("return_type", "u1"),
+    ("channel", "<u2"), ("azimuth", "<f4"), ("elevation", "<f4"), ("distance", "<f4"),
+    ("time_stamp", "<u4")])
+
+#: nebula_common.hpp ``ReturnType``.
+LAST, FIRST, STRONGEST, IDENTICAL, SECOND, SECONDSTRONGEST, LAST_STRONGEST = 1, 2, 3, 6, 7, 8, 10
+_SINGLE_TYPE = {"first": FIRST, "second": SECOND, "strongest": STRONGEST, "last": LAST}
+#: Types only a dual-return cloud holds, and the ones nebula gives a last-and-strongest pair's
+#: second block (hesai_sensor.hpp get_return_type).
+_DUAL_ONLY = (IDENTICAL, SECONDSTRONGEST, LAST_STRONGEST)
+_SECOND_BLOCK = (STRONGEST, SECONDSTRONGEST, IDENTICAL)
+LAST_AND_STRONGEST = 0x39
+#: nebula's test configuration for the XT32 (hesai_ros_decoder_test_main.cpp): ranges m, and
+#: its default dual-return distance threshold (hesai_ros_decoder_test.hpp), m.
+NEBULA_RANGE = (0.05, 120.0)
+NEBULA_DUAL_THRESHOLD = 0.1
+#: nebula's field names that tell its Hesai cloud (``ring`` is absent: nebula writes channel).
+NEBULA_HESAI_FIELDS = ("channel", "return_type", "azimuth", "elevation", "distance",
+                       "time_stamp")
+
+
+def is_nebula_hesai(names) -> bool:
+    """Whether a cloud's field names are nebula's PointXYZIRCAEDT (its Hesai and Velodyne
+    clouds alike: the model tells which)."""
+    return set(NEBULA_HESAI_FIELDS) <= set(names or ())
+
+
+# ----------------------------------------------------------------------------------------------
+# Writing: nebula's cloud of packets
+
+
+def _packet_times_ns(payloads: list[bytes], angles: HesaiAngles) -> np.ndarray:
+    """Each packet's time, ns since 1970: the tail's date and time (years since 1900, UTC) plus
+    its microseconds (nebula's hesai_packet::get_timestamp_ns)."""
+    model = angles.model
+    size = model.dtype.itemsize
+    rec = np.frombuffer(b"".join(bytes(p[:size]) for p in payloads if model.accepts(p)),
+                        dtype=model.dtype)
+    sec = np.array([calendar.timegm((1900 + int(d[0]), int(d[1]), int(d[2]), int(d[3]),
+                                     int(d[4]), int(d[5]))) for d in rec["date_time"]],
+                   dtype=np.int64)
+    return sec * 1_000_000_000 + rec["timestamp"].astype(np.int64) * 1000
+
+
+def _xt32_offset_ns(block: np.ndarray, channel: np.ndarray, n_returns: int) -> np.ndarray:
+    """pandar_xt32.hpp get_packet_relative_point_time_offset (C++ integer division)."""
+    return 5632 - 50000 * ((8 - block - 1) // n_returns) + 368 + 1512 * channel
+
+
+def _return_types(d: np.ndarray, refl: np.ndarray, mode: int, model) -> np.ndarray:
+    """nebula's return type of each unit (groups, n_returns, channels)."""
+    if d.shape[1] == 1:
+        return np.full(d.shape, _SINGLE_TYPE[model.single_modes[mode]], dtype=np.uint8)
+    if mode != LAST_AND_STRONGEST:
+        raise HesaiError(f"dual return mode 0x{mode:02X}: nebula's cloud is written here for "
+                         "last and strongest (0x39) only")
+    other = refl[:, ::-1]
+    strongest = refl >= other  # nebula: strongest unless weaker than the other
+    out = np.where(strongest, np.array([LAST_STRONGEST, STRONGEST])[None, :, None],
+                   np.array([LAST, SECONDSTRONGEST])[None, :, None]).astype(np.uint8)
+    identical = (d == d[:, ::-1]) & (refl == other)
+    return np.where(identical, IDENTICAL, out).astype(np.uint8)
+
+
+def nebula_hesai_cloud(payloads: list[bytes], angles: HesaiAngles, *,
+                       firings: slice = slice(None), ranges: tuple[float, float] = NEBULA_RANGE,
+                       dual_threshold: float = NEBULA_DUAL_THRESHOLD) -> np.ndarray:
+    """The PointXYZIRCAEDT cloud nebula writes of PandarXT32 packets (module docstring), of the
+    firings ``firings`` (a slice over the packets' firings: a block, or a dual pair, each):
+    nebula's own scan cutting is not followed, the caller chooses the firings."""
+    if angles.model is not XT32:
+        raise HesaiError(f"nebula's cloud is written here for the {XT32.name} only")
+    dec = decode_hesai(payloads, angles, firetime=False)  # nebula's azimuths and points
+    modes = set(dec.return_mode.tolist())
+    if len(modes) != 1:
+        raise HesaiError("packets of several return modes: record one mode")
+    mode = modes.pop()
+    nr = 1 if mode in XT32.single_modes else 2
+    n, nb, nc = dec.distance.shape
+    groups = n * nb // nr
+
+    def grouped(a: np.ndarray) -> np.ndarray:  # (groups, n_returns, channels)
+        return a.reshape(groups, nr, nc)
+
+    d, refl = grouped(dec.distance), grouped(dec.reflectivity)
+    rtype = _return_types(d, refl, mode, XT32)
+    lo, hi = ranges
+    keep = (d > 0) & (d >= max(lo, XT32.min_range)) & (d <= min(hi, XT32.max_range))
+    if nr == 2:  # the first block's return, identical or too near the second's, is dropped
+        keep[:, 0] &= (rtype[:, 0] != IDENTICAL) & (np.abs(d[:, 1] - d[:, 0]) >= dual_threshold)
+    g = np.arange(groups)[firings]
+    block = (g[:, None] % (nb // nr)) * nr + np.arange(nr)  # (groups, n_returns)
+    offset = _xt32_offset_ns(block[:, :, None], np.arange(nc), nr)
+    t_packet = _packet_times_ns(payloads, angles)[g // (nb // nr)]
+    stamp = t_packet[0] + int(offset[0].min())  # on_set_timestamp: the first firing's earliest
+    time_ns = t_packet[:, None, None] + offset - stamp
+    # nebula's order: firing, channel, return
+    sel = keep[g].transpose(0, 2, 1)
+    out = np.zeros(sel.shape, dtype=NEBULA_POINT_DTYPE)
+    el = np.radians(angles.elevation_deg)[None, :, None]
+    for name, v in (("x", dec.x), ("y", dec.y), ("z", dec.z), ("intensity", dec.reflectivity),
+                    ("azimuth", dec.azimuth), ("distance", dec.distance)):
+        out[name] = grouped(v)[g].transpose(0, 2, 1)
+    out["return_type"] = rtype[g].transpose(0, 2, 1)
+    out["channel"] = np.arange(nc)[None, :, None]
+    out["elevation"] = np.broadcast_to(el, sel.shape)
+    out["time_stamp"] = time_ns.transpose(0, 2, 1)
+    return out[sel]
+
+
+def rotation_firings(payloads: list[bytes], angles: HesaiAngles, cut_cdeg: int = 18000
+                     ) -> list[slice]:
+    """The firings (as `nebula_hesai_cloud` counts them) of each whole rotation the packet path
+    cuts (`twin.lidar.hesai.scans_from_hesai` at ``cut_cdeg``): to write the cloud of each."""
+    dec = decode_hesai(payloads, angles, firetime=False)
+    nr = 1 if set(dec.return_mode.tolist()) <= set(angles.model.single_modes) else 2
+    az = dec.block_azimuth_cdeg[:, nr - 1::nr].ravel()
+    starts = np.flatnonzero(np.diff((az - cut_cdeg) % 36000) < -18000) + 1
+    return [slice(int(a), int(b)) for a, b in itertools.pairwise(starts)]
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading: the packet path's scan of nebula's cloud
+
+
+def _block_azimuth_cdeg(rec: np.ndarray, channel: np.ndarray, angles: HesaiAngles
+                        ) -> np.ndarray:
+    """Each point's block azimuth, 0.01 deg (the packets' unit): its ``azimuth`` (else
+    atan2(x, y)) minus its channel's azimuth offset."""
+    names = rec.dtype.names
+    az = (np.degrees(rec["azimuth"].astype(np.float64)) if "azimuth" in names
+          else np.degrees(np.arctan2(rec["x"].astype(np.float64), rec["y"].astype(np.float64))))
+    return np.rint((az - angles.azimuth_deg[channel]) * 100.0).astype(np.int64) % 36000
+
+
+def _distance(rec: np.ndarray) -> np.ndarray:
+    if "distance" in rec.dtype.names:
+        return rec["distance"].astype(np.float64)
+    return np.sqrt(sum(rec[k].astype(np.float64) ** 2 for k in ("x", "y", "z")))
+
+
+def _sweep(block_cdeg: np.ndarray, order_key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The firings' block azimuths unwrapped along the sweep (from the earliest point's), and
+    each point's firing among them."""
+    first = int(block_cdeg[np.argmin(order_key)])
+    rel = (block_cdeg - first) % 36000  # the earliest point's firing is the sweep's first
+    firing_az, inverse = np.unique(rel, return_inverse=True)
+    firing_az = firing_az + first
+    return firing_az, inverse
+
+
+def _grid(firing_az: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """The rebuilt grid's azimuths (0.01 deg, unwrapped) and each found firing's index on it:
+    a gap of k steps holds k - 1 firings where every channel missed, put back between."""
+    k = np.maximum(np.rint(np.diff(firing_az) / step).astype(np.int64), 1)
+    index = np.concatenate(([0], np.cumsum(k)))
+    grid = np.interp(np.arange(index[-1] + 1), index, firing_az)
+    return np.rint(grid).astype(np.int64), index
+
+
+def _rpm(rec: np.ndarray, channel: np.ndarray, point_az: np.ndarray, step: float) -> float:
+    """The head's speed: the slope of the block azimuth against the firing's time (nebula's
+    time_stamp less the channel's offset), else the grid's step at the XT32's 50 us a firing."""
+    if "time_stamp" in rec.dtype.names and len(np.unique(point_az)) > 2:
+        t = rec["time_stamp"].astype(np.float64) * 1e-9 - XT32.channel_time[0][channel]
+        slope = np.polyfit(t, point_az / 100.0, 1)[0]  # deg/s
+        return float(slope / 6.0)
+    return float(step / 100.0 / XT32.firing_period / 6.0)
+
+
+def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float | None = None,
+                           index: int = 0, name: str = "nebula cloud") -> Scan:
+    """The packet path's scan (`twin.lidar.hesai.scans_from_hesai`, firetime in) of one nebula
+    PandarXT32 cloud (a record array with nebula's fields; x y z and channel at least): module
+    docstring. ``rpm``: the head's speed (None: from the time stamps, else the grid's step)."""
+    if angles.model is not XT32:
+        raise HesaiError(f"{name}: nebula's Hesai clouds are rebuilt here for the {XT32.name} "
+                         f"only, not a {angles.model.name}")
+    names = rec.dtype.names or ()
+    if "channel" not in names:
+        raise HesaiError(f"{name}: no channel field: not nebula's Hesai cloud")
+    nc = XT32.n_channels
+    channel = rec["channel"].astype(np.int64)
+    if len(rec) < 2 * nc or channel.max() >= nc:
+        raise HesaiError(f"{name}: {len(rec)} points of channels up to {channel.max()}: not a "
+                         f"{XT32.name}'s rotation")
+    rtype = rec["return_type"] if "return_type" in names else np.zeros(len(rec), np.uint8)
+    dual = bool(np.isin(rtype, _DUAL_ONLY).any())
+    slot = np.isin(rtype, _SECOND_BLOCK).astype(np.intp) if dual else np.zeros(len(rec), np.intp)
+    block = _block_azimuth_cdeg(rec, channel, angles)
+    order_key = (rec["time_stamp"].astype(np.float64) if "time_stamp" in names
+                 else np.arange(len(rec), dtype=np.float64))
+    firing_az, point_firing = _sweep(block, order_key)
+    if len(firing_az) < 3:
+        raise HesaiError(f"{name}: {len(firing_az)} firings: not a rotation")
+    step = float(np.median(np.diff(firing_az)))
+    grid, found = _grid(firing_az, step)
+    if grid[-1] - grid[0] < 18000:
+        raise HesaiError(f"{name}: the cloud spans {(grid[-1] - grid[0]) / 100:.1f} deg: less "
+                         "than half a turn, not a rotation")
+    rpm = _rpm(rec, channel, firing_az[point_firing], step) if rpm is None else rpm
+    # the grid, one firing before it and after it (so that the packet path cuts exactly there),
+    # padded with misses to whole packets
+    nr = 2 if dual else 1
+    per_packet = XT32.n_blocks // nr
+    m = len(grid) + 2
+    packets = -(-m // per_packet)
+    az = np.full(packets * per_packet, grid[0], dtype=np.int64)
+    az[0] = grid[0] - round(step)
+    az[1:len(grid) + 1] = grid
+    az[len(grid) + 2:] = grid[0] + np.arange(1, len(az) - len(grid) - 1) * round(step)
+    dist = np.zeros((len(az), nr, nc))
+    refl = np.zeros((len(az), nr, nc), dtype=np.uint8)
+    where = (1 + found[point_firing], slot, channel)
+    dist[where] = _distance(rec)
+    refl[where] = rec["intensity"] if "intensity" in names else 0
+    if dual:  # a first block nebula dropped (identical, within the threshold): as the second
+        gone = (dist[:, 0] == 0) & (dist[:, 1] > 0)
+        dist[:, 0][gone], refl[:, 0][gone] = dist[:, 1][gone], refl[:, 1][gone]
+    shape = (packets, XT32.n_blocks)
+    payloads = encode_xt32(
+        np.repeat(az % 36000, nr).reshape(shape), dist.reshape(*shape, nc),
+        refl.reshape(*shape, nc), np.arange(packets) * round(per_packet * 50), rpm=rpm,
+        return_mode=LAST_AND_STRONGEST if dual else 0x37)
+    scans = scans_from_hesai(decode_hesai(payloads, angles), angles, cut_cdeg=int(grid[0] % 36000))
+    if len(scans) != 1:
+        raise HesaiError(f"{name}: the rebuilt grid gave {len(scans)} rotations, not one")
+    s = scans[0]
+    meta = {**s.meta, "from_cloud": True, "cloud_convention": "nebula",
+            "cloud_points": len(rec), "rpm": rpm, "source": name}
+    return Scan(**{k: getattr(s, k) for k in ("distance", "azimuth", "laser_id", "intensity",
+                                              "time", "return_type", "x", "y", "z")},
+                index=index, complete=True, packets=0, product_id=0,
+                vertical_offsets_applied=False, lasers=s.lasers, meta=meta)
