@@ -107,3 +107,69 @@ def test_a_twin_scan_through_nebulas_cloud_estimates_the_pose_of_its_packets():
         assert abs(diff) < 0.1 * est_p.std[i], (name, diff, est_p.std[i])
     roll_err = est_c.pose.roll - truth.roll
     assert abs(roll_err) < 3 * est_c.std[3], (math.degrees(roll_err), math.degrees(est_c.std[3]))
+
+
+@pytest.fixture(scope="module")
+def twin_clouds():
+    """Three rotations of the twin's XT32 (a board 2.5 m ahead) as nebula's clouds, and the
+    packets."""
+    from twin.sim.bench import BenchSim
+    from twin.sim.hesai_twin import emulate_xt32
+    from twin.sim.params import BenchParams
+
+    angles = XT32Angles.from_csv(DEFAULT_ANGLES)
+    sim = BenchSim(BenchParams.from_edge(roll_deg=1.0, tilt_deg=-0.5, yaw_deg=2.0), seed=5)
+    packets, truth = emulate_xt32(sim, angles, 4, rng=np.random.default_rng(1), start_cdeg=9000)
+    clouds = [nebula_hesai_cloud(packets, angles, firings=f)
+              for f in rotation_firings(packets, angles)[:3]]
+    return clouds, packets, truth
+
+
+def test_info_and_estimate_read_nebulas_cloud_file(twin_clouds, tmp_path, capsys):
+    """`aimbench info/estimate CLOUD.pcd`: the model from --model or from nebula's fields and
+    the channels' elevations; the pose `estimate` gives the packets' rotation (a pcap) within
+    a tenth of its sigma."""
+    import json
+
+    from scenarios.cli import main
+    from tests.test_cloud_conventions import write_pcd
+    from twin.lidar.hesai import DATA_PORT
+    from twin.lidar.pcap import PcapWriter
+
+    clouds, packets, _ = twin_clouds
+    path = write_pcd(clouds[0], tmp_path / "xt32.pcd")
+    for extra, told in ((["--model", "PandarXT32"], "given by --model"), ([], "nebula's fields")):
+        assert main(["info", str(path), *extra]) == 0
+        out = capsys.readouterr().out
+        assert "PandarXT32" in out and told in out and "64000 firings" in out, out
+        assert "misses rebuilt" in out and "nebula" in out
+    pcap = tmp_path / "xt32.pcap"
+    with PcapWriter(pcap) as out:
+        for i, p in enumerate(packets):
+            out.write_udp(p, 1.7e9 + i * 400e-6, dst_port=DATA_PORT, src_port=10000)
+    est = {}
+    for src in (path, pcap):
+        assert main(["estimate", str(src), "--model", "PandarXT32", "--scans", "1",
+                     "--json"]) == 0
+        est[src] = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        assert est[src]["status"] == "ok"
+    for axis in ("x_mm", "y_mm", "z_mm", "roll_deg", "tilt_deg", "yaw_deg"):
+        diff = est[path][axis] - est[pcap][axis]
+        assert abs(diff) < 0.1 * est[pcap][f"{axis}_std"], (axis, diff)
+
+
+def test_a_bag_of_nebulas_clouds_reads_as_its_scans(twin_clouds, tmp_path):
+    from tests.bag_support import write_record_bag
+    from twin.lidar.sources import open_scans
+
+    clouds, _, _ = twin_clouds
+    bag = write_record_bag(tmp_path / "xt32_bag", clouds)
+    angles = XT32Angles.from_csv(DEFAULT_ANGLES)
+    with open_scans(bag, model="PandarXT32") as source:
+        scans = list(source)
+        summary = source.summary()
+    assert len(scans) == 3 and summary["clouds"] == 3 and summary["model"] == "PandarXT32"
+    for s, c in zip(scans, clouds, strict=True):
+        want = scan_from_nebula_hesai(c, angles)
+        np.testing.assert_array_equal(s.distance, want.distance)
+        np.testing.assert_array_equal(s.azimuth, want.azimuth)

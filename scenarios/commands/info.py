@@ -205,7 +205,8 @@ def format_summary(s: dict) -> str:
     lines = [("source", _describe(s))]
     if kind in ("pcd",) or "clouds" in s:
         lines += [
-            ("model", f"{s['model']} (from the rings and elevations of the points)"),
+            ("model", f"{s['model']} "
+                      f"({s.get('model_from', 'from the rings and elevations of the points')})"),
             ("rpm", f"{rpm} (from the azimuth step of the firings)"),
             ("clouds", s["clouds"]),
             ("scans", f"{s['scans']} ({s['complete_scans']} whole rotations, "

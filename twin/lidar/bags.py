@@ -172,6 +172,15 @@ class Bag:
                                  name=f"{self.path} {self.topic} at {stamp_ns * 1e-9:.6f} s",
                                  meta=meta)
 
+    def cloud_records(self) -> Iterator[tuple[str, np.ndarray]]:
+        """Every PointCloud2 of the topic as its fields hold it (a name, a structured array):
+        for readers of a driver's own fields (`twin.lidar.hesai_clouds`)."""
+        if self.kind != "cloud":
+            raise BagError(f"{self.path}: topic {self.topic} holds packets, not point clouds")
+        for stamp_ns, msg in self._messages():
+            name = f"{self.path} {self.topic} at {stamp_ns * 1e-9:.6f} s"
+            yield name, cloud_records(msg, name)
+
     def info(self) -> dict:
         """What the bag holds (for `aimbench info`)."""
         return {"path": str(self.path), "topic": self.topic, "type": self.msgtype,

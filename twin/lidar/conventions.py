@@ -34,14 +34,12 @@ ROS driver's organised cloud (NaN points). The ROS driver and nebula leave the l
 offsets out (their calibration files set them to 0); velodyne_decoder and aimbench put them in
 (`twin.lidar.clouds` tells which from the points).
 
-Hesai clouds (PandarXT32, PandarQT128) are not rebuilt here: aimbench knows no Hesai cloud
-convention, and `twin.lidar.clouds` refuses a model without a Velodyne firing table, so a Hesai
-is read from its packets (`twin.lidar.hesai`). Were one added, note that its drivers differ in
-the same way: nebula's Hesai cloud (hesai_decoder.hpp) and Hesai's SDK 2.0 without a firetime
-file put each channel at its block's azimuth + its offset, the head's rotation until the
-channel fires left out (up to 0.19 deg on an XT32, 0.36 deg on a QT128 at 600 rpm; nebula's
-``time_stamp`` field has the firing time in it, so the rotation could be put back); aimbench's
-decoder and the SDK with its firetime file put it in.
+Hesai clouds are not rebuilt here but in `twin.lidar.hesai_clouds`: nebula's PandarXT32 cloud
+(hesai_decoder.hpp: Hesai's own frame, fields x y z intensity return_type channel azimuth
+elevation distance time_stamp, no misses) is read back as the scan its packets give, the head's
+rotation until each channel fires, which nebula leaves out (up to 0.19 deg at 600 rpm), put
+back; `twin.lidar.sources` sends a cloud there when ``--model`` names a Hesai or a PCD file's
+fields and elevations are an XT32's. nebula's QT128 cloud is not read yet.
 
 A cloud's convention is told by its fields where they tell it (``column``: velodyne_decoder;
 ``channel``: nebula; ``scan``: aimbench), from its points otherwise (the rotation under which

@@ -53,6 +53,7 @@ from twin.lidar.hesai import (
     encode_xt32,
     scans_from_hesai,
 )
+from twin.lidar.sources import ScanSource  # (sources imports this module only when used)
 
 #: nebula's PointXYZIRCAEDT (point_types.hpp), packed (PCD and PointCloud2 store it so).
 NEBULA_POINT_DTYPE = np.dtype([
@@ -290,3 +291,65 @@ def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float |
                                               "time", "return_type", "x", "y", "z")},
                 index=index, complete=True, packets=0, product_id=0,
                 vertical_offsets_applied=False, lasers=s.lasers, meta=meta)
+
+
+# ----------------------------------------------------------------------------------------------
+# As a source: `aimbench info / estimate CLOUD --model PandarXT32`
+
+
+def hesai_model_of_cloud(rec: np.ndarray) -> str | None:
+    """The Hesai model a nebula cloud is of, told by its fields (nebula's PointXYZIRCAEDT, which
+    its Velodyne clouds share), its channel count and its channels' elevations against the
+    model's nominal angles (within 0.5 deg); None when they do not tell a Hesai."""
+    from twin.lidar.hesai import default_angles
+
+    names = rec.dtype.names or ()
+    if not is_nebula_hesai(names) or len(rec) == 0:
+        return None
+    channel = rec["channel"].astype(np.int64)
+    nominal = HesaiAngles.from_csv(default_angles(XT32), XT32)
+    if channel.max() >= XT32.n_channels:
+        return None
+    el = np.degrees(rec["elevation"].astype(np.float64))
+    if np.abs(el - nominal.elevation_deg[channel]).max() < 0.5:
+        return XT32.name
+    return None
+
+
+class HesaiCloudScanSource(ScanSource):
+    """Scans of nebula's Hesai clouds (a PCD file, or a bag's PointCloud2 messages): one a
+    cloud, rebuilt by `scan_from_nebula_hesai`. ``told``: how the model was told (``option``:
+    --model, ``fields``: the cloud's fields and elevations)."""
+
+    def __init__(self, name, clouds, angles: HesaiAngles, *, max_scans: int | None = None,
+                 extra: dict | None = None, closer=None, told: str = "option") -> None:
+        super().__init__(name, max_scans, extra, closer)
+        self.clouds = clouds  # (name, record array) pairs
+        self.angles = angles
+        self.told = told
+        self._scans_made: list[Scan] = []
+
+    def _scans(self):
+        for i, (name, rec) in enumerate(self.clouds):
+            scan = scan_from_nebula_hesai(rec, self.angles, index=i, name=name)
+            self._scans_made.append(scan)
+            yield scan
+
+    def _summary(self) -> dict:
+        s = self._scans_made
+        returns = sum(int(x.valid.sum()) for x in s)
+        return {
+            "model": self.angles.model.name,
+            "model_from": ("given by --model" if self.told == "option"
+                           else "from nebula's fields and the channels' elevations"),
+            "laser_table": self.angles.source,
+            "rpm": float(np.median([x.meta["rpm"] for x in s])) if s else None,
+            "clouds": len(s), "scans": len(s), "complete_scans": len(s), "partial_scans": 0,
+            "cloud_points": sum(int(x.meta["cloud_points"]) for x in s),
+            "points": sum(len(x) for x in s), "returns": returns,
+            "rebuilt_misses": sum(len(x) for x in s) - returns,
+            "vertical_offsets": False,
+            "cloud_convention": "nebula (Hesai: firing rotation put back)",
+            "cloud_convention_from": "fields",
+            "warnings": [],
+        }
