@@ -79,6 +79,19 @@ def test_the_real_rotations_cloud_reads_back_as_its_packets_scan(real):
     assert abs(bare.meta["rpm"] - 600.0) < 1.0
 
 
+def test_a_cloud_written_with_other_angles_is_refused(real):
+    from twin.lidar.hesai import HesaiAngles, HesaiError
+
+    angles, payloads = real
+    (firings,) = rotation_firings(payloads, angles, cut_cdeg=0)
+    cloud = nebula_hesai_cloud(payloads, angles, firings=firings)
+    for el, az in ((0.05, 0.0), (0.0, 0.004)):
+        other = HesaiAngles(angles.elevation_deg + el, angles.azimuth_deg + az, "other",
+                            angles.model)
+        with pytest.raises(HesaiError, match="another angle-correction file"):
+            scan_from_nebula_hesai(cloud, other)
+
+
 def test_a_twin_scan_through_nebulas_cloud_estimates_the_pose_of_its_packets():
     """The twin's XT32 (single return, firing rotation cast): each rotation's packets and the
     same packets through nebula's cloud estimate the same pose, well within sigma; roll true

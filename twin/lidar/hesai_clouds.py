@@ -192,6 +192,25 @@ def _block_azimuth_cdeg(rec: np.ndarray, channel: np.ndarray, angles: HesaiAngle
     return np.rint((az - angles.azimuth_deg[channel]) * 100.0).astype(np.int64) % 36000
 
 
+def _check_angles(rec: np.ndarray, channel: np.ndarray, angles: HesaiAngles, name: str) -> None:
+    """Refuse a cloud nebula wrote with other angle corrections than ``angles`` (its elevation
+    field, and its azimuths less the offsets, which fall on the packets' 0.01 deg, say so):
+    its firings and rays would be read wrong."""
+    if "elevation" in rec.dtype.names:
+        off = np.abs(np.degrees(rec["elevation"].astype(np.float64))
+                     - angles.elevation_deg[channel])
+        if off.max() > 0.01:
+            raise HesaiError(f"{name}: the cloud's elevations differ from {angles.source}'s by up "
+                             f"to {off.max():.3f} deg: it was written with another angle-"
+                             "correction file; give that one (--angles)")
+    if "azimuth" in rec.dtype.names:
+        az = (np.degrees(rec["azimuth"].astype(np.float64)) - angles.azimuth_deg[channel]) * 100
+        if np.abs(az - np.rint(az)).max() > 0.05:
+            raise HesaiError(f"{name}: the cloud's azimuths less {angles.source}'s offsets are "
+                             "not the packets' 0.01 deg steps: it was written with another "
+                             "angle-correction file; give that one (--angles)")
+
+
 def _distance(rec: np.ndarray) -> np.ndarray:
     if "distance" in rec.dtype.names:
         return rec["distance"].astype(np.float64)
@@ -243,6 +262,7 @@ def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float |
     if len(rec) < 2 * nc or channel.max() >= nc:
         raise HesaiError(f"{name}: {len(rec)} points of channels up to {channel.max()}: not a "
                          f"{XT32.name}'s rotation")
+    _check_angles(rec, channel, angles, name)
     rtype = rec["return_type"] if "return_type" in names else np.zeros(len(rec), np.uint8)
     dual = bool(np.isin(rtype, _DUAL_ONLY).any())
     slot = np.isin(rtype, _SECOND_BLOCK).astype(np.intp) if dual else np.zeros(len(rec), np.intp)
