@@ -364,6 +364,7 @@ class HesaiCloudScanSource(ScanSource):
                            else "from nebula's fields and the channels' elevations"),
             "laser_table": self.angles.source,
             "rpm": float(np.median([x.meta["rpm"] for x in s])) if s else None,
+            "rpm_from": "from the clouds' time stamps, else the firings' azimuth step",
             "clouds": len(s), "scans": len(s), "complete_scans": len(s), "partial_scans": 0,
             "cloud_points": sum(int(x.meta["cloud_points"]) for x in s),
             "points": sum(len(x) for x in s), "returns": returns,
