@@ -34,12 +34,13 @@ ROS driver's organised cloud (NaN points). The ROS driver and nebula leave the l
 offsets out (their calibration files set them to 0); velodyne_decoder and aimbench put them in
 (`twin.lidar.clouds` tells which from the points).
 
-Hesai clouds are not rebuilt here but in `twin.lidar.hesai_clouds`: nebula's PandarXT32 cloud
+Hesai clouds are not rebuilt here but in `twin.lidar.hesai_clouds`: nebula's PandarXT32 and
+PandarQT128 (dual return) clouds
 (hesai_decoder.hpp: Hesai's own frame, fields x y z intensity return_type channel azimuth
-elevation distance time_stamp, no misses) is read back as the scan its packets give, the head's
+elevation distance time_stamp, no misses) are read back as the scans their packets give, the head's
 rotation until each channel fires, which nebula leaves out (up to 0.19 deg at 600 rpm), put
 back; `twin.lidar.sources` sends a cloud there when ``--model`` names a Hesai or a PCD file's
-fields and elevations are an XT32's. nebula's QT128 cloud is not read yet.
+fields and elevations are a Hesai's.
 
 A cloud's convention is told by its fields where they tell it (``column``: velodyne_decoder;
 ``channel``: nebula; ``scan``: aimbench), from its points otherwise (the rotation under which

@@ -1,4 +1,5 @@
-"""nebula's Hesai point clouds (PandarXT32) read back as the scans its packets give.
+"""nebula's Hesai point clouds (PandarXT32, PandarQT128) read back as the scans their packets
+give.
 
 What nebula writes (tier4/nebula, read at its main branch):
 
@@ -21,20 +22,24 @@ What nebula writes (tier4/nebula, read at its main branch):
   second's STRONGEST or SECONDSTRONGEST (strongest: reflectivity not below the other's).
   ``time_stamp`` = packet time (the tail's date and time + its us) - the cloud's stamp (the
   earliest point time of its first firing) + that offset.
+- ``pandar_qt128.hpp``: ``9000 + 111110 * (2 - block - 1) / n_returns`` ns + the block's loop
+  table (``loop1``/``loop2``: the tail's mode flag in dual return); a loop's dark channels read
+  distance 0 and are dropped like any miss.
 
 `nebula_hesai_cloud` writes that cloud from packets; `scan_from_nebula_hesai` reads one back:
 each point's firing from its block azimuth (its ``azimuth`` minus the channel's offset, or
 atan2(x, y) without the field), the firing grid rebuilt (a firing every 0.18 deg at 600 rpm:
 the firings where every channel missed put back), the misses put back, and the head's rotation
 put back into each channel's azimuth (the model's firetime at the rpm the time stamps give,
-else the grid's step): it writes the grid as packets (`twin.lidar.hesai.encode_xt32`) and reads
+else the grid's step; a QT128's firing loops, which alternate, from the channels only one loop
+fires): it writes the grid as packets (`twin.lidar.hesai.encode_xt32`, `encode_qt128`) and reads
 them as the packet path does (`decode_hesai`, `scans_from_hesai`), so the scan is the packet
 path's by construction. What differs from the packet path's scan: a miss's azimuth on a firing
 where every channel missed is interpolated from its neighbours (the packets' is the encoder's),
 a return nebula dropped as out of range is a miss, and nebula's scan cutter (hesai_decoder.hpp
 ``scan_cutter_``, cut per channel at the cut angle) can leave a channel of the first or last
-firing in the next cloud: there it is a miss. The QT128 (two firing loops, dark channels) is
-not done here.
+firing in the next cloud: there it is a miss. A QT128 cloud is read in dual return only (the
+grid's two loops a packet in single return are not rebuilt).
 """
 
 from __future__ import annotations
@@ -46,10 +51,14 @@ import numpy as np
 
 from twin.core.scan import Scan
 from twin.lidar.hesai import (
+    HESAI_MODELS,
+    QT128,
+    QT128_LOOP_TIME,
     XT32,
     HesaiAngles,
     HesaiError,
     decode_hesai,
+    encode_qt128,
     encode_xt32,
     scans_from_hesai,
 )
@@ -106,6 +115,21 @@ def _xt32_offset_ns(block: np.ndarray, channel: np.ndarray, n_returns: int) -> n
     return 5632 - 50000 * ((8 - block - 1) // n_returns) + 368 + 1512 * channel
 
 
+def _qt128_offset_ns(block: np.ndarray, loop: np.ndarray, n_returns: int) -> np.ndarray:
+    """pandar_qt128.hpp get_packet_relative_point_time_offset: ``9000 + 111110 * (2 - block -
+    1) / n_returns`` (C++ integers) + the block's loop table (``loop1``/``loop2``: the tail's
+    mode flag in dual return, the block's parity in single)."""
+    channel = np.rint(QT128_LOOP_TIME[loop] * 1e9).astype(np.int64)
+    return 9000 + (111110 * (2 - block - 1)) // n_returns + channel
+
+
+def _offset_ns(model, block: np.ndarray, loop: np.ndarray | None, n_returns: int) -> np.ndarray:
+    """Each unit's time after its packet's, ns, (groups, n_returns, channels)."""
+    if model is XT32:
+        return _xt32_offset_ns(block[:, :, None], np.arange(model.n_channels), n_returns)
+    return _qt128_offset_ns(block[:, :, None], loop, n_returns)
+
+
 def _return_types(d: np.ndarray, refl: np.ndarray, mode: int, model) -> np.ndarray:
     """nebula's return type of each unit (groups, n_returns, channels)."""
     if d.shape[1] == 1:
@@ -124,17 +148,17 @@ def _return_types(d: np.ndarray, refl: np.ndarray, mode: int, model) -> np.ndarr
 def nebula_hesai_cloud(payloads: list[bytes], angles: HesaiAngles, *,
                        firings: slice = slice(None), ranges: tuple[float, float] = NEBULA_RANGE,
                        dual_threshold: float = NEBULA_DUAL_THRESHOLD) -> np.ndarray:
-    """The PointXYZIRCAEDT cloud nebula writes of PandarXT32 packets (module docstring), of the
+    """The PointXYZIRCAEDT cloud nebula writes of PandarXT32 or PandarQT128 packets (module
+    docstring; a QT128's dark channels read 0 and are dropped as nebula drops them), of the
     firings ``firings`` (a slice over the packets' firings: a block, or a dual pair, each):
     nebula's own scan cutting is not followed, the caller chooses the firings."""
-    if angles.model is not XT32:
-        raise HesaiError(f"nebula's cloud is written here for the {XT32.name} only")
+    model = angles.model
     dec = decode_hesai(payloads, angles, firetime=False)  # nebula's azimuths and points
     modes = set(dec.return_mode.tolist())
     if len(modes) != 1:
         raise HesaiError("packets of several return modes: record one mode")
     mode = modes.pop()
-    nr = 1 if mode in XT32.single_modes else 2
+    nr = 1 if mode in model.single_modes else 2
     n, nb, nc = dec.distance.shape
     groups = n * nb // nr
 
@@ -142,14 +166,15 @@ def nebula_hesai_cloud(payloads: list[bytes], angles: HesaiAngles, *,
         return a.reshape(groups, nr, nc)
 
     d, refl = grouped(dec.distance), grouped(dec.reflectivity)
-    rtype = _return_types(d, refl, mode, XT32)
+    rtype = _return_types(d, refl, mode, model)
     lo, hi = ranges
-    keep = (d > 0) & (d >= max(lo, XT32.min_range)) & (d <= min(hi, XT32.max_range))
+    keep = (d > 0) & (d >= max(lo, model.min_range)) & (d <= min(hi, model.max_range))
     if nr == 2:  # the first block's return, identical or too near the second's, is dropped
         keep[:, 0] &= (rtype[:, 0] != IDENTICAL) & (np.abs(d[:, 1] - d[:, 0]) >= dual_threshold)
     g = np.arange(groups)[firings]
     block = (g[:, None] % (nb // nr)) * nr + np.arange(nr)  # (groups, n_returns)
-    offset = _xt32_offset_ns(block[:, :, None], np.arange(nc), nr)
+    loop = None if dec.loop is None else dec.loop.reshape(groups, nr)[g]
+    offset = _offset_ns(model, block, loop, nr)
     t_packet = _packet_times_ns(payloads, angles)[g // (nb // nr)]
     stamp = t_packet[0] + int(offset[0].min())  # on_set_timestamp: the first firing's earliest
     time_ns = t_packet[:, None, None] + offset - stamp
@@ -236,35 +261,73 @@ def _grid(firing_az: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
     return np.rint(grid).astype(np.int64), index
 
 
-def _rpm(rec: np.ndarray, channel: np.ndarray, point_az: np.ndarray, step: float) -> float:
-    """The head's speed: the slope of the block azimuth against the firing's time (nebula's
-    time_stamp less the channel's offset), else the grid's step at the XT32's 50 us a firing."""
-    if "time_stamp" in rec.dtype.names and len(np.unique(point_az)) > 2:
-        t = rec["time_stamp"].astype(np.float64) * 1e-9 - XT32.channel_time[0][channel]
-        slope = np.polyfit(t, point_az / 100.0, 1)[0]  # deg/s
+def _loops(found_firing: np.ndarray, channel: np.ndarray, n_grid: int) -> np.ndarray:
+    """Each grid firing's loop (0: loop 1, 1: loop 2) of a QT128: the loops alternate, and a
+    firing with a return of channels 1-32 (0-based 0-31) is loop 2's, of channels 33-64 loop
+    1's (the other loop leaves them dark, `twin.lidar.hesai.QT128_FIRED`)."""
+    told = np.where(channel < 32, 1, np.where(channel < 64, 0, -1))
+    sel = told >= 0
+    if not sel.any():
+        raise HesaiError("no return of channels 1-64: the firing loops cannot be told")
+    phase = int(np.argmax(np.bincount((told[sel] + found_firing[sel]) % 2, minlength=2)))
+    return (phase + np.arange(n_grid)) % 2
+
+
+def _rpm(t_firing: np.ndarray | None, point_az: np.ndarray, step: float, model) -> float:
+    """The head's speed: the slope of the block azimuth against each point's firing time
+    (nebula's time_stamp less its unit's offset), else the grid's step at the model's firing
+    period."""
+    if t_firing is not None and len(np.unique(point_az)) > 2:
+        slope = np.polyfit(t_firing, point_az / 100.0, 1)[0]  # deg/s
         return float(slope / 6.0)
-    return float(step / 100.0 / XT32.firing_period / 6.0)
+    return float(step / 100.0 / model.firing_period / 6.0)
+
+
+def _grid_payloads(grid: np.ndarray, step: float, dist: np.ndarray, refl: np.ndarray,
+                   loop: np.ndarray | None, rpm: float, dual: bool, model) -> list[bytes]:
+    """Packets of the rebuilt grid with one firing of misses before and after it (the packet
+    path cuts exactly there) and padded with misses to whole packets; ``dist``, ``refl``
+    (grid + 2, returns, channels) already so placed; ``loop`` each row's (QT128)."""
+    nr = 2 if dual else 1
+    per_packet = model.n_blocks // nr
+    packets = -(-len(dist) // per_packet)
+    pad = packets * per_packet - len(dist)
+    az = np.concatenate(([grid[0] - round(step)], grid, grid[0] + round(step) * np.arange(pad + 1)))
+    dist = np.concatenate((dist, np.zeros((pad, *dist.shape[1:]))))
+    refl = np.concatenate((refl, np.zeros((pad, *refl.shape[1:]), dtype=np.uint8)))
+    shape = (packets, model.n_blocks)
+    block_az = np.repeat(az % 36000, nr).reshape(shape)
+    args = (block_az, dist.reshape(*shape, -1), refl.reshape(*shape, -1),
+            np.arange(packets) * round(per_packet * model.firing_period * 1e6))
+    mode = LAST_AND_STRONGEST if dual else 0x37
+    if model is XT32:
+        return encode_xt32(*args, rpm=rpm, return_mode=mode)
+    loop = np.concatenate((loop, (loop[-1] + 1 + np.arange(pad)) % 2))
+    return encode_qt128(*args, loop, rpm=rpm, return_mode=mode)
 
 
 def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float | None = None,
                            index: int = 0, name: str = "nebula cloud") -> Scan:
     """The packet path's scan (`twin.lidar.hesai.scans_from_hesai`, firetime in) of one nebula
-    PandarXT32 cloud (a record array with nebula's fields; x y z and channel at least): module
-    docstring. ``rpm``: the head's speed (None: from the time stamps, else the grid's step)."""
-    if angles.model is not XT32:
-        raise HesaiError(f"{name}: nebula's Hesai clouds are rebuilt here for the {XT32.name} "
-                         f"only, not a {angles.model.name}")
+    PandarXT32 or PandarQT128 (dual return) cloud (a record array with nebula's fields; x y z
+    and channel at least): module docstring. ``rpm``: the head's speed (None: from the time
+    stamps, else the grid's step)."""
+    model = angles.model
     names = rec.dtype.names or ()
     if "channel" not in names:
         raise HesaiError(f"{name}: no channel field: not nebula's Hesai cloud")
-    nc = XT32.n_channels
+    nc = model.n_channels
     channel = rec["channel"].astype(np.int64)
     if len(rec) < 2 * nc or channel.max() >= nc:
         raise HesaiError(f"{name}: {len(rec)} points of channels up to {channel.max()}: not a "
-                         f"{XT32.name}'s rotation")
+                         f"{model.name}'s rotation")
     _check_angles(rec, channel, angles, name)
     rtype = rec["return_type"] if "return_type" in names else np.zeros(len(rec), np.uint8)
     dual = bool(np.isin(rtype, _DUAL_ONLY).any())
+    if model is QT128 and not dual:
+        raise HesaiError(f"{name}: a single-return {model.name} cloud: read here in dual return "
+                         "(last and strongest) only")
+    nr = 2 if dual else 1
     slot = np.isin(rtype, _SECOND_BLOCK).astype(np.intp) if dual else np.zeros(len(rec), np.intp)
     block = _block_azimuth_cdeg(rec, channel, angles)
     order_key = (rec["time_stamp"].astype(np.float64) if "time_stamp" in names
@@ -277,30 +340,29 @@ def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float |
     if grid[-1] - grid[0] < 18000:
         raise HesaiError(f"{name}: the cloud spans {(grid[-1] - grid[0]) / 100:.1f} deg: less "
                          "than half a turn, not a rotation")
-    rpm = _rpm(rec, channel, firing_az[point_firing], step) if rpm is None else rpm
-    # the grid, one firing before it and after it (so that the packet path cuts exactly there),
-    # padded with misses to whole packets
-    nr = 2 if dual else 1
-    per_packet = XT32.n_blocks // nr
-    m = len(grid) + 2
-    packets = -(-m // per_packet)
-    az = np.full(packets * per_packet, grid[0], dtype=np.int64)
-    az[0] = grid[0] - round(step)
-    az[1:len(grid) + 1] = grid
-    az[len(grid) + 2:] = grid[0] + np.arange(1, len(az) - len(grid) - 1) * round(step)
-    dist = np.zeros((len(az), nr, nc))
-    refl = np.zeros((len(az), nr, nc), dtype=np.uint8)
-    where = (1 + found[point_firing], slot, channel)
+    point_grid = found[point_firing]
+    loop = None if model is XT32 else _loops(point_grid, channel, len(grid))
+    if rpm is None:
+        t = None
+        if "time_stamp" in names:  # the firing's time: the unit's offset in it taken off
+            # (an XT32's block offset is its firing's time within the packet: kept)
+            blk = (np.zeros(len(rec), np.int64) if model is XT32 else slot)[:, None]
+            lp = None if loop is None else loop[point_grid][:, None]
+            off = _offset_ns(model, blk, lp, nr)
+            off = off[np.arange(len(rec)), 0, channel]
+            t = (rec["time_stamp"].astype(np.float64) - off) * 1e-9
+        rpm = _rpm(t, firing_az[point_firing], step, model)
+    dist = np.zeros((len(grid) + 2, nr, nc))
+    refl = np.zeros((len(grid) + 2, nr, nc), dtype=np.uint8)
+    where = (1 + point_grid, slot, channel)
     dist[where] = _distance(rec)
     refl[where] = rec["intensity"] if "intensity" in names else 0
     if dual:  # a first block nebula dropped (identical, within the threshold): as the second
         gone = (dist[:, 0] == 0) & (dist[:, 1] > 0)
         dist[:, 0][gone], refl[:, 0][gone] = dist[:, 1][gone], refl[:, 1][gone]
-    shape = (packets, XT32.n_blocks)
-    payloads = encode_xt32(
-        np.repeat(az % 36000, nr).reshape(shape), dist.reshape(*shape, nc),
-        refl.reshape(*shape, nc), np.arange(packets) * round(per_packet * 50), rpm=rpm,
-        return_mode=LAST_AND_STRONGEST if dual else 0x37)
+    rows_loop = None if loop is None else np.concatenate(
+        ([1 - loop[0]], loop, [1 - loop[-1]]))
+    payloads = _grid_payloads(grid, step, dist, refl, rows_loop, rpm, dual, model)
     scans = scans_from_hesai(decode_hesai(payloads, angles), angles, cut_cdeg=int(grid[0] % 36000))
     if len(scans) != 1:
         raise HesaiError(f"{name}: the rebuilt grid gave {len(scans)} rotations, not one")
@@ -314,7 +376,7 @@ def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float |
 
 
 # ----------------------------------------------------------------------------------------------
-# As a source: `aimbench info / estimate CLOUD --model PandarXT32`
+# As a source: `aimbench info / estimate CLOUD --model PandarXT32` (or PandarQT128)
 
 
 def hesai_model_of_cloud(rec: np.ndarray) -> str | None:
@@ -327,12 +389,13 @@ def hesai_model_of_cloud(rec: np.ndarray) -> str | None:
     if not is_nebula_hesai(names) or len(rec) == 0:
         return None
     channel = rec["channel"].astype(np.int64)
-    nominal = HesaiAngles.from_csv(default_angles(XT32), XT32)
-    if channel.max() >= XT32.n_channels:
-        return None
     el = np.degrees(rec["elevation"].astype(np.float64))
-    if np.abs(el - nominal.elevation_deg[channel]).max() < 0.5:
-        return XT32.name
+    for model in HESAI_MODELS.values():
+        if channel.max() >= model.n_channels:
+            continue
+        nominal = HesaiAngles.from_csv(default_angles(model), model)
+        if np.abs(el - nominal.elevation_deg[channel]).max() < 0.5:
+            return model.name
     return None
 
 
