@@ -399,6 +399,23 @@ def hesai_model_of_cloud(rec: np.ndarray) -> str | None:
     return None
 
 
+def pcd_has_nebula_fields(path) -> bool:
+    """Whether a PCD file's header names nebula's PointXYZIRCAEDT fields: read from its first
+    lines only, so that a Velodyne cloud is not loaded twice to be told apart (a file that is
+    not a PCD says no: its own reader says what is wrong with it)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    for line in head.split(b"\n"):
+        if line.startswith(b"FIELDS"):
+            return is_nebula_hesai(line.decode("ascii", "replace").split()[1:])
+        if line.startswith(b"DATA"):
+            break
+    return False
+
+
 class HesaiCloudScanSource(ScanSource):
     """Scans of nebula's Hesai clouds (a PCD file, or a bag's PointCloud2 messages): one a
     cloud, rebuilt by `scan_from_nebula_hesai`. ``told``: how the model was told (``option``:

@@ -463,11 +463,17 @@ def _open_hesai_cloud(src: SourceName, model: str | None, angles_file: str | Pat
     when a PCD file's fields and elevations say it is one; None otherwise (a Velodyne cloud)."""
     if model is not None and not _is_hesai(model):
         return None
-    from twin.lidar.hesai_clouds import HesaiCloudScanSource, hesai_model_of_cloud
+    from twin.lidar.hesai_clouds import (
+        HesaiCloudScanSource,
+        hesai_model_of_cloud,
+        pcd_has_nebula_fields,
+    )
 
     if src.kind == "pcd":
         from twin.lidar.pcd import pcd_records
 
+        if model is None and not pcd_has_nebula_fields(src.path):
+            return None
         rec = pcd_records(src.path)
         told = "option" if model is not None else "fields"
         model = model or hesai_model_of_cloud(rec)
