@@ -141,3 +141,29 @@ def write_other_bag(path: Path, *, ros2: bool) -> Path:
         w.write(conn, 1_000_000_000, _serialize(store, String(data="hello"),
                                                 "std_msgs/msg/String", ros2))
     return path
+
+
+#: sensor_msgs/PointField datatypes of numpy's kinds.
+_FIELD_TYPES = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 8}
+
+
+def write_record_bag(path: Path, recs: Sequence[np.ndarray], *, ros2: bool = True,
+                     topic: str = "/pandar_points", frame_id: str = "hesai") -> Path:
+    """A bag of PointCloud2 messages holding ``recs`` (structured arrays) field for field, as a
+    driver writing its own point type (nebula's PointXYZIRCAEDT) does."""
+    store = typestore(ros2)
+    Cloud, Field = store.types[CLOUD_TYPE], store.types["sensor_msgs/msg/PointField"]
+    with _writer(path, ros2) as w:
+        conn = w.add_connection(topic, CLOUD_TYPE, typestore=store)
+        for i, rec in enumerate(recs):
+            dt = rec.dtype
+            fields = [Field(name=n, offset=dt.fields[n][1],
+                            datatype=_FIELD_TYPES[dt[n].str.lstrip("<>|=")], count=1)
+                      for n in dt.names]
+            t = EPOCH_S + 0.1 * i
+            msg = Cloud(header=_header(store, t, frame_id), height=1, width=len(rec),
+                        fields=fields, is_bigendian=False, point_step=dt.itemsize,
+                        row_step=dt.itemsize * len(rec),
+                        data=np.ascontiguousarray(rec).view(np.uint8).reshape(-1), is_dense=True)
+            w.write(conn, int(t * 1e9), _serialize(store, msg, CLOUD_TYPE, ros2))
+    return path

@@ -209,8 +209,9 @@ def format_summary(s: dict) -> str:
         return _ouster_cloud_summary(s, lines)
     if kind in ("pcd",) or "clouds" in s:
         lines += [
-            ("model", f"{s['model']} (from the rings and elevations of the points)"),
-            ("rpm", f"{rpm} (from the azimuth step of the firings)"),
+            ("model", f"{s['model']} "
+                      f"({s.get('model_from', 'from the rings and elevations of the points')})"),
+            ("rpm", f"{rpm} ({s.get('rpm_from', 'from the azimuth step of the firings')})"),
             ("clouds", s["clouds"]),
             ("scans", f"{s['scans']} ({s['complete_scans']} whole rotations, "
                       f"{s['partial_scans']} partial)"),
@@ -297,6 +298,8 @@ def _describe(s: dict) -> str:
         b = s["bag"]
         return (f"{s['capture']} (ROS bag, topic {b['topic']}, {b['type']}, "
                 f"{b['messages']} messages)")
+    if "clouds" in s and s.get("model") in HESAI_NAMES:
+        return f"{s['capture']} (nebula's Hesai {s['model']} point cloud, {kind})"
     if "lidar_mode" in s or s.get("model") in HESAI_NAMES:
         maker = "Ouster lidar" if "lidar_mode" in s else f"Hesai {s['model']}"
         return f"{s['capture']} ({maker} packets, {'live' if kind == 'udp' else kind})"

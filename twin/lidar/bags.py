@@ -175,12 +175,23 @@ class Bag:
     def organised_clouds(self) -> Iterator[tuple[np.ndarray, str]]:
         """Every PointCloud2 of the topic as its (height, width) records and a name: an
         organised cloud's rows and columns kept (`twin.lidar.ouster_clouds`)."""
+        for name, rec in self._clouds():
+            yield rec, name
+
+    def cloud_records(self) -> Iterator[tuple[str, np.ndarray]]:
+        """Every PointCloud2 of the topic as its fields hold it (a name, a structured array):
+        for readers of a driver's own fields (`twin.lidar.hesai_clouds`)."""
+        for name, rec in self._clouds():
+            yield name, rec.reshape(-1)
+
+    def _clouds(self) -> Iterator[tuple[str, np.ndarray]]:
+        """Every PointCloud2 of the topic: a name and its points, (height, width) records."""
         if self.kind != "cloud":
             raise BagError(f"{self.path}: topic {self.topic} holds packets, not point clouds")
         for stamp_ns, msg in self._messages():
             name = f"{self.path} {self.topic} at {stamp_ns * 1e-9:.6f} s"
             rec = cloud_records(msg, name)
-            yield rec.reshape(int(msg.height), int(msg.width)), name
+            yield name, rec.reshape(int(msg.height), int(msg.width))
 
     def info(self) -> dict:
         """What the bag holds (for `aimbench info`)."""

@@ -34,14 +34,13 @@ ROS driver's organised cloud (NaN points). The ROS driver and nebula leave the l
 offsets out (their calibration files set them to 0); velodyne_decoder and aimbench put them in
 (`twin.lidar.clouds` tells which from the points).
 
-Hesai clouds (PandarXT32, PandarQT128) are not rebuilt here: aimbench knows no Hesai cloud
-convention, and `twin.lidar.clouds` refuses a model without a Velodyne firing table, so a Hesai
-is read from its packets (`twin.lidar.hesai`). Were one added, note that its drivers differ in
-the same way: nebula's Hesai cloud (hesai_decoder.hpp) and Hesai's SDK 2.0 without a firetime
-file put each channel at its block's azimuth + its offset, the head's rotation until the
-channel fires left out (up to 0.19 deg on an XT32, 0.36 deg on a QT128 at 600 rpm; nebula's
-``time_stamp`` field has the firing time in it, so the rotation could be put back); aimbench's
-decoder and the SDK with its firetime file put it in.
+Hesai clouds are not rebuilt here but in `twin.lidar.hesai_clouds`: nebula's PandarXT32 and
+PandarQT128 (dual return) clouds
+(hesai_decoder.hpp: Hesai's own frame, fields x y z intensity return_type channel azimuth
+elevation distance time_stamp, no misses) are read back as the scans their packets give, the head's
+rotation until each channel fires, which nebula leaves out (up to 0.19 deg at 600 rpm), put
+back; `twin.lidar.sources` sends a cloud there when ``--model`` names a Hesai or a PCD file's
+fields and elevations are a Hesai's.
 
 Ouster clouds are not rebuilt either, nor need to be: ouster-ros's (and ouster-sdk's XYZLut's)
 cloud is organised, every pixel kept, and `twin.lidar.ouster_clouds` reads it with the sensor's

@@ -73,6 +73,12 @@ def read_pcd_scans(path: str | Path, lasers: LaserTable = vlp16.LASERS, *,
             for i, c in enumerate(read_pcd(path))]
 
 
+def pcd_records(path: str | Path) -> np.ndarray:
+    """A PCD file's points as its fields hold them (a structured array, no frame change): for
+    readers of a driver's own fields (`twin.lidar.hesai_clouds`)."""
+    return _records(Path(path))[0]
+
+
 def _records(path: Path) -> tuple[np.ndarray, tuple[float, ...] | None]:
     """The file's points as a structured array, and its VIEWPOINT unless it is the identity."""
     from pypcd4 import PointCloud  # imported here: pydantic costs ~0.3 s at import

@@ -394,6 +394,10 @@ def open_scans(
     (default: the model's nominal one).
     """
     src = name if isinstance(name, SourceName) else parse_source(name)
+    if src.kind in ("pcd", "bag") and (model is None or isinstance(model, str)):
+        hesai_cloud = _open_hesai_cloud(src, model, hesai_angles, max_scans)
+        if hesai_cloud is not None:
+            return hesai_cloud
     if isinstance(model, str) and _is_hesai(model):
         cut = 18000 if cut_azimuth is None else round(math.degrees(cut_azimuth) * 100) % 36000
         return _open_hesai(src, model, hesai_angles, max_scans, timeout_s, cut)
@@ -423,7 +427,6 @@ def open_scans(
         ouster = open_ouster_pcd(src, ouster_metadata, max_scans)  # an Ouster organised cloud
         if ouster is not None:
             return ouster
-
         return CloudScanSource(src, read_pcd(src.path), max_scans=max_scans, **cloud)
     from twin.lidar.bags import Bag
 
@@ -463,6 +466,39 @@ def _hesai_angles(model: str, angles_file: str | Path | None):
     from twin.lidar.hesai import HesaiAngles, default_angles
 
     return HesaiAngles.from_csv(angles_file or default_angles(model), model)
+
+
+def _open_hesai_cloud(src: SourceName, model: str | None, angles_file: str | Path | None,
+                      max_scans: int | None):
+    """nebula's Hesai clouds (`twin.lidar.hesai_clouds`) when ``model`` is a Hesai, or (None)
+    when a PCD file's fields and elevations say it is one; None otherwise (a Velodyne cloud)."""
+    if model is not None and not _is_hesai(model):
+        return None
+    from twin.lidar.hesai_clouds import (
+        HesaiCloudScanSource,
+        hesai_model_of_cloud,
+        pcd_has_nebula_fields,
+    )
+
+    if src.kind == "pcd":
+        from twin.lidar.pcd import pcd_records
+
+        if model is None and not pcd_has_nebula_fields(src.path):
+            return None
+        rec = pcd_records(src.path)
+        told = "option" if model is not None else "fields"
+        model = model or hesai_model_of_cloud(rec)
+        if model is None:
+            return None
+        return HesaiCloudScanSource(src, [(str(src.path), rec)], _hesai_angles(model, angles_file),
+                                    max_scans=max_scans, told=told)
+    if model is None:  # a bag's clouds: the Hesai reading only when asked (--model)
+        return None
+    from twin.lidar.bags import Bag
+
+    bag = Bag(src.path, src.topic)
+    return HesaiCloudScanSource(src, bag.cloud_records(), _hesai_angles(model, angles_file),
+                                max_scans=max_scans, extra={"bag": bag.info}, closer=bag.close)
 
 
 class HesaiScanSource(ScanSource):

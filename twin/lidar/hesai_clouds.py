@@ -1,0 +1,456 @@
+"""nebula's Hesai point clouds (PandarXT32, PandarQT128) read back as the scans their packets
+give.
+
+What nebula writes (tier4/nebula, read at its main branch):
+
+- ``nebula_core_common/point_types.hpp``: ``PointXYZIRCAEDT``, fields x y z (float32, m)
+  intensity (uint8) return_type (uint8) channel (uint16, the laser, 0-based) azimuth elevation
+  (float32, rad) distance (float32, m) time_stamp (uint32, ns after the cloud's stamp).
+- ``nebula_hesai_decoders/decoders/hesai_decoder.hpp`` ``convert_returns``: for each group of
+  ``n_returns`` blocks (one firing), each channel, each return: a point unless its distance is 0
+  or outside the model's and the configuration's range, unless (dual return) it is not the
+  group's last block and is identical to another return (``IDENTICAL``, written once, from the
+  last block) or within ``dual_return_distance_threshold`` of one. No-return points are
+  dropped: the misses are not in the cloud. x = r cos(el) sin(az), y = r cos(el) cos(az),
+  z = r sin(el): Hesai's own frame, y forward and x right, as aimbench's {L}. ``azimuth`` is the
+  block's azimuth + the channel's azimuth offset (the angle corrector): the head's rotation
+  until the channel fires is left out (`twin.lidar.hesai`'s docstring). Points are written
+  firing by firing, channel by channel, return by return.
+- ``pandar_xt32.hpp``: a point's time after its packet's = ``5632 - 50000 * ((8 - block - 1) /
+  n_returns)`` + ``368 + 1512 * channel`` ns; ``get_return_type`` (``hesai_sensor.hpp``): in
+  last-and-strongest mode (0x39) the first block's return is LAST_STRONGEST or LAST, the
+  second's STRONGEST or SECONDSTRONGEST (strongest: reflectivity not below the other's).
+  ``time_stamp`` = packet time (the tail's date and time + its us) - the cloud's stamp (the
+  earliest point time of its first firing) + that offset.
+- ``pandar_qt128.hpp``: ``9000 + 111110 * (2 - block - 1) / n_returns`` ns + the block's loop
+  table (``loop1``/``loop2``: the tail's mode flag in dual return); a loop's dark channels read
+  distance 0 and are dropped like any miss.
+
+`nebula_hesai_cloud` writes that cloud from packets; `scan_from_nebula_hesai` reads one back:
+each point's firing from its block azimuth (its ``azimuth`` minus the channel's offset, or
+atan2(x, y) without the field), the firing grid rebuilt (a firing every 0.18 deg at 600 rpm:
+the firings where every channel missed put back), the misses put back, and the head's rotation
+put back into each channel's azimuth (the model's firetime at the rpm the time stamps give,
+else the grid's step; a QT128's firing loops, which alternate, from the channels only one loop
+fires): it writes the grid as packets (`twin.lidar.hesai.encode_xt32`, `encode_qt128`) and reads
+them as the packet path does (`decode_hesai`, `scans_from_hesai`), so the scan is the packet
+path's by construction. What differs from the packet path's scan: a miss's azimuth on a firing
+where every channel missed is interpolated from its neighbours (the packets' is the encoder's),
+a return nebula dropped as out of range is a miss, and nebula's scan cutter (hesai_decoder.hpp
+``scan_cutter_``, cut per channel at the cut angle) can leave a channel of the first or last
+firing in the next cloud: there it is a miss. A QT128 cloud is read in dual return only (the
+grid's two loops a packet in single return are not rebuilt).
+"""
+
+from __future__ import annotations
+
+import calendar
+import itertools
+
+import numpy as np
+
+from twin.core.scan import Scan
+from twin.lidar.hesai import (
+    HESAI_MODELS,
+    QT128,
+    QT128_LOOP_TIME,
+    XT32,
+    HesaiAngles,
+    HesaiError,
+    decode_hesai,
+    encode_qt128,
+    encode_xt32,
+    scans_from_hesai,
+)
+from twin.lidar.sources import ScanSource  # (sources imports this module only when used)
+
+#: nebula's PointXYZIRCAEDT (point_types.hpp), packed (PCD and PointCloud2 store it so).
+NEBULA_POINT_DTYPE = np.dtype([
+    ("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "u1"), ("return_type", "u1"),
+    ("channel", "<u2"), ("azimuth", "<f4"), ("elevation", "<f4"), ("distance", "<f4"),
+    ("time_stamp", "<u4")])
+
+#: nebula_common.hpp ``ReturnType``.
+LAST, FIRST, STRONGEST, IDENTICAL, SECOND, SECONDSTRONGEST, LAST_STRONGEST = 1, 2, 3, 6, 7, 8, 10
+_SINGLE_TYPE = {"first": FIRST, "second": SECOND, "strongest": STRONGEST, "last": LAST}
+#: Types only a dual-return cloud holds, and the ones nebula gives a last-and-strongest pair's
+#: second block (hesai_sensor.hpp get_return_type).
+_DUAL_ONLY = (IDENTICAL, SECONDSTRONGEST, LAST_STRONGEST)
+_SECOND_BLOCK = (STRONGEST, SECONDSTRONGEST, IDENTICAL)
+LAST_AND_STRONGEST = 0x39
+#: nebula's test configuration for the XT32 (hesai_ros_decoder_test_main.cpp): ranges m, and
+#: its default dual-return distance threshold (hesai_ros_decoder_test.hpp), m.
+NEBULA_RANGE = (0.05, 120.0)
+NEBULA_DUAL_THRESHOLD = 0.1
+#: nebula's field names that tell its Hesai cloud (``ring`` is absent: nebula writes channel).
+NEBULA_HESAI_FIELDS = ("channel", "return_type", "azimuth", "elevation", "distance",
+                       "time_stamp")
+
+
+def is_nebula_hesai(names) -> bool:
+    """Whether a cloud's field names are nebula's PointXYZIRCAEDT (its Hesai and Velodyne
+    clouds alike: the model tells which)."""
+    return set(NEBULA_HESAI_FIELDS) <= set(names or ())
+
+
+# ----------------------------------------------------------------------------------------------
+# Writing: nebula's cloud of packets
+
+
+def _packet_times_ns(payloads: list[bytes], angles: HesaiAngles) -> np.ndarray:
+    """Each packet's time, ns since 1970: the tail's date and time (years since 1900, UTC) plus
+    its microseconds (nebula's hesai_packet::get_timestamp_ns)."""
+    model = angles.model
+    size = model.dtype.itemsize
+    rec = np.frombuffer(b"".join(bytes(p[:size]) for p in payloads if model.accepts(p)),
+                        dtype=model.dtype)
+    sec = np.array([calendar.timegm((1900 + int(d[0]), int(d[1]), int(d[2]), int(d[3]),
+                                     int(d[4]), int(d[5]))) for d in rec["date_time"]],
+                   dtype=np.int64)
+    return sec * 1_000_000_000 + rec["timestamp"].astype(np.int64) * 1000
+
+
+def _xt32_offset_ns(block: np.ndarray, channel: np.ndarray, n_returns: int) -> np.ndarray:
+    """pandar_xt32.hpp get_packet_relative_point_time_offset (C++ integer division)."""
+    return 5632 - 50000 * ((8 - block - 1) // n_returns) + 368 + 1512 * channel
+
+
+def _qt128_offset_ns(block: np.ndarray, loop: np.ndarray, n_returns: int) -> np.ndarray:
+    """pandar_qt128.hpp get_packet_relative_point_time_offset: ``9000 + 111110 * (2 - block -
+    1) / n_returns`` (C++ integers) + the block's loop table (``loop1``/``loop2``: the tail's
+    mode flag in dual return, the block's parity in single)."""
+    channel = np.rint(QT128_LOOP_TIME[loop] * 1e9).astype(np.int64)
+    return 9000 + (111110 * (2 - block - 1)) // n_returns + channel
+
+
+def _offset_ns(model, block: np.ndarray, loop: np.ndarray | None, n_returns: int) -> np.ndarray:
+    """Each unit's time after its packet's, ns, (groups, n_returns, channels)."""
+    if model is XT32:
+        return _xt32_offset_ns(block[:, :, None], np.arange(model.n_channels), n_returns)
+    return _qt128_offset_ns(block[:, :, None], loop, n_returns)
+
+
+def _return_types(d: np.ndarray, refl: np.ndarray, mode: int, model) -> np.ndarray:
+    """nebula's return type of each unit (groups, n_returns, channels)."""
+    if d.shape[1] == 1:
+        return np.full(d.shape, _SINGLE_TYPE[model.single_modes[mode]], dtype=np.uint8)
+    if mode != LAST_AND_STRONGEST:
+        raise HesaiError(f"dual return mode 0x{mode:02X}: nebula's cloud is written here for "
+                         "last and strongest (0x39) only")
+    other = refl[:, ::-1]
+    strongest = refl >= other  # nebula: strongest unless weaker than the other
+    out = np.where(strongest, np.array([LAST_STRONGEST, STRONGEST])[None, :, None],
+                   np.array([LAST, SECONDSTRONGEST])[None, :, None]).astype(np.uint8)
+    identical = (d == d[:, ::-1]) & (refl == other)
+    return np.where(identical, IDENTICAL, out).astype(np.uint8)
+
+
+def nebula_hesai_cloud(payloads: list[bytes], angles: HesaiAngles, *,
+                       firings: slice = slice(None), ranges: tuple[float, float] = NEBULA_RANGE,
+                       dual_threshold: float = NEBULA_DUAL_THRESHOLD) -> np.ndarray:
+    """The PointXYZIRCAEDT cloud nebula writes of PandarXT32 or PandarQT128 packets (module
+    docstring; a QT128's dark channels read 0 and are dropped as nebula drops them), of the
+    firings ``firings`` (a slice over the packets' firings: a block, or a dual pair, each):
+    nebula's own scan cutting is not followed, the caller chooses the firings."""
+    model = angles.model
+    dec = decode_hesai(payloads, angles, firetime=False)  # nebula's azimuths and points
+    modes = set(dec.return_mode.tolist())
+    if len(modes) != 1:
+        raise HesaiError("packets of several return modes: record one mode")
+    mode = modes.pop()
+    nr = 1 if mode in model.single_modes else 2
+    n, nb, nc = dec.distance.shape
+    groups = n * nb // nr
+
+    def grouped(a: np.ndarray) -> np.ndarray:  # (groups, n_returns, channels)
+        return a.reshape(groups, nr, nc)
+
+    d, refl = grouped(dec.distance), grouped(dec.reflectivity)
+    rtype = _return_types(d, refl, mode, model)
+    lo, hi = ranges
+    keep = (d > 0) & (d >= max(lo, model.min_range)) & (d <= min(hi, model.max_range))
+    if nr == 2:  # the first block's return, identical or too near the second's, is dropped
+        keep[:, 0] &= (rtype[:, 0] != IDENTICAL) & (np.abs(d[:, 1] - d[:, 0]) >= dual_threshold)
+    g = np.arange(groups)[firings]
+    block = (g[:, None] % (nb // nr)) * nr + np.arange(nr)  # (groups, n_returns)
+    loop = None if dec.loop is None else dec.loop.reshape(groups, nr)[g]
+    offset = _offset_ns(model, block, loop, nr)
+    t_packet = _packet_times_ns(payloads, angles)[g // (nb // nr)]
+    stamp = t_packet[0] + int(offset[0].min())  # on_set_timestamp: the first firing's earliest
+    time_ns = t_packet[:, None, None] + offset - stamp
+    # nebula's order: firing, channel, return
+    sel = keep[g].transpose(0, 2, 1)
+    out = np.zeros(sel.shape, dtype=NEBULA_POINT_DTYPE)
+    el = np.radians(angles.elevation_deg)[None, :, None]
+    for name, v in (("x", dec.x), ("y", dec.y), ("z", dec.z), ("intensity", dec.reflectivity),
+                    ("azimuth", dec.azimuth), ("distance", dec.distance)):
+        out[name] = grouped(v)[g].transpose(0, 2, 1)
+    out["return_type"] = rtype[g].transpose(0, 2, 1)
+    out["channel"] = np.arange(nc)[None, :, None]
+    out["elevation"] = np.broadcast_to(el, sel.shape)
+    out["time_stamp"] = time_ns.transpose(0, 2, 1)
+    return out[sel]
+
+
+def rotation_firings(payloads: list[bytes], angles: HesaiAngles, cut_cdeg: int = 18000
+                     ) -> list[slice]:
+    """The firings (as `nebula_hesai_cloud` counts them) of each whole rotation the packet path
+    cuts (`twin.lidar.hesai.scans_from_hesai` at ``cut_cdeg``): to write the cloud of each."""
+    dec = decode_hesai(payloads, angles, firetime=False)
+    nr = 1 if set(dec.return_mode.tolist()) <= set(angles.model.single_modes) else 2
+    az = dec.block_azimuth_cdeg[:, nr - 1::nr].ravel()
+    starts = np.flatnonzero(np.diff((az - cut_cdeg) % 36000) < -18000) + 1
+    return [slice(int(a), int(b)) for a, b in itertools.pairwise(starts)]
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading: the packet path's scan of nebula's cloud
+
+
+def _block_azimuth_cdeg(rec: np.ndarray, channel: np.ndarray, angles: HesaiAngles
+                        ) -> np.ndarray:
+    """Each point's block azimuth, 0.01 deg (the packets' unit): its ``azimuth`` (else
+    atan2(x, y)) minus its channel's azimuth offset."""
+    names = rec.dtype.names
+    az = (np.degrees(rec["azimuth"].astype(np.float64)) if "azimuth" in names
+          else np.degrees(np.arctan2(rec["x"].astype(np.float64), rec["y"].astype(np.float64))))
+    return np.rint((az - angles.azimuth_deg[channel]) * 100.0).astype(np.int64) % 36000
+
+
+def _check_angles(rec: np.ndarray, channel: np.ndarray, angles: HesaiAngles, name: str) -> None:
+    """Refuse a cloud nebula wrote with other angle corrections than ``angles`` (its elevation
+    field, and its azimuths less the offsets, which fall on the packets' 0.01 deg, say so):
+    its firings and rays would be read wrong."""
+    if "elevation" in rec.dtype.names:
+        off = np.abs(np.degrees(rec["elevation"].astype(np.float64))
+                     - angles.elevation_deg[channel])
+        if off.max() > 0.01:
+            raise HesaiError(f"{name}: the cloud's elevations differ from {angles.source}'s by up "
+                             f"to {off.max():.3f} deg: it was written with another angle-"
+                             "correction file; give that one (--angles)")
+    if "azimuth" in rec.dtype.names:
+        az = (np.degrees(rec["azimuth"].astype(np.float64)) - angles.azimuth_deg[channel]) * 100
+        if np.abs(az - np.rint(az)).max() > 0.05:
+            raise HesaiError(f"{name}: the cloud's azimuths less {angles.source}'s offsets are "
+                             "not the packets' 0.01 deg steps: it was written with another "
+                             "angle-correction file; give that one (--angles)")
+
+
+def _distance(rec: np.ndarray) -> np.ndarray:
+    if "distance" in rec.dtype.names:
+        return rec["distance"].astype(np.float64)
+    return np.sqrt(sum(rec[k].astype(np.float64) ** 2 for k in ("x", "y", "z")))
+
+
+def _sweep(block_cdeg: np.ndarray, order_key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The firings' block azimuths unwrapped along the sweep (from the earliest point's), and
+    each point's firing among them."""
+    first = int(block_cdeg[np.argmin(order_key)])
+    rel = (block_cdeg - first) % 36000  # the earliest point's firing is the sweep's first
+    firing_az, inverse = np.unique(rel, return_inverse=True)
+    firing_az = firing_az + first
+    return firing_az, inverse
+
+
+def _grid(firing_az: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """The rebuilt grid's azimuths (0.01 deg, unwrapped) and each found firing's index on it:
+    a gap of k steps holds k - 1 firings where every channel missed, put back between."""
+    k = np.maximum(np.rint(np.diff(firing_az) / step).astype(np.int64), 1)
+    index = np.concatenate(([0], np.cumsum(k)))
+    grid = np.interp(np.arange(index[-1] + 1), index, firing_az)
+    return np.rint(grid).astype(np.int64), index
+
+
+def _loops(found_firing: np.ndarray, channel: np.ndarray, n_grid: int) -> np.ndarray:
+    """Each grid firing's loop (0: loop 1, 1: loop 2) of a QT128: the loops alternate, and a
+    firing with a return of channels 1-32 (0-based 0-31) is loop 2's, of channels 33-64 loop
+    1's (the other loop leaves them dark, `twin.lidar.hesai.QT128_FIRED`)."""
+    told = np.where(channel < 32, 1, np.where(channel < 64, 0, -1))
+    sel = told >= 0
+    if not sel.any():
+        raise HesaiError("no return of channels 1-64: the firing loops cannot be told")
+    phase = int(np.argmax(np.bincount((told[sel] + found_firing[sel]) % 2, minlength=2)))
+    return (phase + np.arange(n_grid)) % 2
+
+
+def _rpm(t_firing: np.ndarray | None, point_az: np.ndarray, step: float, model) -> float:
+    """The head's speed: the slope of the block azimuth against each point's firing time
+    (nebula's time_stamp less its unit's offset), else the grid's step at the model's firing
+    period."""
+    if t_firing is not None and len(np.unique(point_az)) > 2:
+        slope = np.polyfit(t_firing, point_az / 100.0, 1)[0]  # deg/s
+        return float(slope / 6.0)
+    return float(step / 100.0 / model.firing_period / 6.0)
+
+
+def _grid_payloads(grid: np.ndarray, step: float, dist: np.ndarray, refl: np.ndarray,
+                   loop: np.ndarray | None, rpm: float, dual: bool, model) -> list[bytes]:
+    """Packets of the rebuilt grid with one firing of misses before and after it (the packet
+    path cuts exactly there) and padded with misses to whole packets; ``dist``, ``refl``
+    (grid + 2, returns, channels) already so placed; ``loop`` each row's (QT128)."""
+    nr = 2 if dual else 1
+    per_packet = model.n_blocks // nr
+    packets = -(-len(dist) // per_packet)
+    pad = packets * per_packet - len(dist)
+    az = np.concatenate(([grid[0] - round(step)], grid, grid[0] + round(step) * np.arange(pad + 1)))
+    dist = np.concatenate((dist, np.zeros((pad, *dist.shape[1:]))))
+    refl = np.concatenate((refl, np.zeros((pad, *refl.shape[1:]), dtype=np.uint8)))
+    shape = (packets, model.n_blocks)
+    block_az = np.repeat(az % 36000, nr).reshape(shape)
+    args = (block_az, dist.reshape(*shape, -1), refl.reshape(*shape, -1),
+            np.arange(packets) * round(per_packet * model.firing_period * 1e6))
+    mode = LAST_AND_STRONGEST if dual else 0x37
+    if model is XT32:
+        return encode_xt32(*args, rpm=rpm, return_mode=mode)
+    loop = np.concatenate((loop, (loop[-1] + 1 + np.arange(pad)) % 2))
+    return encode_qt128(*args, loop, rpm=rpm, return_mode=mode)
+
+
+def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float | None = None,
+                           index: int = 0, name: str = "nebula cloud") -> Scan:
+    """The packet path's scan (`twin.lidar.hesai.scans_from_hesai`, firetime in) of one nebula
+    PandarXT32 or PandarQT128 (dual return) cloud (a record array with nebula's fields; x y z
+    and channel at least): module docstring. ``rpm``: the head's speed (None: from the time
+    stamps, else the grid's step)."""
+    model = angles.model
+    names = rec.dtype.names or ()
+    if "channel" not in names:
+        raise HesaiError(f"{name}: no channel field: not nebula's Hesai cloud")
+    nc = model.n_channels
+    channel = rec["channel"].astype(np.int64)
+    if len(rec) < 2 * nc or channel.max() >= nc:
+        raise HesaiError(f"{name}: {len(rec)} points of channels up to {channel.max()}: not a "
+                         f"{model.name}'s rotation")
+    _check_angles(rec, channel, angles, name)
+    rtype = rec["return_type"] if "return_type" in names else np.zeros(len(rec), np.uint8)
+    dual = bool(np.isin(rtype, _DUAL_ONLY).any())
+    if model is QT128 and not dual:
+        raise HesaiError(f"{name}: a single-return {model.name} cloud: read here in dual return "
+                         "(last and strongest) only")
+    nr = 2 if dual else 1
+    slot = np.isin(rtype, _SECOND_BLOCK).astype(np.intp) if dual else np.zeros(len(rec), np.intp)
+    block = _block_azimuth_cdeg(rec, channel, angles)
+    order_key = (rec["time_stamp"].astype(np.float64) if "time_stamp" in names
+                 else np.arange(len(rec), dtype=np.float64))
+    firing_az, point_firing = _sweep(block, order_key)
+    if len(firing_az) < 3:
+        raise HesaiError(f"{name}: {len(firing_az)} firings: not a rotation")
+    step = float(np.median(np.diff(firing_az)))
+    grid, found = _grid(firing_az, step)
+    if grid[-1] - grid[0] < 18000:
+        raise HesaiError(f"{name}: the cloud spans {(grid[-1] - grid[0]) / 100:.1f} deg: less "
+                         "than half a turn, not a rotation")
+    point_grid = found[point_firing]
+    loop = None if model is XT32 else _loops(point_grid, channel, len(grid))
+    if rpm is None:
+        t = None
+        if "time_stamp" in names:  # the firing's time: the unit's offset in it taken off
+            # (an XT32's block offset is its firing's time within the packet: kept)
+            blk = (np.zeros(len(rec), np.int64) if model is XT32 else slot)[:, None]
+            lp = None if loop is None else loop[point_grid][:, None]
+            off = _offset_ns(model, blk, lp, nr)
+            off = off[np.arange(len(rec)), 0, channel]
+            t = (rec["time_stamp"].astype(np.float64) - off) * 1e-9
+        rpm = _rpm(t, firing_az[point_firing], step, model)
+    dist = np.zeros((len(grid) + 2, nr, nc))
+    refl = np.zeros((len(grid) + 2, nr, nc), dtype=np.uint8)
+    where = (1 + point_grid, slot, channel)
+    dist[where] = _distance(rec)
+    refl[where] = rec["intensity"] if "intensity" in names else 0
+    if dual:  # a first block nebula dropped (identical, within the threshold): as the second
+        gone = (dist[:, 0] == 0) & (dist[:, 1] > 0)
+        dist[:, 0][gone], refl[:, 0][gone] = dist[:, 1][gone], refl[:, 1][gone]
+    rows_loop = None if loop is None else np.concatenate(
+        ([1 - loop[0]], loop, [1 - loop[-1]]))
+    payloads = _grid_payloads(grid, step, dist, refl, rows_loop, rpm, dual, model)
+    scans = scans_from_hesai(decode_hesai(payloads, angles), angles, cut_cdeg=int(grid[0] % 36000))
+    if len(scans) != 1:
+        raise HesaiError(f"{name}: the rebuilt grid gave {len(scans)} rotations, not one")
+    s = scans[0]
+    meta = {**s.meta, "from_cloud": True, "cloud_convention": "nebula",
+            "cloud_points": len(rec), "rpm": rpm, "source": name}
+    return Scan(**{k: getattr(s, k) for k in ("distance", "azimuth", "laser_id", "intensity",
+                                              "time", "return_type", "x", "y", "z")},
+                index=index, complete=True, packets=0, product_id=0,
+                vertical_offsets_applied=False, lasers=s.lasers, meta=meta)
+
+
+# ----------------------------------------------------------------------------------------------
+# As a source: `aimbench info / estimate CLOUD --model PandarXT32` (or PandarQT128)
+
+
+def hesai_model_of_cloud(rec: np.ndarray) -> str | None:
+    """The Hesai model a nebula cloud is of, told by its fields (nebula's PointXYZIRCAEDT, which
+    its Velodyne clouds share), its channel count and its channels' elevations against the
+    model's nominal angles (within 0.5 deg); None when they do not tell a Hesai."""
+    from twin.lidar.hesai import default_angles
+
+    names = rec.dtype.names or ()
+    if not is_nebula_hesai(names) or len(rec) == 0:
+        return None
+    channel = rec["channel"].astype(np.int64)
+    el = np.degrees(rec["elevation"].astype(np.float64))
+    for model in HESAI_MODELS.values():
+        if channel.max() >= model.n_channels:
+            continue
+        nominal = HesaiAngles.from_csv(default_angles(model), model)
+        if np.abs(el - nominal.elevation_deg[channel]).max() < 0.5:
+            return model.name
+    return None
+
+
+def pcd_has_nebula_fields(path) -> bool:
+    """Whether a PCD file's header names nebula's PointXYZIRCAEDT fields: read from its first
+    lines only, so that a Velodyne cloud is not loaded twice to be told apart (a file that is
+    not a PCD says no: its own reader says what is wrong with it)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    for line in head.split(b"\n"):
+        if line.startswith(b"FIELDS"):
+            return is_nebula_hesai(line.decode("ascii", "replace").split()[1:])
+        if line.startswith(b"DATA"):
+            break
+    return False
+
+
+class HesaiCloudScanSource(ScanSource):
+    """Scans of nebula's Hesai clouds (a PCD file, or a bag's PointCloud2 messages): one a
+    cloud, rebuilt by `scan_from_nebula_hesai`. ``told``: how the model was told (``option``:
+    --model, ``fields``: the cloud's fields and elevations)."""
+
+    def __init__(self, name, clouds, angles: HesaiAngles, *, max_scans: int | None = None,
+                 extra: dict | None = None, closer=None, told: str = "option") -> None:
+        super().__init__(name, max_scans, extra, closer)
+        self.clouds = clouds  # (name, record array) pairs
+        self.angles = angles
+        self.told = told
+        self._scans_made: list[Scan] = []
+
+    def _scans(self):
+        for i, (name, rec) in enumerate(self.clouds):
+            scan = scan_from_nebula_hesai(rec, self.angles, index=i, name=name)
+            self._scans_made.append(scan)
+            yield scan
+
+    def _summary(self) -> dict:
+        s = self._scans_made
+        returns = sum(int(x.valid.sum()) for x in s)
+        return {
+            "model": self.angles.model.name,
+            "model_from": ("given by --model" if self.told == "option"
+                           else "from nebula's fields and the channels' elevations"),
+            "laser_table": self.angles.source,
+            "rpm": float(np.median([x.meta["rpm"] for x in s])) if s else None,
+            "rpm_from": "from the clouds' time stamps, else the firings' azimuth step",
+            "clouds": len(s), "scans": len(s), "complete_scans": len(s), "partial_scans": 0,
+            "cloud_points": sum(int(x.meta["cloud_points"]) for x in s),
+            "points": sum(len(x) for x in s), "returns": returns,
+            "rebuilt_misses": sum(len(x) for x in s) - returns,
+            "vertical_offsets": False,
+            "cloud_convention": "nebula (Hesai: firing rotation put back)",
+            "cloud_convention_from": "fields",
+            "warnings": [],
+        }
