@@ -274,10 +274,10 @@ def pcd_shape(path: str | Path) -> tuple[int, int, list[str]]:
 
 def pcd_cloud(path: str | Path) -> np.ndarray:
     """The (HEIGHT, WIDTH) records of an organised PCD file."""
-    from twin.lidar.pcd import _records
+    from twin.lidar.pcd import pcd_records_viewpoint
 
     width, height, _ = pcd_shape(path)
-    rec, viewpoint = _records(Path(path))
+    rec, viewpoint = pcd_records_viewpoint(Path(path))
     if viewpoint is not None:
         raise OusterCloudError(f"{path}: an Ouster cloud moved by its VIEWPOINT: write it in "
                                "the sensor's frame")

@@ -33,7 +33,7 @@ class PcdFormatError(CloudError):
 def read_pcd(path: str | Path) -> list[Cloud]:
     """The clouds of a PCD file: one, or one per value of its ``scan`` field."""
     path = Path(path)
-    rec, viewpoint = _records(path)
+    rec, viewpoint = pcd_records_viewpoint(path)
     names = rec.dtype.names or ()
     missing = [f for f in ("x", "y", "z") if f not in names]
     if missing:
@@ -76,11 +76,12 @@ def read_pcd_scans(path: str | Path, lasers: LaserTable = vlp16.LASERS, *,
 def pcd_records(path: str | Path) -> np.ndarray:
     """A PCD file's points as its fields hold them (a structured array, no frame change): for
     readers of a driver's own fields (`twin.lidar.hesai_clouds`)."""
-    return _records(Path(path))[0]
+    return pcd_records_viewpoint(Path(path))[0]
 
 
-def _records(path: Path) -> tuple[np.ndarray, tuple[float, ...] | None]:
-    """The file's points as a structured array, and its VIEWPOINT unless it is the identity."""
+def pcd_records_viewpoint(path: Path) -> tuple[np.ndarray, tuple[float, ...] | None]:
+    """The file's points as a structured array, and its VIEWPOINT unless it is the identity
+    (`read_pcd`'s, and a reader of a driver's own organised cloud: `twin.lidar.ouster_clouds`)."""
     from pypcd4 import PointCloud  # imported here: pydantic costs ~0.3 s at import
 
     try:
