@@ -103,13 +103,14 @@ def write_cloud_bag(path: Path, scans: Sequence[Scan], *, ros2: bool,
     return path
 
 
-#: PointField datatypes of numpy's kinds and sizes (sensor_msgs/PointField).
-_POINT_FIELD = {("f", 4): 7, ("u", 4): 6, ("u", 2): 4, ("u", 1): 2}
+#: sensor_msgs/PointField datatypes of numpy's kinds.
+_FIELD_TYPES = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 8}
 
 
 def write_records_bag(path: Path, clouds: Sequence[np.ndarray], *, ros2: bool,
                       topic: str = "/ouster/points", frame_id: str = "os_sensor") -> Path:
-    """A bag of PointCloud2 messages holding structured arrays as they are: an (H, W) one as
+    """A bag of PointCloud2 messages holding structured arrays field for field, as a driver
+    writing its own point type does (ouster-ros's, nebula's PointXYZIRCAEDT): an (H, W) one as
     an organised cloud (height H, width W), as ouster-ros publishes its cloud."""
     store = typestore(ros2)
     Cloud, Field = store.types[CLOUD_TYPE], store.types["sensor_msgs/msg/PointField"]
@@ -119,7 +120,7 @@ def write_records_bag(path: Path, clouds: Sequence[np.ndarray], *, ros2: bool,
             dt = rec.dtype
             t = EPOCH_S + 0.1 * i
             fields = [Field(name=n, offset=dt.fields[n][1], count=1,
-                            datatype=_POINT_FIELD[dt[n].kind, dt[n].itemsize])
+                            datatype=_FIELD_TYPES[dt[n].str.lstrip("<>|=")])
                       for n in dt.names]
             height, width = rec.shape if rec.ndim == 2 else (1, len(rec))
             msg = Cloud(header=_header(store, t, frame_id), height=height, width=width,
@@ -140,30 +141,4 @@ def write_other_bag(path: Path, *, ros2: bool) -> Path:
         w.add_connection("/imu", "sensor_msgs/msg/Imu", typestore=store)
         w.write(conn, 1_000_000_000, _serialize(store, String(data="hello"),
                                                 "std_msgs/msg/String", ros2))
-    return path
-
-
-#: sensor_msgs/PointField datatypes of numpy's kinds.
-_FIELD_TYPES = {"i1": 1, "u1": 2, "i2": 3, "u2": 4, "i4": 5, "u4": 6, "f4": 7, "f8": 8}
-
-
-def write_record_bag(path: Path, recs: Sequence[np.ndarray], *, ros2: bool = True,
-                     topic: str = "/pandar_points", frame_id: str = "hesai") -> Path:
-    """A bag of PointCloud2 messages holding ``recs`` (structured arrays) field for field, as a
-    driver writing its own point type (nebula's PointXYZIRCAEDT) does."""
-    store = typestore(ros2)
-    Cloud, Field = store.types[CLOUD_TYPE], store.types["sensor_msgs/msg/PointField"]
-    with _writer(path, ros2) as w:
-        conn = w.add_connection(topic, CLOUD_TYPE, typestore=store)
-        for i, rec in enumerate(recs):
-            dt = rec.dtype
-            fields = [Field(name=n, offset=dt.fields[n][1],
-                            datatype=_FIELD_TYPES[dt[n].str.lstrip("<>|=")], count=1)
-                      for n in dt.names]
-            t = EPOCH_S + 0.1 * i
-            msg = Cloud(header=_header(store, t, frame_id), height=1, width=len(rec),
-                        fields=fields, is_bigendian=False, point_step=dt.itemsize,
-                        row_step=dt.itemsize * len(rec),
-                        data=np.ascontiguousarray(rec).view(np.uint8).reshape(-1), is_dense=True)
-            w.write(conn, int(t * 1e9), _serialize(store, msg, CLOUD_TYPE, ros2))
     return path

@@ -172,11 +172,12 @@ def test_info_and_estimate_read_nebulas_cloud_file(twin_clouds, tmp_path, capsys
 
 
 def test_a_bag_of_nebulas_clouds_reads_as_its_scans(twin_clouds, tmp_path):
-    from tests.bag_support import write_record_bag
+    from tests.bag_support import write_records_bag
     from twin.lidar.sources import open_scans
 
     clouds, _, _ = twin_clouds
-    bag = write_record_bag(tmp_path / "xt32_bag", clouds)
+    bag = write_records_bag(tmp_path / "xt32_bag", clouds, ros2=True, topic="/pandar_points",
+                           frame_id="hesai")
     angles = XT32Angles.from_csv(DEFAULT_ANGLES)
     with open_scans(bag, model="PandarXT32") as source:
         scans = list(source)
