@@ -62,7 +62,7 @@ from twin.lidar.hesai import (
     encode_xt32,
     scans_from_hesai,
 )
-from twin.lidar.sources import ScanSource  # (sources imports this module only when used)
+from twin.lidar.source_base import ScanSource
 
 #: nebula's PointXYZIRCAEDT (point_types.hpp), packed (PCD and PointCloud2 store it so).
 NEBULA_POINT_DTYPE = np.dtype([

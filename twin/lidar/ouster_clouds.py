@@ -47,7 +47,7 @@ from twin.lidar.ouster import (
     metadata_beside,
     scan_from_frame,
 )
-from twin.lidar.sources import ScanSource, SourceName
+from twin.lidar.source_base import ScanSource, SourceName
 
 if TYPE_CHECKING:
     from twin.lidar.bags import Bag
