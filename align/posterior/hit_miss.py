@@ -105,6 +105,8 @@ PROFILE_POINTS = 21
 PROFILE_REACH = 5.0
 PROFILE_REFINE = 3
 PROFILE_MIN = 5
+#: Rolls of the profile's grid (`_consistent_rolls`): a fused estimate's first pass has 201.
+PROFILE_ROLLS = 201
 #: The joint profile (`_joint_profile`) along the direction the labels couple with the
 #: offset: fewer than `COUPLED_MIN` of its 3 Gauss-Hermite levels allowed, a grid of
 #: `COUPLED_POINTS` levels over the band they allow instead, refined up to `COUPLED_REFINE`
@@ -309,12 +311,19 @@ def _consistent_rolls(rays: LabelledRays, board: BoardSpec, theta: np.ndarray, s
         c_cond = c_plane - np.outer(offset.c_gb, offset.c_gb) / offset.c_bb
         w = _coupled_direction(offset, theta, frame.n0, frame.d0, v, c_cond)
         axes = ([w] if w is not None else []) + laser_directions(offset, c_cond, w)
+        # the profile's planes on a grid of `PROFILE_ROLLS` rolls, as a fused estimate's first
+        # pass has them: a single scan's 0.02 deg steps over +-4 deg (401) made its some 650
+        # planes cost 0.2 s; its roll's sigma is 0.1-0.3 deg, several steps of 0.04 deg
+        p_rolls = (rolls if len(rolls) <= PROFILE_ROLLS
+                   else np.linspace(rolls[0], rolls[-1], PROFILE_ROLLS))
+
         def in_planes(gs: list[np.ndarray]) -> list[moments.InPlanePosterior | None]:
             # a profile's planes in one compiled call: a single scan's integral tries some 650
             # (27 nodes with per-laser offsets); one call each cost 3 % more CPU (side by side)
             planes = [frame.moved(g) for g in gs]
             found = wide.posteriors(np.array([n for n, _ in planes]),
-                                    np.array([d for _, d in planes]), board, rolls, roll_prior)
+                                    np.array([d for _, d in planes]), board, p_rolls,
+                                    roll_prior)
             return [None if f is None else f[0] for f in found]
 
         profile = _joint_profile(offset, v, axes, c_cond, in_planes)
