@@ -145,7 +145,8 @@ def _open_osf(path: Path):
     try:
         reader = osf.OsfFrameSetSource(str(path))
     except RuntimeError as exc:  # ouster-sdk's C++ says what failed
-        raise OsfError(f"{path}: not a readable OSF file ({exc}); give an OSF written by "
+        why = str(exc).rstrip(".")
+        raise OsfError(f"{path}: not a readable OSF file ({why}); give an OSF written by "
                        "ouster-sdk or Ouster Studio, whole (not cut off)") from None
     if not reader.sensor_info:
         raise OsfError(f"{path}: an OSF file without a lidar sensor's metadata; give an OSF "
