@@ -170,6 +170,31 @@ def test_an_osf_of_ouster_sdks_own_capture_reads_as_its_pcap(tmp_path):
     assert int(a.valid.sum()) == 27310
 
 
+def test_an_osf_of_a_profile_our_packet_decoder_refuses_reads_all_the_same(tmp_path):
+    """An OSF holds frames ouster-sdk decoded: one recorded in RNG19_RFL8_SIG16_NIR16 (whose
+    packets `twin.lidar.ouster` refuses, saying to set LEGACY) reads to the scan of the same
+    frame's LEGACY pcap."""
+    core, osf, _ = ouster_sdk.sdk()
+    info = OusterInfo.from_json(META)
+    (frame,) = our_frames(PCAP, info)
+    meta = json.loads(META.read_text())
+    meta["data_format"]["udp_profile_lidar"] = "RNG19_RFL8_SIG16_NIR16"
+    sensor_info = core.SensorInfo(json.dumps(meta))
+    lidar_frame = ouster_sdk.lidar_frame_of(frame, sensor_info)
+    lidar_frame.status[:] = 1  # a valid column in the newer profiles: bit 0
+    writer = osf.Writer(str(tmp_path / "rng19.osf"), sensor_info)
+    writer.save(0, lidar_frame)
+    writer.close()
+    with open_scans(tmp_path / "rng19.osf") as source:
+        (a,) = list(source)
+        assert source.summary()["profile"] == "RNG19_RFL8_SIG16_NIR16"
+    with open_scans(PCAP) as source:
+        (b,) = list(source)
+    assert a.complete
+    for name in SCAN_ARRAYS:
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
 def test_simulate_writes_an_osf_that_info_and_estimate_read(tmp_path, capsys):
     out = tmp_path / "os1.osf"
     assert main(["simulate", "--model", "OS1-64", "--scans", "2", "--roll-deg", "1",
