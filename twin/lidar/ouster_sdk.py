@@ -18,7 +18,8 @@ a pcap's. Written back, a `Frame` becomes a `LidarFrame` field for field.
 from __future__ import annotations
 
 import functools
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
 
@@ -154,9 +155,19 @@ def _open_osf(path: Path):
     return reader
 
 
-def osf_frames(path: str | Path) -> tuple[OusterInfo, Iterator[Frame], dict]:
-    """The first sensor's metadata of an OSF file, its frames (lazily, in order), and what the
-    file holds (`OsfScanSource`'s summary)."""
+@dataclass(frozen=True)
+class OsfContents:
+    """An open OSF file: its first sensor's metadata, that sensor's frames (lazily, in order),
+    what the file holds (`OsfScanSource`'s summary) and how to release it."""
+
+    info: OusterInfo
+    frames: Iterator[Frame]
+    held: dict
+    close: Callable[[], None]
+
+
+def osf_frames(path: str | Path) -> OsfContents:
+    """The `OsfContents` of an OSF file; `OsfError` in one line when it cannot be read."""
     path = Path(path)
     reader = _open_osf(path)
     sensors = list(reader.sensor_info)
@@ -169,12 +180,11 @@ def osf_frames(path: str | Path) -> tuple[OusterInfo, Iterator[Frame], dict]:
 
     def frames() -> Iterator[Frame]:
         for frame_set in reader:
-            lidar_frame = frame_set[0]
+            lidar_frame = frame_set[0]  # None: a set with only the other sensors' frames
             if lidar_frame is not None:
                 yield frame_of(lidar_frame, info.columns_per_packet)
-        reader.close()
 
-    return info, frames(), held
+    return OsfContents(info, frames(), held, reader.close)
 
 
 def _sdk_version() -> str:
@@ -190,9 +200,10 @@ class OsfScanSource(ScanSource):
     """The scans of an OSF file's first lidar sensor (`osf_frames`, `scan_from_frame`)."""
 
     def __init__(self, name: SourceName, max_scans: int | None = None) -> None:
-        super().__init__(name, max_scans)
-        self.info, frames, self.held = osf_frames(name.path)
-        self.reader = _FrameScans(frames, self.info)
+        contents = osf_frames(name.path)
+        super().__init__(name, max_scans, closer=contents.close)
+        self.info, self.held = contents.info, contents.held
+        self.reader = _FrameScans(contents.frames, self.info)
 
     def _scans(self) -> Iterator:
         yielded = False
