@@ -27,9 +27,10 @@ metadata, its LEGACY packets, our decoder), the Hesai PandarXT32 and PandarQT128
 `twin.sim.hesai_twin` (nebula's angle corrections, their packets with each channel cast where
 the head turned to when it fired, our decoder, which puts that rotation back as Hesai's SDK 2.0
 does with its firetime file); then the decode rows: Ouster agreement with ouster-sdk on its own
-real capture and frames per second against ouster-sdk's (measured when ouster-sdk can be
-imported), and each Hesai model's agreement with nebula's decoder on a real capture (its test's
-ground-truth points; our decode without the firing rotation, as nebula's).
+real capture and on the twin's OS1-128 pcap, and frames per second against ouster-sdk's, both
+run now beside ours (ouster-sdk from the extra ``ouster``, `tools/setup.sh ouster`; without it
+those rows say so), and each Hesai model's agreement with nebula's decoder on a real capture
+(its test's ground-truth points; our decode without the firing rotation, as nebula's).
 """
 
 from __future__ import annotations
@@ -81,13 +82,16 @@ def captured_scans(sim: BenchSim, n: int) -> list:
 
 
 def ouster_decode_rows() -> list[str]:
-    """Decode agreement with ouster-sdk on its own real OS1-32 capture (its digest of every
-    field; its XYZLut's points), and decode throughput against ouster-sdk's when installed."""
+    """Decode agreement with ouster-sdk, run now beside ours: on its own real OS1-32 capture
+    (its digest of every field; ouster-sdk's decode of every frame, field for field; its
+    XYZLut's points) and on a 20-frame OS1-128 1024x10 pcap of the twin (the same); then decode
+    throughput of that pcap, ours and ouster-sdk's, and of the same frames as an OSF."""
     import hashlib
     import json
 
     from twin.lidar.ouster import OusterInfo, decode_packets
     from twin.lidar.ouster import frames as ouster_frames
+    from twin.lidar.ouster_sdk import OusterSdkMissingError, sdk
     from twin.lidar.pcap import read_pcap
 
     data = Path(__file__).resolve().parent.parent / "tests" / "data" / "ouster-os1-32"
@@ -100,38 +104,81 @@ def ouster_decode_rows() -> list[str]:
            "MEASUREMENT_ID": f.measurement_id, "STATUS": f.status.astype(np.uint64)}
     same = sum(hashlib.md5(np.ascontiguousarray(a).tobytes()).hexdigest() == digest[k]
                for k, a in md5.items())
-    ref = json.loads((data / "OS-1-32-G_v2.1.1_1024x10_xyz_ouster_sdk.json").read_text())
-    p = xyz_lidar(f.range_mm, info)[ref["row"], ref["column"]] * 1e-3
-    p[:, 2] += info.lidar_to_sensor[2, 3] * 1e-3
-    dxyz = float(np.abs(p - np.asarray(ref["xyz"])).max())
-    rows = [f"decode agreement with ouster-sdk (its OS1-32 capture): {same}/{len(md5)} fields' "
-            f"md5 equal (anchor {len(md5)}), points within {dxyz:.1e} m of its XYZLut's "
-            f"({len(ref['row'])} points)"]
-    # throughput: a 20-frame OS1-128 1024x10 pcap of the twin, through the source layer
+    rows = [f"decode agreement with ouster-sdk's digest (its OS1-32 capture): {same}/{len(md5)} "
+            f"fields' md5 equal (anchor {len(md5)})"]
+    try:
+        sdk("the comparison with ouster-sdk")
+    except OusterSdkMissingError as exc:
+        return [*rows, f"ouster-sdk rows skipped: {exc}"]
+    rows.append(_sdk_agreement_row("its OS1-32 capture", data / "OS-1-32-G_v2.1.1_1024x10.pcap",
+                                   data / "OS-1-32-G_v2.1.1_1024x10.json"))
     with tempfile.TemporaryDirectory() as tmp:
-        pcap = Path(tmp) / "os1128.pcap"
-        sim = BenchSim(seed=1)
-        write_ouster_pcap(sim, nominal_info("OS1-128"), pcap, 20, rng=np.random.default_rng(1))
-        best = min(_time(lambda: sum(1 for _ in open_scans(pcap))) for _ in range(3))
-        ours = 20 / best
-        try:
-            from ouster.sdk import core, open_source
+        rows += _ouster_throughput_rows(Path(tmp))
+    return rows
 
-            def sdk() -> None:
-                src = open_source(str(pcap), meta=[str(pcap.with_suffix(".json"))],
-                                  index=False)
-                lut = core.XYZLut(src.sensor_info[0], use_extrinsics=False)
-                for fs in src:
-                    lut(fs[0].field(core.ChanField.RANGE))
 
-            theirs = 20 / min(_time(sdk) for _ in range(3))
-            note = "measured now"
-        except ImportError:
-            theirs = 80.2  # ouster-sdk 1.0.1 in its own venv, this machine, one core, 2026-12-07
-            note = "ouster-sdk not installed here (it pins rosbags 0.9.23): measured 2026-12-07"
+def _sdk_agreement_row(what: str, pcap: Path, metadata: Path) -> str:
+    """ouster-sdk's decode of a pcap against ours, frame by frame: the fields equal, and the
+    largest difference of its XYZLut's points from ours."""
+    from twin.lidar.ouster import OusterInfo, decode_packets
+    from twin.lidar.ouster import frames as ouster_frames
+    from twin.lidar.ouster_sdk import pcap_frames, sdk, sdk_xyz
+    from twin.lidar.pcap import read_pcap
+
+    info = OusterInfo.from_json(metadata)
+    ours = list(ouster_frames(decode_packets(
+        [r.payload for r in read_pcap(pcap, ports=None)], info), info))
+    _, theirs, lidar_frames = pcap_frames(pcap, metadata)
+    fields = ("range_mm", "reflectivity", "signal", "near_ir", "timestamp_ns", "measurement_id",
+              "status")
+    equal = sum(all(np.array_equal(getattr(a, k), getattr(b, k)) for k in fields)
+                and a.frame_id == b.frame_id for a, b in zip(ours, theirs, strict=False))
+    sensor_info = sdk()[0].SensorInfo(metadata.read_text())
+    dxyz = 0.0
+    for lf, a in zip(lidar_frames, ours, strict=False):
+        hit = a.range_mm > 0
+        mine = xyz_lidar(a.range_mm, info) * 1e-3 + info.lidar_to_sensor[:3, 3] * 1e-3
+        dxyz = max(dxyz, float(np.abs(sdk_xyz(lf, sensor_info)[hit] - mine[hit]).max()))
+    return (f"decode agreement with ouster-sdk {_sdk_version()} run now ({what}): "
+            f"{equal}/{len(ours)} frames with all {len(fields)} fields and the frame id equal "
+            f"(ouster-sdk: {len(theirs)} frames), points within {dxyz:.1e} m of its XYZLut's")
+
+
+def _sdk_version() -> str:
+    from importlib.metadata import version
+
+    return version("ouster-sdk")
+
+
+def _ouster_throughput_rows(tmp: Path) -> list[str]:
+    """A 20-frame OS1-128 1024x10 pcap of the twin (and its frames as an OSF): agreement, then
+    frames a second, ours (pcap -> scans in {L}, through the source layer) against ouster-sdk's
+    (pcap -> frames -> XYZLut, its C++), best of 3 each, measured side by side now."""
+    from twin.lidar.ouster_sdk import sdk
+    from twin.sim.ouster_twin import write_ouster_osf
+
+    pcap, osf = tmp / "os1128.pcap", tmp / "os1128.osf"
+    info = nominal_info("OS1-128")
+    write_ouster_pcap(BenchSim(seed=1), info, pcap, 20, rng=np.random.default_rng(1))
+    write_ouster_osf(BenchSim(seed=1), info, osf, 20, rng=np.random.default_rng(1))
+    rows = [_sdk_agreement_row("the twin's OS1-128 pcap", pcap, pcap.with_suffix(".json"))]
+    core, _, pcap_mod = sdk()
+
+    def theirs_pcap() -> None:
+        src = pcap_mod.PcapFrameSetSource(str(pcap), meta=[str(pcap.with_suffix(".json"))])
+        lut = core.XYZLut(src.sensor_info[0], use_extrinsics=False)
+        for fs in src:
+            lut(fs[0].field(core.ChanField.RANGE))
+        src.close()
+
+    ours = 20 / min(_time(lambda: sum(1 for _ in open_scans(pcap))) for _ in range(3))
+    theirs = 20 / min(_time(theirs_pcap) for _ in range(3))
+    ours_osf = 20 / min(_time(lambda: sum(1 for _ in open_scans(osf))) for _ in range(3))
     rows.append(f"decode throughput, OS1-128 1024x10 pcap -> scans (points in {{L}}): "
                 f"{ours:.1f} frames/s; ouster-sdk pcap -> frames -> XYZLut {theirs:.1f} frames/s "
-                f"({note}); ratio {ours / theirs:.2f}; real time needs 10")
+                f"(measured now, the same pcap); ratio {ours / theirs:.2f}; real time needs 10")
+    rows.append(f"OSF read, the same 20 frames (ouster-sdk's reader -> our scans): "
+                f"{ours_osf:.1f} frames/s")
     return rows
 
 

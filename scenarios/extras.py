@@ -18,7 +18,12 @@ OPTIONAL = {
     "statsmodels": ("statsmodels", "grr"),
     "nicegui": ("nicegui", "station"),
     "asyncua": ("asyncua", "station"),
+    "ouster.sdk": ("ouster-sdk", "ouster"),
 }
+#: extra -> what to run instead of pip: ouster-sdk pins old rosbags, flask, click and psutil,
+#: so the extra lists what it needs and tools/setup.sh installs it without them (pyproject.toml).
+SETUP_ONLY = {"ouster": "run tools/setup.sh ouster (it installs ouster-sdk without the old "
+                        "rosbags, flask, click and psutil it pins)"}
 
 
 class MissingExtraError(AimbenchError):
@@ -39,5 +44,5 @@ def require(module: str, what: str) -> None:
     if installed(module):
         return
     dist, extra = OPTIONAL[module]
-    raise MissingExtraError(f"{what} needs {dist}, which is not installed: "
-                            f"pip install 'aimbench[{extra}]'")
+    how = SETUP_ONLY.get(extra, f"pip install 'aimbench[{extra}]'")
+    raise MissingExtraError(f"{what} needs {dist}, which is not installed: {how}")

@@ -26,6 +26,7 @@ HEAVY = (
     "tqdm",  # scenarios.progress' bars
     "align.api",  # the estimator (numba kernels, scipy)
     "align.result",  # align.Hints: numpy
+    "ouster.sdk",  # OSF files (twin.lidar.ouster_sdk): its C++ bindings, 0.5 s with numpy
 )
 #: A command whose parser truly needs one of HEAVY, and why (none does today).
 ALLOWED: dict[str, tuple[str, ...]] = {}

@@ -2,9 +2,8 @@
 written as LEGACY packets in a pcap with the metadata beside it, read back through the source
 layer and estimated at the true pose.
 
-ouster-sdk 1.0.1 itself read such a pcap (`aimbench simulate --model OS1-64`, checked once by
-hand outside the suite: ouster-sdk conflicts with the project's rosbags, docs/vlp16.md): the
-same frames, ranges and reflectivities, and its XYZLut's points equal ours to 3e-14 m.
+ouster-sdk 1.0.1 itself reads such pcaps to the same frames and points, and writes and reads
+the twin's OSF files: tests/test_ouster_sdk.py, run in the suite.
 """
 
 from __future__ import annotations

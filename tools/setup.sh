@@ -74,6 +74,15 @@ else
   echo "setup: installing aimbench (the main job's libraries only) into .venv"
   .venv/bin/python -m pip install -q -e .
 fi
+# ouster-sdk (the extra `ouster`, and `test`, whose tests run it): installed without its
+# dependencies, since every release 0.14-1.0.1 pins rosbags==0.9.23, flask==3.0, click<8.1.8 and
+# psutil<6 (1.0.1's METADATA) and pip would downgrade the project's rosbags>=0.11 to them. What
+# its core, pcap and osf modules import came with the extra above (pyproject.toml).
+case ",$EXTRAS," in
+  *,ouster,*|*,test,*)
+    echo "setup: installing ouster-sdk 1.0.1 without its pinned dependencies"
+    .venv/bin/python -m pip install -q --no-deps "ouster-sdk==1.0.1" ;;
+esac
 # Compile the numba kernels now, into numba's cache (beside their modules), so the first command
 # of a fresh install does not wait for them (scenarios/warmup.py).
 echo "setup: compiling the numba kernels (once: about 2.5 minutes of one core; benchmarks/bench_warmup.py)"

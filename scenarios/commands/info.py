@@ -233,6 +233,18 @@ def format_summary(s: dict) -> str:
             ("points", f"{s['points']} firings, {s['returns']} returns"),
         ]
         return "\n".join(f"{k:17s} {v}" for k, v in lines)
+    if "osf" in s:  # an Ouster's OSF file, read by ouster-sdk
+        lines += [
+            ("model", f"{s['model']} ({s['prod_line']}, serial {s['serial'] or '-'}, "
+                      f"firmware {s['firmware'] or '-'}; metadata in the file)"),
+            ("lidar mode", f"{s['lidar_mode']} ({s['profile']} packets, as recorded)"),
+            ("rpm", rpm),
+            ("sensors", f"{s['osf']['sensors']} (the first read)"),
+            ("scans", f"{s['scans']} ({s['complete_scans']} complete, {s['partial_scans']} "
+                      f"partial: {s['missing_columns']} columns missing)"),
+            ("points", f"{s['points']} firings, {s['returns']} returns"),
+        ]
+        return "\n".join(f"{k:17s} {v}" for k, v in lines)
     if "lidar_mode" in s:  # an Ouster sensor's packets
         lines += [
             ("model", f"{s['model']} ({s['prod_line']}, serial {s['serial'] or '-'}, "
@@ -291,6 +303,8 @@ def _ouster_cloud_summary(s: dict, lines: list[tuple[str, Any]]) -> str:
 def _describe(s: dict) -> str:
     if "ouster_cloud" in s:
         return f"{s['capture']} (Ouster organised point cloud)"
+    if "osf" in s:
+        return f"{s['capture']} (Ouster OSF, read by ouster-sdk {s['osf']['ouster_sdk']})"
     kind = s.get("kind", "pcap")
     if kind == "udp" and "lidar_mode" not in s and s.get("model") not in HESAI_NAMES:
         return f"{s['capture']} (live)"

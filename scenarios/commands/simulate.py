@@ -70,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
         mount_tilt=base.mount_tilt + math.radians(args.tilt_deg),
         mount_yaw=base.mount_yaw + math.radians(args.mount_yaw_deg))
     model = args.model or station.sensor.model
+    if out.suffix.lower() == ".osf":
+        _check_osf(model)
     if is_ouster_model(model):
         return _simulate_ouster(args, params, model, out, station, station_file)
     if model in HESAI_NAMES:
@@ -119,32 +121,53 @@ def _truth_file(args: argparse.Namespace, out: Path, scans: list, sim, station: 
                        params=_jsonable(params), sensor=sensor)
 
 
+def _check_osf(model: str) -> None:
+    """An OSF (`--out FILE.osf`) is an Ouster's frames, written by ouster-sdk: both checked
+    before the twin is built."""
+    from scenarios.extras import require
+    from twin.lidar.ouster import is_ouster_model
+
+    if not is_ouster_model(model):
+        raise AimbenchError(f"--out FILE.osf writes an Ouster's frames, not a {model}'s: give "
+                            f"--model {OUSTER_MODELS[0]} (or another Ouster), or write .pcap")
+    require("ouster.sdk", "--out FILE.osf")
+
+
 def _simulate_ouster(args: argparse.Namespace, params, model: str, out: Path,
                      station: stations.Station, station_file) -> int:
-    """An Ouster's frames of the twin's bench (`twin.sim.ouster_twin`): the pcap, its metadata
-    JSON beside it (what the sensor's tools record), and the truth file."""
+    """An Ouster's frames of the twin's bench (`twin.sim.ouster_twin`): the pcap with its
+    metadata JSON beside it (what the sensor's tools record), or an OSF with the metadata in
+    it (``--out FILE.osf``, through ouster-sdk), and the truth file."""
     import numpy as np
 
     from twin.lidar.ouster import nominal_info, scans_from_payloads
     from twin.lidar.pcap import read_pcap
+    from twin.lidar.sources import open_scans
     from twin.sim.bench import BenchSim
-    from twin.sim.ouster_twin import write_ouster_pcap
+    from twin.sim.ouster_twin import write_ouster_osf, write_ouster_pcap
 
     info = nominal_info(model, args.lidar_mode)
     sim = BenchSim(params, seed=args.seed)
     sim.move_to(x_m=args.x_mm * 1e-3, yaw_rad=math.radians(args.yaw_deg))  # checks the travel
     rng = np.random.default_rng(args.seed)
-    truth_pose = write_ouster_pcap(sim, info, out, args.scans, rng=rng,
-                                   range_sigma=0.0 if args.ideal else 0.01)
-    scans = scans_from_payloads([r.payload for r in read_pcap(out, ports=None)], info)
+    osf = out.suffix.lower() == ".osf"
+    write = write_ouster_osf if osf else write_ouster_pcap
+    truth_pose = write(sim, info, out, args.scans, rng=rng,
+                       range_sigma=0.0 if args.ideal else 0.01)
+    if osf:  # read back through ouster-sdk, as `estimate` reads it
+        with open_scans(out) as source:
+            scans = list(source)
+    else:
+        scans = scans_from_payloads([r.payload for r in read_pcap(out, ports=None)], info)
     for s in scans:
         s.meta["truth_pose"] = truth_pose
     truth = _truth_file(args, out, scans, sim, station, station_file, params,
                         {"model": model, "lidar_mode": args.lidar_mode, "metadata": info.source})
     if not args.quiet:
         p = truth_pose
+        meta = "its metadata in it" if osf else f"{out.with_suffix('.json').name} (its metadata)"
         print(f"wrote {out} ({len(scans)} {model} frames, {args.lidar_mode}), "
-              f"{out.with_suffix('.json').name} (its metadata) and {truth.name}; true pose: "
+              f"{meta} and {truth.name}; true pose: "
               f"x {p.x * 1e3:.1f} mm, y {p.y * 1e3:.1f} mm, z {p.z * 1e3:.1f} mm, "
               f"roll {math.degrees(p.roll):.3f} deg, tilt {math.degrees(p.tilt):.3f} deg, "
               f"yaw {math.degrees(p.yaw):.3f} deg")
@@ -202,7 +225,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                    help="spin rate, rpm (300..1200)")
     p.add_argument("--return-mode", choices=("strongest", "last", "dual"), default="strongest")
     p.add_argument("--out", required=True, type=cliargs.output_file,
-                   help="capture file to write (.pcap)")
+                   help="capture file to write (.pcap; an Ouster's also .osf, through "
+                        "ouster-sdk)")
     station_options.add_arguments(p)
     p.add_argument("--scene", choices=tuple(SCENES), default=None,
                    help="the scene the bench stands in (default: the station's twin.scene; "

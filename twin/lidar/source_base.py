@@ -21,7 +21,7 @@ from twin.core.scan import Scan
 
 #: What every error about a source name says can be given.
 KINDS_HELP = ("a .pcap/.pcapng capture, udp://HOST:PORT, a ROS 1 .bag, a ROS 2 bag (folder, "
-              ".db3 or .mcap) or a .pcd file")
+              ".db3 or .mcap), a .pcd file or an Ouster .osf file")
 DEFAULT_UDP = f"udp://0.0.0.0:{vlp16.DATA_PORT}"
 
 _MAGIC = (
@@ -32,7 +32,10 @@ _MAGIC = (
     (b"# .PCD", "pcd"), (b"VERSION", "pcd"), (b"FIELDS", "pcd"),
 )
 _SUFFIXES = {".pcap": "pcap", ".pcapng": "pcap", ".bag": "bag", ".db3": "bag", ".mcap": "bag",
-             ".pcd": "pcd"}
+             ".pcd": "pcd", ".osf": "osf"}
+#: An OSF file (Ouster's format, ouster-sdk) is a size-prefixed flatbuffer: its identifier
+#: follows the size and the root offset.
+_OSF_ID = (8, b"OSF$")
 
 
 class SourceError(AimbenchError):
@@ -45,7 +48,7 @@ class SourceExhaustedError(SourceError):
 
 @dataclass(frozen=True)
 class SourceName:
-    """A parsed source name: its ``kind`` (pcap, udp, bag, pcd) and where it is."""
+    """A parsed source name: its ``kind`` (pcap, udp, bag, pcd, osf) and where it is."""
 
     text: str
     kind: str
@@ -102,6 +105,9 @@ def _kind_of(path: Path) -> str:
     for magic, kind in _MAGIC:
         if head.startswith(magic):
             return kind
+    at, osf_id = _OSF_ID
+    if head[at:at + len(osf_id)] == osf_id:
+        return "osf"
     kind = _SUFFIXES.get(path.suffix.lower())
     if kind is None:
         raise SourceError(f"{path}: not a format aimbench reads (starts with "

@@ -15,6 +15,8 @@ name                           what is read
 ``FILE.db3``, ``FILE.mcap``
 ``FILE.pcd``                   a point cloud file (one scan, or one per value of a ``scan``
                                field)
+``FILE.osf``                   an Ouster OSF file (its metadata in it), read by ouster-sdk
+                               (`twin.lidar.ouster_sdk`)
 =============================  ==============================================================
 
 A bag's LiDAR topic is found by its type (velodyne_msgs/VelodyneScan raw packets, else
@@ -253,6 +255,10 @@ def open_scans(
     (default: the model's nominal one).
     """
     src = name if isinstance(name, SourceName) else parse_source(name)
+    if src.kind == "osf":  # an Ouster's frames and metadata, through ouster-sdk
+        from twin.lidar.ouster_sdk import OsfScanSource
+
+        return OsfScanSource(src, max_scans)
     if src.kind in ("pcd", "bag") and (model is None or isinstance(model, str)):
         hesai_cloud = _open_hesai_cloud(src, model, hesai_angles, max_scans)
         if hesai_cloud is not None:

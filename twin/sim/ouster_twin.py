@@ -1,5 +1,6 @@
 """An Ouster OS0 / OS1 / OS2 on the twin's bench, emulated from its metadata, written as the
-sensor's own LEGACY packets in a pcap with the metadata JSON beside it.
+sensor's own LEGACY packets in a pcap with the metadata JSON beside it, or as an OSF file
+through ouster-sdk's writer (`twin.lidar.ouster_sdk`), the metadata in it.
 
 Every pixel of a frame is a MuJoCo ray (`twin.sim.emulation.RayCaster.cast`, the cast the
 Velodyne emulation makes) from its beam's origin, in its beam's direction, both as ouster-sdk's
@@ -107,4 +108,16 @@ def write_ouster_pcap(sim, info: OusterInfo, path: str | Path, n_frames: int, *,
                               src_port=info.udp_port_lidar)
                 i += 1
     path.with_suffix(".json").write_text(info_json(info))
+    return truth
+
+
+def write_ouster_osf(sim, info: OusterInfo, path: str | Path, n_frames: int, *,
+                     rng: np.random.Generator, range_sigma: float = 0.01) -> Pose:
+    """Write ``n_frames`` frames to an OSF file through ouster-sdk's writer (Ouster's own tools
+    read it; the metadata in it); the true pose of {L} in the board frame. The frames are those
+    `write_ouster_pcap` writes for the same ``rng``."""
+    from twin.lidar.ouster_sdk import write_osf  # ouster-sdk, loaded only for an OSF
+
+    frames, truth = emulate_frames(sim, info, n_frames, rng=rng, range_sigma=range_sigma)
+    write_osf(path, frames, info)
     return truth
