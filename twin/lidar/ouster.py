@@ -391,6 +391,36 @@ def packet_frame_id(payload: bytes, info: OusterInfo) -> int:
     return int.from_bytes(fid, "little") | int.from_bytes(init, "little") << 32
 
 
+def _crc64_table() -> tuple[int, ...]:
+    """CRC-64/XZ's table (ECMA-182's polynomial, reflected: ouster-sdk's crc64_init)."""
+    poly, table = 0xC96C5795D7870F42, []
+    for i in range(256):
+        crc = i
+        for _ in range(8):
+            crc = (crc >> 1) ^ (poly if crc & 1 else 0)
+        table.append(crc)
+    return tuple(table)
+
+
+_CRC64 = _crc64_table()
+
+
+def crc64(data: bytes) -> int:
+    """CRC-64/XZ of some bytes, as the sensor computes a packet's (ouster-sdk crc64_compute)."""
+    crc = 0xFFFFFFFFFFFFFFFF
+    for byte in data:
+        crc = _CRC64[(crc ^ byte) & 0xFF] ^ (crc >> 8)
+    return crc ^ 0xFFFFFFFFFFFFFFFF
+
+
+def footer_crc_ok(payload: bytes) -> bool:
+    """Whether a non-LEGACY packet's last 8 bytes are the CRC64 of the rest: firmware 3.x sends
+    one, 2.x leaves the footer 0 (and this False). Not checked while decoding, as ouster-sdk's
+    batcher does not (a pure-Python CRC of 640 packets a second would not keep up); for a
+    capture's check (tests/test_ouster_profiles.py)."""
+    return crc64(payload[:-8]) == int.from_bytes(payload[-8:], "little")
+
+
 def profile_column_dtype(info: OusterInfo) -> np.dtype:
     """One column of a non-LEGACY packet as `decode_packets` gives it: its packet header's
     fields (repeated in each of the packet's columns), its column header, its pixels' bytes."""
@@ -554,6 +584,8 @@ def _profile_frame(cols: np.ndarray, info: OusterInfo) -> Frame:
     for f in info.profile.fields:
         out[f.name] = np.zeros((w, h), dtype=f.dtype)
         out[f.name][m] = _pixel_field(cols["pixels"], f)
+    if "range2_mm" in out and "signal2" not in out:  # (nor for RNG15's second return)
+        out["signal2"] = np.zeros((w, h), dtype=np.uint16)
     out = {name: a.T for name, a in out.items()}  # (H, W) views of columns filled as (W, H)
     ts = np.zeros(w, dtype=np.uint64)
     ts[m] = cols["timestamp"]
@@ -663,11 +695,31 @@ def _scan_table(info: OusterInfo) -> _ScanTable:
     return table
 
 
+def _one_return(frame: Frame, beam: np.ndarray, col: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range (mm), reflectivity and `ReturnType` of each firing: the first return, which the
+    sensor sends as the strongest; in a dual profile, where the first has no range and the
+    second does, the second (flagged SECOND_STRONGEST), as a Velodyne's or Hesai's dual-return
+    firing keeps its strongest echo and falls back to the other where the strongest missed:
+    the beam did meet something, and a miss there would tell the estimator otherwise (115 of
+    the real OS0-32 dual frame's 32768 pixels: a first return with signal but no range)."""
+    rng = frame.range_mm[beam, col]
+    refl = frame.reflectivity[beam, col].astype(np.uint8)
+    kind = np.full(len(rng), int(ReturnType.STRONGEST), dtype=np.uint8)
+    if frame.range2_mm is None:
+        return rng, refl, kind
+    rng2 = frame.range2_mm[beam, col]
+    second = (rng == 0) & (rng2 > 0)
+    kind[second] = int(ReturnType.SECOND_STRONGEST)
+    return (np.where(second, rng2, rng),
+            np.where(second, frame.reflectivity2[beam, col], refl).astype(np.uint8), kind)
+
+
 def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
     """The `Scan` of a frame: every pixel of the column window in {L}, in `pixel_order`."""
     t = _scan_table(info)
     w = info.columns_per_frame
-    rng = frame.range_mm[t.beam, t.col]
+    rng, intensity, kind = _one_return(frame, t.beam, t.col)
     hit = rng > 0
     r = rng.astype(np.float64)
     # p = r d + offset (xyz_lidar), in m; {L}: y forward, x right
@@ -683,8 +735,7 @@ def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
     missing = int((~frame.received[cols]).sum())
     return Scan(
         distance=distance, azimuth=t.azimuth.copy(), laser_id=t.beam.astype(np.uint8),
-        intensity=frame.reflectivity[t.beam, t.col].astype(np.uint8),
-        time=time, return_type=np.full(len(rng), int(ReturnType.STRONGEST), dtype=np.uint8),
+        intensity=intensity, time=time, return_type=kind,
         x=x, y=y, z=z, index=index, complete=missing == 0, packets=frame.packets,
         missing_packets=int(np.ceil(missing / info.columns_per_packet)), product_id=0,
         vertical_offsets_applied=True, lasers=info.lasers,
