@@ -6,7 +6,9 @@ field, as tests/test_ouster.py holds the LEGACY OS1-32 to) and, with ouster-sdk 
 exactly what ouster-sdk 1.0.1 decodes from it: every field of every frame, the packet header's
 (frame id, init id, serial number, thermal and shot-limiting states and countdowns, each
 packet's alert flags), and every point within 1e-8 m. The pcap and live UDP read them; a
-packet cut short or of another profile's size is one line naming the problem.
+packet cut short or of another profile's size is one line naming the problem. The twin emits
+the profiles too (`aimbench simulate --udp-profile`), and ouster-sdk reads its pcaps to our
+frames.
 """
 
 from __future__ import annotations
@@ -23,13 +25,16 @@ import numpy as np
 import pytest
 
 from tests.conftest import DATA_DIR
+from twin.core.sensor_names import OUSTER_PROFILES, OUSTER_TWIN_PROFILES
 from twin.lidar.ouster import (
+    PROFILES,
     OusterError,
     OusterInfo,
     OusterScans,
     decode_packets,
     footer_crc_ok,
     frames,
+    nominal_info,
     pixel_order,
     scan_from_frame,
     xyz_lidar,
@@ -272,3 +277,69 @@ def test_firmware_3_packets_carry_the_crc64_ouster_sdk_computes():
     assert footer_crc_ok(bytes(bad))
     bad[100] ^= 1
     assert not footer_crc_ok(bytes(bad))
+
+
+def test_the_command_lines_profile_names_are_the_decoders():
+    assert tuple(PROFILES) == OUSTER_PROFILES and set(OUSTER_TWIN_PROFILES) <= set(PROFILES)
+
+
+@pytest.fixture(scope="module")
+def sim():
+    from twin.sim.bench import BenchSim
+    from twin.sim.params import BenchParams
+
+    return BenchSim(BenchParams(), seed=0)
+
+
+@pytest.mark.parametrize("profile", OUSTER_TWIN_PROFILES)
+def test_the_twin_emits_each_profile_and_ouster_sdk_reads_it_to_our_frames(sim, sdk, tmp_path,
+                                                                           profile):
+    from twin.sim.ouster_twin import emulate_frames, write_ouster_pcap
+
+    info = nominal_info("OS0-32", "512x10", profile)
+    pcap = tmp_path / "twin.pcap"
+    write_ouster_pcap(sim, info, pcap, 2, rng=np.random.default_rng(5))
+    emitted, _ = emulate_frames(sim, info, 2, rng=np.random.default_rng(5))
+    ours = list(frames(decode_packets([r.payload for r in read_pcap(pcap, ports=None)], info),
+                       info))
+    sdk_info, theirs, lidar_frames = sdk.pcap_frames(pcap, pcap.with_suffix(".json"))
+    assert sdk_info.udp_profile_lidar == profile and len(ours) == len(theirs) == 2
+    sensor_info = sdk.sdk()[0].SensorInfo(pcap.with_suffix(".json").read_text())
+    coarse = 3 if profile.startswith("RNG15") else 0  # (RNG15 sends range in 8 mm)
+    for a, b, e, lf in zip(ours, theirs, emitted, lidar_frames, strict=True):
+        for name in FIELDS:
+            x, y = getattr(a, name), getattr(b, name)
+            assert (x is None) == (y is None), name
+            assert x is None or (x.dtype == y.dtype and np.array_equal(x, y)), name
+        for name in HEADER:
+            assert getattr(a, name) == getattr(b, name), name
+        # what the twin meant to send, as the profile carries it
+        assert np.array_equal(a.range_mm, e.range_mm >> coarse << coarse)
+        assert np.array_equal(a.reflectivity, e.reflectivity)
+        assert np.array_equal(a.timestamp_ns, e.timestamp_ns) and a.received.all()
+        if not profile.startswith("RNG15"):
+            assert np.array_equal(a.signal, e.signal)
+        hit = a.range_mm > 0
+        mine = xyz_lidar(a.range_mm, info) * 1e-3 + info.lidar_to_sensor[:3, 3] * 1e-3
+        assert np.abs(sdk.sdk_xyz(lf, sensor_info)[hit] - mine[hit]).max() < 1e-8
+
+
+def test_simulate_writes_the_default_profile_and_its_scans_are_legacys(tmp_path, capsys):
+    """`aimbench simulate --udp-profile RNG19_RFL8_SIG16_NIR16`: the same draws as LEGACY's
+    packets, so the same scans, array for array; `info` names the profile."""
+    from scenarios.cli import main
+
+    args = ["simulate", "--model", "OS1-64", "--lidar-mode", "512x10", "--scans", "2",
+            "--roll-deg", "1", "--quiet"]
+    assert main([*args, "--udp-profile", "RNG19_RFL8_SIG16_NIR16", "--out",
+                 str(tmp_path / "rng19.pcap")]) == 0
+    assert main([*args, "--out", str(tmp_path / "legacy.pcap")]) == 0
+    rng19, legacy = (list(open_scans(tmp_path / f"{n}.pcap")) for n in ("rng19", "legacy"))
+    assert len(rng19) == len(legacy) == 2
+    for s, t in zip(rng19, legacy, strict=True):
+        for name in ("distance", "azimuth", "laser_id", "intensity", "time", "return_type", "x",
+                     "y", "z"):
+            assert np.array_equal(getattr(s, name), getattr(t, name)), name
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "rng19.pcap")]) == 0
+    assert "512x10 (RNG19_RFL8_SIG16_NIR16 packets)" in capsys.readouterr().out

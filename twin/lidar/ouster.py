@@ -117,7 +117,8 @@ _RNG15_DUAL = (
     *_RNG15_FIRST, _f("range2_mm", 4, 2, 0, 15, np.uint32, 3), _f("flags2", 5, 1, 7, 1, np.uint8),
     _f("reflectivity2", 6, 1, 0, 8, np.uint8))
 
-#: The profiles decoded; LEGACY's pixel is read by `column_dtype` as it always was.
+#: The profiles decoded (named in `twin.core.sensor_names.OUSTER_PROFILES` too, for the
+#: command line); LEGACY's pixel is read by `column_dtype` as it always was.
 PROFILES: dict[str, Profile] = {p.name: p for p in (
     Profile("LEGACY", 12, ()),
     Profile("RNG19_RFL8_SIG16_NIR16", 12, (
@@ -854,9 +855,12 @@ def _ouster_key(name: str) -> tuple[str, int] | None:
     return None
 
 
-def nominal_info(model: str, lidar_mode: str = "1024x10") -> OusterInfo:
+def nominal_info(model: str, lidar_mode: str = "1024x10",
+                 udp_profile: str = "LEGACY") -> OusterInfo:
     """The metadata of a model (``OS1-64``...) in a lidar mode, from a real unit's file
-    (`_METADATA_FILES`), sending LEGACY packets on port 7502."""
+    (`_METADATA_FILES`), sending packets of ``udp_profile`` (LEGACY by default) on port
+    7502."""
+    profile_of(udp_profile, f"--udp-profile {udp_profile}")
     key = _ouster_key(model)
     if key is None:
         raise OusterError(f"unknown Ouster model {model!r}: aimbench knows "
@@ -876,7 +880,7 @@ def nominal_info(model: str, lidar_mode: str = "1024x10") -> OusterInfo:
         pixel_shift_by_row=base.pixel_shift_by_row[rows] * w // base.columns_per_frame,
         beam_altitude_deg=base.beam_altitude_deg[rows],
         beam_azimuth_deg=base.beam_azimuth_deg[rows], beam_to_lidar_mm=base.beam_to_lidar_mm,
-        lidar_to_sensor=base.lidar_to_sensor, udp_profile_lidar="LEGACY",
+        lidar_to_sensor=base.lidar_to_sensor, udp_profile_lidar=udp_profile,
         udp_port_lidar=LIDAR_PORT, serial="twin", firmware=base.firmware,
         source=f"{path.name} ({model}, {lidar_mode})")
 
@@ -917,3 +921,48 @@ def columns_from_frame(frame: Frame, info: OusterInfo) -> np.ndarray:
     px["signal"] = frame.signal.T
     px["near_ir"] = frame.near_ir.T
     return cols
+
+
+def encode_frame(frame: Frame, info: OusterInfo, *, init_id: int = 0,
+                 prod_sn: int = 0) -> list[bytes]:
+    """The packets of a frame in the metadata's non-LEGACY profile (`decode_packets`' inverse,
+    measurement-id order): the packet header with the frame id, ``init_id`` and ``prod_sn``
+    (no alert, thermal or shot-limiting state), each column's header (status 1 when received,
+    else 0), the pixels' bit fields (a field's low bits dropped where the profile sends it
+    coarser: RNG15's range in 8 mm), a zero footer (firmware 2.x's; 3.x puts a CRC64 there).
+    A field the frame lacks (a second return, flags) is sent as 0."""
+    profile = info.profile
+    if profile.legacy:
+        raise ValueError("encode_frame writes the non-LEGACY profiles; LEGACY: encode_packets")
+    h, w, cpp = info.pixels_per_column, info.columns_per_frame, info.columns_per_packet
+    pixels = np.zeros((w, h, profile.pixel_bytes), dtype=np.uint8)
+    for f in profile.fields:
+        values = getattr(frame, f.name)
+        if values is None:
+            continue
+        word = (values.T.astype(np.uint64) >> np.uint64(f.upshift)) & np.uint64((1 << f.bits) - 1)
+        word <<= np.uint64(f.shift)
+        for i in range(f.word):
+            pixels[:, :, f.byte + i] |= ((word >> np.uint64(8 * i)) & np.uint64(0xFF)).astype(
+                np.uint8)
+    cols = np.zeros(w, dtype=[("timestamp", "<u8"), ("measurement_id", "<u2"),
+                              ("status", "<u2"), ("pixels", "u1", (h, profile.pixel_bytes))])
+    cols["timestamp"] = frame.timestamp_ns
+    cols["measurement_id"] = np.arange(w)
+    cols["status"] = frame.received.astype(np.uint16)
+    cols["pixels"] = pixels
+    header = bytearray(PACKET_HEADER_BYTES)
+    if info.header_type == "FUSA":
+        header[0] = 1  # packet type: lidar
+        header[1:4] = init_id.to_bytes(3, "little")
+        header[4:8] = (frame.frame_id % 2**32).to_bytes(4, "little")
+        header[11:16] = prod_sn.to_bytes(5, "little")
+    else:
+        header[0:2] = (1).to_bytes(2, "little")
+        header[2:4] = (frame.frame_id % 2**16).to_bytes(2, "little")
+        header[4:7] = init_id.to_bytes(3, "little")
+        header[7:12] = prod_sn.to_bytes(5, "little")
+    footer = bytes(PACKET_FOOTER_BYTES)
+    raw = cols.tobytes()
+    step = cpp * info.column_bytes
+    return [bytes(header) + raw[i:i + step] + footer for i in range(0, len(raw), step)]

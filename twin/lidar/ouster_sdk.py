@@ -107,6 +107,8 @@ def frame_of(lidar_frame, columns_per_packet: int, profile: str = "LEGACY") -> F
         if "range2_mm" in extra and "signal2" not in extra:  # (RNG15's dual: no signal)
             extra["signal2"] = np.zeros(shape, dtype=np.uint16)
         status_bits = int(lidar_frame.frame_status)
+        # (init id and serial: ouster-sdk's SensorInfo's, which it takes from the metadata and
+        # starts a new frame on a packet whose init id differs; the LidarFrame has no other)
         extra.update(
             init_id=int(lidar_frame.sensor_info.init_id), prod_sn=int(lidar_frame.sensor_info.sn),
             thermal_shutdown=status_bits & 0x0F, shot_limiting=(status_bits >> 4) & 0x0F,
