@@ -247,7 +247,7 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     p.add_argument("--lidar-mode", choices=LIDAR_MODES, default="1024x10",
                    help="an Ouster's columns x frames a second (default 1024x10)")
     p.add_argument("--udp-profile", choices=OUSTER_TWIN_PROFILES, default="LEGACY",
-                   help="an Ouster's lidar packet profile (default LEGACY; firmware 2.2 and "
-                        "later send RNG19_RFL8_SIG16_NIR16 unless set)")
+                   help="an Ouster's lidar packet profile (default LEGACY; recent firmware "
+                        "sends RNG19_RFL8_SIG16_NIR16 unless set)")
     p.set_defaults(func=run)
     return p

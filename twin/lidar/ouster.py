@@ -12,13 +12,14 @@ header (timestamp u64 ns, measurement id u16, frame id u16, encoder count u32), 
 pixel per beam (range u32 of which 20 bits are mm, reflectivity u16 of which ouster-sdk keeps
 the low byte, signal u16, near-IR u16, 2 unused bytes) and a status u32 (0xFFFFFFFF when the
 column is valid). Little-endian. The other profiles (`PROFILES`: RNG19_RFL8_SIG16_NIR16, the
-default of firmware 2.2 and later, its _DUAL, RNG15_RFL8_NIR8 and the two RNG15 dual ones) wrap
+default of recent firmware, its _DUAL, RNG15_RFL8_NIR8 and the two RNG15 dual ones) wrap
 the columns in a 32-byte packet header (packet type, frame id, init id, serial number, alert
 flags, thermal and shot-limiting countdowns and states) and a 32-byte footer (its last 8 bytes
 a CRC64 in firmware 3.x); a column is a 12-byte header (timestamp u64 ns, measurement id u16,
 status u16, bit 0 valid) and the pixels, packed bit fields per profile (ouster-sdk's
 ``parsing.cpp``). A dual profile's first return is the strongest, its second the second
-strongest: the `Scan` keeps the first (`scan_from_frame`), the `Frame` both.
+strongest: the `Scan` keeps the first, or the second where the first has no range
+(`scan_from_frame`), the `Frame` both.
 
 A frame is W columns (512, 1024 or 2048) of H beams (32, 64 or 128), as fired: pixel (row,
 column) is beam ``row`` fired at column ``column`` (ouster-sdk's "staggered" frame). Its points
