@@ -343,3 +343,39 @@ def test_simulate_writes_the_default_profile_and_its_scans_are_legacys(tmp_path,
     capsys.readouterr()
     assert main(["info", str(tmp_path / "rng19.pcap")]) == 0
     assert "512x10 (RNG19_RFL8_SIG16_NIR16 packets)" in capsys.readouterr().out
+
+
+def test_live_packets_of_another_profile_than_the_metadatas_are_one_line(tmp_path):
+    """The OS2-128's RNG19 packets sent live to a reader given its metadata saying LEGACY: the
+    receiver drops the 24,832-byte datagrams (it expects 24,896) and says so in one line."""
+    from twin.lidar.udp import SensorSilentError
+
+    c = CAPTURES[0]
+    d = json.loads(c.meta_path.read_text())
+    d["data_format"]["udp_profile_lidar"] = "LEGACY"
+    meta = tmp_path / "os2-legacy.json"
+    meta.write_text(json.dumps(d))
+    assert OusterInfo.from_json(meta).packet_bytes == 24896
+    sent = [p for p in payloads(c) if len(p) == 24832]
+    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    probe.bind(("127.0.0.1", 0))
+    port = probe.getsockname()[1]
+    probe.close()
+    errors = []
+
+    def receive() -> None:
+        try:
+            with open_scans(f"udp://127.0.0.1:{port}", ouster_metadata=meta, max_scans=1,
+                            timeout_s=0.6) as live:
+                list(live)
+        except SensorSilentError as exc:
+            errors.append(str(exc))
+
+    t = threading.Thread(target=receive)
+    t.start()
+    time.sleep(0.3)
+    send_packets(sent[:8], ("127.0.0.1", port), rate_hz=2000)
+    t.join(10)
+    (line,) = errors
+    assert "no data packet of the expected 24896 bytes" in line and "the last 24832 bytes" in line
+    assert "its lidar profile" in line and "\n" not in line
