@@ -379,3 +379,16 @@ def test_live_packets_of_another_profile_than_the_metadatas_are_one_line(tmp_pat
     (line,) = errors
     assert "no data packet of the expected 24896 bytes" in line and "the last 24832 bytes" in line
     assert "its lidar profile" in line and "\n" not in line
+
+
+def test_the_summary_warns_of_a_sensor_limiting_its_shots_or_overheating():
+    c = CAPTURES[5]  # firmware 3.x, its header's states 1 and shutdown countdown 5
+    with open_scans(c.pcap_path, ouster_metadata=c.meta_path) as source:
+        list(source)
+        warnings = source.summary()["warnings"]
+    assert any("1 of 1 frames with the packet header's shot-limiting state set" in w
+               for w in warnings)
+    assert any("thermal-shutdown state set" in w for w in warnings)
+    with open_scans(CAPTURES[0].pcap_path, ouster_metadata=CAPTURES[0].meta_path) as source:
+        list(source)
+        assert source.summary()["warnings"] == []

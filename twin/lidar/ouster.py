@@ -762,7 +762,8 @@ class OusterScans:
         self.packets = packets
         self.info = info
         self.counts = {"packets": 0, "other_datagrams": 0, "frames": 0, "complete": 0,
-                       "firings": 0, "returns": 0, "missing_columns": 0}
+                       "firings": 0, "returns": 0, "missing_columns": 0,
+                       "shot_limiting_frames": 0, "thermal_shutdown_frames": 0}
 
     def __iter__(self) -> Iterator[Scan]:
         size = self.info.packet_bytes
@@ -800,6 +801,10 @@ class OusterScans:
         c["firings"] += len(s)
         c["returns"] += int(s.valid.sum())
         c["missing_columns"] += s.meta["missing_columns"]
+        # the packet header's states (non-LEGACY profiles): a sensor limiting its shots or
+        # about to shut down for heat measures less well, which a reader should be told
+        c["shot_limiting_frames"] += int(f.shot_limiting != 0)
+        c["thermal_shutdown_frames"] += int(f.thermal_shutdown != 0)
         return s
 
     def summary(self) -> dict:
@@ -815,8 +820,21 @@ class OusterScans:
             "complete_scans": c["complete"], "partial_scans": c["frames"] - c["complete"],
             "points": c["firings"], "returns": c["returns"],
             "missing_columns": c["missing_columns"], "metadata": i.source,
-            "warnings": list(i.notes),
+            "warnings": list(i.notes) + _state_warnings(c),
         }
+
+
+def _state_warnings(counts: dict) -> list[str]:
+    """What the frames' packet headers said of the sensor's state, for the summary."""
+    out = []
+    for key, what in (("shot_limiting_frames", "shot-limiting state set (the sensor limiting "
+                       "its laser's shots: a weaker signal)"),
+                      ("thermal_shutdown_frames", "thermal-shutdown state set (the sensor "
+                       "overheating, near shutting down)")):
+        if counts.get(key):
+            out.append(f"{counts[key]} of {counts['frames']} frames with the packet header's "
+                       f"{what}")
+    return out
 
 
 def _is_dual(info: OusterInfo) -> bool:
