@@ -27,7 +27,8 @@ metadata, its LEGACY packets, our decoder), the Hesai PandarXT32 and PandarQT128
 `twin.sim.hesai_twin` (nebula's angle corrections, their packets with each channel cast where
 the head turned to when it fired, our decoder, which puts that rotation back as Hesai's SDK 2.0
 does with its firetime file); then the decode rows: Ouster agreement with ouster-sdk on its own
-real capture and on the twin's OS1-128 pcap, and frames per second against ouster-sdk's, both
+real captures (LEGACY and the other packet profiles) and on the twin's OS1-128 pcap (LEGACY and
+RNG19_RFL8_SIG16_NIR16), and frames per second against ouster-sdk's, both
 run now beside ours (ouster-sdk from the extra ``ouster``, `tools/setup.sh ouster`; without it
 those rows say so), and each Hesai model's agreement with nebula's decoder on a real capture
 (its test's ground-truth points; our decode without the firing rotation, as nebula's).
