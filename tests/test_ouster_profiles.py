@@ -32,6 +32,7 @@ from twin.lidar.ouster import (
     OusterInfo,
     OusterScans,
     decode_packets,
+    encode_frame,
     footer_crc_ok,
     frames,
     nominal_info,
@@ -39,7 +40,7 @@ from twin.lidar.ouster import (
     scan_from_frame,
     xyz_lidar,
 )
-from twin.lidar.pcap import read_pcap
+from twin.lidar.pcap import PcapWriter, read_pcap
 from twin.lidar.sources import open_scans
 from twin.lidar.udp import send_packets
 
@@ -392,3 +393,36 @@ def test_the_summary_warns_of_a_sensor_limiting_its_shots_or_overheating():
     with open_scans(CAPTURES[0].pcap_path, ouster_metadata=CAPTURES[0].meta_path) as source:
         list(source)
         assert source.summary()["warnings"] == []
+
+
+@pytest.mark.parametrize("cpp", [8, 32])
+def test_columns_per_packet_as_the_metadata_says(tmp_path, sdk, cpp):
+    """The real OS2-128 RNG19 frame written again with ``cpp`` columns a packet (the metadata's
+    columns_per_packet, which sets the packet's layout): ours and ouster-sdk's decode of it are
+    the frame."""
+    c = CAPTURES[0]
+    _, (frame,) = our_frames(c)
+    d = json.loads(c.meta_path.read_text())
+    d["data_format"]["columns_per_packet"] = cpp
+    meta = tmp_path / "os2.json"
+    meta.write_text(json.dumps(d))
+    other = OusterInfo.from_json(meta)
+    packets = encode_frame(frame, other, init_id=frame.init_id, prod_sn=frame.prod_sn)
+    assert len(packets) == 1024 // cpp and {len(p) for p in packets} == {other.packet_bytes}
+    pcap = tmp_path / "os2.pcap"
+    with PcapWriter(pcap) as out:
+        for k, p in enumerate(packets):
+            out.write_udp(p, 1.7e9 + k * 1e-4, dst_port=7502, src_port=7502)
+    (ours,) = frames(decode_packets([r.payload for r in read_pcap(pcap, ports=None)], other),
+                     other)
+    _, (theirs,), _ = sdk.pcap_frames(pcap, meta)
+    for name in FIELDS:
+        x, y, z = getattr(ours, name), getattr(theirs, name), getattr(frame, name)
+        if name == "alert_flags":  # (one a packet: as many as the packets)
+            assert len(x) == len(y) == 1024 // cpp and not x.any() and not y.any()
+            continue
+        if x is None:  # (no second return in this profile)
+            assert y is None and z is None, name
+            continue
+        assert x.dtype == y.dtype == z.dtype, name
+        assert np.array_equal(x, y) and np.array_equal(x, z), name
