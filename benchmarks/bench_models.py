@@ -27,7 +27,8 @@ metadata, its LEGACY packets, our decoder), the Hesai PandarXT32 and PandarQT128
 `twin.sim.hesai_twin` (nebula's angle corrections, their packets with each channel cast where
 the head turned to when it fired, our decoder, which puts that rotation back as Hesai's SDK 2.0
 does with its firetime file); then the decode rows: Ouster agreement with ouster-sdk on its own
-real capture and on the twin's OS1-128 pcap, and frames per second against ouster-sdk's, both
+real captures (LEGACY and the other packet profiles) and on the twin's OS1-128 pcap (LEGACY and
+RNG19_RFL8_SIG16_NIR16), and frames per second against ouster-sdk's, both
 run now beside ours (ouster-sdk from the extra ``ouster``, `tools/setup.sh ouster`; without it
 those rows say so), and each Hesai model's agreement with nebula's decoder on a real capture
 (its test's ground-truth points; our decode without the firing rotation, as nebula's).
@@ -112,9 +113,25 @@ def ouster_decode_rows() -> list[str]:
         return [*rows, f"ouster-sdk rows skipped: {exc}"]
     rows.append(_sdk_agreement_row("its OS1-32 capture", data / "OS-1-32-G_v2.1.1_1024x10.pcap",
                                    data / "OS-1-32-G_v2.1.1_1024x10.json"))
+    for folder, pcap, meta in PROFILE_CAPTURES:  # its captures in the other packet profiles
+        d = data.parent / folder
+        profile = OusterInfo.from_json(d / meta).udp_profile_lidar
+        rows.append(_sdk_agreement_row(f"its {pcap}, {profile}", d / pcap, d / meta))
     with tempfile.TemporaryDirectory() as tmp:
         rows += _ouster_throughput_rows(Path(tmp))
     return rows
+
+
+#: ouster-sdk's own captures in the packet profiles other than LEGACY (tests/data/SOURCE.md):
+#: folder, pcap, metadata.
+PROFILE_CAPTURES = (
+    ("ouster-os2-128-rng19", "OS-2-128-U1_v2.3.0_1024x10.pcap", "OS-2-128-U1_v2.3.0_1024x10.json"),
+    ("ouster-os0-32-dual", "OS-0-32-U1_v2.2.0_1024x10.pcap", "OS-0-32-U1_v2.2.0_1024x10.json"),
+    ("ouster-os0-128-rng15", "OS-0-128-U1_v2.3.0_1024x10.pcap", "OS-0-128-U1_v2.3.0_1024x10.json"),
+    ("ouster-fw3-crc", "crc_test.pcap", "crc_test.json"),
+    ("ouster-os1-128-fusa-dual", "OS-1-128_767798045_1024x10_20230712_120049.pcap",
+     "OS-1-128_767798045_1024x10_20230712_120049.json"),
+)
 
 
 def _sdk_agreement_row(what: str, pcap: Path, metadata: Path) -> str:
@@ -174,11 +191,21 @@ def _ouster_throughput_rows(tmp: Path) -> list[str]:
     ours = 20 / min(_time(lambda: sum(1 for _ in open_scans(pcap))) for _ in range(3))
     theirs = 20 / min(_time(theirs_pcap) for _ in range(3))
     ours_osf = 20 / min(_time(lambda: sum(1 for _ in open_scans(osf))) for _ in range(3))
+    # the same frames in the profile recent firmware sends by default
+    r19 = tmp / "os1128-rng19.pcap"
+    write_ouster_pcap(BenchSim(seed=1), nominal_info("OS1-128", "1024x10",
+                                                     "RNG19_RFL8_SIG16_NIR16"),
+                      r19, 20, rng=np.random.default_rng(1))
+    rows.append(_sdk_agreement_row("the twin's OS1-128 RNG19_RFL8_SIG16_NIR16 pcap", r19,
+                                   r19.with_suffix(".json")))
+    ours_r19 = 20 / min(_time(lambda: sum(1 for _ in open_scans(r19))) for _ in range(3))
     rows.append(f"decode throughput, OS1-128 1024x10 pcap -> scans (points in {{L}}): "
                 f"{ours:.1f} frames/s; ouster-sdk pcap -> frames -> XYZLut {theirs:.1f} frames/s "
                 f"(measured now, the same pcap); ratio {ours / theirs:.2f}; real time needs 10")
     rows.append(f"OSF read, the same 20 frames (ouster-sdk's reader -> our scans): "
                 f"{ours_osf:.1f} frames/s")
+    rows.append(f"the same 20 frames as RNG19_RFL8_SIG16_NIR16 packets -> scans: "
+                f"{ours_r19:.1f} frames/s (LEGACY's above: {ours:.1f})")
     return rows
 
 

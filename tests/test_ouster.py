@@ -142,10 +142,12 @@ def test_bad_metadata_and_other_profiles_are_one_line(tmp_path, payloads):
     bad.write_text(json.dumps({"prod_line": "OS-1-32-G"}))
     with pytest.raises(OusterError, match="not an Ouster sensor's metadata"):
         OusterInfo.from_json(bad)
+    # LEGACY packets read with metadata stating another profile: the sizes differ, said so
+    # (the other profiles themselves: tests/test_ouster_profiles.py)
     d = json.loads(META.read_text())
     d["data_format"]["udp_profile_lidar"] = "RNG19_RFL8_SIG16_NIR16"
     other = OusterInfo.from_json(json.dumps(d))
-    with pytest.raises(OusterError, match="LEGACY only"):
+    with pytest.raises(OusterError, match="the size of LEGACY's"):
         decode_packets(payloads, other)
 
 

@@ -249,7 +249,7 @@ def format_summary(s: dict) -> str:
         lines += [
             ("model", f"{s['model']} ({s['prod_line']}, serial {s['serial'] or '-'}, "
                       f"firmware {s['firmware'] or '-'}; metadata {s['metadata']})"),
-            ("lidar mode", f"{s['lidar_mode']} ({s['profile']} packets)"),
+            ("lidar mode", f"{s['lidar_mode']} ({s['profile']} packets{_dual(s)})"),
             ("rpm", rpm),
             ("data packets", f"{s['data_packets']} ({s['other_datagrams']} other datagrams)"),
             ("scans", f"{s['scans']} ({s['complete_scans']} complete, {s['partial_scans']} "
@@ -323,6 +323,13 @@ def _describe(s: dict) -> str:
                 f"{'ns' if f.get('nanosecond') else 'us'} timestamps, "
                 f"{f.get('byte_order', '?')}-endian)")
     return f"{s['capture']} (point cloud file)"
+
+
+def _dual(s: dict) -> str:
+    """What an Ouster's dual-return profile gives the scans (`twin.lidar.ouster`)."""
+    if s.get("return_mode") != "dual":
+        return ""
+    return "; two returns a pixel: the first, strongest, read, the second where it has none"
 
 
 def _points(s: dict) -> str:

@@ -25,7 +25,13 @@ from typing import TYPE_CHECKING
 from models import SCENES  # the MJCF files' paths only
 from scenarios import cliargs, station_options
 from twin.core.errors import AimbenchError
-from twin.core.sensor_names import HESAI_NAMES, LIDAR_MODES, OUSTER_MODELS, VELODYNE_NAMES
+from twin.core.sensor_names import (
+    HESAI_NAMES,
+    LIDAR_MODES,
+    OUSTER_MODELS,
+    OUSTER_TWIN_PROFILES,
+    VELODYNE_NAMES,
+)
 
 # The station model, the twin and the writers are imported by the functions that run (pydantic,
 # numpy, MuJoCo: about a second), not for the parser (issue 38).
@@ -146,7 +152,7 @@ def _simulate_ouster(args: argparse.Namespace, params, model: str, out: Path,
     from twin.sim.bench import BenchSim
     from twin.sim.ouster_twin import write_ouster_osf, write_ouster_pcap
 
-    info = nominal_info(model, args.lidar_mode)
+    info = nominal_info(model, args.lidar_mode, args.udp_profile)
     sim = BenchSim(params, seed=args.seed)
     sim.move_to(x_m=args.x_mm * 1e-3, yaw_rad=math.radians(args.yaw_deg))  # checks the travel
     rng = np.random.default_rng(args.seed)
@@ -162,11 +168,13 @@ def _simulate_ouster(args: argparse.Namespace, params, model: str, out: Path,
     for s in scans:
         s.meta["truth_pose"] = truth_pose
     truth = _truth_file(args, out, scans, sim, station, station_file, params,
-                        {"model": model, "lidar_mode": args.lidar_mode, "metadata": info.source})
+                        {"model": model, "lidar_mode": args.lidar_mode,
+                         "udp_profile_lidar": args.udp_profile, "metadata": info.source})
     if not args.quiet:
         p = truth_pose
         meta = "its metadata in it" if osf else f"{out.with_suffix('.json').name} (its metadata)"
-        print(f"wrote {out} ({len(scans)} {model} frames, {args.lidar_mode}), "
+        print(f"wrote {out} ({len(scans)} {model} frames, {args.lidar_mode}, "
+              f"{args.udp_profile} packets), "
               f"{meta} and {truth.name}; true pose: "
               f"x {p.x * 1e3:.1f} mm, y {p.y * 1e3:.1f} mm, z {p.z * 1e3:.1f} mm, "
               f"roll {math.degrees(p.roll):.3f} deg, tilt {math.degrees(p.tilt):.3f} deg, "
@@ -238,5 +246,8 @@ def register(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
                         "paper's: VLP-16); an Ouster's pcap gets its metadata JSON beside it")
     p.add_argument("--lidar-mode", choices=LIDAR_MODES, default="1024x10",
                    help="an Ouster's columns x frames a second (default 1024x10)")
+    p.add_argument("--udp-profile", choices=OUSTER_TWIN_PROFILES, default="LEGACY",
+                   help="an Ouster's lidar packet profile (default LEGACY; recent firmware "
+                        "sends RNG19_RFL8_SIG16_NIR16 unless set)")
     p.set_defaults(func=run)
     return p

@@ -22,3 +22,9 @@ HESAI_NAMES = (PANDAR_XT32, PANDAR_QT128)
 OUSTER_MODELS = tuple(f"OS{k}-{b}" for k in (0, 1, 2) for b in (32, 64, 128))
 #: The lidar modes (columns x frames a second) the Ouster sensors run.
 LIDAR_MODES = ("512x10", "512x20", "1024x10", "1024x20", "2048x10")
+#: The Ouster lidar packet profiles aimbench decodes (`twin.lidar.ouster.PROFILES`), the ones
+#: the twin emits first (`aimbench simulate --udp-profile`): LEGACY, which every firmware
+#: speaks, and the single, dual and low-bandwidth profiles of later firmware.
+OUSTER_TWIN_PROFILES = ("LEGACY", "RNG19_RFL8_SIG16_NIR16", "RNG19_RFL8_SIG16_NIR16_DUAL",
+                        "RNG15_RFL8_NIR8")
+OUSTER_PROFILES = (*OUSTER_TWIN_PROFILES, "RNG15_RFL8_NIR8_DUAL", "FUSA_RNG15_RFL8_NIR8_DUAL")

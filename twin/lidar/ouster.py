@@ -11,8 +11,15 @@ Packets (Ouster's software user manual, "lidar data format"; ouster-sdk's ``type
 header (timestamp u64 ns, measurement id u16, frame id u16, encoder count u32), one 12-byte
 pixel per beam (range u32 of which 20 bits are mm, reflectivity u16 of which ouster-sdk keeps
 the low byte, signal u16, near-IR u16, 2 unused bytes) and a status u32 (0xFFFFFFFF when the
-column is valid). Little-endian. Other
-profiles (RNG19_RFL8_SIG16_NIR16[_DUAL], RNG15_RFL8_NIR8) are refused in one line.
+column is valid). Little-endian. The other profiles (`PROFILES`: RNG19_RFL8_SIG16_NIR16, the
+default of recent firmware, its _DUAL, RNG15_RFL8_NIR8 and the two RNG15 dual ones) wrap
+the columns in a 32-byte packet header (packet type, frame id, init id, serial number, alert
+flags, thermal and shot-limiting countdowns and states) and a 32-byte footer (its last 8 bytes
+a CRC64 in firmware 3.x); a column is a 12-byte header (timestamp u64 ns, measurement id u16,
+status u16, bit 0 valid) and the pixels, packed bit fields per profile (ouster-sdk's
+``parsing.cpp``). A dual profile's first return is the strongest, its second the second
+strongest: the `Scan` keeps the first, or the second where the first has no range
+(`scan_from_frame`), the `Frame` both.
 
 A frame is W columns (512, 1024 or 2048) of H beams (32, 64 or 128), as fired: pixel (row,
 column) is beam ``row`` fired at column ``column`` (ouster-sdk's "staggered" frame). Its points
@@ -63,6 +70,88 @@ class OusterError(AimbenchError):
     """Ouster metadata or packets that cannot be read (a bad file, an unsupported profile)."""
 
 
+# ----------------------------------------------------------------------------------------------
+# Packet profiles (ouster-sdk's parsing.cpp: each field's first bit, width and upshift)
+
+
+@dataclass(frozen=True)
+class PixelField:
+    """One channel of a pixel: ``bits`` bits from bit ``shift`` of the little-endian word of
+    ``word`` bytes at byte ``byte``, shifted up by ``upshift`` (the low-bandwidth profiles send
+    range in 8 mm and near-IR in 16 counts), stored as ``dtype`` (ouster-sdk's frame's)."""
+
+    name: str
+    byte: int
+    word: int
+    shift: int
+    bits: int
+    dtype: type
+    upshift: int = 0
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A lidar packet profile: the size of its pixel and the channels in it (`Frame`'s names)."""
+
+    name: str
+    pixel_bytes: int
+    fields: tuple[PixelField, ...]
+
+    @property
+    def legacy(self) -> bool:
+        return self.name == "LEGACY"
+
+    @property
+    def dual(self) -> bool:
+        return any(f.name == "range2_mm" for f in self.fields)
+
+
+def _f(name: str, byte: int, word: int, shift: int, bits: int, dtype: type,
+       upshift: int = 0) -> PixelField:
+    return PixelField(name, byte, word, shift, bits, dtype, upshift)
+
+
+_RNG15_FIRST = (  # RNG15_RFL8_NIR8 and the first return of its dual forms
+    _f("range_mm", 0, 2, 0, 15, np.uint32, 3), _f("flags", 1, 1, 7, 1, np.uint8),
+    _f("reflectivity", 2, 1, 0, 8, np.uint8), _f("near_ir", 3, 1, 0, 8, np.uint16, 4))
+_RNG15_DUAL = (
+    *_RNG15_FIRST, _f("range2_mm", 4, 2, 0, 15, np.uint32, 3), _f("flags2", 5, 1, 7, 1, np.uint8),
+    _f("reflectivity2", 6, 1, 0, 8, np.uint8))
+
+#: The profiles decoded (named in `twin.core.sensor_names.OUSTER_PROFILES` too, for the
+#: command line); LEGACY's pixel is read by `column_dtype` as it always was.
+PROFILES: dict[str, Profile] = {p.name: p for p in (
+    Profile("LEGACY", 12, ()),
+    Profile("RNG19_RFL8_SIG16_NIR16", 12, (
+        _f("range_mm", 0, 4, 0, 19, np.uint32), _f("flags", 2, 1, 3, 5, np.uint8),
+        _f("reflectivity", 4, 1, 0, 8, np.uint8), _f("signal", 6, 2, 0, 16, np.uint16),
+        _f("near_ir", 8, 2, 0, 16, np.uint16))),
+    Profile("RNG19_RFL8_SIG16_NIR16_DUAL", 16, (
+        _f("range_mm", 0, 4, 0, 19, np.uint32), _f("flags", 2, 1, 3, 5, np.uint8),
+        _f("reflectivity", 3, 1, 0, 8, np.uint8),
+        _f("range2_mm", 4, 4, 0, 19, np.uint32), _f("flags2", 6, 1, 3, 5, np.uint8),
+        _f("reflectivity2", 7, 1, 0, 8, np.uint8), _f("signal", 8, 2, 0, 16, np.uint16),
+        _f("signal2", 10, 2, 0, 16, np.uint16), _f("near_ir", 12, 2, 0, 16, np.uint16))),
+    Profile("RNG15_RFL8_NIR8", 4, _RNG15_FIRST),
+    Profile("RNG15_RFL8_NIR8_DUAL", 8, _RNG15_DUAL),
+    Profile("FUSA_RNG15_RFL8_NIR8_DUAL", 8, _RNG15_DUAL),
+)}
+#: The non-LEGACY packet's header and footer, and its column header (bytes).
+PACKET_HEADER_BYTES = 32
+PACKET_FOOTER_BYTES = 32
+COLUMN_HEADER_BYTES = 12
+
+
+def profile_of(name: str, source: str = "metadata") -> Profile:
+    """The `Profile` of a profile's name; `OusterError` in one line naming those read."""
+    try:
+        return PROFILES[name]
+    except KeyError:
+        raise OusterError(f"{source}: the sensor sends the {name} lidar packet profile, which "
+                          f"aimbench does not decode; set udp_profile_lidar to one of "
+                          f"{', '.join(PROFILES)} on the sensor") from None
+
+
 @dataclass(frozen=True, eq=False)
 class OusterInfo:
     """What a sensor's metadata says, in the units it says it (deg, mm)."""
@@ -80,6 +169,9 @@ class OusterInfo:
     lidar_to_sensor: np.ndarray  # 4 x 4, mm
     udp_profile_lidar: str = "LEGACY"
     udp_port_lidar: int = LIDAR_PORT
+    #: STANDARD, or FUSA (a 32-bit frame id elsewhere in the packet header: firmware 3.1's
+    #: FUSA_RNG15_RFL8_NIR8_DUAL, or the metadata's own lidar_data_format.header_type)
+    header_type: str = "STANDARD"
     serial: str = ""
     firmware: str = ""
     source: str = "metadata"
@@ -112,12 +204,22 @@ class OusterInfo:
         return float(self.lidar_mode.split("x")[1])
 
     @property
+    def profile(self) -> Profile:
+        """The lidar packet profile (`OusterError` for one aimbench does not decode)."""
+        return profile_of(self.udp_profile_lidar, self.source)
+
+    @property
     def column_bytes(self) -> int:
-        return 16 + 12 * self.pixels_per_column + 4
+        if self.udp_profile_lidar == "LEGACY":  # header, pixels, status word
+            return 16 + 12 * self.pixels_per_column + 4
+        return COLUMN_HEADER_BYTES + self.profile.pixel_bytes * self.pixels_per_column
 
     @property
     def packet_bytes(self) -> int:
-        return self.columns_per_packet * self.column_bytes
+        if self.udp_profile_lidar == "LEGACY":
+            return self.columns_per_packet * self.column_bytes
+        return PACKET_HEADER_BYTES + self.columns_per_packet * self.column_bytes + \
+            PACKET_FOOTER_BYTES
 
     @property
     def model(self) -> str:
@@ -162,6 +264,7 @@ class OusterInfo:
             profile = fmt.get("udp_profile_lidar", cfg.get("udp_profile_lidar", "LEGACY"))
             port = int(cfg.get("udp_port_lidar", LIDAR_PORT))
             lts = li.get("lidar_to_sensor_transform")
+            header = fmt.get("header_type")
         else:  # flat: firmware 2.0-2.3
             bi, fmt = d, d["data_format"]
             prod, serial, fw = d["prod_line"], str(d.get("prod_sn", "")), d.get("build_rev", "")
@@ -169,6 +272,9 @@ class OusterInfo:
             profile = fmt.get("udp_profile_lidar", "LEGACY")
             port = int(d.get("udp_port_lidar", LIDAR_PORT))
             lts = d.get("lidar_to_sensor_transform")
+            header = fmt.get("header_type")
+        if header is None:  # firmware before 3.2 does not say: FUSA's profile implies it
+            header = "FUSA" if profile == "FUSA_RNG15_RFL8_NIR8_DUAL" else "STANDARD"
         if "beam_to_lidar_transform" in bi:
             b2l = np.asarray(bi["beam_to_lidar_transform"], dtype=float).reshape(4, 4)
             beam = (float(b2l[0, 3]), float(b2l[2, 3]))
@@ -187,7 +293,8 @@ class OusterInfo:
             beam_altitude_deg=np.asarray(bi["beam_altitude_angles"], dtype=float),
             beam_azimuth_deg=np.asarray(bi["beam_azimuth_angles"], dtype=float),
             beam_to_lidar_mm=beam, lidar_to_sensor=lts, udp_profile_lidar=profile,
-            udp_port_lidar=port, serial=serial, firmware=fw, source=source)
+            udp_port_lidar=port, header_type=str(header), serial=serial, firmware=fw,
+            source=source)
 
 
 def metadata_beside(pcap: str | Path) -> Path | None:
@@ -210,16 +317,161 @@ def column_dtype(info: OusterInfo) -> np.dtype:
 
 
 def decode_packets(payloads: Iterable[bytes], info: OusterInfo) -> np.ndarray:
-    """The columns of LEGACY lidar packets, (n_packets * columns_per_packet,) read-only records
-    (the range word as sent: `frames` keeps its 20 bits). Payloads of another size are skipped
-    (IMU packets, other sensors)."""
-    if info.udp_profile_lidar != "LEGACY":
-        raise OusterError(f"{info.source}: the sensor sends the {info.udp_profile_lidar} packet "
-                          "profile; aimbench decodes LEGACY only: set udp_profile_lidar to "
-                          "LEGACY on the sensor")
-    size = info.packet_bytes
-    good = [p for p in payloads if len(p) == size]
-    return np.frombuffer(b"".join(good), dtype=column_dtype(info))
+    """The columns of lidar packets in the metadata's profile, (n_packets * columns_per_packet,)
+    read-only records: LEGACY's `column_dtype` (the range word as sent: `frames` keeps its 20
+    bits), the other profiles' `profile_column_dtype` (each column with its packet header's
+    fields). Payloads of another size that are not this sensor's lidar packets are skipped (IMU
+    packets, other sensors); one that is, cut short or of another profile's size, is an
+    `OusterError` naming it (`packet_problem`)."""
+    size = info.packet_bytes  # (an unknown profile: OusterError, in one line)
+    good = []
+    for p in payloads:
+        if len(p) == size:
+            good.append(p)
+            continue
+        problem = packet_problem(p, info)
+        if problem is not None:
+            raise OusterError(problem)
+    if info.udp_profile_lidar == "LEGACY":
+        return np.frombuffer(b"".join(good), dtype=column_dtype(info))
+    return _profile_columns(b"".join(good), info)
+
+
+def _packet_size(info: OusterInfo, profile: Profile) -> int:
+    """The lidar packet size of this sensor (beams, columns a packet) in another profile."""
+    h, cpp = info.pixels_per_column, info.columns_per_packet
+    if profile.legacy:
+        return cpp * (16 + 12 * h + 4)
+    return PACKET_HEADER_BYTES + cpp * (COLUMN_HEADER_BYTES + profile.pixel_bytes * h) + \
+        PACKET_FOOTER_BYTES
+
+
+def packet_problem(payload: bytes, info: OusterInfo) -> str | None:
+    """What is wrong with a payload that is not a whole lidar packet of the metadata's profile
+    but is one of this sensor's lidar packets, in one line; None for anything else (an IMU
+    packet, another device's datagram), which readers skip. A non-LEGACY packet says it is a
+    lidar packet (packet type 1); a LEGACY one is told by its size alone."""
+    n, size = len(payload), info.packet_bytes
+    if n == size:
+        return None
+    h, cpp, name = info.pixels_per_column, info.columns_per_packet, info.udp_profile_lidar
+    stated = (f"the {size} bytes the metadata's {name} profile makes with {h} beams and {cpp} "
+              "columns a packet")
+    others = [p.name for p in PROFILES.values()
+              if p.name != name and _packet_size(info, p) == n]
+    if others:
+        return (f"{info.source}: a {n}-byte lidar packet, the size of {' or '.join(others)}'s, "
+                f"not {stated}: the metadata is not this capture's (or the sensor's "
+                "udp_profile_lidar was changed after it was saved); give the metadata saved "
+                "with these packets")
+    if name == "LEGACY":
+        lidar = info.column_bytes <= n < size
+    else:
+        lidar = n >= PACKET_HEADER_BYTES and (
+            payload[0] == 1 if info.header_type == "FUSA" else payload[0:2] == b"\x01\x00")
+    if not lidar:
+        return None
+    if n < size:
+        return (f"{info.source}: a lidar packet cut short, {n} bytes of {stated}: the capture's "
+                f"snap length or the network's MTU is below {size} bytes (record with tcpdump "
+                f"-s 0; give the host's interface an MTU of at least {size + 28})")
+    return (f"{info.source}: a {n}-byte lidar packet, not {stated}: the metadata is not this "
+            "capture's (columns_per_packet or pixels_per_column differ); give the metadata "
+            "saved with these packets")
+
+
+def packet_frame_id(payload: bytes, info: OusterInfo) -> int:
+    """The frame id of a whole lidar packet (LEGACY: its first column's; the others: the
+    packet header's, 32 bits in the FUSA header) and, above bit 32, the non-LEGACY init id,
+    which a sensor's restart changes (`frames` cuts there too)."""
+    if info.udp_profile_lidar == "LEGACY":
+        return int.from_bytes(payload[10:12], "little")
+    if info.header_type == "FUSA":
+        fid, init = payload[4:8], payload[1:4]
+    else:
+        fid, init = payload[2:4], payload[4:7]
+    return int.from_bytes(fid, "little") | int.from_bytes(init, "little") << 32
+
+
+def _crc64_table() -> tuple[int, ...]:
+    """CRC-64/XZ's table (ECMA-182's polynomial, reflected: ouster-sdk's crc64_init)."""
+    poly, table = 0xC96C5795D7870F42, []
+    for i in range(256):
+        crc = i
+        for _ in range(8):
+            crc = (crc >> 1) ^ (poly if crc & 1 else 0)
+        table.append(crc)
+    return tuple(table)
+
+
+_CRC64 = _crc64_table()
+
+
+def crc64(data: bytes) -> int:
+    """CRC-64/XZ of some bytes, as the sensor computes a packet's (ouster-sdk crc64_compute)."""
+    crc = 0xFFFFFFFFFFFFFFFF
+    for byte in data:
+        crc = _CRC64[(crc ^ byte) & 0xFF] ^ (crc >> 8)
+    return crc ^ 0xFFFFFFFFFFFFFFFF
+
+
+def footer_crc_ok(payload: bytes) -> bool:
+    """Whether a non-LEGACY packet's last 8 bytes are the CRC64 of the rest: firmware 3.x sends
+    one, 2.x leaves the footer 0 (and this False). Not checked while decoding, as ouster-sdk's
+    batcher does not (a pure-Python CRC of 640 packets a second would not keep up); for a
+    capture's check (tests/test_ouster_profiles.py)."""
+    return crc64(payload[:-8]) == int.from_bytes(payload[-8:], "little")
+
+
+def profile_column_dtype(info: OusterInfo) -> np.dtype:
+    """One column of a non-LEGACY packet as `decode_packets` gives it: its packet header's
+    fields (repeated in each of the packet's columns), its column header, its pixels' bytes."""
+    return np.dtype([
+        ("frame_id", "<u4"), ("init_id", "<u4"), ("prod_sn", "<u8"), ("alert_flags", "u1"),
+        ("shutdown_countdown", "u1"), ("shot_limiting_countdown", "u1"),
+        ("thermal_shutdown", "u1"), ("shot_limiting", "u1"),
+        ("timestamp", "<u8"), ("measurement_id", "<u2"), ("status", "<u2"),
+        ("pixels", "u1", (info.pixels_per_column, info.profile.pixel_bytes))])
+
+
+def _le(header: np.ndarray, byte: int, n: int) -> np.ndarray:
+    """The little-endian unsigned integer of ``n`` bytes at ``byte`` of each header row."""
+    out = np.zeros(len(header), dtype=np.uint64)
+    for i in range(n):
+        out |= header[:, byte + i].astype(np.uint64) << np.uint64(8 * i)
+    return out
+
+
+def _packet_header(header: np.ndarray, info: OusterInfo) -> dict[str, np.ndarray]:
+    """The fields of (n, 32) packet headers (ouster-sdk's parsing.cpp: STANDARD, or FUSA with
+    its 32-bit frame id after a one-byte packet type and the init id)."""
+    if info.header_type == "FUSA":
+        ids = {"frame_id": _le(header, 4, 4), "init_id": _le(header, 1, 3),
+               "prod_sn": _le(header, 11, 5), "alert_flags": header[:, 8]}
+    else:
+        ids = {"frame_id": _le(header, 2, 2), "init_id": _le(header, 4, 3),
+               "prod_sn": _le(header, 7, 5), "alert_flags": header[:, 12]}
+    return ids | {"shutdown_countdown": header[:, 16], "shot_limiting_countdown": header[:, 17],
+                  "thermal_shutdown": header[:, 18] & 0x0F,
+                  "shot_limiting": header[:, 19] & 0x0F}
+
+
+def _profile_columns(raw: bytes, info: OusterInfo) -> np.ndarray:
+    """The `profile_column_dtype` records of whole non-LEGACY packets, joined."""
+    out_dtype = profile_column_dtype(info)
+    column = np.dtype([(name, out_dtype[name]) for name in
+                       ("timestamp", "measurement_id", "status", "pixels")])
+    packet = np.dtype([("header", "u1", (PACKET_HEADER_BYTES,)),
+                       ("columns", column, (info.columns_per_packet,)),
+                       ("footer", "u1", (PACKET_FOOTER_BYTES,))])
+    packets = np.frombuffer(raw, dtype=packet)
+    out = np.empty((len(packets), info.columns_per_packet), dtype=out_dtype)
+    for name in column.names:
+        out[name] = packets["columns"][name]
+    for name, values in _packet_header(packets["header"], info).items():
+        out[name] = values[:, None]
+    out.flags.writeable = False
+    return out.reshape(-1)
 
 
 def encode_packets(cols: np.ndarray, info: OusterInfo) -> list[bytes]:
@@ -247,6 +499,22 @@ class Frame:
     status: np.ndarray
     received: np.ndarray
     packets: int
+    # What only the non-LEGACY profiles send (None, 0 in a LEGACY frame): each pixel's flags;
+    # a dual profile's second return (the second strongest); the frame's packet header as
+    # its first packet gives it (as ouster-sdk's batcher takes it), and each packet's alert
+    # flags ((W / columns_per_packet,), by packet: measurement id // columns_per_packet).
+    flags: np.ndarray | None = None
+    range2_mm: np.ndarray | None = None
+    reflectivity2: np.ndarray | None = None
+    signal2: np.ndarray | None = None
+    flags2: np.ndarray | None = None
+    init_id: int = 0
+    prod_sn: int = 0
+    thermal_shutdown: int = 0
+    shot_limiting: int = 0
+    shutdown_countdown: int = 0
+    shot_limiting_countdown: int = 0
+    alert_flags: np.ndarray | None = None
 
 
 def frames(columns: np.ndarray, info: OusterInfo) -> Iterator[Frame]:
@@ -254,10 +522,14 @@ def frames(columns: np.ndarray, info: OusterInfo) -> Iterator[Frame]:
     if not len(columns):
         return
     fid = columns["frame_id"].astype(np.int64)
+    legacy = info.udp_profile_lidar == "LEGACY"
+    if not legacy:  # a sensor restarted (a new init id) starts a new frame too, as in ouster-sdk
+        fid = fid | (columns["init_id"].astype(np.int64) << 32)
     starts = np.flatnonzero(np.concatenate(([True], fid[1:] != fid[:-1])))
     ends = np.concatenate((starts[1:], [len(columns)]))
+    make = _frame if legacy else _profile_frame
     for a, b in zip(starts, ends, strict=True):
-        yield _frame(columns[a:b], info)
+        yield make(columns[a:b], info)
 
 
 def _frame(cols: np.ndarray, info: OusterInfo) -> Frame:
@@ -286,6 +558,53 @@ def _frame(cols: np.ndarray, info: OusterInfo) -> Frame:
     return Frame(int(cols["frame_id"][0]) if len(cols) else -1, **out, timestamp_ns=ts,
                  measurement_id=mid, status=status, received=received,
                  packets=int(np.ceil(len(cols) / info.columns_per_packet)))
+
+
+def _pixel_field(pixels: np.ndarray, f: PixelField) -> np.ndarray:
+    """One channel of (n, H, pixel_bytes) pixel bytes, (n, H) as ``f.dtype``."""
+    word = np.zeros(pixels.shape[:2], dtype=np.uint32)
+    for i in range(f.word):
+        word |= pixels[:, :, f.byte + i].astype(np.uint32) << np.uint32(8 * i)
+    value = (word >> np.uint32(f.shift)) & np.uint32((1 << f.bits) - 1)
+    return (value << np.uint32(f.upshift)).astype(f.dtype)
+
+
+def _profile_frame(cols: np.ndarray, info: OusterInfo) -> Frame:
+    """The `Frame` of one frame's `profile_column_dtype` columns: as `_frame`, a column kept
+    when its status's bit 0 says valid (ouster-sdk's batcher; 0 elsewhere); the frame's
+    header from its first packet, the alert flags of each."""
+    h, w, cpp = info.pixels_per_column, info.columns_per_frame, info.columns_per_packet
+    first = cols[0]
+    heads = cols[::cpp]  # (whole packets: a packet's first column holds its header)
+    alert = np.zeros(w // cpp, dtype=np.uint8)
+    pid = heads["measurement_id"].astype(np.intp) // cpp
+    alert[pid[pid < len(alert)]] = heads["alert_flags"][pid < len(alert)]
+    m = cols["measurement_id"].astype(np.intp)
+    keep = (m < w) & ((cols["status"] & 1) == 1)
+    cols, m = cols[keep], m[keep]
+    out = {"signal": np.zeros((w, h), dtype=np.uint16)}  # (the RNG15 profiles send none)
+    for f in info.profile.fields:
+        out[f.name] = np.zeros((w, h), dtype=f.dtype)
+        out[f.name][m] = _pixel_field(cols["pixels"], f)
+    if "range2_mm" in out and "signal2" not in out:  # (nor for RNG15's second return)
+        out["signal2"] = np.zeros((w, h), dtype=np.uint16)
+    out = {name: a.T for name, a in out.items()}  # (H, W) views of columns filled as (W, H)
+    ts = np.zeros(w, dtype=np.uint64)
+    ts[m] = cols["timestamp"]
+    mid = np.zeros(w, dtype=np.uint16)
+    mid[m] = cols["measurement_id"]
+    status = np.zeros(w, dtype=np.uint32)
+    status[m] = cols["status"]
+    received = np.zeros(w, dtype=bool)
+    received[m] = True
+    return Frame(
+        int(first["frame_id"]), **out, timestamp_ns=ts, measurement_id=mid, status=status,
+        received=received, packets=int(np.ceil(len(cols) / cpp)),
+        init_id=int(first["init_id"]), prod_sn=int(first["prod_sn"]),
+        thermal_shutdown=int(first["thermal_shutdown"]),
+        shot_limiting=int(first["shot_limiting"]),
+        shutdown_countdown=int(first["shutdown_countdown"]),
+        shot_limiting_countdown=int(first["shot_limiting_countdown"]), alert_flags=alert)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -378,11 +697,31 @@ def _scan_table(info: OusterInfo) -> _ScanTable:
     return table
 
 
+def _one_return(frame: Frame, beam: np.ndarray, col: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range (mm), reflectivity and `ReturnType` of each firing: the first return, which the
+    sensor sends as the strongest; in a dual profile, where the first has no range and the
+    second does, the second (flagged SECOND_STRONGEST), as a Velodyne's or Hesai's dual-return
+    firing keeps its strongest echo and falls back to the other where the strongest missed:
+    the beam did meet something, and a miss there would tell the estimator otherwise (115 of
+    the real OS0-32 dual frame's 32768 pixels: a first return with signal but no range)."""
+    rng = frame.range_mm[beam, col]
+    refl = frame.reflectivity[beam, col].astype(np.uint8)
+    kind = np.full(len(rng), int(ReturnType.STRONGEST), dtype=np.uint8)
+    if frame.range2_mm is None:
+        return rng, refl, kind
+    rng2 = frame.range2_mm[beam, col]
+    second = (rng == 0) & (rng2 > 0)
+    kind[second] = int(ReturnType.SECOND_STRONGEST)
+    return (np.where(second, rng2, rng),
+            np.where(second, frame.reflectivity2[beam, col], refl).astype(np.uint8), kind)
+
+
 def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
     """The `Scan` of a frame: every pixel of the column window in {L}, in `pixel_order`."""
     t = _scan_table(info)
     w = info.columns_per_frame
-    rng = frame.range_mm[t.beam, t.col]
+    rng, intensity, kind = _one_return(frame, t.beam, t.col)
     hit = rng > 0
     r = rng.astype(np.float64)
     # p = r d + offset (xyz_lidar), in m; {L}: y forward, x right
@@ -398,8 +737,7 @@ def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
     missing = int((~frame.received[cols]).sum())
     return Scan(
         distance=distance, azimuth=t.azimuth.copy(), laser_id=t.beam.astype(np.uint8),
-        intensity=frame.reflectivity[t.beam, t.col].astype(np.uint8),
-        time=time, return_type=np.full(len(rng), int(ReturnType.STRONGEST), dtype=np.uint8),
+        intensity=intensity, time=time, return_type=kind,
         x=x, y=y, z=z, index=index, complete=missing == 0, packets=frame.packets,
         missing_packets=int(np.ceil(missing / info.columns_per_packet)), product_id=0,
         vertical_offsets_applied=True, lasers=info.lasers,
@@ -424,7 +762,8 @@ class OusterScans:
         self.packets = packets
         self.info = info
         self.counts = {"packets": 0, "other_datagrams": 0, "frames": 0, "complete": 0,
-                       "firings": 0, "returns": 0, "missing_columns": 0}
+                       "firings": 0, "returns": 0, "missing_columns": 0,
+                       "shot_limiting_frames": 0, "thermal_shutdown_frames": 0}
 
     def __iter__(self) -> Iterator[Scan]:
         size = self.info.packet_bytes
@@ -434,10 +773,13 @@ class OusterScans:
         for p in self.packets:
             payload = p if isinstance(p, bytes | bytearray | memoryview) else p.payload
             if len(payload) != size:
+                problem = packet_problem(payload, self.info)
+                if problem is not None:  # this sensor's, and unreadable: say so, once
+                    raise OusterError(problem)
                 self.counts["other_datagrams"] += 1
                 continue
             self.counts["packets"] += 1
-            fid = int.from_bytes(payload[10:12], "little")  # the first column's frame id
+            fid = packet_frame_id(payload, self.info)
             if fid != current and frame:
                 yield from self._scans_of(frame, index)
                 index += 1
@@ -459,6 +801,10 @@ class OusterScans:
         c["firings"] += len(s)
         c["returns"] += int(s.valid.sum())
         c["missing_columns"] += s.meta["missing_columns"]
+        # the packet header's states (non-LEGACY profiles): a sensor limiting its shots or
+        # about to shut down for heat measures less well, which a reader should be told
+        c["shot_limiting_frames"] += int(f.shot_limiting != 0)
+        c["thermal_shutdown_frames"] += int(f.thermal_shutdown != 0)
         return s
 
     def summary(self) -> dict:
@@ -466,14 +812,34 @@ class OusterScans:
         return {
             "model": i.model, "prod_line": i.prod_line, "lidar_mode": i.lidar_mode,
             "profile": i.udp_profile_lidar, "serial": i.serial, "firmware": i.firmware,
-            "product_id": None, "return_mode": "single", "lasers": i.pixels_per_column,
+            "product_id": None,
+            # (a dual profile's scans keep the first, strongest, return: scan_from_frame)
+            "return_mode": "dual" if _is_dual(i) else "single", "lasers": i.pixels_per_column,
             "laser_table": i.prod_line, "rpm": 60.0 * i.rate_hz, "data_packets": c["packets"],
             "other_datagrams": c["other_datagrams"], "scans": c["frames"],
             "complete_scans": c["complete"], "partial_scans": c["frames"] - c["complete"],
             "points": c["firings"], "returns": c["returns"],
             "missing_columns": c["missing_columns"], "metadata": i.source,
-            "warnings": list(i.notes),
+            "warnings": list(i.notes) + _state_warnings(c),
         }
+
+
+def _state_warnings(counts: dict) -> list[str]:
+    """What the frames' packet headers said of the sensor's state, for the summary."""
+    out = []
+    for key, what in (("shot_limiting_frames", "shot-limiting state set (the sensor limiting "
+                       "its laser's shots: a weaker signal)"),
+                      ("thermal_shutdown_frames", "thermal-shutdown state set (the sensor "
+                       "overheating, near shutting down)")):
+        if counts.get(key):
+            out.append(f"{counts[key]} of {counts['frames']} frames with the packet header's "
+                       f"{what}")
+    return out
+
+
+def _is_dual(info: OusterInfo) -> bool:
+    profile = PROFILES.get(info.udp_profile_lidar)  # (an OSF's may be one not decoded here)
+    return profile is not None and profile.dual
 
 
 # ----------------------------------------------------------------------------------------------
@@ -508,9 +874,12 @@ def _ouster_key(name: str) -> tuple[str, int] | None:
     return None
 
 
-def nominal_info(model: str, lidar_mode: str = "1024x10") -> OusterInfo:
+def nominal_info(model: str, lidar_mode: str = "1024x10",
+                 udp_profile: str = "LEGACY") -> OusterInfo:
     """The metadata of a model (``OS1-64``...) in a lidar mode, from a real unit's file
-    (`_METADATA_FILES`), sending LEGACY packets on port 7502."""
+    (`_METADATA_FILES`), sending packets of ``udp_profile`` (LEGACY by default) on port
+    7502."""
+    profile_of(udp_profile, f"--udp-profile {udp_profile}")
     key = _ouster_key(model)
     if key is None:
         raise OusterError(f"unknown Ouster model {model!r}: aimbench knows "
@@ -530,7 +899,7 @@ def nominal_info(model: str, lidar_mode: str = "1024x10") -> OusterInfo:
         pixel_shift_by_row=base.pixel_shift_by_row[rows] * w // base.columns_per_frame,
         beam_altitude_deg=base.beam_altitude_deg[rows],
         beam_azimuth_deg=base.beam_azimuth_deg[rows], beam_to_lidar_mm=base.beam_to_lidar_mm,
-        lidar_to_sensor=base.lidar_to_sensor, udp_profile_lidar="LEGACY",
+        lidar_to_sensor=base.lidar_to_sensor, udp_profile_lidar=udp_profile,
         udp_port_lidar=LIDAR_PORT, serial="twin", firmware=base.firmware,
         source=f"{path.name} ({model}, {lidar_mode})")
 
@@ -571,3 +940,48 @@ def columns_from_frame(frame: Frame, info: OusterInfo) -> np.ndarray:
     px["signal"] = frame.signal.T
     px["near_ir"] = frame.near_ir.T
     return cols
+
+
+def encode_frame(frame: Frame, info: OusterInfo, *, init_id: int = 0,
+                 prod_sn: int = 0) -> list[bytes]:
+    """The packets of a frame in the metadata's non-LEGACY profile (`decode_packets`' inverse,
+    measurement-id order): the packet header with the frame id, ``init_id`` and ``prod_sn``
+    (no alert, thermal or shot-limiting state), each column's header (status 1 when received,
+    else 0), the pixels' bit fields (a field's low bits dropped where the profile sends it
+    coarser: RNG15's range in 8 mm), a zero footer (firmware 2.x's; 3.x puts a CRC64 there).
+    A field the frame lacks (a second return, flags) is sent as 0."""
+    profile = info.profile
+    if profile.legacy:
+        raise ValueError("encode_frame writes the non-LEGACY profiles; LEGACY: encode_packets")
+    h, w, cpp = info.pixels_per_column, info.columns_per_frame, info.columns_per_packet
+    pixels = np.zeros((w, h, profile.pixel_bytes), dtype=np.uint8)
+    for f in profile.fields:
+        values = getattr(frame, f.name)
+        if values is None:
+            continue
+        word = (values.T.astype(np.uint64) >> np.uint64(f.upshift)) & np.uint64((1 << f.bits) - 1)
+        word <<= np.uint64(f.shift)
+        for i in range(f.word):
+            pixels[:, :, f.byte + i] |= ((word >> np.uint64(8 * i)) & np.uint64(0xFF)).astype(
+                np.uint8)
+    cols = np.zeros(w, dtype=[("timestamp", "<u8"), ("measurement_id", "<u2"),
+                              ("status", "<u2"), ("pixels", "u1", (h, profile.pixel_bytes))])
+    cols["timestamp"] = frame.timestamp_ns
+    cols["measurement_id"] = np.arange(w)
+    cols["status"] = frame.received.astype(np.uint16)
+    cols["pixels"] = pixels
+    header = bytearray(PACKET_HEADER_BYTES)
+    if info.header_type == "FUSA":
+        header[0] = 1  # packet type: lidar
+        header[1:4] = init_id.to_bytes(3, "little")
+        header[4:8] = (frame.frame_id % 2**32).to_bytes(4, "little")
+        header[11:16] = prod_sn.to_bytes(5, "little")
+    else:
+        header[0:2] = (1).to_bytes(2, "little")
+        header[2:4] = (frame.frame_id % 2**16).to_bytes(2, "little")
+        header[4:7] = init_id.to_bytes(3, "little")
+        header[7:12] = prod_sn.to_bytes(5, "little")
+    footer = bytes(PACKET_FOOTER_BYTES)
+    raw = cols.tobytes()
+    step = cpp * info.column_bytes
+    return [bytes(header) + raw[i:i + step] + footer for i in range(0, len(raw), step)]

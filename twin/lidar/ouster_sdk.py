@@ -87,13 +87,34 @@ def _field(lidar_frame, name: str, dtype: type, shape: tuple[int, int]) -> np.nd
     return np.asarray(lidar_frame.field(name)).astype(dtype)
 
 
-def frame_of(lidar_frame, columns_per_packet: int) -> Frame:
+def frame_of(lidar_frame, columns_per_packet: int, profile: str = "LEGACY") -> Frame:
     """The project's `Frame` of one of ouster-sdk's `LidarFrame`s (H x W staggered, as fired).
     A column is received when its status says valid (bit 0: LEGACY sends 0xFFFFFFFF, the other
-    profiles set bit 0; ouster-sdk leaves a column never received at 0)."""
+    profiles set bit 0; ouster-sdk leaves a column never received at 0). In another profile
+    than LEGACY (``profile``, the metadata's), also what `twin.lidar.ouster` decodes only there:
+    the flags, a dual profile's second return, the frame's packet header and alert flags."""
     shape = (lidar_frame.h, lidar_frame.w)
     status = np.asarray(lidar_frame.status).astype(np.uint32)
     received = (status & 1) == 1
+    extra = {}
+    if profile != "LEGACY":
+        for name, field, dtype in (("flags", "FLAGS", np.uint8), ("range2_mm", "RANGE2", np.uint32),
+                                   ("reflectivity2", "REFLECTIVITY2", np.uint8),
+                                   ("signal2", "SIGNAL2", np.uint16),
+                                   ("flags2", "FLAGS2", np.uint8)):
+            if lidar_frame.has_field(field):
+                extra[name] = np.asarray(lidar_frame.field(field)).astype(dtype)
+        if "range2_mm" in extra and "signal2" not in extra:  # (RNG15's dual: no signal)
+            extra["signal2"] = np.zeros(shape, dtype=np.uint16)
+        status_bits = int(lidar_frame.frame_status)
+        # (init id and serial: ouster-sdk's SensorInfo's, which it takes from the metadata and
+        # starts a new frame on a packet whose init id differs; the LidarFrame has no other)
+        extra.update(
+            init_id=int(lidar_frame.sensor_info.init_id), prod_sn=int(lidar_frame.sensor_info.sn),
+            thermal_shutdown=status_bits & 0x0F, shot_limiting=(status_bits >> 4) & 0x0F,
+            shutdown_countdown=int(lidar_frame.shutdown_countdown),
+            shot_limiting_countdown=int(lidar_frame.shot_limiting_countdown),
+            alert_flags=np.asarray(lidar_frame.alert_flags).astype(np.uint8))
     return Frame(
         frame_id=int(lidar_frame.frame_id),
         range_mm=_field(lidar_frame, "RANGE", np.uint32, shape),
@@ -103,7 +124,7 @@ def frame_of(lidar_frame, columns_per_packet: int) -> Frame:
         timestamp_ns=np.asarray(lidar_frame.timestamp).astype(np.uint64),
         measurement_id=np.asarray(lidar_frame.measurement_id).astype(np.uint16),
         status=status, received=received,
-        packets=int(np.ceil(received.sum() / columns_per_packet)))
+        packets=int(np.ceil(received.sum() / columns_per_packet)), **extra)
 
 
 def lidar_frame_of(frame: Frame, sensor_info):
@@ -182,7 +203,7 @@ def osf_frames(path: str | Path) -> OsfContents:
         for frame_set in reader:
             lidar_frame = frame_set[0]  # None: a set with only the other sensors' frames
             if lidar_frame is not None:
-                yield frame_of(lidar_frame, info.columns_per_packet)
+                yield frame_of(lidar_frame, info.columns_per_packet, info.udp_profile_lidar)
 
     return OsfContents(info, frames(), held, reader.close)
 
@@ -246,7 +267,9 @@ def pcap_frames(pcap: str | Path, metadata: str | Path) -> tuple[OusterInfo, lis
     info = info_of(sensor_info, str(metadata))
     lidar_frames = [fs[0] for fs in source if fs[0] is not None]
     source.close()
-    return info, [frame_of(f, info.columns_per_packet) for f in lidar_frames], lidar_frames
+    frames = [frame_of(f, info.columns_per_packet, info.udp_profile_lidar)
+              for f in lidar_frames]
+    return info, frames, lidar_frames
 
 
 def sdk_xyz(lidar_frame, sensor_info) -> np.ndarray:

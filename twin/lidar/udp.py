@@ -95,6 +95,7 @@ class UdpReceiver:
         self._socks: dict[int, socket.socket] = {}
         self._kind: dict[int, int] = {}  # local port -> expected payload size
         self._ovfl: dict[int, int] = {}
+        self._last_malformed = 0  # the size of the last datagram dropped as malformed
         try:
             for port, size in ((data_port, data_size),
                                (position_port, vlp16.POSITION_PAYLOAD_SIZE)):
@@ -237,6 +238,7 @@ class UdpReceiver:
             if len(payload) != size or (size == vlp16.DATA_PAYLOAD_SIZE
                                         and not is_velodyne_data(payload)):
                 self.stats.malformed += 1
+                self._last_malformed = len(payload)
                 continue
             if size == self.data_size:
                 self.stats.data += 1
@@ -246,6 +248,15 @@ class UdpReceiver:
 
     def _silence_message(self, malformed: int = 0) -> str:
         ports = ", ".join(f"{self.bind_addr}:{p}" for p in self._socks)
+        if malformed and self.data_size != vlp16.DATA_PAYLOAD_SIZE:  # another sensor's packets
+            return (
+                f"no data packet of the expected {self.data_size} bytes for "
+                f"{self.timeout_s:g} s on UDP {ports}, but {malformed} datagrams of other sizes "
+                f"(the last {self._last_malformed} bytes): the sensor sends another packet "
+                "layout than the one expected (an Ouster: its lidar profile, columns or beams "
+                "differ from the metadata's; give the metadata the sensor serves now), or "
+                "another device sends to this port"
+            )
         if malformed:
             return (
                 f"no valid Velodyne data packet for {self.timeout_s:g} s on UDP {ports}, but "

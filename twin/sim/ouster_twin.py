@@ -1,6 +1,7 @@
 """An Ouster OS0 / OS1 / OS2 on the twin's bench, emulated from its metadata, written as the
-sensor's own LEGACY packets in a pcap with the metadata JSON beside it, or as an OSF file
-through ouster-sdk's writer (`twin.lidar.ouster_sdk`), the metadata in it.
+sensor's own packets (LEGACY, or another profile: `frame_packets`) in a pcap with the metadata
+JSON beside it, or as an OSF file through ouster-sdk's writer (`twin.lidar.ouster_sdk`), the
+metadata in it.
 
 Every pixel of a frame is a MuJoCo ray (`twin.sim.emulation.RayCaster.cast`, the cast the
 Velodyne emulation makes) from its beam's origin, in its beam's direction, both as ouster-sdk's
@@ -30,11 +31,15 @@ from twin.lidar.ouster import (
     Frame,
     OusterInfo,
     columns_from_frame,
+    encode_frame,
     encode_packets,
     info_json,
 )
 from twin.lidar.pcap import PcapWriter
 
+#: The serial number the twin's non-LEGACY packet headers carry (its metadata's prod_sn is
+#: "twin", which no packet header's 40-bit number can say).
+TWIN_SERIAL = 0
 RANGE_MIN = 0.3  # m
 RANGE_MAX = 120.0  # m
 
@@ -95,20 +100,29 @@ def emulate_frames(sim, info: OusterInfo, n_frames: int, *, rng: np.random.Gener
 def write_ouster_pcap(sim, info: OusterInfo, path: str | Path, n_frames: int, *,
                       rng: np.random.Generator, range_sigma: float = 0.01,
                       epoch_s: float = 1.7e9) -> Pose:
-    """Write ``n_frames`` frames as LEGACY packets to a pcap (UDP port ``info``'s, 7502) and
-    the metadata to ``NAME.json`` beside it; the true pose of {L} in the board frame."""
+    """Write ``n_frames`` frames as packets of ``info``'s profile (`frame_packets`) to a pcap
+    (UDP port ``info``'s, 7502) and the metadata to ``NAME.json`` beside it; the true pose of
+    {L} in the board frame."""
     path = Path(path)
     frames, truth = emulate_frames(sim, info, n_frames, rng=rng, range_sigma=range_sigma)
     packet_s = info.columns_per_packet / (info.columns_per_frame * info.rate_hz)
     with PcapWriter(path) as out:
         i = 0
         for f in frames:
-            for payload in encode_packets(columns_from_frame(f, info), info):
+            for payload in frame_packets(f, info):
                 out.write_udp(payload, epoch_s + i * packet_s, dst_port=info.udp_port_lidar,
                               src_port=info.udp_port_lidar)
                 i += 1
     path.with_suffix(".json").write_text(info_json(info))
     return truth
+
+
+def frame_packets(frame: Frame, info: OusterInfo) -> list[bytes]:
+    """A frame's packets in the metadata's profile (LEGACY's as before; the others with the
+    twin's serial number and init id 0, as its metadata, which states neither, is read)."""
+    if info.udp_profile_lidar == "LEGACY":
+        return encode_packets(columns_from_frame(frame, info), info)
+    return encode_frame(frame, info, init_id=0, prod_sn=TWIN_SERIAL)
 
 
 def write_ouster_osf(sim, info: OusterInfo, path: str | Path, n_frames: int, *,
