@@ -320,7 +320,8 @@ def _describe(s: dict) -> str:
         return (f"{s['capture']} (ROS bag, topic {b['topic']}, {b['type']}, "
                 f"{b['messages']} messages)")
     if "clouds" in s and s.get("model") in HESAI_NAMES:
-        return f"{s['capture']} (nebula's Hesai {s['model']} point cloud, {kind})"
+        driver = s.get("cloud_driver", "nebula's Hesai")
+        return f"{s['capture']} ({driver} {s['model']} point cloud, {kind})"
     if "lidar_mode" in s or s.get("model") in HESAI_NAMES:
         maker = "Ouster lidar" if "lidar_mode" in s else f"Hesai {s['model']}"
         return f"{s['capture']} ({maker} packets, {'live' if kind == 'udp' else kind})"

@@ -398,10 +398,10 @@ def pcd_has_hesai_ros_fields(path) -> bool:
 
 
 _FRAME_TOLD = {
-    "cut": "the frame told by the cut (the driver's frame_start_azimuth 0)",
-    "default": "Hesai's frame assumed (the driver's default; --cloud-convention "
-               "hesai-ros-ros-frame for the ROS frame)",
-    "option": "given by --cloud-convention",
+    "cut": "the frame told by the cut at the driver's default frame_start_azimuth, 0 deg",
+    "default": "Hesai's frame assumed, the driver's default: --cloud-convention "
+               "hesai-ros-ros-frame for the ROS frame",
+    "option": "the frame given by --cloud-convention",
 }
 
 
@@ -429,10 +429,13 @@ class HesaiRosCloudScanSource(HesaiCloudScanSource):
         out.update({
             "model_from": ("given by --model" if self.told == "option"
                            else "from the driver's fields and the rings' elevations"),
-            "rpm_from": ("the packets' (the firetime rotation in the cloud), else the slope of "
-                         "the azimuths against the packets' timestamps"),
+            "rpm_from": ("the packets' own, told by the firetime rotation in the cloud"
+                         if fire == {True} else "from the packets' timestamps, else the "
+                         "firings' azimuth step"),
+            "cloud_driver": "Hesai's ROS driver's",
             "cloud_convention": (f"{conv} (Hesai's ROS driver; firing rotation "
                                  f"{'in the cloud' if fire == {True} else 'put back'})"),
-            "cloud_convention_from": f"fields; {told}" if told else "fields",
+            "cloud_convention_from": (f"told by the cloud's fields; {told}" if told
+                                      else "told by the cloud's fields"),
         })
         return out
