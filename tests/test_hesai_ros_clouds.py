@@ -139,6 +139,32 @@ def test_a_file_of_other_angles_is_one_line_from_the_command(real, tmp_path, cap
     assert len(err) == 1 and "another angle-correction file" in err[0], err
 
 
+def test_a_qt128_or_a_wrong_model_is_one_line_from_the_command(real, tmp_path, capsys):
+    """A cloud of the driver's fields at a QT128's elevations is told to be one and refused
+    (read here for the XT32 only), and --cloud-convention hesai-ros with a Velodyne's --model
+    is refused: each one line, exit 2."""
+    from scenarios.cli import main
+    from tests.test_cloud_conventions import write_pcd
+    from twin.lidar.hesai import QT128, default_angles
+
+    qt = HesaiAngles.from_csv(default_angles(QT128), QT128)
+    ring = np.tile(np.arange(128), 200)
+    az = np.radians(np.repeat(np.arange(200) * 1.8, 128))
+    el = np.radians(qt.elevation_deg[ring])
+    rec = np.zeros(len(ring), dtype=HESAI_ROS_POINT_DTYPE)
+    rec["x"], rec["y"] = 5 * np.cos(el) * np.sin(az), 5 * np.cos(el) * np.cos(az)
+    rec["z"], rec["ring"] = 5 * np.sin(el), ring
+    path = write_pcd(rec, tmp_path / "qt.pcd")
+    angles, payloads, frame, _ = real
+    xt = write_pcd(hesai_ros_cloud(payloads, angles, packets=frame), tmp_path / "xt.pcd")
+    for argv, what in ((["info", str(path)], "PandarXT32, not the PandarQT128"),
+                       (["info", str(xt), "--model", "VLP-16", "--cloud-convention",
+                         "hesai-ros"], "reads a Hesai's cloud")):
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and what in err[0], err
+
+
 @pytest.fixture(scope="module")
 def twin():
     """Four turns of the twin's XT32 (single return, 600 rpm, a board 2.5 m ahead, the firing

@@ -55,7 +55,8 @@ block azimuth; then the firing grid is rebuilt and read as `twin.lidar.hesai_clo
 nebula's clouds (`scan_of_points`). The frame is told from the cut: a cloud of the default
 ``frame_start_azimuth`` starts at 0 deg in Hesai's frame, at 90 deg read so when turned to the
 ROS frame; otherwise Hesai's frame is assumed (the driver's default) and the convention
-``hesai-ros-ros-frame`` gives the other. The rpm the firing rotation is put back with: the
+``hesai-ros-ros-frame`` gives the other (a ROS-frame cloud cut at 270 deg starts where a
+Hesai-frame one cut at 0 does: there too). The rpm the firing rotation is put back with: the
 packets' own when the cloud has the firetime rotation; else the slope of the block azimuths
 against the packets' ``timestamp``; else the grid's step.
 """
@@ -362,8 +363,10 @@ def scan_from_hesai_ros(rec: np.ndarray, angles: HesaiAngles, *, frame: str | No
 
 def hesai_ros_model_of_cloud(rec: np.ndarray) -> str | None:
     """The Hesai model a cloud of the ROS driver's fields is of: its rings' elevations (from
-    the points) against the model's nominal angles within 0.5 deg; None otherwise."""
-    from twin.lidar.hesai import default_angles
+    the points) against each model's nominal angles within 0.5 deg; None otherwise (RoboSense's
+    driver writes the same fields). A QT128's is named so that its reading says it is not
+    read here."""
+    from twin.lidar.hesai import HESAI_MODELS, default_angles
 
     field_names = rec.dtype.names or ()
     if not is_hesai_ros(field_names) or "ring" not in field_names or len(rec) == 0:
@@ -374,11 +377,12 @@ def hesai_ros_model_of_cloud(rec: np.ndarray) -> str | None:
         return None
     ring = rec["ring"][hit].astype(np.int64)
     el = np.degrees(np.arcsin(np.clip(rec["z"][hit].astype(np.float64) / r[hit], -1, 1)))
-    if ring.max() >= XT32.n_channels:
-        return None
-    nominal = HesaiAngles.from_csv(default_angles(XT32), XT32)
-    if np.abs(el - nominal.elevation_deg[ring]).max() < 0.5:
-        return XT32.name
+    for model in HESAI_MODELS.values():
+        if ring.max() >= model.n_channels:
+            continue
+        nominal = HesaiAngles.from_csv(default_angles(model), model)
+        if np.abs(el - nominal.elevation_deg[ring]).max() < 0.5:
+            return model.name
     return None
 
 

@@ -344,6 +344,9 @@ def _open_hesai_cloud(src: SourceName, model: str | None, angles_file: str | Pat
 
     hesai_ros = convention is not None and convention in HESAI_CLOUD_CONVENTIONS
     if model is not None and not _is_hesai(model):
+        if hesai_ros:
+            raise CloudError(f"--cloud-convention {convention} reads a Hesai's cloud, and "
+                             f"--model names a {model}: give a Hesai model or leave it out")
         return None
     if src.kind == "pcd":
         return _open_hesai_pcd(src, model, angles_file, max_scans, convention if hesai_ros
