@@ -116,10 +116,6 @@ def test_other_angles_or_too_little_is_one_clear_line(real):
         scan_from_hesai_ros(cloud[:40], angles)
     with pytest.raises(HesaiError, match="less than half a turn"):
         scan_from_hesai_ros(cloud[: len(cloud) // 4], angles)
-    from twin.lidar.hesai import QT128, default_angles
-
-    with pytest.raises(HesaiError, match="PandarXT32, not the PandarQT128"):
-        scan_from_hesai_ros(cloud, HesaiAngles.from_csv(default_angles(QT128), QT128))
 
 
 def test_a_file_of_other_angles_is_one_line_from_the_command(real, tmp_path, capsys):
@@ -139,30 +135,54 @@ def test_a_file_of_other_angles_is_one_line_from_the_command(real, tmp_path, cap
     assert len(err) == 1 and "another angle-correction file" in err[0], err
 
 
-def test_a_qt128_or_a_wrong_model_is_one_line_from_the_command(real, tmp_path, capsys):
-    """A cloud of the driver's fields at a QT128's elevations is told to be one and refused
-    (read here for the XT32 only), and --cloud-convention hesai-ros with a Velodyne's --model
-    is refused: each one line, exit 2."""
+def test_a_velodyne_model_with_the_drivers_convention_is_one_line(real, tmp_path, capsys):
+    """--cloud-convention hesai-ros with a Velodyne's --model: one line, exit 2."""
+    from scenarios.cli import main
+    from tests.test_cloud_conventions import write_pcd
+
+    angles, payloads, frame, _ = real
+    xt = write_pcd(hesai_ros_cloud(payloads, angles, packets=frame), tmp_path / "xt.pcd")
+    assert main(["info", str(xt), "--model", "VLP-16", "--cloud-convention", "hesai-ros"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "reads a Hesai's cloud" in err[0], err
+
+
+def test_a_twin_qt128_through_the_drivers_cloud_is_its_packets_scan(tmp_path, capsys):
+    """The twin's QT128 (dual return, the loops alternating, 900 packets a frame, 230,400
+    points with the dark channels and misses at the origin): the frame reads back as the
+    packets' scan exactly (86,400 firings; the loops told from the channels only one loop
+    fires), in Hesai's frame and turned to the ROS frame; `aimbench info` of the PCD file tells
+    the QT128 by its rings' elevations. A single-return or firetime QT128 cloud is refused."""
     from scenarios.cli import main
     from tests.test_cloud_conventions import write_pcd
     from twin.lidar.hesai import QT128, default_angles
+    from twin.sim.bench import BenchSim
+    from twin.sim.hesai_twin import emulate_qt128
+    from twin.sim.params import BenchParams
 
-    qt = HesaiAngles.from_csv(default_angles(QT128), QT128)
-    ring = np.tile(np.arange(128), 200)
-    az = np.radians(np.repeat(np.arange(200) * 1.8, 128))
-    el = np.radians(qt.elevation_deg[ring])
-    rec = np.zeros(len(ring), dtype=HESAI_ROS_POINT_DTYPE)
-    rec["x"], rec["y"] = 5 * np.cos(el) * np.sin(az), 5 * np.cos(el) * np.cos(az)
-    rec["z"], rec["ring"] = 5 * np.sin(el), ring
-    path = write_pcd(rec, tmp_path / "qt.pcd")
-    angles, payloads, frame, _ = real
-    xt = write_pcd(hesai_ros_cloud(payloads, angles, packets=frame), tmp_path / "xt.pcd")
-    for argv, what in ((["info", str(path)], "PandarXT32, not the PandarQT128"),
-                       (["info", str(xt), "--model", "VLP-16", "--cloud-convention",
-                         "hesai-ros"], "reads a Hesai's cloud")):
-        assert main(argv) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and what in err[0], err
+    angles = HesaiAngles.from_csv(default_angles(QT128), QT128)
+    sim = BenchSim(BenchParams.from_edge(roll_deg=1.0, tilt_deg=-0.5, yaw_deg=2.0), seed=5)
+    packets, _ = emulate_qt128(sim, angles, 2, rng=np.random.default_rng(1), start_cdeg=9000)
+    dec = decode_hesai(packets, angles)
+    frame = frames(packets, angles)[0]
+    want = scans_from_hesai(dec, angles, cut_cdeg=int(dec.block_azimuth_cdeg[frame.start, 0]))[0]
+    cloud = hesai_ros_cloud(packets, angles, packets=frame)
+    assert len(cloud) == 900 * 2 * 128
+    _same_scan(scan_from_hesai_ros(cloud, angles), want)
+    assert len(want) == 86400
+    ros = scan_from_hesai_ros(hesai_ros_cloud(packets, angles, packets=frame,
+                                              transform=ROS_FRAME), angles)
+    _same_scan(ros, want)
+    assert ros.meta["cloud_frame_from"] == "cut"
+    path = write_pcd(cloud, tmp_path / "qt128.pcd")
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "Hesai's ROS driver's PandarQT128 point cloud" in out and "86400 firings" in out, out
+    single = cloud.reshape(900, 2, 128)[:, 1].reshape(-1)  # one echo a firing
+    with pytest.raises(HesaiError, match="single-return PandarQT128"):
+        scan_from_hesai_ros(single, angles)
+    with pytest.raises(HesaiError, match="firetime rotation"):
+        hesai_ros_cloud(packets, angles, packets=frame, firetime=True)
 
 
 @pytest.fixture(scope="module")

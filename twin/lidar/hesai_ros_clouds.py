@@ -1,5 +1,5 @@
 """Hesai's own ROS driver's point clouds (HesaiLidar_ROS_2.0 on HesaiLidar_SDK_2.0) of a
-PandarXT32, read back as the scans its packets give.
+PandarXT32 or a PandarQT128, read back as the scans their packets give.
 
 What the driver writes (HesaiTechnology/HesaiLidar_ROS_2.0 at e7e112f, 2026-04-27, whose
 ``src/driver/HesaiLidar_SDK_2.0`` submodule pins SDK 9d5dc4f; the SDK read at ea7f86f,
@@ -44,6 +44,11 @@ What the driver writes (HesaiTechnology/HesaiLidar_ROS_2.0 at e7e112f, 2026-04-2
   passes ``frame_start_azimuth`` (config.yaml 0 deg; below 0 or from 360 also 0,
   ``SetFrameAzimuth``), which starts the next frame.
 
+A PandarQT128's (``udp3_2_parser.cc`` ``ComputeXYZI``, lines 260-335) is written the same way:
+every channel of both blocks, a loop's dark channels at the origin like any miss, its loop's
+firetime table only with a firetime file; here it is read in dual return with the firetime
+rotation out (the driver's default), the loops told as for nebula's clouds.
+
 `hesai_ros_cloud` writes that cloud from packets, op for op in float32 where the SDK computes
 in float. `scan_from_hesai_ros` reads one back as the packet path's scan (firetime in,
 `twin.lidar.hesai.scans_from_hesai`): the points at the origin (misses) dropped, each return's
@@ -70,7 +75,7 @@ import numpy as np
 
 from twin.core.scan import Scan
 from twin.lidar import format_names as names
-from twin.lidar.hesai import XT32, HesaiAngles, HesaiError
+from twin.lidar.hesai import QT128, XT32, HesaiAngles, HesaiError
 from twin.lidar.hesai_clouds import (
     CloudPoints,
     HesaiCloudScanSource,
@@ -156,15 +161,16 @@ def _offsets_fine(angles: HesaiAngles) -> tuple[np.ndarray, np.ndarray]:
 def hesai_ros_cloud(payloads: list[bytes], angles: HesaiAngles, *, firetime: bool = False,
                     transform: tuple[float, ...] | None = None,
                     packets: slice = slice(None)) -> np.ndarray:
-    """The cloud Hesai's ROS driver publishes of PandarXT32 packets (``packets`` of them: one
-    frame, the caller picks it, `frames`), as ``HESAI_ROS_POINT_DTYPE`` records in its order
-    (module docstring). ``firetime``: as with a firetime file (off by default in the driver);
-    ``transform``: config.yaml's (x, y, z, roll, pitch, yaw) with ``transform_flag`` true
-    (`ROS_FRAME`: the ROS frame)."""
+    """The cloud Hesai's ROS driver publishes of PandarXT32 or PandarQT128 packets (``packets``
+    of them: one frame, the caller picks it, `frames`), as ``HESAI_ROS_POINT_DTYPE`` records in
+    its order (module docstring; a QT128's, udp3_2_parser.cc, is written the same way, its dark
+    channels at the origin). ``firetime``: as with a firetime file (off by default in the
+    driver; the XT32's only); ``transform``: config.yaml's (x, y, z, roll, pitch, yaw) with
+    ``transform_flag`` true (`ROS_FRAME`: the ROS frame)."""
     model = angles.model
-    if model is not XT32:
-        raise HesaiError(f"Hesai's ROS driver's cloud is written here for the PandarXT32, not "
-                         f"the {model.name}")
+    if firetime and model is not XT32:
+        raise HesaiError(f"the {model.name}'s firetime rotation (its loop tables) is not written "
+                         "here: the XT32's is")
     size = model.dtype.itemsize
     good = [p for p in payloads if model.accepts(p)]
     rec = np.frombuffer(b"".join(bytes(p[:size]) for p in good), dtype=model.dtype)[packets]
@@ -299,16 +305,14 @@ def scan_from_hesai_ros(rec: np.ndarray, angles: HesaiAngles, *, frame: str | No
                         firetime: bool | None = None, rpm: float | None = None,
                         index: int = 0, name: str = "Hesai ROS cloud") -> Scan:
     """The packet path's scan (`twin.lidar.hesai.scans_from_hesai`, firetime in) of one frame
-    of Hesai's ROS driver's PandarXT32 cloud (records with x y z at least; ring, intensity and
-    timestamp when present): module docstring. ``frame``: ``hesai`` or ``ros`` (None: told by
+    of Hesai's ROS driver's PandarXT32 or (dual return, firetime out) PandarQT128 cloud
+    (records with x y z at least; ring, intensity and timestamp when present): module
+    docstring. ``frame``: ``hesai`` or ``ros`` (None: told by
     the cut, else Hesai's); ``firetime``: whether the cloud has the firing rotation in (None:
     told from the points); ``rpm``: the head's speed (None: the packets' when the cloud has the
     firetime rotation, else from the timestamps, else the grid's step)."""
     model = angles.model
     field_names = rec.dtype.names or ()
-    if model is not XT32:
-        raise HesaiError(f"{name}: Hesai's ROS driver's cloud is read here for the PandarXT32, "
-                         f"not the {model.name}")
     if not {"x", "y", "z"} <= set(field_names):
         raise HesaiError(f"{name}: no x/y/z fields: not a point cloud")
     xyz = [rec[k].astype(np.float64) for k in ("x", "y", "z")]
@@ -319,7 +323,7 @@ def scan_from_hesai_ros(rec: np.ndarray, angles: HesaiAngles, *, frame: str | No
     ret, r = rec[hit], r[hit]
     channel = _channels(ret, r, angles, name)
     d = (np.degrees(np.arctan2(xyz[0][hit], xyz[1][hit])) - angles.azimuth_deg[channel]) * 100
-    rot, rpm_packets = _firetime_of(d, channel, firetime, name)
+    rot, rpm_packets = _firetime_of(d, channel, firetime if model is XT32 else False, name)
     block = np.rint(d - rot).astype(np.int64) % 36000
     frame, frame_told = _frame_of(block, frame)
     if frame == "ros":  # read in Hesai's frame, the ROS frame's points are 90 deg further round
@@ -332,6 +336,9 @@ def scan_from_hesai_ros(rec: np.ndarray, angles: HesaiAngles, *, frame: str | No
         turn = slice(0, int(wrap[0]) + 1)
         ret, r, channel, block = ret[turn], r[turn], channel[turn], block[turn]
     dual, slot = _slots(block, channel, model.n_channels, name)
+    if model is QT128 and not dual:
+        raise HesaiError(f"{name}: a single-return {model.name} cloud: read here in dual return "
+                         "only (two firing loops a packet in single return are not rebuilt)")
     intensity = (np.rint(ret["intensity"]).astype(np.uint8) if "intensity" in field_names
                  else 0)
 
