@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 from twin.core.errors import AimbenchError
 from twin.core.sensor_names import HESAI_NAMES, VELODYNE_NAMES
-from twin.lidar.format_names import CLOUD_CONVENTIONS
+from twin.lidar.format_names import CLOUD_CONVENTIONS, HESAI_CLOUD_CONVENTIONS
 
 # The readers, the decoders and the progress bar (numpy, tqdm) are imported where a source is
 # read: the parsers of every command that reads one are built from this module (issue 38).
@@ -111,10 +111,12 @@ def add_decode_options(p: argparse.ArgumentParser) -> None:
                         "velodyne_decoder do)")
     p.add_argument("--no-vertical-offsets", action="store_true",
                    help="do not add the lasers' vertical offsets to z")
-    p.add_argument("--cloud-convention", choices=CLOUD_CONVENTIONS, default=None,
+    p.add_argument("--cloud-convention", choices=CLOUD_CONVENTIONS + HESAI_CLOUD_CONVENTIONS,
+                   default=None,
                    help="the driver that wrote a point cloud (how it turned each laser's "
-                        "point; docs/vlp16.md): default, told from the cloud's fields, else "
-                        "from its points")
+                        "point; hesai-ros: Hesai's own ROS driver, in Hesai's frame or turned "
+                        "to the ROS frame; docs/vlp16.md): default, told from the cloud's "
+                        "fields, else from its points")
     p.add_argument("--metadata", "--ouster-metadata", dest="metadata", metavar="FILE.json",
                    default=None,
                    help="an Ouster sensor's metadata JSON, which its packets or its driver's "
@@ -200,6 +202,11 @@ _TOLD = {"fields": "told by the cloud's fields", "points": "told from the points
          "option": "given by --cloud-convention"}
 
 
+def _told(how: str | None) -> str:
+    """How a convention was told, in words: a reader's own words pass through."""
+    return _TOLD.get(how, how or "given")
+
+
 def format_summary(s: dict) -> str:
     """The summary as aligned lines of text, for whichever kind of source it came from."""
     kind = s.get("kind", "pcap")
@@ -220,7 +227,7 @@ def format_summary(s: dict) -> str:
             ("vertical offsets", "in the points' z" if s["vertical_offsets"] else
              "not applied (as the ROS driver writes)"),
             ("convention", f"{s.get('cloud_convention') or '-'} "
-                           f"({_TOLD.get(s.get('cloud_convention_from'), 'given')})"),
+                           f"({_told(s.get('cloud_convention_from'))})"),
         ]
         return "\n".join(f"{k:17s} {v}" for k, v in lines)
     if s.get("model") in HESAI_NAMES:  # a Hesai's packets
@@ -313,7 +320,8 @@ def _describe(s: dict) -> str:
         return (f"{s['capture']} (ROS bag, topic {b['topic']}, {b['type']}, "
                 f"{b['messages']} messages)")
     if "clouds" in s and s.get("model") in HESAI_NAMES:
-        return f"{s['capture']} (nebula's Hesai {s['model']} point cloud, {kind})"
+        driver = s.get("cloud_driver", "nebula's Hesai")
+        return f"{s['capture']} ({driver} {s['model']} point cloud, {kind})"
     if "lidar_mode" in s or s.get("model") in HESAI_NAMES:
         maker = "Ouster lidar" if "lidar_mode" in s else f"Hesai {s['model']}"
         return f"{s['capture']} ({maker} packets, {'live' if kind == 'udp' else kind})"

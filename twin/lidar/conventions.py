@@ -40,7 +40,10 @@ PandarQT128 (dual return) clouds
 elevation distance time_stamp, no misses) are read back as the scans their packets give, the head's
 rotation until each channel fires, which nebula leaves out (up to 0.19 deg at 600 rpm), put
 back; `twin.lidar.sources` sends a cloud there when ``--model`` names a Hesai or a PCD file's
-fields and elevations are a Hesai's.
+fields and elevations are a Hesai's. Hesai's own ROS driver's PandarXT32 clouds (x y z intensity
+ring timestamp, the misses at the origin, Hesai's frame unless its transform turned them) are
+read by `twin.lidar.hesai_ros_clouds` (conventions ``hesai-ros``, ``hesai-ros-ros-frame``,
+`twin.lidar.format_names.HESAI_CLOUD_CONVENTIONS`).
 
 Ouster clouds are not rebuilt either, nor need to be: ouster-ros's (and ouster-sdk's XYZLut's)
 cloud is organised, every pixel kept, and `twin.lidar.ouster_clouds` reads it with the sensor's

@@ -9,6 +9,12 @@ VELODYNE_DECODER = "velodyne-decoder"
 ROS_VELODYNE = "ros-velodyne"
 NEBULA = "nebula"
 CLOUD_CONVENTIONS = (AIMBENCH, VELODYNE_DECODER, ROS_VELODYNE, NEBULA)
+#: Hesai's own ROS driver's PandarXT32 clouds (`twin.lidar.hesai_ros_clouds`), in Hesai's frame
+#: (the driver's default) or turned to the ROS frame by its transform: read by their own
+#: reader, not by `twin.lidar.conventions`.
+HESAI_ROS = "hesai-ros"
+HESAI_ROS_ROS_FRAME = "hesai-ros-ros-frame"
+HESAI_CLOUD_CONVENTIONS = (HESAI_ROS, HESAI_ROS_ROS_FRAME)
 
 #: The files scans are exported to, by extension (`twin.lidar.export.export_scans`).
 EXPORT_FORMATS = (".npz", ".parquet", ".pcd", ".ply")

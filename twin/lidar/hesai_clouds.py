@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import calendar
 import itertools
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -97,7 +98,7 @@ def is_nebula_hesai(names) -> bool:
 # Writing: nebula's cloud of packets
 
 
-def _packet_times_ns(payloads: list[bytes], angles: HesaiAngles) -> np.ndarray:
+def packet_times_ns(payloads: list[bytes], angles: HesaiAngles) -> np.ndarray:
     """Each packet's time, ns since 1970: the tail's date and time (years since 1900, UTC) plus
     its microseconds (nebula's hesai_packet::get_timestamp_ns)."""
     model = angles.model
@@ -175,7 +176,7 @@ def nebula_hesai_cloud(payloads: list[bytes], angles: HesaiAngles, *,
     block = (g[:, None] % (nb // nr)) * nr + np.arange(nr)  # (groups, n_returns)
     loop = None if dec.loop is None else dec.loop.reshape(groups, nr)[g]
     offset = _offset_ns(model, block, loop, nr)
-    t_packet = _packet_times_ns(payloads, angles)[g // (nb // nr)]
+    t_packet = packet_times_ns(payloads, angles)[g // (nb // nr)]
     stamp = t_packet[0] + int(offset[0].min())  # on_set_timestamp: the first firing's earliest
     time_ns = t_packet[:, None, None] + offset - stamp
     # nebula's order: firing, channel, return
@@ -273,7 +274,7 @@ def _loops(found_firing: np.ndarray, channel: np.ndarray, n_grid: int) -> np.nda
     return (phase + np.arange(n_grid)) % 2
 
 
-def _rpm(t_firing: np.ndarray | None, point_az: np.ndarray, step: float, model) -> float:
+def head_rpm(t_firing: np.ndarray | None, point_az: np.ndarray, step: float, model) -> float:
     """The head's speed: the slope of the block azimuth against each point's firing time
     (nebula's time_stamp less its unit's offset), else the grid's step at the model's firing
     period."""
@@ -332,7 +333,59 @@ def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float |
     block = _block_azimuth_cdeg(rec, channel, angles)
     order_key = (rec["time_stamp"].astype(np.float64) if "time_stamp" in names
                  else np.arange(len(rec), dtype=np.float64))
-    firing_az, point_firing = _sweep(block, order_key)
+
+    def rpm_of(point_grid: np.ndarray, loop: np.ndarray | None, point_az: np.ndarray,
+               step: float) -> float:
+        if rpm is not None:
+            return rpm
+        t = None
+        if "time_stamp" in names:  # the firing's time: the unit's offset in it taken off
+            # (an XT32's block offset is its firing's time within the packet: kept)
+            blk = (np.zeros(len(rec), np.int64) if model is XT32 else slot)[:, None]
+            lp = None if loop is None else loop[point_grid][:, None]
+            off = _offset_ns(model, blk, lp, nr)
+            off = off[np.arange(len(rec)), 0, channel]
+            t = (rec["time_stamp"].astype(np.float64) - off) * 1e-9
+        return head_rpm(t, point_az, step, model)
+
+    return scan_of_points(
+        CloudPoints(block, order_key, channel, slot, _distance(rec),
+                    rec["intensity"] if "intensity" in names else 0, dual, len(rec)),
+        angles, rpm_of, index=index, name=name, convention="nebula")
+
+
+@dataclass(frozen=True)
+class CloudPoints:
+    """A driver's cloud of one rotation as the firing grid's rebuild needs it, point by point:
+    the block azimuth (0.01 deg, the packets' unit), a key ordering the points in time, the
+    channel (0-based), the block of a dual-return pair (0: last, 1: strongest; 0 in single
+    return), the range (m) and the reflectivity; ``dual``: the cloud is of dual return;
+    ``n_cloud``: the cloud's points (misses included when the driver writes them)."""
+
+    block_cdeg: np.ndarray
+    order_key: np.ndarray
+    channel: np.ndarray
+    slot: np.ndarray
+    distance: np.ndarray
+    intensity: np.ndarray | int
+    dual: bool
+    n_cloud: int
+
+
+def scan_of_points(p: CloudPoints, angles: HesaiAngles, rpm_of, *, index: int = 0,
+                   name: str = "cloud", convention: str = "nebula") -> Scan:
+    """The packet path's scan of a Hesai driver's cloud (``p``, its returns): the firing grid
+    rebuilt from the points' block azimuths (the firings where every channel missed put back),
+    written as packets with the misses put back and read as the packet path reads them
+    (module docstring). ``rpm_of(point_grid, loop, point_az, step)``: the head's speed (rpm)
+    the packets are written with, from each point's grid firing, the grid's loops (QT128, else
+    None), each point's firing azimuth (0.01 deg, unwrapped) and the grid's step."""
+    model = angles.model
+    nc = model.n_channels
+    dual = p.dual
+    nr = 2 if dual else 1
+    channel, slot = p.channel, p.slot
+    firing_az, point_firing = _sweep(p.block_cdeg, p.order_key)
     if len(firing_az) < 3:
         raise HesaiError(f"{name}: {len(firing_az)} firings: not a rotation")
     step = float(np.median(np.diff(firing_az)))
@@ -342,21 +395,12 @@ def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float |
                          "than half a turn, not a rotation")
     point_grid = found[point_firing]
     loop = None if model is XT32 else _loops(point_grid, channel, len(grid))
-    if rpm is None:
-        t = None
-        if "time_stamp" in names:  # the firing's time: the unit's offset in it taken off
-            # (an XT32's block offset is its firing's time within the packet: kept)
-            blk = (np.zeros(len(rec), np.int64) if model is XT32 else slot)[:, None]
-            lp = None if loop is None else loop[point_grid][:, None]
-            off = _offset_ns(model, blk, lp, nr)
-            off = off[np.arange(len(rec)), 0, channel]
-            t = (rec["time_stamp"].astype(np.float64) - off) * 1e-9
-        rpm = _rpm(t, firing_az[point_firing], step, model)
+    rpm = rpm_of(point_grid, loop, firing_az[point_firing], step)
     dist = np.zeros((len(grid) + 2, nr, nc))
     refl = np.zeros((len(grid) + 2, nr, nc), dtype=np.uint8)
     where = (1 + point_grid, slot, channel)
-    dist[where] = _distance(rec)
-    refl[where] = rec["intensity"] if "intensity" in names else 0
+    dist[where] = p.distance
+    refl[where] = p.intensity
     if dual:  # a first block nebula dropped (identical, within the threshold): as the second
         gone = (dist[:, 0] == 0) & (dist[:, 1] > 0)
         dist[:, 0][gone], refl[:, 0][gone] = dist[:, 1][gone], refl[:, 1][gone]
@@ -367,8 +411,8 @@ def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float |
     if len(scans) != 1:
         raise HesaiError(f"{name}: the rebuilt grid gave {len(scans)} rotations, not one")
     s = scans[0]
-    meta = {**s.meta, "from_cloud": True, "cloud_convention": "nebula",
-            "cloud_points": len(rec), "rpm": rpm, "source": name}
+    meta = {**s.meta, "from_cloud": True, "cloud_convention": convention,
+            "cloud_points": p.n_cloud, "rpm": rpm, "source": name}
     return Scan(**{k: getattr(s, k) for k in ("distance", "azimuth", "laser_id", "intensity",
                                               "time", "return_type", "x", "y", "z")},
                 index=index, complete=True, packets=0, product_id=0,

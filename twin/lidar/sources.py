@@ -33,6 +33,7 @@ on demand.
 
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 from collections.abc import Callable, Iterable, Iterator
@@ -260,7 +261,7 @@ def open_scans(
 
         return OsfScanSource(src, max_scans)
     if src.kind in ("pcd", "bag") and (model is None or isinstance(model, str)):
-        hesai_cloud = _open_hesai_cloud(src, model, hesai_angles, max_scans)
+        hesai_cloud = _open_hesai_cloud(src, model, hesai_angles, max_scans, cloud_convention)
         if hesai_cloud is not None:
             return hesai_cloud
     if isinstance(model, str) and _is_hesai(model):
@@ -334,36 +335,82 @@ def _hesai_angles(model: str, angles_file: str | Path | None):
 
 
 def _open_hesai_cloud(src: SourceName, model: str | None, angles_file: str | Path | None,
-                      max_scans: int | None):
-    """nebula's Hesai clouds (`twin.lidar.hesai_clouds`) when ``model`` is a Hesai, or (None)
-    when a PCD file's fields and elevations say it is one; None otherwise (a Velodyne cloud)."""
+                      max_scans: int | None, convention: str | None = None):
+    """A Hesai's cloud: nebula's (`twin.lidar.hesai_clouds`) or Hesai's own ROS driver's
+    (`twin.lidar.hesai_ros_clouds`), when ``model`` is a Hesai, ``convention`` is the ROS
+    driver's, or (None) when a PCD file's fields and elevations say it is one; None otherwise
+    (a Velodyne cloud)."""
+    from twin.lidar.format_names import HESAI_CLOUD_CONVENTIONS
+
+    hesai_ros = convention is not None and convention in HESAI_CLOUD_CONVENTIONS
     if model is not None and not _is_hesai(model):
+        if hesai_ros:
+            raise CloudError(f"--cloud-convention {convention} reads a Hesai's cloud, and "
+                             f"--model names a {model}: give a Hesai model or leave it out")
         return None
-    from twin.lidar.hesai_clouds import (
-        HesaiCloudScanSource,
-        hesai_model_of_cloud,
-        pcd_has_nebula_fields,
-    )
-
     if src.kind == "pcd":
-        from twin.lidar.pcd import pcd_records
-
-        if model is None and not pcd_has_nebula_fields(src.path):
-            return None
-        rec = pcd_records(src.path)
-        told = "option" if model is not None else "fields"
-        model = model or hesai_model_of_cloud(rec)
-        if model is None:
-            return None
-        return HesaiCloudScanSource(src, [(str(src.path), rec)], _hesai_angles(model, angles_file),
-                                    max_scans=max_scans, told=told)
-    if model is None:  # a bag's clouds: the Hesai reading only when asked (--model)
+        return _open_hesai_pcd(src, model, angles_file, max_scans, convention if hesai_ros
+                               else None)
+    if model is None and not hesai_ros:  # a bag's clouds: the Hesai reading only when asked
         return None
     from twin.lidar.bags import Bag
 
     bag = Bag(src.path, src.topic)
-    return HesaiCloudScanSource(src, bag.cloud_records(), _hesai_angles(model, angles_file),
-                                max_scans=max_scans, extra={"bag": bag.info}, closer=bag.close)
+    clouds = bag.cloud_records()
+    first = next(clouds, None)
+    if first is not None:
+        clouds = itertools.chain([first], clouds)
+    ros = hesai_ros or (first is not None and _is_hesai_ros(first[1]))
+    told = "option" if model is not None else "fields"
+    if ros and model is None:
+        from twin.lidar.hesai_ros_clouds import hesai_ros_model_of_cloud
+
+        model = (hesai_ros_model_of_cloud(first[1]) if first is not None else None) or "PandarXT32"
+    kwargs = {"max_scans": max_scans, "extra": {"bag": bag.info}, "closer": bag.close,
+              "told": told}
+    return _hesai_cloud_source(src, clouds, _hesai_angles(model, angles_file), ros,
+                               convention if hesai_ros else None, kwargs)
+
+
+def _is_hesai_ros(rec) -> bool:
+    from twin.lidar.hesai_ros_clouds import is_hesai_ros
+
+    return is_hesai_ros(rec.dtype.names)
+
+
+def _hesai_cloud_source(src: SourceName, clouds, angles, ros: bool, convention: str | None,
+                        kwargs: dict):
+    if not ros:
+        from twin.lidar.hesai_clouds import HesaiCloudScanSource
+
+        return HesaiCloudScanSource(src, clouds, angles, **kwargs)
+    from twin.lidar.hesai_ros_clouds import FRAMES, HesaiRosCloudScanSource
+
+    return HesaiRosCloudScanSource(src, clouds, angles, frame=FRAMES.get(convention), **kwargs)
+
+
+def _open_hesai_pcd(src: SourceName, model: str | None, angles_file: str | Path | None,
+                    max_scans: int | None, convention: str | None):
+    """A PCD file of a Hesai's cloud: the driver told by its header's fields (or
+    ``convention``), the model by ``model`` or its fields and elevations."""
+    from twin.lidar.hesai_clouds import hesai_model_of_cloud, pcd_has_nebula_fields
+    from twin.lidar.hesai_ros_clouds import hesai_ros_model_of_cloud, pcd_has_hesai_ros_fields
+    from twin.lidar.pcd import pcd_records
+
+    nebula = pcd_has_nebula_fields(src.path)
+    ros = convention is not None or (not nebula and pcd_has_hesai_ros_fields(src.path))
+    if model is None and not (nebula or ros):
+        return None
+    rec = pcd_records(src.path)
+    told = "option" if model is not None else "fields"
+    if model is None:
+        model = hesai_ros_model_of_cloud(rec) if ros else hesai_model_of_cloud(rec)
+        if model is None and convention is not None:
+            model = "PandarXT32"  # the ROS driver's reader reads the XT32: it says so if not
+    if model is None:
+        return None
+    return _hesai_cloud_source(src, [(str(src.path), rec)], _hesai_angles(model, angles_file),
+                               ros, convention, {"max_scans": max_scans, "told": told})
 
 
 class HesaiScanSource(ScanSource):
