@@ -3,7 +3,10 @@
     .venv/bin/python benchmarks/bench_stages.py [--scans 5] [--seed 0]
 
 The scans are the paper's yaw sweep on the twin as `benchmarks/bench_sweep.py` takes them (21
-references, -10..+10 deg, ``--scans`` each, the twin's seed; no calibration). Every scan is
+references, -10..+10 deg, ``--scans`` each, the twin's seed), estimated with the hints its
+station gives: the unit's range offsets known, as the demo's calibration measures them, or
+with ``--offset-estimated`` estimated with every scan, as for a new, uncalibrated unit (the
+integral over the common offset; `bench_sweep.sweep_station`). Every scan is
 estimated by both methods, one process, one BLAS thread; each stage's CPU time
 (`time.process_time`) is summed per scan around its function (a stage called inside itself, or
 inside another call of itself, counts once), and the table prints the median over the scans
@@ -40,6 +43,9 @@ from align.search import clusters, roll
 from scenarios import plans
 from scenarios.bench import SimBench
 from scenarios.runner import make_estimator, visit
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_sweep import sweep_station
 
 #: Issue 20's goals, CPU ms per scan.
 GOALS_MS = {"rays": 10.0, "paper": 2.0}
@@ -99,6 +105,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scans", type=int, default=5, help="scans per reference")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--offset-estimated", action="store_true",
+                    help="estimate the unit's common range offset with every scan, as for a new "
+                         "uncalibrated unit (default: known, as the demo's calibration gives it)")
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
     plan = plans.yaw_sweep(scans=args.scans)
@@ -112,10 +121,13 @@ def main() -> int:
     timer = Timer()
     for mod, name, stage in STAGES:
         wrap_everywhere(mod, name, timer.wrap(getattr(mod, name), stage))
-    methods = {"rays": make_estimator(None), "paper": make_estimator("paper")}
+    station = sweep_station(args.offset_estimated)
+    methods = {"rays": make_estimator(None, station=station),
+               "paper": make_estimator("paper", station=station)}
     for f in methods.values():
         f(scans[0])  # the kernels loaded (or compiled) before the clock runs
-    print(f"bench_stages: {len(scans)} scans of the yaw sweep (seed {args.seed}), CPU ms per "
+    print(f"bench_stages: {len(scans)} scans of the yaw sweep (seed {args.seed}), the unit's "
+          f"range offset {'estimated' if args.offset_estimated else 'known'}, CPU ms per "
           f"scan (median over the scans), one process, load average {os.getloadavg()[0]:.1f}")
     for method, f in methods.items():
         per: dict[str, list[float]] = {}
