@@ -63,6 +63,7 @@ from twin.lidar.hesai import (
     encode_xt32,
     scans_from_hesai,
 )
+from twin.lidar.pcd import pcd_header_fields
 from twin.lidar.source_base import ScanSource
 
 #: nebula's PointXYZIRCAEDT (point_types.hpp), packed (PCD and PointCloud2 store it so).
@@ -447,17 +448,7 @@ def pcd_has_nebula_fields(path) -> bool:
     """Whether a PCD file's header names nebula's PointXYZIRCAEDT fields: read from its first
     lines only, so that a Velodyne cloud is not loaded twice to be told apart (a file that is
     not a PCD says no: its own reader says what is wrong with it)."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(4096)
-    except OSError:
-        return False
-    for line in head.split(b"\n"):
-        if line.startswith(b"FIELDS"):
-            return is_nebula_hesai(line.decode("ascii", "replace").split()[1:])
-        if line.startswith(b"DATA"):
-            break
-    return False
+    return is_nebula_hesai(pcd_header_fields(path))
 
 
 class HesaiCloudScanSource(ScanSource):

@@ -83,6 +83,7 @@ from twin.lidar.hesai_clouds import (
     packet_times_ns,
     scan_of_points,
 )
+from twin.lidar.pcd import pcd_header_fields
 
 #: LidarPointXYZIRT as the ROS driver's PointCloud2 lays it out (packed, 26 bytes).
 HESAI_ROS_POINT_DTYPE = np.dtype([
@@ -395,17 +396,7 @@ def hesai_ros_model_of_cloud(rec: np.ndarray) -> str | None:
 
 def pcd_has_hesai_ros_fields(path) -> bool:
     """Whether a PCD file's header names the ROS driver's fields (its first lines only)."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(4096)
-    except OSError:
-        return False
-    for line in head.split(b"\n"):
-        if line.startswith(b"FIELDS"):
-            return is_hesai_ros(line.decode("ascii", "replace").split()[1:])
-        if line.startswith(b"DATA"):
-            break
-    return False
+    return is_hesai_ros(pcd_header_fields(path))
 
 
 _FRAME_TOLD = {

@@ -547,6 +547,16 @@ def _frame(cols: np.ndarray, info: OusterInfo) -> Frame:
         out[name][m] = px[src]
     out["range_mm"] &= RANGE_MASK
     out = {name: a.T for name, a in out.items()}
+    ts, mid, status, received = _column_headers(cols, m, w)
+    return Frame(int(cols["frame_id"][0]) if len(cols) else -1, **out, timestamp_ns=ts,
+                 measurement_id=mid, status=status, received=received,
+                 packets=int(np.ceil(len(cols) / info.columns_per_packet)))
+
+
+def _column_headers(cols: np.ndarray, m: np.ndarray, w: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A frame's per-column timestamp (ns), measurement id, status and whether the column
+    arrived, (w,) each, from its kept columns ``cols`` at measurement ids ``m`` (0 elsewhere)."""
     ts = np.zeros(w, dtype=np.uint64)
     ts[m] = cols["timestamp"]
     mid = np.zeros(w, dtype=np.uint16)
@@ -555,9 +565,7 @@ def _frame(cols: np.ndarray, info: OusterInfo) -> Frame:
     status[m] = cols["status"]
     received = np.zeros(w, dtype=bool)
     received[m] = True
-    return Frame(int(cols["frame_id"][0]) if len(cols) else -1, **out, timestamp_ns=ts,
-                 measurement_id=mid, status=status, received=received,
-                 packets=int(np.ceil(len(cols) / info.columns_per_packet)))
+    return ts, mid, status, received
 
 
 def _pixel_field(pixels: np.ndarray, f: PixelField) -> np.ndarray:
@@ -589,14 +597,7 @@ def _profile_frame(cols: np.ndarray, info: OusterInfo) -> Frame:
     if "range2_mm" in out and "signal2" not in out:  # (nor for RNG15's second return)
         out["signal2"] = np.zeros((w, h), dtype=np.uint16)
     out = {name: a.T for name, a in out.items()}  # (H, W) views of columns filled as (W, H)
-    ts = np.zeros(w, dtype=np.uint64)
-    ts[m] = cols["timestamp"]
-    mid = np.zeros(w, dtype=np.uint16)
-    mid[m] = cols["measurement_id"]
-    status = np.zeros(w, dtype=np.uint32)
-    status[m] = cols["status"]
-    received = np.zeros(w, dtype=bool)
-    received[m] = True
+    ts, mid, status, received = _column_headers(cols, m, w)
     return Frame(
         int(first["frame_id"]), **out, timestamp_ns=ts, measurement_id=mid, status=status,
         received=received, packets=int(np.ceil(len(cols) / cpp)),

@@ -73,6 +73,23 @@ def read_pcd_scans(path: str | Path, lasers: LaserTable = vlp16.LASERS, *,
             for i, c in enumerate(read_pcd(path))]
 
 
+def pcd_header_fields(path: str | Path) -> list[str]:
+    """The field names a PCD file's header lists, read from its first 4 kB only (so that a
+    cloud is told apart before it is loaded); empty for a file that is not a PCD or cannot be
+    read (its own reader then says what is wrong with it)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return []
+    for line in head.split(b"\n"):
+        if line.startswith(b"FIELDS"):
+            return line.decode("ascii", "replace").split()[1:]
+        if line.startswith(b"DATA"):
+            break
+    return []
+
+
 def pcd_records(path: str | Path) -> np.ndarray:
     """A PCD file's points as its fields hold them (a structured array, no frame change): for
     readers of a driver's own fields (`twin.lidar.hesai_clouds`)."""
