@@ -336,9 +336,7 @@ def scan_from_hesai_ros(rec: np.ndarray, angles: HesaiAngles, *, frame: str | No
         turn = slice(0, int(wrap[0]) + 1)
         ret, r, channel, block = ret[turn], r[turn], channel[turn], block[turn]
     dual, slot = _slots(block, channel, model.n_channels, name)
-    if model is QT128 and not dual:
-        raise HesaiError(f"{name}: a single-return {model.name} cloud: read here in dual return "
-                         "only (two firing loops a packet in single return are not rebuilt)")
+    single_qt = model is QT128 and not dual
     intensity = (np.rint(ret["intensity"]).astype(np.uint8) if "intensity" in field_names
                  else 0)
 
@@ -351,12 +349,22 @@ def scan_from_hesai_ros(rec: np.ndarray, angles: HesaiAngles, *, frame: str | No
         if "timestamp" in field_names:  # absolute s: from the first, or the fit loses digits
             t = ret["timestamp"].astype(np.float64)
             t = t - t.min()
+            if single_qt:  # one time a packet: its block 1 (loop 2) fires a firing later
+                t = t + loop[point_grid] * model.firing_period
         return head_rpm(t, point_az, step, model)
+
+    # a single-return QT128's two firings a packet share its timestamp: that tells the loops
+    packet_time = None
+    if single_qt and "timestamp" in field_names:
+        t_packet = ret["timestamp"].astype(np.float64)
+
+        def packet_time(_loop: np.ndarray) -> np.ndarray:
+            return t_packet
 
     convention = names.HESAI_ROS if frame == "hesai" else names.HESAI_ROS_ROS_FRAME
     scan = scan_of_points(
         CloudPoints(block, np.arange(len(ret), dtype=np.float64), channel, slot, r, intensity,
-                    dual, len(rec)),
+                    dual, len(rec), packet_time),
         angles, rpm_of, index=index, name=name, convention=convention)
     scan.meta.update({"cloud_frame_from": frame_told,
                       "cloud_firetime": rpm_packets is not None})
