@@ -38,8 +38,12 @@ path's by construction. What differs from the packet path's scan: a miss's azimu
 where every channel missed is interpolated from its neighbours (the packets' is the encoder's),
 a return nebula dropped as out of range is a miss, and nebula's scan cutter (hesai_decoder.hpp
 ``scan_cutter_``, cut per channel at the cut angle) can leave a channel of the first or last
-firing in the next cloud: there it is a miss. A QT128 cloud is read in dual return only (the
-grid's two loops a packet in single return are not rebuilt).
+firing in the next cloud: there it is a miss. A single-return QT128 cloud (two firings a
+packet, block 0 loop 1 and block 1 loop 2) has its loops told by its time stamps, where only
+the right phase of the alternation puts one packet time on both firings of each packet
+(`_phase_by_time`), else by the channels one loop fires; its grid is written as packets
+begun on a loop 1 firing. nebula stamps such a packet's block 0 after its block 1, so there
+the cloud's order, not the stamps, orders the firings.
 """
 
 from __future__ import annotations
@@ -308,10 +312,11 @@ def _phase_by_time(point_grid: np.ndarray, packet_time, name: str) -> int | None
 
 
 def _single_loops(point_grid: np.ndarray, channel: np.ndarray, n_grid: int, packet_time,
-                  name: str) -> np.ndarray:
+                  name: str) -> tuple[np.ndarray, str]:
     """Each grid firing's loop of a single-return QT128: from the time stamps where they tell
     it (`_phase_by_time`), else from the channels only one loop fires (`_loops`); a return on
-    a channel its firing's loop leaves dark is refused (the loops, or the grid, read wrong)."""
+    a channel its firing's loop leaves dark is refused (the loops, or the grid, read wrong).
+    Also what told them: ``time stamps`` or ``channels``."""
     phase = None if packet_time is None else _phase_by_time(point_grid, packet_time, name)
     loop = (_loops(point_grid, channel, n_grid) if phase is None
             else (phase + np.arange(n_grid)) % 2)
@@ -319,7 +324,7 @@ def _single_loops(point_grid: np.ndarray, channel: np.ndarray, n_grid: int, pack
     if dark.any():
         raise HesaiError(f"{name}: {int(dark.sum())} returns on channels their firing's loop "
                          "leaves dark: the firing loops cannot be told")
-    return loop
+    return loop, ("channels" if phase is None else "time stamps")
 
 
 def head_rpm(t_firing: np.ndarray | None, point_az: np.ndarray, step: float, model) -> float:
@@ -363,9 +368,9 @@ def _grid_payloads(grid: np.ndarray, step: float, dist: np.ndarray, refl: np.nda
 def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float | None = None,
                            index: int = 0, name: str = "nebula cloud") -> Scan:
     """The packet path's scan (`twin.lidar.hesai.scans_from_hesai`, firetime in) of one nebula
-    PandarXT32 or PandarQT128 (dual return) cloud (a record array with nebula's fields; x y z
-    and channel at least): module docstring. ``rpm``: the head's speed (None: from the time
-    stamps, else the grid's step)."""
+    PandarXT32 or PandarQT128 (single or dual return) cloud (a record array with nebula's
+    fields; x y z and channel at least): module docstring. ``rpm``: the head's speed (None:
+    from the time stamps, else the grid's step)."""
     model = angles.model
     names = rec.dtype.names or ()
     if "channel" not in names:
@@ -474,10 +479,12 @@ def scan_of_points(p: CloudPoints, angles: HesaiAngles, rpm_of, *, index: int = 
                          "than half a turn, not a rotation")
     point_grid = found[point_firing]
     single_qt = model is QT128 and not dual
+    told = {}
     if model is XT32:
         loop = None
     elif single_qt:
-        loop = _single_loops(point_grid, channel, len(grid), p.packet_time, name)
+        loop, told["loops_from"] = _single_loops(point_grid, channel, len(grid), p.packet_time,
+                                                 name)
     else:
         loop = _loops(point_grid, channel, len(grid))
     rpm = rpm_of(point_grid, loop, firing_az[point_firing], step)
@@ -500,7 +507,7 @@ def scan_of_points(p: CloudPoints, angles: HesaiAngles, rpm_of, *, index: int = 
         raise HesaiError(f"{name}: the rebuilt grid gave {len(scans)} rotations, not one")
     s = scans[0]
     meta = {**s.meta, "from_cloud": True, "cloud_convention": convention,
-            "cloud_points": p.n_cloud, "rpm": rpm, "source": name}
+            "cloud_points": p.n_cloud, "rpm": rpm, "source": name, **told}
     return Scan(**{k: getattr(s, k) for k in ("distance", "azimuth", "laser_id", "intensity",
                                               "time", "return_type", "x", "y", "z")},
                 index=index, complete=True, packets=0, product_id=0,

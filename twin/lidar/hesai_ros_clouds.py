@@ -46,8 +46,10 @@ What the driver writes (HesaiTechnology/HesaiLidar_ROS_2.0 at e7e112f, 2026-04-2
 
 A PandarQT128's (``udp3_2_parser.cc`` ``ComputeXYZI``, lines 260-335) is written the same way:
 every channel of both blocks, a loop's dark channels at the origin like any miss, its loop's
-firetime table only with a firetime file; here it is read in dual return with the firetime
-rotation out (the driver's default), the loops told as for nebula's clouds.
+firetime table only with a firetime file; here it is read with the firetime rotation out
+(the driver's default), in dual return the loops told as for nebula's clouds, in single
+return (two firings a packet) by the firings that share a packet's ``timestamp``, else by
+the channels one loop fires (`twin.lidar.hesai_clouds.scan_of_points`).
 
 `hesai_ros_cloud` writes that cloud from packets, op for op in float32 where the SDK computes
 in float. `scan_from_hesai_ros` reads one back as the packet path's scan (firetime in,
@@ -305,7 +307,7 @@ def scan_from_hesai_ros(rec: np.ndarray, angles: HesaiAngles, *, frame: str | No
                         firetime: bool | None = None, rpm: float | None = None,
                         index: int = 0, name: str = "Hesai ROS cloud") -> Scan:
     """The packet path's scan (`twin.lidar.hesai.scans_from_hesai`, firetime in) of one frame
-    of Hesai's ROS driver's PandarXT32 or (dual return, firetime out) PandarQT128 cloud
+    of Hesai's ROS driver's PandarXT32 or (firetime out) PandarQT128 cloud
     (records with x y z at least; ring, intensity and timestamp when present): module
     docstring. ``frame``: ``hesai`` or ``ros`` (None: told by
     the cut, else Hesai's); ``firetime``: whether the cloud has the firing rotation in (None:
