@@ -152,7 +152,10 @@ def test_a_twin_qt128_through_the_drivers_cloud_is_its_packets_scan(tmp_path, ca
     points with the dark channels and misses at the origin): the frame reads back as the
     packets' scan exactly (86,400 firings; the loops told from the channels only one loop
     fires), in Hesai's frame and turned to the ROS frame; `aimbench info` of the PCD file tells
-    the QT128 by its rings' elevations. A single-return or firetime QT128 cloud is refused."""
+    the QT128 by its rings' elevations. One echo of each dual-return pair (the SDK's
+    echo_mode_filter: one firing a packet by the timestamps, where single return has two) and
+    a QT128 cloud with the firetime rotation in are refused (a single-return cloud is read:
+    tests/test_hesai_qt128_single.py)."""
     from scenarios.cli import main
     from tests.test_cloud_conventions import write_pcd
     from twin.lidar.hesai import QT128, default_angles
@@ -179,7 +182,7 @@ def test_a_twin_qt128_through_the_drivers_cloud_is_its_packets_scan(tmp_path, ca
     out = capsys.readouterr().out
     assert "Hesai's ROS driver's PandarQT128 point cloud" in out and "86400 firings" in out, out
     single = cloud.reshape(900, 2, 128)[:, 1].reshape(-1)  # one echo a firing
-    with pytest.raises(HesaiError, match="single-return PandarQT128"):
+    with pytest.raises(HesaiError, match="a packet of its own"):
         scan_from_hesai_ros(single, angles)
     with pytest.raises(HesaiError, match="firetime rotation"):
         hesai_ros_cloud(packets, angles, packets=frame, firetime=True)

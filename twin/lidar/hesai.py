@@ -544,9 +544,10 @@ def encode_qt128(block_azimuth_cdeg: np.ndarray, distance_m: np.ndarray,
                  signed: bool = True) -> list[bytes]:
     """PandarQT128C2X packets: ``block_azimuth_cdeg`` (n, 2), ``distance_m`` and
     ``reflectivity`` (n, 2, 128), ``timestamp_us`` (n,), ``loop`` (n,) each packet's firing
-    loop in dual-return mode (0: loop 1, written as mode flag 1); the layout `decode_hesai`
-    reads, distance in 4 mm units (0: no return; a dark channel's is written 0 whatever given),
-    the three CRCs filled, the 32 bytes of cyber security zero (signing off) when ``signed``."""
+    loop in dual-return mode (0: loop 1, written as mode flag 1; single return: block 0 loop 1,
+    block 1 loop 2, flag 1 whatever given); the layout `decode_hesai` reads, distance in 4 mm
+    units (0: no return; a dark channel's is written 0 whatever given), the three CRCs filled,
+    the 32 bytes of cyber security zero (signing off) when ``signed``."""
     n = len(block_azimuth_cdeg)
     rec = np.zeros(n, dtype=QT128_DTYPE)
     rec["sop"] = 0xFFEE  # 0xEE 0xFF on the wire
@@ -568,7 +569,10 @@ def encode_qt128(block_azimuth_cdeg: np.ndarray, distance_m: np.ndarray,
     # lidar state 1 (normal) in bits 5-7, the rolling counter (bits 0-2) counting the
     # functional-safety cycles of 5 ms (nebula's update_cycle_ns)
     rec["fs_state"] = (1 << 5) | ((np.asarray(timestamp_us) // 5000) % 8)
-    rec["mode_flag"] = np.where(dual, 1 - loop, 0)
+    # dual: bit 0 the packet's loop (1: loop 1); single: block 0 is loop 1, block 1 loop 2, and
+    # the flag says so (Hesai's SDK, udp3_2_parser.cc, takes block b's loop from ``(mode_flag +
+    # b + 1) % 2``: 1 agrees with nebula, which takes it from the block alone)
+    rec["mode_flag"] = np.where(dual, 1 - loop, 1)
     rec["return_mode"] = return_mode
     rec["motor_speed"] = round(rpm)
     rec["date_time"], rec["timestamp"] = _date_time(timestamp_us)

@@ -38,14 +38,19 @@ path's by construction. What differs from the packet path's scan: a miss's azimu
 where every channel missed is interpolated from its neighbours (the packets' is the encoder's),
 a return nebula dropped as out of range is a miss, and nebula's scan cutter (hesai_decoder.hpp
 ``scan_cutter_``, cut per channel at the cut angle) can leave a channel of the first or last
-firing in the next cloud: there it is a miss. A QT128 cloud is read in dual return only (the
-grid's two loops a packet in single return are not rebuilt).
+firing in the next cloud: there it is a miss. A single-return QT128 cloud (two firings a
+packet, block 0 loop 1 and block 1 loop 2) has its loops told by its time stamps, where only
+the right phase of the alternation puts one packet time on both firings of each packet
+(`_phase_by_time`), else by the channels one loop fires; its grid is written as packets
+begun on a loop 1 firing. nebula stamps such a packet's block 0 after its block 1, so there
+the cloud's order, not the stamps, orders the firings.
 """
 
 from __future__ import annotations
 
 import calendar
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +59,7 @@ from twin.core.scan import Scan
 from twin.lidar.hesai import (
     HESAI_MODELS,
     QT128,
+    QT128_FIRED,
     QT128_LOOP_TIME,
     XT32,
     HesaiAngles,
@@ -275,6 +281,53 @@ def _loops(found_firing: np.ndarray, channel: np.ndarray, n_grid: int) -> np.nda
     return (phase + np.arange(n_grid)) % 2
 
 
+#: Two points of one packet give its time within this, s: nebula's ns are integers and
+#: Hesai's ROS driver writes one double a packet; a packet's firings are 111 us apart.
+_PACKET_TIME_TOLERANCE = 1e-7
+
+
+def _spread_by_packet(point_grid: np.ndarray, phase: int, t: np.ndarray) -> float:
+    """The largest spread of the packet times ``t`` (s) the points of one packet give, when
+    grid firing g is loop (phase + g) % 2 and so packet (g + phase) // 2's block g % 2."""
+    _, packet = np.unique((point_grid + phase) // 2, return_inverse=True)
+    hi = np.full(packet.max() + 1, -np.inf)
+    lo = np.full(packet.max() + 1, np.inf)
+    np.maximum.at(hi, packet, t)
+    np.minimum.at(lo, packet, t)
+    return float((hi - lo).max())
+
+
+def _phase_by_time(point_grid: np.ndarray, packet_time, name: str) -> int | None:
+    """A single-return QT128's phase of loops (grid firing g is loop (phase + g) % 2) from the
+    points' times: ``packet_time(loop)`` gives each point's packet time (s) were its firing of
+    that loop; only the right phase puts one time on all the points of each packet (its two
+    firings, block 0 loop 1 and block 1 loop 2). None when both do (no packet holds points
+    of both its firings: not told)."""
+    fits = [_spread_by_packet(point_grid, phase, packet_time((phase + point_grid) % 2))
+            <= _PACKET_TIME_TOLERANCE for phase in (0, 1)]
+    if not any(fits):
+        raise HesaiError(f"{name}: the time stamps put each firing in a packet of its own, not "
+                         "two firings a packet: not a single-return PandarQT128 cloud (one echo "
+                         "of each dual-return pair kept?)")
+    return None if all(fits) else fits.index(True)
+
+
+def _single_loops(point_grid: np.ndarray, channel: np.ndarray, n_grid: int, packet_time,
+                  name: str) -> tuple[np.ndarray, str]:
+    """Each grid firing's loop of a single-return QT128: from the time stamps where they tell
+    it (`_phase_by_time`), else from the channels only one loop fires (`_loops`); a return on
+    a channel its firing's loop leaves dark is refused (the loops, or the grid, read wrong).
+    Also what told them: ``time stamps`` or ``channels``."""
+    phase = None if packet_time is None else _phase_by_time(point_grid, packet_time, name)
+    loop = (_loops(point_grid, channel, n_grid) if phase is None
+            else (phase + np.arange(n_grid)) % 2)
+    dark = ~QT128_FIRED[loop[point_grid], channel]
+    if dark.any():
+        raise HesaiError(f"{name}: {int(dark.sum())} returns on channels their firing's loop "
+                         "leaves dark: the firing loops cannot be told")
+    return loop, ("channels" if phase is None else "time stamps")
+
+
 def head_rpm(t_firing: np.ndarray | None, point_az: np.ndarray, step: float, model) -> float:
     """The head's speed: the slope of the block azimuth against each point's firing time
     (nebula's time_stamp less its unit's offset), else the grid's step at the model's firing
@@ -286,15 +339,18 @@ def head_rpm(t_firing: np.ndarray | None, point_az: np.ndarray, step: float, mod
 
 
 def _grid_payloads(grid: np.ndarray, step: float, dist: np.ndarray, refl: np.ndarray,
-                   loop: np.ndarray | None, rpm: float, dual: bool, model) -> list[bytes]:
-    """Packets of the rebuilt grid with one firing of misses before and after it (the packet
-    path cuts exactly there) and padded with misses to whole packets; ``dist``, ``refl``
-    (grid + 2, returns, channels) already so placed; ``loop`` each row's (QT128)."""
+                   loop: np.ndarray | None, rpm: float, dual: bool, model, lead: int = 1
+                   ) -> list[bytes]:
+    """Packets of the rebuilt grid with ``lead`` firings of misses before it and one after it
+    (the packet path cuts exactly there) and padded with misses to whole packets; ``dist``,
+    ``refl`` (lead + grid + 1, returns, channels) already so placed; ``loop`` each row's
+    (QT128: in single return a packet's first row must be loop 1, hence a second lead row)."""
     nr = 2 if dual else 1
     per_packet = model.n_blocks // nr
     packets = -(-len(dist) // per_packet)
     pad = packets * per_packet - len(dist)
-    az = np.concatenate(([grid[0] - round(step)], grid, grid[0] + round(step) * np.arange(pad + 1)))
+    az = np.concatenate((grid[0] - round(step) * np.arange(lead, 0, -1), grid,
+                         grid[0] + round(step) * np.arange(pad + 1)))
     dist = np.concatenate((dist, np.zeros((pad, *dist.shape[1:]))))
     refl = np.concatenate((refl, np.zeros((pad, *refl.shape[1:]), dtype=np.uint8)))
     shape = (packets, model.n_blocks)
@@ -305,15 +361,17 @@ def _grid_payloads(grid: np.ndarray, step: float, dist: np.ndarray, refl: np.nda
     if model is XT32:
         return encode_xt32(*args, rpm=rpm, return_mode=mode)
     loop = np.concatenate((loop, (loop[-1] + 1 + np.arange(pad)) % 2))
-    return encode_qt128(*args, loop, rpm=rpm, return_mode=mode)
+    # a packet's loop: its first row's (dual: its only firing; single: loop 1 by the placing)
+    return encode_qt128(*args, loop.reshape(packets, per_packet)[:, 0], rpm=rpm,
+                        return_mode=mode)
 
 
 def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float | None = None,
                            index: int = 0, name: str = "nebula cloud") -> Scan:
     """The packet path's scan (`twin.lidar.hesai.scans_from_hesai`, firetime in) of one nebula
-    PandarXT32 or PandarQT128 (dual return) cloud (a record array with nebula's fields; x y z
-    and channel at least): module docstring. ``rpm``: the head's speed (None: from the time
-    stamps, else the grid's step)."""
+    PandarXT32 or PandarQT128 (single or dual return) cloud (a record array with nebula's
+    fields; x y z and channel at least): module docstring. ``rpm``: the head's speed (None:
+    from the time stamps, else the grid's step)."""
     model = angles.model
     names = rec.dtype.names or ()
     if "channel" not in names:
@@ -326,14 +384,16 @@ def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float |
     _check_angles(rec, channel, angles, name)
     rtype = rec["return_type"] if "return_type" in names else np.zeros(len(rec), np.uint8)
     dual = bool(np.isin(rtype, _DUAL_ONLY).any())
-    if model is QT128 and not dual:
-        raise HesaiError(f"{name}: a single-return {model.name} cloud: read here in dual return "
-                         "(last and strongest) only")
     nr = 2 if dual else 1
+    # a single-return QT128's block is its loop (block 0 loop 1): its offset follows the loop
+    single_qt = model is QT128 and not dual
     slot = np.isin(rtype, _SECOND_BLOCK).astype(np.intp) if dual else np.zeros(len(rec), np.intp)
     block = _block_azimuth_cdeg(rec, channel, angles)
+    # nebula stamps a single-return QT128's block 0 (loop 1) 111.11 us after its block 1
+    # (pandar_qt128.hpp: 9000 + 111110 (2 - block - 1) ns), so its stamps do not order a
+    # packet's two firings: its order does (it writes firing by firing)
     order_key = (rec["time_stamp"].astype(np.float64) if "time_stamp" in names
-                 else np.arange(len(rec), dtype=np.float64))
+                 and not single_qt else np.arange(len(rec), dtype=np.float64))
 
     def rpm_of(point_grid: np.ndarray, loop: np.ndarray | None, point_az: np.ndarray,
                step: float) -> float:
@@ -342,17 +402,38 @@ def scan_from_nebula_hesai(rec: np.ndarray, angles: HesaiAngles, *, rpm: float |
         t = None
         if "time_stamp" in names:  # the firing's time: the unit's offset in it taken off
             # (an XT32's block offset is its firing's time within the packet: kept)
+            lp = None if loop is None else loop[point_grid]
+            if single_qt:  # the packet's time, then its block's firing within it
+                return head_rpm(_packet_time_s(rec, channel, lp) + lp * model.firing_period,
+                                point_az, step, model)
             blk = (np.zeros(len(rec), np.int64) if model is XT32 else slot)[:, None]
-            lp = None if loop is None else loop[point_grid][:, None]
-            off = _offset_ns(model, blk, lp, nr)
+            off = _offset_ns(model, blk, None if lp is None else lp[:, None], nr)
             off = off[np.arange(len(rec)), 0, channel]
             t = (rec["time_stamp"].astype(np.float64) - off) * 1e-9
         return head_rpm(t, point_az, step, model)
 
+    packet_time = None
+    if single_qt and "time_stamp" in names:
+        def packet_time(lp: np.ndarray) -> np.ndarray:
+            return _packet_time_s(rec, channel, lp)
+
     return scan_of_points(
         CloudPoints(block, order_key, channel, slot, _distance(rec),
-                    rec["intensity"] if "intensity" in names else 0, dual, len(rec)),
+                    rec["intensity"] if "intensity" in names else 0, dual, len(rec),
+                    packet_time),
         angles, rpm_of, index=index, name=name, convention="nebula")
+
+
+def _packet_time_s(rec: np.ndarray, channel: np.ndarray, loop: np.ndarray) -> np.ndarray:
+    """Each point of a single-return QT128 cloud's packet time (s, from the cloud's stamp):
+    its ``time_stamp`` less nebula's offset were its firing of ``loop`` (block = loop). A
+    stamp is read as a signed 32-bit ns: a scan begun on a block 0 is stamped at that block's
+    earliest point, 111 us after its block 1's (on_set_timestamp), whose points nebula's
+    uint32 arithmetic (get_point_time_relative) so wraps to near 2^32."""
+    # _qt128_offset_ns point by point: 9000 + 111110 (2 - block - 1) + the loop table's
+    off = 9000 + 111110 * (1 - loop) + np.rint(QT128_LOOP_TIME[loop, channel] * 1e9)
+    stamp = rec["time_stamp"].astype(np.uint32).view(np.int32).astype(np.float64)
+    return (stamp - off) * 1e-9
 
 
 @dataclass(frozen=True)
@@ -361,7 +442,9 @@ class CloudPoints:
     the block azimuth (0.01 deg, the packets' unit), a key ordering the points in time, the
     channel (0-based), the block of a dual-return pair (0: last, 1: strongest; 0 in single
     return), the range (m) and the reflectivity; ``dual``: the cloud is of dual return;
-    ``n_cloud``: the cloud's points (misses included when the driver writes them)."""
+    ``n_cloud``: the cloud's points (misses included when the driver writes them);
+    ``packet_time``: of a single-return QT128 with time stamps, each point's packet time (s)
+    given each point's firing loop (0: loop 1), which tells the loops (`_phase_by_time`)."""
 
     block_cdeg: np.ndarray
     order_key: np.ndarray
@@ -371,6 +454,7 @@ class CloudPoints:
     intensity: np.ndarray | int
     dual: bool
     n_cloud: int
+    packet_time: Callable[[np.ndarray], np.ndarray] | None = None
 
 
 def scan_of_points(p: CloudPoints, angles: HesaiAngles, rpm_of, *, index: int = 0,
@@ -395,25 +479,36 @@ def scan_of_points(p: CloudPoints, angles: HesaiAngles, rpm_of, *, index: int = 
         raise HesaiError(f"{name}: the cloud spans {(grid[-1] - grid[0]) / 100:.1f} deg: less "
                          "than half a turn, not a rotation")
     point_grid = found[point_firing]
-    loop = None if model is XT32 else _loops(point_grid, channel, len(grid))
+    single_qt = model is QT128 and not dual
+    told = {}
+    if model is XT32:
+        loop = None
+    elif single_qt:
+        loop, told["loops_from"] = _single_loops(point_grid, channel, len(grid), p.packet_time,
+                                                 name)
+    else:
+        loop = _loops(point_grid, channel, len(grid))
     rpm = rpm_of(point_grid, loop, firing_az[point_firing], step)
-    dist = np.zeros((len(grid) + 2, nr, nc))
-    refl = np.zeros((len(grid) + 2, nr, nc), dtype=np.uint8)
-    where = (1 + point_grid, slot, channel)
+    # rows of misses before the grid: one, and in single return a second when the grid starts
+    # on loop 1, so that every packet's block 0 is loop 1 as the unit writes it
+    lead = 2 if single_qt and loop[0] == 0 else 1
+    dist = np.zeros((len(grid) + 1 + lead, nr, nc))
+    refl = np.zeros((len(grid) + 1 + lead, nr, nc), dtype=np.uint8)
+    where = (lead + point_grid, slot, channel)
     dist[where] = p.distance
     refl[where] = p.intensity
     if dual:  # a first block nebula dropped (identical, within the threshold): as the second
         gone = (dist[:, 0] == 0) & (dist[:, 1] > 0)
         dist[:, 0][gone], refl[:, 0][gone] = dist[:, 1][gone], refl[:, 1][gone]
     rows_loop = None if loop is None else np.concatenate(
-        ([1 - loop[0]], loop, [1 - loop[-1]]))
-    payloads = _grid_payloads(grid, step, dist, refl, rows_loop, rpm, dual, model)
+        ((loop[0] - lead + np.arange(lead)) % 2, loop, [1 - loop[-1]]))
+    payloads = _grid_payloads(grid, step, dist, refl, rows_loop, rpm, dual, model, lead)
     scans = scans_from_hesai(decode_hesai(payloads, angles), angles, cut_cdeg=int(grid[0] % 36000))
     if len(scans) != 1:
         raise HesaiError(f"{name}: the rebuilt grid gave {len(scans)} rotations, not one")
     s = scans[0]
     meta = {**s.meta, "from_cloud": True, "cloud_convention": convention,
-            "cloud_points": p.n_cloud, "rpm": rpm, "source": name}
+            "cloud_points": p.n_cloud, "rpm": rpm, "source": name, **told}
     return Scan(**{k: getattr(s, k) for k in ("distance", "azimuth", "laser_id", "intensity",
                                               "time", "return_type", "x", "y", "z")},
                 index=index, complete=True, packets=0, product_id=0,

@@ -46,8 +46,10 @@ What the driver writes (HesaiTechnology/HesaiLidar_ROS_2.0 at e7e112f, 2026-04-2
 
 A PandarQT128's (``udp3_2_parser.cc`` ``ComputeXYZI``, lines 260-335) is written the same way:
 every channel of both blocks, a loop's dark channels at the origin like any miss, its loop's
-firetime table only with a firetime file; here it is read in dual return with the firetime
-rotation out (the driver's default), the loops told as for nebula's clouds.
+firetime table only with a firetime file; here it is read with the firetime rotation out
+(the driver's default), in dual return the loops told as for nebula's clouds, in single
+return (two firings a packet) by the firings that share a packet's ``timestamp``, else by
+the channels one loop fires (`twin.lidar.hesai_clouds.scan_of_points`).
 
 `hesai_ros_cloud` writes that cloud from packets, op for op in float32 where the SDK computes
 in float. `scan_from_hesai_ros` reads one back as the packet path's scan (firetime in,
@@ -306,7 +308,7 @@ def scan_from_hesai_ros(rec: np.ndarray, angles: HesaiAngles, *, frame: str | No
                         firetime: bool | None = None, rpm: float | None = None,
                         index: int = 0, name: str = "Hesai ROS cloud") -> Scan:
     """The packet path's scan (`twin.lidar.hesai.scans_from_hesai`, firetime in) of one frame
-    of Hesai's ROS driver's PandarXT32 or (dual return, firetime out) PandarQT128 cloud
+    of Hesai's ROS driver's PandarXT32 or (firetime out) PandarQT128 cloud
     (records with x y z at least; ring, intensity and timestamp when present): module
     docstring. ``frame``: ``hesai`` or ``ros`` (None: told by
     the cut, else Hesai's); ``firetime``: whether the cloud has the firing rotation in (None:
@@ -337,9 +339,7 @@ def scan_from_hesai_ros(rec: np.ndarray, angles: HesaiAngles, *, frame: str | No
         turn = slice(0, int(wrap[0]) + 1)
         ret, r, channel, block = ret[turn], r[turn], channel[turn], block[turn]
     dual, slot = _slots(block, channel, model.n_channels, name)
-    if model is QT128 and not dual:
-        raise HesaiError(f"{name}: a single-return {model.name} cloud: read here in dual return "
-                         "only (two firing loops a packet in single return are not rebuilt)")
+    single_qt = model is QT128 and not dual
     intensity = (np.rint(ret["intensity"]).astype(np.uint8) if "intensity" in field_names
                  else 0)
 
@@ -352,12 +352,22 @@ def scan_from_hesai_ros(rec: np.ndarray, angles: HesaiAngles, *, frame: str | No
         if "timestamp" in field_names:  # absolute s: from the first, or the fit loses digits
             t = ret["timestamp"].astype(np.float64)
             t = t - t.min()
+            if single_qt:  # one time a packet: its block 1 (loop 2) fires a firing later
+                t = t + loop[point_grid] * model.firing_period
         return head_rpm(t, point_az, step, model)
+
+    # a single-return QT128's two firings a packet share its timestamp: that tells the loops
+    packet_time = None
+    if single_qt and "timestamp" in field_names:
+        t_packet = ret["timestamp"].astype(np.float64)
+
+        def packet_time(_loop: np.ndarray) -> np.ndarray:
+            return t_packet
 
     convention = names.HESAI_ROS if frame == "hesai" else names.HESAI_ROS_ROS_FRAME
     scan = scan_of_points(
         CloudPoints(block, np.arange(len(ret), dtype=np.float64), channel, slot, r, intensity,
-                    dual, len(rec)),
+                    dual, len(rec), packet_time),
         angles, rpm_of, index=index, name=name, convention=convention)
     scan.meta.update({"cloud_frame_from": frame_told,
                       "cloud_firetime": rpm_packets is not None})

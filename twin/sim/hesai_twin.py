@@ -15,7 +15,8 @@ PandarXT32: blocks 50 us apart (0.18 deg at 600 rpm, 2,000 a turn), 8 a packet, 
 turn), one a packet, in the real unit's default dual-return mode (0x39, last and strongest: a
 single echo written in both blocks, as the real capture's flat surfaces are), its two firing
 loops alternating packet by packet with the dark channels of each loop not fired (distance 0),
-the three CRCs and 32 zero bytes of cyber security: 1127 bytes as the real unit sends.
+the three CRCs and 32 zero bytes of cyber security: 1127 bytes as the real unit sends; or in
+a single-return mode (``return_mode``), two firings a packet, block 0 loop 1 and block 1 loop 2.
 Measurement model (assumed, stated): Gaussian range noise of 1 sigma ``range_sigma`` (default
 10 mm, the order of both datasheets' +-1 cm accuracy), the packet's 4 mm unit, no return
 nearer than 0.05 m or beyond nebula's limit for the model (120 m XT32, 50 m QT128), a sharp
@@ -34,6 +35,7 @@ from twin.lidar.hesai import (
     N_CHANNELS,
     QT128,
     QT128_FIRED,
+    QT128_SINGLE_MODES,
     XT32,
     HesaiAngles,
     encode_qt128,
@@ -93,17 +95,28 @@ def emulate_xt32(sim, angles: HesaiAngles, n_rotations: int, *, rng: np.random.G
 
 
 def emulate_qt128(sim, angles: HesaiAngles, n_rotations: int, *, rng: np.random.Generator,
-                  rpm: float = 600.0, range_sigma: float = 0.01,
-                  start_cdeg: int = 0) -> tuple[list[bytes], Pose]:
-    """Packets of ``n_rotations`` turns of ``sim``'s bench as a PandarQT128C2X in dual-return
-    mode sees it, one firing a packet from ``start_cdeg``; and the true pose of {L} in {O}."""
+                  rpm: float = 600.0, range_sigma: float = 0.01, start_cdeg: int = 0,
+                  return_mode: int = 0x39) -> tuple[list[bytes], Pose]:
+    """Packets of ``n_rotations`` turns of ``sim``'s bench as a PandarQT128C2X sees it from
+    ``start_cdeg``, and the true pose of {L} in {O}. ``return_mode``: 0x39 (dual, the real
+    unit's default) one firing a packet, its echo in both blocks; a single-return byte
+    (`twin.lidar.hesai.QT128_SINGLE_MODES`, e.g. 0x37) two firings a packet, block 0 loop 1
+    and block 1 loop 2 (nebula's pandar_qt128.hpp), the packet stamped at its first block."""
     period = QT128.firing_period
     per_turn = round(60.0 / rpm / period)
-    k = np.arange(n_rotations * per_turn + 1)
+    single = return_mode in QT128_SINGLE_MODES
+    n = n_rotations * per_turn + 1
+    k = np.arange(n + (n % 2 if single else 0))  # single: whole packets of two firings
     block_cdeg = np.rint(start_cdeg + k * (36000.0 / per_turn)).astype(np.int64) % 36000
     loop = k % 2  # loop 1 and loop 2 alternate firing by firing
     dist, refl = _cast(sim, angles, block_cdeg, QT128_FIRED[loop], QT128.firetime[loop], rpm,
                        rng, range_sigma, QT128.max_range)
+    if single:  # firings 2j (loop 1) and 2j + 1 (loop 2) are packet j's blocks 0 and 1
+        ts = np.rint(k[::2] * period * 1e6).astype(np.int64)
+        packets = encode_qt128(block_cdeg.reshape(-1, 2), dist.reshape(-1, 2, QT128.n_channels),
+                               refl.reshape(-1, 2, QT128.n_channels), ts, loop[::2], rpm=rpm,
+                               return_mode=return_mode)
+        return packets, sim.physics.lidar_pose_in_board()
     ts = np.rint(k * period * 1e6).astype(np.int64)
     packets = encode_qt128(np.column_stack((block_cdeg, block_cdeg)),
                            np.stack((dist, dist), axis=1), np.stack((refl, refl), axis=1), ts,
