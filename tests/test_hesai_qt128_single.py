@@ -254,3 +254,21 @@ def test_info_tells_a_single_return_qt128_cloud_file(twin, ros, tmp_path, capsys
         assert main(["info", str(path)]) == 0
         out = capsys.readouterr().out
         assert "PandarQT128" in out and "86400 firings" in out and what in out, out
+
+
+@pytest.mark.parametrize("return_mode", [0x37, 0x39])
+def test_the_twins_pcap_spaces_its_packets_as_the_head_turns(tmp_path, return_mode):
+    """A single-return packet holds two firings, a dual one one: either way a turn's packets
+    span 0.1 s of capture time at 600 rpm (the single mode's were spaced one firing apart)."""
+    from twin.lidar.pcap import read_pcap
+    from twin.sim.bench import BenchSim
+    from twin.sim.hesai_twin import write_hesai_pcap
+
+    angles = HesaiAngles.from_csv(default_angles(QT128), QT128)
+    path = tmp_path / "qt.pcap"
+    write_hesai_pcap(BenchSim(seed=1), angles, path, 1, rng=np.random.default_rng(0),
+                     return_mode=return_mode)
+    t = np.array([r.timestamp for r in read_pcap(path)])
+    per_turn = 450 if return_mode == 0x37 else 900  # 0.4 deg a firing at 600 rpm
+    # (the capture's times are whole microseconds: a gap of 111.1 us reads 111 or 112)
+    assert np.median(np.diff(t)) * per_turn == pytest.approx(0.1, rel=1e-2)

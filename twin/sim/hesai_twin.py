@@ -141,6 +141,8 @@ def write_hesai_pcap(sim, angles: HesaiAngles, path: str | Path, n_rotations: in
     """The packets of `emulate_hesai` in a pcap (UDP port 2368); the true pose."""
     packets, truth = emulate_hesai(sim, angles, n_rotations, rng=rng, **kwargs)
     dt = EMULATORS[angles.model.name][1]
+    if kwargs.get("return_mode") in QT128_SINGLE_MODES and angles.model.name == QT128.name:
+        dt *= 2  # a single-return QT128 packet holds two firings, one of each loop
     with PcapWriter(path) as out:
         for i, p in enumerate(packets):
             out.write_udp(p, epoch_s + i * dt, dst_port=DATA_PORT, src_port=10000)
