@@ -85,5 +85,5 @@ case ",$EXTRAS," in
 esac
 # Compile the numba kernels now, into numba's cache (beside their modules), so the first command
 # of a fresh install does not wait for them (scenarios/warmup.py).
-echo "setup: compiling the numba kernels (once: about 2.5 minutes of one core; benchmarks/bench_warmup.py)"
+echo "setup: compiling the numba kernels (once: about 3.5 minutes of one core; benchmarks/bench_warmup.py)"
 .venv/bin/python -m scenarios.warmup
