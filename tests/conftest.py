@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,13 @@ REPO_DIR = TESTS_DIR.parent
 DATA_DIR = TESTS_DIR / "data"
 #: Each long test file's seconds as a run measured them (`tools/test_costs.py` refreshes it).
 COSTS = TESTS_DIR / "costs.json"
+
+
+def free_udp_port() -> int:
+    """A UDP port on 127.0.0.1 that nothing holds now (the OS picks it), for a test's sender."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="session")

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -18,15 +17,10 @@ import pytest
 
 from scenarios import station as stations
 from scenarios.inspection.records import Records
+from tests.conftest import free_udp_port
 from twin.lidar.udp import send_packets
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def ouster_batches(params, model: str):

@@ -8,7 +8,6 @@ import hashlib
 import json
 import os
 import select
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -16,17 +15,12 @@ from pathlib import Path
 import pytest
 
 from scenarios.inspection.records import Records
+from tests.conftest import free_udp_port
 
 REPO = Path(__file__).resolve().parents[1]
 #: The served twin's LiDAR sits 2.5 deg tilted up on its mount; the station's nominal is level.
 STATION = {"name": "wire line", "mount": {"tilt_deg": 2.5, "nominal": {
     "x_mm": 700.0, "y_mm": -2500.0, "z_mm": 500.0}}}
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.mark.slow

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import socket
 import subprocess
 import sys
 import threading
@@ -20,7 +19,7 @@ import time
 import numpy as np
 import pytest
 
-from tests.conftest import DATA_DIR
+from tests.conftest import DATA_DIR, free_udp_port
 from twin.lidar.ouster import (
     OusterError,
     OusterInfo,
@@ -107,10 +106,7 @@ def test_the_pcap_reads_with_the_metadata_beside_it_and_live_on_the_sensors_port
 
     # live: the packets sent to a local port, read with the metadata given; the first frame a
     # live reader sees is joined mid-way and flagged partial, the next is whole
-    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    probe.bind(("127.0.0.1", 0))
-    port = probe.getsockname()[1]
-    probe.close()
+    port = free_udp_port()
     got = []
 
     def receive() -> None:

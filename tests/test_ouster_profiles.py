@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -24,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.conftest import DATA_DIR
+from tests.conftest import DATA_DIR, free_udp_port
 from twin.core.sensor_names import OUSTER_PROFILES, OUSTER_TWIN_PROFILES
 from twin.lidar.ouster import (
     PROFILES,
@@ -207,10 +206,7 @@ def test_each_capture_reads_through_open_scans_with_its_metadata(c):
 def test_the_default_profile_reads_live_on_the_sensors_port():
     c = CAPTURES[0]  # RNG19_RFL8_SIG16_NIR16, 24,832-byte packets
     sent = [p for p in payloads(c) if len(p) == 24832]
-    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    probe.bind(("127.0.0.1", 0))
-    port = probe.getsockname()[1]
-    probe.close()
+    port = free_udp_port()
     got = []
 
     def receive() -> None:
@@ -358,10 +354,7 @@ def test_live_packets_of_another_profile_than_the_metadatas_are_one_line(tmp_pat
     meta.write_text(json.dumps(d))
     assert OusterInfo.from_json(meta).packet_bytes == 24896
     sent = [p for p in payloads(c) if len(p) == 24832]
-    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    probe.bind(("127.0.0.1", 0))
-    port = probe.getsockname()[1]
-    probe.close()
+    port = free_udp_port()
     errors = []
 
     def receive() -> None:

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from tests.bag_support import write_cloud_bag, write_other_bag, write_packet_bag
-from tests.conftest import DATA_DIR
+from tests.conftest import DATA_DIR, free_udp_port
 from tests.test_cli_capture import cli, one_error_line
 from tests.test_clouds import assert_same_firings
 from tests.test_sensors import read_bag_packets
@@ -245,9 +245,7 @@ def test_live_udp_on_loopback_gives_the_files_scans(sample_pcap, tmp_path):
         for i, p in enumerate(payloads):
             w.write_udp(bytes(p), 1.0 + i * vlp16.PACKET_PERIOD)
     from_file = [s for s in capture_scans(recorded) if s.complete]
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
+    port = free_udp_port()
     source = open_scans(f"udp://127.0.0.1:{port}", max_scans=3, timeout_s=2.0)
     thread = replay(payloads, port)
     try:

@@ -69,7 +69,6 @@ from twin.lidar.hesai import (
     encode_xt32,
     scans_from_hesai,
 )
-from twin.lidar.pcd import pcd_header_fields
 from twin.lidar.source_base import ScanSource
 
 #: nebula's PointXYZIRCAEDT (point_types.hpp), packed (PCD and PointCloud2 store it so).
@@ -537,13 +536,6 @@ def hesai_model_of_cloud(rec: np.ndarray) -> str | None:
         if np.abs(el - nominal.elevation_deg[channel]).max() < 0.5:
             return model.name
     return None
-
-
-def pcd_has_nebula_fields(path) -> bool:
-    """Whether a PCD file's header names nebula's PointXYZIRCAEDT fields: read from its first
-    lines only, so that a Velodyne cloud is not loaded twice to be told apart (a file that is
-    not a PCD says no: its own reader says what is wrong with it)."""
-    return is_nebula_hesai(pcd_header_fields(path))
 
 
 class HesaiCloudScanSource(ScanSource):

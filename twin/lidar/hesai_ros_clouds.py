@@ -85,7 +85,6 @@ from twin.lidar.hesai_clouds import (
     packet_times_ns,
     scan_of_points,
 )
-from twin.lidar.pcd import pcd_header_fields
 
 #: LidarPointXYZIRT as the ROS driver's PointCloud2 lays it out (packed, 26 bytes).
 HESAI_ROS_POINT_DTYPE = np.dtype([
@@ -402,11 +401,6 @@ def hesai_ros_model_of_cloud(rec: np.ndarray) -> str | None:
         if np.abs(el - nominal.elevation_deg[ring]).max() < 0.5:
             return model.name
     return None
-
-
-def pcd_has_hesai_ros_fields(path) -> bool:
-    """Whether a PCD file's header names the ROS driver's fields (its first lines only)."""
-    return is_hesai_ros(pcd_header_fields(path))
 
 
 _FRAME_TOLD = {

@@ -393,12 +393,15 @@ def _open_hesai_pcd(src: SourceName, model: str | None, angles_file: str | Path 
                     max_scans: int | None, convention: str | None):
     """A PCD file of a Hesai's cloud: the driver told by its header's fields (or
     ``convention``), the model by ``model`` or its fields and elevations."""
-    from twin.lidar.hesai_clouds import hesai_model_of_cloud, pcd_has_nebula_fields
-    from twin.lidar.hesai_ros_clouds import hesai_ros_model_of_cloud, pcd_has_hesai_ros_fields
-    from twin.lidar.pcd import pcd_records
+    from twin.lidar.hesai_clouds import hesai_model_of_cloud, is_nebula_hesai
+    from twin.lidar.hesai_ros_clouds import hesai_ros_model_of_cloud, is_hesai_ros
+    from twin.lidar.pcd import pcd_header_fields, pcd_records
 
-    nebula = pcd_has_nebula_fields(src.path)
-    ros = convention is not None or (not nebula and pcd_has_hesai_ros_fields(src.path))
+    # the header's fields tell the driver before the cloud is loaded (a Velodyne's PCD is not
+    # loaded twice to be told apart)
+    fields = pcd_header_fields(src.path)
+    nebula = is_nebula_hesai(fields)
+    ros = convention is not None or (not nebula and is_hesai_ros(fields))
     if model is None and not (nebula or ros):
         return None
     rec = pcd_records(src.path)
