@@ -834,26 +834,27 @@ def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
     """The `Scan` of a frame: every pixel of the column window in {L}, in `pixel_order`."""
     t = _scan_table(info)
     rng, intensity, kind = _one_return(frame, t)
-    # p = r d + offset (xyz_lidar), in m; {L}: y forward, x right; 0 where there is no return:
-    # the offset times 0 there (and + 0.0, which makes the -0.0 of a negative offset 0.0)
-    hit = (rng > 0).astype(np.float64)
+    # p = r d + offset (xyz_lidar), in m; {L}: y forward, x right; 0.0 where there is no
+    # return: the bits of each value anded with all ones where there is one, else none
+    keep = (rng > 0).astype(np.uint64)
+    np.negative(keep, out=keep)
     r = rng.astype(np.float64)
     xyz = []
     for d, o in zip(t.direction, t.offset, strict=True):
         p = np.multiply(r, d)
-        p += np.multiply(o, hit)
+        p += o
         p *= 1e-3
-        p += 0.0
+        np.bitwise_and(p.view(np.uint64), keep, out=p.view(np.uint64))
         xyz.append(p)
     x, y, z = xyz
     # the range from the beam's origin on the axis (`OusterInfo.lasers`' vertical offsets)
     zo = np.subtract(z, t.origin_z)
-    zo *= hit
     zo *= zo
     distance = np.multiply(x, x)
     distance += np.multiply(y, y)
     distance += zo
     np.sqrt(distance, out=distance)
+    np.bitwise_and(distance.view(np.uint64), keep, out=distance.view(np.uint64))
     time = np.take(frame.timestamp_ns.astype(np.float64) * 1e-9, t.col)
     missing = int((~frame.received[t.window_cols]).sum())
     return Scan(
