@@ -626,11 +626,15 @@ def _column_headers(at: _Placement, timestamp: np.ndarray, measurement_id: np.nd
 
 
 def _pixel_field(pixels: np.ndarray, f: PixelField) -> np.ndarray:
-    """One channel of (..., H, pixel_bytes) pixel bytes, (..., H) as ``f.dtype``: its word read
-    through a view of the bytes, shifted and masked in the word's own width (the bits kept
-    fit it), then widened and shifted up (in ``f.dtype``: the same bits as shifting in 32 and
-    narrowing after)."""
-    value = _le_view(pixels, f.byte, f.word)  # (a view: the first operation copies)
+    """One channel of (..., H, pixel_bytes) pixel bytes, (..., H) as ``f.dtype``."""
+    return _field_of_words(_le_view(pixels, f.byte, f.word), f)
+
+
+def _field_of_words(value: np.ndarray, f: PixelField) -> np.ndarray:
+    """A channel's values of its little-endian words (a view of the bytes, or words already
+    copied out): shifted and masked in the word's own width (the bits kept fit it), then
+    widened and shifted up (in ``f.dtype``: the same bits as shifting in 32 and narrowing
+    after)."""
     mask = value.dtype.type((1 << f.bits) - 1)
     if f.shift:
         value = value >> np.uint8(f.shift)
@@ -812,28 +816,47 @@ def _gather(field: np.ndarray, t: _ScanTable) -> np.ndarray:
 
 
 def _one_return(frame: Frame, t: _ScanTable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Range (mm), reflectivity and `ReturnType` of each firing: the first return, which the
-    sensor sends as the strongest; in a dual profile, where the first has no range and the
-    second does, the second (flagged SECOND_STRONGEST), as a Velodyne's or Hesai's dual-return
-    firing keeps its strongest echo and falls back to the other where the strongest missed:
-    the beam did meet something, and a miss there would tell the estimator otherwise (115 of
-    the real OS0-32 dual frame's 32768 pixels: a first return with signal but no range)."""
-    rng = _gather(frame.range_mm, t)
-    refl = _gather(frame.reflectivity, t).astype(np.uint8, copy=False)
+    """Range (mm), reflectivity and `ReturnType` of each firing (`_returns`)."""
+    second = None if frame.range2_mm is None else (
+        _gather(frame.range2_mm, t), _gather(frame.reflectivity2, t))
+    return _returns(_gather(frame.range_mm, t), _gather(frame.reflectivity, t), second)
+
+
+def _returns(rng: np.ndarray, refl: np.ndarray,
+             second: tuple[np.ndarray, np.ndarray] | None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range (mm), reflectivity and `ReturnType` of each firing of its first and (a dual
+    profile's) second returns': the first return, which the sensor sends as the strongest; in
+    a dual profile, where the first has no range and the second does, the second (flagged
+    SECOND_STRONGEST), as a Velodyne's or Hesai's dual-return firing keeps its strongest echo
+    and falls back to the other where the strongest missed: the beam did meet something, and
+    a miss there would tell the estimator otherwise (115 of the real OS0-32 dual frame's 32768
+    pixels: a first return with signal but no range)."""
+    refl = refl.astype(np.uint8, copy=False)
     kind = np.full(len(rng), int(ReturnType.STRONGEST), dtype=np.uint8)
-    if frame.range2_mm is None:
+    if second is None:
         return rng, refl, kind
-    rng2 = _gather(frame.range2_mm, t)
-    second = (rng == 0) & (rng2 > 0)
-    kind[second] = int(ReturnType.SECOND_STRONGEST)
-    return (np.where(second, rng2, rng),
-            np.where(second, _gather(frame.reflectivity2, t), refl).astype(np.uint8), kind)
+    rng2, refl2 = second
+    is_second = (rng == 0) & (rng2 > 0)
+    kind[is_second] = int(ReturnType.SECOND_STRONGEST)
+    return (np.where(is_second, rng2, rng), np.where(is_second, refl2, refl).astype(np.uint8),
+            kind)
 
 
 def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
     """The `Scan` of a frame: every pixel of the column window in {L}, in `pixel_order`."""
     t = _scan_table(info)
     rng, intensity, kind = _one_return(frame, t)
+    missing = int((~frame.received[t.window_cols]).sum())
+    return _scan(t, info, rng, intensity, kind, frame.timestamp_ns, missing, frame.packets,
+                 frame.frame_id, index)
+
+
+def _scan(t: _ScanTable, info: OusterInfo, rng: np.ndarray, intensity: np.ndarray,
+          kind: np.ndarray, timestamp_ns: np.ndarray, missing: int, packets: int,
+          frame_id: int, index: int) -> Scan:
+    """The `Scan` of a frame's firings (range in mm, in `pixel_order`), its columns' times
+    (ns, by column) and the columns of its window that did not come."""
     # p = r d + offset (xyz_lidar), in m; {L}: y forward, x right; 0.0 where there is no
     # return: the bits of each value anded with all ones where there is one, else none
     keep = (rng > 0).astype(np.uint64)
@@ -855,17 +878,100 @@ def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
     distance += zo
     np.sqrt(distance, out=distance)
     np.bitwise_and(distance.view(np.uint64), keep, out=distance.view(np.uint64))
-    time = np.take(frame.timestamp_ns.astype(np.float64) * 1e-9, t.col)
-    missing = int((~frame.received[t.window_cols]).sum())
+    time = np.take(timestamp_ns.astype(np.float64) * 1e-9, t.col)
     return Scan(
         distance=distance, azimuth=t.azimuth.copy(), laser_id=t.laser_id.copy(),
         intensity=intensity, time=time, return_type=kind,
-        x=x, y=y, z=z, index=index, complete=missing == 0, packets=frame.packets,
+        x=x, y=y, z=z, index=index, complete=missing == 0, packets=packets,
         missing_packets=int(np.ceil(missing / info.columns_per_packet)), product_id=0,
         vertical_offsets_applied=True, lasers=info.lasers,
-        meta={"model": info.model, "prod_line": info.prod_line, "frame_id": frame.frame_id,
+        meta={"model": info.model, "prod_line": info.prod_line, "frame_id": frame_id,
               "rpm": 60.0 * info.rate_hz, "lidar_mode": info.lidar_mode,
               "missing_columns": missing, "partial": missing > 0})
+
+
+#: LEGACY's two channels a scan reads, as `PixelField`s of its 12-byte pixel: the range word's
+#: 20 bits, the reflectivity word's low byte (`_frame` keeps them so).
+_LEGACY_SCAN_FIELDS = (PixelField("range_mm", 0, 4, 0, 20, np.uint32),
+                       PixelField("reflectivity", 4, 1, 0, 8, np.uint8))
+_SCAN_CHANNELS = ("range_mm", "reflectivity", "range2_mm", "reflectivity2")
+
+#: Per geometry and packet layout (`_packet_index`): each scan channel's field and where each
+#: firing's word of it is in a whole frame's packets, joined (an index into the packets' bytes
+#: viewed as words of its size); None where a word is not aligned to its size.
+_PACKET_INDEX: dict[tuple, dict[str, tuple[PixelField, np.ndarray]] | None] = {}
+
+
+def _packet_index(info: OusterInfo, t: _ScanTable
+                  ) -> dict[str, tuple[PixelField, np.ndarray]] | None:
+    key = (_table_key(info), info.udp_profile_lidar, info.columns_per_packet)
+    if key in _PACKET_INDEX:
+        return _PACKET_INDEX[key]
+    legacy, cpp = info.udp_profile_lidar == "LEGACY", info.columns_per_packet
+    fields = _LEGACY_SCAN_FIELDS if legacy else tuple(
+        f for f in info.profile.fields if f.name in _SCAN_CHANNELS)
+    first = 0 if legacy else PACKET_HEADER_BYTES  # the packet's first column
+    pixel = 12 if legacy else info.profile.pixel_bytes
+    column_header = 16 if legacy else COLUMN_HEADER_BYTES
+    base = (t.col // cpp * info.packet_bytes + first + t.col % cpp * info.column_bytes
+            + column_header + t.beam * pixel)
+    index = {}
+    for f in fields:
+        at = base + f.byte
+        if (at % f.word).any():
+            index = None
+            break
+        index[f.name] = (f, at // f.word)
+    if len(_PACKET_INDEX) > 16:
+        _PACKET_INDEX.clear()
+    _PACKET_INDEX[key] = index
+    return index
+
+
+def _whole_frame_scan(raw: bytes, info: OusterInfo, index: int
+                      ) -> tuple[Scan, int, int] | None:
+    """The `Scan` of one frame's packets (``raw``, whole packets of the metadata's size,
+    joined) and its first packet's shot-limiting and thermal-shutdown states, read straight
+    from the packets' bytes, without its `Frame`, when they hold one frame whole: each of its
+    columns once, in order, valid, of one frame id (init id). Else None (`packet_frames`
+    then makes its frames). The same scan as `scan_from_frame` of the frame."""
+    w, cpp, size = info.columns_per_frame, info.columns_per_packet, info.packet_bytes
+    if w % cpp or size % 4 or len(raw) != w // cpp * size:
+        return None
+    u8 = np.frombuffer(raw, dtype=np.uint8)
+    if info.udp_profile_lidar == "LEGACY":
+        cols = u8.view(column_dtype(info))
+        fid = cols["frame_id"]
+        if (fid != fid[0]).any() or (cols["status"] != COLUMN_VALID).any():
+            return None
+        mid, ts = cols["measurement_id"], cols["timestamp"]
+        frame_id, shot_limiting, thermal_shutdown = int(fid[0]), 0, 0
+    else:
+        packets = u8.reshape(-1, size)
+        header = _packet_header(packets[:, :PACKET_HEADER_BYTES], info)
+        fid = header["frame_id"] | (header["init_id"] << np.uint64(32))
+        cols = packets[:, PACKET_HEADER_BYTES:PACKET_HEADER_BYTES + cpp * info.column_bytes
+                       ].reshape(-1, cpp, info.column_bytes)
+        mid = _le_view(cols, 8, 2).reshape(-1)
+        if (fid != fid[0]).any() or ((_le_view(cols, 10, 2) & 1) != 1).any():
+            return None
+        ts = _le_view(cols, 0, 8).reshape(-1)
+        frame_id = int(header["frame_id"][0])
+        shot_limiting = int(header["shot_limiting"][0])
+        thermal_shutdown = int(header["thermal_shutdown"][0])
+    if (mid != np.arange(w)).any():
+        return None
+    t = _scan_table(info)
+    where = _packet_index(info, t)
+    if where is None:
+        return None
+    words = {1: u8, 2: u8.view("<u2"), 4: u8.view("<u4")}
+    channel = {name: _field_of_words(np.take(words[f.word], at), f)
+               for name, (f, at) in where.items()}
+    second = (channel["range2_mm"], channel["reflectivity2"]) if "range2_mm" in channel else None
+    rng, intensity, kind = _returns(channel["range_mm"], channel["reflectivity"], second)
+    scan = _scan(t, info, rng, intensity, kind, ts, 0, w // cpp, frame_id, index)
+    return scan, shot_limiting, thermal_shutdown
 
 
 def scans_from_payloads(payloads: Iterable[bytes], info: OusterInfo) -> list[Scan]:
@@ -913,11 +1019,19 @@ class OusterScans:
 
     def _scans_of(self, payloads: list[bytes], index: int) -> Iterator[Scan]:
         # (whole packets of the metadata's size: `decode_packets` would keep them all)
-        for f in packet_frames(b"".join(payloads), self.info):
+        raw = b"".join(payloads)
+        whole = _whole_frame_scan(raw, self.info, index)  # (the usual frame: no Frame made)
+        if whole is not None:
+            yield self._count(*whole)
+            return
+        for f in packet_frames(raw, self.info):
             yield self._scan(f, index)
 
     def _scan(self, f: Frame, index: int) -> Scan:
-        s = scan_from_frame(f, self.info, index=index)
+        return self._count(scan_from_frame(f, self.info, index=index), f.shot_limiting,
+                           f.thermal_shutdown)
+
+    def _count(self, s: Scan, shot_limiting: int, thermal_shutdown: int) -> Scan:
         c = self.counts
         c["frames"] += 1
         c["complete"] += int(s.complete)
@@ -926,8 +1040,8 @@ class OusterScans:
         c["missing_columns"] += s.meta["missing_columns"]
         # the packet header's states (non-LEGACY profiles): a sensor limiting its shots or
         # about to shut down for heat measures less well, which a reader should be told
-        c["shot_limiting_frames"] += int(f.shot_limiting != 0)
-        c["thermal_shutdown_frames"] += int(f.thermal_shutdown != 0)
+        c["shot_limiting_frames"] += int(shot_limiting != 0)
+        c["thermal_shutdown_frames"] += int(thermal_shutdown != 0)
         return s
 
     def summary(self) -> dict:
