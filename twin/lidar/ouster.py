@@ -862,25 +862,26 @@ def _scan(t: _ScanTable, info: OusterInfo, rng: np.ndarray, intensity: np.ndarra
     keep = (rng > 0).astype(np.uint64)
     np.negative(keep, out=keep)
     r = rng.astype(np.float64)
-    xyz = []
-    for d, o in zip(t.direction, t.offset, strict=True):
-        p = np.multiply(r, d)
+    # the scan's float arrays: the rows of one block (one allocation a frame, not six: with
+    # six, glibc's malloc gave the memory back and took it again each frame, 700-850 page
+    # faults a frame of an OS1-128, a third of the CPU time; 130 with one)
+    block = np.empty((6, len(rng)))
+    x, y, z, distance, time, azimuth = block
+    for p, d, o in zip((x, y, z), t.direction, t.offset, strict=True):
+        np.multiply(r, d, out=p)
         p += o
         p *= 1e-3
         np.bitwise_and(p.view(np.uint64), keep, out=p.view(np.uint64))
-        xyz.append(p)
-    x, y, z = xyz
-    # the range from the beam's origin on the axis (`OusterInfo.lasers`' vertical offsets)
-    zo = np.subtract(z, t.origin_z)
-    zo *= zo
-    distance = np.multiply(x, x)
-    distance += np.multiply(y, y)
-    distance += zo
+    np.multiply(x, x, out=distance)
+    distance += np.multiply(y, y, out=r)
+    zo = np.subtract(z, t.origin_z, out=r)
+    distance += np.multiply(zo, zo, out=r)
     np.sqrt(distance, out=distance)
     np.bitwise_and(distance.view(np.uint64), keep, out=distance.view(np.uint64))
-    time = np.take(timestamp_ns.astype(np.float64) * 1e-9, t.col)
+    np.take(timestamp_ns.astype(np.float64) * 1e-9, t.col, out=time, mode="clip")  # (in range)
+    azimuth[:] = t.azimuth
     return Scan(
-        distance=distance, azimuth=t.azimuth.copy(), laser_id=t.laser_id.copy(),
+        distance=distance, azimuth=azimuth, laser_id=t.laser_id.copy(),
         intensity=intensity, time=time, return_type=kind,
         x=x, y=y, z=z, index=index, complete=missing == 0, packets=packets,
         missing_packets=int(np.ceil(missing / info.columns_per_packet)), product_id=0,
