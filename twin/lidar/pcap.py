@@ -288,10 +288,39 @@ def _parse_frame(ts: float, link: int, frame: bytes, skipped: Counter) -> UdpRec
     return _udp_record(ts, link, frame, 0, len(frame), skipped)
 
 
+#: An untagged Ethernet II frame's headers to the UDP header's end: ethertype; IPv4 version
+#: and header length, total length, flags and fragment offset, protocol, addresses; UDP ports
+#: and length (`_udp_record`'s one read of the usual sensor datagram).
+_ETH_IP_UDP = struct.Struct("!12xHBxH2xH1xB2x4s4sHHH")
+
+
 def _udp_record(ts: float, link: int, buf, start: int, n: int,
                 skipped: Counter) -> UdpRecord | None:
     """The UDP datagram in the link-layer frame of ``n`` bytes at ``start`` of ``buf`` (bytes,
     or the mapped file), or None (and a count of why not)."""
+    if link == LINKTYPE_ETHERNET and n >= _ETH_IP_UDP.size:
+        # the usual frame (no VLAN tag, a 20-byte IPv4 header) in one read, the same checks
+        (ethertype, ver_ihl, total_len, frag, proto, src, dst, src_port, dst_port,
+         udp_len) = _ETH_IP_UDP.unpack_from(buf, start)
+        if ethertype == ETHERTYPE_IPV4 and ver_ihl == 0x45:
+            if total_len < 20:
+                skipped["malformed"] += 1
+                return None
+            if frag & 0x3FFF:
+                skipped["fragment"] += 1
+                return None
+            if proto != IPPROTO_UDP:
+                skipped["not_udp"] += 1
+                return None
+            if n < 14 + total_len or total_len < 28:
+                skipped["truncated" if n < 14 + total_len else "malformed"] += 1
+                return None
+            if udp_len < 8 or 20 + udp_len > total_len:
+                skipped["malformed"] += 1
+                return None
+            return UdpRecord(timestamp=ts, src_ip=_ip_text(src), dst_ip=_ip_text(dst),
+                             src_port=src_port, dst_port=dst_port,
+                             payload=buf[start + 42:start + 34 + udp_len])
     ip = _ip_offset(link, buf, start, n, skipped)
     if ip is None:
         return None
@@ -367,7 +396,10 @@ _IP_STRINGS: dict[bytes, str] = {}
 
 
 def _ip_str(buf, off: int) -> str:
-    raw = buf[off:off + 4]
+    return _ip_text(buf[off:off + 4])
+
+
+def _ip_text(raw: bytes) -> str:
     text = _IP_STRINGS.get(raw)
     if text is None:  # a capture has few distinct addresses: format each once
         text = _IP_STRINGS[raw] = ".".join(str(b) for b in raw)
