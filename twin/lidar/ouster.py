@@ -641,7 +641,10 @@ def _field_of_words(value: np.ndarray, f: PixelField) -> np.ndarray:
         if f.bits < 8 * f.word - f.shift:
             value &= mask
     elif f.bits < 8 * f.word:
-        value = value & mask
+        if value.flags.owndata and value.flags.writeable:  # (words copied out: in place)
+            value &= mask
+        else:
+            value = value & mask
     value = value.astype(f.dtype, copy=not value.flags.owndata)
     if f.upshift:
         value <<= value.dtype.type(f.upshift)
