@@ -988,7 +988,9 @@ class OusterScans:
     """Scans from a stream of datagrams (anything with a ``payload``, or bytes), each yielded
     as soon as its frame ends (the next frame id arrives, or the stream does), and a summary.
     A frame with columns missing (the first of a live stream, joined mid-rotation; lost
-    packets) is flagged partial, never presented as whole."""
+    packets) is flagged partial, never presented as whole. A frame that came whole is read
+    straight from its packets' bytes (`_whole_frame_scan`), any other through its `Frame`
+    (`packet_frames`, `scan_from_frame`): the same scans either way."""
 
     def __init__(self, packets: Iterable, info: OusterInfo) -> None:
         self.packets = packets
