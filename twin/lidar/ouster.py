@@ -862,8 +862,7 @@ def _scan(t: _ScanTable, info: OusterInfo, rng: np.ndarray, intensity: np.ndarra
     (ns, by column) and the columns of its window that did not come."""
     # p = r d + offset (xyz_lidar), in m; {L}: y forward, x right; 0.0 where there is no
     # return: the bits of each value anded with all ones where there is one, else none
-    keep = (rng > 0).astype(np.uint64)
-    np.negative(keep, out=keep)
+    keep = np.negative(rng > 0, dtype=np.uint64)
     r = rng.astype(np.float64)
     # the scan's float arrays: the rows of one block (one allocation a frame, not six: with
     # six, glibc's malloc gave the memory back and took it again each frame, 700-850 page
@@ -1042,7 +1041,7 @@ class OusterScans:
         c["frames"] += 1
         c["complete"] += int(s.complete)
         c["firings"] += len(s)
-        c["returns"] += int(s.valid.sum())
+        c["returns"] += int(np.count_nonzero(s.distance))  # (s.valid's: none is negative)
         c["missing_columns"] += s.meta["missing_columns"]
         # the packet header's states (non-LEGACY profiles): a sensor limiting its shots or
         # about to shut down for heat measures less well, which a reader should be told
