@@ -1041,7 +1041,7 @@ class OusterScans:
         c["frames"] += 1
         c["complete"] += int(s.complete)
         c["firings"] += len(s)
-        c["returns"] += int(np.count_nonzero(s.distance))  # (s.valid's: none is negative)
+        c["returns"] += int(s.valid.sum())
         c["missing_columns"] += s.meta["missing_columns"]
         # the packet header's states (non-LEGACY profiles): a sensor limiting its shots or
         # about to shut down for heat measures less well, which a reader should be told
