@@ -840,10 +840,17 @@ def _returns(rng: np.ndarray, refl: np.ndarray,
     if second is None:
         return rng, refl, kind
     rng2, refl2 = second
-    is_second = (rng == 0) & (rng2 > 0)
-    kind[is_second] = int(ReturnType.SECOND_STRONGEST)
-    return (np.where(is_second, rng2, rng), np.where(is_second, refl2, refl).astype(np.uint8),
-            kind)
+    is_second = rng == 0
+    is_second &= rng2 > 0
+    kind += np.multiply(is_second, np.uint8(int(ReturnType.SECOND_STRONGEST)
+                                            - int(ReturnType.STRONGEST)), dtype=np.uint8)
+    # the second's range where the first has none, else the first's (| 0); the gathered
+    # reflectivities are this scan's own: the second's copied in where it is kept
+    out = np.multiply(rng2, is_second, dtype=np.result_type(rng, rng2))
+    out |= rng
+    refl = refl.copy() if refl.base is not None else refl
+    np.copyto(refl, refl2, where=is_second, casting="unsafe")
+    return out, refl, kind
 
 
 def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
