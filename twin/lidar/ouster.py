@@ -774,9 +774,10 @@ def _table_key(info: OusterInfo) -> tuple:
     """Everything a `_ScanTable` is computed from."""
     return (info.pixels_per_column, info.columns_per_frame, tuple(info.column_window),
             tuple(info.beam_to_lidar_mm), info.prod_line,
-            *(np.ascontiguousarray(a).tobytes() for a in (
-                info.pixel_shift_by_row, info.beam_altitude_deg, info.beam_azimuth_deg,
-                info.lidar_to_sensor, info.lasers.vertical_offset)))
+            *((a.dtype.str, a.shape, np.ascontiguousarray(a).tobytes()) for a in (
+                np.asarray(info.pixel_shift_by_row), np.asarray(info.beam_altitude_deg),
+                np.asarray(info.beam_azimuth_deg), np.asarray(info.lidar_to_sensor),
+                np.asarray(info.lasers.vertical_offset))))
 
 
 def _scan_table(info: OusterInfo) -> _ScanTable:
