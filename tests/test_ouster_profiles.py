@@ -17,16 +17,19 @@ import hashlib
 import json
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from tests.conftest import DATA_DIR, free_udp_port
+from twin.core.scan import ARRAY_FIELDS
 from twin.core.sensor_names import OUSTER_PROFILES, OUSTER_TWIN_PROFILES
+from twin.lidar import ouster
 from twin.lidar.ouster import (
     PROFILES,
+    Frame,
     OusterError,
     OusterInfo,
     OusterScans,
@@ -42,6 +45,7 @@ from twin.lidar.ouster import (
 from twin.lidar.pcap import PcapWriter, read_pcap
 from twin.lidar.sources import open_scans
 from twin.lidar.udp import send_packets
+from twin.sim.ouster_twin import frame_packets
 
 
 @dataclass(frozen=True)
@@ -199,8 +203,72 @@ def test_each_capture_reads_through_open_scans_with_its_metadata(c):
     lo, hi = info.column_window
     width = (hi - lo) % info.columns_per_frame + 1
     assert [len(x) for x in scans] == [width * info.pixels_per_column] * c.frames
-    for scan, frame in zip(scans, ours, strict=True):
-        assert np.array_equal(scan.distance, scan_from_frame(frame, info).distance)
+    for i, (scan, frame) in enumerate(zip(scans, ours, strict=True)):
+        assert_same_scan(scan, scan_from_frame(frame, info, index=i))
+
+
+def assert_same_scan(a, b) -> None:
+    """Two scans bit for bit: every array (dtype, bytes), the flags and the meta."""
+    for name in ARRAY_FIELDS:
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), name
+    assert (a.index, a.complete, a.packets, a.missing_packets, a.meta) == (
+        b.index, b.complete, b.packets, b.missing_packets, b.meta)
+
+
+def random_frame(info: OusterInfo, frame_id: int, rng: np.random.Generator) -> Frame:
+    """A frame of random channels (a third of the pixels without a return), every column."""
+    h, w = info.pixels_per_column, info.columns_per_frame
+
+    def channel(top: int, dtype, misses: bool = False) -> np.ndarray:
+        v = rng.integers(0, top, (h, w)).astype(dtype)
+        return np.where(rng.random((h, w)) < 1 / 3, 0, v).astype(dtype) if misses else v
+
+    return Frame(
+        frame_id=frame_id, range_mm=channel(2**20, np.uint32, True),
+        reflectivity=channel(256, np.uint8), signal=channel(2**16, np.uint16),
+        near_ir=channel(2**16, np.uint16),
+        timestamp_ns=(10**9 * frame_id + np.arange(w) * 97_000).astype(np.uint64),
+        measurement_id=np.arange(w, dtype=np.uint16),
+        status=np.full(w, 0xFFFFFFFF, dtype=np.uint32), received=np.ones(w, dtype=bool),
+        packets=w // info.columns_per_packet, flags=channel(32, np.uint8),
+        range2_mm=channel(2**20, np.uint32, True), reflectivity2=channel(256, np.uint8),
+        signal2=channel(2**16, np.uint16), flags2=channel(2, np.uint8))
+
+
+@pytest.mark.parametrize("profile", list(PROFILES))
+def test_whole_frames_read_from_their_packets_are_the_scans_of_their_frames(profile):
+    """`OusterScans` reads a whole frame's scan straight from its packets' bytes, without its
+    `Frame` (`_whole_frame_scan`); a frame with a packet lost, a column invalid or out of place
+    goes through its `Frame`. Either way the scans are `scan_from_frame`'s of `frames`, bit for
+    bit, in every profile (FUSA's header too)."""
+    info = nominal_info("OS0-32", "512x10", profile)
+    if profile.startswith("FUSA"):
+        info = replace(info, header_type="FUSA")
+    rng = np.random.default_rng(35)
+    packets = [p for k in (7, 8, 9) for p in frame_packets(random_frame(info, k, rng), info)]
+    per_frame = info.columns_per_frame // info.columns_per_packet
+    damaged = [bytearray(p) for p in packets]
+    del damaged[3]  # frame 7 without its fourth packet
+    cb = info.column_bytes
+    if info.udp_profile_lidar == "LEGACY":  # frame 8: a column invalid, one out of place
+        damaged[per_frame + 2][2 * cb - 4:2 * cb] = bytes(4)
+        damaged[per_frame + 5][8:10] = (900).to_bytes(2, "little")
+    else:
+        damaged[per_frame + 2][32 + cb + 10:32 + cb + 12] = bytes(2)
+        damaged[per_frame + 5][32 + 8:32 + 10] = (900).to_bytes(2, "little")
+    for stream, lost, whole in ((packets, 0, [True] * 3), (damaged, 1, [False, False, True])):
+        stream = [bytes(p) for p in stream]
+        theirs = [scan_from_frame(f, info, index=i)
+                  for i, f in enumerate(frames(decode_packets(stream, info), info))]
+        ours = list(OusterScans(stream, info))
+        assert len(ours) == len(theirs) == 3
+        for a, b in zip(ours, theirs, strict=True):
+            assert_same_scan(a, b)
+        starts = [0, per_frame - lost, 2 * per_frame - lost]
+        ends = [*starts[1:], len(stream)]
+        assert [ouster._whole_frame_scan(b"".join(stream[a:b]), info, 0) is not None
+                for a, b in zip(starts, ends, strict=True)] == whole
 
 
 def test_the_default_profile_reads_live_on_the_sensors_port():

@@ -532,80 +532,164 @@ def frames(columns: np.ndarray, info: OusterInfo) -> Iterator[Frame]:
         yield make(columns[a:b], info)
 
 
+def packet_frames(raw: bytes, info: OusterInfo) -> Iterator[Frame]:
+    """The frames of whole lidar packets of the metadata's size, joined in ``raw``: the frames
+    of ``decode_packets``' columns, without making those records first (a non-LEGACY packet's
+    fields are read through views of its bytes)."""
+    if info.udp_profile_lidar == "LEGACY":
+        yield from frames(np.frombuffer(raw, dtype=column_dtype(info)), info)
+        return
+    packets = np.frombuffer(raw, dtype=np.uint8).reshape(-1, info.packet_bytes)
+    if not len(packets):
+        return
+    header = _packet_header(packets[:, :PACKET_HEADER_BYTES], info)
+    fid = header["frame_id"].astype(np.int64) | (header["init_id"].astype(np.int64) << 32)
+    starts = np.flatnonzero(np.concatenate(([True], fid[1:] != fid[:-1])))
+    ends = np.concatenate((starts[1:], [len(packets)]))
+    cpp, cb = info.columns_per_packet, info.column_bytes
+    for a, b in zip(starts, ends, strict=True):
+        cols = packets[a:b, PACKET_HEADER_BYTES:PACKET_HEADER_BYTES + cpp * cb].reshape(
+            b - a, cpp, cb)
+        yield _assemble_profile_frame(
+            {name: v[a:b] for name, v in header.items()}, _le_view(cols, 0, 8).reshape(-1),
+            _le_view(cols, 8, 2).reshape(-1), _le_view(cols, 10, 2).reshape(-1),
+            cols[:, :, COLUMN_HEADER_BYTES:].reshape(
+                b - a, cpp, info.pixels_per_column, info.profile.pixel_bytes), info)
+
+
+def _le_view(u8: np.ndarray, byte: int, n: int) -> np.ndarray:
+    """The little-endian unsigned integers of ``n`` bytes at ``byte`` of the last axis of some
+    bytes, a view (the last axis dropped)."""
+    return u8[..., byte:byte + n].view(f"<u{n}")[..., 0]
+
+
+class _Placement:
+    """Where a frame's received columns go: those kept (measurement id within the frame,
+    status valid) and their measurement ids ``m``; ``whole`` when every column came, once, in
+    order (then a field is its columns as they are)."""
+
+    def __init__(self, mid: np.ndarray, valid: np.ndarray, w: int) -> None:
+        m = mid.astype(np.intp)
+        keep = (m < w) & valid
+        self.w = w
+        self.idx = None if keep.all() else np.flatnonzero(keep)
+        self.m = m if self.idx is None else m[self.idx]
+        self.whole = (self.idx is None and len(m) == w
+                      and bool((m == np.arange(w)).all()))
+
+    @property
+    def n(self) -> int:
+        return len(self.m)
+
+    def place(self, values: np.ndarray, dtype, *, owned: bool = False) -> np.ndarray:
+        """(W, ...) of ``dtype``: each kept column's ``values`` at its measurement id, else 0
+        (``owned``: values the caller made for this, returned themselves where they can be)."""
+        if self.whole:
+            if owned and values.dtype == dtype and values.flags.c_contiguous:
+                return values
+            return values.astype(dtype, order="C")
+        out = np.zeros((self.w, *values.shape[1:]), dtype=dtype)
+        out[self.m] = values if self.idx is None else values[self.idx]
+        return out
+
+    def first(self, values: np.ndarray):
+        """The first kept column's value (of all the columns' ``values``)."""
+        return values[0 if self.idx is None else self.idx[0]]
+
+
 def _frame(cols: np.ndarray, info: OusterInfo) -> Frame:
-    h, w = info.pixels_per_column, info.columns_per_frame
-    m = cols["measurement_id"].astype(np.intp)
-    keep = (m < w) & (cols["status"] == COLUMN_VALID)
-    cols, m = cols[keep], m[keep]
+    w = info.columns_per_frame
+    at = _Placement(cols["measurement_id"], cols["status"] == COLUMN_VALID, w)
     # filled column by column, (W, H) in memory; the fields are their (H, W) views
-    out = {name: np.zeros((w, h), dtype=dt) for name, dt in (
-        ("range_mm", np.uint32), ("reflectivity", np.uint8), ("signal", np.uint16),
-        ("near_ir", np.uint16))}
     px = cols["pixels"]  # (n, h)
-    for name, src in (("range_mm", "range"), ("reflectivity", "reflectivity"),
-                      ("signal", "signal"), ("near_ir", "near_ir")):
-        out[name][m] = px[src]
+    out = {name: at.place(px[src], dt) for name, src, dt in (
+        ("range_mm", "range", np.uint32), ("reflectivity", "reflectivity", np.uint8),
+        ("signal", "signal", np.uint16), ("near_ir", "near_ir", np.uint16))}
     out["range_mm"] &= RANGE_MASK
     out = {name: a.T for name, a in out.items()}
-    ts, mid, status, received = _column_headers(cols, m, w)
-    return Frame(int(cols["frame_id"][0]) if len(cols) else -1, **out, timestamp_ns=ts,
+    ts, mid, status, received = _column_headers(
+        at, cols["timestamp"], cols["measurement_id"], cols["status"], np.uint32)
+    return Frame(int(at.first(cols["frame_id"])) if at.n else -1, **out, timestamp_ns=ts,
                  measurement_id=mid, status=status, received=received,
-                 packets=int(np.ceil(len(cols) / info.columns_per_packet)))
+                 packets=int(np.ceil(at.n / info.columns_per_packet)))
 
 
-def _column_headers(cols: np.ndarray, m: np.ndarray, w: int
+def _column_headers(at: _Placement, timestamp: np.ndarray, measurement_id: np.ndarray,
+                    status: np.ndarray, status_dtype
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A frame's per-column timestamp (ns), measurement id, status and whether the column
-    arrived, (w,) each, from its kept columns ``cols`` at measurement ids ``m`` (0 elsewhere)."""
-    ts = np.zeros(w, dtype=np.uint64)
-    ts[m] = cols["timestamp"]
-    mid = np.zeros(w, dtype=np.uint16)
-    mid[m] = cols["measurement_id"]
-    status = np.zeros(w, dtype=np.uint32)
-    status[m] = cols["status"]
-    received = np.zeros(w, dtype=bool)
-    received[m] = True
-    return ts, mid, status, received
+    arrived, (w,) each, from its kept columns (0 elsewhere)."""
+    received = np.ones(at.w, dtype=bool) if at.whole else np.zeros(at.w, dtype=bool)
+    received[at.m] = True
+    return (at.place(timestamp, np.uint64), at.place(measurement_id, np.uint16),
+            at.place(status, status_dtype), received)
 
 
 def _pixel_field(pixels: np.ndarray, f: PixelField) -> np.ndarray:
-    """One channel of (n, H, pixel_bytes) pixel bytes, (n, H) as ``f.dtype``."""
-    word = np.zeros(pixels.shape[:2], dtype=np.uint32)
-    for i in range(f.word):
-        word |= pixels[:, :, f.byte + i].astype(np.uint32) << np.uint32(8 * i)
-    value = (word >> np.uint32(f.shift)) & np.uint32((1 << f.bits) - 1)
-    return (value << np.uint32(f.upshift)).astype(f.dtype)
+    """One channel of (..., H, pixel_bytes) pixel bytes, (..., H) as ``f.dtype``."""
+    return _field_of_words(_le_view(pixels, f.byte, f.word), f)
+
+
+def _field_of_words(value: np.ndarray, f: PixelField) -> np.ndarray:
+    """A channel's values of its little-endian words (a view of the bytes, or words already
+    copied out): shifted and masked in the word's own width (the bits kept fit it), then
+    widened and shifted up (in ``f.dtype``: the same bits as shifting in 32 and narrowing
+    after)."""
+    mask = value.dtype.type((1 << f.bits) - 1)
+    if f.shift:
+        value = value >> np.uint8(f.shift)
+        if f.bits < 8 * f.word - f.shift:
+            value &= mask
+    elif f.bits < 8 * f.word:
+        if value.flags.owndata and value.flags.writeable:  # (words copied out: in place)
+            value &= mask
+        else:
+            value = value & mask
+    value = value.astype(f.dtype, copy=not value.flags.owndata)
+    if f.upshift:
+        value <<= value.dtype.type(f.upshift)
+    return value
 
 
 def _profile_frame(cols: np.ndarray, info: OusterInfo) -> Frame:
-    """The `Frame` of one frame's `profile_column_dtype` columns: as `_frame`, a column kept
-    when its status's bit 0 says valid (ouster-sdk's batcher; 0 elsewhere); the frame's
+    """The `Frame` of one frame's `profile_column_dtype` columns (`_assemble_profile_frame`)."""
+    header = {name: cols[name][::info.columns_per_packet] for name in (
+        "frame_id", "init_id", "prod_sn", "alert_flags", "shutdown_countdown",
+        "shot_limiting_countdown", "thermal_shutdown", "shot_limiting")}
+    return _assemble_profile_frame(header, cols["timestamp"], cols["measurement_id"],
+                                   cols["status"], cols["pixels"], info)
+
+
+def _assemble_profile_frame(header: dict[str, np.ndarray], timestamp: np.ndarray,
+                            measurement_id: np.ndarray, status: np.ndarray,
+                            pixels: np.ndarray, info: OusterInfo) -> Frame:
+    """The `Frame` of one frame's non-LEGACY packets: their headers' fields (by packet), their
+    columns' headers (by column) and pixel bytes (..., H, pixel_bytes). As `_frame`, a column
+    kept when its status's bit 0 says valid (ouster-sdk's batcher; 0 elsewhere); the frame's
     header from its first packet, the alert flags of each."""
     h, w, cpp = info.pixels_per_column, info.columns_per_frame, info.columns_per_packet
-    first = cols[0]
-    heads = cols[::cpp]  # (whole packets: a packet's first column holds its header)
     alert = np.zeros(w // cpp, dtype=np.uint8)
-    pid = heads["measurement_id"].astype(np.intp) // cpp
-    alert[pid[pid < len(alert)]] = heads["alert_flags"][pid < len(alert)]
-    m = cols["measurement_id"].astype(np.intp)
-    keep = (m < w) & ((cols["status"] & 1) == 1)
-    cols, m = cols[keep], m[keep]
-    out = {"signal": np.zeros((w, h), dtype=np.uint16)}  # (the RNG15 profiles send none)
+    pid = measurement_id[::cpp].astype(np.intp) // cpp
+    alert[pid[pid < len(alert)]] = header["alert_flags"][pid < len(alert)]
+    at = _Placement(measurement_id, (status & 1) == 1, w)
+    out = {"signal": None}  # (the RNG15 profiles send none)
     for f in info.profile.fields:
-        out[f.name] = np.zeros((w, h), dtype=f.dtype)
-        out[f.name][m] = _pixel_field(cols["pixels"], f)
+        out[f.name] = at.place(_pixel_field(pixels, f).reshape(-1, h), f.dtype, owned=True)
+    if out["signal"] is None:
+        out["signal"] = np.zeros((w, h), dtype=np.uint16)
     if "range2_mm" in out and "signal2" not in out:  # (nor for RNG15's second return)
         out["signal2"] = np.zeros((w, h), dtype=np.uint16)
     out = {name: a.T for name, a in out.items()}  # (H, W) views of columns filled as (W, H)
-    ts, mid, status, received = _column_headers(cols, m, w)
+    ts, mid, status, received = _column_headers(at, timestamp, measurement_id, status,
+                                                np.uint32)
     return Frame(
-        int(first["frame_id"]), **out, timestamp_ns=ts, measurement_id=mid, status=status,
-        received=received, packets=int(np.ceil(len(cols) / cpp)),
-        init_id=int(first["init_id"]), prod_sn=int(first["prod_sn"]),
-        thermal_shutdown=int(first["thermal_shutdown"]),
-        shot_limiting=int(first["shot_limiting"]),
-        shutdown_countdown=int(first["shutdown_countdown"]),
-        shot_limiting_countdown=int(first["shot_limiting_countdown"]), alert_flags=alert)
+        int(header["frame_id"][0]), **out, timestamp_ns=ts, measurement_id=mid, status=status,
+        received=received, packets=int(np.ceil(at.n / cpp)),
+        init_id=int(header["init_id"][0]), prod_sn=int(header["prod_sn"][0]),
+        thermal_shutdown=int(header["thermal_shutdown"][0]),
+        shot_limiting=int(header["shot_limiting"][0]),
+        shutdown_countdown=int(header["shutdown_countdown"][0]),
+        shot_limiting_countdown=int(header["shot_limiting_countdown"][0]), alert_flags=alert)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -665,86 +749,240 @@ def pixel_order(info: OusterInfo) -> tuple[np.ndarray, np.ndarray]:
 class _ScanTable:
     """What every frame of a sensor shares, in the scan's firing order (`pixel_order`): each
     firing's beam, column, azimuth and the unit ray from its origin on the axis in {L}, with
-    the point's offset from that ray's start per mm of range (computed once per metadata)."""
+    the point's offset from that ray's start per mm of range (computed once per metadata:
+    ouster-sdk's XYZLut). Each axis is its own contiguous array, and each firing's index into
+    a frame's (H, W) field, flat, in either memory order (`_gather`)."""
 
     beam: np.ndarray
     col: np.ndarray
     azimuth: np.ndarray
-    direction: np.ndarray  # (N, 3) {L}, of the sensor frame's xyz per mm of range
-    offset: np.ndarray  # (N, 3) {L}, mm
+    direction: tuple[np.ndarray, np.ndarray, np.ndarray]  # {L}, of the sensor frame's xyz per mm
+    offset: tuple[np.ndarray, np.ndarray, np.ndarray]  # {L}, mm
     origin_z: np.ndarray  # (N,) m, the firing's vertical offset
+    laser_id: np.ndarray  # (N,) uint8, the beam
+    flat_c: np.ndarray  # beam * W + column: into an (H, W) C-ordered field
+    flat_f: np.ndarray  # column * H + beam: into the (H, W) view of a (W, H) one (`_frame`'s)
+    window_cols: np.ndarray  # the columns of the column window
 
 
-_TABLES: dict[int, tuple[OusterInfo, _ScanTable]] = {}
+#: The tables of the metadata read lately, by the geometry they are made of (`_table_key`): a
+#: capture opened again, with its metadata read again, does not build its table again.
+_TABLES: dict[tuple, _ScanTable] = {}
+
+
+def _table_key(info: OusterInfo) -> tuple:
+    """Everything a `_ScanTable` is computed from."""
+    return (info.pixels_per_column, info.columns_per_frame, tuple(info.column_window),
+            tuple(info.beam_to_lidar_mm), info.prod_line,
+            *((a.dtype.str, a.shape, np.ascontiguousarray(a).tobytes()) for a in (
+                np.asarray(info.pixel_shift_by_row), np.asarray(info.beam_altitude_deg),
+                np.asarray(info.beam_azimuth_deg), np.asarray(info.lidar_to_sensor),
+                np.asarray(info.lasers.vertical_offset))))
 
 
 def _scan_table(info: OusterInfo) -> _ScanTable:
-    hit = _TABLES.get(id(info))
-    if hit is not None and hit[0] is info:
-        return hit[1]
-    w = info.columns_per_frame
+    key = _table_key(info)
+    table = _TABLES.get(key)
+    if table is not None:
+        return table
+    h, w = info.pixels_per_column, info.columns_per_frame
     beam, col = pixel_order(info)
     d, off = beam_geometry(info, beam, col)
     to_l = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    d, off = d @ to_l.T, off @ to_l.T
+    lo, hi = info.column_window
     table = _ScanTable(
         beam=beam, col=col,
         azimuth=(2.0 * np.pi * col / w + np.radians(info.beam_azimuth_deg)[beam] - np.pi)
         % (2.0 * np.pi),
-        direction=d @ to_l.T, offset=off @ to_l.T,
-        origin_z=info.lasers.vertical_offset[beam])
+        direction=tuple(np.ascontiguousarray(d[:, i]) for i in range(3)),
+        offset=tuple(np.ascontiguousarray(off[:, i]) for i in range(3)),
+        origin_z=info.lasers.vertical_offset[beam], laser_id=beam.astype(np.uint8),
+        flat_c=beam * w + col, flat_f=col * h + beam,
+        window_cols=np.arange(lo, hi + 1) if lo <= hi else np.r_[lo:w, 0:hi + 1])
+    for a in (table.beam, table.col, table.azimuth, *table.direction, *table.offset,
+              table.origin_z, table.laser_id, table.flat_c, table.flat_f, table.window_cols):
+        a.flags.writeable = False
     if len(_TABLES) > 16:
         _TABLES.clear()
-    _TABLES[id(info)] = (info, table)
+    _TABLES[key] = table
     return table
 
 
-def _one_return(frame: Frame, beam: np.ndarray, col: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Range (mm), reflectivity and `ReturnType` of each firing: the first return, which the
-    sensor sends as the strongest; in a dual profile, where the first has no range and the
-    second does, the second (flagged SECOND_STRONGEST), as a Velodyne's or Hesai's dual-return
-    firing keeps its strongest echo and falls back to the other where the strongest missed:
-    the beam did meet something, and a miss there would tell the estimator otherwise (115 of
-    the real OS0-32 dual frame's 32768 pixels: a first return with signal but no range)."""
-    rng = frame.range_mm[beam, col]
-    refl = frame.reflectivity[beam, col].astype(np.uint8)
+def _gather(field: np.ndarray, t: _ScanTable) -> np.ndarray:
+    """``field[t.beam, t.col]`` of an (H, W) field, through its flat memory where it has one
+    (a `Frame`'s fields are the (H, W) views of (W, H) arrays, filled column by column)."""
+    if field.flags.f_contiguous:
+        return np.take(field.ravel(order="F"), t.flat_f)
+    if field.flags.c_contiguous:
+        return np.take(field.ravel(), t.flat_c)
+    return field[t.beam, t.col]
+
+
+def _one_return(frame: Frame, t: _ScanTable) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range (mm), reflectivity and `ReturnType` of each firing (`_returns`)."""
+    second = None if frame.range2_mm is None else (
+        _gather(frame.range2_mm, t), _gather(frame.reflectivity2, t))
+    return _returns(_gather(frame.range_mm, t), _gather(frame.reflectivity, t), second)
+
+
+def _returns(rng: np.ndarray, refl: np.ndarray,
+             second: tuple[np.ndarray, np.ndarray] | None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range (mm), reflectivity and `ReturnType` of each firing of its first and (a dual
+    profile's) second returns': the first return, which the sensor sends as the strongest; in
+    a dual profile, where the first has no range and the second does, the second (flagged
+    SECOND_STRONGEST), as a Velodyne's or Hesai's dual-return firing keeps its strongest echo
+    and falls back to the other where the strongest missed: the beam did meet something, and
+    a miss there would tell the estimator otherwise (115 of the real OS0-32 dual frame's 32768
+    pixels: a first return with signal but no range)."""
+    refl = refl.astype(np.uint8, copy=False)
     kind = np.full(len(rng), int(ReturnType.STRONGEST), dtype=np.uint8)
-    if frame.range2_mm is None:
+    if second is None:
         return rng, refl, kind
-    rng2 = frame.range2_mm[beam, col]
-    second = (rng == 0) & (rng2 > 0)
-    kind[second] = int(ReturnType.SECOND_STRONGEST)
-    return (np.where(second, rng2, rng),
-            np.where(second, frame.reflectivity2[beam, col], refl).astype(np.uint8), kind)
+    rng2, refl2 = second
+    is_second = rng == 0
+    is_second &= rng2 > 0
+    kind += np.multiply(is_second, np.uint8(int(ReturnType.SECOND_STRONGEST)
+                                            - int(ReturnType.STRONGEST)), dtype=np.uint8)
+    # the second's range where the first has none, else the first's (| 0); the gathered
+    # reflectivities are this scan's own: the second's copied in where it is kept
+    out = np.multiply(rng2, is_second, dtype=np.result_type(rng, rng2))
+    out |= rng
+    refl = refl.copy() if refl.base is not None else refl
+    np.copyto(refl, refl2, where=is_second, casting="unsafe")
+    return out, refl, kind
 
 
 def scan_from_frame(frame: Frame, info: OusterInfo, *, index: int = 0) -> Scan:
     """The `Scan` of a frame: every pixel of the column window in {L}, in `pixel_order`."""
     t = _scan_table(info)
-    w = info.columns_per_frame
-    rng, intensity, kind = _one_return(frame, t.beam, t.col)
-    hit = rng > 0
+    rng, intensity, kind = _one_return(frame, t)
+    missing = int((~frame.received[t.window_cols]).sum())
+    return _scan(t, info, rng, intensity, kind, frame.timestamp_ns, missing, frame.packets,
+                 frame.frame_id, index)
+
+
+def _scan(t: _ScanTable, info: OusterInfo, rng: np.ndarray, intensity: np.ndarray,
+          kind: np.ndarray, timestamp_ns: np.ndarray, missing: int, packets: int,
+          frame_id: int, index: int) -> Scan:
+    """The `Scan` of a frame's firings (range in mm, in `pixel_order`), its columns' times
+    (ns, by column) and the columns of its window that did not come."""
+    # p = r d + offset (xyz_lidar), in m; {L}: y forward, x right; 0.0 where there is no
+    # return: the bits of each value anded with all ones where there is one, else none
+    keep = np.negative(rng > 0, dtype=np.uint64)
     r = rng.astype(np.float64)
-    # p = r d + offset (xyz_lidar), in m; {L}: y forward, x right
-    x = np.where(hit, (r * t.direction[:, 0] + t.offset[:, 0]) * 1e-3, 0.0)
-    y = np.where(hit, (r * t.direction[:, 1] + t.offset[:, 1]) * 1e-3, 0.0)
-    z = np.where(hit, (r * t.direction[:, 2] + t.offset[:, 2]) * 1e-3, 0.0)
-    # the range from the beam's origin on the axis (`OusterInfo.lasers`' vertical offsets)
-    zo = z - t.origin_z
-    distance = np.where(hit, np.sqrt(x * x + y * y + zo * zo), 0.0)
-    time = frame.timestamp_ns[t.col].astype(np.float64) * 1e-9
-    lo, hi = info.column_window
-    cols = np.arange(lo, hi + 1) if lo <= hi else np.r_[lo:w, 0:hi + 1]
-    missing = int((~frame.received[cols]).sum())
+    # the scan's float arrays: the rows of one block (one allocation a frame, not six: with
+    # six, glibc's malloc gave the memory back and took it again each frame, 700-850 page
+    # faults a frame of an OS1-128, a third of the CPU time; 130 with one)
+    block = np.empty((6, len(rng)))
+    x, y, z, distance, time, azimuth = block
+    for p, d, o in zip((x, y, z), t.direction, t.offset, strict=True):
+        np.multiply(r, d, out=p)
+        p += o
+        p *= 1e-3
+        np.bitwise_and(p.view(np.uint64), keep, out=p.view(np.uint64))
+    np.multiply(x, x, out=distance)
+    distance += np.multiply(y, y, out=r)
+    zo = np.subtract(z, t.origin_z, out=r)
+    distance += np.multiply(zo, zo, out=r)
+    np.sqrt(distance, out=distance)
+    np.bitwise_and(distance.view(np.uint64), keep, out=distance.view(np.uint64))
+    np.take(timestamp_ns.astype(np.float64) * 1e-9, t.col, out=time, mode="clip")  # (in range)
+    azimuth[:] = t.azimuth
     return Scan(
-        distance=distance, azimuth=t.azimuth.copy(), laser_id=t.beam.astype(np.uint8),
+        distance=distance, azimuth=azimuth, laser_id=t.laser_id.copy(),
         intensity=intensity, time=time, return_type=kind,
-        x=x, y=y, z=z, index=index, complete=missing == 0, packets=frame.packets,
+        x=x, y=y, z=z, index=index, complete=missing == 0, packets=packets,
         missing_packets=int(np.ceil(missing / info.columns_per_packet)), product_id=0,
         vertical_offsets_applied=True, lasers=info.lasers,
-        meta={"model": info.model, "prod_line": info.prod_line, "frame_id": frame.frame_id,
+        meta={"model": info.model, "prod_line": info.prod_line, "frame_id": frame_id,
               "rpm": 60.0 * info.rate_hz, "lidar_mode": info.lidar_mode,
               "missing_columns": missing, "partial": missing > 0})
+
+
+#: LEGACY's two channels a scan reads, as `PixelField`s of its 12-byte pixel: the range word's
+#: 20 bits, the reflectivity word's low byte (`_frame` keeps them so).
+_LEGACY_SCAN_FIELDS = (PixelField("range_mm", 0, 4, 0, 20, np.uint32),
+                       PixelField("reflectivity", 4, 1, 0, 8, np.uint8))
+_SCAN_CHANNELS = ("range_mm", "reflectivity", "range2_mm", "reflectivity2")
+
+#: Per geometry and packet layout (`_packet_index`): each scan channel's field and where each
+#: firing's word of it is in a whole frame's packets, joined (an index into the packets' bytes
+#: viewed as words of its size); None where a word is not aligned to its size.
+_PACKET_INDEX: dict[tuple, dict[str, tuple[PixelField, np.ndarray]] | None] = {}
+
+
+def _packet_index(info: OusterInfo, t: _ScanTable
+                  ) -> dict[str, tuple[PixelField, np.ndarray]] | None:
+    key = (_table_key(info), info.udp_profile_lidar, info.columns_per_packet)
+    if key in _PACKET_INDEX:
+        return _PACKET_INDEX[key]
+    legacy, cpp = info.udp_profile_lidar == "LEGACY", info.columns_per_packet
+    fields = _LEGACY_SCAN_FIELDS if legacy else tuple(
+        f for f in info.profile.fields if f.name in _SCAN_CHANNELS)
+    first = 0 if legacy else PACKET_HEADER_BYTES  # the packet's first column
+    pixel = 12 if legacy else info.profile.pixel_bytes
+    column_header = 16 if legacy else COLUMN_HEADER_BYTES
+    base = (t.col // cpp * info.packet_bytes + first + t.col % cpp * info.column_bytes
+            + column_header + t.beam * pixel)
+    index = {}
+    for f in fields:
+        at = base + f.byte
+        if (at % f.word).any():
+            index = None
+            break
+        index[f.name] = (f, at // f.word)
+    if len(_PACKET_INDEX) > 16:
+        _PACKET_INDEX.clear()
+    _PACKET_INDEX[key] = index
+    return index
+
+
+def _whole_frame_scan(raw: bytes, info: OusterInfo, index: int
+                      ) -> tuple[Scan, int, int] | None:
+    """The `Scan` of one frame's packets (``raw``, whole packets of the metadata's size,
+    joined) and its first packet's shot-limiting and thermal-shutdown states, read straight
+    from the packets' bytes, without its `Frame`, when they hold one frame whole: each of its
+    columns once, in order, valid, of one frame id (init id). Else None (`packet_frames`
+    then makes its frames). The same scan as `scan_from_frame` of the frame."""
+    w, cpp, size = info.columns_per_frame, info.columns_per_packet, info.packet_bytes
+    if w % cpp or size % 4 or len(raw) != w // cpp * size:
+        return None
+    u8 = np.frombuffer(raw, dtype=np.uint8)
+    if info.udp_profile_lidar == "LEGACY":
+        cols = u8.view(column_dtype(info))
+        fid = cols["frame_id"]
+        if (fid != fid[0]).any() or (cols["status"] != COLUMN_VALID).any():
+            return None
+        mid, ts = cols["measurement_id"], cols["timestamp"]
+        frame_id, shot_limiting, thermal_shutdown = int(fid[0]), 0, 0
+    else:
+        packets = u8.reshape(-1, size)
+        header = _packet_header(packets[:, :PACKET_HEADER_BYTES], info)
+        fid = header["frame_id"] | (header["init_id"] << np.uint64(32))
+        cols = packets[:, PACKET_HEADER_BYTES:PACKET_HEADER_BYTES + cpp * info.column_bytes
+                       ].reshape(-1, cpp, info.column_bytes)
+        mid = _le_view(cols, 8, 2).reshape(-1)
+        if (fid != fid[0]).any() or ((_le_view(cols, 10, 2) & 1) != 1).any():
+            return None
+        ts = _le_view(cols, 0, 8).reshape(-1)
+        frame_id = int(header["frame_id"][0])
+        shot_limiting = int(header["shot_limiting"][0])
+        thermal_shutdown = int(header["thermal_shutdown"][0])
+    if (mid != np.arange(w)).any():
+        return None
+    t = _scan_table(info)
+    where = _packet_index(info, t)
+    if where is None:
+        return None
+    words = {1: u8, 2: u8.view("<u2"), 4: u8.view("<u4")}
+    channel = {name: _field_of_words(np.take(words[f.word], at), f)
+               for name, (f, at) in where.items()}
+    second = (channel["range2_mm"], channel["reflectivity2"]) if "range2_mm" in channel else None
+    rng, intensity, kind = _returns(channel["range_mm"], channel["reflectivity"], second)
+    scan = _scan(t, info, rng, intensity, kind, ts, 0, w // cpp, frame_id, index)
+    return scan, shot_limiting, thermal_shutdown
 
 
 def scans_from_payloads(payloads: Iterable[bytes], info: OusterInfo) -> list[Scan]:
@@ -757,7 +995,9 @@ class OusterScans:
     """Scans from a stream of datagrams (anything with a ``payload``, or bytes), each yielded
     as soon as its frame ends (the next frame id arrives, or the stream does), and a summary.
     A frame with columns missing (the first of a live stream, joined mid-rotation; lost
-    packets) is flagged partial, never presented as whole."""
+    packets) is flagged partial, never presented as whole. A frame that came whole is read
+    straight from its packets' bytes (`_whole_frame_scan`), any other through its `Frame`
+    (`packet_frames`, `scan_from_frame`): the same scans either way."""
 
     def __init__(self, packets: Iterable, info: OusterInfo) -> None:
         self.packets = packets
@@ -791,11 +1031,20 @@ class OusterScans:
             yield from self._scans_of(frame, index)
 
     def _scans_of(self, payloads: list[bytes], index: int) -> Iterator[Scan]:
-        for f in frames(decode_packets(payloads, self.info), self.info):
+        # (whole packets of the metadata's size: `decode_packets` would keep them all)
+        raw = b"".join(payloads)
+        whole = _whole_frame_scan(raw, self.info, index)  # (the usual frame: no Frame made)
+        if whole is not None:
+            yield self._count(*whole)
+            return
+        for f in packet_frames(raw, self.info):
             yield self._scan(f, index)
 
     def _scan(self, f: Frame, index: int) -> Scan:
-        s = scan_from_frame(f, self.info, index=index)
+        return self._count(scan_from_frame(f, self.info, index=index), f.shot_limiting,
+                           f.thermal_shutdown)
+
+    def _count(self, s: Scan, shot_limiting: int, thermal_shutdown: int) -> Scan:
         c = self.counts
         c["frames"] += 1
         c["complete"] += int(s.complete)
@@ -804,8 +1053,8 @@ class OusterScans:
         c["missing_columns"] += s.meta["missing_columns"]
         # the packet header's states (non-LEGACY profiles): a sensor limiting its shots or
         # about to shut down for heat measures less well, which a reader should be told
-        c["shot_limiting_frames"] += int(f.shot_limiting != 0)
-        c["thermal_shutdown_frames"] += int(f.thermal_shutdown != 0)
+        c["shot_limiting_frames"] += int(shot_limiting != 0)
+        c["thermal_shutdown_frames"] += int(thermal_shutdown != 0)
         return s
 
     def summary(self) -> dict:

@@ -168,9 +168,10 @@ class PcapReader:
         self.stats.link_type = link & 0x0FFFFFFF  # upper bits may carry FCS information
 
     def __iter__(self) -> Iterator[UdpRecord]:
-        pcapng = self.stats.format == "pcapng"
-        frames = self._pcapng_frames() if pcapng else self._classic_frames()
-        for ts, link, frame, orig_len in frames:
+        if self.stats.format != "pcapng":
+            yield from self._classic_records()
+            return
+        for ts, link, frame, orig_len in self._pcapng_frames():
             self.stats.records += 1
             if len(frame) < orig_len:
                 self.stats.skipped["truncated"] += 1
@@ -184,22 +185,36 @@ class PcapReader:
             self.stats.udp += 1
             yield rec
 
-    def _classic_frames(self) -> Iterator[tuple[float, int, bytes, int]]:
+    def _classic_records(self) -> Iterator[UdpRecord]:
+        """The datagrams of a classic pcap, read in place from the mapped file (only each
+        payload is copied out)."""
         data, order, link = self._data, self.stats.byte_order, self.stats.link_type
         scale = 1e-9 if self.stats.nanosecond else 1e-6
-        header = struct.Struct(order + "IIII")
+        header = struct.Struct(order + "IIII").unpack_from
+        stats, skipped, ports = self.stats, self.stats.skipped, self.ports
         pos, end = 24, len(data)
         while pos < end:
             if pos + 16 > end:
                 self._truncated_at_end()
                 return
-            sec, frac, incl, orig = header.unpack_from(data, pos)
+            sec, frac, incl, orig = header(data, pos)
             pos += 16
             if pos + incl > end:
                 self._truncated_at_end()
                 return
-            yield sec + frac * scale, link, data[pos:pos + incl], orig
-            pos += incl
+            start, pos = pos, pos + incl
+            stats.records += 1
+            if incl < orig:
+                skipped["truncated"] += 1
+                continue
+            rec = _udp_record(sec + frac * scale, link, data, start, incl, skipped)
+            if rec is None:
+                continue
+            if ports is not None and rec.dst_port not in ports:
+                skipped["other_port"] += 1
+                continue
+            stats.udp += 1
+            yield rec
 
     def _truncated_at_end(self) -> None:
         self.stats.truncated_file = True
@@ -270,13 +285,49 @@ def _classic_magic(raw: bytes) -> tuple[str, bool] | None:
 
 def _parse_frame(ts: float, link: int, frame: bytes, skipped: Counter) -> UdpRecord | None:
     """The UDP datagram in a link-layer frame, or None (and a count of why not)."""
-    ip = _ip_offset(link, frame, skipped)
+    return _udp_record(ts, link, frame, 0, len(frame), skipped)
+
+
+#: An untagged Ethernet II frame's headers to the UDP header's end: ethertype; IPv4 version
+#: and header length, total length, flags and fragment offset, protocol, addresses; UDP ports
+#: and length (`_udp_record`'s one read of the usual sensor datagram).
+_ETH_IP_UDP = struct.Struct("!12xHBxH2xH1xB2x4s4sHHH")
+
+
+def _udp_record(ts: float, link: int, buf, start: int, n: int,
+                skipped: Counter) -> UdpRecord | None:
+    """The UDP datagram in the link-layer frame of ``n`` bytes at ``start`` of ``buf`` (bytes,
+    or the mapped file), or None (and a count of why not)."""
+    if link == LINKTYPE_ETHERNET and n >= _ETH_IP_UDP.size:
+        # the usual frame (no VLAN tag, a 20-byte IPv4 header) in one read, the same checks
+        (ethertype, ver_ihl, total_len, frag, proto, src, dst, src_port, dst_port,
+         udp_len) = _ETH_IP_UDP.unpack_from(buf, start)
+        if ethertype == ETHERTYPE_IPV4 and ver_ihl == 0x45:
+            if total_len < 20:
+                skipped["malformed"] += 1
+                return None
+            if frag & 0x3FFF:
+                skipped["fragment"] += 1
+                return None
+            if proto != IPPROTO_UDP:
+                skipped["not_udp"] += 1
+                return None
+            if n < 14 + total_len or total_len < 28:
+                skipped["truncated" if n < 14 + total_len else "malformed"] += 1
+                return None
+            if udp_len < 8 or 20 + udp_len > total_len:
+                skipped["malformed"] += 1
+                return None
+            return UdpRecord(timestamp=ts, src_ip=_ip_text(src), dst_ip=_ip_text(dst),
+                             src_port=src_port, dst_port=dst_port,
+                             payload=buf[start + 42:start + 34 + udp_len])
+    ip = _ip_offset(link, buf, start, n, skipped)
     if ip is None:
         return None
-    if len(frame) < ip + 20:
+    if n < ip + 20:
         skipped["truncated"] += 1
         return None
-    ver_ihl, _, total_len, _, frag, _, proto = struct.unpack_from("!BBHHHBB", frame, ip)
+    ver_ihl, _, total_len, _, frag, _, proto = struct.unpack_from("!BBHHHBB", buf, start + ip)
     if ver_ihl >> 4 != 4:
         skipped["not_ipv4"] += 1
         return None
@@ -291,38 +342,39 @@ def _parse_frame(ts: float, link: int, frame: bytes, skipped: Counter) -> UdpRec
         skipped["not_udp"] += 1
         return None
     udp = ip + ihl
-    if len(frame) < ip + total_len or total_len < ihl + 8:
-        skipped["truncated" if len(frame) < ip + total_len else "malformed"] += 1
+    if n < ip + total_len or total_len < ihl + 8:
+        skipped["truncated" if n < ip + total_len else "malformed"] += 1
         return None
-    src_port, dst_port, udp_len = struct.unpack_from("!HHH", frame, udp)
+    src_port, dst_port, udp_len = struct.unpack_from("!HHH", buf, start + udp)
     if udp_len < 8 or udp + udp_len > ip + total_len:
         skipped["malformed"] += 1
         return None
     return UdpRecord(
         timestamp=ts,
-        src_ip=_ip_str(frame, ip + 12),
-        dst_ip=_ip_str(frame, ip + 16),
+        src_ip=_ip_str(buf, start + ip + 12),
+        dst_ip=_ip_str(buf, start + ip + 16),
         src_port=src_port,
         dst_port=dst_port,
-        payload=frame[udp + 8:udp + udp_len],
+        payload=buf[start + udp + 8:start + udp + udp_len],
     )
 
 
-def _ip_offset(link: int, frame: bytes, skipped: Counter) -> int | None:
-    """Offset of the IPv4 header in a frame of the given link type, or None if it is not IPv4."""
+def _ip_offset(link: int, buf, start: int, n: int, skipped: Counter) -> int | None:
+    """Offset of the IPv4 header in the frame of ``n`` bytes at ``start`` of ``buf``, of the
+    given link type, or None if it is not IPv4."""
     if link == LINKTYPE_ETHERNET:
-        off, ethertype = 14, _u16(frame, 12)
+        off, ethertype = 14, _u16(buf, start, n, 12)
         while ethertype in ETHERTYPE_VLAN:
-            ethertype = _u16(frame, off + 2)
+            ethertype = _u16(buf, start, n, off + 2)
             off += 4
     elif link == LINKTYPE_LINUX_SLL:
-        off, ethertype = 16, _u16(frame, 14)
+        off, ethertype = 16, _u16(buf, start, n, 14)
     elif link == LINKTYPE_LINUX_SLL2:
-        off, ethertype = 20, _u16(frame, 0)
+        off, ethertype = 20, _u16(buf, start, n, 0)
     elif link in (LINKTYPE_RAW, LINKTYPE_RAW_OPENBSD, LINKTYPE_IPV4):
         off, ethertype = 0, ETHERTYPE_IPV4
     elif link == LINKTYPE_NULL:
-        family = int.from_bytes(frame[:4], "little") if len(frame) >= 4 else -1
+        family = int.from_bytes(buf[start:start + 4], "little") if n >= 4 else -1
         off, ethertype = 4, ETHERTYPE_IPV4 if family == 2 else -1
     else:
         skipped["unsupported_link"] += 1
@@ -336,15 +388,18 @@ def _ip_offset(link: int, frame: bytes, skipped: Counter) -> int | None:
     return off
 
 
-def _u16(frame: bytes, off: int) -> int | None:
-    return int.from_bytes(frame[off:off + 2], "big") if len(frame) >= off + 2 else None
+def _u16(buf, start: int, n: int, off: int) -> int | None:
+    return int.from_bytes(buf[start + off:start + off + 2], "big") if n >= off + 2 else None
 
 
 _IP_STRINGS: dict[bytes, str] = {}
 
 
-def _ip_str(frame: bytes, off: int) -> str:
-    raw = frame[off:off + 4]
+def _ip_str(buf, off: int) -> str:
+    return _ip_text(buf[off:off + 4])
+
+
+def _ip_text(raw: bytes) -> str:
     text = _IP_STRINGS.get(raw)
     if text is None:  # a capture has few distinct addresses: format each once
         text = _IP_STRINGS[raw] = ".".join(str(b) for b in raw)
