@@ -513,3 +513,31 @@ def test_the_kernels_give_mujocos_bits_in_the_lab() -> None:
     kinds = set(caster.kinds[np.unique(g[g >= 0])].tolist())
     assert {raykernel.KIND_BOX, raykernel.KIND_CAPSULE, raykernel.KIND_CYLINDER,
             raykernel.KIND_MESH} <= kinds
+
+
+def test_without_firing_delays_every_laser_is_cast_at_its_sequences_azimuth() -> None:
+    """`EmulationConfig.firing_delays` False: a world whose lasers of one sequence all fire at
+    its first firing's azimuth, reported as a decoder that applies the VLP-16's 2.304 us
+    delays reads it (the same azimuths as with the delays, the points at them)."""
+    params = BenchParams.from_edge(roll_deg=2.0, tilt_deg=1.0, yaw_deg=-2.0)
+    scans = {}
+    for delays in (True, False):
+        sim = BenchSim(params, seed=1, noise=EmulationConfig.ideal(quantise=False,
+                                                                   firing_delays=delays))
+        sim.move_to(x_m=0.01, yaw_rad=math.radians(5.0))
+        scans[delays] = sim.scan()
+    ref, off = scans[True], scans[False]
+    np.testing.assert_array_equal(off.azimuth, ref.azimuth)
+    np.testing.assert_array_equal(off.laser_id, ref.laser_id)
+    pose = off.meta["truth_pose"]
+    omega = off.meta["rpm"] * 2 * math.pi / 60
+    cast = off.azimuth - off.laser_id * vlp16.LASER_PERIOD * omega
+    rng_c, on = board_intersections(pose, cast, off.laser_id, W - 0.01, H - 0.01)
+    assert on.sum() > 400
+    np.testing.assert_allclose(off.distance[on], rng_c[on], atol=1e-6)
+    # The reported azimuths are not where the rays went: the ranges differ from the delays'.
+    assert np.max(np.abs(off.distance[on] - ref.distance[on])) > 1e-4
+    # The points are at the reported azimuths (as a decoder puts them).
+    v = off.valid
+    np.testing.assert_allclose(np.mod(np.arctan2(off.x[v], off.y[v]), 2 * math.pi),
+                               off.azimuth[v], atol=1e-9)

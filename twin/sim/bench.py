@@ -443,8 +443,9 @@ class BenchSim:
             self._pose_history = None
             pos, rot = self._last_pose
             returns = self.emulator.fire_grid(
-                self._beam_azimuth(azimuth, laser).reshape(-1, sensor.n_lasers), pos, rot)
-            return Firings(laser, t, azimuth, j0, rotation_start, returns)
+                self._beam_azimuth(self._cast_azimuth(azimuth), laser).reshape(
+                    -1, sensor.n_lasers), pos, rot)
+            return Firings(laser, t, azimuth, j0, rotation_start, self._decoded(returns))
         times, ps, rs = record
         hist = self._pose_history
         if hist is not None:
@@ -459,8 +460,26 @@ class BenchSim:
         tc = np.clip(t, times[0], times[-1])
         pos = np.column_stack([np.interp(tc, times, ps[:, j]) for j in range(3)])
         rot = Slerp(times, Rotation.from_matrix(rs))(tc).as_matrix()
-        returns = self.emulator.fire(self._beam_azimuth(azimuth, laser), laser, pos, rot)
-        return Firings(laser, t, azimuth, j0, rotation_start, returns)
+        returns = self.emulator.fire(self._beam_azimuth(self._cast_azimuth(azimuth), laser),
+                                     laser, pos, rot)
+        return Firings(laser, t, azimuth, j0, rotation_start, self._decoded(returns))
+
+    def _cast_azimuth(self, azimuth: np.ndarray) -> np.ndarray:
+        """The encoder azimuths the firings are cast at: their own, or without the firing
+        delays (`EmulationConfig.firing_delays` False) each sequence's first firing's for every
+        laser of it (firings in whole sequences, lasers in order)."""
+        if self.config.firing_delays:
+            return azimuth
+        n_l = self.sensor.n_lasers
+        a = azimuth.reshape(-1, n_l)
+        return np.ascontiguousarray(np.broadcast_to(a[:, :1], a.shape)).reshape(-1)
+
+    def _decoded(self, returns):
+        """Without the firing delays the emulator's points are at the cast azimuths: dropped,
+        so that the scans' points come from the azimuths a decoder reports."""
+        if not self.config.firing_delays:
+            returns.x = returns.y = returns.z = None
+        return returns
 
     def _fire_range(self, lo: int, hi: int) -> Firings:
         """`_fire_window` over [lo, hi) in contiguous chunks of about `CHUNK_SEQUENCES` (memory

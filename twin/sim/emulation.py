@@ -125,6 +125,13 @@ class EmulationConfig:
     rpm_wander_sigma: float = 1.0
     #: Laser origins offset along Z_L by the manual's vertical corrections.
     vertical_offsets: bool = True
+    #: Each laser cast at its own firing instant's azimuth (the sensor's per-laser firing times
+    #: within a sequence, 2.304 us apart on a VLP-16). False: every laser of a sequence cast at
+    #: the azimuth of its first firing, as simulators without intra-block delays do, while the
+    #: scan still reports each firing's azimuth as a decoder computes it from those times (and
+    #: its point from that azimuth): a world the decoder misreads by up to a sequence's spin
+    #: (0.12 deg at 600 rpm). For studies of such a mismatch only.
+    firing_delays: bool = True
     #: Cull rays that can only meet planes (exact; see the module docstring).
     culling: bool = True
     #: Which sub-rays of a divergent beam meet which geoms on the grid path (the stages at
