@@ -922,8 +922,11 @@ def _packet_index(info: OusterInfo, t: _ScanTable
     fields = _LEGACY_SCAN_FIELDS if legacy else tuple(
         f for f in info.profile.fields if f.name in _SCAN_CHANNELS)
     first = 0 if legacy else PACKET_HEADER_BYTES  # the packet's first column
-    pixel = 12 if legacy else info.profile.pixel_bytes
-    column_header = 16 if legacy else COLUMN_HEADER_BYTES
+    if legacy:  # where `column_dtype` puts a column's pixels, and a pixel's size
+        col = column_dtype(info)
+        column_header, pixel = col.fields["pixels"][1], col["pixels"].base.itemsize
+    else:
+        column_header, pixel = COLUMN_HEADER_BYTES, info.profile.pixel_bytes
     base = (t.col // cpp * info.packet_bytes + first + t.col % cpp * info.column_bytes
             + column_header + t.beam * pixel)
     index = {}

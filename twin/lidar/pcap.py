@@ -299,28 +299,16 @@ def _udp_record(ts: float, link: int, buf, start: int, n: int,
     """The UDP datagram in the link-layer frame of ``n`` bytes at ``start`` of ``buf`` (bytes,
     or the mapped file), or None (and a count of why not)."""
     if link == LINKTYPE_ETHERNET and n >= _ETH_IP_UDP.size:
-        # the usual frame (no VLAN tag, a 20-byte IPv4 header) in one read, the same checks
+        # the usual frame (no VLAN tag, a 20-byte IPv4 header) in one read
         (ethertype, ver_ihl, total_len, frag, proto, src, dst, src_port, dst_port,
          udp_len) = _ETH_IP_UDP.unpack_from(buf, start)
         if ethertype == ETHERTYPE_IPV4 and ver_ihl == 0x45:
-            if total_len < 20:
-                skipped["malformed"] += 1
-                return None
-            if frag & 0x3FFF:
-                skipped["fragment"] += 1
-                return None
-            if proto != IPPROTO_UDP:
-                skipped["not_udp"] += 1
-                return None
-            if n < 14 + total_len or total_len < 28:
-                skipped["truncated" if n < 14 + total_len else "malformed"] += 1
-                return None
-            if udp_len < 8 or 20 + udp_len > total_len:
-                skipped["malformed"] += 1
+            udp = _udp_offset(14, ver_ihl, total_len, frag, proto, n, skipped)
+            if udp is None or not _udp_length_fits(udp_len, udp, 14 + total_len, skipped):
                 return None
             return UdpRecord(timestamp=ts, src_ip=_ip_text(src), dst_ip=_ip_text(dst),
                              src_port=src_port, dst_port=dst_port,
-                             payload=buf[start + 42:start + 34 + udp_len])
+                             payload=buf[start + udp + 8:start + udp + udp_len])
     ip = _ip_offset(link, buf, start, n, skipped)
     if ip is None:
         return None
@@ -328,6 +316,27 @@ def _udp_record(ts: float, link: int, buf, start: int, n: int,
         skipped["truncated"] += 1
         return None
     ver_ihl, _, total_len, _, frag, _, proto = struct.unpack_from("!BBHHHBB", buf, start + ip)
+    udp = _udp_offset(ip, ver_ihl, total_len, frag, proto, n, skipped)
+    if udp is None:
+        return None
+    src_port, dst_port, udp_len = struct.unpack_from("!HHH", buf, start + udp)
+    if not _udp_length_fits(udp_len, udp, ip + total_len, skipped):
+        return None
+    return UdpRecord(
+        timestamp=ts,
+        src_ip=_ip_str(buf, start + ip + 12),
+        dst_ip=_ip_str(buf, start + ip + 16),
+        src_port=src_port,
+        dst_port=dst_port,
+        payload=buf[start + udp + 8:start + udp + udp_len],
+    )
+
+
+def _udp_offset(ip: int, ver_ihl: int, total_len: int, frag: int, proto: int, n: int,
+                skipped: Counter) -> int | None:
+    """The UDP header's offset in a frame of ``n`` bytes whose IPv4 header at ``ip`` holds
+    these fields, or None when the datagram is not a whole unfragmented UDP one (and a count
+    of why not)."""
     if ver_ihl >> 4 != 4:
         skipped["not_ipv4"] += 1
         return None
@@ -341,22 +350,19 @@ def _udp_record(ts: float, link: int, buf, start: int, n: int,
     if proto != IPPROTO_UDP:
         skipped["not_udp"] += 1
         return None
-    udp = ip + ihl
     if n < ip + total_len or total_len < ihl + 8:
         skipped["truncated" if n < ip + total_len else "malformed"] += 1
         return None
-    src_port, dst_port, udp_len = struct.unpack_from("!HHH", buf, start + udp)
-    if udp_len < 8 or udp + udp_len > ip + total_len:
+    return ip + ihl
+
+
+def _udp_length_fits(udp_len: int, udp: int, ip_end: int, skipped: Counter) -> bool:
+    """Whether a UDP header's length at ``udp`` fits the IPv4 datagram ending at ``ip_end``
+    (else counted malformed)."""
+    if udp_len < 8 or udp + udp_len > ip_end:
         skipped["malformed"] += 1
-        return None
-    return UdpRecord(
-        timestamp=ts,
-        src_ip=_ip_str(buf, start + ip + 12),
-        dst_ip=_ip_str(buf, start + ip + 16),
-        src_port=src_port,
-        dst_port=dst_port,
-        payload=buf[start + udp + 8:start + udp + udp_len],
-    )
+        return False
+    return True
 
 
 def _ip_offset(link: int, buf, start: int, n: int, skipped: Counter) -> int | None:
