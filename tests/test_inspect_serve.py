@@ -50,7 +50,13 @@ def test_serve_then_inspect_udp(tmp_path: Path):
     assert "homed and at the bench reference" in served, served
     assert r.returncode == 1, r.stderr  # 2.5 deg of tilt against a 1 deg limit: FAIL
     out = json.loads(r.stdout.strip().splitlines()[-1])
-    assert out["verdict"] == "fail" and out["scans"] == 10
+    # 10 scans, the station's; more only where the procedure re-measures because an attempt
+    # had no pose to judge (a live stream on a loaded machine can lose or delay a rotation's
+    # packets; seen once in a CI run: 30 scans, the verdict still FAIL)
+    attempts = out["attempts"]
+    assert out["verdict"] == "fail", out
+    assert out["scans"] == 10 or all(a["status"] != "ok" for a in attempts[:-1]), (
+        attempts, served[-600:])
     # Within the twin's own sensor errors (per-laser offsets bias tilt by up to ~0.6 deg).
     assert abs(out["tilt_deg"] - 2.5) < 0.8, out["tilt_deg"]
     assert abs(out["x_mm"]) < 3 * out["x_mm_std"] + 2.0, out  # the stages at the reference
