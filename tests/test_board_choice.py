@@ -217,9 +217,11 @@ def test_a_board_of_another_size_than_given_is_not_vouched_for():
     not ok (a board given 6-10 % small passed, x 26-44 mm and roll 1 deg off: the rectangle's
     edge sat inside the board with its outside hits under 3 %), and says the size given may be
     wrong; 3 % off (a drawing against a printed board, ranges read long) the pose is freed
-    from the size given and stands."""
+    from the size given and stands. Seed 16, 6 % small: the first choice refused, the retry's
+    next candidate, a piece of the same board whose start left the rest of it out as strays,
+    passed (`align.api._same_object`)."""
     hints = align.Hints(edge_tolerance=(0.0, 0.0))
-    for seed in (4, 5):
+    for seed in (4, 5, 16):
         scan = BenchSim(seed=seed, noise=NOISE).scan()
         truth = scan.meta["truth_pose"].as_array()
         for f in (0.9, 0.94, 1.06, 1.1):

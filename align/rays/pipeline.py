@@ -525,6 +525,9 @@ def _status(diag: dict, seen: dict, model: Model, conv: bool, *, p: RaysParams) 
     diag["edges_seen"] = "".join("lrbt"[i] for i in range(4) if seen[i])
     not_it = _not_the_board(diag, model.board, p=p)
     if not_it:
+        # the rectangle is not this object's: nor is a piece of the same object
+        # (`align.api._other_candidates`)
+        diag["not_the_board"] = True
         return Status.PARTIAL_BOARD, not_it
     occluded, inside_miss = diag["occluded_rays"], diag["inside_misses"]
     outside_hits, brackets = diag["outside_hits"], diag["brackets"]
