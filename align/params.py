@@ -50,6 +50,14 @@ class RaysParams:
     #: plane, and tilt's chi2 was 2.6 fused.
     start_band: float = 0.05
     start_band_sigmas: float = 3.0
+    #: The search kept a cluster's returns within `align.search.board.FLAT_BAND` of its plane;
+    #: where that band is within this many sigmas of the ranges' spread (the cluster's own,
+    #: robust) the cut leans the plane fitted to what it kept, and the plane is fitted to every
+    #: return of the cluster's rings within the azimuths each spans in it instead (21 mm of
+    #: noise, a 1.9 sigma cut: tilt 1.23 x its bound, chi2 1.4-3.8; at 14 mm, 2.9 sigma, the
+    #: returns it gives back changed the ratios by 0.03 at most, and they take in a box a few cm
+    #: behind the board's edge: so only below this).
+    pool_cut_sigmas: float = 2.5
 
     # The rays near the board (`align.fit.rays`)
 

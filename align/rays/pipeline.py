@@ -22,7 +22,13 @@ from align.fit.model import Model, build_model
 from align.fit.rays import DROPOUT, HIT, MISS, UNKNOWN, rays_of
 from align.fit.size import seen_size, size_mismatch
 from align.fit.starts import held_by, start_at, starts_on
-from align.geometry import board_centre, in_plane_rotation, plane_of_pose, pose_from_plane
+from align.geometry import (
+    board_centre,
+    in_plane_rotation,
+    plane_of_pose,
+    pose_from_plane,
+    unwrap,
+)
 from align.params import RaysParams
 from align.plane.fit import fit_rays, fit_rays_offsets, predicted_range, ransac
 from align.posterior.hit_miss import OffsetModel, label_posterior
@@ -38,6 +44,7 @@ from align.rays.plane_steps import (
     start_band,
 )
 from align.result import Hints, PoseEstimate, Status
+from align.search.board import FLAT_BAND
 from align.search.cluster_kernels import in_ring_block
 from align.search.result import Segmentation
 from align.search.rings import on_board_rings
@@ -150,16 +157,23 @@ def _board_rays(scans: list[Scan], segs: list[Segmentation], rng: np.random.Gene
                 p: RaysParams
                 ) -> tuple[BoardRays, np.ndarray, float]:
     """The rays of the board's returns within a band about a RANSAC plane of the first scan's
-    (the band `start_band`), and that plane (n, d)."""
+    (the band `start_band`), and that plane (n, d); of a noisy unit's, the returns of the
+    cluster's rings within the azimuths each spans in it (`ring_spans`), not the cluster's
+    alone."""
     # the plane from the board's own rings: the cluster may reach the stand's face a ring or
     # two below, coplanar within the bands below (it biased tilt by 0.04 deg fused on the
     # paper's bench)
     board_idx = [on_board_rings(s, g.board) for s, g in zip(scans, segs, strict=True)]
-    pts = [np.column_stack((s.x[i], s.y[i], s.z[i])) for s, i in
-           zip(scans, board_idx, strict=True)]
-    # robust start: RANSAC on the first scan's cluster
-    n, d, _ = ransac(pts[0], 0.04, rng, 100, truncated=True)
-    band = start_band(np.abs(pts[0] @ n - d), p=p)
+    # robust start: RANSAC on the first scan's cluster, and the band about it from its spread
+    first = _points(scans[0], board_idx[0])
+    n, d, _ = ransac(first, 0.04, rng, 100, truncated=True)
+    dev = np.abs(first @ n - d)
+    band = start_band(dev, p=p)
+    spread = 1.4826 * float(np.median(dev))  # the ranges' sigma, robust
+    if spread > 0 and FLAT_BAND / spread < p.pool_cut_sigmas:
+        # a noisy unit: the search's band cut its noise (`p.pool_cut_sigmas`)
+        board_idx = [ring_spans(s, i) for s, i in zip(scans, board_idx, strict=True)]
+    pts = [_points(s, i) for s, i in zip(scans, board_idx, strict=True)]
     o_l, u_l, r_l, k_l = [], [], [], []
     for s, i, pt in zip(scans, board_idx, pts, strict=True):
         near = i[np.abs(pt @ n - d) < band]
@@ -172,6 +186,31 @@ def _board_rays(scans: list[Scan], segs: list[Segmentation], rng: np.random.Gene
     rays = BoardRays(np.concatenate(o_l), np.concatenate(u_l), np.concatenate(r_l),
                      np.concatenate(k_l), np.ones(sum(map(len, r_l)), dtype=bool), len(o_l[0]))
     return rays, n, d
+
+
+def _points(scan: Scan, idx: np.ndarray) -> np.ndarray:
+    """The returns ``idx`` of ``scan`` as (N, 3) points in {L}, m."""
+    return np.column_stack((scan.x[idx], scan.y[idx], scan.z[idx]))
+
+
+def ring_spans(scan: Scan, idx: np.ndarray) -> np.ndarray:
+    """The returns of ``scan`` on the rings of the returns ``idx`` within the azimuths each of
+    those rings spans in ``idx`` (ascending indices; ``idx``'s own among them)."""
+    if not len(idx):
+        return idx
+    centre = float(np.angle(np.mean(np.exp(1j * scan.azimuth[idx]))))
+    ring_of = scan.lasers.ring_of_laser
+    rings = ring_of[scan.laser_id[idx]]
+    rel = unwrap(scan.azimuth[idx], centre)
+    n_rings = int(ring_of.max()) + 1
+    lo = np.full(n_rings, np.inf)
+    hi = np.full(n_rings, -np.inf)
+    np.minimum.at(lo, rings, rel)
+    np.maximum.at(hi, rings, rel)
+    ring_all = ring_of[scan.laser_id]
+    rel_all = unwrap(scan.azimuth, centre)
+    inside = (scan.distance > 0) & (rel_all >= lo[ring_all]) & (rel_all <= hi[ring_all])
+    return np.union1d(idx, np.flatnonzero(inside))
 
 
 def _plane_of_rays(rays: BoardRays, n: np.ndarray, d: float, *, p: RaysParams
