@@ -84,8 +84,11 @@ def test_bias_and_linearity_recover_a_known_gauge():
 @pytest.mark.slow
 def test_twin_grr_moves_the_right_way_with_noise_and_tolerance(tmp_path: Path):
     """A small twin study (4 parts x 2 re-mountings x 2 trials of 4 scans), with the twin's
-    14 mm range noise and with 28 mm: the repeatability grows with the noise (the plane's tilt
-    and yaw scale with it); %GRR against a tolerance twice as wide is half."""
+    14 mm range noise and with 28 mm: the repeatability grows with the noise (yaw and x scale
+    with it; tilt's has a part that does not: 0.163 deg at 14 mm, 0.187 at 28, by the two
+    levels about 0.15 deg that does not scale. It passed 1.4 x at 28 mm only while the search's
+    4 cm band leaned a noisy unit's plane: 0.234 deg, 0.456 with seed 2); %GRR against a
+    tolerance twice as wide is half."""
     st = stations.default()
     wide = st.model_copy(update={"tolerances": st.tolerances.model_copy(update={
         "roll_deg": 2.0, "tilt_deg": 2.0, "yaw_deg": 2.0, "x_mm": 20.0})})
@@ -98,8 +101,10 @@ def test_twin_grr_moves_the_right_way_with_noise_and_tolerance(tmp_path: Path):
             assert sum(r["status"] == "ok" for r in rows) == 16
             figures[noise] = {g.axis: g for g in grr_report(rows, st, 0.95)}
         wide_fig = {g.axis: g for g in grr_report(rows, wide, 0.95)}
-    for axis in ("tilt_deg", "yaw_deg"):
+    for axis in ("x_mm", "yaw_deg"):
         assert figures[28.0][axis].sigma["EV"] > 1.4 * figures[14.0][axis].sigma["EV"], axis
+    for axis in ("roll_deg", "tilt_deg"):
+        assert figures[28.0][axis].sigma["EV"] > figures[14.0][axis].sigma["EV"], axis
     for axis, g in figures[28.0].items():
         assert np.isclose(wide_fig[axis].pct_tolerance["GRR"], g.pct_tolerance["GRR"] / 2)
         assert set(g.ci) >= {"sigma_GRR", "pct_tolerance_GRR", "ndc"}
