@@ -299,11 +299,18 @@ def test_episode_through_aimbench_serve() -> None:
         assert obs["estimate_ok"] == 1 and not terminated
         assert info["error_yaw_rad"] == pytest.approx(math.radians(2.0), abs=math.radians(0.5))
         assert info["error_x_m"] == pytest.approx(0.030, abs=0.012)
-        for _ in range(6):
+        # within the episode's time limit (the registration's): a run on a loaded machine
+        # (another test file on the other worker) did not end aligned within 6 steps once
+        steps = []
+        for _ in range(gym_env.MAX_EPISODE_STEPS - 1):
             obs, _, terminated, _, info = env.step(scripted_policy(env, obs))
+            steps.append({k: info.get(k) for k in ("error_yaw_rad", "error_x_m",
+                                                    "estimate_status", "error_source")})
             if terminated:
                 break
-        assert terminated and info["aligned"] and info["error_source"] == "estimate"
+        # each step's estimated error (rad, m), status and source: a run that does not
+        # end aligned says whether the estimates failed or scattered beyond the tolerance
+        assert terminated and info["aligned"] and info["error_source"] == "estimate", steps
         assert np.all(np.abs(obs["stage"]) < [math.radians(1.0), 0.015])  # back near home
     finally:
         env.close()
