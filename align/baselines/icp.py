@@ -38,7 +38,7 @@ def board_model(board: BoardSpec) -> o3d.geometry.PointCloud:
 def estimate_icp(scan: Scan, board: BoardSpec, hints: Hints, seg: Segmentation) -> PoseEstimate:
     """Point-to-plane ICP from the nominal start (board straight ahead at the centroid)."""
     board_idx = on_board_rings(scan, seg.board)
-    pts = np.column_stack((scan.x[board_idx], scan.y[board_idx], scan.z[board_idx]))
+    pts = scan.points(board_idx)
     c = pts.mean(axis=0)
     yaw0 = float(np.arctan2(-c[0], c[1]))  # turn so that the centroid is straight ahead
     r0 = rotation(0.0, 0.0, yaw0)

@@ -133,7 +133,7 @@ def levenberg_marquardt(
 def estimate_paper(scan: Scan, board: BoardSpec, hints: Hints, segmentation) -> PoseEstimate:
     """The paper's pose from one scan whose board cluster ``segmentation`` already found."""
     pts_idx = on_board_rings(scan, segmentation.board)
-    pts = np.column_stack((scan.x[pts_idx], scan.y[pts_idx], scan.z[pts_idx]))
+    pts = scan.points(pts_idx)
     if len(pts) < 10:
         return PoseEstimate.failed(Status.NO_BOARD, "paper", reason="too few board returns")
     rng = np.random.default_rng(hints.seed)

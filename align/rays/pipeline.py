@@ -165,7 +165,7 @@ def _board_rays(scans: list[Scan], segs: list[Segmentation], rng: np.random.Gene
     # paper's bench)
     board_idx = [on_board_rings(s, g.board) for s, g in zip(scans, segs, strict=True)]
     # robust start: RANSAC on the first scan's cluster, and the band about it from its spread
-    first = _points(scans[0], board_idx[0])
+    first = scans[0].points(board_idx[0])
     n, d, _ = ransac(first, 0.04, rng, 100, truncated=True)
     dev = np.abs(first @ n - d)
     band = start_band(dev, p=p)
@@ -173,7 +173,7 @@ def _board_rays(scans: list[Scan], segs: list[Segmentation], rng: np.random.Gene
     if spread > 0 and FLAT_BAND / spread < p.pool_cut_sigmas:
         # a noisy unit: the search's band cut its noise (`p.pool_cut_sigmas`)
         board_idx = [ring_spans(s, i) for s, i in zip(scans, board_idx, strict=True)]
-    pts = [_points(s, i) for s, i in zip(scans, board_idx, strict=True)]
+    pts = [s.points(i) for s, i in zip(scans, board_idx, strict=True)]
     o_l, u_l, r_l, k_l = [], [], [], []
     for s, i, pt in zip(scans, board_idx, pts, strict=True):
         near = i[np.abs(pt @ n - d) < band]
@@ -186,11 +186,6 @@ def _board_rays(scans: list[Scan], segs: list[Segmentation], rng: np.random.Gene
     rays = BoardRays(np.concatenate(o_l), np.concatenate(u_l), np.concatenate(r_l),
                      np.concatenate(k_l), np.ones(sum(map(len, r_l)), dtype=bool), len(o_l[0]))
     return rays, n, d
-
-
-def _points(scan: Scan, idx: np.ndarray) -> np.ndarray:
-    """The returns ``idx`` of ``scan`` as (N, 3) points in {L}, m."""
-    return np.column_stack((scan.x[idx], scan.y[idx], scan.z[idx]))
 
 
 def ring_spans(scan: Scan, idx: np.ndarray) -> np.ndarray:

@@ -65,7 +65,7 @@ def rectangle_fit(scan: Scan, sel: np.ndarray, board: BoardSpec
     a larger surface that the clustering cut out: a door in a wall). Rays without a return, or
     with one in front, count for none: a dark patch, an occluder."""
 
-    points = np.column_stack((scan.x[sel], scan.y[sel], scan.z[sel]))  # not all of Scan.xyz
+    points = scan.points(sel)
     if len(points) < 3:
         return 0.0, 0.0, 0.0
     n, d = fit_lsq(points)
@@ -198,7 +198,7 @@ def _planes(scan: Scan, board: BoardSpec, rng: np.random.Generator, labels: np.n
         for _ in range(PLANES_PER_CLUSTER):
             if len(rest) < 3 or len(rest) < MIN_FRACTION * expect[lab]:
                 break  # what is left cannot be the board
-            on = planar_part(np.column_stack((scan.x[rest], scan.y[rest], scan.z[rest])), rng)
+            on = planar_part(scan.points(rest), rng)
             sel, rest = rest[on], rest[~on]
             if _board_sized(scan, sel, board):
                 found.append(sel)

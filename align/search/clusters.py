@@ -113,7 +113,7 @@ def _edges_sorted(scan: Scan, ok: np.ndarray, board_diagonal: float = np.inf
     az = scan.azimuth[idx]
     order = np.lexsort((az, ring))
     idx, ring_s, az_s = idx[order], ring[order], az[order]
-    pts = np.column_stack((scan.x[idx], scan.y[idx], scan.z[idx]))
+    pts = scan.points(idx)
     thr = np.maximum(CLUSTER_RADIUS_PER_M * scan.distance[idx], CLUSTER_RADIUS_MIN)
     same = (ring_s[1:] == ring_s[:-1]) & (np.diff(az_s) < MAX_AZIMUTH_GAP)
     d = np.linalg.norm(pts[1:] - pts[:-1], axis=1)

@@ -65,7 +65,7 @@ def rectangle_held(scan: Scan, sel: np.ndarray, n: np.ndarray, d: float, board: 
     each alone: a box's face beside the board and the floor's strip below it would each draw
     one side's window their way."""
 
-    points = np.column_stack((scan.x[sel], scan.y[sel], scan.z[sel]))
+    points = scan.points(sel)
     p = points - (points @ n - d)[:, None] * n
     rolls = np.arange(-np.pi / 2, np.pi / 2, COARSE_STEP)
     grow = TOLERANCE + 0.5 * board.diagonal * np.sin(0.5 * COARSE_STEP)

@@ -391,7 +391,7 @@ def log_scan_points(rec: rr.RecordingStream, scan: Scan, entity: str = "world/se
         mask = mask & keep if keep is not None else np.zeros(len(scan), dtype=bool)
         mask[idx] = True
     # float32: rerun stores positions as f32 anyway; converting here halves the copy.
-    xyz = np.column_stack((scan.x[mask], scan.y[mask], scan.z[mask])).astype(np.float32)
+    xyz = scan.points(mask).astype(np.float32)
     rec.log(entity, rr.Points3D(xyz, colors=scan_colors(scan, mask, color_by),
                                 radii=rr.Radius.ui_points(1.5)))
     return len(xyz)
@@ -421,7 +421,7 @@ def log_used(rec: rr.RecordingStream, scan: Scan, used: Mapping[str, Any] | None
     board = _indices(used, "board", n)
     feats = _indices(used, "features", n)
     if len(board):
-        pts = np.column_stack((scan.x[board], scan.y[board], scan.z[board]))
+        pts = scan.points(board)
         rec.log(f"{entity}/board_points", rr.Points3D(pts.astype(np.float32),
                                                       colors=[BOARD_POINTS_COLOR],
                                                       radii=rr.Radius.ui_points(2.5)))
@@ -434,7 +434,7 @@ def log_used(rec: rr.RecordingStream, scan: Scan, used: Mapping[str, Any] | None
     else:
         rec.log(f"{entity}/plane", rr.Clear(recursive=False))
     if len(feats):
-        fpts = np.column_stack((scan.x[feats], scan.y[feats], scan.z[feats]))
+        fpts = scan.points(feats)
         miss = ~scan.valid[feats]
         if miss.any() and plane is not None:
             # Where a missing ray crosses the plane: o + s u with n.(o + s u) = d0.

@@ -109,6 +109,11 @@ class Scan:
         """Positions as an (N, 3) array in {L}, m."""
         return np.column_stack((self.x, self.y, self.z))
 
+    def points(self, idx: np.ndarray) -> np.ndarray:
+        """The positions of the firings ``idx`` (indices or a mask) as an (n, 3) array in {L},
+        m: `xyz` of those alone, without stacking every firing first."""
+        return np.column_stack((self.x[idx], self.y[idx], self.z[idx]))
+
     def directions(self) -> np.ndarray:
         """Unit direction of every fired ray in {L}, (N, 3), returns or not."""
         ce = np.cos(self.elevation)
